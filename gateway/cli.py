@@ -1,0 +1,39 @@
+"""The ``busgate`` command: one parser, subcommands added by the modules that own them.
+
+A ``BusgateError`` (a bad command line, a refused command) is printed as one line and exits
+with status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from busgate.codecs.errors import BusgateError
+from busgate.gateway import codec_cli
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="busgate",
+        description="busgate: a gateway between motion-device buses (Inspire LA actuators, "
+        "ZLAC706 hub-motor drivers, DS serial servos) and Eclipse Zenoh.",
+    )
+    subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="COMMAND")
+    codec_cli.add_parsers(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except BusgateError as exc:
+        print(f"busgate {args.subcommand}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+"""``busgate encode`` and ``busgate decode``: the codecs at the command line.
+
+encode: JSON command → schema model → driver frames → wire, one frame per line (lowercase
+hex, CAN frames as ``id#data`` like cansend). decode: wire → one JSON object per frame or
+event; exit status 1 when anything failed its checksum, was discarded or was left incomplete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import CommandError
+from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.gateway.jsonify import to_jsonable
+from busgate.gateway.protocols import PROTOCOLS, Protocol
+from busgate.schemas.errors import command_from_json
+
+DEFAULT_ID = 1  # the factory default of every addressed device family we drive
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    encode = subparsers.add_parser(
+        "encode",
+        help="print the frames that carry out a JSON command",
+        description="Print the frame(s) of a JSON command, one per line: lowercase hex, or "
+        "id#data for CAN.",
+    )
+    encode.add_argument("protocol", choices=sorted(PROTOCOLS))
+    encode.add_argument("command", help="the JSON command, e.g. '{\"op\":\"move\",\"position\":1000}'")
+    encode.add_argument(
+        "--id", type=int, default=None, help=f"device id (default {DEFAULT_ID}; 255/254 broadcast)"
+    )
+    encode.set_defaults(handler=run_encode)
+
+    decode = subparsers.add_parser(
+        "decode",
+        help="decode frames from hex",
+        description="Decode wire bytes (hex; CAN frames as id#data) into one JSON object per frame "
+        "or event. Exit status 1 when a checksum fails or bytes are discarded.",
+    )
+    decode.add_argument("protocol", choices=sorted(PROTOCOLS))
+    decode.add_argument("wire", nargs="+", help="hex bytes (spaces allowed), or id#data for CAN")
+    decode.add_argument(
+        "--as",
+        dest="direction",
+        choices=("auto", "command", "reply"),
+        default="auto",
+        help="decode as host commands or as device replies (default: whichever fits)",
+    )
+    decode.set_defaults(handler=run_decode)
+
+
+def run_encode(args: argparse.Namespace) -> int:
+    protocol = PROTOCOLS[args.protocol]
+    if args.id is not None and not protocol.addressed:
+        raise CommandError(f"{protocol.name} frames carry no device id; drop --id")
+    command = command_from_json(protocol.schema.COMMAND_ADAPTER, args.command)
+    device_id = DEFAULT_ID if args.id is None else args.id
+    for frame in protocol.driver.frames_for(command, device_id):
+        print(wire_text(protocol.codec.encode(frame)))
+    return 0
+
+
+def wire_text(wire: bytes | CanFrame) -> str:
+    return str(wire) if isinstance(wire, CanFrame) else wire.hex()
+
+
+def run_decode(args: argparse.Namespace) -> int:
+    protocol = PROTOCOLS[args.protocol]
+    directions = ("command", "reply") if args.direction == "auto" else (args.direction,)
+    results = [decode_wire(protocol, direction, args.wire) for direction in directions]
+    events, leftover = min(results, key=_badness)
+    for event in events:
+        print(json.dumps(to_jsonable(event)))
+    problems = [_describe_problem(e) for e in events if isinstance(e, Discarded | ChecksumMismatch)]
+    if leftover:
+        problems.append(f"incomplete frame: {leftover} byte(s) left over at the end")
+    for problem in problems:
+        print(f"busgate decode: {problem}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+def decode_wire(protocol: Protocol, direction: str, wire: list[str]) -> tuple[list, int]:
+    """Decode ``wire`` as commands or replies; return the events and the bytes left over."""
+    decoder_class = protocol.codec.CommandDecoder if direction == "command" else protocol.codec.ReplyDecoder
+    decoder = decoder_class()
+    if protocol.can:
+        for text in wire:
+            decoder.feed(CanFrame.parse(text))
+    else:
+        decoder.feed(_parse_hex(" ".join(wire)))
+    events = list(decoder.events())
+    return events, 0 if protocol.can else decoder.pending
+
+
+def _parse_hex(text: str) -> bytes:
+    try:
+        return bytes.fromhex(text)
+    except ValueError as exc:
+        raise CommandError(f"not hex bytes: {text!r}") from exc
+
+
+def _badness(result: tuple[list, int]) -> tuple[int, int]:
+    """Order decodings: fewest bad bytes first, then most frames."""
+    events, leftover = result
+    bad = leftover + sum(
+        len(e.data) if isinstance(e, Discarded) else len(e.frame)
+        for e in events
+        if isinstance(e, Discarded | ChecksumMismatch)
+    )
+    return bad, -len(events)
+
+
+def _describe_problem(event: Discarded | ChecksumMismatch) -> str:
+    if isinstance(event, ChecksumMismatch):
+        return (
+            f"checksum mismatch in frame {event.frame.hex()}: checksum should be "
+            f"{event.expected:#04x}, frame has {event.received:#04x}"
+        )
+    return f"discarded {event.data.hex()}: {event.reason}"

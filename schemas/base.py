@@ -1,0 +1,27 @@
+"""What every command model shares: strict parsing, the client field, hex data.
+
+Rules: a command is refused, never coerced. Unknown fields, strings for numbers, floats for
+integers, NaN and infinities are validation errors, so a malformed command cannot reach a wire.
+Ranges come from the codecs' register tables, never retyped here.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
+
+#: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
+ClientId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+
+#: Raw bytes written to a device, as hex without spaces (``"e803"``).
+HexData = Annotated[str, Field(pattern=r"^(?:[0-9a-fA-F]{2})+$", max_length=512)]
+
+
+class CommandModel(BaseModel):
+    """Base of every JSON command: strict, closed, immutable."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+
+    client: ClientId | None = None
+

@@ -1,0 +1,59 @@
+"""Shared test machinery. ``golden`` is h11's ``tr()`` for our byte-stream decoders: it runs a
+manual's example frame through a fresh decoder whole, split at every byte, byte by byte, behind
+garbage and after a copy of itself with a bad checksum."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import pytest
+
+from busgate.codecs.framing import ChecksumMismatch, Discarded, StreamDecoder
+
+ERROR_EVENTS = (Discarded, ChecksumMismatch)
+
+
+def _drain_after_feeding(make_decoder: Callable[[], StreamDecoder], chunks: Sequence[bytes]):
+    decoder = make_decoder()
+    events = []
+    for chunk in chunks:
+        decoder.feed(chunk)
+        events.extend(decoder.events())
+    assert decoder.pending < decoder.max_frame
+    return events
+
+
+def _without_errors(events):
+    return [e for e in events if not isinstance(e, ERROR_EVENTS)]
+
+
+def check_golden(
+    make_decoder: Callable[[], StreamDecoder],
+    wire: bytes,
+    expected: Sequence[object],
+    *,
+    garbage: bytes = b"\x00\x13\x37",
+) -> None:
+    """Assert that ``wire`` decodes to exactly ``expected`` however it arrives."""
+    expected = list(expected)
+    assert _drain_after_feeding(make_decoder, [wire]) == expected, "whole"
+    for k in range(1, len(wire)):
+        assert _drain_after_feeding(make_decoder, [wire[:k], wire[k:]]) == expected, f"split {k}"
+    assert _drain_after_feeding(make_decoder, [bytes([b]) for b in wire]) == expected, "bytewise"
+
+    after_garbage = _drain_after_feeding(make_decoder, [garbage + wire])
+    assert _without_errors(after_garbage) == expected, "after garbage"
+    discarded = b"".join(e.data for e in after_garbage if isinstance(e, Discarded))
+    assert discarded == garbage, "garbage reported as discarded"
+
+    bad = wire[:-1] + bytes([wire[-1] ^ 0x5A])
+    after_bad = _drain_after_feeding(make_decoder, [bad + wire])
+    assert any(isinstance(e, ChecksumMismatch) for e in after_bad), "bad checksum reported"
+    good = _without_errors(after_bad)
+    assert good[len(good) - len(expected) :] == expected, "after a bad checksum"
+
+
+@pytest.fixture
+def golden() -> Callable[..., None]:
+    """``golden(make_decoder, wire, expected, garbage=...)``: see ``check_golden``."""
+    return check_golden
