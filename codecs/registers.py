@@ -99,7 +99,7 @@ class RegisterMap:
 
 
 def require_range(field: str, value: int, lo: int, hi: int) -> int:
-    """Return ``value`` when ``lo <= value <= hi``; otherwise raise ``EncodeError`` naming ``field``.
+    """Return ``value`` when ``lo <= value <= hi``, else raise ``EncodeError`` naming ``field``.
 
     >>> require_range("position", 2001, 0, 2000)
     Traceback (most recent call last):

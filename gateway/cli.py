@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 from busgate.codecs.errors import BusgateError
 from busgate.gateway import codec_cli
+from busgate.gateway.sim import cli as sim_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,6 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="COMMAND")
     codec_cli.add_parsers(subparsers)
+    sim_cli.add_parsers(subparsers)
     return parser
 
 

@@ -29,7 +29,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "id#data for CAN.",
     )
     encode.add_argument("protocol", choices=sorted(PROTOCOLS))
-    encode.add_argument("command", help="the JSON command, e.g. '{\"op\":\"move\",\"position\":1000}'")
+    encode.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
     encode.add_argument(
         "--id", type=int, default=None, help=f"device id (default {DEFAULT_ID}; 255/254 broadcast)"
     )
@@ -85,8 +85,8 @@ def run_decode(args: argparse.Namespace) -> int:
 
 def decode_wire(protocol: Protocol, direction: str, wire: list[str]) -> tuple[list, int]:
     """Decode ``wire`` as commands or replies; return the events and the bytes left over."""
-    decoder_class = protocol.codec.CommandDecoder if direction == "command" else protocol.codec.ReplyDecoder
-    decoder = decoder_class()
+    codec = protocol.codec
+    decoder = codec.CommandDecoder() if direction == "command" else codec.ReplyDecoder()
     if protocol.can:
         for text in wire:
             decoder.feed(CanFrame.parse(text))

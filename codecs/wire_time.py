@@ -1,0 +1,40 @@
+"""How long frames occupy a wire: the arithmetic that deadlines, gaps and budgets rest on.
+
+UART frames are 8N1: 10 bits per byte (start, 8 data, stop). A classic CAN data frame with a
+standard identifier has 47 fixed bits plus 8 per data byte; bit stuffing adds at most one bit
+per four of the 34 + 8n bits it covers (SOF to CRC), which gives the worst case.
+"""
+
+from __future__ import annotations
+
+UART_BITS_PER_BYTE = 10
+
+
+def uart_time(nbytes: int, baudrate: int) -> float:
+    """Seconds ``nbytes`` take on an 8N1 UART at ``baudrate``.
+
+    >>> round(uart_time(22, 921600) * 1e6)  # an Inspire LA status reply
+    239
+    """
+    return nbytes * UART_BITS_PER_BYTE / baudrate
+
+
+def can_frame_bits(data_bytes: int, *, worst_case: bool = True) -> int:
+    """Bits of a classic CAN data frame with an 11-bit id, interframe space included.
+
+    >>> can_frame_bits(8, worst_case=False), can_frame_bits(8)
+    (111, 135)
+    """
+    bits = 47 + 8 * data_bytes
+    if worst_case:
+        bits += (34 + 8 * data_bytes - 1) // 4
+    return bits
+
+
+def can_time(data_bytes: int, bitrate: int, *, worst_case: bool = True) -> float:
+    """Seconds one classic CAN frame with ``data_bytes`` takes at ``bitrate``.
+
+    >>> round(can_time(8, 500_000) * 1e6)
+    270
+    """
+    return can_frame_bits(data_bytes, worst_case=worst_case) / bitrate

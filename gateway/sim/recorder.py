@@ -1,0 +1,59 @@
+"""The simulators' record of the wire: one JSON line per frame, in either direction.
+
+Times are ``time.perf_counter()`` seconds, which on Linux is CLOCK_MONOTONIC and so comparable
+across processes: ``start`` is when the frame's first byte went on the wire and ``end`` when its
+last byte left it, so gaps and follow periods can be measured on the device side.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from typing import IO
+
+
+@dataclass(frozen=True, slots=True)
+class WireRecord:
+    direction: str  # "rx": host → device, "tx": device → host
+    start: float
+    end: float
+    wire: str  # hex, or id#data for CAN
+    frame: str  # the decoded event's class name
+    device_id: int | None = None
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {
+                "dir": self.direction,
+                "start": round(self.start, 7),
+                "end": round(self.end, 7),
+                "wire": self.wire,
+                "frame": self.frame,
+                "device_id": self.device_id,
+            }
+        )
+
+
+class Recorder:
+    """Keeps records in memory (``records``) and, when given a file, appends JSON lines."""
+
+    def __init__(self, stream: IO[str] | None = None, *, keep: int = 100_000) -> None:
+        self._stream = stream
+        self._keep = keep
+        self._lock = threading.Lock()
+        self.records: list[WireRecord] = []
+
+    def record(self, record: WireRecord) -> None:
+        with self._lock:
+            self.records.append(record)
+            if len(self.records) > self._keep:
+                del self.records[: len(self.records) - self._keep]
+            if self._stream is not None:
+                self._stream.write(record.to_json() + "\n")
+                self._stream.flush()
+
+    def received(self) -> list[WireRecord]:
+        """The frames the devices received, in order."""
+        with self._lock:
+            return [r for r in self.records if r.direction == "rx"]
