@@ -52,7 +52,8 @@ class SlcanAdapter:
     def stop(self) -> None:
         self._stop.set()
         for thread in self._threads:
-            thread.join(timeout=2)
+            if thread.is_alive():
+                thread.join(timeout=2)
         self._bus.shutdown()
         self.link.close()
 
@@ -86,6 +87,8 @@ class SlcanAdapter:
         return [line.decode("ascii", "replace") for line in complete]
 
     def _execute(self, line: str) -> bytes:
+        if not line:  # a bare CR: hosts send it to flush, firmwares acknowledge it
+            return OK
         if line in BITRATES and not self.is_open:
             self.bitrate = BITRATES[line]
             return OK
