@@ -22,7 +22,7 @@ import can
 
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import Discarded
-from busgate.codecs.wire_time import can_time
+from busgate.codecs.timing import can_time
 from busgate.gateway.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.faults import FaultInjector

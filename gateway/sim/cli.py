@@ -13,16 +13,13 @@ import threading
 import uuid
 
 from busgate.codecs.errors import CommandError
+from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.gateway.clock import now
 from busgate.gateway.protocols import PROTOCOLS
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.recorder import Recorder
-
-#: Baud rates when --baudrate is not given: the LA's factory default; the DS and ZLAC706
-#: manuals state none, so the common 115200.
-DEFAULT_BAUDRATES = {"inspire_la": 921_600, "ds_servo": 115_200, "zlac706_rs232": 115_200}
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -115,7 +112,7 @@ def _make_server(args, devices, faults, recorder):
         return _SlcanServer(protocol.codec, devices, args.bitrate, args.link, faults, recorder)
     from busgate.gateway.sim.serial_server import SerialSimulator
 
-    baudrate = args.baudrate or DEFAULT_BAUDRATES[args.protocol]
+    baudrate = args.baudrate or PROTOCOL_TIMING[args.protocol].default_rate
     return SerialSimulator(protocol.codec, devices, baudrate=baudrate, link=PtyLink(args.link),
                            faults=faults, recorder=recorder, seed=args.seed)
 

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from busgate.codecs.framing import ChecksumMismatch, Discarded
-from busgate.codecs.wire_time import uart_time
+from busgate.codecs.timing import uart_time
 from busgate.gateway.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.faults import FaultInjector
