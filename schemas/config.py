@@ -1,0 +1,200 @@
+"""The gateway's configuration file (TOML), validated by pydantic.
+
+Rules of this file: everything a running gateway relies on is checked here, before any port
+is opened, and every refusal names its key path (``buses[0].devices[1].follow_period_ms``)
+and what is allowed. Timing limits come from ``busgate.codecs.timing``, id ranges from the
+codecs, so a limit is written down once. Whether a port exists is not checked here: that is
+the host's business, and ``busgate check-config`` reports it as a warning.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from busgate.codecs.errors import ConfigError
+from busgate.codecs.timing import PROTOCOL_TIMING
+
+#: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
+Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+KeyPrefix = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$")]
+Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
+
+FOLLOW_PERIOD_MS = (10.0, 50.0)  # the actuators' follow mode: a fixed period of 10–50 ms
+
+#: Device ids each kind accepts, per protocol (zlac706 on RS232 has none: one per port).
+ID_RANGES = {
+    "inspire_la": (1, 254),
+    "ds_servo": (1, 250),
+    "zlac706_can": (1, 109),
+    "zlac706_rs232": (0, 255),
+}
+UART_KINDS = {"inspire_la": "inspire_la", "ds_servo": "ds_servo", "zlac706": "zlac706_rs232"}
+CAN_KINDS = {"zlac706": "zlac706_can"}
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class GatewaySection(Section):
+    name: Name
+    prefix: KeyPrefix = "busgate"
+
+
+class ZenohSection(Section):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[Endpoint] = []
+    connect: list[Endpoint] = []
+    multicast_scouting: bool = False
+    config_file: str | None = None
+
+
+class MetricsSection(Section):
+    listen: Annotated[str, Field(pattern=r"^[^:\s]+:\d{1,5}$")]
+
+
+class DeviceConfig(Section):
+    name: Name
+    kind: Literal["inspire_la", "ds_servo", "zlac706"]
+    id: int = 1
+    poll_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
+    follow_period_ms: Annotated[float, Field(ge=FOLLOW_PERIOD_MS[0], le=FOLLOW_PERIOD_MS[1])] = 20.0
+    #: ZLAC706 on CAN: the heartbeat interval set with the vendor tool (0 = no heartbeats).
+    heartbeat_ms: Annotated[int, Field(ge=0, le=60_000)] = 0
+
+
+class BusBase(Section):
+    name: Name
+    devices: Annotated[list[DeviceConfig], Field(min_length=1)]
+    #: Reply deadline beyond wire time and the device's stated reply time.
+    reply_margin_ms: Annotated[float, Field(ge=0, le=1000)] = 5.0
+    #: SCHED_FIFO priority for the bus thread, when the process is allowed to use it.
+    realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
+
+    @property
+    def protocol(self) -> str:
+        kinds = UART_KINDS if isinstance(self, SerialBus) else CAN_KINDS
+        return kinds[self.devices[0].kind]
+
+
+class SerialBus(BusBase):
+    transport: Literal["serial"]
+    port: Annotated[str, Field(min_length=1)]
+    baudrate: Annotated[int, Field(ge=1200, le=4_000_000)]
+    #: Idle line between exchanges; default per protocol, never below the protocol's minimum.
+    min_gap_ms: Annotated[float, Field(ge=0, le=100)] | None = None
+
+    @property
+    def gap_s(self) -> float:
+        if self.min_gap_ms is None:
+            return PROTOCOL_TIMING[self.protocol].default_gap_s
+        return self.min_gap_ms / 1000
+
+
+class CanBus(BusBase):
+    transport: Literal["can"]
+    interface: Annotated[str, Field(min_length=1)]
+    channel: Annotated[str, Field(min_length=1)]
+    bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
+    #: Further keyword arguments for ``can.Bus`` (e.g. ``tty_baudrate`` for slcan).
+    options: dict[str, str | int | float | bool] = {}
+
+
+Bus = Annotated[SerialBus | CanBus, Field(discriminator="transport")]
+
+
+class Config(Section):
+    gateway: GatewaySection
+    zenoh: ZenohSection = ZenohSection()
+    metrics: MetricsSection | None = None
+    buses: Annotated[list[Bus], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _check_buses(self) -> Config:
+        _require_unique("buses", [bus.name for bus in self.buses], "bus name")
+        _require_unique("buses", [d.name for bus in self.buses for d in bus.devices], "device name")
+        for index, bus in enumerate(self.buses):
+            _check_bus(f"buses[{index}]", bus)
+        return self
+
+
+def _require_unique(path: str, names: list[str], what: str) -> None:
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise ValueError(f"{path}: {what} {name!r} is used twice; names must be unique")
+        seen.add(name)
+
+
+def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
+    kinds = {device.kind for device in bus.devices}
+    allowed = UART_KINDS if isinstance(bus, SerialBus) else CAN_KINDS
+    for index, device in enumerate(bus.devices):
+        if device.kind not in allowed:
+            raise ValueError(
+                f"{path}.devices[{index}].kind: {device.kind} cannot be on a {bus.transport} bus "
+                f"(allowed: {', '.join(sorted(allowed))})"
+            )
+    if len(kinds) > 1:
+        raise ValueError(f"{path}.devices: one device kind per bus, not {sorted(kinds)}")
+    protocol = bus.protocol
+    if protocol == "zlac706_rs232" and len(bus.devices) > 1:
+        raise ValueError(f"{path}.devices: a ZLAC706 RS232 port drives one driver, not several")
+    low, high = ID_RANGES[protocol]
+    ids: set[int] = set()
+    for index, device in enumerate(bus.devices):
+        if not low <= device.id <= high:
+            raise ValueError(f"{path}.devices[{index}].id: {device.id} is outside {low}–{high}")
+        if device.id in ids:
+            raise ValueError(f"{path}.devices[{index}].id: id {device.id} is used twice on the bus")
+        ids.add(device.id)
+    if isinstance(bus, SerialBus) and bus.gap_s < PROTOCOL_TIMING[protocol].min_gap_s:
+        minimum = PROTOCOL_TIMING[protocol].min_gap_s * 1000
+        raise ValueError(f"{path}.min_gap_ms: {protocol} needs at least {minimum:g} ms")
+
+
+def parse_config(data: dict[str, Any]) -> Config:
+    """Validate a parsed TOML document; raise ``ConfigError`` naming every offending key path
+    (one per line; ``path`` holds the first)."""
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        problems = [_describe(error) for error in exc.errors(include_url=False)]
+        raise ConfigError("\n".join(text for _, text in problems), path=problems[0][0]) from exc
+
+
+def _describe(error: Any) -> tuple[str, str]:
+    """(key path, one line) for a pydantic error; our own checks put the path in the message."""
+    message = error["msg"].removeprefix("Value error, ")
+    path = _key_path(error["loc"])
+    if not path:
+        return message.split(":", 1)[0], message
+    return path, f"{path}: {message}"
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML config file."""
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror}", path="") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
+    return parse_config(data)
+
+
+def _key_path(loc: tuple[int | str, ...]) -> str:
+    """``('buses', 0, 'serial', 'baudrate')`` → ``buses[0].baudrate`` (drops union tags)."""
+    path = ""
+    for part in loc:
+        if isinstance(part, int):
+            path += f"[{part}]"
+        elif part in ("serial", "can") and path.endswith("]"):
+            continue
+        else:
+            path += f".{part}" if path else part
+    return path
