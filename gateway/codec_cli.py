@@ -106,8 +106,11 @@ def _parse_hex(text: str) -> bytes:
 def _badness(result: tuple[list, int]) -> tuple[int, int]:
     """Order decodings: fewest bad bytes first, then most frames."""
     events, leftover = result
+    # A checksum mismatch costs one byte: the decoder moves one byte on and rescans the rest
+    # of the frame, which is then counted where it lands (counting the whole frame made a
+    # bad-checksum command lose to the reply decoder's single "no frame header").
     bad = leftover + sum(
-        len(e.data) if isinstance(e, Discarded) else len(e.frame)
+        len(e.data) if isinstance(e, Discarded) else 1
         for e in events
         if isinstance(e, Discarded | ChecksumMismatch)
     )

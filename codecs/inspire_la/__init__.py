@@ -1,0 +1,103 @@
+"""Inspire Robots LA / LAS / LAF / LASF / LAXC micro linear actuators over UART (or RS485).
+
+Commands ``55 AA len id cmd index data… sum``, replies ``AA 55 …``, little-endian values,
+``sum`` the low byte of the sum of every byte after the header. Modules: ``frames`` (codes and
+frame classes), ``registers`` (the control table and its write rules), ``encoder``,
+``decoder`` (both directions), ``exchange`` (what answers what).
+
+>>> encode(MoveCommand(3, 1000)).hex()
+'55aa04032137e8034a'
+"""
+
+from busgate.codecs.inspire_la.decoder import CommandDecoder, ReplyDecoder
+from busgate.codecs.inspire_la.encoder import Frame, encode
+from busgate.codecs.inspire_la.exchange import ExpectedRegisterReply, expected_reply
+from busgate.codecs.inspire_la.frames import (
+    BROADCAST_ID,
+    MAX_DATA,
+    MAX_FRAME,
+    MAX_GROUP_TARGETS,
+    MAX_ID,
+    MIN_ID,
+    STATUS_REPLY_SIZE,
+    TABLE_SIZE,
+    ControlCode,
+    ControlCommand,
+    Fault,
+    FollowCommand,
+    GroupFollowCommand,
+    GroupMoveCommand,
+    Instruction,
+    MoveCommand,
+    ReadCommand,
+    ReadReply,
+    StatusReply,
+    Target,
+    WriteCommand,
+    WriteReply,
+)
+from busgate.codecs.inspire_la.registers import (
+    BAUD_CODE,
+    BAUD_RATES,
+    FORCE_ZERO,
+    ID,
+    OVERCURRENT_LIMIT,
+    OVERTEMP_LIMIT,
+    REGISTERS,
+    REWARM_TEMPERATURE,
+    TARGET_POSITION,
+    TENTHS_PER_DEGREE,
+    baud_code,
+    check_span,
+    check_temperature_limits,
+    check_write,
+    register_write,
+    temperature_raw,
+)
+
+__all__ = [
+    "BAUD_CODE",
+    "BAUD_RATES",
+    "BROADCAST_ID",
+    "FORCE_ZERO",
+    "ID",
+    "MAX_DATA",
+    "MAX_FRAME",
+    "MAX_GROUP_TARGETS",
+    "MAX_ID",
+    "MIN_ID",
+    "OVERCURRENT_LIMIT",
+    "OVERTEMP_LIMIT",
+    "REGISTERS",
+    "REWARM_TEMPERATURE",
+    "STATUS_REPLY_SIZE",
+    "TABLE_SIZE",
+    "TARGET_POSITION",
+    "TENTHS_PER_DEGREE",
+    "CommandDecoder",
+    "ControlCode",
+    "ControlCommand",
+    "ExpectedRegisterReply",
+    "Fault",
+    "FollowCommand",
+    "Frame",
+    "GroupFollowCommand",
+    "GroupMoveCommand",
+    "Instruction",
+    "MoveCommand",
+    "ReadCommand",
+    "ReadReply",
+    "ReplyDecoder",
+    "StatusReply",
+    "Target",
+    "WriteCommand",
+    "WriteReply",
+    "baud_code",
+    "check_span",
+    "check_temperature_limits",
+    "check_write",
+    "encode",
+    "expected_reply",
+    "register_write",
+    "temperature_raw",
+]

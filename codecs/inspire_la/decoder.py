@@ -1,0 +1,205 @@
+"""Bytes to frames: ``CommandDecoder`` (actuator side, ``55 AA``) and ``ReplyDecoder`` (host side,
+``AA 55``).
+
+Both check the cheap header fields — length, id, instruction — as soon as the first five
+bytes are in, before waiting for the body: an instruction with a fixed size must carry exactly
+that length, broadcast frames must come from id 255, replies from ids 1–254. A corrupt
+header is thus discarded at once instead of holding the decoder for up to 255 bytes. A frame
+with a sound header and checksum but an instruction we do not know becomes ``Discarded``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import ClassVar
+
+from busgate.codecs.framing import Discarded, HeaderFramedDecoder, sum8
+from busgate.codecs.inspire_la.frames import (
+    BROADCAST_ID,
+    COMMAND_HEADER,
+    CONTROL_CODES,
+    FRAME_OVERHEAD,
+    GROUP_ENTRY_SIZE,
+    MAX_FRAME,
+    MAX_GROUP_TARGETS,
+    MAX_ID,
+    MAX_LENGTH,
+    MIN_ID,
+    REPLY_HEADER,
+    STATUS_LAYOUT,
+    STATUS_REPLY_SIZE,
+    TARGET_INDEX,
+    ControlCode,
+    ControlCommand,
+    Fault,
+    FollowCommand,
+    GroupFollowCommand,
+    GroupMoveCommand,
+    Instruction,
+    MoveCommand,
+    ReadCommand,
+    ReadReply,
+    StatusReply,
+    Target,
+    WriteCommand,
+    WriteReply,
+)
+
+#: Instruction and index without data: the shortest an unknown instruction's frame can be.
+_ANY_LENGTH = range(2, MAX_LENGTH + 1)
+#: Instruction, index and at least one data byte.
+_WITH_DATA = range(3, MAX_LENGTH + 1)
+#: The flag byte and 1 to 15 entries.
+_GROUP_LENGTHS = range(
+    1 + GROUP_ENTRY_SIZE, 2 + GROUP_ENTRY_SIZE * MAX_GROUP_TARGETS, GROUP_ENTRY_SIZE
+)
+
+
+def _exactly(value: int) -> range:
+    return range(value, value + 1)
+
+
+_BROADCAST_ONLY = _exactly(BROADCAST_ID)
+
+
+class _LaDecoder(HeaderFramedDecoder[object]):
+    """What both directions share; subclasses fill in the tables."""
+
+    max_frame = MAX_FRAME
+    #: Allowed values of the length byte, per instruction (others: ``_ANY_LENGTH``).
+    lengths: ClassVar[dict[int, range]]
+    #: Allowed device ids, per instruction (others: ``default_ids``).
+    ids: ClassVar[dict[int, range]] = {}
+    default_ids: ClassVar[range]
+    #: Instruction → function from a checked frame to its event.
+    decoders: ClassVar[dict[int, Callable[[bytes], object]]]
+
+    def _frame_size(self, buf: bytearray, start: int) -> int | str | None:
+        if len(buf) - start < FRAME_OVERHEAD:
+            return None
+        length, device_id, instruction = buf[start + 2 : start + 5]
+        if length not in self.lengths.get(instruction, _ANY_LENGTH):
+            return f"length {length} impossible for instruction {instruction:#04x}"
+        if device_id not in self.ids.get(instruction, self.default_ids):
+            return f"device id {device_id} impossible for instruction {instruction:#04x}"
+        return length + FRAME_OVERHEAD
+
+    def _checksum(self, frame: bytes) -> int:
+        return sum8(frame[2:-1])
+
+    def _decode(self, frame: bytes) -> object:
+        decode = self.decoders.get(frame[4])
+        if decode is None:
+            return Discarded(frame, f"unknown instruction {frame[4]:#04x}")
+        return decode(frame)
+
+
+# Frame layout for every decoder below: 0-1 header, 2 length, 3 id, 4 instruction, 5 index,
+# 6.. data, -1 checksum. Broadcast frames have no index: their entries start at 5.
+
+
+def _read_command(frame: bytes) -> ReadCommand:
+    return ReadCommand(frame[3], frame[5], frame[6])
+
+
+def _write_command(frame: bytes) -> WriteCommand:
+    return WriteCommand(frame[3], frame[5], frame[6:-1])
+
+
+_MOTION = {
+    Instruction.MOVE: (MoveCommand, True),
+    Instruction.MOVE_NO_REPLY: (MoveCommand, False),
+    Instruction.FOLLOW: (FollowCommand, True),
+    Instruction.FOLLOW_NO_REPLY: (FollowCommand, False),
+}
+
+
+def _motion_command(frame: bytes) -> MoveCommand | FollowCommand | Discarded:
+    if frame[5] != TARGET_INDEX:
+        return Discarded(frame, f"motion instruction at index {frame[5]:#04x}, not 0x37")
+    frame_class, reply = _MOTION[Instruction(frame[4])]
+    return frame_class(frame[3], int.from_bytes(frame[6:8], "little"), reply)
+
+
+def _control_command(frame: bytes) -> ControlCommand | Discarded:
+    # Byte 5 is "reserved" (00 in every example); the device has no use for it, nor do we.
+    if frame[6] not in CONTROL_CODES:
+        return Discarded(frame, f"unknown control code {frame[6]:#04x}")
+    return ControlCommand(frame[3], ControlCode(frame[6]))
+
+
+def _group_targets(frame: bytes) -> tuple[Target, ...]:
+    entries = frame[5:-1]
+    return tuple(
+        Target(entries[i], int.from_bytes(entries[i + 1 : i + 3], "little"))
+        for i in range(0, len(entries), GROUP_ENTRY_SIZE)
+    )
+
+
+def _status_reply(frame: bytes) -> StatusReply:
+    # Bytes 5-6 read 00 22 (the status query's code) in the manual. The replies to the other
+    # commands are only said to be "the same as the status query's", so they are not checked.
+    target, position, temperature, current, force_lo, faults, force_hi, in1, in2 = (
+        STATUS_LAYOUT.unpack_from(frame, 7)
+    )
+    force = int.from_bytes(bytes((force_lo, force_hi)), "little", signed=True)
+    return StatusReply(
+        frame[3], target, position, temperature, current, force, Fault(faults), in1, in2
+    )
+
+
+class CommandDecoder(_LaDecoder):
+    """Decodes host commands (``55 AA …``), as an actuator or a bus sniffer sees them.
+
+    >>> decoder = CommandDecoder()
+    >>> decoder.feed(bytes.fromhex("55 AA 04 03 21 37 E8 03 4A"))  # manual 3.7.2
+    >>> list(decoder.events())
+    [MoveCommand(device_id=3, position_raw=1000, reply=True)]
+    """
+
+    header = COMMAND_HEADER
+    lengths: ClassVar[dict[int, range]] = {
+        Instruction.READ: _exactly(3),
+        Instruction.WRITE: _WITH_DATA,
+        **{instruction: _exactly(4) for instruction in _MOTION},
+        Instruction.CONTROL: _exactly(3),
+        Instruction.GROUP_MOVE: _GROUP_LENGTHS,
+        Instruction.GROUP_FOLLOW: _GROUP_LENGTHS,
+    }
+    ids: ClassVar[dict[int, range]] = {
+        Instruction.GROUP_MOVE: _BROADCAST_ONLY,
+        Instruction.GROUP_FOLLOW: _BROADCAST_ONLY,
+    }
+    default_ids = range(MIN_ID, BROADCAST_ID + 1)
+    decoders: ClassVar[dict[int, Callable[[bytes], object]]] = {
+        Instruction.READ: _read_command,
+        Instruction.WRITE: _write_command,
+        **{instruction: _motion_command for instruction in _MOTION},
+        Instruction.CONTROL: _control_command,
+        Instruction.GROUP_MOVE: lambda frame: GroupMoveCommand(_group_targets(frame)),
+        Instruction.GROUP_FOLLOW: lambda frame: GroupFollowCommand(_group_targets(frame)),
+    }
+
+
+class ReplyDecoder(_LaDecoder):
+    """Decodes actuator replies (``AA 55 …``), as the host sees them.
+
+    >>> decoder = ReplyDecoder()
+    >>> decoder.feed(bytes.fromhex("AA 55 04 01 01 62 58 02 C2"))  # manual 3.5.1
+    >>> list(decoder.events())
+    [ReadReply(device_id=1, index=98, data=b'X\\x02')]
+    """
+
+    header = REPLY_HEADER
+    lengths: ClassVar[dict[int, range]] = {
+        Instruction.READ: _WITH_DATA,
+        # Section 3.4.1's one reserved byte; the status-frame answer comes as CONTROL.
+        Instruction.WRITE: _exactly(3),
+        Instruction.CONTROL: _exactly(STATUS_REPLY_SIZE - FRAME_OVERHEAD),
+    }
+    default_ids = range(MIN_ID, MAX_ID + 1)
+    decoders: ClassVar[dict[int, Callable[[bytes], object]]] = {
+        Instruction.READ: lambda frame: ReadReply(frame[3], frame[5], frame[6:-1]),
+        Instruction.WRITE: lambda frame: WriteReply(frame[3], frame[5], frame[6]),
+        Instruction.CONTROL: _status_reply,
+    }
