@@ -78,7 +78,7 @@ class ExpectedReply:
     reply; ``kinds`` the event classes that can answer; ``source_id`` who answers.
     """
 
-    source_id: int
+    source_id: int | None  # None: a point-to-point link whose frames carry no id
     wire_bytes: int
     kinds: tuple[type, ...]
     frames: int = 1

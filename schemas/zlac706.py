@@ -1,0 +1,163 @@
+"""JSON commands for the ZLAC706 hub-motor servo driver, one model per ``op``.
+
+The same commands drive both wire protocols (CAN and RS232); the drivers
+``busgate.gateway.drivers.zlac706_can`` / ``zlac706_rs232`` map them to frames. Ranges are the
+ones both protocols share (``busgate.codecs.zlac706_common``) or the widest wire's (CAN's i32
+position); a value that only CAN can carry (a position or gain beyond 16 bits, on RS232)
+is refused by the RS232 codec with ``EncodeError``, as are the ops one protocol lacks
+(``monitor`` on CAN, current-loop gains on RS232) by its driver.
+
+Units: speeds in rpm (float; truncated toward zero on the wire, the RS232 speed limit
+rounded), torque as current in A (float, 3.2 mA steps), ramps in ms. Ramps must be whole
+multiples of 100 ms, the wire's unit: a command is refused rather than silently changed.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Annotated, Literal
+
+from pydantic import Field, TypeAdapter
+
+from busgate.codecs import zlac706_can as can
+from busgate.codecs import zlac706_common as common
+from busgate.schemas.base import CommandModel
+
+_POSITION = can.REGISTERS["target_position"]
+
+Rpm = Annotated[float, Field(ge=-common.MAX_SPEED_RPM, le=common.MAX_SPEED_RPM)]
+RampMs = Annotated[
+    int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)
+]
+
+
+class SetMode(CommandModel):
+    """Choose the work mode; on both protocols the first step of any sequence."""
+
+    op: Literal["set_mode"]
+    mode: common.Mode
+
+
+class Enable(CommandModel):
+    """Enable the motor (the shaft locks; in speed mode a preset speed starts at once)."""
+
+    op: Literal["enable"]
+
+
+class Disable(CommandModel):
+    """Release the motor (stop; the shaft turns freely)."""
+
+    op: Literal["disable"]
+
+
+class SetPositionMode(CommandModel):
+    """Targets of ``move`` are relative to the present position, or absolute."""
+
+    op: Literal["set_position_mode"]
+    relative: bool
+
+
+class Move(CommandModel):
+    """Position-mode target in pulses (i32); the motor must be enabled first."""
+
+    op: Literal["move"]
+    position: Annotated[int, Field(ge=_POSITION.minimum, le=_POSITION.maximum)]
+
+
+class Velocity(CommandModel):
+    """Speed-mode target; with feed-forward gain 1 it must be refreshed (CAN 500 ms)."""
+
+    op: Literal["velocity"]
+    rpm: Rpm
+
+
+class Torque(CommandModel):
+    """Torque-mode target as output current, ±24 A."""
+
+    op: Literal["torque"]
+    current_a: Annotated[float, Field(ge=-common.MAX_CURRENT_A, le=common.MAX_CURRENT_A)]
+
+
+class SetPositionRamp(CommandModel):
+    """Position-mode acceleration and deceleration times (0 to top speed)."""
+
+    op: Literal["set_position_ramp"]
+    accel_ms: RampMs
+    decel_ms: RampMs
+
+
+class SetVelocityRamp(CommandModel):
+    """Speed-mode acceleration and deceleration times (0 to top speed)."""
+
+    op: Literal["set_velocity_ramp"]
+    accel_ms: RampMs
+    decel_ms: RampMs
+
+
+class SetMaxSpeed(CommandModel):
+    """Position mode's top (cruise) speed."""
+
+    op: Literal["set_max_speed"]
+    rpm: Annotated[float, Field(ge=0, le=common.MAX_SPEED_RPM)]
+
+
+class ClearAlarm(CommandModel):
+    op: Literal["clear_alarm"]
+
+
+class Home(CommandModel):
+    """Search the encoder's Z signal (hub motors have none: nothing happens)."""
+
+    op: Literal["home"]
+
+
+class SetRatedCurrent(CommandModel):
+    op: Literal["set_rated_current"]
+    current_ma: Annotated[int, Field(ge=0, le=common.RATED_CURRENT_MAX_MA)]
+
+
+class SetGain(CommandModel):
+    op: Literal["set_gain"]
+    gain: common.Gain
+    value: Annotated[int, Field(ge=common.GAIN_MIN, le=common.GAIN_MAX)]
+
+
+# The issue names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
+# virtual-subclass hook, never called on a command); pydantic warns at class creation only.
+with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
+
+    class Write(CommandModel):
+        """Raw register write; the register must be in the protocol's table (driver checks)."""
+
+        op: Literal["write"]
+        register: Annotated[int, Field(ge=0, le=0xFF)]
+        value: Annotated[int, Field(ge=can.I32_MIN, le=can.I32_MAX)]
+
+
+class Monitor(CommandModel):
+    """RS232 only: ask for status, bus voltage, current, speed and positions."""
+
+    op: Literal["monitor"]
+
+
+Command = Annotated[
+    SetMode
+    | Enable
+    | Disable
+    | SetPositionMode
+    | Move
+    | Velocity
+    | Torque
+    | SetPositionRamp
+    | SetVelocityRamp
+    | SetMaxSpeed
+    | ClearAlarm
+    | Home
+    | SetRatedCurrent
+    | SetGain
+    | Write
+    | Monitor,
+    Field(discriminator="op"),
+]
+COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
