@@ -1,0 +1,174 @@
+"""The owner of one CAN interface, through python-can (socketcan, slcan, pcan, virtual …).
+
+Rules of this file:
+
+1. Only the bus thread uses the ``can.Bus``; ``interface``, ``channel``, ``bitrate`` and any
+   further options of the config pass through to python-can untouched.
+2. Every exception from python-can is caught and classified here. "No buffer space" (the
+   kernel's transmit queue is full) is back-pressure: wait briefly and retry, and if the queue
+   stays full the request fails like a timeout. A lost adapter or bus-off is a link failure:
+   the bus is closed and ``BusIOError`` raised so the runner reconnects.
+3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
+   ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle.
+4. Only this module converts between ``CanFrame`` and ``can.Message``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import time
+from collections.abc import Callable
+from types import ModuleType
+
+import can
+
+from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.codecs.framing import Discarded
+from busgate.gateway.bus.request import Exchange, LinkTiming, Request
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+
+#: How long a full transmit queue may hold a request back before it counts as failed.
+TX_BACKPRESSURE_S = 0.05
+#: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
+CAN_ERR_BUSOFF = 0x40
+
+
+class CanBusOwner:
+    """Runs exchanges on one CAN interface and routes unsolicited frames."""
+
+    def __init__(
+        self,
+        interface: str,
+        channel: str,
+        options: dict[str, object],
+        codec: ModuleType,
+        timing: LinkTiming,
+        counters: BusCounters,
+        on_unsolicited: Callable[[object, float], None],
+    ) -> None:
+        self.interface, self.channel, self.options = interface, channel, dict(options)
+        self.codec = codec
+        self.timing = timing
+        self.counters = counters
+        self.on_unsolicited = on_unsolicited
+        self._bus: can.BusABC | None = None
+        self._decoder = codec.ReplyDecoder()
+
+    @property
+    def port(self) -> str:
+        return f"{self.interface}:{self.channel}"
+
+    @property
+    def is_open(self) -> bool:
+        return self._bus is not None
+
+    def open(self) -> None:
+        try:
+            self._bus = can.Bus(
+                interface=self.interface, channel=self.channel, bitrate=self.timing.rate,
+                **self.options,
+            )
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
+
+    def close(self) -> None:
+        bus, self._bus = self._bus, None
+        if bus is not None:
+            with contextlib.suppress(can.CanError, OSError):  # the adapter may be gone already
+                bus.shutdown()
+
+    def exchange(self, request: Request) -> Exchange:
+        """Send ``request`` and wait for its reply (``DeviceTimeoutError`` when none comes)."""
+        bus = self._require_open()
+        self.idle_until(now())
+        start = now()
+        self._send(bus, request.wire)
+        if request.expected is None:
+            return Exchange(request, start, start + self.timing.wire_time(request.wire))
+        _, latest = self.timing.reply_window(request)
+        deadline = start + self.timing.wire_time(request.wire) + latest
+        answer = self._receive_until(bus, deadline, request.expected)
+        if answer is None:
+            self.counters.timeouts += 1
+            source = request.expected.source_id
+            raise DeviceTimeoutError(f"no reply from node {source} on {self.port}",
+                                     device_id=source)
+        return Exchange(request, start, now(), answer)
+
+    def idle_until(self, deadline: float) -> None:
+        """Consume unsolicited frames until ``deadline``."""
+        self._receive_until(self._require_open(), deadline, None)
+
+    def _require_open(self) -> can.BusABC:
+        if self._bus is None:
+            raise BusIOError(f"CAN {self.port} is not open")
+        return self._bus
+
+    def _send(self, bus: can.BusABC, wire: CanFrame) -> None:
+        message = can.Message(arbitration_id=wire.arbitration_id, data=wire.data,
+                              is_extended_id=False)
+        give_up = now() + TX_BACKPRESSURE_S
+        while True:
+            try:
+                bus.send(message, timeout=TX_BACKPRESSURE_S)
+                break
+            except can.CanError as exc:
+                if not _is_backpressure(exc):
+                    self._fail(exc)
+                if now() >= give_up:
+                    self.counters.timeouts += 1
+                    raise DeviceTimeoutError(f"CAN {self.port}: transmit queue full") from exc
+                time.sleep(0.001)
+            except OSError as exc:
+                self._fail(exc)
+        self.counters.frames_out += 1
+        self.counters.bytes_out += len(wire.data)
+
+    def _receive_until(self, bus, deadline: float, expected) -> tuple[object, ...] | None:
+        answer: list[object] = []
+        while (remaining := deadline - now()) > 0:
+            try:
+                message = bus.recv(timeout=remaining)
+            except (can.CanError, OSError) as exc:
+                self._fail(exc)
+            if message is None:
+                break
+            for event in self._decode(message):
+                if expected is not None and expected.matches(event):
+                    answer.append(event)
+                else:
+                    self.on_unsolicited(event, now())
+            if expected is not None and len(answer) >= expected.frames:
+                return tuple(answer)
+        return None
+
+    def _decode(self, message: can.Message) -> list[object]:
+        if message.is_error_frame:
+            if message.arbitration_id & CAN_ERR_BUSOFF:
+                self._fail(can.CanOperationError("controller is bus-off"))
+            return []
+        self.counters.frames_in += 1
+        self.counters.bytes_in += len(message.data)
+        if message.is_extended_id or message.is_remote_frame:
+            self.counters.discarded_bytes += len(message.data)
+            return []
+        self._decoder.feed(CanFrame(message.arbitration_id, bytes(message.data)))
+        events = []
+        for event in self._decoder.events():
+            if isinstance(event, Discarded):
+                self.counters.discarded_bytes += len(event.data)
+            else:
+                events.append(event)
+        return events
+
+    def _fail(self, exc: BaseException) -> None:
+        self.close()
+        raise BusIOError(f"CAN {self.port}: {exc}") from exc
+
+
+def _is_backpressure(exc: can.CanError) -> bool:
+    """True for "no buffer space": the transmit queue is full, the link is fine."""
+    return getattr(exc, "error_code", None) == errno.ENOBUFS or "buffer space" in str(exc)

@@ -1,0 +1,142 @@
+"""The owner of one serial port (UART or RS485 through a USB adapter).
+
+Rules of this file:
+
+1. Only the bus thread calls ``exchange``; nothing else touches the port.
+2. Stale input is flushed before every request, and any reply that *could not* be the answer
+   (read before our frame had left the wire plus the device's shortest reply time) is counted
+   as late and ignored: a reply that arrives after its timeout is never taken for the next
+   request's reply.
+3. ``SerialException`` and ``OSError`` mean the link is down: the port is closed at once and
+   ``BusIOError`` raised; reconnecting (with backoff) is the runner's business.
+4. Waiting for a reply uses ``select`` on the port's descriptor with the absolute deadline,
+   so a timeout costs no polling and a reply is read the moment it lands.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+from types import ModuleType
+
+import serial
+
+from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.gateway.bus.request import Exchange, LinkTiming, Request
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+
+WRITE_TIMEOUT_S = 0.5
+
+
+class SerialBusOwner:
+    """Runs exchanges on one serial port, one at a time."""
+
+    def __init__(
+        self, port: str, codec: ModuleType, timing: LinkTiming, counters: BusCounters
+    ) -> None:
+        self.port = port
+        self.codec = codec
+        self.timing = timing
+        self.counters = counters
+        self._serial: serial.Serial | None = None
+        self._decoder = codec.ReplyDecoder()
+
+    @property
+    def is_open(self) -> bool:
+        return self._serial is not None
+
+    def open(self) -> None:
+        """Open the port exclusively; ``BusUnavailableError`` when it cannot be had."""
+        try:
+            self._serial = serial.Serial(
+                self.port, self.timing.rate, timeout=0, write_timeout=WRITE_TIMEOUT_S,
+                exclusive=True,
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise BusUnavailableError(f"cannot open {self.port}: {exc}") from exc
+        self._decoder = self.codec.ReplyDecoder()
+
+    def close(self) -> None:
+        port, self._serial = self._serial, None
+        if port is not None:
+            with contextlib.suppress(serial.SerialException, OSError):  # may be gone already
+                port.close()
+
+    def exchange(self, request: Request) -> Exchange:
+        """Send ``request`` and wait for its reply; raise ``DeviceTimeoutError`` when none comes
+        in time, ``BusIOError`` when the link fails."""
+        if self._serial is None:
+            raise BusIOError(f"{self.port} is not open")
+        try:
+            return self._exchange(self._serial, request)
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise BusIOError(f"{self.port}: {exc}") from exc
+
+    def _exchange(self, port: serial.Serial, request: Request) -> Exchange:
+        self._flush_stale(port)
+        start = now()
+        port.write(request.wire)
+        sent = start + self.timing.wire_time(request.wire)
+        self.counters.frames_out += 1
+        self.counters.bytes_out += len(request.wire)
+        if request.expected is None:
+            return Exchange(request, start, max(sent, now()))
+        earliest, latest = self.timing.reply_window(request)
+        return self._wait_reply(port, request, start, sent + earliest, sent + latest)
+
+    def _wait_reply(
+        self, port: serial.Serial, request: Request, start: float, earliest: float, deadline: float
+    ) -> Exchange:
+        expected = request.expected
+        assert expected is not None
+        answer: list[object] = []
+        fd = port.fileno()
+        while (remaining := deadline - now()) > 0:
+            if not select.select([fd], [], [], remaining)[0]:
+                break
+            data = os.read(fd, 4096)
+            if not data:
+                raise serial.SerialException("the port reports data but returns none (unplugged?)")
+            arrived = now()
+            self.counters.bytes_in += len(data)
+            self._decoder.feed(data)
+            for event in self._decoder.events():
+                if self._take(event, expected, arrived >= earliest):
+                    answer.append(event)
+            if len(answer) >= expected.frames:
+                return Exchange(request, start, arrived, tuple(answer))
+        self.counters.timeouts += 1
+        raise DeviceTimeoutError(
+            f"no reply from id {expected.source_id} on {self.port}", device_id=expected.source_id
+        )
+
+    def _take(self, event: object, expected, in_time: bool) -> bool:
+        """Count ``event``; true when it is (part of) the awaited answer."""
+        if isinstance(event, Discarded):
+            self.counters.discarded_bytes += len(event.data)
+            return False
+        if isinstance(event, ChecksumMismatch):
+            self.counters.checksum_errors += 1
+            return False
+        self.counters.frames_in += 1
+        if expected.matches(event) and in_time:
+            return True
+        self.counters.late_replies += 1
+        return False
+
+    def _flush_stale(self, port: serial.Serial) -> None:
+        """Drop whatever arrived since the last exchange (late replies, noise)."""
+        waiting = port.in_waiting
+        if waiting:
+            self._decoder.feed(port.read(waiting))
+            for event in self._decoder.events():
+                if isinstance(event, Discarded):
+                    self.counters.discarded_bytes += len(event.data)
+                else:
+                    self.counters.late_replies += 1
+        self.counters.discarded_bytes += self._decoder.pending
+        self._decoder = self.codec.ReplyDecoder()

@@ -1,0 +1,157 @@
+"""The device driver contract: sans-I/O, a JSON command becomes requests, replies become state.
+
+Rules of this file (and of every driver):
+
+1. A driver never touches a port, a clock or a thread. The runner passes ``now`` in, sends the
+   requests a driver plans and hands back the replies; so drivers are tested with plain calls.
+2. A driver owns the device's state as the gateway knows it: what was commanded (targets,
+   mode), what was measured (from replies or heartbeats), whether it is online, its faults.
+3. What a client should hear about (a fault raised or cleared, online/offline, a reboot
+   detected) is queued with ``emit`` and drained by the runner, never published from here.
+4. Every request a driver makes goes through ``Request.of`` so the codec checks every value
+   and says which reply to expect.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+from dataclasses import dataclass
+from types import ModuleType
+from typing import Any, ClassVar
+
+from pydantic import TypeAdapter
+
+from busgate.codecs.errors import CommandError
+from busgate.gateway.bus.request import Request
+from busgate.schemas.errors import command_from_json
+
+#: Consecutive unanswered requests after which a device is marked offline.
+OFFLINE_AFTER = 3
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceEvent:
+    """Something about a device that clients should hear: ``type`` plus fields."""
+
+    device: str
+    type: str
+    fields: dict[str, Any]
+
+
+class Driver(abc.ABC):
+    """One device on a bus, as the gateway knows it."""
+
+    #: The device kind (``inspire_la``, ``ds_servo``, ``zlac706``) and its wire protocol.
+    kind: ClassVar[str]
+    protocol: ClassVar[str]
+    codec: ClassVar[ModuleType]
+    commands: ClassVar[TypeAdapter[Any]]
+    #: How many devices' follow targets one frame can carry (1: no coalescing).
+    follow_group_limit: ClassVar[int] = 1
+
+    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
+        self.name = name
+        self.device_id = device_id
+        self.follow_period_s = follow_period_s
+        self.online = False
+        self.last_reply: float | None = None
+        self.misses = 0
+        self._events: list[DeviceEvent] = []
+
+    # -- planning ---------------------------------------------------------------------------
+
+    def parse(self, text: str | bytes) -> Any:
+        """A JSON command for this kind, validated (``CommandError`` when refused)."""
+        return command_from_json(self.commands, text)
+
+    @abc.abstractmethod
+    def plan(self, command: Any) -> list[Request]:
+        """The requests that carry out ``command`` now; ``CommandError`` when the device's
+        state forbids it (e.g. a ZLAC706 position target before enable)."""
+
+    @abc.abstractmethod
+    def poll(self) -> list[Request]:
+        """The requests of one telemetry poll (may be empty: heartbeats only)."""
+
+    @abc.abstractmethod
+    def safe_stop(self) -> list[Request]:
+        """The requests that put the device in its safe state (e-stop, shutdown)."""
+
+    def init(self) -> list[Request]:
+        """The requests that (re)initialise the device after the bus (re)opens or it rebooted:
+        by default, one poll, which also tells whether it answers."""
+        return self.poll()
+
+    def follow_target(self, payload: dict[str, Any]) -> Any:
+        """Validate a follow stream's payload (``{"position": P}``…); ``CommandError`` if bad."""
+        raise CommandError(f"{self.kind} has no follow stream")
+
+    @classmethod
+    def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
+        """One frame carrying the latest follow targets of up to ``follow_group_limit``
+        devices of this kind on one bus."""
+        raise CommandError(f"{cls.kind} has no follow stream")
+
+    def stale_stream(self) -> list[Request]:
+        """Requests to send when this device's follow stream went stale (e.g. 0 rpm)."""
+        return []
+
+    def keepalive(self, now: float) -> tuple[float, Request] | None:
+        """``(period, request)`` the device needs while in its current state, or ``None``."""
+        return None
+
+    # -- interpreting -----------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        """Update the state from ``reply`` to ``request``; return what the command's answer
+        should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
+
+    def unsolicited(self, event: object, now: float) -> None:  # noqa: B027 - optional hook
+        """A frame from this device nobody asked for (heartbeat, alarm report); only CAN
+        devices send any, so the default ignores it."""
+
+    @abc.abstractmethod
+    def telemetry(self, now: float) -> dict[str, Any]:
+        """The device's values in named units (``position``, ``faults`` …), without the
+        envelope fields (``ts``, ``device``, ``kind``, ``online``) the runner adds."""
+
+    # -- liveness ---------------------------------------------------------------------------
+
+    def heard(self, now: float) -> None:
+        """The device answered: it is online."""
+        self.last_reply = now
+        self.misses = 0
+        if not self.online:
+            self.online = True
+            self.emit("online")
+
+    def missed(self, now: float) -> None:
+        """A request went unanswered; after ``OFFLINE_AFTER`` in a row the device is offline."""
+        self.misses += 1
+        if self.online and self.misses >= OFFLINE_AFTER:
+            self.went_offline("no reply")
+
+    def went_offline(self, reason: str) -> None:
+        if self.online:
+            self.online = False
+            self.emit("offline", reason=reason)
+
+    def emit(self, type_: str, **fields: Any) -> None:
+        self._events.append(DeviceEvent(self.name, type_, fields))
+
+    def drain_events(self) -> list[DeviceEvent]:
+        events, self._events = self._events, []
+        return events
+
+    def state(self, now: float) -> dict[str, Any]:
+        """The telemetry with its envelope."""
+        return {
+            "ts": now,
+            "device": self.name,
+            "kind": self.kind,
+            "online": self.online,
+            "last_reply_age_s": None if self.last_reply is None else now - self.last_reply,
+            **self.telemetry(now),
+        }

@@ -1,0 +1,204 @@
+"""The bus planner: given its state and ``now``, the next exchange to start, or when to wake.
+
+It is pure — no I/O, no clock, no threads — so every timing rule is tested with a fake clock.
+The rules it enforces, in the words of the issue:
+
+1. Gap: no frame starts before ``gap_s`` after the line went idle (our last frame, plus its
+   reply when one was expected, or its timeout).
+2. Precedence: e-stop > commands > follow ticks > polling.
+3. Follow ticks keep their slot: nothing starts unless its worst-case duration plus the gap
+   ends before the next tick is due; a due tick goes out at once. A late tick is not made up by
+   a burst (tickers schedule the next tick a full period after the one actually sent).
+4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
+   never queued — a poll that falls more than a period behind is skipped and counted.
+An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
+head of its job.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from busgate.gateway.bus.request import LinkTiming, Request
+
+MAX_RETRIES = 2
+COMMAND_QUEUE = 64
+
+
+class Priority(enum.IntEnum):
+    ESTOP = 0
+    COMMAND = 1
+    FOLLOW = 2
+    POLL = 3
+
+
+@dataclass(eq=False)
+class Job:
+    """Requests to run in order for one device, and where their outcome goes.
+
+    A failed request (after its retries) ends the job, unless ``keep_going`` (an e-stop must
+    reach the other devices even when one of them is silent).
+    """
+
+    device: str
+    requests: deque[Request]
+    priority: Priority = Priority.COMMAND
+    replies: list = field(default_factory=list)
+    error: BaseException | None = None
+    attempts: int = 0
+    keep_going: bool = False
+    context: object = None
+
+
+class FollowTicker(Protocol):
+    """A stream of follow frames at a fixed period (one per device, or one coalesced frame)."""
+
+    period_s: float
+
+    def next_due(self) -> float | None:
+        """When the next tick is due; ``None`` while there is nothing to stream."""
+
+    def build(self, now: float) -> Request | None:
+        """The tick's frame (latest targets), or ``None`` when the streams went stale."""
+
+    def sent(self, start: float) -> None:
+        """The tick's frame started at ``start``: the next one is due a period later."""
+
+
+class Poller(Protocol):
+    """A device's telemetry reads at its ``poll_hz``."""
+
+    device: str
+    period_s: float
+    next_due: float
+
+    def build(self) -> list[Request]:
+        """The requests of one poll."""
+
+
+@dataclass(frozen=True, slots=True)
+class Slot:
+    """The planner's decision: start ``request`` now, on behalf of ``source``."""
+
+    request: Request
+    priority: Priority
+    source: Job | FollowTicker
+
+
+class BusPlanner:
+    """Decides the next exchange on one bus."""
+
+    def __init__(self, timing: LinkTiming, *, command_queue: int = COMMAND_QUEUE) -> None:
+        self.timing = timing
+        self.gap_s = timing.gap_s
+        self.line_free = -math.inf
+        self.skipped_polls = 0
+        self._estops: deque[Job] = deque()
+        self._commands: deque[Job] = deque()
+        self._command_limit = command_queue
+        self._polls: dict[str, Job] = {}
+        self.tickers: list[FollowTicker] = []
+        self.pollers: list[Poller] = []
+
+    def push_estop(self, job: Job) -> None:
+        """E-stop jobs are never refused and go ahead of everything."""
+        job.priority = Priority.ESTOP
+        self._estops.append(job)
+
+    def push_command(self, job: Job) -> bool:
+        """Queue a command; ``False`` (and nothing queued) when the queue is full."""
+        if len(self._commands) >= self._command_limit:
+            return False
+        self._commands.append(job)
+        return True
+
+    def drop_commands(self) -> list[Job]:
+        """Take every queued command and poll out (an e-stop or a lost link voids them)."""
+        dropped = [*self._commands, *self._polls.values()]
+        self._commands.clear()
+        self._polls.clear()
+        return dropped
+
+    @property
+    def queued(self) -> int:
+        return len(self._commands)
+
+    def decide(self, now: float) -> Slot | float:
+        """The exchange to start at ``now``, or the time to ask again."""
+        ready = self.line_free + self.gap_s
+        if now < ready:
+            return ready
+        if self._estops:
+            return self._slot(self._estops[0])
+        tick_due, ticker = self._next_tick()
+        if ticker is not None and tick_due <= now:
+            request = ticker.build(now)
+            if request is not None:
+                return Slot(request, Priority.FOLLOW, ticker)
+            return self.decide(now)  # the streams went stale; the ticker is idle now
+        self._start_due_polls(now)
+        for job in self._candidates():
+            if now + self.timing.worst_case(job.requests[0]) + self.gap_s <= tick_due:
+                return self._slot(job)
+        return min(tick_due, self._next_poll_due())
+
+    def finished(self, slot: Slot, end: float, *, failed: bool) -> Job | None:
+        """Record that ``slot`` held the line until ``end``; return its job when the job is
+        over (all requests done, or failed for good), else ``None``."""
+        self.line_free = max(self.line_free, end)
+        if not isinstance(slot.source, Job):
+            return None
+        job = slot.source
+        if failed and slot.request.idempotent and job.attempts < MAX_RETRIES:
+            job.attempts += 1
+            return None
+        job.requests.popleft()
+        job.attempts = 0
+        if (failed and not job.keep_going) or not job.requests:
+            self._remove(job)
+            return job
+        return None
+
+    def _slot(self, job: Job) -> Slot:
+        return Slot(job.requests[0], job.priority, job)
+
+    def _next_tick(self) -> tuple[float, FollowTicker | None]:
+        best, chosen = math.inf, None
+        for ticker in self.tickers:
+            due = ticker.next_due()
+            if due is not None and due < best:
+                best, chosen = due, ticker
+        return best, chosen
+
+    def _candidates(self) -> list[Job]:
+        polls = sorted(self._polls.values(), key=lambda job: job.context)
+        return [*self._commands, *polls]
+
+    def _start_due_polls(self, now: float) -> None:
+        for poller in self.pollers:
+            if poller.device in self._polls or poller.next_due > now:
+                continue
+            if now - poller.next_due > poller.period_s:
+                self.skipped_polls += 1
+                poller.next_due = now
+            requests = deque(poller.build())
+            poller.next_due += poller.period_s
+            if requests:
+                self._polls[poller.device] = Job(poller.device, requests, Priority.POLL,
+                                                 context=poller.next_due)
+
+    def _next_poll_due(self) -> float:
+        waiting = [p.next_due for p in self.pollers if p.device not in self._polls]
+        return min(waiting, default=math.inf)
+
+    def _remove(self, job: Job) -> None:
+        for queue in (self._estops, self._commands):
+            if job in queue:
+                queue.remove(job)
+                return
+        if self._polls.get(job.device) is job:
+            del self._polls[job.device]

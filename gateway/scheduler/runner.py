@@ -1,0 +1,397 @@
+"""The bus runner: one dedicated thread per bus carries out the planner's decisions.
+
+Rules of this file:
+
+1. The bus thread owns the planner, the drivers and the bus owner. Other threads (zenoh's, the
+   event loop) only call ``submit`` / ``estop`` / ``follow`` / ``stop``, which hand work over
+   through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
+   a frame.
+2. Waiting is to an absolute deadline: sleep most of the way, spin the last fraction of a
+   millisecond (``clock.sleep_until``), waking early only when new work arrives.
+3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
+   streams, marks the devices offline and reconnects with backoff (0.1 s doubling to 2 s);
+   the devices are re-initialised once it is back.
+4. Results go back through ``concurrent.futures.Future`` (thread-safe, and awaitable from
+   asyncio with ``asyncio.wrap_future``); device events go to ``on_event``, which must not block.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future
+from typing import Any
+
+from busgate.codecs.errors import (
+    BusgateError,
+    BusIOError,
+    BusUnavailableError,
+    CommandError,
+    DeviceTimeoutError,
+)
+from busgate.gateway.bus.request import Exchange, LinkTiming, Request
+from busgate.gateway.bus.stats import BusCounters, BusStats
+from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
+from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+
+log = logging.getLogger(__name__)
+
+BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.1, 2.0
+#: Longest the thread sleeps without looking at its inbox, heartbeats and stop flag.
+IDLE_SLICE_S = 0.05
+
+
+class BusyError(BusgateError):
+    """The bus's command queue is full; try again."""
+
+    code = "busy"
+
+
+class DevicePoller:
+    """A driver's telemetry reads at its poll rate (a ``planner.Poller``)."""
+
+    def __init__(self, driver: Driver, poll_hz: float, start: float) -> None:
+        self.driver = driver
+        self.device = driver.name
+        self.period_s = 1.0 / poll_hz
+        self.next_due = start
+
+    def build(self) -> list[Request]:
+        return self.driver.poll() if self.driver.online else self.driver.init()
+
+
+class BusRunner:
+    """Runs one bus: its owner, its planner, its drivers, on a thread of its own."""
+
+    def __init__(
+        self,
+        name: str,
+        owner: Any,
+        timing: LinkTiming,
+        drivers: Iterable[Driver],
+        *,
+        poll_hz: dict[str, float],
+        on_event: Callable[[DeviceEvent], None] = lambda event: None,
+        realtime_priority: int | None = None,
+    ) -> None:
+        self.name = name
+        self.owner = owner
+        self.timing = timing
+        self.drivers = {driver.name: driver for driver in drivers}
+        self.counters: BusCounters = owner.counters
+        self.planner = BusPlanner(timing)
+        start = now()
+        self.planner.pollers = [
+            DevicePoller(driver, poll_hz[name], start)
+            for name, driver in self.drivers.items()
+            if poll_hz.get(name)
+        ]
+        self.planner.tickers = [KeepaliveTicker(d) for d in self.drivers.values()]
+        self.states: dict[str, dict[str, Any]] = {}
+        self.on_event = on_event
+        self.realtime_priority = realtime_priority
+        self._inbox: deque[Callable[[], None]] = deque()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._backoff = BACKOFF_FIRST_S
+        self._opened_once = False
+        self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
+
+    # -- any thread -------------------------------------------------------------------------
+
+    def start(self) -> BusRunner:
+        self._thread.start()
+        return self
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def statistics(self) -> BusStats:
+        return self.counters.snapshot(now())
+
+    def submit(self, device: str, command: Any) -> Future:
+        """Carry out a validated command on ``device``; the future gets the result dict."""
+        return self._hand_over(lambda future: self._plan_command(device, command, future))
+
+    def submit_requests(self, device: str, requests: list[Request]) -> Future:
+        """Run ready-made requests (bus-level ops such as group moves) as one command."""
+        return self._hand_over(lambda future: self._queue_job(Job(device, deque(requests)), future))
+
+    def estop(self) -> Future:
+        """Put every device of the bus in its safe state, ahead of everything else."""
+        return self._hand_over(self._plan_estop)
+
+    def follow(self, device: str, target: Any) -> None:
+        """The latest follow target of ``device`` (validated with its driver's
+        ``follow_target``); streaming starts, or goes on, at the device's period."""
+        self._inbox.append(lambda: self._update_stream(device, target))
+        self._wake.set()
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop the streams, put the devices in their safe state, close the bus."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        self.owner.close()
+
+    def _hand_over(self, action: Callable[[Future], None]) -> Future:
+        future: Future = Future()
+        self._inbox.append(lambda: action(future))
+        self._wake.set()
+        return future
+
+    # -- bus thread: inbox ------------------------------------------------------------------
+
+    def _plan_command(self, device: str, command: Any, future: Future) -> None:
+        driver = self.drivers.get(device)
+        try:
+            if driver is None:
+                raise CommandError(f"no device {device!r} on bus {self.name}")
+            requests = driver.plan(command)
+        except BusgateError as exc:
+            future.set_exception(exc)
+            return
+        self._queue_job(Job(device, deque(requests), context=future), future)
+
+    def _queue_job(self, job: Job, future: Future) -> None:
+        job.context = future
+        if not self.owner.is_open:
+            future.set_exception(BusUnavailableError(f"bus {self.name} is down"))
+        elif not job.requests:
+            future.set_result(self._result(job))
+        elif not self.planner.push_command(job):
+            self.counters.busy_commands += 1
+            future.set_exception(BusyError(f"bus {self.name}: command queue full"))
+
+    def _plan_estop(self, future: Future) -> None:
+        for job in self.planner.drop_commands():
+            self._fail(job, CommandError("cancelled by e-stop"))
+        self._stop_streams("estop")
+        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
+        self.planner.push_estop(Job("*", deque(requests), keep_going=True, context=future))
+
+    def _update_stream(self, device: str, target: Any) -> None:
+        driver = self.drivers.get(device)
+        if driver is None or not self.owner.is_open:
+            return
+        period = driver.follow_period_s
+        tickers = [t for t in self.planner.tickers if isinstance(t, FollowTicker)]
+        for ticker in tickers:
+            if device in ticker.streams:
+                ticker.update(driver, target, now())
+                return
+        for ticker in tickers:
+            same_kind = ticker.driver_class is type(driver) and ticker.period_s == period
+            if same_kind and ticker.has_room(driver):
+                ticker.update(driver, target, now())
+                return
+        ticker = FollowTicker(type(driver), period, self.counters, self._stream_went_stale)
+        ticker.update(driver, target, now())
+        self.planner.tickers.append(ticker)
+
+    def _stream_went_stale(self, driver: Driver) -> None:
+        driver.emit("stream_stale")
+        requests = driver.stale_stream()
+        if requests:
+            self.planner.push_command(Job(driver.name, deque(requests)))
+
+    def _stop_streams(self, reason: str) -> None:
+        for ticker in self.planner.tickers:
+            if isinstance(ticker, FollowTicker):
+                for name in list(ticker.streams):
+                    ticker.stop(name)
+                    self.drivers[name].emit("stream_stopped", reason=reason)
+
+    # -- bus thread: the loop ---------------------------------------------------------------
+
+    def _run(self) -> None:
+        self._ask_realtime()
+        try:
+            while not self._stop.is_set():
+                if not self._ensure_open():
+                    continue
+                self._drain_inbox()
+                decision = self.planner.decide(now())
+                if isinstance(decision, Slot):
+                    self._execute(decision)
+                else:
+                    self._wait_until(decision)
+                self._publish()
+        finally:
+            self._shut_down()
+
+    def _drain_inbox(self) -> None:
+        self._wake.clear()
+        while self._inbox:
+            self._inbox.popleft()()
+
+    def _execute(self, slot: Slot) -> None:
+        previous_end = self.planner.line_free
+        try:
+            exchange = self.owner.exchange(slot.request)
+        except DeviceTimeoutError as exc:
+            failed, start, end = True, now(), now()
+            self._note_failure(slot, exc, end)
+        except BusIOError as exc:
+            self._link_lost(exc, slot)
+            return
+        else:
+            failed, start, end = False, exchange.start, exchange.end
+            self._note_success(slot, exchange)
+            if previous_end > float("-inf"):
+                self.counters.gap(start - previous_end)
+            self.counters.busy_s += end - start
+        if not isinstance(slot.source, Job):
+            slot.source.sent(start)
+        job = self.planner.finished(slot, end, failed=failed)
+        if failed and job is None and slot.request.idempotent:
+            self.counters.retries += 1
+        if job is not None:
+            self._complete(job)
+
+    def _note_success(self, slot: Slot, exchange: Exchange) -> None:
+        driver = self._driver_for(slot.request)
+        if driver is None or not exchange.reply:
+            return
+        driver.heard(exchange.end)
+        result = driver.apply(slot.request, exchange.reply, exchange.end)
+        if isinstance(slot.source, Job) and result:
+            slot.source.replies.append(result)
+
+    def _note_failure(self, slot: Slot, exc: BusgateError, end: float) -> None:
+        driver = self._driver_for(slot.request)
+        if driver is not None:
+            driver.missed(end)
+        if isinstance(slot.source, Job):
+            slot.source.error = exc
+
+    def _driver_for(self, request: Request) -> Driver | None:
+        if request.expected is None:
+            return None
+        source = request.expected.source_id
+        for driver in self.drivers.values():
+            if driver.device_id == source or source is None:
+                return driver
+        return None
+
+    def _complete(self, job: Job) -> None:
+        future = job.context
+        if not isinstance(future, Future) or future.done():
+            return
+        if job.error is not None and not job.keep_going:
+            future.set_exception(job.error)
+        else:
+            future.set_result(self._result(job))
+
+    def _result(self, job: Job) -> dict[str, Any]:
+        result: dict[str, Any] = {}
+        for reply in job.replies:
+            result.update(reply)
+        driver = self.drivers.get(job.device)
+        if driver is not None:
+            result["state"] = driver.state(now())
+        return result
+
+    def _fail(self, job: Job, exc: BusgateError) -> None:
+        future = job.context
+        if isinstance(future, Future) and not future.done():
+            future.set_exception(exc)
+
+    def _wait_until(self, deadline: float) -> None:
+        deadline = min(deadline, now() + IDLE_SLICE_S)
+        idle = getattr(self.owner, "idle_until", None)
+        if idle is not None:
+            self._idle_can(idle, deadline)
+            return
+        remaining = deadline - now()
+        if remaining > 0.001 and self._wake.wait(remaining - 0.001):
+            return
+        sleep_until(deadline)
+
+    def _idle_can(self, idle: Callable[[float], None], deadline: float) -> None:
+        try:
+            while now() < deadline and not self._wake.is_set():
+                idle(min(deadline, now() + 0.005))
+        except BusIOError as exc:
+            self._link_lost(exc, None)
+
+    def _publish(self) -> None:
+        moment = now()
+        for driver in self.drivers.values():
+            check = getattr(driver, "check_heartbeat", None)
+            if check is not None:
+                check(moment)
+            for event in driver.drain_events():
+                self._log_event(event)
+                self.on_event(event)
+            self.states[driver.name] = driver.state(moment)
+
+    def _log_event(self, event: DeviceEvent) -> None:
+        log.info("bus %s device %s: %s %s", self.name, event.device, event.type, event.fields or "")
+
+    # -- bus thread: link up and down -------------------------------------------------------
+
+    def _ensure_open(self) -> bool:
+        if self.owner.is_open:
+            return True
+        try:
+            self.owner.open()
+        except BusUnavailableError as exc:
+            log.warning("bus %s down: %s; retrying in %.1f s", self.name, exc, self._backoff)
+            self._stop.wait(self._backoff)
+            self._backoff = min(self._backoff * 2, BACKOFF_MAX_S)
+            self._drain_inbox()
+            return False
+        log.info("bus %s up on %s", self.name, self.owner.port)
+        if self._opened_once:
+            self.counters.reconnects += 1
+        self._opened_once = True
+        self._backoff = BACKOFF_FIRST_S
+        self.planner.line_free = now()
+        for poller in self.planner.pollers:
+            poller.next_due = now()
+        return True
+
+    def _link_lost(self, exc: BusIOError, slot: Slot | None) -> None:
+        log.warning("bus %s lost: %s", self.name, exc)
+        if slot is not None and isinstance(slot.source, Job):
+            self._fail(slot.source, BusUnavailableError(str(exc)))
+        for job in self.planner.drop_commands():
+            self._fail(job, BusUnavailableError(f"bus {self.name} went down"))
+        self._stop_streams("bus down")
+        for driver in self.drivers.values():
+            driver.went_offline("bus down")
+        self.owner.close()
+
+    def _ask_realtime(self) -> None:
+        if self.realtime_priority is None:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
+        except (PermissionError, OSError) as exc:
+            log.warning("bus %s: SCHED_FIFO %d refused (%s); running at normal priority",
+                        self.name, self.realtime_priority, exc)
+
+    def _shut_down(self) -> None:
+        """Last deeds of the bus thread: safe state for every device, then close."""
+        self._stop_streams("shutdown")
+        for job in self.planner.drop_commands():
+            self._fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
+        if self.owner.is_open:
+            for driver in self.drivers.values():
+                for request in driver.safe_stop():
+                    try:
+                        sleep_until(self.planner.line_free + self.timing.gap_s)
+                        exchange = self.owner.exchange(request)
+                        self.planner.line_free = exchange.end
+                    except (DeviceTimeoutError, BusIOError):
+                        self.planner.line_free = now()
+        self._drain_inbox()
+        self._publish()
