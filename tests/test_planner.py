@@ -1,0 +1,220 @@
+"""The bus planner's timing rules, with a fake clock: gap, precedence, follow slots, bounded
+queues, retries. Times are plain floats; nothing sleeps."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import pytest
+
+from busgate.codecs.framing import ExpectedReply
+from busgate.codecs.timing import uart_time
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
+from busgate.gateway.scheduler.tickers import FollowTicker
+
+GAP = 0.001
+TIMING = LinkTiming("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
+
+
+def status_request(device_id: int = 1, *, idempotent: bool = True) -> Request:
+    """A 9-byte frame answered by a 22-byte reply (an LA status query's shape)."""
+    return Request(("status", device_id), b"\x00" * 9, ExpectedReply(device_id, 22, (object,)),
+                   idempotent)
+
+
+def silent_request(size: int = 9) -> Request:
+    return Request(("broadcast", size), b"\x00" * size, None)
+
+
+WORST = TIMING.worst_case(status_request())
+
+
+class Poller:
+    def __init__(self, device: str, period_s: float, next_due: float = 0.0) -> None:
+        self.device, self.period_s, self.next_due = device, period_s, next_due
+        self.built = 0
+
+    def build(self) -> list[Request]:
+        self.built += 1
+        return [status_request()]
+
+
+class FollowingDriver(Driver):
+    """The least driver a follow ticker needs: it coalesces targets into one frame."""
+
+    kind = protocol = "test"
+    follow_group_limit = 2
+
+    @classmethod
+    def follow_request(cls, targets):
+        return silent_request(3 + 3 * len(targets))
+
+    plan = poll = safe_stop = telemetry = lambda self, *a: []
+    apply = lambda self, *a: {}  # noqa: E731
+
+
+def ticker_at(planner: BusPlanner, now: float, period: float = 0.010) -> FollowTicker:
+    ticker = FollowTicker(FollowingDriver, period, BusCounters(0.0), on_stale=lambda d: None)
+    ticker.update(FollowingDriver("la1", 1), 1000, now)
+    planner.tickers.append(ticker)
+    return ticker
+
+
+def run(planner: BusPlanner, slot: Slot, start: float, duration: float, *, failed=False):
+    """Pretend the runner carried out ``slot`` from ``start`` for ``duration``."""
+    if not isinstance(slot.source, Job):
+        slot.source.sent(start)
+    return planner.finished(slot, start + duration, failed=failed)
+
+
+def test_worst_case_is_frame_plus_reply_time_plus_reply():
+    assert pytest.approx(uart_time(9, 921_600) + 800e-6 + uart_time(22, 921_600)) == WORST
+    assert TIMING.worst_case(silent_request()) == pytest.approx(uart_time(9, 921_600))
+
+
+def test_nothing_starts_within_the_gap_after_the_line_went_idle():
+    planner = BusPlanner(TIMING)
+    planner.push_command(Job("la1", deque([status_request(), status_request()])))
+    first = planner.decide(0.0)
+    assert isinstance(first, Slot)
+    run(planner, first, 0.0, 0.0012)
+    assert planner.decide(0.0012 + GAP / 2) == pytest.approx(0.0012 + GAP)
+    assert isinstance(planner.decide(0.0012 + GAP), Slot)
+
+
+def test_precedence_estop_then_commands_then_polls():
+    planner = BusPlanner(TIMING)
+    planner.pollers = [Poller("la2", 0.05)]
+    command = Job("la1", deque([status_request(1)]))
+    estop = Job("*", deque([silent_request()]))
+    planner.push_command(command)
+    planner.push_estop(estop)
+    order = []
+    t = 0.0
+    for _ in range(3):
+        slot = planner.decide(t)
+        assert isinstance(slot, Slot)
+        order.append(slot.priority)
+        run(planner, slot, t, 0.001)
+        t += 0.001 + GAP
+    assert order == [Priority.ESTOP, Priority.COMMAND, Priority.POLL]
+
+
+def test_a_due_tick_goes_first_and_nothing_starts_that_would_make_it_late():
+    planner = BusPlanner(TIMING)
+    ticker = ticker_at(planner, now=0.0)
+    tick = planner.decide(0.0)
+    assert isinstance(tick, Slot) and tick.priority is Priority.FOLLOW
+    run(planner, tick, 0.0, uart_time(6, 921_600))
+    planner.push_command(Job("la1", deque([status_request()])))
+    # Just before the next tick there is no room for a worst-case exchange plus the gap.
+    late = 0.010 - WORST - GAP + 1e-6
+    assert planner.decide(late) == pytest.approx(0.010)
+    assert ticker.next_due() == pytest.approx(0.010)
+    # With room, the command goes.
+    early = 0.010 - WORST - GAP - 1e-6
+    slot = planner.decide(early)
+    assert isinstance(slot, Slot) and slot.priority is Priority.COMMAND
+
+
+def test_a_late_tick_is_not_made_up_by_a_burst():
+    planner = BusPlanner(TIMING)
+    ticker = ticker_at(planner, now=0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    # The host stalls: the next tick goes out 7 ms late.
+    run(planner, planner.decide(0.017), 0.017, 0.0001)
+    assert ticker.next_due() == pytest.approx(0.027), "one period after the late tick"
+    intervals = ticker.counters.snapshot(1.0)
+    assert intervals.follow_intervals == 1
+    assert intervals.follow_error_p50_s == pytest.approx(0.007)
+
+
+def test_streams_go_stale_and_the_ticker_falls_idle():
+    planner = BusPlanner(TIMING)
+    stale = []
+    ticker = FollowTicker(FollowingDriver, 0.010, BusCounters(0.0), on_stale=stale.append)
+    driver = FollowingDriver("la1", 1)
+    ticker.update(driver, 5, 0.0)
+    planner.tickers.append(ticker)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    assert ticker.fresh_s == pytest.approx(0.1), "max(3 periods, 100 ms)"
+    assert planner.decide(0.2) == float("inf")
+    assert stale == [driver] and ticker.next_due() is None
+
+
+def test_coalescing_respects_the_group_limit():
+    ticker = FollowTicker(FollowingDriver, 0.010, BusCounters(0.0), on_stale=lambda d: None)
+    drivers = [FollowingDriver(f"la{i}", i) for i in range(1, 4)]
+    ticker.update(drivers[0], 1, 0.0)
+    ticker.update(drivers[1], 2, 0.0)
+    assert not ticker.has_room(drivers[2]) and ticker.has_room(drivers[0])
+    assert ticker.build(0.0).wire == b"\x00" * 9, "two targets in one frame"
+
+
+def test_polls_are_never_queued_and_overdue_polls_are_skipped_and_counted():
+    planner = BusPlanner(TIMING)
+    poller = Poller("la1", 0.010)
+    planner.pollers = [poller]
+    slot = planner.decide(0.0)
+    assert slot.priority is Priority.POLL
+    run(planner, slot, 0.0, 0.001)
+    assert planner.decide(0.003) == pytest.approx(0.010), "next poll due a period later"
+    slot = planner.decide(0.055)  # the host stalled for several periods
+    assert isinstance(slot, Slot) and poller.built == 2 and planner.skipped_polls == 1
+    assert poller.next_due == pytest.approx(0.065)
+
+
+def test_command_queue_is_bounded():
+    planner = BusPlanner(TIMING, command_queue=2)
+    assert planner.push_command(Job("a", deque([status_request()])))
+    assert planner.push_command(Job("b", deque([status_request()])))
+    assert not planner.push_command(Job("c", deque([status_request()])))
+    assert planner.queued == 2
+    assert len(planner.drop_commands()) == 2 and planner.queued == 0
+
+
+def test_idempotent_requests_are_retried_at_most_twice_then_the_job_fails():
+    planner = BusPlanner(TIMING)
+    job = Job("la1", deque([status_request(), status_request(2)]))
+    planner.push_command(job)
+    t = 0.0
+    for attempt in range(MAX_RETRIES + 1):
+        slot = planner.decide(t)
+        assert slot.source is job and slot.request == status_request()
+        outcome = run(planner, slot, t, WORST, failed=True)
+        t += WORST + GAP
+        assert (outcome is job) == (attempt == MAX_RETRIES)
+    assert planner.decide(t) == float("inf"), "the failed job's other request is dropped"
+
+
+def test_other_requests_are_sent_once():
+    planner = BusPlanner(TIMING)
+    job = Job("la1", deque([status_request(idempotent=False)]))
+    planner.push_command(job)
+    assert run(planner, planner.decide(0.0), 0.0, WORST, failed=True) is job
+
+
+def test_an_estop_goes_on_to_the_next_device_when_one_is_silent():
+    planner = BusPlanner(TIMING)
+    estop = Job("*", deque([status_request(1, idempotent=False), status_request(2)]),
+                keep_going=True)
+    planner.push_estop(estop)
+    assert run(planner, planner.decide(0.0), 0.0, WORST, failed=True) is None
+    slot = planner.decide(WORST + GAP)
+    assert slot.request == status_request(2)
+    assert run(planner, slot, WORST + GAP, WORST) is estop
+
+
+def test_a_short_poll_may_use_the_room_before_a_tick_a_long_command_cannot():
+    planner = BusPlanner(TIMING)
+    ticker_at(planner, now=0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    long_write = Request("w", b"\x00" * 200, ExpectedReply(1, 22, (object,)))
+    planner.push_command(Job("la1", deque([long_write])))
+    planner.pollers = [Poller("la2", 0.05, next_due=0.0)]
+    now = 0.010 - TIMING.worst_case(long_write) - GAP + 1e-4
+    slot = planner.decide(now)
+    assert isinstance(slot, Slot) and slot.priority is Priority.POLL
