@@ -22,6 +22,7 @@ class Protocol:
     name: str
     kind: str
     addressed: bool
+    driver_name: str
     can: bool = False
 
     @property
@@ -36,13 +37,19 @@ class Protocol:
     def driver(self) -> ModuleType:
         return importlib.import_module(f"busgate.gateway.drivers.{self.name}")
 
+    @property
+    def driver_class(self) -> type:
+        """The gateway driver class of a device on this protocol."""
+        return getattr(self.driver, self.driver_name)
+
 
 PROTOCOLS: dict[str, Protocol] = {
     p.name: p
     for p in (
-        Protocol("inspire_la", kind="inspire_la", addressed=True),
-        Protocol("ds_servo", kind="ds_servo", addressed=True),
-        Protocol("zlac706_can", kind="zlac706", addressed=True, can=True),
-        Protocol("zlac706_rs232", kind="zlac706", addressed=False),
+        Protocol("inspire_la", "inspire_la", addressed=True, driver_name="InspireLaDriver"),
+        Protocol("ds_servo", "ds_servo", addressed=True, driver_name="DsServoDriver"),
+        Protocol("zlac706_can", "zlac706", addressed=True, driver_name="Zlac706CanDriver",
+                 can=True),
+        Protocol("zlac706_rs232", "zlac706", addressed=False, driver_name="Zlac706Rs232Driver"),
     )
 }
