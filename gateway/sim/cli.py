@@ -103,7 +103,10 @@ def _raise_fault(devices: list, spec: str) -> None:
     matching = [d for d in devices if str(d.device_id) == ident]
     if not matching or not name:
         raise CommandError(f"--fault wants ID:NAME with one of the simulated ids, not {spec!r}")
-    matching[0].inject_fault(name, now())
+    try:
+        matching[0].inject_fault(name, now())
+    except ValueError as exc:
+        raise CommandError(f"--fault {spec}: {exc}") from exc
 
 
 def _make_server(args, devices, faults, recorder):

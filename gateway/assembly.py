@@ -1,0 +1,55 @@
+"""From a bus's configuration to a running bus: owner, timing, drivers, runner.
+
+One function builds a bus wherever one is needed (``busgate bench``, the daemon), so a bus in
+a benchmark is the same machine as a bus in production.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from busgate.gateway.bus.can_owner import CanBusOwner
+from busgate.gateway.bus.request import LinkTiming
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.protocols import PROTOCOLS, Protocol
+from busgate.gateway.scheduler.runner import BusRunner
+from busgate.schemas.config import CanBus, DeviceConfig, SerialBus
+
+
+def make_driver(protocol: Protocol, device: DeviceConfig) -> Driver:
+    options: dict[str, object] = {"follow_period_s": device.follow_period_ms / 1000}
+    if protocol.can:
+        options["heartbeat_ms"] = device.heartbeat_ms
+    return protocol.driver_class(device.name, device.id, **options)
+
+
+def build_bus(
+    bus: SerialBus | CanBus, *, on_event: Callable[[DeviceEvent], None] = lambda e: None
+) -> BusRunner:
+    """A bus runner for ``bus`` (not started)."""
+    protocol = PROTOCOLS[bus.protocol]
+    drivers = [make_driver(protocol, device) for device in bus.devices]
+    counters = BusCounters(now())
+    margin = bus.reply_margin_ms / 1000
+    if isinstance(bus, SerialBus):
+        timing = LinkTiming(bus.protocol, bus.baudrate, margin_s=margin, gap_s=bus.gap_s)
+        owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
+    else:
+        timing = LinkTiming(bus.protocol, bus.bitrate, margin_s=margin)
+        by_id = {driver.device_id: driver for driver in drivers}
+
+        def route(event: object, when: float) -> None:
+            driver = by_id.get(getattr(event, "device_id", None))
+            if driver is not None:
+                driver.unsolicited(event, when)
+
+        owner = CanBusOwner(bus.interface, bus.channel, bus.options, protocol.codec, timing,
+                            counters, on_unsolicited=route)
+    return BusRunner(
+        bus.name, owner, timing, drivers,
+        poll_hz={device.name: device.poll_hz for device in bus.devices},
+        on_event=on_event, realtime_priority=bus.realtime_priority,
+    )
