@@ -34,6 +34,7 @@ class BusStats:
     smallest_gap_s: float | None
     follow_error_p50_s: float | None
     follow_error_p99_s: float | None
+    follow_error_min_s: float | None
     follow_intervals: int
     utilisation: float
     uptime_s: float
@@ -77,6 +78,7 @@ class BusCounters:
             smallest_gap_s=self.smallest_gap_s,
             follow_error_p50_s=percentile(errors, 0.50),
             follow_error_p99_s=percentile(errors, 0.99),
+            follow_error_min_s=errors[0] if errors else None,
             follow_intervals=count,
             utilisation=min(1.0, self.busy_s / elapsed),
             uptime_s=elapsed,

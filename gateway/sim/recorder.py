@@ -2,7 +2,9 @@
 
 Times are ``time.perf_counter()`` seconds, which on Linux is CLOCK_MONOTONIC and so comparable
 across processes: ``start`` is when the frame's first byte went on the wire and ``end`` when its
-last byte left it, so gaps and follow periods can be measured on the device side.
+last byte left it, so gaps and follow periods can be measured on the device side. Received
+frames also carry ``arrived``, when the simulator read them off the pty: frames read in one go
+were written in one burst, and their spacing on the wire cannot be told from the device side.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ class WireRecord:
     wire: str  # hex, or id#data for CAN
     frame: str  # the decoded event's class name
     device_id: int | None = None
+    arrived: float | None = None
 
     def to_json(self) -> str:
         return json.dumps(
@@ -31,8 +34,15 @@ class WireRecord:
                 "wire": self.wire,
                 "frame": self.frame,
                 "device_id": self.device_id,
+                "arrived": None if self.arrived is None else round(self.arrived, 7),
             }
         )
+
+    @classmethod
+    def from_json(cls, line: str) -> WireRecord:
+        item = json.loads(line)
+        return cls(item["dir"], item["start"], item["end"], item["wire"], item["frame"],
+                   item["device_id"], item.get("arrived"))
 
 
 class Recorder:

@@ -1,0 +1,76 @@
+"""Figures from a simulator's wire record, seen from the device side: gaps and follow periods.
+
+The host measures its own timing (``BusStats``); this measures what reached the devices, from
+the records a simulator writes (``--record``). Frames the simulator read off the pty in one go
+were written in one burst, so the gap between them cannot be resolved on this side; they are
+counted apart (``unresolved``), not as violations.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from busgate.gateway.bus.stats import percentile
+from busgate.gateway.sim.recorder import WireRecord
+
+
+@dataclass(frozen=True, slots=True)
+class WireFigures:
+    frames_received: int
+    smallest_gap_s: float | None
+    gaps_below_minimum: int
+    unresolved: int
+    follow_frames: int
+    smallest_follow_interval_s: float | None
+    follow_intervals_under_period: int
+    follow_error_p50_s: float | None
+    follow_error_p99_s: float | None
+    mean_turnaround_s: float | None
+
+
+def load_records(path: str | Path) -> list[WireRecord]:
+    with open(path) as stream:
+        return [WireRecord.from_json(line) for line in stream if line.strip()]
+
+
+def analyse(
+    records: Iterable[WireRecord],
+    *,
+    min_gap_s: float,
+    follow_frames: Sequence[str] = (),
+    follow_period_s: float | None = None,
+) -> WireFigures:
+    """Device-side gaps (each received frame's start after the previous frame's end, either
+    direction) and intervals between consecutive follow frames."""
+    ordered = sorted(records, key=lambda r: r.start)
+    gaps, unresolved, turnarounds = [], 0, []
+    previous: WireRecord | None = None
+    line_idle = None
+    for record in ordered:
+        if record.direction == "rx" and previous is not None and line_idle is not None:
+            if record.arrived is not None and record.arrived == previous.arrived:
+                unresolved += 1
+            else:
+                gaps.append(record.start - line_idle)
+        if record.direction == "tx" and previous is not None and previous.direction == "rx":
+            turnarounds.append(record.start - previous.end)
+        line_idle = record.end if line_idle is None else max(line_idle, record.end)
+        previous = record
+    ticks = [r.start for r in ordered if r.direction == "rx" and r.frame in follow_frames]
+    intervals = [b - a for a, b in itertools.pairwise(ticks)]
+    errors = sorted(i - follow_period_s for i in intervals) if follow_period_s else []
+    return WireFigures(
+        frames_received=sum(1 for r in ordered if r.direction == "rx"),
+        smallest_gap_s=min(gaps, default=None),
+        gaps_below_minimum=sum(1 for g in gaps if g < min_gap_s),
+        unresolved=unresolved,
+        follow_frames=len(ticks),
+        smallest_follow_interval_s=min(intervals, default=None),
+        follow_intervals_under_period=sum(1 for e in errors if e < 0),
+        follow_error_p50_s=percentile(errors, 0.5),
+        follow_error_p99_s=percentile(errors, 0.99),
+        mean_turnaround_s=sum(turnarounds) / len(turnarounds) if turnarounds else None,
+    )
