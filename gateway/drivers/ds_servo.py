@@ -1,17 +1,36 @@
-"""DS servo driver: a ``busgate.schemas.ds_servo`` command becomes the codec frames that do it.
+"""DS servo driver: a ``busgate.schemas.ds_servo`` command becomes the codec frames that do it,
+and the servo's status replies become its state (``DsServoDriver``).
 
-Every op is one frame. ``action`` and ``group_move`` always go to the broadcast id, whatever
-``device_id`` says; the other ops go to ``device_id`` and the codec refuses the ones the
-manual forbids to broadcast (ping, read, deferred move) when it encodes them.
+Every op is one frame (``frames_for``, also used by the CLI). ``action`` and ``group_move``
+always go to the broadcast id, whatever ``device_id`` says: they are bus-level ops, one frame
+for every servo on the bus; the other ops go to ``device_id`` and the codec refuses the ones
+the manual forbids to broadcast (ping, read, deferred move) when it encodes them.
+
+Rules of the driver (below ``frames_for``):
+
+1. State changes only in ``apply``, from what the servo confirmed with its status reply, or,
+   for frames that bring none (SYNC WRITE, ACTION), from the frame having gone out.
+2. Every reply carries the status byte (voltage, temperature, overload): faults are taken
+   from every exchange, and each change of them emits exactly one ``fault`` event.
+3. Values are named by the codec (``values_from``) whatever op carried them: a client's own
+   ``read`` of the position updates the telemetry as a poll does.
+4. The id changes (``set_id``, ``write`` at 0x05, ``reset``) only once the servo confirmed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from types import ModuleType
+from typing import Any, ClassVar, Final
+
+from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 from busgate.codecs import ds_servo as codec
+from busgate.codecs.errors import CommandError
+from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.base import Driver
 from busgate.schemas import ds_servo as schema
+from busgate.schemas.errors import describe_validation_error
 
 _TORQUE = codec.REGISTERS["torque_enable"].address
 _SERVO_ID = codec.REGISTERS["servo_id"].address
@@ -59,3 +78,226 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     ['ff ff fe 07 03 2a 08 00 03 e8 da']
     """
     return [_FRAME_FOR[type(command)](command, device_id)]
+
+
+# --- the driver ------------------------------------------------------------------------------
+
+#: Registers one poll reads, and the telemetry name each value is published under. The speed
+#: register's unit is undocumented ("?"), so it is published raw, not as ``speed_rpm``.
+_MEASURED: dict[str, str] = {
+    "current": "current_ma",
+    "present_position": "position",
+    "speed": "speed_raw",
+    "temperature": "temperature_c",
+}
+
+#: Status bits and their fault names, in bit order (manual 2.4).
+_FAULT_NAMES: dict[codec.ServoStatus, str] = {
+    codec.ServoStatus.VOLTAGE: "voltage",
+    codec.ServoStatus.TEMPERATURE: "temperature",
+    codec.ServoStatus.OVERLOAD: "overload",
+}
+
+#: Ops whose repeat is harmless, so a lost reply may be retried: queries, absolute targets and
+#: switches. A REG WRITE is among them since a new one replaces the one stored (manual 2.3.4).
+#: Not: write (it may hit anything), set_id and reset (once the first took effect the servo
+#: has left the id a repeat is sent to, so the repeat can only fail), store_preset (the shaft
+#: may have moved in between), action (it starts whatever was stored since).
+_IDEMPOTENT: frozenset[type] = frozenset(
+    {schema.Ping, schema.Read, schema.Move, schema.GroupMove, schema.Torque, schema.GotoPreset}
+)
+
+
+def _fault_names(status: codec.ServoStatus) -> list[str]:
+    return [name for flag, name in _FAULT_NAMES.items() if flag in status]
+
+
+def _no_write_only_between(start: int, end: int) -> bool:
+    """True when ``[start, end)`` holds no write-only address (reserved ones are fine)."""
+    return all(r is None or r.access.readable for r in codec.REGISTERS.covering(start, end - start))
+
+
+def poll_spans(names: Iterable[str]) -> tuple[tuple[int, int], ...]:
+    """The fewest ``(address, length)`` reads that cover the registers ``names``.
+
+    Neighbours share one read across reserved addresses, but not across write-only ones (the
+    go-to-preset addresses 0x3C-0x3E): the manual marks those "write" with no data type, and
+    ``check_read`` only keeps a read inside the table, so reading them is left untried.
+
+    >>> [(hex(a), n) for a, n in poll_spans(_MEASURED)]
+    [('0x2e', 14), ('0x3f', 1)]
+    """
+    spans: list[tuple[int, int]] = []
+    for register in sorted((codec.REGISTERS[n] for n in names), key=lambda r: r.address):
+        if spans and _no_write_only_between(sum(spans[-1]), register.address):
+            start = spans[-1][0]
+            spans[-1] = (start, register.end - start)
+        else:
+            spans.append((register.address, register.size))
+    for address, length in spans:
+        codec.check_read(address, length)
+    return tuple(spans)
+
+
+_POLL_SPANS: Final = poll_spans(_MEASURED)
+
+
+class FollowTarget(BaseModel):
+    """A ``ds_servo`` follow stream's payload: one absolute position, nothing else."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    position: schema.Position
+
+
+class DsServoDriver(Driver):
+    """One DS servo: commands become frames, status replies become its state.
+
+    Rules: ``plan`` changes nothing; ``apply`` changes the state only from what the servo
+    confirmed (its status reply), or, for frames that bring no reply (SYNC WRITE, ACTION),
+    from the frame having been sent. Every reply carries the status byte, so faults follow
+    every exchange, not only polls.
+    """
+
+    kind: ClassVar[str] = "ds_servo"
+    protocol: ClassVar[str] = "ds_servo"
+    codec: ClassVar[ModuleType] = codec
+    commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
+    follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
+
+    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
+        super().__init__(name, device_id, follow_period_s=follow_period_s)
+        self.measured: dict[str, int | None] = dict.fromkeys(_MEASURED.values())
+        self.target: int | None = None
+        self.pending_target: int | None = None  # a REG WRITE waiting for ACTION
+        self.torque_on: bool | None = None
+        self.faults = codec.ServoStatus(0)
+
+    # -- planning -------------------------------------------------------------------------------
+
+    def plan(self, command: Any) -> list[Request]:
+        if type(command) not in _FRAME_FOR:
+            raise CommandError(f"ds_servo has no command {type(command).__name__}")
+        if isinstance(command, schema.SetId) and command.new_id == self.device_id:
+            # Nothing to change, and a confirmation could not be told from a no-op.
+            raise CommandError(f"servo {self.name} already has id {self.device_id}")
+        idempotent = type(command) in _IDEMPOTENT
+        return [Request.of(codec, frame, idempotent=idempotent)
+                for frame in frames_for(command, self.device_id)]
+
+    def poll(self) -> list[Request]:
+        return [Request.of(codec, codec.Read(self.device_id, address, length), idempotent=True)
+                for address, length in _POLL_SPANS]
+
+    def safe_stop(self) -> list[Request]:
+        """Torque off: the manual documents no value for the lock (e-stop) flag at 0x30, and
+        torque off is its one documented way to stop driving the shaft. The servo goes limp:
+        a load it was holding against gravity is no longer held."""
+        return [Request.of(codec, codec.Write(self.device_id, _TORQUE, b"\x00"), idempotent=True)]
+
+    def follow_target(self, payload: dict[str, Any]) -> int:
+        try:
+            return FollowTarget.model_validate(payload).position
+        except ValidationError as exc:
+            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
+
+    @classmethod
+    def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
+        """One SYNC WRITE at 0x2A; each servo's move time is its follow period, so it glides
+        to each target in one period instead of jumping at full speed."""
+        if not 1 <= len(targets) <= cls.follow_group_limit:
+            raise CommandError(f"a SYNC WRITE carries 1 to {cls.follow_group_limit} servos, "
+                               f"not {len(targets)}")
+        frame = codec.SyncWrite(tuple(
+            codec.SyncTarget(driver.device_id, position, round(driver.follow_period_s * 1000))
+            for driver, position in targets
+        ))
+        return Request.of(codec, frame, idempotent=True)
+
+    # -- interpreting ---------------------------------------------------------------------------
+
+    def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        answer = None
+        if request.expected is not None:
+            answer = next((e for e in reply if request.expected.matches(e)), None)
+            if answer is None:
+                return {}  # unconfirmed: the servo may or may not have done it
+            self.heard(now)
+            self._set_faults(answer.status)
+        return _APPLY[type(request.frame)](self, request.frame, answer) or {}
+
+    def telemetry(self, now: float) -> dict[str, Any]:
+        return {
+            **self.measured,
+            "target": self.target,
+            "pending_target": self.pending_target,
+            "torque_on": self.torque_on,
+            "faults": _fault_names(self.faults),
+        }
+
+    def _set_faults(self, status: codec.ServoStatus) -> None:
+        if status == self.faults:
+            return
+        raised, cleared = status & ~self.faults, self.faults & ~status
+        self.faults = status
+        self.emit("fault", faults=_fault_names(status), raised=_fault_names(raised),
+                  cleared=_fault_names(cleared))
+
+    def _change_id(self, new_id: int, reason: str) -> None:
+        if new_id != self.device_id:
+            self.emit("id_changed", old_id=self.device_id, new_id=new_id, reason=reason)
+            self.device_id = new_id
+
+    def _applied_read(self, frame: codec.Read, answer: codec.StatusReply) -> dict[str, Any]:
+        values = codec.values_from(frame.address, answer.data)
+        self._take_values(values)
+        return {"data": answer.data.hex(), "values": values}
+
+    def _applied_write(self, frame: codec.Write, answer: object) -> None:
+        if frame.address in codec.GOTO_PRESET_ADDRESSES:
+            self.target = None  # the preset's position is on the servo, unknown here
+        self._take_values(codec.values_from(frame.address, frame.data))
+
+    def _take_values(self, values: dict[str, int]) -> None:
+        """Values read from or confirmed written to the servo, whichever op carried them."""
+        for register, value in values.items():
+            if register in _MEASURED:
+                self.measured[_MEASURED[register]] = value
+        if "target_position" in values:
+            self.target = values["target_position"]
+        if "torque_enable" in values:
+            self.torque_on = bool(values["torque_enable"])
+        if "servo_id" in values:
+            self._change_id(values["servo_id"], "written")
+
+    def _applied_reg_write(self, frame: codec.RegWrite, answer: object) -> None:
+        self.pending_target = frame.position_raw
+
+    def _applied_action(self, frame: codec.Action, answer: object) -> None:
+        # Sent by any driver on the bus, ACTION starts every servo's stored move; this one
+        # knows only its own REG WRITE.
+        if self.pending_target is not None:
+            self.target, self.pending_target = self.pending_target, None
+
+    def _applied_sync_write(self, frame: codec.SyncWrite, answer: object) -> None:
+        for target in frame.targets:
+            if target.device_id == self.device_id:
+                self.target = target.position_raw
+
+    def _applied_reset(self, frame: codec.Reset, answer: object) -> None:
+        """Factory settings for "all data" (manual 2.3.7), the id included: the servo now
+        answers at the factory id, and what was commanded is gone."""
+        self.target = self.pending_target = self.torque_on = None
+        self._change_id(codec.REGISTERS["servo_id"].default, "reset")
+
+
+# What a confirmed (or, without a reply, sent) frame does to the state; reads also answer.
+_APPLY: dict[type, Callable[[DsServoDriver, Any, Any], dict[str, Any] | None]] = {
+    codec.Ping: lambda driver, frame, answer: None,
+    codec.Read: DsServoDriver._applied_read,
+    codec.Write: DsServoDriver._applied_write,
+    codec.RegWrite: DsServoDriver._applied_reg_write,
+    codec.Action: DsServoDriver._applied_action,
+    codec.SyncWrite: DsServoDriver._applied_sync_write,
+    codec.Reset: DsServoDriver._applied_reset,
+}

@@ -257,27 +257,37 @@ class BusRunner:
             self._complete(job)
 
     def _note_success(self, slot: Slot, exchange: Exchange) -> None:
-        driver = self._driver_for(slot.request)
-        if driver is None or not exchange.reply:
-            return
-        driver.heard(exchange.end)
-        result = driver.apply(slot.request, exchange.reply, exchange.end)
-        if isinstance(slot.source, Job) and result:
-            slot.source.replies.append(result)
+        """Hand the reply (possibly none, for frames without one) to every driver the frame
+        was for: the job's device, or each device of a coalesced follow frame."""
+        if isinstance(slot.source, FollowTicker):
+            drivers = [stream.driver for stream in slot.source.streams.values()]
+        else:
+            drivers = [d for d in [self._driver_for(slot)] if d is not None]
+        for driver in drivers:
+            if exchange.reply:
+                driver.heard(exchange.end)
+            result = driver.apply(slot.request, exchange.reply, exchange.end)
+            if isinstance(slot.source, Job) and result:
+                slot.source.replies.append(result)
 
     def _note_failure(self, slot: Slot, exc: BusgateError, end: float) -> None:
-        driver = self._driver_for(slot.request)
+        driver = self._driver_for(slot)
         if driver is not None:
             driver.missed(end)
         if isinstance(slot.source, Job):
             slot.source.error = exc
 
-    def _driver_for(self, request: Request) -> Driver | None:
-        if request.expected is None:
+    def _driver_for(self, slot: Slot) -> Driver | None:
+        """The device a job's request is for, or (keep-alives, e-stops) the one it addresses."""
+        if isinstance(slot.source, Job) and slot.source.device in self.drivers:
+            return self.drivers[slot.source.device]
+        if isinstance(slot.source, KeepaliveTicker):
+            return slot.source.driver
+        expected = slot.request.expected
+        if expected is None:
             return None
-        source = request.expected.source_id
         for driver in self.drivers.values():
-            if driver.device_id == source or source is None:
+            if expected.source_id in (driver.device_id, None):
                 return driver
         return None
 
