@@ -70,8 +70,10 @@ class DeviceConfig(Section):
 class BusBase(Section):
     name: Name
     devices: Annotated[list[DeviceConfig], Field(min_length=1)]
-    #: Reply deadline beyond wire time and the device's stated reply time.
-    reply_margin_ms: Annotated[float, Field(ge=0, le=1000)] = 5.0
+    #: Reply deadline beyond wire time and the device's stated reply time: USB adapter latency
+    #: (1 ms with an FTDI latency timer of 1) and the host's scheduling. Every poll must fit
+    #: between two follow ticks with this margin, so it is kept small.
+    reply_margin_ms: Annotated[float, Field(ge=0, le=1000)] = 2.0
     #: SCHED_FIFO priority for the bus thread, when the process is allowed to use it.
     realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
 

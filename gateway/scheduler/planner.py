@@ -10,7 +10,8 @@ The rules it enforces, in the words of the issue:
    ends before the next tick is due; a due tick goes out at once. A late tick is not made up by
    a burst (tickers schedule the next tick a full period after the one actually sent).
 4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
-   never queued — a poll that falls more than a period behind is skipped and counted.
+   never queued — a device has at most one poll waiting, and each period a poll misses (the
+   host stalled, or the bus has no room for it) is skipped and counted.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -180,7 +181,11 @@ class BusPlanner:
 
     def _start_due_polls(self, now: float) -> None:
         for poller in self.pollers:
-            if poller.device in self._polls or poller.next_due > now:
+            if poller.next_due > now:
+                continue
+            if poller.device in self._polls:  # the last poll has not gone out in a whole period
+                self.skipped_polls += 1
+                poller.next_due += poller.period_s
                 continue
             if now - poller.next_due > poller.period_s:
                 self.skipped_polls += 1

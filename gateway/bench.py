@@ -1,0 +1,225 @@
+"""``busgate bench``: the real bus owner and scheduler against a port, measured.
+
+It streams follow targets to the devices and polls them in the spare capacity for a while,
+then prints what it achieved: exchanges and frames per second, the smallest gap, the follow
+interval error (p50/p99, and how many intervals fell under the period), timeouts and CPU.
+Without ``--port`` it starts the built-in simulator in a child process (so the CPU figure is
+the gateway's alone) and also reports what the devices saw on the wire. ``--baseline`` then
+runs a plain sleep-then-spin pyserial loop on the same port for the same time, the yardstick
+for follow jitter on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gc
+import itertools
+import json
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import serial
+
+from busgate.codecs.errors import BusUnavailableError, CommandError
+from busgate.codecs.timing import PROTOCOL_TIMING
+from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.stats import percentile
+from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.protocols import PROTOCOLS
+from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.sim.process import SimProcess
+from busgate.gateway.sim.wire_analysis import analyse, load_records
+from busgate.schemas.config import CanBus, SerialBus
+
+ONLINE_TIMEOUT_S = 5.0
+
+#: Per kind: the commands that make a device ready to follow, the follow payload at time t,
+#: and the names of follow frames in the simulator's record.
+PREPARE: dict[str, list[str]] = {
+    "inspire_la": ['{"op":"enable"}'],
+    "ds_servo": ['{"op":"torque","on":true}'],
+    "zlac706_rs232": ['{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'],
+    "zlac706_can": ['{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'],
+}
+TRAJECTORY: dict[str, Callable[[float, int], dict[str, Any]]] = {
+    "inspire_la": lambda t, i: {"position": round(1000 + 800 * math.sin(t * math.pi + i))},
+    "ds_servo": lambda t, i: {"position": round(2048 + 1500 * math.sin(t * math.pi + i))},
+    "zlac706_rs232": lambda t, i: {"rpm": round(300 * math.sin(t * math.pi + i))},
+    "zlac706_can": lambda t, i: {"rpm": round(300 * math.sin(t * math.pi + i))},
+}
+FOLLOW_FRAMES = ("FollowCommand", "GroupFollowCommand", "SyncWrite", "Write")
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    bench = subparsers.add_parser(
+        "bench",
+        help="measure the bus owner and scheduler against a port or the simulators",
+        description=__doc__.split("\n\n")[1],
+    )
+    bench.add_argument("--kind", required=True, choices=sorted(PROTOCOLS), help="wire protocol")
+    bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
+    bench.add_argument("--ids", default="1", help="device ids, e.g. 1,2,3 (default 1)")
+    bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
+    bench.add_argument("--follow-period-ms", type=float, default=10.0,
+                       help="follow period, 10–50 ms; 0 streams nothing (default 10)")
+    bench.add_argument("--poll-hz", type=float, default=20.0, help="polls per device per second")
+    bench.add_argument("--seconds", type=float, default=6.0, help="how long to measure")
+    bench.add_argument("--min-gap-ms", type=float, help="UART gap (default: per protocol)")
+    bench.add_argument("--baseline", action="store_true",
+                       help="also time a plain sleep-then-spin pyserial loop")
+    bench.add_argument("--json", action="store_true", help="print the figures as JSON")
+    bench.set_defaults(handler=run_bench)
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    ids = [int(part) for part in args.ids.split(",") if part.strip()]
+    if not ids:
+        raise CommandError("--ids names no device")
+    protocol = PROTOCOLS[args.kind]
+    baudrate = args.baudrate or PROTOCOL_TIMING[args.kind].default_rate
+    with tempfile.TemporaryDirectory() as scratch, contextlib.ExitStack() as simulator:
+        port, record = args.port, None
+        if port is None:
+            record = Path(scratch) / "wire.jsonl"
+            sim_args = ["--ids", args.ids, "--record", str(record)]
+            if not protocol.can:
+                sim_args += ["--baudrate", str(baudrate)]
+            port = simulator.enter_context(SimProcess(args.kind, sim_args)).port
+        figures = measure(args, ids, port, baudrate)
+        if args.baseline and not protocol.can:
+            figures["baseline"] = baseline(args, ids, port, baudrate)
+        if record is not None:
+            simulator.close()  # stop the simulator so that its record is complete
+            figures["device_side"] = device_side(args, record)
+    print(json.dumps(figures, indent=2) if args.json else format_figures(args, figures))
+    return 0
+
+
+def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
+    period = args.follow_period_ms or 20.0
+    devices = [
+        {"name": f"dev{i}", "kind": PROTOCOLS[args.kind].kind, "id": i, "poll_hz": args.poll_hz,
+         "follow_period_ms": period}
+        for i in ids
+    ]
+    if PROTOCOLS[args.kind].can:
+        return CanBus(name="bench", transport="can", interface="slcan", channel=port,
+                      devices=devices, options={"sleep_after_open": 0})
+    return SerialBus(name="bench", transport="serial", port=port, baudrate=baudrate,
+                     min_gap_ms=args.min_gap_ms, devices=devices)
+
+
+def measure(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) -> dict:
+    runner = build_bus(bus_config(args, ids, port, baudrate)).start()
+    try:
+        wait_online(runner)
+        for name in runner.drivers:
+            for text in PREPARE[args.kind]:
+                runner.submit(name, runner.drivers[name].parse(text)).result(timeout=2)
+        gc.freeze()
+        before, cpu_before, started = runner.statistics(), time.process_time(), now()
+        stream_targets(runner, args)
+        after, cpu_after, elapsed = runner.statistics(), time.process_time(), now() - started
+    finally:
+        runner.stop()
+    exchanges = after.frames_out - before.frames_out
+    return {
+        "kind": args.kind, "devices": len(ids), "rate": baudrate, "seconds": round(elapsed, 3),
+        "follow_period_ms": args.follow_period_ms, "poll_hz": args.poll_hz,
+        "frames_out_per_s": round(exchanges / elapsed, 1),
+        "frames_in_per_s": round((after.frames_in - before.frames_in) / elapsed, 1),
+        "smallest_gap_ms": _ms(after.smallest_gap_s),
+        "follow_intervals": after.follow_intervals,
+        "follow_error_p50_ms": _ms(after.follow_error_p50_s),
+        "follow_error_p99_ms": _ms(after.follow_error_p99_s),
+        "follow_error_min_ms": _ms(after.follow_error_min_s),
+        "timeouts": after.timeouts - before.timeouts,
+        "retries": after.retries - before.retries,
+        "checksum_errors": after.checksum_errors - before.checksum_errors,
+        "skipped_polls": runner.planner.skipped_polls,
+        "utilisation": round(after.utilisation, 3),
+        "cpu_percent_of_one_core": round(100 * (cpu_after - cpu_before) / elapsed, 1),
+    }
+
+
+def wait_online(runner: BusRunner) -> None:
+    deadline = now() + ONLINE_TIMEOUT_S
+    while not all(d.online for d in runner.drivers.values()):
+        if now() > deadline:
+            offline = [n for n, d in runner.drivers.items() if not d.online]
+            raise BusUnavailableError(f"devices did not answer: {', '.join(offline)}")
+        time.sleep(0.01)
+
+
+def stream_targets(runner: BusRunner, args: argparse.Namespace) -> None:
+    """Act as a client: a new follow target for every device twice a period."""
+    end = now() + args.seconds
+    if not args.follow_period_ms:
+        time.sleep(args.seconds)
+        return
+    step = args.follow_period_ms / 2000
+    trajectory = TRAJECTORY[args.kind]
+    while (moment := now()) < end:
+        for index, (name, driver) in enumerate(runner.drivers.items()):
+            runner.follow(name, driver.follow_target(trajectory(moment, index)))
+        time.sleep(step)
+
+
+def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) -> dict:
+    """A plain loop: sleep then spin to each deadline and write a follow frame; no polling."""
+    from busgate.gateway.assembly import make_driver
+
+    protocol = PROTOCOLS[args.kind]
+    config = bus_config(args, ids, port, baudrate)
+    drivers = [make_driver(protocol, device) for device in config.devices]
+    period = (args.follow_period_ms or 10.0) / 1000
+    request = protocol.driver_class.follow_request(
+        [(d, d.follow_target(TRAJECTORY[args.kind](0.0, 0))) for d in drivers]
+    )
+    starts = []
+    with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
+        deadline = now()
+        end = deadline + args.seconds
+        while deadline < end:
+            starts.append(sleep_until(deadline))
+            port_handle.write(request.wire)
+            deadline += period
+    errors = sorted(b - a - period for a, b in itertools.pairwise(starts))
+    return {"follow_intervals": len(errors), "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
+            "follow_error_p99_ms": _ms(percentile(errors, 0.99))}
+
+
+def device_side(args: argparse.Namespace, record: Path) -> dict:
+    timing = PROTOCOL_TIMING[args.kind]
+    min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else timing.default_gap_s
+    figures = analyse(load_records(record), min_gap_s=min_gap, follow_frames=FOLLOW_FRAMES,
+                      follow_period_s=(args.follow_period_ms or 0) / 1000 or None)
+    return {(name.removesuffix("_s") + "_ms" if name.endswith("_s") else name):
+            (_ms(value) if name.endswith("_s") else value)
+            for name, value in asdict(figures).items()}
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds * 1000, 3)
+
+
+def format_figures(args: argparse.Namespace, figures: dict) -> str:
+    lines = [f"busgate bench: {figures['kind']}, {figures['devices']} device(s), "
+             f"{figures['seconds']} s, follow {figures['follow_period_ms']} ms, "
+             f"poll {figures['poll_hz']} Hz"]
+    for section in ("", "device_side", "baseline"):
+        values = figures if not section else figures.get(section)
+        if not values:
+            continue
+        if section:
+            lines.append(f"{section.replace('_', ' ')}:")
+        for name, value in values.items():
+            if not isinstance(value, dict) and name not in ("kind", "devices", "seconds"):
+                lines.append(f"  {name.replace('_', ' '):32} {value}")
+    return "\n".join(lines)
