@@ -51,6 +51,7 @@ from busgate.codecs.inspire_la.registers import (
     check_span,
     check_temperature_limits,
     check_write,
+    register_values,
     register_write,
     temperature_raw,
 )
@@ -98,6 +99,7 @@ __all__ = [
     "check_write",
     "encode",
     "expected_reply",
+    "register_values",
     "register_write",
     "temperature_raw",
 ]

@@ -99,15 +99,25 @@ def check_write(index: int, data: bytes) -> None:
             raise EncodeError(
                 f"{register.name} (address {address}) is read only", field="index", value=address
             )
+    values = register_values(index, data)
+    for name, raw in values.items():
+        REGISTERS[name].check(raw)
+    if OVERTEMP_LIMIT in values and REWARM_TEMPERATURE in values:
+        check_temperature_limits(values[OVERTEMP_LIMIT], values[REWARM_TEMPERATURE])
+
+
+def register_values(index: int, data: bytes) -> dict[str, int]:
+    """The raw value of every register that ``data`` at ``index`` covers whole, by name.
+
+    >>> register_values(98, bytes.fromhex("c1025d02"))  # manual 3.7.5: 70.5 °C and 60.5 °C
+    {'overtemp_limit': 705, 'rewarm_temperature': 605}
+    """
     values = {}
     for register in REGISTERS:
         if index <= register.address and register.end <= index + len(data):
             raw = data[register.address - index : register.end - index]
-            values[register.name] = register.check(
-                int.from_bytes(raw, "little", signed=register.signed)
-            )
-    if OVERTEMP_LIMIT in values and REWARM_TEMPERATURE in values:
-        check_temperature_limits(values[OVERTEMP_LIMIT], values[REWARM_TEMPERATURE])
+            values[register.name] = int.from_bytes(raw, "little", signed=register.signed)
+    return values
 
 
 def check_temperature_limits(overtemp_raw: int, rewarm_raw: int) -> None:

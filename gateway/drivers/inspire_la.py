@@ -1,20 +1,44 @@
-"""Inspire LA driver: a ``busgate.schemas.inspire_la`` command becomes the codec frames that do it.
+"""Inspire LA driver: a ``busgate.schemas.inspire_la`` command becomes the codec frames that do it
+(``frames_for``, stateless, also used by the CLI), and ``InspireLaDriver`` keeps one actuator's
+state as the gateway knows it.
 
-Every op is one frame. ``group_move`` and ``group_follow`` always go to the broadcast id 255,
-whatever ``device_id`` says. The ``set_*`` ops and ``zero_force`` write one whole register of
-the control table. ``set_overtemp`` and ``set_rewarm`` are checked against the table's
-absolute bounds only: the cross rule (limit ≥ rewarm + 5 °C) needs the device's current
-value of the other one, which only the gateway knows (this mapping is stateless), so the
-gateway must apply ``codec.check_temperature_limits`` before it sends either.
+``frames_for``: every op is one frame. ``group_move`` and ``group_follow`` always go to the
+broadcast id 255, whatever ``device_id`` says. The ``set_*`` ops and ``zero_force`` write one
+whole register of the control table, checked against the table's absolute bounds only.
+
+Rules of ``InspireLaDriver``:
+
+1. The power stage is known only from what was commanded (the status frame does not report
+   it): on at power-up; ``estop`` switches it off until ``enable``, and motion planned in
+   between is refused; ``pause`` switches it off too, but the next target switches it on again.
+   Transitions are taken when a command is planned: commands on a bus run in the order they
+   were planned, and an e-stop must hold from the moment it is asked for.
+2. The over-temperature limit must stay ≥ rewarm + 5 °C (``codec.check_temperature_limits``).
+   A write of either is checked against every value the other may hold on the device: the one
+   last read or confirmed (at first the manual's default) and one planned but not yet confirmed.
+3. Writes change the driver's picture of the control table, its id above all, only once the
+   actuator's reply confirms them: polling a new id the actuator never took would lose it.
+4. Faults come from status frames (polls, control and motion replies, writes answered the
+   3.5.2 way); each change of the set emits one ``fault`` event naming what was raised and
+   what cleared.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+import enum
+from collections.abc import Callable, Sequence
+from types import ModuleType
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from busgate.codecs import inspire_la as codec
+from busgate.codecs.errors import CommandError, EncodeError
+from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.base import Driver
 from busgate.schemas import inspire_la as schema
+from busgate.schemas.base import CommandModel
+from busgate.schemas.errors import describe_validation_error
 
 #: The force-sensor zero register takes exactly this value ("settable range 1").
 _ZERO_FORCE = codec.REGISTERS[codec.FORCE_ZERO].minimum
@@ -75,3 +99,277 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     ['55aa04032137e8034a']
     """
     return [_FRAME_FOR[type(command)](command, device_id)]
+
+
+# --- the driver -----------------------------------------------------------------------------
+
+
+class PowerStage(enum.StrEnum):
+    """The power stage as commanded."""
+
+    ON = "on"
+    PAUSED = "paused"  # off; the next target switches it on
+    ESTOPPED = "estopped"  # off until ``enable``
+
+
+_POWER_AFTER: dict[type, PowerStage] = {
+    schema.Enable: PowerStage.ON,
+    schema.Estop: PowerStage.ESTOPPED,
+    schema.Pause: PowerStage.PAUSED,
+}
+
+#: Sent twice, these do something else than once: a second save wears the flash, a set_id
+#: retried to the old id goes nowhere, a second force zero takes another reading as zero, and a
+#: raw write may be any of these. Everything else sets an absolute value or asks for one.
+_NOT_IDEMPOTENT = frozenset(
+    {schema.Save, schema.SetId, schema.Write, schema.SetBaudrate, schema.ZeroForce}
+)
+
+#: Control-table registers whose values the driver keeps (telemetry name → register).
+_TRACKED = {
+    "overcurrent_limit_ma": codec.OVERCURRENT_LIMIT,
+    "overtemp_limit_c": codec.OVERTEMP_LIMIT,
+    "rewarm_temperature_c": codec.REWARM_TEMPERATURE,
+}
+
+#: Telemetry name → field of the status frame.
+_STATUS_FIELDS = {
+    "position": "position_raw",
+    "target": "target_raw",
+    "temperature_c": "temperature_c",
+    "current_ma": "current_ma",
+    "force_g": "force_g",
+}
+
+
+class FollowTarget(BaseModel):
+    """A follow stream's payload: the target position, nothing else."""
+
+    model_config = CommandModel.model_config
+
+    position: schema.Position
+
+
+_FOLLOW_TARGET = TypeAdapter(FollowTarget)
+
+
+def fault_names(faults: codec.Fault) -> list[str]:
+    """``Fault.STALL | Fault.OVER_CURRENT`` → ``["stall", "over_current"]``, in bit order."""
+    return [fault.name.lower() for fault in codec.Fault if fault in faults]
+
+
+def value_in_unit(name: str, raw: int) -> int | float:
+    """A register's raw value in its unit (tenths of a degree → °C)."""
+    scale = codec.REGISTERS[name].scale
+    # Rounded: 601 * 0.1 is 60.100000000000001 in binary; no register has steps below 0.1.
+    return raw if scale == 1 else round(raw * scale, 3)
+
+
+def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
+    try:
+        return Request.of(codec, frame, idempotent=idempotent)
+    except EncodeError as exc:
+        raise CommandError(str(exc)) from exc
+
+
+class InspireLaDriver(Driver):
+    """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
+
+    kind: ClassVar[str] = "inspire_la"
+    protocol: ClassVar[str] = "inspire_la"
+    codec: ClassVar[ModuleType] = codec
+    commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
+    follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
+
+    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
+        super().__init__(name, device_id, follow_period_s=follow_period_s)
+        self.power = PowerStage.ON  # the actuator works from power-up (manual 3.5.4)
+        self.status: codec.StatusReply | None = None
+        self.faults = codec.Fault(0)
+        #: Raw values read or confirmed; the manual's defaults until then.
+        self.table = {name: codec.REGISTERS[name].default for name in _TRACKED.values()}
+        self._planned: dict[str, int] = {}
+
+    # -- planning ---------------------------------------------------------------------------
+
+    def plan(self, command: Any) -> list[Request]:
+        moves_me = self._moves_me(command)
+        if moves_me:
+            self.require_power()
+        frames = frames_for(command, self.device_id)
+        writes = [
+            codec.register_values(frame.index, frame.data)
+            for frame in frames
+            if isinstance(frame, codec.WriteCommand)
+        ]
+        for values in writes:
+            self._check_temperatures(values)
+        idempotent = type(command) not in _NOT_IDEMPOTENT
+        requests = [_request(frame, idempotent=idempotent) for frame in frames]
+        # The state changes only once every check passed and every frame encoded.
+        for values in writes:
+            self._planned.update(values)
+        self.power = self._power_after(command, moves_me)
+        return requests
+
+    def poll(self) -> list[Request]:
+        """The status query: target, position, temperature, current, force, faults."""
+        status = codec.ControlCommand(self.device_id, codec.ControlCode.STATUS)
+        return [_request(status, idempotent=True)]
+
+    def init(self) -> list[Request]:
+        """A poll, then reads of the limits the driver keeps, so that the temperature rule
+        is checked against the device's values rather than the manual's defaults."""
+        reads = [
+            codec.ReadCommand(self.device_id, register.address, register.size)
+            for register in map(codec.REGISTERS.__getitem__, _TRACKED.values())
+        ]
+        return self.poll() + [_request(read, idempotent=True) for read in reads]
+
+    def safe_stop(self) -> list[Request]:
+        """E-stop (single control 0x23): the power stage stays off until ``enable``."""
+        self.power = PowerStage.ESTOPPED
+        estop = codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP)
+        return [_request(estop, idempotent=True)]
+
+    def follow_target(self, payload: dict[str, Any]) -> int:
+        """The position of a follow payload ``{"position": 0–2000}``."""
+        try:
+            target = _FOLLOW_TARGET.validate_python(payload)
+        except ValidationError as exc:
+            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
+        self.require_power()
+        return target.position
+
+    @classmethod
+    def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
+        """Follow without reply: ``0x19`` for one actuator, one broadcast ``0xF3`` for several.
+
+        An e-stopped actuator is left out of the frame rather than failing its neighbours'
+        tick; ``CommandError`` when none is left or there are too many for one frame.
+        """
+        moving = [(d, p) for d, p in targets if d.power is not PowerStage.ESTOPPED]
+        if not moving:
+            raise CommandError("every actuator of this follow tick is e-stopped: send enable")
+        if len(moving) > cls.follow_group_limit:
+            raise CommandError(
+                f"{len(moving)} follow targets, one frame carries {cls.follow_group_limit}"
+            )
+        if len(moving) == 1:
+            driver, position = moving[0]
+            frame: codec.Frame = codec.FollowCommand(driver.device_id, position, reply=False)
+        else:
+            entries = tuple(codec.Target(d.device_id, p) for d, p in moving)
+            frame = codec.GroupFollowCommand(entries)
+        request = _request(frame, idempotent=True)
+        for driver, _ in moving:
+            driver.power = PowerStage.ON  # a target switches a paused stage on again
+        return request
+
+    def require_power(self) -> None:
+        """``CommandError`` unless a target would move the actuator (not e-stopped)."""
+        if self.power is PowerStage.ESTOPPED:
+            raise CommandError(f"{self.name} is e-stopped: send enable before moving it")
+
+    def _power_after(self, command: Any, moves_me: bool) -> PowerStage:
+        if moves_me:
+            return PowerStage.ON
+        after = _POWER_AFTER.get(type(command), self.power)
+        # A pause does not undo an e-stop: the actuator still waits for enable.
+        if after is PowerStage.PAUSED and self.power is PowerStage.ESTOPPED:
+            return PowerStage.ESTOPPED
+        return after
+
+    def _moves_me(self, command: Any) -> bool:
+        if isinstance(command, schema.GroupMove | schema.GroupFollow):
+            return any(target.id == self.device_id for target in command.targets)
+        return isinstance(command, schema.Move | schema.Follow)
+
+    def _check_temperatures(self, values: dict[str, int]) -> None:
+        limit, rewarm = codec.OVERTEMP_LIMIT, codec.REWARM_TEMPERATURE
+        if limit not in values and rewarm not in values:
+            return
+        try:
+            codec.check_temperature_limits(
+                min(self._possible(limit, values)), max(self._possible(rewarm, values))
+            )
+        except EncodeError as exc:
+            raise CommandError(f"{self.name}: {exc} (limit must be ≥ rewarm + 5 °C)") from exc
+
+    def _possible(self, name: str, written: dict[str, int]) -> set[int]:
+        """Every value register ``name`` may hold once ``written`` lands."""
+        if name in written:
+            return {written[name]}
+        return {self.table[name], self._planned.get(name, self.table[name])}
+
+    # -- interpreting -----------------------------------------------------------------------
+
+    def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        expected = request.expected
+        answers = [event for event in reply if expected is not None and expected.matches(event)]
+        if not answers:
+            return {}  # unconfirmed: the actuator may or may not have done it
+        self.heard(now)
+        result: dict[str, Any] = {}
+        for event in answers:
+            result.update(self._ON_REPLY[type(event)](self, event))
+        if isinstance(request.frame, codec.WriteCommand):
+            self._confirm(request.frame)
+        return result
+
+    def _take_status(self, status: codec.StatusReply) -> dict[str, Any]:
+        self.status = status
+        if status.faults != self.faults:
+            raised, cleared = status.faults & ~self.faults, self.faults & ~status.faults
+            self.faults = status.faults
+            self.emit(
+                "fault",
+                faults=fault_names(status.faults),
+                raised=fault_names(raised),
+                cleared=fault_names(cleared),
+            )
+        return {}
+
+    def _take_read(self, read: codec.ReadReply) -> dict[str, Any]:
+        values = codec.register_values(read.index, read.data)
+        self._remember(values)
+        return {
+            "data": read.data.hex(),
+            "values": {name: value_in_unit(name, raw) for name, raw in values.items()},
+        }
+
+    def _take_write(self, _reply: codec.WriteReply) -> dict[str, Any]:
+        return {}  # one reserved byte: the write's own frame says what was confirmed
+
+    _ON_REPLY: ClassVar[dict[type, Callable[..., dict[str, Any]]]] = {
+        codec.StatusReply: _take_status,
+        codec.ReadReply: _take_read,
+        codec.WriteReply: _take_write,
+    }
+
+    def _confirm(self, write: codec.WriteCommand) -> None:
+        values = codec.register_values(write.index, write.data)
+        self._remember(values)
+        if values.get(codec.ID, self.device_id) != self.device_id:
+            self.emit("id_changed", old_id=self.device_id, new_id=values[codec.ID])
+            self.device_id = values[codec.ID]
+
+    def _remember(self, values: dict[str, int]) -> None:
+        for name in self.table.keys() & values.keys():
+            self.table[name] = values[name]
+            if self._planned.get(name) == values[name]:
+                del self._planned[name]
+
+    def telemetry(self, now: float) -> dict[str, Any]:
+        status = self.status
+        measured = {
+            key: None if status is None else getattr(status, field)
+            for key, field in _STATUS_FIELDS.items()
+        }
+        limits = {key: value_in_unit(name, self.table[name]) for key, name in _TRACKED.items()}
+        return {
+            **measured,
+            "faults": fault_names(self.faults),
+            "power": self.power.value,
+            **limits,
+        }

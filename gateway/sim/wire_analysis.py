@@ -1,9 +1,15 @@
 """Figures from a simulator's wire record, seen from the device side: gaps and follow periods.
 
 The host measures its own timing (``BusStats``); this measures what reached the devices, from
-the records a simulator writes (``--record``). Frames the simulator read off the pty in one go
-were written in one burst, so the gap between them cannot be resolved on this side; they are
-counted apart (``unresolved``), not as violations.
+the records a simulator writes (``--record``). Two limits of measuring on this side:
+
+- Frames the simulator read off the pty in one go were written in one burst, so the gap
+  between them cannot be resolved here; they are counted apart (``unresolved``).
+- A received frame's time is when the simulator read it, which is late by the simulator's own
+  wake-up latency (tens to hundreds of µs on a loaded machine). A gap after the device's reply
+  is measured from the simulator's own send time, so it is exact or overstated; a gap after a
+  frame that has no reply is the difference of two such read times, so read jitter can make it
+  look shorter than it was. The two are reported apart.
 """
 
 from __future__ import annotations
@@ -20,8 +26,10 @@ from busgate.gateway.sim.recorder import WireRecord
 @dataclass(frozen=True, slots=True)
 class WireFigures:
     frames_received: int
-    smallest_gap_s: float | None
-    gaps_below_minimum: int
+    smallest_gap_after_reply_s: float | None
+    gaps_after_reply_below_minimum: int
+    smallest_gap_after_silent_frame_s: float | None
+    gaps_after_silent_frame_below_minimum: int
     unresolved: int
     follow_frames: int
     smallest_follow_interval_s: float | None
@@ -46,7 +54,7 @@ def analyse(
     """Device-side gaps (each received frame's start after the previous frame's end, either
     direction) and intervals between consecutive follow frames."""
     ordered = sorted(records, key=lambda r: r.start)
-    gaps, unresolved, turnarounds = [], 0, []
+    after_reply, after_silent, unresolved, turnarounds = [], [], 0, []
     previous: WireRecord | None = None
     line_idle = None
     for record in ordered:
@@ -54,6 +62,7 @@ def analyse(
             if record.arrived is not None and record.arrived == previous.arrived:
                 unresolved += 1
             else:
+                gaps = after_reply if previous.direction == "tx" else after_silent
                 gaps.append(record.start - line_idle)
         if record.direction == "tx" and previous is not None and previous.direction == "rx":
             turnarounds.append(record.start - previous.end)
@@ -64,8 +73,10 @@ def analyse(
     errors = sorted(i - follow_period_s for i in intervals) if follow_period_s else []
     return WireFigures(
         frames_received=sum(1 for r in ordered if r.direction == "rx"),
-        smallest_gap_s=min(gaps, default=None),
-        gaps_below_minimum=sum(1 for g in gaps if g < min_gap_s),
+        smallest_gap_after_reply_s=min(after_reply, default=None),
+        gaps_after_reply_below_minimum=sum(1 for g in after_reply if g < min_gap_s),
+        smallest_gap_after_silent_frame_s=min(after_silent, default=None),
+        gaps_after_silent_frame_below_minimum=sum(1 for g in after_silent if g < min_gap_s),
         unresolved=unresolved,
         follow_frames=len(ticks),
         smallest_follow_interval_s=min(intervals, default=None),
