@@ -17,6 +17,7 @@ import gc
 import itertools
 import json
 import math
+import os
 import tempfile
 import time
 from collections.abc import Callable
@@ -30,7 +31,7 @@ from busgate.codecs.errors import BusUnavailableError, CommandError
 from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.gateway.assembly import build_bus
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.protocols import PROTOCOLS
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.sim.process import SimProcess
@@ -83,6 +84,7 @@ def run_bench(args: argparse.Namespace) -> int:
         raise CommandError("--ids names no device")
     protocol = PROTOCOLS[args.kind]
     baudrate = args.baudrate or PROTOCOL_TIMING[args.kind].default_rate
+    tune_interpreter()
     with tempfile.TemporaryDirectory() as scratch, contextlib.ExitStack() as simulator:
         port, record = args.port, None
         if port is None:
@@ -91,12 +93,12 @@ def run_bench(args: argparse.Namespace) -> int:
             if not protocol.can:
                 sim_args += ["--baudrate", str(baudrate)]
             port = simulator.enter_context(SimProcess(args.kind, sim_args)).port
-        figures = measure(args, ids, port, baudrate)
+        figures, window = measure(args, ids, port, baudrate)
         if args.baseline and not protocol.can:
             figures["baseline"] = baseline(args, ids, port, baudrate)
         if record is not None:
             simulator.close()  # stop the simulator so that its record is complete
-            figures["device_side"] = device_side(args, record)
+            figures["device_side"] = device_side(args, record, window)
     print(json.dumps(figures, indent=2) if args.json else format_figures(args, figures))
     return 0
 
@@ -115,7 +117,10 @@ def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: in
                      min_gap_ms=args.min_gap_ms, devices=devices)
 
 
-def measure(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) -> dict:
+def measure(
+    args: argparse.Namespace, ids: list[int], port: str, baudrate: int
+) -> tuple[dict, tuple[float, float]]:
+    """Run the bus for ``args.seconds``; the figures, and the measured window's start and end."""
     runner = build_bus(bus_config(args, ids, port, baudrate)).start()
     try:
         wait_online(runner)
@@ -123,11 +128,14 @@ def measure(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) 
             for text in PREPARE[args.kind]:
                 runner.submit(name, runner.drivers[name].parse(text)).result(timeout=2)
         gc.freeze()
+        thread_before = thread_cpu_s(runner.native_id)
         before, cpu_before, started = runner.statistics(), time.process_time(), now()
         stream_targets(runner, args)
-        after, cpu_after, elapsed = runner.statistics(), time.process_time(), now() - started
+        after, cpu_after, ended = runner.statistics(), time.process_time(), now()
+        thread_cpu = thread_cpu_s(runner.native_id) - thread_before
     finally:
         runner.stop()
+    elapsed = ended - started
     exchanges = after.frames_out - before.frames_out
     return {
         "kind": args.kind, "devices": len(ids), "rate": baudrate, "seconds": round(elapsed, 3),
@@ -144,8 +152,18 @@ def measure(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) 
         "checksum_errors": after.checksum_errors - before.checksum_errors,
         "skipped_polls": runner.planner.skipped_polls,
         "utilisation": round(after.utilisation, 3),
-        "cpu_percent_of_one_core": round(100 * (cpu_after - cpu_before) / elapsed, 1),
-    }
+        "cpu_percent_bus_thread": round(100 * thread_cpu / elapsed, 1),
+        "cpu_percent_process": round(100 * (cpu_after - cpu_before) / elapsed, 1),
+    }, (started, ended)
+
+
+def thread_cpu_s(native_id: int | None) -> float:
+    """CPU seconds (user + system) one thread of this process has used, from /proc."""
+    try:
+        fields = Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def wait_online(runner: BusRunner) -> None:
@@ -183,6 +201,7 @@ def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int)
         [(d, d.follow_target(TRAJECTORY[args.kind](0.0, 0))) for d in drivers]
     )
     starts = []
+    tighten_timer_slack()
     with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
         deadline = now()
         end = deadline + args.seconds
@@ -195,10 +214,11 @@ def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int)
             "follow_error_p99_ms": _ms(percentile(errors, 0.99))}
 
 
-def device_side(args: argparse.Namespace, record: Path) -> dict:
+def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float]) -> dict:
     timing = PROTOCOL_TIMING[args.kind]
     min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else timing.default_gap_s
-    figures = analyse(load_records(record), min_gap_s=min_gap, follow_frames=FOLLOW_FRAMES,
+    records = [r for r in load_records(record) if window[0] <= r.start <= window[1]]
+    figures = analyse(records, min_gap_s=min_gap, follow_frames=FOLLOW_FRAMES,
                       follow_period_s=(args.follow_period_ms or 0) / 1000 or None)
     return {(name.removesuffix("_s") + "_ms" if name.endswith("_s") else name):
             (_ms(value) if name.endswith("_s") else value)

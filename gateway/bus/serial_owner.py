@@ -72,6 +72,8 @@ class SerialBusOwner:
             raise BusIOError(f"{self.port} is not open")
         try:
             return self._exchange(self._serial, request)
+        except DeviceTimeoutError:
+            raise  # a TimeoutError is an OSError too, but the link is fine
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise BusIOError(f"{self.port}: {exc}") from exc

@@ -7,16 +7,34 @@ alike. The order a mode needs (mode, ramps, enable, then target: a position targ
 before enable is ignored) and the speed keep-alive are the gateway's state machine, not this
 stateless mapping. ``monitor`` exists on RS232 only: on CAN the driver's heartbeat reports
 position, current and speed unasked.
+
+``Zlac706CanDriver`` (below the table) is the gateway's driver; its state machine is shared
+with RS232 (``zlac706_state``). What is CAN's own:
+
+1. There is no read: ``poll`` is empty, measured values come only from heartbeats
+   (``unsolicited``), and alarm reports replace the heartbeats while the device is in alarm.
+2. Liveness: with heartbeats expected (``heartbeat_ms`` > 0) they alone bring the node online,
+   and ``check_heartbeat(now)`` (called by the runner) marks it offline after 3 intervals
+   without one; an acknowledged write alone then proves the node answers but not that it
+   reports. With none expected, the node is online while it acknowledges writes, and the
+   telemetry says that measured values are unavailable (``"measured": false``).
+3. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); when the mode
+   is not known yet, it releases the motor (control word ``0F``): a gateway that does not know
+   what the motor is doing stops it rather than guesses (but not once a client enabled it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from types import ModuleType
+from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_can as codec
 from busgate.codecs import zlac706_common as common
 from busgate.codecs.errors import CommandError
+from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.zlac706_state import Role, RoleOf, Zlac706Driver, reverse
 from busgate.schemas import zlac706 as schema
 
 Reg = codec.CanRegister
@@ -89,3 +107,118 @@ def frames_for(command: Any, device_id: int) -> list[codec.Write]:
     ['001#00fa0011fffff556']
     """
     return [_FRAME_OF[type(command)](command, device_id)]
+
+
+# --- the driver ------------------------------------------------------------------------------
+
+_MODE_OF = reverse(_WORK_MODES)
+#: Heartbeats missed in a row before the node counts as offline (the issue: 3 intervals).
+HEARTBEATS_LOST = 3
+
+ROLES: dict[int, RoleOf] = {
+    Reg.WORK_MODE: RoleOf(Role.MODE, lambda raw, _s: _MODE_OF.get(raw)),
+    Reg.CONTROL_WORD: RoleOf(Role.ENABLE, lambda raw, _s: raw == codec.ControlWord.ENABLE),
+    Reg.POSITION_MODE: RoleOf(Role.POSITION_MODE,
+                              lambda raw, _s: raw == codec.PositionMode.RELATIVE),
+    Reg.TARGET_POSITION: RoleOf(Role.POSITION),
+    Reg.TARGET_SPEED: RoleOf(Role.SPEED),
+    Reg.TARGET_TORQUE: RoleOf(Role.TORQUE),
+    Reg.POSITION_RAMP: RoleOf(Role.POSITION_RAMP),
+    Reg.SPEED_RAMP: RoleOf(Role.SPEED_RAMP),
+    Reg.MAX_SPEED: RoleOf(Role.MAX_SPEED),
+    Reg.ALARM_RESET: RoleOf(Role.ONE_SHOT),
+    Reg.ORIGIN: RoleOf(Role.ONE_SHOT),
+}
+
+
+class Zlac706CanDriver(Zlac706Driver):
+    """One ZLAC706 node on a CAN bus."""
+
+    protocol: ClassVar[str] = "zlac706_can"
+    codec: ClassVar[ModuleType] = codec
+    frames = staticmethod(frames_for)
+    roles: ClassVar[dict[int, RoleOf]] = ROLES
+    #: The manual's limit is 500 ms; 100 ms of margin for a busy bus and the host.
+    keepalive_period_s: ClassVar[float] = 0.4
+
+    def __init__(
+        self, name: str, device_id: int, *, follow_period_s: float = 0.02, heartbeat_ms: int = 0
+    ) -> None:
+        super().__init__(name, device_id, follow_period_s=follow_period_s)
+        self.heartbeat_s = heartbeat_ms / 1000
+        self.last_heartbeat: float | None = None
+
+    def poll(self) -> list[Request]:
+        return []  # no read command: heartbeats only
+
+    def init(self) -> list[Request]:
+        """Rule 3. The runner repeats ``init`` at the poll rate while the node is offline (with
+        heartbeats expected, until the first one), so it never releases a motor that a client
+        enabled since: with the mode unknown and the motor enabled, nothing is sent."""
+        settings = self.state.settings
+        if settings.mode is not None:
+            return self._unchecked(schema.SetMode(op="set_mode", mode=settings.mode))
+        if settings.enabled:
+            return []
+        return self._unchecked(schema.Disable(op="disable"))
+
+    def keepalive_request(self) -> Request:
+        """The last speed written, again."""
+        speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.state.settings.speed_raw or 0)
+        return Request.of(codec, speed, idempotent=True)
+
+    def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        answer = reply[0]
+        if isinstance(answer, codec.WriteAck):
+            self.acknowledged(request.frame)
+        elif isinstance(answer, codec.NoSuchRegister):
+            # Only a raw write can get here (``frames_for`` checks the table); nothing changed.
+            self.state.forget_pending()
+            self.emit("rejected", register=int(answer.register), reason="no such register")
+            return {"rejected": f"node {self.device_id} has no register {answer.register:#04x}"}
+        return {}
+
+    def unsolicited(self, event: object, now: float) -> None:
+        handler = _UNSOLICITED.get(type(event))
+        if handler is None:
+            return  # a late echo: its write already counted as failed
+        self.last_heartbeat = now
+        Driver.heard(self, now)
+        handler(self, event)
+
+    def heard(self, now: float) -> None:
+        if not self.heartbeat_s:
+            super().heard(now)
+            return
+        # With heartbeats expected they alone bring the node online (rule 2).
+        self.last_reply = now
+        self.misses = 0
+
+    def check_heartbeat(self, now: float) -> None:
+        """Called by the runner: offline once ``HEARTBEATS_LOST`` intervals passed without one."""
+        if not self.heartbeat_s or self.last_heartbeat is None:
+            return
+        if now - self.last_heartbeat > HEARTBEATS_LOST * self.heartbeat_s:
+            self.went_offline("heartbeat lost")
+
+    def has_measurements(self) -> bool:
+        return self.last_heartbeat is not None
+
+    def _take_position(self, event: codec.HeartbeatPosition) -> None:
+        self.measured["position"] = event.position_raw
+        self.take_alarms(common.AlarmFlags(0))  # heartbeats come only while not in alarm
+
+    def _take_current_speed(self, event: codec.HeartbeatCurrentSpeed) -> None:
+        self.measured["current_ma"] = round(event.current_a * 1000)
+        self.measured["speed_rpm"] = event.speed_rpm
+        self.take_alarms(common.AlarmFlags(0))
+
+    def _take_alarm_report(self, event: codec.AlarmReport) -> None:
+        self.take_alarms(event.alarms)
+
+
+_UNSOLICITED: dict[type, Callable[[Zlac706CanDriver, Any], None]] = {
+    codec.HeartbeatPosition: Zlac706CanDriver._take_position,
+    codec.HeartbeatCurrentSpeed: Zlac706CanDriver._take_current_speed,
+    codec.AlarmReport: Zlac706CanDriver._take_alarm_report,
+}

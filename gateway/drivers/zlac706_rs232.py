@@ -6,16 +6,30 @@ its low 16 bits (register 05), in that order (manual 8.2.1 note 4). Speeds trunc
 zero like the manual's speed table; the position-mode speed limit rounds (note 8: 60 rpm →
 0x00A4). RS232 has no current-loop gains: ``set_gain`` of ``current_kp``/``current_kd`` is
 refused here. Values wider than 16 bits are refused by the codec's encoder.
+
+``Zlac706Rs232Driver`` (below the table) is the gateway's driver; its state machine is shared
+with CAN (``zlac706_state``). What is RS232's own:
+
+1. ``poll`` (and ``init``) is the monitor request; its eight frames give the status word
+   (alarms → faults; its running bit says whether the motor is enabled, so a device that
+   rebooted or dropped out on a fault is known to be disabled), bus voltage, current, speed
+   and the feedback position.
+2. The keep-alive is the monitor, every 0.8 s (the manual: at least once a second).
+3. An acknowledgement (``addr addr``) names the register only; the value the state takes is
+   the one written.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from types import ModuleType
+from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
 from busgate.codecs import zlac706_rs232 as codec
-from busgate.codecs.errors import CommandError
+from busgate.codecs.errors import CodecError, CommandError
+from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.zlac706_state import Role, RoleOf, Zlac706Driver, reverse
 from busgate.schemas import zlac706 as schema
 
 Reg = codec.Rs232Register
@@ -97,3 +111,70 @@ def frames_for(command: Any, device_id: int) -> list[Frame]:
     ['50000050', '0527103c']
     """
     return _FRAMES_OF[type(command)](command)
+
+
+# --- the driver ------------------------------------------------------------------------------
+
+_MODE_OF = reverse(_CONTROL_MODES)  # external pulses (C0) maps to no mode: PC targets ignored
+
+ROLES: dict[int, RoleOf] = {
+    Reg.MODE: RoleOf(Role.MODE, lambda raw, _s: _MODE_OF.get(raw)),
+    Reg.ENABLE: RoleOf(Role.ENABLE, lambda raw, _s: raw == codec.EnableCode.ENABLE),
+    Reg.POSITION_MODE: RoleOf(Role.POSITION_MODE,
+                              lambda raw, _s: raw == codec.PositionMode.RELATIVE),
+    Reg.POSITION_HIGH: RoleOf(Role.POSITION_HIGH),
+    # The low half completes the target: joined to the high half written just before it.
+    Reg.POSITION_LOW: RoleOf(
+        Role.POSITION, lambda raw, s: codec.join_position(s.position_high or 0, raw)
+    ),
+    Reg.SPEED: RoleOf(Role.SPEED),
+    Reg.TORQUE: RoleOf(Role.TORQUE),
+    Reg.POSITION_RAMP: RoleOf(Role.POSITION_RAMP),
+    Reg.SPEED_RAMP: RoleOf(Role.SPEED_RAMP),
+    Reg.SPEED_LIMIT: RoleOf(Role.MAX_SPEED),
+    Reg.CLEAR_FAULT: RoleOf(Role.ONE_SHOT),
+    Reg.ORIGIN: RoleOf(Role.ONE_SHOT),
+}
+
+_MONITOR = Request.of(codec, codec.MonitorRequest(), idempotent=True)
+
+
+class Zlac706Rs232Driver(Zlac706Driver):
+    """The ZLAC706 at the other end of an RS232 link."""
+
+    protocol: ClassVar[str] = "zlac706_rs232"
+    codec: ClassVar[ModuleType] = codec
+    frames = staticmethod(frames_for)
+    roles: ClassVar[dict[int, RoleOf]] = ROLES
+    #: The manual asks for a monitor at least once a second in speed mode; 0.2 s of margin.
+    keepalive_period_s: ClassVar[float] = 0.8
+    measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm",
+                                                 "voltage_v")
+
+    def poll(self) -> list[Request]:
+        return [_MONITOR]
+
+    def keepalive_request(self) -> Request:
+        return _MONITOR
+
+    def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        if isinstance(request.frame, codec.Write):
+            self.acknowledged(request.frame)
+            return {}
+        try:
+            monitor = codec.assemble_monitor(reply)
+        except CodecError:
+            return {}  # eight frames, but one of them twice: take none rather than guess
+        self._take_monitor(monitor)
+        return {}
+
+    def _take_monitor(self, monitor: codec.MonitorReply) -> None:
+        self.measured.update(
+            position=monitor.feedback_position_raw,
+            current_ma=round(monitor.current_a * 1000),
+            speed_rpm=monitor.speed_rpm,
+            voltage_v=monitor.voltage_v,
+        )
+        enabled = common.AlarmFlags.RUNNING in monitor.alarms
+        self.state.acknowledged(self.state.settings.change(Role.ENABLE, enabled))
+        self.take_alarms(monitor.alarms)

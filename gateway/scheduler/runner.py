@@ -7,7 +7,10 @@ Rules of this file:
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
    a frame.
 2. Waiting is to an absolute deadline: sleep most of the way, spin the last fraction of a
-   millisecond (``clock.sleep_until``), waking early only when new work arrives.
+   millisecond (``clock.sleep_until``), waking early only when new work arrives. What starts
+   at the deadline is decided (and its frame encoded) just before, so at the deadline only
+   the write is left. A new target of a running follow stream is stored where the next tick
+   reads it, without waking the thread.
 3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
    streams, marks the devices offline and reconnects with backoff (0.1 s doubling to 2 s);
    the devices are re-initialised once it is back.
@@ -34,16 +37,18 @@ from busgate.codecs.errors import (
 )
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
-from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.drivers.base import DeviceEvent, Driver
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
-from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker, KeepaliveTicker
 
 log = logging.getLogger(__name__)
 
 BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.1, 2.0
 #: Longest the thread sleeps without looking at its inbox, heartbeats and stop flag.
 IDLE_SLICE_S = 0.05
+#: How long before a deadline the exchange that starts then is prepared.
+PREPARE_S = 0.002
 
 
 class BusyError(BusgateError):
@@ -93,6 +98,8 @@ class BusRunner:
         ]
         self.planner.tickers = [KeepaliveTicker(d) for d in self.drivers.values()]
         self.states: dict[str, dict[str, Any]] = {}
+        self._streams: dict[str, FollowStream] = {}
+        self._dirty: set[str] = set(self.drivers)
         self.on_event = on_event
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
@@ -112,6 +119,11 @@ class BusRunner:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
+    @property
+    def native_id(self) -> int | None:
+        """The bus thread's kernel thread id (for per-thread CPU figures)."""
+        return self._thread.native_id
+
     def statistics(self) -> BusStats:
         return self.counters.snapshot(now())
 
@@ -130,7 +142,12 @@ class BusRunner:
     def follow(self, device: str, target: Any) -> None:
         """The latest follow target of ``device`` (validated with its driver's
         ``follow_target``); streaming starts, or goes on, at the device's period."""
-        self._inbox.append(lambda: self._update_stream(device, target))
+        stream = self._streams.get(device)
+        if stream is not None:
+            stream.latest = (target, now())
+            return
+        moment = now()
+        self._inbox.append(lambda: self._update_stream(device, target, moment))
         self._wake.set()
 
     def stop(self, timeout: float = 1.0) -> None:
@@ -177,26 +194,24 @@ class BusRunner:
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, context=future))
 
-    def _update_stream(self, device: str, target: Any) -> None:
+    def _update_stream(self, device: str, target: Any, moment: float) -> None:
         driver = self.drivers.get(device)
         if driver is None or not self.owner.is_open:
             return
         period = driver.follow_period_s
         tickers = [t for t in self.planner.tickers if isinstance(t, FollowTicker)]
-        for ticker in tickers:
-            if device in ticker.streams:
-                ticker.update(driver, target, now())
-                return
-        for ticker in tickers:
-            same_kind = ticker.driver_class is type(driver) and ticker.period_s == period
-            if same_kind and ticker.has_room(driver):
-                ticker.update(driver, target, now())
-                return
-        ticker = FollowTicker(type(driver), period, self.counters, self._stream_went_stale)
-        ticker.update(driver, target, now())
-        self.planner.tickers.append(ticker)
+        chosen = next((t for t in tickers if device in t.streams), None) or next(
+            (t for t in tickers
+             if t.driver_class is type(driver) and t.period_s == period and t.has_room(driver)),
+            None,
+        )
+        if chosen is None:
+            chosen = FollowTicker(type(driver), period, self.counters, self._stream_went_stale)
+            self.planner.tickers.append(chosen)
+        self._streams[device] = chosen.update(driver, target, moment)
 
     def _stream_went_stale(self, driver: Driver) -> None:
+        self._streams.pop(driver.name, None)
         driver.emit("stream_stale")
         requests = driver.stale_stream()
         if requests:
@@ -207,25 +222,36 @@ class BusRunner:
             if isinstance(ticker, FollowTicker):
                 for name in list(ticker.streams):
                     ticker.stop(name)
+                    self._streams.pop(name, None)
                     self.drivers[name].emit("stream_stopped", reason=reason)
 
     # -- bus thread: the loop ---------------------------------------------------------------
 
     def _run(self) -> None:
         self._ask_realtime()
+        tighten_timer_slack()
         try:
             while not self._stop.is_set():
                 if not self._ensure_open():
                     continue
                 self._drain_inbox()
-                decision = self.planner.decide(now())
-                if isinstance(decision, Slot):
-                    self._execute(decision)
-                else:
-                    self._wait_until(decision)
+                self._step()
                 self._publish()
         finally:
             self._shut_down()
+
+    def _step(self) -> None:
+        """Start what is due now; or prepare what is due soon and wait for its moment."""
+        decision = self.planner.decide(now())
+        if isinstance(decision, Slot):
+            self._execute(decision)
+            return
+        if decision - now() > PREPARE_S:
+            self._wait_until(decision - PREPARE_S)
+            return
+        prepared = self.planner.decide(decision)
+        if self._wait_until(decision) and isinstance(prepared, Slot):
+            self._execute(prepared)
 
     def _drain_inbox(self) -> None:
         self._wake.clear()
@@ -264,6 +290,7 @@ class BusRunner:
         else:
             drivers = [d for d in [self._driver_for(slot)] if d is not None]
         for driver in drivers:
+            self._dirty.add(driver.name)
             if exchange.reply:
                 driver.heard(exchange.end)
             result = driver.apply(slot.request, exchange.reply, exchange.end)
@@ -273,6 +300,7 @@ class BusRunner:
     def _note_failure(self, slot: Slot, exc: BusgateError, end: float) -> None:
         driver = self._driver_for(slot)
         if driver is not None:
+            self._dirty.add(driver.name)
             driver.missed(end)
         if isinstance(slot.source, Job):
             slot.source.error = exc
@@ -314,34 +342,42 @@ class BusRunner:
         if isinstance(future, Future) and not future.done():
             future.set_exception(exc)
 
-    def _wait_until(self, deadline: float) -> None:
-        deadline = min(deadline, now() + IDLE_SLICE_S)
+    def _wait_until(self, deadline: float) -> bool:
+        """Wait for ``deadline``; ``False`` when woken earlier by new work (or a lost link)."""
+        if deadline - now() > IDLE_SLICE_S:
+            deadline = now() + IDLE_SLICE_S
         idle = getattr(self.owner, "idle_until", None)
         if idle is not None:
-            self._idle_can(idle, deadline)
-            return
+            return self._idle_can(idle, deadline)
         remaining = deadline - now()
         if remaining > 0.001 and self._wake.wait(remaining - 0.001):
-            return
+            return False
         sleep_until(deadline)
+        return not self._wake.is_set()
 
-    def _idle_can(self, idle: Callable[[float], None], deadline: float) -> None:
+    def _idle_can(self, idle: Callable[[float], None], deadline: float) -> bool:
         try:
             while now() < deadline and not self._wake.is_set():
                 idle(min(deadline, now() + 0.005))
         except BusIOError as exc:
             self._link_lost(exc, None)
+            return False
+        return not self._wake.is_set()
 
     def _publish(self) -> None:
+        """Events out, and a fresh state for each device something happened to."""
         moment = now()
-        for driver in self.drivers.values():
+        for name, driver in self.drivers.items():
             check = getattr(driver, "check_heartbeat", None)
             if check is not None:
                 check(moment)
-            for event in driver.drain_events():
+            events = driver.drain_events()
+            for event in events:
                 self._log_event(event)
                 self.on_event(event)
-            self.states[driver.name] = driver.state(moment)
+            if events or name in self._dirty:
+                self.states[name] = driver.state(moment)
+        self._dirty.clear()
 
     def _log_event(self, event: DeviceEvent) -> None:
         log.info("bus %s device %s: %s %s", self.name, event.device, event.type, event.fields or "")

@@ -27,9 +27,11 @@ FRESH_PERIODS = 3
 
 @dataclass(slots=True)
 class FollowStream:
+    """One device's stream. ``latest`` is ``(target, when)``, replaced whole (one atomic
+    assignment) by whichever thread has a new target, and read by the bus thread at a tick."""
+
     driver: Driver
-    target: Any
-    updated: float
+    latest: tuple[Any, float]
 
 
 class FollowTicker:
@@ -56,13 +58,18 @@ class FollowTicker:
         limit = self.driver_class.follow_group_limit
         return driver.name in self.streams or len(self.streams) < limit
 
-    def update(self, driver: Driver, target: Any, now: float) -> None:
+    def update(self, driver: Driver, target: Any, now: float) -> FollowStream:
         """A new target for ``driver``; a new ticker starts ticking at once."""
-        self.streams[driver.name] = FollowStream(driver, target, now)
+        stream = self.streams.get(driver.name)
+        if stream is None:
+            stream = self.streams[driver.name] = FollowStream(driver, (target, now))
+        else:
+            stream.latest = (target, now)
         if self._due is None:
             last = self._last_start
             self._due = now if last is None else max(now, last + self.period_s)
             self._continuing = False
+        return stream
 
     def stop(self, name: str) -> None:
         self.streams.pop(name, None)
@@ -72,13 +79,13 @@ class FollowTicker:
 
     def build(self, now: float) -> Request | None:
         for name, stream in list(self.streams.items()):
-            if now - stream.updated > self.fresh_s:
+            if now - stream.latest[1] > self.fresh_s:
                 del self.streams[name]
                 self.on_stale(stream.driver)
         if not self.streams:
             self._due = None
             return None
-        targets = [(s.driver, s.target) for s in self.streams.values()]
+        targets = [(s.driver, s.latest[0]) for s in self.streams.values()]
         return self.driver_class.follow_request(targets)
 
     def sent(self, start: float) -> None:

@@ -1,0 +1,485 @@
+"""The ZLAC706 drivers (CAN and RS232), by plain calls: frames against the manual's bytes, the
+order rules, state from acknowledged writes, heartbeats and monitor replies, fault and
+online/offline events once each, keep-alive, follow stream, safe stop and idempotency."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from busgate.codecs import zlac706_can as can_codec
+from busgate.codecs import zlac706_rs232 as rs_codec
+from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import CommandError
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
+from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
+from busgate.gateway.drivers.zlac706_state import Role, Settings
+
+MANUAL_MONITOR = "80000181 e1001cfd e20011f3 e4010ef3 e60000e6 e727101e e80000e8 e9271020"
+
+
+def can_driver(heartbeat_ms: int = 0) -> Zlac706CanDriver:
+    return Zlac706CanDriver("wheel", 1, heartbeat_ms=heartbeat_ms)
+
+
+def rs_driver() -> Zlac706Rs232Driver:
+    return Zlac706Rs232Driver("wheel", 1)
+
+
+def plan(driver, text: str) -> list[Request]:
+    return driver.plan(driver.parse(text))
+
+
+def wire(requests: list[Request]) -> list[str]:
+    return [str(r.wire) if isinstance(r.wire, CanFrame) else r.wire.hex() for r in requests]
+
+
+def can_events(data: str, node: int = 1) -> tuple[object, ...]:
+    decoder = can_codec.ReplyDecoder()
+    decoder.feed(CanFrame(node, bytes.fromhex(data)))
+    return tuple(decoder.events())
+
+
+def rs_events(data: str) -> tuple[object, ...]:
+    decoder = rs_codec.ReplyDecoder()
+    decoder.feed(bytes.fromhex(data))
+    return tuple(decoder.events())
+
+
+def reply_to(request: Request) -> tuple[object, ...]:
+    """The device's answer, encoded by the codec and decoded back as the host sees it."""
+    frame = request.frame
+    if isinstance(frame, can_codec.Write):
+        echo = can_codec.WriteAck(frame.device_id, frame.register, frame.value)
+        return can_events(can_codec.encode(echo).data.hex())
+    return rs_events(rs_codec.encode(rs_codec.Ack(frame.register)).hex())
+
+
+def run(driver, requests: list[Request], now: float = 0.0) -> None:
+    """As the runner does: the device answered, then its answer is applied."""
+    for request in requests:
+        driver.heard(now)
+        driver.apply(request, reply_to(request), now)
+
+
+def event_types(driver) -> list[str]:
+    return [event.type for event in driver.drain_events()]
+
+
+def test_settings_fields_are_the_tracked_roles() -> None:
+    untracked = {Role.ONE_SHOT, Role.SETTING}
+    assert set(Settings.__dataclass_fields__) == {r.value for r in Role if r not in untracked}
+
+
+# --- CAN: frames and order -----------------------------------------------------------------------
+
+
+def test_can_position_sequence_gives_the_manuals_frames() -> None:
+    """Manual 8.1.2 part 3, steps 1-6, acknowledged one by one."""
+    d = can_driver()
+    steps = [
+        ('{"op":"set_mode","mode":"position"}', "001#00fa00190000003f"),
+        ('{"op":"set_position_ramp","accel_ms":1000,"decel_ms":1000}', "001#00fa001200000a0a"),
+        ('{"op":"set_max_speed","rpm":100}', "001#00fa001400000111"),
+        ('{"op":"set_position_mode","relative":true}', "001#00fa00170000005f"),
+        ('{"op":"enable"}', "001#00fa00100000001f"),
+        ('{"op":"move","position":123456}', "001#00fa00160001e240"),
+        ('{"op":"move","position":-123456}', "001#00fa0016fffe1dc0"),
+    ]
+    for text, frame in steps:
+        requests = plan(d, text)
+        assert wire(requests) == [frame], text
+        run(d, requests)
+    state = d.telemetry(0)
+    assert (state["mode"], state["enabled"], state["position_mode"]) == ("position", True,
+                                                                       "relative")
+    assert state["target"] == -123456
+    assert state["position_ramp"] == {"accel_ms": 1000, "decel_ms": 1000}
+    assert state["max_speed_rpm"] == pytest.approx(100, abs=0.5)
+
+
+def test_move_before_enable_is_refused_with_the_reason() -> None:
+    d = can_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"position"}'))
+    with pytest.raises(CommandError, match=r"before enable.*ignores"):
+        plan(d, '{"op":"move","position":10}')
+    run(d, plan(d, '{"op":"enable"}'))
+    run(d, plan(d, '{"op":"disable"}'))
+    with pytest.raises(CommandError, match="enable first"):
+        plan(d, '{"op":"move","position":10}')
+
+
+@pytest.mark.parametrize(
+    ("mode", "text"),
+    [
+        ("position", '{"op":"velocity","rpm":100}'),
+        ("torque", '{"op":"velocity","rpm":0}'),
+        ("velocity", '{"op":"torque","current_a":1.6}'),
+        ("velocity", '{"op":"move","position":1}'),
+        (None, '{"op":"velocity","rpm":100}'),
+    ],
+)
+def test_a_target_of_another_mode_is_refused(mode: str | None, text: str) -> None:
+    d = can_driver()
+    if mode:
+        run(d, plan(d, f'{{"op":"set_mode","mode":"{mode}"}}'))
+        run(d, plan(d, '{"op":"enable"}'))
+    with pytest.raises(CommandError, match=r"needs .* mode"):
+        plan(d, text)
+
+
+def test_speed_and_torque_may_be_preset_before_enable() -> None:
+    """The manual's speed and torque sequences set the target before enable."""
+    for mode, text in (("velocity", '{"op":"velocity","rpm":500}'),
+                       ("torque", '{"op":"torque","current_a":8}')):
+        d = can_driver()
+        run(d, plan(d, f'{{"op":"set_mode","mode":"{mode}"}}'))
+        run(d, plan(d, text))
+    assert wire(plan(d, '{"op":"torque","current_a":8}')) == ["001#00fa0008000009c4"]
+
+
+def test_mode_is_not_changed_while_enabled() -> None:
+    d = can_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'))
+    run(d, plan(d, '{"op":"enable"}'))
+    with pytest.raises(CommandError, match="disable first"):
+        plan(d, '{"op":"set_mode","mode":"position"}')
+    assert len(plan(d, '{"op":"set_mode","mode":"velocity"}')) == 1  # the same mode is fine
+
+
+def test_queued_writes_count_until_one_goes_unanswered() -> None:
+    """enable then move back to back is right (same device, in order); after a miss it is not."""
+    d = can_driver()
+    plan(d, '{"op":"set_mode","mode":"position"}')
+    plan(d, '{"op":"enable"}')
+    assert wire(plan(d, '{"op":"move","position":5}')) == ["001#00fa001600000005"]
+    assert d.state.settings.mode is None  # nothing acknowledged yet
+    d.missed(0.0)
+    with pytest.raises(CommandError):
+        plan(d, '{"op":"move","position":5}')
+
+
+@pytest.mark.parametrize(
+    ("setup", "text", "idempotent"),
+    [
+        ([], '{"op":"set_mode","mode":"position"}', True),
+        ([], '{"op":"enable"}', True),
+        ([], '{"op":"disable"}', True),
+        ([], '{"op":"set_velocity_ramp","accel_ms":1000,"decel_ms":1100}', True),
+        ([], '{"op":"set_gain","gain":"position_kf","value":1}', True),
+        ([], '{"op":"set_rated_current","current_ma":8000}', True),
+        ([], '{"op":"clear_alarm"}', False),
+        ([], '{"op":"home"}', False),
+        (['{"op":"set_position_mode","relative":false}'], '{"op":"move","position":9}', True),
+        (['{"op":"set_position_mode","relative":true}'], '{"op":"move","position":9}', False),
+        ([], '{"op":"move","position":9}', False),  # position mode unknown: maybe relative
+    ],
+)
+def test_only_harmless_repeats_are_idempotent(setup, text, idempotent) -> None:
+    d = can_driver()
+    for step in ['{"op":"set_mode","mode":"position"}', *setup, '{"op":"enable"}']:
+        run(d, plan(d, step))
+    assert [r.idempotent for r in plan(d, text)] == [idempotent]
+
+
+def test_monitor_is_refused_on_can() -> None:
+    with pytest.raises(CommandError, match="RS232"):
+        plan(can_driver(), '{"op":"monitor"}')
+
+
+# --- CAN: keep-alive, stop, follow -------------------------------------------------------------
+
+
+def velocity_driver(driver, rpm: int = 500):
+    run(driver, plan(driver, '{"op":"set_mode","mode":"velocity"}'))
+    run(driver, plan(driver, f'{{"op":"velocity","rpm":{rpm}}}'))
+    return driver
+
+
+def test_can_keepalive_repeats_the_speed_while_enabled_and_non_zero() -> None:
+    d = velocity_driver(can_driver())
+    assert d.keepalive(0.0) is None  # preset, not enabled: nothing turns
+    run(d, plan(d, '{"op":"enable"}'))
+    period, request = d.keepalive(1.0)
+    assert period == 0.4 and request.idempotent
+    assert wire([request]) == ["001#00fa001100000555"]  # manual: 500 rpm
+    run(d, plan(d, '{"op":"velocity","rpm":0}'))
+    assert d.keepalive(2.0) is None
+    run(d, plan(d, '{"op":"velocity","rpm":-1000}'))
+    assert wire([d.keepalive(3.0)[1]]) == ["001#00fa0011fffff556"]
+    run(d, plan(d, '{"op":"disable"}'))
+    assert d.keepalive(4.0) is None
+
+
+def test_safe_stop_zeroes_the_speed_then_releases() -> None:
+    d = velocity_driver(can_driver())
+    run(d, plan(d, '{"op":"enable"}'))
+    stop = d.safe_stop()
+    assert wire(stop) == ["001#00fa001100000000", "001#00fa00100000000f"]
+    assert all(r.idempotent for r in stop)
+    run(d, stop)
+    assert d.keepalive(0.0) is None and d.telemetry(0)["enabled"] is False
+
+
+def test_safe_stop_in_position_mode_only_releases_and_drops_queued_outlook() -> None:
+    d = can_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"position"}'))
+    plan(d, '{"op":"enable"}')  # queued, then voided by the e-stop
+    assert wire(d.safe_stop()) == ["001#00fa00100000000f"]
+    with pytest.raises(CommandError, match="enable first"):
+        plan(d, '{"op":"move","position":1}')
+
+
+def test_stale_stream_sends_zero_rpm() -> None:
+    d = velocity_driver(can_driver())
+    assert wire(d.stale_stream()) == ["001#00fa001100000000"]
+
+
+def test_follow_takes_speeds_in_velocity_mode_only() -> None:
+    d = can_driver()
+    with pytest.raises(CommandError, match="velocity mode"):
+        d.follow_target({"rpm": 100})
+    velocity_driver(d)
+    with pytest.raises(CommandError, match="speeds"):
+        d.follow_target({"position": 100})
+    with pytest.raises(CommandError, match="invalid follow target"):
+        d.follow_target({"rpm": 1001})
+    target = d.follow_target({"rpm": 100})
+    request = Zlac706CanDriver.follow_request([(d, target)])
+    assert wire([request]) == ["001#00fa001100000111"] and request.idempotent
+    with pytest.raises(CommandError, match="one device"):
+        Zlac706CanDriver.follow_request([(d, target), (can_driver(), target)])
+
+
+def test_a_followed_speed_is_kept_alive_once_acknowledged() -> None:
+    d = velocity_driver(can_driver(), rpm=0)
+    run(d, plan(d, '{"op":"enable"}'))
+    run(d, [Zlac706CanDriver.follow_request([(d, d.follow_target({"rpm": 100}))])])
+    assert wire([d.keepalive(0.0)[1]]) == ["001#00fa001100000111"]
+
+
+# --- CAN: init, heartbeats, alarms, liveness -----------------------------------------------------
+
+
+def test_can_poll_is_empty_and_init_writes_something_harmless() -> None:
+    d = can_driver()
+    assert d.poll() == []
+    assert wire(d.init()) == ["001#00fa00100000000f"]  # mode unknown: release
+    run(d, plan(d, '{"op":"enable"}'))
+    assert d.init() == []  # a client enabled it since: init must not release it again
+    run(d, plan(d, '{"op":"disable"}'))
+    run(d, plan(d, '{"op":"set_mode","mode":"torque"}'))
+    assert wire(d.init()) == ["001#00fa00190000008f"]  # mode known: written again
+
+
+def test_without_heartbeats_state_carries_the_commanded_and_online_follows_acks() -> None:
+    d = velocity_driver(can_driver())
+    state = d.telemetry(0)
+    assert state["measured"] is False and state["position"] is None
+    assert state["target_speed_rpm"] == pytest.approx(500, abs=0.5)
+    assert d.online and event_types(d) == ["online"]
+    for _ in range(3):
+        d.missed(1.0)
+    d.check_heartbeat(100.0)  # none expected: never "lost"
+    assert not d.online and [e.fields for e in d.drain_events()] == [{"reason": "no reply"}]
+
+
+def test_heartbeats_give_measured_values_and_their_loss_marks_offline_once() -> None:
+    d = can_driver(heartbeat_ms=100)
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'), now=0.0)
+    assert not d.online  # an acknowledged write alone: heartbeats expected, none yet
+    d.unsolicited(can_events("00fe00200001e1e2")[0], 1.0)  # manual: position 123362
+    d.unsolicited(can_events("00fe0021001e043f")[0], 1.0)  # manual: 0.30 A, 398 rpm
+    state = d.telemetry(1.0)
+    assert state["measured"] is True and state["position"] == 123362
+    assert state["current_ma"] == 300 and state["speed_rpm"] == pytest.approx(398.1, abs=0.1)
+    d.check_heartbeat(1.3)
+    assert d.online and event_types(d) == ["online"]
+    d.check_heartbeat(1.31)
+    d.check_heartbeat(2.0)
+    assert not d.online and [e.fields for e in d.drain_events()] == [
+        {"reason": "heartbeat lost"}]
+    d.unsolicited(can_events("00fe00200001e1e2")[0], 2.1)
+    assert d.online and event_types(d) == ["online"]
+
+
+def test_alarm_reports_become_faults_with_one_event_per_change() -> None:
+    d = can_driver(heartbeat_ms=500)
+    encoder = can_events("00ff00eb08080808")[0]  # manual: encoder fault
+    d.unsolicited(encoder, 0.0)
+    d.unsolicited(encoder, 0.5)
+    d.unsolicited(can_events("00ff00eb0a0a0a0a")[0], 1.0)
+    d.unsolicited(can_events("00fe0021001e043f")[0], 1.5)  # heartbeats again: alarm gone
+    events = [e for e in d.drain_events() if e.type == "fault"]
+    assert [e.fields for e in events] == [
+        {"faults": ["encoder_fault"], "raised": ["encoder_fault"], "cleared": []},
+        {"faults": ["over_current", "encoder_fault"], "raised": ["over_current"], "cleared": []},
+        {"faults": [], "raised": [], "cleared": ["over_current", "encoder_fault"]},
+    ]
+    d.unsolicited(can_events("00ff00eb81818181")[0], 2.0)  # running + external: no fault
+    assert event_types(d) == [] and d.telemetry(2.0)["faults"] == []
+
+
+def test_no_such_register_changes_nothing_and_is_reported() -> None:
+    d = can_driver()
+    request = plan(d, '{"op":"set_mode","mode":"velocity"}')[0]
+    answer = d.apply(request, can_events("00ff00190000002f"), 0.0)
+    assert "no register 0x19" in answer["rejected"]
+    assert d.state.settings.mode is None and d.state.expected().mode is None
+    assert event_types(d) == ["rejected"]
+
+
+# --- RS232 ---------------------------------------------------------------------------------------
+
+
+def test_rs232_position_sequence_gives_the_manuals_frames() -> None:
+    """Manual 8.2.2 part one, and the acknowledged halves make the target."""
+    d = rs_driver()
+    steps = [
+        ('{"op":"set_mode","mode":"position"}', ["0200d0d2"]),
+        ('{"op":"set_max_speed","rpm":60}', ["1d00a4c1"]),
+        ('{"op":"enable"}', ["00000101"]),
+        ('{"op":"move","position":10000}', ["50000050", "0527103c"]),
+        ('{"op":"move","position":-10000}', ["50ffff4e", "05d8f0cd"]),
+    ]
+    for text, frames in steps:
+        requests = plan(d, text)
+        assert wire(requests) == frames, text
+        run(d, requests)
+    assert d.telemetry(0)["target"] == -10000
+
+
+def test_rs232_move_before_enable_is_refused() -> None:
+    d = rs_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"position"}'))
+    with pytest.raises(CommandError, match="before enable"):
+        plan(d, '{"op":"move","position":10000}')
+
+
+def test_rs232_poll_is_the_monitor_and_its_reply_becomes_telemetry() -> None:
+    d = rs_driver()
+    (request,) = d.poll()
+    assert wire([request]) == ["800080"] and request.expected.frames == 8 and request.idempotent
+    assert d.init() == [request]
+    d.apply(request, rs_events(MANUAL_MONITOR), 0.0)
+    state = d.telemetry(0)
+    assert (state["voltage_v"], state["current_ma"], state["position"]) == (28, 170, 10000)
+    assert state["speed_rpm"] == pytest.approx(98.9, abs=0.1)
+    assert state["enabled"] is True  # status word 01: started
+    assert state["faults"] == [] and event_types(d) == []
+
+
+def test_rs232_status_word_faults_emit_once_and_a_stop_shows_disabled() -> None:
+    d = rs_driver()
+    over_current = MANUAL_MONITOR.replace("80000181", "80000282")
+    for _ in range(2):
+        d.apply(d.poll()[0], rs_events(over_current), 0.0)
+    d.apply(d.poll()[0], rs_events(MANUAL_MONITOR.replace("80000181", "80000080")), 1.0)
+    assert [e.fields["faults"] for e in d.drain_events()] == [["over_current"], []]
+    assert d.telemetry(1)["enabled"] is False
+
+
+def test_rs232_keepalive_is_the_monitor_and_stop_is_speed_zero_then_disable() -> None:
+    d = velocity_driver(rs_driver(), rpm=50)
+    assert wire(plan(d, '{"op":"velocity","rpm":-50}')) == ["06ff787d"]
+    assert d.keepalive(0.0) is None
+    run(d, plan(d, '{"op":"enable"}'))
+    period, request = d.keepalive(0.0)
+    assert period == 0.8 and wire([request]) == ["800080"]
+    assert wire(d.safe_stop()) == ["06000006", "00000000"]
+    request = Zlac706Rs232Driver.follow_request([(d, d.follow_target({"rpm": 50}))])
+    assert wire([request]) == ["0600888e"]  # manual: 50 rpm
+
+
+def test_rs232_refuses_current_gains_and_speed_outside_velocity_mode() -> None:
+    d = rs_driver()
+    with pytest.raises(CommandError, match="current_kp"):
+        plan(d, '{"op":"set_gain","gain":"current_kp","value":5}')
+    run(d, plan(d, '{"op":"set_mode","mode":"torque"}'))
+    with pytest.raises(CommandError, match="velocity mode"):
+        plan(d, '{"op":"velocity","rpm":50}')
+    assert wire(plan(d, '{"op":"torque","current_a":8}')) == ["0809c4d5"]
+
+
+# --- end to end: the real bus owners against the simulator, when it exists ---------------------
+
+
+def test_rs232_through_the_bus_owner_and_the_simulator() -> None:
+    sim = pytest.importorskip("busgate.gateway.sim.zlac706")
+    from busgate.gateway.bus.serial_owner import SerialBusOwner
+    from busgate.gateway.bus.stats import BusCounters
+    from busgate.gateway.sim.serial_server import SerialSimulator
+
+    baud = 115_200
+    timing = LinkTiming("zlac706_rs232", baud, margin_s=0.05)
+    with SerialSimulator(rs_codec, [sim.Zlac706Rs232Device(1)], baudrate=baud) as simulator:
+        owner = SerialBusOwner(simulator.port, rs_codec, timing, BusCounters(time.perf_counter()))
+        owner.open()
+        try:
+            d = rs_driver()
+
+            def go(requests: list[Request]) -> None:
+                for r in requests:
+                    exchange = owner.exchange(r)
+                    d.heard(exchange.end)
+                    d.apply(r, exchange.reply, exchange.end)
+
+            go(d.init())
+            assert d.online and d.telemetry(0)["voltage_v"] is not None
+            go(plan(d, '{"op":"set_mode","mode":"velocity"}'))
+            go(plan(d, '{"op":"velocity","rpm":100}'))
+            go(plan(d, '{"op":"enable"}'))
+            go(d.poll())
+            assert d.telemetry(0)["enabled"] is True and d.keepalive(0.0) is not None
+            go(d.safe_stop())
+            go(d.poll())
+            assert d.telemetry(0)["enabled"] is False and d.keepalive(0.0) is None
+        finally:
+            owner.close()
+
+
+def test_can_through_the_bus_owner_and_the_simulator() -> None:
+    sim = pytest.importorskip("busgate.gateway.sim.zlac706")
+    import can
+
+    from busgate.gateway.bus.can_owner import CanBusOwner
+    from busgate.gateway.bus.stats import BusCounters
+    from busgate.gateway.sim.can_server import CanSimulator
+
+    channel = f"zlac706-driver-test-{time.perf_counter_ns()}"
+    device_bus = can.Bus(interface="virtual", channel=channel)
+    node = sim.Zlac706CanDevice(1, heartbeat_ms=50)
+    d = can_driver(heartbeat_ms=50)
+    timing = LinkTiming("zlac706_can", 500_000, margin_s=0.05)
+    with CanSimulator(can_codec, [node], bus=device_bus):
+        owner = CanBusOwner("virtual", channel, {}, can_codec, timing,
+                            BusCounters(time.perf_counter()), on_unsolicited=d.unsolicited)
+        owner.open()
+
+        def go(requests: list[Request]) -> None:
+            for r in requests:
+                exchange = owner.exchange(r)
+                d.heard(exchange.end)
+                d.apply(r, exchange.reply, exchange.end)
+
+        try:
+            go(d.init())
+            for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"velocity","rpm":100}',
+                         '{"op":"enable"}'):
+                go(plan(d, text))
+            owner.idle_until(time.perf_counter() + 0.3)  # heartbeats: online, measured
+            assert d.online and d.telemetry(0)["measured"] is True
+            go([d.keepalive(time.perf_counter())[1]])
+            assert d.telemetry(0)["speed_rpm"] > 0
+            node.inject_fault("encoder", time.perf_counter())
+            owner.idle_until(time.perf_counter() + 0.3)
+            assert d.telemetry(0)["faults"] == ["encoder_fault"]
+            assert event_types(d) == ["online", "fault"]
+            go(d.safe_stop())
+            assert d.keepalive(0.0) is None
+        finally:
+            owner.close()
+        d.check_heartbeat(time.perf_counter() + 1.0)
+        assert not d.online and event_types(d) == ["offline"]
