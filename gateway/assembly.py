@@ -52,4 +52,5 @@ def build_bus(
         bus.name, owner, timing, drivers,
         poll_hz={device.name: device.poll_hz for device in bus.devices},
         on_event=on_event, realtime_priority=bus.realtime_priority,
+        late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )

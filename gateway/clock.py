@@ -19,7 +19,7 @@ import ctypes.util
 import sys
 import time
 
-SPIN_S = 0.0003
+SPIN_S = 0.0002
 SWITCH_INTERVAL_S = 0.0005
 _PR_SET_TIMERSLACK = 29
 

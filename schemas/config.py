@@ -74,6 +74,9 @@ class BusBase(Section):
     #: (1 ms with an FTDI latency timer of 1) and the host's scheduling. Every poll must fit
     #: between two follow ticks with this margin, so it is kept small.
     reply_margin_ms: Annotated[float, Field(ge=0, le=1000)] = 2.0
+    #: After a timeout, how long requests that expect a reply wait, so that a late reply is
+    #: flushed as stale rather than taken for the next request's answer.
+    late_reply_holdoff_ms: Annotated[float, Field(ge=0, le=1000)] = 10.0
     #: SCHED_FIFO priority for the bus thread, when the process is allowed to use it.
     realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
 

@@ -218,3 +218,13 @@ def test_a_short_poll_may_use_the_room_before_a_tick_a_long_command_cannot():
     now = 0.010 - TIMING.worst_case(long_write) - GAP + 1e-4
     slot = planner.decide(now)
     assert isinstance(slot, Slot) and slot.priority is Priority.POLL
+
+
+def test_after_a_timeout_only_frames_without_reply_go_until_the_holdoff_ends():
+    planner = BusPlanner(TIMING)
+    planner.hold_replies_until = 0.010
+    planner.push_command(Job("la1", deque([status_request()])))
+    assert planner.decide(0.0) == pytest.approx(0.010)
+    planner.push_estop(Job("*", deque([silent_request()])))
+    assert planner.decide(0.0).priority is Priority.ESTOP
+    assert isinstance(planner.decide(0.010), Slot)

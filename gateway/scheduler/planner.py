@@ -12,6 +12,9 @@ The rules it enforces, in the words of the issue:
 4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
    never queued — a device has at most one poll waiting, and each period a poll misses (the
    host stalled, or the bus has no room for it) is skipped and counted.
+5. After a timeout, no exchange that expects a reply starts before ``hold_replies_until``:
+   a reply that comes late is then flushed as stale instead of being taken for the answer to
+   the next request (frames without a reply, such as follow ticks, may still go).
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -97,6 +100,7 @@ class BusPlanner:
         self.timing = timing
         self.gap_s = timing.gap_s
         self.line_free = -math.inf
+        self.hold_replies_until = -math.inf
         self.skipped_polls = 0
         self._estops: deque[Job] = deque()
         self._commands: deque[Job] = deque()
@@ -142,10 +146,15 @@ class BusPlanner:
                 return Slot(request, Priority.FOLLOW, ticker)
             return self.decide(now)  # the streams went stale; the ticker is idle now
         self._start_due_polls(now)
+        held = now < self.hold_replies_until
         for job in self._candidates():
-            if now + self.timing.worst_case(job.requests[0]) + self.gap_s <= tick_due:
+            request = job.requests[0]
+            if held and request.expected is not None:
+                continue
+            if now + self.timing.worst_case(request) + self.gap_s <= tick_due:
                 return self._slot(job)
-        return min(tick_due, self._next_poll_due())
+        wake = min(tick_due, self._next_poll_due())
+        return min(wake, self.hold_replies_until) if held else wake
 
     def finished(self, slot: Slot, end: float, *, failed: bool) -> Job | None:
         """Record that ``slot`` held the line until ``end``; return its job when the job is

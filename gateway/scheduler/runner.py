@@ -83,8 +83,10 @@ class BusRunner:
         poll_hz: dict[str, float],
         on_event: Callable[[DeviceEvent], None] = lambda event: None,
         realtime_priority: int | None = None,
+        late_reply_holdoff_s: float = 0.01,
     ) -> None:
         self.name = name
+        self.late_reply_holdoff_s = late_reply_holdoff_s
         self.owner = owner
         self.timing = timing
         self.drivers = {driver.name: driver for driver in drivers}
@@ -247,7 +249,7 @@ class BusRunner:
             self._execute(decision)
             return
         if decision - now() > PREPARE_S:
-            self._wait_until(decision - PREPARE_S)
+            self._wait_until(decision - PREPARE_S, precise=False)
             return
         prepared = self.planner.decide(decision)
         if self._wait_until(decision) and isinstance(prepared, Slot):
@@ -264,6 +266,7 @@ class BusRunner:
             exchange = self.owner.exchange(slot.request)
         except DeviceTimeoutError as exc:
             failed, start, end = True, now(), now()
+            self.planner.hold_replies_until = end + self.late_reply_holdoff_s
             self._note_failure(slot, exc, end)
         except BusIOError as exc:
             self._link_lost(exc, slot)
@@ -342,17 +345,20 @@ class BusRunner:
         if isinstance(future, Future) and not future.done():
             future.set_exception(exc)
 
-    def _wait_until(self, deadline: float) -> bool:
-        """Wait for ``deadline``; ``False`` when woken earlier by new work (or a lost link)."""
+    def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
+        """Wait for ``deadline`` (spinning the last fraction only when ``precise``); ``False``
+        when woken earlier by new work (or a lost link)."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
         idle = getattr(self.owner, "idle_until", None)
         if idle is not None:
             return self._idle_can(idle, deadline)
+        margin = 0.001 if precise else 0.0
         remaining = deadline - now()
-        if remaining > 0.001 and self._wake.wait(remaining - 0.001):
+        if remaining > margin and self._wake.wait(remaining - margin):
             return False
-        sleep_until(deadline)
+        if precise:
+            sleep_until(deadline)
         return not self._wake.is_set()
 
     def _idle_can(self, idle: Callable[[float], None], deadline: float) -> bool:

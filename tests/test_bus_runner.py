@@ -1,0 +1,198 @@
+"""The bus owner and the bus runner against the Inspire LA simulator on a real pty.
+
+These are behaviour tests: commands come back with results, the link comes back after an
+unplug, late replies are never taken for the next request's answer, follow streams start and
+go stale, the queue says "busy" instead of growing. Timing is asserted only as lower bounds
+(the gap), never as upper bounds: this machine is shared and noisy.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from concurrent.futures import Future
+
+import pytest
+
+from busgate.codecs import inspire_la as la
+from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+from busgate.gateway.scheduler.planner import Job
+from busgate.gateway.scheduler.runner import BusyError
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.pty_link import PtyLink
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.config import SerialBus
+
+BAUD = 921_600
+
+
+@pytest.fixture
+def simulator(tmp_path):
+    link = PtyLink(str(tmp_path / "usb-la"))
+    devices = [InspireLaDevice(1), InspireLaDevice(2)]
+    with SerialSimulator(la, devices, baudrate=BAUD, link=link) as sim:
+        yield sim
+
+
+def status(device_id: int) -> Request:
+    return Request.of(la, la.ControlCommand(device_id, la.ControlCode.STATUS), idempotent=True)
+
+
+def owner_for(port: str) -> SerialBusOwner:
+    timing = LinkTiming("inspire_la", BAUD, margin_s=0.002, gap_s=0.001)
+    owner = SerialBusOwner(port, la, timing, BusCounters(now()))
+    owner.open()
+    return owner
+
+
+def bus(port: str, **device) -> SerialBus:
+    devices = [{"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 50, **device},
+               {"name": "la2", "kind": "inspire_la", "id": 2, "poll_hz": 50}]
+    return SerialBus(name="uart0", transport="serial", port=port, baudrate=BAUD, devices=devices)
+
+
+def wait_for(predicate, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+def test_owner_exchange_and_timeout_is_not_a_lost_link(simulator) -> None:
+    owner = owner_for(simulator.port)
+    try:
+        exchange = owner.exchange(status(1))
+        assert isinstance(exchange.reply[0], la.StatusReply) and exchange.reply[0].device_id == 1
+        assert exchange.end - exchange.start >= (8 + 22) * 10 / BAUD
+        with pytest.raises(DeviceTimeoutError):
+            owner.exchange(status(9))
+        assert owner.is_open, "a silent device does not close the port"
+        assert owner.counters.timeouts == 1
+    finally:
+        owner.close()
+
+
+def test_a_late_reply_is_flushed_not_taken_for_the_next_answer(simulator) -> None:
+    owner = owner_for(simulator.port)
+    try:
+        simulator.faults.configure(late_rate=1.0, late_s=0.006)
+        with pytest.raises(DeviceTimeoutError):
+            owner.exchange(status(1))
+        simulator.faults.configure(late_rate=0.0)
+        time.sleep(0.010)  # the runner's hold-off after a timeout; the late reply lands now
+        reply = owner.exchange(status(2)).reply
+        assert [r.device_id for r in reply] == [2]
+        assert owner.counters.late_replies >= 1
+    finally:
+        owner.close()
+
+
+def test_an_unplugged_adapter_raises_bus_io_error(simulator) -> None:
+    owner = owner_for(simulator.port)
+    simulator.unplug()
+    wait_for(lambda: not simulator.link.plugged)
+    with pytest.raises(BusIOError):
+        owner.exchange(status(1))
+    assert not owner.is_open
+
+
+def test_runner_carries_out_commands_and_polls(simulator) -> None:
+    runner = build_bus(bus(simulator.port)).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        driver = runner.drivers["la1"]
+        result = runner.submit("la1", driver.parse('{"op":"move","position":1500}')).result(2)
+        assert result["state"]["target"] == 1500
+        read = runner.submit("la1", driver.parse('{"op":"read","index":2,"length":1}')).result(2)
+        assert read["data"] == "01"
+        wait_for(lambda: runner.states["la1"]["position"] > 100)
+        stats = runner.statistics()
+        assert stats.frames_in > 0 and stats.smallest_gap_s >= 0.001
+    finally:
+        runner.stop()
+
+
+def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(simulator) -> None:
+    runner = build_bus(bus(simulator.port)).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        simulator.faults.configure(silent_ids=frozenset({1}))
+        future = runner.submit("la1", runner.drivers["la1"].parse('{"op":"status"}'))
+        with pytest.raises(DeviceTimeoutError):
+            future.result(3)
+        wait_for(lambda: not runner.drivers["la1"].online)
+        ok = runner.submit("la2", runner.drivers["la2"].parse('{"op":"status"}')).result(3)
+        assert ok["state"]["online"] is True
+    finally:
+        runner.stop()
+
+
+def test_follow_stream_goes_out_at_its_period_and_goes_stale(simulator) -> None:
+    events = []
+    runner = build_bus(bus(simulator.port, follow_period_ms=10), on_event=events.append).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        driver = runner.drivers["la1"]
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            runner.follow("la1", driver.follow_target({"position": 1200}))
+            time.sleep(0.005)
+        wait_for(lambda: any(e.type == "stream_stale" for e in events))
+        stats = runner.statistics()
+        assert stats.follow_intervals > 10
+        assert stats.follow_error_min_s >= 0, "no follow interval is shorter than the period"
+        ticks = [r for r in simulator.recorder.received() if r.frame == "FollowCommand"]
+        assert len(ticks) > 10
+    finally:
+        runner.stop()
+
+
+def test_estop_goes_ahead_and_stops_every_device(simulator) -> None:
+    runner = build_bus(bus(simulator.port)).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        runner.estop().result(2)
+        controls = [r.wire for r in simulator.recorder.received() if r.frame == "ControlCommand"]
+        assert la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex() in controls
+        assert la.encode(la.ControlCommand(2, la.ControlCode.ESTOP)).hex() in controls
+        refused = runner.submit("la1", runner.drivers["la1"].parse('{"op":"move","position":5}'))
+        with pytest.raises(Exception, match="enable"):
+            refused.result(2)
+    finally:
+        runner.stop()
+
+
+def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
+    runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
+    first, second, third = Future(), Future(), Future()
+    runner._queue_job(Job("la1", deque([status(1)])), first)
+    assert isinstance(first.exception(0), BusUnavailableError), "the port is not open yet"
+    runner.owner.open()
+    runner.planner._command_limit = 1
+    runner._queue_job(Job("la1", deque([status(1)])), second)
+    runner._queue_job(Job("la1", deque([status(1)])), third)
+    runner.owner.close()
+    assert not second.done()
+    assert isinstance(third.exception(0), BusyError) and BusyError.code == "busy"
+    assert runner.counters.busy_commands == 1
+
+
+def test_the_link_comes_back_after_a_replug(simulator) -> None:
+    events = []
+    runner = build_bus(bus(simulator.port), on_event=events.append).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        simulator.unplug()
+        wait_for(lambda: not runner.drivers["la1"].online)
+        simulator.replug()
+        wait_for(lambda: runner.drivers["la1"].online)
+        assert runner.statistics().reconnects == 1
+        kinds = [e.type for e in events if e.device == "la1"]
+        assert kinds.count("offline") == 1 and kinds.count("online") == 2
+    finally:
+        runner.stop()
