@@ -63,7 +63,10 @@ def _id_list(text: str) -> list[int]:
 
 
 def run_sim(args: argparse.Namespace) -> int:
-    devices = make_devices(args.protocol, args.ids, **_model_options(args))
+    try:
+        devices = make_devices(args.protocol, args.ids, **_model_options(args))
+    except TypeError as exc:  # an option this device model does not have
+        raise CommandError(f"{args.protocol} simulator: {exc}") from exc
     for spec in args.fault:
         _raise_fault(devices, spec)
     try:

@@ -131,10 +131,11 @@ class SerialSimulator:
         for device in self.devices:
             if not device.accepts(command) or self.faults.is_silent(device.device_id):
                 continue
+            low, high = device.turnaround_s
+            start = max(line_free, received) + self._random.uniform(low, high)
             for reply in device.handle(command, received):
-                low, high = device.turnaround_s
-                start = max(line_free, received) + self._random.uniform(low, high)
-                line_free = self._send(self.codec.encode(reply), reply, start)
+                # A reply of several frames (the ZLAC706 monitor) goes out back to back.
+                line_free = start = self._send(self.codec.encode(reply), reply, start)
         return line_free
 
     def _send(self, wire: bytes, reply: object, start: float) -> float:

@@ -30,7 +30,7 @@ from typing import Any, Final
 
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs232_codec
-from busgate.codecs.registers import require_range
+from busgate.codecs.registers import Register, require_range
 from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.codecs.zlac706_common import AlarmFlags, Mode
 from busgate.gateway.sim.zlac706_motor import FAULTS, Zlac706Motor
@@ -51,7 +51,7 @@ def _turnaround(protocol: str) -> tuple[float, float]:
     return timing.reply_min_s, timing.reply_max_s
 
 
-def _clamp(register: Any, value: int) -> int:
+def _clamp(register: Register, value: int) -> int:
     return max(register.minimum, min(register.maximum, value))
 
 
@@ -150,7 +150,7 @@ class Zlac706CanDevice:
             if self._next_report is not None and now < self._next_report:
                 return []
             # Never a burst to catch up: a late report moves the schedule on.
-            due = (self._next_report or now) + period
+            due = (now if self._next_report is None else self._next_report) + period
             self._next_report = due if due > now else now + period
             if alarm:
                 return [can_codec.AlarmReport(self.device_id, self.motor.status())]
