@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import serial
+from pydantic import ValidationError
 
 from busgate.codecs.errors import BusUnavailableError, CommandError
 from busgate.codecs.timing import PROTOCOL_TIMING
@@ -37,6 +38,7 @@ from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.config import CanBus, SerialBus
+from busgate.schemas.errors import describe_validation_error
 
 ONLINE_TIMEOUT_S = 5.0
 
@@ -104,6 +106,14 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
+    """The bus the benchmark runs, checked like a config file's (bad values are refused)."""
+    try:
+        return _bus_config(args, ids, port, baudrate)
+    except ValidationError as exc:
+        raise CommandError(f"bench: {describe_validation_error(exc)}") from exc
+
+
+def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
     period = args.follow_period_ms or 20.0
     devices = [
         {"name": f"dev{i}", "kind": PROTOCOLS[args.kind].kind, "id": i, "poll_hz": args.poll_hz,

@@ -41,6 +41,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "--record", type=argparse.FileType("w"), help="write every frame to FILE (JSON lines)"
     )
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
+    sim.add_argument(
+        "--busy-poll-ms", type=float, default=5.0,
+        help="poll the port without sleeping for this long after each frame, for exact "
+        "arrival times (default 5; 0 sleeps in select)",
+    )
     faults = sim.add_argument_group("fault injection")
     faults.add_argument("--drop-rate", type=float, default=0.0, help="share of replies dropped")
     faults.add_argument("--late-rate", type=float, default=0.0, help="share of replies sent late")
@@ -120,7 +125,8 @@ def _make_server(args, devices, faults, recorder):
 
     baudrate = args.baudrate or PROTOCOL_TIMING[args.protocol].default_rate
     return SerialSimulator(protocol.codec, devices, baudrate=baudrate, link=PtyLink(args.link),
-                           faults=faults, recorder=recorder, seed=args.seed)
+                           faults=faults, recorder=recorder, seed=args.seed,
+                           busy_poll_s=args.busy_poll_ms / 1000)
 
 
 class _SlcanServer:

@@ -9,6 +9,10 @@ Rules of this file:
 2. The devices see commands in wire order; replies go out in order, one device at a time.
 3. Faults are applied on the way out (``FaultInjector``); a silent id's device does nothing.
 4. One thread owns the pty; other threads only call ``unplug``/``replug``/``faults``/``stop``.
+5. With ``busy_poll_s``, the thread polls the pty without sleeping for that long after each
+   frame, so a frame's arrival is timed to a few µs instead of a wake-up latency: right for a
+   simulator in its own process (``busgate sim``), wrong beside the gateway in one process,
+   where the spinning would contend for the GIL.
 """
 
 from __future__ import annotations
@@ -45,8 +49,11 @@ class SerialSimulator:
         faults: FaultInjector | None = None,
         recorder: Recorder | None = None,
         seed: int = 0,
+        busy_poll_s: float = 0.0,
     ) -> None:
         self.codec = codec
+        self.busy_poll_s = busy_poll_s
+        self._last_rx = -1e9
         self.devices = list(devices)
         self.baudrate = baudrate
         self.link = link or PtyLink()
@@ -94,11 +101,13 @@ class SerialSimulator:
                 self._decoder, self._unparsed = self.codec.CommandDecoder(), bytearray()
                 self._stop.wait(POLL_S)
                 continue
-            readable, _, _ = select.select([self.link], [], [], POLL_S)
+            busy = now() - self._last_rx < self.busy_poll_s
+            readable, _, _ = select.select([self.link], [], [], 0 if busy else POLL_S)
             if readable:
                 data = self.link.read()
                 if data:
-                    self._receive(data, now())
+                    self._last_rx = now()
+                    self._receive(data, self._last_rx)
 
     def _receive(self, data: bytes, arrived: float) -> None:
         self._decoder.feed(data)
