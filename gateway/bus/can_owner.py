@@ -80,10 +80,11 @@ class CanBusOwner:
             with contextlib.suppress(can.CanError, OSError):  # the adapter may be gone already
                 bus.shutdown()
 
-    def exchange(self, request: Request) -> Exchange:
-        """Send ``request`` and wait for its reply (``DeviceTimeoutError`` when none comes)."""
+    def exchange(self, request: Request, *, at: float | None = None) -> Exchange:
+        """Send ``request`` (at ``at``, when given) and wait for its reply
+        (``DeviceTimeoutError`` when none comes)."""
         bus = self._require_open()
-        self.idle_until(now())
+        self.idle_until(now() if at is None else at)
         start = now()
         self._send(bus, request.wire)
         if request.expected is None:

@@ -36,13 +36,15 @@ class Request:
 
 @dataclass(frozen=True, slots=True)
 class Exchange:
-    """A finished exchange: when our first byte went out, when the line went idle again
-    (the reply's last byte read, or our last byte's wire time), and the reply's events."""
+    """A finished exchange: when the kernel had our frame (``start``, just after the write
+    call, which took ``write_s``), when the line went idle again (the reply's last byte read,
+    or our last byte's wire time), and the reply's events."""
 
     request: Request
     start: float
     end: float
     reply: tuple[object, ...] = field(default_factory=tuple)
+    write_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import os
 import select
+from dataclasses import replace
 from types import ModuleType
 
 import serial
@@ -26,7 +27,7 @@ from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeout
 from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
+from busgate.gateway.clock import now, sleep_until
 
 WRITE_TIMEOUT_S = 0.5
 
@@ -65,30 +66,50 @@ class SerialBusOwner:
             with contextlib.suppress(serial.SerialException, OSError):  # may be gone already
                 port.close()
 
-    def exchange(self, request: Request) -> Exchange:
-        """Send ``request`` and wait for its reply; raise ``DeviceTimeoutError`` when none comes
-        in time, ``BusIOError`` when the link fails."""
+    def exchange(self, request: Request, *, at: float | None = None) -> Exchange:
+        """Send ``request`` (at the ``perf_counter`` time ``at``, when given: the last wait is
+        done here, right before the write) and wait for its reply; raise
+        ``DeviceTimeoutError`` when none comes in time, ``BusIOError`` when the link fails."""
         if self._serial is None:
             raise BusIOError(f"{self.port} is not open")
         try:
-            return self._exchange(self._serial, request)
+            return self._exchange(self._serial, request, at)
         except DeviceTimeoutError:
             raise  # a TimeoutError is an OSError too, but the link is fine
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise BusIOError(f"{self.port}: {exc}") from exc
 
-    def _exchange(self, port: serial.Serial, request: Request) -> Exchange:
+    def _exchange(self, port: serial.Serial, request: Request, at: float | None) -> Exchange:
         self._flush_stale(port)
+        if at is not None:
+            sleep_until(at)
+        # Two clocks on the write: the frame cannot have left before ``issued`` (so no true
+        # reply can come before issued + wire + shortest reply time), and the line is taken
+        # until at least ``start`` + wire time, ``start`` being when the kernel had the bytes.
+        issued = now()
+        self._write(port, request.wire)
         start = now()
-        port.write(request.wire)
-        sent = start + self.timing.wire_time(request.wire)
+        wire_time = self.timing.wire_time(request.wire)
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
         if request.expected is None:
-            return Exchange(request, start, max(sent, now()))
+            return Exchange(request, start, start + wire_time, write_s=start - issued)
         earliest, latest = self.timing.reply_window(request)
-        return self._wait_reply(port, request, start, sent + earliest, sent + latest)
+        exchange = self._wait_reply(
+            port, request, start, issued + wire_time + earliest, start + wire_time + latest
+        )
+        return replace(exchange, write_s=start - issued)
+
+    def _write(self, port: serial.Serial, wire: bytes) -> None:
+        """One ``write`` syscall for the whole frame in the usual case (pyserial's ``write``
+        adds a ``select`` after it); pyserial finishes a partial write, with its timeout."""
+        try:
+            written = os.write(port.fileno(), wire)
+        except BlockingIOError:
+            written = 0
+        if written < len(wire):
+            port.write(wire[written:])
 
     def _wait_reply(
         self, port: serial.Serial, request: Request, start: float, earliest: float, deadline: float
