@@ -155,7 +155,7 @@ def test_queued_writes_count_until_one_goes_unanswered() -> None:
     plan(d, '{"op":"set_mode","mode":"position"}')
     plan(d, '{"op":"enable"}')
     assert wire(plan(d, '{"op":"move","position":5}')) == ["001#00fa001600000005"]
-    assert d.state.settings.mode is None  # nothing acknowledged yet
+    assert d.machine.settings.mode is None  # nothing acknowledged yet
     d.missed(0.0)
     with pytest.raises(CommandError):
         plan(d, '{"op":"move","position":5}')
@@ -327,7 +327,7 @@ def test_no_such_register_changes_nothing_and_is_reported() -> None:
     request = plan(d, '{"op":"set_mode","mode":"velocity"}')[0]
     answer = d.apply(request, can_events("00ff00190000002f"), 0.0)
     assert "no register 0x19" in answer["rejected"]
-    assert d.state.settings.mode is None and d.state.expected().mode is None
+    assert d.machine.settings.mode is None and d.machine.expected().mode is None
     assert event_types(d) == ["rejected"]
 
 

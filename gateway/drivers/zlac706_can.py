@@ -155,7 +155,7 @@ class Zlac706CanDriver(Zlac706Driver):
         """Rule 3. The runner repeats ``init`` at the poll rate while the node is offline (with
         heartbeats expected, until the first one), so it never releases a motor that a client
         enabled since: with the mode unknown and the motor enabled, nothing is sent."""
-        settings = self.state.settings
+        settings = self.machine.settings
         if settings.mode is not None:
             return self._unchecked(schema.SetMode(op="set_mode", mode=settings.mode))
         if settings.enabled:
@@ -164,7 +164,7 @@ class Zlac706CanDriver(Zlac706Driver):
 
     def keepalive_request(self) -> Request:
         """The last speed written, again."""
-        speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.state.settings.speed_raw or 0)
+        speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.machine.settings.speed_raw or 0)
         return Request.of(codec, speed, idempotent=True)
 
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
@@ -173,7 +173,7 @@ class Zlac706CanDriver(Zlac706Driver):
             self.acknowledged(request.frame)
         elif isinstance(answer, codec.NoSuchRegister):
             # Only a raw write can get here (``frames_for`` checks the table); nothing changed.
-            self.state.forget_pending()
+            self.machine.forget_pending()
             self.emit("rejected", register=int(answer.register), reason="no such register")
             return {"rejected": f"node {self.device_id} has no register {answer.register:#04x}"}
         return {}

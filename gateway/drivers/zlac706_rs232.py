@@ -176,5 +176,5 @@ class Zlac706Rs232Driver(Zlac706Driver):
             voltage_v=monitor.voltage_v,
         )
         enabled = common.AlarmFlags.RUNNING in monitor.alarms
-        self.state.acknowledged(self.state.settings.change(Role.ENABLE, enabled))
+        self.machine.acknowledged(self.machine.settings.change(Role.ENABLE, enabled))
         self.take_alarms(monitor.alarms)

@@ -228,14 +228,14 @@ class Zlac706Driver(Driver):
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)
-        self.state = Zlac706State()
+        self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
 
     # -- planning -------------------------------------------------------------------------------
 
     def plan(self, command: Any) -> list[Request]:
         """The command's requests, refused (``CommandError``) when the order rules forbid it."""
-        outlook = self.state.expected()
+        outlook = self.machine.expected()
         requests, changes = [], {}
         for frame in self.frames(command, self.device_id):
             role, value = self._role(frame, outlook)
@@ -246,7 +246,7 @@ class Zlac706Driver(Driver):
                 change = outlook.change(role, value)
                 changes.update(change)
                 outlook = replace(outlook, **change)
-        self.state.planned(changes)
+        self.machine.planned(changes)
         return requests
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
@@ -254,7 +254,7 @@ class Zlac706Driver(Driver):
 
     def _unchecked(self, command: Any) -> list[Request]:
         """Requests the gateway itself sends (safe stop, init): no order rules apply."""
-        settings = self.state.settings
+        settings = self.machine.settings
         return [self._request(frame, self._role(frame, settings)[0], settings)
                 for frame in self.frames(command, self.device_id)]
 
@@ -269,17 +269,17 @@ class Zlac706Driver(Driver):
         """Speed 0 (unless the mode is known not to be velocity), then release the motor.
 
         The queue is dropped on an e-stop, so the writes still in flight are forgotten."""
-        self.state.forget_pending()
+        self.machine.forget_pending()
         return [*self.stale_stream(), *self._unchecked(_RELEASE)]
 
     def stale_stream(self) -> list[Request]:
         """0 rpm: a client that stopped streaming speeds must not leave the wheel turning."""
-        if self.state.settings.mode in (Mode.VELOCITY, None):
+        if self.machine.settings.mode in (Mode.VELOCITY, None):
             return self._unchecked(_STOP)
         return []
 
     def keepalive(self, now: float) -> tuple[float, Request] | None:
-        settings = self.state.settings
+        settings = self.machine.settings
         if settings.mode is Mode.VELOCITY and settings.enabled and settings.speed_raw:
             return self.keepalive_period_s, self.keepalive_request()
         return None
@@ -297,7 +297,7 @@ class Zlac706Driver(Driver):
             rpm = FollowTarget.model_validate(payload).rpm
         except ValidationError as exc:
             raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
-        check(Role.SPEED, rpm, self.state.expected())
+        check(Role.SPEED, rpm, self.machine.expected())
         return schema.Velocity(op="velocity", rpm=rpm)
 
     @classmethod
@@ -313,13 +313,13 @@ class Zlac706Driver(Driver):
 
     def acknowledged(self, frame: object) -> None:
         """The device took the write ``frame``: the state follows."""
-        role, value = self._role(frame, self.state.settings)
+        role, value = self._role(frame, self.machine.settings)
         if role is not None:
-            self.state.acknowledged(self.state.settings.change(role, value))
+            self.machine.acknowledged(self.machine.settings.change(role, value))
 
     def take_alarms(self, alarms: common.AlarmFlags) -> None:
         """New alarm bits; one ``fault`` event when the fault names change."""
-        before, self.state.alarms = self.state.alarms, alarms
+        before, self.machine.alarms = self.machine.alarms, alarms
         old, new = before.faults, alarms.faults
         if old != new:
             self.emit("fault", faults=fault_names(new), raised=fault_names(new & ~old),
@@ -329,7 +329,7 @@ class Zlac706Driver(Driver):
         return True
 
     def telemetry(self, now: float) -> dict[str, Any]:
-        settings = self.state.settings
+        settings = self.machine.settings
         relative = settings.relative
         return {
             "mode": settings.mode,
@@ -345,12 +345,12 @@ class Zlac706Driver(Driver):
             "max_speed_rpm": _rpm(settings.max_speed_raw),
             "measured": self.has_measurements(),
             **self.measured,
-            "faults": fault_names(self.state.alarms),
+            "faults": fault_names(self.machine.alarms),
         }
 
     def missed(self, now: float) -> None:
         # An unanswered write may or may not have landed: stop counting on the queued ones.
-        self.state.forget_pending()
+        self.machine.forget_pending()
         super().missed(now)
 
 

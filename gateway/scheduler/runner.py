@@ -49,6 +49,8 @@ BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.1, 2.0
 IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
 PREPARE_S = 0.002
+#: Telemetry older than this many poll periods is marked stale.
+STALE_PERIODS = 3
 #: The last stretch before a deadline is waited out by the bus owner, right before its
 #: write, so that nothing runs between the deadline and the frame.
 FINAL_WAIT_S = 0.001
@@ -102,6 +104,7 @@ class BusRunner:
             if poll_hz.get(name)
         ]
         self.planner.tickers = [KeepaliveTicker(d) for d in self.drivers.values()]
+        self._poll_periods = {p.device: p.period_s for p in self.planner.pollers}
         self.states: dict[str, dict[str, Any]] = {}
         self._streams: dict[str, FollowStream] = {}
         self._min_write_s = float("inf")
@@ -352,7 +355,7 @@ class BusRunner:
             result.update(reply)
         driver = self.drivers.get(job.device)
         if driver is not None:
-            result["state"] = driver.state(now())
+            result["state"] = self._state(driver, now())
         return result
 
     def _fail(self, job: Job, exc: BusgateError) -> None:
@@ -397,8 +400,18 @@ class BusRunner:
                 self._log_event(event)
                 self.on_event(event)
             if events or name in self._dirty:
-                self.states[name] = driver.state(moment)
+                self.states[name] = self._state(driver, moment)
         self._dirty.clear()
+        self.counters.skipped_polls = self.planner.skipped_polls
+
+    def _state(self, driver: Driver, moment: float) -> dict[str, Any]:
+        """The driver's state, marked ``stale`` when its telemetry is more than
+        ``STALE_PERIODS`` poll periods old (an oversubscribed bus, or a device not answering)."""
+        state = driver.state(moment)
+        period = self._poll_periods.get(driver.name)
+        age = state.get("last_reply_age_s")
+        state["stale"] = period is not None and (age is None or age > STALE_PERIODS * period)
+        return state
 
     def _log_event(self, event: DeviceEvent) -> None:
         log.info("bus %s device %s: %s %s", self.name, event.device, event.type, event.fields or "")

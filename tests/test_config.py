@@ -1,0 +1,121 @@
+"""The configuration file: what it accepts, what it refuses, and how it names the key."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from busgate.codecs.errors import ConfigError
+from busgate.schemas.config import CanBus, SerialBus, load_config, parse_config
+
+EXAMPLE = """
+[gateway]
+name = "gw1"
+
+[zenoh]
+mode = "peer"
+listen = ["tcp/127.0.0.1:7447"]
+
+[[buses]]
+name = "uart0"
+transport = "serial"
+port = "/dev/serial/by-id/usb-FTDI_x"
+baudrate = 921600
+
+[[buses.devices]]
+name = "la1"
+kind = "inspire_la"
+id = 1
+poll_hz = 20
+follow_period_ms = 20
+
+[[buses]]
+name = "can0"
+transport = "can"
+interface = "socketcan"
+channel = "can0"
+
+[[buses.devices]]
+name = "wheel"
+kind = "zlac706"
+id = 3
+heartbeat_ms = 100
+"""
+
+BASE = {
+    "gateway": {"name": "gw1"},
+    "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/ttyUSB0",
+               "baudrate": 921600,
+               "devices": [{"name": "la1", "kind": "inspire_la", "id": 1}]}],
+}
+
+
+def refused(change) -> ConfigError:
+    data = copy.deepcopy(BASE)
+    change(data)
+    with pytest.raises(ConfigError) as caught:
+        parse_config(data)
+    return caught.value
+
+
+def test_the_issue_example_loads_with_defaults(tmp_path) -> None:
+    path = tmp_path / "gw.toml"
+    path.write_text(EXAMPLE)
+    config = load_config(path)
+    uart, can = config.buses
+    assert isinstance(uart, SerialBus) and isinstance(can, CanBus)
+    assert config.gateway.prefix == "busgate" and config.zenoh.multicast_scouting is False
+    assert uart.protocol == "inspire_la" and uart.gap_s == 0.001
+    assert can.protocol == "zlac706_can" and can.bitrate == 500_000
+    assert uart.devices[0].poll_hz == 20 and can.devices[0].follow_period_ms == 20
+
+
+def test_follow_period_outside_10_to_50_ms_is_refused_with_its_key_path() -> None:
+    for period in (9.9, 50.1):
+        error = refused(lambda d, p=period: d["buses"][0]["devices"][0].update(follow_period_ms=p))
+        assert error.path == "buses[0].devices[0].follow_period_ms"
+
+
+def test_gap_below_the_protocol_minimum_is_refused() -> None:
+    error = refused(lambda d: d["buses"][0].update(min_gap_ms=0.5))
+    assert error.path == "buses[0].min_gap_ms" and "at least 1 ms" in str(error)
+
+
+def test_ids_are_checked_per_protocol_and_per_bus() -> None:
+    error = refused(lambda d: d["buses"][0]["devices"][0].update(id=255))
+    assert error.path == "buses[0].devices[0].id" and "1–254" in str(error)
+    error = refused(lambda d: d["buses"][0]["devices"].append(
+        {"name": "la2", "kind": "inspire_la", "id": 1}))
+    assert error.path == "buses[0].devices[1].id"
+
+
+def test_one_kind_per_bus_and_kinds_on_their_transport() -> None:
+    error = refused(lambda d: d["buses"][0]["devices"].append(
+        {"name": "s1", "kind": "ds_servo", "id": 2}))
+    assert error.path == "buses[0].devices"
+    error = refused(lambda d: d["buses"].append(
+        {"name": "can0", "transport": "can", "interface": "virtual", "channel": "x",
+         "devices": [{"name": "la9", "kind": "inspire_la", "id": 1}]}))
+    assert error.path == "buses[1].devices[0].kind"
+
+
+def test_names_are_unique_and_key_expression_safe() -> None:
+    error = refused(lambda d: d["buses"][0]["devices"][0].update(name="la/1"))
+    assert error.path == "buses[0].devices[0].name"
+    error = refused(lambda d: d["buses"].append(copy.deepcopy(d["buses"][0])))
+    assert "used twice" in str(error)
+
+
+def test_unknown_keys_and_wrong_types_are_refused_not_ignored() -> None:
+    assert refused(lambda d: d["buses"][0].update(baud=9600)).path == "buses[0].baud"
+    assert refused(lambda d: d["buses"][0].update(baudrate="fast")).path == "buses[0].baudrate"
+
+
+def test_unreadable_and_malformed_files(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[gateway\nname=1")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
