@@ -206,3 +206,9 @@ def named(enum_class: type[enum.IntEnum], value: int) -> int:
         return enum_class(value)
     except ValueError:
         return value
+
+
+#: Largest raw speed on either wire: 1000 rpm truncated, the manual's own example (0x0AAA).
+SPEED_RAW_MAX: Final = speed_raw_truncated(MAX_SPEED_RPM)
+#: A ramp value: accel steps in the high byte, decel steps in the low byte (100 ms each).
+RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_STEP_MS

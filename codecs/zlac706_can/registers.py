@@ -19,23 +19,17 @@ from busgate.codecs.registers import Access, Register, RegisterMap
 from busgate.codecs.zlac706_common import (
     GAIN_MAX,
     GAIN_MIN,
-    MAX_SPEED_RPM,
-    RAMP_MAX_MS,
-    RAMP_STEP_MS,
+    RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
+    SPEED_RAW_MAX,
     SPEED_RAW_PER_RPM,
     TORQUE_RAW_LIMIT,
     TORQUE_RAW_PER_A,
     Gain,
-    speed_raw_truncated,
 )
 
 I32_MIN: Final = -(1 << 31)
 I32_MAX: Final = (1 << 31) - 1
-#: Largest raw speed: 1000 rpm truncated, as the manual's own 1000 rpm example (0x0AAA).
-SPEED_RAW_MAX: Final = speed_raw_truncated(MAX_SPEED_RPM)
-#: A ramp value is d2 = accel steps, d3 = decel steps (d0 = d1 = 0).
-RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_STEP_MS
 
 
 class CanRegister(enum.IntEnum):

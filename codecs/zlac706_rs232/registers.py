@@ -22,23 +22,20 @@ from busgate.codecs.zlac706_common import (
     GAIN_MAX,
     GAIN_MIN,
     MAX_SPEED_RPM,
-    RAMP_MAX_MS,
-    RAMP_STEP_MS,
+    RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
+    SPEED_RAW_MAX,
     SPEED_RAW_PER_RPM,
     TORQUE_RAW_LIMIT,
     TORQUE_RAW_PER_A,
     Gain,
     speed_raw_rounded,
-    speed_raw_truncated,
 )
 
 U16_MAX: Final = 0xFFFF
 I16_MIN, I16_MAX = -0x8000, 0x7FFF
-SPEED_RAW_MAX: Final = speed_raw_truncated(MAX_SPEED_RPM)
 #: The speed limit rounds (note 8), so 1000 rpm is 2731 there, not 2730.
 SPEED_LIMIT_RAW_MAX: Final = speed_raw_rounded(MAX_SPEED_RPM)
-RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_STEP_MS
 
 
 class Rs232Register(enum.IntEnum):
