@@ -68,8 +68,9 @@ def analyse(
             turnarounds.append(record.start - previous.end)
         line_idle = record.end if line_idle is None else max(line_idle, record.end)
         previous = record
-    ticks = [r.start for r in ordered if r.direction == "rx" and r.frame in follow_frames]
-    intervals = [b - a for a, b in itertools.pairwise(ticks)]
+    ticks = [r for r in ordered if r.direction == "rx" and r.frame in follow_frames]
+    intervals = [b.start - a.start for a, b in itertools.pairwise(ticks)
+                 if b.arrived is None or b.arrived != a.arrived]
     errors = sorted(i - follow_period_s for i in intervals) if follow_period_s else []
     return WireFigures(
         frames_received=sum(1 for r in ordered if r.direction == "rx"),
