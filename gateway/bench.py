@@ -5,8 +5,8 @@ then prints what it achieved: exchanges and frames per second, the smallest gap,
 interval error (p50/p99, and how many intervals fell under the period), timeouts and CPU.
 Without ``--port`` it starts the built-in simulator in a child process (so the CPU figure is
 the gateway's alone) and also reports what the devices saw on the wire. ``--baseline`` then
-runs a plain sleep-then-spin pyserial loop on the same port for the same time, the yardstick
-for follow jitter on this machine.
+runs a plain sleep-then-spin pyserial loop on the same port for the same time, under the same
+client load (a thread streaming targets), the yardstick for follow jitter on this machine.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import json
 import math
 import os
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -186,43 +187,53 @@ def wait_online(runner: BusRunner) -> None:
 
 
 def stream_targets(runner: BusRunner, args: argparse.Namespace) -> None:
-    """Act as a client: a new follow target for every device twice a period."""
-    end = now() + args.seconds
+    """Act as a client of the gateway for ``args.seconds``."""
     if not args.follow_period_ms:
         time.sleep(args.seconds)
         return
+    feed_targets(list(runner.drivers.values()), args, runner.follow, now() + args.seconds)
+
+
+def feed_targets(drivers: list, args: argparse.Namespace, deliver, end: float) -> None:
+    """A client's stream: a new follow target for every device twice a period, validated
+    the way the gateway validates a client's payload."""
     step = args.follow_period_ms / 2000
     trajectory = TRAJECTORY[args.kind]
     while (moment := now()) < end:
-        for index, (name, driver) in enumerate(runner.drivers.items()):
-            runner.follow(name, driver.follow_target(trajectory(moment, index)))
+        for index, driver in enumerate(drivers):
+            deliver(driver.name, driver.follow_target(trajectory(moment, index)))
         time.sleep(step)
 
 
 def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) -> dict:
-    """A plain loop: sleep then spin to each deadline and write a follow frame; no polling."""
+    """A plain loop under the same client load: sleep then spin to each deadline and write a
+    follow frame with the latest targets; no polling, no scheduler."""
     from busgate.gateway.assembly import make_driver
 
     protocol = PROTOCOLS[args.kind]
     config = bus_config(args, ids, port, baudrate)
     drivers = [make_driver(protocol, device) for device in config.devices]
     period = (args.follow_period_ms or 10.0) / 1000
-    request = protocol.driver_class.follow_request(
-        [(d, d.follow_target(TRAJECTORY[args.kind](0.0, 0))) for d in drivers]
-    )
+    latest = {d.name: d.follow_target(TRAJECTORY[args.kind](0.0, 0)) for d in drivers}
     starts = []
+    deadline = now()
+    end = deadline + args.seconds
+    client = threading.Thread(target=feed_targets, args=(drivers, args, latest.__setitem__, end),
+                              daemon=True)
+    client.start()
     tighten_timer_slack()
     with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
-        deadline = now()
-        end = deadline + args.seconds
         while deadline < end:
+            request = protocol.driver_class.follow_request([(d, latest[d.name]) for d in drivers])
             sleep_until(deadline)
             os.write(port_handle.fileno(), request.wire)
             starts.append(now())  # timed like the bus owner: when the kernel has the frame
             deadline += period
+    client.join()
     errors = sorted(b - a - period for a, b in itertools.pairwise(starts))
     return {"follow_intervals": len(errors), "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
-            "follow_error_p99_ms": _ms(percentile(errors, 0.99))}
+            "follow_error_p99_ms": _ms(percentile(errors, 0.99)),
+            "follow_error_min_ms": _ms(errors[0] if errors else None)}
 
 
 def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float]) -> dict:

@@ -19,8 +19,8 @@ import ctypes.util
 import sys
 import time
 
-SPIN_S = 0.0002
-SWITCH_INTERVAL_S = 0.0005
+SPIN_S = 0.00025
+SWITCH_INTERVAL_S = 0.0002
 _PR_SET_TIMERSLACK = 29
 
 now = time.perf_counter

@@ -48,12 +48,12 @@ BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.1, 2.0
 #: Longest the thread sleeps without looking at its inbox, heartbeats and stop flag.
 IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
-PREPARE_S = 0.002
+PREPARE_S = 0.003
 #: Telemetry older than this many poll periods is marked stale.
 STALE_PERIODS = 3
 #: The last stretch before a deadline is waited out by the bus owner, right before its
 #: write, so that nothing runs between the deadline and the frame.
-FINAL_WAIT_S = 0.001
+FINAL_WAIT_S = 0.002
 
 
 class BusyError(BusgateError):
