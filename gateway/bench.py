@@ -31,7 +31,7 @@ from pydantic import ValidationError
 
 from busgate.codecs.errors import BusUnavailableError, CommandError
 from busgate.codecs.timing import PROTOCOL_TIMING
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.assembly import build_bus, make_driver
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.protocols import PROTOCOLS
@@ -92,13 +92,13 @@ def run_bench(args: argparse.Namespace) -> int:
         port, record = args.port, None
         if port is None:
             record = Path(scratch) / "wire.jsonl"
-            sim_args = ["--ids", args.ids, "--record", str(record), "--busy-poll-ms", "100000"]
+            sim_args = ["--ids", args.ids, "--record", str(record)]
             if not protocol.can:
                 sim_args += ["--baudrate", str(baudrate)]
             port = simulator.enter_context(SimProcess(args.kind, sim_args)).port
-        figures, window = measure(args, ids, port, baudrate)
+        figures, window, drivers = measure(args, ids, port, baudrate)
         if args.baseline and not protocol.can:
-            figures["baseline"] = baseline(args, ids, port, baudrate)
+            figures["baseline"] = baseline(args, drivers, port, baudrate)
         if record is not None:
             simulator.close()  # stop the simulator so that its record is complete
             figures["device_side"] = device_side(args, record, window)
@@ -130,8 +130,9 @@ def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: i
 
 def measure(
     args: argparse.Namespace, ids: list[int], port: str, baudrate: int
-) -> tuple[dict, tuple[float, float]]:
-    """Run the bus for ``args.seconds``; the figures, and the measured window's start and end."""
+) -> tuple[dict, tuple[float, float], list]:
+    """Run the bus for ``args.seconds``; the figures, the measured window's start and end,
+    and the drivers (which keep what the devices were set to, e.g. a ZLAC706's mode)."""
     runner = build_bus(bus_config(args, ids, port, baudrate)).start()
     try:
         wait_online(runner)
@@ -165,7 +166,7 @@ def measure(
         "utilisation": round(after.utilisation, 3),
         "cpu_percent_bus_thread": round(100 * thread_cpu / elapsed, 1),
         "cpu_percent_process": round(100 * (cpu_after - cpu_before) / elapsed, 1),
-    }, (started, ended)
+    }, (started, ended), list(runner.drivers.values())
 
 
 def thread_cpu_s(native_id: int | None) -> float:
@@ -205,15 +206,12 @@ def feed_targets(drivers: list, args: argparse.Namespace, deliver, end: float) -
         time.sleep(step)
 
 
-def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int) -> dict:
+def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> dict:
     """A plain loop under the same client load: sleep then spin to each deadline and write a
     follow frame with the latest targets; no polling, no scheduler."""
-    from busgate.gateway.assembly import make_driver
-
     protocol = PROTOCOLS[args.kind]
-    config = bus_config(args, ids, port, baudrate)
-    drivers = [make_driver(protocol, device) for device in config.devices]
     period = (args.follow_period_ms or 10.0) / 1000
+    drivers = baseline_drivers(args, used, port, baudrate)
     latest = {d.name: d.follow_target(TRAJECTORY[args.kind](0.0, 0)) for d in drivers}
     starts = []
     deadline = now()
@@ -234,6 +232,19 @@ def baseline(args: argparse.Namespace, ids: list[int], port: str, baudrate: int)
     return {"follow_intervals": len(errors), "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
             "follow_error_p99_ms": _ms(percentile(errors, 0.99)),
             "follow_error_min_ms": _ms(errors[0] if errors else None)}
+
+
+def baseline_drivers(args: argparse.Namespace, used: list, port: str, baudrate: int) -> list:
+    """Drivers to validate the baseline client's targets: fresh ones, as a client meets them;
+    those the gateway ran when a fresh one refuses a stream (a ZLAC706 needs its mode set)."""
+    protocol = PROTOCOLS[args.kind]
+    config = bus_config(args, [d.device_id for d in used], port, baudrate)
+    fresh = [make_driver(protocol, device) for device in config.devices]
+    try:
+        fresh[0].follow_target(TRAJECTORY[args.kind](0.0, 0))
+    except CommandError:
+        return used
+    return fresh
 
 
 def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float]) -> dict:

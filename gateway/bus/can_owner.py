@@ -28,10 +28,12 @@ from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeout
 from busgate.codecs.framing import Discarded
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
+from busgate.gateway.clock import now, sleep_until
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
 TX_BACKPRESSURE_S = 0.05
+#: The last stretch before a timed send is waited out precisely, not in ``recv``.
+PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
 CAN_ERR_BUSOFF = 0x40
 
@@ -84,7 +86,11 @@ class CanBusOwner:
         """Send ``request`` (at ``at``, when given) and wait for its reply
         (``DeviceTimeoutError`` when none comes)."""
         bus = self._require_open()
-        self.idle_until(now() if at is None else at)
+        if at is None:
+            self.idle_until(now())
+        else:  # the adapter's receive timeout is coarse: take in frames, then wait precisely
+            self.idle_until(at - PRECISE_WAIT_S)
+            sleep_until(at)
         start = now()
         self._send(bus, request.wire)
         if request.expected is None:

@@ -109,8 +109,8 @@ def _needs_mode(mode: Mode, what: str) -> Callable[[Settings, Any], str | None]:
     def rule(settings: Settings, _value: Any) -> str | None:
         if settings.mode is mode:
             return None
-        now = f"in {settings.mode} mode" if settings.mode else "its mode is not known"
-        return (f"{what} needs {mode} mode (set_mode {mode} first): the motor is {now}, "
+        now = f"the motor is in {settings.mode} mode" if settings.mode else "its mode is not known"
+        return (f"{what} needs {mode} mode (set_mode {mode} first): {now}, "
                 "and the device would ignore it")
     return rule
 

@@ -7,7 +7,8 @@ The rules it enforces, in the words of the issue:
    reply when one was expected, or its timeout).
 2. Precedence: e-stop > commands > follow ticks > polling.
 3. Follow ticks keep their slot: nothing starts unless its worst-case duration plus the gap
-   ends before the next tick is due; a due tick goes out at once. A late tick is not made up by
+   (and at least ``HOST_SLACK_S``, the host's own time to take in a reply) ends before the
+   next tick is due; a due tick goes out at once. A late tick is not made up by
    a burst (tickers schedule the next tick a full period after the one actually sent).
 4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
    never queued — a device has at most one poll waiting, and each period a poll misses (the
@@ -30,6 +31,8 @@ from typing import Protocol
 from busgate.gateway.bus.request import LinkTiming, Request
 
 MAX_RETRIES = 2
+#: The host's time, after a reply, to interpret it and have the next tick's frame ready.
+HOST_SLACK_S = 0.0008
 COMMAND_QUEUE = 64
 
 
@@ -99,6 +102,9 @@ class BusPlanner:
     def __init__(self, timing: LinkTiming, *, command_queue: int = COMMAND_QUEUE) -> None:
         self.timing = timing
         self.gap_s = timing.gap_s
+        #: What must be left between an exchange and the next tick: the gap, and at least
+        #: the host's time to take in a reply and prepare the tick.
+        self.slack_s = max(timing.gap_s, HOST_SLACK_S)
         self.line_free = -math.inf
         self.hold_replies_until = -math.inf
         self.skipped_polls = 0
@@ -151,7 +157,7 @@ class BusPlanner:
             request = job.requests[0]
             if held and request.expected is not None:
                 continue
-            if now + self.timing.worst_case(request) + self.gap_s <= tick_due:
+            if now + self.timing.worst_case(request) + self.slack_s <= tick_due:
                 return self._slot(job)
         wake = min(tick_due, self._next_poll_due())
         return min(wake, self.hold_replies_until) if held else wake
