@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import pytest
 
 from busgate.codecs.errors import ConfigError
 from busgate.schemas.config import CanBus, SerialBus, load_config, parse_config
+
+ROOT = Path(__file__).resolve().parent.parent
 
 EXAMPLE = """
 [gateway]
@@ -119,3 +122,10 @@ def test_unreadable_and_malformed_files(tmp_path) -> None:
     bad.write_text("[gateway\nname=1")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+
+
+@pytest.mark.parametrize("name", ["inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232",
+                                  "robot"])
+def test_the_example_configs_in_deploy_are_valid(name) -> None:
+    config = load_config(ROOT / "deploy" / "config" / f"{name}.toml")
+    assert config.buses and all(bus.devices for bus in config.buses)
