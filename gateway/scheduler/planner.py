@@ -58,6 +58,8 @@ class Job:
     error: BaseException | None = None
     attempts: int = 0
     keep_going: bool = False
+    #: When a list, the runner records ``(request, reply events or None)`` per request.
+    outcomes: list | None = None
     context: object = None
 
 

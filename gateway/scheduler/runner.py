@@ -144,6 +144,17 @@ class BusRunner:
         """Run ready-made requests (bus-level ops such as group moves) as one command."""
         return self._hand_over(lambda future: self._queue_job(Job(device, deque(requests)), future))
 
+    def scan(self, requests: list[Request]) -> Future:
+        """Send each request once and collect what answered: the future gets a list of
+        ``(request, reply events or None)``. For commissioning (which ids answer)."""
+        job = Job("*", deque(requests), keep_going=True, outcomes=[])
+        return self._hand_over(lambda future: self._queue_job(job, future))
+
+    def stop_stream(self, device: str, reason: str) -> None:
+        """End ``device``'s follow stream now (its client went away), as if it went stale."""
+        self._inbox.append(lambda: self._end_stream(device, reason))
+        self._wake.set()
+
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
         return self._hand_over(self._plan_estop)
@@ -219,6 +230,17 @@ class BusRunner:
             self.planner.tickers.append(chosen)
         self._streams[device] = chosen.update(driver, target, moment)
 
+    def _end_stream(self, device: str, reason: str) -> None:
+        for ticker in self.planner.tickers:
+            if isinstance(ticker, FollowTicker) and device in ticker.streams:
+                ticker.stop(device)
+                self._streams.pop(device, None)
+                driver = self.drivers[device]
+                driver.emit("stream_stopped", reason=reason)
+                requests = driver.stale_stream()
+                if requests:
+                    self.planner.push_command(Job(device, deque(requests)))
+
     def _stream_went_stale(self, driver: Driver) -> None:
         self._streams.pop(driver.name, None)
         driver.emit("stream_stale")
@@ -289,10 +311,19 @@ class BusRunner:
         if not isinstance(slot.source, Job):
             slot.source.sent(start - self._fastest_write(exchange if not failed else None))
         job = self.planner.finished(slot, end, failed=failed)
+        self._record_outcome(slot, None if failed else exchange.reply, failed)
         if failed and job is None and slot.request.idempotent:
             self.counters.retries += 1
         if job is not None:
             self._complete(job)
+
+    def _record_outcome(self, slot: Slot, reply: tuple | None, failed: bool) -> None:
+        job = slot.source
+        if not isinstance(job, Job) or job.outcomes is None:
+            return
+        retried = failed and bool(job.requests) and job.requests[0] is slot.request
+        if not retried:
+            job.outcomes.append((slot.request, reply))
 
     def _fastest_write(self, exchange: Exchange | None) -> float:
         """The quickest write call seen on this bus. A tick counts as started that long before
@@ -344,7 +375,9 @@ class BusRunner:
         future = job.context
         if not isinstance(future, Future) or future.done():
             return
-        if job.error is not None and not job.keep_going:
+        if job.outcomes is not None:
+            future.set_result(job.outcomes)
+        elif job.error is not None and not job.keep_going:
             future.set_exception(job.error)
         else:
             future.set_result(self._result(job))

@@ -1,0 +1,221 @@
+"""The zenoh side of the daemon: key expressions in, the gateway API, replies and telemetry out.
+
+Rules of this file:
+
+1. Zenoh callbacks run on zenoh's threads and only hand work over: a command is validated and
+   handed to its bus runner (non-blocking), a follow target is stored, an e-stop is queued
+   ahead of everything. Replies, publications and liveliness changes happen on the asyncio
+   loop's thread, never on a bus thread or inside a zenoh callback.
+2. Every query gets exactly one reply, then is dropped; a command that has not finished in
+   ``REPLY_TIMEOUT_S`` is answered ``internal`` rather than left hanging.
+3. Telemetry publishers use congestion control DROP: a slow subscriber never stalls a bus.
+4. The session is closed last, after the buses have put their devices in a safe state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import asdict
+from typing import Any
+
+import zenoh
+
+from busgate.gateway.api import ApiError, GatewayApi, error_reply
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.zenoh_config import session_config
+from busgate.schemas.config import Config
+
+log = logging.getLogger(__name__)
+
+REPLY_TIMEOUT_S = 10.0
+PUBLISH_EVERY_S = 0.005
+STATS_EVERY_S = 1.0
+
+
+def _dumps(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), default=str).encode()
+
+
+class ZenohBridge:
+    """One zenoh session serving one gateway's API."""
+
+    def __init__(self, config: Config, api: GatewayApi, runners: dict[str, BusRunner]) -> None:
+        self.config = config
+        self.api = api
+        self.runners = runners
+        self.base = f"{config.gateway.prefix}/{config.gateway.name}"
+        self.events: deque[DeviceEvent] = deque(maxlen=10_000)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._session: zenoh.Session | None = None
+        self._keep: list[Any] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._device_tokens: dict[str, Any] = {}
+        self._published: dict[str, int] = {}
+
+    # -- lifetime ---------------------------------------------------------------------------
+
+    def open(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Open the session and declare every key of the API."""
+        self._loop = loop
+        zenoh_section = self.config.zenoh
+        self._session = session = zenoh.open(session_config(
+            mode=zenoh_section.mode, listen=zenoh_section.listen, connect=zenoh_section.connect,
+            multicast_scouting=zenoh_section.multicast_scouting,
+            config_file=zenoh_section.config_file,
+        ))
+        base, prefix = self.base, self.config.gateway.prefix
+        self._keep = [
+            session.declare_queryable(f"{base}/dev/*/cmd", self._on_device_query),
+            session.declare_subscriber(f"{base}/dev/*/cmd", self._on_device_put),
+            session.declare_subscriber(f"{base}/dev/*/follow", self._on_follow),
+            session.declare_queryable(f"{base}/bus/*/cmd", self._on_bus_query),
+            session.declare_subscriber(f"{base}/estop", self._on_estop),
+            session.declare_queryable(f"{base}/info", self._on_info),
+            session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
+            session.liveliness().declare_token(f"{base}/alive"),
+        ]
+        drop = zenoh.CongestionControl.DROP
+        for device in self.api.devices:
+            for kind in ("state", "event"):
+                key = f"{base}/dev/{device}/{kind}"
+                self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
+        for bus in self.runners:
+            key = f"{base}/bus/{bus}/stats"
+            self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
+        self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
+        log.info("zenoh session up: gateway %s on %s", self.base, zenoh_section.listen or "peers")
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (last, at shutdown)."""
+        session, self._session = self._session, None
+        self._device_tokens.clear()
+        self._publishers.clear()
+        self._keep.clear()
+        if session is not None:
+            session.close()
+
+    async def publish_forever(self, stop: asyncio.Event) -> None:
+        """Telemetry when it changes, events as they come, bus statistics once a second."""
+        next_stats = 0.0
+        while not stop.is_set():
+            self.publish_states()
+            self.publish_events()
+            if time.monotonic() >= next_stats:
+                next_stats = time.monotonic() + STATS_EVERY_S
+                self.publish_stats()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), PUBLISH_EVERY_S)
+
+    # -- zenoh callbacks (zenoh's threads: hand over only) ----------------------------------
+
+    def _on_device_query(self, query: zenoh.Query) -> None:
+        device = str(query.key_expr).split("/")[-2]
+        self._answer(query, self.api.command(device, _payload(query)))
+
+    def _on_bus_query(self, query: zenoh.Query) -> None:
+        bus = str(query.key_expr).split("/")[-2]
+        self._answer(query, self.api.bus_command(bus, _payload(query)))
+
+    def _on_info(self, query: zenoh.Query) -> None:
+        info: Future = Future()
+        info.set_result(self.api.info())
+        self._answer(query, info)
+
+    def _on_device_put(self, sample: zenoh.Sample) -> None:
+        device = str(sample.key_expr).split("/")[-2]
+        result = self.api.command(device, sample.payload.to_bytes())
+        result.add_done_callback(lambda done: self._report_put(device, done.result()))
+
+    def _on_follow(self, sample: zenoh.Sample) -> None:
+        device = str(sample.key_expr).split("/")[-2]
+        refused = self.api.follow(device, sample.payload.to_bytes())
+        if refused is not None:
+            self._report_put(device, refused)
+
+    def _on_estop(self, sample: zenoh.Sample) -> None:
+        self.api.estop()
+        self.events.append(DeviceEvent("*", "estop", {"key": str(sample.key_expr)}))
+
+    def _on_client(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            client = str(sample.key_expr).split("/")[-1]
+            self._call_soon(self.api.client_left, client)
+
+    def _answer(self, query: zenoh.Query, result: Future) -> None:
+        """Reply on the loop's thread once ``result`` is done (or too late)."""
+        loop = self._loop
+        assert loop is not None
+        replied = Future()
+
+        def send(reply: dict[str, Any]) -> None:
+            if replied.done():
+                return
+            replied.set_result(True)
+            try:
+                query.reply(query.key_expr, _dumps(reply))
+            finally:
+                query.drop()
+
+        def too_late() -> None:
+            send(error_reply(ApiError("internal", "no answer from the bus in time")))
+
+        result.add_done_callback(lambda done: self._call_soon(send, done.result()))
+        loop.call_soon_threadsafe(loop.call_later, REPLY_TIMEOUT_S, too_late)
+
+    def _report_put(self, device: str, reply: dict[str, Any]) -> None:
+        if not reply.get("ok"):
+            self.events.append(DeviceEvent(device, "command_refused", reply["error"]))
+
+    def _call_soon(self, function, *args: Any) -> None:
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(function, *args)
+
+    # -- publishing (the loop's thread) -----------------------------------------------------
+
+    def publish_states(self) -> None:
+        for runner in self.runners.values():
+            for device, state in list(runner.states.items()):
+                if self._published.get(device) == id(state):
+                    continue
+                self._published[device] = id(state)
+                self._put(f"{self.base}/dev/{device}/state", state)
+                self._track_liveliness(device, bool(state.get("online")))
+
+    def publish_events(self) -> None:
+        while self.events:
+            event = self.events.popleft()
+            body = {"ts": time.time(), "device": event.device, "type": event.type,
+                    **event.fields}
+            if event.device in self.api.devices:
+                self._put(f"{self.base}/dev/{event.device}/event", body)
+            self._put(f"{self.base}/events", body)
+
+    def publish_stats(self) -> None:
+        for bus, runner in self.runners.items():
+            stats = asdict(runner.statistics())
+            self._put(f"{self.base}/bus/{bus}/stats", {"ts": time.time(), "bus": bus, **stats})
+
+    def _put(self, key: str, value: dict[str, Any]) -> None:
+        publisher = self._publishers.get(key)
+        if publisher is not None:
+            publisher.put(_dumps(value))
+
+    def _track_liveliness(self, device: str, online: bool) -> None:
+        if self._session is None:
+            return
+        if online and device not in self._device_tokens:
+            key = f"{self.base}/dev/{device}/alive"
+            self._device_tokens[device] = self._session.liveliness().declare_token(key)
+        elif not online and device in self._device_tokens:
+            self._device_tokens.pop(device).undeclare()
+
+
+def _payload(query: zenoh.Query) -> bytes:
+    return query.payload.to_bytes() if query.payload is not None else b""
