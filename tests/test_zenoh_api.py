@@ -1,0 +1,192 @@
+"""The zenoh API end to end: the real daemon (``serve``) with a real zenoh session on
+127.0.0.1, multicast scouting off, a client session beside it, and the Inspire LA simulator on
+a pty behind it."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import zenoh
+
+from busgate.codecs import inspire_la as la
+from busgate.gateway.daemon import serve
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.gateway.zenoh_config import session_config
+from busgate.schemas.config import parse_config
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def wait_for(predicate, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+def config_for(port: str, endpoint: str) -> dict:
+    return {
+        "gateway": {"name": "gw1"},
+        "zenoh": {"mode": "peer", "listen": [endpoint]},
+        "buses": [{"name": "uart0", "transport": "serial", "port": port, "baudrate": 921600,
+                   "devices": [{"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 20},
+                               {"name": "la2", "kind": "inspire_la", "id": 2, "poll_hz": 20}]}],
+    }
+
+
+class Daemon:
+    """``serve`` on a thread of its own, as ``busgate run`` would run it."""
+
+    def __init__(self, config: dict) -> None:
+        self.ready = threading.Event()
+        self.loop = asyncio.new_event_loop()
+        self.stop = asyncio.Event()
+        self.thread = threading.Thread(target=self._run, args=(parse_config(config),))
+        self.thread.start()
+        assert self.ready.wait(10), "the daemon did not come up"
+
+    def _run(self, config) -> None:
+        asyncio.set_event_loop(self.loop)
+        self.loop.run_until_complete(serve(config, ready=self.ready, stop=self.stop))
+
+    def shutdown(self) -> None:
+        self.loop.call_soon_threadsafe(self.stop.set)
+        self.thread.join(5)
+
+
+@pytest.fixture
+def setup():
+    simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
+    simulator.start()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    daemon = Daemon(config_for(simulator.port, endpoint))
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        yield client, simulator
+    finally:
+        client.close()
+        daemon.shutdown()
+        simulator.stop()
+
+
+def get(client: zenoh.Session, key: str, payload: bytes | str, timeout: float = 5.0) -> list:
+    replies = client.get(key, payload=payload, timeout=timeout)
+    return [json.loads(reply.ok.payload.to_bytes()) for reply in replies if reply.ok]
+
+
+def test_a_get_is_answered_and_its_frame_goes_out(setup) -> None:
+    client, simulator = setup
+    [reply] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"move","position":1234}')
+    assert reply["ok"] and reply["state"]["target"] == 1234
+    wire = la.encode(la.MoveCommand(1, 1234, True)).hex()
+    assert wire in [r.wire for r in simulator.recorder.received()]
+
+
+def test_every_malformed_command_gets_its_code_and_nothing_reaches_the_wire(setup) -> None:
+    client, simulator = setup
+    before = len(simulator.recorder.received())
+    cases = {b"\xff": "not_utf8", b"{": "not_json", b'{"op":"move","position":9999}':
+             "out_of_range", b'{"op":"nope"}': "bad_command"}
+    for payload, expected in cases.items():
+        [reply] = get(client, "busgate/gw1/dev/la1/cmd", payload)
+        assert reply["error"]["code"] == expected
+    [reply] = get(client, "busgate/gw1/dev/ghost/cmd", '{"op":"status"}')
+    assert reply["error"]["code"] == "unknown_device"
+    moves = [r for r in simulator.recorder.received()[before:] if r.frame == "MoveCommand"]
+    assert moves == []
+    [again] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status"}')
+    assert again["ok"], "the gateway serves on"
+
+
+def test_telemetry_info_and_liveliness(setup) -> None:
+    client, _ = setup
+    states: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/dev/*/state", lambda s: states.append(json.loads(s.payload.to_bytes())))
+    wait_for(lambda: {s["device"] for s in states} == {"la1", "la2"})
+    assert all(s["kind"] == "inspire_la" and "position" in s for s in states)
+    [info] = get(client, "busgate/gw1/info", "")
+    assert [d["name"] for d in info["buses"][0]["devices"]] == ["la1", "la2"]
+    alive = [str(r.ok.key_expr) for r in client.liveliness().get("busgate/gw1/**", timeout=2)]
+    assert "busgate/gw1/alive" in alive and "busgate/gw1/dev/la1/alive" in alive
+    subscriber.undeclare()
+
+
+def test_estop_from_any_client_stops_every_device(setup) -> None:
+    client, simulator = setup
+    client.put("busgate/*/estop", b"")  # the fleet-wide form
+    stops = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex() for i in (1, 2)}
+    wait_for(lambda: stops <= {r.wire for r in simulator.recorder.received()})
+
+
+def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(setup) -> None:
+    client, simulator = setup
+    events: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/events", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    for _ in range(20):
+        client.put("busgate/gw1/dev/la1/follow", '{"position": 800}')
+        time.sleep(0.01)
+    wait_for(lambda: sum(r.frame == "FollowCommand" for r in simulator.recorder.received()) > 5)
+    client.put("busgate/gw1/dev/la1/follow", '{"position": 99999}')
+    wait_for(lambda: any(e["type"] == "command_refused" for e in events))
+    wait_for(lambda: any(e["type"] == "stream_stale" for e in events))
+    subscriber.undeclare()
+
+
+def test_a_client_that_vanishes_loses_its_claim(setup) -> None:
+    client, _ = setup
+    token = client.liveliness().declare_token("busgate/clients/alice")
+    [claimed] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"claim","client":"alice"}')
+    assert claimed["ok"]
+    [refused] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"move","position":5,"client":"bob"}')
+    assert refused["error"]["code"] == "claimed"
+    token.undeclare()
+
+    def bob_moves() -> bool:
+        [reply] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status","client":"bob"}')
+        [move] = get(client, "busgate/gw1/dev/la1/cmd",
+                     '{"op":"move","position":5,"client":"bob"}')
+        return reply["ok"] and move["ok"]
+
+    wait_for(bob_moves)
+
+
+def test_busgate_run_stops_in_order_on_sigterm(tmp_path) -> None:
+    simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
+    simulator.start()
+    config = tmp_path / "gw.toml"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config.write_text(
+        f'[gateway]\nname = "gw1"\n[zenoh]\nlisten = ["{endpoint}"]\n'
+        f'[[buses]]\nname = "uart0"\ntransport = "serial"\nport = "{simulator.port}"\n'
+        'baudrate = 921600\n[[buses.devices]]\nname = "la1"\nkind = "inspire_la"\nid = 1\n'
+    )
+    process = subprocess.Popen([sys.executable, "-m", "busgate.gateway.cli", "run", "--config",
+                                str(config)], stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for(lambda: any(r.frame == "ControlCommand" for r in simulator.recorder.received()),
+                 timeout=15)
+        sent = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+        assert time.monotonic() - sent < 3.0
+        estop = la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex()
+        assert estop in [r.wire for r in simulator.recorder.received()], "left in its safe state"
+    finally:
+        if process.poll() is None:
+            process.kill()
+        simulator.stop()
