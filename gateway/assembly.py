@@ -39,18 +39,14 @@ def build_bus(
         owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
     else:
         timing = LinkTiming(bus.protocol, bus.bitrate, margin_s=margin)
-        by_id = {driver.device_id: driver for driver in drivers}
-
-        def route(event: object, when: float) -> None:
-            driver = by_id.get(getattr(event, "device_id", None))
-            if driver is not None:
-                driver.unsolicited(event, when)
-
         owner = CanBusOwner(bus.interface, bus.channel, bus.options, protocol.codec, timing,
-                            counters, on_unsolicited=route)
-    return BusRunner(
+                            counters, on_unsolicited=lambda event, when: None)
+    runner = BusRunner(
         bus.name, owner, timing, drivers,
         poll_hz={device.name: device.poll_hz for device in bus.devices},
         on_event=on_event, realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
+    if isinstance(owner, CanBusOwner):
+        owner.on_unsolicited = runner.unsolicited  # heartbeats go to their drivers
+    return runner

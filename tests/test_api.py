@@ -70,6 +70,12 @@ def ask(api: GatewayApi, device: str, command) -> dict:
     return api.command(device, payload).result(5)
 
 
+def accepted(api: GatewayApi, device: str, command) -> dict:
+    reply = ask(api, device, command)
+    assert reply["ok"], reply
+    return reply
+
+
 def code(reply: dict) -> str | None:
     return None if reply["ok"] else reply["error"]["code"]
 
@@ -118,24 +124,24 @@ def test_a_command_comes_back_with_the_device_state(gateway):
 
 def test_a_claim_keeps_others_out_until_release_but_never_stops_an_estop(gateway):
     api, _, _, _clock, events = gateway
-    assert ask(api, "la1", {"op": "claim", "client": "alice", "ttl_s": 5})["ok"]
+    accepted(api, "la1", {"op": "claim", "client": "alice", "ttl_s": 5})
     refused = ask(api, "la1", {"op": "move", "position": 100, "client": "bob"})
     assert code(refused) == "claimed" and "alice" in refused["error"]["message"]
     assert code(ask(api, "la1", {"op": "move", "position": 100})) == "claimed"
-    assert ask(api, "la1", {"op": "status", "client": "bob"})["ok"], "reads are never refused"
-    assert ask(api, "la1", {"op": "move", "position": 100, "client": "alice"})["ok"]
+    accepted(api, "la1", {"op": "status", "client": "bob"})  # reads are never refused
+    accepted(api, "la1", {"op": "move", "position": 100, "client": "alice"})
     assert code(ask(api, "la1", {"op": "release", "client": "bob"})) == "claimed"
-    assert ask(api, "la1", {"op": "release", "client": "alice"})["ok"]
-    assert ask(api, "la1", {"op": "move", "position": 200, "client": "bob"})["ok"]
+    accepted(api, "la1", {"op": "release", "client": "alice"})
+    accepted(api, "la1", {"op": "move", "position": 200, "client": "bob"})
     assert {e.type for e in events} >= {"claimed", "released"}
 
 
 def test_a_claim_lapses_after_its_ttl(gateway):
     api, _, _, clock, _ = gateway
-    assert ask(api, "la2", {"op": "claim", "client": "alice", "ttl_s": 1})["ok"]
+    accepted(api, "la2", {"op": "claim", "client": "alice", "ttl_s": 1})
     assert code(ask(api, "la2", {"op": "move", "position": 5, "client": "bob"})) == "claimed"
     clock.offset = 1.5
-    assert ask(api, "la2", {"op": "move", "position": 5, "client": "bob"})["ok"]
+    accepted(api, "la2", {"op": "move", "position": 5, "client": "bob"})
 
 
 def test_estop_reaches_every_bus_ahead_of_everything(gateway):
@@ -154,7 +160,7 @@ def test_follow_is_validated_and_claimed_like_a_command(gateway):
     assert api.follow("la1", b'{"position": 9999}')["error"]["code"] == "out_of_range"
     assert api.follow("la1", b'{"rpm": 10}')["error"]["code"] == "bad_command"
     assert api.follow("ghost", b'{"position": 1}')["error"]["code"] == "unknown_device"
-    assert ask(api, "la2", {"op": "claim", "client": "alice"})["ok"]
+    accepted(api, "la2", {"op": "claim", "client": "alice"})
     assert api.follow("la2", b'{"position": 1, "client": "bob"}')["error"]["code"] == "claimed"
 
 
@@ -163,12 +169,12 @@ def test_a_client_that_goes_loses_its_claims_streams_and_speed(gateway):
     for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
         reply = ask(api, "wheel", op)
         assert reply["ok"], reply
-    assert ask(api, "wheel", {"op": "velocity", "rpm": 200, "client": "teleop"})["ok"]
-    assert ask(api, "la1", {"op": "claim", "client": "teleop"})["ok"]
+    accepted(api, "wheel", {"op": "velocity", "rpm": 200, "client": "teleop"})
+    accepted(api, "la1", {"op": "claim", "client": "teleop"})
     assert api.follow("la1", b'{"position": 700, "client": "teleop"}') is None
     api.client_left("teleop")
     wait_for(lambda: "005#00fa001100000000" in {r.wire for r in can_sim.recorder.received()})
-    assert ask(api, "la1", {"op": "move", "position": 3, "client": "other"})["ok"]
+    accepted(api, "la1", {"op": "move", "position": 3, "client": "other"})
     wait_for(lambda: any(e.type == "stream_stopped" for e in events))
 
 

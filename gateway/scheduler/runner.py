@@ -150,6 +150,15 @@ class BusRunner:
         job = Job("*", deque(requests), keep_going=True, outcomes=[])
         return self._hand_over(lambda future: self._queue_job(job, future))
 
+    def unsolicited(self, event: object, when: float) -> None:
+        """A frame nobody asked for (a heartbeat): to its device's driver (bus thread only)."""
+        device_id = getattr(event, "device_id", None)
+        for driver in self.drivers.values():
+            if driver.device_id == device_id:
+                driver.unsolicited(event, when)
+                self._dirty.add(driver.name)
+                return
+
     def stop_stream(self, device: str, reason: str) -> None:
         """End ``device``'s follow stream now (its client went away), as if it went stale."""
         self._inbox.append(lambda: self._end_stream(device, reason))
