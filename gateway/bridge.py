@@ -117,16 +117,31 @@ class ZenohBridge:
 
     def _on_device_query(self, query: zenoh.Query) -> None:
         device = str(query.key_expr).split("/")[-2]
-        self._answer(query, self.api.command(device, _payload(query)))
+        if self._not_ours(query, device, self.api.devices):
+            return
+        reply_key = f"{self.base}/dev/{device}/cmd"
+        self._answer(query, self.api.command(device, _payload(query)), reply_key)
 
     def _on_bus_query(self, query: zenoh.Query) -> None:
         bus = str(query.key_expr).split("/")[-2]
-        self._answer(query, self.api.bus_command(bus, _payload(query)))
+        if self._not_ours(query, bus, self.runners):
+            return
+        reply_key = f"{self.base}/bus/{bus}/cmd"
+        self._answer(query, self.api.bus_command(bus, _payload(query)), reply_key)
+
+    @staticmethod
+    def _not_ours(query: zenoh.Query, name: str, known) -> bool:
+        """A query with wildcards that names nothing of this gateway (``busgate/*/dev/la9/cmd``
+        sent to a fleet) is left to the gateways that have it: dropped without a reply."""
+        if name in known or "*" not in str(query.key_expr):
+            return False
+        query.drop()
+        return True
 
     def _on_info(self, query: zenoh.Query) -> None:
         info: Future = Future()
         info.set_result(self.api.info())
-        self._answer(query, info)
+        self._answer(query, info, f"{self.base}/info")
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         device = str(sample.key_expr).split("/")[-2]
@@ -148,8 +163,9 @@ class ZenohBridge:
             client = str(sample.key_expr).split("/")[-1]
             self._call_soon(self.api.client_left, client)
 
-    def _answer(self, query: zenoh.Query, result: Future) -> None:
-        """Reply on the loop's thread once ``result`` is done (or too late)."""
+    def _answer(self, query: zenoh.Query, result: Future, key: str) -> None:
+        """Reply on ``key`` (concrete, even when the query had wildcards), on the loop's
+        thread, once ``result`` is done (or too late)."""
         loop = self._loop
         assert loop is not None
         replied = Future()
@@ -159,7 +175,7 @@ class ZenohBridge:
                 return
             replied.set_result(True)
             try:
-                query.reply(query.key_expr, _dumps(reply))
+                query.reply(key, _dumps(reply))
             finally:
                 query.drop()
 

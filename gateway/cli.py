@@ -11,7 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from busgate.codecs.errors import BusgateError
-from busgate.gateway import bench, codec_cli, daemon
+from busgate.gateway import bench, client_cli, codec_cli, daemon, schema_cli
 from busgate.gateway.sim import cli as sim_cli
 
 
@@ -25,7 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
     codec_cli.add_parsers(subparsers)
     sim_cli.add_parsers(subparsers)
     bench.add_parsers(subparsers)
+    client_cli.add_parsers(subparsers)
     daemon.add_parsers(subparsers)
+    schema_cli.add_parsers(subparsers)
     return parser
 
 

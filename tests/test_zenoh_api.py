@@ -190,3 +190,12 @@ def test_busgate_run_stops_in_order_on_sigterm(tmp_path) -> None:
         if process.poll() is None:
             process.kill()
         simulator.stop()
+
+
+def test_a_fleet_wide_get_is_answered_only_by_the_gateway_that_has_the_device(setup) -> None:
+    client, _ = setup
+    replies = get(client, "busgate/*/dev/la1/cmd", '{"op":"status"}')
+    assert len(replies) == 1 and replies[0]["ok"]
+    assert get(client, "busgate/*/dev/ghost/cmd", '{"op":"status"}', timeout=1) == []
+    [refused] = get(client, "busgate/gw1/dev/ghost/cmd", '{"op":"status"}')
+    assert refused["error"]["code"] == "unknown_device"

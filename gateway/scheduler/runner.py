@@ -39,7 +39,7 @@ from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.drivers.base import DeviceEvent, Driver
-from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
+from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker, KeepaliveTicker
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ PREPARE_S = 0.003
 STALE_PERIODS = 3
 #: The last stretch before a deadline is waited out by the bus owner, right before its
 #: write, so that nothing runs between the deadline and the frame.
-FINAL_WAIT_S = 0.002
+FINAL_WAIT_S = 0.001
 
 
 class BusyError(BusgateError):
@@ -290,8 +290,10 @@ class BusRunner:
             self._wait_until(decision - PREPARE_S, precise=False)
             return
         prepared = self.planner.decide(decision)
-        if not isinstance(prepared, Slot):
-            self._wait_until(decision)
+        if not isinstance(prepared, Slot) or prepared.priority is not Priority.FOLLOW:
+            # Only a follow tick needs its moment to the microsecond; anything else may start
+            # a little late, and waits interruptibly, so an e-stop overtakes it.
+            self._wait_until(decision, precise=False)
         elif self._wait_until(decision - FINAL_WAIT_S, precise=False):
             self._execute(prepared, at=decision)
 

@@ -1,0 +1,467 @@
+"""``busgate send`` and ``busgate watch``: a client's view of gateways, over zenoh.
+
+One of the three modules that import ``zenoh`` (with ``bridge.py``, the daemon's side, and
+``zenoh_config.py``, the session settings both share). These are clients of the public API —
+the key expressions and the JSON envelope of issue 5 — and know nothing of buses or drivers.
+
+send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
+``cmd`` key. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error,
+2 when nobody answered in time (or the session could not be opened).
+
+watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
+each, and redraws a table at most ``REDRAW_HZ`` times a second. Rules: zenoh callbacks only
+parse and store under a lock (one slow callback would stall every other one); all printing
+happens on the main thread; the session is closed in ``finally`` (a session with callback
+subscribers left open hangs the process at exit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
+from typing import Any, TextIO
+
+import zenoh
+
+from busgate.codecs.errors import BusgateError
+from busgate.gateway.zenoh_config import session_config
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_PREFIX = "busgate"
+REDRAW_HZ = 5
+NO_ANSWER, ERROR_REPLY = 2, 1
+#: zenoh's own error reply when a queryable did not finish before the get's timeout.
+ZENOH_TIMEOUT = b"Timeout"
+
+
+class ZenohSessionError(BusgateError, ConnectionError):
+    """The client could not open its zenoh session (nothing listening, bad endpoint …)."""
+
+    code = "zenoh_unavailable"
+
+
+# -- the command line -----------------------------------------------------------------------
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    send = subparsers.add_parser(
+        "send",
+        help="send a JSON command to a device and print the reply",
+        description="Send a JSON command to a device's cmd key and print each reply. A bare "
+        "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers); an "
+        "argument with a '/' is used as the key expression as given. Exit status: 0 all "
+        "replies ok, 1 an error reply, 2 nobody answered.",
+    )
+    send.add_argument("target", help="a device name, or a key expression such as "
+                      "busgate/gw1/bus/uart0/cmd")
+    send.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
+    send.add_argument("--timeout", type=_positive, default=2.0,
+                      help="seconds to wait for replies (default 2)")
+    send.add_argument("--pretty", action="store_true", help="indent the printed replies")
+    send.add_argument("--put", action="store_true", help="put instead of get: no reply; errors "
+                      "go to the gateway's events key")
+    _add_session_options(send)
+    send.set_defaults(handler=run_send)
+
+    watch = subparsers.add_parser(
+        "watch",
+        help="a live table of device states and bus statistics",
+        description="Show the latest state of every device and the statistics of every bus, "
+        "refreshed in place. The selector narrows what is shown: a gateway name, or a key "
+        "expression (default <prefix>/**).",
+    )
+    watch.add_argument("selector", nargs="?", default=None,
+                       help="a gateway name or a key expression (default <prefix>/**)")
+    watch.add_argument("--once", action="store_true",
+                       help="print the table once after --seconds and exit (1 if nothing seen)")
+    watch.add_argument("--seconds", type=_positive, default=None,
+                       help="how long to listen (default 1.5 with --once, else until Ctrl-C)")
+    _add_session_options(watch)
+    watch.set_defaults(handler=run_watch)
+
+
+def _add_session_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--connect", action="append", metavar="ENDPOINT", default=None,
+                        help=f"zenoh endpoint, repeatable (default {DEFAULT_ENDPOINT})")
+    parser.add_argument("--prefix", default=DEFAULT_PREFIX,
+                        help=f"the gateways' key prefix (default {DEFAULT_PREFIX})")
+    parser.add_argument("--mode", choices=("client", "peer"), default="client",
+                        help="zenoh mode of this tool's session (default client)")
+    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="a zenoh config file (TLS, auth …) laid underneath")
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, not {text}")
+    return value
+
+
+@contextmanager
+def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
+    """A zenoh session for a client tool: ``--connect``, multicast scouting off; closed after."""
+    endpoints = args.connect or [DEFAULT_ENDPOINT]
+    try:
+        config = session_config(mode=args.mode, connect=endpoints, multicast_scouting=False,
+                                config_file=args.zenoh_config)
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ZenohSessionError(f"cannot open a zenoh session to {', '.join(endpoints)}: "
+                                f"{_first_line(exc)}") from exc
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def _first_line(exc: BaseException) -> str:
+    # zenoh appends " at <rust source path>" to its messages; keep the human part.
+    return str(exc).splitlines()[0].split("  at /")[0].strip()
+
+
+# -- send -----------------------------------------------------------------------------------
+
+
+def command_key(prefix: str, target: str) -> str:
+    """The key a ``send`` goes to.
+
+    >>> command_key("busgate", "la1"), command_key("busgate", "busgate/gw1/bus/uart0/cmd")
+    ('busgate/*/dev/la1/cmd', 'busgate/gw1/bus/uart0/cmd')
+    """
+    return target if "/" in target else f"{prefix}/*/dev/{target}/cmd"
+
+
+def run_send(args: argparse.Namespace) -> int:
+    key = command_key(args.prefix, args.target)
+    payload = args.command.encode()
+    with client_session(args) as session:
+        if args.put:
+            session.put(key, payload)
+            return 0
+        replies = session.get(key, payload=payload, timeout=args.timeout,
+                              consolidation=zenoh.ConsolidationMode.NONE)
+        outcomes = [outcome for reply in replies if (outcome := _outcome(reply)) is not None]
+    if "/" not in args.target:
+        outcomes = _from_gateways_that_have_it(outcomes)
+    if not outcomes:
+        print(f"busgate send: nobody answered on {key} within {args.timeout:g} s",
+              file=sys.stderr)
+        return NO_ANSWER
+    status = 0
+    for body, error in outcomes:
+        print(json.dumps(body, indent=2 if args.pretty else None, ensure_ascii=False))
+        if error is not None:
+            print(f"busgate send: {error[0]}: {error[1]}", file=sys.stderr)
+            status = ERROR_REPLY
+    return status
+
+
+def _from_gateways_that_have_it(outcomes: list) -> list:
+    """A bare device name asks every gateway; those without the device answer
+    ``unknown_device``. Their replies matter only when no gateway has it."""
+    known = [(body, error) for body, error in outcomes
+             if error is None or error[0] != "unknown_device"]
+    return known or outcomes
+
+
+def _outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
+    """A reply's JSON and its (code, message) when it is an error; ``None`` for zenoh's timeout."""
+    sample = reply.ok
+    raw = sample.payload.to_bytes() if sample is not None else reply.err.payload.to_bytes()
+    if sample is None and raw == ZENOH_TIMEOUT:
+        return None
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        text = raw.decode(errors="replace")
+        return text, ("not_json", f"the reply is not JSON: {text[:200]}")
+    if isinstance(body, dict) and body.get("ok") is True and sample is not None:
+        return body, None
+    return body, _error_of(body)
+
+
+def _error_of(body: Any) -> tuple[str, str]:
+    error = body.get("error") if isinstance(body, dict) else None
+    if isinstance(error, dict):
+        return str(error.get("code", "unknown")), str(error.get("message", ""))
+    return "bad_reply", "the reply is not an ok reply and carries no error"
+
+
+# -- watch ----------------------------------------------------------------------------------
+
+
+def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
+    """(state key, stats key, filter) for a ``watch`` selector.
+
+    >>> watch_keys("busgate", None)
+    ('busgate/*/dev/*/state', 'busgate/*/bus/*/stats', 'busgate/**')
+    >>> watch_keys("busgate", "gw1")
+    ('busgate/gw1/dev/*/state', 'busgate/gw1/bus/*/stats', 'busgate/gw1/**')
+    """
+    if selector is None:
+        return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", f"{prefix}/**"
+    if "/" not in selector:  # a gateway name
+        return (f"{prefix}/{selector}/dev/*/state", f"{prefix}/{selector}/bus/*/stats",
+                f"{prefix}/{selector}/**")
+    return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", selector
+
+
+def run_watch(args: argparse.Namespace) -> int:
+    state_key, stats_key, selector = watch_keys(args.prefix, args.selector)
+    try:
+        wanted = zenoh.KeyExpr(selector)
+    except zenoh.ZError as exc:
+        raise ZenohSessionError(f"not a key expression: {selector!r}") from exc
+    table = WatchTable()
+    seconds = args.seconds if args.seconds is not None else (1.5 if args.once else None)
+    with client_session(args) as session:
+        _held = _subscribe(session, table, wanted, state_key, stats_key)  # until the close
+        gateway = state_key.split("/")[-4]
+        session.get(f"{args.prefix}/{gateway}/info", _on_reply(table, wanted), timeout=1.0)
+        if args.once:
+            _wait(seconds)
+        else:
+            _wait_showing_live(table, sys.stdout, seconds)
+    if args.once:
+        print("\n".join(table.render(time.monotonic())))
+        if table.empty:
+            print(f"busgate watch: nothing seen on {selector} in {seconds:g} s", file=sys.stderr)
+            return 1
+    return 0
+
+
+def _subscribe(session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr,
+               state_key: str, stats_key: str) -> list[zenoh.Subscriber]:
+    def handler(update: Callable[[str, Any, float], None]) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            if not wanted.intersects(sample.key_expr):
+                return
+            try:
+                body = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return  # not ours to judge; a watcher shows what it can read
+            update(str(sample.key_expr), body, time.monotonic())
+        return on_sample
+
+    return [session.declare_subscriber(state_key, handler(table.update_state)),
+            session.declare_subscriber(stats_key, handler(table.update_stats))]
+
+
+def _on_reply(table: WatchTable, wanted: zenoh.KeyExpr) -> Callable[[zenoh.Reply], None]:
+    """Seeds the table from ``info`` replies, so quiet devices show before their first state."""
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is None:
+            return
+        try:
+            info = json.loads(reply.ok.payload.to_bytes())
+        except ValueError:
+            return
+        if isinstance(info, dict) and info.get("ok") is True:
+            table.seed(info, lambda key: wanted.intersects(zenoh.KeyExpr(key)))
+    return on_reply
+
+
+def _wait(seconds: float | None) -> None:
+    with suppress(KeyboardInterrupt):
+        time.sleep(seconds) if seconds is not None else threading.Event().wait()
+
+
+def _wait_showing_live(table: WatchTable, out: TextIO, seconds: float | None) -> None:
+    """Redraw (tty) or print changed rows (pipe) until ``seconds`` pass or Ctrl-C."""
+    tty = out.isatty()
+    deadline = None if seconds is None else time.monotonic() + seconds
+    try:
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(1 / REDRAW_HZ)
+            now = time.monotonic()
+            if tty:
+                _redraw(out, table.render(now))
+            else:
+                for line in table.changed_lines(now):
+                    print(line, file=out, flush=True)
+    except KeyboardInterrupt:
+        pass
+
+
+def _redraw(out: TextIO, lines: list[str]) -> None:
+    # Cursor home, each line cleared to its end, then everything below: no flicker.
+    out.write("\x1b[H" + "".join(f"{line}\x1b[K\n" for line in lines) + "\x1b[J")
+    out.flush()
+
+
+# -- the table (no zenoh here: fed by the callbacks above, read by the main thread) ----------
+
+DEVICE_COLUMNS = ("device", "kind", "online", "stale", "motion", "temp_c", "current_ma",
+                  "faults", "age")
+BUS_COLUMNS = ("bus", "utilisation", "frames_s", "timeouts", "smallest_gap", "age")
+
+
+class WatchTable:
+    """The latest state of each device and statistics of each bus, keyed by (gateway, name)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._devices: dict[tuple[str, str], _Row] = {}
+        self._buses: dict[tuple[str, str], _Row] = {}
+
+    @property
+    def empty(self) -> bool:
+        with self._lock:
+            return not self._devices and not self._buses
+
+    def update_state(self, key: str, state: Any, now: float) -> None:
+        """A sample of ``<prefix>/<gw>/dev/<device>/state``."""
+        if isinstance(state, dict):
+            self._store(self._devices, key, state, now)
+
+    def update_stats(self, key: str, stats: Any, now: float) -> None:
+        """A sample of ``<prefix>/<gw>/bus/<bus>/stats``; frames/s from the previous one."""
+        if not isinstance(stats, dict):
+            return
+        with self._lock:
+            previous = self._buses.get(_names(key))
+        stats = {**stats, "frames_s": _frame_rate(previous.values if previous else None, stats)}
+        self._store(self._buses, key, stats, now)
+
+    def seed(self, info: dict[str, Any], wanted: Callable[[str], bool]) -> None:
+        """Rows from an ``info`` reply, for devices and buses not heard from yet."""
+        gateway = str(info.get("gateway", "?"))
+        with self._lock:
+            for bus in info.get("buses", []):
+                name = str(bus.get("name", "?"))
+                if wanted(f"{gateway}/bus/{name}/stats"):
+                    self._buses.setdefault((gateway, name), _Row({}, None))
+                for device in bus.get("devices", []):
+                    state = device.get("state") if isinstance(device.get("state"), dict) else {}
+                    row = _Row({"kind": device.get("kind"), **state}, None)
+                    if wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
+                        self._devices.setdefault((gateway, str(device.get("name"))), row)
+
+    def render(self, now: float) -> list[str]:
+        """The whole table, devices then buses."""
+        devices, buses, several = self._snapshot()
+        lines = _columns(_headers(DEVICE_COLUMNS, several),
+                         [_cells(k, r, _device_cells, now, several) for k, r in devices],
+                         "(no device seen)")
+        lines.append("")
+        lines += _columns(_headers(BUS_COLUMNS, several),
+                          [_cells(k, r, _bus_cells, now, several) for k, r in buses],
+                          "(no bus seen)")
+        return lines
+
+    def changed_lines(self, now: float) -> list[str]:
+        """One ``name=value`` line per row updated since the last call (for a pipe)."""
+        devices, buses, _ = self._snapshot()
+        lines = []
+        for rows, columns, cells in ((devices, DEVICE_COLUMNS, _device_cells),
+                                     (buses, BUS_COLUMNS, _bus_cells)):
+            for (gateway, name), row in rows:
+                if row.received is not None and row.received > row.reported:
+                    row.reported = row.received
+                    values = cells(name, row, now)
+                    lines.append(" ".join([f"gateway={gateway}"] + [
+                        f"{column}={value.replace(' ', '')}"
+                        for column, value in zip(columns, values, strict=True)]))
+        return lines
+
+    def _store(self, rows: dict, key: str, values: dict[str, Any], now: float) -> None:
+        with self._lock:
+            row = rows.get(_names(key))
+            reported = row.reported if row else float("-inf")
+            rows[_names(key)] = _Row(values, now, reported)
+
+    def _snapshot(self) -> tuple[list, list, bool]:
+        with self._lock:
+            devices, buses = sorted(self._devices.items()), sorted(self._buses.items())
+        several = len({gateway for (gateway, _), _ in devices + buses}) > 1
+        return devices, buses, several
+
+
+class _Row:
+    __slots__ = ("received", "reported", "values")
+
+    def __init__(self, values: dict[str, Any], received: float | None,
+                 reported: float = float("-inf")) -> None:
+        self.values, self.received, self.reported = values, received, reported
+
+
+def _names(key: str) -> tuple[str, str]:
+    """(gateway, name) of ``…/<gw>/dev/<name>/state`` or ``…/<gw>/bus/<name>/stats``."""
+    parts = key.split("/")
+    return parts[-4], parts[-2]
+
+
+def _frame_rate(previous: dict[str, Any] | None, stats: dict[str, Any]) -> float | None:
+    try:
+        frames = stats["frames_out"] + stats["frames_in"]
+        if previous is None or previous.get("uptime_s") is None:
+            return frames / stats["uptime_s"] if stats["uptime_s"] > 0 else None
+        elapsed = stats["uptime_s"] - previous["uptime_s"]
+        before = previous["frames_out"] + previous["frames_in"]
+        return (frames - before) / elapsed if elapsed > 0 else previous.get("frames_s")
+    except (KeyError, TypeError):
+        return None
+
+
+def _device_cells(name: str, row: _Row, now: float) -> list[str]:
+    state = row.values
+    online = state.get("online")
+    return [name, _text(state.get("kind")),
+            "-" if online is None else ("yes" if online else "NO"),
+            "STALE" if state.get("stale") else "-",
+            _motion(state), _text(state.get("temperature_c")), _text(state.get("current_ma")),
+            ",".join(map(str, state.get("faults") or [])) or "-", _age(row, now)]
+
+
+def _motion(state: dict[str, Any]) -> str:
+    if state.get("mode") == "velocity" or ("position" not in state and "speed_rpm" in state):
+        speed = f"{_text(state.get('speed_rpm'))} rpm"
+        target = state.get("target_speed_rpm")
+        return speed if target is None else f"{speed} -> {_text(target)}"
+    if "position" in state or "target" in state:
+        return f"{_text(state.get('position'))} -> {_text(state.get('target'))}"
+    return "-"
+
+
+def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
+    stats = row.values
+    utilisation, gap = stats.get("utilisation"), stats.get("smallest_gap_s")
+    return [name,
+            "-" if not isinstance(utilisation, int | float) else f"{utilisation * 100:.0f}%",
+            _text(stats.get("frames_s")), _text(stats.get("timeouts")),
+            "-" if not isinstance(gap, int | float) else f"{gap * 1000:.2f} ms", _age(row, now)]
+
+
+def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
+    return [c.upper() for c in ("gateway",) * several + columns]
+
+
+def _cells(key: tuple[str, str], row: _Row, cells: Callable, now: float,
+           several: bool) -> list[str]:
+    return ([key[0]] if several else []) + cells(key[1], row, now)
+
+
+def _columns(header: list[str], rows: list[list[str]], nothing: str) -> list[str]:
+    if not rows:
+        return [nothing]
+    widths = [max(len(cell) for cell in column) for column in zip(header, *rows, strict=True)]
+    return ["  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True))
+            .rstrip() for line in [header, *rows]]
+
+
+def _text(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.1f}"
+    return str(value)
+
+
+def _age(row: _Row, now: float) -> str:
+    return "-" if row.received is None else f"{max(0.0, now - row.received):.1f}s"

@@ -1,0 +1,396 @@
+"""``busgate send`` and ``busgate watch`` against a stand-in gateway, over real zenoh sessions.
+
+The stand-in answers on the contract's keys the way a gateway does (ok and error envelopes)
+and publishes device states and bus statistics; the tools run through ``busgate``'s ``main``
+as a user would run them. Everything stays on 127.0.0.1 with multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+import zenoh
+
+from busgate.gateway import client_cli
+from busgate.gateway.cli import main
+from busgate.gateway.client_cli import WatchTable
+from busgate.gateway.zenoh_config import session_config
+
+PUBLISH_EVERY_S = 0.05
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def la1_state() -> dict:
+    return {"ts": time.monotonic(), "device": "la1", "kind": "inspire_la", "online": True,
+            "last_reply_age_s": 0.01, "stale": False, "position": 1000, "target": 1500,
+            "temperature_c": 31, "current_ma": 120, "force_g": 10, "faults": []}
+
+
+def wheel_state() -> dict:
+    return {"ts": time.monotonic(), "device": "wheel", "kind": "zlac706", "online": True,
+            "stale": True, "mode": "velocity", "speed_rpm": 12.5, "target_speed_rpm": 20.0,
+            "current_ma": 800, "faults": ["overvoltage"]}
+
+
+def ds1_state() -> dict:
+    return {"ts": time.monotonic(), "device": "ds1", "kind": "ds_servo", "online": False,
+            "stale": False, "position": None, "target": 2048, "faults": []}
+
+
+def uart0_stats(uptime_s: float) -> dict:
+    return {"ts": time.time(), "bus": "uart0", "frames_out": int(100 * uptime_s),
+            "frames_in": int(100 * uptime_s), "timeouts": 3, "utilisation": 0.25,
+            "smallest_gap_s": 0.0005, "uptime_s": uptime_s}
+
+
+@dataclass
+class StandIn:
+    """A zenoh peer playing gateways ``gwtest`` and ``gwtwo``."""
+
+    endpoint: str
+    session: zenoh.Session
+    commands: list[bytes] = field(default_factory=list)
+    puts: list[tuple[str, bytes]] = field(default_factory=list)
+    held: list = field(default_factory=list)
+
+
+def answer_la1(stand_in: StandIn, query: zenoh.Query) -> None:
+    with query:
+        raw = query.payload.to_bytes() if query.payload is not None else b""
+        stand_in.commands.append(raw)
+        try:
+            command = json.loads(raw)
+        except ValueError:
+            reply = {"ok": False, "error": {"code": "not_json", "message": "not JSON"}}
+        else:
+            if command.get("op") == "move" and 0 <= command.get("position", -1) <= 2000:
+                reply = {"ok": True, "state": {**la1_state(), "target": command["position"]}}
+            else:
+                reply = {"ok": False, "error": {"code": "out_of_range",
+                                                "message": "position must be 0–2000"}}
+        query.reply(query.key_expr, json.dumps(reply))
+
+
+def answer_unknown(query: zenoh.Query) -> None:
+    """What a gateway without the device says when a get names every gateway."""
+    with query:
+        device = str(query.key_expr).split("/")[-2]
+        query.reply(query.key_expr, json.dumps({"ok": False, "error": {
+            "code": "unknown_device", "message": f"no device {device!r} on gateway gwtwo"}}))
+
+
+def answer_ok(query: zenoh.Query) -> None:
+    with query:
+        query.reply(query.key_expr, json.dumps({"ok": True, "data": {"ids": [1, 2]}}))
+
+
+def publish_forever(session: zenoh.Session, stop: threading.Event) -> None:
+    started = time.monotonic()
+    while not stop.wait(PUBLISH_EVERY_S):
+        session.put("busgate/gwtest/dev/la1/state", json.dumps(la1_state()))
+        session.put("busgate/gwtest/dev/wheel/state", json.dumps(wheel_state()))
+        session.put("busgate/gwtwo/dev/ds1/state", json.dumps(ds1_state()))
+        session.put("busgate/gwtest/bus/uart0/stats",
+                    json.dumps(uart0_stats(1.0 + time.monotonic() - started)))
+
+
+@pytest.fixture
+def stand_in() -> Iterator[StandIn]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(session_config(mode="peer", listen=[endpoint]))
+    stand_in = StandIn(endpoint, session)
+    stop = threading.Event()
+    publisher = threading.Thread(target=publish_forever, args=(session, stop), daemon=True)
+    try:
+        stand_in.held += [
+            session.declare_queryable("busgate/gwtest/dev/la1/cmd",
+                                      lambda query: answer_la1(stand_in, query)),
+            session.declare_queryable("busgate/gwtest/bus/uart0/cmd", answer_ok),
+            session.declare_queryable("busgate/gwtest/dev/both/cmd", answer_ok),
+            session.declare_queryable("busgate/gwtwo/dev/both/cmd", answer_ok),
+            session.declare_queryable("busgate/gwtest/dev/mute/cmd", stand_in.held.append),
+            session.declare_queryable("busgate/gwtwo/dev/*/cmd", answer_unknown),
+            session.declare_subscriber("busgate/*/dev/*/cmd", lambda sample: stand_in.puts.append(
+                (str(sample.key_expr), sample.payload.to_bytes()))),
+        ]
+        publisher.start()
+        yield stand_in
+    finally:
+        stop.set()
+        if publisher.is_alive():
+            publisher.join()
+        for held in stand_in.held:
+            if isinstance(held, zenoh.Query):
+                held.drop()
+        session.close()
+
+
+# -- send -----------------------------------------------------------------------------------
+
+
+def test_send_prints_an_ok_reply_and_exits_0(stand_in, capsys):
+    status = main(["send", "la1", '{"op":"move","position":1200}', "--connect", stand_in.endpoint])
+    out, err = capsys.readouterr()
+    assert status == 0, err
+    reply = json.loads(out)
+    assert reply["ok"] is True and reply["state"]["target"] == 1200
+    assert stand_in.commands == [b'{"op":"move","position":1200}']
+    assert "\n  " not in out.strip()  # one compact line without --pretty
+
+
+def test_send_pretty_indents(stand_in, capsys):
+    status = main(["send", "la1", '{"op":"move","position":5}', "--pretty",
+                   "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    assert out.startswith('{\n  "ok": true')
+
+
+def test_an_error_reply_exits_1_with_its_code_and_message_on_stderr(stand_in, capsys):
+    status = main(["send", "la1", '{"op":"move","position":9999}', "--connect", stand_in.endpoint])
+    out, err = capsys.readouterr()
+    assert status == 1
+    assert json.loads(out)["error"]["code"] == "out_of_range"
+    assert err.strip() == "busgate send: out_of_range: position must be 0–2000"
+
+
+def test_the_payload_goes_as_given_so_the_gateway_judges_bad_json(stand_in, capsys):
+    status = main(["send", "la1", "{not json", "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert status == 1
+    assert "not_json" in err
+    assert stand_in.commands == [b"{not json"]
+
+
+def test_gateways_without_the_device_are_heard_only_when_none_has_it(stand_in, capsys):
+    # gwtwo answers unknown_device for every device, la1 included.
+    assert main(["send", "la1", '{"op":"move","position":7}',
+                 "--connect", stand_in.endpoint]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["ok"] is True and err == ""
+
+    assert main(["send", "la9", "{}", "--connect", stand_in.endpoint]) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["error"]["code"] == "unknown_device"
+    assert err.strip() == "busgate send: unknown_device: no device 'la9' on gateway gwtwo"
+
+    # Named by key, a gateway's refusal counts like any other error.
+    assert main(["send", "busgate/*/dev/la1/cmd", '{"op":"move","position":7}',
+                 "--connect", stand_in.endpoint]) == 1
+    out, _ = capsys.readouterr()
+    assert len(out.splitlines()) == 2
+
+
+def test_nobody_answering_exits_2_naming_the_selector(stand_in, capsys):
+    status = main(["send", "busgate/gwtest/dev/la9/cmd", '{"op":"stop"}', "--timeout", "0.5",
+                   "--connect", stand_in.endpoint])
+    out, err = capsys.readouterr()
+    assert status == 2
+    assert out == ""
+    assert err.strip() == \
+        "busgate send: nobody answered on busgate/gwtest/dev/la9/cmd within 0.5 s"
+
+
+def test_a_gateway_that_never_answers_in_time_counts_as_nobody(stand_in, capsys):
+    started = time.monotonic()
+    status = main(["send", "busgate/gwtest/dev/mute/cmd", '{"op":"stop"}', "--timeout", "0.3",
+                   "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert "nobody answered on busgate/gwtest/dev/mute/cmd within 0.3 s" in err
+    assert time.monotonic() - started >= 0.3
+
+
+def test_an_argument_with_a_slash_is_the_key_expression(stand_in, capsys):
+    status = main(["send", "busgate/gwtest/bus/uart0/cmd", '{"op":"scan"}',
+                   "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    assert json.loads(out) == {"ok": True, "data": {"ids": [1, 2]}}
+
+
+def test_every_gateway_with_the_device_answers(stand_in, capsys):
+    status = main(["send", "both", '{"op":"read"}', "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    assert len(out.strip().splitlines()) == 2
+
+
+def test_another_prefix_changes_the_selector(stand_in, capsys):
+    status = main(["send", "la1", "{}", "--prefix", "other", "--timeout", "0.3",
+                   "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert "other/*/dev/la1/cmd" in err
+
+
+def test_put_is_fire_and_forget(stand_in, capsys):
+    status = main(["send", "la1", '{"op":"stop"}', "--put", "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    assert out == ""
+    deadline = time.monotonic() + 2
+    while not stand_in.puts and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert stand_in.puts == [("busgate/*/dev/la1/cmd", b'{"op":"stop"}')]
+    assert stand_in.commands == []  # no query reached the queryable
+
+
+def test_nothing_listening_is_one_line_and_exit_2(capsys):
+    status = main(["send", "la1", "{}", "--connect", f"tcp/127.0.0.1:{free_port()}"])
+    out, err = capsys.readouterr()
+    assert status == 2
+    assert out == ""
+    assert err.startswith("busgate send: error: cannot open a zenoh session to tcp/127.0.0.1:")
+    assert len(err.strip().splitlines()) == 1
+
+
+# -- watch ----------------------------------------------------------------------------------
+
+
+def test_watch_once_shows_every_device_and_bus(stand_in, capsys):
+    status = main(["watch", "--once", "--seconds", "0.8", "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    lines = out.splitlines()
+    assert lines[0].split() == ["GATEWAY", "DEVICE", "KIND", "ONLINE", "STALE", "MOTION",
+                                "TEMP_C", "CURRENT_MA", "FAULTS", "AGE"]
+    rows = {line.split()[1]: line.split() for line in lines[1:4]}
+    assert rows["la1"][:9] == ["gwtest", "la1", "inspire_la", "yes", "-", "1000", "->", "1500",
+                               "31"]
+    assert rows["wheel"][:11] == ["gwtest", "wheel", "zlac706", "yes", "STALE", "12.5", "rpm",
+                                  "->", "20.0", "-", "800"]
+    assert "overvoltage" in rows["wheel"]
+    assert rows["ds1"][:6] == ["gwtwo", "ds1", "ds_servo", "NO", "-", "-"]
+    bus = next(line for line in lines if line.startswith("gwtest") and "uart0" in line).split()
+    assert bus[:3] == ["gwtest", "uart0", "25%"]
+    assert bus[4:7] == ["3", "0.50", "ms"]
+    assert 150 < float(bus[3]) < 250  # frames/s between samples: 2 × 100 per second of uptime
+
+
+def test_watch_narrows_to_one_gateway(stand_in, capsys):
+    status = main(["watch", "gwtwo", "--once", "--seconds", "0.5", "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    assert "ds1" in out and "la1" not in out and "uart0" not in out
+    assert "(no bus seen)" in out
+    assert not out.startswith("GATEWAY")  # one gateway: no gateway column
+
+
+def test_watch_narrows_to_a_key_expression(stand_in, capsys):
+    status = main(["watch", "busgate/gwtest/dev/la1/**", "--once", "--seconds", "0.5",
+                   "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    device_rows = [line for line in out.splitlines()[1:] if line and not line.startswith("(")]
+    assert [row.split()[0] for row in device_rows] == ["la1"]
+
+
+def test_watch_once_with_nothing_seen_exits_1(stand_in, capsys):
+    status = main(["watch", "nobody", "--once", "--seconds", "0.3",
+                   "--connect", stand_in.endpoint])
+    out, err = capsys.readouterr()
+    assert status == 1
+    assert "(no device seen)" in out
+    assert "nothing seen on busgate/nobody/**" in err
+
+
+def test_watch_without_a_tty_prints_one_line_per_updated_row(stand_in, capsys):
+    status = main(["watch", "gwtest", "--seconds", "0.7", "--connect", stand_in.endpoint])
+    out, _ = capsys.readouterr()
+    assert status == 0
+    lines = out.splitlines()
+    assert "\x1b" not in out
+    la1 = [line for line in lines if "device=la1 " in line]
+    assert len(la1) >= 2  # once per refresh while it keeps publishing, not once per sample
+    assert len(la1) <= 0.7 * client_cli.REDRAW_HZ + 1
+    assert "gateway=gwtest device=la1 kind=inspire_la online=yes stale=- motion=1000->1500" \
+        in la1[0]
+    assert any("bus=uart0 utilisation=25%" in line for line in lines)
+
+
+def test_watch_on_a_tty_redraws_in_place(stand_in):
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    table = WatchTable()
+    table.update_state("busgate/gwtest/dev/la1/state", la1_state(), time.monotonic())
+    terminal = Terminal()
+    client_cli._wait_showing_live(table, terminal, 0.5)
+    screens = terminal.getvalue().split("\x1b[H")[1:]
+    assert 1 <= len(screens) <= 0.5 * client_cli.REDRAW_HZ + 1
+    assert all(screen.endswith("\x1b[J") and "la1" in screen for screen in screens)
+
+
+def test_ctrl_c_ends_a_live_watch_with_status_0(stand_in):
+    watch = subprocess.Popen(
+        [sys.executable, "-m", "busgate.gateway.cli", "watch", "--connect", stand_in.endpoint],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        first = watch.stdout.readline()
+        assert "gateway=gw" in first
+        watch.send_signal(signal.SIGINT)
+        assert watch.wait(timeout=10) == 0, watch.stderr.read()
+        assert "Traceback" not in watch.stderr.read()
+    finally:
+        if watch.poll() is None:
+            watch.kill()
+            watch.wait()
+
+
+# -- the pieces -----------------------------------------------------------------------------
+
+
+def test_frames_per_second_come_from_consecutive_statistics():
+    table = WatchTable()
+    table.update_stats("p/gw/bus/can0/stats", uart0_stats(2.0), 10.0)
+    table.update_stats("p/gw/bus/can0/stats", uart0_stats(4.0), 12.0)
+    line = table.render(12.5)[-1].split()
+    assert line[:3] == ["can0", "25%", "200.0"]
+    assert line[-1] == "0.5s"
+
+
+def test_info_seeds_rows_for_devices_not_heard_from_yet():
+    table = WatchTable()
+    info = {"ok": True, "gateway": "gw1", "version": "0.1.0", "buses": [
+        {"name": "uart0", "protocol": "inspire_la", "devices": [
+            {"name": "la1", "kind": "inspire_la", "id": 1, "state": {"online": False}},
+            {"name": "la2", "kind": "inspire_la", "id": 2, "state": None}]}]}
+    table.seed(info, lambda key: "la2" not in key)
+    lines = table.render(0.0)
+    assert lines[1].split() == ["la1", "inspire_la", "NO", "-", "-", "-", "-", "-", "-"]
+    assert lines[2] == ""
+    assert lines[4].split() == ["uart0", "-", "-", "-", "-", "-"]
+
+
+def test_session_config_lays_busgate_settings_over_a_zenoh_file(tmp_path):
+    zenoh_file = tmp_path / "zenoh.json5"
+    zenoh_file.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7001"] }, scouting: '
+                          '{ multicast: { enabled: true } }, queries_default_timeout: 1234 }')
+    config = session_config(mode="client", connect=["tcp/127.0.0.1:7002"], config_file=zenoh_file)
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7002"]
+    assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7001"]  # kept
+    assert json.loads(config.get_json("queries_default_timeout")) == 1234
+    with pytest.raises(ValueError, match="mode"):
+        session_config(mode="gateway")
