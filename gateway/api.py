@@ -23,15 +23,15 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Annotated, Any, Literal
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from busgate.codecs.errors import BusgateError, CommandError, EncodeError
 from busgate.gateway.drivers.base import DeviceEvent, Driver
 from busgate.gateway.group import group_command, scan_requests, scan_result
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.base import ClientId, CommandModel
+from busgate.schemas.api import BusGroupMove, BusScan, Claim, Release
 from busgate.schemas.errors import describe_validation_error
 
 MAX_PAYLOAD = 64 * 1024
@@ -40,11 +40,12 @@ UNCLAIMED_OPS = frozenset({"status", "read", "ping", "monitor", "estop", "disabl
 #: Pydantic error types that mean "a value outside its range", reported as ``out_of_range``.
 RANGE_ERRORS = frozenset({"less_than", "less_than_equal", "greater_than", "greater_than_equal",
                           "multiple_of", "too_short", "too_long"})
-MAX_CLAIM_S = 3600.0
 
 
 class ApiError(BusgateError):
-    """A refusal with its stable code."""
+    """A refusal with its stable code (one of ``busgate.schemas.api.ERROR_CODES``)."""
+
+    code = "refused"
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
@@ -93,34 +94,6 @@ def refusal(exc: ValidationError | CommandError) -> ApiError:
     if isinstance(exc, EncodeError):
         return ApiError("out_of_range", str(exc))
     return ApiError(exc.code, str(exc))
-
-
-class Claim(CommandModel):
-    op: Literal["claim"]
-    client: ClientId
-    ttl_s: Annotated[float, Field(gt=0, le=MAX_CLAIM_S)] = 60.0
-
-
-class Release(CommandModel):
-    op: Literal["release"]
-    client: ClientId
-
-
-class GroupTarget(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
-    device: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
-    position: int
-    time_ms: Annotated[int, Field(ge=0, le=65535)] | None = None
-
-
-class GroupMove(CommandModel):
-    op: Literal["group_move"]
-    targets: Annotated[list[GroupTarget], Field(min_length=1, max_length=64)]
-
-
-class Scan(CommandModel):
-    op: Literal["scan"]
-    ids: Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=1)] | None = None
 
 
 @dataclass(slots=True)
@@ -275,7 +248,7 @@ class GatewayApi:
 
     def _group_move(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
         try:
-            request = GroupMove.model_validate(fields)
+            request = BusGroupMove.model_validate(fields)
         except ValidationError as exc:
             raise refusal(exc) from exc
         now = self.clock()
@@ -288,7 +261,7 @@ class GatewayApi:
 
     def _scan(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
         try:
-            request = Scan.model_validate(fields)
+            request = BusScan.model_validate(fields)
         except ValidationError as exc:
             raise refusal(exc) from exc
         protocol = runner.timing.protocol

@@ -4,7 +4,8 @@ A bus-level ``group_move`` names devices; here it becomes the device kind's own 
 0xF2 broadcast frame for Inspire LA actuators, one SYNC WRITE for DS servos), validated by that
 kind's schema, so the devices start in the same frame. A ``scan`` sends each id the most
 harmless frame its protocol answers (LA: status query; DS: ping; ZLAC706 CAN: a write to a
-register the driver does not have, answered ``FF`` and changing nothing; RS232: the monitor).
+register the driver does not have, answered ``FF`` and changing nothing; RS232: the monitor),
+retried twice so that one lost reply does not hide a device.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
-from busgate.codecs.errors import BusgateError
+from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.scheduler.runner import BusRunner
 
@@ -22,8 +23,8 @@ from busgate.gateway.scheduler.runner import BusRunner
 _ZLAC_PROBE_REGISTER = 0x7E
 
 
-class GroupError(BusgateError):
-    code = "bad_command"
+class GroupError(CommandError):
+    """A group move the bus's devices cannot make."""
 
 
 def _la_target(target, driver) -> dict[str, Any]:
@@ -57,12 +58,12 @@ def group_command(runner: BusRunner, request) -> tuple[str, Any]:
 
 _PROBES: dict[str, tuple[range, Callable[[int], Request]]] = {
     "inspire_la": (range(1, 255), lambda i: Request.of(
-        inspire_la, inspire_la.ControlCommand(i, inspire_la.ControlCode.STATUS))),
-    "ds_servo": (range(1, 251), lambda i: Request.of(ds_servo, ds_servo.Ping(i))),
+        inspire_la, inspire_la.ControlCommand(i, inspire_la.ControlCode.STATUS), idempotent=True)),
+    "ds_servo": (range(1, 251), lambda i: Request.of(ds_servo, ds_servo.Ping(i), idempotent=True)),
     "zlac706_can": (range(1, 110), lambda i: Request.of(
-        zlac706_can, zlac706_can.Write(i, _ZLAC_PROBE_REGISTER, 0))),
+        zlac706_can, zlac706_can.Write(i, _ZLAC_PROBE_REGISTER, 0), idempotent=True)),
     "zlac706_rs232": (range(0, 1), lambda i: Request.of(
-        zlac706_rs232, zlac706_rs232.MonitorRequest())),
+        zlac706_rs232, zlac706_rs232.MonitorRequest(), idempotent=True)),
 }
 
 

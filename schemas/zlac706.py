@@ -124,6 +124,8 @@ class SetGain(CommandModel):
 
 # The issue names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
 # virtual-subclass hook, never called on a command); pydantic warns at class creation only.
+# Without the explicit ``Field(...)`` pydantic takes that inherited method for the field's
+# default, and a write without a register would be accepted.
 with warnings.catch_warnings():
     warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
 
@@ -131,7 +133,7 @@ with warnings.catch_warnings():
         """Raw register write; the register must be in the protocol's table (driver checks)."""
 
         op: Literal["write"]
-        register: Annotated[int, Field(ge=0, le=0xFF)]
+        register: Annotated[int, Field(ge=0, le=0xFF)] = Field(...)
         value: Annotated[int, Field(ge=can.I32_MIN, le=can.I32_MAX)]
 
 

@@ -196,3 +196,23 @@ def test_the_link_comes_back_after_a_replug(simulator) -> None:
         assert kinds.count("offline") == 1 and kinds.count("online") == 2
     finally:
         runner.stop()
+
+
+def test_a_bug_in_a_driver_does_not_leave_the_bus_without_its_thread(simulator) -> None:
+    runner = build_bus(bus(simulator.port)).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        driver = runner.drivers["la1"]
+        original, calls = driver.apply, []
+
+        def broken(*arguments):
+            calls.append(1)
+            if len(calls) == 1:
+                raise RuntimeError("a driver bug")
+            return original(*arguments)
+
+        driver.apply = broken
+        wait_for(lambda: len(calls) >= 2 and driver.online)
+        assert runner.alive and runner.statistics().reconnects == 1
+    finally:
+        runner.stop()

@@ -4,7 +4,9 @@ Rules of this file:
 
 1. Only the bus thread uses the ``can.Bus``; ``interface``, ``channel``, ``bitrate`` and any
    further options of the config pass through to python-can untouched.
-2. Every exception from python-can is caught and classified here. "No buffer space" (the
+2. Every exception from python-can is caught and classified here. A ``ValueError`` from
+   receiving is a garbled adapter line (slcan over a full tty buffer): one frame is lost,
+   the link is fine. "No buffer space" (the
    kernel's transmit queue is full) is back-pressure: wait briefly and retry, and if the queue
    stays full the request fails like a timeout. A lost adapter or bus-off is a link failure:
    the bus is closed and ``BusIOError`` raised so the runner reconnects.
@@ -141,6 +143,9 @@ class CanBusOwner:
                 message = bus.recv(timeout=remaining)
             except (can.CanError, OSError) as exc:
                 self._fail(exc)
+            except ValueError:  # a garbled line from an ASCII (slcan) adapter: one frame lost
+                self.counters.discarded_bytes += 1
+                continue
             if message is None:
                 break
             for event in self._decode(message):

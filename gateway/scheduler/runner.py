@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
@@ -272,11 +273,15 @@ class BusRunner:
         tighten_timer_slack()
         try:
             while not self._stop.is_set():
-                if not self._ensure_open():
-                    continue
-                self._drain_inbox()
-                self._step()
-                self._publish()
+                try:
+                    if not self._ensure_open():
+                        continue
+                    self._drain_inbox()
+                    self._step()
+                    self._publish()
+                except Exception as exc:  # a bug must not leave the bus without its thread
+                    log.exception("bus %s: unexpected error; reopening the bus", self.name)
+                    self._link_lost(BusIOError(f"unexpected {type(exc).__name__}: {exc}"), None)
         finally:
             self._shut_down()
 
@@ -291,9 +296,9 @@ class BusRunner:
             return
         prepared = self.planner.decide(decision)
         if not isinstance(prepared, Slot) or prepared.priority is not Priority.FOLLOW:
-            # Only a follow tick needs its moment to the microsecond; anything else may start
-            # a little late, and waits interruptibly, so an e-stop overtakes it.
-            self._wait_until(decision, precise=False)
+            # Only a follow tick is worth an uninterruptible wait; anything else waits where
+            # new work (an e-stop) can still wake it, and is decided again at its moment.
+            self._wait_until(decision)
         elif self._wait_until(decision - FINAL_WAIT_S, precise=False):
             self._execute(prepared, at=decision)
 
@@ -452,6 +457,7 @@ class BusRunner:
         """The driver's state, marked ``stale`` when its telemetry is more than
         ``STALE_PERIODS`` poll periods old (an oversubscribed bus, or a device not answering)."""
         state = driver.state(moment)
+        state["ts"] = time.time()  # clients compare it with their own clock: wall time
         period = self._poll_periods.get(driver.name)
         age = state.get("last_reply_age_s")
         state["stale"] = period is not None and (age is None or age > STALE_PERIODS * period)

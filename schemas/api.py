@@ -1,0 +1,464 @@
+"""The zenoh API's data, as pydantic models: replies, telemetry, events, bus statistics, info,
+and the gateway-level commands (claims on a device, group moves and scans on a bus).
+
+Rules of this file:
+
+1. What clients send is validated as strictly as every device command (``CommandModel``:
+   closed, no coercion, no NaN). What the gateway publishes is described here, not built
+   here: the drivers, the runner and the bridge produce plain dicts, and
+   ``tests/test_schema_export.py`` checks real ones against these models and the exported
+   JSON Schemas, so the two cannot drift apart unnoticed.
+2. Telemetry, bus statistics and info are closed (``extra="forbid"``): every key is named and
+   given its unit here, and a key a driver adds without documenting it fails the test. Ok
+   replies and events are open: a read adds ``data`` and ``values``, and an event type may
+   gain a field without breaking a client that validates against an older schema.
+3. Names and units come from the codecs (fault names from their flag enums, ranges from
+   their tables), never retyped where a codec already says them.
+"""
+
+from __future__ import annotations
+
+import enum
+import warnings
+from collections.abc import Iterable
+from typing import Annotated, Any, Literal, Union, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from busgate.codecs import ds_servo as ds_codec
+from busgate.codecs import inspire_la as la_codec
+from busgate.codecs import zlac706_common as zlac_common
+from busgate.schemas import ds_servo as ds_servo_commands
+from busgate.schemas import inspire_la as inspire_la_commands
+from busgate.schemas import zlac706 as zlac706_commands
+from busgate.schemas.base import ClientId, CommandModel
+from busgate.schemas.config import ID_RANGES, Name
+
+#: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
+ErrorCode = Literal[
+    "not_utf8", "not_json", "too_large", "bad_command", "out_of_range", "unknown_device",
+    "unknown_bus", "claimed", "device_timeout", "device_rejected", "device_fault",
+    "bus_unavailable", "busy", "internal",
+]  # fmt: skip
+ERROR_CODES: tuple[str, ...] = ErrorCode.__args__
+
+DeviceKind = Literal["inspire_la", "ds_servo", "zlac706"]
+Protocol = Literal[tuple(ID_RANGES)]  # type: ignore[valid-type]
+
+#: The longest claim a client may ask for, in seconds.
+MAX_CLAIM_S = 3600.0
+
+
+def _names(flags: Iterable[enum.Flag]) -> tuple[str, ...]:
+    """Flag names as the drivers publish them: ``OVER_CURRENT`` → ``over_current``."""
+    return tuple(flag.name.lower() for flag in flags)
+
+
+LaFault = Literal[_names(la_codec.Fault)]  # type: ignore[valid-type]
+DsFault = Literal[_names(ds_codec.ServoStatus)]  # type: ignore[valid-type]
+#: The alarm bits that are faults (``AlarmFlags.faults`` leaves out running and external control).
+ZlacFault = Literal[_names(f for f in zlac_common.AlarmFlags if f.faults)]  # type: ignore[valid-type]
+
+
+class Published(BaseModel):
+    """Base of what the gateway publishes and clients only read: closed, no coercion."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class OpenPublished(BaseModel):
+    """Base of published data that may gain fields: ok replies, events."""
+
+    model_config = ConfigDict(extra="allow", strict=True, frozen=True)
+
+
+# --- gateway-level commands -----------------------------------------------------------------------
+
+
+class Claim(CommandModel):
+    """Exclusive motion control of the device for ``client`` during ``ttl_s`` seconds; others'
+    motion commands get ``claimed`` until ``release``, the TTL lapses, or the client's
+    liveliness token ``<prefix>/clients/<client>`` disappears. Reads and e-stops are never
+    refused. Claiming again (same client) renews the TTL."""
+
+    op: Literal["claim"]
+    client: ClientId
+    ttl_s: Annotated[float, Field(gt=0, le=MAX_CLAIM_S)] = 60.0
+
+
+class Release(CommandModel):
+    """Give a claim back (only its holder may)."""
+
+    op: Literal["release"]
+    client: ClientId
+
+
+#: The ops every device's ``cmd`` key takes besides its kind's own.
+GatewayCommand = Annotated[Claim | Release, Field(discriminator="op")]
+GATEWAY_COMMAND_ADAPTER: TypeAdapter[GatewayCommand] = TypeAdapter(GatewayCommand)
+
+
+class BusGroupTarget(BaseModel):
+    """One device of a bus ``group_move``: its name, target position, and (DS servos) the move
+    time in ms. The position's range is the device kind's, checked by its driver."""
+
+    model_config = CommandModel.model_config
+
+    device: Name
+    position: int
+    time_ms: Annotated[int, Field(ge=0, le=65535)] | None = None
+
+
+class BusGroupMove(CommandModel):
+    """Start several devices of one bus together: one SYNC WRITE on a DS bus, one 0xF2 frame
+    on an LA bus."""
+
+    op: Literal["group_move"]
+    targets: Annotated[list[BusGroupTarget], Field(min_length=1, max_length=64)]
+
+
+class BusScan(CommandModel):
+    """Which ids answer on the bus, and as what (for commissioning); all of the protocol's
+    ids when ``ids`` is left out."""
+
+    op: Literal["scan"]
+    ids: Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=1)] | None = None
+
+
+#: What ``<prefix>/<gw>/bus/<bus>/cmd`` takes.
+BusCommand = Annotated[BusGroupMove | BusScan, Field(discriminator="op")]
+BUS_COMMAND_ADAPTER: TypeAdapter[BusCommand] = TypeAdapter(BusCommand)
+
+
+# --- telemetry: <prefix>/<gw>/dev/<device>/state --------------------------------------------------
+
+
+class TelemetryEnvelope(Published):
+    """The fields every device's state carries, whatever its kind. ``None`` in a value: not
+    known yet (never read, or not reported by this device's protocol)."""
+
+    ts: float = Field(description="When the state was taken, in seconds of the gateway's clock.")
+    device: Name
+    kind: DeviceKind
+    online: bool = Field(description="The device answered recently (or sent heartbeats).")
+    last_reply_age_s: Annotated[float, Field(ge=0)] | None = Field(
+        description="Seconds since the device last answered; null if it never did."
+    )
+    stale: bool = Field(
+        description="The values are older than a few poll periods (an oversubscribed bus, or "
+        "a device not answering)."
+    )
+
+
+class InspireLaTelemetry(TelemetryEnvelope):
+    """An Inspire LA actuator: its last status frame, the commanded power stage, and the
+    protection limits as last read or confirmed (at first the manual's defaults)."""
+
+    kind: Literal["inspire_la"]
+    position: int | None = Field(description="Present position, raw stroke units 0–2000.")
+    target: int | None = Field(description="Target position the actuator reports, 0–2000.")
+    temperature_c: int | None = Field(description="Actuator temperature, °C.")
+    current_ma: int | None = Field(description="Motor current, mA.")
+    force_g: int | None = Field(description="Force sensor reading, g (LAF/LASF models only).")
+    faults: list[LaFault] = Field(description="Latched faults by name; empty when healthy.")
+    power: Literal["on", "paused", "estopped"] = Field(
+        description="Power stage as commanded: paused until the next target, estopped until "
+        "enable."
+    )
+    overcurrent_limit_ma: int = Field(description="Over-current protection threshold, mA.")
+    overtemp_limit_c: float = Field(description="Over-temperature limit, °C (0.1 °C steps).")
+    rewarm_temperature_c: float = Field(
+        description="Temperature below which an over-heated actuator works again, °C."
+    )
+
+
+class DsServoTelemetry(TelemetryEnvelope):
+    """A DS serial servo: its last poll, what it confirmed, and its status-byte faults."""
+
+    kind: Literal["ds_servo"]
+    position: int | None = Field(description="Present position, raw 0–4095 (one turn).")
+    speed_raw: int | None = Field(
+        description="Speed register, raw: the manual does not document its unit."
+    )
+    current_ma: int | None = Field(description="Motor current, mA.")
+    temperature_c: int | None = Field(description="Servo temperature, °C.")
+    target: int | None = Field(description="Target position last confirmed or sent, 0–4095.")
+    pending_target: int | None = Field(
+        description="A deferred move's target waiting for ``action``, 0–4095."
+    )
+    torque_on: bool | None = Field(description="Torque enabled (false: the shaft is free).")
+    faults: list[DsFault] = Field(description="Status-byte faults by name; empty when healthy.")
+
+
+class Ramp(Published):
+    """Acceleration and deceleration times from 0 to top speed, in ms (100 ms steps)."""
+
+    accel_ms: Annotated[int, Field(ge=0)]
+    decel_ms: Annotated[int, Field(ge=0)]
+
+
+class Zlac706Telemetry(TelemetryEnvelope):
+    """A ZLAC706 hub-motor driver: the settings it acknowledged and, from heartbeats (CAN) or
+    the monitor reply (RS232), what it measured."""
+
+    kind: Literal["zlac706"]
+    mode: zlac_common.Mode | None = Field(description="Work mode as acknowledged.")
+    enabled: bool | None = Field(description="Motor enabled (shaft driven).")
+    position_mode: Literal["relative", "absolute"] | None = Field(
+        description="How position targets are taken."
+    )
+    target: int | None = Field(description="Position target, encoder pulses.")
+    target_speed_rpm: float | None = Field(description="Speed target, rpm.")
+    target_current_a: float | None = Field(description="Torque-mode current target, A.")
+    position_ramp: Ramp | None = Field(description="Position-mode ramps.")
+    velocity_ramp: Ramp | None = Field(description="Velocity-mode ramps.")
+    max_speed_rpm: float | None = Field(description="Position mode's top speed, rpm.")
+    measured: bool = Field(
+        description="Measured values have arrived (false on CAN until the first heartbeat)."
+    )
+    position: int | None = Field(description="Feedback position, encoder pulses.")
+    current_ma: int | None = Field(description="Output current, mA.")
+    speed_rpm: float | None = Field(description="Measured speed, rpm.")
+    voltage_v: int | None = Field(
+        default=None, description="DC bus voltage, V (±2 V; RS232 only: absent on CAN)."
+    )
+    faults: list[ZlacFault] = Field(description="Alarm bits by name; empty when healthy.")
+
+
+#: Any device's state, told apart by ``kind``.
+Telemetry = Annotated[
+    InspireLaTelemetry | DsServoTelemetry | Zlac706Telemetry, Field(discriminator="kind")
+]
+TELEMETRY_ADAPTER: TypeAdapter[Telemetry] = TypeAdapter(Telemetry)
+TELEMETRY_MODELS: dict[str, type[TelemetryEnvelope]] = {
+    "inspire_la": InspireLaTelemetry,
+    "ds_servo": DsServoTelemetry,
+    "zlac706": Zlac706Telemetry,
+}
+
+
+# --- replies: every cmd queryable -----------------------------------------------------------------
+
+
+class ErrorDetail(Published):
+    code: ErrorCode = Field(description="Stable, machine-readable reason.")
+    message: str = Field(description="Human-readable text; may change between versions.")
+
+
+class ErrorReply(Published):
+    """A refused or failed command."""
+
+    ok: Literal[False]
+    error: ErrorDetail
+
+
+class OkReply(OpenPublished):
+    """A command that was carried out; what else it carries depends on the op."""
+
+    ok: Literal[True]
+
+
+class StateReply(OkReply):
+    """A device command's answer: the device's state after it, and for reads the raw bytes
+    (``data``, hex) and the registers they hold in their units (``values``)."""
+
+    state: Telemetry
+    data: str | None = Field(default=None, description="Bytes read, as hex.")
+    values: dict[str, Any] | None = Field(default=None, description="Registers read, by name.")
+
+
+class ClaimReply(OkReply):
+    claimed_by: ClientId
+    expires_in_s: float
+
+
+class ReleaseReply(OkReply):
+    released: Literal[True]
+
+
+class ScanFound(Published):
+    id: int | None = Field(description="The id that answered.")
+    protocol: Protocol
+    reply: str = Field(description="The frame type it answered with.")
+
+
+class ScanReply(OkReply):
+    found: list[ScanFound]
+
+
+#: Any reply of a device or bus ``cmd`` queryable.
+Reply = StateReply | ClaimReply | ReleaseReply | ScanReply | ErrorReply
+REPLY_ADAPTER: TypeAdapter[Reply] = TypeAdapter(Reply)
+
+
+# --- info: <prefix>/<gw>/info ---------------------------------------------------------------------
+
+
+class DeviceInfo(Published):
+    name: Name
+    kind: DeviceKind
+    id: int
+    state: Telemetry | None = Field(description="The last state published; null before the first.")
+
+
+class BusInfo(Published):
+    name: Name
+    protocol: Protocol
+    devices: list[DeviceInfo]
+
+
+class InfoReply(Published):
+    """The gateway, its version, its buses and each bus's devices."""
+
+    ok: Literal[True]
+    gateway: Name
+    version: str
+    buses: list[BusInfo]
+
+
+# --- bus statistics: <prefix>/<gw>/bus/<bus>/stats ------------------------------------------------
+
+
+class BusStatistics(Published):
+    """``busgate.gateway.bus.stats.BusStats`` with ``ts`` and ``bus``, once a second. Counters
+    are totals since the bus started; times are seconds."""
+
+    ts: float = Field(description="Wall-clock time of the snapshot, Unix seconds.")
+    bus: Name
+    frames_out: int
+    frames_in: int
+    bytes_out: int
+    bytes_in: int
+    timeouts: int = Field(description="Requests whose reply did not come in time.")
+    retries: int = Field(description="Idempotent requests sent again after a timeout.")
+    checksum_errors: int
+    discarded_bytes: int = Field(description="Received bytes that were not part of a frame.")
+    late_replies: int = Field(description="Replies that came after their deadline.")
+    reconnects: int
+    skipped_polls: int = Field(description="Polls left out to keep follow ticks on time.")
+    busy_commands: int = Field(description="Commands refused with ``busy`` (queue full).")
+    smallest_gap_s: float | None = Field(description="Shortest idle line seen between frames.")
+    follow_error_p50_s: float | None = Field(description="Follow interval − period, median.")
+    follow_error_p99_s: float | None = Field(description="Follow interval − period, p99.")
+    follow_error_min_s: float | None = Field(description="Follow interval − period, least.")
+    follow_intervals: int = Field(description="Follow intervals measured.")
+    utilisation: Annotated[float, Field(ge=0, le=1)] = Field(description="Busy share of time.")
+    uptime_s: float
+
+
+# --- events: <prefix>/<gw>/dev/<device>/event and <prefix>/<gw>/events ----------------------------
+
+
+class Event(OpenPublished):
+    """Every event's envelope; ``device`` is ``"*"`` for what concerns the whole gateway."""
+
+    ts: float = Field(description="Wall-clock time, Unix seconds.")
+    device: str
+    type: str
+
+
+class OnlineEvent(Event):
+    type: Literal["online"]
+
+
+class OfflineEvent(Event):
+    type: Literal["offline"]
+    reason: str
+
+
+class FaultEvent(Event):
+    """The set of faults changed (names as in the kind's telemetry)."""
+
+    type: Literal["fault"]
+    faults: list[str]
+    raised: list[str]
+    cleared: list[str]
+
+
+class IdChangedEvent(Event):
+    type: Literal["id_changed"]
+    old_id: int
+    new_id: int
+
+
+# ``register`` shadows ``BaseModel.register`` (ABCMeta's hook): pydantic warns, and without an
+# explicit ``Field(...)`` it takes that method for the field's default, making it optional.
+with warnings.catch_warnings():
+    warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
+
+    class RejectedEvent(Event):
+        """The device refused a write (ZLAC706 on CAN: no such register)."""
+
+        type: Literal["rejected"]
+        register: int = Field(...)
+        reason: str
+
+
+class StreamStaleEvent(Event):
+    """The follow stream got no new target in time: the gateway stopped streaming."""
+
+    type: Literal["stream_stale"]
+
+
+class StreamStoppedEvent(Event):
+    type: Literal["stream_stopped"]
+    reason: str
+
+
+class ClaimedEvent(Event):
+    type: Literal["claimed"]
+    client: ClientId
+    ttl_s: float
+
+
+class ReleasedEvent(Event):
+    type: Literal["released"]
+    client: ClientId
+
+
+class StoppedEvent(Event):
+    """The gateway stopped the device on a client's behalf (deadman: the client is gone)."""
+
+    type: Literal["stopped"]
+    client: ClientId
+    reason: str
+
+
+class EstopEvent(Event):
+    type: Literal["estop"]
+    key: str = Field(description="The key expression the e-stop was put on.")
+
+
+class CommandRefusedEvent(Event):
+    """A command put (no reply possible) was refused: the error as a reply would carry it."""
+
+    type: Literal["command_refused"]
+    code: ErrorCode
+    message: str
+
+
+KnownEvent = Annotated[
+    OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
+    | StreamStoppedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent | EstopEvent
+    | CommandRefusedEvent,
+    Field(discriminator="type"),
+]  # fmt: skip
+EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)
+
+
+# --- everything a device's cmd key takes ----------------------------------------------------------
+
+
+def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
+    """The kind's own commands and the gateway-level ones, told apart by ``op``."""
+    (union, *_) = get_args(kind_module.Command)
+    members = (*get_args(union), Claim, Release)
+    return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # noqa: UP007
+
+
+#: What ``<prefix>/<gw>/dev/<device>/cmd`` takes, per device kind.
+DEVICE_COMMAND_ADAPTERS: dict[str, TypeAdapter[Any]] = {
+    "inspire_la": _device_commands(inspire_la_commands),
+    "ds_servo": _device_commands(ds_servo_commands),
+    "zlac706": _device_commands(zlac706_commands),
+}
