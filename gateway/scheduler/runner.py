@@ -464,7 +464,9 @@ class BusRunner:
         return state
 
     def _log_event(self, event: DeviceEvent) -> None:
-        log.info("bus %s device %s: %s %s", self.name, event.device, event.type, event.fields or "")
+        details = " ".join(f"{key}={value}" for key, value in event.fields.items())
+        log.info("bus %s device %s: %s%s", self.name, event.device, event.type,
+                 f" ({details})" if details else "")
 
     # -- bus thread: link up and down -------------------------------------------------------
 
