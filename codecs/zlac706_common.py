@@ -20,7 +20,7 @@ from fractions import Fraction
 from typing import Final
 
 from busgate.codecs.errors import EncodeError
-from busgate.codecs.registers import require_range
+from busgate.codecs.registers import Access, Register, require_range
 
 __all__ = [
     "AMPS_PER_CURRENT_RAW",
@@ -212,3 +212,12 @@ def named(enum_class: type[enum.IntEnum], value: int) -> int:
 SPEED_RAW_MAX: Final = speed_raw_truncated(MAX_SPEED_RPM)
 #: A ramp value: accel steps in the high byte, decel steps in the low byte (100 ms each).
 RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_STEP_MS
+
+#: How a raw speed register reads in rpm (the same scale on both wires).
+SPEED_UNIT: Final = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "signed": True}
+
+
+def coded_register(name: str, address: int, codes, description: str) -> Register:
+    """A one-word write-only register that takes only the given codes."""
+    return Register(name, address, 1, Access.WRITE, minimum=min(codes), maximum=max(codes),
+                    description=description)

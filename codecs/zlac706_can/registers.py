@@ -22,10 +22,11 @@ from busgate.codecs.zlac706_common import (
     RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
     SPEED_RAW_MAX,
-    SPEED_RAW_PER_RPM,
+    SPEED_UNIT,
     TORQUE_RAW_LIMIT,
     TORQUE_RAW_PER_A,
     Gain,
+    coded_register,
 )
 
 I32_MIN: Final = -(1 << 31)
@@ -94,13 +95,8 @@ GAIN_REGISTERS: Final[dict[Gain, CanRegister]] = {
 }
 
 W = Access.WRITE
-_SPEED = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "signed": True}
-
-
 def _coded(name: str, register: CanRegister, description: str) -> Register:
-    codes = CODES[register]
-    return Register(name, register, 1, W, minimum=min(codes), maximum=max(codes),
-                    description=description)
+    return coded_register(name, register, CODES[register], description)
 
 
 def _gain(gain: Gain) -> Register:
@@ -116,13 +112,13 @@ REGISTERS: Final = RegisterMap(
         _coded("control_word", CanRegister.CONTROL_WORD, "0F release (stop), 1F enable (start)"),
         Register("target_speed", CanRegister.TARGET_SPEED, 1, W, minimum=-SPEED_RAW_MAX,
                  maximum=SPEED_RAW_MAX, description="speed mode; resend within 500 ms when the "
-                 "feed-forward gain is 1", **_SPEED),
+                 "feed-forward gain is 1", **SPEED_UNIT),
         Register("position_ramp", CanRegister.POSITION_RAMP, 1, W, unit="100 ms", minimum=0,
                  maximum=RAMP_WORD_MAX, description="d2 accel, d3 decel (0 to top speed)"),
         Register("speed_ramp", CanRegister.SPEED_RAMP, 1, W, unit="100 ms", minimum=0,
                  maximum=RAMP_WORD_MAX, description="d2 accel, d3 decel (0 to top speed)"),
         Register("max_speed", CanRegister.MAX_SPEED, 1, W, minimum=0, maximum=SPEED_RAW_MAX,
-                 description="position mode: trapezoid (cruise) speed", **_SPEED),
+                 description="position mode: trapezoid (cruise) speed", **SPEED_UNIT),
         _coded("alarm_reset", CanRegister.ALARM_RESET, "7F clears the alarm"),
         Register("target_position", CanRegister.TARGET_POSITION, 1, W, unit="pulses",
                  minimum=I32_MIN, maximum=I32_MAX, signed=True,

@@ -25,10 +25,11 @@ from busgate.codecs.zlac706_common import (
     RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
     SPEED_RAW_MAX,
-    SPEED_RAW_PER_RPM,
+    SPEED_UNIT,
     TORQUE_RAW_LIMIT,
     TORQUE_RAW_PER_A,
     Gain,
+    coded_register,
     speed_raw_rounded,
 )
 
@@ -117,13 +118,8 @@ GAIN_REGISTERS: Final[dict[Gain, Rs232Register]] = {
 }
 
 R, W = Access.READ, Access.WRITE
-_SPEED = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "signed": True}
-
-
 def _coded(name: str, register: Rs232Register, description: str) -> Register:
-    codes = CODES[register]
-    return Register(name, register, 1, W, minimum=min(codes), maximum=max(codes),
-                    description=description)
+    return coded_register(name, register, CODES[register], description)
 
 
 def _gain(gain: Gain) -> Register:
@@ -145,7 +141,7 @@ REGISTERS: Final = RegisterMap(
         _word("position_low", Rs232Register.POSITION_LOW, unit="pulses",
               description="low 16 bits of the target position; send after position_high"),
         _word("speed", Rs232Register.SPEED, minimum=-SPEED_RAW_MAX, maximum=SPEED_RAW_MAX,
-              description="PC speed mode target", **_SPEED),
+              description="PC speed mode target", **SPEED_UNIT),
         _word("torque", Rs232Register.TORQUE, unit="A", scale=float(1 / TORQUE_RAW_PER_A),
               minimum=-TORQUE_RAW_LIMIT, maximum=TORQUE_RAW_LIMIT, signed=True),
         _word("position_ramp", Rs232Register.POSITION_RAMP, unit="100 ms",
@@ -154,7 +150,7 @@ REGISTERS: Final = RegisterMap(
               description="high byte accel, low byte decel"),
         *(_gain(gain) for gain in GAIN_REGISTERS),
         _word("speed_limit", Rs232Register.SPEED_LIMIT, maximum=SPEED_LIMIT_RAW_MAX,
-              description="position-mode speed limit, rounded (note 8)", **_SPEED),
+              description="position-mode speed limit, rounded (note 8)", **SPEED_UNIT),
         _word("rated_current", Rs232Register.RATED_CURRENT, unit="mA",
               maximum=RATED_CURRENT_MAX_MA, description="bounded by the 24 A peak current"),
         _word("clear_fault", Rs232Register.CLEAR_FAULT, maximum=0, description="address alone"),
@@ -167,7 +163,7 @@ REGISTERS: Final = RegisterMap(
         _word("bus_voltage", MonitorItem.BUS_VOLTAGE, R, unit="V", description="±2 V"),
         _word("current", MonitorItem.CURRENT, R, unit="A", scale=0.01),
         _word("measured_speed", MonitorItem.SPEED, R, minimum=I16_MIN, maximum=I16_MAX,
-              **_SPEED),
+              **SPEED_UNIT),
         _word("commanded_position_high", MonitorItem.COMMANDED_POSITION_HIGH, R,
               minimum=I16_MIN, maximum=I16_MAX, signed=True, unit="pulses"),
         _word("commanded_position_low", MonitorItem.COMMANDED_POSITION_LOW, R, unit="pulses"),
