@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
@@ -183,7 +184,14 @@ class Zlac706State:
 
 def fault_names(alarms: common.AlarmFlags) -> list[str]:
     """``["over_current", …]``: the fault bits of an alarm code, by name."""
-    return [flag.name.lower() for flag in common.AlarmFlags if flag in alarms.faults]
+    return list(_fault_names(int(alarms)))
+
+
+@functools.lru_cache(maxsize=256)
+def _fault_names(code: int) -> tuple[str, ...]:
+    """Cached per code: telemetry asks for every heartbeat, and flag arithmetic is slow."""
+    faults = common.AlarmFlags(code).faults
+    return tuple(flag.name.lower() for flag in common.AlarmFlags if flag in faults)
 
 
 def ramp_ms(word: int | None) -> dict[str, int] | None:

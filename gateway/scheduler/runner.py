@@ -429,13 +429,15 @@ class BusRunner:
         return not self._wake.is_set()
 
     def _idle_can(self, idle: Callable[[float], None], deadline: float) -> bool:
+        """Take in heartbeats until ``deadline``; back to the loop as soon as one arrived, so
+        that its telemetry is published at the rate the device sends it."""
         try:
-            while now() < deadline and not self._wake.is_set():
+            while now() < deadline and not self._wake.is_set() and not self._dirty:
                 idle(min(deadline, now() + 0.005))
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
-        return not self._wake.is_set()
+        return not self._wake.is_set() and now() >= deadline
 
     def _publish(self) -> None:
         """Events out, and a fresh state for each device something happened to."""

@@ -110,7 +110,7 @@ class CanSimulator:
             return
         start = max(start + shaped.delay_s, self._bus_free)
         end = self._bus_free = start + can_time(len(wire.data), self.bitrate)
-        sleep_until(end)
+        sleep_until(end, spin_s=0.0)  # CAN has no gap rule to honour to the µs: no spinning
         self.bus.send(can.Message(arbitration_id=wire.arbitration_id, data=wire.data,
                                   is_extended_id=False))
         self._record("tx", start, end, str(wire), type(frame).__name__,

@@ -11,12 +11,13 @@ the client here. Clocks are comparable across processes (perf_counter is CLOCK_M
    the same run. The gateway should add under 1 ms at p50.
 2. An e-stop put → the e-stop frame on every bus, while every bus streams and polls (3 LA
    actuators at 921600 baud, 2 DS servos at 1 Mbaud, each polled at 50 Hz): p99.
-3. 20 devices with 100 Hz telemetry (ZLAC706 heartbeats every 10 ms, four SLCAN buses of
-   five): the daemon's CPU, from /proc.
+3. 20 devices with 100 Hz telemetry (ZLAC706 heartbeats every 10 ms, four virtual CAN buses
+   of five, the daemon in this process): the daemon's CPU, from /proc, simulators excluded.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -28,14 +29,20 @@ import threading
 import time
 from pathlib import Path
 
+import can
 import zenoh
 
 from busgate.codecs import inspire_la as la
+from busgate.codecs import zlac706_can
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.clock import now
+from busgate.gateway.daemon import serve
+from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import load_records
+from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.gateway.zenoh_config import session_config
+from busgate.schemas.config import parse_config
 
 
 def free_endpoint() -> str:
@@ -140,9 +147,12 @@ def command_to_wire(scratch: Path, samples: int = 1000) -> list[float]:
 
 def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
     records = [scratch / "e1.jsonl", scratch / "e2.jsonl"]
-    with (SimProcess("inspire_la", ["--ids", "1,2,3", "--record", str(records[0])]) as s1,
+    # The simulators sleep in select (no busy polling): two spinning simulators would take
+    # both of this machine's cores from the gateway being measured.
+    quiet = ["--busy-poll-ms", "0"]
+    with (SimProcess("inspire_la", ["--ids", "1,2,3", "--record", str(records[0]), *quiet]) as s1,
           SimProcess("ds_servo", ["--ids", "1,2", "--record", str(records[1]),
-                                  "--baudrate", "1000000"]) as s2):
+                                  "--baudrate", "1000000", *quiet]) as s2):
         endpoint = free_endpoint()
         buses = (serial_bus("la", s1.port, "inspire_la", [1, 2, 3], 921600, poll_hz=50)
                  + serial_bus("ds", s2.port, "ds_servo", [1, 2], 1_000_000, poll_hz=50))
@@ -182,32 +192,63 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
     return latencies
 
 
-def telemetry_cpu(scratch: Path, seconds: float = 10.0) -> tuple[float, float]:
-    sims = [SimProcess("zlac706_can", ["--ids", "1,2,3,4,5", "--heartbeat-ms", "10"])
-            for _ in range(4)]
+SUBSCRIBER = """
+import sys, time, zenoh
+from busgate.gateway.zenoh_config import session_config
+from busgate.schemas.config import parse_config
+session = zenoh.open(session_config(connect=[sys.argv[1]]))
+count = [0]
+subscriber = session.declare_subscriber("busgate/bench/dev/*/state",
+                                        lambda s: count.__setitem__(0, count[0] + 1))
+print("ready", flush=True)
+time.sleep(float(sys.argv[2]))
+print(count[0], flush=True)
+subscriber.undeclare()
+session.close()
+"""
+
+
+def thread_cpu_s(native_id: int) -> float:
+    fields = Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
+    """20 ZLAC706 on four virtual CAN buses, heartbeats every 10 ms, the daemon in this
+    process (python-can's virtual bus does not cross processes) and the subscriber in a child.
+    The daemon's CPU is this process's minus the simulator threads'."""
+    channels = [f"bench-telemetry-{os.getpid()}-{i}" for i in range(4)]
+    sims = [CanSimulator(zlac706_can, [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)],
+                         bus=can.Bus(interface="virtual", channel=ch)).start() for ch in channels]
     endpoint = free_endpoint()
-    buses = ""
-    for index, sim in enumerate(sims):
-        buses += (f'[[buses]]\nname = "can{index}"\ntransport = "can"\ninterface = "slcan"\n'
-                  f'channel = "{sim.port}"\noptions = {{ sleep_after_open = 0 }}\n')
-        for node in range(1, 6):
-            buses += (f'[[buses.devices]]\nname = "w{index}-{node}"\nkind = "zlac706"\n'
-                      f"id = {node}\nheartbeat_ms = 10\n")
-    daemon = Daemon(scratch, endpoint, buses)
-    client = zenoh.open(session_config(connect=[endpoint]))
-    received = [0]
-    subscriber = client.declare_subscriber("busgate/bench/dev/*/state",
-                                           lambda s: received.__setitem__(0, received[0] + 1))
+    config = parse_config({
+        "gateway": {"name": "bench"}, "zenoh": {"listen": [endpoint]},
+        "buses": [{"name": f"can{i}", "transport": "can", "interface": "virtual", "channel": ch,
+                   "devices": [{"name": f"w{i}-{n}", "kind": "zlac706", "id": n,
+                                "heartbeat_ms": 10} for n in range(1, 6)]}
+                  for i, ch in enumerate(channels)],
+    })
+    loop, stop, ready = asyncio.new_event_loop(), asyncio.Event(), threading.Event()
+    daemon = threading.Thread(target=loop.run_until_complete,
+                              args=(serve(config, ready=ready, stop=stop),))
+    daemon.start()
+    ready.wait(20)
+    time.sleep(1.0)
+    subscriber = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint, str(seconds)],
+                                  stdout=subprocess.PIPE, text=True)
     try:
-        wait_ready(client)
-        cpu, count, started = daemon.cpu_s(), received[0], time.monotonic()
-        time.sleep(seconds)
+        subscriber.stdout.readline()
+        sim_ids = [sim._thread.native_id for sim in sims]
+        cpu, sim_cpu = time.process_time(), sum(map(thread_cpu_s, sim_ids))
+        started = time.monotonic()
+        received = int(subscriber.stdout.readline())
         elapsed = time.monotonic() - started
-        return (100 * (daemon.cpu_s() - cpu) / elapsed, (received[0] - count) / elapsed)
+        daemon_cpu = (time.process_time() - cpu) - (sum(map(thread_cpu_s, sim_ids)) - sim_cpu)
+        return 100 * daemon_cpu / elapsed, received / seconds
     finally:
-        subscriber.undeclare()
-        client.close()
-        daemon.stop()
+        subscriber.wait(10)
+        loop.call_soon_threadsafe(stop.set)
+        daemon.join(10)
         for sim in sims:
             sim.stop()
 
@@ -224,7 +265,7 @@ def main() -> int:
         for name, values in estop_latency(scratch).items():
             print(f"e-stop put → e-stop frame on {name}: p50 {ms(values, .5)} ms, "
                   f"p99 {ms(values, .99)} ms ({len(values)} e-stops)")
-        cpu, rate = telemetry_cpu(scratch)
+        cpu, rate = telemetry_cpu()
         print(f"20 devices, heartbeats every 10 ms: {rate:.0f} state messages/s published, "
               f"daemon CPU {cpu:.1f} % of one core")
     return 0
