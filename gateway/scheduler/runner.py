@@ -55,6 +55,9 @@ STALE_PERIODS = 3
 #: The last stretch before a deadline is waited out by the bus owner, right before its
 #: write, so that nothing runs between the deadline and the frame.
 FINAL_WAIT_S = 0.001
+#: A bus thread whose loop has not turned for this long is stuck: it turns at least every
+#: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
+STALL_S = 2 * BACKOFF_MAX_S
 
 
 class BusyError(BusgateError):
@@ -117,6 +120,7 @@ class BusRunner:
         self._stop = threading.Event()
         self._backoff = BACKOFF_FIRST_S
         self._opened_once = False
+        self.last_turn = now()
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
 
     # -- any thread -------------------------------------------------------------------------
@@ -128,6 +132,11 @@ class BusRunner:
     @property
     def alive(self) -> bool:
         return self._thread.is_alive()
+
+    def keeping_schedule(self, stall_s: float = STALL_S) -> bool:
+        """The bus thread is alive and has turned its loop within ``stall_s`` (the daemon's
+        systemd watchdog pings only while every bus keeps its schedule)."""
+        return self.alive and now() - self.last_turn < stall_s
 
     @property
     def native_id(self) -> int | None:
@@ -273,6 +282,7 @@ class BusRunner:
         tighten_timer_slack()
         try:
             while not self._stop.is_set():
+                self.last_turn = now()
                 try:
                     if not self._ensure_open():
                         continue
