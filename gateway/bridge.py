@@ -46,12 +46,13 @@ def _dumps(value: Any) -> bytes:
 class ZenohBridge:
     """One zenoh session serving one gateway's API."""
 
-    def __init__(self, config: Config, api: GatewayApi, runners: dict[str, BusRunner]) -> None:
+    def __init__(self, config: Config, api: GatewayApi, runners: dict[str, BusRunner],
+                 events: deque[DeviceEvent]) -> None:
         self.config = config
         self.api = api
         self.runners = runners
         self.base = f"{config.gateway.prefix}/{config.gateway.name}"
-        self.events: deque[DeviceEvent] = deque(maxlen=10_000)
+        self.events = events  # filled by the bus threads and the API, drained here
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []

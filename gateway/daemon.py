@@ -2,6 +2,8 @@
 
 It loads and checks the config (refusing it with the same messages as ``check-config``),
 starts one bus runner per bus, opens the zenoh session and serves until SIGTERM or SIGINT.
+Under systemd (Type=notify) it says READY once every bus is open, pings the watchdog only
+while every bus thread keeps its schedule, and says STOPPING on the way out.
 Then it stops in order, within about a second: the streams and the devices (each bus puts its
 devices in their safe state and closes, all buses at once), and the zenoh session last.
 """
@@ -15,16 +17,21 @@ import gc
 import logging
 import signal
 import threading
+from collections import deque
 
 from busgate.gateway.api import GatewayApi
 from busgate.gateway.assembly import build_bus
 from busgate.gateway.clock import now, tune_interpreter
+from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.sdnotify import Notifier, Watchdog
 from busgate.schemas.config import Config, load_config
 
 log = logging.getLogger("busgate")
 
 STOP_TIMEOUT_S = 0.8
+BUS_OPEN_POLL_S = 0.01
+EVENT_BACKLOG = 10_000
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -54,15 +61,12 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
     tune_interpreter()
     loop = asyncio.get_running_loop()
     stop = stop or _stop_on_signals(loop)
-    bridge: ZenohBridge | None = None
-    runners: dict[str, BusRunner] = {}
+    notifier = Notifier()
+    events: deque[DeviceEvent] = deque(maxlen=EVENT_BACKLOG)
+    runners = {bus.name: build_bus(bus, on_event=events.append) for bus in config.buses}
+    api = GatewayApi(config.gateway.name, runners, clock=now, on_event=events.append)
+    bridge = ZenohBridge(config, api, runners, events)
     try:
-        events_sink = []  # events raised before the bridge exists (none expected)
-        for bus in config.buses:
-            runners[bus.name] = build_bus(bus, on_event=lambda e: _sink(bridge, events_sink, e))
-        api = GatewayApi(config.gateway.name, runners, clock=now,
-                         on_event=lambda e: _sink(bridge, events_sink, e))
-        bridge = ZenohBridge(config, api, runners)
         for runner in runners.values():
             runner.start()
         bridge.open(loop)
@@ -70,17 +74,28 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
         log.info("gateway %s serving %d bus(es)", config.gateway.name, len(runners))
         if ready is not None:
             ready.set()
-        await bridge.publish_forever(stop)
+        watchdog = Watchdog(notifier, lambda: all(r.keeping_schedule() for r in runners.values()))
+        async with asyncio.TaskGroup() as tasks:
+            tasks.create_task(_ready_when_open(notifier, config, runners, stop))
+            tasks.create_task(watchdog.run(stop))
+            await bridge.publish_forever(stop)
     finally:
+        notifier.stopping(f"gateway {config.gateway.name} stopping")
         await asyncio.to_thread(_stop_buses, runners)
-        if bridge is not None:
-            bridge.publish_events()
-            bridge.close()
+        bridge.publish_events()
+        bridge.close()
         log.info("gateway %s stopped", config.gateway.name)
 
 
-def _sink(bridge, early: list, event) -> None:
-    (bridge.events if bridge is not None else early).append(event)
+async def _ready_when_open(notifier: Notifier, config: Config,
+                           runners: dict[str, BusRunner], stop: asyncio.Event) -> None:
+    """READY=1 once every bus is open (the zenoh session already is), with a status line."""
+    while not stop.is_set() and not all(r.owner.is_open for r in runners.values()):
+        await asyncio.sleep(BUS_OPEN_POLL_S)
+    if not stop.is_set():
+        devices = sum(len(r.drivers) for r in runners.values())
+        notifier.ready(f"gateway {config.gateway.name}: {len(runners)} bus(es) open, "
+                       f"{devices} device(s), zenoh up")
 
 
 def _stop_buses(runners: dict[str, BusRunner]) -> None:

@@ -1,0 +1,125 @@
+"""``busgate demo`` as a new user runs it: a child process serving every simulated device on
+a zenoh endpoint of its own; a real client session moves an actuator, sees every device of
+every kind online, and the demo stops cleanly on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import zenoh
+
+from busgate.codecs.errors import ConfigError
+from busgate.gateway.demo import DEMO_BUSES, demo_config
+from busgate.gateway.protocols import PROTOCOLS
+from busgate.gateway.zenoh_config import session_config
+
+START_TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
+ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def wait_for(predicate, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.05)
+
+
+class DemoProcess:
+    """``busgate demo --listen ENDPOINT`` as a child; ``hints`` holds what it printed."""
+
+    def __init__(self, endpoint: str) -> None:
+        command = [sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen", endpoint]
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.hints = self._wait_for_hints()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self._lines.put(line)
+        self._lines.put("")  # end of output
+
+    def _wait_for_hints(self) -> str:
+        lines = []
+        while not lines or not lines[-1].startswith("Ctrl-C"):
+            line = self._lines.get(timeout=START_TIMEOUT_S)
+            assert line, f"the demo ended before it served: {''.join(lines)!r}"
+            lines.append(line)
+        return "".join(lines)
+
+    def terminate(self) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(timeout=START_TIMEOUT_S)
+
+
+@pytest.fixture
+def demo():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    process = DemoProcess(endpoint)
+    client = zenoh.open(session_config(connect=[endpoint]))
+    try:
+        yield process, client, endpoint
+    finally:
+        client.close()
+        process.terminate()
+
+
+def get(client: zenoh.Session, key: str, payload: str = "") -> dict:
+    [reply] = [json.loads(r.ok.payload.to_bytes()) for r in client.get(key, payload=payload,
+                                                                      timeout=5.0) if r.ok]
+    return reply
+
+
+def test_the_demo_serves_every_device_and_an_actuator_moves(demo) -> None:
+    process, client, endpoint = demo
+    assert f"busgate send la1 '{{\"op\":\"move\",\"position\":1500}}' --connect {endpoint}" \
+        in process.hints
+    assert f"busgate watch demo --connect {endpoint}" in process.hints
+
+    def online() -> set[str]:
+        info = get(client, "busgate/demo/info")
+        return {device["name"] for bus in info["buses"] for device in bus["devices"]
+                if (device["state"] or {}).get("online")}
+
+    wait_for(lambda: online() == ALL_DEVICES)
+    protocols = {bus["protocol"] for bus in get(client, "busgate/demo/info")["buses"]}
+    assert protocols == {"inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232"}
+
+    positions: list[int] = []
+    subscriber = client.declare_subscriber(
+        "busgate/demo/dev/la1/state",
+        lambda sample: positions.append(json.loads(sample.payload.to_bytes())["position"]))
+    wait_for(lambda: positions)
+    reply = get(client, "busgate/demo/dev/la1/cmd", '{"op":"move","position":1500}')
+    assert reply["ok"] and reply["state"]["target"] == 1500
+    wait_for(lambda: positions[-1] == 1500)
+    assert positions[0] != 1500, "la1 started elsewhere and moved"
+    subscriber.undeclare()
+    assert process.terminate() == 0
+
+
+def test_the_demo_config_is_validated_like_any_config() -> None:
+    links = {bus.name: {"transport": "can", "interface": "virtual", "channel": bus.name}
+             if PROTOCOLS[bus.protocol].can else
+             {"transport": "serial", "port": f"/dev/{bus.name}", "baudrate": bus.rate}
+             for bus in DEMO_BUSES}
+    config = demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen="127.0.0.1:9108")
+    assert config.metrics is not None and config.metrics.listen == "127.0.0.1:9108"
+    with pytest.raises(ConfigError) as refused:
+        demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen="9108")
+    assert refused.value.path == "metrics.listen"
