@@ -23,7 +23,7 @@ from busgate.codecs.errors import EncodeError
 from busgate.codecs.registers import Access, Register, require_range
 
 __all__ = [
-    "AMPS_PER_CURRENT_RAW",
+    "CURRENT_RAW_PER_A",
     "GAIN_MAX",
     "GAIN_MIN",
     "MAX_CURRENT_A",
@@ -56,7 +56,8 @@ TORQUE_RAW_PER_A: Final = Fraction(TORQUE_RAW_LIMIT, MAX_CURRENT_A)
 #: The peak output current (manual section 1: mean 8 A, peak 24 A) bounds the rated current.
 RATED_CURRENT_MAX_MA: Final = MAX_CURRENT_A * 1000
 #: Measured currents (CAN heartbeat, RS232 monitor) come as A × 100.
-AMPS_PER_CURRENT_RAW: Final = Fraction(1, 100)
+CURRENT_RAW_PER_A: Final = 100
+_RPM_PER_SPEED_RAW: Final = float(1 / SPEED_RAW_PER_RPM)
 
 #: Ramps are one byte each (accel, decel) in units of 100 ms, on both protocols.
 RAMP_STEP_MS: Final = 100
@@ -133,7 +134,7 @@ def rpm_from_speed_raw(raw: int) -> float:
     >>> round(rpm_from_speed_raw(0x043F), 1)
     398.1
     """
-    return float(raw / SPEED_RAW_PER_RPM)
+    return raw * _RPM_PER_SPEED_RAW  # float: this runs for every heartbeat
 
 
 def _checked_rpm(rpm: float) -> Fraction:
@@ -170,7 +171,7 @@ def amps_from_current_raw(raw: int) -> float:
     >>> amps_from_current_raw(0x1E)
     0.3
     """
-    return float(raw * AMPS_PER_CURRENT_RAW)
+    return raw / CURRENT_RAW_PER_A
 
 
 def ramp_word(accel_ms: int, decel_ms: int) -> int:
