@@ -20,6 +20,7 @@ import json
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
@@ -53,6 +54,8 @@ class ZenohBridge:
         self.runners = runners
         self.base = f"{config.gateway.prefix}/{config.gateway.name}"
         self.events = events  # filled by the bus threads and the API, drained here
+        #: Called with each command's time from query to reply (the metrics' histogram).
+        self.on_latency: Callable[[float], None] = lambda seconds: None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
@@ -92,6 +95,10 @@ class ZenohBridge:
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
         self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
         log.info("zenoh session up: gateway %s on %s", self.base, zenoh_section.listen or "peers")
+
+    def connections(self) -> int:
+        """Open zenoh transports: the clients, peers and routers connected now."""
+        return len(self._session.info.transports()) if self._session is not None else 0
 
     def close(self) -> None:
         """Undeclare everything and close the session (last, at shutdown)."""
@@ -170,6 +177,7 @@ class ZenohBridge:
         loop = self._loop
         assert loop is not None
         replied = Future()
+        asked = time.perf_counter()
 
         def send(reply: dict[str, Any]) -> None:
             if replied.done():
@@ -179,6 +187,7 @@ class ZenohBridge:
                 query.reply(key, _dumps(reply))
             finally:
                 query.drop()
+                self.on_latency(time.perf_counter() - asked)
 
         def too_late() -> None:
             send(error_reply(ApiError("internal", "no answer from the bus in time")))

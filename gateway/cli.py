@@ -11,7 +11,15 @@ import sys
 from collections.abc import Sequence
 
 from busgate.codecs.errors import BusgateError
-from busgate.gateway import bench, client_cli, codec_cli, daemon, demo, schema_cli
+from busgate.gateway import (
+    bench,
+    check_config,
+    client_cli,
+    codec_cli,
+    daemon,
+    demo,
+    schema_cli,
+)
 from busgate.gateway.sim import cli as sim_cli
 
 
@@ -27,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_parsers(subparsers)
     client_cli.add_parsers(subparsers)
     daemon.add_parsers(subparsers)
+    check_config.add_parsers(subparsers)
     demo.add_parsers(subparsers)
     schema_cli.add_parsers(subparsers)
     return parser

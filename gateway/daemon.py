@@ -21,8 +21,10 @@ from collections import deque
 
 from busgate.gateway.api import GatewayApi
 from busgate.gateway.assembly import build_bus
+from busgate.gateway.budget import bus_budget
 from busgate.gateway.clock import now, tune_interpreter
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.metrics import Metrics
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.sdnotify import Notifier, Watchdog
 from busgate.schemas.config import Config, load_config
@@ -66,10 +68,16 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
     runners = {bus.name: build_bus(bus, on_event=events.append) for bus in config.buses}
     api = GatewayApi(config.gateway.name, runners, clock=now, on_event=events.append)
     bridge = ZenohBridge(config, api, runners, events)
+    metrics: Metrics | None = None
     try:
+        _log_budgets(config)
         for runner in runners.values():
             runner.start()
         bridge.open(loop)
+        if config.metrics is not None:
+            metrics = Metrics(runners, clients=bridge.connections).start(config.metrics.listen)
+            bridge.on_latency = metrics.observe
+            log.info("metrics on http://%s/metrics", config.metrics.listen)
         gc.freeze()  # what start-up made lives for good: keep it out of every collection
         log.info("gateway %s serving %d bus(es)", config.gateway.name, len(runners))
         if ready is not None:
@@ -81,10 +89,22 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
             await bridge.publish_forever(stop)
     finally:
         notifier.stopping(f"gateway {config.gateway.name} stopping")
+        if metrics is not None:
+            metrics.stop()
         await asyncio.to_thread(_stop_buses, runners)
         bridge.publish_events()
         bridge.close()
         log.info("gateway %s stopped", config.gateway.name)
+
+
+def _log_budgets(config: Config) -> None:
+    """What each bus's configured traffic takes of it (``busgate check-config`` prints the
+    same), and a warning for a bus that cannot carry it."""
+    for bus in config.buses:
+        budget = bus_budget(bus)
+        log.info("%s", budget.summary())
+        for warning in budget.warnings():
+            log.warning("bus %s: %s", bus.name, warning)
 
 
 async def _ready_when_open(notifier: Notifier, config: Config,

@@ -199,3 +199,31 @@ def test_a_fleet_wide_get_is_answered_only_by_the_gateway_that_has_the_device(se
     assert get(client, "busgate/*/dev/ghost/cmd", '{"op":"status"}', timeout=1) == []
     [refused] = get(client, "busgate/gw1/dev/ghost/cmd", '{"op":"status"}')
     assert refused["error"]["code"] == "unknown_device"
+
+
+def test_the_daemon_serves_prometheus_metrics_when_configured() -> None:
+    import urllib.request
+
+    simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
+    simulator.start()
+    endpoint, metrics_port = f"tcp/127.0.0.1:{free_port()}", free_port()
+    config = config_for(simulator.port, endpoint)
+    config["metrics"] = {"listen": f"127.0.0.1:{metrics_port}"}
+    daemon = Daemon(config)
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        [reply] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status"}')
+        assert reply["ok"]
+        url = f"http://127.0.0.1:{metrics_port}/metrics"
+        text = urllib.request.urlopen(url, timeout=5).read().decode()
+        assert 'busgate_device_online{bus="uart0",device="la1",kind="inspire_la"} 1.0' in text
+        assert "busgate_command_latency_seconds_count 1.0" in text
+        frames = [line for line in text.splitlines()
+                  if line.startswith('busgate_bus_frames_total{bus="uart0",direction="out"}')]
+        assert frames and float(frames[0].split()[-1]) > 0
+        clients = [line for line in text.splitlines() if line.startswith("busgate_zenoh_clients")]
+        assert clients and float(clients[0].split()[-1]) >= 1
+    finally:
+        client.close()
+        daemon.shutdown()
+        simulator.stop()

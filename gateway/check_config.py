@@ -1,0 +1,72 @@
+"""``busgate check-config FILE``: validate a config and print each bus's budget.
+
+Rules of this file: it checks without touching hardware. Whatever ``busgate run`` would refuse
+(``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
+exit status 1. What only this host or the load decides — a port that does not exist here, a
+bus whose streams cannot all fit — is a warning: printed with the budget, exit status 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from busgate.codecs.errors import ConfigError
+from busgate.gateway.budget import bus_budget
+from busgate.schemas.config import CanBus, Config, SerialBus, load_config
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    check = subparsers.add_parser(
+        "check-config",
+        help="validate a config and print each bus's budget",
+        description="Validate a gateway config without touching hardware, and print per bus "
+        "the wire time its polling and follow streams take and the share of the bus they "
+        "reserve. Exit status 1 when the config is invalid.",
+    )
+    check.add_argument("file", help="the gateway's TOML config file")
+    check.set_defaults(handler=check_config)
+
+
+def check_config(args: argparse.Namespace) -> int:
+    try:
+        config = load_config(args.file)
+    except ConfigError as exc:
+        for line in str(exc).splitlines():
+            print(f"error: {line}", file=sys.stderr)
+        return 1
+    print(f"{args.file}: valid; {_overview(config)}")
+    for index, bus in enumerate(config.buses):
+        budget = bus_budget(bus)
+        print(budget.summary())
+        problems = [*host_warnings(f"buses[{index}]", bus),
+                    *(f"buses[{index}]: {text}" for text in budget.warnings())]
+        for problem in problems:
+            print(f"warning: {problem}")
+    return 0
+
+
+def _overview(config: Config) -> str:
+    devices = sum(len(bus.devices) for bus in config.buses)
+    metrics = f"metrics on {config.metrics.listen}" if config.metrics else "no metrics endpoint"
+    return (f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
+            f"{metrics}")
+
+
+def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
+    """The bus's port or CAN interface, when this host does not have it (yet): the gateway
+    would start anyway and retry until it appears."""
+    if isinstance(bus, SerialBus):
+        key, where = "port", Path(bus.port)
+    elif bus.interface == "socketcan":
+        key, where = "channel", Path("/sys/class/net") / bus.channel
+    elif bus.channel.startswith("/"):  # slcan and other adapters named by their tty
+        key, where = "channel", Path(bus.channel)
+    else:
+        return []
+    if where.exists():
+        return []
+    name = getattr(bus, key)
+    return [f"{path}.{key}: {name} does not exist on this host; the gateway will start and "
+            f"retry until it appears"]

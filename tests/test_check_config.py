@@ -1,0 +1,153 @@
+"""``busgate check-config``: every example config passes with a budget line per bus; a broken
+one names its key path and exits 1; a port missing here is only a warning; an oversubscribed
+bus is reported with what to change; the budget's figures match wire times worked out by hand.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from busgate.gateway.budget import bus_budget
+from busgate.gateway.cli import main
+from busgate.schemas.config import CanBus, SerialBus, load_config
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy" / "config"
+EXAMPLES = sorted(DEPLOY.glob("*.toml"))
+BAUD = 921_600
+
+
+def write(tmp_path: Path, devices: list[str], *, port: str = "/dev/null", baud: int = BAUD,
+          extra: str = "") -> Path:
+    text = (f'[gateway]\nname = "gw"\n[[buses]]\nname = "uart0"\ntransport = "serial"\n'
+            f'port = "{port}"\nbaudrate = {baud}\n{extra}')
+    text += "".join(f"[[buses.devices]]\n{device}\n" for device in devices)
+    path = tmp_path / "gateway.toml"
+    path.write_text(text)
+    return path
+
+
+def la(device_id: int, **fields: object) -> str:
+    pairs = {"name": f'"la{device_id}"', "kind": '"inspire_la"', "id": device_id, **fields}
+    return "\n".join(f"{key} = {value}" for key, value in pairs.items())
+
+
+def test_there_are_examples_for_every_family_and_a_robot() -> None:
+    names = {path.stem for path in EXAMPLES}
+    assert {"inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232", "robot"} <= names
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=lambda path: path.stem)
+def test_every_example_config_passes_with_a_budget_line_per_bus(path, capsys) -> None:
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    config = load_config(path)
+    for bus in config.buses:
+        (line,) = [text for text in out.splitlines() if text.startswith(f"bus {bus.name}:")]
+        assert "reserved" in line and line.endswith(": fits")
+    assert "oversubscribed" not in out
+
+
+def test_a_broken_config_names_each_key_path_and_exits_1(tmp_path, capsys) -> None:
+    path = write(tmp_path, [la(1, poll_hz='"fast"'), la(2, follow_period_ms=5)], baud=100)
+    assert main(["check-config", str(path)]) == 1
+    captured = capsys.readouterr()
+    errors = captured.err.splitlines()
+    assert any(e.startswith("error: buses[0].baudrate:") and "1200" in e for e in errors)
+    assert any(e.startswith("error: buses[0].devices[0].poll_hz:") for e in errors)
+    assert any(e.startswith("error: buses[0].devices[1].follow_period_ms:") and "10" in e
+               for e in errors)
+    assert captured.out == ""
+
+
+def test_an_unreadable_or_non_toml_file_is_an_error(tmp_path, capsys) -> None:
+    assert main(["check-config", str(tmp_path / "absent.toml")]) == 1
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[gateway\n")
+    assert main(["check-config", str(bad)]) == 1
+    errors = capsys.readouterr().err.splitlines()
+    assert "cannot read" in errors[0] and "not valid TOML" in errors[1]
+
+
+def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys) -> None:
+    path = write(tmp_path, [la(1)], port=str(tmp_path / "usb-nothing"))
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"warning: buses[0].port: {tmp_path / 'usb-nothing'} does not exist" in out
+
+
+def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> None:
+    path = tmp_path / "can.toml"
+    path.write_text(
+        '[gateway]\nname = "gw"\n[[buses]]\nname = "can9"\ntransport = "can"\n'
+        'interface = "socketcan"\nchannel = "nosuchcan9"\n'
+        '[[buses.devices]]\nname = "wheel"\nkind = "zlac706"\nid = 1\n'
+    )
+    assert main(["check-config", str(path)]) == 0
+    assert "warning: buses[0].channel: nosuchcan9 does not exist" in capsys.readouterr().out
+
+
+def test_an_oversubscribed_bus_is_reported_with_what_to_change(tmp_path, capsys) -> None:
+    path = write(tmp_path, [la(i, poll_hz=100) for i in range(1, 16)])
+    assert main(["check-config", str(path)]) == 0  # a warning: it runs, with stale telemetry
+    out = capsys.readouterr().out
+    assert "OVERSUBSCRIBED" in out
+    (warning,) = [line for line in out.splitlines() if line.startswith("warning: buses[0]:")]
+    assert "lower poll_hz" in warning and "reply_margin_ms" in warning
+
+
+def test_a_poll_that_cannot_fit_between_follow_ticks_is_reported(tmp_path, capsys) -> None:
+    # 15 DS servos in one SYNC WRITE at 9600 baud: the frame alone takes most of 10 ms.
+    servos = [f'name = "s{i}"\nkind = "ds_servo"\nid = {i}\npoll_hz = 0.1\n'
+              f"follow_period_ms = 10" for i in range(1, 16)]
+    path = write(tmp_path, servos, baud=9600)
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "left between follow ticks every 10 ms" in out and "raise follow_period_ms" in out
+
+
+def test_budget_figures_match_hand_computed_wire_times() -> None:
+    # One LA at 921600 baud: a status poll is 8 bytes out and 22 back (manual 3.4); its
+    # worst case adds the stated 800 µs reply time and the 2 ms margin, then the 1 ms gap.
+    # A follow frame without reply (0x19) is 9 bytes. 10 bits a byte.
+    bus = SerialBus.model_validate({
+        "name": "uart0", "transport": "serial", "port": "/dev/null", "baudrate": BAUD,
+        "devices": [{"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 10,
+                     "follow_period_ms": 20}],
+    })
+    budget = bus_budget(bus)
+    bit = 10 / BAUD
+    poll_wire, poll_worst = 30 * bit, 30 * bit + 0.0008 + 0.002
+    assert budget.polling.frames == 10
+    assert budget.polling.wire_s == pytest.approx(10 * poll_wire)
+    assert budget.polling.reserved_s == pytest.approx(10 * (poll_worst + 0.001))
+    assert budget.follow.frames == 50
+    assert budget.follow.wire_s == pytest.approx(50 * 9 * bit)
+    assert budget.follow.reserved_s == pytest.approx(50 * (9 * bit + 0.001))
+    assert budget.heartbeats.frames == 0
+    assert budget.wire_share == pytest.approx(10 * poll_wire + 50 * 9 * bit)
+    assert budget.tick_free_s == pytest.approx(0.020 - 9 * bit - 0.001)
+    assert budget.longest_poll_s == pytest.approx(poll_worst + 0.001)  # slack: the gap
+    assert not budget.oversubscribed and budget.warnings() == []
+
+
+def test_la_streams_of_one_period_share_one_frame_per_tick() -> None:
+    devices = [{"name": f"la{i}", "kind": "inspire_la", "id": i, "follow_period_ms": 10}
+               for i in range(1, 18)]
+    bus = SerialBus.model_validate({"name": "uart0", "transport": "serial", "port": "/dev/null",
+                                    "baudrate": BAUD, "devices": devices})
+    # 17 actuators: one 0xF3 frame carries 15, a second one the other 2: two frames a tick.
+    assert bus_budget(bus).follow.frames == pytest.approx(200)
+
+
+def test_can_heartbeats_count_against_the_bus() -> None:
+    # Two 8-byte heartbeat frames per node and interval: 135 bits each at worst-case stuffing.
+    bus = CanBus.model_validate({
+        "name": "can0", "transport": "can", "interface": "socketcan", "channel": "can0",
+        "devices": [{"name": f"w{i}", "kind": "zlac706", "id": i, "heartbeat_ms": 100}
+                    for i in (1, 2)],
+    })
+    heartbeats = bus_budget(bus).heartbeats
+    assert heartbeats.frames == pytest.approx(40)
+    assert heartbeats.wire_s == pytest.approx(40 * 135 / 500_000) == heartbeats.reserved_s

@@ -1,0 +1,129 @@
+"""The Prometheus endpoint against a real bus: a runner on the LA simulator's pty, the endpoint
+on 127.0.0.1 (a free port), ``/metrics`` fetched over HTTP and parsed with prometheus_client's
+own parser. The figures move as the bus works; nothing is asserted about how fast."""
+
+from __future__ import annotations
+
+import time
+import urllib.request
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from busgate.codecs import inspire_la as la
+from busgate.gateway.assembly import build_bus
+from busgate.gateway.metrics import Metrics
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.pty_link import PtyLink
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.config import SerialBus
+
+BAUD = 921_600
+
+
+@pytest.fixture
+def runner(tmp_path):
+    link = PtyLink(str(tmp_path / "usb-la"))
+    with SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=BAUD,
+                         link=link) as sim:
+        devices = [{"name": f"la{i}", "kind": "inspire_la", "id": i, "poll_hz": 50}
+                   for i in (1, 2, 3)]  # la3 never answers
+        bus = SerialBus(name="uart0", transport="serial", port=sim.port, baudrate=BAUD,
+                        devices=devices)
+        runner = build_bus(bus).start()
+        try:
+            yield runner
+        finally:
+            runner.stop()
+
+
+@pytest.fixture
+def metrics(runner):
+    metrics = Metrics({"uart0": runner}, clients=lambda: 2).start("127.0.0.1:0")
+    try:
+        yield metrics
+    finally:
+        metrics.stop()
+
+
+def scrape(metrics: Metrics) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """Every sample of ``/metrics``: (name, sorted labels) → value."""
+    url = f"http://127.0.0.1:{metrics.port}/metrics"
+    with urllib.request.urlopen(url, timeout=5) as response:
+        text = response.read().decode()
+    return {
+        (sample.name, tuple(sorted(sample.labels.items()))): sample.value
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+    }
+
+
+def wait_for(predicate, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+def bus(**labels: str) -> tuple[tuple[str, str], ...]:
+    return tuple(sorted({"bus": "uart0", **labels}.items()))
+
+
+def device(name: str) -> tuple[tuple[str, str], ...]:
+    return bus(device=name, kind="inspire_la")
+
+
+def test_the_endpoint_serves_the_bus_and_device_figures(runner, metrics) -> None:
+    wait_for(lambda: runner.drivers["la1"].online and runner.drivers["la2"].online)
+    first = scrape(metrics)
+    assert first[("busgate_device_online", device("la1"))] == 1
+    assert first[("busgate_device_online", device("la3"))] == 0
+    assert first[("busgate_device_last_reply_age_seconds", device("la1"))] >= 0
+    assert ("busgate_device_last_reply_age_seconds", device("la3")) not in first  # never heard
+    assert first[("busgate_bus_up", bus())] == 1
+    assert first[("busgate_bus_frames_total", bus(direction="out"))] > 0
+    assert first[("busgate_bus_bytes_total", bus(direction="in"))] > 0
+    assert first[("busgate_bus_smallest_gap_seconds", bus())] >= 0.001
+    assert 0 < first[("busgate_bus_utilisation_ratio", bus())] <= 1
+    assert first[("busgate_zenoh_clients", ())] == 2
+    for counter in ("timeouts", "checksum_errors", "reconnects", "skipped_polls"):
+        assert ("busgate_bus_" + counter + "_total", bus()) in first
+
+    frames = first[("busgate_bus_frames_total", bus(direction="out"))]
+    wait_for(lambda: scrape(metrics)[("busgate_bus_frames_total", bus(direction="out"))]
+             > frames)
+    wait_for(lambda: scrape(metrics)[("busgate_bus_timeouts_total", bus())] > 0)  # la3
+
+
+def test_follow_interval_error_appears_once_a_stream_ran(runner, metrics) -> None:
+    wait_for(lambda: runner.drivers["la1"].online)
+    assert ("busgate_bus_follow_interval_error_seconds", bus(quantile="0.99")) not in scrape(
+        metrics)
+    target = runner.drivers["la1"].follow_target({"position": 1200})
+    deadline = time.monotonic() + 0.2
+    while time.monotonic() < deadline:
+        runner.follow("la1", target)
+        time.sleep(0.005)
+    wait_for(lambda: runner.statistics().follow_intervals > 2)
+    samples = scrape(metrics)
+    assert samples[("busgate_bus_follow_interval_error_seconds", bus(quantile="0.5"))] >= 0
+    assert samples[("busgate_bus_follow_interval_error_seconds", bus(quantile="0.99"))] >= 0
+    assert samples[("busgate_bus_follow_intervals_total", bus())] > 2
+
+
+def test_command_latency_is_a_histogram(metrics) -> None:
+    metrics.observe(0.0008)
+    metrics.observe(0.03)
+    samples = scrape(metrics)
+    assert samples[("busgate_command_latency_seconds_count", ())] == 2
+    assert samples[("busgate_command_latency_seconds_bucket", (("le", "0.001"),))] == 1
+    assert samples[("busgate_command_latency_seconds_bucket", (("le", "+Inf"),))] == 2
+
+
+def test_stop_closes_the_port_and_may_be_repeated(runner) -> None:
+    metrics = Metrics({"uart0": runner}, clients=lambda: 0).start("127.0.0.1:0")
+    port = metrics.port
+    metrics.stop()
+    metrics.stop()
+    with pytest.raises(OSError):
+        urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=2)
