@@ -34,6 +34,8 @@ from busgate.gateway.clock import now, sleep_until
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
 TX_BACKPRESSURE_S = 0.05
+#: While idle, frames are taken in batches this far apart (see ``idle_until``).
+IDLE_BATCH_S = 0.004
 #: The last stretch before a timed send is waited out precisely, not in ``recv``.
 PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
@@ -107,9 +109,18 @@ class CanBusOwner:
                                      device_id=source)
         return Exchange(request, start, now(), answer)
 
-    def idle_until(self, deadline: float) -> None:
-        """Consume unsolicited frames until ``deadline``."""
-        self._receive_until(self._require_open(), deadline, None)
+    def idle_until(self, deadline: float, pause: Callable[[float], bool] | None = None) -> None:
+        """Consume unsolicited frames until ``deadline``, in batches: pause ``IDLE_BATCH_S``,
+        then take everything that arrived. Heartbeats are telemetry, so a few milliseconds of
+        delay cost nothing, while waking for each frame of a burst costs a wake-up apiece.
+        ``pause(seconds)`` returning true (new work for the bus) ends the wait at once."""
+        bus = self._require_open()
+        pause = pause or _sleep
+        while True:
+            self._receive_until(bus, now(), None, drain=True)
+            remaining = deadline - now()
+            if remaining <= 0 or pause(min(IDLE_BATCH_S, remaining)):
+                return
 
     def _require_open(self) -> can.BusABC:
         if self._bus is None:
@@ -136,11 +147,15 @@ class CanBusOwner:
         self.counters.frames_out += 1
         self.counters.bytes_out += len(wire.data)
 
-    def _receive_until(self, bus, deadline: float, expected) -> tuple[object, ...] | None:
+    def _receive_until(
+        self, bus, deadline: float, expected, *, drain: bool = False
+    ) -> tuple[object, ...] | None:
+        """Receive until ``expected`` is complete or ``deadline``; with ``drain``, take only
+        what is already there."""
         answer: list[object] = []
-        while (remaining := deadline - now()) > 0:
+        while (remaining := deadline - now()) > 0 or drain:
             try:
-                message = bus.recv(timeout=remaining)
+                message = bus.recv(timeout=0 if drain else remaining)
             except (can.CanError, OSError) as exc:
                 self._fail(exc)
             except ValueError:  # a garbled line from an ASCII (slcan) adapter: one frame lost
@@ -179,6 +194,11 @@ class CanBusOwner:
     def _fail(self, exc: BaseException) -> None:
         self.close()
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
+
+
+def _sleep(seconds: float) -> bool:
+    time.sleep(seconds)
+    return False
 
 
 def _is_backpressure(exc: can.CanError) -> bool:

@@ -438,12 +438,12 @@ class BusRunner:
             sleep_until(deadline)
         return not self._wake.is_set()
 
-    def _idle_can(self, idle: Callable[[float], None], deadline: float) -> bool:
+    def _idle_can(self, idle: Callable[..., None], deadline: float) -> bool:
         """Take in heartbeats until ``deadline``; back to the loop as soon as one arrived, so
         that its telemetry is published at the rate the device sends it."""
         try:
             while now() < deadline and not self._wake.is_set() and not self._dirty:
-                idle(min(deadline, now() + 0.005))
+                idle(min(deadline, now() + 0.005), self._wake.wait)
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
