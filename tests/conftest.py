@@ -4,6 +4,7 @@ garbage and after a copy of itself with a bad checksum."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 
 import pytest
@@ -57,3 +58,17 @@ def check_golden(
 def golden() -> Callable[..., None]:
     """``golden(make_decoder, wire, expected, garbage=...)``: see ``check_golden``."""
     return check_golden
+
+
+def wait_until(predicate: Callable[[], object], timeout: float = 5.0) -> None:
+    """Poll ``predicate`` until it is true; fail the test after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def wait_for() -> Callable[..., None]:
+    """``wait_for(predicate, timeout=5.0)``: see ``wait_until``."""
+    return wait_until

@@ -25,13 +25,6 @@ from busgate.schemas.config import CanBus, SerialBus
 _channels = itertools.count()
 
 
-def wait_for(predicate, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 class Clock:
     def __init__(self) -> None:
         self.offset = 0.0
@@ -41,7 +34,7 @@ class Clock:
 
 
 @pytest.fixture
-def gateway():
+def gateway(wait_for):
     """Two LA actuators on a simulated UART and one ZLAC706 on a virtual CAN bus."""
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
@@ -164,7 +157,7 @@ def test_follow_is_validated_and_claimed_like_a_command(gateway):
     assert api.follow("la2", b'{"position": 1, "client": "bob"}')["error"]["code"] == "claimed"
 
 
-def test_a_client_that_goes_loses_its_claims_streams_and_speed(gateway):
+def test_a_client_that_goes_loses_its_claims_streams_and_speed(wait_for, gateway):
     api, _, can_sim, _, events = gateway
     for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
         reply = ask(api, "wheel", op)
@@ -178,7 +171,7 @@ def test_a_client_that_goes_loses_its_claims_streams_and_speed(gateway):
     wait_for(lambda: any(e.type == "stream_stopped" for e in events))
 
 
-def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(gateway):
+def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(wait_for, gateway):
     api, simulator, *_ = gateway
     reply = api.bus_command("uart0", json.dumps({"op": "group_move", "targets": [
         {"device": "la1", "position": 400}, {"device": "la2", "position": 600}]}).encode())

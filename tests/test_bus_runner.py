@@ -56,13 +56,6 @@ def bus(port: str, **device) -> SerialBus:
     return SerialBus(name="uart0", transport="serial", port=port, baudrate=BAUD, devices=devices)
 
 
-def wait_for(predicate, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 def test_owner_exchange_and_timeout_is_not_a_lost_link(simulator) -> None:
     owner = owner_for(simulator.port)
     try:
@@ -92,7 +85,7 @@ def test_a_late_reply_is_flushed_not_taken_for_the_next_answer(simulator) -> Non
         owner.close()
 
 
-def test_an_unplugged_adapter_raises_bus_io_error(simulator) -> None:
+def test_an_unplugged_adapter_raises_bus_io_error(wait_for, simulator) -> None:
     owner = owner_for(simulator.port)
     simulator.unplug()
     wait_for(lambda: not simulator.link.plugged)
@@ -101,7 +94,7 @@ def test_an_unplugged_adapter_raises_bus_io_error(simulator) -> None:
     assert not owner.is_open
 
 
-def test_runner_carries_out_commands_and_polls(simulator) -> None:
+def test_runner_carries_out_commands_and_polls(wait_for, simulator) -> None:
     runner = build_bus(bus(simulator.port)).start()
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
@@ -117,7 +110,9 @@ def test_runner_carries_out_commands_and_polls(simulator) -> None:
         runner.stop()
 
 
-def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(simulator) -> None:
+def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
+    wait_for, simulator
+) -> None:
     runner = build_bus(bus(simulator.port)).start()
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
@@ -132,7 +127,7 @@ def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(simul
         runner.stop()
 
 
-def test_follow_stream_goes_out_at_its_period_and_goes_stale(simulator) -> None:
+def test_follow_stream_goes_out_at_its_period_and_goes_stale(wait_for, simulator) -> None:
     events = []
     runner = build_bus(bus(simulator.port, follow_period_ms=10), on_event=events.append).start()
     try:
@@ -152,7 +147,7 @@ def test_follow_stream_goes_out_at_its_period_and_goes_stale(simulator) -> None:
         runner.stop()
 
 
-def test_estop_goes_ahead_and_stops_every_device(simulator) -> None:
+def test_estop_goes_ahead_and_stops_every_device(wait_for, simulator) -> None:
     runner = build_bus(bus(simulator.port)).start()
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
@@ -182,7 +177,7 @@ def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> No
     assert runner.counters.busy_commands == 1
 
 
-def test_the_link_comes_back_after_a_replug(simulator) -> None:
+def test_the_link_comes_back_after_a_replug(wait_for, simulator) -> None:
     events = []
     runner = build_bus(bus(simulator.port), on_event=events.append).start()
     try:
@@ -198,7 +193,7 @@ def test_the_link_comes_back_after_a_replug(simulator) -> None:
         runner.stop()
 
 
-def test_a_bug_in_a_driver_does_not_leave_the_bus_without_its_thread(simulator) -> None:
+def test_a_bug_in_a_driver_does_not_leave_the_bus_without_its_thread(wait_for, simulator) -> None:
     runner = build_bus(bus(simulator.port)).start()
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))

@@ -20,13 +20,6 @@ from busgate.schemas.config import CanBus
 _channels = itertools.count()
 
 
-def wait_for(predicate, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 def can_bus(interface: str, channel: str, **options) -> CanBus:
     devices = [{"name": "wheel", "kind": "zlac706", "id": 1, "heartbeat_ms": 50, "poll_hz": 5}]
     return CanBus(name="can0", transport="can", interface=interface, channel=channel,
@@ -42,7 +35,9 @@ def virtual_channel():
     simulator.stop()
 
 
-def test_heartbeats_bring_the_node_online_and_speed_is_kept_alive(virtual_channel) -> None:
+def test_heartbeats_bring_the_node_online_and_speed_is_kept_alive(
+    wait_for, virtual_channel
+) -> None:
     channel, simulator = virtual_channel
     runner = build_bus(can_bus("virtual", channel)).start()
     try:
@@ -64,7 +59,7 @@ def test_heartbeats_bring_the_node_online_and_speed_is_kept_alive(virtual_channe
     assert "001#00fa00100000000f" in stops, "stopping the bus releases the motor"
 
 
-def test_lost_heartbeats_mark_the_node_offline(virtual_channel) -> None:
+def test_lost_heartbeats_mark_the_node_offline(wait_for, virtual_channel) -> None:
     channel, simulator = virtual_channel
     events = []
     runner = build_bus(can_bus("virtual", channel), on_event=events.append).start()
@@ -78,7 +73,7 @@ def test_lost_heartbeats_mark_the_node_offline(virtual_channel) -> None:
         runner.stop()
 
 
-def test_slcan_adapter_unplugged_and_back(tmp_path) -> None:
+def test_slcan_adapter_unplugged_and_back(wait_for, tmp_path) -> None:
     channel = f"test-can-slcan-{next(_channels)}"
     simulator = CanSimulator(zcan, [Zlac706CanDevice(1, heartbeat_ms=50)],
                              bus=can.Bus(interface="virtual", channel=channel)).start()

@@ -11,7 +11,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 
 import pytest
 import zenoh
@@ -29,13 +28,6 @@ def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
-
-
-def wait_for(predicate, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.05)
 
 
 class DemoProcess:
@@ -85,7 +77,7 @@ def get(client: zenoh.Session, key: str, payload: str = "") -> dict:
     return reply
 
 
-def test_the_demo_serves_every_device_and_an_actuator_moves(demo) -> None:
+def test_the_demo_serves_every_device_and_an_actuator_moves(wait_for, demo) -> None:
     process, client, endpoint = demo
     assert f"busgate send la1 '{{\"op\":\"move\",\"position\":1500}}' --connect {endpoint}" \
         in process.hints

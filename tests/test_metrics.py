@@ -58,13 +58,6 @@ def scrape(metrics: Metrics) -> dict[tuple[str, tuple[tuple[str, str], ...]], fl
     }
 
 
-def wait_for(predicate, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 def bus(**labels: str) -> tuple[tuple[str, str], ...]:
     return tuple(sorted({"bus": "uart0", **labels}.items()))
 
@@ -73,7 +66,7 @@ def device(name: str) -> tuple[tuple[str, str], ...]:
     return bus(device=name, kind="inspire_la")
 
 
-def test_the_endpoint_serves_the_bus_and_device_figures(runner, metrics) -> None:
+def test_the_endpoint_serves_the_bus_and_device_figures(wait_for, runner, metrics) -> None:
     wait_for(lambda: runner.drivers["la1"].online and runner.drivers["la2"].online)
     first = scrape(metrics)
     assert first[("busgate_device_online", device("la1"))] == 1
@@ -95,7 +88,7 @@ def test_the_endpoint_serves_the_bus_and_device_figures(runner, metrics) -> None
     wait_for(lambda: scrape(metrics)[("busgate_bus_timeouts_total", bus())] > 0)  # la3
 
 
-def test_follow_interval_error_appears_once_a_stream_ran(runner, metrics) -> None:
+def test_follow_interval_error_appears_once_a_stream_ran(wait_for, runner, metrics) -> None:
     wait_for(lambda: runner.drivers["la1"].online)
     assert ("busgate_bus_follow_interval_error_seconds", bus(quantile="0.99")) not in scrape(
         metrics)

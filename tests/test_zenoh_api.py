@@ -30,13 +30,6 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def wait_for(predicate, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.01)
-
-
 def config_for(port: str, endpoint: str) -> dict:
     return {
         "gateway": {"name": "gw1"},
@@ -111,7 +104,7 @@ def test_every_malformed_command_gets_its_code_and_nothing_reaches_the_wire(setu
     assert again["ok"], "the gateway serves on"
 
 
-def test_telemetry_info_and_liveliness(setup) -> None:
+def test_telemetry_info_and_liveliness(wait_for, setup) -> None:
     client, _ = setup
     states: list[dict] = []
     subscriber = client.declare_subscriber(
@@ -125,14 +118,14 @@ def test_telemetry_info_and_liveliness(setup) -> None:
     subscriber.undeclare()
 
 
-def test_estop_from_any_client_stops_every_device(setup) -> None:
+def test_estop_from_any_client_stops_every_device(wait_for, setup) -> None:
     client, simulator = setup
     client.put("busgate/*/estop", b"")  # the fleet-wide form
     stops = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex() for i in (1, 2)}
     wait_for(lambda: stops <= {r.wire for r in simulator.recorder.received()})
 
 
-def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(setup) -> None:
+def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(wait_for, setup) -> None:
     client, simulator = setup
     events: list[dict] = []
     subscriber = client.declare_subscriber(
@@ -147,7 +140,7 @@ def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(setup) -> No
     subscriber.undeclare()
 
 
-def test_a_client_that_vanishes_loses_its_claim(setup) -> None:
+def test_a_client_that_vanishes_loses_its_claim(wait_for, setup) -> None:
     client, _ = setup
     token = client.liveliness().declare_token("busgate/clients/alice")
     [claimed] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"claim","client":"alice"}')
@@ -165,7 +158,7 @@ def test_a_client_that_vanishes_loses_its_claim(setup) -> None:
     wait_for(bob_moves)
 
 
-def test_busgate_run_stops_in_order_on_sigterm(tmp_path) -> None:
+def test_busgate_run_stops_in_order_on_sigterm(wait_for, tmp_path) -> None:
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
     config = tmp_path / "gw.toml"
