@@ -169,13 +169,19 @@ def measure(
     }, (started, ended), list(runner.drivers.values())
 
 
-def thread_cpu_s(native_id: int | None) -> float:
-    """CPU seconds (user + system) one thread of this process has used, from /proc."""
+def cpu_s(stat: str) -> float:
+    """CPU seconds (user + system) from a /proc ``stat`` file: a process's
+    (``/proc/<pid>/stat``) or one thread's (``/proc/self/task/<tid>/stat``); NaN if gone."""
     try:
-        fields = Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
+        fields = Path(stat).read_text().rsplit(")", 1)[1].split()
     except OSError:
         return math.nan
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def thread_cpu_s(native_id: int | None) -> float:
+    """CPU seconds one thread of this process has used."""
+    return cpu_s(f"/proc/self/task/{native_id}/stat")
 
 
 def wait_online(runner: BusRunner) -> None:

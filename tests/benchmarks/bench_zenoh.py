@@ -34,6 +34,7 @@ import zenoh
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can
+from busgate.gateway.bench import cpu_s, thread_cpu_s
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.clock import now
 from busgate.gateway.daemon import serve
@@ -66,8 +67,7 @@ class Daemon:
              "--log-level", "warning"])
 
     def cpu_s(self) -> float:
-        fields = Path(f"/proc/{self.process.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        return cpu_s(f"/proc/{self.process.pid}/stat")
 
     def stop(self) -> None:
         self.process.send_signal(signal.SIGTERM)
@@ -206,11 +206,6 @@ print(count[0], flush=True)
 subscriber.undeclare()
 session.close()
 """
-
-
-def thread_cpu_s(native_id: int) -> float:
-    fields = Path(f"/proc/self/task/{native_id}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
