@@ -4,6 +4,7 @@ garbage and after a copy of itself with a bad checksum."""
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Callable, Sequence
 
@@ -72,3 +73,16 @@ def wait_until(predicate: Callable[[], object], timeout: float = 5.0) -> None:
 def wait_for() -> Callable[..., None]:
     """``wait_for(predicate, timeout=5.0)``: see ``wait_until``."""
     return wait_until
+
+
+def unused_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 nothing listens on now (for zenoh and metrics endpoints)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture
+def free_port() -> Callable[[], int]:
+    """``free_port()``: see ``unused_loopback_port``."""
+    return unused_loopback_port

@@ -11,7 +11,6 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -28,12 +27,6 @@ from busgate.gateway.client_cli import WatchTable
 from busgate.gateway.zenoh_config import session_config
 
 PUBLISH_EVERY_S = 0.05
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def la1_state() -> dict:
@@ -111,7 +104,7 @@ def publish_forever(session: zenoh.Session, stop: threading.Event) -> None:
 
 
 @pytest.fixture
-def stand_in() -> Iterator[StandIn]:
+def stand_in(free_port) -> Iterator[StandIn]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(session_config(mode="peer", listen=[endpoint]))
     stand_in = StandIn(endpoint, session)
@@ -252,7 +245,7 @@ def test_put_is_fire_and_forget(stand_in, capsys):
     assert stand_in.commands == []  # no query reached the queryable
 
 
-def test_nothing_listening_is_one_line_and_exit_2(capsys):
+def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     status = main(["send", "la1", "{}", "--connect", f"tcp/127.0.0.1:{free_port()}"])
     out, err = capsys.readouterr()
     assert status == 2

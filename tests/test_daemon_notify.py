@@ -14,13 +14,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def test_ready_watchdog_and_stopping(tmp_path) -> None:
+def test_ready_watchdog_and_stopping(free_port, tmp_path) -> None:
     simulator = SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start()
     config = tmp_path / "gw.toml"
     config.write_text(

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,12 +21,6 @@ from busgate.gateway.zenoh_config import session_config
 
 START_TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
 ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 class DemoProcess:
@@ -60,7 +53,7 @@ class DemoProcess:
 
 
 @pytest.fixture
-def demo():
+def demo(free_port):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     process = DemoProcess(endpoint)
     client = zenoh.open(session_config(connect=[endpoint]))

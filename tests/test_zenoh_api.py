@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,12 +21,6 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.zenoh_config import session_config
 from busgate.schemas.config import parse_config
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def config_for(port: str, endpoint: str) -> dict:
@@ -61,7 +54,7 @@ class Daemon:
 
 
 @pytest.fixture
-def setup():
+def setup(free_port):
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -158,7 +151,7 @@ def test_a_client_that_vanishes_loses_its_claim(wait_for, setup) -> None:
     wait_for(bob_moves)
 
 
-def test_busgate_run_stops_in_order_on_sigterm(wait_for, tmp_path) -> None:
+def test_busgate_run_stops_in_order_on_sigterm(free_port, wait_for, tmp_path) -> None:
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
     config = tmp_path / "gw.toml"
@@ -194,7 +187,7 @@ def test_a_fleet_wide_get_is_answered_only_by_the_gateway_that_has_the_device(se
     assert refused["error"]["code"] == "unknown_device"
 
 
-def test_the_daemon_serves_prometheus_metrics_when_configured() -> None:
+def test_the_daemon_serves_prometheus_metrics_when_configured(free_port) -> None:
     import urllib.request
 
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
