@@ -7,6 +7,7 @@ a benchmark is the same machine as a bus in production.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import LinkTiming
@@ -27,7 +28,10 @@ def make_driver(protocol: Protocol, device: DeviceConfig) -> Driver:
 
 
 def build_bus(
-    bus: SerialBus | CanBus, *, on_event: Callable[[DeviceEvent], None] = lambda e: None
+    bus: SerialBus | CanBus,
+    *,
+    on_event: Callable[[DeviceEvent], None] = lambda e: None,
+    on_state: Callable[[str, dict[str, Any]], None] = lambda device, state: None,
 ) -> BusRunner:
     """A bus runner for ``bus`` (not started)."""
     protocol = PROTOCOLS[bus.protocol]
@@ -44,7 +48,7 @@ def build_bus(
     runner = BusRunner(
         bus.name, owner, timing, drivers,
         poll_hz={device.name: device.poll_hz for device in bus.devices},
-        on_event=on_event, realtime_priority=bus.realtime_priority,
+        on_event=on_event, on_state=on_state, realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
     if isinstance(owner, CanBusOwner):

@@ -50,12 +50,13 @@ class ZenohBridge:
     """One zenoh session serving one gateway's API."""
 
     def __init__(self, config: Config, api: GatewayApi, runners: dict[str, BusRunner],
-                 events: deque[DeviceEvent]) -> None:
+                 events: deque[DeviceEvent], states: deque[tuple[str, dict[str, Any]]]) -> None:
         self.config = config
         self.api = api
         self.runners = runners
         self.base = f"{config.gateway.prefix}/{config.gateway.name}"
         self.events = events  # filled by the bus threads and the API, drained here
+        self.states = states  # every new device state, filled by the bus threads, drained here
         #: Called with each command's time from query to reply (the metrics' histogram).
         self.on_latency: Callable[[float], None] = lambda seconds: None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -63,7 +64,6 @@ class ZenohBridge:
         self._keep: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
-        self._published: dict[str, int] = {}
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -112,7 +112,8 @@ class ZenohBridge:
             session.close()
 
     async def publish_forever(self, stop: asyncio.Event) -> None:
-        """Telemetry when it changes, events as they come, bus statistics once a second."""
+        """Telemetry and events as they come (in rounds of ``PUBLISH_EVERY_S``), bus
+        statistics once a second."""
         next_stats = 0.0
         while not stop.is_set():
             self.publish_states()
@@ -207,13 +208,12 @@ class ZenohBridge:
     # -- publishing (the loop's thread) -----------------------------------------------------
 
     def publish_states(self) -> None:
-        for runner in self.runners.values():
-            for device, state in list(runner.states.items()):
-                if self._published.get(device) == id(state):
-                    continue
-                self._published[device] = id(state)
-                self._put(f"{self.base}/dev/{device}/state", state)
-                self._track_liveliness(device, bool(state.get("online")))
+        """Every state the bus threads made since the last round, in order: a round that
+        comes late publishes a backlog, it does not skip what a device reported."""
+        while self.states:
+            device, state = self.states.popleft()
+            self._put(f"{self.base}/dev/{device}/state", state)
+            self._track_liveliness(device, bool(state.get("online")))
 
     def publish_events(self) -> None:
         while self.events:

@@ -34,6 +34,8 @@ log = logging.getLogger("busgate")
 STOP_TIMEOUT_S = 0.8
 BUS_OPEN_POLL_S = 0.01
 EVENT_BACKLOG = 10_000
+#: New device states waiting for the publisher: two seconds of 20 devices at 100 Hz.
+STATE_BACKLOG = 4_096
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -65,9 +67,14 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
     stop = stop or _stop_on_signals(loop)
     notifier = Notifier()
     events: deque[DeviceEvent] = deque(maxlen=EVENT_BACKLOG)
-    runners = {bus.name: build_bus(bus, on_event=events.append) for bus in config.buses}
+    states: deque[tuple[str, dict]] = deque(maxlen=STATE_BACKLOG)
+    runners = {
+        bus.name: build_bus(bus, on_event=events.append,
+                            on_state=lambda device, state: states.append((device, state)))
+        for bus in config.buses
+    }
     api = GatewayApi(config.gateway.name, runners, clock=now, on_event=events.append)
-    bridge = ZenohBridge(config, api, runners, events)
+    bridge = ZenohBridge(config, api, runners, events, states)
     metrics: Metrics | None = None
     try:
         _log_budgets(config)

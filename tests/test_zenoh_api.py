@@ -11,11 +11,15 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 
 import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
+from busgate.gateway.api import GatewayApi
+from busgate.gateway.assembly import build_bus
+from busgate.gateway.bridge import ZenohBridge
 from busgate.gateway.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -213,3 +217,33 @@ def test_the_daemon_serves_prometheus_metrics_when_configured(free_port) -> None
         client.close()
         daemon.shutdown()
         simulator.stop()
+
+
+def test_every_state_a_bus_made_is_published_in_order(free_port, wait_for) -> None:
+    """A publishing round sends every state made since the last one, several of one device
+    included: telemetry at the device's rate is never thinned by the round's period."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
+    states: deque = deque()
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners, clock=time.monotonic), runners,
+                         deque(), states)
+    loop = asyncio.new_event_loop()
+    bridge.open(loop)
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    received: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/dev/*/state", lambda s: received.append(json.loads(s.payload.to_bytes())))
+    try:
+        time.sleep(0.5)  # the subscription reaches the gateway's session
+        sent = [{"device": "la1", "online": True, "position": p} for p in (10, 20, 30)]
+        sent.append({"device": "la2", "online": False, "position": None})
+        states.extend((state["device"], state) for state in sent)
+        bridge.publish_states()
+        wait_for(lambda: len(received) == len(sent))
+        assert received == sent and not states
+    finally:
+        subscriber.undeclare()
+        client.close()
+        bridge.close()
+        loop.close()

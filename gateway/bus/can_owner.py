@@ -34,8 +34,9 @@ from busgate.gateway.clock import now, sleep_until
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
 TX_BACKPRESSURE_S = 0.05
-#: While idle, frames are taken in batches this far apart (see ``idle_until``).
-IDLE_BATCH_S = 0.004
+#: While idle, frames are taken in batches this far apart (see ``idle_until``): shorter than
+#: the usual 10 ms heartbeat interval, so that each heartbeat still makes its own telemetry.
+IDLE_BATCH_S = 0.008
 #: The last stretch before a timed send is waited out precisely, not in ``recv``.
 PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.

@@ -114,6 +114,8 @@ def frames_for(command: Any, device_id: int) -> list[codec.Write]:
 _MODE_OF = reverse(_WORK_MODES)
 #: Heartbeats missed in a row before the node counts as offline (the issue: 3 intervals).
 HEARTBEATS_LOST = 3
+#: What a heartbeat says of alarms: heartbeats come only while the driver is not in alarm.
+NO_ALARMS = common.AlarmFlags(0)
 
 ROLES: dict[int, RoleOf] = {
     Reg.WORK_MODE: RoleOf(Role.MODE, lambda raw, _s: _MODE_OF.get(raw)),
@@ -206,12 +208,12 @@ class Zlac706CanDriver(Zlac706Driver):
 
     def _take_position(self, event: codec.HeartbeatPosition) -> None:
         self.measured["position"] = event.position_raw
-        self.take_alarms(common.AlarmFlags(0))  # heartbeats come only while not in alarm
+        self.take_alarms(NO_ALARMS)
 
     def _take_current_speed(self, event: codec.HeartbeatCurrentSpeed) -> None:
         self.measured["current_ma"] = round(event.current_a * 1000)
         self.measured["speed_rpm"] = event.speed_rpm
-        self.take_alarms(common.AlarmFlags(0))
+        self.take_alarms(NO_ALARMS)
 
     def _take_alarm_report(self, event: codec.AlarmReport) -> None:
         self.take_alarms(event.alarms)

@@ -15,7 +15,8 @@ Rules of this file:
    streams, marks the devices offline and reconnects with backoff (0.1 s doubling to 2 s);
    the devices are re-initialised once it is back.
 4. Results go back through ``concurrent.futures.Future`` (thread-safe, and awaitable from
-   asyncio with ``asyncio.wrap_future``); device events go to ``on_event``, which must not block.
+   asyncio with ``asyncio.wrap_future``); device events go to ``on_event`` and each new device
+   state to ``on_state`` (the latest also stays in ``states``); neither may block.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from busgate.codecs.errors import (
     CommandError,
     DeviceTimeoutError,
 )
+from busgate.gateway.bus.can_owner import IDLE_BATCH_S
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.clock import now, sleep_until, tighten_timer_slack
@@ -91,6 +93,7 @@ class BusRunner:
         *,
         poll_hz: dict[str, float],
         on_event: Callable[[DeviceEvent], None] = lambda event: None,
+        on_state: Callable[[str, dict[str, Any]], None] = lambda device, state: None,
         realtime_priority: int | None = None,
         late_reply_holdoff_s: float = 0.01,
     ) -> None:
@@ -114,6 +117,7 @@ class BusRunner:
         self._min_write_s = float("inf")
         self._dirty: set[str] = set(self.drivers)
         self.on_event = on_event
+        self.on_state = on_state
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
         self._wake = threading.Event()
@@ -439,11 +443,11 @@ class BusRunner:
         return not self._wake.is_set()
 
     def _idle_can(self, idle: Callable[..., None], deadline: float) -> bool:
-        """Take in heartbeats until ``deadline``; back to the loop as soon as one arrived, so
-        that its telemetry is published at the rate the device sends it."""
+        """Take in heartbeats until ``deadline``, one batch (``IDLE_BATCH_S``) at a time; back to
+        the loop after the first batch that brought any, so that it is published now."""
         try:
             while now() < deadline and not self._wake.is_set() and not self._dirty:
-                idle(min(deadline, now() + 0.005), self._wake.wait)
+                idle(min(deadline, now() + IDLE_BATCH_S), self._wake.wait)
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
@@ -461,7 +465,8 @@ class BusRunner:
                 self._log_event(event)
                 self.on_event(event)
             if events or name in self._dirty:
-                self.states[name] = self._state(driver, moment)
+                self.states[name] = state = self._state(driver, moment)
+                self.on_state(name, state)
         self._dirty.clear()
         self.counters.skipped_polls = self.planner.skipped_polls
 
