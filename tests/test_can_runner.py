@@ -11,6 +11,9 @@ import pytest
 
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.can_owner import CanBusOwner
+from busgate.gateway.bus.request import LinkTiming
+from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.slcan import SlcanAdapter
@@ -59,6 +62,33 @@ def test_heartbeats_bring_the_node_online_and_speed_is_kept_alive(
     assert "001#00fa00100000000f" in stops, "stopping the bus releases the motor"
 
 
+def test_a_speed_stream_is_the_keep_alive_no_extra_writes_between_ticks(
+    wait_for, virtual_channel
+) -> None:
+    """Each follow tick writes the speed, which is what the keep-alive repeats: while the
+    stream runs, the keep-alive waits, so every speed write is a tick a period apart."""
+    channel, simulator = virtual_channel
+    runner = build_bus(can_bus("virtual", channel)).start()
+    try:
+        wait_for(lambda: runner.drivers["wheel"].online)
+        driver = runner.drivers["wheel"]
+        for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
+                     '{"op":"velocity","rpm":100}'):
+            runner.submit("wheel", driver.parse(text)).result(2)
+        started = time.perf_counter()
+        end = started + 1.2  # three keep-alive periods
+        while time.perf_counter() < end:
+            runner.follow("wheel", driver.follow_target({"rpm": 200}))
+            time.sleep(0.005)
+        speed_writes = [r.start for r in simulator.recorder.received()
+                        if r.wire.startswith("001#00fa0011") and r.start > started + 0.1]
+        gaps = [b - a for a, b in itertools.pairwise(speed_writes)]
+        period = driver.follow_period_s
+        assert len(speed_writes) > 30 and min(gaps) > period / 2, "a keep-alive between ticks"
+    finally:
+        runner.stop()
+
+
 def test_lost_heartbeats_mark_the_node_offline(wait_for, virtual_channel) -> None:
     channel, simulator = virtual_channel
     events = []
@@ -71,6 +101,30 @@ def test_lost_heartbeats_mark_the_node_offline(wait_for, virtual_channel) -> Non
         assert [e.type for e in events].count("offline") == 1
     finally:
         runner.stop()
+
+
+def test_an_idle_slcan_adapter_is_asked_before_it_is_read(wait_for) -> None:
+    """python-can's slcan ``recv(timeout=0)`` waits out its 1 ms serial timeout when nothing
+    came; the owner asks the adapter's descriptor first, so taking in what arrived is free."""
+    channel = f"test-can-slcan-{next(_channels)}"
+    simulator = CanSimulator(zcan, [Zlac706CanDevice(1)],
+                             bus=can.Bus(interface="virtual", channel=channel)).start()
+    adapter = SlcanAdapter(channel).start()
+    heard = []
+    owner = CanBusOwner("slcan", adapter.port, {"sleep_after_open": 0}, zcan,
+                        LinkTiming("zlac706_can", 500_000, margin_s=0.002), BusCounters(0.0),
+                        on_unsolicited=lambda event, when: heard.append(event))
+    owner.open()
+    try:
+        assert not owner._input_waiting()
+        simulator.devices[0].heartbeat_s = 0.01
+        wait_for(owner._input_waiting)
+        owner.idle_until(0.0)  # a deadline long past: take what is there, wait for nothing
+        assert any(isinstance(event, zcan.HeartbeatPosition) for event in heard)
+    finally:
+        owner.close()
+        adapter.stop()
+        simulator.stop()
 
 
 def test_slcan_adapter_unplugged_and_back(wait_for, tmp_path) -> None:

@@ -12,6 +12,9 @@ Rules of this file:
    the bus is closed and ``BusIOError`` raised so the runner reconnects.
 3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
    ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle.
+   Taking what has already arrived never waits: where the adapter has a file descriptor
+   (socketcan, slcan) it is asked first, since python-can's slcan blocks a ``recv(timeout=0)``
+   for its serial timeout (1 ms) when nothing is there, which would make a timed send late.
 4. Only this module converts between ``CanFrame`` and ``can.Message``.
 """
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import select
 import time
 from collections.abc import Callable
 from types import ModuleType
@@ -62,6 +66,7 @@ class CanBusOwner:
         self.counters = counters
         self.on_unsolicited = on_unsolicited
         self._bus: can.BusABC | None = None
+        self._fd: int | None = None
         self._decoder = codec.ReplyDecoder()
 
     @property
@@ -80,9 +85,13 @@ class CanBusOwner:
             )
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
+        try:
+            self._fd = self._bus.fileno()
+        except (NotImplementedError, can.CanError):
+            self._fd = None  # e.g. the virtual bus: its recv(timeout=0) does not wait
 
     def close(self) -> None:
-        bus, self._bus = self._bus, None
+        bus, self._bus, self._fd = self._bus, None, None
         if bus is not None:
             with contextlib.suppress(can.CanError, OSError):  # the adapter may be gone already
                 bus.shutdown()
@@ -155,6 +164,8 @@ class CanBusOwner:
         what is already there."""
         answer: list[object] = []
         while (remaining := deadline - now()) > 0 or drain:
+            if drain and not self._input_waiting():
+                break
             try:
                 message = bus.recv(timeout=0 if drain else remaining)
             except (can.CanError, OSError) as exc:
@@ -163,6 +174,8 @@ class CanBusOwner:
                 self.counters.discarded_bytes += 1
                 continue
             if message is None:
+                if drain and self._fd is not None:
+                    continue  # a line that was no frame (an adapter's acknowledgement)
                 break
             for event in self._decode(message):
                 if expected is not None and expected.matches(event):
@@ -172,6 +185,16 @@ class CanBusOwner:
             if expected is not None and len(answer) >= expected.frames:
                 return tuple(answer)
         return None
+
+    def _input_waiting(self) -> bool:
+        """Whether the adapter may have a frame for us (always, when it has no descriptor)."""
+        if self._fd is None:
+            return True
+        try:
+            readable, _, _ = select.select([self._fd], [], [], 0)
+        except (OSError, ValueError):
+            return True  # let recv report what is wrong with the adapter
+        return bool(readable)
 
     def _decode(self, message: can.Message) -> list[object]:
         if message.is_error_frame:

@@ -101,6 +101,11 @@ class Driver(abc.ABC):
         """``(period, request)`` the device needs while in its current state, or ``None``."""
         return None
 
+    def refreshes_keepalive(self, request: Request) -> bool:
+        """Whether ``request``, answered, does what the keep-alive does (a follow tick's speed
+        write does, on CAN): the next keep-alive is then due a full period later."""
+        return False
+
     # -- interpreting -----------------------------------------------------------------------
 
     @abc.abstractmethod

@@ -169,6 +169,10 @@ class Zlac706CanDriver(Zlac706Driver):
         speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.machine.settings.speed_raw or 0)
         return Request.of(codec, speed, idempotent=True)
 
+    def refreshes_keepalive(self, request: Request) -> bool:
+        frame = request.frame
+        return isinstance(frame, codec.Write) and frame.register == Reg.TARGET_SPEED
+
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
         answer = reply[0]
         if isinstance(answer, codec.WriteAck):

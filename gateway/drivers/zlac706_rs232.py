@@ -157,6 +157,9 @@ class Zlac706Rs232Driver(Zlac706Driver):
     def keepalive_request(self) -> Request:
         return _MONITOR
 
+    def refreshes_keepalive(self, request: Request) -> bool:
+        return isinstance(request.frame, codec.MonitorRequest)
+
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
         if isinstance(request.frame, codec.Write):
             self.acknowledged(request.frame)

@@ -110,7 +110,8 @@ class BusRunner:
             for name, driver in self.drivers.items()
             if poll_hz.get(name)
         ]
-        self.planner.tickers = [KeepaliveTicker(d) for d in self.drivers.values()]
+        self._keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
+        self.planner.tickers = list(self._keepalives.values())
         self._poll_periods = {p.device: p.period_s for p in self.planner.pollers}
         self.states: dict[str, dict[str, Any]] = {}
         self._streams: dict[str, FollowStream] = {}
@@ -375,6 +376,8 @@ class BusRunner:
             self._dirty.add(driver.name)
             if exchange.reply:
                 driver.heard(exchange.end)
+                if driver.refreshes_keepalive(slot.request):
+                    self._keepalives[driver.name].sent(exchange.start)
             result = driver.apply(slot.request, exchange.reply, exchange.end)
             if isinstance(slot.source, Job) and result:
                 slot.source.replies.append(result)
