@@ -38,17 +38,23 @@ def virtual_channel():
     simulator.stop()
 
 
+def drive_at(runner, rpm: int, wait_for):
+    """Once the wheel is online: velocity mode, enabled, turning at ``rpm``; its driver."""
+    wait_for(lambda: runner.drivers["wheel"].online)
+    driver = runner.drivers["wheel"]
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
+                 f'{{"op":"velocity","rpm":{rpm}}}'):
+        runner.submit("wheel", driver.parse(text)).result(2)
+    return driver
+
+
 def test_heartbeats_bring_the_node_online_and_speed_is_kept_alive(
     wait_for, virtual_channel
 ) -> None:
     channel, simulator = virtual_channel
     runner = build_bus(can_bus("virtual", channel)).start()
     try:
-        wait_for(lambda: runner.drivers["wheel"].online)
-        driver = runner.drivers["wheel"]
-        for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
-                     '{"op":"velocity","rpm":300}'):
-            runner.submit("wheel", driver.parse(text)).result(2)
+        drive_at(runner, 300, wait_for)
         wait_for(lambda: (runner.states["wheel"].get("speed_rpm") or 0) > 100)
         time.sleep(1.0)
         speed_writes = [r.start for r in simulator.recorder.received()
@@ -70,11 +76,7 @@ def test_a_speed_stream_is_the_keep_alive_no_extra_writes_between_ticks(
     channel, simulator = virtual_channel
     runner = build_bus(can_bus("virtual", channel)).start()
     try:
-        wait_for(lambda: runner.drivers["wheel"].online)
-        driver = runner.drivers["wheel"]
-        for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
-                     '{"op":"velocity","rpm":100}'):
-            runner.submit("wheel", driver.parse(text)).result(2)
+        driver = drive_at(runner, 100, wait_for)
         started = time.perf_counter()
         end = started + 1.2  # three keep-alive periods
         while time.perf_counter() < end:
