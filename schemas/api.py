@@ -405,6 +405,16 @@ class StreamStoppedEvent(Event):
     reason: str
 
 
+class RebootedEvent(Event):
+    """The device powered up again under the gateway (seen in its replies or heartbeats):
+    its follow stream was dropped and its settings are written again; nothing moves it until
+    a fresh command."""
+
+    type: Literal["rebooted"]
+    evidence: str = Field(description="What showed it, e.g. the position counter back at 0.")
+    restoring: int = Field(description="How many setting writes are sent again.")
+
+
 class ClaimedEvent(Event):
     type: Literal["claimed"]
     client: ClientId
@@ -439,7 +449,8 @@ class CommandRefusedEvent(Event):
 
 KnownEvent = Annotated[
     OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
-    | StreamStoppedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent | EstopEvent
+    | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
+    | EstopEvent
     | CommandRefusedEvent,
     Field(discriminator="type"),
 ]  # fmt: skip

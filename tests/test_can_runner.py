@@ -118,11 +118,19 @@ def test_an_idle_slcan_adapter_is_asked_before_it_is_read(wait_for) -> None:
                         on_unsolicited=lambda event, when: heard.append(event))
     owner.open()
     try:
-        assert not owner._input_waiting()
+        def quiet() -> bool:  # the adapter's answers to the open commands taken in first
+            owner.idle_until(0.0)
+            return not owner._input_waiting()
+
+        wait_for(quiet)
         simulator.devices[0].heartbeat_s = 0.01
         wait_for(owner._input_waiting)
-        owner.idle_until(0.0)  # a deadline long past: take what is there, wait for nothing
-        assert any(isinstance(event, zcan.HeartbeatPosition) for event in heard)
+
+        def heard_a_heartbeat() -> bool:
+            owner.idle_until(0.0)  # a deadline long past: take what is there, wait for nothing
+            return any(isinstance(event, zcan.HeartbeatPosition) for event in heard)
+
+        wait_for(heard_a_heartbeat)
     finally:
         owner.close()
         adapter.stop()

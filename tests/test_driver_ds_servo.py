@@ -109,21 +109,25 @@ def test_safe_stop_switches_torque_off() -> None:
 
 def test_poll_is_two_reads_that_skip_the_write_only_preset_addresses() -> None:
     requests = driver(1).poll()
-    assert [(r.frame.address, r.frame.length) for r in requests] == [(0x2E, 14), (0x3F, 1)]
+    assert [(r.frame.address, r.frame.length) for r in requests] == [(0x28, 20), (0x3F, 1)]
     assert all(r.idempotent and r.expected.source_id == 1 for r in requests)
     reads = [(r.frame.address, r.frame.length) for r in requests]
     covered = {a for address, length in reads for a in range(address, address + length)}
-    for name in ("current", "present_position", "speed", "temperature"):
+    for name in ("current", "present_position", "speed", "temperature", "torque_enable",
+                 "target_position"):
         register = ds.REGISTERS[name]
         assert set(range(register.address, register.end)) <= covered
     assert not covered & set(ds.GOTO_PRESET_ADDRESSES)
 
 
-def _poll_replies(position: int, speed: int, current: int, temperature: int) -> list[bytes]:
-    first = bytearray(14)
-    first[0:2] = current.to_bytes(2, "big")
-    first[0x38 - 0x2E : 0x3A - 0x2E] = position.to_bytes(2, "big")
-    first[0x3A - 0x2E : 0x3C - 0x2E] = speed.to_bytes(2, "big")
+def _poll_replies(position: int, speed: int, current: int, temperature: int,
+                  torque: int = 1, target: int | None = None) -> list[bytes]:
+    first = bytearray(20)
+    first[0] = torque
+    first[0x2A - 0x28 : 0x2C - 0x28] = (position if target is None else target).to_bytes(2, "big")
+    first[0x2E - 0x28 : 0x30 - 0x28] = current.to_bytes(2, "big")
+    first[0x38 - 0x28 : 0x3A - 0x28] = position.to_bytes(2, "big")
+    first[0x3A - 0x28 : 0x3C - 0x28] = speed.to_bytes(2, "big")
     return [bytes(first), bytes([temperature])]
 
 
@@ -134,8 +138,27 @@ def test_poll_replies_become_telemetry_in_named_units() -> None:
     assert d.state(2.0) | {"last_reply_age_s": None} == {
         "ts": 2.0, "device": "arm", "kind": "ds_servo", "online": True, "last_reply_age_s": None,
         "position": 2047, "speed_raw": 12, "current_ma": 250, "temperature_c": 31,
-        "target": None, "pending_target": None, "torque_on": None, "faults": [],
+        "target": 2047, "pending_target": None, "torque_on": True, "faults": [],
     }
+
+
+def test_torque_back_on_after_the_gateway_switched_it_off_is_a_reboot() -> None:
+    """The power-up value of the torque switch is on: read back on where the gateway had
+    switched it off, the servo rebooted. The switch-off is sent again with the next poll,
+    and nothing that moves it."""
+    d = driver(1)
+    for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30), strict=True):
+        answer(d, request, data=data)
+    [stop] = d.safe_stop()
+    answer(d, stop)
+    for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30, torque=0), strict=True):
+        answer(d, request, data=data)
+    assert not d.restore_pending and "rebooted" not in event_types(d)
+    for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30, torque=1), strict=True):
+        answer(d, request, data=data)
+    [event] = [e for e in d.drain_events() if e.type == "rebooted"]
+    assert event.fields == {"evidence": "torque on again, its power-up value", "restoring": 1}
+    assert d.restore_pending and [r.frame for r in d.restore()] == [stop.frame]
 
 
 def test_read_answers_data_and_named_values_and_updates_telemetry() -> None:

@@ -362,6 +362,7 @@ def test_events_from_drivers_and_the_api_match_the_event_schema():
         arm.missed(3.0)
     [set_id] = arm.plan(arm.parse('{"op":"set_id","new_id":7}'))
     arm.apply(set_id, ds_reply(1, ds.ServoStatus(0)), 4.0)
+    arm.rebooted("torque on again, its power-up value")
     events = arm.drain_events()
     gw, api_events, _ = gateway()
     reply(gw.command("arm", b'{"op":"claim","client":"ui-1"}'))
@@ -370,8 +371,8 @@ def test_events_from_drivers_and_the_api_match_the_event_schema():
     events += [*api_events, DeviceEvent("arm", "command_refused", refused["error"]),
                DeviceEvent("*", "estop", {"key": "busgate/gw1/estop"})]
     types = [event.type for event in events]
-    assert types == ["online", "fault", "offline", "online", "fault", "id_changed", "claimed",
-                     "released", "command_refused", "estop"]
+    assert types == ["online", "fault", "offline", "online", "fault", "id_changed", "rebooted",
+                     "claimed", "released", "command_refused", "estop"]
     for event in events:
         assert_valid("event.json", event_body(event))
         api.EVENT_ADAPTER.validate_python(event_body(event))

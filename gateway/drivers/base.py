@@ -55,8 +55,13 @@ class Driver(abc.ABC):
         self.device_id = device_id
         self.follow_period_s = follow_period_s
         self.online = False
+        self.was_online = False
         self.last_reply: float | None = None
         self.misses = 0
+        #: Settings the device confirmed, by what they set: written again after a reboot.
+        self.applied_settings: dict[object, Request] = {}
+        #: A reboot was seen and ``restore`` has not been sent yet.
+        self.restore_pending = False
         self._events: list[DeviceEvent] = []
 
     # -- planning ---------------------------------------------------------------------------
@@ -129,7 +134,9 @@ class Driver(abc.ABC):
         self.last_reply = now
         self.misses = 0
         if not self.online:
-            self.online = True
+            # Back after going offline, it may have lost power: its settings go again.
+            self.restore_pending = self.was_online and bool(self.restore())
+            self.online = self.was_online = True
             self.emit("online")
 
     def missed(self, now: float) -> None:
@@ -142,6 +149,24 @@ class Driver(abc.ABC):
         if self.online:
             self.online = False
             self.emit("offline", reason=reason)
+
+    # -- reboots ---------------------------------------------------------------------------
+
+    def rebooted(self, evidence: str) -> None:
+        """The device was seen powering up again (its registers back at their defaults): the
+        picture of it is reset, the settings it had are due again (``restore``, sent with the
+        next poll), and a ``rebooted`` event says so. The runner drops its follow stream:
+        only a fresh command moves it again."""
+        self.forget_on_reboot()
+        self.restore_pending = True
+        self.emit("rebooted", evidence=evidence, restoring=len(self.restore()))
+
+    def forget_on_reboot(self) -> None:  # noqa: B027 - optional hook
+        """Reset what a power-up resets (targets, power stage …); by default nothing."""
+
+    def restore(self) -> list[Request]:
+        """What to write again after a reboot: the settings the device had confirmed."""
+        return list(self.applied_settings.values())
 
     def emit(self, type_: str, **fields: Any) -> None:
         self._events.append(DeviceEvent(self.name, type_, fields))

@@ -124,8 +124,8 @@ def poll_spans(names: Iterable[str]) -> tuple[tuple[int, int], ...]:
     go-to-preset addresses 0x3C-0x3E): the manual marks those "write" with no data type, and
     ``check_read`` only keeps a read inside the table, so reading them is left untried.
 
-    >>> [(hex(a), n) for a, n in poll_spans(_MEASURED)]
-    [('0x2e', 14), ('0x3f', 1)]
+    >>> [(hex(a), n) for a, n in poll_spans(_POLLED)]
+    [('0x28', 20), ('0x3f', 1)]
     """
     spans: list[tuple[int, int]] = []
     for register in sorted((codec.REGISTERS[n] for n in names), key=lambda r: r.address):
@@ -139,7 +139,10 @@ def poll_spans(names: Iterable[str]) -> tuple[tuple[int, int], ...]:
     return tuple(spans)
 
 
-_POLL_SPANS: Final = poll_spans(_MEASURED)
+#: A poll also reads the torque switch and the target: a servo that powered up again shows
+#: torque on (its factory value) where the gateway had switched it off.
+_POLLED: Final = (*_MEASURED, "torque_enable", "target_position")
+_POLL_SPANS: Final = poll_spans(_POLLED)
 
 
 class FollowTarget(BaseModel):
@@ -235,6 +238,11 @@ class DsServoDriver(Driver):
             "faults": _fault_names(self.faults),
         }
 
+    def forget_on_reboot(self) -> None:
+        """Power-up: torque on, holding where it is; no target of ours stands."""
+        self.target = self.pending_target = None
+        self.torque_on = True
+
     def _set_faults(self, status: codec.ServoStatus) -> None:
         if status == self.faults:
             return
@@ -250,10 +258,16 @@ class DsServoDriver(Driver):
 
     def _applied_read(self, frame: codec.Read, answer: codec.StatusReply) -> dict[str, Any]:
         values = codec.values_from(frame.address, answer.data)
+        if self.torque_on is False and values.get("torque_enable") == 1:
+            self.rebooted("torque on again, its power-up value")
         self._take_values(values)
         return {"data": answer.data.hex(), "values": values}
 
     def _applied_write(self, frame: codec.Write, answer: object) -> None:
+        if frame.address == _TORQUE and frame.data == b"\x00":  # torque on is the power-up value
+            self.applied_settings[_TORQUE] = Request.of(codec, frame, idempotent=True)
+        elif frame.address == _TORQUE:
+            self.applied_settings.pop(_TORQUE, None)
         if frame.address in codec.GOTO_PRESET_ADDRESSES:
             self.target = None  # the preset's position is on the servo, unknown here
         self._take_values(codec.values_from(frame.address, frame.data))

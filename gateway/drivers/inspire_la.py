@@ -226,6 +226,11 @@ class InspireLaDriver(Driver):
         ]
         return self.poll() + [_request(read, idempotent=True) for read in reads]
 
+    def restore(self) -> list[Request]:
+        """After a reboot the power stage is on again: an e-stop is sent again first."""
+        estop = self.safe_stop() if self.power is PowerStage.ESTOPPED else []
+        return estop + super().restore()
+
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""
         self.power = PowerStage.ESTOPPED
@@ -350,6 +355,8 @@ class InspireLaDriver(Driver):
     def _confirm(self, write: codec.WriteCommand) -> None:
         values = codec.register_values(write.index, write.data)
         self._remember(values)
+        if values.keys() <= set(_TRACKED.values()):  # a limit: in RAM until saved
+            self.applied_settings[write.index] = _request(write, idempotent=True)
         if values.get(codec.ID, self.device_id) != self.device_id:
             self.emit("id_changed", old_id=self.device_id, new_id=values[codec.ID])
             self.device_id = values[codec.ID]

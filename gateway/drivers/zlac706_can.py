@@ -211,7 +211,7 @@ class Zlac706CanDriver(Zlac706Driver):
         return self.last_heartbeat is not None
 
     def _take_position(self, event: codec.HeartbeatPosition) -> None:
-        self.measured["position"] = event.position_raw
+        self.take_position(event.position_raw)
         self.take_alarms(NO_ALARMS)
 
     def _take_current_speed(self, event: codec.HeartbeatCurrentSpeed) -> None:

@@ -172,8 +172,8 @@ class Zlac706Rs232Driver(Zlac706Driver):
         return {}
 
     def _take_monitor(self, monitor: codec.MonitorReply) -> None:
+        self.take_position(monitor.feedback_position_raw)
         self.measured.update(
-            position=monitor.feedback_position_raw,
             current_ma=round(monitor.current_a * 1000),
             speed_rpm=monitor.speed_rpm,
             voltage_v=monitor.voltage_v,

@@ -65,6 +65,14 @@ class Role(enum.Enum):
 
 
 _UNTRACKED = frozenset({Role.ONE_SHOT, Role.SETTING})
+#: Writes that set how the drive works rather than what it does now: written again after a
+#: reboot. Enable and targets are not: only a fresh command moves the motor again.
+_RESTORED = frozenset({Role.MODE, Role.POSITION_MODE, Role.POSITION_RAMP, Role.SPEED_RAMP,
+                       Role.MAX_SPEED, Role.SETTING})
+#: A position report of exactly 0 after one this far away (pulses) is the counter's power-up
+#: value, not motion: with note 6's 10000 pulses per turn, a hub motor at its 1000 rpm limit
+#: covers 16,667 pulses between two reports 100 ms apart; this is four times that.
+REBOOT_POSITION_JUMP = 65_536
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,6 +332,20 @@ class Zlac706Driver(Driver):
         role, value = self._role(frame, self.machine.settings)
         if role is not None:
             self.machine.acknowledged(self.machine.settings.change(role, value))
+        if role in _RESTORED:
+            self.applied_settings[frame.register] = Request.of(  # type: ignore[attr-defined]
+                self.codec, frame, idempotent=True)
+
+    def take_position(self, raw: int) -> None:
+        """A reported position; a jump to 0 from far away means the drive powered up again."""
+        before, self.measured["position"] = self.measured["position"], raw
+        if raw == 0 and before is not None and abs(before) > REBOOT_POSITION_JUMP:
+            self.rebooted(f"position counter back at 0 from {before}")
+
+    def forget_on_reboot(self) -> None:
+        """Power-up: released, every setting at its default until ``restore`` lands."""
+        self.machine = Zlac706State()
+        self.machine.settings = Settings(enabled=False)
 
     def take_alarms(self, alarms: common.AlarmFlags) -> None:
         """New alarm bits; one ``fault`` event when the fault names change."""

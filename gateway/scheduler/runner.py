@@ -78,7 +78,13 @@ class DevicePoller:
         self.next_due = start
 
     def build(self) -> list[Request]:
-        return self.driver.poll() if self.driver.online else self.driver.init()
+        driver = self.driver
+        if not driver.online:
+            return driver.init()
+        if driver.restore_pending:  # it rebooted: its settings again, then the poll
+            driver.restore_pending = False
+            return driver.restore() + driver.poll()
+        return driver.poll()
 
 
 class BusRunner:
@@ -467,6 +473,8 @@ class BusRunner:
             for event in events:
                 self._log_event(event)
                 self.on_event(event)
+                if event.type == "rebooted":  # its targets are stale: a fresh command moves it
+                    self._end_stream(name, "device rebooted")
             if events or name in self._dirty:
                 self.states[name] = state = self._state(driver, moment)
                 self.on_state(name, state)
