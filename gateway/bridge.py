@@ -180,11 +180,14 @@ class ZenohBridge:
         assert loop is not None
         replied = Future()
         asked = time.perf_counter()
+        guard: list[asyncio.TimerHandle] = []
 
         def send(reply: dict[str, Any]) -> None:
             if replied.done():
                 return
             replied.set_result(True)
+            for timer in guard:  # answered: the query is not kept for the guard's 10 s
+                timer.cancel()
             try:
                 query.reply(key, _dumps(reply))
             finally:
@@ -194,8 +197,12 @@ class ZenohBridge:
         def too_late() -> None:
             send(error_reply(ApiError("internal", "no answer from the bus in time")))
 
+        def arm_guard() -> None:
+            if not replied.done():
+                guard.append(loop.call_later(REPLY_TIMEOUT_S, too_late))
+
         result.add_done_callback(lambda done: self._call_soon(send, done.result()))
-        loop.call_soon_threadsafe(loop.call_later, REPLY_TIMEOUT_S, too_late)
+        loop.call_soon_threadsafe(arm_guard)
 
     def _report_put(self, device: str, reply: dict[str, Any]) -> None:
         if not reply.get("ok"):

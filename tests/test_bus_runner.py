@@ -113,7 +113,9 @@ def test_runner_carries_out_commands_and_polls(wait_for, simulator) -> None:
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
     wait_for, simulator
 ) -> None:
-    runner = build_bus(bus(simulator.port)).start()
+    heard_from = []  # the device of every new state: one per poll answered (or missed)
+    runner = build_bus(bus(simulator.port),
+                       on_state=lambda device, state: heard_from.append(device)).start()
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
         simulator.faults.configure(silent_ids=frozenset({1}))
@@ -123,8 +125,13 @@ def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
         wait_for(lambda: not runner.drivers["la1"].online)
         ok = runner.submit("la2", runner.drivers["la2"].parse('{"op":"status"}')).result(3)
         assert ok["state"]["online"] is True
+        before, started = heard_from.count("la2"), time.monotonic()
+        time.sleep(2.0)  # la1 silent, still asked for at its poll rate
+        rate = (heard_from.count("la2") - before) / (time.monotonic() - started)
+        assert runner.drivers["la2"].online and runner.drivers["la2"].misses == 0
     finally:
         runner.stop()
+    assert rate >= 0.8 * 50, f"la2 polled at {rate:.0f}/s of 50/s beside a silent la1"
 
 
 def test_follow_stream_goes_out_at_its_period_and_goes_stale(wait_for, simulator) -> None:

@@ -73,3 +73,28 @@ def test_a_flood_of_commands_is_answered_every_one(wait_for) -> None:
             assert busy < len(futures) and runner.planner.queued == 0
         finally:
             runner.stop()
+
+
+def test_a_command_answered_on_its_retry_succeeds(wait_for) -> None:
+    """Half the replies lost: a move whose first reply was lost and whose retry was answered
+    is done, not a ``device_timeout``; only a move tried three times may fail."""
+    drops = FaultInjector(FaultConfig(drop_rate=0.5), seed=7)
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600, faults=drops) as simulator:
+        config = SerialBus(name="uart0", transport="serial", port=simulator.port,
+                           baudrate=921_600, devices=[{"name": "la1", "kind": "inspire_la",
+                                                       "id": 1, "poll_hz": 1}])
+        runner = build_bus(config).start()
+        try:
+            driver = runner.drivers["la1"]
+            outcomes = {}
+            for position in range(100, 1300, 40):  # each move its own frame on the wire
+                future = runner.submit("la1", driver.parse(
+                    f'{{"op":"move","position":{position}}}'))
+                outcomes[position] = future.exception(timeout=5)
+        finally:
+            runner.stop()
+    received = [r.wire for r in simulator.recorder.received()]
+    tries = {p: received.count(la.encode(la.MoveCommand(1, p, True)).hex()) for p in outcomes}
+    retried_and_answered = [p for p in outcomes if tries[p] == 2]
+    assert retried_and_answered, "the seed gives some moves a lost first reply"
+    assert [p for p in outcomes if tries[p] < 3 and outcomes[p] is not None] == []

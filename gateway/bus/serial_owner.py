@@ -118,8 +118,11 @@ class SerialBusOwner:
         assert expected is not None
         answer: list[object] = []
         fd = port.fileno()
-        while (remaining := deadline - now()) > 0:
-            if not select.select([fd], [], [], remaining)[0]:
+        while True:
+            # Past the deadline, one last look without waiting: a reply that came in time
+            # while this thread was held up (scheduling, the GIL) is still taken.
+            remaining = deadline - now()
+            if not select.select([fd], [], [], max(remaining, 0.0))[0]:
                 break
             data = os.read(fd, 4096)
             if not data:
@@ -132,6 +135,8 @@ class SerialBusOwner:
                     answer.append(event)
             if len(answer) >= expected.frames:
                 return Exchange(request, start, arrived, tuple(answer))
+            if remaining <= 0:
+                break
         self.counters.timeouts += 1
         raise DeviceTimeoutError(
             f"no reply from id {expected.source_id} on {self.port}", device_id=expected.source_id

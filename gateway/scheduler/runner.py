@@ -60,6 +60,8 @@ FINAL_WAIT_S = 0.001
 #: A bus thread whose loop has not turned for this long is stuck: it turns at least every
 #: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
 STALL_S = 2 * BACKOFF_MAX_S
+#: How often a device that went offline is asked whether it is back.
+OFFLINE_PROBE_S = 0.25
 
 
 class BusyError(BusgateError):
@@ -69,13 +71,21 @@ class BusyError(BusgateError):
 
 
 class DevicePoller:
-    """A driver's telemetry reads at its poll rate (a ``planner.Poller``)."""
+    """A driver's telemetry reads at its poll rate (a ``planner.Poller``); an offline device
+    is asked at most every ``OFFLINE_PROBE_S``, so that one silent device (each of its polls
+    a timeout, its retries and a hold-off) does not take its neighbours' share of the bus."""
 
     def __init__(self, driver: Driver, poll_hz: float, start: float) -> None:
         self.driver = driver
         self.device = driver.name
-        self.period_s = 1.0 / poll_hz
+        self.poll_period_s = 1.0 / poll_hz
         self.next_due = start
+
+    @property
+    def period_s(self) -> float:
+        if self.driver.online:
+            return self.poll_period_s
+        return max(self.poll_period_s, OFFLINE_PROBE_S)
 
     def build(self) -> list[Request]:
         driver = self.driver
@@ -118,7 +128,7 @@ class BusRunner:
         ]
         self._keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
         self.planner.tickers = list(self._keepalives.values())
-        self._poll_periods = {p.device: p.period_s for p in self.planner.pollers}
+        self._poll_periods = {p.device: p.poll_period_s for p in self.planner.pollers}
         self.states: dict[str, dict[str, Any]] = {}
         self._streams: dict[str, FollowStream] = {}
         self._min_write_s = float("inf")
@@ -333,9 +343,9 @@ class BusRunner:
         try:
             exchange = self.owner.exchange(slot.request, at=at)
         except DeviceTimeoutError as exc:
-            failed, start, end = True, now(), now()
+            failed, start, end, error = True, now(), now(), exc
             self.planner.hold_replies_until = end + self.late_reply_holdoff_s
-            self._note_failure(slot, exc, end)
+            self._note_failure(slot, end)
         except BusIOError as exc:
             self._link_lost(exc, slot)
             return
@@ -347,20 +357,21 @@ class BusRunner:
             self.counters.busy_s += end - start
         if not isinstance(slot.source, Job):
             slot.source.sent(start - self._fastest_write(exchange if not failed else None))
-        job = self.planner.finished(slot, end, failed=failed)
-        self._record_outcome(slot, None if failed else exchange.reply, failed)
-        if failed and job is None and slot.request.idempotent:
-            self.counters.retries += 1
-        if job is not None:
-            self._complete(job)
-
-    def _record_outcome(self, slot: Slot, reply: tuple | None, failed: bool) -> None:
-        job = slot.source
-        if not isinstance(job, Job) or job.outcomes is None:
-            return
-        retried = failed and bool(job.requests) and job.requests[0] is slot.request
-        if not retried:
-            job.outcomes.append((slot.request, reply))
+        done = self.planner.finished(slot, end, failed=failed)
+        source = slot.source
+        if isinstance(source, Job):
+            # A request that is tried again is still at the head of its job; only a failure
+            # for good is the job's error (a retry that succeeds leaves none behind).
+            retried = failed and bool(source.requests) and source.requests[0] is slot.request
+            if retried:
+                self.counters.retries += 1
+            else:
+                if failed:
+                    source.error = error
+                if source.outcomes is not None:
+                    source.outcomes.append((slot.request, None if failed else exchange.reply))
+        if done is not None:
+            self._complete(done)
 
     def _fastest_write(self, exchange: Exchange | None) -> float:
         """The quickest write call seen on this bus. A tick counts as started that long before
@@ -388,13 +399,11 @@ class BusRunner:
             if isinstance(slot.source, Job) and result:
                 slot.source.replies.append(result)
 
-    def _note_failure(self, slot: Slot, exc: BusgateError, end: float) -> None:
+    def _note_failure(self, slot: Slot, end: float) -> None:
         driver = self._driver_for(slot)
         if driver is not None:
             self._dirty.add(driver.name)
             driver.missed(end)
-        if isinstance(slot.source, Job):
-            slot.source.error = exc
 
     def _driver_for(self, slot: Slot) -> Driver | None:
         """The device a job's request is for, or (keep-alives, e-stops) the one it addresses."""
