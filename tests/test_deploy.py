@@ -8,6 +8,7 @@ kernel's equivalent (PR_SET_MDWE)."""
 from __future__ import annotations
 
 import ctypes
+import itertools
 import json
 import re
 import shutil
@@ -16,6 +17,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -215,50 +218,85 @@ def _kernel_has_mdwe() -> bool:
     return libc.prctl(66, 0, 0, 0, 0) >= 0  # PR_GET_MDWE: EINVAL before Linux 6.3
 
 
-@pytest.fixture
-def secured_gateway(tmp_path):
+@dataclass
+class SecuredGateway:
+    """The daemon under deploy/zenoh/busgate.json5, as its clients reach it."""
+
+    etc: Path
+    port: int
+    simulator: SerialSimulator
+    sessions: list[zenoh.Session] = field(default_factory=list)
+
+    def connect(self, user: str | None = None, password: str | None = None, *,
+                scheme: str = "tls", mode: str = "client") -> zenoh.Session:
+        """A session to the gateway's port (with no usrpwd when ``user`` is None), closed after
+        the test; ``zenoh.ZError`` when zenoh cannot open it."""
+        config = session_config(mode=mode, connect=[f"{scheme}/127.0.0.1:{self.port}"])
+        config.insert_json5("transport/link/tls/root_ca_certificate",
+                            json.dumps(str(self.etc / "tls/ca.pem")))
+        if user is not None:
+            config.insert_json5("transport/auth/usrpwd",
+                                json.dumps({"user": user, "password": password}))
+        self.sessions.append(zenoh.open(config))
+        return self.sessions[-1]
+
+    def close_sessions(self) -> None:
+        while self.sessions:
+            self.sessions.pop().close()
+
+
+@pytest.fixture(scope="module")
+def secured_daemon(tmp_path_factory):
     """``busgate run`` (under PR_SET_MDWE where the kernel has it) on the LA simulator, its
-    zenoh session from deploy/zenoh/busgate.json5 with the files moved under tmp_path; yields
-    ``connect(user, password)`` for client sessions."""
+    zenoh session from deploy/zenoh/busgate.json5 with the files moved under a scratch /etc
+    (users operator and viewer): started once for the module, as each start costs seconds."""
     if shutil.which("openssl") is None:
         pytest.skip("openssl is not installed here (needed to make test certificates)")
-    etc = tmp_path / "etc"
-    etc.mkdir()
+    etc = tmp_path_factory.mktemp("etc")
     _certificates(etc / "tls")
     (etc / "zenoh-users.txt").write_text("operator:op-secret\nviewer:view-secret\n")
     json5 = etc / "zenoh.json5"
     json5.write_text(ZENOH.read_text().replace("/etc/busgate/", f"{etc}/"))
     port = _free_port()
-    endpoint = f"tls/127.0.0.1:{port}"
-    sessions: list[zenoh.Session] = []
-
-    def connect(user: str, password: str) -> zenoh.Session:
-        config = session_config(mode="client", connect=[endpoint])
-        config.insert_json5("transport/link/tls/root_ca_certificate",
-                            json.dumps(str(etc / "tls/ca.pem")))
-        config.insert_json5("transport/auth/usrpwd",
-                            json.dumps({"user": user, "password": password}))
-        sessions.append(zenoh.open(config))
-        return sessions[-1]
-
     with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
         toml = etc / "busgate.toml"
-        toml.write_text(GATEWAY_TOML.format(config_file=json5, endpoint=endpoint,
+        toml.write_text(GATEWAY_TOML.format(config_file=json5, endpoint=f"tls/127.0.0.1:{port}",
                                             port=simulator.port))
         command = ([sys.executable, "-c", MDWE_RUN, str(toml)] if _kernel_has_mdwe()
                    else [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(toml)])
-        daemon = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+        log = etc / "daemon.log"  # a file, not a pipe: nobody reads it while the module runs
+        with log.open("w") as stderr:
+            daemon = subprocess.Popen(command, stderr=stderr)
+        gateway = SecuredGateway(etc, port, simulator)
         try:
             _wait_listening(daemon, port)
-            yield connect
+            yield gateway
         finally:
-            for session in sessions:
-                session.close()
+            gateway.close_sessions()
             daemon.send_signal(signal.SIGTERM)
-            _, stderr = daemon.communicate(timeout=20)
-        assert daemon.returncode == 0, stderr
+            daemon.wait(timeout=20)
+        assert daemon.returncode == 0, log.read_text()
 
 
+@pytest.fixture
+def secured_gateway(secured_daemon):
+    """The module's secured daemon; the sessions a test opens are closed after it."""
+    yield secured_daemon
+    secured_daemon.close_sessions()
+
+
+@pytest.fixture
+def operator(secured_gateway) -> zenoh.Session:
+    return _ready(secured_gateway.connect("operator", "op-secret"))
+
+
+@pytest.fixture
+def viewer(secured_gateway) -> zenoh.Session:
+    return _ready(secured_gateway.connect("viewer", "view-secret"))
+
+
+#: ``reply_margin_ms``: the simulator shares the test's process and this machine's two busy
+#: cores, so a scheduling hiccup of a few ms must not pass for a lost reply.
 GATEWAY_TOML = """
 [gateway]
 name = "gw1"
@@ -272,6 +310,7 @@ name = "uart0"
 transport = "serial"
 port = "{port}"
 baudrate = 921600
+reply_margin_ms = 10
 
 [[buses.devices]]
 name = "la1"
@@ -280,8 +319,17 @@ id = 1
 poll_hz = 20
 """
 
+INFO = "busgate/gw1/info"
+LA1 = "busgate/gw1/dev/la1"
+ESTOP = la.ControlCommand(1, la.ControlCode.ESTOP)
+#: Long enough for a command that got through to be on the wire (it takes about a millisecond).
+SETTLE_S = 0.5
+#: Target positions used once in this module: a frame carrying one came from its test.
+FRESH_TARGETS = itertools.count(101, 13)
+
 
 def _free_port() -> int:
+    """conftest's ``free_port`` for the module-scoped daemon (that fixture is per test)."""
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         return probe.getsockname()[1]
@@ -311,23 +359,166 @@ def _until_answered(session: zenoh.Session, key: str, payload: str = "") -> list
     return answers
 
 
-def test_operators_command_everyone_reads_telemetry(secured_gateway) -> None:
-    operator = secured_gateway("operator", "op-secret")
-    viewer = secured_gateway("viewer", "view-secret")
-    states = []
-    viewer.declare_subscriber("busgate/*/dev/*/state", lambda sample: states.append(sample))
-    info = _until_answered(viewer, "busgate/gw1/info")  # the daemon is up, the viewer reads
-    assert info[0]["ok"] is True
-    status = json.dumps({"op": "status"})
-    reply = _until_answered(operator, "busgate/gw1/dev/la1/cmd", status)
+def _ready(session: zenoh.Session) -> zenoh.Session:
+    """``session`` once the gateway answers it (so the gateway's declarations reached it)."""
+    assert _until_answered(session, INFO)[0]["ok"] is True
+    return session
+
+
+def _enable(operator: zenoh.Session) -> None:
+    """Power la1 after an earlier test's e-stop: an e-stopped actuator refuses motion."""
+    reply = _until_answered(operator, f"{LA1}/cmd", json.dumps({"op": "enable"}))
     assert reply[0]["ok"] is True, reply
-    assert _answers(viewer, "busgate/gw1/dev/la1/cmd", status) == [], "a viewer commanded"
-    deadline = time.monotonic() + 20
-    while not states:
-        assert time.monotonic() < deadline, "the viewer got no telemetry"
-        time.sleep(0.05)
 
 
-def test_a_wrong_password_gets_no_session(secured_gateway) -> None:
-    with pytest.raises(zenoh.ZError):
-        secured_gateway("operator", "guess")
+def _frames_since(simulator: SerialSimulator, mark: int) -> list:
+    """The frames the actuator received after the first ``mark``, decoded."""
+    decoder = la.CommandDecoder()
+    for record in simulator.recorder.received()[mark:]:
+        decoder.feed(bytes.fromhex(record.wire))
+    return list(decoder.events())
+
+
+def _asked_since(simulator: SerialSimulator, mark: int) -> set[int | str]:
+    """What the frames since ``mark`` asked of the actuator: each target, and "estop"."""
+    frames = _frames_since(simulator, mark)
+    asked: set[int | str] = {"estop"} if ESTOP in frames else set()
+    for frame in frames:
+        if isinstance(frame, la.MoveCommand | la.FollowCommand):
+            asked.add(frame.position_raw)
+        elif isinstance(frame, la.GroupMoveCommand | la.GroupFollowCommand):
+            asked.update(target.position_raw for target in frame.targets)
+    return asked
+
+
+# -- who gets a session -------------------------------------------------------------------
+
+#: Ways to the gateway's port that must not give a session: credentials missing or wrong over
+#: TLS, and the right ones over plain TCP.
+TURNED_AWAY = {
+    "no credentials": {},
+    "wrong password": {"user": "operator", "password": "guess"},
+    "plain tcp": {"user": "operator", "password": "op-secret", "scheme": "tcp"},
+}
+
+
+@pytest.mark.parametrize("link", TURNED_AWAY.values(), ids=TURNED_AWAY)
+def test_a_client_turned_away_gets_no_session(secured_gateway, link) -> None:
+    """A client session cannot exist without its router: zenoh refuses to open it."""
+    with pytest.raises(zenoh.ZError, match="Unable to connect"):
+        secured_gateway.connect(**link)
+
+
+@pytest.mark.parametrize("link", TURNED_AWAY.values(), ids=TURNED_AWAY)
+def test_a_peer_turned_away_opens_alone_and_reaches_nothing(secured_gateway, link) -> None:
+    """A peer session opens without anyone (peers may be alone), but no transport to the
+    gateway came up: nothing it sends can reach the gateway, nothing answers it."""
+    peer = secured_gateway.connect(mode="peer", **link)
+    assert _answers(peer, INFO, timeout=SETTLE_S) == []
+    assert list(peer.info.transports()) == []
+
+
+@pytest.mark.parametrize("mode", ["client", "peer"])
+def test_tls_with_an_account_reaches_the_gateway(secured_gateway, mode) -> None:
+    """The counterpart of the two tests above: the same sessions with what they lacked."""
+    session = secured_gateway.connect("viewer", "view-secret", mode=mode)
+    assert _until_answered(session, INFO)[0]["ok"] is True
+    assert len(list(session.info.transports())) == 1
+
+
+# -- what each account can do -------------------------------------------------------------
+
+
+def test_operators_command_everyone_reads_telemetry(operator, viewer, wait_for) -> None:
+    states = []
+    viewer.declare_subscriber("busgate/*/dev/*/state", states.append)
+    assert _answers(viewer, INFO)[0]["ok"] is True
+    status = json.dumps({"op": "status"})
+    reply = _answers(operator, f"{LA1}/cmd", status)
+    assert reply[0]["ok"] is True, reply
+    assert _answers(viewer, f"{LA1}/cmd", status) == [], "a viewer commanded"
+    wait_for(lambda: states)
+
+
+def test_an_operators_move_is_answered_and_goes_on_the_wire(secured_gateway, operator) -> None:
+    _enable(operator)
+    target = next(FRESH_TARGETS)
+    mark = len(secured_gateway.simulator.recorder.received())
+    reply = _answers(operator, f"{LA1}/cmd", json.dumps({"op": "move", "position": target}))
+    assert reply[0]["ok"] is True and reply[0]["state"]["target"] == target, reply
+    assert la.MoveCommand(1, target) in _frames_since(secured_gateway.simulator, mark)
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One way to move or stop la1; ``payload`` is given a target position used once."""
+
+    how: str  # "put" or "get"
+    key: str
+    payload: Callable[[int], dict]
+    stops: bool = False
+
+    def send(self, session: zenoh.Session, target: int) -> list:
+        """Make the attempt; the answers to a get, none for a put."""
+        body = json.dumps(self.payload(target))
+        if self.how == "get":
+            return _answers(session, self.key, body)
+        session.put(self.key, body)
+        return []
+
+    def asks(self, target: int) -> int | str:
+        """What the attempt puts on the wire when it gets through."""
+        return "estop" if self.stops else target
+
+
+def _move(target: int) -> dict:
+    return {"op": "move", "position": target}
+
+
+ATTEMPTS = {
+    "put a move": Attempt("put", f"{LA1}/cmd", _move),
+    "get a move": Attempt("get", f"{LA1}/cmd", _move),
+    "put a follow target": Attempt("put", f"{LA1}/follow", lambda p: {"position": p}),
+    "get a group move": Attempt("get", "busgate/gw1/bus/uart0/cmd", lambda p: {
+        "op": "group_move", "targets": [{"device": "la1", "position": p}]}),
+    "put a device e-stop": Attempt("put", f"{LA1}/cmd", lambda p: {"op": "estop"}, stops=True),
+    "put the gateway's e-stop": Attempt("put", "busgate/gw1/estop", lambda p: {}, stops=True),
+    "put the fleet's e-stop": Attempt("put", "busgate/*/estop", lambda p: {}, stops=True),
+}
+
+
+@pytest.mark.parametrize("attempt", ATTEMPTS.values(), ids=ATTEMPTS)
+def test_a_viewers_command_never_reaches_the_wire_an_operators_does(
+        attempt, secured_gateway, operator, viewer, wait_for) -> None:
+    _enable(operator)  # so that nothing but the access control could stop the viewer
+    simulator = secured_gateway.simulator
+    viewer_target, operator_target = next(FRESH_TARGETS), next(FRESH_TARGETS)
+    mark = len(simulator.recorder.received())
+    assert attempt.send(viewer, viewer_target) == [], "a viewer was answered"
+    time.sleep(SETTLE_S)
+    assert attempt.asks(viewer_target) not in _asked_since(simulator, mark), "a viewer's got out"
+    attempt.send(operator, operator_target)  # the same attempt shows up when allowed
+    wait_for(lambda: attempt.asks(operator_target) in _asked_since(simulator, mark))
+
+
+def test_no_account_passes_fake_telemetry_info_or_liveliness_to_another(
+    operator, viewer, wait_for
+) -> None:
+    """Reading is one-way: only the gateway publishes state, answers info and holds alive
+    tokens. A viewer's fake ones never reach the operator, while the gateway's real ones do."""
+    states: list[bytes] = []
+    operator.declare_subscriber(f"{LA1}/state", lambda s: states.append(s.payload.to_bytes()))
+    fake_info = viewer.declare_queryable(
+        "busgate/gw9/info", lambda query: query.reply("busgate/gw9/info", b'{"ok":true}'))
+    fake_alive = viewer.liveliness().declare_token("busgate/gw9/alive")
+    time.sleep(0.5)  # the declarations reach the gateway (or are refused there)
+    viewer.put(f"{LA1}/state", b'{"forged":true}')
+    wait_for(lambda: len(states) >= 3)  # the real telemetry kept coming meanwhile
+    assert not [s for s in states if b"forged" in s], "a viewer's state reached the operator"
+    infos = [str(r.ok.key_expr) for r in operator.get("busgate/*/info", timeout=2) if r.ok]
+    assert infos == ["busgate/gw1/info"], infos
+    alive = [str(r.ok.key_expr) for r in operator.liveliness().get("busgate/*/alive", timeout=2)
+             if r.ok]
+    assert alive == ["busgate/gw1/alive"], alive
+    fake_info.undeclare()
+    fake_alive.undeclare()
