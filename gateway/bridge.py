@@ -96,7 +96,9 @@ class ZenohBridge:
             key = f"{base}/bus/{bus}/stats"
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
         self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
-        log.info("zenoh session up: gateway %s on %s", self.base, zenoh_section.listen or "peers")
+        where = (zenoh_section.listen or zenoh_section.config_file
+                 or "no listen endpoint: reachable only through connect")
+        log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
     def connections(self) -> int:
         """Open zenoh transports: the clients, peers and routers connected now."""

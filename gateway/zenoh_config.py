@@ -7,8 +7,10 @@ Everything else in busgate stays free of zenoh.
 
 Rules: a full zenoh config file (ACL, TLS, auth …) is the base and busgate's settings are laid
 over it. ``mode`` and multicast scouting are always set (multicast off unless asked for: a
-service talks to the endpoints it is given, never to whoever answers on the LAN); ``listen``
-and ``connect`` are set only when given, so endpoints written in the file survive an empty list.
+service talks to the endpoints it is given, never to whoever answers on the LAN). ``listen``
+and ``connect`` are set when given, so endpoints written in the file survive an empty list;
+with neither ``listen`` nor a file, a session listens nowhere (zenoh's default would be every
+interface, with no authentication): it reaches others only through ``connect``.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ def session_config(
     config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
-    if listen:
+    if listen or not config_file:  # zenoh's own default listens on every interface
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
