@@ -166,7 +166,7 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
     """The budget of ``bus`` as ``busgate run`` would drive it (nothing is opened)."""
     runner = build_bus(bus)
     timing, gap = runner.timing, runner.planner.gap_s
-    polls = [(p.period_s, p.driver.poll() or p.driver.init()) for p in runner.planner.pollers]
+    polls = [(p.poll_period_s, p.driver.poll() or p.driver.init()) for p in runner.planner.pollers]
     polling = sum((_load(timing, gap, requests, 1 / period) for period, requests in polls),
                   Load())
     ticks = _follow_frames(runner)
