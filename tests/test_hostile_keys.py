@@ -1,0 +1,79 @@
+"""Over-long and malformed key expressions against the real gateway (``serve``, a zenoh session
+on 127.0.0.1, the Inspire LA simulator on a pty), each carrying a valid move. Whatever the key,
+the gateway answers with an error or zenoh delivers nothing, the gateway serves on, and no move
+reaches the wire (that a move to ``la1`` does reach it is ``test_zenoh_api``'s first test).
+
+What zenoh itself does with such keys, in eclipse-zenoh 1.10: a key with many chunks matches
+no queryable of the gateway (``*`` stands for one chunk), so the get ends at once with no
+reply; keys that are not canonical or use ``#`` or a bare partial wildcard are refused by the
+client with ``ZError`` before anything is sent.
+"""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+
+from tests import test_zenoh_api
+
+# The daemon, a client session and the simulator, as test_zenoh_api runs them.
+setup = test_zenoh_api.setup
+get = test_zenoh_api.get
+
+MOVE = '{"op":"move","position":1000}'
+
+# Keys the gateway's queryables match, naming nothing it has: an error reply within 1 s.
+ANSWERED = {
+    "5000-char device": ("busgate/gw1/dev/" + "x" * 5000 + "/cmd", "unknown_device"),
+    "60000-char device, just under one zenoh batch": (
+        "busgate/gw1/dev/" + "x" * 60_000 + "/cmd", "unknown_device"),
+    "device of spaces and accents": ("busgate/gw1/dev/" + "é " * 2000 + "/cmd", "unknown_device"),
+    "5000-char bus": ("busgate/gw1/bus/" + "b" * 5000 + "/cmd", "unknown_bus"),
+}
+# Keys no queryable of the gateway matches: the get ends with no reply.
+UNMATCHED = {
+    "2000 device chunks": "busgate/gw1/dev/" + "a/" * 2000 + "cmd",
+    "2000 bus chunks": "busgate/gw1/bus/" + "a/" * 2000 + "cmd",
+    "2000 wildcard chunks": "busgate/gw1/dev/" + "*/" * 2000 + "cmd",
+    "2000 chunks between **": "busgate/" + "**/a/" * 2000 + "cmd",
+}
+# Keys zenoh refuses on the client: nothing is sent.
+REFUSED = {
+    "2000 partial wildcards": "busgate/gw1/dev/" + "a*/" * 2000 + "cmd",
+    "an empty chunk": "busgate/gw1/dev//cmd",
+    "** twice": "busgate/gw1/dev/**/**/cmd",
+    "a # in the name": "busgate/gw1/dev/la#1/cmd",
+}
+
+
+def assert_serves_on_and_nothing_moved(client: zenoh.Session, simulator, before: int) -> None:
+    [status] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status"}')
+    assert status["ok"], "the gateway serves on"
+    moves = [r for r in simulator.recorder.received()[before:] if r.frame == "MoveCommand"]
+    assert moves == [], "nothing reached the wire"
+
+
+@pytest.mark.parametrize(("key", "code"), ANSWERED.values(), ids=ANSWERED)
+def test_a_key_naming_nothing_gets_its_error_code(setup, key, code) -> None:
+    client, simulator = setup
+    before = len(simulator.recorder.received())
+    [reply] = get(client, key, MOVE, timeout=1.0)
+    assert reply["error"]["code"] == code
+    assert_serves_on_and_nothing_moved(client, simulator, before)
+
+
+@pytest.mark.parametrize("key", UNMATCHED.values(), ids=UNMATCHED)
+def test_a_key_of_many_chunks_gets_no_reply(setup, key) -> None:
+    client, simulator = setup
+    before = len(simulator.recorder.received())
+    assert list(client.get(key, payload=MOVE, timeout=1.0)) == []
+    assert_serves_on_and_nothing_moved(client, simulator, before)
+
+
+@pytest.mark.parametrize("key", REFUSED.values(), ids=REFUSED)
+def test_a_malformed_key_is_refused_by_the_client(setup, key) -> None:
+    client, simulator = setup
+    before = len(simulator.recorder.received())
+    with pytest.raises(zenoh.ZError, match="Invalid Key Expr"):
+        client.get(key, payload=MOVE, timeout=1.0)
+    assert_serves_on_and_nothing_moved(client, simulator, before)
