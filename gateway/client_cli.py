@@ -146,7 +146,7 @@ def run_send(args: argparse.Namespace) -> int:
             return 0
         replies = session.get(key, payload=payload, timeout=args.timeout,
                               consolidation=zenoh.ConsolidationMode.NONE)
-        outcomes = [outcome for reply in replies if (outcome := _outcome(reply)) is not None]
+        outcomes = [outcome for reply in replies if (outcome := reply_outcome(reply)) is not None]
     if "/" not in args.target:
         outcomes = _from_gateways_that_have_it(outcomes)
     if not outcomes:
@@ -170,7 +170,7 @@ def _from_gateways_that_have_it(outcomes: list) -> list:
     return known or outcomes
 
 
-def _outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
+def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
     """A reply's JSON and its (code, message) when it is an error; ``None`` for zenoh's timeout."""
     sample = reply.ok
     raw = sample.payload.to_bytes() if sample is not None else reply.err.payload.to_bytes()

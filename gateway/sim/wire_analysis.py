@@ -22,6 +22,10 @@ from pathlib import Path
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.sim.recorder import WireRecord
 
+#: Records keep times to 0.1 µs (``WireRecord.to_json``): an interval counts as shorter than
+#: the period only by more than that.
+RESOLUTION_S = 1e-7
+
 
 @dataclass(frozen=True, slots=True)
 class WireFigures:
@@ -52,7 +56,8 @@ def analyse(
     follow_period_s: float | None = None,
 ) -> WireFigures:
     """Device-side gaps (each received frame's start after the previous frame's end, either
-    direction) and intervals between consecutive follow frames."""
+    direction) and intervals between consecutive follow frames to the same device (a
+    broadcast frame, which carries every device's target, counts as one stream)."""
     ordered = sorted(records, key=lambda r: r.start)
     after_reply, after_silent, unresolved, turnarounds = [], [], 0, []
     previous: WireRecord | None = None
@@ -69,19 +74,24 @@ def analyse(
         line_idle = record.end if line_idle is None else max(line_idle, record.end)
         previous = record
     ticks = [r for r in ordered if r.direction == "rx" and r.frame in follow_frames]
-    intervals = [b.start - a.start for a, b in itertools.pairwise(ticks)
+    streams: dict[int | None, list[WireRecord]] = {}  # one per device (a broadcast is one)
+    for tick in ticks:
+        streams.setdefault(tick.device_id, []).append(tick)
+    intervals = [b.start - a.start for stream in streams.values()
+                 for a, b in itertools.pairwise(stream)
                  if b.arrived is None or b.arrived != a.arrived]
     errors = sorted(i - follow_period_s for i in intervals) if follow_period_s else []
+    shortest_gap = min_gap_s - RESOLUTION_S
     return WireFigures(
         frames_received=sum(1 for r in ordered if r.direction == "rx"),
         smallest_gap_after_reply_s=min(after_reply, default=None),
-        gaps_after_reply_below_minimum=sum(1 for g in after_reply if g < min_gap_s),
+        gaps_after_reply_below_minimum=sum(1 for g in after_reply if g < shortest_gap),
         smallest_gap_after_silent_frame_s=min(after_silent, default=None),
-        gaps_after_silent_frame_below_minimum=sum(1 for g in after_silent if g < min_gap_s),
+        gaps_after_silent_frame_below_minimum=sum(1 for g in after_silent if g < shortest_gap),
         unresolved=unresolved,
         follow_frames=len(ticks),
         smallest_follow_interval_s=min(intervals, default=None),
-        follow_intervals_under_period=sum(1 for e in errors if e < 0),
+        follow_intervals_under_period=sum(1 for e in errors if e < -RESOLUTION_S),
         follow_error_p50_s=percentile(errors, 0.5),
         follow_error_p99_s=percentile(errors, 0.99),
         mean_turnaround_s=sum(turnarounds) / len(turnarounds) if turnarounds else None,
