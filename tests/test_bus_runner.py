@@ -191,8 +191,9 @@ def test_the_link_comes_back_after_a_replug(wait_for, simulator) -> None:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
         simulator.unplug()
         wait_for(lambda: not runner.drivers["la1"].online)
+        time.sleep(2.5)  # long enough for the reconnect backoff to reach its 2 s
         simulator.replug()
-        wait_for(lambda: runner.drivers["la1"].online)
+        wait_for(lambda: runner.drivers["la1"].online, timeout=3.0)  # the issue: within 3 s
         assert runner.statistics().reconnects == 1
         kinds = [e.type for e in events if e.device == "la1"]
         assert kinds.count("offline") == 1 and kinds.count("online") == 2

@@ -155,7 +155,10 @@ def test_a_client_that_vanishes_loses_its_claim(wait_for, setup) -> None:
     wait_for(bob_moves)
 
 
-def test_busgate_run_stops_in_order_on_sigterm(free_port, wait_for, tmp_path) -> None:
+def test_busgate_run_stops_in_order_on_sigterm_during_traffic(free_port, wait_for, tmp_path):
+    """SIGTERM while a client streams follow targets to la1 and sends moves to la2: the
+    daemon exits 0 within a few seconds, each actuator is e-stopped with no motion frame after
+    it, and no frame is left half-written."""
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
     config = tmp_path / "gw.toml"
@@ -163,23 +166,47 @@ def test_busgate_run_stops_in_order_on_sigterm(free_port, wait_for, tmp_path) ->
     config.write_text(
         f'[gateway]\nname = "gw1"\n[zenoh]\nlisten = ["{endpoint}"]\n'
         f'[[buses]]\nname = "uart0"\ntransport = "serial"\nport = "{simulator.port}"\n'
-        'baudrate = 921600\n[[buses.devices]]\nname = "la1"\nkind = "inspire_la"\nid = 1\n'
+        'baudrate = 921600\n'
+        + "".join(f'[[buses.devices]]\nname = "la{i}"\nkind = "inspire_la"\nid = {i}\n'
+                  'follow_period_ms = 10\n' for i in (1, 2))
     )
     process = subprocess.Popen([sys.executable, "-m", "busgate.gateway.cli", "run", "--config",
                                 str(config)], stderr=subprocess.PIPE, text=True)
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    traffic = threading.Event()
+
+    def client_traffic() -> None:
+        position = 0
+        while not traffic.is_set():
+            position = (position + 7) % 2000
+            client.put("busgate/gw1/dev/la1/follow", json.dumps({"position": position}))
+            client.put("busgate/gw1/dev/la2/cmd", json.dumps({"op": "move", "position": position}))
+            time.sleep(0.003)
+
+    streaming = threading.Thread(target=client_traffic)
     try:
-        wait_for(lambda: any(r.frame == "ControlCommand" for r in simulator.recorder.received()),
-                 timeout=15)
+        streaming.start()
+        wait_for(lambda: {"FollowCommand", "MoveCommand"}
+                 <= {r.frame for r in simulator.recorder.received()}, timeout=15)
         sent = time.monotonic()
         process.send_signal(signal.SIGTERM)
         assert process.wait(timeout=10) == 0
         assert time.monotonic() - sent < 3.0
-        estop = la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex()
-        assert estop in [r.wire for r in simulator.recorder.received()], "left in its safe state"
     finally:
+        traffic.set()
+        streaming.join()
+        client.close()
         if process.poll() is None:
             process.kill()
         simulator.stop()
+    motion = ("FollowCommand", "MoveCommand", "GroupFollowCommand", "GroupMoveCommand")
+    for device_id in (1, 2):
+        frames = [r for r in simulator.recorder.received() if r.device_id in (device_id, 255)]
+        estop = la.encode(la.ControlCommand(device_id, la.ControlCode.ESTOP)).hex()
+        last_estop = max(i for i, r in enumerate(frames) if r.wire == estop)
+        after = [r.frame for r in frames[last_estop:] if r.frame in motion]
+        assert after == [], f"la{device_id} moved after its e-stop"
+    assert simulator.partial_frame == b"", "a frame left half-written"
 
 
 def test_a_fleet_wide_get_is_answered_only_by_the_gateway_that_has_the_device(setup) -> None:

@@ -72,6 +72,11 @@ class SerialSimulator:
         """What a host opens: the symlink when there is one, else the pty."""
         return self.link.link or self.link.path
 
+    @property
+    def partial_frame(self) -> bytes:
+        """Bytes received that are not (yet) a whole frame: a frame the host left half-written."""
+        return bytes(self._unparsed)
+
     def start(self) -> SerialSimulator:
         self._thread.start()
         return self
