@@ -4,6 +4,8 @@ follows the noise. Slow: outside the default run (``.venv/bin/python -m pytest -
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -61,3 +63,29 @@ def test_can_decoders_survive_any_frame(decoder_class) -> None:
         assert len(list(decoder.events())) == len(batch)
 
     run()
+
+
+def _decode_all(decoder_class, data: bytes, chunk: int = 64) -> float:
+    """Seconds to feed ``data`` in ``chunk``-byte reads and drain every event (best of 3)."""
+    best = float("inf")
+    for _ in range(3):
+        decoder = decoder_class()
+        started = time.perf_counter()
+        for offset in range(0, len(data), chunk):
+            decoder.feed(data[offset : offset + chunk])
+            for _event in decoder.events():
+                pass
+        best = min(best, time.perf_counter() - started)
+    return best
+
+
+@pytest.mark.parametrize(("decoder_class", "good"), STREAM_DECODERS)
+def test_stream_decoders_take_linear_time_on_hostile_input(decoder_class, good) -> None:
+    """The worst inputs for a resynchronising decoder: its own header over and over (each a
+    candidate frame start), and frames cut short before their checksum. Ten times the bytes
+    must take about ten times as long, not a hundred (a rescan per byte would be quadratic)."""
+    header, truncated = good[:2], good[:-1]
+    for pattern in (header, truncated, bytes(range(256))):
+        small = pattern * (20_000 // len(pattern))
+        ratio = _decode_all(decoder_class, small * 10) / _decode_all(decoder_class, small)
+        assert ratio < 20, f"{decoder_class.__qualname__} on {pattern[:8].hex()}…: ×{ratio:.1f}"
