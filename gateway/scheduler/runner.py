@@ -43,7 +43,8 @@ from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.drivers.base import DeviceEvent, Driver
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
-from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker, KeepaliveTicker
+from busgate.gateway.scheduler.streams import FollowStreams
+from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +131,7 @@ class BusRunner:
         self.planner.tickers = list(self._keepalives.values())
         self._poll_periods = {p.device: p.poll_period_s for p in self.planner.pollers}
         self.states: dict[str, dict[str, Any]] = {}
-        self._streams: dict[str, FollowStream] = {}
+        self.streams = FollowStreams(self.planner, self.counters, self.drivers)
         self._min_write_s = float("inf")
         self._dirty: set[str] = set(self.drivers)
         self.on_event = on_event
@@ -192,7 +193,7 @@ class BusRunner:
 
     def stop_stream(self, device: str, reason: str) -> None:
         """End ``device``'s follow stream now (its client went away), as if it went stale."""
-        self._inbox.append(lambda: self._end_stream(device, reason))
+        self._inbox.append(lambda: self.streams.end(device, reason))
         self._wake.set()
 
     def estop(self) -> Future:
@@ -202,12 +203,10 @@ class BusRunner:
     def follow(self, device: str, target: Any) -> None:
         """The latest follow target of ``device`` (validated with its driver's
         ``follow_target``); streaming starts, or goes on, at the device's period."""
-        stream = self._streams.get(device)
-        if stream is not None:
-            stream.latest = (target, now())
-            return
         moment = now()
-        self._inbox.append(lambda: self._update_stream(device, target, moment))
+        if self.streams.store_latest(device, target, moment):
+            return
+        self._inbox.append(lambda: self._start_stream(device, target, moment))
         self._wake.set()
 
     def stop(self, timeout: float = 1.0) -> None:
@@ -250,51 +249,14 @@ class BusRunner:
     def _plan_estop(self, future: Future) -> None:
         for job in self.planner.drop_commands():
             self._fail(job, CommandError("cancelled by e-stop"))
-        self._stop_streams("estop")
+        self.streams.end_all("estop")
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, context=future))
 
-    def _update_stream(self, device: str, target: Any, moment: float) -> None:
+    def _start_stream(self, device: str, target: Any, moment: float) -> None:
         driver = self.drivers.get(device)
-        if driver is None or not self.owner.is_open:
-            return
-        period = driver.follow_period_s
-        tickers = [t for t in self.planner.tickers if isinstance(t, FollowTicker)]
-        chosen = next((t for t in tickers if device in t.streams), None) or next(
-            (t for t in tickers
-             if t.driver_class is type(driver) and t.period_s == period and t.has_room(driver)),
-            None,
-        )
-        if chosen is None:
-            chosen = FollowTicker(type(driver), period, self.counters, self._stream_went_stale)
-            self.planner.tickers.append(chosen)
-        self._streams[device] = chosen.update(driver, target, moment)
-
-    def _end_stream(self, device: str, reason: str) -> None:
-        for ticker in self.planner.tickers:
-            if isinstance(ticker, FollowTicker) and device in ticker.streams:
-                ticker.stop(device)
-                self._streams.pop(device, None)
-                driver = self.drivers[device]
-                driver.emit("stream_stopped", reason=reason)
-                requests = driver.stale_stream()
-                if requests:
-                    self.planner.push_command(Job(device, deque(requests)))
-
-    def _stream_went_stale(self, driver: Driver) -> None:
-        self._streams.pop(driver.name, None)
-        driver.emit("stream_stale")
-        requests = driver.stale_stream()
-        if requests:
-            self.planner.push_command(Job(driver.name, deque(requests)))
-
-    def _stop_streams(self, reason: str) -> None:
-        for ticker in self.planner.tickers:
-            if isinstance(ticker, FollowTicker):
-                for name in list(ticker.streams):
-                    ticker.stop(name)
-                    self._streams.pop(name, None)
-                    self.drivers[name].emit("stream_stopped", reason=reason)
+        if driver is not None and self.owner.is_open:
+            self.streams.start(driver, target, moment)
 
     # -- bus thread: the loop ---------------------------------------------------------------
 
@@ -483,7 +445,7 @@ class BusRunner:
                 self._log_event(event)
                 self.on_event(event)
                 if event.type == "rebooted":  # its targets are stale: a fresh command moves it
-                    self._end_stream(name, "device rebooted")
+                    self.streams.end(name, "device rebooted")
             if events or name in self._dirty:
                 self.states[name] = state = self._state(driver, moment)
                 self.on_state(name, state)
@@ -534,7 +496,7 @@ class BusRunner:
             self._fail(slot.source, BusUnavailableError(str(exc)))
         for job in self.planner.drop_commands():
             self._fail(job, BusUnavailableError(f"bus {self.name} went down"))
-        self._stop_streams("bus down")
+        self.streams.end_all("bus down")
         for driver in self.drivers.values():
             driver.went_offline("bus down")
         self.owner.close()
@@ -550,7 +512,7 @@ class BusRunner:
 
     def _shut_down(self) -> None:
         """Last deeds of the bus thread: safe state for every device, then close."""
-        self._stop_streams("shutdown")
+        self.streams.end_all("shutdown")
         for job in self.planner.drop_commands():
             self._fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
         if self.owner.is_open:

@@ -1,0 +1,84 @@
+"""The follow streams of one bus: which ticker carries each device's stream, and what happens
+when a stream ends.
+
+Rules of this file:
+
+1. Bus thread only, but for ``store_latest``: a client's new target for a running stream is
+   stored where the next tick reads it, from any thread, without waking the bus thread.
+2. A stream that goes stale or is stopped for one device (its client left, it rebooted) is
+   reported with an event and followed by the device's ``stale_stream`` requests (a ZLAC706
+   gets 0 rpm) as a command. Streams ended all at once (e-stop, lost bus, shutdown) are only
+   reported: what comes next puts every device in its safe state anyway.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.planner import BusPlanner, Job
+from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker
+
+
+class FollowStreams:
+    """Starts, feeds and ends the follow streams of the devices on one bus."""
+
+    def __init__(self, planner: BusPlanner, counters: BusCounters,
+                 drivers: dict[str, Driver]) -> None:
+        self.planner = planner
+        self.counters = counters
+        self.drivers = drivers
+        self._streams: dict[str, FollowStream] = {}
+
+    def store_latest(self, device: str, target: Any, moment: float) -> bool:
+        """Any thread: the new target of ``device``'s running stream; ``False`` (nothing
+        stored) when it has none, and the bus thread must ``start`` one."""
+        stream = self._streams.get(device)
+        if stream is None:
+            return False
+        stream.latest = (target, moment)
+        return True
+
+    def start(self, driver: Driver, target: Any, moment: float) -> None:
+        """Start (or feed) ``driver``'s stream on a ticker of its kind and period with room."""
+        period = driver.follow_period_s
+        tickers = self._tickers()
+        chosen = next((t for t in tickers if driver.name in t.streams), None) or next(
+            (t for t in tickers
+             if t.driver_class is type(driver) and t.period_s == period and t.has_room(driver)),
+            None,
+        )
+        if chosen is None:
+            chosen = FollowTicker(type(driver), period, self.counters, self._went_stale)
+            self.planner.tickers.append(chosen)
+        self._streams[driver.name] = chosen.update(driver, target, moment)
+
+    def end(self, device: str, reason: str) -> None:
+        """End ``device``'s stream now, as if it went stale (rule 2)."""
+        for ticker in self._tickers():
+            if device in ticker.streams:
+                ticker.stop(device)
+                self._ended(self.drivers[device], "stream_stopped", reason=reason)
+
+    def end_all(self, reason: str) -> None:
+        """End every stream, reported only (rule 2)."""
+        for ticker in self._tickers():
+            for name in list(ticker.streams):
+                ticker.stop(name)
+                self._streams.pop(name, None)
+                self.drivers[name].emit("stream_stopped", reason=reason)
+
+    def _went_stale(self, driver: Driver) -> None:
+        self._ended(driver, "stream_stale")
+
+    def _ended(self, driver: Driver, event: str, **fields: Any) -> None:
+        self._streams.pop(driver.name, None)
+        driver.emit(event, **fields)
+        requests = driver.stale_stream()
+        if requests:
+            self.planner.push_command(Job(driver.name, deque(requests)))
+
+    def _tickers(self) -> list[FollowTicker]:
+        return [t for t in self.planner.tickers if isinstance(t, FollowTicker)]
