@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import threading
 import time
@@ -28,7 +29,7 @@ from typing import Any, TextIO
 
 import zenoh
 
-from busgate.codecs.errors import BusgateError
+from busgate.codecs.errors import BusgateError, CommandError
 from busgate.gateway.zenoh_config import session_config
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -96,6 +97,23 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
                         help="a zenoh config file (TLS, auth …) laid underneath")
 
 
+_RUST_SOURCE = re.compile(r"\s+at /\S+\.rs:\d+\.?$")
+#: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
+MAX_KEY_BYTES = 60 * 1024
+
+
+def key_expr(text: str) -> zenoh.KeyExpr:
+    """``text`` as a key expression; ``CommandError`` (one line, exit 2) when zenoh would
+    refuse it or it is too long to send."""
+    if len(text.encode()) > MAX_KEY_BYTES:
+        raise CommandError(f"a key expression of {len(text.encode())} bytes: at most "
+                           f"{MAX_KEY_BYTES} fit in a zenoh message")
+    try:
+        return zenoh.KeyExpr(text)
+    except zenoh.ZError as exc:
+        raise CommandError(f"not a key expression: {text[:200]!r} ({_first_line(exc)})") from exc
+
+
 def _positive(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -121,8 +139,8 @@ def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
 
 
 def _first_line(exc: BaseException) -> str:
-    # zenoh appends " at <rust source path>" to its messages; keep the human part.
-    return str(exc).splitlines()[0].split("  at /")[0].strip()
+    # zenoh appends " at <rust source path>:<line>" to its messages; keep the human part.
+    return _RUST_SOURCE.sub("", str(exc).splitlines()[0]).strip()
 
 
 # -- send -----------------------------------------------------------------------------------
@@ -138,7 +156,7 @@ def command_key(prefix: str, target: str) -> str:
 
 
 def run_send(args: argparse.Namespace) -> int:
-    key = command_key(args.prefix, args.target)
+    key = str(key_expr(command_key(args.prefix, args.target)))
     payload = args.command.encode()
     with client_session(args) as session:
         if args.put:
@@ -214,10 +232,7 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
 
 def run_watch(args: argparse.Namespace) -> int:
     state_key, stats_key, selector = watch_keys(args.prefix, args.selector)
-    try:
-        wanted = zenoh.KeyExpr(selector)
-    except zenoh.ZError as exc:
-        raise ZenohSessionError(f"not a key expression: {selector!r}") from exc
+    wanted = key_expr(selector)
     table = WatchTable()
     seconds = args.seconds if args.seconds is not None else (1.5 if args.once else None)
     with client_session(args) as session:

@@ -254,6 +254,21 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize(("command", "message"), [
+    (["send", "busgate/gw1//cmd", "{}"], "not a key expression: 'busgate/gw1//cmd' (Invalid"),
+    (["send", "busgate/gw1/dev/" + "x" * 70_000 + "/cmd", "{}"], "a key expression of 70020"),
+    (["watch", "busgate/#", "--once"], "not a key expression: 'busgate/#'"),
+])
+def test_a_key_zenoh_would_refuse_is_one_line_and_exit_2(command, message, free_port, capsys):
+    """Refused before any session opens (zenoh would raise, or panic past 64 KiB), with
+    zenoh's reason and without its Rust source path."""
+    status = main([*command, "--connect", f"tcp/127.0.0.1:{free_port()}"])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert err.startswith(f"busgate {command[0]}: error: {message}"), err[:300]
+    assert len(err.strip().splitlines()) == 1 and ".rs:" not in err
+
+
 # -- watch ----------------------------------------------------------------------------------
 
 
