@@ -166,7 +166,9 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
     """The budget of ``bus`` as ``busgate run`` would drive it (nothing is opened)."""
     runner = build_bus(bus)
     timing, gap = runner.timing, runner.planner.gap_s
-    polls = [(p.poll_period_s, p.driver.poll() or p.driver.init()) for p in runner.planner.pollers]
+    # Steady state: what each online device's poll sends (nothing, for a ZLAC706 on CAN, whose
+    # telemetry is its heartbeats); an offline device's probes come OFFLINE_PROBE_S apart.
+    polls = [(p.poll_period_s, p.driver.poll()) for p in runner.planner.pollers]
     polling = sum((_load(timing, gap, requests, 1 / period) for period, requests in polls),
                   Load())
     ticks = _follow_frames(runner)
@@ -183,7 +185,7 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
         protocol=bus.protocol, devices=len(bus.devices),
         polling=polling, follow=follow, heartbeats=_heartbeats(bus, timing),
         follow_period_s=shortest, tick_free_s=tick_free,
-        longest_poll_s=longest + runner.planner.slack_s,
+        longest_poll_s=longest + runner.planner.slack_s if longest else 0.0,
         reply_margin_s=timing.margin_s,
     )
 

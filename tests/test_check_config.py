@@ -148,6 +148,10 @@ def test_can_heartbeats_count_against_the_bus() -> None:
         "devices": [{"name": f"w{i}", "kind": "zlac706", "id": i, "heartbeat_ms": 100}
                     for i in (1, 2)],
     })
-    heartbeats = bus_budget(bus).heartbeats
+    budget = bus_budget(bus)
+    heartbeats = budget.heartbeats
     assert heartbeats.frames == pytest.approx(40)
     assert heartbeats.wire_s == pytest.approx(40 * 135 / 500_000) == heartbeats.reserved_s
+    # Heartbeats are the telemetry: an online node is never polled, so nothing is reserved
+    # for polls (its offline probes are not the steady state).
+    assert budget.polling.frames == 0 and budget.longest_poll_s == 0
