@@ -25,6 +25,7 @@ from busgate.gateway.sim.ds_servo import (
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
+from tests.serial_host import assert_silent, exchange
 
 OK = ds.ServoStatus(0)
 # Manual examples (2.3.1-2.3.7); SYNC WRITE with the checksum corrected to BA (PROTOCOL_NOTES).
@@ -365,17 +366,6 @@ def bus() -> Iterator[tuple[SerialSimulator, serial.Serial]]:
     with SerialSimulator(ds, servos, baudrate=BAUD) as simulator, serial.Serial(
         simulator.port, BAUD, timeout=1) as host:
         yield simulator, host
-
-
-def exchange(host: serial.Serial, frame: str, reply_bytes: int) -> bytes:
-    host.write(bytes.fromhex(frame))
-    return host.read(reply_bytes)
-
-
-def assert_silent(host: serial.Serial, wait_s: float = 0.15) -> None:
-    host.timeout, before = wait_s, host.timeout
-    assert host.read(1) == b""
-    host.timeout = before
 
 
 def read_frame(servo_id: int, address: int, length: int) -> str:

@@ -36,6 +36,7 @@ from busgate.gateway.sim.zlac706 import (
     Zlac706Rs232Device,
 )
 from busgate.gateway.sim.zlac706_motor import PULSES_PER_REV, Settings
+from tests.serial_host import assert_silent, exchange
 
 # --- helpers ---------------------------------------------------------------------------------
 
@@ -522,17 +523,6 @@ def rs232_line():
         simulator.port, BAUD, timeout=1
     ) as host:
         yield simulator, device, host
-
-
-def exchange(host: serial.Serial, frame: str, reply_bytes: int) -> bytes:
-    host.write(bytes.fromhex(frame))
-    return host.read(reply_bytes)
-
-
-def assert_silent(host: serial.Serial, wait_s: float = 0.15) -> None:
-    host.timeout, before = wait_s, host.timeout
-    assert host.read(1) == b""
-    host.timeout = before
 
 
 def test_wire_rs232_ack_and_monitor_never_beat_wire_time_and_turnaround(rs232_line) -> None:
