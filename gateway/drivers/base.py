@@ -135,7 +135,7 @@ class Driver(abc.ABC):
         self.misses = 0
         if not self.online:
             # Back after going offline, it may have lost power: its settings go again.
-            self.restore_pending = self.was_online and bool(self.restore())
+            self.restore_pending = self.was_online
             self.online = self.was_online = True
             self.emit("online")
 

@@ -228,14 +228,17 @@ class InspireLaDriver(Driver):
 
     def restore(self) -> list[Request]:
         """After a reboot the power stage is on again: an e-stop is sent again first."""
-        estop = self.safe_stop() if self.power is PowerStage.ESTOPPED else []
+        estop = [self._estop()] if self.power is PowerStage.ESTOPPED else []
         return estop + super().restore()
 
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""
         self.power = PowerStage.ESTOPPED
-        estop = codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP)
-        return [_request(estop, idempotent=True)]
+        return [self._estop()]
+
+    def _estop(self) -> Request:
+        return _request(codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP),
+                        idempotent=True)
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""
