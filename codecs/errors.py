@@ -105,3 +105,14 @@ class CommandError(BusgateError, ValueError):
     """A client's command is malformed or not allowed."""
 
     code = "bad_command"
+
+
+class RefusedError(BusgateError):
+    """The gateway will not send what was asked; ``code`` says why (``claimed``,
+    ``estopped``, ``unknown_device``, ``busy`` …) and the message how to go on."""
+
+    code = "refused"
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code

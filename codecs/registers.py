@@ -97,6 +97,11 @@ class RegisterMap:
         """For each address of ``[address, address + length)``, its register or ``None``."""
         return [self.at(a) for a in range(address, address + length)]
 
+    def touched(self, address: int, length: int) -> set[str]:
+        """The names of the registers a write of ``length`` bytes at ``address`` reaches (an
+        address-only write, ``length`` 0, reaches the register at ``address``)."""
+        return {r.name for r in self.covering(address, max(length, 1)) if r is not None}
+
 
 def require_range(field: str, value: int, lo: int, hi: int) -> int:
     """Return ``value`` when ``lo <= value <= hi``, else raise ``EncodeError`` naming ``field``.

@@ -4,12 +4,15 @@ The bridge (the only zenoh module) hands payloads here and sends back what comes
 every rule of the API is tested without a network. Rules of this file:
 
 1. A payload is refused before anything reaches a bus when it is over 64 KiB, not UTF-8, not
-   JSON (NaN and infinities included), not an object, or not a valid command; the reply says
-   why with a stable code (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``,
-   ``out_of_range``, ``unknown_device`` …) and a human message.
+   JSON (NaN, infinities and numbers past a double included), an object with a key twice,
+   not an object, or not a valid command; the reply says why with a stable code
+   (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``, ``out_of_range``,
+   ``unknown_device`` …) and a human message. Whatever the payload, there is exactly one
+   reply: a bug becomes ``internal``, logged with its traceback.
 2. Claims: a client may hold exclusive motion control of a device; others get ``claimed``
    (naming the holder) until release, the TTL lapses, or the holder's liveliness goes. Reads
-   and e-stops are never refused.
+   and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
+   by the devices its frames address (``busgate.gateway.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
    ZLAC706 whose speed it commanded is brought to 0 rpm at once.
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
@@ -17,39 +20,37 @@ every rule of the API is tested without a network. Rules of this file:
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
-import threading
+import logging
+import math
 from collections.abc import Callable
-from concurrent.futures import Future
-from dataclasses import dataclass
-from importlib import metadata
-from typing import Any
+from concurrent.futures import Future, InvalidStateError
+from typing import Any, ClassVar
 
 from pydantic import ValidationError
 
-from busgate.codecs.errors import BusgateError, CommandError, EncodeError
-from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.codecs.errors import BusgateError, CommandError, EncodeError, RefusedError
+from busgate.gateway import installed_version
+from busgate.gateway.clock import now
+from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.group import group_command, scan_requests, scan_result
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.api import BusGroupMove, BusScan, Claim, Release
 from busgate.schemas.errors import describe_validation_error
 
 MAX_PAYLOAD = 64 * 1024
-#: Ops a claim never blocks: they read, or they stop.
-UNCLAIMED_OPS = frozenset({"status", "read", "ping", "monitor", "estop", "disable"})
 #: Pydantic error types that mean "a value outside its range", reported as ``out_of_range``.
 RANGE_ERRORS = frozenset({"less_than", "less_than_equal", "greater_than", "greater_than_equal",
                           "multiple_of", "too_short", "too_long"})
+#: A scan that could take longer than this on its bus is refused: ask for fewer ids.
+SCAN_MAX_S = 4.0
+#: The room a scan gets beyond its planned duration before its last probes are dropped:
+#: twice the plan (it shares the bus with commands, ticks and polls) plus this.
+SCAN_SLACK_S = 1.0
 
-
-class ApiError(BusgateError):
-    """A refusal with its stable code (one of ``busgate.schemas.api.ERROR_CODES``)."""
-
-    code = "refused"
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
+log = logging.getLogger(__name__)
 
 
 def ok_reply(**fields: Any) -> dict[str, Any]:
@@ -62,86 +63,78 @@ def error_reply(exc: BaseException) -> dict[str, Any]:
     return {"ok": False, "error": {"code": code, "message": str(exc) or type(exc).__name__}}
 
 
+class _DuplicateKey(ValueError):
+    pass
+
+
 def _reject_constant(name: str) -> float:
     raise ValueError(f"{name} is not a number JSON allows")
 
 
-def decode_object(payload: bytes) -> dict[str, Any]:
-    """Bytes off the network to a JSON object, or ``ApiError`` saying what is wrong."""
-    if len(payload) > MAX_PAYLOAD:
-        raise ApiError("too_large", f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD}")
-    try:
-        text = payload.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ApiError("not_utf8", f"payload is not UTF-8: {exc.reason}") from exc
-    try:
-        value = json.loads(text, parse_constant=_reject_constant)
-    except ValueError as exc:
-        raise ApiError("not_json", f"payload is not JSON: {exc}") from exc
-    if not isinstance(value, dict):
-        raise ApiError("bad_command", "a command is a JSON object")
+def _finite(text: str) -> float:
+    value = float(text)
+    if math.isinf(value):
+        raise ValueError(f"{text} is too large for a double")
     return value
 
 
-def refusal(exc: ValidationError | CommandError) -> ApiError:
+def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    value = dict(pairs)
+    if len(value) < len(pairs):
+        keys = [key for key, _ in pairs]
+        twice = next(key for key in keys if keys.count(key) > 1)
+        raise _DuplicateKey(f"key {twice!r} appears twice: a command is never guessed")
+    return value
+
+
+def decode_object(payload: bytes) -> dict[str, Any]:
+    """Bytes off the network to a JSON object, or ``RefusedError`` saying what is wrong."""
+    if len(payload) > MAX_PAYLOAD:
+        raise RefusedError("too_large", f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD}")
+    try:
+        text = payload.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RefusedError("not_utf8", f"payload is not UTF-8: {exc.reason}") from exc
+    try:
+        value = json.loads(text, parse_constant=_reject_constant, parse_float=_finite,
+                           object_pairs_hook=_object)
+    except _DuplicateKey as exc:
+        raise RefusedError("bad_command", str(exc)) from exc
+    except RecursionError as exc:
+        raise RefusedError("bad_command", "payload is nested too deeply") from exc
+    except ValueError as exc:
+        raise RefusedError("not_json", f"payload is not JSON: {exc}") from exc
+    if not isinstance(value, dict):
+        raise RefusedError("bad_command", "a command is a JSON object")
+    return value
+
+
+def refusal(exc: ValidationError | CommandError) -> RefusedError:
     """A validation failure as ``out_of_range`` (a value outside its bounds) or
     ``bad_command`` (anything else: unknown op, missing or extra field, wrong type)."""
     cause = exc if isinstance(exc, ValidationError) else exc.__cause__
     if isinstance(cause, ValidationError):
         types = {error["type"] for error in cause.errors()}
         code = "out_of_range" if types and types <= RANGE_ERRORS else "bad_command"
-        return ApiError(code, f"invalid command: {describe_validation_error(cause)}")
+        return RefusedError(code, f"invalid command: {describe_validation_error(cause)}")
     if isinstance(exc, EncodeError):
-        return ApiError("out_of_range", str(exc))
-    return ApiError(exc.code, str(exc))
+        return RefusedError("out_of_range", str(exc))
+    return RefusedError(exc.code, str(exc))
 
 
-@dataclass(slots=True)
-class Holder:
-    client: str
-    until: float
-
-
-class ClaimTable:
-    """Who holds which device, until when. Thread-safe: zenoh threads and the loop use it."""
-
-    def __init__(self) -> None:
-        self._holders: dict[str, Holder] = {}
-        self._lock = threading.Lock()
-
-    def claim(self, device: str, client: str, ttl_s: float, now: float) -> None:
-        with self._lock:
-            self._check(device, client, now)
-            self._holders[device] = Holder(client, now + ttl_s)
-
-    def release(self, device: str, client: str, now: float) -> None:
-        with self._lock:
-            self._check(device, client, now)
-            self._holders.pop(device, None)
-
-    def check(self, device: str, client: str | None, now: float) -> None:
-        with self._lock:
-            self._check(device, client, now)
-
-    def holder(self, device: str, now: float) -> str | None:
-        with self._lock:
-            held = self._holders.get(device)
-            return held.client if held and held.until > now else None
-
-    def drop_client(self, client: str) -> list[str]:
-        with self._lock:
-            devices = [d for d, held in self._holders.items() if held.client == client]
-            for device in devices:
-                del self._holders[device]
-            return devices
-
-    def _check(self, device: str, client: str | None, now: float) -> None:
-        held = self._holders.get(device)
-        if held is None or held.until <= now:
-            self._holders.pop(device, None)
-            return
-        if held.client != client:
-            raise ApiError("claimed", f"{device} is claimed by {held.client!r}")
+def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
+    """Whatever ``handler`` meets, a reply: a refusal's own code, or ``internal`` (logged with
+    its traceback) for a bug. Every query gets exactly one answer, never silence."""
+    @functools.wraps(handler)
+    def wrapper(self: GatewayApi, *args: Any) -> Future:
+        try:
+            return handler(self, *args)
+        except BusgateError as exc:
+            return _finished(error_reply(exc))
+        except Exception as exc:
+            log.exception("%s%r failed", handler.__name__, args[:1])
+            return _finished(error_reply(exc))
+    return wrapper
 
 
 class GatewayApi:
@@ -152,14 +145,11 @@ class GatewayApi:
         name: str,
         runners: dict[str, BusRunner],
         *,
-        clock: Callable[[], float],
         on_event: Callable[[DeviceEvent], None] = lambda event: None,
     ) -> None:
         self.name = name
         self.runners = runners
-        self.clock = clock
         self.on_event = on_event
-        self.claims = ClaimTable()
         self.devices: dict[str, tuple[BusRunner, Driver]] = {
             device: (runner, driver)
             for runner in runners.values()
@@ -170,40 +160,35 @@ class GatewayApi:
 
     # -- commands ---------------------------------------------------------------------------
 
+    @answered
     def command(self, device: str, payload: bytes) -> Future:
-        """Validate a device command and hand it to its bus; the future's result is the reply
+        """Validate a device command and hand it to its bus, which authorises it (by the
+        devices its frames address) and carries it out; the future's result is the reply
         dict. Refusals come back as an already finished future."""
-        try:
-            return self._command(device, payload, decode_object(payload))
-        except BusgateError as exc:
-            return _finished(error_reply(exc))
-
-    def _command(self, device: str, payload: bytes, fields: dict[str, Any]) -> Future:
+        fields = decode_object(payload)
         runner, driver = self._device(device)
         op, client = fields.get("op"), fields.get("client")
         if op in ("claim", "release"):
-            return _finished(self._claim_op(device, fields))
+            return _finished(self._claim_op(runner, device, fields))
         try:  # validated from the JSON text: strict JSON mode takes "velocity" for an enum
             command = driver.commands.validate_json(payload)
         except ValidationError as exc:
             raise refusal(exc) from exc
-        if op not in UNCLAIMED_OPS:
-            self.claims.check(device, client, self.clock())
         if driver.kind == "zlac706" and op == "velocity" and client:
             self._speed_clients[device] = client
-        return _mapped(runner.submit(device, command))
+        return _mapped(runner.submit(device, command, client))
 
-    def _claim_op(self, device: str, fields: dict[str, Any]) -> dict[str, Any]:
+    def _claim_op(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         try:
             request = (Claim if fields.get("op") == "claim" else Release).model_validate(fields)
         except ValidationError as exc:
             raise refusal(exc) from exc
-        now = self.clock()
+        authority = runner.authority
         if isinstance(request, Claim):
-            self.claims.claim(device, request.client, request.ttl_s, now)
+            authority.claims.claim(device, request.client, request.ttl_s, authority.clock())
             self._event(device, "claimed", client=request.client, ttl_s=request.ttl_s)
             return ok_reply(claimed_by=request.client, expires_in_s=request.ttl_s)
-        self.claims.release(device, request.client, now)
+        authority.claims.release(device, request.client, authority.clock())
         self._event(device, "released", client=request.client)
         return ok_reply(released=True)
 
@@ -212,52 +197,50 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             fields = decode_object(payload)
-            client = fields.pop("client", None)
-            if client is not None:
-                self.claims.check(device, client, self.clock())
-                self._stream_clients[device] = client
-            else:
-                self.claims.check(device, None, self.clock())
             try:
                 target = driver.follow_target(fields)
             except CommandError as exc:
                 raise refusal(exc) from exc
+            client = fields.get("client")
+            runner.authority.check([(frozenset({driver.device_id}), Effect.MOTION)], client)
+            if client is not None:
+                self._stream_clients[device] = client
             runner.follow(device, target)
             return None
         except BusgateError as exc:
             return error_reply(exc)
+        except Exception as exc:
+            log.exception("follow on %s failed", device)
+            return error_reply(exc)
 
-    def estop(self) -> list[Future]:
+    def estop(self, sender: str | None = None) -> list[Future]:
         """Stop every device of the gateway, ahead of everything; never refused."""
+        log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
         return [runner.estop() for runner in self.runners.values()]
 
+    @answered
     def bus_command(self, bus: str, payload: bytes) -> Future:
         """``group_move`` or ``scan`` on one bus."""
-        try:
-            runner = self.runners.get(bus)
-            if runner is None:
-                raise ApiError("unknown_bus", f"no bus {bus!r} on gateway {self.name}")
-            fields = decode_object(payload)
-            handlers = {"group_move": self._group_move, "scan": self._scan}
-            handler = handlers.get(fields.get("op"))
-            if handler is None:
-                raise ApiError("bad_command", "bus ops are group_move and scan")
-            return handler(runner, fields)
-        except BusgateError as exc:
-            return _finished(error_reply(exc))
+        runner = self.runners.get(bus)
+        if runner is None:
+            raise RefusedError("unknown_bus", f"no bus {bus!r} on gateway {self.name}")
+        fields = decode_object(payload)
+        op = fields.get("op")
+        handler = self._BUS_OPS.get(op) if isinstance(op, str) else None
+        if handler is None:
+            raise RefusedError("bad_command", "bus ops are group_move and scan")
+        return handler(self, runner, fields)
 
     def _group_move(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
         try:
             request = BusGroupMove.model_validate(fields)
         except ValidationError as exc:
             raise refusal(exc) from exc
-        now = self.clock()
         for target in request.targets:
             if target.device not in runner.drivers:
-                raise ApiError("unknown_device", f"no device {target.device!r} on this bus")
-            self.claims.check(target.device, request.client, now)
+                raise RefusedError("unknown_device", f"no device {target.device!r} on this bus")
         first, command = group_command(runner, request)
-        return _mapped(runner.submit(first, command))
+        return _mapped(runner.submit(first, command, request.client))
 
     def _scan(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
         try:
@@ -265,18 +248,28 @@ class GatewayApi:
         except ValidationError as exc:
             raise refusal(exc) from exc
         protocol = runner.timing.protocol
-        scanning = runner.scan(scan_requests(protocol, request.ids))
-        answer: Future = Future()
-        scanning.add_done_callback(lambda done: _settle(
-            answer, done, lambda outcomes: ok_reply(found=scan_result(protocol, outcomes))))
-        return answer
+        probes = scan_requests(protocol, request.ids)
+        planned_s = sum(runner.timing.worst_case(p) + runner.timing.gap_s for p in probes)
+        if planned_s > SCAN_MAX_S:
+            most = int(len(probes) * SCAN_MAX_S / planned_s)
+            raise RefusedError("out_of_range", f"a scan of {len(probes)} ids takes up to "
+                               f"{planned_s:.1f} s on bus {runner.name}; ask for at most "
+                               f"{most} ids at a time")
+        scanning = runner.scan(probes, start_by=now() + 2 * planned_s + SCAN_SLACK_S)
+        return _chained(scanning, lambda outcomes: ok_reply(found=scan_result(protocol, outcomes)))
+
+    _BUS_OPS: ClassVar[dict[str, Callable[[GatewayApi, BusRunner, dict[str, Any]], Future]]] = {
+        "group_move": _group_move,
+        "scan": _scan,
+    }
 
     # -- clients ----------------------------------------------------------------------------
 
     def client_left(self, client: str) -> None:
         """Deadman: the client's liveliness token went away."""
-        for device in self.claims.drop_client(client):
-            self._event(device, "released", client=client, reason="client gone")
+        for runner in self.runners.values():
+            for device in runner.authority.claims.drop_client(client):
+                self._event(device, "released", client=client, reason="client gone")
         for device, owner in list(self._stream_clients.items()):
             if owner == client:
                 del self._stream_clients[device]
@@ -294,7 +287,7 @@ class GatewayApi:
     def info(self) -> dict[str, Any]:
         return ok_reply(
             gateway=self.name,
-            version=_version(),
+            version=installed_version(),
             buses=[
                 {"name": name, "protocol": runner.timing.protocol,
                  "devices": [{"name": device, "kind": driver.kind, "id": driver.device_id,
@@ -309,7 +302,7 @@ class GatewayApi:
             return self.devices[device]
         except KeyError:
             message = f"no device {device!r} on gateway {self.name}"
-            raise ApiError("unknown_device", message) from None
+            raise RefusedError("unknown_device", message) from None
 
     def _event(self, device: str, type_: str, **fields: Any) -> None:
         self.on_event(DeviceEvent(device, type_, fields))
@@ -323,21 +316,29 @@ def _finished(reply: dict[str, Any]) -> Future:
 
 def _mapped(submitted: Future) -> Future:
     """The runner's future (result dict, or a ``BusgateError``) as a reply envelope future."""
+    return _chained(submitted, lambda result: ok_reply(**result))
+
+
+def _chained(submitted: Future, make: Callable[[Any], dict[str, Any]]) -> Future:
+    """A reply future made from ``submitted``'s outcome; cancelling it (the bridge answered
+    without waiting) cancels ``submitted``, so a job that has not started never will."""
     answer: Future = Future()
-    submitted.add_done_callback(lambda done: _settle(answer, done, lambda r: ok_reply(**r)))
+    submitted.add_done_callback(lambda done: _settle(answer, done, make))
+    answer.add_done_callback(lambda done: done.cancelled() and submitted.cancel())
     return answer
 
 
 def _settle(answer: Future, done: Future, make: Callable[[Any], dict[str, Any]]) -> None:
+    if done.cancelled():
+        return  # cancelled through ``answer``, which has been answered already
     error = done.exception()
-    answer.set_result(error_reply(error) if error is not None else make(done.result()))
-
-
-def _version() -> str:
     try:
-        return metadata.version("busgate")
-    except metadata.PackageNotFoundError:
-        return "unknown"
+        reply = error_reply(error) if error is not None else make(done.result())
+    except Exception as exc:
+        log.exception("making a reply failed")
+        reply = error_reply(exc)
+    with contextlib.suppress(InvalidStateError):
+        answer.set_result(reply)
 
 
-__all__ = ["MAX_PAYLOAD", "ApiError", "GatewayApi", "decode_object", "error_reply"]
+__all__ = ["MAX_PAYLOAD", "GatewayApi", "decode_object", "error_reply"]

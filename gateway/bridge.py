@@ -6,8 +6,10 @@ Rules of this file:
    handed to its bus runner (non-blocking), a follow target is stored, an e-stop is queued
    ahead of everything. Replies, publications and liveliness changes happen on the asyncio
    loop's thread, never on a bus thread or inside a zenoh callback.
-2. Every query gets exactly one reply, then is dropped; a command that has not finished in
-   ``REPLY_TIMEOUT_S`` is answered ``internal`` rather than left hanging.
+2. Every query gets exactly one reply, then is dropped. The buses answer every command in
+   bounded time (a deadline to start, a bounded duration once started); should one not have
+   finished in ``REPLY_TIMEOUT_S`` all the same (a bug), its future is cancelled, so that it
+   is never carried out, and it is answered ``internal``.
 3. Telemetry publishers use congestion control DROP: a slow subscriber never stalls a bus.
 4. The session is closed last, after the buses have put their devices in a safe state.
 """
@@ -17,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -26,10 +29,12 @@ from typing import Any
 
 import zenoh
 
-from busgate.gateway.api import ApiError, GatewayApi, error_reply
+from busgate.codecs.errors import RefusedError
+from busgate.gateway.api import GatewayApi, decode_object, error_reply
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.zenoh_config import session_config
+from busgate.schemas.base import CLIENT_ID_PATTERN
 from busgate.schemas.config import Config
 
 log = logging.getLogger(__name__)
@@ -132,14 +137,14 @@ class ZenohBridge:
         if self._not_ours(query, device, self.api.devices):
             return
         reply_key = f"{self.base}/dev/{device}/cmd"
-        self._answer(query, self.api.command(device, _payload(query)), reply_key)
+        self._answer(query, lambda: self.api.command(device, _payload(query)), reply_key)
 
     def _on_bus_query(self, query: zenoh.Query) -> None:
         bus = str(query.key_expr).split("/")[-2]
         if self._not_ours(query, bus, self.runners):
             return
         reply_key = f"{self.base}/bus/{bus}/cmd"
-        self._answer(query, self.api.bus_command(bus, _payload(query)), reply_key)
+        self._answer(query, lambda: self.api.bus_command(bus, _payload(query)), reply_key)
 
     @staticmethod
     def _not_ours(query: zenoh.Query, name: str, known) -> bool:
@@ -151,8 +156,11 @@ class ZenohBridge:
         return True
 
     def _on_info(self, query: zenoh.Query) -> None:
-        info: Future = Future()
-        info.set_result(self.api.info())
+        def info() -> Future:
+            answer: Future = Future()
+            answer.set_result(self.api.info())
+            return answer
+
         self._answer(query, info, f"{self.base}/info")
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
@@ -167,17 +175,19 @@ class ZenohBridge:
             self._report_put(device, refused)
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
-        self.api.estop()
-        self.events.append(DeviceEvent("*", "estop", {"key": str(sample.key_expr)}))
+        sender = _sender(sample.payload.to_bytes())
+        self.api.estop(sender)
+        fields = {"key": str(sample.key_expr)} | ({"client": sender} if sender else {})
+        self.events.append(DeviceEvent("*", "estop", fields))
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
             client = str(sample.key_expr).split("/")[-1]
             self._call_soon(self.api.client_left, client)
 
-    def _answer(self, query: zenoh.Query, result: Future, key: str) -> None:
+    def _answer(self, query: zenoh.Query, handle: Callable[[], Future], key: str) -> None:
         """Reply on ``key`` (concrete, even when the query had wildcards), on the loop's
-        thread, once ``result`` is done (or too late)."""
+        thread, once the future ``handle`` returns is done (or too late): exactly once."""
         loop = self._loop
         assert loop is not None
         replied = Future()
@@ -196,14 +206,27 @@ class ZenohBridge:
                 query.drop()
                 self.on_latency(time.perf_counter() - asked)
 
+        try:
+            result = handle()
+        except Exception as exc:  # the API answers everything; this is the last net
+            log.exception("query on %s failed", key)
+            self._call_soon(send, error_reply(exc))
+            return
+
         def too_late() -> None:
-            send(error_reply(ApiError("internal", "no answer from the bus in time")))
+            if result.cancel():  # not carried out, and now never will be
+                send(error_reply(RefusedError("internal", "no answer from the bus in time; "
+                                                          "the command was withdrawn")))
 
         def arm_guard() -> None:
             if not replied.done():
                 guard.append(loop.call_later(REPLY_TIMEOUT_S, too_late))
 
-        result.add_done_callback(lambda done: self._call_soon(send, done.result()))
+        def done(finished: Future) -> None:
+            if not finished.cancelled():
+                self._call_soon(send, finished.result())
+
+        result.add_done_callback(done)
         loop.call_soon_threadsafe(arm_guard)
 
     def _report_put(self, device: str, reply: dict[str, Any]) -> None:
@@ -251,6 +274,16 @@ class ZenohBridge:
             self._device_tokens[device] = self._session.liveliness().declare_token(key)
         elif not online and device in self._device_tokens:
             self._device_tokens.pop(device).undeclare()
+
+
+def _sender(payload: bytes) -> str | None:
+    """The client an e-stop payload names (``{"client": "teleop"}``), if it names one validly:
+    for the log only, the e-stop itself takes any payload."""
+    try:
+        client = decode_object(payload).get("client")
+    except RefusedError:
+        return None
+    return client if isinstance(client, str) and re.fullmatch(CLIENT_ID_PATTERN, client) else None
 
 
 def _payload(query: zenoh.Query) -> bytes:

@@ -2,8 +2,9 @@
 
 Rules of this file: it checks without touching hardware. Whatever ``busgate run`` would refuse
 (``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
-exit status 1. What only this host or the load decides — a port that does not exist here, a
-bus whose streams cannot all fit — is a warning: printed with the budget, exit status 0.
+exit status 1. What only this host or the load decides — a port that does not exist here, is
+locked by another process or that this user may not read and write, a bus whose streams cannot
+all fit — is a warning: printed with the budget, exit status 0.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 
 from busgate.codecs.errors import ConfigError
 from busgate.gateway.budget import bus_budget
+from busgate.gateway.port_access import missing, port_problem
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
 
@@ -55,18 +57,14 @@ def _overview(config: Config) -> str:
 
 
 def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
-    """The bus's port or CAN interface, when this host does not have it (yet): the gateway
-    would start anyway and retry until it appears."""
-    if isinstance(bus, SerialBus):
-        key, where = "port", Path(bus.port)
-    elif bus.interface == "socketcan":
-        key, where = "channel", Path("/sys/class/net") / bus.channel
-    elif bus.channel.startswith("/"):  # slcan and other adapters named by their tty
-        key, where = "channel", Path(bus.channel)
-    else:
-        return []
-    if where.exists():
-        return []
-    name = getattr(bus, key)
-    return [f"{path}.{key}: {name} does not exist on this host; the gateway will start and "
-            f"retry until it appears"]
+    """What this host would stand in the way of the bus's port or CAN interface: missing (the
+    gateway would start and retry until it appears), locked by another process (``busgate
+    run`` would refuse to start), or not readable and writable by this user — run it as the
+    service user to check that user's access."""
+    if bus.device_key is not None:
+        key, port = bus.device_key
+        problem = port_problem(port)
+        return [] if problem is None else [f"{path}.{key}: {problem.message}"]
+    if bus.interface == "socketcan" and not (Path("/sys/class/net") / bus.channel).exists():
+        return [f"{path}.channel: {missing(bus.channel)}"]
+    return []

@@ -1,7 +1,9 @@
 """The ``busgate`` command: one parser, subcommands added by the modules that own them.
 
 A ``BusgateError`` (a bad command line, a refused command) is printed as one line and exits
-with status 2, never as a traceback.
+with status 2, never as a traceback. ``busgate --version`` prints the installed version;
+``busgate`` alone prints the help, listing the commands, on stderr and exits with status 2 (a
+command is missing, as for any other usage error).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from busgate.gateway import (
     codec_cli,
     daemon,
     demo,
+    installed_version,
     schema_cli,
 )
 from busgate.gateway.sim import cli as sim_cli
@@ -29,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="busgate: a gateway between motion-device buses (Inspire LA actuators, "
         "ZLAC706 hub-motor drivers, DS serial servos) and Eclipse Zenoh.",
     )
+    parser.add_argument("--version", action="version", version=f"busgate {installed_version()}")
     subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="COMMAND")
     codec_cli.add_parsers(subparsers)
     sim_cli.add_parsers(subparsers)
@@ -43,6 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv:
+        parser.print_help(sys.stderr)
+        return 2
     args = parser.parse_args(argv)
     try:
         return args.handler(args)

@@ -5,8 +5,10 @@ One of the three modules that import ``zenoh`` (with ``bridge.py``, the daemon's
 the key expressions and the JSON envelope of issue 5 — and know nothing of buses or drivers.
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
-``cmd`` key. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error,
-2 when nobody answered in time (or the session could not be opened).
+``cmd`` key. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error
+or, for a bare device name, when gateways answer (their ``info``) but none has the device
+(``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks unanswered),
+2 when nobody answered (or the session could not be opened).
 
 watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
 each, and redraws a table at most ``REDRAW_HZ`` times a second. Rules: zenoh callbacks only
@@ -19,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 import threading
 import time
@@ -29,21 +30,15 @@ from typing import Any, TextIO
 
 import zenoh
 
-from busgate.codecs.errors import BusgateError, CommandError
-from busgate.gateway.zenoh_config import session_config
+from busgate.codecs.errors import CommandError
+from busgate.gateway.zenoh_config import ZenohSessionError, session_config, zenoh_reason
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"
 REDRAW_HZ = 5
 NO_ANSWER, ERROR_REPLY = 2, 1
-#: zenoh's own error reply when a queryable did not finish before the get's timeout.
+#: The payload of zenoh's own error reply when a queryable did not finish in time.
 ZENOH_TIMEOUT = b"Timeout"
-
-
-class ZenohSessionError(BusgateError, ConnectionError):
-    """The client could not open its zenoh session (nothing listening, bad endpoint …)."""
-
-    code = "zenoh_unavailable"
 
 
 # -- the command line -----------------------------------------------------------------------
@@ -56,7 +51,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         description="Send a JSON command to a device's cmd key and print each reply. A bare "
         "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers); an "
         "argument with a '/' is used as the key expression as given. Exit status: 0 all "
-        "replies ok, 1 an error reply, 2 nobody answered.",
+        "replies ok, 1 an error reply or no gateway has the device (unknown_device), 2 nobody "
+        "answered.",
     )
     send.add_argument("target", help="a device name, or a key expression such as "
                       "busgate/gw1/bus/uart0/cmd")
@@ -97,7 +93,6 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
                         help="a zenoh config file (TLS, auth …) laid underneath")
 
 
-_RUST_SOURCE = re.compile(r"\s+at /\S+\.rs:\d+\.?$")
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
 MAX_KEY_BYTES = 60 * 1024
 
@@ -111,7 +106,7 @@ def key_expr(text: str) -> zenoh.KeyExpr:
     try:
         return zenoh.KeyExpr(text)
     except zenoh.ZError as exc:
-        raise CommandError(f"not a key expression: {text[:200]!r} ({_first_line(exc)})") from exc
+        raise CommandError(f"not a key expression: {text[:200]!r} ({zenoh_reason(exc)})") from exc
 
 
 def _positive(text: str) -> float:
@@ -131,16 +126,11 @@ def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
         session = zenoh.open(config)
     except zenoh.ZError as exc:
         raise ZenohSessionError(f"cannot open a zenoh session to {', '.join(endpoints)}: "
-                                f"{_first_line(exc)}") from exc
+                                f"{zenoh_reason(exc)}") from exc
     try:
         yield session
     finally:
         session.close()
-
-
-def _first_line(exc: BaseException) -> str:
-    # zenoh appends " at <rust source path>:<line>" to its messages; keep the human part.
-    return _RUST_SOURCE.sub("", str(exc).splitlines()[0]).strip()
 
 
 # -- send -----------------------------------------------------------------------------------
@@ -162,15 +152,17 @@ def run_send(args: argparse.Namespace) -> int:
         if args.put:
             session.put(key, payload)
             return 0
-        replies = session.get(key, payload=payload, timeout=args.timeout,
-                              consolidation=zenoh.ConsolidationMode.NONE)
+        replies = list(session.get(key, payload=payload, timeout=args.timeout,
+                                   consolidation=zenoh.ConsolidationMode.NONE))
         outcomes = [outcome for reply in replies if (outcome := reply_outcome(reply)) is not None]
-    if "/" not in args.target:
-        outcomes = _from_gateways_that_have_it(outcomes)
+        bare_name = "/" not in args.target
+        if bare_name:
+            outcomes = _from_gateways_that_have_it(outcomes)
+        gateways = (gateway_devices(session, args.prefix, args.timeout)
+                    if bare_name and not outcomes else {})
     if not outcomes:
-        print(f"busgate send: nobody answered on {key} within {args.timeout:g} s",
-              file=sys.stderr)
-        return NO_ANSWER
+        return _no_reply(args.target, key, gateways,
+                         waited=args.timeout if any(map(_is_zenoh_timeout, replies)) else None)
     status = 0
     for body, error in outcomes:
         print(json.dumps(body, indent=2 if args.pretty else None, ensure_ascii=False))
@@ -188,12 +180,54 @@ def _from_gateways_that_have_it(outcomes: list) -> list:
     return known or outcomes
 
 
+def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *,
+              waited: float | None) -> int:
+    """Nothing came back on ``key``: no gateway has ``device`` (those that answered are named;
+    exit 1), or nobody answered (in the ``waited`` seconds, when zenoh did wait; exit 2)."""
+    if gateways and not any(device in devices for devices in gateways.values()):
+        print(f"busgate send: unknown_device: no device {device!r} on the gateways that "
+              f"answered ({', '.join(sorted(gateways))})", file=sys.stderr)
+        return ERROR_REPLY
+    within = "" if waited is None else f" within {waited:g} s"
+    print(f"busgate send: nobody answered on {key}{within}", file=sys.stderr)
+    return NO_ANSWER
+
+
+def gateway_devices(session: zenoh.Session, prefix: str, timeout: float) -> dict[str, set[str]]:
+    """The devices of each gateway answering ``<prefix>/*/info``, by gateway name."""
+    found: dict[str, set[str]] = {}
+    for reply in session.get(f"{prefix}/*/info", timeout=timeout,
+                             consolidation=zenoh.ConsolidationMode.NONE):
+        info = _info_of(reply)
+        if info is not None:
+            found[str(info.get("gateway", "?"))] = {
+                str(device.get("name")) for bus in info.get("buses", [])
+                for device in bus.get("devices", [])}
+    return found
+
+
+def _info_of(reply: zenoh.Reply) -> dict[str, Any] | None:
+    """An ok ``info`` reply's body, else ``None``."""
+    if reply.ok is None:
+        return None
+    try:
+        info = json.loads(reply.ok.payload.to_bytes())
+    except ValueError:
+        return None
+    return info if isinstance(info, dict) and info.get("ok") is True else None
+
+
+def _is_zenoh_timeout(reply: zenoh.Reply) -> bool:
+    """zenoh's own error reply when a queryable did not finish before the get's timeout."""
+    return reply.ok is None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT
+
+
 def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
     """A reply's JSON and its (code, message) when it is an error; ``None`` for zenoh's timeout."""
+    if _is_zenoh_timeout(reply):
+        return None
     sample = reply.ok
     raw = sample.payload.to_bytes() if sample is not None else reply.err.payload.to_bytes()
-    if sample is None and raw == ZENOH_TIMEOUT:
-        return None
     try:
         body = json.loads(raw)
     except ValueError:
@@ -271,13 +305,8 @@ def _subscribe(session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr,
 def _on_reply(table: WatchTable, wanted: zenoh.KeyExpr) -> Callable[[zenoh.Reply], None]:
     """Seeds the table from ``info`` replies, so quiet devices show before their first state."""
     def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is None:
-            return
-        try:
-            info = json.loads(reply.ok.payload.to_bytes())
-        except ValueError:
-            return
-        if isinstance(info, dict) and info.get("ok") is True:
+        info = _info_of(reply)
+        if info is not None:
             table.seed(info, lambda key: wanted.intersects(zenoh.KeyExpr(key)))
     return on_reply
 

@@ -1,7 +1,11 @@
 """``busgate run --config FILE``: the daemon.
 
 It loads and checks the config (refusing it with the same messages as ``check-config``),
-starts one bus runner per bus, opens the zenoh session and serves until SIGTERM or SIGINT.
+opens the zenoh session, starts one bus runner per bus and serves until SIGTERM or SIGINT.
+It refuses to start, in one line and with exit status 2, when a port is locked by another
+process (retrying would not win it) or zenoh or the metrics endpoint cannot listen where told
+(the address is in use: another gateway or demo), before any bus is opened; a port that does
+not exist yet only delays its bus, which retries.
 Under systemd (Type=notify) it says READY once every bus is open, pings the watchdog only
 while every bus thread keeps its schedule, and says STOPPING on the way out.
 Then it stops in order, within about a second: the streams and the devices (each bus puts its
@@ -13,26 +17,38 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import gc
 import logging
 import signal
 import threading
+import time
 from collections import deque
+from typing import TYPE_CHECKING
 
+from busgate.codecs.errors import BusgateError, BusUnavailableError
 from busgate.gateway.api import GatewayApi
 from busgate.gateway.assembly import build_bus
 from busgate.gateway.budget import bus_budget
-from busgate.gateway.clock import now, tune_interpreter
+from busgate.gateway.clock import tune_interpreter
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.metrics import Metrics
+from busgate.gateway.port_access import LOCKED, port_problem
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.sdnotify import Notifier, Watchdog
 from busgate.schemas.config import Config, load_config
+
+if TYPE_CHECKING:
+    from busgate.gateway.bridge import ZenohBridge
 
 log = logging.getLogger("busgate")
 
 STOP_TIMEOUT_S = 0.8
 BUS_OPEN_POLL_S = 0.01
+#: Who holds an address a gateway was told to listen on, most of the time.
+IN_USE_HINT = "another busgate demo or run?"
+#: How long the start-up line waits for the buses whose ports look openable to be open.
+FIRST_OPEN_WAIT_S = 1.0
 EVENT_BACKLOG = 10_000
 #: New device states waiting for the publisher: two seconds of 20 devices at 100 Hz.
 STATE_BACKLOG = 4_096
@@ -60,8 +76,9 @@ def run_daemon(args: argparse.Namespace) -> int:
 async def serve(config: Config, *, ready: threading.Event | None = None,
                 stop: asyncio.Event | None = None) -> None:
     """Serve ``config`` until ``stop`` is set (or SIGTERM/SIGINT when no ``stop`` is given)."""
-    from busgate.gateway.bridge import ZenohBridge  # the one module that needs zenoh
+    from busgate.gateway import bridge as zenoh_side  # the one module that needs zenoh
 
+    expected_up = _check_ports(config)
     tune_interpreter()
     loop = asyncio.get_running_loop()
     stop = stop or _stop_on_signals(loop)
@@ -73,20 +90,19 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
                             on_state=lambda device, state: states.append((device, state)))
         for bus in config.buses
     }
-    api = GatewayApi(config.gateway.name, runners, clock=now, on_event=events.append)
-    bridge = ZenohBridge(config, api, runners, events, states)
+    api = GatewayApi(config.gateway.name, runners, on_event=events.append)
+    bridge = zenoh_side.ZenohBridge(config, api, runners, events, states)
+    _open_session(bridge, loop)  # first: a gateway nobody can reach opens no port
     metrics: Metrics | None = None
     try:
+        if config.metrics is not None:  # before the buses too: a refusal leaves them unopened
+            metrics = _start_metrics(runners, bridge, config.metrics.listen)
         _log_budgets(config)
         for runner in runners.values():
             runner.start()
-        bridge.open(loop)
-        if config.metrics is not None:
-            metrics = Metrics(runners, clients=bridge.connections).start(config.metrics.listen)
-            bridge.on_latency = metrics.observe
-            log.info("metrics on http://%s/metrics", config.metrics.listen)
         gc.freeze()  # what start-up made lives for good: keep it out of every collection
-        log.info("gateway %s serving %d bus(es)", config.gateway.name, len(runners))
+        up = await _buses_up(runners, expected_up)
+        log.info("gateway %s serving %s, %d up", config.gateway.name, _buses(len(runners)), up)
         if ready is not None:
             ready.set()
         watchdog = Watchdog(notifier, lambda: all(r.keeping_schedule() for r in runners.values()))
@@ -102,6 +118,62 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
         bridge.publish_events()
         bridge.close()
         log.info("gateway %s stopped", config.gateway.name)
+
+
+def _check_ports(config: Config) -> set[str]:
+    """The buses whose device files look openable now. A file another process holds is
+    refused (``BusUnavailableError``); one that is missing or not ours to open is logged with
+    what to do, and its bus retries."""
+    expected_up = set()
+    for bus in config.buses:
+        problem = port_problem(bus.device_key[1]) if bus.device_key is not None else None
+        if problem is None:
+            expected_up.add(bus.name)
+        elif problem.kind == LOCKED:
+            raise BusUnavailableError(f"bus {bus.name}: {problem.message}")
+        else:
+            log.warning("bus %s: %s", bus.name, problem.message)
+    return expected_up
+
+
+def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
+    """Open the bridge's zenoh session; zenoh's refusal becomes one line
+    (``ZenohSessionError``), with whatever was opened closed again."""
+    import zenoh
+
+    from busgate.gateway.zenoh_config import ZenohSessionError, session_refusal
+
+    try:
+        bridge.open(loop)
+    except zenoh.ZError as exc:
+        bridge.close()
+        raise ZenohSessionError(session_refusal(exc, IN_USE_HINT)) from exc
+
+
+def _start_metrics(runners: dict[str, BusRunner], bridge: ZenohBridge, listen: str) -> Metrics:
+    """The Prometheus endpoint on ``listen``; a refusal (the address in use …) is one line."""
+    try:
+        metrics = Metrics(runners, clients=bridge.connections).start(listen)
+    except OSError as exc:
+        hint = f" ({IN_USE_HINT})" if exc.errno == errno.EADDRINUSE else ""
+        raise BusgateError(f"metrics cannot listen on {listen}: {exc.strerror}{hint}") from exc
+    bridge.on_latency = metrics.observe
+    log.info("metrics on http://%s/metrics", listen)
+    return metrics
+
+
+async def _buses_up(runners: dict[str, BusRunner], expected_up: set[str]) -> int:
+    """How many buses are open, once those expected up are (or ``FIRST_OPEN_WAIT_S``
+    has passed)."""
+    deadline = time.monotonic() + FIRST_OPEN_WAIT_S
+    while (not all(runners[name].owner.is_open for name in expected_up)
+           and time.monotonic() < deadline):
+        await asyncio.sleep(BUS_OPEN_POLL_S)
+    return sum(runner.owner.is_open for runner in runners.values())
+
+
+def _buses(count: int) -> str:
+    return f"{count} bus" if count == 1 else f"{count} buses"
 
 
 def _log_budgets(config: Config) -> None:

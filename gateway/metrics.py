@@ -41,6 +41,8 @@ _BUS_COUNTERS: tuple[tuple[str, str, dict[str, str]], ...] = (
      {"": "discarded_bytes"}),
     ("late_replies", "Replies that came after their deadline and were flushed",
      {"": "late_replies"}),
+    ("early_replies", "Replies read before their request could have left the wire",
+     {"": "early_replies"}),
     ("reconnects", "Times the link came back after it was lost", {"": "reconnects"}),
     ("skipped_polls", "Polls skipped because the bus had no room for them",
      {"": "skipped_polls"}),

@@ -15,11 +15,15 @@ interface, with no authentication): it reaches others only through ``connect``.
 
 from __future__ import annotations
 
+import errno
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import zenoh
+
+from busgate.codecs.errors import BusgateError
 
 MODES = ("peer", "client", "router")
 
@@ -46,3 +50,43 @@ def session_config(
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     return config
+
+
+class ZenohSessionError(BusgateError, ConnectionError):
+    """A zenoh session could not be opened: a client's (nothing listening, a bad endpoint …)
+    or the gateway's own (its listen endpoint in use …)."""
+
+    code = "zenoh_unavailable"
+
+
+_RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """The human part of a zenoh error: its first line without the " at <rust source>:<line>"
+    zenoh appends to each message it wraps.
+
+    >>> zenoh_reason(Exception("listener bound to tcp/h:1: [h:1: in use at /x/tcp.rs:61.] "
+    ...                        "at /x/unicast.rs:338."))
+    'listener bound to tcp/h:1: [h:1: in use]'
+    """
+    return _RUST_SOURCE.sub("", str(exc).splitlines()[0]).strip()
+
+
+_LISTENER = re.compile(r"listener bound to (\S+?): ")
+
+
+def session_refusal(exc: BaseException, in_use_hint: str) -> str:
+    """What to tell when zenoh would not open the gateway's session (``exc``); an endpoint
+    in use gets ``in_use_hint`` (who probably holds it).
+
+    >>> session_refusal(Exception("Can not create a new TCP listener bound to "
+    ...     "tcp/127.0.0.1:7447: [127.0.0.1:7447: Address already in use (os error 98)]"),
+    ...     "another busgate demo or run?")
+    'zenoh cannot listen on tcp/127.0.0.1:7447: it is in use (another busgate demo or run?)'
+    """
+    reason = zenoh_reason(exc)
+    listener = _LISTENER.search(reason)
+    if listener is not None and f"(os error {errno.EADDRINUSE})" in reason:
+        return f"zenoh cannot listen on {listener.group(1)}: it is in use ({in_use_hint})"
+    return f"cannot open the zenoh session: {reason}"

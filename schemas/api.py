@@ -23,7 +23,7 @@ import warnings
 from collections.abc import Iterable
 from typing import Annotated, Any, Literal, Union, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from busgate.codecs import ds_servo as ds_codec
 from busgate.codecs import inspire_la as la_codec
@@ -37,13 +37,16 @@ from busgate.schemas.config import ID_RANGES, Name
 #: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
 ErrorCode = Literal[
     "not_utf8", "not_json", "too_large", "bad_command", "out_of_range", "unknown_device",
-    "unknown_bus", "claimed", "device_timeout", "device_rejected", "device_fault",
+    "unknown_bus", "claimed", "estopped", "device_timeout", "device_rejected", "device_fault",
     "bus_unavailable", "busy", "internal",
 ]  # fmt: skip
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__
 
 DeviceKind = Literal["inspire_la", "ds_servo", "zlac706"]
 Protocol = Literal[tuple(ID_RANGES)]  # type: ignore[valid-type]
+
+#: The most ids one scan may name (every id a one-byte address leaves, bar broadcast).
+MAX_SCAN_IDS = 254
 
 #: The longest claim a client may ask for, in seconds.
 MAX_CLAIM_S = 3600.0
@@ -122,7 +125,14 @@ class BusScan(CommandModel):
     ids when ``ids`` is left out."""
 
     op: Literal["scan"]
-    ids: Annotated[list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=1)] | None = None
+    ids: Annotated[list[Annotated[int, Field(ge=0, le=255)]],
+                   Field(min_length=1, max_length=MAX_SCAN_IDS)] | None = None
+
+    @model_validator(mode="after")
+    def _distinct_ids(self) -> BusScan:
+        if self.ids is not None and len(set(self.ids)) != len(self.ids):
+            raise ValueError("scan ids must be distinct")
+        return self
 
 
 #: What ``<prefix>/<gw>/bus/<bus>/cmd`` takes.
@@ -334,6 +344,9 @@ class BusStatistics(Published):
     checksum_errors: int
     discarded_bytes: int = Field(description="Received bytes that were not part of a frame.")
     late_replies: int = Field(description="Replies that came after their deadline.")
+    early_replies: int = Field(description="Replies read before their request could have left "
+                               "the wire at the bus's rate: a wrong baud rate, or an emulator "
+                               "without wire timing.")
     reconnects: int
     skipped_polls: int = Field(description="Polls left out to keep follow ticks on time.")
     busy_commands: int = Field(description="Commands refused with ``busy`` (queue full).")

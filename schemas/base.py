@@ -12,7 +12,8 @@ from typing import Annotated
 from pydantic import BaseModel, ConfigDict, Field
 
 #: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
-ClientId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+CLIENT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
 
 #: Raw bytes written to a device, as hex without spaces (``"e803"``).
 HexData = Annotated[str, Field(pattern=r"^(?:[0-9a-fA-F]{2})+$", max_length=512)]

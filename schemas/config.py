@@ -4,11 +4,14 @@ Rules of this file: everything a running gateway relies on is checked here, befo
 is opened, and every refusal names its key path (``buses[0].devices[1].follow_period_ms``)
 and what is allowed. Timing limits come from ``busgate.codecs.timing``, id ranges from the
 codecs, so a limit is written down once. Whether a port exists is not checked here: that is
-the host's business, and ``busgate check-config`` reports it as a warning.
+the host's business, and ``busgate check-config`` reports it as a warning. The host is looked at
+once: symlinks are resolved (``os.path.realpath``), so that two buses naming one device file
+(``/dev/ttyUSB0`` and a udev link to it) are refused instead of fighting over the port.
 """
 
 from __future__ import annotations
 
+import os
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -94,6 +97,11 @@ class SerialBus(BusBase):
     min_gap_ms: Annotated[float, Field(ge=0, le=100)] | None = None
 
     @property
+    def device_key(self) -> tuple[str, str]:
+        """(key, value) of the device file this bus opens."""
+        return "port", self.port
+
+    @property
     def gap_s(self) -> float:
         if self.min_gap_ms is None:
             return PROTOCOL_TIMING[self.protocol].default_gap_s
@@ -107,6 +115,12 @@ class CanBus(BusBase):
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
     #: Further keyword arguments for ``can.Bus`` (e.g. ``tty_baudrate`` for slcan).
     options: dict[str, str | int | float | bool] = {}
+
+    @property
+    def device_key(self) -> tuple[str, str] | None:
+        """(key, value) of the device file this bus opens: slcan and other adapters are named
+        by their tty; a SocketCAN channel is a socket, no file."""
+        return ("channel", self.channel) if self.channel.startswith("/") else None
 
 
 Bus = Annotated[SerialBus | CanBus, Field(discriminator="transport")]
@@ -124,6 +138,7 @@ class Config(Section):
         _require_unique("buses", [d.name for bus in self.buses for d in bus.devices], "device name")
         for index, bus in enumerate(self.buses):
             _check_bus(f"buses[{index}]", bus)
+        _require_own_device_files(self.buses)
         return self
 
 
@@ -133,6 +148,30 @@ def _require_unique(path: str, names: list[str], what: str) -> None:
         if name in seen:
             raise ValueError(f"{path}: {what} {name!r} is used twice; names must be unique")
         seen.add(name)
+
+
+def _require_own_device_files(buses: list[SerialBus | CanBus]) -> None:
+    """One bus per device file, however it is named: two would share the line unknowingly
+    (or the second never opens it: the first holds it exclusively)."""
+    first: dict[str, tuple[str, str]] = {}  # real path: (bus, the name it gave)
+    for index, bus in enumerate(buses):
+        if bus.device_key is None:
+            continue
+        key, name = bus.device_key
+        real = os.path.realpath(name)
+        if real not in first:
+            first[real] = (bus.name, name)
+            continue
+        other_bus, other_name = first[real]
+        raise ValueError(f"buses[{index}].{key}: buses {other_bus!r} and {bus.name!r} both open "
+                         f"{_one_file(real, other_name, name)}; give each bus its own port")
+
+
+def _one_file(real: str, first_name: str, name: str) -> str:
+    """The file two buses open, as each named it when the names differ."""
+    if first_name != name:
+        return f"{real} (as {first_name} and {name})"
+    return name if name == real else f"{name} (that is {real})"
 
 
 def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
@@ -184,12 +223,22 @@ def _describe(error: Any) -> tuple[str, str]:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML config file."""
     try:
-        data = tomllib.loads(Path(path).read_text())
+        data = tomllib.loads(Path(path).read_bytes().decode("utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror}", path="") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(_not_utf8(path, exc), path="") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
     return parse_config(data)
+
+
+def _not_utf8(path: str | Path, exc: UnicodeDecodeError) -> str:
+    """Where a file that should be UTF-8 (as TOML is) stops being so."""
+    line = exc.object.count(b"\n", 0, exc.start) + 1
+    byte = exc.object[exc.start]
+    return (f"{path} is not UTF-8 text (line {line} has the byte 0x{byte:02x}); TOML files are "
+            f"UTF-8: save it as UTF-8")
 
 
 def _key_path(loc: tuple[int | str, ...]) -> str:

@@ -49,7 +49,9 @@ def gateway(wait_for):
     events = []
     runners = {bus.name: build_bus(bus, on_event=events.append).start() for bus in (uart, can_bus)}
     clock = Clock()
-    api = GatewayApi("gw", runners, clock=clock, on_event=events.append)
+    for runner in runners.values():
+        runner.authority.clock = clock  # claims' TTLs on a clock the tests can move
+    api = GatewayApi("gw", runners, on_event=events.append)
     wait_for(lambda: all(driver.online for _, driver in api.devices.values()))
     yield api, simulator, can_sim, clock, events
     for runner in runners.values():

@@ -21,10 +21,14 @@ from dataclasses import dataclass, field
 import pytest
 import zenoh
 
+from busgate.codecs import inspire_la
 from busgate.gateway import client_cli
 from busgate.gateway.cli import main
 from busgate.gateway.client_cli import WatchTable
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.zenoh_config import session_config
+from tests.gateway_process import GatewayProcess, serial_bus, write_config
 
 PUBLISH_EVERY_S = 0.05
 
@@ -134,6 +138,20 @@ def stand_in(free_port) -> Iterator[StandIn]:
         session.close()
 
 
+@pytest.fixture
+def gateway(free_port, tmp_path) -> Iterator[str]:
+    """``busgate run``, gateway ``gw1`` with actuator ``la1`` on a simulator; its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with SerialSimulator(inspire_la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
+        process = GatewayProcess(write_config(tmp_path / "gw.toml", endpoint,
+                                              serial_bus("uart0", simulator.port, "la1")))
+        try:
+            process.wait_for(" serving ")
+            yield endpoint
+        finally:
+            process.stop()
+
+
 # -- send -----------------------------------------------------------------------------------
 
 
@@ -190,14 +208,26 @@ def test_gateways_without_the_device_are_heard_only_when_none_has_it(stand_in, c
     assert len(out.splitlines()) == 2
 
 
-def test_nobody_answering_exits_2_naming_the_selector(stand_in, capsys):
-    status = main(["send", "busgate/gwtest/dev/la9/cmd", '{"op":"stop"}', "--timeout", "0.5",
+def test_nobody_answering_exits_2_naming_the_selector_and_no_wait_it_did_not_do(stand_in,
+                                                                                capsys):
+    # No queryable matches: zenoh ends the get at once, so no wait may be claimed.
+    status = main(["send", "busgate/gwtest/dev/la9/cmd", '{"op":"stop"}', "--timeout", "5",
                    "--connect", stand_in.endpoint])
     out, err = capsys.readouterr()
     assert status == 2
     assert out == ""
+    assert err.strip() == "busgate send: nobody answered on busgate/gwtest/dev/la9/cmd"
+
+
+def test_a_device_no_gateway_has_is_unknown_device_naming_the_gateways(gateway, capsys):
+    # A real gateway leaves a fleet-wide command for a device it lacks unanswered; its info
+    # reply tells it is there.
+    status = main(["send", "la9", '{"op":"status"}', "--connect", gateway])
+    out, err = capsys.readouterr()
+    assert (status, out) == (1, "")
     assert err.strip() == \
-        "busgate send: nobody answered on busgate/gwtest/dev/la9/cmd within 0.5 s"
+        "busgate send: unknown_device: no device 'la9' on the gateways that answered (gw1)"
+    assert main(["send", "la1", '{"op":"status"}', "--connect", gateway]) == 0
 
 
 def test_a_gateway_that_never_answers_in_time_counts_as_nobody(stand_in, capsys):

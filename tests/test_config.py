@@ -110,6 +110,34 @@ def test_names_are_unique_and_key_expression_safe() -> None:
     assert "used twice" in str(error)
 
 
+def _second_bus(name: str, **link: str) -> dict:
+    transport = "serial" if "port" in link else "can"
+    kind = "ds_servo" if transport == "serial" else "zlac706"
+    rate = {"baudrate": 115200} if transport == "serial" else {"interface": "slcan"}
+    return {"name": name, "transport": transport, **rate, **link,
+            "devices": [{"name": f"{name}_1", "kind": kind, "id": 1}]}
+
+
+def test_one_bus_per_device_file_however_it_is_named(tmp_path) -> None:
+    error = refused(lambda d: d["buses"].append(_second_bus("uart1", port="/dev/ttyUSB0")))
+    assert error.path == "buses[1].port"
+    assert str(error) == ("buses[1].port: buses 'uart0' and 'uart1' both open /dev/ttyUSB0; "
+                          "give each bus its own port")
+    link = tmp_path / "hand"
+    link.symlink_to("/dev/ttyUSB0")  # as a udev rule makes it
+    error = refused(lambda d: d["buses"].append(_second_bus("uart1", port=str(link))))
+    assert f"both open /dev/ttyUSB0 (as /dev/ttyUSB0 and {link})" in str(error)
+    error = refused(lambda d: d["buses"].append(_second_bus("can0", channel=str(link))))
+    assert error.path == "buses[1].channel"  # an slcan adapter is a tty too
+
+
+def test_socketcan_channels_and_distinct_ports_are_not_device_files_in_common() -> None:
+    data = copy.deepcopy(BASE)
+    data["buses"] += [_second_bus("uart1", port="/dev/ttyUSB1"),
+                      {**_second_bus("can0", channel="can0"), "interface": "socketcan"}]
+    assert len(parse_config(data).buses) == 3
+
+
 def test_unknown_keys_and_wrong_types_are_refused_not_ignored() -> None:
     assert refused(lambda d: d["buses"][0].update(baud=9600)).path == "buses[0].baud"
     assert refused(lambda d: d["buses"][0].update(baudrate="fast")).path == "buses[0].baudrate"
@@ -122,6 +150,12 @@ def test_unreadable_and_malformed_files(tmp_path) -> None:
     bad.write_text("[gateway\nname=1")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+    latin1 = tmp_path / "latin1.toml"
+    latin1.write_bytes('[gateway]\nname = "gw1"\n# Grüße\n'.encode("latin-1"))
+    with pytest.raises(ConfigError) as caught:
+        load_config(latin1)
+    assert str(caught.value) == (f"{latin1} is not UTF-8 text (line 3 has the byte 0xfc); TOML "
+                                 "files are UTF-8: save it as UTF-8")
 
 
 @pytest.mark.parametrize("name", ["inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232",

@@ -1,6 +1,7 @@
 """``busgate demo`` as a new user runs it: a child process serving every simulated device on
 a zenoh endpoint of its own; a real client session moves an actuator, sees every device of
-every kind online, and the demo stops cleanly on SIGTERM."""
+every kind online, and the demo stops cleanly on SIGTERM; a second demo on the same endpoint
+is refused in one line."""
 
 from __future__ import annotations
 
@@ -96,6 +97,15 @@ def test_the_demo_serves_every_device_and_an_actuator_moves(wait_for, demo) -> N
     assert positions[0] != 1500, "la1 started elsewhere and moved"
     subscriber.undeclare()
     assert process.terminate() == 0
+
+
+def test_a_second_demo_on_the_same_endpoint_is_refused_in_one_line(demo) -> None:
+    _, _, endpoint = demo
+    second = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
+                             endpoint], capture_output=True, text=True, timeout=START_TIMEOUT_S)
+    refusal = (f"busgate demo: error: zenoh cannot listen on {endpoint}: it is in use (another "
+               f"busgate demo or run?)")
+    assert (second.returncode, second.stderr.splitlines(), second.stdout) == (2, [refusal], "")
 
 
 def test_the_demo_config_is_validated_like_any_config() -> None:

@@ -11,7 +11,7 @@ from busgate.codecs.framing import ExpectedReply
 from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Effect
 from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.tickers import FollowTicker
 
@@ -52,8 +52,9 @@ class FollowingDriver(Driver):
     def follow_request(cls, targets):
         return silent_request(3 + 3 * len(targets))
 
-    plan = poll = safe_stop = telemetry = lambda self, *a: []
+    plan = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
     apply = lambda self, *a: {}  # noqa: E731
+    effect = lambda self, frame: Effect.MOTION  # noqa: E731
 
 
 def ticker_at(planner: BusPlanner, now: float, period: float = 0.010) -> FollowTicker:

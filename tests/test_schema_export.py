@@ -28,8 +28,10 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import RefusedError
 from busgate.gateway import schema_cli
 from busgate.gateway.api import GatewayApi, error_reply, ok_reply
+from busgate.gateway.authority import Authority
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.cli import main
 from busgate.gateway.drivers.base import OFFLINE_AFTER, DeviceEvent, Driver
@@ -295,11 +297,12 @@ def test_an_undocumented_or_missing_telemetry_key_is_refused():
 def gateway() -> tuple[GatewayApi, list[Any], DsServoDriver]:
     """The API over one DS bus whose runner is a stand-in holding real drivers and states."""
     arm, spare = ds_servo_driver(), DsServoDriver("arm2", 2)
-    runner = SimpleNamespace(drivers={"arm": arm, "arm2": spare},
+    drivers = {"arm": arm, "arm2": spare}
+    runner = SimpleNamespace(drivers=drivers, authority=Authority("uart0", drivers),
                              timing=SimpleNamespace(protocol="ds_servo"),
                              states={"arm": published(arm, 2.0)})
     events: list[Any] = []
-    return (GatewayApi("gw1", {"uart0": runner}, clock=lambda: 10.0, on_event=events.append),
+    return (GatewayApi("gw1", {"uart0": runner}, on_event=events.append),
             events, arm)
 
 
@@ -318,7 +321,7 @@ def test_the_apis_replies_match_the_reply_schema():
     replies = [
         ok_reply(**data, state=published(arm, 2.0)),
         reply(gw.command("arm", b'{"op":"claim","client":"ui-1","ttl_s":5}')),
-        reply(gw.command("arm", b'{"op":"move","position":100,"client":"other"}')),
+        error_reply(RefusedError("claimed", "arm is claimed by 'ui-1'")),
         reply(gw.command("arm", b'{"op":"release","client":"ui-1"}')),
         reply(gw.command("nope", b"{}")),
         reply(gw.command("arm", b"\xff")),

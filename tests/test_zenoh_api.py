@@ -5,6 +5,7 @@ a pty behind it."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import signal
 import subprocess
@@ -12,6 +13,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Iterator
 
 import pytest
 import zenoh
@@ -57,11 +59,11 @@ class Daemon:
         self.thread.join(5)
 
 
-@pytest.fixture
-def setup(free_port):
+@contextlib.contextmanager
+def served(endpoint: str) -> Iterator[tuple[zenoh.Session, SerialSimulator]]:
+    """The daemon on ``endpoint`` over two simulated LA actuators, and a client session."""
     simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     simulator.start()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     daemon = Daemon(config_for(simulator.port, endpoint))
     client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
     try:
@@ -70,6 +72,12 @@ def setup(free_port):
         client.close()
         daemon.shutdown()
         simulator.stop()
+
+
+@pytest.fixture
+def setup(free_port):
+    with served(f"tcp/127.0.0.1:{free_port()}") as both:
+        yield both
 
 
 def get(client: zenoh.Session, key: str, payload: bytes | str, timeout: float = 5.0) -> list:
@@ -134,6 +142,23 @@ def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(wait_for, se
     client.put("busgate/gw1/dev/la1/follow", '{"position": 99999}')
     wait_for(lambda: any(e["type"] == "command_refused" for e in events))
     wait_for(lambda: any(e["type"] == "stream_stale" for e in events))
+    subscriber.undeclare()
+
+
+@pytest.mark.parametrize("payload", [
+    b"[" * 1001 + b"]" * 1001,  # deeper than the JSON parser goes
+    b'{"position": 800, "client": ["x"]}',
+    b'{"position": 800, "position": 100}',
+])
+def test_a_follow_put_of_any_payload_is_taken_or_refused_as_an_event(wait_for, setup, payload):
+    client, simulator = setup
+    events: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/dev/la1/event", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    client.put("busgate/gw1/dev/la1/follow", payload)
+    wait_for(lambda: any(e["type"] == "command_refused" for e in events))
+    assert [e["code"] for e in events if e["type"] == "command_refused"] == ["bad_command"]
+    assert not any(r.frame == "FollowCommand" for r in simulator.recorder.received())
     subscriber.undeclare()
 
 
@@ -253,7 +278,7 @@ def test_every_state_a_bus_made_is_published_in_order(free_port, wait_for) -> No
     config = parse_config(config_for("/dev/null", endpoint))
     runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
     states: deque = deque()
-    bridge = ZenohBridge(config, GatewayApi("gw1", runners, clock=time.monotonic), runners,
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners,
                          deque(), states)
     loop = asyncio.new_event_loop()
     bridge.open(loop)

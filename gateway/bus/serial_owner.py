@@ -3,10 +3,13 @@
 Rules of this file:
 
 1. Only the bus thread calls ``exchange``; nothing else touches the port.
-2. Stale input is flushed before every request, and any reply that *could not* be the answer
-   (read before our frame had left the wire plus the device's shortest reply time) is counted
-   as late and ignored: a reply that arrives after its timeout is never taken for the next
-   request's reply.
+2. Stale input is flushed right before every request, and any reply that *could not* be the
+   answer is ignored: one read before our frame had left the wire plus the device's shortest
+   reply time is counted ``early`` (a wrong baud rate, or an emulator without wire timing), one
+   left from an earlier exchange ``late``. A reply that arrives after its timeout is never
+   taken for the next request's reply.
+5. The gap counts from the last byte seen on the line: when the flush finds anything (a late
+   reply, noise), the write waits until ``gap_s`` has passed since then, and looks again.
 3. ``SerialException`` and ``OSError`` mean the link is down: the port is closed at once and
    ``BusIOError`` raised; reconnecting (with backoff) is the runner's business.
 4. Waiting for a reply uses ``select`` on the port's descriptor with the absolute deadline,
@@ -28,8 +31,11 @@ from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.port_access import describe_open_error
 
 WRITE_TIMEOUT_S = 0.5
+#: Longest a write waits for a line that keeps talking (noise) to fall quiet for the gap.
+QUIET_WAIT_MAX_S = 0.05
 
 
 class SerialBusOwner:
@@ -44,6 +50,7 @@ class SerialBusOwner:
         self.counters = counters
         self._serial: serial.Serial | None = None
         self._decoder = codec.ReplyDecoder()
+        self._early = 0  # replies of the exchange in progress that came too early
 
     @property
     def is_open(self) -> bool:
@@ -57,7 +64,7 @@ class SerialBusOwner:
                 exclusive=True,
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise BusUnavailableError(f"cannot open {self.port}: {exc}") from exc
+            raise BusUnavailableError(describe_open_error(self.port, exc)) from exc
         self._decoder = self.codec.ReplyDecoder()
 
     def close(self) -> None:
@@ -81,9 +88,9 @@ class SerialBusOwner:
             raise BusIOError(f"{self.port}: {exc}") from exc
 
     def _exchange(self, port: serial.Serial, request: Request, at: float | None) -> Exchange:
-        self._flush_stale(port)
         if at is not None:
             sleep_until(at)
+        self._wait_for_quiet(port)
         # Two clocks on the write: the frame cannot have left before ``issued`` (so no true
         # reply can come before issued + wire + shortest reply time), and the line is taken
         # until at least ``start`` + wire time, ``start`` being when the kernel had the bytes.
@@ -117,6 +124,7 @@ class SerialBusOwner:
         expected = request.expected
         assert expected is not None
         answer: list[object] = []
+        self._early = 0
         fd = port.fileno()
         while True:
             # Past the deadline, one last look without waiting: a reply that came in time
@@ -138,9 +146,12 @@ class SerialBusOwner:
             if remaining <= 0:
                 break
         self.counters.timeouts += 1
-        raise DeviceTimeoutError(
-            f"no reply from id {expected.source_id} on {self.port}", device_id=expected.source_id
-        )
+        message = f"no reply from id {expected.source_id} on {self.port}"
+        if self._early:
+            message += (f"; {self._early} came before the request could have left the wire at "
+                        f"{self.timing.rate} baud: is the baud rate right, or is this an "
+                        "emulator without wire timing?")
+        raise DeviceTimeoutError(message, device_id=expected.source_id)
 
     def _take(self, event: object, expected, in_time: bool) -> bool:
         """Count ``event``; true when it is (part of) the awaited answer."""
@@ -151,13 +162,24 @@ class SerialBusOwner:
             self.counters.checksum_errors += 1
             return False
         self.counters.frames_in += 1
-        if expected.matches(event) and in_time:
-            return True
-        self.counters.late_replies += 1
-        return False
+        if not expected.matches(event):
+            self.counters.late_replies += 1
+            return False
+        if not in_time:
+            self.counters.early_replies += 1
+            self._early += 1
+            return False
+        return True
 
-    def _flush_stale(self, port: serial.Serial) -> None:
-        """Drop whatever arrived since the last exchange (late replies, noise)."""
+    def _wait_for_quiet(self, port: serial.Serial) -> None:
+        """Flush stale input; while there was some, wait out the gap after it and look again."""
+        give_up = now() + QUIET_WAIT_MAX_S
+        while self._flush_stale(port) and now() < give_up:
+            sleep_until(now() + self.timing.gap_s)
+
+    def _flush_stale(self, port: serial.Serial) -> bool:
+        """Drop whatever arrived since the last exchange (late replies, noise); true when
+        there was any (it was on the line a moment ago)."""
         waiting = port.in_waiting
         if waiting:
             self._decoder.feed(port.read(waiting))
@@ -168,3 +190,4 @@ class SerialBusOwner:
                     self.counters.late_replies += 1
         self.counters.discarded_bytes += self._decoder.pending
         self._decoder = self.codec.ReplyDecoder()
+        return bool(waiting)

@@ -28,6 +28,7 @@ class BusStats:
     checksum_errors: int
     discarded_bytes: int
     late_replies: int
+    early_replies: int
     reconnects: int
     skipped_polls: int
     busy_commands: int
@@ -48,6 +49,7 @@ class BusCounters:
         self.frames_out = self.frames_in = self.bytes_out = self.bytes_in = 0
         self.timeouts = self.retries = self.checksum_errors = self.discarded_bytes = 0
         self.late_replies = self.reconnects = self.skipped_polls = self.busy_commands = 0
+        self.early_replies = 0
         self.busy_s = 0.0
         self.smallest_gap_s: float | None = None
         self._follow_errors: deque[float] = deque(maxlen=SAMPLES)
@@ -73,7 +75,8 @@ class BusCounters:
             bytes_out=self.bytes_out, bytes_in=self.bytes_in,
             timeouts=self.timeouts, retries=self.retries,
             checksum_errors=self.checksum_errors, discarded_bytes=self.discarded_bytes,
-            late_replies=self.late_replies, reconnects=self.reconnects,
+            late_replies=self.late_replies, early_replies=self.early_replies,
+            reconnects=self.reconnects,
             skipped_polls=self.skipped_polls, busy_commands=self.busy_commands,
             smallest_gap_s=self.smallest_gap_s,
             follow_error_p50_s=percentile(errors, 0.50),

@@ -15,6 +15,7 @@ Rules of this file (and of every driver):
 from __future__ import annotations
 
 import abc
+import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -22,12 +23,26 @@ from typing import Any, ClassVar
 
 from pydantic import TypeAdapter
 
-from busgate.codecs.errors import CommandError
+from busgate.codecs.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.schemas.errors import command_from_json
 
 #: Consecutive unanswered requests after which a device is marked offline.
 OFFLINE_AFTER = 3
+
+
+class Effect(enum.IntEnum):
+    """What a frame does to the devices it addresses; the gateway authorises by it."""
+
+    READ = 0  # asks, changes nothing: never refused
+    STOP = 1  # stops or releases: never refused
+    SETTING = 2  # changes how the device works: needs the claim
+    MOTION = 3  # may move the device: needs the claim, refused while e-stopped
+
+
+#: The devices a frame addresses: a set of ids, or ``EVERY`` device of the bus (broadcast).
+EVERY = None
+Addressed = frozenset[int] | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,6 +64,10 @@ class Driver(abc.ABC):
     commands: ClassVar[TypeAdapter[Any]]
     #: How many devices' follow targets one frame can carry (1: no coalescing).
     follow_group_limit: ClassVar[int] = 1
+    #: The id a frame sent to every device carries (``None``: the protocol has none).
+    broadcast_id: ClassVar[int | None] = None
+    #: The command that lets the device move again after an e-stop (named in refusals).
+    reenable_op: ClassVar[str]
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         self.name = name
@@ -62,13 +81,48 @@ class Driver(abc.ABC):
         self.applied_settings: dict[object, Request] = {}
         #: A reboot was seen and ``restore`` has not been sent yet.
         self.restore_pending = False
+        #: Set by ``safe_stop`` (a gateway e-stop), cleared when ``reenable_op`` is planned.
+        self.estop_latched = False
         self._events: list[DeviceEvent] = []
 
     # -- planning ---------------------------------------------------------------------------
 
+    @property
+    def estopped(self) -> bool:
+        """Motion is refused (``estopped``) until ``reenable_op``: the gateway e-stopped the
+        device. Read from any thread; changed on the bus thread only."""
+        return self.estop_latched
+
+    def estopped_error(self) -> RefusedError:
+        """The refusal of motion while e-stopped, saying how to recover."""
+        return RefusedError("estopped", f"{self.name} is e-stopped: send {self.reenable_op} "
+                                        "to let it move again")
+
     def parse(self, text: str | bytes) -> Any:
         """A JSON command for this kind, validated (``CommandError`` when refused)."""
         return command_from_json(self.commands, text)
+
+    @abc.abstractmethod
+    def frames_of(self, command: Any) -> list[object]:
+        """The frames that carry out ``command``, without planning it: no state changes, so
+        any thread may ask (the gateway authorises a command by them before planning it)."""
+
+    @abc.abstractmethod
+    def effect(self, frame: object) -> Effect:
+        """What ``frame`` does to the devices it addresses."""
+
+    def addressed(self, frame: object) -> Addressed:
+        """The ids ``frame`` addresses: each target of a group frame, its own id, or
+        ``EVERY`` device for a broadcast (or a frame with no id: a point-to-point line)."""
+        targets = getattr(frame, "targets", None)
+        if targets is not None:
+            return frozenset(target.device_id for target in targets)
+        device_id = getattr(frame, "device_id", self.broadcast_id)
+        return EVERY if device_id == self.broadcast_id else frozenset({device_id})
+
+    def effects(self, command: Any) -> list[tuple[Addressed, Effect]]:
+        """What each frame of ``command`` does, and to which ids."""
+        return [(self.addressed(frame), self.effect(frame)) for frame in self.frames_of(command)]
 
     @abc.abstractmethod
     def plan(self, command: Any) -> list[Request]:

@@ -23,13 +23,14 @@ from collections.abc import Callable, Iterable, Sequence
 from types import ModuleType
 from typing import Any, ClassVar, Final
 
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs import ds_servo as codec
 from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import ds_servo as schema
+from busgate.schemas.base import CommandModel
 from busgate.schemas.errors import describe_validation_error
 
 _TORQUE = codec.REGISTERS["torque_enable"].address
@@ -78,6 +79,32 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     ['ff ff fe 07 03 2a 08 00 03 e8 da']
     """
     return [_FRAME_FOR[type(command)](command, device_id)]
+
+
+#: Registers whose write moves the shaft: the target (with the move time after it) and the
+#: go-to-preset addresses.
+_MOTION_REGISTERS = frozenset(
+    {"target_position", *(codec.REGISTERS.at(a).name for a in codec.GOTO_PRESET_ADDRESSES)})
+_FRAME_EFFECTS: dict[type, Effect] = {
+    codec.Ping: Effect.READ,
+    codec.Read: Effect.READ,
+    codec.RegWrite: Effect.MOTION,  # a stored move: the next ACTION starts it
+    codec.Action: Effect.MOTION,
+    codec.SyncWrite: Effect.MOTION,
+    codec.Reset: Effect.SETTING,
+}
+
+
+def frame_effect(frame: codec.Frame) -> Effect:
+    """What ``frame`` does: torque off stops; a write reaching the target or a go-to-preset
+    address moves; other writes change settings."""
+    if not isinstance(frame, codec.Write):
+        return _FRAME_EFFECTS[type(frame)]
+    if frame.address == _TORQUE and frame.data == b"\x00":
+        return Effect.STOP
+    if codec.REGISTERS.touched(frame.address, len(frame.data)) & _MOTION_REGISTERS:
+        return Effect.MOTION
+    return Effect.SETTING
 
 
 # --- the driver ------------------------------------------------------------------------------
@@ -145,10 +172,8 @@ _POLLED: Final = (*_MEASURED, "torque_enable", "target_position")
 _POLL_SPANS: Final = poll_spans(_POLLED)
 
 
-class FollowTarget(BaseModel):
-    """A ``ds_servo`` follow stream's payload: one absolute position, nothing else."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+class FollowTarget(CommandModel):
+    """A ``ds_servo`` follow stream's payload: one absolute position, and the sending client."""
 
     position: schema.Position
 
@@ -167,6 +192,8 @@ class DsServoDriver(Driver):
     codec: ClassVar[ModuleType] = codec
     commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
+    broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
+    reenable_op: ClassVar[str] = '{"op": "torque", "on": true}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)
@@ -178,6 +205,12 @@ class DsServoDriver(Driver):
 
     # -- planning -------------------------------------------------------------------------------
 
+    def frames_of(self, command: Any) -> list[codec.Frame]:
+        return frames_for(command, self.device_id)
+
+    def effect(self, frame: object) -> Effect:
+        return frame_effect(frame)  # type: ignore[arg-type]
+
     def plan(self, command: Any) -> list[Request]:
         if type(command) not in _FRAME_FOR:
             raise CommandError(f"ds_servo has no command {type(command).__name__}")
@@ -185,8 +218,11 @@ class DsServoDriver(Driver):
             # Nothing to change, and a confirmation could not be told from a no-op.
             raise CommandError(f"servo {self.name} already has id {self.device_id}")
         idempotent = type(command) in _IDEMPOTENT
-        return [Request.of(codec, frame, idempotent=idempotent)
-                for frame in frames_for(command, self.device_id)]
+        requests = [Request.of(codec, frame, idempotent=idempotent)
+                    for frame in frames_for(command, self.device_id)]
+        if isinstance(command, schema.Torque) and command.on:
+            self.estop_latched = False  # the re-enable op: the servo may move again
+        return requests
 
     def poll(self) -> list[Request]:
         return [Request.of(codec, codec.Read(self.device_id, address, length), idempotent=True)
@@ -196,6 +232,7 @@ class DsServoDriver(Driver):
         """Torque off: the manual documents no value for the lock (e-stop) flag at 0x30, and
         torque off is its one documented way to stop driving the shaft. The servo goes limp:
         a load it was holding against gravity is no longer held."""
+        self.estop_latched = True
         return [Request.of(codec, codec.Write(self.device_id, _TORQUE, b"\x00"), idempotent=True)]
 
     def follow_target(self, payload: dict[str, Any]) -> int:

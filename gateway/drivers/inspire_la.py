@@ -30,12 +30,12 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 from typing import Any, ClassVar
 
-from pydantic import BaseModel, TypeAdapter, ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import CommandError, EncodeError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import inspire_la as schema
 from busgate.schemas.base import CommandModel
 from busgate.schemas.errors import describe_validation_error
@@ -101,6 +101,30 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     return [_FRAME_FOR[type(command)](command, device_id)]
 
 
+_CONTROL_EFFECTS: dict[codec.ControlCode, Effect] = {
+    codec.ControlCode.STATUS: Effect.READ,
+    codec.ControlCode.ESTOP: Effect.STOP,
+    codec.ControlCode.PAUSE: Effect.STOP,
+}
+_MOTION_FRAMES = (codec.MoveCommand, codec.FollowCommand, codec.GroupMoveCommand,
+                  codec.GroupFollowCommand)
+
+
+def frame_effect(frame: codec.Frame) -> Effect:
+    """What ``frame`` does: a target (or a raw write of the target register) moves; a status
+    query or a read only asks; e-stop and pause stop; anything else changes a setting."""
+    if isinstance(frame, _MOTION_FRAMES):
+        return Effect.MOTION
+    if isinstance(frame, codec.ReadCommand):
+        return Effect.READ
+    if isinstance(frame, codec.ControlCommand):
+        return _CONTROL_EFFECTS.get(frame.code, Effect.SETTING)
+    if isinstance(frame, codec.WriteCommand) and codec.TARGET_POSITION in (
+            codec.REGISTERS.touched(frame.index, len(frame.data))):
+        return Effect.MOTION
+    return Effect.SETTING
+
+
 # --- the driver -----------------------------------------------------------------------------
 
 
@@ -142,10 +166,8 @@ _STATUS_FIELDS = {
 }
 
 
-class FollowTarget(BaseModel):
-    """A follow stream's payload: the target position, nothing else."""
-
-    model_config = CommandModel.model_config
+class FollowTarget(CommandModel):
+    """A follow stream's payload: the target position, and the sending client."""
 
     position: schema.Position
 
@@ -180,6 +202,8 @@ class InspireLaDriver(Driver):
     codec: ClassVar[ModuleType] = codec
     commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
+    broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
+    reenable_op: ClassVar[str] = '{"op": "enable"}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)
@@ -191,6 +215,16 @@ class InspireLaDriver(Driver):
         self._planned: dict[str, int] = {}
 
     # -- planning ---------------------------------------------------------------------------
+
+    @property
+    def estopped(self) -> bool:
+        return self.power is PowerStage.ESTOPPED
+
+    def frames_of(self, command: Any) -> list[codec.Frame]:
+        return frames_for(command, self.device_id)
+
+    def effect(self, frame: object) -> Effect:
+        return frame_effect(frame)  # type: ignore[arg-type]
 
     def plan(self, command: Any) -> list[Request]:
         moves_me = self._moves_me(command)
@@ -246,7 +280,6 @@ class InspireLaDriver(Driver):
             target = _FOLLOW_TARGET.validate_python(payload)
         except ValidationError as exc:
             raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
-        self.require_power()
         return target.position
 
     @classmethod
@@ -275,9 +308,9 @@ class InspireLaDriver(Driver):
         return request
 
     def require_power(self) -> None:
-        """``CommandError`` unless a target would move the actuator (not e-stopped)."""
-        if self.power is PowerStage.ESTOPPED:
-            raise CommandError(f"{self.name} is e-stopped: send enable before moving it")
+        """Refused (``estopped``) unless a target would move the actuator."""
+        if self.estopped:
+            raise self.estopped_error()
 
     def _power_after(self, command: Any, moves_me: bool) -> PowerStage:
         if moves_me:

@@ -138,6 +138,7 @@ class Zlac706CanDriver(Zlac706Driver):
 
     protocol: ClassVar[str] = "zlac706_can"
     codec: ClassVar[ModuleType] = codec
+    broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
     frames = staticmethod(frames_for)
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual's limit is 500 ms; 100 ms of margin for a busy bus and the host.

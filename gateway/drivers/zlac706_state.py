@@ -35,13 +35,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs import zlac706_common as common
 from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import zlac706 as schema
+from busgate.schemas.base import CommandModel
 from busgate.schemas.errors import describe_validation_error
 
 Mode = common.Mode
@@ -148,6 +149,27 @@ _RULES: dict[Role, Callable[[Settings, Any], str | None]] = {
 }
 
 
+#: What a write in each role does; a role not here changes a setting. An origin search (a
+#: one-shot, like alarm reset) runs the motor, so one-shots count as motion.
+_ROLE_EFFECTS: dict[Role, Effect] = {
+    Role.POSITION: Effect.MOTION,
+    Role.POSITION_HIGH: Effect.MOTION,
+    Role.TORQUE: Effect.MOTION,
+    Role.ONE_SHOT: Effect.MOTION,
+}
+
+
+def role_effect(role: Role | None, value: Any) -> Effect:
+    """What a frame in ``role`` writing ``value`` does (``None``: not a write, it asks)."""
+    if role is None:
+        return Effect.READ
+    if role is Role.ENABLE:
+        return Effect.SETTING if value else Effect.STOP
+    if role is Role.SPEED:
+        return Effect.MOTION if value else Effect.STOP
+    return _ROLE_EFFECTS.get(role, Effect.SETTING)
+
+
 def check(role: Role, value: Any, settings: Settings) -> None:
     """Refuse (``CommandError``) a write the device would ignore or should not get now."""
     rule = _RULES.get(role)
@@ -214,10 +236,8 @@ def _rpm(raw: int | None) -> float | None:
     return None if raw is None else common.rpm_from_speed_raw(raw)
 
 
-class FollowTarget(BaseModel):
-    """A ZLAC706 follow stream's payload: a speed, nothing else."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+class FollowTarget(CommandModel):
+    """A ZLAC706 follow stream's payload: a speed, and the sending client."""
 
     rpm: schema.Rpm
 
@@ -241,6 +261,7 @@ class Zlac706Driver(Driver):
     roles: ClassVar[dict[int, RoleOf]]
     keepalive_period_s: ClassVar[float]
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm")
+    reenable_op: ClassVar[str] = '{"op": "enable"}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)
@@ -248,6 +269,12 @@ class Zlac706Driver(Driver):
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
 
     # -- planning -------------------------------------------------------------------------------
+
+    def frames_of(self, command: Any) -> list[object]:
+        return self.frames(command, self.device_id)
+
+    def effect(self, frame: object) -> Effect:
+        return role_effect(*self._role(frame, self.machine.settings))
 
     def plan(self, command: Any) -> list[Request]:
         """The command's requests, refused (``CommandError``) when the order rules forbid it."""
@@ -263,6 +290,8 @@ class Zlac706Driver(Driver):
                 changes.update(change)
                 outlook = replace(outlook, **change)
         self.machine.planned(changes)
+        if changes.get(Role.ENABLE.value):
+            self.estop_latched = False  # the re-enable op: the motor may run again
         return requests
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
@@ -285,6 +314,7 @@ class Zlac706Driver(Driver):
         """Speed 0 (unless the mode is known not to be velocity), then release the motor.
 
         The queue is dropped on an e-stop, so the writes still in flight are forgotten."""
+        self.estop_latched = True
         self.machine.forget_pending()
         return [*self.stale_stream(), *self._unchecked(_RELEASE)]
 

@@ -16,6 +16,10 @@ The rules it enforces, in the words of the issue:
 5. After a timeout, no exchange that expects a reply starts before ``hold_replies_until``:
    a reply that comes late is then flushed as stale instead of being taken for the answer to
    the next request (frames without a reply, such as follow ticks, may still go).
+6. Deadlines: a command not started by its ``start_by`` is dropped (``expired``), never sent
+   later: its client has been answered. A scan's probes all start by the scan's ``start_by``.
+7. Scans wait in a lane of their own, after commands and due polls: a long scan interleaves
+   with everything else instead of holding the command queue.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -61,6 +65,16 @@ class Job:
     #: When a list, the runner records ``(request, reply events or None)`` per request.
     outcomes: list | None = None
     context: object = None
+    #: Latest moment (``perf_counter``) the job may start; for a scan, each of its probes.
+    start_by: float = math.inf
+    #: Its first request has been sent: from then on it runs to its end.
+    started: bool = False
+    #: A scan: its probes wait in the scan lane, each tried once, a silent id costing its
+    #: reply window and nothing more.
+    scan: bool = False
+
+    def expired(self, now: float) -> bool:
+        return now > self.start_by and (self.scan or not self.started)
 
 
 class FollowTicker(Protocol):
@@ -112,7 +126,10 @@ class BusPlanner:
         self.skipped_polls = 0
         self._estops: deque[Job] = deque()
         self._commands: deque[Job] = deque()
+        self._scans: deque[Job] = deque()
         self._command_limit = command_queue
+        #: Jobs dropped at their deadline, for the runner to answer (``take_expired``).
+        self._expired: list[Job] = []
         self._polls: dict[str, Job] = {}
         self.tickers: list[FollowTicker] = []
         self.pollers: list[Poller] = []
@@ -123,18 +140,30 @@ class BusPlanner:
         self._estops.append(job)
 
     def push_command(self, job: Job) -> bool:
-        """Queue a command; ``False`` (and nothing queued) when the queue is full."""
-        if len(self._commands) >= self._command_limit:
+        """Queue a command (or a scan, in its lane); ``False`` (and nothing queued) when the
+        queue is full."""
+        queue = self._scans if job.scan else self._commands
+        if len(queue) >= self._command_limit:
             return False
-        self._commands.append(job)
+        queue.append(job)
         return True
 
     def drop_commands(self) -> list[Job]:
-        """Take every queued command and poll out (an e-stop or a lost link voids them)."""
-        dropped = [*self._commands, *self._polls.values()]
+        """Take every queued command, scan and poll out (an e-stop or a lost link voids them)."""
+        dropped = [*self._commands, *self._scans, *self._polls.values()]
         self._commands.clear()
+        self._scans.clear()
         self._polls.clear()
         return dropped
+
+    def discard(self, job: Job) -> None:
+        """Take ``job`` out wherever it waits (it was cancelled before it started)."""
+        self._remove(job)
+
+    def take_expired(self) -> list[Job]:
+        """The jobs dropped at their deadline since the last call."""
+        expired, self._expired = self._expired, []
+        return expired
 
     @property
     def queued(self) -> int:
@@ -154,6 +183,7 @@ class BusPlanner:
                 return Slot(request, Priority.FOLLOW, ticker)
             return self.decide(now)  # the streams went stale; the ticker is idle now
         self._start_due_polls(now)
+        self._expire(now)
         held = now < self.hold_replies_until
         for job in self._candidates():
             request = job.requests[0]
@@ -173,7 +203,9 @@ class BusPlanner:
         job = slot.source
         if failed and slot.request.idempotent and job.attempts < MAX_RETRIES:
             job.attempts += 1
+            job.started = True
             return None
+        job.started = True
         job.requests.popleft()
         job.attempts = 0
         if (failed and not job.keep_going) or not job.requests:
@@ -194,7 +226,13 @@ class BusPlanner:
 
     def _candidates(self) -> list[Job]:
         polls = sorted(self._polls.values(), key=lambda job: job.context)
-        return [*self._commands, *polls]
+        return [*self._commands, *polls, *list(self._scans)[:1]]
+
+    def _expire(self, now: float) -> None:
+        for queue in (self._commands, self._scans):
+            for job in [job for job in queue if job.expired(now)]:
+                queue.remove(job)
+                self._expired.append(job)
 
     def _start_due_polls(self, now: float) -> None:
         for poller in self.pollers:
@@ -218,7 +256,7 @@ class BusPlanner:
         return min(waiting, default=math.inf)
 
     def _remove(self, job: Job) -> None:
-        for queue in (self._estops, self._commands):
+        for queue in (self._estops, self._commands, self._scans):
             if job in queue:
                 queue.remove(job)
                 return

@@ -17,17 +17,21 @@ Rules of this file:
 4. Results go back through ``concurrent.futures.Future`` (thread-safe, and awaitable from
    asyncio with ``asyncio.wrap_future``); device events go to ``on_event`` and each new device
    state to ``on_state`` (the latest also stays in ``states``); neither may block.
+5. A client's command is authorised (``authority``) on the bus thread, right before it is
+   planned; it must start within ``COMMAND_START_S`` of being handed over, else it is dropped
+   and answered ``busy``. A job whose future was cancelled before it started is never sent.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
 from busgate.codecs.errors import (
@@ -36,7 +40,9 @@ from busgate.codecs.errors import (
     BusUnavailableError,
     CommandError,
     DeviceTimeoutError,
+    RefusedError,
 )
+from busgate.gateway.authority import Authority
 from busgate.gateway.bus.can_owner import IDLE_BATCH_S
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
@@ -63,10 +69,15 @@ FINAL_WAIT_S = 0.001
 STALL_S = 2 * BACKOFF_MAX_S
 #: How often a device that went offline is asked whether it is back.
 OFFLINE_PROBE_S = 0.25
+#: A command not started this long after it was handed over is dropped, answered ``busy``.
+COMMAND_START_S = 2.0
+#: How often a bus that stays down is reported again after its first warning.
+DOWN_REPORT_S = 60.0
 
 
 class BusyError(BusgateError):
-    """The bus's command queue is full; try again."""
+    """The bus's command queue is full, or a command found no room before its deadline;
+    nothing was sent: try again."""
 
     code = "busy"
 
@@ -119,6 +130,7 @@ class BusRunner:
         self.owner = owner
         self.timing = timing
         self.drivers = {driver.name: driver for driver in drivers}
+        self.authority = Authority(name, self.drivers)
         self.counters: BusCounters = owner.counters
         self.planner = BusPlanner(timing)
         start = now()
@@ -142,6 +154,9 @@ class BusRunner:
         self._stop = threading.Event()
         self._backoff = BACKOFF_FIRST_S
         self._opened_once = False
+        self._down_since: float | None = None
+        self._down_reported = 0.0
+        self._down_attempts = 0
         self.last_turn = now()
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
 
@@ -168,18 +183,19 @@ class BusRunner:
     def statistics(self) -> BusStats:
         return self.counters.snapshot(now())
 
-    def submit(self, device: str, command: Any) -> Future:
-        """Carry out a validated command on ``device``; the future gets the result dict."""
-        return self._hand_over(lambda future: self._plan_command(device, command, future))
+    def submit(self, device: str, command: Any, client: str | None = None) -> Future:
+        """Carry out a validated command on ``device`` for ``client`` (``None``: anonymous);
+        the future gets the result dict, or the refusal."""
+        start_by = now() + COMMAND_START_S
+        return self._hand_over(
+            lambda future: self._plan_command(device, command, client, start_by, future))
 
-    def submit_requests(self, device: str, requests: list[Request]) -> Future:
-        """Run ready-made requests (bus-level ops such as group moves) as one command."""
-        return self._hand_over(lambda future: self._queue_job(Job(device, deque(requests)), future))
-
-    def scan(self, requests: list[Request]) -> Future:
-        """Send each request once and collect what answered: the future gets a list of
-        ``(request, reply events or None)``. For commissioning (which ids answer)."""
-        job = Job("*", deque(requests), keep_going=True, outcomes=[])
+    def scan(self, requests: list[Request], start_by: float) -> Future:
+        """Send each probe once, all starting by ``start_by``, and collect what answered: the
+        future gets a list of ``(request, reply events or None)``. For commissioning. Probes
+        only ask, so they need no authorisation."""
+        job = Job("*", deque(requests), keep_going=True, outcomes=[], start_by=start_by,
+                  scan=True)
         return self._hand_over(lambda future: self._queue_job(job, future))
 
     def unsolicited(self, event: object, when: float) -> None:
@@ -225,30 +241,38 @@ class BusRunner:
 
     # -- bus thread: inbox ------------------------------------------------------------------
 
-    def _plan_command(self, device: str, command: Any, future: Future) -> None:
+    def _plan_command(self, device: str, command: Any, client: str | None, start_by: float,
+                      future: Future) -> None:
         driver = self.drivers.get(device)
         try:
             if driver is None:
                 raise CommandError(f"no device {device!r} on bus {self.name}")
+            self.authority.check(driver.effects(command), client)
             requests = driver.plan(command)
         except BusgateError as exc:
-            future.set_exception(exc)
+            _settle(future, error=exc)
             return
-        self._queue_job(Job(device, deque(requests), context=future), future)
+        except Exception as exc:  # a driver bug: answered ``internal``, the bus goes on
+            log.exception("bus %s: planning %r for %s failed", self.name, command, device)
+            _settle(future, error=exc)
+            return
+        self._queue_job(Job(device, deque(requests), start_by=start_by), future)
 
     def _queue_job(self, job: Job, future: Future) -> None:
         job.context = future
         if not self.owner.is_open:
-            future.set_exception(BusUnavailableError(f"bus {self.name} is down"))
+            _settle(future, error=BusUnavailableError(f"bus {self.name} is down"))
         elif not job.requests:
-            future.set_result(self._result(job))
+            _settle(future, result=self._result(job))
         elif not self.planner.push_command(job):
             self.counters.busy_commands += 1
-            future.set_exception(BusyError(f"bus {self.name}: command queue full"))
+            _settle(future, error=BusyError(f"bus {self.name}: command queue full; "
+                                            "nothing was sent"))
 
     def _plan_estop(self, future: Future) -> None:
         for job in self.planner.drop_commands():
-            self._fail(job, CommandError("cancelled by e-stop"))
+            self._fail(job, RefusedError("estopped", "an e-stop cancelled it before it was "
+                                                     "carried out"))
         self.streams.end_all("estop")
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, context=future))
@@ -281,6 +305,7 @@ class BusRunner:
     def _step(self) -> None:
         """Start what is due now; or prepare what is due soon and wait for its moment."""
         decision = self.planner.decide(now())
+        self._answer_expired()
         if isinstance(decision, Slot):
             self._execute(decision)
             return
@@ -295,18 +320,35 @@ class BusRunner:
         elif self._wait_until(decision - FINAL_WAIT_S, precise=False):
             self._execute(prepared, at=decision)
 
+    def _answer_expired(self) -> None:
+        for job in self.planner.take_expired():
+            if job.scan:
+                probed = len(job.outcomes or ())
+                message = (f"bus {self.name}: the scan found no room to probe its last "
+                           f"{len(job.requests)} ids ({probed} probed) before its deadline; "
+                           "nothing more was sent")
+            else:
+                message = (f"bus {self.name}: the command found no room on the bus within "
+                           f"{COMMAND_START_S:.0f} s and was dropped; nothing was sent")
+            self.counters.busy_commands += 1
+            self._fail(job, BusyError(message))
+
     def _drain_inbox(self) -> None:
         self._wake.clear()
         while self._inbox:
             self._inbox.popleft()()
 
     def _execute(self, slot: Slot, *, at: float | None = None) -> None:
+        source = slot.source
+        if isinstance(source, Job) and not source.started and not self._may_start(source):
+            return
         previous_end = self.planner.line_free
         try:
             exchange = self.owner.exchange(slot.request, at=at)
         except DeviceTimeoutError as exc:
             failed, start, end, error = True, now(), now(), exc
-            self.planner.hold_replies_until = end + self.late_reply_holdoff_s
+            if not (isinstance(source, Job) and source.scan):  # a probe's reply matches its id
+                self.planner.hold_replies_until = end + self.late_reply_holdoff_s
             self._note_failure(slot, end)
         except BusIOError as exc:
             self._link_lost(exc, slot)
@@ -320,7 +362,6 @@ class BusRunner:
         if not isinstance(slot.source, Job):
             slot.source.sent(start - self._fastest_write(exchange if not failed else None))
         done = self.planner.finished(slot, end, failed=failed)
-        source = slot.source
         if isinstance(source, Job):
             # A request that is tried again is still at the head of its job; only a failure
             # for good is the job's error (a retry that succeeds leaves none behind).
@@ -334,6 +375,17 @@ class BusRunner:
                     source.outcomes.append((slot.request, None if failed else exchange.reply))
         if done is not None:
             self._complete(done)
+
+    def _may_start(self, job: Job) -> bool:
+        """Mark a job's future running; ``False`` (and the job dropped) when it was cancelled
+        (its client was answered without it)."""
+        future = job.context
+        if not isinstance(future, Future):
+            return True
+        if not future.done() and future.set_running_or_notify_cancel():
+            return True
+        self.planner.discard(job)
+        return False
 
     def _fastest_write(self, exchange: Exchange | None) -> float:
         """The quickest write call seen on this bus. A tick counts as started that long before
@@ -386,11 +438,11 @@ class BusRunner:
         if not isinstance(future, Future) or future.done():
             return
         if job.outcomes is not None:
-            future.set_result(job.outcomes)
+            _settle(future, result=job.outcomes)
         elif job.error is not None and not job.keep_going:
-            future.set_exception(job.error)
+            _settle(future, error=job.error)
         else:
-            future.set_result(self._result(job))
+            _settle(future, result=self._result(job))
 
     def _result(self, job: Job) -> dict[str, Any]:
         result: dict[str, Any] = {}
@@ -403,8 +455,8 @@ class BusRunner:
 
     def _fail(self, job: Job, exc: BusgateError) -> None:
         future = job.context
-        if isinstance(future, Future) and not future.done():
-            future.set_exception(exc)
+        if isinstance(future, Future):
+            _settle(future, error=exc)
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
         """Wait for ``deadline`` (spinning the last fraction only when ``precise``); ``False``
@@ -475,11 +527,12 @@ class BusRunner:
         try:
             self.owner.open()
         except BusUnavailableError as exc:
-            log.warning("bus %s down: %s; retrying in %.1f s", self.name, exc, self._backoff)
+            self._report_down(exc)
             self._stop.wait(self._backoff)
             self._backoff = min(self._backoff * 2, BACKOFF_MAX_S)
             self._drain_inbox()
             return False
+        self._down_since = None
         log.info("bus %s up on %s", self.name, self.owner.port)
         if self._opened_once:
             self.counters.reconnects += 1
@@ -489,6 +542,20 @@ class BusRunner:
         for poller in self.planner.pollers:
             poller.next_due = now()
         return True
+
+    def _report_down(self, exc: BusUnavailableError) -> None:
+        """The first failed open is logged; then at most one summary every ``DOWN_REPORT_S``."""
+        moment = now()
+        self._down_attempts += 1
+        if self._down_since is None:
+            self._down_since = self._down_reported = moment
+            self._down_attempts = 0
+            log.warning("bus %s down: %s; retrying every %.1f-%.0f s", self.name, exc,
+                        BACKOFF_FIRST_S, BACKOFF_MAX_S)
+        elif moment - self._down_reported >= DOWN_REPORT_S:
+            self._down_reported = moment
+            log.warning("bus %s still down after %.0f s (%d attempts): %s", self.name,
+                        moment - self._down_since, self._down_attempts, exc)
 
     def _link_lost(self, exc: BusIOError, slot: Slot | None) -> None:
         log.warning("bus %s lost: %s", self.name, exc)
@@ -526,3 +593,13 @@ class BusRunner:
                         self.planner.line_free = now()
         self._drain_inbox()
         self._publish()
+
+
+def _settle(future: Future, *, result: Any = None, error: BaseException | None = None) -> None:
+    """Give ``future`` its outcome, unless it already has one or was cancelled (its client was
+    answered without it)."""
+    with contextlib.suppress(InvalidStateError):
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)

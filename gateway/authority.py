@@ -1,0 +1,117 @@
+"""Who may send what to which device: every client request bound for a bus is authorised here.
+
+A request is judged by what its frames do to the devices they address (a group frame's
+targets, every device of the bus for a broadcast), never by the key it came through: a
+``group_move`` sent on ``dev/la1/cmd`` is checked on every actuator it moves. Each bus has one
+``Authority``; the bus thread asks it before planning a command, the API before taking a
+follow target. Rules of this file:
+
+1. An id that no device of the bus is configured with is refused (``unknown_device``), unless
+   the frame only reads.
+2. Reads and stops are never refused.
+3. Anything else needs the claim of every device it addresses (``claimed``, naming the holder).
+4. Motion to an e-stopped device is refused (``estopped``, naming the op that re-enables it).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+
+from busgate.codecs.errors import RefusedError
+from busgate.gateway.clock import now
+from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(slots=True)
+class Holder:
+    client: str
+    until: float
+
+
+class ClaimTable:
+    """Who holds which device, until when. Thread-safe: zenoh threads and the bus thread use
+    it. Every change is logged, for the journal."""
+
+    def __init__(self) -> None:
+        self._holders: dict[str, Holder] = {}
+        self._lock = threading.Lock()
+
+    def claim(self, device: str, client: str, ttl_s: float, now: float) -> None:
+        with self._lock:
+            self._check(device, client, now)
+            self._holders[device] = Holder(client, now + ttl_s)
+        log.info("device %s claimed by %s for %.1f s", device, client, ttl_s)
+
+    def release(self, device: str, client: str, now: float) -> None:
+        with self._lock:
+            self._check(device, client, now)
+            held = self._holders.pop(device, None)
+        if held is not None:
+            log.info("device %s released by %s", device, client)
+
+    def check(self, device: str, client: str | None, now: float) -> None:
+        """``claimed`` unless ``device`` is free or held by ``client``."""
+        with self._lock:
+            self._check(device, client, now)
+
+    def drop_client(self, client: str) -> list[str]:
+        """Release every claim of ``client`` (it went away); the devices it held."""
+        with self._lock:
+            devices = [d for d, held in self._holders.items() if held.client == client]
+            for device in devices:
+                del self._holders[device]
+        for device in devices:
+            log.warning("device %s: claim of %s lost (client gone)", device, client)
+        return devices
+
+    def _check(self, device: str, client: str | None, now: float) -> None:
+        held = self._holders.get(device)
+        if held is None:
+            return
+        if held.until <= now:
+            del self._holders[device]
+            log.info("device %s: claim of %s lapsed", device, held.client)
+            return
+        if held.client != client:
+            raise RefusedError("claimed", f"{device} is claimed by {held.client!r}")
+
+
+class Authority:
+    """The one judge of one bus's requests (the rules at the top of this file)."""
+
+    def __init__(self, bus: str, drivers: Mapping[str, Driver],
+                 clock: Callable[[], float] = now) -> None:
+        self.bus = bus
+        self.drivers = drivers
+        self.clock = clock
+        self.claims = ClaimTable()
+
+    def check(self, effects: Iterable[tuple[Addressed, Effect]], client: str | None) -> None:
+        """Refuse (``RefusedError``) unless ``client`` may send frames with these effects."""
+        moment = self.clock()
+        for ids, effect in effects:
+            devices = self._devices(ids, effect)
+            if effect <= Effect.STOP:
+                continue
+            for driver in devices:
+                self.claims.check(driver.name, client, moment)
+            if effect is Effect.MOTION:
+                for driver in devices:
+                    if driver.estopped:
+                        raise driver.estopped_error()
+
+    def _devices(self, ids: Addressed, effect: Effect) -> list[Driver]:
+        if ids is EVERY:
+            return list(self.drivers.values())
+        # Built at each check: ids change (set_id) on the bus thread.
+        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        unknown = sorted(ids - by_id.keys())
+        if unknown and effect is not Effect.READ:
+            raise RefusedError("unknown_device", f"no device of bus {self.bus} is configured "
+                                                 f"with id {', '.join(map(str, unknown))}")
+        return [by_id[i] for i in sorted(ids) if i in by_id]

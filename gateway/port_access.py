@@ -1,0 +1,165 @@
+"""What stands between the gateway and a serial port, said in one line with what to do.
+
+Why a module of its own: ``busgate run`` at start-up (it refuses a port another process holds
+rather than retrying forever), ``busgate check-config`` and the serial owner's runtime
+messages must tell the same story about the same three troubles — the port is missing (the
+adapter is unplugged), another process holds it, or this user may not open it — so it is
+written once, here.
+
+Rules of this file: nothing here opens a port (opening a tty raises its modem lines, which
+``check-config`` must not do). Presence and access come from the file system (``os.access``
+with read and write, as the open would need); a holder from ``/proc/locks``, where the
+``flock`` that pyserial's ``exclusive=True`` takes is listed with its process. Linux only,
+like the gateway; where ``/proc/locks`` cannot be read, no holder is seen.
+"""
+
+from __future__ import annotations
+
+import errno
+import grp
+import os
+import pwd
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+
+#: The udev rules that give busgate's adapters a stable name, group ``dialout`` and mode 0660.
+UDEV_RULES = "deploy/udev/99-busgate.rules"
+PROC_LOCKS = Path("/proc/locks")
+SERIAL_GROUP = "dialout"
+
+MISSING, LOCKED, DENIED = "missing", "locked", "permission_denied"
+_MISSING_ERRNOS = {errno.ENOENT, errno.ENODEV, errno.ENXIO}
+_DENIED_ERRNOS = {errno.EACCES, errno.EPERM}
+_LOCKED_ERRNOS = {errno.EAGAIN, errno.EBUSY}  # flock refused (EWOULDBLOCK); TIOCEXCL (EBUSY)
+
+
+@dataclass(frozen=True, slots=True)
+class PortProblem:
+    """Why a port cannot be opened now: ``kind`` (``MISSING``, ``LOCKED`` or ``DENIED``) and
+    one line naming the port, what is wrong and what to do."""
+
+    kind: str
+    message: str
+
+
+def port_problem(port: str) -> PortProblem | None:
+    """What would keep this process from opening ``port`` now, or ``None`` when nothing
+    visible would (the open can still fail: a device can vanish between the look and the
+    open).
+
+    >>> port_problem("/nonexistent/ttyUSB9").kind
+    'missing'
+    """
+    if not os.path.exists(port):
+        return PortProblem(MISSING, missing(port))
+    holder = lock_holder(port)
+    if holder is not None:
+        return PortProblem(LOCKED, locked(port, holder))
+    if not os.access(port, os.R_OK | os.W_OK):
+        return PortProblem(DENIED, denied(port))
+    return None
+
+
+def describe_open_error(port: str, exc: BaseException) -> str:
+    """One line for a failed open of ``port``: what is wrong and what to do.
+
+    ``exc`` is what the open raised — ``OSError`` from ``os.open``, pyserial's
+    ``SerialException`` (an ``OSError`` carrying the errno), or an error raised ``from`` one
+    of those (``BusUnavailableError``); the errno decides the story.
+
+    >>> import errno
+    >>> describe_open_error("/dev/ttyUSB9", FileNotFoundError(errno.ENOENT, "No such file"))
+    '/dev/ttyUSB9 does not exist on this host (is the adapter plugged in?); the gateway retries...'
+    """
+    cause = _os_error(exc)
+    code = cause.errno if cause is not None else None
+    if code in _MISSING_ERRNOS:
+        return missing(port)
+    if code in _DENIED_ERRNOS:
+        return denied(port)
+    if code in _LOCKED_ERRNOS:
+        return locked(port, lock_holder(port))
+    reason = (cause.strerror or str(cause)) if cause is not None else str(exc)
+    return f"cannot open {port}: {reason}"
+
+
+def missing(name: str) -> str:
+    """A port (or CAN interface) this host does not have, yet."""
+    return (f"{name} does not exist on this host (is the adapter plugged in?); the gateway "
+            f"retries until it appears")
+
+
+def locked(port: str, holder: int | None) -> str:
+    """A port another process holds exclusively."""
+    who = "another process" if holder is None else f"another process ({_process(holder)})"
+    return (f"{port} is locked by {who}: stop that process (another busgate run or demo? a "
+            f"serial terminal?) or give this bus another port")
+
+
+def denied(port: str) -> str:
+    """A port this user may not read and write, and the two ways to be let in."""
+    user, group = _user(), _group_to_join(port)
+    return (f"{port}: permission denied for user {user}: add it to the {group} group "
+            f"(sudo usermod -aG {group} {user}, then log in again) or install {UDEV_RULES}, "
+            f"which gives the adapters to group {SERIAL_GROUP} with mode 0660")
+
+
+def lock_holder(port: str) -> int | None:
+    """The process holding a ``flock`` on ``port`` (the file it leads to), as ``/proc/locks``
+    lists it; ``None`` when none is listed or the table cannot be read."""
+    try:
+        device = os.stat(port)
+        table = PROC_LOCKS.read_text()
+    except OSError:
+        return None
+    inode = f"{os.major(device.st_dev):02x}:{os.minor(device.st_dev):02x}:{device.st_ino}"
+    for line in table.splitlines():
+        # "1: FLOCK  ADVISORY  WRITE 3693 00:1a:3 0 EOF"; a waiter's line has "->" after "1:".
+        fields = line.split()
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == inode:
+            return int(fields[4]) if fields[4].isdigit() else None
+    return None
+
+
+def _os_error(exc: BaseException | None) -> OSError | None:
+    """The first error carrying an errno in ``exc``'s chain of causes."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno is not None:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _process(pid: int) -> str:
+    """``pid 1234: busgate run --config …``, or just the pid when its command line is hidden
+    (another user's process under ``ProtectProc=invisible``)."""
+    try:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").strip()
+    except OSError:
+        return f"pid {pid}"
+    if not command:
+        return f"pid {pid}"
+    text = command.decode(errors="replace")
+    return f"pid {pid}: {text if len(text) <= 80 else text[:77] + '...'}"
+
+
+def _user() -> str:
+    try:
+        return pwd.getpwuid(os.getuid()).pw_name
+    except KeyError:
+        return str(os.getuid())
+
+
+def _group_to_join(port: str) -> str:
+    """The group that may read and write ``port`` (``uucp`` on some distributions), else the
+    group the udev rules give it."""
+    try:
+        device = os.stat(port)
+        owner_group = grp.getgrgid(device.st_gid).gr_name
+    except (OSError, KeyError):
+        return SERIAL_GROUP
+    group_rw = stat.S_IRGRP | stat.S_IWGRP
+    if device.st_gid != 0 and device.st_mode & group_rw == group_rw:
+        return owner_group
+    return SERIAL_GROUP

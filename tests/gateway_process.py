@@ -1,0 +1,69 @@
+"""``busgate`` as a child process, the way a user or systemd starts it: ``run_busgate`` for a
+command that ends (a refusal), ``GatewayProcess`` for ``busgate run`` serving until SIGTERM,
+its log read line by line on a thread so that a test waits for the line it expects."""
+
+from __future__ import annotations
+
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
+BUSGATE = [sys.executable, "-m", "busgate.gateway.cli"]
+
+
+def run_busgate(*args: str, **options) -> subprocess.CompletedProcess:
+    """``busgate ARGS`` to its end: exit status, stdout and stderr as text."""
+    return subprocess.run([*BUSGATE, *args], capture_output=True, text=True, timeout=TIMEOUT_S,
+                          **options)
+
+
+def serial_bus(name: str, port: str, device: str, *, device_id: int = 1) -> str:
+    """One ``[[buses]]`` table: an Inspire LA bus at 921600 baud."""
+    return (f'[[buses]]\nname = "{name}"\ntransport = "serial"\nport = "{port}"\n'
+            f'baudrate = 921600\n[[buses.devices]]\nname = "{device}"\nkind = "inspire_la"\n'
+            f"id = {device_id}\n")
+
+
+def write_config(path: Path, endpoint: str, *buses: str, name: str = "gw1",
+                 metrics: str | None = None) -> Path:
+    """A gateway config listening on ``endpoint`` only (and serving metrics on ``metrics``),
+    with ``buses`` (``serial_bus``)."""
+    metrics_table = "" if metrics is None else f'[metrics]\nlisten = "{metrics}"\n'
+    path.write_text(f'[gateway]\nname = "{name}"\n[zenoh]\nlisten = ["{endpoint}"]\n'
+                    + metrics_table + "".join(buses))
+    return path
+
+
+class GatewayProcess:
+    """``busgate run --config FILE`` as a child; ``lines`` holds what it logged so far."""
+
+    def __init__(self, config: Path, **options) -> None:
+        self.process = subprocess.Popen([*BUSGATE, "run", "--config", str(config)],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                        text=True, **options)
+        self.lines: list[str] = []
+        self._incoming: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.process.stderr:
+            self._incoming.put(line.rstrip("\n"))
+        self._incoming.put("")  # end of output
+
+    def wait_for(self, text: str) -> str:
+        """The first logged line containing ``text``; fails when the process ends first."""
+        while True:
+            line = self._incoming.get(timeout=TIMEOUT_S)
+            assert line, f"busgate run ended before logging {text!r}: {self.lines}"
+            self.lines.append(line)
+            if text in line:
+                return line
+
+    def stop(self) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(timeout=TIMEOUT_S)

@@ -1,0 +1,112 @@
+"""The serial owner at the edges of the line: the UART gap counts from the last byte seen on
+it (a late reply included), and a reply that came before its request could have left the wire
+is counted as early, with a timeout that says what that points at.
+
+Host side, on real ptys: the LA simulator answering late, and a pty the test plays the device
+on itself (answering at once, as an emulator without wire timing does)."""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import pytest
+
+from busgate.codecs import inspire_la as la
+from busgate.codecs.errors import DeviceTimeoutError
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.pty_link import PtyLink
+from busgate.gateway.sim.serial_server import SerialSimulator
+
+BAUD = 921_600
+GAP_S = 0.001
+
+
+def owner_on(port: str, baud: int = BAUD) -> SerialBusOwner:
+    timing = LinkTiming("inspire_la", baud, margin_s=0.002, gap_s=GAP_S)
+    owner = SerialBusOwner(port, la, timing, BusCounters(now()))
+    owner.open()
+    return owner
+
+
+def status(device_id: int) -> Request:
+    return Request.of(la, la.ControlCommand(device_id, la.ControlCode.STATUS), idempotent=True)
+
+
+def follow_without_reply(position: int) -> Request:
+    return Request.of(la, la.FollowCommand(1, position, reply=False))
+
+
+def test_a_frame_waits_the_gap_after_a_late_reply_it_flushed(tmp_path, wait_for) -> None:
+    link = PtyLink(str(tmp_path / "usb-la"))
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=BAUD, link=link) as simulator:
+        owner = owner_on(simulator.port)
+        try:
+            simulator.faults.configure(late_rate=1.0, late_s=0.006)
+            with pytest.raises(DeviceTimeoutError):
+                owner.exchange(status(1))
+            simulator.faults.configure(late_rate=0.0)
+            wait_for(lambda: owner._serial.in_waiting)  # the late reply is on the line now
+            asked = now()
+            sent = owner.exchange(follow_without_reply(500), at=asked)
+            assert owner.counters.late_replies == 1
+            # The write started (``start - write_s``) a whole gap after the late reply was
+            # read, which was no earlier than ``asked``.
+            assert sent.start - sent.write_s - asked >= GAP_S
+        finally:
+            owner.close()
+
+
+def test_a_quiet_line_costs_no_wait(tmp_path) -> None:
+    link = PtyLink(str(tmp_path / "usb-la"))
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=BAUD, link=link) as simulator:
+        owner = owner_on(simulator.port)
+        try:
+            owner.exchange(status(1))
+            before = owner.counters.late_replies
+            owner.exchange(status(1))
+            assert owner.counters.late_replies == before
+        finally:
+            owner.close()
+
+
+class InstantDevice:
+    """Plays an LA actuator on the far end of a pty that answers the moment a request is
+    read: what an emulator without wire timing does, or a device at another baud rate."""
+
+    def __init__(self) -> None:
+        self.master, slave = os.openpty()
+        self.port = os.ttyname(slave)
+        self._slave = slave
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        reply = la.encode(la.StatusReply(1, 0, 0, 25, 0, 0, la.Fault(0)))
+        try:
+            while os.read(self.master, 64):
+                os.write(self.master, reply)
+        except OSError:
+            return
+
+    def close(self) -> None:
+        os.close(self.master)
+        os.close(self._slave)
+
+
+def test_a_reply_before_the_request_could_have_left_the_wire_is_early() -> None:
+    device = InstantDevice()
+    owner = owner_on(device.port, baud=9600)  # 30 bytes at 9600 baud take 31 ms
+    try:
+        with pytest.raises(DeviceTimeoutError, match="baud rate") as timeout:
+            owner.exchange(status(1))
+        assert "before the request could have left the wire at 9600 baud" in str(timeout.value)
+        stats = owner.counters.snapshot(now())
+        assert stats.early_replies >= 1 and stats.late_replies == 0
+    finally:
+        owner.close()
+        device.close()

@@ -1,0 +1,303 @@
+"""Sharing at the edges of the API, on real buses (LA and DS simulators on ptys, a ZLAC706 on
+python-can's virtual bus): a request is authorised by the devices its frames address, never by
+the key it came through; motion to an e-stopped device is refused ``estopped`` on every path;
+a command answered with an error is never carried out; a scan is bounded and interleaves;
+hostile JSON gets exactly one reply with its code.
+
+"Nothing reached the wire" is checked after a later command was answered on the same bus, so
+the bus had every chance to send what it should not have."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import can
+import pytest
+
+from busgate.codecs import ds_servo as ds
+from busgate.codecs import inspire_la as la
+from busgate.codecs import zlac706_can as zcan
+from busgate.gateway.api import GatewayApi
+from busgate.gateway.assembly import build_bus
+from busgate.gateway.scheduler import runner as runner_module
+from busgate.gateway.sim.can_server import CanSimulator
+from busgate.gateway.sim.ds_servo import DsServoDevice
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.schemas.config import CanBus, SerialBus
+
+_channels = itertools.count()
+TARGET_INDEX = la.REGISTERS[la.TARGET_POSITION].address
+
+
+def la_bus(port: str) -> SerialBus:
+    return SerialBus(name="uart0", transport="serial", port=port, baudrate=921_600,
+                     devices=[{"name": f"la{i}", "kind": "inspire_la", "id": i} for i in (1, 2, 3)])
+
+
+@pytest.fixture
+def gateway(wait_for):
+    """Three LA actuators, two DS servos, one ZLAC706, each family on its own bus."""
+    la_sim = SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)], baudrate=921_600)
+    ds_sim = SerialSimulator(ds, [DsServoDevice(1), DsServoDevice(2)], baudrate=1_000_000)
+    channel = f"test-edges-{next(_channels)}"
+    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
+                           bus=can.Bus(interface="virtual", channel=channel))
+    for simulator in (la_sim, ds_sim, can_sim):
+        simulator.start()
+    buses = [
+        la_bus(la_sim.port),
+        SerialBus(name="uart1", transport="serial", port=ds_sim.port, baudrate=1_000_000,
+                  devices=[{"name": "arm1", "kind": "ds_servo", "id": 1},
+                           {"name": "arm2", "kind": "ds_servo", "id": 2}]),
+        CanBus(name="can0", transport="can", interface="virtual", channel=channel,
+               devices=[{"name": "wheel", "kind": "zlac706", "id": 5, "heartbeat_ms": 50}]),
+    ]
+    runners = {bus.name: build_bus(bus).start() for bus in buses}
+    api = GatewayApi("gw", runners)
+    wait_for(lambda: all(driver.online for _, driver in api.devices.values()))
+    yield api, la_sim, ds_sim
+    for runner in runners.values():
+        runner.stop()
+    for simulator in (la_sim, ds_sim, can_sim):
+        simulator.stop()
+
+
+def ask(api: GatewayApi, device: str, command: dict | bytes) -> dict:
+    payload = command if isinstance(command, bytes) else json.dumps(command).encode()
+    return api.command(device, payload).result(5)
+
+
+def ask_bus(api: GatewayApi, bus: str, command: dict | bytes, timeout: float = 5) -> dict:
+    payload = command if isinstance(command, bytes) else json.dumps(command).encode()
+    return api.bus_command(bus, payload).result(timeout)
+
+
+def code(reply: dict | None) -> str | None:
+    return None if reply is None or reply["ok"] else reply["error"]["code"]
+
+
+def accepted(api: GatewayApi, device: str, command: dict) -> dict:
+    reply = ask(api, device, command)
+    assert reply["ok"], reply
+    return reply
+
+
+def frames(simulator: SerialSimulator, *names: str) -> list:
+    return [r for r in simulator.recorder.received() if r.frame in names]
+
+
+def settled(api: GatewayApi, device: str) -> None:
+    """A later exchange on the device's bus was answered: whatever was queued before it has
+    gone out (or never will)."""
+    accepted(api, device, {"op": "ping"} if device.startswith("arm") else {"op": "status"})
+
+
+# -- 1. authorise by effect ------------------------------------------------------------------
+
+GROUP_OPS = [
+    ("la1", {"op": "group_move", "client": "A", "targets": [{"id": 2, "position": 1507}]}),
+    ("la1", {"op": "group_follow", "client": "A", "targets": [{"id": 2, "position": 1507}]}),
+    ("la3", {"op": "group_move", "targets": [{"id": 3, "position": 9}, {"id": 2, "position": 9}]}),
+]
+
+
+@pytest.mark.parametrize(("key", "command"), GROUP_OPS)
+def test_a_group_op_on_a_device_key_is_checked_on_every_device_it_moves(gateway, key, command):
+    api, la_sim, _ = gateway
+    accepted(api, "la2", {"op": "claim", "client": "B"})
+    refused = ask(api, key, command)
+    assert code(refused) == "claimed" and "'B'" in refused["error"]["message"]
+    settled(api, "la1")
+    assert frames(la_sim, "GroupMoveCommand", "GroupFollowCommand") == []
+    accepted(api, key, command | {"client": "B"})  # the holder may
+
+
+@pytest.mark.parametrize("bus, targets, held", [
+    ("uart0", [{"device": "la1", "position": 5}, {"device": "la2", "position": 5}], "la2"),
+    ("uart1", [{"device": "arm1", "position": 5}, {"device": "arm2", "position": 5}], "arm1"),
+])
+def test_a_bus_group_move_needs_the_claim_of_every_device_it_moves(gateway, bus, targets, held):
+    api, la_sim, ds_sim = gateway
+    accepted(api, held, {"op": "claim", "client": "B"})
+    refused = ask_bus(api, bus, {"op": "group_move", "client": "A", "targets": targets})
+    assert code(refused) == "claimed" and held in refused["error"]["message"]
+    settled(api, held)
+    assert frames(la_sim, "GroupMoveCommand") == frames(ds_sim, "SyncWrite") == []
+    assert ask_bus(api, bus, {"op": "group_move", "client": "B", "targets": targets})["ok"]
+
+
+def test_a_frame_to_an_id_no_device_is_configured_with_is_refused(gateway):
+    api, la_sim, _ = gateway
+    refused = ask(api, "la1", {"op": "group_move", "targets": [{"id": 9, "position": 1}]})
+    assert code(refused) == "unknown_device" and "9" in refused["error"]["message"]
+    settled(api, "la1")
+    assert frames(la_sim, "GroupMoveCommand") == []
+
+
+def test_a_broadcast_is_checked_on_every_device_of_its_bus(gateway):
+    api, _, ds_sim = gateway
+    accepted(api, "arm2", {"op": "claim", "client": "B"})
+    assert code(ask(api, "arm1", {"op": "action", "client": "A"})) == "claimed"
+    settled(api, "arm1")
+    assert frames(ds_sim, "Action") == []
+
+
+def test_motion_to_an_estopped_actuator_is_refused_on_every_path(gateway):
+    api, la_sim, _ = gateway
+    accepted(api, "la2", {"op": "estop"})
+    paths = {
+        "move": ask(api, "la2", {"op": "move", "position": 1500}),
+        "raw write of the target": ask(api, "la2", {"op": "write", "index": TARGET_INDEX,
+                                                    "data": "dc05"}),
+        "group op on another key": ask(api, "la1", {"op": "group_move", "targets": [
+            {"id": 1, "position": 5}, {"id": 2, "position": 1500}]}),
+        "bus group move": ask_bus(api, "uart0", {"op": "group_move", "targets": [
+            {"device": "la2", "position": 1500}]}),
+        "follow": api.follow("la2", b'{"position": 1500}'),
+    }
+    for path, reply in paths.items():
+        assert code(reply) == "estopped", path
+        assert '{"op": "enable"}' in reply["error"]["message"], path
+    settled(api, "la2")
+    moves = frames(la_sim, "MoveCommand", "WriteCommand", "GroupMoveCommand", "FollowCommand")
+    assert moves == []
+    accepted(api, "la2", {"op": "enable"})
+    accepted(api, "la2", {"op": "move", "position": 1500})
+
+
+def test_after_a_gateway_estop_every_kind_waits_for_its_reenable_op(gateway):
+    api, _, _ = gateway
+    for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
+        accepted(api, "wheel", op)
+    for stopped in api.estop():
+        stopped.result(5)
+    for device, motion, reenable in [
+        ("la1", {"op": "move", "position": 10}, {"op": "enable"}),
+        ("arm1", {"op": "move", "position": 100}, {"op": "torque", "on": True}),
+        ("wheel", {"op": "velocity", "rpm": 50}, {"op": "enable"}),
+    ]:
+        refused = ask(api, device, motion)
+        assert code(refused) == "estopped", device
+        assert json.dumps(reenable) in refused["error"]["message"]
+        accepted(api, device, reenable)
+        accepted(api, device, motion)
+    accepted(api, "wheel", {"op": "velocity", "rpm": 0})  # a stop is never refused
+
+
+# -- 2. no frame after a failure reply -------------------------------------------------------
+
+
+def test_a_command_not_started_by_its_deadline_is_answered_busy_and_never_sent(
+        gateway, monkeypatch):
+    api, la_sim, _ = gateway
+    monkeypatch.setattr(runner_module, "COMMAND_START_S", -1.0)  # every deadline has passed
+    refused = ask(api, "la1", {"op": "move", "position": 1234})
+    assert code(refused) == "busy" and "nothing was sent" in refused["error"]["message"]
+    monkeypatch.undo()
+    settled(api, "la1")
+    assert [r for r in frames(la_sim, "MoveCommand") if "d204" in r.wire] == []
+
+
+def test_a_command_cancelled_before_it_started_is_never_sent(wait_for):
+    with SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)],
+                         baudrate=921_600) as la_sim:
+        runner = build_bus(la_bus(la_sim.port))  # not started: the command waits in its inbox
+        api = GatewayApi("gw", {"uart0": runner})
+        pending = api.command("la1", b'{"op":"move","position":1234}')
+        assert pending.cancel()  # what the bridge does when its reply guard fires
+        runner.start()
+        try:
+            wait_for(lambda: runner.drivers["la1"].online)
+            settled(api, "la1")
+            assert [r for r in frames(la_sim, "MoveCommand") if "d204" in r.wire] == []
+        finally:
+            runner.stop()
+
+
+@pytest.mark.parametrize(("ids", "expected"), [
+    ([1, 1], "bad_command"),
+    (list(range(1, 256)), "out_of_range"),
+    ([1] * 10_000, "out_of_range"),
+    ([0], "out_of_range"),
+    ([], "out_of_range"),
+])
+def test_a_scan_is_bounded(gateway, ids, expected):
+    api, la_sim, _ = gateway
+    before = len(la_sim.recorder.received())
+    assert code(ask_bus(api, "uart0", {"op": "scan", "ids": ids})) == expected
+    settled(api, "la1")
+    probes = [r for r in la_sim.recorder.received()[before:] if r.frame == "ControlCommand"]
+    assert len(probes) <= 1, "only the settling status query went out"
+
+
+def test_a_full_scan_interleaves_with_commands(gateway):
+    api, _, _ = gateway
+    scanning = api.bus_command("uart0", b'{"op":"scan"}')
+    moved = api.command("la1", b'{"op":"move","position":321}')
+    assert moved.result(5)["ok"]
+    assert not scanning.done(), "the move did not wait for the scan of 254 ids"
+    found = scanning.result(10)
+    assert found["ok"] and [f["id"] for f in found["found"]] == [1, 2, 3]
+
+
+def test_an_estop_ends_a_scan_with_a_reply(gateway):
+    api, _, _ = gateway
+    scanning = api.bus_command("uart0", b'{"op":"scan"}')
+    for stopped in api.estop():
+        stopped.result(5)
+    assert code(scanning.result(5)) == "estopped"
+
+
+# -- 3. one reply per query, with its code ----------------------------------------------------
+
+DEEP = b"[" * 30_000 + b"]" * 30_000  # 60 KB: under the size limit
+
+
+@pytest.mark.parametrize(("payload", "expected"), [
+    (b'{"op":"move","a":' + b"[" * 1001 + b"]" * 1001 + b"}", "bad_command"),
+    (DEEP, "bad_command"),
+    (b'{"op":"move","position":3000,"position":100}', "bad_command"),
+    (b'{"op":"move","position":1e309}', "not_json"),
+    (b'{"op":"move","position":-1e309}', "not_json"),
+])
+def test_hostile_json_on_a_device_key_gets_its_code(gateway, payload, expected):
+    api, la_sim, _ = gateway
+    assert code(ask(api, "la1", payload)) == expected
+    settled(api, "la1")
+    assert frames(la_sim, "MoveCommand") == []
+
+
+@pytest.mark.parametrize(("payload", "expected"), [
+    (b'{"op":["group_move"]}', "bad_command"),
+    (b'{"op":{"a":1}}', "bad_command"),
+    (b'{"op":null}', "bad_command"),
+    (DEEP, "bad_command"),
+    (b'{"op":"scan","ids":[1],"ids":[2]}', "bad_command"),
+])
+def test_hostile_json_on_a_bus_key_gets_its_code(gateway, payload, expected):
+    api, _, _ = gateway
+    assert code(ask_bus(api, "uart0", payload)) == expected
+
+
+@pytest.mark.parametrize("client", ['["x"]', "7", '"a/**"', '""', "null"])
+def test_the_follow_key_validates_its_client_as_strictly_as_cmd(gateway, client):
+    api, _, _ = gateway
+    payload = f'{{"position": 500, "client": {client}}}'.encode()
+    follow, command = api.follow("la1", payload), ask(api, "la1", payload.replace(
+        b"{", b'{"op": "move", ', 1))
+    if client == "null":  # no client at all, on both
+        assert follow is None and command["ok"]
+    else:
+        assert code(follow) == code(command) == "bad_command"
+
+
+def test_a_follow_target_is_refused_while_another_client_holds_the_device(gateway):
+    api, la_sim, _ = gateway
+    accepted(api, "la3", {"op": "claim", "client": "B"})
+    assert code(api.follow("la3", b'{"position": 700}')) == "claimed"
+    assert code(api.follow("la3", b'{"position": 700, "client": "A"}')) == "claimed"
+    settled(api, "la3")
+    assert frames(la_sim, "FollowCommand", "GroupFollowCommand") == []
