@@ -229,3 +229,55 @@ def test_after_a_timeout_only_frames_without_reply_go_until_the_holdoff_ends():
     planner.push_estop(Job("*", deque([silent_request()])))
     assert planner.decide(0.0).priority is Priority.ESTOP
     assert isinstance(planner.decide(0.010), Slot)
+
+
+def test_a_command_not_started_by_its_deadline_is_dropped_never_sent():
+    planner = BusPlanner(TIMING)
+    late = Job("la1", deque([status_request(1)]), start_by=0.5)
+    in_time = Job("la2", deque([status_request(2)]), start_by=2.0)
+    planner.push_command(late)
+    planner.push_command(in_time)
+    slot = planner.decide(1.0)
+    assert slot.source is in_time, "the expired command is skipped, the next one goes"
+    assert planner.take_expired() == [late] and planner.take_expired() == []
+    run(planner, slot, 1.0, WORST)
+    assert planner.decide(1.0 + WORST + GAP) == float("inf"), "nothing else is left to send"
+
+
+def test_a_started_command_runs_to_its_end_past_its_deadline():
+    planner = BusPlanner(TIMING)
+    job = Job("la1", deque([status_request(1), status_request(1)]), start_by=0.5)
+    planner.push_command(job)
+    run(planner, planner.decide(0.4), 0.4, WORST)
+    slot = planner.decide(1.0)
+    assert slot.source is job and planner.take_expired() == []
+
+
+def test_a_scan_waits_behind_commands_and_due_polls_and_expires_as_a_whole():
+    planner = BusPlanner(TIMING)
+    planner.pollers = [Poller("la2", 0.05)]
+    scan = Job("*", deque([status_request(i, idempotent=False) for i in (3, 4, 5)]),
+               keep_going=True, outcomes=[], start_by=1.0, scan=True)
+    command = Job("la1", deque([status_request(1)]))
+    planner.push_command(scan)
+    planner.push_command(command)
+    order, t = [], 0.0
+    for _ in range(3):
+        slot = planner.decide(t)
+        order.append(slot.source)
+        run(planner, slot, t, WORST)
+        t += WORST + GAP
+    assert order[0] is command and order[1].priority is Priority.POLL and order[2] is scan
+    slot = planner.decide(1.5)
+    assert planner.take_expired() == [scan], "past its deadline, even once started"
+    assert slot.priority is Priority.POLL
+    run(planner, slot, 1.5, WORST)
+    assert not isinstance(planner.decide(1.5 + WORST + GAP), Slot), "no probe is left"
+
+
+def test_an_estop_goes_ahead_of_a_follow_tick_that_is_due():
+    planner = BusPlanner(TIMING)
+    ticker_at(planner, now=0.0)
+    planner.push_estop(Job("*", deque([silent_request()])))
+    slot = planner.decide(0.0)
+    assert slot.priority is Priority.ESTOP
