@@ -239,7 +239,10 @@ class GatewayApi:
         for target in request.targets:
             if target.device not in runner.drivers:
                 raise RefusedError("unknown_device", f"no device {target.device!r} on this bus")
-        first, command = group_command(runner, request)
+        try:  # the kind's own schema checks each target: a position out of its range …
+            first, command = group_command(runner, request)
+        except CommandError as exc:
+            raise refusal(exc) from exc
         return _mapped(runner.submit(first, command, request.client))
 
     def _scan(self, runner: BusRunner, fields: dict[str, Any]) -> Future:

@@ -6,16 +6,23 @@ from __future__ import annotations
 
 import time
 
+import can
 import pytest
 
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import CommandError
+from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.drivers.zlac706_state import Role, Settings
+from busgate.gateway.sim import zlac706 as sim
+from busgate.gateway.sim.can_server import CanSimulator
+from busgate.gateway.sim.serial_server import SerialSimulator
 
 MANUAL_MONITOR = "80000181 e1001cfd e20011f3 e4010ef3 e60000e6 e727101e e80000e8 e9271020"
 
@@ -403,15 +410,10 @@ def test_rs232_refuses_current_gains_and_speed_outside_velocity_mode() -> None:
     assert wire(plan(d, '{"op":"torque","current_a":8}')) == ["0809c4d5"]
 
 
-# --- end to end: the real bus owners against the simulator, when it exists ---------------------
+# --- end to end: the real bus owners against the simulator ------------------------------------
 
 
 def test_rs232_through_the_bus_owner_and_the_simulator() -> None:
-    sim = pytest.importorskip("busgate.gateway.sim.zlac706")
-    from busgate.gateway.bus.serial_owner import SerialBusOwner
-    from busgate.gateway.bus.stats import BusCounters
-    from busgate.gateway.sim.serial_server import SerialSimulator
-
     baud = 115_200
     timing = LinkTiming("zlac706_rs232", baud, margin_s=0.05)
     with SerialSimulator(rs_codec, [sim.Zlac706Rs232Device(1)], baudrate=baud) as simulator:
@@ -441,13 +443,6 @@ def test_rs232_through_the_bus_owner_and_the_simulator() -> None:
 
 
 def test_can_through_the_bus_owner_and_the_simulator() -> None:
-    sim = pytest.importorskip("busgate.gateway.sim.zlac706")
-    import can
-
-    from busgate.gateway.bus.can_owner import CanBusOwner
-    from busgate.gateway.bus.stats import BusCounters
-    from busgate.gateway.sim.can_server import CanSimulator
-
     channel = f"zlac706-driver-test-{time.perf_counter_ns()}"
     device_bus = can.Bus(interface="virtual", channel=channel)
     node = sim.Zlac706CanDevice(1, heartbeat_ms=50)

@@ -66,9 +66,10 @@ def test_can_decoders_survive_any_frame(decoder_class) -> None:
 
 
 def _decode_all(decoder_class, data: bytes, chunk: int = 64) -> float:
-    """Seconds to feed ``data`` in ``chunk``-byte reads and drain every event (best of 3)."""
+    """Seconds to feed ``data`` in ``chunk``-byte reads and drain every event (best of 5: the
+    best run is the one the shared machine disturbed least)."""
     best = float("inf")
-    for _ in range(3):
+    for _ in range(5):
         decoder = decoder_class()
         started = time.perf_counter()
         for offset in range(0, len(data), chunk):
@@ -83,9 +84,11 @@ def _decode_all(decoder_class, data: bytes, chunk: int = 64) -> float:
 def test_stream_decoders_take_linear_time_on_hostile_input(decoder_class, good) -> None:
     """The worst inputs for a resynchronising decoder: its own header over and over (each a
     candidate frame start), and frames cut short before their checksum. Ten times the bytes
-    must take about ten times as long, not a hundred (a rescan per byte would be quadratic)."""
+    must take about ten times as long, not a hundred (a rescan per byte would be quadratic):
+    the bound, 40, leaves room for a loaded machine (idle, the ratios are 8-15) and still
+    catches a quadratic decoder."""
     header, truncated = good[:2], good[:-1]
     for pattern in (header, truncated, bytes(range(256))):
         small = pattern * (20_000 // len(pattern))
         ratio = _decode_all(decoder_class, small * 10) / _decode_all(decoder_class, small)
-        assert ratio < 20, f"{decoder_class.__qualname__} on {pattern[:8].hex()}…: ×{ratio:.1f}"
+        assert ratio < 40, f"{decoder_class.__qualname__} on {pattern[:8].hex()}…: ×{ratio:.1f}"

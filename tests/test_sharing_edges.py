@@ -301,3 +301,25 @@ def test_a_follow_target_is_refused_while_another_client_holds_the_device(gatewa
     assert code(api.follow("la3", b'{"position": 700, "client": "A"}')) == "claimed"
     settled(api, "la3")
     assert frames(la_sim, "FollowCommand", "GroupFollowCommand") == []
+
+
+@pytest.mark.parametrize(("bus", "command", "expected"), [
+    ("uart0", {"op": "group_move", "targets": [{"device": "ghost", "position": 5}]},
+     "unknown_device"),
+    ("uart0", {"op": "group_move", "targets": [{"device": "arm1", "position": 5}]},
+     "unknown_device"),  # a device of another bus
+    ("uart0", {"op": "group_move", "targets": [{"device": "la1", "position": 5,
+                                                "time_ms": 100}]}, "bad_command"),
+    ("uart0", {"op": "group_move", "targets": [{"device": "la1", "position": 9999}]},
+     "out_of_range"),
+    ("uart0", {"op": "group_move", "targets": []}, "out_of_range"),
+    ("can0", {"op": "group_move", "targets": [{"device": "wheel", "position": 1}]},
+     "bad_command"),  # a ZLAC706 frame addresses one node: no group move
+    ("nope", {"op": "group_move", "targets": [{"device": "la1", "position": 1}]},
+     "unknown_bus"),
+])
+def test_a_group_move_the_bus_cannot_make_is_refused(gateway, bus, command, expected):
+    api, la_sim, _ = gateway
+    assert code(ask_bus(api, bus, command)) == expected
+    settled(api, "la1")
+    assert frames(la_sim, "GroupMoveCommand") == []

@@ -1,0 +1,203 @@
+"""The bus owners' rarely travelled paths, on real ptys and python-can's virtual bus: a CAN
+controller gone bus-off, a full CAN transmit queue, a serial write the kernel takes in parts,
+an adapter unplugged while a reply is awaited, and stale input flushed before a request.
+
+A full transmit queue (``ENOBUFS``) comes only from SocketCAN, which this machine cannot give
+a test (no ``vcan`` module); ``FullQueueBus`` plays it as a python-can interface of its own: a
+virtual bus whose ``send`` answers ``ENOBUFS`` as long as the test says the queue is full."""
+
+from __future__ import annotations
+
+import errno
+import itertools
+import os
+import threading
+import time
+from typing import ClassVar
+
+import can
+import pytest
+
+from busgate.codecs import inspire_la as la
+from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.errors import BusIOError, DeviceTimeoutError
+from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.clock import now
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.pty_link import PtyLink
+from busgate.gateway.sim.serial_server import SerialSimulator
+
+_channels = itertools.count()
+CAN_TIMING = LinkTiming("zlac706_can", 500_000, margin_s=0.05)
+LA_TIMING = LinkTiming("inspire_la", 921_600, margin_s=0.05, gap_s=0.001)
+
+
+def can_owner(interface: str, channel: str) -> CanBusOwner:
+    owner = CanBusOwner(interface, channel, {}, zcan, CAN_TIMING, BusCounters(now()),
+                        on_unsolicited=lambda event, when: None)
+    owner.open()
+    return owner
+
+
+def speed_write(rpm_raw: int = 0) -> Request:
+    return Request.of(zcan, zcan.Write(1, zcan.CanRegister.TARGET_SPEED, rpm_raw))
+
+
+def test_a_bus_off_error_frame_closes_the_link(wait_for) -> None:
+    channel = f"edges-busoff-{next(_channels)}"
+    owner = can_owner("virtual", channel)
+    with can.Bus(interface="virtual", channel=channel) as controller:
+        controller.send(can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True,
+                                    is_extended_id=False, dlc=8, data=bytes(8)))
+        with pytest.raises(BusIOError, match="bus-off"):
+            for _ in range(100):  # the frame is delivered in its own time
+                owner.idle_until(now() + 0.01)
+    assert not owner.is_open
+
+
+class FullQueueBus(can.BusABC):
+    """A virtual bus whose transmit queue is full while ``FULL`` holds sends to refuse."""
+
+    FULL: ClassVar[list[int]] = [0]
+
+    def __init__(self, channel: str, **kwargs: object) -> None:
+        self._bus = can.Bus(interface="virtual", channel=channel)
+        super().__init__(channel=channel)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.FULL[0]:
+            self.FULL[0] -= 1
+            raise can.CanOperationError("No buffer space available", error_code=errno.ENOBUFS)
+        self._bus.send(msg, timeout)
+
+    def _recv_internal(self, timeout):
+        return self._bus.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self._bus.shutdown()
+        super().shutdown()
+
+
+@pytest.fixture
+def full_queue_bus(monkeypatch):
+    """``FullQueueBus`` registered as interface ``full-queue``, as a python-can plugin's entry
+    point would register it (python-can reads those once, at import)."""
+    monkeypatch.setitem(can.interfaces.BACKENDS, "full-queue", (__name__, "FullQueueBus"))
+    monkeypatch.setattr(can.util, "VALID_INTERFACES",
+                        can.util.VALID_INTERFACES | {"full-queue"})
+    channel = f"edges-enobufs-{next(_channels)}"
+    with can.Bus(interface="virtual", channel=channel, receive_own_messages=False) as wire:
+        yield channel, wire
+
+
+def test_a_full_transmit_queue_is_waited_out(full_queue_bus) -> None:
+    channel, wire = full_queue_bus
+    owner = can_owner("full-queue", channel)
+    try:
+        FullQueueBus.FULL[0] = 3  # refused three times, then taken
+        owner.exchange(Request.of(zcan, zcan.Write(0, zcan.CanRegister.TARGET_SPEED, 0)))
+        sent = wire.recv(timeout=1)
+        assert sent is not None and sent.arbitration_id == 0
+        assert owner.is_open and owner.counters.frames_out == 1
+    finally:
+        owner.close()
+
+
+def test_a_transmit_queue_that_stays_full_fails_the_request_not_the_link(full_queue_bus) -> None:
+    channel, wire = full_queue_bus
+    owner = can_owner("full-queue", channel)
+    try:
+        FullQueueBus.FULL[0] = 10**6
+        with pytest.raises(DeviceTimeoutError, match="transmit queue full"):
+            owner.exchange(speed_write())
+        assert owner.is_open and owner.counters.timeouts == 1
+        assert wire.recv(timeout=0.05) is None
+    finally:
+        FullQueueBus.FULL[0] = 0
+        owner.close()
+
+
+class PtyDevice:
+    """The far end of a pty, played by the test: what it writes, the owner reads."""
+
+    def __init__(self) -> None:
+        self.master, self._slave = os.openpty()
+        self.port = os.ttyname(self._slave)
+
+    def close(self) -> None:
+        os.close(self.master)
+        os.close(self._slave)
+
+
+def serial_owner(port: str) -> SerialBusOwner:
+    owner = SerialBusOwner(port, la, LA_TIMING, BusCounters(now()))
+    owner.open()
+    return owner
+
+
+def test_a_write_the_kernel_takes_in_parts_is_finished(wait_for) -> None:
+    device = PtyDevice()
+    owner = serial_owner(device.port)
+    try:
+        filler = 0
+        with pytest.raises(BlockingIOError):  # fill the pty until the kernel takes no more
+            while True:
+                filler += os.write(owner._serial.fileno(), b"\x00" * 1024)
+        frame = Request.of(la, la.FollowCommand(1, 700, reply=False))
+        drained = bytearray()
+
+        def drain_later() -> None:
+            time.sleep(0.05)
+            while len(drained) < filler + len(frame.wire):
+                drained.extend(os.read(device.master, 65536))
+
+        reader = threading.Thread(target=drain_later)
+        reader.start()
+        owner.exchange(frame)
+        reader.join(5)
+        assert bytes(drained[-len(frame.wire):]) == frame.wire, "the whole frame, in order"
+        assert len(drained) == filler + len(frame.wire)
+    finally:
+        owner.close()
+        device.close()
+
+
+def test_an_adapter_unplugged_while_a_reply_is_awaited_closes_the_link(tmp_path) -> None:
+    link = PtyLink(str(tmp_path / "usb-la"))
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600, link=link) as simulator:
+        timing = LinkTiming("inspire_la", 921_600, margin_s=2.0, gap_s=0.001)
+        owner = SerialBusOwner(simulator.port, la, timing, BusCounters(now()))
+        owner.open()
+        simulator.faults.configure(silent_ids=frozenset({1}))
+        threading.Timer(0.1, simulator.unplug).start()
+        with pytest.raises(BusIOError):
+            owner.exchange(Request.of(la, la.ControlCommand(1, la.ControlCode.STATUS)))
+        assert not owner.is_open
+
+
+def test_stale_input_is_flushed_and_counted_before_a_request() -> None:
+    device = PtyDevice()
+    owner = serial_owner(device.port)
+    status = la.StatusReply(1, 0, 0, 25, 0, 0, la.Fault(0))
+    stale = b"\x13\x37\x00" + la.encode(la.StatusReply(2, 0, 0, 25, 0, 0, la.Fault(0)))
+
+    def answer() -> None:
+        os.read(device.master, 64)
+        time.sleep(0.002)  # well after our frame could have left the wire
+        os.write(device.master, la.encode(status))
+
+    try:
+        os.write(device.master, stale)
+        deadline = time.monotonic() + 5
+        while not owner._serial.in_waiting and time.monotonic() < deadline:
+            time.sleep(0.001)
+        threading.Thread(target=answer).start()
+        exchange = owner.exchange(Request.of(la, la.ControlCommand(1, la.ControlCode.STATUS)))
+        assert exchange.reply == (status,)
+        assert owner.counters.late_replies == 1 and owner.counters.discarded_bytes == 3
+    finally:
+        owner.close()
+        device.close()
