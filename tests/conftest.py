@@ -75,6 +75,66 @@ def wait_for() -> Callable[..., None]:
     return wait_until
 
 
+def _received_and_sent(simulator, since: int) -> tuple[list, list[int]]:
+    """The simulator's records, and the indexes of those after ``since`` it received."""
+    records = list(simulator.recorder.records)
+    return records, [i for i, r in enumerate(records) if i >= since and r.direction == "rx"]
+
+
+def sent_before_proof(
+    simulator, since: int, frames: int, prove: Callable[[], object], timeout: float = 10.0
+) -> list:
+    """What ``simulator`` sent in answer to the ``frames`` frames the host wrote after record
+    index ``since``, known once it answered a proof of life written after them: ``prove()``
+    makes one exchange that is answered (writes a frame and reads its reply back). A simulator
+    takes frames in wire order and records each reply as it sends it, before it reads the
+    next frame: the replies between the first of those frames and the proof are theirs, so
+    ``[]`` proves they went unanswered, with no sleep that a slow machine could outlast (a
+    reply to an earlier frame, recorded a moment after ``since``, comes before the first)."""
+    prove()
+    found: list[list] = []
+
+    def proof_answered() -> bool:
+        records, received = _received_and_sent(simulator, since)
+        if len(received) <= frames:
+            return False
+        first, proof = received[0], received[frames]
+        if not any(r.direction == "tx" for r in records[proof + 1 :]):
+            return False
+        found[:] = [[r for r in records[first:proof] if r.direction == "tx"]]
+        return True
+
+    wait_until(proof_answered, timeout)
+    return found[0]
+
+
+def reply_after(simulator, since: int, timeout: float = 10.0):
+    """The first reply ``simulator`` sends to a frame received after record index ``since``
+    (waited for): what the host is about to read, byte for byte, noise and all."""
+    found: list = []
+
+    def replied() -> bool:
+        records, received = _received_and_sent(simulator, since)
+        sent = [r for r in records[received[0] :] if r.direction == "tx"] if received else []
+        found[:] = sent[:1]
+        return bool(sent)
+
+    wait_until(replied, timeout)
+    return found[0]
+
+
+@pytest.fixture
+def before_proof() -> Callable[..., list]:
+    """``before_proof(simulator, since, frames, prove)``: see ``sent_before_proof``."""
+    return sent_before_proof
+
+
+@pytest.fixture
+def next_reply() -> Callable[..., object]:
+    """``next_reply(simulator, since)``: see ``reply_after``."""
+    return reply_after
+
+
 def unused_loopback_port() -> int:
     """A TCP port on 127.0.0.1 nothing listens on now (for zenoh and metrics endpoints)."""
     with socket.socket() as probe:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import time
 
 import can
 import pytest
@@ -41,10 +40,14 @@ def gateway(wait_for):
     channel = f"test-api-{next(_channels)}"
     can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
                            bus=can.Bus(interface="virtual", channel=channel)).start()
+    # Reply margins with room for the simulators, which share this process and a loaded
+    # machine's cores: a late reply is not what these tests are about.
     uart = SerialBus(name="uart0", transport="serial", port=simulator.port, baudrate=921_600,
+                     reply_margin_ms=50,
                      devices=[{"name": "la1", "kind": "inspire_la", "id": 1},
                               {"name": "la2", "kind": "inspire_la", "id": 2}])
     can_bus = CanBus(name="can0", transport="can", interface="virtual", channel=channel,
+                     reply_margin_ms=50,
                      devices=[{"name": "wheel", "kind": "zlac706", "id": 5, "heartbeat_ms": 50}])
     events = []
     runners = {bus.name: build_bus(bus, on_event=events.append).start() for bus in (uart, can_bus)}
@@ -62,7 +65,7 @@ def gateway(wait_for):
 
 def ask(api: GatewayApi, device: str, command) -> dict:
     payload = command if isinstance(command, bytes) else json.dumps(command).encode()
-    return api.command(device, payload).result(5)
+    return api.command(device, payload).result(10)
 
 
 def accepted(api: GatewayApi, device: str, command) -> dict:
@@ -95,12 +98,16 @@ def code(reply: dict) -> str | None:
     ],
 )
 def test_hostile_payloads_are_refused_with_a_stable_code_and_never_sent(gateway, payload, expected):
+    """Refused at once: the answer is there when ``command`` returns, before any bus thread
+    could have seen the payload (no clock involved). Nothing reached the wire even once a
+    later command to the same device was carried out (commands go out in order)."""
     api, simulator, *_ = gateway
     before = len(simulator.recorder.received())
-    started = time.monotonic()
-    reply = ask(api, "la1", payload)
+    answer = api.command("la1", payload)
+    assert answer.done(), "refused on the caller's thread, without a trip to the bus"
+    reply = answer.result()
     assert code(reply) == expected and reply["error"]["message"]
-    assert time.monotonic() - started < 0.1, "refused within 100 ms"
+    accepted(api, "la1", {"op": "status"})  # the proof that the bus had its chance
     sent = [r for r in simulator.recorder.received()[before:] if r.frame == "MoveCommand"]
     assert sent == []
 
@@ -108,7 +115,7 @@ def test_hostile_payloads_are_refused_with_a_stable_code_and_never_sent(gateway,
 def test_unknown_device_and_bus(gateway):
     api, *_ = gateway
     assert code(ask(api, "la9", {"op": "status"})) == "unknown_device"
-    assert code(api.bus_command("nope", b'{"op":"scan"}').result(1)) == "unknown_bus"
+    assert code(api.bus_command("nope", b'{"op":"scan"}').result(10)) == "unknown_bus"
 
 
 def test_a_command_comes_back_with_the_device_state(gateway):
@@ -142,7 +149,7 @@ def test_a_claim_lapses_after_its_ttl(gateway):
 def test_estop_reaches_every_bus_ahead_of_everything(gateway):
     api, simulator, can_sim, *_ = gateway
     for future in api.estop():
-        future.result(3)
+        future.result(10)
     la_frames = {r.wire for r in simulator.recorder.received()}
     assert la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex() in la_frames
     assert la.encode(la.ControlCommand(2, la.ControlCode.ESTOP)).hex() in la_frames
@@ -177,16 +184,16 @@ def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(wait_for
     api, simulator, *_ = gateway
     reply = api.bus_command("uart0", json.dumps({"op": "group_move", "targets": [
         {"device": "la1", "position": 400}, {"device": "la2", "position": 600}]}).encode())
-    assert reply.result(3)["ok"]
+    assert reply.result(10)["ok"]
     def groups():
         return [r for r in simulator.recorder.received() if r.frame == "GroupMoveCommand"]
 
     wait_for(lambda: groups())  # the frame has no reply: the simulator may read it a bit later
-    assert len(groups()) == 1
-    found = api.bus_command("uart0", b'{"op":"scan","ids":[1,2,3]}').result(5)
+    found = api.bus_command("uart0", b'{"op":"scan","ids":[1,2,3]}').result(10)
     assert found["ok"] and [f["id"] for f in found["found"]] == [1, 2]
+    assert len(groups()) == 1, "one frame, even once the scan after it was answered"
     refused = api.bus_command("can0", json.dumps({"op": "group_move", "targets": [
-        {"device": "wheel", "position": 1}]}).encode()).result(1)
+        {"device": "wheel", "position": 1}]}).encode()).result(10)
     assert code(refused) == "bad_command"
 
 

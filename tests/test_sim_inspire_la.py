@@ -371,7 +371,7 @@ def decode_replies(data: bytes) -> list[object]:
 def sim():
     devices = [InspireLaDevice(1), InspireLaDevice(3)]
     simulator = SerialSimulator(la, devices, baudrate=921600, faults=FaultInjector(seed=1))
-    with simulator, serial.Serial(simulator.port, 921600, timeout=1) as host:
+    with simulator, serial.Serial(simulator.port, 921600, timeout=10) as host:
         yield simulator, host
 
 
@@ -389,17 +389,19 @@ def test_manual_frames_get_the_manuals_replies(sim) -> None:
     assert decode_replies(host.read(22))[0].device_id == 2
 
 
-def test_no_reply_frames_and_broadcast_are_silent(sim) -> None:
+def test_no_reply_frames_and_broadcast_are_silent(sim, before_proof) -> None:
     simulator, host = sim
-    host.timeout = 0.05
     host.write(bytes.fromhex("55 AA 04 03 19 37 E8 03 42"))  # follow, no reply (erratum)
     host.write(la.encode(GroupMoveCommand((Target(1, 2000), Target(3, 0)))))
     host.write(la.encode(control(255, ControlCode.STATUS)))
-    assert host.read(22) == b""
-    host.timeout = 1
-    time.sleep(0.05)
-    host.write(wire_status(1))
-    assert decode_replies(host.read(22))[0].target_raw == 2000
+    proof = []
+
+    def prove() -> None:
+        host.write(wire_status(1))
+        proof.extend(decode_replies(host.read(22)))
+
+    assert before_proof(simulator, 0, 3, prove) == [], "a frame without a reply was answered"
+    assert proof[0].target_raw == 2000
     received = [r.frame for r in simulator.recorder.received()]
     assert received == ["FollowCommand", "GroupMoveCommand", "ControlCommand", "ControlCommand"]
 
@@ -408,7 +410,7 @@ def test_reply_never_beats_wire_time_plus_turnaround() -> None:
     baud = 115200
     with (
         SerialSimulator(la, [InspireLaDevice(1)], baudrate=baud) as simulator,
-        serial.Serial(simulator.port, baud, timeout=1) as host,
+        serial.Serial(simulator.port, baud, timeout=10) as host,
     ):
         request = wire_status(1)
         floor = uart_time(len(request) + la.STATUS_REPLY_SIZE, baud)
@@ -427,27 +429,32 @@ def test_reply_never_beats_wire_time_plus_turnaround() -> None:
         assert tx.start - rx.end >= PROTOCOL_TIMING["inspire_la"].reply_min_s
 
 
-def test_server_faults_as_the_host_sees_them(sim) -> None:
+def test_server_faults_as_the_host_sees_them(sim, wait_for, before_proof, next_reply) -> None:
     simulator, host = sim
     faults = simulator.faults
 
-    faults.configure(drop_rate=1.0)
-    host.timeout = 0.05
-    host.write(wire_status(1))
-    assert host.read(22) == b""
-    faults.configure(drop_rate=0.0, silent_ids=frozenset({3}))
-    host.write(wire_status(3))
-    assert host.read(22) == b""
-    host.timeout = 1
+    faults.configure(drop_rate=1.0, silent_ids=frozenset({3}))
+    mark = len(simulator.recorder.records)
+    host.write(wire_status(1))  # its reply dropped
+    host.write(wire_status(3))  # a silent id: no reply made
+    # The simulator takes frames in order: once it has the second, the first was dealt with.
+    wait_for(lambda: len(simulator.recorder.received()) >= 2)
+    faults.configure(drop_rate=0.0)
+
+    def prove() -> None:
+        host.write(wire_status(1))
+        assert isinstance(decode_replies(host.read(22))[0], StatusReply)
+
+    assert before_proof(simulator, mark, 2, prove) == [], "a dropped or silent reply went out"
 
     faults.configure(silent_ids=frozenset(), bad_checksum_rate=1.0)
     host.write(wire_status(1))
     assert isinstance(decode_replies(host.read(22))[0], ChecksumMismatch)
 
     faults.configure(bad_checksum_rate=0.0, garbage_rate=1.0)
+    mark = len(simulator.recorder.records)
     host.write(wire_status(1))
-    time.sleep(0.05)
-    events = decode_replies(host.read(host.in_waiting))
+    events = decode_replies(host.read(len(next_reply(simulator, mark).wire) // 2))
     assert isinstance(events[0], Discarded) and isinstance(events[-1], StatusReply)
 
     faults.configure(garbage_rate=0.0, late_rate=1.0, late_s=0.08)
@@ -481,21 +488,21 @@ def test_unplug_and_replug_behind_a_link(tmp_path: Path) -> None:
     by_id = tmp_path / "usb-inspire-la"
     device = InspireLaDevice(1)
     with SerialSimulator(la, [device], baudrate=921600, link=PtyLink(str(by_id))) as simulator:
-        with serial.Serial(str(by_id), 921600, timeout=1) as host:
+        with serial.Serial(str(by_id), 921600, timeout=10) as host:
             host.write(la.encode(MoveCommand(1, 1200)))
             assert len(host.read(22)) == 22
             simulator.unplug()
-            deadline = time.monotonic() + 2
+            deadline = time.monotonic() + 10
             while by_id.exists() and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert not by_id.exists()
             with pytest.raises(serial.SerialException):
                 host.read(1)
         simulator.replug()
-        deadline = time.monotonic() + 2
+        deadline = time.monotonic() + 10
         while not by_id.exists() and time.monotonic() < deadline:
             time.sleep(0.01)
-        with serial.Serial(str(by_id), 921600, timeout=1) as host:
+        with serial.Serial(str(by_id), 921600, timeout=10) as host:
             host.write(wire_status(1))
             (reply,) = decode_replies(host.read(22))
             assert reply.target_raw == 1200, "the actuator kept its state over the unplug"
@@ -510,7 +517,7 @@ def test_busgate_sim_cli_serves_until_sigterm() -> None:
     try:
         first = process.stdout.readline()
         assert first.startswith("PORT ")
-        with serial.Serial(first.split(maxsplit=1)[1].strip(), 115200, timeout=2) as host:
+        with serial.Serial(first.split(maxsplit=1)[1].strip(), 115200, timeout=10) as host:
             host.write(bytes.fromhex("55 AA 04 03 21 37 E8 03 4A"))
             (reply,) = decode_replies(host.read(22))
             assert reply.device_id == 3 and reply.target_raw == 1000

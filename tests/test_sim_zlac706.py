@@ -36,7 +36,7 @@ from busgate.gateway.sim.zlac706 import (
     Zlac706Rs232Device,
 )
 from busgate.gateway.sim.zlac706_motor import PULSES_PER_REV, Settings
-from tests.serial_host import assert_silent, exchange
+from tests.serial_host import exchange
 
 # --- helpers ---------------------------------------------------------------------------------
 
@@ -520,7 +520,7 @@ BAUD = 19_200  # wire time dominates: a monitor exchange (35 bytes) takes 18 ms
 def rs232_line():
     device = Zlac706Rs232Device(1)
     with SerialSimulator(rs232_codec, [device], baudrate=BAUD) as simulator, serial.Serial(
-        simulator.port, BAUD, timeout=1
+        simulator.port, BAUD, timeout=10
     ) as host:
         yield simulator, device, host
 
@@ -560,12 +560,20 @@ def test_wire_rs232_recorder_keeps_each_received_frame_with_its_wire_time(rs232_
     assert received[1].start >= received[0].end
 
 
-def test_wire_rs232_server_faults_as_the_host_sees_them(rs232_line) -> None:
+def test_wire_rs232_server_faults_as_the_host_sees_them(
+    rs232_line, wait_for, before_proof, next_reply
+) -> None:
     simulator, _, host = rs232_line
     simulator.faults.configure(drop_rate=1.0)
-    host.write(bytes.fromhex("4A 00 00 4A"))
-    assert_silent(host)
-    simulator.faults.configure(drop_rate=0.0, late_rate=1.0, late_s=0.3)
+    host.write(bytes.fromhex("4A 00 00 4A"))  # its reply dropped
+    host.write(bytes.fromhex("80 00 80"))  # its eight too; once it is in, the write was done
+    wait_for(lambda: len(simulator.recorder.received()) >= 2)
+    simulator.faults.configure(drop_rate=0.0)
+    proof = []
+    assert before_proof(simulator, 0, 2, lambda: proof.append(
+        exchange(host, "4A 00 00 4A", 2))) == [], "a dropped reply went out"
+    assert proof == [b"\x4a\x4a"]
+    simulator.faults.configure(late_rate=1.0, late_s=0.3)
     started = time.perf_counter()
     assert exchange(host, "4A 00 00 4A", 2) == b"\x4a\x4a"
     assert time.perf_counter() - started >= 0.3
@@ -574,13 +582,20 @@ def test_wire_rs232_server_faults_as_the_host_sees_them(rs232_line) -> None:
     decoder.feed(exchange(host, "4A 00 00 4A", 2))
     assert any(isinstance(e, ChecksumMismatch) for e in decoder.events())
     simulator.faults.configure(bad_checksum_rate=0.0, garbage_rate=1.0)
+    mark = len(simulator.recorder.records)
     host.write(bytes.fromhex("4A 00 00 4A"))
-    host.timeout = 0.3
-    noisy = host.read(16)
+    noisy = host.read(len(next_reply(simulator, mark).wire) // 2)
     assert noisy.endswith(b"\x4a\x4a") and len(noisy) > 2
     simulator.faults.configure(garbage_rate=0.0, silent_ids=frozenset({1}))
+    mark = len(simulator.recorder.records)
     host.write(bytes.fromhex("80 00 80"))
-    assert_silent(host)
+    # The line's one device is silent, so no reply can be the proof: a second frame is. The
+    # simulator takes frames in order; once it has the second, it had its chance at the first.
+    host.write(bytes.fromhex("4A 00 00 4A"))
+    wait_for(lambda: sum(r.direction == "rx" for r in simulator.recorder.records[mark:]) >= 2)
+    records = simulator.recorder.records
+    first = next(i for i, r in enumerate(records) if i >= mark and r.direction == "rx")
+    assert [r for r in records[first:] if r.direction == "tx"] == [], "a silent id answered"
 
 
 def test_wire_rs232_device_fault_and_reboot(rs232_line) -> None:
@@ -592,7 +607,7 @@ def test_wire_rs232_device_fault_and_reboot(rs232_line) -> None:
     assert exchange(host, "80 00 80", 32)[:4] == bytes.fromhex("80 00 00 80")
 
 
-def _wait_for(condition, timeout: float = 2.0) -> None:
+def _wait_for(condition, timeout: float = 10.0) -> None:
     deadline = time.monotonic() + timeout
     while not condition():
         assert time.monotonic() < deadline, "timed out"
@@ -603,7 +618,7 @@ def test_wire_rs232_unplug_and_replug_behind_a_link(tmp_path) -> None:
     by_id = tmp_path / "usb-ZLAC706-rs232"
     with SerialSimulator(rs232_codec, [Zlac706Rs232Device()], baudrate=115_200,
                          link=PtyLink(str(by_id))) as simulator:
-        with serial.Serial(str(by_id), 115_200, timeout=1) as host:
+        with serial.Serial(str(by_id), 115_200, timeout=10) as host:
             assert exchange(host, "00 00 01 01", 2) == b"\x00\x00"
             simulator.unplug()
             _wait_for(lambda: not by_id.exists())
@@ -611,7 +626,7 @@ def test_wire_rs232_unplug_and_replug_behind_a_link(tmp_path) -> None:
                 host.read(1)
         simulator.replug()
         _wait_for(by_id.exists)
-        with serial.Serial(str(by_id), 115_200, timeout=1) as host:
+        with serial.Serial(str(by_id), 115_200, timeout=10) as host:
             assert exchange(host, "80 00 80", 32)[:4] == bytes.fromhex("80 00 01 81")
 
 
@@ -640,7 +655,7 @@ def send(host: can.BusABC, node: int, text: str) -> None:
     host.send(can.Message(arbitration_id=node, data=bytes.fromhex(text), is_extended_id=False))
 
 
-def receive(host: can.BusABC, timeout: float = 1.0) -> str | None:
+def receive(host: can.BusABC, timeout: float = 10.0) -> str | None:
     message = host.recv(timeout=timeout)
     return None if message is None else f"{message.arbitration_id:03x}#{message.data.hex()}"
 
@@ -663,7 +678,7 @@ def test_wire_can_broadcast_is_answered_by_every_node(can_bus) -> None:
     assert all(node.motor.settings.mode is Mode.VELOCITY for node in nodes)
 
 
-def test_wire_can_recorder_and_server_faults(can_bus) -> None:
+def test_wire_can_recorder_and_server_faults(can_bus, wait_for, before_proof) -> None:
     simulator, _, host = can_bus
     send(host, 1, "00FA002D00001F40")
     assert receive(host) == "001#00fb002d00001f40"
@@ -671,9 +686,18 @@ def test_wire_can_recorder_and_server_faults(can_bus) -> None:
     assert (record.wire, record.frame, record.device_id) == ("001#00fa002d00001f40", "Write", 1)
     assert record.end - record.start == pytest.approx(can_time(8, 500_000))
     simulator.faults.configure(drop_rate=1.0)
-    send(host, 1, "00FA002D00001F40")
-    assert receive(host, 0.15) is None
-    simulator.faults.configure(drop_rate=0.0, late_rate=1.0, late_s=0.2)
+    mark = len(simulator.recorder.records)
+    send(host, 1, "00FA002D00001F40")  # its reply dropped
+    send(host, 2, "00FA002D00001F40")  # and this one: once it is in, the first was dealt with
+    wait_for(lambda: sum(r.direction == "rx" for r in simulator.recorder.records[mark:]) >= 2)
+    simulator.faults.configure(drop_rate=0.0)
+
+    def prove() -> None:
+        send(host, 2, "00FA00190000002F")
+        assert receive(host) == "002#00fb00190000002f"
+
+    assert before_proof(simulator, mark, 2, prove) == [], "a dropped reply went out"
+    simulator.faults.configure(late_rate=1.0, late_s=0.2)
     started = time.perf_counter()
     send(host, 1, "00FA002D00001F40")
     assert receive(host) == "001#00fb002d00001f40"
@@ -683,8 +707,16 @@ def test_wire_can_recorder_and_server_faults(can_bus) -> None:
     send(host, 2, "00FA002D00001F40")
     assert receive(host) == "002#00fb002d00001f40"
     simulator.faults.configure(silent_ids=frozenset({2}))
+    mark = len(simulator.recorder.records)
     send(host, 0, "00DA00150000007F")  # broadcast: only node 1 answers
-    assert receive(host) == "000#00db00150000007f" and receive(host, 0.15) is None
+    assert receive(host) == "000#00db00150000007f"
+
+    def prove_node_1() -> None:
+        send(host, 1, "00FA002D00001F40")
+        assert receive(host) == "001#00fb002d00001f40"
+
+    sent = before_proof(simulator, mark, 1, prove_node_1)
+    assert [r.wire for r in sent] == ["000#00db00150000007f"], "the silent node answered"
 
 
 def test_wire_can_heartbeats_alarm_reports_and_reboot() -> None:
