@@ -75,6 +75,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     bench.add_argument("--poll-hz", type=float, default=20.0, help="polls per device per second")
     bench.add_argument("--seconds", type=float, default=6.0, help="how long to measure")
     bench.add_argument("--min-gap-ms", type=float, help="UART gap (default: per protocol)")
+    bench.add_argument("--reply-margin-ms", type=float, default=2.0,
+                       help="time allowed on top of a reply's wire and turnaround time (default "
+                            "2, as in a config; more for a loaded host or a slow adapter)")
     bench.add_argument("--baseline", action="store_true",
                        help="also time a plain sleep-then-spin pyserial loop")
     bench.add_argument("--json", action="store_true", help="print the figures as JSON")
@@ -123,9 +126,11 @@ def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: i
     ]
     if PROTOCOLS[args.kind].can:
         return CanBus(name="bench", transport="can", interface="slcan", channel=port,
-                      devices=devices, options={"sleep_after_open": 0})
+                      devices=devices, options={"sleep_after_open": 0},
+                      reply_margin_ms=args.reply_margin_ms)
     return SerialBus(name="bench", transport="serial", port=port, baudrate=baudrate,
-                     min_gap_ms=args.min_gap_ms, devices=devices)
+                     min_gap_ms=args.min_gap_ms, devices=devices,
+                     reply_margin_ms=args.reply_margin_ms)
 
 
 def measure(

@@ -26,8 +26,8 @@ BAUD = 921_600
 GAP_S = 0.001
 
 
-def owner_on(port: str, baud: int = BAUD) -> SerialBusOwner:
-    timing = LinkTiming("inspire_la", baud, margin_s=0.002, gap_s=GAP_S)
+def owner_on(port: str, baud: int = BAUD, margin_s: float = 0.05) -> SerialBusOwner:
+    timing = LinkTiming("inspire_la", baud, margin_s=margin_s, gap_s=GAP_S)
     owner = SerialBusOwner(port, la, timing, BusCounters(now()))
     owner.open()
     return owner
@@ -44,9 +44,9 @@ def follow_without_reply(position: int) -> Request:
 def test_a_frame_waits_the_gap_after_a_late_reply_it_flushed(tmp_path, wait_for) -> None:
     link = PtyLink(str(tmp_path / "usb-la"))
     with SerialSimulator(la, [InspireLaDevice(1)], baudrate=BAUD, link=link) as simulator:
-        owner = owner_on(simulator.port)
+        owner = owner_on(simulator.port, margin_s=0.002)
         try:
-            simulator.faults.configure(late_rate=1.0, late_s=0.006)
+            simulator.faults.configure(late_rate=1.0, late_s=0.3)  # far past the reply window
             with pytest.raises(DeviceTimeoutError):
                 owner.exchange(status(1))
             simulator.faults.configure(late_rate=0.0)
@@ -100,11 +100,13 @@ class InstantDevice:
 
 def test_a_reply_before_the_request_could_have_left_the_wire_is_early() -> None:
     device = InstantDevice()
-    owner = owner_on(device.port, baud=9600)  # 30 bytes at 9600 baud take 31 ms
+    # 8 bytes at 300 baud take 267 ms: an answer read sooner cannot be the device's, however
+    # long this host was held up before it read it.
+    owner = owner_on(device.port, baud=300)
     try:
         with pytest.raises(DeviceTimeoutError, match="baud rate") as timeout:
             owner.exchange(status(1))
-        assert "before the request could have left the wire at 9600 baud" in str(timeout.value)
+        assert "before the request could have left the wire at 300 baud" in str(timeout.value)
         stats = owner.counters.snapshot(now())
         assert stats.early_replies >= 1 and stats.late_replies == 0
     finally:

@@ -31,8 +31,8 @@ def test_a_speed_stream_that_goes_stale_is_brought_to_zero_rpm_by_the_runner(wai
                              bus=can.Bus(interface="virtual", channel=channel)).start()
     events = []
     bus = CanBus(name="can0", transport="can", interface="virtual", channel=channel,
-                 devices=[{"name": "wheel", "kind": "zlac706", "id": 1, "heartbeat_ms": 50,
-                           "follow_period_ms": 20}])
+                 reply_margin_ms=50, devices=[{"name": "wheel", "kind": "zlac706", "id": 1,
+                                               "heartbeat_ms": 50, "follow_period_ms": 20}])
     runner = build_bus(bus, on_event=events.append).start()
     try:
         wait_for(lambda: runner.drivers["wheel"].online)
@@ -58,7 +58,7 @@ def test_an_idempotent_request_is_tried_three_times_anything_else_once(wait_for)
     with SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)],
                          baudrate=921_600) as simulator:
         bus = SerialBus(name="uart0", transport="serial", port=simulator.port,
-                        baudrate=921_600, devices=[
+                        baudrate=921_600, reply_margin_ms=50, devices=[
                             {"name": "la1", "kind": "inspire_la", "id": 1},
                             {"name": "la2", "kind": "inspire_la", "id": 2}])
         runner = build_bus(bus).start()
@@ -84,8 +84,8 @@ def test_the_payload_limit_is_64_kib_to_the_byte(wait_for):
     """65,536 bytes are a command; 65,537 are ``too_large`` (the README's limit)."""
     with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
         bus = SerialBus(name="uart0", transport="serial", port=simulator.port,
-                        baudrate=921_600, devices=[{"name": "la1", "kind": "inspire_la",
-                                                    "id": 1}])
+                        baudrate=921_600, reply_margin_ms=50,
+                        devices=[{"name": "la1", "kind": "inspire_la", "id": 1}])
         runner = build_bus(bus).start()
         api = GatewayApi("gw", {"uart0": runner})
         try:
