@@ -16,13 +16,13 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
 from busgate.gateway.scheduler.planner import Job
 from busgate.gateway.scheduler.runner import BusyError
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -195,7 +195,7 @@ def test_the_link_comes_back_after_a_replug(wait_for, simulator) -> None:
         wait_for(lambda: not runner.drivers["la1"].online)
         time.sleep(2.5)  # long enough for the reconnect backoff to reach its 2 s
         simulator.replug()
-        wait_for(lambda: runner.drivers["la1"].online, timeout=3.0)  # the issue: within 3 s
+        wait_for(lambda: runner.drivers["la1"].online, timeout=3.0)  # the README: within 3 s
         assert runner.statistics().reconnects == 1
         kinds = [e.type for e in events if e.device == "la1"]
         assert kinds.count("offline") == 1 and kinds.count("online") == 2

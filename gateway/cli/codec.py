@@ -14,8 +14,8 @@ import sys
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import CommandError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
-from busgate.gateway.jsonify import to_jsonable
-from busgate.gateway.protocols import PROTOCOLS, Protocol
+from busgate.gateway.cli.jsonify import to_jsonable
+from busgate.gateway.drivers.protocols import PROTOCOLS, Protocol
 from busgate.schemas.errors import command_from_json
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive

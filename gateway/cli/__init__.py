@@ -13,17 +13,10 @@ import sys
 from collections.abc import Sequence
 
 from busgate.codecs.errors import BusgateError
-from busgate.gateway import (
-    bench,
-    check_config,
-    client_cli,
-    codec_cli,
-    daemon,
-    demo,
-    installed_version,
-    schema_cli,
-)
-from busgate.gateway.sim import cli as sim_cli
+from busgate.gateway import installed_version
+from busgate.gateway.cli import bench, check_config, client, codec, demo, schema
+from busgate.gateway.service import daemon
+from busgate.gateway.sim import cli as sim
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,14 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"busgate {installed_version()}")
     subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="COMMAND")
-    codec_cli.add_parsers(subparsers)
-    sim_cli.add_parsers(subparsers)
-    bench.add_parsers(subparsers)
-    client_cli.add_parsers(subparsers)
-    daemon.add_parsers(subparsers)
-    check_config.add_parsers(subparsers)
-    demo.add_parsers(subparsers)
-    schema_cli.add_parsers(subparsers)
+    for module in (codec, sim, bench, client, daemon, check_config, demo, schema):
+        module.add_parsers(subparsers)
     return parser
 
 
@@ -57,7 +44,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BusgateError as exc:
         print(f"busgate {args.subcommand}: error: {exc}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

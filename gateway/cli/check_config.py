@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 from busgate.codecs.errors import ConfigError
-from busgate.gateway.budget import bus_budget
-from busgate.gateway.port_access import missing, port_problem
+from busgate.gateway.bus.port_access import missing, port_problem
+from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
 
@@ -42,8 +42,10 @@ def check_config(args: argparse.Namespace) -> int:
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)
         print(budget.summary())
-        problems = [*host_warnings(f"buses[{index}]", bus),
-                    *(f"buses[{index}]: {text}" for text in budget.warnings())]
+        problems = [
+            *host_warnings(f"buses[{index}]", bus),
+            *(f"buses[{index}]: {text}" for text in budget.warnings()),
+        ]
         for problem in problems:
             print(f"warning: {problem}")
     return 0
@@ -52,8 +54,10 @@ def check_config(args: argparse.Namespace) -> int:
 def _overview(config: Config) -> str:
     devices = sum(len(bus.devices) for bus in config.buses)
     metrics = f"metrics on {config.metrics.listen}" if config.metrics else "no metrics endpoint"
-    return (f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
-            f"{metrics}")
+    return (
+        f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
+        f"{metrics}"
+    )
 
 
 def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
