@@ -12,7 +12,11 @@ from __future__ import annotations
 
 import ast
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "scheduler", "service", "sim")
@@ -98,3 +102,21 @@ def test_nothing_refers_to_a_file_outside_the_repository_or_to_an_issue() -> Non
             if OUTSIDE.search(line):
                 found.append(f"{relative}:{number}: {line.strip()}")
     assert found == []
+
+
+HEAVY = ("zenoh", "serial", "can", "prometheus_client")
+
+
+@pytest.mark.parametrize("argv", [None, ["--help"], ["encode", "inspire_la", "--id", "3",
+                                                       '{"op":"move","position":1000}']])
+def test_the_command_line_loads_only_what_its_command_needs(argv) -> None:
+    """``busgate --help`` and ``busgate encode`` load none of the heavy libraries: each command's
+    module is imported only when that command runs."""
+    run = "" if argv is None else (
+        f"import contextlib\nfrom busgate.gateway.cli import main\n"
+        f"with contextlib.suppress(SystemExit):\n    main({argv!r})\n")
+    probe = (f"import busgate.gateway.cli\n{run}import sys\n"
+             f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.splitlines()[-1] == "[]"

@@ -63,7 +63,6 @@ FOLLOW_FRAMES = ("FollowCommand", "GroupFollowCommand", "SyncWrite", "Write")
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     bench = subparsers.add_parser(
         "bench",
-        help="measure the bus owner and scheduler against a port or the simulators",
         description=__doc__.split("\n\n")[1],
     )
     bench.add_argument("--kind", required=True, choices=sorted(PROTOCOLS), help="wire protocol")

@@ -22,7 +22,6 @@ from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     check = subparsers.add_parser(
         "check-config",
-        help="validate a config and print each bus's budget",
         description="Validate a gateway config without touching hardware, and print per bus "
         "the wire time its polling and follow streams take and the share of the bus they "
         "reserve. Exit status 1 when the config is invalid.",

@@ -48,7 +48,6 @@ ZENOH_TIMEOUT = b"Timeout"
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     send = subparsers.add_parser(
         "send",
-        help="send a JSON command to a device and print the reply",
         description="Send a JSON command to a device's cmd key and print each reply. A bare "
         "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers); an "
         "argument with a '/' is used as the key expression as given. Exit status: 0 all "
@@ -73,7 +72,6 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
     watch = subparsers.add_parser(
         "watch",
-        help="a live table of device states and bus statistics",
         description="Show the latest state of every device and the statistics of every bus, "
         "refreshed in place. The selector narrows what is shown: a gateway name, or a key "
         "expression (default <prefix>/**).",

@@ -68,7 +68,6 @@ DEMO_BUSES = (
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
         "demo",
-        help="run the gateway on simulated devices of every kind",
         description="Run the real gateway (named 'demo') on simulated devices: three Inspire LA "
         "actuators and two DS servos on UART buses, a ZLAC706 on CAN and one on RS232, with "
         "wire timing emulated. Prints how to connect; serves until SIGTERM or Ctrl-C.",

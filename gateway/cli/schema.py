@@ -144,7 +144,6 @@ def _run(args: argparse.Namespace) -> int:
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "schema",
-        help="write the JSON Schemas of commands, replies, telemetry, events and config",
         description="Write one JSON Schema per command set, reply, telemetry kind, event, bus "
         "statistics, info and config to schemas/json/.",
     )

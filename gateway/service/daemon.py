@@ -57,7 +57,6 @@ STATE_BACKLOG = 4_096
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
-        help="run the gateway daemon",
         description="Run the gateway: own the configured buses and serve them over zenoh until "
         "SIGTERM or SIGINT.",
     )

@@ -25,7 +25,6 @@ from busgate.gateway.sim.recorder import Recorder
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim = subparsers.add_parser(
         "sim",
-        help="serve simulated devices on a new pty",
         description="Serve simulated devices on a new pty (CAN: behind a simulated SLCAN "
         "adapter) and print 'PORT <path>' first. SIGUSR1 unplugs/replugs, SIGUSR2 reboots.",
     )
