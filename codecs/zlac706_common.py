@@ -220,5 +220,12 @@ SPEED_UNIT: Final = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "sign
 
 def coded_register(name: str, address: int, codes, description: str) -> Register:
     """A one-word write-only register that takes only the given codes."""
-    return Register(name, address, 1, Access.WRITE, minimum=min(codes), maximum=max(codes),
-                    description=description)
+    return Register(
+        name,
+        address,
+        1,
+        Access.WRITE,
+        minimum=min(codes),
+        maximum=max(codes),
+        description=description,
+    )

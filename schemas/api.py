@@ -125,8 +125,12 @@ class BusScan(CommandModel):
     ids when ``ids`` is left out."""
 
     op: Literal["scan"]
-    ids: Annotated[list[Annotated[int, Field(ge=0, le=255)]],
-                   Field(min_length=1, max_length=MAX_SCAN_IDS)] | None = None
+    ids: (
+        Annotated[
+            list[Annotated[int, Field(ge=0, le=255)]], Field(min_length=1, max_length=MAX_SCAN_IDS)
+        ]
+        | None
+    ) = None
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> BusScan:
@@ -172,8 +176,7 @@ class InspireLaTelemetry(TelemetryEnvelope):
     force_g: int | None = Field(description="Force sensor reading, g (LAF/LASF models only).")
     faults: list[LaFault] = Field(description="Latched faults by name; empty when healthy.")
     power: Literal["on", "paused", "estopped"] = Field(
-        description="Power stage as commanded: paused until the next target, estopped until "
-        "enable."
+        description="Power stage as commanded: paused until the next target, estopped until enable."
     )
     overcurrent_limit_ma: int = Field(description="Over-current protection threshold, mA.")
     overtemp_limit_c: float = Field(description="Over-temperature limit, °C (0.1 °C steps).")
@@ -344,9 +347,11 @@ class BusStatistics(Published):
     checksum_errors: int
     discarded_bytes: int = Field(description="Received bytes that were not part of a frame.")
     late_replies: int = Field(description="Replies that came after their deadline.")
-    early_replies: int = Field(description="Replies read before their request could have left "
-                               "the wire at the bus's rate: a wrong baud rate, or an emulator "
-                               "without wire timing.")
+    early_replies: int = Field(
+        description="Replies read before their request could have left "
+        "the wire at the bus's rate: a wrong baud rate, or an emulator "
+        "without wire timing."
+    )
     reconnects: int
     skipped_polls: int = Field(description="Polls left out to keep follow ticks on time.")
     busy_commands: int = Field(description="Commands refused with ``busy`` (queue full).")

@@ -25,4 +25,3 @@ class CommandModel(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
     client: ClientId | None = None
-

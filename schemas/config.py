@@ -163,8 +163,10 @@ def _require_own_device_files(buses: list[SerialBus | CanBus]) -> None:
             first[real] = (bus.name, name)
             continue
         other_bus, other_name = first[real]
-        raise ValueError(f"buses[{index}].{key}: buses {other_bus!r} and {bus.name!r} both open "
-                         f"{_one_file(real, other_name, name)}; give each bus its own port")
+        raise ValueError(
+            f"buses[{index}].{key}: buses {other_bus!r} and {bus.name!r} both open "
+            f"{_one_file(real, other_name, name)}; give each bus its own port"
+        )
 
 
 def _one_file(real: str, first_name: str, name: str) -> str:
@@ -237,8 +239,10 @@ def _not_utf8(path: str | Path, exc: UnicodeDecodeError) -> str:
     """Where a file that should be UTF-8 (as TOML is) stops being so."""
     line = exc.object.count(b"\n", 0, exc.start) + 1
     byte = exc.object[exc.start]
-    return (f"{path} is not UTF-8 text (line {line} has the byte 0x{byte:02x}); TOML files are "
-            f"UTF-8: save it as UTF-8")
+    return (
+        f"{path} is not UTF-8 text (line {line} has the byte 0x{byte:02x}); TOML files are "
+        f"UTF-8: save it as UTF-8"
+    )
 
 
 def _key_path(loc: tuple[int | str, ...]) -> str:

@@ -4,11 +4,11 @@ Ranges come from the codec's control table and constants (``busgate.codecs.ds_se
 the read and write address rules are the codec's own ``check_read`` / ``check_write``, run
 as validators, so a command the schema accepts is one the codec can encode.
 
-Ops beyond the issue's list: ``store_preset {n}`` (the manual's "set preset n": writing the
-preset address alone stores the present position). No ``estop``: the manual names address
-0x30 "lock flag (e-stop)" but documents none of its values, and an e-stop that writes a
-guessed value may not stop anything; ``torque {on: false}`` is the documented way to release
-a servo, and ``write`` reaches 0x30 for firmware whose values are known.
+Ops beyond the manual's instruction list: ``store_preset {n}`` (the manual's "set preset n":
+writing the preset address alone stores the present position). No ``estop``: the manual
+names address 0x30 "lock flag (e-stop)" but documents none of its values, and an e-stop that
+writes a guessed value may not stop anything; ``torque {on: false}`` is the documented way to
+release a servo, and ``write`` reaches 0x30 for firmware whose values are known.
 """
 
 from __future__ import annotations
@@ -144,7 +144,16 @@ class Reset(CommandModel):
 
 
 Command = Annotated[
-    Ping | Read | Write | Move | Action | GroupMove | Torque | SetId | GotoPreset | StorePreset
+    Ping
+    | Read
+    | Write
+    | Move
+    | Action
+    | GroupMove
+    | Torque
+    | SetId
+    | GotoPreset
+    | StorePreset
     | Reset,
     Field(discriminator="op"),
 ]

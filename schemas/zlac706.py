@@ -26,9 +26,7 @@ from busgate.schemas.base import CommandModel
 _POSITION = can.REGISTERS["target_position"]
 
 Rpm = Annotated[float, Field(ge=-common.MAX_SPEED_RPM, le=common.MAX_SPEED_RPM)]
-RampMs = Annotated[
-    int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)
-]
+RampMs = Annotated[int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)]
 
 
 class SetMode(CommandModel):

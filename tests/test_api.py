@@ -12,9 +12,9 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.api import MAX_PAYLOAD, GatewayApi
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.clock import now
+from busgate.gateway.api.commands import MAX_PAYLOAD, GatewayApi
+from busgate.gateway.bus.clock import now
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator

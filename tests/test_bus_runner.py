@@ -16,13 +16,13 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
 from busgate.gateway.scheduler.planner import Job
 from busgate.gateway.scheduler.runner import BACKOFF_FIRST_S, BACKOFF_MAX_S, BusyError
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -208,7 +208,7 @@ def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> No
 def test_the_link_comes_back_after_a_replug(wait_for, simulator) -> None:
     """Replugged once the reconnect backoff is at its longest, the bus is back. The backoff is
     checked on its figures (the waits between attempts to open the port double from 0.1 s
-    to ``BACKOFF_MAX_S`` and no further, so the issue's "within 3 s" holds by construction),
+    to ``BACKOFF_MAX_S`` and no further, so "back within 3 s" holds by construction),
     each shortened to 10 ms; the reconnect itself is waited for, with a generous deadline."""
     events = []
     runner = build_bus(bus(simulator.port), on_event=events.append)

@@ -9,11 +9,11 @@ import can
 import pytest
 
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.assembly import build_bus
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.slcan import SlcanAdapter

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from busgate.gateway.budget import bus_budget
 from busgate.gateway.cli import main
+from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, SerialBus, load_config
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy" / "config"

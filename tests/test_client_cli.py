@@ -22,12 +22,12 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la
-from busgate.gateway import client_cli
+from busgate.gateway.api.zenoh_config import session_config
+from busgate.gateway.cli import client as client_cli
 from busgate.gateway.cli import main
-from busgate.gateway.client_cli import WatchTable
+from busgate.gateway.cli.client import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.gateway.zenoh_config import session_config
 from tests.gateway_process import GatewayProcess, serial_bus, write_config
 
 PUBLISH_EVERY_S = 0.05

@@ -25,9 +25,9 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
+from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.gateway.zenoh_config import session_config
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 UNIT = DEPLOY / "busgate.service"

@@ -22,7 +22,7 @@ COMMAND_VECTORS = [
     ("FF FF 03 07 04 2A 03 E8 07 D0 05", ds.RegWrite(3, 1000, 2000)),  # 2.3.5
     ("FF FF FE 02 05 FA", ds.Action()),  # 2.3.5
     (
-        # 2.3.6. Erratum (PROTOCOL_NOTES.md): the manual prints checksum 8B; its own formula
+        # 2.3.6. Erratum (docs/protocols.md): the manual prints checksum 8B; its own formula
         # gives BA, which is what we send and expect.
         "FF FF FE 0E 83 2A 04 01 07 D0 03 E8 03 07 D0 03 E8 BA",
         ds.SyncWrite((ds.SyncTarget(1, 2000, 1000), ds.SyncTarget(3, 2000, 1000))),

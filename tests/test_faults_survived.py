@@ -1,4 +1,4 @@
-"""Faults the gateway must survive (issue 7), against the simulators: a noisy line and a
+"""Faults the gateway must survive, against the simulators: a noisy line and a
 flood of commands. Nothing is asserted per second: telemetry is counted in replies, waited
 for with a generous deadline; what must hold exactly (every command answered) is asserted
 exactly."""
@@ -8,8 +8,8 @@ from __future__ import annotations
 from concurrent.futures import wait
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.assembly import build_bus
 from busgate.gateway.scheduler.runner import BusyError
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.process import SimProcess

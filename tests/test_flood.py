@@ -1,4 +1,4 @@
-"""A flood over zenoh (issue 7): four clients send 300 moves each, as fast as replies come,
+"""A flood over zenoh: four clients send 300 moves each, as fast as replies come,
 while a third actuator on the same bus follows a streamed target.
 
 The gateway is ``busgate run`` in its own process, so its memory and file descriptors can be
@@ -32,11 +32,11 @@ import zenoh
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.timing import PROTOCOL_TIMING, uart_time
+from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.scheduler.planner import MAX_RETRIES
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.recorder import WireRecord
 from busgate.gateway.sim.wire_analysis import load_records
-from busgate.gateway.zenoh_config import session_config
 
 GATEWAY, BUS = "flood", "uart0"
 CLIENTS, COMMANDS_EACH = 4, 300

@@ -43,7 +43,7 @@ MANUAL_COMMANDS = [
     ("3.7.2 move", "55 AA 04 03 21 37 E8 03 4A", MoveCommand(3, 1000)),
     ("3.7.2 move, no reply", "55 AA 04 03 03 37 E8 03 2C", MoveCommand(3, 1000, reply=False)),
     ("3.7.2 follow", "55 AA 04 03 20 37 E8 03 49", FollowCommand(3, 1000)),
-    # Erratum (PROTOCOL_NOTES.md): the manual prints checksum 28; the sum of the bytes is 42.
+    # Erratum (docs/protocols.md): the manual prints checksum 28; the sum of the bytes is 42.
     ("3.7.2 follow, no reply", "55 AA 04 03 19 37 E8 03 42", FollowCommand(3, 1000, reply=False)),
     ("3.7.3 e-stop", "55 AA 03 03 04 00 23 2D", ControlCommand(3, ControlCode.ESTOP)),
     ("3.7.4 enable", "55 AA 03 03 04 00 04 0E", ControlCommand(3, ControlCode.ENABLE)),

@@ -217,7 +217,7 @@ def test_driver_covers_every_op():
 def test_group_follow_frame_for_fifteen_actuators():
     text = '{"op":"group_follow","targets":' + _targets(15) + "}"
     [frame] = frames_for(schema.COMMAND_ADAPTER.validate_json(text), 1)
-    assert len(la.encode(frame)) == 51  # PROTOCOL_NOTES.md: 553 µs at 921600
+    assert len(la.encode(frame)) == 51  # 553 µs at 921600
     assert la.expected_reply(frame) is None
 
 

@@ -14,10 +14,10 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import DeviceTimeoutError
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator

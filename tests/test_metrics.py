@@ -10,8 +10,8 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.metrics import Metrics
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator

@@ -1,4 +1,4 @@
-"""The namespaced layout's guards (DESIGN.md): a subpackage missing from pyproject's
+"""The namespaced layout's guards (docs/architecture.md): a subpackage missing from pyproject's
 ``packages`` silently vanishes from the wheel, and the top-level folders must never be
 importable under their bare names."""
 
@@ -47,3 +47,12 @@ def test_console_script_runs() -> None:
         check=True,
     )
     assert "encode" in result.stdout and "decode" in result.stdout
+
+
+def test_the_view_for_static_tools_maps_busgate_onto_the_folders() -> None:
+    """``view/busgate/<folder>`` leads to each folder, by a relative link that survives a clone
+    anywhere (docs/architecture.md: static tools and editors)."""
+    for folder in FOLDERS:
+        link = ROOT / "view" / "busgate" / folder
+        assert link.is_symlink() and not Path(link.readlink()).is_absolute(), link
+        assert link.resolve() == (ROOT / folder).resolve()

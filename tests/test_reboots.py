@@ -1,4 +1,4 @@
-"""A device that reboots under the gateway (issue 7): seen from its replies or heartbeats (or
+"""A device that reboots under the gateway: seen from its replies or heartbeats (or
 from coming back after going offline), reported with a ``rebooted`` event, its follow stream
 dropped, its settings written again, and nothing sent that would move it until a fresh
 command. Real bus runners against the simulators, whose ``reboot`` is a power cycle."""
@@ -12,8 +12,8 @@ import can
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.clock import now
+from busgate.gateway.bus.clock import now
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice

@@ -13,8 +13,8 @@ import can
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.api import GatewayApi
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator

@@ -29,17 +29,17 @@ from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import RefusedError
-from busgate.gateway import schema_cli
-from busgate.gateway.api import GatewayApi, error_reply, ok_reply
-from busgate.gateway.authority import Authority
+from busgate.gateway.api.commands import GatewayApi, error_reply, ok_reply
+from busgate.gateway.api.group import scan_requests, scan_result
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.cli import main
+from busgate.gateway.cli import schema as schema_cli
 from busgate.gateway.drivers.base import OFFLINE_AFTER, DeviceEvent, Driver
 from busgate.gateway.drivers.ds_servo import DsServoDriver
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
-from busgate.gateway.group import scan_requests, scan_result
+from busgate.gateway.scheduler.authority import Authority
 from busgate.schemas import api
 from busgate.schemas.config import Config
 

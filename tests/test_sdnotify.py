@@ -15,12 +15,12 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import BusUnavailableError
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.sdnotify import Notifier, Watchdog
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.sdnotify import Notifier, Watchdog
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator

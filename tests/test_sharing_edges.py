@@ -18,9 +18,9 @@ import pytest
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.api import GatewayApi
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.scheduler import runner as runner_module
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice

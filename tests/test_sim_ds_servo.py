@@ -1,5 +1,5 @@
 """The simulated DS servo: its rules with a fake clock, then through SerialSimulator on a real
-pty with pyserial as the host and frames from the manual (PROTOCOL_NOTES.md, DS section)."""
+pty with pyserial as the host and frames from the manual (docs/protocols.md, DS section)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.serial_host import exchange
 
 OK = ds.ServoStatus(0)
-# Manual examples (2.3.1-2.3.7); SYNC WRITE with the checksum corrected to BA (PROTOCOL_NOTES).
+# Manual examples (2.3.1-2.3.7); SYNC WRITE with the checksum corrected to BA (docs/protocols.md).
 PING_1 = "FF FF 01 02 01 FB"
 PING_1_REPLY = "FF F5 01 02 00 FC"
 READ_POSITION_1 = "FF FF 01 04 02 38 02 BE"

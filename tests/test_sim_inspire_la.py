@@ -31,7 +31,7 @@ from busgate.codecs.inspire_la import (
     register_write,
 )
 from busgate.codecs.timing import PROTOCOL_TIMING, uart_time
-from busgate.gateway.clock import now
+from busgate.gateway.bus.clock import now
 from busgate.gateway.sim.faults import FaultInjector
 from busgate.gateway.sim.inspire_la import (
     AMBIENT_C,

@@ -1,4 +1,4 @@
-"""The simulated ZLAC706 (gateway/sim/zlac706.py, zlac706_motor.py): every rule of issue 3 for
+"""The simulated ZLAC706 (gateway/sim/zlac706.py, zlac706_motor.py): every rule of the manual for
 the device on a fake clock, through both front-ends, then end to end on real transports: a
 pty with pyserial as the host (RS232), python-can's ``virtual`` bus and an SLCAN adapter with
 python-can's ``slcan`` interface (CAN), and the real ``busgate sim`` command.

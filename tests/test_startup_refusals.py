@@ -19,9 +19,9 @@ import serial
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import BusUnavailableError
-from busgate.gateway.assembly import build_bus
+from busgate.gateway.bus.port_access import UDEV_RULES, describe_open_error
 from busgate.gateway.cli import main
-from busgate.gateway.port_access import UDEV_RULES, describe_open_error
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import SerialBus

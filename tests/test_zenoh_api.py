@@ -19,13 +19,13 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.api import GatewayApi
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.bridge import ZenohBridge
-from busgate.gateway.daemon import serve
+from busgate.gateway.api.bridge import ZenohBridge
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.zenoh_config import session_config
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.gateway.zenoh_config import session_config
 from busgate.schemas.config import parse_config
 
 

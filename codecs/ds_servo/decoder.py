@@ -63,23 +63,28 @@ def _u16(data: bytes) -> int:
 def _move_at(params: bytes, what: str) -> None:
     """REG WRITE and SYNC WRITE only write position + time at 0x2A (manual 2.3.4, 2.3.6)."""
     if params[0] != MOVE_ADDRESS:
-        raise EncodeError(f"{what} only writes address {MOVE_ADDRESS:#04x}", field="address",
-                          value=params[0])
+        raise EncodeError(
+            f"{what} only writes address {MOVE_ADDRESS:#04x}", field="address", value=params[0]
+        )
 
 
 def _reg_write(device_id: int, params: bytes) -> RegWrite:
     _move_at(params, "REG WRITE")
     if len(params) != 1 + MOVE_DATA_SIZE:
-        raise EncodeError("REG WRITE carries position and move time (4 bytes)", field="data",
-                          value=params[1:].hex())
+        raise EncodeError(
+            "REG WRITE carries position and move time (4 bytes)",
+            field="data",
+            value=params[1:].hex(),
+        )
     return RegWrite(device_id, _u16(params[1:3]), _u16(params[3:5]))
 
 
 def _broadcast_only(device_id: int, what: str) -> None:
     """ACTION and SYNC WRITE frames carry no servo id of their own (manual 2.3.5, 2.3.6)."""
     if device_id != BROADCAST_ID:
-        raise EncodeError(f"{what} is always sent to the broadcast id", field="device_id",
-                          value=device_id)
+        raise EncodeError(
+            f"{what} is always sent to the broadcast id", field="device_id", value=device_id
+        )
 
 
 def _action(device_id: int, params: bytes) -> Action:
@@ -92,8 +97,11 @@ def _sync_write(device_id: int, params: bytes) -> SyncWrite:
     _move_at(params, "SYNC WRITE")
     entry = 1 + MOVE_DATA_SIZE
     if params[1] != MOVE_DATA_SIZE or (len(params) - 2) % entry:
-        raise EncodeError("SYNC WRITE carries id + position + move time (4 bytes) per servo",
-                          field="data", value=params[1:].hex())
+        raise EncodeError(
+            "SYNC WRITE carries id + position + move time (4 bytes) per servo",
+            field="data",
+            value=params[1:].hex(),
+        )
     return SyncWrite(
         tuple(
             SyncTarget(params[i], _u16(params[i + 1 : i + 3]), _u16(params[i + 3 : i + 5]))

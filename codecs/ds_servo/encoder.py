@@ -66,8 +66,11 @@ def encode(frame: Frame) -> bytes:
         raise TypeError(f"not a ds_servo frame: {frame!r}") from None
     header, device_id, code, params = parts(frame)
     if len(params) > MAX_PARAMS:
-        raise EncodeError(f"{len(params)} parameter bytes do not fit one frame (at most "
-                          f"{MAX_PARAMS})", field="params", value=len(params))
+        raise EncodeError(
+            f"{len(params)} parameter bytes do not fit one frame (at most {MAX_PARAMS})",
+            field="params",
+            value=len(params),
+        )
     body = bytes([device_id, len(params) + 2, code]) + params
     return header + body + bytes([checksum(body)])
 
@@ -104,8 +107,11 @@ def move_data(position_raw: int, time_ms: int) -> bytes:
 def _servo_id(device_id: int, what: str) -> int:
     """A single servo's id: broadcast is refused by name, since it is the usual mistake."""
     if device_id == BROADCAST_ID:
-        raise EncodeError(f"{what} cannot be sent to the broadcast id {BROADCAST_ID}",
-                          field="device_id", value=device_id)
+        raise EncodeError(
+            f"{what} cannot be sent to the broadcast id {BROADCAST_ID}",
+            field="device_id",
+            value=device_id,
+        )
     return require_range("device_id", device_id, MIN_ID, MAX_ID)
 
 

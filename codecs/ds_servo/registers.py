@@ -21,31 +21,83 @@ R, W, RW = Access.READ, Access.WRITE, Access.READ_WRITE
 
 REGISTERS: Final = RegisterMap(
     [
-        Register("firmware_version", 0x03, 2, R,
-                 description="vA.B: high byte A, low byte B (v1.28 = 0x011C)"),
-        Register("servo_id", 0x05, 1, RW, minimum=1, maximum=250, default=1,
-                 description="254 is the broadcast id, never a servo's own"),
-        Register("stall_protection_time", 0x06, 1, RW, unit="s", default=3,
-                 description="the servo protects itself after stalling this long"),
+        Register(
+            "firmware_version",
+            0x03,
+            2,
+            R,
+            description="vA.B: high byte A, low byte B (v1.28 = 0x011C)",
+        ),
+        Register(
+            "servo_id",
+            0x05,
+            1,
+            RW,
+            minimum=1,
+            maximum=250,
+            default=1,
+            description="254 is the broadcast id, never a servo's own",
+        ),
+        Register(
+            "stall_protection_time",
+            0x06,
+            1,
+            RW,
+            unit="s",
+            default=3,
+            description="the servo protects itself after stalling this long",
+        ),
         Register("min_angle", 0x09, 2, RW, default=0, description="lower position limit"),
         Register("max_angle", 0x0B, 2, RW, default=4095, description="upper position limit"),
         Register("max_torque", 0x10, 2, RW, default=800),
         Register("speed_adjust", 0x12, 1, RW, default=30),
         Register("unload_condition", 0x13, 1, RW, default=0),
-        Register("centre_offset", 0x14, 2, RW, signed=True, default=0,
-                 description="positive moves the centre towards 4095, negative towards 0"),
-        Register("preset_1", 0x16, 2, RW, default=2048,
-                 description="write the address alone: stores the present position"),
-        Register("preset_2", 0x18, 2, RW, default=2048,
-                 description="write the address alone: stores the present position"),
-        Register("preset_3", 0x1A, 2, RW, default=2048,
-                 description="write the address alone: stores the present position"),
+        Register(
+            "centre_offset",
+            0x14,
+            2,
+            RW,
+            signed=True,
+            default=0,
+            description="positive moves the centre towards 4095, negative towards 0",
+        ),
+        Register(
+            "preset_1",
+            0x16,
+            2,
+            RW,
+            default=2048,
+            description="write the address alone: stores the present position",
+        ),
+        Register(
+            "preset_2",
+            0x18,
+            2,
+            RW,
+            default=2048,
+            description="write the address alone: stores the present position",
+        ),
+        Register(
+            "preset_3",
+            0x1A,
+            2,
+            RW,
+            default=2048,
+            description="write the address alone: stores the present position",
+        ),
         Register("motor_mode", 0x1C, 1, RW),
         Register("motor_direction", 0x1D, 1, RW),
         Register("torque_enable", 0x28, 1, RW, description="0 torque off, non-zero on"),
         Register("target_position", 0x2A, 2, RW, minimum=0, maximum=4095),
-        Register("move_time", 0x2C, 2, RW, unit="ms", default=0,
-                 description="0 moves at the fastest speed"),
+        Register(
+            "move_time",
+            0x2C,
+            2,
+            RW,
+            unit="ms",
+            default=0,
+            description="0 moves at the fastest speed",
+        ),
         Register("current", 0x2E, 2, R, unit="mA"),
         # The manual names it "lock flag (e-stop)" and documents no value: see schemas.ds_servo.
         Register("lock_flag", 0x30, 1, RW, description="lock / e-stop flag; values undocumented"),
@@ -97,18 +149,27 @@ def check_write(address: int, data: bytes) -> None:
     if address in ADDRESS_ONLY_WRITES:
         if data:
             name = _known(address).name
-            raise EncodeError(f"{name} is written with its address alone, without data",
-                              field="data", value=data.hex())
+            raise EncodeError(
+                f"{name} is written with its address alone, without data",
+                field="data",
+                value=data.hex(),
+            )
         return
     if not data:
         raise EncodeError(f"a write to {address:#04x} needs data", field="data", value="")
     for register, raw in _split(address, data):
         if not register.access.writable:
-            raise EncodeError(f"{register.name} ({register.address:#04x}) is read only",
-                              field="address", value=register.address)
+            raise EncodeError(
+                f"{register.name} ({register.address:#04x}) is read only",
+                field="address",
+                value=register.address,
+            )
         if register.address in ADDRESS_ONLY_WRITES:
-            raise EncodeError(f"{register.name} is written with its address alone",
-                              field="address", value=register.address)
+            raise EncodeError(
+                f"{register.name} is written with its address alone",
+                field="address",
+                value=register.address,
+            )
         register.check(int.from_bytes(raw, "big", signed=register.signed))
 
 
@@ -132,8 +193,9 @@ def values_from(address: int, data: bytes) -> dict[str, int]:
 def _known(address: int) -> Register:
     register = REGISTERS.at(address)
     if register is None:
-        raise EncodeError(f"address {address:#04x} is not in the control table",
-                          field="address", value=address)
+        raise EncodeError(
+            f"address {address:#04x} is not in the control table", field="address", value=address
+        )
     return register
 
 
@@ -144,8 +206,11 @@ def _split(address: int, data: bytes) -> list[tuple[Register, bytes]]:
     while offset < len(data):
         register = _known(address + offset)
         if register.address != address + offset:
-            raise EncodeError(f"write at {address + offset:#04x} starts inside {register.name}",
-                              field="address", value=address + offset)
+            raise EncodeError(
+                f"write at {address + offset:#04x} starts inside {register.name}",
+                field="address",
+                value=address + offset,
+            )
         raw = data[offset : offset + register.size]
         if len(raw) < register.size:
             raise EncodeError(f"write ends inside {register.name}", field="data", value=data.hex())

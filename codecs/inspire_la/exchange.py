@@ -4,7 +4,7 @@ Control and motion-with-reply commands are answered by the 22-byte status frame.
 answered by ``7 + length`` bytes that must echo the index and carry ``length`` bytes, so
 that a late answer to an earlier read cannot be taken for this one. A write is answered
 either by the one-reserved-byte frame of section 3.4.1 or by the status frame of sections
-3.5.2 and 3.7.x (PROTOCOL_NOTES.md erratum): the wait is sized for the longer. Frames to
+3.5.2 and 3.7.x (an erratum: docs/protocols.md): the wait is sized for the longer. Frames to
 id 255 and the no-reply instructions get no answer.
 """
 

@@ -186,7 +186,7 @@ class WriteReply:
     """``0x02`` answer as section 3.4.1 describes it: one reserved data byte.
 
     Sections 3.5.2 and 3.7.x say a write is answered by the status frame instead; both are
-    accepted (PROTOCOL_NOTES.md, erratum "reply to a write").
+    accepted (docs/protocols.md, erratum "reply to a write").
     """
 
     device_id: int

@@ -86,8 +86,9 @@ class CommandDecoder(MessageDecoder[CanFrame, Command]):
         if bad is not None:
             return bad
         if message.data[1] not in _COMMANDS:
-            return Discarded(message.data, f"{message}: function {message.data[1]:#04x} is "
-                             "not a host command")
+            return Discarded(
+                message.data, f"{message}: function {message.data[1]:#04x} is not a host command"
+            )
         return _register_write(message, _COMMANDS)
 
 
@@ -108,8 +109,7 @@ class ReplyDecoder(MessageDecoder[CanFrame, Reply]):
         if func == Func.HEARTBEAT:
             return _heartbeat(message)
         if func == Func.NO_SUCH_REGISTER and _is_alarm(message.data):
-            return AlarmReport(message.arbitration_id, AlarmFlags(message.data[4]),
-                               message.data[0])
+            return AlarmReport(message.arbitration_id, AlarmFlags(message.data[4]), message.data[0])
         if func in _ECHOES:
             return _register_write(message, _ECHOES)
         return Discarded(message.data, f"{message}: function {func:#04x} is not a node reply")

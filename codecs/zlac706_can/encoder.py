@@ -72,7 +72,8 @@ def _write_body(frame: Write) -> bytes:
         if codes is not None and value not in set(codes):
             allowed = ", ".join(f"{code:#04x}" for code in codes)
             raise EncodeError(
-                f"{register.name} {value:#x} is not one of {allowed}", field=register.name,
+                f"{register.name} {value:#x} is not one of {allowed}",
+                field=register.name,
                 value=value,
             )
     return _register_value(frame.register, value)

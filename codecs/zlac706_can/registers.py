@@ -90,44 +90,107 @@ CODES: Final[dict[int, type[enum.IntEnum]]] = {
     CanRegister.ORIGIN: Origin,
 }
 
-GAIN_REGISTERS: Final[dict[Gain, CanRegister]] = {
-    gain: CanRegister[gain.name] for gain in Gain
-}
+GAIN_REGISTERS: Final[dict[Gain, CanRegister]] = {gain: CanRegister[gain.name] for gain in Gain}
 
 W = Access.WRITE
+
+
 def _coded(name: str, register: CanRegister, description: str) -> Register:
     return coded_register(name, register, CODES[register], description)
 
 
 def _gain(gain: Gain) -> Register:
-    return Register(gain.value, GAIN_REGISTERS[gain], 1, W, minimum=GAIN_MIN, maximum=GAIN_MAX,
-                    description="no range in the manual; defaults shown in table (5)")
+    return Register(
+        gain.value,
+        GAIN_REGISTERS[gain],
+        1,
+        W,
+        minimum=GAIN_MIN,
+        maximum=GAIN_MAX,
+        description="no range in the manual; defaults shown in table (5)",
+    )
 
 
 REGISTERS: Final = RegisterMap(
     [
-        Register("target_torque", CanRegister.TARGET_TORQUE, 1, W, unit="A",
-                 scale=float(1 / TORQUE_RAW_PER_A), minimum=-TORQUE_RAW_LIMIT,
-                 maximum=TORQUE_RAW_LIMIT, signed=True, description="torque mode: ±7500 ↔ ±24 A"),
+        Register(
+            "target_torque",
+            CanRegister.TARGET_TORQUE,
+            1,
+            W,
+            unit="A",
+            scale=float(1 / TORQUE_RAW_PER_A),
+            minimum=-TORQUE_RAW_LIMIT,
+            maximum=TORQUE_RAW_LIMIT,
+            signed=True,
+            description="torque mode: ±7500 ↔ ±24 A",
+        ),
         _coded("control_word", CanRegister.CONTROL_WORD, "0F release (stop), 1F enable (start)"),
-        Register("target_speed", CanRegister.TARGET_SPEED, 1, W, minimum=-SPEED_RAW_MAX,
-                 maximum=SPEED_RAW_MAX, description="speed mode; resend within 500 ms when the "
-                 "feed-forward gain is 1", **SPEED_UNIT),
-        Register("position_ramp", CanRegister.POSITION_RAMP, 1, W, unit="100 ms", minimum=0,
-                 maximum=RAMP_WORD_MAX, description="d2 accel, d3 decel (0 to top speed)"),
-        Register("speed_ramp", CanRegister.SPEED_RAMP, 1, W, unit="100 ms", minimum=0,
-                 maximum=RAMP_WORD_MAX, description="d2 accel, d3 decel (0 to top speed)"),
-        Register("max_speed", CanRegister.MAX_SPEED, 1, W, minimum=0, maximum=SPEED_RAW_MAX,
-                 description="position mode: trapezoid (cruise) speed", **SPEED_UNIT),
+        Register(
+            "target_speed",
+            CanRegister.TARGET_SPEED,
+            1,
+            W,
+            minimum=-SPEED_RAW_MAX,
+            maximum=SPEED_RAW_MAX,
+            description="speed mode; resend within 500 ms when the feed-forward gain is 1",
+            **SPEED_UNIT,
+        ),
+        Register(
+            "position_ramp",
+            CanRegister.POSITION_RAMP,
+            1,
+            W,
+            unit="100 ms",
+            minimum=0,
+            maximum=RAMP_WORD_MAX,
+            description="d2 accel, d3 decel (0 to top speed)",
+        ),
+        Register(
+            "speed_ramp",
+            CanRegister.SPEED_RAMP,
+            1,
+            W,
+            unit="100 ms",
+            minimum=0,
+            maximum=RAMP_WORD_MAX,
+            description="d2 accel, d3 decel (0 to top speed)",
+        ),
+        Register(
+            "max_speed",
+            CanRegister.MAX_SPEED,
+            1,
+            W,
+            minimum=0,
+            maximum=SPEED_RAW_MAX,
+            description="position mode: trapezoid (cruise) speed",
+            **SPEED_UNIT,
+        ),
         _coded("alarm_reset", CanRegister.ALARM_RESET, "7F clears the alarm"),
-        Register("target_position", CanRegister.TARGET_POSITION, 1, W, unit="pulses",
-                 minimum=I32_MIN, maximum=I32_MAX, signed=True,
-                 description="position mode; ignored unless the motor is enabled first"),
+        Register(
+            "target_position",
+            CanRegister.TARGET_POSITION,
+            1,
+            W,
+            unit="pulses",
+            minimum=I32_MIN,
+            maximum=I32_MAX,
+            signed=True,
+            description="position mode; ignored unless the motor is enabled first",
+        ),
         _coded("position_mode", CanRegister.POSITION_MODE, "4F absolute, 5F relative"),
         _coded("origin", CanRegister.ORIGIN, "6F searches the Z signal"),
         _coded("work_mode", CanRegister.WORK_MODE, "2F speed, 3F position, 8F torque"),
         *(_gain(gain) for gain in Gain),
-        Register("rated_current", CanRegister.RATED_CURRENT, 1, W, unit="mA", minimum=0,
-                 maximum=RATED_CURRENT_MAX_MA, description="bounded by the 24 A peak current"),
+        Register(
+            "rated_current",
+            CanRegister.RATED_CURRENT,
+            1,
+            W,
+            unit="mA",
+            minimum=0,
+            maximum=RATED_CURRENT_MAX_MA,
+            description="bounded by the 24 A peak current",
+        ),
     ]
 )

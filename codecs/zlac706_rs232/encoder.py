@@ -65,8 +65,11 @@ def _write(frame: Write) -> bytes:
     codes = CODES.get(register.address)
     if codes is not None and frame.value not in set(codes):
         allowed = ", ".join(f"{code:#06x}" for code in codes)
-        raise EncodeError(f"{register.name} {frame.value!r} is not one of {allowed}",
-                          field=register.name, value=frame.value)
+        raise EncodeError(
+            f"{register.name} {frame.value!r} is not one of {allowed}",
+            field=register.name,
+            value=frame.value,
+        )
     return _word_frame(register, frame.value)
 
 

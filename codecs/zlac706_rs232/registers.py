@@ -8,8 +8,8 @@ host sends; read-only ones are the monitor reply's items. An address is in one r
 acknowledgement (``X X``, X writable) from a 4-byte monitor frame (X read-only).
 
 The manual contradicts itself on the absolute/relative register: its table says ``51`` (with
-the frames ``51 00 00 51`` / ``51 00 01 52``), note (7) says ``52``. PROTOCOL_NOTES.md decides
-for ``51``; it is ``Rs232Register.POSITION_MODE``, the one place to change.
+the frames ``51 00 00 51`` / ``51 00 01 52``), note (7) says ``52``. The decision (recorded in
+docs/protocols.md) is for ``51``; it is ``Rs232Register.POSITION_MODE``, the one place to change.
 """
 
 from __future__ import annotations
@@ -118,13 +118,22 @@ GAIN_REGISTERS: Final[dict[Gain, Rs232Register]] = {
 }
 
 R, W = Access.READ, Access.WRITE
+
+
 def _coded(name: str, register: Rs232Register, description: str) -> Register:
     return coded_register(name, register, CODES[register], description)
 
 
 def _gain(gain: Gain) -> Register:
-    return Register(gain.value, GAIN_REGISTERS[gain], 1, W, minimum=GAIN_MIN,
-                    maximum=min(GAIN_MAX, U16_MAX), description="no range in the manual")
+    return Register(
+        gain.value,
+        GAIN_REGISTERS[gain],
+        1,
+        W,
+        minimum=GAIN_MIN,
+        maximum=min(GAIN_MAX, U16_MAX),
+        description="no range in the manual",
+    )
 
 
 def _word(name: str, address: int, access: Access = W, **kwargs: object) -> Register:
@@ -136,39 +145,105 @@ def _word(name: str, address: int, access: Access = W, **kwargs: object) -> Regi
 REGISTERS: Final = RegisterMap(
     [
         _coded("enable", Rs232Register.ENABLE, "00 01 enable, 00 00 disable (PC control)"),
-        _coded("mode", Rs232Register.MODE, "C4 PC speed, C0 external pulses, D0 PC position, "
-               "C1 PC torque"),
-        _word("position_low", Rs232Register.POSITION_LOW, unit="pulses",
-              description="low 16 bits of the target position; send after position_high"),
-        _word("speed", Rs232Register.SPEED, minimum=-SPEED_RAW_MAX, maximum=SPEED_RAW_MAX,
-              description="PC speed mode target", **SPEED_UNIT),
-        _word("torque", Rs232Register.TORQUE, unit="A", scale=float(1 / TORQUE_RAW_PER_A),
-              minimum=-TORQUE_RAW_LIMIT, maximum=TORQUE_RAW_LIMIT, signed=True),
-        _word("position_ramp", Rs232Register.POSITION_RAMP, unit="100 ms",
-              maximum=RAMP_WORD_MAX, description="high byte accel, low byte decel"),
-        _word("speed_ramp", Rs232Register.SPEED_RAMP, unit="100 ms", maximum=RAMP_WORD_MAX,
-              description="high byte accel, low byte decel"),
+        _coded(
+            "mode",
+            Rs232Register.MODE,
+            "C4 PC speed, C0 external pulses, D0 PC position, C1 PC torque",
+        ),
+        _word(
+            "position_low",
+            Rs232Register.POSITION_LOW,
+            unit="pulses",
+            description="low 16 bits of the target position; send after position_high",
+        ),
+        _word(
+            "speed",
+            Rs232Register.SPEED,
+            minimum=-SPEED_RAW_MAX,
+            maximum=SPEED_RAW_MAX,
+            description="PC speed mode target",
+            **SPEED_UNIT,
+        ),
+        _word(
+            "torque",
+            Rs232Register.TORQUE,
+            unit="A",
+            scale=float(1 / TORQUE_RAW_PER_A),
+            minimum=-TORQUE_RAW_LIMIT,
+            maximum=TORQUE_RAW_LIMIT,
+            signed=True,
+        ),
+        _word(
+            "position_ramp",
+            Rs232Register.POSITION_RAMP,
+            unit="100 ms",
+            maximum=RAMP_WORD_MAX,
+            description="high byte accel, low byte decel",
+        ),
+        _word(
+            "speed_ramp",
+            Rs232Register.SPEED_RAMP,
+            unit="100 ms",
+            maximum=RAMP_WORD_MAX,
+            description="high byte accel, low byte decel",
+        ),
         *(_gain(gain) for gain in GAIN_REGISTERS),
-        _word("speed_limit", Rs232Register.SPEED_LIMIT, maximum=SPEED_LIMIT_RAW_MAX,
-              description="position-mode speed limit, rounded (note 8)", **SPEED_UNIT),
-        _word("rated_current", Rs232Register.RATED_CURRENT, unit="mA",
-              maximum=RATED_CURRENT_MAX_MA, description="bounded by the 24 A peak current"),
+        _word(
+            "speed_limit",
+            Rs232Register.SPEED_LIMIT,
+            maximum=SPEED_LIMIT_RAW_MAX,
+            description="position-mode speed limit, rounded (note 8)",
+            **SPEED_UNIT,
+        ),
+        _word(
+            "rated_current",
+            Rs232Register.RATED_CURRENT,
+            unit="mA",
+            maximum=RATED_CURRENT_MAX_MA,
+            description="bounded by the 24 A peak current",
+        ),
         _word("clear_fault", Rs232Register.CLEAR_FAULT, maximum=0, description="address alone"),
-        _word("position_high", Rs232Register.POSITION_HIGH, unit="pulses", minimum=I16_MIN,
-              maximum=I16_MAX, signed=True, description="high 16 bits of the target position"),
+        _word(
+            "position_high",
+            Rs232Register.POSITION_HIGH,
+            unit="pulses",
+            minimum=I16_MIN,
+            maximum=I16_MAX,
+            signed=True,
+            description="high 16 bits of the target position",
+        ),
         _coded("position_mode", Rs232Register.POSITION_MODE, "00 absolute, 01 relative"),
-        _word("origin", Rs232Register.ORIGIN, maximum=0, description="Z-signal search; hub "
-              "motors have none"),
+        _word(
+            "origin",
+            Rs232Register.ORIGIN,
+            maximum=0,
+            description="Z-signal search; hub motors have none",
+        ),
         _word("status", MonitorItem.STATUS, R, description="alarm bits, as the CAN alarm code"),
         _word("bus_voltage", MonitorItem.BUS_VOLTAGE, R, unit="V", description="±2 V"),
         _word("current", MonitorItem.CURRENT, R, unit="A", scale=0.01),
-        _word("measured_speed", MonitorItem.SPEED, R, minimum=I16_MIN, maximum=I16_MAX,
-              **SPEED_UNIT),
-        _word("commanded_position_high", MonitorItem.COMMANDED_POSITION_HIGH, R,
-              minimum=I16_MIN, maximum=I16_MAX, signed=True, unit="pulses"),
+        _word(
+            "measured_speed", MonitorItem.SPEED, R, minimum=I16_MIN, maximum=I16_MAX, **SPEED_UNIT
+        ),
+        _word(
+            "commanded_position_high",
+            MonitorItem.COMMANDED_POSITION_HIGH,
+            R,
+            minimum=I16_MIN,
+            maximum=I16_MAX,
+            signed=True,
+            unit="pulses",
+        ),
         _word("commanded_position_low", MonitorItem.COMMANDED_POSITION_LOW, R, unit="pulses"),
-        _word("feedback_position_high", MonitorItem.FEEDBACK_POSITION_HIGH, R,
-              minimum=I16_MIN, maximum=I16_MAX, signed=True, unit="pulses"),
+        _word(
+            "feedback_position_high",
+            MonitorItem.FEEDBACK_POSITION_HIGH,
+            R,
+            minimum=I16_MIN,
+            maximum=I16_MAX,
+            signed=True,
+            unit="pulses",
+        ),
         _word("feedback_position_low", MonitorItem.FEEDBACK_POSITION_LOW, R, unit="pulses"),
     ]
 )

@@ -32,9 +32,9 @@ import can
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import Discarded
+from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now, sleep_until
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
 TX_BACKPRESSURE_S = 0.05
@@ -80,7 +80,9 @@ class CanBusOwner:
     def open(self) -> None:
         try:
             self._bus = can.Bus(
-                interface=self.interface, channel=self.channel, bitrate=self.timing.rate,
+                interface=self.interface,
+                channel=self.channel,
+                bitrate=self.timing.rate,
                 **self.options,
             )
         except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -115,8 +117,9 @@ class CanBusOwner:
         if answer is None:
             self.counters.timeouts += 1
             source = request.expected.source_id
-            raise DeviceTimeoutError(f"no reply from node {source} on {self.port}",
-                                     device_id=source)
+            raise DeviceTimeoutError(
+                f"no reply from node {source} on {self.port}", device_id=source
+            )
         return Exchange(request, start, now(), answer)
 
     def idle_until(self, deadline: float, pause: Callable[[float], bool] | None = None) -> None:
@@ -138,8 +141,9 @@ class CanBusOwner:
         return self._bus
 
     def _send(self, bus: can.BusABC, wire: CanFrame) -> None:
-        message = can.Message(arbitration_id=wire.arbitration_id, data=wire.data,
-                              is_extended_id=False)
+        message = can.Message(
+            arbitration_id=wire.arbitration_id, data=wire.data, is_extended_id=False
+        )
         give_up = now() + TX_BACKPRESSURE_S
         while True:
             try:

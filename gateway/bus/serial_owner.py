@@ -28,10 +28,10 @@ import serial
 
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.gateway.bus.clock import now, sleep_until
+from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now, sleep_until
-from busgate.gateway.port_access import describe_open_error
 
 WRITE_TIMEOUT_S = 0.5
 #: Longest a write waits for a line that keeps talking (noise) to fall quiet for the gap.
@@ -60,7 +60,10 @@ class SerialBusOwner:
         """Open the port exclusively; ``BusUnavailableError`` when it cannot be had."""
         try:
             self._serial = serial.Serial(
-                self.port, self.timing.rate, timeout=0, write_timeout=WRITE_TIMEOUT_S,
+                self.port,
+                self.timing.rate,
+                timeout=0,
+                write_timeout=WRITE_TIMEOUT_S,
                 exclusive=True,
             )
         except (serial.SerialException, OSError, ValueError) as exc:
@@ -148,9 +151,11 @@ class SerialBusOwner:
         self.counters.timeouts += 1
         message = f"no reply from id {expected.source_id} on {self.port}"
         if self._early:
-            message += (f"; {self._early} came before the request could have left the wire at "
-                        f"{self.timing.rate} baud: is the baud rate right, or is this an "
-                        "emulator without wire timing?")
+            message += (
+                f"; {self._early} came before the request could have left the wire at "
+                f"{self.timing.rate} baud: is the baud rate right, or is this an "
+                "emulator without wire timing?"
+            )
         raise DeviceTimeoutError(message, device_id=expected.source_id)
 
     def _take(self, event: object, expected, in_time: bool) -> bool:

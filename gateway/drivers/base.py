@@ -95,8 +95,9 @@ class Driver(abc.ABC):
 
     def estopped_error(self) -> RefusedError:
         """The refusal of motion while e-stopped, saying how to recover."""
-        return RefusedError("estopped", f"{self.name} is e-stopped: send {self.reenable_op} "
-                                        "to let it move again")
+        return RefusedError(
+            "estopped", f"{self.name} is e-stopped: send {self.reenable_op} to let it move again"
+        )
 
     def parse(self, text: str | bytes) -> Any:
         """A JSON command for this kind, validated (``CommandError`` when refused)."""

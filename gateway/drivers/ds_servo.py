@@ -84,7 +84,8 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
 #: Registers whose write moves the shaft: the target (with the move time after it) and the
 #: go-to-preset addresses.
 _MOTION_REGISTERS = frozenset(
-    {"target_position", *(codec.REGISTERS.at(a).name for a in codec.GOTO_PRESET_ADDRESSES)})
+    {"target_position", *(codec.REGISTERS.at(a).name for a in codec.GOTO_PRESET_ADDRESSES)}
+)
 _FRAME_EFFECTS: dict[type, Effect] = {
     codec.Ping: Effect.READ,
     codec.Read: Effect.READ,
@@ -218,15 +219,19 @@ class DsServoDriver(Driver):
             # Nothing to change, and a confirmation could not be told from a no-op.
             raise CommandError(f"servo {self.name} already has id {self.device_id}")
         idempotent = type(command) in _IDEMPOTENT
-        requests = [Request.of(codec, frame, idempotent=idempotent)
-                    for frame in frames_for(command, self.device_id)]
+        requests = [
+            Request.of(codec, frame, idempotent=idempotent)
+            for frame in frames_for(command, self.device_id)
+        ]
         if isinstance(command, schema.Torque) and command.on:
             self.estop_latched = False  # the re-enable op: the servo may move again
         return requests
 
     def poll(self) -> list[Request]:
-        return [Request.of(codec, codec.Read(self.device_id, address, length), idempotent=True)
-                for address, length in _POLL_SPANS]
+        return [
+            Request.of(codec, codec.Read(self.device_id, address, length), idempotent=True)
+            for address, length in _POLL_SPANS
+        ]
 
     def safe_stop(self) -> list[Request]:
         """Torque off: the manual documents no value for the lock (e-stop) flag at 0x30, and
@@ -246,12 +251,15 @@ class DsServoDriver(Driver):
         """One SYNC WRITE at 0x2A; each servo's move time is its follow period, so it glides
         to each target in one period instead of jumping at full speed."""
         if not 1 <= len(targets) <= cls.follow_group_limit:
-            raise CommandError(f"a SYNC WRITE carries 1 to {cls.follow_group_limit} servos, "
-                               f"not {len(targets)}")
-        frame = codec.SyncWrite(tuple(
-            codec.SyncTarget(driver.device_id, position, round(driver.follow_period_s * 1000))
-            for driver, position in targets
-        ))
+            raise CommandError(
+                f"a SYNC WRITE carries 1 to {cls.follow_group_limit} servos, not {len(targets)}"
+            )
+        frame = codec.SyncWrite(
+            tuple(
+                codec.SyncTarget(driver.device_id, position, round(driver.follow_period_s * 1000))
+                for driver, position in targets
+            )
+        )
         return Request.of(codec, frame, idempotent=True)
 
     # -- interpreting ---------------------------------------------------------------------------
@@ -285,8 +293,12 @@ class DsServoDriver(Driver):
             return
         raised, cleared = status & ~self.faults, self.faults & ~status
         self.faults = status
-        self.emit("fault", faults=_fault_names(status), raised=_fault_names(raised),
-                  cleared=_fault_names(cleared))
+        self.emit(
+            "fault",
+            faults=_fault_names(status),
+            raised=_fault_names(raised),
+            cleared=_fault_names(cleared),
+        )
 
     def _change_id(self, new_id: int, reason: str) -> None:
         if new_id != self.device_id:

@@ -106,8 +106,12 @@ _CONTROL_EFFECTS: dict[codec.ControlCode, Effect] = {
     codec.ControlCode.ESTOP: Effect.STOP,
     codec.ControlCode.PAUSE: Effect.STOP,
 }
-_MOTION_FRAMES = (codec.MoveCommand, codec.FollowCommand, codec.GroupMoveCommand,
-                  codec.GroupFollowCommand)
+_MOTION_FRAMES = (
+    codec.MoveCommand,
+    codec.FollowCommand,
+    codec.GroupMoveCommand,
+    codec.GroupFollowCommand,
+)
 
 
 def frame_effect(frame: codec.Frame) -> Effect:
@@ -120,7 +124,8 @@ def frame_effect(frame: codec.Frame) -> Effect:
     if isinstance(frame, codec.ControlCommand):
         return _CONTROL_EFFECTS.get(frame.code, Effect.SETTING)
     if isinstance(frame, codec.WriteCommand) and codec.TARGET_POSITION in (
-            codec.REGISTERS.touched(frame.index, len(frame.data))):
+        codec.REGISTERS.touched(frame.index, len(frame.data))
+    ):
         return Effect.MOTION
     return Effect.SETTING
 
@@ -271,8 +276,9 @@ class InspireLaDriver(Driver):
         return [self._estop()]
 
     def _estop(self) -> Request:
-        return _request(codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP),
-                        idempotent=True)
+        return _request(
+            codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP), idempotent=True
+        )
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""

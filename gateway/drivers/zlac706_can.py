@@ -112,7 +112,7 @@ def frames_for(command: Any, device_id: int) -> list[codec.Write]:
 # --- the driver ------------------------------------------------------------------------------
 
 _MODE_OF = reverse(_WORK_MODES)
-#: Heartbeats missed in a row before the node counts as offline (the issue: 3 intervals).
+#: Heartbeats missed in a row before the node counts as offline (3 intervals).
 HEARTBEATS_LOST = 3
 #: What a heartbeat says of alarms: heartbeats come only while the driver is not in alarm.
 NO_ALARMS = common.AlarmFlags(0)
@@ -120,8 +120,9 @@ NO_ALARMS = common.AlarmFlags(0)
 ROLES: dict[int, RoleOf] = {
     Reg.WORK_MODE: RoleOf(Role.MODE, lambda raw, _s: _MODE_OF.get(raw)),
     Reg.CONTROL_WORD: RoleOf(Role.ENABLE, lambda raw, _s: raw == codec.ControlWord.ENABLE),
-    Reg.POSITION_MODE: RoleOf(Role.POSITION_MODE,
-                              lambda raw, _s: raw == codec.PositionMode.RELATIVE),
+    Reg.POSITION_MODE: RoleOf(
+        Role.POSITION_MODE, lambda raw, _s: raw == codec.PositionMode.RELATIVE
+    ),
     Reg.TARGET_POSITION: RoleOf(Role.POSITION),
     Reg.TARGET_SPEED: RoleOf(Role.SPEED),
     Reg.TARGET_TORQUE: RoleOf(Role.TORQUE),

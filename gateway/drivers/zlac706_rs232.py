@@ -120,8 +120,9 @@ _MODE_OF = reverse(_CONTROL_MODES)  # external pulses (C0) maps to no mode: PC t
 ROLES: dict[int, RoleOf] = {
     Reg.MODE: RoleOf(Role.MODE, lambda raw, _s: _MODE_OF.get(raw)),
     Reg.ENABLE: RoleOf(Role.ENABLE, lambda raw, _s: raw == codec.EnableCode.ENABLE),
-    Reg.POSITION_MODE: RoleOf(Role.POSITION_MODE,
-                              lambda raw, _s: raw == codec.PositionMode.RELATIVE),
+    Reg.POSITION_MODE: RoleOf(
+        Role.POSITION_MODE, lambda raw, _s: raw == codec.PositionMode.RELATIVE
+    ),
     Reg.POSITION_HIGH: RoleOf(Role.POSITION_HIGH),
     # The low half completes the target: joined to the high half written just before it.
     Reg.POSITION_LOW: RoleOf(
@@ -148,8 +149,7 @@ class Zlac706Rs232Driver(Zlac706Driver):
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual asks for a monitor at least once a second in speed mode; 0.2 s of margin.
     keepalive_period_s: ClassVar[float] = 0.8
-    measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm",
-                                                 "voltage_v")
+    measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm", "voltage_v")
 
     def poll(self) -> list[Request]:
         return [_MONITOR]

@@ -68,8 +68,16 @@ class Role(enum.Enum):
 _UNTRACKED = frozenset({Role.ONE_SHOT, Role.SETTING})
 #: Writes that set how the drive works rather than what it does now: written again after a
 #: reboot. Enable and targets are not: only a fresh command moves the motor again.
-_RESTORED = frozenset({Role.MODE, Role.POSITION_MODE, Role.POSITION_RAMP, Role.SPEED_RAMP,
-                       Role.MAX_SPEED, Role.SETTING})
+_RESTORED = frozenset(
+    {
+        Role.MODE,
+        Role.POSITION_MODE,
+        Role.POSITION_RAMP,
+        Role.SPEED_RAMP,
+        Role.MAX_SPEED,
+        Role.SETTING,
+    }
+)
 #: A position report of exactly 0 after one this far away (pulses) is the counter's power-up
 #: value, not motion: with note 6's 10000 pulses per turn, a hub motor at its 1000 rpm limit
 #: covers 16,667 pulses between two reports 100 ms apart; this is four times that.
@@ -120,23 +128,30 @@ def _needs_mode(mode: Mode, what: str) -> Callable[[Settings, Any], str | None]:
         if settings.mode is mode:
             return None
         now = f"the motor is in {settings.mode} mode" if settings.mode else "its mode is not known"
-        return (f"{what} needs {mode} mode (set_mode {mode} first): {now}, "
-                "and the device would ignore it")
+        return (
+            f"{what} needs {mode} mode (set_mode {mode} first): {now}, "
+            "and the device would ignore it"
+        )
+
     return rule
 
 
 def _position_rule(settings: Settings, value: Any) -> str | None:
     reason = _needs_mode(Mode.POSITION, "a position target (move)")(settings, value)
     if reason is None and not settings.enabled:
-        reason = ("move before enable: in position mode the ZLAC706 silently ignores a target "
-                  "sent before the motor is enabled; send enable first")
+        reason = (
+            "move before enable: in position mode the ZLAC706 silently ignores a target "
+            "sent before the motor is enabled; send enable first"
+        )
     return reason
 
 
 def _mode_rule(settings: Settings, value: Any) -> str | None:
     if settings.enabled and value is not settings.mode:
-        return (f"set_mode {value} while the motor is enabled: disable first (the mode is "
-                "chosen before enable)")
+        return (
+            f"set_mode {value} while the motor is enabled: disable first (the mode is "
+            "chosen before enable)"
+        )
     return None
 
 
@@ -228,8 +243,10 @@ def ramp_ms(word: int | None) -> dict[str, int] | None:
     """A ramp register's value as ``{"accel_ms", "decel_ms"}`` (inverse of ``ramp_word``)."""
     if word is None:
         return None
-    return {"accel_ms": (word >> 8) * common.RAMP_STEP_MS,
-            "decel_ms": (word & 0xFF) * common.RAMP_STEP_MS}
+    return {
+        "accel_ms": (word >> 8) * common.RAMP_STEP_MS,
+        "decel_ms": (word & 0xFF) * common.RAMP_STEP_MS,
+    }
 
 
 def _rpm(raw: int | None) -> float | None:
@@ -300,8 +317,10 @@ class Zlac706Driver(Driver):
     def _unchecked(self, command: Any) -> list[Request]:
         """Requests the gateway itself sends (safe stop, init): no order rules apply."""
         settings = self.machine.settings
-        return [self._request(frame, self._role(frame, settings)[0], settings)
-                for frame in self.frames(command, self.device_id)]
+        return [
+            self._request(frame, self._role(frame, settings)[0], settings)
+            for frame in self.frames(command, self.device_id)
+        ]
 
     def _role(self, frame: object, settings: Settings) -> tuple[Role | None, Any]:
         register = getattr(frame, "register", None)
@@ -337,8 +356,10 @@ class Zlac706Driver(Driver):
     def follow_target(self, payload: dict[str, Any]) -> schema.Velocity:
         """``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706 streams speeds)."""
         if "position" in payload:
-            raise CommandError("a ZLAC706 follow stream carries speeds ({\"rpm\": R}) in "
-                               "velocity mode; send positions as move commands")
+            raise CommandError(
+                'a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
+                "velocity mode; send positions as move commands"
+            )
         try:
             rpm = FollowTarget.model_validate(payload).rpm
         except ValidationError as exc:
@@ -364,7 +385,8 @@ class Zlac706Driver(Driver):
             self.machine.acknowledged(self.machine.settings.change(role, value))
         if role in _RESTORED:
             self.applied_settings[frame.register] = Request.of(  # type: ignore[attr-defined]
-                self.codec, frame, idempotent=True)
+                self.codec, frame, idempotent=True
+            )
 
     def take_position(self, raw: int) -> None:
         """A reported position; a jump to 0 from far away means the drive powered up again."""
@@ -384,8 +406,12 @@ class Zlac706Driver(Driver):
             return
         old, new = before.faults, alarms.faults
         if old != new:
-            self.emit("fault", faults=fault_names(new), raised=fault_names(new & ~old),
-                      cleared=fault_names(old & ~new))
+            self.emit(
+                "fault",
+                faults=fault_names(new),
+                raised=fault_names(new & ~old),
+                cleared=fault_names(old & ~new),
+            )
 
     def has_measurements(self) -> bool:
         return True
@@ -396,11 +422,11 @@ class Zlac706Driver(Driver):
         return {
             "mode": settings.mode,
             "enabled": settings.enabled,
-            "position_mode": None if relative is None else ("relative" if relative else
-                                                             "absolute"),
+            "position_mode": None if relative is None else ("relative" if relative else "absolute"),
             "target": settings.target_position,
             "target_speed_rpm": _rpm(settings.speed_raw),
-            "target_current_a": None if settings.torque_raw is None
+            "target_current_a": None
+            if settings.torque_raw is None
             else float(settings.torque_raw / common.TORQUE_RAW_PER_A),
             "position_ramp": ramp_ms(settings.position_ramp),
             "velocity_ramp": ramp_ms(settings.speed_ramp),
@@ -419,4 +445,3 @@ class Zlac706Driver(Driver):
 def reverse(codes: dict[Mode, int]) -> dict[int, Mode]:
     """A protocol's mode codes, code → mode."""
     return {code: mode for mode, code in codes.items()}
-

@@ -1,7 +1,7 @@
 """The bus planner: given its state and ``now``, the next exchange to start, or when to wake.
 
 It is pure — no I/O, no clock, no threads — so every timing rule is tested with a fake clock.
-The rules it enforces, in the words of the issue:
+The rules it enforces:
 
 1. Gap: no frame starts before ``gap_s`` after the line went idle (our last frame, plus its
    reply when one was expected, or its timeout).
@@ -248,8 +248,9 @@ class BusPlanner:
             requests = deque(poller.build())
             poller.next_due += poller.period_s
             if requests:
-                self._polls[poller.device] = Job(poller.device, requests, Priority.POLL,
-                                                 context=poller.next_due)
+                self._polls[poller.device] = Job(
+                    poller.device, requests, Priority.POLL, context=poller.next_due
+                )
 
     def _next_poll_due(self) -> float:
         waiting = [p.next_due for p in self.pollers if p.device not in self._polls]

@@ -42,12 +42,12 @@ from busgate.codecs.errors import (
     DeviceTimeoutError,
     RefusedError,
 )
-from busgate.gateway.authority import Authority
 from busgate.gateway.bus.can_owner import IDLE_BATCH_S
+from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
-from busgate.gateway.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
@@ -188,14 +188,14 @@ class BusRunner:
         the future gets the result dict, or the refusal."""
         start_by = now() + COMMAND_START_S
         return self._hand_over(
-            lambda future: self._plan_command(device, command, client, start_by, future))
+            lambda future: self._plan_command(device, command, client, start_by, future)
+        )
 
     def scan(self, requests: list[Request], start_by: float) -> Future:
         """Send each probe once, all starting by ``start_by``, and collect what answered: the
         future gets a list of ``(request, reply events or None)``. For commissioning. Probes
         only ask, so they need no authorisation."""
-        job = Job("*", deque(requests), keep_going=True, outcomes=[], start_by=start_by,
-                  scan=True)
+        job = Job("*", deque(requests), keep_going=True, outcomes=[], start_by=start_by, scan=True)
         return self._hand_over(lambda future: self._queue_job(job, future))
 
     def unsolicited(self, event: object, when: float) -> None:
@@ -241,8 +241,9 @@ class BusRunner:
 
     # -- bus thread: inbox ------------------------------------------------------------------
 
-    def _plan_command(self, device: str, command: Any, client: str | None, start_by: float,
-                      future: Future) -> None:
+    def _plan_command(
+        self, device: str, command: Any, client: str | None, start_by: float, future: Future
+    ) -> None:
         driver = self.drivers.get(device)
         try:
             if driver is None:
@@ -266,13 +267,15 @@ class BusRunner:
             _settle(future, result=self._result(job))
         elif not self.planner.push_command(job):
             self.counters.busy_commands += 1
-            _settle(future, error=BusyError(f"bus {self.name}: command queue full; "
-                                            "nothing was sent"))
+            _settle(
+                future, error=BusyError(f"bus {self.name}: command queue full; nothing was sent")
+            )
 
     def _plan_estop(self, future: Future) -> None:
         for job in self.planner.drop_commands():
-            self._fail(job, RefusedError("estopped", "an e-stop cancelled it before it was "
-                                                     "carried out"))
+            self._fail(
+                job, RefusedError("estopped", "an e-stop cancelled it before it was carried out")
+            )
         self.streams.end_all("estop")
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, context=future))
@@ -324,12 +327,16 @@ class BusRunner:
         for job in self.planner.take_expired():
             if job.scan:
                 probed = len(job.outcomes or ())
-                message = (f"bus {self.name}: the scan found no room to probe its last "
-                           f"{len(job.requests)} ids ({probed} probed) before its deadline; "
-                           "nothing more was sent")
+                message = (
+                    f"bus {self.name}: the scan found no room to probe its last "
+                    f"{len(job.requests)} ids ({probed} probed) before its deadline; "
+                    "nothing more was sent"
+                )
             else:
-                message = (f"bus {self.name}: the command found no room on the bus within "
-                           f"{COMMAND_START_S:.0f} s and was dropped; nothing was sent")
+                message = (
+                    f"bus {self.name}: the command found no room on the bus within "
+                    f"{COMMAND_START_S:.0f} s and was dropped; nothing was sent"
+                )
             self.counters.busy_commands += 1
             self._fail(job, BusyError(message))
 
@@ -516,8 +523,13 @@ class BusRunner:
 
     def _log_event(self, event: DeviceEvent) -> None:
         details = " ".join(f"{key}={value}" for key, value in event.fields.items())
-        log.info("bus %s device %s: %s%s", self.name, event.device, event.type,
-                 f" ({details})" if details else "")
+        log.info(
+            "bus %s device %s: %s%s",
+            self.name,
+            event.device,
+            event.type,
+            f" ({details})" if details else "",
+        )
 
     # -- bus thread: link up and down -------------------------------------------------------
 
@@ -550,12 +562,22 @@ class BusRunner:
         if self._down_since is None:
             self._down_since = self._down_reported = moment
             self._down_attempts = 0
-            log.warning("bus %s down: %s; retrying every %.1f-%.0f s", self.name, exc,
-                        BACKOFF_FIRST_S, BACKOFF_MAX_S)
+            log.warning(
+                "bus %s down: %s; retrying every %.1f-%.0f s",
+                self.name,
+                exc,
+                BACKOFF_FIRST_S,
+                BACKOFF_MAX_S,
+            )
         elif moment - self._down_reported >= DOWN_REPORT_S:
             self._down_reported = moment
-            log.warning("bus %s still down after %.0f s (%d attempts): %s", self.name,
-                        moment - self._down_since, self._down_attempts, exc)
+            log.warning(
+                "bus %s still down after %.0f s (%d attempts): %s",
+                self.name,
+                moment - self._down_since,
+                self._down_attempts,
+                exc,
+            )
 
     def _link_lost(self, exc: BusIOError, slot: Slot | None) -> None:
         log.warning("bus %s lost: %s", self.name, exc)
@@ -574,8 +596,12 @@ class BusRunner:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
         except (PermissionError, OSError) as exc:
-            log.warning("bus %s: SCHED_FIFO %d refused (%s); running at normal priority",
-                        self.name, self.realtime_priority, exc)
+            log.warning(
+                "bus %s: SCHED_FIFO %d refused (%s); running at normal priority",
+                self.name,
+                self.realtime_priority,
+                exc,
+            )
 
     def _shut_down(self) -> None:
         """Last deeds of the bus thread: safe state for every device, then close."""

@@ -25,8 +25,9 @@ from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker
 class FollowStreams:
     """Starts, feeds and ends the follow streams of the devices on one bus."""
 
-    def __init__(self, planner: BusPlanner, counters: BusCounters,
-                 drivers: dict[str, Driver]) -> None:
+    def __init__(
+        self, planner: BusPlanner, counters: BusCounters, drivers: dict[str, Driver]
+    ) -> None:
         self.planner = planner
         self.counters = counters
         self.drivers = drivers
@@ -46,8 +47,11 @@ class FollowStreams:
         period = driver.follow_period_s
         tickers = self._tickers()
         chosen = next((t for t in tickers if driver.name in t.streams), None) or next(
-            (t for t in tickers
-             if t.driver_class is type(driver) and t.period_s == period and t.has_room(driver)),
+            (
+                t
+                for t in tickers
+                if t.driver_class is type(driver) and t.period_s == period and t.has_room(driver)
+            ),
             None,
         )
         if chosen is None:

@@ -23,7 +23,7 @@ import can
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import Discarded
 from busgate.codecs.timing import can_time
-from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.faults import FaultInjector
 from busgate.gateway.sim.recorder import Recorder, WireRecord
@@ -90,8 +90,14 @@ class CanSimulator:
             return
         self._decoder.feed(CanFrame(message.arbitration_id, bytes(message.data)))
         for event in self._decoder.events():
-            self._record("rx", start, end, _text(message), type(event).__name__,
-                         getattr(event, "device_id", None))
+            self._record(
+                "rx",
+                start,
+                end,
+                _text(message),
+                type(event).__name__,
+                getattr(event, "device_id", None),
+            )
             if not isinstance(event, Discarded):
                 self._dispatch(event, end)
 
@@ -111,10 +117,12 @@ class CanSimulator:
         start = max(start + shaped.delay_s, self._bus_free)
         end = self._bus_free = start + can_time(len(wire.data), self.bitrate)
         sleep_until(end, spin_s=0.0)  # CAN has no gap rule to honour to the µs: no spinning
-        self.bus.send(can.Message(arbitration_id=wire.arbitration_id, data=wire.data,
-                                  is_extended_id=False))
-        self._record("tx", start, end, str(wire), type(frame).__name__,
-                     getattr(frame, "device_id", None))
+        self.bus.send(
+            can.Message(arbitration_id=wire.arbitration_id, data=wire.data, is_extended_id=False)
+        )
+        self._record(
+            "tx", start, end, str(wire), type(frame).__name__, getattr(frame, "device_id", None)
+        )
 
     def _record(self, direction, start, end, wire, name, device_id) -> None:
         self.recorder.record(WireRecord(direction, start, end, wire, name, device_id))

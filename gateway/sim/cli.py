@@ -14,8 +14,8 @@ import uuid
 
 from busgate.codecs.errors import CommandError
 from busgate.codecs.timing import PROTOCOL_TIMING
-from busgate.gateway.clock import now
-from busgate.gateway.protocols import PROTOCOLS
+from busgate.gateway.bus.clock import now
+from busgate.gateway.drivers.protocols import PROTOCOLS
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
@@ -25,7 +25,6 @@ from busgate.gateway.sim.recorder import Recorder
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim = subparsers.add_parser(
         "sim",
-        help="serve simulated devices on a new pty",
         description="Serve simulated devices on a new pty (CAN: behind a simulated SLCAN "
         "adapter) and print 'PORT <path>' first. SIGUSR1 unplugs/replugs, SIGUSR2 reboots.",
     )
@@ -42,7 +41,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
     sim.add_argument(
-        "--busy-poll-ms", type=float, default=5.0,
+        "--busy-poll-ms",
+        type=float,
+        default=5.0,
         help="poll the port without sleeping for this long after each frame, for exact "
         "arrival times (default 5; 0 sleeps in select)",
     )
@@ -54,7 +55,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     faults.add_argument("--garbage-rate", type=float, default=0.0, help="share preceded by noise")
     faults.add_argument("--silent-ids", type=_id_list, default=[], help="ids that never answer")
     faults.add_argument(
-        "--fault", action="append", default=[], metavar="ID:NAME",
+        "--fault",
+        action="append",
+        default=[],
+        metavar="ID:NAME",
         help="raise a device fault at start, e.g. 2:over_current (repeatable)",
     )
     sim.set_defaults(handler=run_sim)
@@ -124,9 +128,16 @@ def _make_server(args, devices, faults, recorder):
     from busgate.gateway.sim.serial_server import SerialSimulator
 
     baudrate = args.baudrate or PROTOCOL_TIMING[args.protocol].default_rate
-    return SerialSimulator(protocol.codec, devices, baudrate=baudrate, link=PtyLink(args.link),
-                           faults=faults, recorder=recorder, seed=args.seed,
-                           busy_poll_s=args.busy_poll_ms / 1000)
+    return SerialSimulator(
+        protocol.codec,
+        devices,
+        baudrate=baudrate,
+        link=PtyLink(args.link),
+        faults=faults,
+        recorder=recorder,
+        seed=args.seed,
+        busy_poll_s=args.busy_poll_ms / 1000,
+    )
 
 
 class _SlcanServer:
@@ -142,8 +153,12 @@ class _SlcanServer:
         self.adapter = SlcanAdapter(channel, link=PtyLink(link))
         self.devices = devices
         self.simulator = CanSimulator(
-            codec, devices, bus=can.Bus(interface="virtual", channel=channel),
-            bitrate=bitrate, faults=faults, recorder=recorder,
+            codec,
+            devices,
+            bus=can.Bus(interface="virtual", channel=channel),
+            bitrate=bitrate,
+            faults=faults,
+            recorder=recorder,
         )
         self.port = self.adapter.port
 
@@ -177,5 +192,3 @@ def _install_signals(server, devices, stop: threading.Event) -> None:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, toggle_plug)
     signal.signal(signal.SIGUSR2, reboot)
-
-

@@ -1,4 +1,4 @@
-"""A simulated DS (德晟) serial-bus smart servo, protocol v4.01 (PROTOCOL_NOTES.md, manual ch. 2-3).
+"""A simulated DS (德晟) serial-bus smart servo, protocol v4.01 (manual ch. 2-3; docs/protocols.md).
 
 The model owns one servo's control table, its shaft and its protections. Rules of this file:
 
@@ -79,6 +79,7 @@ POWER_UP_VALUES: Final = {
 #: switch on; we keep everything below the torque switch, so a reboot keeps ids and presets.
 SAVED_END: Final = REGISTERS["torque_enable"].address
 
+
 @dataclass(frozen=True, slots=True)
 class Move:
     """A straight run from ``origin`` to ``target`` (raw steps) over ``duration_s`` from
@@ -109,8 +110,10 @@ class Move:
 class DsServoDevice:
     """One DS servo on a simulated bus (``SimDevice``); ``position_raw`` is where it starts."""
 
-    turnaround_s = (PROTOCOL_TIMING["ds_servo"].reply_min_s,
-                    PROTOCOL_TIMING["ds_servo"].reply_max_s)
+    turnaround_s = (
+        PROTOCOL_TIMING["ds_servo"].reply_min_s,
+        PROTOCOL_TIMING["ds_servo"].reply_max_s,
+    )
 
     def __init__(self, device_id: int, *, position_raw: int = CENTRE_POSITION) -> None:
         REGISTERS["servo_id"].check(device_id)
@@ -169,8 +172,9 @@ class DsServoDevice:
             try:
                 raise_fault = _FAULTS[fault]
             except KeyError:
-                raise ValueError(f"a DS servo has no fault {fault!r}; it has "
-                                 f"{', '.join(sorted(_FAULTS))}") from None
+                raise ValueError(
+                    f"a DS servo has no fault {fault!r}; it has {', '.join(sorted(_FAULTS))}"
+                ) from None
             self._settle(now)
             raise_fault(self, now)
 
@@ -184,7 +188,8 @@ class DsServoDevice:
     def _set(self, name: str, value: int) -> None:
         register = REGISTERS[name]
         self._table[register.address : register.end] = value.to_bytes(
-            register.size, "big", signed=register.signed)
+            register.size, "big", signed=register.signed
+        )
 
     def _refresh(self, now: float) -> None:
         """Write the live values into the table, as the servo's firmware keeps them current."""
@@ -348,8 +353,11 @@ class DsServoDevice:
 
 
 def _takes_data(register: Register | None) -> bool:
-    return (register is not None and register.access.writable
-            and register.address not in ADDRESS_ONLY_WRITES)
+    return (
+        register is not None
+        and register.access.writable
+        and register.address not in ADDRESS_ONLY_WRITES
+    )
 
 
 def _factory_table() -> bytearray:
@@ -358,7 +366,8 @@ def _factory_table() -> bytearray:
         value = POWER_UP_VALUES.get(register.name, register.default)
         if value is not None:
             table[register.address : register.end] = value.to_bytes(
-                register.size, "big", signed=register.signed)
+                register.size, "big", signed=register.signed
+            )
     return table
 
 
@@ -382,8 +391,10 @@ _WRITE_EFFECTS: dict[str, Callable[[DsServoDevice, float, bytes], None]] = {
 
 _PRESET_ACTIONS: dict[int, tuple[Callable[[DsServoDevice, int, float], None], int]] = {
     **{address: (DsServoDevice._store_preset, n) for n, address in enumerate(PRESET_ADDRESSES, 1)},
-    **{address: (DsServoDevice._goto_preset, n)
-       for n, address in enumerate(GOTO_PRESET_ADDRESSES, 1)},
+    **{
+        address: (DsServoDevice._goto_preset, n)
+        for n, address in enumerate(GOTO_PRESET_ADDRESSES, 1)
+    },
 }
 
 _FAULTS: dict[str, Callable[[DsServoDevice, float], None]] = {

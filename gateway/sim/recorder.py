@@ -41,8 +41,15 @@ class WireRecord:
     @classmethod
     def from_json(cls, line: str) -> WireRecord:
         item = json.loads(line)
-        return cls(item["dir"], item["start"], item["end"], item["wire"], item["frame"],
-                   item["device_id"], item.get("arrived"))
+        return cls(
+            item["dir"],
+            item["start"],
+            item["end"],
+            item["wire"],
+            item["frame"],
+            item["device_id"],
+            item.get("arrived"),
+        )
 
 
 class Recorder:

@@ -25,7 +25,7 @@ from types import ModuleType
 
 from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.codecs.timing import uart_time
-from busgate.gateway.clock import now, sleep_until
+from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.faults import FaultInjector
 from busgate.gateway.sim.pty_link import PtyLink
@@ -122,8 +122,15 @@ class SerialSimulator:
             wire = self._consumed()
             end = line_start + uart_time(len(wire), self.baudrate)
             self.recorder.record(
-                WireRecord("rx", line_start, end, wire.hex(), type(event).__name__,
-                           getattr(event, "device_id", None), arrived)
+                WireRecord(
+                    "rx",
+                    line_start,
+                    end,
+                    wire.hex(),
+                    type(event).__name__,
+                    getattr(event, "device_id", None),
+                    arrived,
+                )
             )
             if not isinstance(event, Discarded | ChecksumMismatch):
                 end = max(end, self._dispatch(event, end))
@@ -164,7 +171,13 @@ class SerialSimulator:
             sleep_until(start + uart_time(offset + len(piece), self.baudrate))
             self.link.write(piece)
         self.recorder.record(
-            WireRecord("tx", start, start + duration, shaped.wire.hex(), type(reply).__name__,
-                       getattr(reply, "device_id", None))
+            WireRecord(
+                "tx",
+                start,
+                start + duration,
+                shaped.wire.hex(),
+                type(reply).__name__,
+                getattr(reply, "device_id", None),
+            )
         )
         return start + duration

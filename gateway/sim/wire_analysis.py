@@ -77,9 +77,12 @@ def analyse(
     streams: dict[int | None, list[WireRecord]] = {}  # one per device (a broadcast is one)
     for tick in ticks:
         streams.setdefault(tick.device_id, []).append(tick)
-    intervals = [b.start - a.start for stream in streams.values()
-                 for a, b in itertools.pairwise(stream)
-                 if b.arrived is None or b.arrived != a.arrived]
+    intervals = [
+        b.start - a.start
+        for stream in streams.values()
+        for a, b in itertools.pairwise(stream)
+        if b.arrived is None or b.arrived != a.arrived
+    ]
     errors = sorted(i - follow_period_s for i in intervals) if follow_period_s else []
     shortest_gap = min_gap_s - RESOLUTION_S
     return WireFigures(

@@ -59,8 +59,9 @@ def _check_fault(name: str) -> AlarmFlags:
     try:
         return FAULTS[name]
     except KeyError:
-        raise ValueError(f"a ZLAC706 has no fault {name!r}; it has "
-                         f"{', '.join(sorted(FAULTS))}") from None
+        raise ValueError(
+            f"a ZLAC706 has no fault {name!r}; it has {', '.join(sorted(FAULTS))}"
+        ) from None
 
 
 # A handler carries out one register write: ``handler(device, value, now)``.
@@ -80,17 +81,20 @@ def _ramp(name: str) -> Handler:
 
 def _codes(actions: dict[int, Callable[[Zlac706Motor, float], None]]) -> Handler:
     """A coded register: each known code is a command; any other value does nothing."""
+
     def handle(device: Any, value: int, now: float) -> None:
         action = actions.get(value)
         if action is not None:
             action(device.motor, now)
+
     return handle
 
 
 def _choice(name: str, values: dict[int, object]) -> Handler:
     """A coded register that selects a setting's value (work mode, position mode)."""
-    return _codes({code: (lambda motor, now, v=v: motor.store(name, v, now))
-                   for code, v in values.items()})
+    return _codes(
+        {code: (lambda motor, now, v=v: motor.store(name, v, now)) for code, v in values.items()}
+    )
 
 
 class HeartbeatContent(enum.IntEnum):
@@ -107,8 +111,13 @@ class Zlac706CanDevice:
 
     turnaround_s = _turnaround("zlac706_can")
 
-    def __init__(self, device_id: int, *, heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
-                 heartbeat_content: int = HeartbeatContent.POSITION_CURRENT_SPEED) -> None:
+    def __init__(
+        self,
+        device_id: int,
+        *,
+        heartbeat_ms: int = DEFAULT_HEARTBEAT_MS,
+        heartbeat_content: int = HeartbeatContent.POSITION_CURRENT_SPEED,
+    ) -> None:
         self.device_id = require_range("device_id", device_id, 1, can_codec.MAX_NODE_ID)
         if heartbeat_ms < 0:
             raise ValueError(f"heartbeat_ms must not be negative, not {heartbeat_ms}")
@@ -120,7 +129,9 @@ class Zlac706CanDevice:
 
     def accepts(self, command: object) -> bool:
         return isinstance(command, can_codec.Write) and command.device_id in (
-            self.device_id, can_codec.BROADCAST_ID)
+            self.device_id,
+            can_codec.BROADCAST_ID,
+        )
 
     def handle(self, command: can_codec.Write, now: float) -> list[object]:
         """Carry out the write and echo it (``FB``, ``DB`` for a broadcast), or answer ``FF``
@@ -174,12 +185,15 @@ class Zlac706CanDevice:
 
     def _current_speed_beat(self, now: float) -> can_codec.HeartbeatCurrentSpeed:
         return can_codec.HeartbeatCurrentSpeed(
-            self.device_id, self.motor.current_raw(now), self.motor.speed_raw(now))
+            self.device_id, self.motor.current_raw(now), self.motor.speed_raw(now)
+        )
 
 
 _HEARTBEATS: dict[HeartbeatContent, tuple[Callable[[Zlac706CanDevice, float], object], ...]] = {
-    HeartbeatContent.POSITION_CURRENT_SPEED: (Zlac706CanDevice._position_beat,
-                                              Zlac706CanDevice._current_speed_beat),
+    HeartbeatContent.POSITION_CURRENT_SPEED: (
+        Zlac706CanDevice._position_beat,
+        Zlac706CanDevice._current_speed_beat,
+    ),
     HeartbeatContent.POSITION: (Zlac706CanDevice._position_beat,),
     HeartbeatContent.CURRENT_SPEED: (Zlac706CanDevice._current_speed_beat,),
 }
@@ -196,22 +210,34 @@ def _can_speed(device: Zlac706CanDevice, value: int, now: float) -> None:
 
 _CAN_WRITES: dict[int, Handler] = {
     CanReg.TARGET_TORQUE: _setting(can_codec, CanReg.TARGET_TORQUE, "target_torque"),
-    CanReg.CONTROL_WORD: _codes({can_codec.ControlWord.ENABLE: Zlac706Motor.enable,
-                                 can_codec.ControlWord.RELEASE: Zlac706Motor.disable}),
+    CanReg.CONTROL_WORD: _codes(
+        {
+            can_codec.ControlWord.ENABLE: Zlac706Motor.enable,
+            can_codec.ControlWord.RELEASE: Zlac706Motor.disable,
+        }
+    ),
     CanReg.TARGET_SPEED: _can_speed,
     CanReg.POSITION_RAMP: _ramp("position_ramp"),
     CanReg.SPEED_RAMP: _ramp("speed_ramp"),
     CanReg.MAX_SPEED: _setting(can_codec, CanReg.MAX_SPEED, "max_speed"),
     CanReg.ALARM_RESET: _codes({can_codec.AlarmReset.RESET: Zlac706Motor.reset_alarm}),
     CanReg.TARGET_POSITION: lambda device, value, now: device.motor.move_to(value, now),
-    CanReg.POSITION_MODE: _choice("relative", {can_codec.PositionMode.ABSOLUTE: False,
-                                               can_codec.PositionMode.RELATIVE: True}),
+    CanReg.POSITION_MODE: _choice(
+        "relative", {can_codec.PositionMode.ABSOLUTE: False, can_codec.PositionMode.RELATIVE: True}
+    ),
     CanReg.ORIGIN: _codes({can_codec.Origin.SEARCH: Zlac706Motor.search_origin}),
-    CanReg.WORK_MODE: _choice("mode", {can_codec.WorkMode.SPEED: Mode.VELOCITY,
-                                       can_codec.WorkMode.POSITION: Mode.POSITION,
-                                       can_codec.WorkMode.TORQUE: Mode.TORQUE}),
-    **{register: _setting(can_codec, register, gain.value)
-       for gain, register in can_codec.GAIN_REGISTERS.items()},
+    CanReg.WORK_MODE: _choice(
+        "mode",
+        {
+            can_codec.WorkMode.SPEED: Mode.VELOCITY,
+            can_codec.WorkMode.POSITION: Mode.POSITION,
+            can_codec.WorkMode.TORQUE: Mode.TORQUE,
+        },
+    ),
+    **{
+        register: _setting(can_codec, register, gain.value)
+        for gain, register in can_codec.GAIN_REGISTERS.items()
+    },
     CanReg.RATED_CURRENT: _setting(can_codec, CanReg.RATED_CURRENT, "rated_current"),
 }
 
@@ -308,11 +334,16 @@ _RS232_MODES: Final = {
     rs232_codec.ControlMode.EXTERNAL_PULSES: (Mode.POSITION, True),
 }
 #: "PC 控制模式有效": what only works under PC control.
-_PC_COMMANDS: Final = frozenset({Rs232Reg.ENABLE, Rs232Reg.POSITION_LOW, Rs232Reg.SPEED,
-                                 Rs232Reg.TORQUE, Rs232Reg.ORIGIN})
+_PC_COMMANDS: Final = frozenset(
+    {Rs232Reg.ENABLE, Rs232Reg.POSITION_LOW, Rs232Reg.SPEED, Rs232Reg.TORQUE, Rs232Reg.ORIGIN}
+)
 _RS232_WRITES: dict[int, Handler] = {
-    Rs232Reg.ENABLE: _codes({rs232_codec.EnableCode.ENABLE: Zlac706Motor.enable,
-                             rs232_codec.EnableCode.DISABLE: Zlac706Motor.disable}),
+    Rs232Reg.ENABLE: _codes(
+        {
+            rs232_codec.EnableCode.ENABLE: Zlac706Motor.enable,
+            rs232_codec.EnableCode.DISABLE: Zlac706Motor.disable,
+        }
+    ),
     Rs232Reg.MODE: _rs232_mode,
     Rs232Reg.POSITION_HIGH: lambda device, value, now: setattr(device, "position_high", value),
     Rs232Reg.POSITION_LOW: Zlac706Rs232Device._position_low,
@@ -323,9 +354,13 @@ _RS232_WRITES: dict[int, Handler] = {
     Rs232Reg.SPEED_LIMIT: _setting(rs232_codec, Rs232Reg.SPEED_LIMIT, "max_speed"),
     Rs232Reg.RATED_CURRENT: _setting(rs232_codec, Rs232Reg.RATED_CURRENT, "rated_current"),
     Rs232Reg.CLEAR_FAULT: lambda device, value, now: device.motor.reset_alarm(now),
-    Rs232Reg.POSITION_MODE: _choice("relative", {rs232_codec.PositionMode.ABSOLUTE: False,
-                                                 rs232_codec.PositionMode.RELATIVE: True}),
+    Rs232Reg.POSITION_MODE: _choice(
+        "relative",
+        {rs232_codec.PositionMode.ABSOLUTE: False, rs232_codec.PositionMode.RELATIVE: True},
+    ),
     Rs232Reg.ORIGIN: lambda device, value, now: device.motor.search_origin(now),
-    **{register: _setting(rs232_codec, register, gain.value)
-       for gain, register in rs232_codec.GAIN_REGISTERS.items()},
+    **{
+        register: _setting(rs232_codec, register, gain.value)
+        for gain, register in rs232_codec.GAIN_REGISTERS.items()
+    },
 }

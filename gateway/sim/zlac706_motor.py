@@ -1,7 +1,7 @@
 """The ZLAC706 driver and its hub motor as one model, apart from either wire protocol.
 
 The CAN and RS232 front-ends (``zlac706.py``) turn register writes into the calls below; this
-module owns what the driver does with them (manual 8.1.2, 8.2.1 notes, 8.2.2, PROTOCOL_NOTES.md).
+module owns what the driver does with them (manual 8.1.2, 8.2.1 notes, 8.2.2; docs/protocols.md).
 Rules of this file:
 
 1. State is ``Settings`` (the writable values, by role, with the manual's defaults) plus the
@@ -170,8 +170,9 @@ def speed_motion(start: Segment, t: float, speed: float, accel: float, decel: fl
     return path.change_speed(speed, accel if abs(speed) > abs(path.speed) else decel).end()
 
 
-def position_motion(start: Segment, t: float, target: int, top: float, accel: float,
-                    decel: float) -> Motion:
+def position_motion(
+    start: Segment, t: float, target: int, top: float, accel: float, decel: float
+) -> Motion:
     """The trapezoid from the state at ``t`` to ``target`` with cruise speed ``top`` (or a
     triangle when the distance is too short to reach it). A motor moving away from the target,
     or too fast to stop before it, first stops, then sets out from there."""
@@ -334,8 +335,9 @@ class Zlac706Motor:
         return round(min(amps, self.settings.rated_current / 1000) * 100)
 
     def bus_voltage_v(self) -> int:
-        return next((v for alarm, v in BUS_VOLTAGE_V.items() if alarm in self.alarms),
-                    NOMINAL_BUS_V)
+        return next(
+            (v for alarm, v in BUS_VOLTAGE_V.items() if alarm in self.alarms), NOMINAL_BUS_V
+        )
 
     # --- the power stage ---------------------------------------------------------------------
 
@@ -359,8 +361,14 @@ class Zlac706Motor:
             rates = ramp_rates(settings.position_ramp)
             self.motion = position_motion(start, now, self.target, top, *rates)
             return
-        self.motion = speed_motion(start, now, self._commanded_pps(), *ramp_rates(
-            settings.position_ramp if settings.mode is Mode.POSITION else settings.speed_ramp))
+        self.motion = speed_motion(
+            start,
+            now,
+            self._commanded_pps(),
+            *ramp_rates(
+                settings.position_ramp if settings.mode is Mode.POSITION else settings.speed_ramp
+            ),
+        )
 
     def _commanded_pps(self) -> float:
         """Speed and torque mode, and the origin search: the speed the motor runs to. In
@@ -370,7 +378,8 @@ class Zlac706Motor:
             return ORIGIN_SEARCH_RPM * PULSES_PER_REV / 60
         if self.settings.mode is Mode.TORQUE:
             return math.copysign(FULL_SPEED_PPS, self.settings.target_torque) * bool(
-                self.settings.target_torque)
+                self.settings.target_torque
+            )
         return pps(self.settings.target_speed)
 
     # --- what a setting sets off -------------------------------------------------------------

@@ -15,9 +15,9 @@ from __future__ import annotations
 import time
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.api import GatewayApi
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.group import scan_requests
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.group import scan_requests
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import SerialBus

@@ -34,15 +34,15 @@ import zenoh
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can
-from busgate.gateway.bench import cpu_s, thread_cpu_s
+from busgate.gateway.api.zenoh_config import session_config
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.clock import now
-from busgate.gateway.daemon import serve
+from busgate.gateway.cli.bench import cpu_s, thread_cpu_s
+from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import load_records
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
-from busgate.gateway.zenoh_config import session_config
 from busgate.schemas.config import parse_config
 
 
@@ -194,7 +194,7 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
 
 SUBSCRIBER = """
 import sys, time, zenoh
-from busgate.gateway.zenoh_config import session_config
+from busgate.gateway.api.zenoh_config import session_config
 from busgate.schemas.config import parse_config
 session = zenoh.open(session_config(connect=[sys.argv[1]]))
 count = [0]

@@ -1,4 +1,4 @@
-"""The soak (issue 7): every device kind streaming and polling for ten minutes, four clients,
+"""The soak: every device kind streaming and polling for ten minutes, four clients,
 faults injected on every serial line. What must hold at the end: no UART gap under the bus's
 gap, no follow interval under its period, every get answered, and the daemon's memory, file
 descriptors and threads flat.
@@ -53,14 +53,14 @@ import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
 from busgate.codecs.timing import PROTOCOL_TIMING
-from busgate.gateway.bench import FOLLOW_FRAMES, PREPARE, TRAJECTORY, cpu_s
-from busgate.gateway.bridge import REPLY_TIMEOUT_S
+from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
+from busgate.gateway.api.zenoh_config import session_config
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.client_cli import reply_outcome
-from busgate.gateway.clock import now
+from busgate.gateway.cli.bench import FOLLOW_FRAMES, PREPARE, TRAJECTORY, cpu_s
+from busgate.gateway.cli.client import reply_outcome
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import WireFigures, analyse, load_records
-from busgate.gateway.zenoh_config import session_config
 
 BASE = "busgate/bench"  # bench_zenoh's Daemon names the gateway "bench"
 FAULTS = "--bad-checksum-rate 0.02 --garbage-rate 0.02 --drop-rate 0.01"

@@ -101,8 +101,11 @@ def stale_files(out: Path) -> list[str]:
     """Names of the files in ``out`` that are missing, differ, or are no longer generated."""
     texts = generated()
     present = {path.name for path in out.glob("*.json")} if out.is_dir() else set()
-    stale = [name for name, text in texts.items()
-             if name not in present or (out / name).read_text(encoding="utf-8") != text]
+    stale = [
+        name
+        for name, text in texts.items()
+        if name not in present or (out / name).read_text(encoding="utf-8") != text
+    ]
     return sorted(stale + sorted(present - texts.keys()))
 
 
@@ -131,20 +134,27 @@ def _run(args: argparse.Namespace) -> int:
             print("regenerate with: busgate schema", file=sys.stderr)
         return 1 if stale else 0
     changed = write_all(out)
-    print(f"{len(SCHEMAS)} schemas in {out}; {len(changed)} changed"
-          + (f": {', '.join(changed)}" if changed else ""))
+    print(
+        f"{len(SCHEMAS)} schemas in {out}; {len(changed)} changed"
+        + (f": {', '.join(changed)}" if changed else "")
+    )
     return 0
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "schema",
-        help="write the JSON Schemas of commands, replies, telemetry, events and config",
         description="Write one JSON Schema per command set, reply, telemetry kind, event, bus "
         "statistics, info and config to schemas/json/.",
     )
-    parser.add_argument("--out", default=str(DEFAULT_OUT),
-                        help="directory to write to (default: the repository's schemas/json)")
-    parser.add_argument("--check", action="store_true",
-                        help="write nothing; exit 1 naming the files that are out of date")
+    parser.add_argument(
+        "--out",
+        default=str(DEFAULT_OUT),
+        help="directory to write to (default: the repository's schemas/json)",
+    )
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit 1 naming the files that are out of date",
+    )
     parser.set_defaults(handler=_run)

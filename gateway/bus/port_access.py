@@ -86,23 +86,29 @@ def describe_open_error(port: str, exc: BaseException) -> str:
 
 def missing(name: str) -> str:
     """A port (or CAN interface) this host does not have, yet."""
-    return (f"{name} does not exist on this host (is the adapter plugged in?); the gateway "
-            f"retries until it appears")
+    return (
+        f"{name} does not exist on this host (is the adapter plugged in?); the gateway "
+        f"retries until it appears"
+    )
 
 
 def locked(port: str, holder: int | None) -> str:
     """A port another process holds exclusively."""
     who = "another process" if holder is None else f"another process ({_process(holder)})"
-    return (f"{port} is locked by {who}: stop that process (another busgate run or demo? a "
-            f"serial terminal?) or give this bus another port")
+    return (
+        f"{port} is locked by {who}: stop that process (another busgate run or demo? a "
+        f"serial terminal?) or give this bus another port"
+    )
 
 
 def denied(port: str) -> str:
     """A port this user may not read and write, and the two ways to be let in."""
     user, group = _user(), _group_to_join(port)
-    return (f"{port}: permission denied for user {user}: add it to the {group} group "
-            f"(sudo usermod -aG {group} {user}, then log in again) or install {UDEV_RULES}, "
-            f"which gives the adapters to group {SERIAL_GROUP} with mode 0660")
+    return (
+        f"{port}: permission denied for user {user}: add it to the {group} group "
+        f"(sudo usermod -aG {group} {user}, then log in again) or install {UDEV_RULES}, "
+        f"which gives the adapters to group {SERIAL_GROUP} with mode 0660"
+    )
 
 
 def lock_holder(port: str) -> int | None:

@@ -30,10 +30,10 @@ from typing import Any
 import zenoh
 
 from busgate.codecs.errors import RefusedError
-from busgate.gateway.api import GatewayApi, decode_object, error_reply
+from busgate.gateway.api.commands import GatewayApi, decode_object, error_reply
+from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.zenoh_config import session_config
 from busgate.schemas.base import CLIENT_ID_PATTERN
 from busgate.schemas.config import Config
 
@@ -54,8 +54,14 @@ def _dumps(value: Any) -> bytes:
 class ZenohBridge:
     """One zenoh session serving one gateway's API."""
 
-    def __init__(self, config: Config, api: GatewayApi, runners: dict[str, BusRunner],
-                 events: deque[DeviceEvent], states: deque[tuple[str, dict[str, Any]]]) -> None:
+    def __init__(
+        self,
+        config: Config,
+        api: GatewayApi,
+        runners: dict[str, BusRunner],
+        events: deque[DeviceEvent],
+        states: deque[tuple[str, dict[str, Any]]],
+    ) -> None:
         self.config = config
         self.api = api
         self.runners = runners
@@ -76,11 +82,15 @@ class ZenohBridge:
         """Open the session and declare every key of the API."""
         self._loop = loop
         zenoh_section = self.config.zenoh
-        self._session = session = zenoh.open(session_config(
-            mode=zenoh_section.mode, listen=zenoh_section.listen, connect=zenoh_section.connect,
-            multicast_scouting=zenoh_section.multicast_scouting,
-            config_file=zenoh_section.config_file,
-        ))
+        self._session = session = zenoh.open(
+            session_config(
+                mode=zenoh_section.mode,
+                listen=zenoh_section.listen,
+                connect=zenoh_section.connect,
+                multicast_scouting=zenoh_section.multicast_scouting,
+                config_file=zenoh_section.config_file,
+            )
+        )
         base, prefix = self.base, self.config.gateway.prefix
         self._keep = [
             session.declare_queryable(f"{base}/dev/*/cmd", self._on_device_query),
@@ -101,8 +111,11 @@ class ZenohBridge:
             key = f"{base}/bus/{bus}/stats"
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
         self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
-        where = (zenoh_section.listen or zenoh_section.config_file
-                 or "no listen endpoint: reachable only through connect")
+        where = (
+            zenoh_section.listen
+            or zenoh_section.config_file
+            or "no listen endpoint: reachable only through connect"
+        )
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
     def connections(self) -> int:
@@ -215,8 +228,13 @@ class ZenohBridge:
 
         def too_late() -> None:
             if result.cancel():  # not carried out, and now never will be
-                send(error_reply(RefusedError("internal", "no answer from the bus in time; "
-                                                          "the command was withdrawn")))
+                send(
+                    error_reply(
+                        RefusedError(
+                            "internal", "no answer from the bus in time; the command was withdrawn"
+                        )
+                    )
+                )
 
         def arm_guard() -> None:
             if not replied.done():
@@ -250,8 +268,7 @@ class ZenohBridge:
     def publish_events(self) -> None:
         while self.events:
             event = self.events.popleft()
-            body = {"ts": time.time(), "device": event.device, "type": event.type,
-                    **event.fields}
+            body = {"ts": time.time(), "device": event.device, "type": event.type, **event.fields}
             if event.device in self.api.devices:
                 self._put(f"{self.base}/dev/{event.device}/event", body)
             self._put(f"{self.base}/events", body)

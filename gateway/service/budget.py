@@ -27,10 +27,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from busgate.codecs import zlac706_can
-from busgate.gateway.assembly import build_bus
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service.assembly import build_bus
 from busgate.schemas.config import CanBus, SerialBus
 
 #: A follow payload per device kind, and the commands that must be planned before it is
@@ -45,8 +45,10 @@ FOLLOW_PAYLOAD = {
 #: What a node sends unasked at each heartbeat interval (the ZLAC706 default: position,
 #: then current and speed), per protocol.
 HEARTBEAT_FRAMES = {
-    "zlac706_can": lambda node: (zlac706_can.HeartbeatPosition(node, 0),
-                                 zlac706_can.HeartbeatCurrentSpeed(node, 0, 0)),
+    "zlac706_can": lambda node: (
+        zlac706_can.HeartbeatPosition(node, 0),
+        zlac706_can.HeartbeatCurrentSpeed(node, 0, 0),
+    ),
 }
 
 
@@ -59,8 +61,11 @@ class Load:
     reserved_s: float = 0.0
 
     def __add__(self, other: Load) -> Load:
-        return Load(self.frames + other.frames, self.wire_s + other.wire_s,
-                    self.reserved_s + other.reserved_s)
+        return Load(
+            self.frames + other.frames,
+            self.wire_s + other.wire_s,
+            self.reserved_s + other.reserved_s,
+        )
 
     def describe(self) -> str:
         if not self.frames:
@@ -147,13 +152,17 @@ class BusBudget:
         )
 
     def _overload(self) -> str:
-        head = (f"oversubscribed: the streams reserve {self.reserved_share:.0%} of the bus "
-                f"(worst case); ")
+        head = (
+            f"oversubscribed: the streams reserve {self.reserved_share:.0%} of the bus "
+            f"(worst case); "
+        )
         room = 1.0 - self.follow.reserved_s - self.heartbeats.reserved_s
         if room <= 0:
-            return head + ("follow ticks and heartbeats alone take "
-                           f"{self.follow.reserved_s + self.heartbeats.reserved_s:.0%}: raise "
-                           f"follow_period_ms or split the devices over more buses")
+            return head + (
+                "follow ticks and heartbeats alone take "
+                f"{self.follow.reserved_s + self.heartbeats.reserved_s:.0%}: raise "
+                f"follow_period_ms or split the devices over more buses"
+            )
         return head + (
             f"lower poll_hz to {room / self.polling.reserved_s:.0%} of today's, lower "
             f"reply_margin_ms (now {self.reply_margin_s * 1000:g} ms, part of every "
@@ -169,22 +178,25 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
     # Steady state: what each online device's poll sends (nothing, for a ZLAC706 on CAN, whose
     # telemetry is its heartbeats); an offline device's probes come OFFLINE_PROBE_S apart.
     polls = [(p.poll_period_s, p.driver.poll()) for p in runner.planner.pollers]
-    polling = sum((_load(timing, gap, requests, 1 / period) for period, requests in polls),
-                  Load())
+    polling = sum((_load(timing, gap, requests, 1 / period) for period, requests in polls), Load())
     ticks = _follow_frames(runner)
-    follow = sum((_load(timing, gap, [request], 1 / period) for period, request in ticks),
-                 Load())
+    follow = sum((_load(timing, gap, [request], 1 / period) for period, request in ticks), Load())
     shortest = min((period for period, _ in ticks), default=None)
     tick_free = None
     if shortest is not None:
         tick_free = shortest - sum(timing.worst_case(r) + gap for _, r in ticks)
     longest = max((timing.worst_case(r) for _, requests in polls for r in requests), default=0.0)
     return BusBudget(
-        bus=bus.name, transport=bus.transport,
+        bus=bus.name,
+        transport=bus.transport,
         rate=bus.baudrate if isinstance(bus, SerialBus) else bus.bitrate,
-        protocol=bus.protocol, devices=len(bus.devices),
-        polling=polling, follow=follow, heartbeats=_heartbeats(bus, timing),
-        follow_period_s=shortest, tick_free_s=tick_free,
+        protocol=bus.protocol,
+        devices=len(bus.devices),
+        polling=polling,
+        follow=follow,
+        heartbeats=_heartbeats(bus, timing),
+        follow_period_s=shortest,
+        tick_free_s=tick_free,
         longest_poll_s=longest + runner.planner.slack_s if longest else 0.0,
         reply_margin_s=timing.margin_s,
     )
@@ -210,7 +222,7 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
     for period, drivers in by_period.items():
         limit = type(drivers[0]).follow_group_limit
         for first in range(0, len(drivers), limit):
-            group = drivers[first:first + limit]
+            group = drivers[first : first + limit]
             targets = [(driver, _follow_target(driver)) for driver in group]
             frames.append((period, type(group[0]).follow_request(targets)))
     return frames

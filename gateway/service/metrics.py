@@ -21,8 +21,8 @@ from prometheus_client import CollectorRegistry, Histogram, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusStats
-from busgate.gateway.clock import now
 from busgate.gateway.scheduler.runner import BusRunner
 
 #: Command latency buckets: from a frame on a fast UART to a timed-out command with retries.
@@ -31,21 +31,24 @@ LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5,
 #: Per-bus counters: (name between ``busgate_bus_`` and ``_total``, help, {direction: the
 #: ``BusStats`` field}); a direction of ``""`` means the counter has no ``direction`` label.
 _BUS_COUNTERS: tuple[tuple[str, str, dict[str, str]], ...] = (
-    ("frames", "Frames sent (out) and received (in)",
-     {"out": "frames_out", "in": "frames_in"}),
+    ("frames", "Frames sent (out) and received (in)", {"out": "frames_out", "in": "frames_in"}),
     ("bytes", "Bytes sent (out) and received (in)", {"out": "bytes_out", "in": "bytes_in"}),
     ("timeouts", "Requests whose reply did not come in time", {"": "timeouts"}),
     ("retries", "Idempotent requests sent again after a timeout", {"": "retries"}),
     ("checksum_errors", "Replies with a bad checksum", {"": "checksum_errors"}),
-    ("discarded_bytes", "Received bytes that were not part of a frame",
-     {"": "discarded_bytes"}),
-    ("late_replies", "Replies that came after their deadline and were flushed",
-     {"": "late_replies"}),
-    ("early_replies", "Replies read before their request could have left the wire",
-     {"": "early_replies"}),
+    ("discarded_bytes", "Received bytes that were not part of a frame", {"": "discarded_bytes"}),
+    (
+        "late_replies",
+        "Replies that came after their deadline and were flushed",
+        {"": "late_replies"},
+    ),
+    (
+        "early_replies",
+        "Replies read before their request could have left the wire",
+        {"": "early_replies"},
+    ),
     ("reconnects", "Times the link came back after it was lost", {"": "reconnects"}),
-    ("skipped_polls", "Polls skipped because the bus had no room for them",
-     {"": "skipped_polls"}),
+    ("skipped_polls", "Polls skipped because the bus had no room for them", {"": "skipped_polls"}),
     ("busy_commands", "Commands refused with busy (queue full)", {"": "busy_commands"}),
     ("follow_intervals", "Follow intervals measured", {"": "follow_intervals"}),
 )
@@ -70,8 +73,9 @@ class GatewayCollector(Collector):
     def _bus_counters(self, stats: dict[str, BusStats]) -> Iterator[Metric]:
         for name, help_text, fields in _BUS_COUNTERS:
             split = "" not in fields
-            family = CounterMetricFamily(f"busgate_bus_{name}", help_text,
-                                         labels=["bus", "direction"] if split else ["bus"])
+            family = CounterMetricFamily(
+                f"busgate_bus_{name}", help_text, labels=["bus", "direction"] if split else ["bus"]
+            )
             for bus, snapshot in stats.items():
                 for direction, field in fields.items():
                     labels = [bus, direction] if split else [bus]
@@ -80,10 +84,16 @@ class GatewayCollector(Collector):
 
     def _bus_gauges(self, stats: dict[str, BusStats]) -> Iterator[Metric]:
         up = GaugeMetricFamily("busgate_bus_up", "1 while the bus is open", labels=["bus"])
-        use = GaugeMetricFamily("busgate_bus_utilisation_ratio",
-                                "Share of the time since start the line was busy", labels=["bus"])
-        gap = GaugeMetricFamily("busgate_bus_smallest_gap_seconds",
-                                "Smallest idle line seen between two exchanges", labels=["bus"])
+        use = GaugeMetricFamily(
+            "busgate_bus_utilisation_ratio",
+            "Share of the time since start the line was busy",
+            labels=["bus"],
+        )
+        gap = GaugeMetricFamily(
+            "busgate_bus_smallest_gap_seconds",
+            "Smallest idle line seen between two exchanges",
+            labels=["bus"],
+        )
         error = GaugeMetricFamily(
             "busgate_bus_follow_interval_error_seconds",
             "Follow tick interval minus the period, over the last intervals (p50, p99)",
@@ -99,10 +109,14 @@ class GatewayCollector(Collector):
 
     def _devices(self) -> Iterator[Metric]:
         labels = ["bus", "device", "kind"]
-        online = GaugeMetricFamily("busgate_device_online", "1 while the device answers",
-                                   labels=labels)
-        age = GaugeMetricFamily("busgate_device_last_reply_age_seconds",
-                                "Time since the device last answered", labels=labels)
+        online = GaugeMetricFamily(
+            "busgate_device_online", "1 while the device answers", labels=labels
+        )
+        age = GaugeMetricFamily(
+            "busgate_device_last_reply_age_seconds",
+            "Time since the device last answered",
+            labels=labels,
+        )
         moment = now()
         for bus, runner in self.runners.items():
             for name, driver in runner.drivers.items():
@@ -128,7 +142,8 @@ class Metrics:
         self._latency = Histogram(
             "busgate_command_latency_seconds",
             "Time from a command's arrival to its reply",
-            buckets=LATENCY_BUCKETS, registry=self.registry,
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
         )
         self._server: Any = None
         self._thread: Any = None
@@ -140,8 +155,7 @@ class Metrics:
     def start(self, listen: str = "127.0.0.1:9108") -> Metrics:
         """Serve ``/metrics`` on ``host:port`` (port 0: any free one, see ``port``)."""
         host, port = listen.rsplit(":", 1)
-        self._server, self._thread = start_http_server(int(port), addr=host,
-                                                       registry=self.registry)
+        self._server, self._thread = start_http_server(int(port), addr=host, registry=self.registry)
         return self
 
     @property

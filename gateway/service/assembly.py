@@ -10,12 +10,12 @@ from collections.abc import Callable
 from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver
-from busgate.gateway.protocols import PROTOCOLS, Protocol
+from busgate.gateway.drivers.protocols import PROTOCOLS, Protocol
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.config import CanBus, DeviceConfig, SerialBus
 
@@ -43,12 +43,24 @@ def build_bus(
         owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
     else:
         timing = LinkTiming(bus.protocol, bus.bitrate, margin_s=margin)
-        owner = CanBusOwner(bus.interface, bus.channel, bus.options, protocol.codec, timing,
-                            counters, on_unsolicited=lambda event, when: None)
+        owner = CanBusOwner(
+            bus.interface,
+            bus.channel,
+            bus.options,
+            protocol.codec,
+            timing,
+            counters,
+            on_unsolicited=lambda event, when: None,
+        )
     runner = BusRunner(
-        bus.name, owner, timing, drivers,
+        bus.name,
+        owner,
+        timing,
+        drivers,
         poll_hz={device.name: device.poll_hz for device in bus.devices},
-        on_event=on_event, on_state=on_state, realtime_priority=bus.realtime_priority,
+        on_event=on_event,
+        on_state=on_state,
+        realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
     if isinstance(owner, CanBusOwner):

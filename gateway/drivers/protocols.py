@@ -48,8 +48,9 @@ PROTOCOLS: dict[str, Protocol] = {
     for p in (
         Protocol("inspire_la", "inspire_la", addressed=True, driver_name="InspireLaDriver"),
         Protocol("ds_servo", "ds_servo", addressed=True, driver_name="DsServoDriver"),
-        Protocol("zlac706_can", "zlac706", addressed=True, driver_name="Zlac706CanDriver",
-                 can=True),
+        Protocol(
+            "zlac706_can", "zlac706", addressed=True, driver_name="Zlac706CanDriver", can=True
+        ),
         Protocol("zlac706_rs232", "zlac706", addressed=False, driver_name="Zlac706Rs232Driver"),
     )
 }

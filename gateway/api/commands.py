@@ -12,7 +12,7 @@ every rule of the API is tested without a network. Rules of this file:
 2. Claims: a client may hold exclusive motion control of a device; others get ``claimed``
    (naming the holder) until release, the TTL lapses, or the holder's liveliness goes. Reads
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
-   by the devices its frames address (``busgate.gateway.authority``).
+   by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
    ZLAC706 whose speed it commanded is brought to 0 rpm at once.
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
@@ -33,17 +33,26 @@ from pydantic import ValidationError
 
 from busgate.codecs.errors import BusgateError, CommandError, EncodeError, RefusedError
 from busgate.gateway import installed_version
-from busgate.gateway.clock import now
+from busgate.gateway.api.group import group_command, scan_requests, scan_result
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
-from busgate.gateway.group import group_command, scan_requests, scan_result
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.api import BusGroupMove, BusScan, Claim, Release
 from busgate.schemas.errors import describe_validation_error
 
 MAX_PAYLOAD = 64 * 1024
 #: Pydantic error types that mean "a value outside its range", reported as ``out_of_range``.
-RANGE_ERRORS = frozenset({"less_than", "less_than_equal", "greater_than", "greater_than_equal",
-                          "multiple_of", "too_short", "too_long"})
+RANGE_ERRORS = frozenset(
+    {
+        "less_than",
+        "less_than_equal",
+        "greater_than",
+        "greater_than_equal",
+        "multiple_of",
+        "too_short",
+        "too_long",
+    }
+)
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
@@ -96,8 +105,9 @@ def decode_object(payload: bytes) -> dict[str, Any]:
     except UnicodeDecodeError as exc:
         raise RefusedError("not_utf8", f"payload is not UTF-8: {exc.reason}") from exc
     try:
-        value = json.loads(text, parse_constant=_reject_constant, parse_float=_finite,
-                           object_pairs_hook=_object)
+        value = json.loads(
+            text, parse_constant=_reject_constant, parse_float=_finite, object_pairs_hook=_object
+        )
     except _DuplicateKey as exc:
         raise RefusedError("bad_command", str(exc)) from exc
     except RecursionError as exc:
@@ -125,6 +135,7 @@ def refusal(exc: ValidationError | CommandError) -> RefusedError:
 def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     """Whatever ``handler`` meets, a reply: a refusal's own code, or ``internal`` (logged with
     its traceback) for a bug. Every query gets exactly one answer, never silence."""
+
     @functools.wraps(handler)
     def wrapper(self: GatewayApi, *args: Any) -> Future:
         try:
@@ -134,6 +145,7 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
         except Exception as exc:
             log.exception("%s%r failed", handler.__name__, args[:1])
             return _finished(error_reply(exc))
+
     return wrapper
 
 
@@ -255,9 +267,12 @@ class GatewayApi:
         planned_s = sum(runner.timing.worst_case(p) + runner.timing.gap_s for p in probes)
         if planned_s > SCAN_MAX_S:
             most = int(len(probes) * SCAN_MAX_S / planned_s)
-            raise RefusedError("out_of_range", f"a scan of {len(probes)} ids takes up to "
-                               f"{planned_s:.1f} s on bus {runner.name}; ask for at most "
-                               f"{most} ids at a time")
+            raise RefusedError(
+                "out_of_range",
+                f"a scan of {len(probes)} ids takes up to "
+                f"{planned_s:.1f} s on bus {runner.name}; ask for at most "
+                f"{most} ids at a time",
+            )
         scanning = runner.scan(probes, start_by=now() + 2 * planned_s + SCAN_SLACK_S)
         return _chained(scanning, lambda outcomes: ok_reply(found=scan_result(protocol, outcomes)))
 
@@ -292,10 +307,19 @@ class GatewayApi:
             gateway=self.name,
             version=installed_version(),
             buses=[
-                {"name": name, "protocol": runner.timing.protocol,
-                 "devices": [{"name": device, "kind": driver.kind, "id": driver.device_id,
-                              "state": runner.states.get(device)}
-                             for device, driver in runner.drivers.items()]}
+                {
+                    "name": name,
+                    "protocol": runner.timing.protocol,
+                    "devices": [
+                        {
+                            "name": device,
+                            "kind": driver.kind,
+                            "id": driver.device_id,
+                            "state": runner.states.get(device),
+                        }
+                        for device, driver in runner.drivers.items()
+                    ],
+                }
                 for name, runner in self.runners.items()
             ],
         )

@@ -27,19 +27,19 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 from busgate.codecs.errors import BusgateError, BusUnavailableError
-from busgate.gateway.api import GatewayApi
-from busgate.gateway.assembly import build_bus
-from busgate.gateway.budget import bus_budget
-from busgate.gateway.clock import tune_interpreter
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.bus.clock import tune_interpreter
+from busgate.gateway.bus.port_access import LOCKED, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
-from busgate.gateway.metrics import Metrics
-from busgate.gateway.port_access import LOCKED, port_problem
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.sdnotify import Notifier, Watchdog
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.budget import bus_budget
+from busgate.gateway.service.metrics import Metrics
+from busgate.gateway.service.sdnotify import Notifier, Watchdog
 from busgate.schemas.config import Config, load_config
 
 if TYPE_CHECKING:
-    from busgate.gateway.bridge import ZenohBridge
+    from busgate.gateway.api.bridge import ZenohBridge
 
 log = logging.getLogger("busgate")
 
@@ -57,7 +57,6 @@ STATE_BACKLOG = 4_096
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
-        help="run the gateway daemon",
         description="Run the gateway: own the configured buses and serve them over zenoh until "
         "SIGTERM or SIGINT.",
     )
@@ -73,10 +72,11 @@ def run_daemon(args: argparse.Namespace) -> int:
     return 0
 
 
-async def serve(config: Config, *, ready: threading.Event | None = None,
-                stop: asyncio.Event | None = None) -> None:
+async def serve(
+    config: Config, *, ready: threading.Event | None = None, stop: asyncio.Event | None = None
+) -> None:
     """Serve ``config`` until ``stop`` is set (or SIGTERM/SIGINT when no ``stop`` is given)."""
-    from busgate.gateway import bridge as zenoh_side  # the one module that needs zenoh
+    from busgate.gateway.api.commands import bridge as zenoh_side  # the one module that needs zenoh
 
     expected_up = _check_ports(config)
     tune_interpreter()
@@ -86,8 +86,11 @@ async def serve(config: Config, *, ready: threading.Event | None = None,
     events: deque[DeviceEvent] = deque(maxlen=EVENT_BACKLOG)
     states: deque[tuple[str, dict]] = deque(maxlen=STATE_BACKLOG)
     runners = {
-        bus.name: build_bus(bus, on_event=events.append,
-                            on_state=lambda device, state: states.append((device, state)))
+        bus.name: build_bus(
+            bus,
+            on_event=events.append,
+            on_state=lambda device, state: states.append((device, state)),
+        )
         for bus in config.buses
     }
     api = GatewayApi(config.gateway.name, runners, on_event=events.append)
@@ -141,7 +144,7 @@ def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
     (``ZenohSessionError``), with whatever was opened closed again."""
     import zenoh
 
-    from busgate.gateway.zenoh_config import ZenohSessionError, session_refusal
+    from busgate.gateway.api.zenoh_config import ZenohSessionError, session_refusal
 
     try:
         bridge.open(loop)
@@ -166,8 +169,9 @@ async def _buses_up(runners: dict[str, BusRunner], expected_up: set[str]) -> int
     """How many buses are open, once those expected up are (or ``FIRST_OPEN_WAIT_S``
     has passed)."""
     deadline = time.monotonic() + FIRST_OPEN_WAIT_S
-    while (not all(runners[name].owner.is_open for name in expected_up)
-           and time.monotonic() < deadline):
+    while (
+        not all(runners[name].owner.is_open for name in expected_up) and time.monotonic() < deadline
+    ):
         await asyncio.sleep(BUS_OPEN_POLL_S)
     return sum(runner.owner.is_open for runner in runners.values())
 
@@ -186,21 +190,25 @@ def _log_budgets(config: Config) -> None:
             log.warning("bus %s: %s", bus.name, warning)
 
 
-async def _ready_when_open(notifier: Notifier, config: Config,
-                           runners: dict[str, BusRunner], stop: asyncio.Event) -> None:
+async def _ready_when_open(
+    notifier: Notifier, config: Config, runners: dict[str, BusRunner], stop: asyncio.Event
+) -> None:
     """READY=1 once every bus is open (the zenoh session already is), with a status line."""
     while not stop.is_set() and not all(r.owner.is_open for r in runners.values()):
         await asyncio.sleep(BUS_OPEN_POLL_S)
     if not stop.is_set():
         devices = sum(len(r.drivers) for r in runners.values())
-        notifier.ready(f"gateway {config.gateway.name}: {len(runners)} bus(es) open, "
-                       f"{devices} device(s), zenoh up")
+        notifier.ready(
+            f"gateway {config.gateway.name}: {len(runners)} bus(es) open, "
+            f"{devices} device(s), zenoh up"
+        )
 
 
 def _stop_buses(runners: dict[str, BusRunner]) -> None:
     """Stop every bus at once: streams, safe state, close."""
-    threads = [threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,))
-               for runner in runners.values()]
+    threads = [
+        threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,)) for runner in runners.values()
+    ]
     for thread in threads:
         thread.start()
     for thread in threads:

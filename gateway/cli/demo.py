@@ -30,9 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from busgate.gateway.client_cli import DEFAULT_ENDPOINT
-from busgate.gateway.daemon import serve
-from busgate.gateway.protocols import PROTOCOLS
+from busgate.gateway.cli.client import DEFAULT_ENDPOINT
+from busgate.gateway.drivers.protocols import PROTOCOLS
+from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.models import make_devices
 from busgate.schemas.config import Config, parse_config
 
@@ -68,15 +68,22 @@ DEMO_BUSES = (
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
         "demo",
-        help="run the gateway on simulated devices of every kind",
         description="Run the real gateway (named 'demo') on simulated devices: three Inspire LA "
         "actuators and two DS servos on UART buses, a ZLAC706 on CAN and one on RS232, with "
         "wire timing emulated. Prints how to connect; serves until SIGTERM or Ctrl-C.",
     )
-    demo.add_argument("--listen", default=DEFAULT_ENDPOINT, metavar="ENDPOINT",
-                      help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
-    demo.add_argument("--metrics-listen", default=None, metavar="HOST:PORT",
-                      help="serve Prometheus metrics here (default: off)")
+    demo.add_argument(
+        "--listen",
+        default=DEFAULT_ENDPOINT,
+        metavar="ENDPOINT",
+        help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})",
+    )
+    demo.add_argument(
+        "--metrics-listen",
+        default=None,
+        metavar="HOST:PORT",
+        help="serve Prometheus metrics here (default: off)",
+    )
     demo.set_defaults(handler=run_demo)
 
 
@@ -101,27 +108,43 @@ def _start_simulator(bus: DemoBus, stack: contextlib.ExitStack) -> dict[str, Any
         from busgate.gateway.sim.can_server import CanSimulator
 
         channel = f"busgate-demo-{uuid.uuid4().hex[:8]}"  # virtual channels are per process
-        stack.enter_context(CanSimulator(protocol.codec, devices, bitrate=bus.rate,
-                                         bus=can.Bus(interface="virtual", channel=channel)))
-        return {"transport": "can", "interface": "virtual", "channel": channel,
-                "bitrate": bus.rate}
+        stack.enter_context(
+            CanSimulator(
+                protocol.codec,
+                devices,
+                bitrate=bus.rate,
+                bus=can.Bus(interface="virtual", channel=channel),
+            )
+        )
+        return {"transport": "can", "interface": "virtual", "channel": channel, "bitrate": bus.rate}
     from busgate.gateway.sim.serial_server import SerialSimulator
 
     simulator = stack.enter_context(SerialSimulator(protocol.codec, devices, baudrate=bus.rate))
     return {"transport": "serial", "port": simulator.port, "baudrate": bus.rate}
 
 
-def demo_config(links: dict[str, dict[str, Any]], *, listen: str,
-                metrics_listen: str | None = None) -> Config:
+def demo_config(
+    links: dict[str, dict[str, Any]], *, listen: str, metrics_listen: str | None = None
+) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
     Raises ``ConfigError`` (naming the key) for a bad endpoint or metrics address."""
     document: dict[str, Any] = {
         "gateway": {"name": GATEWAY_NAME},
         "zenoh": {"mode": "peer", "listen": [listen]},
         "buses": [
-            {"name": bus.name, **links[bus.name],
-             "devices": [{"name": name, "kind": PROTOCOLS[bus.protocol].kind, "id": ident,
-                          "heartbeat_ms": bus.heartbeat_ms} for name, ident in bus.devices]}
+            {
+                "name": bus.name,
+                **links[bus.name],
+                "devices": [
+                    {
+                        "name": name,
+                        "kind": PROTOCOLS[bus.protocol].kind,
+                        "id": ident,
+                        "heartbeat_ms": bus.heartbeat_ms,
+                    }
+                    for name, ident in bus.devices
+                ],
+            }
             for bus in DEMO_BUSES
         ],
     }
@@ -137,8 +160,11 @@ def _hints(config: Config, links: dict[str, dict[str, Any]]) -> str:
     lines = [f"busgate demo: gateway {config.gateway.name!r} is serving on {listen}"]
     for bus in config.buses:
         link = links[bus.name]
-        where = (f"{link['port']} at {link['baudrate']} baud" if "port" in link
-                 else f"virtual CAN {link['channel']} at {link['bitrate']} bit/s")
+        where = (
+            f"{link['port']} at {link['baudrate']} baud"
+            if "port" in link
+            else f"virtual CAN {link['channel']} at {link['bitrate']} bit/s"
+        )
         names = ", ".join(device.name for device in bus.devices)
         lines.append(f"  {bus.name:<6} {bus.protocol:<14} {names:<15} {where}")
     first, program = config.buses[0].devices[0].name, _program()

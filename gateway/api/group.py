@@ -51,20 +51,29 @@ def group_command(runner: BusRunner, request) -> tuple[str, Any]:
     if make is None:
         raise GroupError(f"a {runner.timing.protocol} bus has no group move")
     drivers = [runner.drivers[target.device] for target in request.targets]
-    targets = [make(target, driver) for target, driver in zip(request.targets, drivers,
-                                                              strict=True)]
+    targets = [
+        make(target, driver) for target, driver in zip(request.targets, drivers, strict=True)
+    ]
     first = drivers[0]
     return first.name, first.parse(json.dumps({"op": "group_move", "targets": targets}))
 
 
 _PROBES: dict[str, tuple[range, Callable[[int], Request]]] = {
-    "inspire_la": (range(1, 255), lambda i: Request.of(
-        inspire_la, inspire_la.ControlCommand(i, inspire_la.ControlCode.STATUS))),
+    "inspire_la": (
+        range(1, 255),
+        lambda i: Request.of(
+            inspire_la, inspire_la.ControlCommand(i, inspire_la.ControlCode.STATUS)
+        ),
+    ),
     "ds_servo": (range(1, 251), lambda i: Request.of(ds_servo, ds_servo.Ping(i))),
-    "zlac706_can": (range(1, 110), lambda i: Request.of(
-        zlac706_can, zlac706_can.Write(i, _ZLAC_PROBE_REGISTER, 0))),
-    "zlac706_rs232": (range(0, 1), lambda i: Request.of(
-        zlac706_rs232, zlac706_rs232.MonitorRequest())),
+    "zlac706_can": (
+        range(1, 110),
+        lambda i: Request.of(zlac706_can, zlac706_can.Write(i, _ZLAC_PROBE_REGISTER, 0)),
+    ),
+    "zlac706_rs232": (
+        range(0, 1),
+        lambda i: Request.of(zlac706_rs232, zlac706_rs232.MonitorRequest()),
+    ),
 }
 
 
@@ -74,8 +83,11 @@ def scan_requests(protocol: str, ids: list[int] | None) -> list[Request]:
     allowed, probe = _PROBES[protocol]
     outside = [i for i in ids or () if i not in allowed]
     if outside:
-        raise RefusedError("out_of_range", f"ids on a {protocol} bus are {allowed.start}-"
-                           f"{allowed.stop - 1}, not {', '.join(map(str, outside))}")
+        raise RefusedError(
+            "out_of_range",
+            f"ids on a {protocol} bus are {allowed.start}-"
+            f"{allowed.stop - 1}, not {', '.join(map(str, outside))}",
+        )
     return [probe(i) for i in (allowed if ids is None else ids)]
 
 
@@ -85,6 +97,5 @@ def scan_result(protocol: str, outcomes: list[tuple[Request, tuple | None]]) -> 
     for request, reply in outcomes:
         if reply:
             source = request.expected.source_id if request.expected else None
-            found.append({"id": source, "protocol": protocol,
-                          "reply": type(reply[0]).__name__})
+            found.append({"id": source, "protocol": protocol, "reply": type(reply[0]).__name__})
     return found

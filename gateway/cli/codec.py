@@ -14,8 +14,8 @@ import sys
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import CommandError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
-from busgate.gateway.jsonify import to_jsonable
-from busgate.gateway.protocols import PROTOCOLS, Protocol
+from busgate.gateway.cli.jsonify import to_jsonable
+from busgate.gateway.drivers.protocols import PROTOCOLS, Protocol
 from busgate.schemas.errors import command_from_json
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive
@@ -24,7 +24,6 @@ DEFAULT_ID = 1  # the factory default of every addressed device family we drive
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     encode = subparsers.add_parser(
         "encode",
-        help="print the frames that carry out a JSON command",
         description="Print the frame(s) of a JSON command, one per line: lowercase hex, or "
         "id#data for CAN.",
     )
@@ -37,7 +36,6 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
     decode = subparsers.add_parser(
         "decode",
-        help="decode frames from hex",
         description="Decode wire bytes (hex; CAN frames as id#data) into one JSON object per frame "
         "or event. Exit status 1 when a checksum fails or bytes are discarded.",
     )

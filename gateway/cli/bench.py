@@ -31,11 +31,11 @@ from pydantic import ValidationError
 
 from busgate.codecs.errors import BusUnavailableError, CommandError
 from busgate.codecs.timing import PROTOCOL_TIMING
-from busgate.gateway.assembly import build_bus, make_driver
+from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
-from busgate.gateway.protocols import PROTOCOLS
+from busgate.gateway.drivers.protocols import PROTOCOLS
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service.assembly import build_bus, make_driver
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.config import CanBus, SerialBus
@@ -63,23 +63,31 @@ FOLLOW_FRAMES = ("FollowCommand", "GroupFollowCommand", "SyncWrite", "Write")
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     bench = subparsers.add_parser(
         "bench",
-        help="measure the bus owner and scheduler against a port or the simulators",
         description=__doc__.split("\n\n")[1],
     )
     bench.add_argument("--kind", required=True, choices=sorted(PROTOCOLS), help="wire protocol")
     bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
     bench.add_argument("--ids", default="1", help="device ids, e.g. 1,2,3 (default 1)")
     bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
-    bench.add_argument("--follow-period-ms", type=float, default=10.0,
-                       help="follow period, 10–50 ms; 0 streams nothing (default 10)")
+    bench.add_argument(
+        "--follow-period-ms",
+        type=float,
+        default=10.0,
+        help="follow period, 10–50 ms; 0 streams nothing (default 10)",
+    )
     bench.add_argument("--poll-hz", type=float, default=20.0, help="polls per device per second")
     bench.add_argument("--seconds", type=float, default=6.0, help="how long to measure")
     bench.add_argument("--min-gap-ms", type=float, help="UART gap (default: per protocol)")
-    bench.add_argument("--reply-margin-ms", type=float, default=2.0,
-                       help="time allowed on top of a reply's wire and turnaround time (default "
-                            "2, as in a config; more for a loaded host or a slow adapter)")
-    bench.add_argument("--baseline", action="store_true",
-                       help="also time a plain sleep-then-spin pyserial loop")
+    bench.add_argument(
+        "--reply-margin-ms",
+        type=float,
+        default=2.0,
+        help="time allowed on top of a reply's wire and turnaround time (default "
+        "2, as in a config; more for a loaded host or a slow adapter)",
+    )
+    bench.add_argument(
+        "--baseline", action="store_true", help="also time a plain sleep-then-spin pyserial loop"
+    )
     bench.add_argument("--json", action="store_true", help="print the figures as JSON")
     bench.set_defaults(handler=run_bench)
 
@@ -120,17 +128,34 @@ def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: in
 def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
     period = args.follow_period_ms or 20.0
     devices = [
-        {"name": f"dev{i}", "kind": PROTOCOLS[args.kind].kind, "id": i, "poll_hz": args.poll_hz,
-         "follow_period_ms": period}
+        {
+            "name": f"dev{i}",
+            "kind": PROTOCOLS[args.kind].kind,
+            "id": i,
+            "poll_hz": args.poll_hz,
+            "follow_period_ms": period,
+        }
         for i in ids
     ]
     if PROTOCOLS[args.kind].can:
-        return CanBus(name="bench", transport="can", interface="slcan", channel=port,
-                      devices=devices, options={"sleep_after_open": 0},
-                      reply_margin_ms=args.reply_margin_ms)
-    return SerialBus(name="bench", transport="serial", port=port, baudrate=baudrate,
-                     min_gap_ms=args.min_gap_ms, devices=devices,
-                     reply_margin_ms=args.reply_margin_ms)
+        return CanBus(
+            name="bench",
+            transport="can",
+            interface="slcan",
+            channel=port,
+            devices=devices,
+            options={"sleep_after_open": 0},
+            reply_margin_ms=args.reply_margin_ms,
+        )
+    return SerialBus(
+        name="bench",
+        transport="serial",
+        port=port,
+        baudrate=baudrate,
+        min_gap_ms=args.min_gap_ms,
+        devices=devices,
+        reply_margin_ms=args.reply_margin_ms,
+    )
 
 
 def measure(
@@ -154,24 +179,32 @@ def measure(
         runner.stop()
     elapsed = ended - started
     exchanges = after.frames_out - before.frames_out
-    return {
-        "kind": args.kind, "devices": len(ids), "rate": baudrate, "seconds": round(elapsed, 3),
-        "follow_period_ms": args.follow_period_ms, "poll_hz": args.poll_hz,
-        "frames_out_per_s": round(exchanges / elapsed, 1),
-        "frames_in_per_s": round((after.frames_in - before.frames_in) / elapsed, 1),
-        "smallest_gap_ms": _ms(after.smallest_gap_s),
-        "follow_intervals": after.follow_intervals,
-        "follow_error_p50_ms": _ms(after.follow_error_p50_s),
-        "follow_error_p99_ms": _ms(after.follow_error_p99_s),
-        "follow_error_min_ms": _ms(after.follow_error_min_s),
-        "timeouts": after.timeouts - before.timeouts,
-        "retries": after.retries - before.retries,
-        "checksum_errors": after.checksum_errors - before.checksum_errors,
-        "skipped_polls": runner.planner.skipped_polls,
-        "utilisation": round(after.utilisation, 3),
-        "cpu_percent_bus_thread": round(100 * thread_cpu / elapsed, 1),
-        "cpu_percent_process": round(100 * (cpu_after - cpu_before) / elapsed, 1),
-    }, (started, ended), list(runner.drivers.values())
+    return (
+        {
+            "kind": args.kind,
+            "devices": len(ids),
+            "rate": baudrate,
+            "seconds": round(elapsed, 3),
+            "follow_period_ms": args.follow_period_ms,
+            "poll_hz": args.poll_hz,
+            "frames_out_per_s": round(exchanges / elapsed, 1),
+            "frames_in_per_s": round((after.frames_in - before.frames_in) / elapsed, 1),
+            "smallest_gap_ms": _ms(after.smallest_gap_s),
+            "follow_intervals": after.follow_intervals,
+            "follow_error_p50_ms": _ms(after.follow_error_p50_s),
+            "follow_error_p99_ms": _ms(after.follow_error_p99_s),
+            "follow_error_min_ms": _ms(after.follow_error_min_s),
+            "timeouts": after.timeouts - before.timeouts,
+            "retries": after.retries - before.retries,
+            "checksum_errors": after.checksum_errors - before.checksum_errors,
+            "skipped_polls": runner.planner.skipped_polls,
+            "utilisation": round(after.utilisation, 3),
+            "cpu_percent_bus_thread": round(100 * thread_cpu / elapsed, 1),
+            "cpu_percent_process": round(100 * (cpu_after - cpu_before) / elapsed, 1),
+        },
+        (started, ended),
+        list(runner.drivers.values()),
+    )
 
 
 def cpu_s(stat: str) -> float:
@@ -227,8 +260,9 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
     starts = []
     deadline = now()
     end = deadline + args.seconds
-    client = threading.Thread(target=feed_targets, args=(drivers, args, latest.__setitem__, end),
-                              daemon=True)
+    client = threading.Thread(
+        target=feed_targets, args=(drivers, args, latest.__setitem__, end), daemon=True
+    )
     client.start()
     tighten_timer_slack()
     with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
@@ -240,9 +274,12 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
             deadline += period
     client.join()
     errors = sorted(b - a - period for a, b in itertools.pairwise(starts))
-    return {"follow_intervals": len(errors), "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
-            "follow_error_p99_ms": _ms(percentile(errors, 0.99)),
-            "follow_error_min_ms": _ms(errors[0] if errors else None)}
+    return {
+        "follow_intervals": len(errors),
+        "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
+        "follow_error_p99_ms": _ms(percentile(errors, 0.99)),
+        "follow_error_min_ms": _ms(errors[0] if errors else None),
+    }
 
 
 def baseline_drivers(args: argparse.Namespace, used: list, port: str, baudrate: int) -> list:
@@ -262,11 +299,18 @@ def device_side(args: argparse.Namespace, record: Path, window: tuple[float, flo
     timing = PROTOCOL_TIMING[args.kind]
     min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else timing.default_gap_s
     records = [r for r in load_records(record) if window[0] <= r.start <= window[1]]
-    figures = analyse(records, min_gap_s=min_gap, follow_frames=FOLLOW_FRAMES,
-                      follow_period_s=(args.follow_period_ms or 0) / 1000 or None)
-    return {(name.removesuffix("_s") + "_ms" if name.endswith("_s") else name):
-            (_ms(value) if name.endswith("_s") else value)
-            for name, value in asdict(figures).items()}
+    figures = analyse(
+        records,
+        min_gap_s=min_gap,
+        follow_frames=FOLLOW_FRAMES,
+        follow_period_s=(args.follow_period_ms or 0) / 1000 or None,
+    )
+    return {
+        (name.removesuffix("_s") + "_ms" if name.endswith("_s") else name): (
+            _ms(value) if name.endswith("_s") else value
+        )
+        for name, value in asdict(figures).items()
+    }
 
 
 def _ms(seconds: float | None) -> float | None:
@@ -274,9 +318,11 @@ def _ms(seconds: float | None) -> float | None:
 
 
 def format_figures(args: argparse.Namespace, figures: dict) -> str:
-    lines = [f"busgate bench: {figures['kind']}, {figures['devices']} device(s), "
-             f"{figures['seconds']} s, follow {figures['follow_period_ms']} ms, "
-             f"poll {figures['poll_hz']} Hz"]
+    lines = [
+        f"busgate bench: {figures['kind']}, {figures['devices']} device(s), "
+        f"{figures['seconds']} s, follow {figures['follow_period_ms']} ms, "
+        f"poll {figures['poll_hz']} Hz"
+    ]
     for section in ("", "device_side", "baseline"):
         values = figures if not section else figures.get(section)
         if not values:

@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 from busgate.codecs.errors import RefusedError
-from busgate.gateway.clock import now
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect
 
 log = logging.getLogger(__name__)
@@ -84,8 +84,9 @@ class ClaimTable:
 class Authority:
     """The one judge of one bus's requests (the rules at the top of this file)."""
 
-    def __init__(self, bus: str, drivers: Mapping[str, Driver],
-                 clock: Callable[[], float] = now) -> None:
+    def __init__(
+        self, bus: str, drivers: Mapping[str, Driver], clock: Callable[[], float] = now
+    ) -> None:
         self.bus = bus
         self.drivers = drivers
         self.clock = clock
@@ -112,6 +113,8 @@ class Authority:
         by_id = {driver.device_id: driver for driver in self.drivers.values()}
         unknown = sorted(ids - by_id.keys())
         if unknown and effect is not Effect.READ:
-            raise RefusedError("unknown_device", f"no device of bus {self.bus} is configured "
-                                                 f"with id {', '.join(map(str, unknown))}")
+            raise RefusedError(
+                "unknown_device",
+                f"no device of bus {self.bus} is configured with id {', '.join(map(str, unknown))}",
+            )
         return [by_id[i] for i in sorted(ids) if i in by_id]

@@ -73,8 +73,13 @@ class Watchdog:
     Without a watchdog (no ``WATCHDOG_USEC``) both do nothing.
     """
 
-    def __init__(self, notifier: Notifier, healthy: Callable[[], bool], *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        notifier: Notifier,
+        healthy: Callable[[], bool],
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.notifier = notifier
         self.healthy = healthy
         self.clock = clock
@@ -110,8 +115,7 @@ def _socket_address(value: str) -> str | bytes | None:
     if value.startswith("@") and len(value) > 1:
         return b"\0" + value[1:].encode()
     if value:
-        log.warning("NOTIFY_SOCKET=%r is neither a path nor an abstract name; not notifying",
-                    value)
+        log.warning("NOTIFY_SOCKET=%r is neither a path nor an abstract name; not notifying", value)
     return None
 
 

@@ -14,15 +14,14 @@ import sys
 from pathlib import Path
 
 from busgate.codecs.errors import ConfigError
-from busgate.gateway.budget import bus_budget
-from busgate.gateway.port_access import missing, port_problem
+from busgate.gateway.bus.port_access import missing, port_problem
+from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     check = subparsers.add_parser(
         "check-config",
-        help="validate a config and print each bus's budget",
         description="Validate a gateway config without touching hardware, and print per bus "
         "the wire time its polling and follow streams take and the share of the bus they "
         "reserve. Exit status 1 when the config is invalid.",
@@ -42,8 +41,10 @@ def check_config(args: argparse.Namespace) -> int:
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)
         print(budget.summary())
-        problems = [*host_warnings(f"buses[{index}]", bus),
-                    *(f"buses[{index}]: {text}" for text in budget.warnings())]
+        problems = [
+            *host_warnings(f"buses[{index}]", bus),
+            *(f"buses[{index}]: {text}" for text in budget.warnings()),
+        ]
         for problem in problems:
             print(f"warning: {problem}")
     return 0
@@ -52,8 +53,10 @@ def check_config(args: argparse.Namespace) -> int:
 def _overview(config: Config) -> str:
     devices = sum(len(bus.devices) for bus in config.buses)
     metrics = f"metrics on {config.metrics.listen}" if config.metrics else "no metrics endpoint"
-    return (f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
-            f"{metrics}")
+    return (
+        f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
+        f"{metrics}"
+    )
 
 
 def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:

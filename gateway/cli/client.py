@@ -2,7 +2,8 @@
 
 One of the three modules that import ``zenoh`` (with ``bridge.py``, the daemon's side, and
 ``zenoh_config.py``, the session settings both share). These are clients of the public API —
-the key expressions and the JSON envelope of issue 5 — and know nothing of buses or drivers.
+the key expressions and the JSON envelope the README describes — and know nothing of buses
+or drivers.
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
 ``cmd`` key. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error
@@ -31,7 +32,7 @@ from typing import Any, TextIO
 import zenoh
 
 from busgate.codecs.errors import CommandError
-from busgate.gateway.zenoh_config import ZenohSessionError, session_config, zenoh_reason
+from busgate.gateway.api.zenoh_config import ZenohSessionError, session_config, zenoh_reason
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"
@@ -47,50 +48,80 @@ ZENOH_TIMEOUT = b"Timeout"
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     send = subparsers.add_parser(
         "send",
-        help="send a JSON command to a device and print the reply",
         description="Send a JSON command to a device's cmd key and print each reply. A bare "
         "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers); an "
         "argument with a '/' is used as the key expression as given. Exit status: 0 all "
         "replies ok, 1 an error reply or no gateway has the device (unknown_device), 2 nobody "
         "answered.",
     )
-    send.add_argument("target", help="a device name, or a key expression such as "
-                      "busgate/gw1/bus/uart0/cmd")
+    send.add_argument(
+        "target", help="a device name, or a key expression such as busgate/gw1/bus/uart0/cmd"
+    )
     send.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
-    send.add_argument("--timeout", type=_positive, default=2.0,
-                      help="seconds to wait for replies (default 2)")
+    send.add_argument(
+        "--timeout", type=_positive, default=2.0, help="seconds to wait for replies (default 2)"
+    )
     send.add_argument("--pretty", action="store_true", help="indent the printed replies")
-    send.add_argument("--put", action="store_true", help="put instead of get: no reply; errors "
-                      "go to the gateway's events key")
+    send.add_argument(
+        "--put",
+        action="store_true",
+        help="put instead of get: no reply; errors go to the gateway's events key",
+    )
     _add_session_options(send)
     send.set_defaults(handler=run_send)
 
     watch = subparsers.add_parser(
         "watch",
-        help="a live table of device states and bus statistics",
         description="Show the latest state of every device and the statistics of every bus, "
         "refreshed in place. The selector narrows what is shown: a gateway name, or a key "
         "expression (default <prefix>/**).",
     )
-    watch.add_argument("selector", nargs="?", default=None,
-                       help="a gateway name or a key expression (default <prefix>/**)")
-    watch.add_argument("--once", action="store_true",
-                       help="print the table once after --seconds and exit (1 if nothing seen)")
-    watch.add_argument("--seconds", type=_positive, default=None,
-                       help="how long to listen (default 1.5 with --once, else until Ctrl-C)")
+    watch.add_argument(
+        "selector",
+        nargs="?",
+        default=None,
+        help="a gateway name or a key expression (default <prefix>/**)",
+    )
+    watch.add_argument(
+        "--once",
+        action="store_true",
+        help="print the table once after --seconds and exit (1 if nothing seen)",
+    )
+    watch.add_argument(
+        "--seconds",
+        type=_positive,
+        default=None,
+        help="how long to listen (default 1.5 with --once, else until Ctrl-C)",
+    )
     _add_session_options(watch)
     watch.set_defaults(handler=run_watch)
 
 
 def _add_session_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--connect", action="append", metavar="ENDPOINT", default=None,
-                        help=f"zenoh endpoint, repeatable (default {DEFAULT_ENDPOINT})")
-    parser.add_argument("--prefix", default=DEFAULT_PREFIX,
-                        help=f"the gateways' key prefix (default {DEFAULT_PREFIX})")
-    parser.add_argument("--mode", choices=("client", "peer"), default="client",
-                        help="zenoh mode of this tool's session (default client)")
-    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
-                        help="a zenoh config file (TLS, auth …) laid underneath")
+    parser.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        default=None,
+        help=f"zenoh endpoint, repeatable (default {DEFAULT_ENDPOINT})",
+    )
+    parser.add_argument(
+        "--prefix",
+        default=DEFAULT_PREFIX,
+        help=f"the gateways' key prefix (default {DEFAULT_PREFIX})",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("client", "peer"),
+        default="client",
+        help="zenoh mode of this tool's session (default client)",
+    )
+    parser.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="a zenoh config file (TLS, auth …) laid underneath",
+    )
 
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
@@ -101,8 +132,10 @@ def key_expr(text: str) -> zenoh.KeyExpr:
     """``text`` as a key expression; ``CommandError`` (one line, exit 2) when zenoh would
     refuse it or it is too long to send."""
     if len(text.encode()) > MAX_KEY_BYTES:
-        raise CommandError(f"a key expression of {len(text.encode())} bytes: at most "
-                           f"{MAX_KEY_BYTES} fit in a zenoh message")
+        raise CommandError(
+            f"a key expression of {len(text.encode())} bytes: at most "
+            f"{MAX_KEY_BYTES} fit in a zenoh message"
+        )
     try:
         return zenoh.KeyExpr(text)
     except zenoh.ZError as exc:
@@ -121,12 +154,17 @@ def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
     """A zenoh session for a client tool: ``--connect``, multicast scouting off; closed after."""
     endpoints = args.connect or [DEFAULT_ENDPOINT]
     try:
-        config = session_config(mode=args.mode, connect=endpoints, multicast_scouting=False,
-                                config_file=args.zenoh_config)
+        config = session_config(
+            mode=args.mode,
+            connect=endpoints,
+            multicast_scouting=False,
+            config_file=args.zenoh_config,
+        )
         session = zenoh.open(config)
     except zenoh.ZError as exc:
-        raise ZenohSessionError(f"cannot open a zenoh session to {', '.join(endpoints)}: "
-                                f"{zenoh_reason(exc)}") from exc
+        raise ZenohSessionError(
+            f"cannot open a zenoh session to {', '.join(endpoints)}: {zenoh_reason(exc)}"
+        ) from exc
     try:
         yield session
     finally:
@@ -152,17 +190,30 @@ def run_send(args: argparse.Namespace) -> int:
         if args.put:
             session.put(key, payload)
             return 0
-        replies = list(session.get(key, payload=payload, timeout=args.timeout,
-                                   consolidation=zenoh.ConsolidationMode.NONE))
+        replies = list(
+            session.get(
+                key,
+                payload=payload,
+                timeout=args.timeout,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
+        )
         outcomes = [outcome for reply in replies if (outcome := reply_outcome(reply)) is not None]
         bare_name = "/" not in args.target
         if bare_name:
             outcomes = _from_gateways_that_have_it(outcomes)
-        gateways = (gateway_devices(session, args.prefix, args.timeout)
-                    if bare_name and not outcomes else {})
+        gateways = (
+            gateway_devices(session, args.prefix, args.timeout)
+            if bare_name and not outcomes
+            else {}
+        )
     if not outcomes:
-        return _no_reply(args.target, key, gateways,
-                         waited=args.timeout if any(map(_is_zenoh_timeout, replies)) else None)
+        return _no_reply(
+            args.target,
+            key,
+            gateways,
+            waited=args.timeout if any(map(_is_zenoh_timeout, replies)) else None,
+        )
     status = 0
     for body, error in outcomes:
         print(json.dumps(body, indent=2 if args.pretty else None, ensure_ascii=False))
@@ -175,18 +226,21 @@ def run_send(args: argparse.Namespace) -> int:
 def _from_gateways_that_have_it(outcomes: list) -> list:
     """A bare device name asks every gateway; those without the device answer
     ``unknown_device``. Their replies matter only when no gateway has it."""
-    known = [(body, error) for body, error in outcomes
-             if error is None or error[0] != "unknown_device"]
+    known = [
+        (body, error) for body, error in outcomes if error is None or error[0] != "unknown_device"
+    ]
     return known or outcomes
 
 
-def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *,
-              waited: float | None) -> int:
+def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: float | None) -> int:
     """Nothing came back on ``key``: no gateway has ``device`` (those that answered are named;
     exit 1), or nobody answered (in the ``waited`` seconds, when zenoh did wait; exit 2)."""
     if gateways and not any(device in devices for devices in gateways.values()):
-        print(f"busgate send: unknown_device: no device {device!r} on the gateways that "
-              f"answered ({', '.join(sorted(gateways))})", file=sys.stderr)
+        print(
+            f"busgate send: unknown_device: no device {device!r} on the gateways that "
+            f"answered ({', '.join(sorted(gateways))})",
+            file=sys.stderr,
+        )
         return ERROR_REPLY
     within = "" if waited is None else f" within {waited:g} s"
     print(f"busgate send: nobody answered on {key}{within}", file=sys.stderr)
@@ -196,13 +250,16 @@ def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *,
 def gateway_devices(session: zenoh.Session, prefix: str, timeout: float) -> dict[str, set[str]]:
     """The devices of each gateway answering ``<prefix>/*/info``, by gateway name."""
     found: dict[str, set[str]] = {}
-    for reply in session.get(f"{prefix}/*/info", timeout=timeout,
-                             consolidation=zenoh.ConsolidationMode.NONE):
+    for reply in session.get(
+        f"{prefix}/*/info", timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE
+    ):
         info = _info_of(reply)
         if info is not None:
             found[str(info.get("gateway", "?"))] = {
-                str(device.get("name")) for bus in info.get("buses", [])
-                for device in bus.get("devices", [])}
+                str(device.get("name"))
+                for bus in info.get("buses", [])
+                for device in bus.get("devices", [])
+            }
     return found
 
 
@@ -259,8 +316,11 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
     if selector is None:
         return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", f"{prefix}/**"
     if "/" not in selector:  # a gateway name
-        return (f"{prefix}/{selector}/dev/*/state", f"{prefix}/{selector}/bus/*/stats",
-                f"{prefix}/{selector}/**")
+        return (
+            f"{prefix}/{selector}/dev/*/state",
+            f"{prefix}/{selector}/bus/*/stats",
+            f"{prefix}/{selector}/**",
+        )
     return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", selector
 
 
@@ -285,8 +345,9 @@ def run_watch(args: argparse.Namespace) -> int:
     return 0
 
 
-def _subscribe(session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr,
-               state_key: str, stats_key: str) -> list[zenoh.Subscriber]:
+def _subscribe(
+    session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr, state_key: str, stats_key: str
+) -> list[zenoh.Subscriber]:
     def handler(update: Callable[[str, Any, float], None]) -> Callable[[zenoh.Sample], None]:
         def on_sample(sample: zenoh.Sample) -> None:
             if not wanted.intersects(sample.key_expr):
@@ -296,18 +357,23 @@ def _subscribe(session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr,
             except ValueError:
                 return  # not ours to judge; a watcher shows what it can read
             update(str(sample.key_expr), body, time.monotonic())
+
         return on_sample
 
-    return [session.declare_subscriber(state_key, handler(table.update_state)),
-            session.declare_subscriber(stats_key, handler(table.update_stats))]
+    return [
+        session.declare_subscriber(state_key, handler(table.update_state)),
+        session.declare_subscriber(stats_key, handler(table.update_stats)),
+    ]
 
 
 def _on_reply(table: WatchTable, wanted: zenoh.KeyExpr) -> Callable[[zenoh.Reply], None]:
     """Seeds the table from ``info`` replies, so quiet devices show before their first state."""
+
     def on_reply(reply: zenoh.Reply) -> None:
         info = _info_of(reply)
         if info is not None:
             table.seed(info, lambda key: wanted.intersects(zenoh.KeyExpr(key)))
+
     return on_reply
 
 
@@ -341,8 +407,17 @@ def _redraw(out: TextIO, lines: list[str]) -> None:
 
 # -- the table (no zenoh here: fed by the callbacks above, read by the main thread) ----------
 
-DEVICE_COLUMNS = ("device", "kind", "online", "stale", "motion", "temp_c", "current_ma",
-                  "faults", "age")
+DEVICE_COLUMNS = (
+    "device",
+    "kind",
+    "online",
+    "stale",
+    "motion",
+    "temp_c",
+    "current_ma",
+    "faults",
+    "age",
+)
 BUS_COLUMNS = ("bus", "utilisation", "frames_s", "timeouts", "smallest_gap", "age")
 
 
@@ -390,28 +465,40 @@ class WatchTable:
     def render(self, now: float) -> list[str]:
         """The whole table, devices then buses."""
         devices, buses, several = self._snapshot()
-        lines = _columns(_headers(DEVICE_COLUMNS, several),
-                         [_cells(k, r, _device_cells, now, several) for k, r in devices],
-                         "(no device seen)")
+        lines = _columns(
+            _headers(DEVICE_COLUMNS, several),
+            [_cells(k, r, _device_cells, now, several) for k, r in devices],
+            "(no device seen)",
+        )
         lines.append("")
-        lines += _columns(_headers(BUS_COLUMNS, several),
-                          [_cells(k, r, _bus_cells, now, several) for k, r in buses],
-                          "(no bus seen)")
+        lines += _columns(
+            _headers(BUS_COLUMNS, several),
+            [_cells(k, r, _bus_cells, now, several) for k, r in buses],
+            "(no bus seen)",
+        )
         return lines
 
     def changed_lines(self, now: float) -> list[str]:
         """One ``name=value`` line per row updated since the last call (for a pipe)."""
         devices, buses, _ = self._snapshot()
         lines = []
-        for rows, columns, cells in ((devices, DEVICE_COLUMNS, _device_cells),
-                                     (buses, BUS_COLUMNS, _bus_cells)):
+        for rows, columns, cells in (
+            (devices, DEVICE_COLUMNS, _device_cells),
+            (buses, BUS_COLUMNS, _bus_cells),
+        ):
             for (gateway, name), row in rows:
                 if row.received is not None and row.received > row.reported:
                     row.reported = row.received
                     values = cells(name, row, now)
-                    lines.append(" ".join([f"gateway={gateway}"] + [
-                        f"{column}={value.replace(' ', '')}"
-                        for column, value in zip(columns, values, strict=True)]))
+                    lines.append(
+                        " ".join(
+                            [f"gateway={gateway}"]
+                            + [
+                                f"{column}={value.replace(' ', '')}"
+                                for column, value in zip(columns, values, strict=True)
+                            ]
+                        )
+                    )
         return lines
 
     def _store(self, rows: dict, key: str, values: dict[str, Any], now: float) -> None:
@@ -430,8 +517,9 @@ class WatchTable:
 class _Row:
     __slots__ = ("received", "reported", "values")
 
-    def __init__(self, values: dict[str, Any], received: float | None,
-                 reported: float = float("-inf")) -> None:
+    def __init__(
+        self, values: dict[str, Any], received: float | None, reported: float = float("-inf")
+    ) -> None:
         self.values, self.received, self.reported = values, received, reported
 
 
@@ -456,11 +544,17 @@ def _frame_rate(previous: dict[str, Any] | None, stats: dict[str, Any]) -> float
 def _device_cells(name: str, row: _Row, now: float) -> list[str]:
     state = row.values
     online = state.get("online")
-    return [name, _text(state.get("kind")),
-            "-" if online is None else ("yes" if online else "NO"),
-            "STALE" if state.get("stale") else "-",
-            _motion(state), _text(state.get("temperature_c")), _text(state.get("current_ma")),
-            ",".join(map(str, state.get("faults") or [])) or "-", _age(row, now)]
+    return [
+        name,
+        _text(state.get("kind")),
+        "-" if online is None else ("yes" if online else "NO"),
+        "STALE" if state.get("stale") else "-",
+        _motion(state),
+        _text(state.get("temperature_c")),
+        _text(state.get("current_ma")),
+        ",".join(map(str, state.get("faults") or [])) or "-",
+        _age(row, now),
+    ]
 
 
 def _motion(state: dict[str, Any]) -> str:
@@ -476,18 +570,23 @@ def _motion(state: dict[str, Any]) -> str:
 def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
     stats = row.values
     utilisation, gap = stats.get("utilisation"), stats.get("smallest_gap_s")
-    return [name,
-            "-" if not isinstance(utilisation, int | float) else f"{utilisation * 100:.0f}%",
-            _text(stats.get("frames_s")), _text(stats.get("timeouts")),
-            "-" if not isinstance(gap, int | float) else f"{gap * 1000:.2f} ms", _age(row, now)]
+    return [
+        name,
+        "-" if not isinstance(utilisation, int | float) else f"{utilisation * 100:.0f}%",
+        _text(stats.get("frames_s")),
+        _text(stats.get("timeouts")),
+        "-" if not isinstance(gap, int | float) else f"{gap * 1000:.2f} ms",
+        _age(row, now),
+    ]
 
 
 def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
     return [c.upper() for c in ("gateway",) * several + columns]
 
 
-def _cells(key: tuple[str, str], row: _Row, cells: Callable, now: float,
-           several: bool) -> list[str]:
+def _cells(
+    key: tuple[str, str], row: _Row, cells: Callable, now: float, several: bool
+) -> list[str]:
     return ([key[0]] if several else []) + cells(key[1], row, now)
 
 
@@ -495,8 +594,10 @@ def _columns(header: list[str], rows: list[list[str]], nothing: str) -> list[str
     if not rows:
         return [nothing]
     widths = [max(len(cell) for cell in column) for column in zip(header, *rows, strict=True)]
-    return ["  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True))
-            .rstrip() for line in [header, *rows]]
+    return [
+        "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip()
+        for line in [header, *rows]
+    ]
 
 
 def _text(value: Any) -> str:

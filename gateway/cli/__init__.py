@@ -1,0 +1,74 @@
+"""The ``busgate`` command: one parser, subcommands added by the modules that own them.
+
+A ``BusgateError`` (a bad command line, a refused command) is printed as one line and exits
+with status 2, never as a traceback. ``busgate --version`` prints the installed version;
+``busgate`` alone prints the help, listing the commands, on stderr and exits with status 2 (a
+command is missing, as for any other usage error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from busgate.codecs.errors import BusgateError
+from busgate.gateway import installed_version
+
+#: Each command, the module that adds its parser and carries it out, and its line in the
+#: list. A module is imported only for its own command: ``busgate --help`` and ``busgate
+#: encode`` load no zenoh, pyserial, python-can or prometheus_client.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "encode": ("busgate.gateway.cli.codec", "print the frames that carry out a JSON command"),
+    "decode": ("busgate.gateway.cli.codec", "decode frames from hex"),
+    "sim": ("busgate.gateway.sim.cli", "serve simulated devices on a new pty"),
+    "bench": (
+        "busgate.gateway.cli.bench",
+        "measure the bus owner and scheduler against a port or the simulators",
+    ),
+    "send": ("busgate.gateway.cli.client", "send a JSON command to a device and print the reply"),
+    "watch": ("busgate.gateway.cli.client", "a live table of device states and bus statistics"),
+    "run": ("busgate.gateway.service.daemon", "run the gateway daemon"),
+    "check-config": (
+        "busgate.gateway.cli.check_config",
+        "validate a config and print each bus's budget",
+    ),
+    "demo": ("busgate.gateway.cli.demo", "run the gateway on simulated devices of every kind"),
+    "schema": (
+        "busgate.gateway.cli.schema",
+        "write the JSON Schemas of commands, replies, telemetry, events and config",
+    ),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser, with ``command``'s own arguments (the others are listed by name only)."""
+    parser = argparse.ArgumentParser(
+        prog="busgate",
+        description="busgate: a gateway between motion-device buses (Inspire LA actuators, "
+        "ZLAC706 hub-motor drivers, DS serial servos) and Eclipse Zenoh.",
+    )
+    parser.add_argument("--version", action="version", version=f"busgate {installed_version()}")
+    subparsers = parser.add_subparsers(dest="subcommand", required=True, metavar="COMMAND")
+    chosen = COMMANDS[command][0] if command in COMMANDS else None
+    if chosen is not None:
+        importlib.import_module(chosen).add_parsers(subparsers)
+    for name, (module, line) in COMMANDS.items():
+        if module != chosen:
+            subparsers.add_parser(name, help=line)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(next((arg for arg in argv if not arg.startswith("-")), None))
+    if not argv:
+        parser.print_help(sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except BusgateError as exc:
+        print(f"busgate {args.subcommand}: error: {exc}", file=sys.stderr)
+        return 2
