@@ -76,7 +76,7 @@ async def serve(
     config: Config, *, ready: threading.Event | None = None, stop: asyncio.Event | None = None
 ) -> None:
     """Serve ``config`` until ``stop`` is set (or SIGTERM/SIGINT when no ``stop`` is given)."""
-    from busgate.gateway.api.commands import bridge as zenoh_side  # the one module that needs zenoh
+    from busgate.gateway.api import bridge as zenoh_side  # the one module that needs zenoh
 
     expected_up = _check_ports(config)
     tune_interpreter()
