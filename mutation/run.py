@@ -1,0 +1,164 @@
+"""Mutation testing on demand (never in CI): ``.venv/bin/python mutation/run.py [package ...]``.
+
+Why a driver rather than a bare ``mutmut run``: mutmut names each mutant after its file's path
+(with a leading ``src/`` stripped) and switches a mutant on only inside functions whose
+``__module__`` has that name. Our folders install as ``busgate.codecs`` and ``busgate.gateway``
+through setuptools' package-dir, so ``codecs/framing.py`` would be called ``codecs.framing``
+while the tests import ``busgate.codecs.framing``, and no mutant would ever be switched on.
+So this script copies the package into ``mutation/work/<package>/src/busgate/<folder>``, with
+tests/ and a pyproject.toml holding pytest's options and mutmut's, and runs mutmut there: the
+copy is named ``busgate.<folder>`` and imported ahead of the editable install, and the folders
+left uncopied still come from the editable install.
+
+Why per package, and why a hypothesis profile: the whole suite takes minutes and opens ptys
+and zenoh sessions, too slow for each of thousands of mutants. Each package gets the fast tests
+that exercise it (mutmut then runs, for each mutant, only those of them that reached the
+mutated function), and a conftest.py in the work folder loads a derandomized hypothesis
+profile of 10 examples, so property tests are quick and every run finds the same examples.
+The stateful decoder tests (tests/test_decoder_state_machines.py) are left out: at 50 machines
+each they took half of the codecs' time per mutant, and the golden tests cover the same paths.
+
+Each run starts afresh and prints killed / total per package, with survivors and timeouts;
+``results.json`` in the package's work folder keeps each mutant's status, and ``cd
+mutation/work/<package> && ../../../.venv/bin/mutmut show NAME`` shows a mutant as a diff.
+``--again`` reruns only the mutants the last run did not kill, with the current tests, and
+merges the result into the last run's (for checking new tests; the source must be unchanged).
+mutation/EQUIVALENT.md lists every survivor: the equivalent ones with the reason, and the
+open ones (waiting for a killing test).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+import time
+import tomllib
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+WORK = ROOT / "mutation" / "work"
+MUTMUT = Path(sys.executable).parent / "mutmut"
+CHILDREN = 2  # one package at a time, two mutants at once: the machine has two cores
+
+CODEC_TESTS = [
+    "tests/test_framing.py",
+    "tests/test_ds_servo_codec.py",
+    "tests/test_inspire_la_codec.py",
+    "tests/test_zlac706_can_codec.py",
+    "tests/test_zlac706_rs232_codec.py",
+    "tests/test_ds_servo_commands.py",
+    "tests/test_inspire_la_commands.py",
+    "tests/test_zlac706_commands.py",
+    "tests/test_doctests.py",
+    "tests/test_mutants_codecs.py",
+]
+
+# package: (folder copied under src/busgate, files mutated (globs, relative to ROOT), tests)
+PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
+    "codecs": ("codecs", ["codecs/*"], CODEC_TESTS),
+    "scheduler": (
+        "gateway",
+        ["gateway/scheduler/planner.py", "gateway/scheduler/tickers.py",
+         "gateway/scheduler/streams.py"],
+        ["tests/test_planner.py", "tests/test_mutants_scheduler.py"],
+    ),
+    "bus": (
+        "gateway",
+        ["gateway/bus/serial_owner.py", "gateway/bus/can_owner.py", "gateway/bus/request.py"],
+        ["tests/test_bus_runner.py", "tests/test_line_edges.py", "tests/test_can_runner.py",
+         "tests/test_mutants_bus.py"],
+    ),
+    "api": (
+        "gateway",
+        ["gateway/api/commands.py", "gateway/scheduler/authority.py"],
+        ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_mutants_api.py"],
+    ),
+}
+
+CONFTEST = '''"""Written by mutation/run.py: quick, repeatable property tests under mutation."""
+from hypothesis import settings
+
+settings.register_profile("mutation", max_examples=10, derandomize=True, deadline=None)
+settings.load_profile("mutation")
+'''
+
+
+def lay_out(package: str) -> Path:
+    """A fresh work folder for ``package``: its source under src/busgate, tests, config."""
+    folder, mutate, tests = PACKAGES[package]
+    work = WORK / package
+    shutil.rmtree(work, ignore_errors=True)
+    ignore = shutil.ignore_patterns("__pycache__", ".hypothesis")
+    shutil.copytree(ROOT / folder, work / "src" / "busgate" / folder, ignore=ignore)
+    shutil.copytree(ROOT / "tests", work / "tests", ignore=ignore)
+    (work / "conftest.py").write_text(CONFTEST)
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]
+    mutmut = {
+        **tool.get("mutmut", {}),
+        "source_paths": [f"src/busgate/{folder}"],
+        "only_mutate": [f"src/busgate/{glob}" for glob in mutate],
+        "pytest_add_cli_args_test_selection": [t for t in tests if (ROOT / t).exists()],
+        "also_copy": ["conftest.py"],
+    }
+    lines = ["[tool.pytest.ini_options]"]
+    # JSON's strings, numbers, booleans and lists of them are TOML too.
+    lines += [f"{k} = {json.dumps(v)}" for k, v in tool["pytest"]["ini_options"].items()]
+    lines += ["", "[tool.mutmut]"] + [f"{k} = {json.dumps(v)}" for k, v in mutmut.items()]
+    (work / "pyproject.toml").write_text("\n".join(lines) + "\n")
+    return work
+
+
+def mutmut(work: Path, *args: str) -> str:
+    done = subprocess.run([MUTMUT, *args], cwd=work, capture_output=True, text=True)
+    with (work / "mutmut.log").open("a") as log:
+        log.write(done.stdout + done.stderr)
+    return done.stdout
+
+
+def statuses(work: Path) -> dict[str, str]:
+    listed = mutmut(work, "results", "--all", "true")
+    return dict(re.findall(r"^\s+(\S+): (.+)$", listed, re.MULTILINE))
+
+
+def run(package: str, again: bool) -> Counter:
+    results_file = WORK / package / "results.json"
+    if again and not results_file.exists():
+        sys.exit(f"{package}: no finished run to go --again from ({results_file} is missing)")
+    previous = json.loads(results_file.read_text()) if again else {}
+    retry = sorted(name for name, status in previous.items() if status != "killed")
+    work = lay_out(package)
+    if not again:
+        mutmut(work, "run", "--max-children", str(CHILDREN))
+        results = statuses(work)
+    elif retry:
+        mutmut(work, "run", "--max-children", str(CHILDREN), *retry)
+        results = {**previous, **{k: v for k, v in statuses(work).items() if k in retry}}
+    else:
+        results = previous
+    if not results or "not checked" in results.values():
+        sys.exit(f"{package}: mutmut did not finish, see {work / 'mutmut.log'}")
+    results_file.write_text(json.dumps(results, indent=1, ensure_ascii=False) + "\n")
+    return Counter(results.values())
+
+
+def main(argv: list[str]) -> None:
+    again = "--again" in argv
+    packages = [a for a in argv if a != "--again"] or list(PACKAGES)
+    unknown = set(packages) - set(PACKAGES)
+    if unknown:
+        sys.exit(f"unknown package(s) {sorted(unknown)}; choose from {list(PACKAGES)}")
+    for package in packages:
+        started = time.monotonic()
+        counts = run(package, again)
+        total, killed = sum(counts.values()), counts.pop("killed", 0)
+        rest = "  ".join(f"{status} {n}" for status, n in sorted(counts.items()))
+        print(f"{package:10} killed {killed}/{total} ({100 * killed / total:.1f}%)  {rest}  "
+              f"in {time.monotonic() - started:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
