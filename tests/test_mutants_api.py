@@ -6,27 +6,18 @@ python-can's virtual bus, as tests/test_api.py does."""
 
 from __future__ import annotations
 
-import itertools
 import json
 
-import can
 import pytest
 
-from busgate.codecs import inspire_la as la
-from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.errors import RefusedError
 from busgate.gateway.api.commands import MAX_PAYLOAD, GatewayApi
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.authority import Authority, ClaimTable
-from busgate.gateway.service.assembly import build_bus
-from busgate.gateway.sim.can_server import CanSimulator
-from busgate.gateway.sim.inspire_la import InspireLaDevice
-from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.gateway.sim.zlac706 import Zlac706CanDevice
-from busgate.schemas.config import CanBus, SerialBus
+from tests import test_api
 
-_channels = itertools.count()
-
+#: The two buses of tests/test_api.py (LA and ZLAC706), as this module's fixture too.
+gateway = test_api.gateway
 
 # -- the claim table -------------------------------------------------------------------------
 
@@ -97,32 +88,6 @@ def test_reads_of_unknown_ids_pass_and_anything_else_to_them_is_refused():
 # -- the API ---------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def gateway(wait_for):
-    """Two LA actuators on a simulated UART and one ZLAC706 on a virtual CAN bus."""
-    simulator = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
-    simulator.start()
-    channel = f"test-mutants-api-{next(_channels)}"
-    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
-                           bus=can.Bus(interface="virtual", channel=channel)).start()
-    uart = SerialBus(name="uart0", transport="serial", port=simulator.port, baudrate=921_600,
-                     reply_margin_ms=10,
-                     devices=[{"name": "la1", "kind": "inspire_la", "id": 1},
-                              {"name": "la2", "kind": "inspire_la", "id": 2}])
-    can_bus = CanBus(name="can0", transport="can", interface="virtual", channel=channel,
-                     reply_margin_ms=10,
-                     devices=[{"name": "wheel", "kind": "zlac706", "id": 5, "heartbeat_ms": 50}])
-    events: list[DeviceEvent] = []
-    runners = {bus.name: build_bus(bus, on_event=events.append).start() for bus in (uart, can_bus)}
-    api = GatewayApi("gw", runners, on_event=events.append)
-    wait_for(lambda: all(driver.online for _, driver in api.devices.values()))
-    yield api, events
-    for runner in runners.values():
-        runner.stop()
-    simulator.stop()
-    can_sim.stop()
-
-
 def accepted(api: GatewayApi, device: str, command: dict) -> dict:
     reply = api.command(device, json.dumps(command).encode()).result(10)
     assert reply["ok"], reply
@@ -134,7 +99,7 @@ def said(events: list[DeviceEvent], type_: str) -> list[tuple[str, dict]]:
 
 
 def test_claims_and_releases_are_told_with_who_and_for_how_long(gateway):
-    api, events = gateway
+    api, *_, events = gateway
     reply = accepted(api, "la2", {"op": "claim", "client": "alice", "ttl_s": 5})
     assert (reply["claimed_by"], reply["expires_in_s"]) == ("alice", 5.0)
     refused = api.command("la2", b'{"op":"claim","client":"bob"}').result(10)
@@ -145,7 +110,7 @@ def test_claims_and_releases_are_told_with_who_and_for_how_long(gateway):
 
 
 def test_the_deadman_tells_what_it_released_stopped_and_why(wait_for, gateway):
-    api, events = gateway
+    api, *_, events = gateway
     for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
         accepted(api, "wheel", op)
     accepted(api, "wheel", {"op": "velocity", "rpm": 200, "client": "teleop"})
@@ -159,7 +124,7 @@ def test_the_deadman_tells_what_it_released_stopped_and_why(wait_for, gateway):
 
 
 def test_info_gives_each_devices_id_and_latest_state(wait_for, gateway):
-    api, _ = gateway
+    api, *_ = gateway
     runner = api.runners["uart0"]
     wait_for(lambda: "la1" in runner.states)
     devices = {d["name"]: d for bus in api.info()["buses"] for d in bus["devices"]}
@@ -169,7 +134,7 @@ def test_info_gives_each_devices_id_and_latest_state(wait_for, gateway):
 
 
 def test_a_payload_of_exactly_the_limit_is_read_and_one_byte_more_is_not(gateway):
-    api, _ = gateway
+    api, *_ = gateway
     pad = MAX_PAYLOAD - len(b'{"op":"status","x":""}')
     at_limit = b'{"op":"status","x":"' + b" " * pad + b'"}'
     assert len(at_limit) == MAX_PAYLOAD
@@ -180,7 +145,7 @@ def test_a_payload_of_exactly_the_limit_is_read_and_one_byte_more_is_not(gateway
 
 
 def test_a_claim_with_a_bad_lifetime_is_refused_as_out_of_range(gateway):
-    api, events = gateway
+    api, *_, events = gateway
     reply = api.command("la1", b'{"op":"claim","client":"alice","ttl_s":0}').result(10)
     assert reply["error"]["code"] == "out_of_range" and "ttl_s" in reply["error"]["message"]
     assert said(events, "claimed") == []
