@@ -5,8 +5,9 @@ UART frames are 8N1: 10 bits per byte (start, 8 data, stop). A classic CAN data 
 standard identifier has 47 fixed bits plus 8 per data byte; bit stuffing adds at most one bit
 per four of the 34 + 8n bits it covers (SOF to CRC), which gives the worst case.
 
-``PROTOCOL_TIMING`` holds what the manuals say about turnaround and gaps, and marks where they
-say nothing and we chose (the simulators and the scheduler read the same figures).
+Each codec states its protocol's figures as ``TIMING``, a ``ProtocolTiming``: what its manual
+says about turnaround and gaps, and where it says nothing, what we chose (the simulators and
+the scheduler read the same figures).
 """
 
 from __future__ import annotations
@@ -57,18 +58,3 @@ class ProtocolTiming:
     reply_min_s: float
     reply_max_s: float
     default_rate: int
-
-
-PROTOCOL_TIMING: dict[str, ProtocolTiming] = {
-    # Manual 3.4.2: replies after 120 µs, up to 800 µs when a control task interrupts;
-    # "keep commands at least 1 ms apart". 921600 baud is the D-type factory default.
-    "inspire_la": ProtocolTiming(0.001, 0.001, 120e-6, 800e-6, 921_600),
-    # The DS manual states no reply time, gap or baud rate: we assume a reply within 500 µs,
-    # ask no minimum gap of the protocol, default to 0.5 ms of idle line and 115200 baud.
-    "ds_servo": ProtocolTiming(0.0, 0.0005, 50e-6, 500e-6, 115_200),
-    # The ZLAC706 manual states no RS232 baud rate or acknowledgement time: we assume an
-    # acknowledgement within 1 ms and default to 115200 baud; the bus config names the rate.
-    "zlac706_rs232": ProtocolTiming(0.0, 0.0005, 100e-6, 1e-3, 115_200),
-    # CAN arbitrates the bus itself, so no gap; the manual gives 500 kbit/s and no reply time.
-    "zlac706_can": ProtocolTiming(0.0, 0.0, 100e-6, 1e-3, 500_000),
-}

@@ -18,21 +18,15 @@ Rules of this file:
 
 from __future__ import annotations
 
-import enum
 import warnings
-from collections.abc import Iterable
 from typing import Annotated, Any, Literal, Union, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
+from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
-from busgate.codecs import ds_servo as ds_codec
-from busgate.codecs import inspire_la as la_codec
-from busgate.codecs import zlac706_common as zlac_common
-from busgate.schemas import ds_servo as ds_servo_commands
-from busgate.schemas import inspire_la as inspire_la_commands
-from busgate.schemas import zlac706 as zlac706_commands
-from busgate.schemas.base import ClientId, CommandModel
-from busgate.schemas.config import ID_RANGES, Name
+from busgate.schemas.base import ClientId, CommandModel, OpenPublished, Published
+from busgate.schemas.config import Name
+from busgate.schemas.families import FAMILIES, PROTOCOLS
+from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
 
 #: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
 ErrorCode = Literal[
@@ -42,37 +36,13 @@ ErrorCode = Literal[
 ]  # fmt: skip
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__
 
-DeviceKind = Literal["inspire_la", "ds_servo", "zlac706"]
-Protocol = Literal[tuple(ID_RANGES)]  # type: ignore[valid-type]
+Protocol = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
 
 #: The most ids one scan may name (every id a one-byte address leaves, bar broadcast).
 MAX_SCAN_IDS = 254
 
 #: The longest claim a client may ask for, in seconds.
 MAX_CLAIM_S = 3600.0
-
-
-def _names(flags: Iterable[enum.Flag]) -> tuple[str, ...]:
-    """Flag names as the drivers publish them: ``OVER_CURRENT`` → ``over_current``."""
-    return tuple(flag.name.lower() for flag in flags)
-
-
-LaFault = Literal[_names(la_codec.Fault)]  # type: ignore[valid-type]
-DsFault = Literal[_names(ds_codec.ServoStatus)]  # type: ignore[valid-type]
-#: The alarm bits that are faults (``AlarmFlags.faults`` leaves out running and external control).
-ZlacFault = Literal[_names(f for f in zlac_common.AlarmFlags if f.faults)]  # type: ignore[valid-type]
-
-
-class Published(BaseModel):
-    """Base of what the gateway publishes and clients only read: closed, no coercion."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
-
-
-class OpenPublished(BaseModel):
-    """Base of published data that may gain fields: ok replies, events."""
-
-    model_config = ConfigDict(extra="allow", strict=True, frozen=True)
 
 
 # --- gateway-level commands -----------------------------------------------------------------------
@@ -144,110 +114,18 @@ BusCommand = Annotated[BusGroupMove | BusScan, Field(discriminator="op")]
 BUS_COMMAND_ADAPTER: TypeAdapter[BusCommand] = TypeAdapter(BusCommand)
 
 
-# --- telemetry: <prefix>/<gw>/dev/<device>/state --------------------------------------------------
+# --- telemetry (<prefix>/<gw>/dev/<device>/state) and follow targets (…/follow) -----------------
 
-
-class TelemetryEnvelope(Published):
-    """The fields every device's state carries, whatever its kind. ``None`` in a value: not
-    known yet (never read, or not reported by this device's protocol)."""
-
-    ts: float = Field(description="When the state was taken, in seconds of the gateway's clock.")
-    device: Name
-    kind: DeviceKind
-    online: bool = Field(description="The device answered recently (or sent heartbeats).")
-    last_reply_age_s: Annotated[float, Field(ge=0)] | None = Field(
-        description="Seconds since the device last answered; null if it never did."
-    )
-    stale: bool = Field(
-        description="The values are older than a few poll periods (an oversubscribed bus, or "
-        "a device not answering)."
-    )
-
-
-class InspireLaTelemetry(TelemetryEnvelope):
-    """An Inspire LA actuator: its last status frame, the commanded power stage, and the
-    protection limits as last read or confirmed (at first the manual's defaults)."""
-
-    kind: Literal["inspire_la"]
-    position: int | None = Field(description="Present position, raw stroke units 0–2000.")
-    target: int | None = Field(description="Target position the actuator reports, 0–2000.")
-    temperature_c: int | None = Field(description="Actuator temperature, °C.")
-    current_ma: int | None = Field(description="Motor current, mA.")
-    force_g: int | None = Field(description="Force sensor reading, g (LAF/LASF models only).")
-    faults: list[LaFault] = Field(description="Latched faults by name; empty when healthy.")
-    power: Literal["on", "paused", "estopped"] = Field(
-        description="Power stage as commanded: paused until the next target, estopped until enable."
-    )
-    overcurrent_limit_ma: int = Field(description="Over-current protection threshold, mA.")
-    overtemp_limit_c: float = Field(description="Over-temperature limit, °C (0.1 °C steps).")
-    rewarm_temperature_c: float = Field(
-        description="Temperature below which an over-heated actuator works again, °C."
-    )
-
-
-class DsServoTelemetry(TelemetryEnvelope):
-    """A DS serial servo: its last poll, what it confirmed, and its status-byte faults."""
-
-    kind: Literal["ds_servo"]
-    position: int | None = Field(description="Present position, raw 0–4095 (one turn).")
-    speed_raw: int | None = Field(
-        description="Speed register, raw: the manual does not document its unit."
-    )
-    current_ma: int | None = Field(description="Motor current, mA.")
-    temperature_c: int | None = Field(description="Servo temperature, °C.")
-    target: int | None = Field(description="Target position last confirmed or sent, 0–4095.")
-    pending_target: int | None = Field(
-        description="A deferred move's target waiting for ``action``, 0–4095."
-    )
-    torque_on: bool | None = Field(description="Torque enabled (false: the shaft is free).")
-    faults: list[DsFault] = Field(description="Status-byte faults by name; empty when healthy.")
-
-
-class Ramp(Published):
-    """Acceleration and deceleration times from 0 to top speed, in ms (100 ms steps)."""
-
-    accel_ms: Annotated[int, Field(ge=0)]
-    decel_ms: Annotated[int, Field(ge=0)]
-
-
-class Zlac706Telemetry(TelemetryEnvelope):
-    """A ZLAC706 hub-motor driver: the settings it acknowledged and, from heartbeats (CAN) or
-    the monitor reply (RS232), what it measured."""
-
-    kind: Literal["zlac706"]
-    mode: zlac_common.Mode | None = Field(description="Work mode as acknowledged.")
-    enabled: bool | None = Field(description="Motor enabled (shaft driven).")
-    position_mode: Literal["relative", "absolute"] | None = Field(
-        description="How position targets are taken."
-    )
-    target: int | None = Field(description="Position target, encoder pulses.")
-    target_speed_rpm: float | None = Field(description="Speed target, rpm.")
-    target_current_a: float | None = Field(description="Torque-mode current target, A.")
-    position_ramp: Ramp | None = Field(description="Position-mode ramps.")
-    velocity_ramp: Ramp | None = Field(description="Velocity-mode ramps.")
-    max_speed_rpm: float | None = Field(description="Position mode's top speed, rpm.")
-    measured: bool = Field(
-        description="Measured values have arrived (false on CAN until the first heartbeat)."
-    )
-    position: int | None = Field(description="Feedback position, encoder pulses.")
-    current_ma: int | None = Field(description="Output current, mA.")
-    speed_rpm: float | None = Field(description="Measured speed, rpm.")
-    voltage_v: int | None = Field(
-        default=None, description="DC bus voltage, V (±2 V; RS232 only: absent on CAN)."
-    )
-    faults: list[ZlacFault] = Field(description="Alarm bits by name; empty when healthy.")
-
-
-#: Any device's state, told apart by ``kind``.
-Telemetry = Annotated[
-    InspireLaTelemetry | DsServoTelemetry | Zlac706Telemetry, Field(discriminator="kind")
-]
-TELEMETRY_ADAPTER: TypeAdapter[Telemetry] = TypeAdapter(Telemetry)
+#: Each kind's telemetry model and follow payload, from its schema module.
 TELEMETRY_MODELS: dict[str, type[TelemetryEnvelope]] = {
-    "inspire_la": InspireLaTelemetry,
-    "ds_servo": DsServoTelemetry,
-    "zlac706": Zlac706Telemetry,
+    kind: family.schema.TELEMETRY_MODEL for kind, family in FAMILIES.items()
 }
+FOLLOW_MODELS: dict[str, type[CommandModel]] = {
+    kind: family.schema.FollowTarget for kind, family in FAMILIES.items()
+}
+#: Any device's state, told apart by ``kind``.
+Telemetry = Annotated[Union[tuple(TELEMETRY_MODELS.values())], Field(discriminator="kind")]  # noqa: UP007
+TELEMETRY_ADAPTER: TypeAdapter[Any] = TypeAdapter(Telemetry)
 
 
 # --- replies: every cmd queryable -----------------------------------------------------------------
@@ -487,7 +365,5 @@ def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
 
 #: What ``<prefix>/<gw>/dev/<device>/cmd`` takes, per device kind.
 DEVICE_COMMAND_ADAPTERS: dict[str, TypeAdapter[Any]] = {
-    "inspire_la": _device_commands(inspire_la_commands),
-    "ds_servo": _device_commands(ds_servo_commands),
-    "zlac706": _device_commands(zlac706_commands),
+    kind: _device_commands(family.schema) for kind, family in FAMILIES.items()
 }

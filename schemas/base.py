@@ -1,4 +1,5 @@
-"""What every command model shares: strict parsing, the client field, hex data.
+"""What every command model shares (strict parsing, the client field, hex data), and the two
+bases of what the gateway publishes.
 
 Rules: a command is refused, never coerced. Unknown fields, strings for numbers, floats for
 integers, NaN and infinities are validation errors, so a malformed command cannot reach a wire.
@@ -25,3 +26,15 @@ class CommandModel(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
     client: ClientId | None = None
+
+
+class Published(BaseModel):
+    """Base of what the gateway publishes and clients only read: closed, no coercion."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class OpenPublished(BaseModel):
+    """Base of published data that may gain fields: ok replies, events."""
+
+    model_config = ConfigDict(extra="allow", strict=True, frozen=True)

@@ -2,8 +2,9 @@
 
 Rules of this file: everything a running gateway relies on is checked here, before any port
 is opened, and every refusal names its key path (``buses[0].devices[1].follow_period_ms``)
-and what is allowed. Timing limits come from ``busgate.codecs.timing``, id ranges from the
-codecs, so a limit is written down once. Whether a port exists is not checked here: that is
+and what is allowed. Kinds, their protocols per transport, id ranges and timing limits come
+from the family registry (``busgate.schemas.families``) and the codecs it names, so a limit is
+written down once. Whether a port exists is not checked here: that is
 the host's business, and ``busgate check-config`` reports it as a warning. The host is looked at
 once: symlinks are resolved (``os.path.realpath``), so that two buses naming one device file
 (``/dev/ttyUSB0`` and a udev link to it) are refused instead of fighting over the port.
@@ -19,7 +20,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from busgate.codecs.errors import ConfigError
-from busgate.codecs.timing import PROTOCOL_TIMING
+from busgate.schemas.families import PROTOCOLS, kinds, protocol_of
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
 Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
@@ -27,16 +28,6 @@ KeyPrefix = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1
 Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 
 FOLLOW_PERIOD_MS = (10.0, 50.0)  # the actuators' follow mode: a fixed period of 10–50 ms
-
-#: Device ids each kind accepts, per protocol (zlac706 on RS232 has none: one per port).
-ID_RANGES = {
-    "inspire_la": (1, 254),
-    "ds_servo": (1, 250),
-    "zlac706_can": (1, 109),
-    "zlac706_rs232": (0, 255),
-}
-UART_KINDS = {"inspire_la": "inspire_la", "ds_servo": "ds_servo", "zlac706": "zlac706_rs232"}
-CAN_KINDS = {"zlac706": "zlac706_can"}
 
 
 class Section(BaseModel):
@@ -62,7 +53,7 @@ class MetricsSection(Section):
 
 class DeviceConfig(Section):
     name: Name
-    kind: Literal["inspire_la", "ds_servo", "zlac706"]
+    kind: Literal[kinds()]  # type: ignore[valid-type]
     id: int = 1
     poll_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
     follow_period_ms: Annotated[float, Field(ge=FOLLOW_PERIOD_MS[0], le=FOLLOW_PERIOD_MS[1])] = 20.0
@@ -85,8 +76,10 @@ class BusBase(Section):
 
     @property
     def protocol(self) -> str:
-        kinds = UART_KINDS if isinstance(self, SerialBus) else CAN_KINDS
-        return kinds[self.devices[0].kind]
+        """The wire protocol of the bus's devices (``_check_bus`` made sure there is one)."""
+        protocol = protocol_of(self.devices[0].kind, self.transport)  # type: ignore[attr-defined]
+        assert protocol is not None
+        return protocol.name
 
 
 class SerialBus(BusBase):
@@ -104,7 +97,7 @@ class SerialBus(BusBase):
     @property
     def gap_s(self) -> float:
         if self.min_gap_ms is None:
-            return PROTOCOL_TIMING[self.protocol].default_gap_s
+            return PROTOCOLS[self.protocol].timing.default_gap_s
         return self.min_gap_ms / 1000
 
 
@@ -177,20 +170,23 @@ def _one_file(real: str, first_name: str, name: str) -> str:
 
 
 def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
-    kinds = {device.kind for device in bus.devices}
-    allowed = UART_KINDS if isinstance(bus, SerialBus) else CAN_KINDS
+    kinds_here = {device.kind for device in bus.devices}
+    allowed = [kind for kind in kinds() if protocol_of(kind, bus.transport)]
     for index, device in enumerate(bus.devices):
         if device.kind not in allowed:
             raise ValueError(
                 f"{path}.devices[{index}].kind: {device.kind} cannot be on a {bus.transport} bus "
                 f"(allowed: {', '.join(sorted(allowed))})"
             )
-    if len(kinds) > 1:
-        raise ValueError(f"{path}.devices: one device kind per bus, not {sorted(kinds)}")
-    protocol = bus.protocol
-    if protocol == "zlac706_rs232" and len(bus.devices) > 1:
-        raise ValueError(f"{path}.devices: a ZLAC706 RS232 port drives one driver, not several")
-    low, high = ID_RANGES[protocol]
+    if len(kinds_here) > 1:
+        raise ValueError(f"{path}.devices: one device kind per bus, not {sorted(kinds_here)}")
+    protocol = PROTOCOLS[bus.protocol]
+    if not protocol.addressed and len(bus.devices) > 1:
+        raise ValueError(
+            f"{path}.devices: {protocol.name} frames carry no device id, so a port drives one "
+            f"device, not several"
+        )
+    low, high = protocol.device_ids[0], protocol.device_ids[-1]
     ids: set[int] = set()
     for index, device in enumerate(bus.devices):
         if not low <= device.id <= high:
@@ -198,9 +194,9 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
         if device.id in ids:
             raise ValueError(f"{path}.devices[{index}].id: id {device.id} is used twice on the bus")
         ids.add(device.id)
-    if isinstance(bus, SerialBus) and bus.gap_s < PROTOCOL_TIMING[protocol].min_gap_s:
-        minimum = PROTOCOL_TIMING[protocol].min_gap_s * 1000
-        raise ValueError(f"{path}.min_gap_ms: {protocol} needs at least {minimum:g} ms")
+    if isinstance(bus, SerialBus) and bus.gap_s < protocol.timing.min_gap_s:
+        minimum = protocol.timing.min_gap_s * 1000
+        raise ValueError(f"{path}.min_gap_ms: {protocol.name} needs at least {minimum:g} ms")
 
 
 def parse_config(data: dict[str, Any]) -> Config:

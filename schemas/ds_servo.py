@@ -20,6 +20,7 @@ from pydantic.fields import FieldInfo
 
 from busgate.codecs import ds_servo as codec
 from busgate.schemas.base import CommandModel, HexData
+from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
 def _register_range(name: str) -> FieldInfo:
@@ -158,3 +159,37 @@ Command = Annotated[
     Field(discriminator="op"),
 ]
 COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
+
+
+# --- the follow key and telemetry ---------------------------------------------------------------
+
+
+class FollowTarget(CommandModel):
+    """What ``<prefix>/<gw>/dev/<device>/follow`` takes: one absolute position, and the sending
+    client (the latest target is sent at the device's follow period)."""
+
+    position: Position
+
+
+FaultName = fault_literal(codec.ServoStatus)
+
+
+class DsServoTelemetry(TelemetryEnvelope):
+    """A DS serial servo: its last poll, what it confirmed, and its status-byte faults."""
+
+    kind: Literal["ds_servo"]
+    position: int | None = Field(description="Present position, raw 0–4095 (one turn).")
+    speed_raw: int | None = Field(
+        description="Speed register, raw: the manual does not document its unit."
+    )
+    current_ma: int | None = Field(description="Motor current, mA.")
+    temperature_c: int | None = Field(description="Servo temperature, °C.")
+    target: int | None = Field(description="Target position last confirmed or sent, 0–4095.")
+    pending_target: int | None = Field(
+        description="A deferred move's target waiting for ``action``, 0–4095."
+    )
+    torque_on: bool | None = Field(description="Torque enabled (false: the shaft is free).")
+    faults: list[FaultName] = Field(description="Status-byte faults by name; empty when healthy.")  # type: ignore[valid-type]
+
+
+TELEMETRY_MODEL = DsServoTelemetry

@@ -19,6 +19,7 @@ from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, model_valida
 
 from busgate.codecs import inspire_la as codec
 from busgate.schemas.base import CommandModel, HexData
+from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
 def _register_range(name: str) -> Field:
@@ -205,3 +206,40 @@ Command = Annotated[
     Field(discriminator="op"),
 ]  # fmt: skip
 COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
+
+
+# --- the follow key and telemetry ---------------------------------------------------------------
+
+
+class FollowTarget(CommandModel):
+    """What ``<prefix>/<gw>/dev/<device>/follow`` takes: the target position, and the sending
+    client (the latest target is sent at the device's follow period)."""
+
+    position: Position
+
+
+FaultName = fault_literal(codec.Fault)
+
+
+class InspireLaTelemetry(TelemetryEnvelope):
+    """An Inspire LA actuator: its last status frame, the commanded power stage, and the
+    protection limits as last read or confirmed (at first the manual's defaults)."""
+
+    kind: Literal["inspire_la"]
+    position: int | None = Field(description="Present position, raw stroke units 0–2000.")
+    target: int | None = Field(description="Target position the actuator reports, 0–2000.")
+    temperature_c: int | None = Field(description="Actuator temperature, °C.")
+    current_ma: int | None = Field(description="Motor current, mA.")
+    force_g: int | None = Field(description="Force sensor reading, g (LAF/LASF models only).")
+    faults: list[FaultName] = Field(description="Latched faults by name; empty when healthy.")  # type: ignore[valid-type]
+    power: Literal["on", "paused", "estopped"] = Field(
+        description="Power stage as commanded: paused until the next target, estopped until enable."
+    )
+    overcurrent_limit_ma: int = Field(description="Over-current protection threshold, mA.")
+    overtemp_limit_c: float = Field(description="Over-temperature limit, °C (0.1 °C steps).")
+    rewarm_temperature_c: float = Field(
+        description="Temperature below which an over-heated actuator works again, °C."
+    )
+
+
+TELEMETRY_MODEL = InspireLaTelemetry

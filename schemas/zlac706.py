@@ -21,7 +21,8 @@ from pydantic import Field, TypeAdapter
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
-from busgate.schemas.base import CommandModel
+from busgate.schemas.base import CommandModel, Published
+from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 _POSITION = can.REGISTERS["target_position"]
 
@@ -161,3 +162,55 @@ Command = Annotated[
     Field(discriminator="op"),
 ]
 COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
+
+
+# --- the follow key and telemetry ---------------------------------------------------------------
+
+
+class FollowTarget(CommandModel):
+    """What ``<prefix>/<gw>/dev/<device>/follow`` takes: a speed (velocity mode), and the
+    sending client (the latest speed is sent at the device's follow period)."""
+
+    rpm: Rpm
+
+
+#: The alarm bits that are faults (``AlarmFlags.faults`` leaves out running and external control).
+FaultName = fault_literal(f for f in common.AlarmFlags if f.faults)
+
+
+class Ramp(Published):
+    """Acceleration and deceleration times from 0 to top speed, in ms (100 ms steps)."""
+
+    accel_ms: Annotated[int, Field(ge=0)]
+    decel_ms: Annotated[int, Field(ge=0)]
+
+
+class Zlac706Telemetry(TelemetryEnvelope):
+    """A ZLAC706 hub-motor driver: the settings it acknowledged and, from heartbeats (CAN) or
+    the monitor reply (RS232), what it measured."""
+
+    kind: Literal["zlac706"]
+    mode: common.Mode | None = Field(description="Work mode as acknowledged.")
+    enabled: bool | None = Field(description="Motor enabled (shaft driven).")
+    position_mode: Literal["relative", "absolute"] | None = Field(
+        description="How position targets are taken."
+    )
+    target: int | None = Field(description="Position target, encoder pulses.")
+    target_speed_rpm: float | None = Field(description="Speed target, rpm.")
+    target_current_a: float | None = Field(description="Torque-mode current target, A.")
+    position_ramp: Ramp | None = Field(description="Position-mode ramps.")
+    velocity_ramp: Ramp | None = Field(description="Velocity-mode ramps.")
+    max_speed_rpm: float | None = Field(description="Position mode's top speed, rpm.")
+    measured: bool = Field(
+        description="Measured values have arrived (false on CAN until the first heartbeat)."
+    )
+    position: int | None = Field(description="Feedback position, encoder pulses.")
+    current_ma: int | None = Field(description="Output current, mA.")
+    speed_rpm: float | None = Field(description="Measured speed, rpm.")
+    voltage_v: int | None = Field(
+        default=None, description="DC bus voltage, V (±2 V; RS232 only: absent on CAN)."
+    )
+    faults: list[FaultName] = Field(description="Alarm bits by name; empty when healthy.")  # type: ignore[valid-type]
+
+
+TELEMETRY_MODEL = Zlac706Telemetry

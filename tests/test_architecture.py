@@ -33,7 +33,7 @@ ALLOWED: dict[str, set[str]] = {
                     "gateway.scheduler"},
     "gateway.service": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
                         "gateway.scheduler", "gateway.api"},
-    "gateway.sim": {"codecs", "gateway.bus", "gateway.drivers"},
+    "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.cli": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
                     "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim"},
 }

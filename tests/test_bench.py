@@ -28,7 +28,7 @@ def exchanged(figures: dict) -> float:
 
 
 def test_bench_reports_what_it_achieved_on_the_simulator() -> None:
-    figures = bench("--kind", "inspire_la", "--ids", "1,2", "--seconds", "1",
+    figures = bench("--protocol", "inspire_la", "--ids", "1,2", "--seconds", "1",
                     "--reply-margin-ms", "5")  # a loaded host: polls still fit between ticks
     assert exchanged(figures) >= 1 and figures["frames_in_per_s"] > 0
     assert figures["smallest_gap_ms"] >= 1.0
@@ -39,14 +39,14 @@ def test_bench_reports_what_it_achieved_on_the_simulator() -> None:
 
 
 def test_bench_on_can_through_the_slcan_simulator() -> None:
-    figures = bench("--kind", "zlac706_can", "--seconds", "1", "--follow-period-ms", "20",
+    figures = bench("--protocol", "zlac706_can", "--seconds", "1", "--follow-period-ms", "20",
                     "--reply-margin-ms", "10")
     assert exchanged(figures) >= 1 and figures["follow_intervals"] >= 1
     assert figures["follow_error_min_ms"] >= 0
 
 
 def test_bench_refuses_a_bad_setting_in_one_line() -> None:
-    command = [sys.executable, "-m", "busgate.gateway.cli", "bench", "--kind", "inspire_la",
+    command = [sys.executable, "-m", "busgate.gateway.cli", "bench", "--protocol", "inspire_la",
                "--follow-period-ms", "5", "--seconds", "1"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2

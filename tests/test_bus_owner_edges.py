@@ -23,16 +23,17 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.errors import BusIOError, DeviceTimeoutError
 from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
 from busgate.gateway.bus.clock import now
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
 
 _channels = itertools.count()
-CAN_TIMING = LinkTiming("zlac706_can", 500_000, margin_s=0.05)
-LA_TIMING = LinkTiming("inspire_la", 921_600, margin_s=0.05, gap_s=0.001)
+CAN_TIMING = link_timing("zlac706_can", 500_000, margin_s=0.05)
+LA_TIMING = link_timing("inspire_la", 921_600, margin_s=0.05, gap_s=0.001)
 
 
 def can_owner(interface: str, channel: str) -> CanBusOwner:
@@ -168,7 +169,7 @@ def test_a_write_the_kernel_takes_in_parts_is_finished(wait_for) -> None:
 def test_an_adapter_unplugged_while_a_reply_is_awaited_closes_the_link(tmp_path) -> None:
     link = PtyLink(str(tmp_path / "usb-la"))
     with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600, link=link) as simulator:
-        timing = LinkTiming("inspire_la", 921_600, margin_s=2.0, gap_s=0.001)
+        timing = link_timing("inspire_la", 921_600, margin_s=2.0, gap_s=0.001)
         owner = SerialBusOwner(simulator.port, la, timing, BusCounters(now()))
         owner.open()
         simulator.faults.configure(silent_ids=frozenset({1}))

@@ -17,9 +17,10 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.planner import Job
 from busgate.gateway.scheduler.runner import BACKOFF_FIRST_S, BACKOFF_MAX_S, BusyError
 from busgate.gateway.service.assembly import build_bus
@@ -46,7 +47,7 @@ def status(device_id: int) -> Request:
 def owner_for(port: str, margin_s: float = 0.05) -> SerialBusOwner:
     """An owner whose reply window has room for a loaded machine (50 ms margin) unless a test
     needs a tight one."""
-    timing = LinkTiming("inspire_la", BAUD, margin_s=margin_s, gap_s=0.001)
+    timing = link_timing("inspire_la", BAUD, margin_s=margin_s, gap_s=0.001)
     owner = SerialBusOwner(port, la, timing, BusCounters(now()))
     owner.open()
     return owner

@@ -10,8 +10,8 @@ import pytest
 
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.bus.can_owner import CanBusOwner
-from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -149,7 +149,7 @@ def test_an_idle_slcan_adapter_is_asked_before_it_is_read(wait_for) -> None:
     adapter = SlcanAdapter(channel).start()
     heard = []
     owner = CanBusOwner("slcan", adapter.port, {"sleep_after_open": 0}, zcan,
-                        LinkTiming("zlac706_can", 500_000, margin_s=0.002), BusCounters(0.0),
+                        link_timing("zlac706_can", 500_000, margin_s=0.002), BusCounters(0.0),
                         on_unsolicited=lambda event, when: heard.append(event))
     owner.open()
     try:

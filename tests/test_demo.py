@@ -18,7 +18,7 @@ import zenoh
 from busgate.codecs.errors import ConfigError
 from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
-from busgate.gateway.drivers.protocols import PROTOCOLS
+from busgate.schemas.families import PROTOCOLS
 
 START_TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
 ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}

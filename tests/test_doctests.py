@@ -46,6 +46,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.drivers.inspire_la",
     "busgate.gateway.drivers.zlac706_can",
     "busgate.gateway.drivers.zlac706_rs232",
+    "busgate.schemas.telemetry",
 ]
 
 

@@ -10,11 +10,12 @@ import pytest
 
 from busgate.codecs import ds_servo as ds
 from busgate.codecs.errors import CommandError
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.ds_servo import DsServoDriver
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.ds_servo import AMBIENT_C, CURRENT_MA, DsServoDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 
@@ -298,7 +299,7 @@ BAUD = 115_200
 
 def test_through_the_bus_owner_and_the_simulator() -> None:
     servo = DsServoDevice(2, position_raw=1000)
-    timing = LinkTiming("ds_servo", BAUD, margin_s=0.05)
+    timing = link_timing("ds_servo", BAUD, margin_s=0.05)
     with SerialSimulator(ds, [servo], baudrate=BAUD) as simulator:
         owner = SerialBusOwner(simulator.port, ds, timing, BusCounters(time.perf_counter()))
         owner.open()

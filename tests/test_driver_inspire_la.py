@@ -12,10 +12,11 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import CommandError, RefusedError
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import OFFLINE_AFTER
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -357,7 +358,7 @@ BAUD = 921_600
 
 def test_through_the_bus_owner_and_the_simulator():
     device = InspireLaDevice(5)
-    timing = LinkTiming("inspire_la", BAUD, margin_s=0.05, gap_s=0.001)
+    timing = link_timing("inspire_la", BAUD, margin_s=0.05, gap_s=0.001)
     with SerialSimulator(la, [device], baudrate=BAUD) as simulator:
         owner = SerialBusOwner(simulator.port, la, timing, BusCounters(time.perf_counter()))
         owner.open()

@@ -14,9 +14,10 @@ from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.can_owner import CanBusOwner
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.drivers.zlac706_state import Role, Settings
@@ -415,7 +416,7 @@ def test_rs232_refuses_current_gains_and_speed_outside_velocity_mode() -> None:
 
 def test_rs232_through_the_bus_owner_and_the_simulator() -> None:
     baud = 115_200
-    timing = LinkTiming("zlac706_rs232", baud, margin_s=0.05)
+    timing = link_timing("zlac706_rs232", baud, margin_s=0.05)
     with SerialSimulator(rs_codec, [sim.Zlac706Rs232Device(1)], baudrate=baud) as simulator:
         owner = SerialBusOwner(simulator.port, rs_codec, timing, BusCounters(time.perf_counter()))
         owner.open()
@@ -447,7 +448,7 @@ def test_can_through_the_bus_owner_and_the_simulator() -> None:
     device_bus = can.Bus(interface="virtual", channel=channel)
     node = sim.Zlac706CanDevice(1, heartbeat_ms=50)
     d = can_driver(heartbeat_ms=50)
-    timing = LinkTiming("zlac706_can", 500_000, margin_s=0.05)
+    timing = link_timing("zlac706_can", 500_000, margin_s=0.05)
     with CanSimulator(can_codec, [node], bus=device_bus):
         owner = CanBusOwner("virtual", channel, {}, can_codec, timing,
                             BusCounters(time.perf_counter()), on_unsolicited=d.unsolicited)

@@ -31,12 +31,13 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.timing import PROTOCOL_TIMING, uart_time
+from busgate.codecs.timing import uart_time
 from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.scheduler.planner import MAX_RETRIES
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.recorder import WireRecord
 from busgate.gateway.sim.wire_analysis import load_records
+from busgate.schemas.families import PROTOCOLS
 
 GATEWAY, BUS = "flood", "uart0"
 CLIENTS, COMMANDS_EACH = 4, 300
@@ -55,7 +56,7 @@ ATTEMPTS = MAX_RETRIES + 1
 #: The most moves that fit between two follow ticks: a move starts only if it is over before
 #: the next tick is due, and none is shorter than its frame, the reply and the gap after it.
 MOVES_PER_PERIOD = math.ceil(FOLLOW_PERIOD_S / (
-    PROTOCOL_TIMING["inspire_la"].default_gap_s + uart_time(9 + la.STATUS_REPLY_SIZE, 921_600)))
+    PROTOCOLS["inspire_la"].timing.default_gap_s + uart_time(9 + la.STATUS_REPLY_SIZE, 921_600)))
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,9 +15,10 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import DeviceTimeoutError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -27,7 +28,7 @@ GAP_S = 0.001
 
 
 def owner_on(port: str, baud: int = BAUD, margin_s: float = 0.05) -> SerialBusOwner:
-    timing = LinkTiming("inspire_la", baud, margin_s=margin_s, gap_s=GAP_S)
+    timing = link_timing("inspire_la", baud, margin_s=margin_s, gap_s=GAP_S)
     owner = SerialBusOwner(port, la, timing, BusCounters(now()))
     owner.open()
     return owner

@@ -9,14 +9,15 @@ import pytest
 
 from busgate.codecs.framing import ExpectedReply
 from busgate.codecs.timing import uart_time
-from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver, Effect
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.tickers import FollowTicker
 
 GAP = 0.001
-TIMING = LinkTiming("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
+TIMING = link_timing("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
 
 
 def status_request(device_id: int = 1, *, idempotent: bool = True) -> Request:

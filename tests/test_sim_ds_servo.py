@@ -14,7 +14,7 @@ import pytest
 import serial
 
 from busgate.codecs import ds_servo as ds
-from busgate.codecs.timing import PROTOCOL_TIMING, uart_time
+from busgate.codecs.timing import uart_time
 from busgate.gateway.sim.ds_servo import (
     AMBIENT_C,
     CURRENT_MA,
@@ -25,6 +25,7 @@ from busgate.gateway.sim.ds_servo import (
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.families import PROTOCOLS
 from tests.serial_host import exchange
 
 OK = ds.ServoStatus(0)
@@ -357,7 +358,7 @@ def test_reboot_keeps_saved_registers_and_powers_up_the_rest() -> None:
 # --- through SerialSimulator on a pty --------------------------------------------------------
 
 BAUD = 115_200
-REPLY_MIN_S = PROTOCOL_TIMING["ds_servo"].reply_min_s
+REPLY_MIN_S = PROTOCOLS["ds_servo"].timing.reply_min_s
 
 
 @pytest.fixture

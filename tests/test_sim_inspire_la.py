@@ -30,7 +30,7 @@ from busgate.codecs.inspire_la import (
     WriteCommand,
     register_write,
 )
-from busgate.codecs.timing import PROTOCOL_TIMING, uart_time
+from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.clock import now
 from busgate.gateway.sim.faults import FaultInjector
 from busgate.gateway.sim.inspire_la import (
@@ -42,6 +42,7 @@ from busgate.gateway.sim.inspire_la import (
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.families import PROTOCOLS
 
 T0 = 1000.0  # the fake clock's start; models never read a clock of their own
 
@@ -73,8 +74,8 @@ def test_table_holds_the_manuals_defaults() -> None:
     assert read_u16(device, 98) == 800 and read_u16(device, 100) == 600
     assert device.baudrate == 921600
     assert device.turnaround_s == (
-        PROTOCOL_TIMING["inspire_la"].reply_min_s,
-        PROTOCOL_TIMING["inspire_la"].reply_max_s,
+        PROTOCOLS["inspire_la"].timing.reply_min_s,
+        PROTOCOLS["inspire_la"].timing.reply_max_s,
     )
 
 
@@ -414,7 +415,7 @@ def test_reply_never_beats_wire_time_plus_turnaround() -> None:
     ):
         request = wire_status(1)
         floor = uart_time(len(request) + la.STATUS_REPLY_SIZE, baud)
-        floor += PROTOCOL_TIMING["inspire_la"].reply_min_s
+        floor += PROTOCOLS["inspire_la"].timing.reply_min_s
         for _ in range(3):
             started = time.perf_counter()
             host.write(request)
@@ -426,7 +427,7 @@ def test_reply_never_beats_wire_time_plus_turnaround() -> None:
         assert rx.wire == request.hex() and rx.frame == "ControlCommand" and rx.device_id == 1
         assert rx.end - rx.start == pytest.approx(uart_time(len(request), baud))
         tx = next(r for r in simulator.recorder.records if r.direction == "tx")
-        assert tx.start - rx.end >= PROTOCOL_TIMING["inspire_la"].reply_min_s
+        assert tx.start - rx.end >= PROTOCOLS["inspire_la"].timing.reply_min_s
 
 
 def test_server_faults_as_the_host_sees_them(sim, wait_for, before_proof, next_reply) -> None:

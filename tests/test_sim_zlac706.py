@@ -22,7 +22,7 @@ from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs232_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import ChecksumMismatch
-from busgate.codecs.timing import PROTOCOL_TIMING, can_time, uart_time
+from busgate.codecs.timing import can_time, uart_time
 from busgate.codecs.zlac706_common import AlarmFlags, Mode, rpm_from_speed_raw
 from busgate.gateway.sim import zlac706
 from busgate.gateway.sim.can_server import CanSimulator
@@ -36,6 +36,7 @@ from busgate.gateway.sim.zlac706 import (
     Zlac706Rs232Device,
 )
 from busgate.gateway.sim.zlac706_motor import PULSES_PER_REV, Settings
+from busgate.schemas.families import PROTOCOLS
 from tests.serial_host import exchange
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -527,7 +528,7 @@ def rs232_line():
 
 def test_wire_rs232_ack_and_monitor_never_beat_wire_time_and_turnaround(rs232_line) -> None:
     _, _, host = rs232_line
-    least = PROTOCOL_TIMING["zlac706_rs232"].reply_min_s
+    least = PROTOCOLS["zlac706_rs232"].timing.reply_min_s
     for frame, reply_bytes, replies in (("02 00 D0 D2", 2, 1), ("80 00 80", 32, 8)):
         started = time.perf_counter()
         reply = exchange(host, frame, reply_bytes)
@@ -662,7 +663,7 @@ def receive(host: can.BusABC, timeout: float = 10.0) -> str | None:
 
 def test_wire_can_write_is_echoed_no_sooner_than_two_frames_and_turnaround(can_bus) -> None:
     _, _, host = can_bus
-    least = 2 * can_time(8, 500_000) + PROTOCOL_TIMING["zlac706_can"].reply_min_s
+    least = 2 * can_time(8, 500_000) + PROTOCOLS["zlac706_can"].timing.reply_min_s
     started = time.perf_counter()
     send(host, 1, "00FA00190000003F")
     assert receive(host) == "001#00fb00190000003f"

@@ -9,12 +9,15 @@ incremental decoders for both directions.
 from busgate.codecs.ds_servo.decoder import CommandDecoder, ReplyDecoder
 from busgate.codecs.ds_servo.encoder import checksum, encode, expected_reply, move_data
 from busgate.codecs.ds_servo.frames import (
+    ADDRESSED,
     BROADCAST_ID,
+    DEVICE_IDS,
     MAX_FRAME,
     MAX_ID,
     MAX_SYNC_TARGETS,
     MIN_ID,
     MOVE_ADDRESS,
+    TIMING,
     Action,
     Command,
     Frame,
@@ -41,8 +44,10 @@ from busgate.codecs.ds_servo.registers import (
 )
 
 __all__ = [
+    "ADDRESSED",
     "ADDRESS_ONLY_WRITES",
     "BROADCAST_ID",
+    "DEVICE_IDS",
     "GOTO_PRESET_ADDRESSES",
     "MAX_FRAME",
     "MAX_ID",
@@ -52,6 +57,7 @@ __all__ = [
     "PRESET_ADDRESSES",
     "REGISTERS",
     "TABLE_END",
+    "TIMING",
     "Action",
     "Command",
     "CommandDecoder",

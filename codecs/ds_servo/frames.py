@@ -15,12 +15,20 @@ import enum
 from dataclasses import dataclass
 from typing import Final
 
+from busgate.codecs.timing import ProtocolTiming
+
 #: Command frames start with FF FF, replies with FF F5 (manual 2.1 / 2.2).
 COMMAND_HEADER: Final = b"\xff\xff"
 REPLY_HEADER: Final = b"\xff\xf5"
 
 MIN_ID: Final = 1
 MAX_ID: Final = 250
+#: Frames carry the device id; these are the ids a device can have.
+ADDRESSED: Final = True
+DEVICE_IDS: Final = range(MIN_ID, MAX_ID + 1)
+#: The manual states no reply time, gap or baud rate: we assume a reply within 500 µs, ask no
+#: minimum gap of the protocol, default to 0.5 ms of idle line and 115200 baud.
+TIMING: Final = ProtocolTiming(0.0, 0.0005, 50e-6, 500e-6, 115_200)
 #: Every servo executes a frame sent to 254; none replies.
 BROADCAST_ID: Final = 254
 

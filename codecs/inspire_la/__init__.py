@@ -13,7 +13,9 @@ from busgate.codecs.inspire_la.decoder import CommandDecoder, ReplyDecoder
 from busgate.codecs.inspire_la.encoder import Frame, encode
 from busgate.codecs.inspire_la.exchange import ExpectedRegisterReply, expected_reply
 from busgate.codecs.inspire_la.frames import (
+    ADDRESSED,
     BROADCAST_ID,
+    DEVICE_IDS,
     MAX_DATA,
     MAX_FRAME,
     MAX_GROUP_TARGETS,
@@ -21,6 +23,7 @@ from busgate.codecs.inspire_la.frames import (
     MIN_ID,
     STATUS_REPLY_SIZE,
     TABLE_SIZE,
+    TIMING,
     ControlCode,
     ControlCommand,
     Fault,
@@ -57,9 +60,11 @@ from busgate.codecs.inspire_la.registers import (
 )
 
 __all__ = [
+    "ADDRESSED",
     "BAUD_CODE",
     "BAUD_RATES",
     "BROADCAST_ID",
+    "DEVICE_IDS",
     "FORCE_ZERO",
     "ID",
     "MAX_DATA",
@@ -75,6 +80,7 @@ __all__ = [
     "TABLE_SIZE",
     "TARGET_POSITION",
     "TENTHS_PER_DEGREE",
+    "TIMING",
     "CommandDecoder",
     "ControlCode",
     "ControlCommand",

@@ -13,6 +13,8 @@ import enum
 import struct
 from dataclasses import dataclass
 
+from busgate.codecs.timing import ProtocolTiming
+
 COMMAND_HEADER = b"\x55\xaa"
 REPLY_HEADER = b"\xaa\x55"
 
@@ -26,6 +28,12 @@ MAX_FRAME = MAX_LENGTH + FRAME_OVERHEAD
 
 MIN_ID = 1
 MAX_ID = 254
+#: Frames carry the device id; these are the ids a device can have.
+ADDRESSED = True
+DEVICE_IDS = range(MIN_ID, MAX_ID + 1)
+#: Manual 3.4.2: replies after 120 µs, up to 800 µs when a control task interrupts; "keep
+#: commands at least 1 ms apart". 921600 baud is the D-type factory default.
+TIMING = ProtocolTiming(0.001, 0.001, 120e-6, 800e-6, 921_600)
 #: Every actuator executes a frame sent to 255; none answers it.
 BROADCAST_ID = 0xFF
 

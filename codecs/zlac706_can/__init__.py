@@ -8,8 +8,11 @@ with the RS232 protocol live in ``busgate.codecs.zlac706_common``.
 from busgate.codecs.zlac706_can.decoder import CommandDecoder, ReplyDecoder
 from busgate.codecs.zlac706_can.encoder import encode, expected_reply
 from busgate.codecs.zlac706_can.frames import (
+    ADDRESSED,
     BROADCAST_ID,
+    DEVICE_IDS,
     MAX_NODE_ID,
+    TIMING,
     AlarmReport,
     Func,
     HeartbeatCurrentSpeed,
@@ -33,13 +36,16 @@ from busgate.codecs.zlac706_can.registers import (
 )
 
 __all__ = [
+    "ADDRESSED",
     "BROADCAST_ID",
     "CODES",
+    "DEVICE_IDS",
     "GAIN_REGISTERS",
     "I32_MAX",
     "I32_MIN",
     "MAX_NODE_ID",
     "REGISTERS",
+    "TIMING",
     "AlarmReport",
     "AlarmReset",
     "CanRegister",

@@ -18,12 +18,18 @@ import enum
 from dataclasses import dataclass, field
 from typing import Final
 
+from busgate.codecs.timing import ProtocolTiming
 from busgate.codecs.zlac706_common import AlarmFlags, amps_from_current_raw, rpm_from_speed_raw
 
 #: The one-to-many identifier: every node executes a ``DA`` write sent to it.
 BROADCAST_ID: Final = 0
 #: Node ids the vendor tool can set (manual 8.1.2: 0–109); 0 is taken by broadcast.
 MAX_NODE_ID: Final = 109
+#: Frames carry the node id; these are the ids a node can have.
+ADDRESSED: Final = True
+DEVICE_IDS: Final = range(1, MAX_NODE_ID + 1)
+#: CAN arbitrates the bus itself, so no gap; the manual gives 500 kbit/s and no reply time.
+TIMING: Final = ProtocolTiming(0.0, 0.0, 100e-6, 1e-3, 500_000)
 DATA_LENGTH: Final = 8
 #: An alarm report is ``FF`` with this register and the alarm code in all four data bytes.
 ALARM_REGISTER: Final = 0xEB

@@ -9,7 +9,10 @@ CAN protocol live in ``busgate.codecs.zlac706_common``.
 from busgate.codecs.zlac706_rs232.decoder import CommandDecoder, ReplyDecoder
 from busgate.codecs.zlac706_rs232.encoder import encode, expected_reply
 from busgate.codecs.zlac706_rs232.frames import (
+    ADDRESSED,
+    DEVICE_IDS,
     MONITOR_REQUEST,
+    TIMING,
     Ack,
     BusVoltage,
     MonitorRequest,
@@ -36,11 +39,14 @@ from busgate.codecs.zlac706_rs232.registers import (
 )
 
 __all__ = [
+    "ADDRESSED",
     "CODES",
+    "DEVICE_IDS",
     "GAIN_REGISTERS",
     "MONITOR",
     "MONITOR_REQUEST",
     "REGISTERS",
+    "TIMING",
     "WRITABLE",
     "Ack",
     "BusVoltage",

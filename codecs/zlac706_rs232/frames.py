@@ -15,9 +15,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Final
 
+from busgate.codecs.timing import ProtocolTiming
 from busgate.codecs.zlac706_common import AlarmFlags, amps_from_current_raw, rpm_from_speed_raw
 from busgate.codecs.zlac706_rs232.registers import MonitorItem
 
+#: No frame carries an id: a port drives one driver, and the id in a configuration is only
+#: a label (one byte, like the other families' ids).
+ADDRESSED: Final = False
+DEVICE_IDS: Final = range(0, 256)
+#: The manual states no RS232 baud rate or acknowledgement time: we assume an acknowledgement
+#: within 1 ms and default to 115200 baud; the bus config names the rate.
+TIMING: Final = ProtocolTiming(0.0, 0.0005, 100e-6, 1e-3, 115_200)
 #: The monitor request: address 80, one data byte 00, its sum.
 MONITOR_REQUEST: Final = b"\x80\x00\x80"
 FRAME_SIZE: Final = 4

@@ -167,7 +167,8 @@ class GatewayApi:
             for runner in runners.values()
             for device, driver in runner.drivers.items()
         }
-        self._speed_clients: dict[str, str] = {}  # zlac706 device → client that set its speed
+        #: Device → the client whose command keeps it moving (its driver's ``deadman`` op).
+        self._deadman_clients: dict[str, str] = {}
         self._stream_clients: dict[str, str] = {}  # device → client of its follow stream
 
     # -- commands ---------------------------------------------------------------------------
@@ -186,8 +187,8 @@ class GatewayApi:
             command = driver.commands.validate_json(payload)
         except ValidationError as exc:
             raise refusal(exc) from exc
-        if driver.kind == "zlac706" and op == "velocity" and client:
-            self._speed_clients[device] = client
+        if driver.deadman and op == driver.deadman.op and client:
+            self._deadman_clients[device] = client
         return _mapped(runner.submit(device, command, client))
 
     def _claim_op(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
@@ -293,11 +294,12 @@ class GatewayApi:
                 del self._stream_clients[device]
                 runner, _ = self.devices[device]
                 runner.stop_stream(device, f"client {client} gone")
-        for device, owner in list(self._speed_clients.items()):
+        for device, owner in list(self._deadman_clients.items()):
             if owner == client:
-                del self._speed_clients[device]
+                del self._deadman_clients[device]
                 runner, driver = self.devices[device]
-                runner.submit(device, driver.parse('{"op":"velocity","rpm":0}'))
+                assert driver.deadman is not None
+                runner.submit(device, driver.parse(driver.deadman.stop))
                 self._event(device, "stopped", client=client, reason="client gone")
 
     # -- information ------------------------------------------------------------------------

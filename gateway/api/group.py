@@ -1,86 +1,50 @@
 """What spans the devices of one bus: group moves that start together, and scans.
 
 A bus-level ``group_move`` names devices; here it becomes the device kind's own group op (one
-0xF2 broadcast frame for Inspire LA actuators, one SYNC WRITE for DS servos), validated by that
-kind's schema, so the devices start in the same frame. A ``scan`` sends each id the most
-harmless frame its protocol answers (LA: status query; DS: ping; ZLAC706 CAN: a write to a
-register the driver does not have, answered ``FF`` and changing nothing; RS232: the monitor),
-once: a silent id costs one reply window, so a full scan stays short (retried probes and the
-hold-offs after their timeouts made one of three actuators take ten seconds).
+0xF2 broadcast frame for Inspire LA actuators, one SYNC WRITE for DS servos; each driver's
+``group_entry`` says its part, or that its kind has none), validated by that kind's schema,
+so the devices start in the same frame. A ``scan`` sends each id the most harmless frame its
+protocol answers (each driver's ``probe``: LA status query, DS ping, a ZLAC706 CAN write to a
+register the node does not have, the RS232 monitor), once: a silent id costs one reply
+window, so a full scan stays short (retried probes and the hold-offs after their timeouts made
+one of three actuators take ten seconds).
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from typing import Any
 
-from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
-from busgate.codecs.errors import CommandError, RefusedError
+from busgate.codecs.errors import RefusedError
 from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.scheduler.runner import BusRunner
-
-#: A CAN register the ZLAC706 does not have: writing it gets the "no such register" reply.
-_ZLAC_PROBE_REGISTER = 0x7E
-
-
-class GroupError(CommandError):
-    """A group move the bus's devices cannot make."""
-
-
-def _la_target(target, driver) -> dict[str, Any]:
-    if target.time_ms is not None:
-        raise GroupError("Inspire LA group moves have no move time; drop time_ms")
-    return {"id": driver.device_id, "position": target.position}
-
-
-def _ds_target(target, driver) -> dict[str, Any]:
-    return {"id": driver.device_id, "position": target.position, "time_ms": target.time_ms or 0}
-
-
-_GROUP_TARGETS: dict[str, Callable[[Any, Any], dict[str, Any]]] = {
-    "inspire_la": _la_target,
-    "ds_servo": _ds_target,
-}
+from busgate.schemas.families import PROTOCOLS
 
 
 def group_command(runner: BusRunner, request) -> tuple[str, Any]:
     """The device-level group op that moves ``request.targets`` together, and the device
     whose driver carries it."""
-    make = _GROUP_TARGETS.get(runner.timing.protocol)
-    if make is None:
-        raise GroupError(f"a {runner.timing.protocol} bus has no group move")
     drivers = [runner.drivers[target.device] for target in request.targets]
     targets = [
-        make(target, driver) for target, driver in zip(request.targets, drivers, strict=True)
+        driver.group_entry(target.position, target.time_ms)
+        for target, driver in zip(request.targets, drivers, strict=True)
     ]
     first = drivers[0]
     return first.name, first.parse(json.dumps({"op": "group_move", "targets": targets}))
 
 
-_PROBES: dict[str, tuple[range, Callable[[int], Request]]] = {
-    "inspire_la": (
-        range(1, 255),
-        lambda i: Request.of(
-            inspire_la, inspire_la.ControlCommand(i, inspire_la.ControlCode.STATUS)
-        ),
-    ),
-    "ds_servo": (range(1, 251), lambda i: Request.of(ds_servo, ds_servo.Ping(i))),
-    "zlac706_can": (
-        range(1, 110),
-        lambda i: Request.of(zlac706_can, zlac706_can.Write(i, _ZLAC_PROBE_REGISTER, 0)),
-    ),
-    "zlac706_rs232": (
-        range(0, 1),
-        lambda i: Request.of(zlac706_rs232, zlac706_rs232.MonitorRequest()),
-    ),
-}
+def scan_ids(protocol: str) -> range:
+    """The ids a scan of a ``protocol`` bus probes by default: every id the protocol allows
+    (one probe on a line whose frames carry no id)."""
+    entry = PROTOCOLS[protocol]
+    return entry.device_ids if entry.addressed else range(entry.device_ids.start, 1)
 
 
 def scan_requests(protocol: str, ids: list[int] | None) -> list[Request]:
     """One probe per id (default: every id the protocol allows); ``out_of_range`` for an id
     the protocol does not have."""
-    allowed, probe = _PROBES[protocol]
+    allowed, probe = scan_ids(protocol), driver_class(PROTOCOLS[protocol]).probe
     outside = [i for i in ids or () if i not in allowed]
     if outside:
         raise RefusedError(

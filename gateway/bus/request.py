@@ -12,7 +12,7 @@ from types import ModuleType
 
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import ExpectedReply
-from busgate.codecs.timing import PROTOCOL_TIMING, can_time, uart_time
+from busgate.codecs.timing import ProtocolTiming, can_time, uart_time
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,13 +56,12 @@ class LinkTiming:
     """
 
     protocol: str
+    #: The protocol's own figures (its codec's ``TIMING``), and whether its frames are CAN's.
+    protocol_timing: ProtocolTiming
+    can: bool
     rate: int
     margin_s: float
     gap_s: float = 0.0
-
-    @property
-    def is_can(self) -> bool:
-        return self.protocol.endswith("_can")
 
     def wire_time(self, wire: bytes | CanFrame) -> float:
         """Seconds ``wire`` occupies the line."""
@@ -72,7 +71,7 @@ class LinkTiming:
 
     def reply_time(self, expected: ExpectedReply) -> float:
         """Seconds the expected reply occupies the line, at most."""
-        if self.is_can:
+        if self.can:
             return expected.frames * can_time(expected.wire_bytes, self.rate)
         return uart_time(expected.wire_bytes, self.rate)
 
@@ -80,7 +79,7 @@ class LinkTiming:
         """From the end of our frame: (earliest a true reply can start, latest it may end)."""
         if request.expected is None:
             return 0.0, 0.0
-        timing = PROTOCOL_TIMING[self.protocol]
+        timing = self.protocol_timing
         latest = timing.reply_max_s + self.reply_time(request.expected) + self.margin_s
         return timing.reply_min_s, latest
 

@@ -21,43 +21,26 @@ import os
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import serial
 from pydantic import ValidationError
 
 from busgate.codecs.errors import BusUnavailableError, CommandError
-from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.drivers.protocols import PROTOCOLS
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.families import driver_class, make_driver
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.service.assembly import build_bus, make_driver
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.errors import describe_validation_error
+from busgate.schemas.families import PROTOCOLS
 
 ONLINE_TIMEOUT_S = 5.0
-
-#: Per kind: the commands that make a device ready to follow, the follow payload at time t,
-#: and the names of follow frames in the simulator's record.
-PREPARE: dict[str, list[str]] = {
-    "inspire_la": ['{"op":"enable"}'],
-    "ds_servo": ['{"op":"torque","on":true}'],
-    "zlac706_rs232": ['{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'],
-    "zlac706_can": ['{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'],
-}
-TRAJECTORY: dict[str, Callable[[float, int], dict[str, Any]]] = {
-    "inspire_la": lambda t, i: {"position": round(1000 + 800 * math.sin(t * math.pi + i))},
-    "ds_servo": lambda t, i: {"position": round(2048 + 1500 * math.sin(t * math.pi + i))},
-    "zlac706_rs232": lambda t, i: {"rpm": round(300 * math.sin(t * math.pi + i))},
-    "zlac706_can": lambda t, i: {"rpm": round(300 * math.sin(t * math.pi + i))},
-}
-FOLLOW_FRAMES = ("FollowCommand", "GroupFollowCommand", "SyncWrite", "Write")
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -65,7 +48,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "bench",
         description=__doc__.split("\n\n")[1],
     )
-    bench.add_argument("--kind", required=True, choices=sorted(PROTOCOLS), help="wire protocol")
+    bench.add_argument("--protocol", required=True, choices=sorted(PROTOCOLS), help="wire protocol")
     bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
     bench.add_argument("--ids", default="1", help="device ids, e.g. 1,2,3 (default 1)")
     bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
@@ -96,8 +79,8 @@ def run_bench(args: argparse.Namespace) -> int:
     ids = [int(part) for part in args.ids.split(",") if part.strip()]
     if not ids:
         raise CommandError("--ids names no device")
-    protocol = PROTOCOLS[args.kind]
-    baudrate = args.baudrate or PROTOCOL_TIMING[args.kind].default_rate
+    protocol = PROTOCOLS[args.protocol]
+    baudrate = args.baudrate or protocol.timing.default_rate
     tune_interpreter()
     with tempfile.TemporaryDirectory() as scratch, contextlib.ExitStack() as simulator:
         port, record = args.port, None
@@ -106,7 +89,7 @@ def run_bench(args: argparse.Namespace) -> int:
             sim_args = ["--ids", args.ids, "--record", str(record)]
             if not protocol.can:
                 sim_args += ["--baudrate", str(baudrate)]
-            port = simulator.enter_context(SimProcess(args.kind, sim_args)).port
+            port = simulator.enter_context(SimProcess(args.protocol, sim_args)).port
         figures, window, drivers = measure(args, ids, port, baudrate)
         if args.baseline and not protocol.can:
             figures["baseline"] = baseline(args, drivers, port, baudrate)
@@ -130,14 +113,14 @@ def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: i
     devices = [
         {
             "name": f"dev{i}",
-            "kind": PROTOCOLS[args.kind].kind,
+            "kind": PROTOCOLS[args.protocol].kind,
             "id": i,
             "poll_hz": args.poll_hz,
             "follow_period_ms": period,
         }
         for i in ids
     ]
-    if PROTOCOLS[args.kind].can:
+    if PROTOCOLS[args.protocol].can:
         return CanBus(
             name="bench",
             transport="can",
@@ -160,28 +143,31 @@ def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: i
 
 def measure(
     args: argparse.Namespace, ids: list[int], port: str, baudrate: int
-) -> tuple[dict, tuple[float, float], list]:
-    """Run the bus for ``args.seconds``; the figures, the measured window's start and end,
-    and the drivers (which keep what the devices were set to, e.g. a ZLAC706's mode)."""
+) -> tuple[dict, tuple[float, float, set[str]], list]:
+    """Run the bus for ``args.seconds``; the figures, the measured window (start, end, and the
+    frame types of its follow ticks), and the drivers (which keep what the devices were set
+    to, e.g. a ZLAC706's mode)."""
     runner = build_bus(bus_config(args, ids, port, baudrate)).start()
     try:
         wait_online(runner)
         for name in runner.drivers:
-            for text in PREPARE[args.kind]:
-                runner.submit(name, runner.drivers[name].parse(text)).result(timeout=2)
+            driver = runner.drivers[name]
+            for text in driver.follow_preparation:
+                runner.submit(name, driver.parse(text)).result(timeout=2)
         gc.freeze()
         thread_before = thread_cpu_s(runner.native_id)
         before, cpu_before, started = runner.statistics(), time.process_time(), now()
         stream_targets(runner, args)
         after, cpu_after, ended = runner.statistics(), time.process_time(), now()
         thread_cpu = thread_cpu_s(runner.native_id) - thread_before
+        follow_frames = follow_frame_names(list(runner.drivers.values()))  # before the safe stop
     finally:
         runner.stop()
     elapsed = ended - started
     exchanges = after.frames_out - before.frames_out
     return (
         {
-            "kind": args.kind,
+            "protocol": args.protocol,
             "devices": len(ids),
             "rate": baudrate,
             "seconds": round(elapsed, 3),
@@ -202,7 +188,7 @@ def measure(
             "cpu_percent_bus_thread": round(100 * thread_cpu / elapsed, 1),
             "cpu_percent_process": round(100 * (cpu_after - cpu_before) / elapsed, 1),
         },
-        (started, ended),
+        (started, ended, follow_frames),
         list(runner.drivers.values()),
     )
 
@@ -243,20 +229,19 @@ def feed_targets(drivers: list, args: argparse.Namespace, deliver, end: float) -
     """A client's stream: a new follow target for every device twice a period, validated
     the way the gateway validates a client's payload."""
     step = args.follow_period_ms / 2000
-    trajectory = TRAJECTORY[args.kind]
     while (moment := now()) < end:
         for index, driver in enumerate(drivers):
-            deliver(driver.name, driver.follow_target(trajectory(moment, index)))
+            deliver(driver.name, driver.follow_target(driver.follow_sample(moment, index)))
         time.sleep(step)
 
 
 def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> dict:
     """A plain loop under the same client load: sleep then spin to each deadline and write a
     follow frame with the latest targets; no polling, no scheduler."""
-    protocol = PROTOCOLS[args.kind]
+    protocol = PROTOCOLS[args.protocol]
     period = (args.follow_period_ms or 10.0) / 1000
     drivers = baseline_drivers(args, used, port, baudrate)
-    latest = {d.name: d.follow_target(TRAJECTORY[args.kind](0.0, 0)) for d in drivers}
+    latest = {d.name: d.follow_target(d.follow_sample(0.0, 0)) for d in drivers}
     starts = []
     deadline = now()
     end = deadline + args.seconds
@@ -267,7 +252,7 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
     tighten_timer_slack()
     with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
         while deadline < end:
-            request = protocol.driver_class.follow_request([(d, latest[d.name]) for d in drivers])
+            request = driver_class(protocol).follow_request([(d, latest[d.name]) for d in drivers])
             sleep_until(deadline)
             os.write(port_handle.fileno(), request.wire)
             starts.append(now())  # timed like the bus owner: when the kernel has the frame
@@ -285,24 +270,34 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
 def baseline_drivers(args: argparse.Namespace, used: list, port: str, baudrate: int) -> list:
     """Drivers to validate the baseline client's targets: fresh ones, as a client meets them;
     those the gateway ran when a fresh one refuses a stream (a ZLAC706 needs its mode set)."""
-    protocol = PROTOCOLS[args.kind]
+    protocol = PROTOCOLS[args.protocol]
     config = bus_config(args, [d.device_id for d in used], port, baudrate)
-    fresh = [make_driver(protocol, device) for device in config.devices]
+    fresh = [make_driver(device, protocol) for device in config.devices]
     try:
-        fresh[0].follow_target(TRAJECTORY[args.kind](0.0, 0))
+        fresh[0].follow_target(fresh[0].follow_sample(0.0, 0))
     except CommandError:
         return used
     return fresh
 
 
-def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float]) -> dict:
-    timing = PROTOCOL_TIMING[args.kind]
+def follow_frame_names(drivers: list[Driver]) -> set[str]:
+    """The frame types that carry these drivers' follow targets: alone, and together."""
+    follow_request = type(drivers[0]).follow_request
+    targets = [(d, d.follow_target(d.follow_sample(0.0, 0))) for d in drivers]
+    limit = type(drivers[0]).follow_group_limit
+    groups = [targets[:1], targets[:limit]]
+    return {type(follow_request(group).frame).__name__ for group in groups}
+
+
+def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float, set]) -> dict:
+    timing = PROTOCOLS[args.protocol].timing
     min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else timing.default_gap_s
-    records = [r for r in load_records(record) if window[0] <= r.start <= window[1]]
+    start, end, follow_frames = window
+    records = [r for r in load_records(record) if start <= r.start <= end]
     figures = analyse(
         records,
         min_gap_s=min_gap,
-        follow_frames=FOLLOW_FRAMES,
+        follow_frames=follow_frames,
         follow_period_s=(args.follow_period_ms or 0) / 1000 or None,
     )
     return {
@@ -319,7 +314,7 @@ def _ms(seconds: float | None) -> float | None:
 
 def format_figures(args: argparse.Namespace, figures: dict) -> str:
     lines = [
-        f"busgate bench: {figures['kind']}, {figures['devices']} device(s), "
+        f"busgate bench: {figures['protocol']}, {figures['devices']} device(s), "
         f"{figures['seconds']} s, follow {figures['follow_period_ms']} ms, "
         f"poll {figures['poll_hz']} Hz"
     ]
@@ -330,6 +325,6 @@ def format_figures(args: argparse.Namespace, figures: dict) -> str:
         if section:
             lines.append(f"{section.replace('_', ' ')}:")
         for name, value in values.items():
-            if not isinstance(value, dict) and name not in ("kind", "devices", "seconds"):
+            if not isinstance(value, dict) and name not in ("protocol", "devices", "seconds"):
                 lines.append(f"  {name.replace('_', ' '):32} {value}")
     return "\n".join(lines)

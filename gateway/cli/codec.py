@@ -15,8 +15,9 @@ from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import CommandError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.gateway.cli.jsonify import to_jsonable
-from busgate.gateway.drivers.protocols import PROTOCOLS, Protocol
+from busgate.gateway.drivers.families import driver_class
 from busgate.schemas.errors import command_from_json
+from busgate.schemas.families import PROTOCOLS, Protocol
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive
 
@@ -57,7 +58,7 @@ def run_encode(args: argparse.Namespace) -> int:
         raise CommandError(f"{protocol.name} frames carry no device id; drop --id")
     command = command_from_json(protocol.schema.COMMAND_ADAPTER, args.command)
     device_id = DEFAULT_ID if args.id is None else args.id
-    for frame in protocol.driver.frames_for(command, device_id):
+    for frame in driver_class(protocol)("encode", device_id).frames_of(command):
         print(wire_text(protocol.codec.encode(frame)))
     return 0
 

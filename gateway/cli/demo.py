@@ -31,10 +31,10 @@ from pathlib import Path
 from typing import Any
 
 from busgate.gateway.cli.client import DEFAULT_ENDPOINT
-from busgate.gateway.drivers.protocols import PROTOCOLS
 from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.models import make_devices
 from busgate.schemas.config import Config, parse_config
+from busgate.schemas.families import PROTOCOLS
 
 GATEWAY_NAME = "demo"
 HEARTBEAT_MS = 100
@@ -57,11 +57,9 @@ class DemoBus:
         return HEARTBEAT_MS if PROTOCOLS[self.protocol].can else 0
 
 
-DEMO_BUSES = (
-    DemoBus("uart0", "inspire_la", 921_600, (("la1", 1), ("la2", 2), ("la3", 3))),
-    DemoBus("uart1", "ds_servo", 115_200, (("servo1", 1), ("servo2", 2))),
-    DemoBus("can0", "zlac706_can", 500_000, (("wheel", 1),)),
-    DemoBus("rs232", "zlac706_rs232", 115_200, (("drive", 1),)),
+#: One bus per protocol of every family, at the protocol's default rate (the registry's demo).
+DEMO_BUSES = tuple(
+    DemoBus(p.demo.bus, p.name, p.timing.default_rate, p.demo.devices) for p in PROTOCOLS.values()
 )
 
 

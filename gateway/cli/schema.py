@@ -2,7 +2,8 @@
 
 One file per thing a client sends or reads: the commands of each device kind's ``cmd`` key
 (its own ops plus ``claim`` / ``release``), the bus ``cmd`` key's ops, the replies, each
-kind's telemetry, the events, the bus statistics, the info reply, and the config file.
+kind's telemetry and follow target, the events, the bus statistics, the info reply, and the
+config file.
 
 Rules: the files are generated, never edited by hand, and the output is deterministic (keys
 sorted, two-space indent, one trailing newline) so that ``--check`` (and the test suite)
@@ -56,6 +57,15 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
             model,
         )
         for kind, model in api.TELEMETRY_MODELS.items()
+    },
+    **{
+        f"follow.{kind}.json": (
+            f"busgate {kind} follow target",
+            f"What <prefix>/<gw>/dev/<device>/follow takes for a {kind} device: the latest "
+            "target, sent at the device's follow period.",
+            model,
+        )
+        for kind, model in api.FOLLOW_MODELS.items()
     },
     "event.json": (
         "busgate event",

@@ -16,16 +16,21 @@ from __future__ import annotations
 
 import abc
 import enum
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar
 
-from pydantic import TypeAdapter
+from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
-from busgate.schemas.errors import command_from_json
+from busgate.schemas.errors import command_from_json, describe_validation_error
+from busgate.schemas.families import PROTOCOLS, Protocol
+
+#: What a family's driver must define beyond the abstract methods (see ``Driver``).
+FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe")
 
 #: Consecutive unanswered requests after which a device is marked offline.
 OFFLINE_AFTER = 3
@@ -54,14 +59,27 @@ class DeviceEvent:
     fields: dict[str, Any]
 
 
-class Driver(abc.ABC):
-    """One device on a bus, as the gateway knows it."""
+@dataclass(frozen=True, slots=True)
+class Deadman:
+    """A client's command that keeps a device moving after the client has gone (a speed), and
+    the command that stops it when the client's liveliness token goes away."""
 
-    #: The device kind (``inspire_la``, ``ds_servo``, ``zlac706``) and its wire protocol.
-    kind: ClassVar[str]
-    protocol: ClassVar[str]
-    codec: ClassVar[ModuleType]
-    commands: ClassVar[TypeAdapter[Any]]
+    op: str
+    stop: str
+
+
+class Driver(abc.ABC):
+    """One device on a bus, as the gateway knows it.
+
+    Its kind, codec and command schema are the registry's (``busgate.schemas.families``):
+    the entry that names the driver class says them, so a driver does not repeat them.
+    """
+
+    #: The commands that make a device ready to follow (sent by ``busgate bench``, and planned
+    #: by the bus budget before it sizes a follow frame).
+    follow_preparation: ClassVar[tuple[str, ...]] = ()
+    #: What a client's going away stops (``None``: nothing it sent outlives it).
+    deadman: ClassVar[Deadman | None] = None
     #: How many devices' follow targets one frame can carry (1: no coalescing).
     follow_group_limit: ClassVar[int] = 1
     #: The id a frame sent to every device carries (``None``: the protocol has none).
@@ -84,6 +102,35 @@ class Driver(abc.ABC):
         #: Set by ``safe_stop`` (a gateway e-stop), cleared when ``reenable_op`` is planned.
         self.estop_latched = False
         self._events: list[DeviceEvent] = []
+
+    # -- what the registry says of this driver -------------------------------------------------
+
+    @classmethod
+    @functools.cache
+    def protocol_entry(cls) -> Protocol:
+        """The registry's entry that names this class (looked up once per class)."""
+        path = f"{cls.__module__}:{cls.__qualname__}"
+        for protocol in PROTOCOLS.values():
+            if protocol.driver == path:
+                return protocol
+        raise TypeError(f"no registered protocol names the driver {path}")
+
+    @property
+    def kind(self) -> str:
+        return self.protocol_entry().kind
+
+    @property
+    def codec(self) -> ModuleType:
+        return self.protocol_entry().codec
+
+    @property
+    def schema(self) -> ModuleType:
+        return self.protocol_entry().schema
+
+    @property
+    def commands(self) -> TypeAdapter[Any]:
+        """The kind's own commands (the gateway adds ``claim`` and ``release``)."""
+        return self.schema.COMMAND_ADAPTER
 
     # -- planning ---------------------------------------------------------------------------
 
@@ -143,15 +190,48 @@ class Driver(abc.ABC):
         by default, one poll, which also tells whether it answers."""
         return self.poll()
 
+    # A family's driver defines the four parts below (``FAMILY_PARTS``; the registry's check
+    # names one that is missing); the defaults serve drivers that are not a family's.
+
     def follow_target(self, payload: dict[str, Any]) -> Any:
         """Validate a follow stream's payload (``{"position": P}``…); ``CommandError`` if bad."""
         raise CommandError(f"{self.kind} has no follow stream")
+
+    def follow_payload(self, payload: dict[str, Any]) -> Any:
+        """``payload`` as the kind's ``FollowTarget`` model (``CommandError`` if it is not one)."""
+        try:
+            return self.schema.FollowTarget.model_validate(payload)
+        except ValidationError as exc:
+            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
 
     @classmethod
     def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
         """One frame carrying the latest follow targets of up to ``follow_group_limit``
         devices of this kind on one bus."""
-        raise CommandError(f"{cls.kind} has no follow stream")
+        raise CommandError(f"{cls.protocol_entry().kind} has no follow stream")
+
+    @staticmethod
+    def follow_sample(t_s: float, index: int) -> dict[str, Any]:
+        """A follow payload for device ``index`` at ``t_s`` seconds into a smooth trajectory:
+        what benchmarks stream, and what the bus budget sizes follow frames with."""
+        raise CommandError("this driver has no follow stream")
+
+    # -- what spans the devices of a bus -----------------------------------------------------
+
+    @classmethod
+    def probe(cls, device_id: int) -> Request:
+        """The most harmless request a device with ``device_id`` answers (a scan's probe)."""
+        raise CommandError(f"{cls.__qualname__} has no scan probe")
+
+    def group_entry(self, position: int, time_ms: int | None) -> dict[str, Any]:
+        """This device's entry in its kind's ``group_move`` op (``CommandError``: the kind
+        has no group move, or cannot take these values)."""
+        raise CommandError(f"a {self.protocol_entry().name} bus has no group move")
+
+    @classmethod
+    def heartbeat_frames(cls, device_id: int) -> tuple[object, ...]:
+        """What a device sends unasked at each heartbeat (none by default)."""
+        return ()
 
     def stale_stream(self) -> list[Request]:
         """Requests to send when this device's follow stream went stale (e.g. 0 rpm)."""

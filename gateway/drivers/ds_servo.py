@@ -19,19 +19,16 @@ Rules of the driver (below ``frames_for``):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Sequence
-from types import ModuleType
 from typing import Any, ClassVar, Final
-
-from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs import ds_servo as codec
 from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import ds_servo as schema
-from busgate.schemas.base import CommandModel
-from busgate.schemas.errors import describe_validation_error
+from busgate.schemas.telemetry import flag_names
 
 _TORQUE = codec.REGISTERS["torque_enable"].address
 _SERVO_ID = codec.REGISTERS["servo_id"].address
@@ -119,13 +116,6 @@ _MEASURED: dict[str, str] = {
     "temperature": "temperature_c",
 }
 
-#: Status bits and their fault names, in bit order (manual 2.4).
-_FAULT_NAMES: dict[codec.ServoStatus, str] = {
-    codec.ServoStatus.VOLTAGE: "voltage",
-    codec.ServoStatus.TEMPERATURE: "temperature",
-    codec.ServoStatus.OVERLOAD: "overload",
-}
-
 #: Ops whose repeat is harmless, so a lost reply may be retried: queries, absolute targets and
 #: switches. A REG WRITE is among them since a new one replaces the one stored (manual 2.3.4).
 #: Not: write (it may hit anything), set_id and reset (once the first took effect the servo
@@ -134,10 +124,6 @@ _FAULT_NAMES: dict[codec.ServoStatus, str] = {
 _IDEMPOTENT: frozenset[type] = frozenset(
     {schema.Ping, schema.Read, schema.Move, schema.GroupMove, schema.Torque, schema.GotoPreset}
 )
-
-
-def _fault_names(status: codec.ServoStatus) -> list[str]:
-    return [name for flag, name in _FAULT_NAMES.items() if flag in status]
 
 
 def _no_write_only_between(start: int, end: int) -> bool:
@@ -173,12 +159,6 @@ _POLLED: Final = (*_MEASURED, "torque_enable", "target_position")
 _POLL_SPANS: Final = poll_spans(_POLLED)
 
 
-class FollowTarget(CommandModel):
-    """A ``ds_servo`` follow stream's payload: one absolute position, and the sending client."""
-
-    position: schema.Position
-
-
 class DsServoDriver(Driver):
     """One DS servo: commands become frames, status replies become its state.
 
@@ -188,10 +168,7 @@ class DsServoDriver(Driver):
     every exchange, not only polls.
     """
 
-    kind: ClassVar[str] = "ds_servo"
-    protocol: ClassVar[str] = "ds_servo"
-    codec: ClassVar[ModuleType] = codec
-    commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
+    follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"torque","on":true}',)
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
     reenable_op: ClassVar[str] = '{"op": "torque", "on": true}'
@@ -241,10 +218,18 @@ class DsServoDriver(Driver):
         return [Request.of(codec, codec.Write(self.device_id, _TORQUE, b"\x00"), idempotent=True)]
 
     def follow_target(self, payload: dict[str, Any]) -> int:
-        try:
-            return FollowTarget.model_validate(payload).position
-        except ValidationError as exc:
-            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
+        return self.follow_payload(payload).position
+
+    @staticmethod
+    def follow_sample(t_s: float, index: int) -> dict[str, Any]:
+        return {"position": round(2048 + 1500 * math.sin(t_s * math.pi + index))}
+
+    @classmethod
+    def probe(cls, device_id: int) -> Request:
+        return Request.of(codec, codec.Ping(device_id))
+
+    def group_entry(self, position: int, time_ms: int | None) -> dict[str, Any]:
+        return {"id": self.device_id, "position": position, "time_ms": time_ms or 0}
 
     @classmethod
     def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
@@ -280,7 +265,7 @@ class DsServoDriver(Driver):
             "target": self.target,
             "pending_target": self.pending_target,
             "torque_on": self.torque_on,
-            "faults": _fault_names(self.faults),
+            "faults": flag_names(self.faults),
         }
 
     def forget_on_reboot(self) -> None:
@@ -295,9 +280,9 @@ class DsServoDriver(Driver):
         self.faults = status
         self.emit(
             "fault",
-            faults=_fault_names(status),
-            raised=_fault_names(raised),
-            cleared=_fault_names(cleared),
+            faults=flag_names(status),
+            raised=flag_names(raised),
+            cleared=flag_names(cleared),
         )
 
     def _change_id(self, new_id: int, reason: str) -> None:

@@ -26,19 +26,16 @@ Rules of ``InspireLaDriver``:
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Callable, Sequence
-from types import ModuleType
 from typing import Any, ClassVar
-
-from pydantic import TypeAdapter, ValidationError
 
 from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import CommandError, EncodeError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import inspire_la as schema
-from busgate.schemas.base import CommandModel
-from busgate.schemas.errors import describe_validation_error
+from busgate.schemas.telemetry import flag_names
 
 #: The force-sensor zero register takes exactly this value ("settable range 1").
 _ZERO_FORCE = codec.REGISTERS[codec.FORCE_ZERO].minimum
@@ -171,20 +168,6 @@ _STATUS_FIELDS = {
 }
 
 
-class FollowTarget(CommandModel):
-    """A follow stream's payload: the target position, and the sending client."""
-
-    position: schema.Position
-
-
-_FOLLOW_TARGET = TypeAdapter(FollowTarget)
-
-
-def fault_names(faults: codec.Fault) -> list[str]:
-    """``Fault.STALL | Fault.OVER_CURRENT`` → ``["stall", "over_current"]``, in bit order."""
-    return [fault.name.lower() for fault in codec.Fault if fault in faults]
-
-
 def value_in_unit(name: str, raw: int) -> int | float:
     """A register's raw value in its unit (tenths of a degree → °C)."""
     scale = codec.REGISTERS[name].scale
@@ -202,10 +185,7 @@ def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
 class InspireLaDriver(Driver):
     """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
 
-    kind: ClassVar[str] = "inspire_la"
-    protocol: ClassVar[str] = "inspire_la"
-    codec: ClassVar[ModuleType] = codec
-    commands: ClassVar[TypeAdapter[Any]] = schema.COMMAND_ADAPTER
+    follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"enable"}',)
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
     reenable_op: ClassVar[str] = '{"op": "enable"}'
@@ -282,11 +262,20 @@ class InspireLaDriver(Driver):
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""
-        try:
-            target = _FOLLOW_TARGET.validate_python(payload)
-        except ValidationError as exc:
-            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
-        return target.position
+        return self.follow_payload(payload).position
+
+    @staticmethod
+    def follow_sample(t_s: float, index: int) -> dict[str, Any]:
+        return {"position": round(1000 + 800 * math.sin(t_s * math.pi + index))}
+
+    @classmethod
+    def probe(cls, device_id: int) -> Request:
+        return Request.of(codec, codec.ControlCommand(device_id, codec.ControlCode.STATUS))
+
+    def group_entry(self, position: int, time_ms: int | None) -> dict[str, Any]:
+        if time_ms is not None:
+            raise CommandError("Inspire LA group moves have no move time; drop time_ms")
+        return {"id": self.device_id, "position": position}
 
     @classmethod
     def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
@@ -371,9 +360,9 @@ class InspireLaDriver(Driver):
             self.faults = status.faults
             self.emit(
                 "fault",
-                faults=fault_names(status.faults),
-                raised=fault_names(raised),
-                cleared=fault_names(cleared),
+                faults=flag_names(status.faults),
+                raised=flag_names(raised),
+                cleared=flag_names(cleared),
             )
         return {}
 
@@ -418,7 +407,7 @@ class InspireLaDriver(Driver):
         limits = {key: value_in_unit(name, self.table[name]) for key, name in _TRACKED.items()}
         return {
             **measured,
-            "faults": fault_names(self.faults),
+            "faults": flag_names(self.faults),
             "power": self.power.value,
             **limits,
         }

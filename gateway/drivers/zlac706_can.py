@@ -26,7 +26,6 @@ with RS232 (``zlac706_state``). What is CAN's own:
 from __future__ import annotations
 
 from collections.abc import Callable
-from types import ModuleType
 from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_can as codec
@@ -34,7 +33,8 @@ from busgate.codecs import zlac706_common as common
 from busgate.codecs.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver
-from busgate.gateway.drivers.zlac706_state import Role, RoleOf, Zlac706Driver, reverse
+from busgate.gateway.drivers.zlac706 import Zlac706Driver
+from busgate.gateway.drivers.zlac706_state import Role, RoleOf, reverse
 from busgate.schemas import zlac706 as schema
 
 Reg = codec.CanRegister
@@ -133,12 +133,13 @@ ROLES: dict[int, RoleOf] = {
     Reg.ORIGIN: RoleOf(Role.ONE_SHOT),
 }
 
+#: A register the ZLAC706 does not have: writing it gets the "no such register" reply.
+PROBE_REGISTER = 0x7E
+
 
 class Zlac706CanDriver(Zlac706Driver):
     """One ZLAC706 node on a CAN bus."""
 
-    protocol: ClassVar[str] = "zlac706_can"
-    codec: ClassVar[ModuleType] = codec
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
     frames = staticmethod(frames_for)
     roles: ClassVar[dict[int, RoleOf]] = ROLES
@@ -154,6 +155,20 @@ class Zlac706CanDriver(Zlac706Driver):
 
     def poll(self) -> list[Request]:
         return []  # no read command: heartbeats only
+
+    @classmethod
+    def probe(cls, device_id: int) -> Request:
+        """A write to a register the ZLAC706 does not have: answered ``FF`` (no such
+        register), and it changes nothing."""
+        return Request.of(codec, codec.Write(device_id, PROBE_REGISTER, 0))
+
+    @classmethod
+    def heartbeat_frames(cls, device_id: int) -> tuple[object, ...]:
+        """The default heartbeat: position, then current and speed."""
+        return (
+            codec.HeartbeatPosition(device_id, 0),
+            codec.HeartbeatCurrentSpeed(device_id, 0, 0),
+        )
 
     def init(self) -> list[Request]:
         """Rule 3. The runner repeats ``init`` at the poll rate while the node is offline (with

@@ -22,14 +22,14 @@ with CAN (``zlac706_state``). What is RS232's own:
 from __future__ import annotations
 
 from collections.abc import Callable
-from types import ModuleType
 from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
 from busgate.codecs import zlac706_rs232 as codec
 from busgate.codecs.errors import CodecError, CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.zlac706_state import Role, RoleOf, Zlac706Driver, reverse
+from busgate.gateway.drivers.zlac706 import Zlac706Driver
+from busgate.gateway.drivers.zlac706_state import Role, RoleOf, reverse
 from busgate.schemas import zlac706 as schema
 
 Reg = codec.Rs232Register
@@ -143,8 +143,6 @@ _MONITOR = Request.of(codec, codec.MonitorRequest(), idempotent=True)
 class Zlac706Rs232Driver(Zlac706Driver):
     """The ZLAC706 at the other end of an RS232 link."""
 
-    protocol: ClassVar[str] = "zlac706_rs232"
-    codec: ClassVar[ModuleType] = codec
     frames = staticmethod(frames_for)
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual asks for a monitor at least once a second in speed mode; 0.2 s of margin.
@@ -154,8 +152,13 @@ class Zlac706Rs232Driver(Zlac706Driver):
     def poll(self) -> list[Request]:
         return [_MONITOR]
 
+    @classmethod
+    def probe(cls, device_id: int) -> Request:
+        """The monitor request: it reads, and the one driver on the line answers."""
+        return Request.of(codec, codec.MonitorRequest())  # a scan sends it once: not idempotent
+
     def keepalive_request(self) -> Request:
-        return _MONITOR
+        return Request.of(codec, codec.MonitorRequest())  # a scan sends it once: not idempotent
 
     def refreshes_keepalive(self, request: Request) -> bool:
         return isinstance(request.frame, codec.MonitorRequest)

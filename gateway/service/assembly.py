@@ -11,20 +11,13 @@ from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.clock import now
-from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import DeviceEvent, Driver
-from busgate.gateway.drivers.protocols import PROTOCOLS, Protocol
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.drivers.families import check_family, link_timing, make_driver
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.config import CanBus, DeviceConfig, SerialBus
-
-
-def make_driver(protocol: Protocol, device: DeviceConfig) -> Driver:
-    options: dict[str, object] = {"follow_period_s": device.follow_period_ms / 1000}
-    if protocol.can:
-        options["heartbeat_ms"] = device.heartbeat_ms
-    return protocol.driver_class(device.name, device.id, **options)
+from busgate.schemas.config import CanBus, SerialBus
+from busgate.schemas.families import FAMILIES, PROTOCOLS
 
 
 def build_bus(
@@ -35,14 +28,15 @@ def build_bus(
 ) -> BusRunner:
     """A bus runner for ``bus`` (not started)."""
     protocol = PROTOCOLS[bus.protocol]
-    drivers = [make_driver(protocol, device) for device in bus.devices]
+    check_family(FAMILIES[protocol.kind])  # a part missing is named here, before anything opens
+    drivers = [make_driver(device, protocol) for device in bus.devices]
     counters = BusCounters(now())
     margin = bus.reply_margin_ms / 1000
     if isinstance(bus, SerialBus):
-        timing = LinkTiming(bus.protocol, bus.baudrate, margin_s=margin, gap_s=bus.gap_s)
+        timing = link_timing(bus.protocol, bus.baudrate, margin_s=margin, gap_s=bus.gap_s)
         owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
     else:
-        timing = LinkTiming(bus.protocol, bus.bitrate, margin_s=margin)
+        timing = link_timing(bus.protocol, bus.bitrate, margin_s=margin)
         owner = CanBusOwner(
             bus.interface,
             bus.channel,

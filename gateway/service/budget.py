@@ -26,30 +26,13 @@ from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from busgate.codecs import zlac706_can
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.schemas.config import CanBus, SerialBus
-
-#: A follow payload per device kind, and the commands that must be planned before it is
-#: accepted (a ZLAC706 streams speeds in velocity mode only). Frame sizes do not depend on
-#: the values.
-FOLLOW_PAYLOAD = {
-    "inspire_la": ((), {"position": 0}),
-    "ds_servo": ((), {"position": 0}),
-    "zlac706": (('{"op":"set_mode","mode":"velocity"}',), {"rpm": 0.0}),
-}
-
-#: What a node sends unasked at each heartbeat interval (the ZLAC706 default: position,
-#: then current and speed), per protocol.
-HEARTBEAT_FRAMES = {
-    "zlac706_can": lambda node: (
-        zlac706_can.HeartbeatPosition(node, 0),
-        zlac706_can.HeartbeatCurrentSpeed(node, 0, 0),
-    ),
-}
+from busgate.schemas.families import PROTOCOLS
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,21 +212,22 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
 
 
 def _follow_target(driver: Driver) -> object:
-    """A representative follow target, validated by the driver itself."""
-    commands, payload = FOLLOW_PAYLOAD[driver.kind]
-    for command in commands:
+    """A representative follow target, validated by the driver itself once the commands that
+    make it ready to follow are planned (a ZLAC706 streams speeds in velocity mode only).
+    Frame sizes do not depend on the values."""
+    for command in driver.follow_preparation:
         driver.plan(driver.parse(command))
-    return driver.follow_target(payload)
+    return driver.follow_target(driver.follow_sample(0.0, 0))
 
 
 def _heartbeats(bus: SerialBus | CanBus, timing: LinkTiming) -> Load:
     """What the nodes send unasked (CAN heartbeats): wire time, and as much reserved."""
-    frames_of = HEARTBEAT_FRAMES.get(bus.protocol)
+    protocol = PROTOCOLS[bus.protocol]
     total = Load()
-    for device in bus.devices if frames_of is not None else ():
-        if device.heartbeat_ms:
+    for device in bus.devices:
+        frames = driver_class(protocol).heartbeat_frames(device.id)
+        if device.heartbeat_ms and frames:
             hz = 1000 / device.heartbeat_ms
-            frames = frames_of(device.id)
-            wire = sum(timing.wire_time(zlac706_can.encode(frame)) for frame in frames) * hz
+            wire = sum(timing.wire_time(protocol.codec.encode(frame)) for frame in frames) * hz
             total += Load(len(frames) * hz, wire, wire)
     return total

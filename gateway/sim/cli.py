@@ -13,13 +13,12 @@ import threading
 import uuid
 
 from busgate.codecs.errors import CommandError
-from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.protocols import PROTOCOLS
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.recorder import Recorder
+from busgate.schemas.families import PROTOCOLS
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -127,7 +126,7 @@ def _make_server(args, devices, faults, recorder):
         return _SlcanServer(protocol.codec, devices, args.bitrate, args.link, faults, recorder)
     from busgate.gateway.sim.serial_server import SerialSimulator
 
-    baudrate = args.baudrate or PROTOCOL_TIMING[args.protocol].default_rate
+    baudrate = args.baudrate or protocol.timing.default_rate
     return SerialSimulator(
         protocol.codec,
         devices,

@@ -38,6 +38,7 @@ from busgate.codecs.ds_servo import (
     PRESET_ADDRESSES,
     REGISTERS,
     TABLE_END,
+    TIMING,
     Action,
     Ping,
     Read,
@@ -49,7 +50,6 @@ from busgate.codecs.ds_servo import (
     Write,
 )
 from busgate.codecs.registers import Register
-from busgate.codecs.timing import PROTOCOL_TIMING
 
 #: Move time 0 means "as fast as it goes" (0x2C); the manual gives no speed. 4096 steps per
 #: second is a full turn (0-4095) in 1 s, 60° in 0.17 s: a typical standard-size bus servo.
@@ -111,8 +111,8 @@ class DsServoDevice:
     """One DS servo on a simulated bus (``SimDevice``); ``position_raw`` is where it starts."""
 
     turnaround_s = (
-        PROTOCOL_TIMING["ds_servo"].reply_min_s,
-        PROTOCOL_TIMING["ds_servo"].reply_max_s,
+        TIMING.reply_min_s,
+        TIMING.reply_max_s,
     )
 
     def __init__(self, device_id: int, *, position_raw: int = CENTRE_POSITION) -> None:

@@ -34,6 +34,7 @@ from busgate.codecs.inspire_la import (
     TABLE_SIZE,
     TARGET_POSITION,
     TENTHS_PER_DEGREE,
+    TIMING,
     ControlCode,
     ControlCommand,
     Fault,
@@ -50,7 +51,6 @@ from busgate.codecs.inspire_la import (
     check_write,
 )
 from busgate.codecs.registers import Register
-from busgate.codecs.timing import PROTOCOL_TIMING
 
 FULL_STROKE_RAW = REGISTERS[TARGET_POSITION].maximum
 #: Table addresses 0–1 read AA 55 ("table header", manual 3.6).
@@ -93,8 +93,8 @@ class InspireLaDevice:
     """
 
     turnaround_s = (
-        PROTOCOL_TIMING["inspire_la"].reply_min_s,
-        PROTOCOL_TIMING["inspire_la"].reply_max_s,
+        TIMING.reply_min_s,
+        TIMING.reply_max_s,
     )
 
     def __init__(self, device_id: int, *, stroke_s: float = 1.0, load_g: float = 0.0) -> None:

@@ -1,4 +1,5 @@
-"""Which device model serves which protocol, and how a set of them is made.
+"""Which device model serves which protocol (the registry's ``simulator``), and how a set of
+them is made.
 
 Model classes take ``(device_id, **options)``; options a model does not know are refused, so a
 typo on the command line is an error rather than a silently ignored flag.
@@ -6,22 +7,21 @@ typo on the command line is an error rather than a silently ignored flag.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Iterable
 
+from busgate.gateway.drivers.families import SIMULATOR_PARTS, load, require
 from busgate.gateway.sim.device import SimDevice
-
-MODELS: dict[str, str] = {
-    "inspire_la": "busgate.gateway.sim.inspire_la:InspireLaDevice",
-    "ds_servo": "busgate.gateway.sim.ds_servo:DsServoDevice",
-    "zlac706_can": "busgate.gateway.sim.zlac706:Zlac706CanDevice",
-    "zlac706_rs232": "busgate.gateway.sim.zlac706:Zlac706Rs232Device",
-}
+from busgate.schemas.families import PROTOCOLS
 
 
 def model_class(protocol: str) -> type:
-    module, _, name = MODELS[protocol].partition(":")
-    return getattr(importlib.import_module(module), name)
+    """The simulator model of ``protocol``, checked for what the servers call (a
+    ``FamilyError`` names what it lacks)."""
+    entry = PROTOCOLS[protocol]
+    owner = f"protocol {protocol}"
+    cls = load(entry.simulator, "simulator", owner)
+    require(cls, SIMULATOR_PARTS, f"simulator {entry.simulator}", owner)
+    return cls
 
 
 def make_devices(protocol: str, ids: Iterable[int], **options: object) -> list[SimDevice]:

@@ -15,7 +15,7 @@ the records a simulator writes (``--record``). Two limits of measuring on this s
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,7 +52,7 @@ def analyse(
     records: Iterable[WireRecord],
     *,
     min_gap_s: float,
-    follow_frames: Sequence[str] = (),
+    follow_frames: Collection[str] = (),
     follow_period_s: float | None = None,
 ) -> WireFigures:
     """Device-side gaps (each received frame's start after the previous frame's end, either

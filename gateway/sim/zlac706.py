@@ -31,7 +31,7 @@ from typing import Any, Final
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs232_codec
 from busgate.codecs.registers import Register, require_range
-from busgate.codecs.timing import PROTOCOL_TIMING
+from busgate.codecs.timing import ProtocolTiming
 from busgate.codecs.zlac706_common import AlarmFlags, Mode
 from busgate.gateway.sim.zlac706_motor import FAULTS, Zlac706Motor
 
@@ -46,8 +46,7 @@ DEFAULT_HEARTBEAT_MS: Final = 100
 ALARM_REPORT_S: Final = 1.0
 
 
-def _turnaround(protocol: str) -> tuple[float, float]:
-    timing = PROTOCOL_TIMING[protocol]
+def _turnaround(timing: ProtocolTiming) -> tuple[float, float]:
     return timing.reply_min_s, timing.reply_max_s
 
 
@@ -109,7 +108,7 @@ class Zlac706CanDevice:
     """A ZLAC706 on a CAN bus (``SimDevice``): node ``device_id`` (1–109), heartbeats every
     ``heartbeat_ms`` (0: none) with ``heartbeat_content`` (the manual's option 0, 1 or 2)."""
 
-    turnaround_s = _turnaround("zlac706_can")
+    turnaround_s = _turnaround(can_codec.TIMING)
 
     def __init__(
         self,
@@ -246,7 +245,7 @@ class Zlac706Rs232Device:
     """A ZLAC706 on its RS232 port (``SimDevice``). The link is point to point and frames
     carry no id: it takes every frame, and ``device_id`` is only a label (for silent ids)."""
 
-    turnaround_s = _turnaround("zlac706_rs232")
+    turnaround_s = _turnaround(rs232_codec.TIMING)
 
     def __init__(self, device_id: int = 1) -> None:
         self.device_id = device_id

@@ -52,7 +52,6 @@ from typing import Any
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
-from busgate.codecs.timing import PROTOCOL_TIMING
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
 from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.bus.clock import now
@@ -61,6 +60,7 @@ from busgate.gateway.cli.bench import FOLLOW_FRAMES, PREPARE, TRAJECTORY, cpu_s
 from busgate.gateway.cli.client import reply_outcome
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import WireFigures, analyse, load_records
+from busgate.schemas.families import PROTOCOLS
 
 BASE = "busgate/bench"  # bench_zenoh's Daemon names the gateway "bench"
 FAULTS = "--bad-checksum-rate 0.02 --garbage-rate 0.02 --drop-rate 0.01"
@@ -91,7 +91,7 @@ class SerialLine:
 
     @property
     def gap_s(self) -> float:
-        return PROTOCOL_TIMING[self.protocol].default_gap_s  # the bus config sets no min_gap_ms
+        return PROTOCOLS[self.protocol].timing.default_gap_s  # the bus config sets no min_gap_ms
 
 
 LINES = (

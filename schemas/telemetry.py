@@ -1,0 +1,54 @@
+"""What every device's telemetry carries, and the naming of its faults.
+
+Each family's schema module defines its ``Telemetry`` on ``TelemetryEnvelope`` (the registry
+collects them into the API's telemetry union); fault names come from the codecs' flag enums
+through ``flag_names``, the one spelling the drivers publish and the schemas accept.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable
+from typing import Annotated, Any, Literal
+
+from pydantic import Field
+
+from busgate.schemas.base import Published
+from busgate.schemas.config import Name
+from busgate.schemas.families import kinds
+
+DeviceKind = Literal[kinds()]  # type: ignore[valid-type]
+
+
+def flag_names(flags: Iterable[enum.Flag]) -> list[str]:
+    """Flag names as the drivers publish them, in bit order: ``OVER_CURRENT`` → ``over_current``.
+
+    >>> class Fault(enum.Flag):
+    ...     STALL = 1
+    ...     OVER_CURRENT = 2
+    >>> flag_names(Fault.STALL | Fault.OVER_CURRENT)
+    ['stall', 'over_current']
+    """
+    return [flag.name.lower() for flag in flags if flag.name]
+
+
+def fault_literal(flags: Iterable[enum.Flag]) -> Any:
+    """The ``Literal`` type of these flags' names, for a telemetry model's ``faults``."""
+    return Literal[tuple(flag_names(flags))]
+
+
+class TelemetryEnvelope(Published):
+    """The fields every device's state carries, whatever its kind. ``None`` in a value: not
+    known yet (never read, or not reported by this device's protocol)."""
+
+    ts: float = Field(description="When the state was taken, in seconds of the gateway's clock.")
+    device: Name
+    kind: DeviceKind
+    online: bool = Field(description="The device answered recently (or sent heartbeats).")
+    last_reply_age_s: Annotated[float, Field(ge=0)] | None = Field(
+        description="Seconds since the device last answered; null if it never did."
+    )
+    stale: bool = Field(
+        description="The values are older than a few poll periods (an oversubscribed bus, or "
+        "a device not answering)."
+    )

@@ -1,0 +1,213 @@
+"""The family registry (schemas/families.py): every table derives from it, a family missing a
+part is refused naming the part, and a new family is its modules plus one entry.
+
+The throwaway family ("la_clone") is built from the Inspire LA's modules: a codec, schema,
+driver and simulator module of its own that reuse the LA's code, and one ``Family``. It runs
+in a child process, since registering must come before the schemas build their types.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from busgate.gateway.cli.demo import DEMO_BUSES
+from busgate.gateway.drivers.families import FamilyError, check_family, driver_class
+from busgate.gateway.sim.models import model_class
+from busgate.schemas import api
+from busgate.schemas.config import parse_config
+from busgate.schemas.families import FAMILIES, PROTOCOLS, Demo, Family, Protocol, register
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_every_registered_family_has_every_part() -> None:
+    for family in FAMILIES.values():
+        check_family(family)
+        for protocol in family.protocols:
+            assert driver_class(protocol).protocol_entry() is protocol
+            model_class(protocol.name)
+
+
+def test_the_tables_are_the_registry() -> None:
+    kinds = set(FAMILIES)
+    assert set(api.DEVICE_COMMAND_ADAPTERS) == set(api.TELEMETRY_MODELS) == kinds
+    assert set(api.FOLLOW_MODELS) == kinds
+    assert {bus.protocol for bus in DEMO_BUSES} == set(PROTOCOLS)
+    assert set(api.Protocol.__args__) == set(PROTOCOLS)
+
+
+def _bus(kind: str, transport: str, ids: list[int]) -> dict:
+    link = ({"port": "/dev/null", "baudrate": 115200} if transport == "serial"
+            else {"interface": "virtual", "channel": "x"})
+    return {"name": "b", "transport": transport, **link,
+            "devices": [{"name": f"d{i}", "kind": kind, "id": i} for i in ids]}
+
+
+@pytest.mark.parametrize("transport", ["serial", "can"])
+@pytest.mark.parametrize("kind", sorted(FAMILIES))
+def test_a_config_takes_a_kind_where_the_registry_puts_it(kind: str, transport: str) -> None:
+    protocol = FAMILIES[kind].on(transport)
+    document = {"gateway": {"name": "g"}, "buses": [_bus(kind, transport, [1])]}
+    if protocol is None:
+        with pytest.raises(ValueError, match=f"{kind} cannot be on a {transport} bus"):
+            parse_config(document)
+        return
+    assert parse_config(document).buses[0].protocol == protocol.name
+    ids = protocol.device_ids
+    document["buses"] = [_bus(kind, transport, [ids[-1] + 1])]
+    with pytest.raises(ValueError, match=f"outside {ids[0]}–{ids[-1]}"):
+        parse_config(document)
+    if not protocol.addressed:
+        document["buses"] = [_bus(kind, transport, [1, 2])]
+        with pytest.raises(ValueError, match="carry no device id"):
+            parse_config(document)
+
+
+def test_a_kind_or_protocol_is_registered_once() -> None:
+    la = FAMILIES["inspire_la"]
+    with pytest.raises(ValueError, match="inspire_la already registered"):
+        register(la)
+    assert FAMILIES["inspire_la"] is la
+
+
+# --- a family missing a part --------------------------------------------------------------------
+
+#: Modules of a broken family, each lacking one part (or naming what does not exist).
+BROKEN = {
+    "no_timing_codec": "from busgate.codecs.inspire_la import encode, expected_reply, "
+                       "CommandDecoder, ReplyDecoder, DEVICE_IDS, ADDRESSED\n",
+    "no_follow_schema": "from busgate.schemas.inspire_la import Command, COMMAND_ADAPTER, "
+                        "TELEMETRY_MODEL\n",
+    "no_probe_driver": textwrap.dedent("""\
+        import abc
+        from busgate.gateway.drivers.inspire_la import InspireLaDriver
+        class NoProbe(InspireLaDriver):  # a driver whose author left the scan probe out
+            @classmethod
+            @abc.abstractmethod
+            def probe(cls, device_id): ...
+        """),
+    "no_handle_sim": "class Device:\n    def accepts(self, command): return True\n",
+}
+
+
+@pytest.fixture
+def broken_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for name, text in BROKEN.items():
+        (tmp_path / f"{name}.py").write_text(text)
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+
+def _family(**parts: str) -> Family:
+    protocol = {"codec_module": "busgate.codecs.inspire_la",
+                "driver": "busgate.gateway.drivers.inspire_la:InspireLaDriver",
+                "simulator": "busgate.gateway.sim.inspire_la:InspireLaDevice"}
+    schema = parts.pop("schema_module", "busgate.schemas.inspire_la")
+    protocol.update(parts)
+    return Family("inspire_la", schema, (Protocol("inspire_la", "inspire_la", "serial",
+                                                  demo=Demo("b", (("d", 1),)), **protocol),))
+
+
+@pytest.mark.usefixtures("broken_modules")
+@pytest.mark.parametrize(("parts", "named"), [
+    ({"codec_module": "no_timing_codec"}, "codec no_timing_codec has no TIMING"),
+    ({"codec_module": "busgate.codecs.no_such"}, "codec busgate.codecs.no_such cannot be imported"),
+    ({"schema_module": "no_follow_schema"}, "schema module no_follow_schema has no FollowTarget"),
+    ({"schema_module": "busgate.schemas.ds_servo"}, "telemetry model's kind is not 'inspire_la'"),
+    ({"driver": "no_probe_driver:Nope"}, "driver no_probe_driver:Nope does not exist"),
+    ({"driver": "no_probe_driver:NoProbe"}, "driver no_probe_driver:NoProbe does not define probe"),
+    ({"driver": "busgate.gateway.drivers.base:Effect"}, "is not a Driver class"),
+])  # fmt: skip
+def test_a_family_missing_a_part_is_refused_naming_it(parts: dict, named: str) -> None:
+    with pytest.raises(FamilyError, match=named):
+        check_family(_family(**parts))
+
+
+@pytest.mark.usefixtures("broken_modules")
+def test_a_simulator_missing_a_part_is_refused_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    broken = _family(simulator="no_handle_sim:Device").protocols[0]
+    monkeypatch.setitem(PROTOCOLS, "inspire_la", broken)
+    with pytest.raises(FamilyError, match="simulator no_handle_sim:Device has no handle"):
+        model_class("inspire_la")
+
+
+# --- a fifth family: four modules and one entry ---------------------------------------------------
+
+CLONE_MODULES = {
+    "la_clone_codec": "from busgate.codecs.inspire_la import *  # noqa: F403\n",
+    "la_clone_schema": textwrap.dedent("""\
+        from typing import Literal
+        from busgate.schemas.inspire_la import Command, COMMAND_ADAPTER, FollowTarget
+        from busgate.schemas.inspire_la import InspireLaTelemetry
+        class CloneTelemetry(InspireLaTelemetry):
+            kind: Literal["la_clone"]
+        TELEMETRY_MODEL = CloneTelemetry
+        """),
+    "la_clone_driver": textwrap.dedent("""\
+        from busgate.gateway.drivers.inspire_la import InspireLaDriver
+        class CloneDriver(InspireLaDriver):
+            pass
+        """),
+    "la_clone_sim": textwrap.dedent("""\
+        from busgate.gateway.sim.inspire_la import InspireLaDevice
+        class CloneDevice(InspireLaDevice):
+            pass
+        """),
+}
+
+#: Registers the clone, then uses it where a user would: a config file, the JSON Schemas, a bus
+#: with its driver against its simulator (the real serial owner on a pty), the telemetry.
+CLONE_RUN = textwrap.dedent("""\
+    import json, sys, time
+    from busgate.schemas.families import Demo, Family, Protocol, register
+    register(Family("la_clone", "la_clone_schema", (Protocol(
+        "la_clone", "la_clone", "serial", "la_clone_codec", "la_clone_driver:CloneDriver",
+        "la_clone_sim:CloneDevice", Demo("clones", (("c1", 1),))),)))
+
+    from busgate.gateway.drivers.families import check_family
+    from busgate.gateway.service.assembly import build_bus
+    from busgate.gateway.sim.models import make_devices
+    from busgate.gateway.sim.serial_server import SerialSimulator
+    from busgate.schemas import api
+    from busgate.schemas.config import parse_config
+    from busgate.schemas.families import FAMILIES, PROTOCOLS
+
+    check_family(FAMILIES["la_clone"])
+    codec = PROTOCOLS["la_clone"].codec
+    out = {"schema": list(api.DEVICE_COMMAND_ADAPTERS)}
+    with SerialSimulator(codec, make_devices("la_clone", [1]), baudrate=921600) as sim:
+        config = parse_config({"gateway": {"name": "g"}, "buses": [{
+            "name": "clones", "transport": "serial", "port": sim.port, "baudrate": 921600,
+            "devices": [{"name": "c1", "kind": "la_clone", "id": 1}]}]})
+        states = []
+        runner = build_bus(config.buses[0], on_state=lambda d, s: states.append(s)).start()
+        try:
+            deadline = time.monotonic() + 30
+            while not runner.drivers["c1"].online and time.monotonic() < deadline:
+                time.sleep(0.01)
+            driver = runner.drivers["c1"]
+            reply = runner.submit("c1", driver.parse('{"op":"move","position":1500}')).result(10)
+            out["reply"] = api.TELEMETRY_ADAPTER.validate_python(reply["state"]).target
+            while not states and time.monotonic() < deadline:
+                time.sleep(0.01)
+            out["state"] = api.TELEMETRY_ADAPTER.validate_python(states[-1]).kind
+        finally:
+            runner.stop()
+    print(json.dumps(out))
+""")
+
+
+def test_a_throwaway_family_built_from_an_existing_one_runs(tmp_path: Path) -> None:
+    for name, text in CLONE_MODULES.items():
+        (tmp_path / f"{name}.py").write_text(text)
+    result = subprocess.run([sys.executable, "-c", CLONE_RUN], capture_output=True, text=True,
+                            timeout=120, cwd=tmp_path, env={"PYTHONPATH": str(tmp_path)})
+    assert result.returncode == 0, result.stderr
+    out = json.loads(result.stdout)
+    assert out == {"schema": ["inspire_la", "ds_servo", "zlac706", "la_clone"], "reply": 1500,
+                   "state": "la_clone"}
