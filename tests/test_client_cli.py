@@ -25,7 +25,7 @@ from busgate.codecs import inspire_la
 from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.cli import client as client_cli
 from busgate.gateway.cli import main
-from busgate.gateway.cli.client import WatchTable
+from busgate.gateway.cli.watch_table import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.gateway_process import GatewayProcess, serial_bus, write_config

@@ -33,12 +33,8 @@ from busgate.codecs.inspire_la import (
 from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.clock import now
 from busgate.gateway.sim.faults import FaultInjector
-from busgate.gateway.sim.inspire_la import (
-    AMBIENT_C,
-    AUTO_CLEAR_S,
-    HOLD_CURRENT_MA,
-    InspireLaDevice,
-)
+from busgate.gateway.sim.inspire_la import AUTO_CLEAR_S, InspireLaDevice
+from busgate.gateway.sim.inspire_la_physics import AMBIENT_C, HOLD_CURRENT_MA
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator

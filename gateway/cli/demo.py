@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from busgate.gateway.cli.client import DEFAULT_ENDPOINT
+from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
 from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.models import make_devices
 from busgate.schemas.config import Config, parse_config

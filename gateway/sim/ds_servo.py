@@ -2,9 +2,10 @@
 
 The model owns one servo's control table, its shaft and its protections. Rules of this file:
 
-1. State is the control table: ``TABLE_END`` bytes laid out by the codec's ``REGISTERS``, with
-   the manual's defaults. Live values (present position, speed, current, temperature, the REG
-   WRITE flag) are written into it from ``now`` just before a READ, so a read sees real values.
+1. State is the control table (``ds_servo_table.py``): ``TABLE_END`` bytes laid out by the
+   codec's ``REGISTERS``, with the manual's defaults. Live values (present position, speed,
+   current, temperature, the REG WRITE flag) are written into it from ``now`` just before a
+   READ, so a read sees real values.
 2. Motion is a function of time: a ``Move`` (origin, target, start, duration) gives the position
    at any ``now``. Nothing ticks; protections that trip after a delay are settled lazily at the
    start of every call, from ``now``.
@@ -37,7 +38,6 @@ from busgate.codecs.ds_servo import (
     GOTO_PRESET_ADDRESSES,
     PRESET_ADDRESSES,
     REGISTERS,
-    TABLE_END,
     TIMING,
     Action,
     Ping,
@@ -49,7 +49,7 @@ from busgate.codecs.ds_servo import (
     SyncWrite,
     Write,
 )
-from busgate.codecs.registers import Register
+from busgate.gateway.sim.ds_servo_table import DsServoTable
 
 #: Move time 0 means "as fast as it goes" (0x2C); the manual gives no speed. 4096 steps per
 #: second is a full turn (0-4095) in 1 s, 60° in 0.17 s: a typical standard-size bus servo.
@@ -63,21 +63,6 @@ CURRENT_MA: Final = {"released": 0, "holding": 20, "moving": 250, "straining": 1
 AMBIENT_C: Final = 25
 #: What 0x3F reads while ``over_temperature`` is injected.
 OVER_TEMPERATURE_C: Final = 80
-
-#: Registers the manual gives no initial value ("--"): what this model powers up with. Torque
-#: is on, since the manual's own examples move servos without ever writing 0x28. The firmware
-#: version is the manual's example v1.28. The target is the shaft's position (set at power-up).
-POWER_UP_VALUES: Final = {
-    "firmware_version": 0x011C,
-    "motor_mode": 0,
-    "motor_direction": 0,
-    "torque_enable": 1,
-    "lock_flag": 0,
-    "speed_adjust_16": 0,
-}
-#: The manual marks 0x03-0x1B saved across power-down, 0x1C-0x1D "?" and nothing from the torque
-#: switch on; we keep everything below the torque switch, so a reboot keeps ids and presets.
-SAVED_END: Final = REGISTERS["torque_enable"].address
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,8 +104,8 @@ class DsServoDevice:
         REGISTERS["servo_id"].check(device_id)
         REGISTERS["present_position"].check(position_raw)
         self._lock = threading.Lock()
-        self._table = _factory_table()
-        self._set("servo_id", device_id)
+        self._table = DsServoTable()
+        self._table.set("servo_id", device_id)
         self._environment = ServoStatus(0)  # injected over-temperature / under-voltage
         self._move = Move.hold(position_raw, 0.0)
         self._power_up(0.0)
@@ -129,7 +114,7 @@ class DsServoDevice:
 
     @property
     def device_id(self) -> int:
-        return self._get("servo_id")
+        return self._table.get("servo_id")
 
     def accepts(self, command: object) -> bool:
         if isinstance(command, Action):
@@ -158,9 +143,7 @@ class DsServoDevice:
         """Power-cycle: saved registers stay, the rest powers up; trips and injected
         conditions clear (the power-cycle that ends a real servo's protection)."""
         with self._lock:
-            saved = self._table[:SAVED_END]
-            self._table = _factory_table()
-            self._table[:SAVED_END] = saved
+            self._table.power_cycle()
             self._environment = ServoStatus(0)
             self._power_up(now)
 
@@ -180,32 +163,21 @@ class DsServoDevice:
 
     # --- the control table -------------------------------------------------------------------
 
-    def _get(self, name: str) -> int:
-        register = REGISTERS[name]
-        raw = self._table[register.address : register.end]
-        return int.from_bytes(raw, "big", signed=register.signed)
-
-    def _set(self, name: str, value: int) -> None:
-        register = REGISTERS[name]
-        self._table[register.address : register.end] = value.to_bytes(
-            register.size, "big", signed=register.signed
-        )
-
     def _refresh(self, now: float) -> None:
         """Write the live values into the table, as the servo's firmware keeps them current."""
-        self._set("present_position", self._position(now))
-        self._set("speed", min(round(self._move.speed(now)), 0xFFFF))
-        self._set("current", CURRENT_MA[self._effort(now)])
+        self._table.set("present_position", self._position(now))
+        self._table.set("speed", min(round(self._move.speed(now)), 0xFFFF))
+        self._table.set("current", CURRENT_MA[self._effort(now)])
         hot = self._environment & ServoStatus.TEMPERATURE
-        self._set("temperature", OVER_TEMPERATURE_C if hot else AMBIENT_C)
-        self._set("reg_write_pending", int(self._pending is not None))
+        self._table.set("temperature", OVER_TEMPERATURE_C if hot else AMBIENT_C)
+        self._table.set("reg_write_pending", int(self._pending is not None))
 
     # --- the shaft and its protections -------------------------------------------------------
 
     def _power_up(self, now: float) -> None:
         """RAM state after power-up or RESET: the shaft holds where it is, nothing pending."""
         self._move = Move.hold(self._position(now), now)
-        self._set("target_position", self._move.target)
+        self._table.set("target_position", self._move.target)
         self._pending: tuple[int, int] | None = None
         self._jammed_since: float | None = None
         self._overloaded = False
@@ -214,7 +186,7 @@ class DsServoDevice:
         return round(self._move.position(now))
 
     def _effort(self, now: float) -> str:
-        if not self._get("torque_enable"):
+        if not self._table.get("torque_enable"):
             return "released"
         if self._jammed_since is not None:
             return "straining"
@@ -227,7 +199,7 @@ class DsServoDevice:
         """Trip the stall protection if the shaft has been jammed for the protection time."""
         if self._jammed_since is None:
             return
-        trip_at = self._jammed_since + self._get("stall_protection_time")
+        trip_at = self._jammed_since + self._table.get("stall_protection_time")
         if now >= trip_at:
             self._trip(trip_at)
 
@@ -240,7 +212,7 @@ class DsServoDevice:
     def _jam(self, now: float) -> None:
         """The shaft stops where it is; the motor strains until protection trips."""
         self._move = Move.hold(self._move.position(now), now)
-        if self._get("torque_enable") and not self._overloaded:
+        if self._table.get("torque_enable") and not self._overloaded:
             self._jammed_since = now
             self._settle(now)
 
@@ -250,7 +222,7 @@ class DsServoDevice:
         self._move = Move.hold(self._move.position(now), now)
         self._jammed_since = None
         self._overloaded = True
-        self._set("torque_enable", 0)
+        self._table.set("torque_enable", 0)
 
     def _start_move(self, now: float) -> None:
         """Run to the target register in the move time register, if the torque is on.
@@ -259,28 +231,28 @@ class DsServoDevice:
         limits no description; a servo with limits holds its motion inside them).
         """
         span = REGISTERS["target_position"]
-        low = max(self._get("min_angle"), span.minimum)
-        high = min(self._get("max_angle"), span.maximum)
-        target = min(max(self._get("target_position"), low), high)
-        self._set("target_position", target)
-        if not self._get("torque_enable") or self._jammed_since is not None:
+        low = max(self._table.get("min_angle"), span.minimum)
+        high = min(self._table.get("max_angle"), span.maximum)
+        target = min(max(self._table.get("target_position"), low), high)
+        self._table.set("target_position", target)
+        if not self._table.get("torque_enable") or self._jammed_since is not None:
             return  # with torque off (or a jammed shaft) the target is stored, nothing moves
         origin = self._move.position(now)
         fastest = abs(target - origin) / TOP_SPEED_STEPS_PER_S
-        duration = max(self._get("move_time") / 1000, fastest)
+        duration = max(self._table.get("move_time") / 1000, fastest)
         self._move = Move(now, origin, target, duration)
 
     def _switch_torque(self, now: float, before: bytes) -> None:
         """Off: the shaft stops where it is. On: it holds where it is (not a stale target) and
         an overload trip is cleared. Writing the value it already has changes nothing."""
         address = REGISTERS["torque_enable"].address
-        if bool(before[address]) == bool(self._table[address]):
+        if bool(before[address]) == bool(self._table.get("torque_enable")):
             return
         self._move = Move.hold(self._move.position(now), now)
         self._jammed_since = None
-        if self._get("torque_enable"):
+        if self._table.get("torque_enable"):
             self._overloaded = False
-            self._set("target_position", self._move.target)
+            self._table.set("target_position", self._move.target)
 
     # --- commands ----------------------------------------------------------------------------
 
@@ -289,7 +261,7 @@ class DsServoDevice:
 
     def _read(self, command: Read, now: float) -> bytes:
         self._refresh(now)
-        return bytes(self._table[command.address : command.address + command.length])
+        return self._table.read(command.address, command.length)
 
     def _write(self, command: Write, now: float) -> bytes:
         if command.address in ADDRESS_ONLY_WRITES:
@@ -297,22 +269,12 @@ class DsServoDevice:
             action(self, number, now)
             return b""
         before = bytes(self._table)
-        touched = self._store(command.address, command.data)
+        touched = self._table.store(command.address, command.data)
         for register in sorted(touched, key=lambda r: r.address):
             effect = _WRITE_EFFECTS.get(register.name)
             if effect is not None:
                 effect(self, now, before)
         return b""
-
-    def _store(self, address: int, data: bytes) -> set[Register]:
-        """Write the bytes that land in writable registers; return the registers written."""
-        touched = set()
-        for offset, byte in enumerate(data):
-            register = REGISTERS.at(address + offset)
-            if _takes_data(register):
-                self._table[address + offset] = byte
-                touched.add(register)
-        return touched
 
     def _reg_write(self, command: RegWrite, now: float) -> bytes:
         # The manual: a REG WRITE arriving before ACTION replaces the one stored.
@@ -332,43 +294,24 @@ class DsServoDevice:
 
     def _run_to(self, position_raw: int, time_ms: int, now: float) -> None:
         """What a 4-byte write at 0x2A does: REG WRITE (on ACTION) and SYNC WRITE write there."""
-        self._set("target_position", min(position_raw, 0xFFFF))
-        self._set("move_time", time_ms)
+        self._table.set("target_position", min(position_raw, 0xFFFF))
+        self._table.set("move_time", time_ms)
         self._start_move(now)
 
     def _reset(self, command: Reset, now: float) -> bytes:
         """Factory settings for every register, id included (the manual: "all data")."""
-        self._table = _factory_table()
+        self._table = DsServoTable()
         self._power_up(now)
         return b""
 
     def _store_preset(self, number: int, now: float) -> None:
         # The manual: "the system writes the current position"; the address alone is sent.
-        self._set(f"preset_{number}", self._position(now))
+        self._table.set(f"preset_{number}", self._position(now))
 
     def _goto_preset(self, number: int, now: float) -> None:
         # The manual gives no move time for it: the move time register applies, as for 0x2A.
-        self._set("target_position", self._get(f"preset_{number}"))
+        self._table.set("target_position", self._table.get(f"preset_{number}"))
         self._start_move(now)
-
-
-def _takes_data(register: Register | None) -> bool:
-    return (
-        register is not None
-        and register.access.writable
-        and register.address not in ADDRESS_ONLY_WRITES
-    )
-
-
-def _factory_table() -> bytearray:
-    table = bytearray(TABLE_END)
-    for register in REGISTERS:
-        value = POWER_UP_VALUES.get(register.name, register.default)
-        if value is not None:
-            table[register.address : register.end] = value.to_bytes(
-                register.size, "big", signed=register.signed
-            )
-    return table
 
 
 _HANDLERS: dict[type, Callable[[DsServoDevice, Any, float], bytes]] = {

@@ -3,13 +3,14 @@
 The model owns the actuator's control table (RAM, and the "flash" that ``save`` writes and a
 power cycle reads back), its motion, its temperature and its protections. Rules of this file:
 
-1. Nothing ticks. The state is a motion segment (start position, start time, goal) and a
-   thermal state at a time; every entry point first calls ``_advance(now)``, which carries
-   the state forward (heating, auto-clearing faults, over-temperature) to ``now``.
-2. The control table is bytes laid out by the codec's ``REGISTERS`` and checked with its
-   rules (``check_write``, ``check_temperature_limits``); live registers (position, force)
-   are filled in when read. Out-of-range values are ignored, never raised: a device does not
-   crash on a host's bad frame.
+1. Nothing ticks. The state is a motion segment (a ``Stroke`` of ``inspire_la_physics.py``:
+   start position, start time, goal) and a thermal state at a time; every entry point first
+   calls ``_advance(now)``, which carries the state forward (heating, auto-clearing faults,
+   over-temperature) to ``now``.
+2. The control table (``inspire_la_table.py``) is bytes laid out by the codec's
+   ``REGISTERS`` and checked with its rules (``check_write``, ``check_temperature_limits``);
+   live registers (position, force) are filled in when read. Out-of-range values are
+   ignored, never raised: a device does not crash on a host's bad frame.
 3. Every reply is a frame of the codec; frames to id 255 are executed and never answered.
 
 Where the manual is silent, the choices are marked "Manual silent" below.
@@ -17,7 +18,6 @@ Where the manual is silent, the choices are marked "Manual silent" below.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 from busgate.codecs.errors import EncodeError
@@ -31,7 +31,6 @@ from busgate.codecs.inspire_la import (
     OVERTEMP_LIMIT,
     REGISTERS,
     REWARM_TEMPERATURE,
-    TABLE_SIZE,
     TARGET_POSITION,
     TENTHS_PER_DEGREE,
     TIMING,
@@ -47,27 +46,19 @@ from busgate.codecs.inspire_la import (
     StatusReply,
     WriteCommand,
     check_span,
-    check_temperature_limits,
-    check_write,
 )
-from busgate.codecs.registers import Register
+from busgate.gateway.sim.inspire_la_physics import (
+    AMBIENT_C,
+    FORCE_ADC_MID,
+    Stroke,
+    current_ma,
+    force_adc,
+    force_g,
+    warmed,
+)
+from busgate.gateway.sim.inspire_la_table import InspireLaTable
 
 FULL_STROKE_RAW = REGISTERS[TARGET_POSITION].maximum
-#: Table addresses 0–1 read AA 55 ("table header", manual 3.6).
-TABLE_HEADER = b"\xaa\x55"
-
-# Electrical and thermal figures. The manual gives none; these are plausible for a micro
-# actuator on 8 V: a free move draws a few hundred mA, a self-locking lead screw holds its
-# position on almost nothing, and the motor warms with I² over minutes.
-HOLD_CURRENT_MA = 12
-MOVING_CURRENT_MA = 220
-#: Extra current a push against a load costs while moving.
-MA_PER_GRAM_LOAD = 0.1
-AMBIENT_C = 25.0
-#: Equilibrium rise over ambient per A²: a continuous free move settles ~15 °C warmer.
-RISE_C_PER_A2 = 300.0
-THERMAL_TAU_S = 120.0
-
 #: Over-current and stall clear by themselves after 5 s, twice; the third one latches.
 AUTO_CLEAR_S = 5.0
 AUTO_CLEARS_BEFORE_LATCH = 2
@@ -76,13 +67,6 @@ SELF_CLEARING = (Fault.OVER_CURRENT, Fault.STALL)
 STOPPING = Fault.OVER_CURRENT | Fault.STALL | Fault.OVER_TEMPERATURE
 #: "Motor fault" goes away by itself once the motor draws more than this.
 MOTOR_FAULT_CLEAR_MA = 30
-
-#: The force sensor: a 12-bit ADC centred on no load, in grams per count.
-FORCE_ADC_MID = 2048
-FORCE_ADC_MAX = 4095
-GRAMS_PER_COUNT = 5
-
-_LIVE = ("current_position", "force", "force_raw")
 
 
 class InspireLaDevice:
@@ -102,9 +86,9 @@ class InspireLaDevice:
             raise ValueError(f"stroke_s must be positive, not {stroke_s}")
         self.speed_per_s = FULL_STROKE_RAW / stroke_s
         self.load_g = load_g
-        self._flash = _factory_table(device_id)
+        self._table = InspireLaTable(device_id)
         self._temp_c, self._temp_t = AMBIENT_C, 0.0
-        self._pos0, self._t0, self._goal = 0.0, 0.0, 0.0
+        self._stroke = Stroke(0.0, 0.0, 0.0, self.speed_per_s)
         self._handlers: dict[type, Callable[..., StatusReply | ReadReply | None]] = {
             ReadCommand: self._read,
             WriteCommand: self._write,
@@ -132,7 +116,7 @@ class InspireLaDevice:
         # nothing until it is saved and the actuator power-cycled (3.6).
         self._write_effects: dict[str, Callable[[float], None]] = {
             ID: self._take_id,
-            TARGET_POSITION: lambda now: self._go(self._get(TARGET_POSITION), now),
+            TARGET_POSITION: lambda now: self._go(self._table.get(TARGET_POSITION), now),
             FORCE_ZERO: self._zero_force,
             OVERCURRENT_LIMIT: self._check_current,
             OVERTEMP_LIMIT: self._check_temperature,
@@ -191,7 +175,7 @@ class InspireLaDevice:
     def position(self, now: float) -> float:
         """Present position, raw stroke units."""
         self._advance(now)
-        return self._position_at(now)
+        return self._stroke.position(now)
 
     def temperature_c(self, now: float) -> float:
         self._advance(now)
@@ -205,9 +189,9 @@ class InspireLaDevice:
     # --- power-up and the passing of time ------------------------------------------------
 
     def _power_up(self, now: float) -> None:
-        self._ram = bytearray(self._flash)
-        self.device_id = self._get(ID)
-        self._baudrate = BAUD_RATES[self._get(BAUD_CODE)]
+        self._table.power_up()
+        self.device_id = self._table.get(ID)
+        self._baudrate = BAUD_RATES[self._table.get(BAUD_CODE)]
         self._faults = Fault(0)
         self._clear_at: dict[Fault, float] = {}
         self._auto_clears = dict.fromkeys(SELF_CLEARING, 0)
@@ -233,61 +217,43 @@ class InspireLaDevice:
     def _heat_until(self, end: float) -> None:
         """First-order heating, exact per stretch of constant current (split at arrival)."""
         while self._temp_t < end:
-            arrival = self._arrival()
+            arrival = self._stroke.arrival_s
             stop = arrival if self._temp_t < arrival < end else end
-            amps = self._current_ma(self._temp_t) / 1000
-            settle = AMBIENT_C + RISE_C_PER_A2 * amps * amps
-            decay = math.exp(-(stop - self._temp_t) / THERMAL_TAU_S)
-            self._temp_c = settle + (self._temp_c - settle) * decay
+            self._temp_c = warmed(self._temp_c, self._current_ma(self._temp_t), stop - self._temp_t)
             self._temp_t = stop
 
     def _check_temperature(self, now: float) -> None:
         tenths = self._temp_c * TENTHS_PER_DEGREE
-        if tenths > self._get(OVERTEMP_LIMIT):
+        if tenths > self._table.get(OVERTEMP_LIMIT):
             self._trip(Fault.OVER_TEMPERATURE, now)
-        elif self._faults & Fault.OVER_TEMPERATURE and tenths < self._get(REWARM_TEMPERATURE):
+        elif self._faults & Fault.OVER_TEMPERATURE and tenths < self._table.get(REWARM_TEMPERATURE):
             self._recover(Fault.OVER_TEMPERATURE, now)
 
     # --- motion and current --------------------------------------------------------------
 
-    def _position_at(self, t: float) -> float:
-        delta = self._goal - self._pos0
-        travelled = self.speed_per_s * max(0.0, t - self._t0)
-        return self._pos0 + math.copysign(min(abs(delta), travelled), delta)
-
-    def _arrival(self) -> float:
-        return self._t0 + abs(self._goal - self._pos0) / self.speed_per_s
-
-    def _moving(self, t: float) -> bool:
-        return t < self._arrival()
-
     def _current_ma(self, t: float) -> int:
-        if not self._powered:
-            return 0
-        if self._moving(t):
-            return round(MOVING_CURRENT_MA + MA_PER_GRAM_LOAD * abs(self.load_g))
-        return HOLD_CURRENT_MA
+        return current_ma(powered=self._powered, moving=self._stroke.moving(t), load_g=self.load_g)
 
     def _hold(self, now: float) -> None:
         """Stop where the rod is now; the target register follows."""
-        self._pos0 = self._goal = self._position_at(now)
-        self._t0 = now
-        self._put(TARGET_POSITION, round(self._pos0))
+        position = self._stroke.position(now)
+        self._stroke = Stroke(now, position, position, self.speed_per_s)
+        self._table.put(TARGET_POSITION, round(position))
 
     def _go(self, target: int, now: float) -> None:
         """A new target: the register takes it; the rod moves unless e-stopped or faulted."""
         # Manual silent on targets outside 0–2000: ignored, like any out-of-range write.
         if not 0 <= target <= FULL_STROKE_RAW:
             return
-        self._put(TARGET_POSITION, target)
+        self._table.put(TARGET_POSITION, target)
         if self._estopped or self._faults & STOPPING:
             return
-        self._pos0, self._t0, self._goal = self._position_at(now), now, float(target)
+        self._stroke = Stroke(now, self._stroke.position(now), float(target), self.speed_per_s)
         self._powered = True  # after a pause, a target alone moves it again (3.5.4)
         self._check_current(now)
 
     def _check_current(self, now: float) -> None:
-        if self._current_ma(now) > self._get(OVERCURRENT_LIMIT):
+        if self._current_ma(now) > self._table.get(OVERCURRENT_LIMIT):
             self._trip(Fault.OVER_CURRENT, now)
 
     # --- faults --------------------------------------------------------------------------
@@ -311,7 +277,7 @@ class InspireLaDevice:
         self._powered, self._estopped = True, False
 
     def _overheat(self, now: float) -> None:
-        self._temp_c = max(self._temp_c, self._get(OVERTEMP_LIMIT) / TENTHS_PER_DEGREE + 1.0)
+        self._temp_c = max(self._temp_c, self._table.get(OVERTEMP_LIMIT) / TENTHS_PER_DEGREE + 1.0)
         self._check_temperature(now)
 
     def _clear_fault(self, now: float) -> None:
@@ -340,7 +306,7 @@ class InspireLaDevice:
         self._powered = False
 
     def _save(self, now: float) -> None:
-        self._flash = bytes(self._ram)
+        self._table.save()
 
     # --- commands --------------------------------------------------------------------------
 
@@ -366,109 +332,46 @@ class InspireLaDevice:
             check_span(command.index, command.length)
         except EncodeError:
             return None
-        table = self._snapshot(now)
+        live = {
+            "current_position": round(self._stroke.position(now)),
+            "force": force_g(self.load_g, self._zero_adc),
+            "force_raw": force_adc(self.load_g),
+        }
         return ReadReply(
-            self.device_id,
-            command.index,
-            bytes(table[command.index : command.index + command.length]),
+            self.device_id, command.index, self._table.read(command.index, command.length, live)
         )
 
     def _write(self, command: WriteCommand, now: float) -> StatusReply:
         """Write the table. Answered by the status frame (3.5.2, 3.7.1, 3.7.5, 3.7.6) rather
         than 3.4.1's one reserved byte: the examples name the reply of each write, from the id
         in force after the write (3.6: a new id is used at once)."""
-        touched = self._apply_write(command.index, command.data)
+        touched = self._table.write(command.index, command.data)
         for name, effect in self._write_effects.items():
             if name in touched:
                 effect(now)
         return self._status(now)
 
-    def _apply_write(self, index: int, data: bytes) -> set[str]:
-        """Store the write when the manual's rules allow it; return the registers it touched.
-
-        Manual silent on refused writes: the table is left alone and the reply is the usual
-        status frame, which carries no error field. A write of part of a register is judged
-        by the whole register it leaves behind.
-        """
-        try:
-            check_write(index, data)
-            touched = {r for r in REGISTERS.covering(index, len(data)) if r}
-            table = bytearray(self._ram)
-            table[index : index + len(data)] = data
-            for register in touched:
-                register.check(_get(table, register))
-            check_temperature_limits(
-                _get(table, REGISTERS[OVERTEMP_LIMIT]), _get(table, REGISTERS[REWARM_TEMPERATURE])
-            )
-        except EncodeError:
-            return set()
-        self._ram = table
-        return {register.name for register in touched}
-
     def _take_id(self, now: float) -> None:
-        self.device_id = self._get(ID)
+        self.device_id = self._table.get(ID)
 
     def _zero_force(self, now: float) -> None:
-        self._zero_adc = self._force_adc()
+        self._zero_adc = force_adc(self.load_g)
         # Manual silent on what the register reads afterwards: back to 0, the action done.
-        self._put(FORCE_ZERO, 0)
+        self._table.put(FORCE_ZERO, 0)
 
     # --- what the actuator reports -------------------------------------------------------
-
-    def _force_adc(self) -> int:
-        counts = FORCE_ADC_MID + round(self.load_g / GRAMS_PER_COUNT)
-        return min(max(counts, 0), FORCE_ADC_MAX)
-
-    def _force_g(self) -> int:
-        return (self._force_adc() - self._zero_adc) * GRAMS_PER_COUNT
-
-    def _snapshot(self, now: float) -> bytearray:
-        """The RAM table with the live registers filled in as of ``now``."""
-        table = bytearray(self._ram)
-        live = (round(self._position_at(now)), self._force_g(), self._force_adc())
-        for name, value in zip(_LIVE, live, strict=True):
-            _put(table, REGISTERS[name], value)
-        return table
 
     def _status(self, now: float) -> StatusReply:
         # The two "internal data" words look like the force ADC and its zero in the manual's
         # example (1800, 1802); this model reports those.
         return StatusReply(
             device_id=self.device_id,
-            target_raw=self._get(TARGET_POSITION),
-            position_raw=round(self._position_at(now)),
+            target_raw=self._table.get(TARGET_POSITION),
+            position_raw=round(self._stroke.position(now)),
             temperature_c=round(self._temp_c),
             current_ma=self._current_ma(now),
-            force_g=self._force_g(),
+            force_g=force_g(self.load_g, self._zero_adc),
             faults=self._faults,
-            internal_1=self._force_adc(),
+            internal_1=force_adc(self.load_g),
             internal_2=self._zero_adc,
         )
-
-    def _get(self, name: str) -> int:
-        return _get(self._ram, REGISTERS[name])
-
-    def _put(self, name: str, value: int) -> None:
-        _put(self._ram, REGISTERS[name], value)
-
-
-def _factory_table(device_id: int) -> bytes:
-    """The manual's defaults (3.6), with the id this actuator was given."""
-    table = bytearray(TABLE_SIZE)
-    table[0:2] = TABLE_HEADER
-    for register in REGISTERS:
-        if register.default is not None:
-            _put(table, register, register.default)
-    _put(table, REGISTERS[ID], REGISTERS[ID].check(device_id))
-    return bytes(table)
-
-
-def _get(table: bytes | bytearray, register: Register) -> int:
-    raw = table[register.address : register.end]
-    return int.from_bytes(raw, "little", signed=register.signed)
-
-
-def _put(table: bytearray, register: Register, value: int) -> None:
-    table[register.address : register.end] = value.to_bytes(
-        register.size, "little", signed=register.signed
-    )

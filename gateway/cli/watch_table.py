@@ -1,0 +1,220 @@
+"""The table ``busgate watch`` shows: the latest state of each device and statistics of each
+bus, and how they are printed (a table redrawn in place on a terminal, ``name=value`` lines of
+the rows that changed on a pipe).
+
+Kept apart from ``client.py`` so that it knows no zenoh: zenoh's callback threads feed it
+parsed JSON bodies (``update_state``, ``update_stats``, ``seed``) and the main thread reads it
+(``render``, ``changed_lines``). Rules of this file: a callback only stores under the one
+lock (a slow callback would stall every other one); the main thread takes a snapshot under it
+and formats outside it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+DEVICE_COLUMNS = (
+    "device",
+    "kind",
+    "online",
+    "stale",
+    "motion",
+    "temp_c",
+    "current_ma",
+    "faults",
+    "age",
+)
+BUS_COLUMNS = ("bus", "utilisation", "frames_s", "timeouts", "smallest_gap", "age")
+
+
+class WatchTable:
+    """The latest state of each device and statistics of each bus, keyed by (gateway, name)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._devices: dict[tuple[str, str], _Row] = {}
+        self._buses: dict[tuple[str, str], _Row] = {}
+
+    @property
+    def empty(self) -> bool:
+        with self._lock:
+            return not self._devices and not self._buses
+
+    def update_state(self, key: str, state: Any, now: float) -> None:
+        """A sample of ``<prefix>/<gw>/dev/<device>/state``."""
+        if isinstance(state, dict):
+            self._store(self._devices, key, state, now)
+
+    def update_stats(self, key: str, stats: Any, now: float) -> None:
+        """A sample of ``<prefix>/<gw>/bus/<bus>/stats``; frames/s from the previous one."""
+        if not isinstance(stats, dict):
+            return
+        with self._lock:
+            previous = self._buses.get(_names(key))
+        stats = {**stats, "frames_s": _frame_rate(previous.values if previous else None, stats)}
+        self._store(self._buses, key, stats, now)
+
+    def seed(self, info: dict[str, Any], wanted: Callable[[str], bool]) -> None:
+        """Rows from an ``info`` reply, for devices and buses not heard from yet."""
+        gateway = str(info.get("gateway", "?"))
+        with self._lock:
+            for bus in info.get("buses", []):
+                name = str(bus.get("name", "?"))
+                if wanted(f"{gateway}/bus/{name}/stats"):
+                    self._buses.setdefault((gateway, name), _Row({}, None))
+                for device in bus.get("devices", []):
+                    state = device.get("state") if isinstance(device.get("state"), dict) else {}
+                    row = _Row({"kind": device.get("kind"), **state}, None)
+                    if wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
+                        self._devices.setdefault((gateway, str(device.get("name"))), row)
+
+    def render(self, now: float) -> list[str]:
+        """The whole table, devices then buses."""
+        devices, buses, several = self._snapshot()
+        lines = _columns(
+            _headers(DEVICE_COLUMNS, several),
+            [_cells(k, r, _device_cells, now, several) for k, r in devices],
+            "(no device seen)",
+        )
+        lines.append("")
+        lines += _columns(
+            _headers(BUS_COLUMNS, several),
+            [_cells(k, r, _bus_cells, now, several) for k, r in buses],
+            "(no bus seen)",
+        )
+        return lines
+
+    def changed_lines(self, now: float) -> list[str]:
+        """One ``name=value`` line per row updated since the last call (for a pipe)."""
+        devices, buses, _ = self._snapshot()
+        lines = []
+        for rows, columns, cells in (
+            (devices, DEVICE_COLUMNS, _device_cells),
+            (buses, BUS_COLUMNS, _bus_cells),
+        ):
+            for (gateway, name), row in rows:
+                if row.received is not None and row.received > row.reported:
+                    row.reported = row.received
+                    values = cells(name, row, now)
+                    lines.append(
+                        " ".join(
+                            [f"gateway={gateway}"]
+                            + [
+                                f"{column}={value.replace(' ', '')}"
+                                for column, value in zip(columns, values, strict=True)
+                            ]
+                        )
+                    )
+        return lines
+
+    def _store(self, rows: dict, key: str, values: dict[str, Any], now: float) -> None:
+        with self._lock:
+            row = rows.get(_names(key))
+            reported = row.reported if row else float("-inf")
+            rows[_names(key)] = _Row(values, now, reported)
+
+    def _snapshot(self) -> tuple[list, list, bool]:
+        with self._lock:
+            devices, buses = sorted(self._devices.items()), sorted(self._buses.items())
+        several = len({gateway for (gateway, _), _ in devices + buses}) > 1
+        return devices, buses, several
+
+
+class _Row:
+    __slots__ = ("received", "reported", "values")
+
+    def __init__(
+        self, values: dict[str, Any], received: float | None, reported: float = float("-inf")
+    ) -> None:
+        self.values, self.received, self.reported = values, received, reported
+
+
+def _names(key: str) -> tuple[str, str]:
+    """(gateway, name) of ``…/<gw>/dev/<name>/state`` or ``…/<gw>/bus/<name>/stats``."""
+    parts = key.split("/")
+    return parts[-4], parts[-2]
+
+
+def _frame_rate(previous: dict[str, Any] | None, stats: dict[str, Any]) -> float | None:
+    try:
+        frames = stats["frames_out"] + stats["frames_in"]
+        if previous is None or previous.get("uptime_s") is None:
+            return frames / stats["uptime_s"] if stats["uptime_s"] > 0 else None
+        elapsed = stats["uptime_s"] - previous["uptime_s"]
+        before = previous["frames_out"] + previous["frames_in"]
+        return (frames - before) / elapsed if elapsed > 0 else previous.get("frames_s")
+    except (KeyError, TypeError):
+        return None
+
+
+def _device_cells(name: str, row: _Row, now: float) -> list[str]:
+    state = row.values
+    online = state.get("online")
+    return [
+        name,
+        _text(state.get("kind")),
+        "-" if online is None else ("yes" if online else "NO"),
+        "STALE" if state.get("stale") else "-",
+        _motion(state),
+        _text(state.get("temperature_c")),
+        _text(state.get("current_ma")),
+        ",".join(map(str, state.get("faults") or [])) or "-",
+        _age(row, now),
+    ]
+
+
+def _motion(state: dict[str, Any]) -> str:
+    if state.get("mode") == "velocity" or ("position" not in state and "speed_rpm" in state):
+        speed = f"{_text(state.get('speed_rpm'))} rpm"
+        target = state.get("target_speed_rpm")
+        return speed if target is None else f"{speed} -> {_text(target)}"
+    if "position" in state or "target" in state:
+        return f"{_text(state.get('position'))} -> {_text(state.get('target'))}"
+    return "-"
+
+
+def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
+    stats = row.values
+    utilisation, gap = stats.get("utilisation"), stats.get("smallest_gap_s")
+    return [
+        name,
+        "-" if not isinstance(utilisation, int | float) else f"{utilisation * 100:.0f}%",
+        _text(stats.get("frames_s")),
+        _text(stats.get("timeouts")),
+        "-" if not isinstance(gap, int | float) else f"{gap * 1000:.2f} ms",
+        _age(row, now),
+    ]
+
+
+def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
+    return [c.upper() for c in ("gateway",) * several + columns]
+
+
+def _cells(
+    key: tuple[str, str], row: _Row, cells: Callable, now: float, several: bool
+) -> list[str]:
+    return ([key[0]] if several else []) + cells(key[1], row, now)
+
+
+def _columns(header: list[str], rows: list[list[str]], nothing: str) -> list[str]:
+    if not rows:
+        return [nothing]
+    widths = [max(len(cell) for cell in column) for column in zip(header, *rows, strict=True)]
+    return [
+        "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip()
+        for line in [header, *rows]
+    ]
+
+
+def _text(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.1f}"
+    return str(value)
+
+
+def _age(row: _Row, now: float) -> str:
+    return "-" if row.received is None else f"{max(0.0, now - row.received):.1f}s"
