@@ -37,6 +37,7 @@ from busgate.codecs.ds_servo.registers import (
     TABLE_END,
     check_read,
     check_write,
+    readings,
     values_from,
 )
 
@@ -73,5 +74,6 @@ __all__ = [
     "encode",
     "expected_reply",
     "move_data",
+    "readings",
     "values_from",
 ]

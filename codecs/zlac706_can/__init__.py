@@ -30,6 +30,7 @@ from busgate.codecs.zlac706_can.registers import (
     Origin,
     PositionMode,
     WorkMode,
+    readings,
 )
 
 __all__ = [
@@ -57,4 +58,5 @@ __all__ = [
     "WriteAck",
     "encode",
     "expected_reply",
+    "readings",
 ]
