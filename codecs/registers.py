@@ -3,7 +3,9 @@
 Every protocol describes its control table with ``Register`` rows collected in a
 ``RegisterMap``; encoders, the JSON schemas and the simulators read ranges from here, so a
 range is written down once. ``require_range`` is the one place an out-of-range value becomes
-an ``EncodeError``.
+an ``EncodeError``. ``Register.reading`` is the one place a raw value read off a wire becomes
+a named value in the table's unit (``Reading``); each codec's ``readings(reply)`` says which of
+its replies carry a register's address and value.
 """
 
 from __future__ import annotations
@@ -11,8 +13,13 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import Final
 
 from busgate.codecs.errors import EncodeError
+
+#: Values in a unit are rounded to this many decimals: 202 × 0.1 is 20.200000000000003 in
+#: binary, while the finest step of any table (a ZLAC706 torque step, 0.0032 A) needs four.
+UNIT_DECIMALS: Final = 9
 
 
 class Access(enum.Enum):
@@ -35,6 +42,8 @@ class Register:
 
     ``minimum``/``maximum`` bound the value in the unit of the register as stored (raw), and
     ``scale`` converts raw to ``unit`` (``value_in_unit = raw * scale``). ``size`` is in bytes.
+    ``parts`` names the one-byte fields of a value that packs several (a ramp: accel, decel),
+    most significant first; then ``unit`` and ``scale`` apply to each part.
     """
 
     name: str
@@ -48,6 +57,7 @@ class Register:
     default: int | None = None
     signed: bool = False
     description: str = ""
+    parts: tuple[str, ...] = ()
 
     @property
     def end(self) -> int:
@@ -63,6 +73,53 @@ class Register:
         lo = lo if self.minimum is None else self.minimum
         hi = hi if self.maximum is None else self.maximum
         return require_range(self.name, value, lo, hi)
+
+    def in_unit(self, raw: int) -> int | float | dict[str, int | float] | None:
+        """``raw`` in this register's unit; for a packed register each part by name, or
+        ``None`` when ``raw`` does not fit its parts.
+
+        >>> Register("limit", 98, 2, Access.READ_WRITE, unit="°C", scale=0.1).in_unit(202)
+        20.2
+        >>> ramp = Register("ramp", 0x12, 1, Access.WRITE, unit="ms", scale=100,
+        ...                 parts=("accel", "decel"))
+        >>> ramp.in_unit(0x0A0B), ramp.in_unit(0x10000)
+        ({'accel': 1000, 'decel': 1100}, None)
+        """
+        if not self.parts:
+            return self._scaled(raw)
+        count = len(self.parts)
+        if not 0 <= raw < 1 << 8 * count:
+            return None
+        return {
+            part: self._scaled(raw >> 8 * (count - 1 - i) & 0xFF)
+            for i, part in enumerate(self.parts)
+        }
+
+    def _scaled(self, raw: int) -> int | float:
+        return raw if self.scale == 1 else round(raw * self.scale, UNIT_DECIMALS)
+
+    def reading(self, raw: int) -> Reading:
+        """``raw``, as a reply carries it, named and in this register's unit. A value the
+        decoder has already named by its code (an ``IntEnum`` member) keeps that name.
+
+        >>> Register("limit", 98, 2, Access.READ_WRITE, unit="°C", scale=0.1).reading(600)
+        Reading(register='limit', address=98, raw=600, value=60.0, unit='°C')
+        """
+        value = raw if isinstance(raw, enum.Enum) else self.in_unit(raw)
+        return Reading(self.name, int(self.address), int(raw), value, self.unit or None)
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One register's value as a reply carries it: the register's name and address, the raw
+    value, the value in ``unit`` (a number, a code's name, or a packed register's parts) and
+    the unit (``None`` where the table states none: the value is then the raw one)."""
+
+    register: str
+    address: int
+    raw: int
+    value: object
+    unit: str | None
 
 
 class RegisterMap:
@@ -92,6 +149,12 @@ class RegisterMap:
     def at(self, address: int) -> Register | None:
         """The register that holds ``address``, or ``None`` for a reserved address."""
         return self._by_address.get(address)
+
+    def reading_at(self, address: int, raw: int) -> list[Reading]:
+        """A one-value reply's reading: ``[reading]`` of the register that starts at
+        ``address``, or ``[]`` when none does (the raw value then stands alone)."""
+        register = self.at(address)
+        return [] if register is None or register.address != address else [register.reading(raw)]
 
     def covering(self, address: int, length: int) -> list[Register | None]:
         """For each address of ``[address, address + length)``, its register or ``None``."""

@@ -216,6 +216,8 @@ RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_
 
 #: How a raw speed register reads in rpm (the same scale on both wires).
 SPEED_UNIT: Final = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "signed": True}
+#: How a ramp register reads: accel steps in the high byte, decel in the low one, 100 ms each.
+RAMP_UNIT: Final = {"unit": "ms", "scale": RAMP_STEP_MS, "parts": ("accel", "decel")}
 
 
 def coded_register(name: str, address: int, codes, description: str) -> Register:

@@ -32,6 +32,7 @@ DOCTEST_MODULES = [
     "busgate.codecs.timing",
     "busgate.codecs.zlac706_can.decoder",
     "busgate.codecs.zlac706_can.encoder",
+    "busgate.codecs.zlac706_can.registers",
     "busgate.codecs.zlac706_common",
     "busgate.codecs.zlac706_rs232.decoder",
     "busgate.codecs.zlac706_rs232.encoder",

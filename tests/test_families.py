@@ -81,7 +81,7 @@ def test_a_kind_or_protocol_is_registered_once() -> None:
 #: Modules of a broken family, each lacking one part (or naming what does not exist).
 BROKEN = {
     "no_timing_codec": "from busgate.codecs.inspire_la import encode, expected_reply, "
-                       "CommandDecoder, ReplyDecoder, DEVICE_IDS, ADDRESSED\n",
+                       "CommandDecoder, ReplyDecoder, readings, DEVICE_IDS, ADDRESSED\n",
     "no_follow_schema": "from busgate.schemas.inspire_la import Command, COMMAND_ADAPTER, "
                         "TELEMETRY_MODEL\n",
     "no_probe_driver": textwrap.dedent("""\

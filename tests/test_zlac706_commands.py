@@ -267,6 +267,8 @@ def test_cli_decodes_monitor_reply(capsys) -> None:
     wire = "80000181 e1001cfd e20011f3 e4010ef3 e60000e6 e727101e e80000e8 e9271020"
     assert main(["decode", "zlac706_rs232", wire]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    # Each frame also names its item under "registers" (tests/test_decode_registers.py).
+    assert all(line.pop("registers") for line in lines)
     assert lines[0] == {"event": "StatusReport", "alarms": ["RUNNING"]}
     assert lines[2] == {"event": "OutputCurrent", "current_raw": 17, "current_a": 0.17}
     assert len(lines) == 8

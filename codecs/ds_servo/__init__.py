@@ -40,6 +40,7 @@ from busgate.codecs.ds_servo.registers import (
     TABLE_END,
     check_read,
     check_write,
+    readings,
     values_from,
 )
 
@@ -79,5 +80,6 @@ __all__ = [
     "encode",
     "expected_reply",
     "move_data",
+    "readings",
     "values_from",
 ]

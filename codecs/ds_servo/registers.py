@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import Final
 
 from busgate.codecs.errors import EncodeError
-from busgate.codecs.registers import Access, Register, RegisterMap, require_range
+from busgate.codecs.registers import Access, Reading, Register, RegisterMap, require_range
 
 R, W, RW = Access.READ, Access.WRITE, Access.READ_WRITE
 
@@ -188,6 +188,15 @@ def values_from(address: int, data: bytes) -> dict[str, int]:
         if len(raw) == register.size:
             values[register.name] = int.from_bytes(raw, "big", signed=register.signed)
     return values
+
+
+def readings(reply: object) -> list[Reading]:
+    """Always ``[]``: a DS reply (``FF F5 id len status data… sum``) carries no address.
+
+    Which registers a READ's bytes hold is known only from the READ that asked for them; the
+    host that sent it names them with ``values_from(address, data)``.
+    """
+    return []
 
 
 def _known(address: int) -> Register:

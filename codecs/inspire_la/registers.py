@@ -15,8 +15,14 @@ write here, otherwise by the caller that knows the device's current values.
 from __future__ import annotations
 
 from busgate.codecs.errors import EncodeError
-from busgate.codecs.inspire_la.frames import MAX_DATA, TABLE_SIZE, TARGET_INDEX, WriteCommand
-from busgate.codecs.registers import Access, Register, RegisterMap, require_range
+from busgate.codecs.inspire_la.frames import (
+    MAX_DATA,
+    TABLE_SIZE,
+    TARGET_INDEX,
+    ReadReply,
+    WriteCommand,
+)
+from busgate.codecs.registers import Access, Reading, Register, RegisterMap, require_range
 
 #: Temperatures are stored in tenths of a degree Celsius.
 TENTHS_PER_DEGREE = 10
@@ -41,15 +47,15 @@ REGISTERS = RegisterMap(
                  description="device id; in use at once, kept over power-off after save"),
         Register(BAUD_CODE, 12, 1, _RW, minimum=0, maximum=len(BAUD_RATES) - 1, default=3,
                  description="0 19200, 1 57600, 2 115200, 3 921600; after save and power cycle"),
-        Register("current_position", 26, 2, Access.READ, signed=True, minimum=-20,
-                 maximum=2020, description="present position, raw stroke units"),
+        Register("current_position", 26, 2, Access.READ, unit="stroke units", signed=True,
+                 minimum=-20, maximum=2020, description="present position"),
         # "Settable range 1": writing 1 takes the present force reading as zero.
         Register(FORCE_ZERO, 31, 1, _RW, minimum=1, maximum=1, default=0,
                  description="write 1 to zero the force sensor"),
         Register(OVERCURRENT_LIMIT, 32, 2, _RW, unit="mA", minimum=300, maximum=1500,
                  default=1500, description="over-current protection threshold"),
-        Register(TARGET_POSITION, TARGET_INDEX, 2, _RW, minimum=0, maximum=2000,
-                 description="target position, raw stroke units (larger is longer)"),
+        Register(TARGET_POSITION, TARGET_INDEX, 2, _RW, unit="stroke units", minimum=0,
+                 maximum=2000, description="target position (larger is longer)"),
         # The manual gives [-32767, +32768]; a signed 16-bit value ends at 32767.
         Register("force", 76, 2, Access.READ, unit="g", signed=True, minimum=-32767,
                  description="force sensor reading (LAF/LASF only)"),
@@ -118,6 +124,23 @@ def register_values(index: int, data: bytes) -> dict[str, int]:
             raw = data[register.address - index : register.end - index]
             values[register.name] = int.from_bytes(raw, "little", signed=register.signed)
     return values
+
+
+def readings(reply: object) -> list[Reading]:
+    """The registers a read reply holds, by name and in their units, in address order.
+
+    Only whole registers are named: bytes at reserved addresses, or half of a two-byte
+    register, stay in the reply's ``data`` alone. Any other frame carries no value: ``[]``.
+
+    >>> readings(ReadReply(1, 0x62, bytes.fromhex("5802")))  # manual 3.5.1: 60.0 °C
+    [Reading(register='overtemp_limit', address=98, raw=600, value=60.0, unit='°C')]
+    >>> readings(ReadReply(1, 0x62, bytes.fromhex("58")))
+    []
+    """
+    if not isinstance(reply, ReadReply):
+        return []
+    values = register_values(reply.index, reply.data)
+    return [REGISTERS[name].reading(raw) for name, raw in values.items()]
 
 
 def check_temperature_limits(overtemp_raw: int, rewarm_raw: int) -> None:

@@ -33,6 +33,7 @@ from busgate.codecs.zlac706_can.registers import (
     Origin,
     PositionMode,
     WorkMode,
+    readings,
 )
 
 __all__ = [
@@ -63,4 +64,5 @@ __all__ = [
     "WriteAck",
     "encode",
     "expected_reply",
+    "readings",
 ]

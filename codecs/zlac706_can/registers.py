@@ -15,10 +15,12 @@ from __future__ import annotations
 import enum
 from typing import Final
 
-from busgate.codecs.registers import Access, Register, RegisterMap
+from busgate.codecs.registers import Access, Reading, Register, RegisterMap
+from busgate.codecs.zlac706_can.frames import WriteAck
 from busgate.codecs.zlac706_common import (
     GAIN_MAX,
     GAIN_MIN,
+    RAMP_UNIT,
     RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
     SPEED_RAW_MAX,
@@ -141,20 +143,20 @@ REGISTERS: Final = RegisterMap(
             CanRegister.POSITION_RAMP,
             1,
             W,
-            unit="100 ms",
             minimum=0,
             maximum=RAMP_WORD_MAX,
             description="d2 accel, d3 decel (0 to top speed)",
+            **RAMP_UNIT,
         ),
         Register(
             "speed_ramp",
             CanRegister.SPEED_RAMP,
             1,
             W,
-            unit="100 ms",
             minimum=0,
             maximum=RAMP_WORD_MAX,
             description="d2 accel, d3 decel (0 to top speed)",
+            **RAMP_UNIT,
         ),
         Register(
             "max_speed",
@@ -194,3 +196,23 @@ REGISTERS: Final = RegisterMap(
         ),
     ]
 )
+
+
+def readings(reply: object) -> list[Reading]:
+    """The register and value a reply carries, named and in the register's unit.
+
+    The protocol has no read: the frames that carry a register and its value are the echoes
+    of a write (``FB``, ``DB``). "No such register" (``FF``, ``DF``) names none, heartbeats
+    and alarm reports carry their values under their own names, and a register outside the
+    table stays a number: ``[]``.
+
+    >>> from busgate.codecs.zlac706_can.decoder import ReplyDecoder
+    >>> from busgate.codecs.can_frame import CanFrame
+    >>> decoder = ReplyDecoder()
+    >>> decoder.feed(CanFrame.parse("00a#00fb001100000555"))  # 8.1.2 step 4: 500 rpm
+    >>> readings(next(decoder.events()))
+    [Reading(register='target_speed', address=17, raw=1365, value=499.877929688, unit='rpm')]
+    """
+    if not isinstance(reply, WriteAck):
+        return []
+    return REGISTERS.reading_at(reply.register, reply.value)

@@ -22,7 +22,7 @@ from busgate.codecs.zlac706_rs232.frames import (
     StatusReport,
     Write,
 )
-from busgate.codecs.zlac706_rs232.monitor import MonitorReply, assemble_monitor
+from busgate.codecs.zlac706_rs232.monitor import MonitorReply, assemble_monitor, readings
 from busgate.codecs.zlac706_rs232.registers import (
     CODES,
     GAIN_REGISTERS,
@@ -68,5 +68,6 @@ __all__ = [
     "encode",
     "expected_reply",
     "join_position",
+    "readings",
     "split_position",
 ]

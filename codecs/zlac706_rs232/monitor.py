@@ -5,7 +5,7 @@ own checksum, so a frame lost to noise costs that item only and never holds back
 corrupts the frames around it, the decoder stays stateless between frames (no timeout or
 reply-boundary guess inside a sans-I/O decoder), and the bus owner already counts frames
 (``ExpectedReply.frames`` = 8). The host gathers the eight events of one transaction and
-calls ``assemble_monitor``.
+calls ``assemble_monitor``. ``readings`` names one frame's item on its own.
 """
 
 from __future__ import annotations
@@ -14,13 +14,14 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from busgate.codecs.errors import CodecError
+from busgate.codecs.registers import Reading
 from busgate.codecs.zlac706_common import (
     AlarmFlags,
     amps_from_current_raw,
     rpm_from_speed_raw,
 )
 from busgate.codecs.zlac706_rs232.frames import MONITOR_FIELDS, MonitorFrame, PositionWord
-from busgate.codecs.zlac706_rs232.registers import MonitorItem, join_position
+from busgate.codecs.zlac706_rs232.registers import REGISTERS, MonitorItem, join_position
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,3 +76,22 @@ def assemble_monitor(frames: Iterable[MonitorFrame]) -> MonitorReply:
             raw[MonitorItem.FEEDBACK_POSITION_HIGH], raw[MonitorItem.FEEDBACK_POSITION_LOW]
         ),
     )
+
+
+def readings(reply: object) -> list[Reading]:
+    """The monitor item a reply frame carries, named and in its unit.
+
+    Each monitor frame starts with its item's address. An ``Ack`` names the register written
+    but carries no value, and names nothing here: ``[]``.
+
+    >>> readings(PositionWord(MonitorItem.FEEDBACK_POSITION_LOW, 10000))  # 8.2.2 example
+    [Reading(register='feedback_position_low', address=233, raw=10000, value=10000, unit='pulses')]
+    """
+    if isinstance(reply, PositionWord):
+        item, raw = reply.item, reply.value
+    elif type(reply) in MONITOR_FIELDS:
+        item, name = MONITOR_FIELDS[type(reply)]
+        raw = int(getattr(reply, name))  # the status word as its bits, not as alarm names
+    else:
+        return []
+    return REGISTERS.reading_at(item, raw)

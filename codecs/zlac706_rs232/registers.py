@@ -22,6 +22,7 @@ from busgate.codecs.zlac706_common import (
     GAIN_MAX,
     GAIN_MIN,
     MAX_SPEED_RPM,
+    RAMP_UNIT,
     RAMP_WORD_MAX,
     RATED_CURRENT_MAX_MA,
     SPEED_RAW_MAX,
@@ -176,16 +177,16 @@ REGISTERS: Final = RegisterMap(
         _word(
             "position_ramp",
             Rs232Register.POSITION_RAMP,
-            unit="100 ms",
             maximum=RAMP_WORD_MAX,
             description="high byte accel, low byte decel",
+            **RAMP_UNIT,
         ),
         _word(
             "speed_ramp",
             Rs232Register.SPEED_RAMP,
-            unit="100 ms",
             maximum=RAMP_WORD_MAX,
             description="high byte accel, low byte decel",
+            **RAMP_UNIT,
         ),
         *(_gain(gain) for gain in GAIN_REGISTERS),
         _word(

@@ -3,6 +3,8 @@
 encode: JSON command → schema model → driver frames → wire, one frame per line (lowercase
 hex, CAN frames as ``id#data`` like cansend). decode: wire → one JSON object per frame or
 event; exit status 1 when anything failed its checksum, was discarded or was left incomplete.
+A reply that carries registers' values (the codec's ``readings``) also lists them under
+``"registers"``: name, address, raw value, value in the unit the register table states.
 """
 
 from __future__ import annotations
@@ -73,7 +75,11 @@ def run_decode(args: argparse.Namespace) -> int:
     results = [decode_wire(protocol, direction, args.wire) for direction in directions]
     events, leftover = min(results, key=_badness)
     for event in events:
-        print(json.dumps(to_jsonable(event)))
+        decoded = to_jsonable(event)
+        readings = protocol.codec.readings(event)
+        if readings:  # only where a reply names its registers; every other key is kept
+            decoded["registers"] = to_jsonable(readings)
+        print(json.dumps(decoded))
     problems = [_describe_problem(e) for e in events if isinstance(e, Discarded | ChecksumMismatch)]
     if leftover:
         problems.append(f"incomplete frame: {leftover} byte(s) left over at the end")

@@ -24,8 +24,8 @@ class FamilyError(Exception):
 
 
 #: What each part must offer, by the names the gateway uses.
-CODEC_PARTS = ("encode", "expected_reply", "CommandDecoder", "ReplyDecoder", "TIMING",
-               "DEVICE_IDS", "ADDRESSED")  # fmt: skip
+CODEC_PARTS = ("encode", "expected_reply", "CommandDecoder", "ReplyDecoder", "readings",
+               "TIMING", "DEVICE_IDS", "ADDRESSED")  # fmt: skip
 SCHEMA_PARTS = ("Command", "COMMAND_ADAPTER", "FollowTarget", "TELEMETRY_MODEL")
 SIMULATOR_PARTS = ("accepts", "handle", "spontaneous", "reboot", "inject_fault")
 
