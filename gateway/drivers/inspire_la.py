@@ -168,13 +168,6 @@ _STATUS_FIELDS = {
 }
 
 
-def value_in_unit(name: str, raw: int) -> int | float:
-    """A register's raw value in its unit (tenths of a degree → °C)."""
-    scale = codec.REGISTERS[name].scale
-    # Rounded: 601 * 0.1 is 60.100000000000001 in binary; no register has steps below 0.1.
-    return raw if scale == 1 else round(raw * scale, 3)
-
-
 def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
     try:
         return Request.of(codec, frame, idempotent=idempotent)
@@ -371,7 +364,7 @@ class InspireLaDriver(Driver):
         self._remember(values)
         return {
             "data": read.data.hex(),
-            "values": {name: value_in_unit(name, raw) for name, raw in values.items()},
+            "values": {name: codec.REGISTERS[name].in_unit(raw) for name, raw in values.items()},
         }
 
     def _take_write(self, _reply: codec.WriteReply) -> dict[str, Any]:
@@ -404,7 +397,9 @@ class InspireLaDriver(Driver):
             key: None if status is None else getattr(status, field)
             for key, field in _STATUS_FIELDS.items()
         }
-        limits = {key: value_in_unit(name, self.table[name]) for key, name in _TRACKED.items()}
+        limits = {
+            key: codec.REGISTERS[name].in_unit(self.table[name]) for key, name in _TRACKED.items()
+        }
         return {
             **measured,
             "faults": flag_names(self.faults),
