@@ -44,7 +44,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.cli.client",
     "busgate.gateway.cli.jsonify",
     "busgate.gateway.drivers.ds_servo",
-    "busgate.gateway.drivers.inspire_la",
+    "busgate.gateway.drivers.inspire_la_frames",
     "busgate.gateway.drivers.zlac706_can",
     "busgate.gateway.drivers.zlac706_rs232",
     "busgate.schemas.telemetry",

@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import EncodeError
 from busgate.gateway.cli import main
-from busgate.gateway.drivers.inspire_la import frames_for
+from busgate.gateway.drivers.inspire_la_frames import frames_for
 from busgate.schemas import inspire_la as schema
 
 # --- the control table ----------------------------------------------------------------------
