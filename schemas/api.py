@@ -36,7 +36,7 @@ ErrorCode = Literal[
 ]  # fmt: skip
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__
 
-Protocol = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
+ProtocolName = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
 
 #: The most ids one scan may name (every id a one-byte address leaves, bar broadcast).
 MAX_SCAN_IDS = 254
@@ -169,7 +169,7 @@ class ReleaseReply(OkReply):
 
 class ScanFound(Published):
     id: int | None = Field(description="The id that answered.")
-    protocol: Protocol
+    protocol: ProtocolName
     reply: str = Field(description="The frame type it answered with.")
 
 
@@ -194,7 +194,7 @@ class DeviceInfo(Published):
 
 class BusInfo(Published):
     name: Name
-    protocol: Protocol
+    protocol: ProtocolName
     devices: list[DeviceInfo]
 
 

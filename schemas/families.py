@@ -40,7 +40,7 @@ class Demo:
 
 
 @dataclass(frozen=True, slots=True)
-class Protocol:
+class WireProtocol:
     """One wire protocol of a family: how its frames travel and what drives and simulates a
     device speaking it (``module:Class`` import paths)."""
 
@@ -83,17 +83,17 @@ class Protocol:
 @dataclass(frozen=True, slots=True)
 class Family:
     """A device family: its kind (the ``kind`` of a configured device), its schema module (the
-    JSON commands, follow payload and telemetry model), and one ``Protocol`` per transport."""
+    JSON commands, follow payload and telemetry model), and one ``WireProtocol`` per transport."""
 
     kind: str
     schema_module: str
-    protocols: tuple[Protocol, ...]
+    protocols: tuple[WireProtocol, ...]
 
     @property
     def schema(self) -> ModuleType:
         return importlib.import_module(self.schema_module)
 
-    def on(self, transport: str) -> Protocol | None:
+    def on(self, transport: str) -> WireProtocol | None:
         """The family's protocol on ``transport``, if it has one."""
         return next((p for p in self.protocols if p.transport == transport), None)
 
@@ -104,7 +104,7 @@ def _family(kind: str, *protocols: tuple[str, Transport, str, str, Demo]) -> Fam
         kind,
         f"busgate.schemas.{kind}",
         tuple(
-            Protocol(
+            WireProtocol(
                 name,
                 kind,
                 transport,
@@ -135,7 +135,7 @@ def register(family: Family) -> None:
 
 
 #: Every protocol of every family, by name.
-PROTOCOLS: dict[str, Protocol] = {}
+PROTOCOLS: dict[str, WireProtocol] = {}
 
 for _entry in (
     _family(
@@ -164,7 +164,7 @@ def kinds() -> tuple[str, ...]:
     return tuple(FAMILIES)
 
 
-def protocol_of(kind: str, transport: str) -> Protocol | None:
+def protocol_of(kind: str, transport: str) -> WireProtocol | None:
     """The protocol a device of ``kind`` speaks on ``transport`` (``None``: it cannot be there)."""
     family = FAMILIES.get(kind)
     return family.on(transport) if family else None

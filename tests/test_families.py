@@ -21,7 +21,7 @@ from busgate.gateway.drivers.families import FamilyError, check_family, driver_c
 from busgate.gateway.sim.models import model_class
 from busgate.schemas import api
 from busgate.schemas.config import parse_config
-from busgate.schemas.families import FAMILIES, PROTOCOLS, Demo, Family, Protocol, register
+from busgate.schemas.families import FAMILIES, PROTOCOLS, Demo, Family, WireProtocol, register
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -39,7 +39,7 @@ def test_the_tables_are_the_registry() -> None:
     assert set(api.DEVICE_COMMAND_ADAPTERS) == set(api.TELEMETRY_MODELS) == kinds
     assert set(api.FOLLOW_MODELS) == kinds
     assert {bus.protocol for bus in DEMO_BUSES} == set(PROTOCOLS)
-    assert set(api.Protocol.__args__) == set(PROTOCOLS)
+    assert set(api.ProtocolName.__args__) == set(PROTOCOLS)
 
 
 def _bus(kind: str, transport: str, ids: list[int]) -> dict:
@@ -109,7 +109,7 @@ def _family(**parts: str) -> Family:
                 "simulator": "busgate.gateway.sim.inspire_la:InspireLaDevice"}
     schema = parts.pop("schema_module", "busgate.schemas.inspire_la")
     protocol.update(parts)
-    return Family("inspire_la", schema, (Protocol("inspire_la", "inspire_la", "serial",
+    return Family("inspire_la", schema, (WireProtocol("inspire_la", "inspire_la", "serial",
                                                   demo=Demo("b", (("d", 1),)), **protocol),))
 
 
@@ -164,8 +164,8 @@ CLONE_MODULES = {
 #: with its driver against its simulator (the real serial owner on a pty), the telemetry.
 CLONE_RUN = textwrap.dedent("""\
     import json, sys, time
-    from busgate.schemas.families import Demo, Family, Protocol, register
-    register(Family("la_clone", "la_clone_schema", (Protocol(
+    from busgate.schemas.families import Demo, Family, WireProtocol, register
+    register(Family("la_clone", "la_clone_schema", (WireProtocol(
         "la_clone", "la_clone", "serial", "la_clone_codec", "la_clone_driver:CloneDriver",
         "la_clone_sim:CloneDevice", Demo("clones", (("c1", 1),))),)))
 

@@ -19,7 +19,7 @@ from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.gateway.cli.jsonify import to_jsonable
 from busgate.gateway.drivers.families import driver_class
 from busgate.schemas.errors import command_from_json
-from busgate.schemas.families import PROTOCOLS, Protocol
+from busgate.schemas.families import PROTOCOLS, WireProtocol
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive
 
@@ -88,7 +88,7 @@ def run_decode(args: argparse.Namespace) -> int:
     return 1 if problems else 0
 
 
-def decode_wire(protocol: Protocol, direction: str, wire: list[str]) -> tuple[list, int]:
+def decode_wire(protocol: WireProtocol, direction: str, wire: list[str]) -> tuple[list, int]:
     """Decode ``wire`` as commands or replies; return the events and the bytes left over."""
     codec = protocol.codec
     decoder = codec.CommandDecoder() if direction == "command" else codec.ReplyDecoder()

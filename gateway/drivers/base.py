@@ -27,7 +27,7 @@ from pydantic import TypeAdapter, ValidationError
 from busgate.codecs.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.schemas.errors import command_from_json, describe_validation_error
-from busgate.schemas.families import PROTOCOLS, Protocol
+from busgate.schemas.families import PROTOCOLS, WireProtocol
 
 #: What a family's driver must define beyond the abstract methods (see ``Driver``).
 FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe")
@@ -107,7 +107,7 @@ class Driver(abc.ABC):
 
     @classmethod
     @functools.cache
-    def protocol_entry(cls) -> Protocol:
+    def protocol_entry(cls) -> WireProtocol:
         """The registry's entry that names this class (looked up once per class)."""
         path = f"{cls.__module__}:{cls.__qualname__}"
         for protocol in PROTOCOLS.values():

@@ -16,7 +16,7 @@ from typing import Any
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.drivers.base import FAMILY_PARTS, Driver
 from busgate.schemas.config import DeviceConfig
-from busgate.schemas.families import PROTOCOLS, Family, Protocol
+from busgate.schemas.families import PROTOCOLS, Family, WireProtocol
 
 
 class FamilyError(Exception):
@@ -54,7 +54,7 @@ def require(obj: Any, names: tuple[str, ...], part: str, owner: str) -> None:
 
 
 @functools.cache
-def driver_class(protocol: Protocol) -> type[Driver]:
+def driver_class(protocol: WireProtocol) -> type[Driver]:
     """The driver class of ``protocol``, checked: a concrete ``Driver`` with every part."""
     owner = f"protocol {protocol.name}"
     cls = load(protocol.driver, "driver", owner)
@@ -92,7 +92,7 @@ def check_family(family: Family) -> None:
         driver_class(protocol)
 
 
-def make_driver(device: DeviceConfig, protocol: Protocol) -> Driver:
+def make_driver(device: DeviceConfig, protocol: WireProtocol) -> Driver:
     """The driver of a configured device on a bus of ``protocol``."""
     options: dict[str, object] = {"follow_period_s": device.follow_period_ms / 1000}
     if protocol.can:
