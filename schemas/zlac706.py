@@ -17,7 +17,7 @@ from __future__ import annotations
 import warnings
 from typing import Annotated, Literal
 
-from pydantic import Field, TypeAdapter
+from pydantic import Field, Strict, TypeAdapter
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
@@ -33,7 +33,7 @@ class SetMode(CommandModel):
     """Choose the work mode; on both protocols the first step of any sequence."""
 
     op: Literal["set_mode"]
-    mode: common.Mode
+    mode: Annotated[common.Mode, Strict(False)]
 
 
 class Enable(CommandModel):
@@ -116,7 +116,7 @@ class SetRatedCurrent(CommandModel):
 
 class SetGain(CommandModel):
     op: Literal["set_gain"]
-    gain: common.Gain
+    gain: Annotated[common.Gain, Strict(False)]
     value: Annotated[int, Field(ge=common.GAIN_MIN, le=common.GAIN_MAX)]
 
 
