@@ -29,11 +29,16 @@ Rpm = Annotated[float, Field(ge=-common.MAX_SPEED_RPM, le=common.MAX_SPEED_RPM)]
 RampMs = Annotated[int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)]
 
 
+#: An enum named by its value, as JSON names it: the API validates the object it parsed from
+#: the payload, where strict mode would take only the enum member itself.
+ByValue = Strict(False)
+
+
 class SetMode(CommandModel):
     """Choose the work mode; on both protocols the first step of any sequence."""
 
     op: Literal["set_mode"]
-    mode: Annotated[common.Mode, Strict(False)]
+    mode: Annotated[common.Mode, ByValue]
 
 
 class Enable(CommandModel):
@@ -116,11 +121,11 @@ class SetRatedCurrent(CommandModel):
 
 class SetGain(CommandModel):
     op: Literal["set_gain"]
-    gain: Annotated[common.Gain, Strict(False)]
+    gain: Annotated[common.Gain, ByValue]
     value: Annotated[int, Field(ge=common.GAIN_MIN, le=common.GAIN_MAX)]
 
 
-# The issue names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
+# The API names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
 # virtual-subclass hook, never called on a command); pydantic warns at class creation only.
 # Without the explicit ``Field(...)`` pydantic takes that inherited method for the field's
 # default, and a write without a register would be accepted.

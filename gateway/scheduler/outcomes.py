@@ -40,6 +40,21 @@ def may_start(job: Job) -> bool:
     return future is None or (not future.done() and future.set_running_or_notify_cancel())
 
 
+def expired(job: Job, bus: str, start_s: float) -> BusyError:
+    """The refusal of ``job``, dropped at its deadline: a command that found no room on the
+    bus within ``start_s``, or a scan that found none for its last probes."""
+    if job.scan:
+        probed = len(job.outcomes or ())
+        return BusyError(
+            f"bus {bus}: the scan found no room to probe its last {len(job.requests)} ids "
+            f"({probed} probed) before its deadline; nothing more was sent"
+        )
+    return BusyError(
+        f"bus {bus}: the command found no room on the bus within {start_s:.0f} s and was "
+        "dropped; nothing was sent"
+    )
+
+
 def record(
     job: Job, request: Request, reply: tuple[object, ...] | None, error: BaseException | None
 ) -> None:

@@ -26,7 +26,6 @@ Rules of this file:
 from __future__ import annotations
 
 import logging
-import math
 import os
 import threading
 from collections import deque
@@ -39,24 +38,24 @@ from busgate.codecs.errors import (
     BusIOError,
     BusUnavailableError,
     CommandError,
-    DeviceTimeoutError,
     RefusedError,
 )
 from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack
 from busgate.gateway.bus.owner import BusOwner
-from busgate.gateway.bus.request import Exchange, LinkTiming, Request
+from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
-from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
 from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.polling import DevicePoller
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
-from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+from busgate.gateway.scheduler.tickers import KeepaliveTicker
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +64,7 @@ IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
 PREPARE_S = 0.003
 #: The last stretch of a precise wait is spun: new work no longer cuts it short.
-SPIN_S = 0.001
+UNINTERRUPTED_S = 0.001
 #: The last stretch before a deadline is waited out by the bus owner, right before its
 #: write, so that nothing runs between the deadline and the frame.
 FINAL_WAIT_S = 0.001
@@ -93,7 +92,6 @@ class BusRunner:
         late_reply_holdoff_s: float = 0.01,
     ) -> None:
         self.name = name
-        self.late_reply_holdoff_s = late_reply_holdoff_s
         self.owner = owner
         self.timing = timing
         self.devices = devices
@@ -107,12 +105,19 @@ class BusRunner:
             for name, driver in self.drivers.items()
             if poll_hz.get(name)
         ]
-        self._keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
-        self.planner.tickers = list(self._keepalives.values())
+        keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
+        self.planner.tickers = list(keepalives.values())
         periods = {poller.device: poller.poll_period_s for poller in self.planner.pollers}
         self.telemetry = Telemetry(name, devices, periods, on_event=on_event, on_state=on_state)
         self.streams = FollowStreams(self.planner, self.counters, self.drivers)
-        self._min_write_s = math.inf
+        self._execution = Execution(
+            owner,
+            self.planner,
+            devices,
+            keepalives,
+            state_of=self._state_of,
+            late_reply_holdoff_s=late_reply_holdoff_s,
+        )
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
         self._wake = threading.Event()
@@ -293,20 +298,8 @@ class BusRunner:
 
     def _answer_expired(self) -> None:
         for job in self.planner.take_expired():
-            if job.scan:
-                probed = len(job.outcomes or ())
-                message = (
-                    f"bus {self.name}: the scan found no room to probe its last "
-                    f"{len(job.requests)} ids ({probed} probed) before its deadline; "
-                    "nothing more was sent"
-                )
-            else:
-                message = (
-                    f"bus {self.name}: the command found no room on the bus within "
-                    f"{COMMAND_START_S:.0f} s and was dropped; nothing was sent"
-                )
             self.counters.busy_commands += 1
-            outcomes.fail(job, BusyError(message))
+            outcomes.fail(job, outcomes.expired(job, self.name, COMMAND_START_S))
 
     def _drain_inbox(self) -> None:
         self._wake.clear()
@@ -314,95 +307,19 @@ class BusRunner:
             self._inbox.popleft()()
 
     def _execute(self, slot: Slot, *, at: float | None = None) -> None:
-        source = slot.source
-        job = source if isinstance(source, Job) else None
-        if job is not None and not job.started and not outcomes.may_start(job):
-            self.planner.discard(job)  # its client was answered without it
-            return
-        previous_end = self.planner.line_free
-        exchange: Exchange | None = None
-        error: DeviceTimeoutError | None = None
         try:
-            exchange = self.owner.exchange(slot.request, at=at)
-        except DeviceTimeoutError as exc:
-            error, start = exc, now()
-            end = start
-            if not (job is not None and job.scan):  # a probe's reply matches its id
-                self.planner.hold_replies_until = end + self.late_reply_holdoff_s
-            self._note_failure(slot, end)
+            self._execution.run(slot, at=at)
         except BusIOError as exc:
             self._link_lost(exc, slot)
-            return
-        else:
-            start, end = exchange.start, exchange.end
-            self._note_success(slot, exchange)
-            if previous_end > -math.inf:
-                self.counters.gap(start - previous_end)
-            self.counters.busy_s += end - start
-        if job is None:
-            source.sent(start - self._fastest_write(exchange))
-        done = self.planner.finished(slot, end, failed=error is not None)
-        if job is not None:
-            # A request that is tried again is still at the head of its job; only a failure
-            # for good is the job's error (a retry that succeeds leaves none behind).
-            if error is not None and job.requests and job.requests[0] is slot.request:
-                self.counters.retries += 1
-            else:
-                reply = None if exchange is None else exchange.reply
-                outcomes.record(job, slot.request, reply, error)
-        if done is not None:
-            outcomes.complete(done, self._state_of)
-
-    def _fastest_write(self, exchange: Exchange | None) -> float:
-        """The quickest write call seen on this bus. A tick counts as started that long before
-        its write returned: the frame was in the kernel no earlier, so scheduling the next
-        tick a period after that never makes an interval short, while the write call's usual
-        duration does not add to every interval (a write held up for long still does)."""
-        if exchange is not None and exchange.write_s < self._min_write_s:
-            self._min_write_s = exchange.write_s
-        return 0.0 if self._min_write_s == math.inf else self._min_write_s
-
-    def _note_success(self, slot: Slot, exchange: Exchange) -> None:
-        """Hand the reply (possibly none, for frames without one) to every driver the frame
-        was for: the job's device, or each device of a coalesced follow frame. A device that
-        answered is heard (here, the one place), then its driver applies the answer."""
-        if isinstance(slot.source, FollowTicker):
-            drivers = [stream.driver for stream in slot.source.streams.values()]
-        else:
-            drivers = [d for d in [self._driver_for(slot)] if d is not None]
-        for driver in drivers:
-            self.devices.touched(driver)
-            if exchange.reply:
-                driver.heard(exchange.end)
-                if driver.refreshes_keepalive(slot.request):
-                    self._keepalives[driver.name].sent(exchange.start)
-            result = driver.apply(slot.request, exchange.reply, exchange.end)
-            if isinstance(slot.source, Job) and result:
-                slot.source.replies.append(result)
-
-    def _note_failure(self, slot: Slot, end: float) -> None:
-        driver = self._driver_for(slot)
-        if driver is not None:
-            self.devices.touched(driver)
-            driver.missed(end)
-
-    def _driver_for(self, slot: Slot) -> Driver | None:
-        """The device a job's request is for, or (keep-alives, e-stops) the one it addresses."""
-        source = slot.source
-        if isinstance(source, Job) and source.device in self.drivers:
-            return self.drivers[source.device]
-        if isinstance(source, KeepaliveTicker):
-            return source.driver
-        expected = slot.request.expected
-        return None if expected is None else self.devices.answering(expected)
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
-        """Wait for ``deadline`` (spinning the last ``SPIN_S`` only when ``precise``), doing
+        """Wait for ``deadline`` (the last ``UNINTERRUPTED_S`` spun, when ``precise``), doing
         the owner's idle work meanwhile; ``False`` when cut short (rule 2, or a lost link)."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
+        idle_until = deadline - UNINTERRUPTED_S if precise else deadline
         try:
-            reached = self.owner.idle_until(deadline - (SPIN_S if precise else 0.0), self._pause)
+            reached = self.owner.idle_until(idle_until, self._pause)
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
@@ -475,13 +392,6 @@ class BusRunner:
         for job in self.planner.drop_commands():
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
         if self.owner.is_open:
-            for driver in self.drivers.values():
-                for request in driver.safe_stop():
-                    try:
-                        sleep_until(self.planner.line_free + self.timing.gap_s)
-                        exchange = self.owner.exchange(request)
-                        self.planner.line_free = exchange.end
-                    except (DeviceTimeoutError, BusIOError):
-                        self.planner.line_free = now()
+            self._execution.last_words([r for d in self.drivers.values() for r in d.safe_stop()])
         self._drain_inbox()
         self._publish()
