@@ -12,8 +12,10 @@ Rules of every owner:
    ``BusIOError`` when the link failed (the owner has closed itself; reopening is the
    runner's business). The reply it returns holds the events that answer the request, every
    one matched to ``request.expected``: nothing after the owner matches them again.
-3. Frames nobody asked for (heartbeats) go, with their arrival time, to the sink the owner was
-   made with, whenever it reads its line: while it waits for a reply and while idle.
+3. On a line that carries frames nobody asked for (heartbeats, on CAN), they go with their
+   arrival time to the sink the owner was made with, whenever it reads its line: while it
+   waits for a reply and while idle. A question-and-answer line has none: idle, its owner
+   only waits.
 """
 
 from __future__ import annotations
