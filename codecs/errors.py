@@ -3,8 +3,9 @@
 It lives in the lowest layer (codecs) so that every layer above can raise and catch the
 same classes. Rules of this file:
 
-1. Every class carries a stable ``code``: the zenoh API puts it verbatim into error replies,
-   so renaming a code is a breaking change.
+1. Every class carries a stable ``code``: the zenoh API puts it verbatim into error replies
+   (``busgate.gateway.api.errors`` maps every exception there, whichever thread raised it),
+   so renaming a code is a breaking change. A class is here because something raises it.
 2. Exceptions carry structured attributes (device, register, …) besides their message, and
    are raised ``from`` the exception that caused them.
 3. Where a class has a natural builtin twin it inherits from it too (``EncodeError`` is a
@@ -36,10 +37,17 @@ class CodecError(BusgateError):
     code = "codec_error"
 
 
-class EncodeError(CodecError, ValueError):
+class CommandError(BusgateError, ValueError):
+    """A client's command is malformed or not allowed."""
+
+    code = "bad_command"
+
+
+class EncodeError(CodecError, CommandError):
     """A value cannot be put on the wire: outside the manual's range or of the wrong shape.
 
-    ``field`` names what was wrong, ``value`` is what was given.
+    It is a refused command too (whoever catches ``CommandError`` catches this), with a code
+    of its own. ``field`` names what was wrong, ``value`` is what was given.
     """
 
     code = "out_of_range"
@@ -50,26 +58,20 @@ class EncodeError(CodecError, ValueError):
         self.value = value
 
 
-class BusError(BusgateError):
-    """A bus (serial port or CAN interface) problem."""
-
-    code = "bus_error"
-
-
-class BusUnavailableError(BusError, ConnectionError):
+class BusUnavailableError(BusgateError, ConnectionError):
     """The bus is down: the adapter is gone or cannot be opened."""
 
     code = "bus_unavailable"
 
 
-class BusIOError(BusError, OSError):
+class BusIOError(BusgateError, OSError):
     """Reading or writing the bus failed."""
 
     code = "bus_io"
 
 
 class DeviceError(BusgateError):
-    """A device did not do what was asked."""
+    """A device did not do what was asked (the base of what a device's silence raises)."""
 
     code = "device_error"
 
@@ -83,28 +85,6 @@ class DeviceTimeoutError(DeviceError, TimeoutError):
     """The device did not answer in time."""
 
     code = "device_timeout"
-
-
-class DeviceFaultError(DeviceError):
-    """The device reports a fault; ``faults`` holds its flag bits."""
-
-    code = "device_fault"
-
-    def __init__(self, message: str, *, faults: int = 0, **kwargs: object) -> None:
-        super().__init__(message, **kwargs)  # type: ignore[arg-type]
-        self.faults = faults
-
-
-class DeviceRejectedError(DeviceError):
-    """The device refused the request (for example an unknown register)."""
-
-    code = "device_rejected"
-
-
-class CommandError(BusgateError, ValueError):
-    """A client's command is malformed or not allowed."""
-
-    code = "bad_command"
 
 
 class RefusedError(BusgateError):

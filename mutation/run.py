@@ -68,14 +68,16 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
     ),
     "bus": (
         "gateway",
-        ["gateway/bus/serial_owner.py", "gateway/bus/can_owner.py", "gateway/bus/request.py"],
+        ["gateway/bus/serial_owner.py", "gateway/bus/can_owner.py", "gateway/bus/request.py",
+         "gateway/bus/owner.py"],
         ["tests/test_bus_runner.py", "tests/test_line_edges.py", "tests/test_can_runner.py",
-         "tests/test_mutants_bus.py"],
+         "tests/test_idle_work.py", "tests/test_mutants_bus.py"],
     ),
     "api": (
         "gateway",
-        ["gateway/api/commands.py", "gateway/scheduler/authority.py"],
-        ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_mutants_api.py"],
+        ["gateway/api/commands.py", "gateway/api/errors.py", "gateway/scheduler/authority.py"],
+        ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_error_codes.py",
+         "tests/test_mutants_api.py"],
     ),
 }
 

@@ -1,7 +1,9 @@
 """Turning a JSON text into a command model, with one readable line when it is refused.
 
-Pydantic's ``ValidationError`` becomes ``CommandError`` (code ``bad_command``) whose message
-names every offending field, so the CLI and the zenoh API report the same words.
+Pydantic's ``ValidationError`` becomes a ``CommandError`` raised from it, whose message names
+every offending field, so the CLI and the zenoh API report the same words. The code a reply
+gives it is the ``ValidationError``'s: ``out_of_range`` when only values were outside their
+bounds, else ``bad_command`` (``busgate.gateway.api.errors``).
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from __future__ import annotations
 import warnings
 from typing import Annotated, Literal
 
-from pydantic import Field, TypeAdapter
+from pydantic import Field, Strict, TypeAdapter
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
@@ -30,11 +30,16 @@ Rpm = Annotated[float, Field(ge=-common.MAX_SPEED_RPM, le=common.MAX_SPEED_RPM)]
 RampMs = Annotated[int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)]
 
 
+#: An enum named by its value, as JSON names it: the API validates the object it parsed from
+#: the payload, where strict mode would take only the enum member itself.
+ByValue = Strict(False)
+
+
 class SetMode(CommandModel):
     """Choose the work mode; on both protocols the first step of any sequence."""
 
     op: Literal["set_mode"]
-    mode: common.Mode
+    mode: Annotated[common.Mode, ByValue]
 
 
 class Enable(CommandModel):
@@ -117,11 +122,11 @@ class SetRatedCurrent(CommandModel):
 
 class SetGain(CommandModel):
     op: Literal["set_gain"]
-    gain: common.Gain
+    gain: Annotated[common.Gain, ByValue]
     value: Annotated[int, Field(ge=common.GAIN_MIN, le=common.GAIN_MAX)]
 
 
-# The issue names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
+# The API names the field ``register``, which shadows ``BaseModel.register`` (ABCMeta's
 # virtual-subclass hook, never called on a command); pydantic warns at class creation only.
 # Without the explicit ``Field(...)`` pydantic takes that inherited method for the field's
 # default, and a write without a register would be accepted.

@@ -9,6 +9,7 @@ import json
 
 import can
 import pytest
+from pydantic import ValidationError
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
@@ -110,6 +111,33 @@ def test_hostile_payloads_are_refused_with_a_stable_code_and_never_sent(gateway,
     accepted(api, "la1", {"op": "status"})  # the proof that the bus had its chance
     sent = [r for r in simulator.recorder.received()[before:] if r.frame == "MoveCommand"]
     assert sent == []
+
+
+@pytest.mark.parametrize(("device", "command", "found_by"), [
+    ("la1", {"op": "write", "index": 26, "data": "0000"}, "schema"),  # current_position: read only
+    ("wheel", {"op": "write", "register": 0x10, "value": 0x10}, "codec"),  # control word: 0f, 1f
+    ("la1", {"op": "set_overtemp", "temp_c": 64.9}, "codec"),  # below rewarm 60 °C + 5 °C
+])  # fmt: skip
+def test_an_encode_error_is_out_of_range_on_either_thread(gateway, device, command, found_by):
+    """A value the wire cannot carry gets one code wherever it is found: by the schema's
+    validator (the codec's own check) on the caller's thread, before anything reaches a bus,
+    or by the codec on the bus thread, while the driver plans a command the schema took. And
+    nothing of it is sent."""
+    api, simulator, can_sim, *_ = gateway
+    _, driver = api.devices[device]
+    try:
+        driver.commands.validate_python(command)
+        schema_takes_it = True
+    except ValidationError:
+        schema_takes_it = False
+    assert schema_takes_it == (found_by == "codec")
+    answer = api.command(device, json.dumps(command).encode())
+    if found_by == "schema":
+        assert answer.done(), "refused on the caller's thread"
+    assert code(answer.result(10)) == "out_of_range"
+    accepted(api, device, {"op": "status"} if device == "la1" else {"op": "disable"})
+    assert [r for r in simulator.recorder.received() if r.frame == "WriteCommand"] == []
+    assert "005#00fa001000000010" not in {r.wire for r in can_sim.recorder.received()}
 
 
 def test_unknown_device_and_bus(gateway):

@@ -21,8 +21,9 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
+from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import Job
-from busgate.gateway.scheduler.runner import BACKOFF_FIRST_S, BACKOFF_MAX_S, BusyError
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
@@ -194,12 +195,12 @@ def test_estop_goes_ahead_and_stops_every_device(wait_for, simulator) -> None:
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()
-    runner._queue_job(Job("la1", deque([status(1)])), first)
+    runner._queue_job(Job("la1", deque([status(1)]), future=first))
     assert isinstance(first.exception(0), BusUnavailableError), "the port is not open yet"
     runner.owner.open()
     runner.planner._command_limit = 1
-    runner._queue_job(Job("la1", deque([status(1)])), second)
-    runner._queue_job(Job("la1", deque([status(1)])), third)
+    runner._queue_job(Job("la1", deque([status(1)]), future=second))
+    runner._queue_job(Job("la1", deque([status(1)]), future=third))
     runner.owner.close()
     assert not second.done()
     assert isinstance(third.exception(0), BusyError) and BusyError.code == "busy"

@@ -77,9 +77,11 @@ def test_a_quiet_line_costs_no_wait(tmp_path) -> None:
 
 class InstantDevice:
     """Plays an LA actuator on the far end of a pty that answers the moment a request is
-    read: what an emulator without wire timing does, or a device at another baud rate."""
+    read: what an emulator without wire timing does, or a device at another baud rate (or,
+    answering as ``device_id``, another actuator taking a request that was not for it)."""
 
-    def __init__(self) -> None:
+    def __init__(self, device_id: int = 1) -> None:
+        self.device_id = device_id
         self.master, slave = os.openpty()
         self.port = os.ttyname(slave)
         self._slave = slave
@@ -87,7 +89,7 @@ class InstantDevice:
         self._thread.start()
 
     def _serve(self) -> None:
-        reply = la.encode(la.StatusReply(1, 0, 0, 25, 0, 0, la.Fault(0)))
+        reply = la.encode(la.StatusReply(self.device_id, 0, 0, 25, 0, 0, la.Fault(0)))
         try:
             while os.read(self.master, 64):
                 os.write(self.master, reply)
@@ -110,6 +112,24 @@ def test_a_reply_before_the_request_could_have_left_the_wire_is_early() -> None:
         assert "before the request could have left the wire at 300 baud" in str(timeout.value)
         stats = owner.counters.snapshot(now())
         assert stats.early_replies >= 1 and stats.late_replies == 0
+    finally:
+        owner.close()
+        device.close()
+
+
+@pytest.mark.parametrize("request_to_3", [
+    status(3), Request.of(la, la.register_write(3, la.ID, 9)),  # a new id's answer would do
+], ids=["status", "set_id"])  # fmt: skip
+def test_another_actuators_reply_is_not_taken_for_the_answer(request_to_3) -> None:
+    """The owner matches each reply to its request, the one place that does: a driver gets
+    only the answer, so actuator 4's status never confirms what was asked of actuator 3."""
+    device = InstantDevice(device_id=4)
+    owner = owner_on(device.port)
+    try:
+        with pytest.raises(DeviceTimeoutError):
+            owner.exchange(request_to_3)
+        stats = owner.counters.snapshot(now())
+        assert stats.late_replies >= 1 and stats.early_replies == 0
     finally:
         owner.close()
         device.close()

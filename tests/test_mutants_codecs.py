@@ -13,7 +13,6 @@ from busgate.codecs.ds_servo.registers import check_write
 from busgate.codecs.errors import (
     ConfigError,
     DeviceError,
-    DeviceFaultError,
     EncodeError,
     RefusedError,
 )
@@ -193,8 +192,6 @@ def test_errors_keep_their_message_and_what_they_carry():
     assert (str(config), config.path) == ("bad port", "buses[0].port")
     device = DeviceError("no answer", device="la1", device_id=3)
     assert (str(device), device.device, device.device_id) == ("no answer", "la1", 3)
-    fault = DeviceFaultError("hot", faults=0x10, device="la1", device_id=3)
-    assert (str(fault), fault.faults, fault.device, fault.device_id) == ("hot", 0x10, "la1", 3)
     refusal = RefusedError("claimed", "la1 is held by another client")
     assert (refusal.code, str(refusal)) == ("claimed", "la1 is held by another client")
 
@@ -259,4 +256,3 @@ def test_can_frames_refuse_long_ids_and_long_data_by_field():
 def test_errors_carry_nothing_they_were_not_given():
     assert ConfigError("x").path == ""
     assert (DeviceError("x").device, DeviceError("x").device_id) == ("", None)
-    assert DeviceFaultError("x").faults == 0

@@ -29,7 +29,8 @@ from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import RefusedError
-from busgate.gateway.api.commands import GatewayApi, error_reply, ok_reply
+from busgate.gateway.api.commands import GatewayApi, ok_reply
+from busgate.gateway.api.errors import error_reply
 from busgate.gateway.api.group import scan_requests, scan_result
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.cli import main
@@ -40,6 +41,8 @@ from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.scheduler.authority import Authority
+from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.schemas import api
 from busgate.schemas.config import Config
 
@@ -207,8 +210,17 @@ def test_check_names_the_stale_files_and_writing_fixes_them(tmp_path, capsys):
 
 
 def published(driver: Driver, now: float) -> dict[str, Any]:
-    """The state as the bus runner publishes it: the driver's, plus the ``stale`` flag."""
-    return driver.state(now) | {"stale": False}
+    """The state as the bus runner publishes it: the driver's, stamped, its ``stale`` flag set
+    (a device polled at no rate is never stale)."""
+    telemetry = Telemetry("uart0", BusDevices([driver]), {}, on_event=lambda event: None,
+                          on_state=lambda device, state: None)
+    return telemetry.state(driver, now)
+
+
+def answered(driver: Driver, request, reply: tuple[object, ...], now: float) -> None:
+    """As the runner does: the device answered, then its answer is applied."""
+    driver.heard(now)
+    driver.apply(request, reply, now)
 
 
 def inspire_la_state() -> dict[str, Any]:
@@ -217,7 +229,7 @@ def inspire_la_state() -> dict[str, Any]:
     decoder = la.ReplyDecoder()
     decoder.feed(la.encode(la.StatusReply(3, target_raw=1003, position_raw=990, temperature_c=41,
                                           current_ma=120, force_g=-500, faults=la.Fault.STALL)))
-    driver.apply(poll, tuple(decoder.events()), 1.0)
+    answered(driver, poll, tuple(decoder.events()), 1.0)
     return published(driver, 1.25)
 
 
@@ -233,7 +245,7 @@ def ds_servo_driver() -> DsServoDriver:
     first[0:2] = (250).to_bytes(2, "big")
     first[0x38 - 0x2E : 0x3A - 0x2E] = (2047).to_bytes(2, "big")
     for request, data in zip(driver.poll(), [bytes(first), bytes([31])], strict=True):
-        driver.apply(request, ds_reply(1, ds.ServoStatus.TEMPERATURE, data), 1.0)
+        answered(driver, request, ds_reply(1, ds.ServoStatus.TEMPERATURE, data), 1.0)
     return driver
 
 
@@ -245,11 +257,11 @@ def rs232_state() -> dict[str, Any]:
         for request in driver.plan(driver.parse(text)):
             decoder = rs_codec.ReplyDecoder()
             decoder.feed(rs_codec.encode(rs_codec.Ack(request.frame.register)))
-            driver.apply(request, tuple(decoder.events()), 0.5)
+            answered(driver, request, tuple(decoder.events()), 0.5)
     [monitor] = driver.poll()
     decoder = rs_codec.ReplyDecoder()
     decoder.feed(bytes.fromhex(MANUAL_MONITOR))
-    driver.apply(monitor, tuple(decoder.events()), 1.0)
+    answered(driver, monitor, tuple(decoder.events()), 1.0)
     return published(driver, 1.0)
 
 
@@ -364,7 +376,7 @@ def test_events_from_drivers_and_the_api_match_the_event_schema():
     for _ in range(OFFLINE_AFTER):
         arm.missed(3.0)
     [set_id] = arm.plan(arm.parse('{"op":"set_id","new_id":7}'))
-    arm.apply(set_id, ds_reply(1, ds.ServoStatus(0)), 4.0)
+    answered(arm, set_id, ds_reply(1, ds.ServoStatus(0)), 4.0)
     arm.rebooted("torque on again, its power-up value")
     events = arm.drain_events()
     gw, api_events, _ = gateway()

@@ -18,6 +18,7 @@ from busgate.codecs.errors import BusUnavailableError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
@@ -191,8 +192,8 @@ class StuckOwner:
 
 def test_a_stuck_bus_thread_stops_the_pings(manager) -> None:
     owner = StuckOwner()
-    runner = BusRunner("stuck", owner, link_timing("inspire_la", 921_600, margin_s=0.002), [],
-                       poll_hz={}).start()
+    runner = BusRunner("stuck", owner, link_timing("inspire_la", 921_600, margin_s=0.002),
+                       BusDevices([]), poll_hz={}).start()
     watchdog = Watchdog(Notifier(environ_for(manager, WATCHDOG_USEC="1000000")),
                         lambda: runner.keeping_schedule(stall_s=0.05))
     try:

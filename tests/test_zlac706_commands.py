@@ -142,6 +142,24 @@ def test_bad_commands_are_refused(text: str) -> None:
         _command(text)
 
 
+@pytest.mark.parametrize("text", [
+    '{"op":"set_mode","mode":"velocity"}', '{"op":"set_gain","gain":"position_kp","value":7}',
+    '{"op":"set_mode","mode":"fast"}', '{"op":"set_mode","mode":1}', '{"op":"set_mode"}',
+])  # fmt: skip
+def test_an_object_parsed_from_json_validates_as_its_text_does(text: str) -> None:
+    """The API parses a payload once and validates the object: an enum named by its value
+    there is what it is in the text, and a refusal is the same refusal."""
+
+    def outcome(validate, value):
+        try:
+            return validate(value)
+        except ValidationError as exc:
+            return [(e["loc"], e["type"]) for e in exc.errors()]
+
+    parsed = outcome(COMMAND_ADAPTER.validate_python, json.loads(text))
+    assert parsed == outcome(COMMAND_ADAPTER.validate_json, text)
+
+
 # --- drivers ---------------------------------------------------------------------------------
 
 BOTH = [

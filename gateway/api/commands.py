@@ -7,8 +7,10 @@ every rule of the API is tested without a network. Rules of this file:
    JSON (NaN, infinities and numbers past a double included), an object with a key twice,
    not an object, or not a valid command; the reply says why with a stable code
    (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``, ``out_of_range``,
-   ``unknown_device`` …) and a human message. Whatever the payload, there is exactly one
-   reply: a bug becomes ``internal``, logged with its traceback.
+   ``unknown_device`` …) and a human message, the code from the one mapping of exceptions
+   to codes (``busgate.gateway.api.errors``), as for what the bus refuses later. Whatever
+   the payload, there is exactly one reply: a bug becomes ``internal``, logged with its
+   traceback. The payload is parsed once: the command is validated from the parsed object.
 2. Claims: a client may hold exclusive motion control of a device; others get ``claimed``
    (naming the holder) until release, the TTL lapses, or the holder's liveliness goes. Reads
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
@@ -29,30 +31,16 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
-from pydantic import ValidationError
-
-from busgate.codecs.errors import BusgateError, CommandError, EncodeError, RefusedError
+from busgate.codecs.errors import RefusedError
 from busgate.gateway import installed_version
+from busgate.gateway.api.errors import REFUSALS, error_reply
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.api import BusGroupMove, BusScan, Claim, Release
-from busgate.schemas.errors import describe_validation_error
 
 MAX_PAYLOAD = 64 * 1024
-#: Pydantic error types that mean "a value outside its range", reported as ``out_of_range``.
-RANGE_ERRORS = frozenset(
-    {
-        "less_than",
-        "less_than_equal",
-        "greater_than",
-        "greater_than_equal",
-        "multiple_of",
-        "too_short",
-        "too_long",
-    }
-)
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
@@ -64,12 +52,6 @@ log = logging.getLogger(__name__)
 
 def ok_reply(**fields: Any) -> dict[str, Any]:
     return {"ok": True, **fields}
-
-
-def error_reply(exc: BaseException) -> dict[str, Any]:
-    """The error envelope for ``exc``: its stable code, or ``internal`` for a bug."""
-    code = exc.code if isinstance(exc, BusgateError) else "internal"
-    return {"ok": False, "error": {"code": code, "message": str(exc) or type(exc).__name__}}
 
 
 class _DuplicateKey(ValueError):
@@ -119,19 +101,6 @@ def decode_object(payload: bytes) -> dict[str, Any]:
     return value
 
 
-def refusal(exc: ValidationError | CommandError) -> RefusedError:
-    """A validation failure as ``out_of_range`` (a value outside its bounds) or
-    ``bad_command`` (anything else: unknown op, missing or extra field, wrong type)."""
-    cause = exc if isinstance(exc, ValidationError) else exc.__cause__
-    if isinstance(cause, ValidationError):
-        types = {error["type"] for error in cause.errors()}
-        code = "out_of_range" if types and types <= RANGE_ERRORS else "bad_command"
-        return RefusedError(code, f"invalid command: {describe_validation_error(cause)}")
-    if isinstance(exc, EncodeError):
-        return RefusedError("out_of_range", str(exc))
-    return RefusedError(exc.code, str(exc))
-
-
 def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     """Whatever ``handler`` meets, a reply: a refusal's own code, or ``internal`` (logged with
     its traceback) for a bug. Every query gets exactly one answer, never silence."""
@@ -140,7 +109,7 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     def wrapper(self: GatewayApi, *args: Any) -> Future:
         try:
             return handler(self, *args)
-        except BusgateError as exc:
+        except REFUSALS as exc:
             return _finished(error_reply(exc))
         except Exception as exc:
             log.exception("%s%r failed", handler.__name__, args[:1])
@@ -183,19 +152,13 @@ class GatewayApi:
         op, client = fields.get("op"), fields.get("client")
         if op in ("claim", "release"):
             return _finished(self._claim_op(runner, device, fields))
-        try:  # validated from the JSON text: strict JSON mode takes "velocity" for an enum
-            command = driver.commands.validate_json(payload)
-        except ValidationError as exc:
-            raise refusal(exc) from exc
+        command = driver.commands.validate_python(fields)
         if driver.deadman and op == driver.deadman.op and client:
             self._deadman_clients[device] = client
         return _mapped(runner.submit(device, command, client))
 
     def _claim_op(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
-        try:
-            request = (Claim if fields.get("op") == "claim" else Release).model_validate(fields)
-        except ValidationError as exc:
-            raise refusal(exc) from exc
+        request = (Claim if fields.get("op") == "claim" else Release).model_validate(fields)
         authority = runner.authority
         if isinstance(request, Claim):
             authority.claims.claim(device, request.client, request.ttl_s, authority.clock())
@@ -210,17 +173,14 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             fields = decode_object(payload)
-            try:
-                target = driver.follow_target(fields)
-            except CommandError as exc:
-                raise refusal(exc) from exc
+            target = driver.follow_target(fields)
             client = fields.get("client")
             runner.authority.check([(frozenset({driver.device_id}), Effect.MOTION)], client)
             if client is not None:
                 self._stream_clients[device] = client
             runner.follow(device, target)
             return None
-        except BusgateError as exc:
+        except REFUSALS as exc:
             return error_reply(exc)
         except Exception as exc:
             log.exception("follow on %s failed", device)
@@ -245,24 +205,15 @@ class GatewayApi:
         return handler(self, runner, fields)
 
     def _group_move(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
-        try:
-            request = BusGroupMove.model_validate(fields)
-        except ValidationError as exc:
-            raise refusal(exc) from exc
+        request = BusGroupMove.model_validate(fields)
         for target in request.targets:
             if target.device not in runner.drivers:
                 raise RefusedError("unknown_device", f"no device {target.device!r} on this bus")
-        try:  # the kind's own schema checks each target: a position out of its range …
-            first, command = group_command(runner, request)
-        except CommandError as exc:
-            raise refusal(exc) from exc
+        first, command = group_command(runner, request)  # the kind's schema checks targets
         return _mapped(runner.submit(first, command, request.client))
 
     def _scan(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
-        try:
-            request = BusScan.model_validate(fields)
-        except ValidationError as exc:
-            raise refusal(exc) from exc
+        request = BusScan.model_validate(fields)
         protocol = runner.timing.protocol
         probes = scan_requests(protocol, request.ids)
         planned_s = sum(runner.timing.worst_case(p) + runner.timing.gap_s for p in probes)
@@ -370,4 +321,4 @@ def _settle(answer: Future, done: Future, make: Callable[[Any], dict[str, Any]])
         answer.set_result(reply)
 
 
-__all__ = ["MAX_PAYLOAD", "GatewayApi", "decode_object", "error_reply"]
+__all__ = ["MAX_PAYLOAD", "GatewayApi", "decode_object", "ok_reply"]

@@ -1,4 +1,5 @@
-"""The owner of one CAN interface, through python-can (socketcan, slcan, pcan, virtual …).
+"""The owner of one CAN interface, through python-can (socketcan, slcan, pcan, virtual …): a
+``BusOwner``.
 
 Rules of this file:
 
@@ -11,10 +12,11 @@ Rules of this file:
    stays full the request fails like a timeout. A lost adapter or bus-off is a link failure:
    the bus is closed and ``BusIOError`` raised so the runner reconnects.
 3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
-   ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle.
-   Taking what has already arrived never waits: where the adapter has a file descriptor
-   (socketcan, slcan) it is asked first, since python-can's slcan blocks a ``recv(timeout=0)``
-   for its serial timeout (1 ms) when nothing is there, which would make a timed send late.
+   ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle
+   (every ``idle_batch_s``). Taking what has already arrived never waits: where the adapter
+   has a file descriptor (socketcan, slcan) it is asked first, since python-can's slcan
+   blocks a ``recv(timeout=0)`` for its serial timeout (1 ms) when nothing is there, which
+   would make a timed send late.
 4. Only this module converts between ``CanFrame`` and ``can.Message``.
 """
 
@@ -26,6 +28,7 @@ import select
 import time
 from collections.abc import Callable
 from types import ModuleType
+from typing import ClassVar
 
 import can
 
@@ -33,22 +36,26 @@ from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import Discarded
 from busgate.gateway.bus.clock import now, sleep_until
+from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
 TX_BACKPRESSURE_S = 0.05
-#: While idle, frames are taken in batches this far apart (see ``idle_until``): shorter than
-#: the usual 10 ms heartbeat interval, so that each heartbeat still makes its own telemetry.
-IDLE_BATCH_S = 0.008
 #: The last stretch before a timed send is waited out precisely, not in ``recv``.
 PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
 CAN_ERR_BUSOFF = 0x40
 
 
-class CanBusOwner:
+class CanBusOwner(BusOwner):
     """Runs exchanges on one CAN interface and routes unsolicited frames."""
+
+    #: While idle, frames are taken in batches this far apart: heartbeats are telemetry, so a
+    #: few milliseconds of delay cost nothing, while waking for each frame of a burst costs a
+    #: wake-up apiece. Shorter than the usual 10 ms heartbeat interval, so that each heartbeat
+    #: still makes its own telemetry.
+    idle_batch_s: ClassVar[float] = 0.008
 
     def __init__(
         self,
@@ -99,8 +106,6 @@ class CanBusOwner:
                 bus.shutdown()
 
     def exchange(self, request: Request, *, at: float | None = None) -> Exchange:
-        """Send ``request`` (at ``at``, when given) and wait for its reply
-        (``DeviceTimeoutError`` when none comes)."""
         bus = self._require_open()
         if at is None:
             self.idle_until(now())
@@ -109,31 +114,22 @@ class CanBusOwner:
             sleep_until(at)
         start = now()
         self._send(bus, request.wire)
-        if request.expected is None:
-            return Exchange(request, start, start + self.timing.wire_time(request.wire))
-        _, latest = self.timing.reply_window(request)
-        deadline = start + self.timing.wire_time(request.wire) + latest
-        answer = self._receive_until(bus, deadline, request.expected)
-        if answer is None:
-            self.counters.timeouts += 1
-            source = request.expected.source_id
-            raise DeviceTimeoutError(
-                f"no reply from node {source} on {self.port}", device_id=source
-            )
-        return Exchange(request, start, now(), answer)
+        wire_time = self.timing.wire_time(request.wire)
+        end, answer = start + wire_time, ()
+        if request.expected is not None:
+            _, latest = self.timing.reply_window(request)
+            answer = self._receive_until(bus, start + wire_time + latest, request.expected)
+            if answer is None:
+                self.counters.timeouts += 1
+                source = request.expected.source_id
+                raise DeviceTimeoutError(
+                    f"no reply from node {source} on {self.port}", device_id=source
+                )
+            end = now()
+        return Exchange(request, start, end, answer)
 
-    def idle_until(self, deadline: float, pause: Callable[[float], bool] | None = None) -> None:
-        """Consume unsolicited frames until ``deadline``, in batches: pause ``IDLE_BATCH_S``,
-        then take everything that arrived. Heartbeats are telemetry, so a few milliseconds of
-        delay cost nothing, while waking for each frame of a burst costs a wake-up apiece.
-        ``pause(seconds)`` returning true (new work for the bus) ends the wait at once."""
-        bus = self._require_open()
-        pause = pause or _sleep
-        while True:
-            self._receive_until(bus, now(), None, drain=True)
-            remaining = deadline - now()
-            if remaining <= 0 or pause(min(IDLE_BATCH_S, remaining)):
-                return
+    def take_unsolicited(self) -> None:
+        self._receive_until(self._require_open(), now(), None, drain=True)
 
     def _require_open(self) -> can.BusABC:
         if self._bus is None:
@@ -222,11 +218,6 @@ class CanBusOwner:
     def _fail(self, exc: BaseException) -> None:
         self.close()
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
-
-
-def _sleep(seconds: float) -> bool:
-    time.sleep(seconds)
-    return False
 
 
 def _is_backpressure(exc: can.CanError) -> bool:

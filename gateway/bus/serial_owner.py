@@ -1,34 +1,36 @@
-"""The owner of one serial port (UART or RS485 through a USB adapter).
+"""The owner of one serial port (UART or RS485 through a USB adapter): a ``BusOwner``.
 
 Rules of this file:
 
-1. Only the bus thread calls ``exchange``; nothing else touches the port.
-2. Stale input is flushed right before every request, and any reply that *could not* be the
+1. Stale input is flushed right before every request, and any reply that *could not* be the
    answer is ignored: one read before our frame had left the wire plus the device's shortest
    reply time is counted ``early`` (a wrong baud rate, or an emulator without wire timing), one
    left from an earlier exchange ``late``. A reply that arrives after its timeout is never
    taken for the next request's reply.
-5. The gap counts from the last byte seen on the line: when the flush finds anything (a late
+2. The gap counts from the last byte seen on the line: when the flush finds anything (a late
    reply, noise), the write waits until ``gap_s`` has passed since then, and looks again.
 3. ``SerialException`` and ``OSError`` mean the link is down: the port is closed at once and
-   ``BusIOError`` raised; reconnecting (with backoff) is the runner's business.
+   ``BusIOError`` raised.
 4. Waiting for a reply uses ``select`` on the port's descriptor with the absolute deadline,
    so a timeout costs no polling and a reply is read the moment it lands.
+5. Nothing comes unasked on a question-and-answer line: the owner has no idle work.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
-from dataclasses import replace
 from types import ModuleType
+from typing import ClassVar
 
 import serial
 
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
-from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.codecs.framing import ChecksumMismatch, Discarded, ExpectedReply
 from busgate.gateway.bus.clock import now, sleep_until
+from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
@@ -38,8 +40,10 @@ WRITE_TIMEOUT_S = 0.5
 QUIET_WAIT_MAX_S = 0.05
 
 
-class SerialBusOwner:
+class SerialBusOwner(BusOwner):
     """Runs exchanges on one serial port, one at a time."""
+
+    idle_batch_s: ClassVar[float] = math.inf  # rule 5: idle time is only waiting
 
     def __init__(
         self, port: str, codec: ModuleType, timing: LinkTiming, counters: BusCounters
@@ -77,9 +81,6 @@ class SerialBusOwner:
                 port.close()
 
     def exchange(self, request: Request, *, at: float | None = None) -> Exchange:
-        """Send ``request`` (at the ``perf_counter`` time ``at``, when given: the last wait is
-        done here, right before the write) and wait for its reply; raise
-        ``DeviceTimeoutError`` when none comes in time, ``BusIOError`` when the link fails."""
         if self._serial is None:
             raise BusIOError(f"{self.port} is not open")
         try:
@@ -103,13 +104,17 @@ class SerialBusOwner:
         wire_time = self.timing.wire_time(request.wire)
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
-        if request.expected is None:
-            return Exchange(request, start, start + wire_time, write_s=start - issued)
-        earliest, latest = self.timing.reply_window(request)
-        exchange = self._wait_reply(
-            port, request, start, issued + wire_time + earliest, start + wire_time + latest
-        )
-        return replace(exchange, write_s=start - issued)
+        end, reply = start + wire_time, ()
+        if request.expected is not None:
+            earliest, latest = self.timing.reply_window(request)
+            end, reply = self._wait_reply(
+                port, request.expected, issued + wire_time + earliest, start + wire_time + latest
+            )
+        return Exchange(request, start, end, reply, write_s=start - issued)
+
+    def take_unsolicited(self) -> None:
+        """Nothing to take (rule 5): whatever is on the line between exchanges is a late reply
+        or noise, flushed and counted right before the next write."""
 
     def _write(self, port: serial.Serial, wire: bytes) -> None:
         """One ``write`` syscall for the whole frame in the usual case (pyserial's ``write``
@@ -122,10 +127,9 @@ class SerialBusOwner:
             port.write(wire[written:])
 
     def _wait_reply(
-        self, port: serial.Serial, request: Request, start: float, earliest: float, deadline: float
-    ) -> Exchange:
-        expected = request.expected
-        assert expected is not None
+        self, port: serial.Serial, expected: ExpectedReply, earliest: float, deadline: float
+    ) -> tuple[float, tuple[object, ...]]:
+        """When the answer's last byte was read, and its events."""
         answer: list[object] = []
         self._early = 0
         fd = port.fileno()
@@ -145,7 +149,7 @@ class SerialBusOwner:
                 if self._take(event, expected, arrived >= earliest):
                     answer.append(event)
             if len(answer) >= expected.frames:
-                return Exchange(request, start, arrived, tuple(answer))
+                return arrived, tuple(answer)
             if remaining <= 0:
                 break
         self.counters.timeouts += 1
@@ -158,7 +162,7 @@ class SerialBusOwner:
             )
         raise DeviceTimeoutError(message, device_id=expected.source_id)
 
-    def _take(self, event: object, expected, in_time: bool) -> bool:
+    def _take(self, event: object, expected: ExpectedReply, in_time: bool) -> bool:
         """Count ``event``; true when it is (part of) the awaited answer."""
         if isinstance(event, Discarded):
             self.counters.discarded_bytes += len(event.data)

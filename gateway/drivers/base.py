@@ -250,8 +250,10 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
-        """Update the state from ``reply`` to ``request``; return what the command's answer
-        should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
+        """Update the state from ``reply`` to ``request``: the events of the answer, each one
+        matched to ``request.expected`` by the bus owner (none for a frame without a reply;
+        a device that answered has been marked ``heard`` already). Return what the command's
+        answer should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
 
     def unsolicited(self, event: object, now: float) -> None:  # noqa: B027 - optional hook
         """A frame from this device nobody asked for (heartbeat, alarm report); only CAN
@@ -260,7 +262,7 @@ class Driver(abc.ABC):
     @abc.abstractmethod
     def telemetry(self, now: float) -> dict[str, Any]:
         """The device's values in named units (``position``, ``faults`` …), without the
-        envelope fields (``ts``, ``device``, ``kind``, ``online``) the runner adds."""
+        envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds."""
 
     # -- liveness ---------------------------------------------------------------------------
 
@@ -279,6 +281,10 @@ class Driver(abc.ABC):
         self.misses += 1
         if self.online and self.misses >= OFFLINE_AFTER:
             self.went_offline("no reply")
+
+    def check_heartbeat(self, now: float) -> None:  # noqa: B027 - optional hook
+        """Called by the runner before each publication: a device that reports unasked
+        (heartbeats) goes offline here once they stop; by default there are none."""
 
     def went_offline(self, reason: str) -> None:
         if self.online:
@@ -311,9 +317,8 @@ class Driver(abc.ABC):
         return events
 
     def state(self, now: float) -> dict[str, Any]:
-        """The telemetry with its envelope."""
+        """The telemetry with its envelope; the runner stamps it (``ts``) when it publishes."""
         return {
-            "ts": now,
             "device": self.name,
             "kind": self.kind,
             "online": self.online,

@@ -252,10 +252,9 @@ class DsServoDriver(Driver):
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
         answer = None
         if request.expected is not None:
-            answer = next((e for e in reply if request.expected.matches(e)), None)
-            if answer is None:
+            if not reply:
                 return {}  # unconfirmed: the servo may or may not have done it
-            self.heard(now)
+            answer = reply[0]
             self._set_faults(answer.status)
         return _APPLY[type(request.frame)](self, request.frame, answer) or {}
 

@@ -75,10 +75,7 @@ _STATUS_FIELDS = {
 
 
 def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
-    try:
-        return Request.of(codec, frame, idempotent=idempotent)
-    except EncodeError as exc:
-        raise CommandError(str(exc)) from exc
+    return Request.of(codec, frame, idempotent=idempotent)
 
 
 class InspireLaDriver(Driver):
@@ -229,7 +226,11 @@ class InspireLaDriver(Driver):
                 min(self._possible(limit, values)), max(self._possible(rewarm, values))
             )
         except EncodeError as exc:
-            raise CommandError(f"{self.name}: {exc} (limit must be ≥ rewarm + 5 °C)") from exc
+            raise EncodeError(
+                f"{self.name}: {exc} (limit must be ≥ rewarm + 5 °C)",
+                field=exc.field,
+                value=exc.value,
+            ) from exc
 
     def _possible(self, name: str, written: dict[str, int]) -> set[int]:
         """Every value register ``name`` may hold once ``written`` lands."""
@@ -240,13 +241,10 @@ class InspireLaDriver(Driver):
     # -- interpreting -----------------------------------------------------------------------
 
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
-        expected = request.expected
-        answers = [event for event in reply if expected is not None and expected.matches(event)]
-        if not answers:
+        if not reply:
             return {}  # unconfirmed: the actuator may or may not have done it
-        self.heard(now)
         result: dict[str, Any] = {}
-        for event in answers:
+        for event in reply:
             result.update(self._ON_REPLY[type(event)](self, event))
         if isinstance(request.frame, codec.WriteCommand):
             self._confirm(request.frame)

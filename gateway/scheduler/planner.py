@@ -29,6 +29,7 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -49,7 +50,7 @@ class Priority(enum.IntEnum):
 
 @dataclass(eq=False)
 class Job:
-    """Requests to run in order for one device, and where their outcome goes.
+    """Requests to run in order for one device, and who waits for their outcome.
 
     A failed request (after its retries) ends the job, unless ``keep_going`` (an e-stop must
     reach the other devices even when one of them is silent).
@@ -64,7 +65,10 @@ class Job:
     keep_going: bool = False
     #: When a list, the runner records ``(request, reply events or None)`` per request.
     outcomes: list | None = None
-    context: object = None
+    #: Who waits for the outcome (a client's command, a scan, an e-stop); a poll has no one.
+    future: Future | None = None
+    #: A poll: when its device's next poll is due. Waiting polls go out earliest first.
+    next_poll_due: float = math.inf
     #: Latest moment (``perf_counter``) the job may start; for a scan, each of its probes.
     start_by: float = math.inf
     #: Its first request has been sent: from then on it runs to its end.
@@ -77,8 +81,9 @@ class Job:
         return now > self.start_by and (self.scan or not self.started)
 
 
-class FollowTicker(Protocol):
-    """A stream of follow frames at a fixed period (one per device, or one coalesced frame)."""
+class Ticker(Protocol):
+    """Frames at a fixed period: a follow stream (one per device, or one coalesced frame, a
+    ``tickers.FollowTicker``) or a device's keep-alive (``tickers.KeepaliveTicker``)."""
 
     period_s: float
 
@@ -109,7 +114,7 @@ class Slot:
 
     request: Request
     priority: Priority
-    source: Job | FollowTicker
+    source: Job | Ticker
 
 
 class BusPlanner:
@@ -131,7 +136,7 @@ class BusPlanner:
         #: Jobs dropped at their deadline, for the runner to answer (``take_expired``).
         self._expired: list[Job] = []
         self._polls: dict[str, Job] = {}
-        self.tickers: list[FollowTicker] = []
+        self.tickers: list[Ticker] = []
         self.pollers: list[Poller] = []
 
     def push_estop(self, job: Job) -> None:
@@ -216,7 +221,7 @@ class BusPlanner:
     def _slot(self, job: Job) -> Slot:
         return Slot(job.requests[0], job.priority, job)
 
-    def _next_tick(self) -> tuple[float, FollowTicker | None]:
+    def _next_tick(self) -> tuple[float, Ticker | None]:
         best, chosen = math.inf, None
         for ticker in self.tickers:
             due = ticker.next_due()
@@ -225,7 +230,7 @@ class BusPlanner:
         return best, chosen
 
     def _candidates(self) -> list[Job]:
-        polls = sorted(self._polls.values(), key=lambda job: job.context)
+        polls = sorted(self._polls.values(), key=lambda job: job.next_poll_due)
         return [*self._commands, *polls, *list(self._scans)[:1]]
 
     def _expire(self, now: float) -> None:
@@ -249,7 +254,7 @@ class BusPlanner:
             poller.next_due += poller.period_s
             if requests:
                 self._polls[poller.device] = Job(
-                    poller.device, requests, Priority.POLL, context=poller.next_due
+                    poller.device, requests, Priority.POLL, next_poll_due=poller.next_due
                 )
 
     def _next_poll_due(self) -> float:

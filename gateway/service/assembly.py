@@ -1,7 +1,9 @@
-"""From a bus's configuration to a running bus: owner, timing, drivers, runner.
+"""From a bus's configuration to a running bus: drivers, timing, owner, runner.
 
 One function builds a bus wherever one is needed (``busgate bench``, the daemon), so a bus in
-a benchmark is the same machine as a bus in production.
+a benchmark is the same machine as a bus in production. The devices come first: a CAN owner
+is made with where the frames nobody asked for go (their drivers), and the runner with the
+same devices, so nothing is wired after it was made.
 """
 
 from __future__ import annotations
@@ -11,10 +13,12 @@ from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.drivers.families import check_family, link_timing, make_driver
+from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.families import FAMILIES, PROTOCOLS
@@ -29,9 +33,10 @@ def build_bus(
     """A bus runner for ``bus`` (not started)."""
     protocol = PROTOCOLS[bus.protocol]
     check_family(FAMILIES[protocol.kind])  # a part missing is named here, before anything opens
-    drivers = [make_driver(device, protocol) for device in bus.devices]
+    devices = BusDevices(make_driver(device, protocol) for device in bus.devices)
     counters = BusCounters(now())
     margin = bus.reply_margin_ms / 1000
+    owner: BusOwner
     if isinstance(bus, SerialBus):
         timing = link_timing(bus.protocol, bus.baudrate, margin_s=margin, gap_s=bus.gap_s)
         owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
@@ -44,19 +49,16 @@ def build_bus(
             protocol.codec,
             timing,
             counters,
-            on_unsolicited=lambda event, when: None,
+            on_unsolicited=devices.unsolicited,  # heartbeats go to their drivers
         )
-    runner = BusRunner(
+    return BusRunner(
         bus.name,
         owner,
         timing,
-        drivers,
+        devices,
         poll_hz={device.name: device.poll_hz for device in bus.devices},
         on_event=on_event,
         on_state=on_state,
         realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
-    if isinstance(owner, CanBusOwner):
-        owner.on_unsolicited = runner.unsolicited  # heartbeats go to their drivers
-    return runner

@@ -1,0 +1,73 @@
+"""The API boundary's one mapping from an exception to the error code its reply carries.
+
+Every path ends here, whichever thread the exception was raised on: a payload refused in a
+zenoh callback, a command refused while the bus thread planned it (an encode error, the
+authority, a driver's state rule), a job that failed on the wire. Nothing before it turns one
+exception into another to get a code. Rules:
+
+1. One of busgate's own errors carries its class's code (``busgate.codecs.errors``; a
+   ``RefusedError`` names its own). An ``EncodeError`` is ``out_of_range`` wherever it arose.
+2. A schema's refusal (pydantic's ``ValidationError``, or the one-line ``CommandError`` made
+   from it) is ``out_of_range`` when every problem is a value outside its bounds, a codec's
+   ``EncodeError`` raised by a validator included, and ``bad_command`` otherwise.
+3. Anything else is a bug: ``internal`` (its traceback is logged where it was caught).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import ValidationError
+
+from busgate.codecs.errors import BusgateError, CommandError, EncodeError
+from busgate.schemas.errors import describe_validation_error
+
+#: Pydantic error types that mean "a value outside its range".
+RANGE_ERRORS = frozenset(
+    {
+        "less_than",
+        "less_than_equal",
+        "greater_than",
+        "greater_than_equal",
+        "multiple_of",
+        "too_short",
+        "too_long",
+    }
+)
+#: What a client's request may be refused with (rules 1 and 2), as opposed to a bug.
+REFUSALS = (BusgateError, ValidationError)
+
+
+def error_code(exc: BaseException) -> str:
+    """The code of ``exc`` in a reply."""
+    refused = _schema_refusal(exc)
+    if refused is not None:
+        return "out_of_range" if _out_of_range(refused) else "bad_command"
+    return exc.code if isinstance(exc, BusgateError) else "internal"
+
+
+def error_reply(exc: BaseException) -> dict[str, Any]:
+    """The error envelope for ``exc``: its code, and a message for people."""
+    if isinstance(exc, ValidationError):
+        message = f"invalid command: {describe_validation_error(exc)}"
+    else:
+        message = str(exc) or type(exc).__name__
+    return {"ok": False, "error": {"code": error_code(exc), "message": message}}
+
+
+def _schema_refusal(exc: BaseException) -> ValidationError | None:
+    """The schema's refusal ``exc`` is (rule 2), if it is one."""
+    if isinstance(exc, ValidationError):
+        return exc
+    if isinstance(exc, CommandError) and isinstance(exc.__cause__, ValidationError):
+        return exc.__cause__
+    return None
+
+
+def _out_of_range(refused: ValidationError) -> bool:
+    problems = refused.errors()
+    return bool(problems) and all(
+        problem["type"] in RANGE_ERRORS
+        or isinstance(problem.get("ctx", {}).get("error"), EncodeError)
+        for problem in problems
+    )

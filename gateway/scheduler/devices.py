@@ -1,0 +1,53 @@
+"""The devices of one bus as its thread meets them: each driver by name, the driver a reply
+or a frame nobody asked for comes from, and which devices have news for their clients.
+
+It is made before the bus owner, so that the owner is made with where frames nobody asked
+for (heartbeats) go: straight to their device's driver, from the owner that read them, with
+nothing wired after the fact. Bus thread only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from busgate.codecs.framing import ExpectedReply
+from busgate.gateway.drivers.base import Driver
+
+
+class BusDevices:
+    """The drivers of one bus, and which of them have a new state to publish."""
+
+    def __init__(self, drivers: Iterable[Driver]) -> None:
+        self.drivers = {driver.name: driver for driver in drivers}
+        self._news: set[str] = set(self.drivers)  # every device's first state is news
+
+    def answering(self, expected: ExpectedReply) -> Driver | None:
+        """The device a reply ``expected`` comes from: the one with its id now (an id changes
+        with ``set_id``), or a point-to-point line's one device (a reply without an id)."""
+        for driver in self.drivers.values():
+            if expected.source_id in (driver.device_id, None):
+                return driver
+        return None
+
+    def unsolicited(self, event: object, when: float) -> None:
+        """A frame nobody asked for (a heartbeat, an alarm report): to the driver of the
+        device it names; that device has news."""
+        device_id = getattr(event, "device_id", None)  # a frame naming no device is nobody's
+        for driver in self.drivers.values():
+            if driver.device_id == device_id:
+                driver.unsolicited(event, when)
+                self.touched(driver)
+                return
+
+    def touched(self, driver: Driver) -> None:
+        """Something happened to ``driver``'s device: its state is news."""
+        self._news.add(driver.name)
+
+    @property
+    def has_news(self) -> bool:
+        return bool(self._news)
+
+    def take_news(self) -> set[str]:
+        """The devices with news since the last call."""
+        news, self._news = self._news, set()
+        return news

@@ -1,0 +1,81 @@
+"""What the bus thread tells clients about its devices: their events, logged and handed on,
+and a fresh state for each device with news.
+
+Its own module because it is the one place a published state is finished: it gets its ``ts``
+here (wall time, since clients compare it with their own clock; the drivers know only the
+bus thread's clock) and its ``stale`` flag, both for the states streamed and for the state a
+command's reply carries. Bus thread only; ``on_event`` and ``on_state`` may not block.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.scheduler.devices import BusDevices
+
+log = logging.getLogger(__name__)
+
+#: Telemetry older than this many poll periods is marked stale.
+STALE_PERIODS = 3
+
+
+class Telemetry:
+    """The events and states of the devices of one bus."""
+
+    def __init__(
+        self,
+        bus: str,
+        devices: BusDevices,
+        poll_periods: dict[str, float],
+        *,
+        on_event: Callable[[DeviceEvent], None],
+        on_state: Callable[[str, dict[str, Any]], None],
+    ) -> None:
+        self.bus = bus
+        self.devices = devices
+        self.poll_periods = poll_periods
+        self.on_event = on_event
+        self.on_state = on_state
+        #: The latest state of each device (read from any thread, one item at a time).
+        self.states: dict[str, dict[str, Any]] = {}
+
+    def publish(self, moment: float) -> list[str]:
+        """Events out, and a fresh state for each device with news or events; the devices
+        that rebooted (their follow targets are stale) come back."""
+        news = self.devices.take_news()
+        rebooted = []
+        for name, driver in self.devices.drivers.items():
+            driver.check_heartbeat(moment)
+            events = driver.drain_events()
+            for event in events:
+                self._log(event)
+                self.on_event(event)
+                if event.type == "rebooted":
+                    rebooted.append(name)
+            if events or name in news:
+                self.states[name] = state = self.state(driver, moment)
+                self.on_state(name, state)
+        return rebooted
+
+    def state(self, driver: Driver, moment: float) -> dict[str, Any]:
+        """The driver's state, stamped, and marked ``stale`` when its telemetry is more than
+        ``STALE_PERIODS`` poll periods old (an oversubscribed bus, or a device not answering)."""
+        state = {"ts": time.time(), **driver.state(moment)}
+        period = self.poll_periods.get(driver.name)
+        age = state.get("last_reply_age_s")
+        state["stale"] = period is not None and (age is None or age > STALE_PERIODS * period)
+        return state
+
+    def _log(self, event: DeviceEvent) -> None:
+        details = " ".join(f"{key}={value}" for key, value in event.fields.items())
+        log.info(
+            "bus %s device %s: %s%s",
+            self.bus,
+            event.device,
+            event.type,
+            f" ({details})" if details else "",
+        )

@@ -1,0 +1,86 @@
+"""The one mapping from an exception to its reply's code (gateway/api/errors.py), on the
+exceptions each path really raises: the schemas' refusals as pydantic makes them, as the CLI
+and the drivers word them, the codecs' encode errors, the bus thread's, and a bug. Pure
+calls."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.errors import (
+    BusUnavailableError,
+    CommandError,
+    DeviceTimeoutError,
+    EncodeError,
+    RefusedError,
+)
+from busgate.gateway.api.errors import error_code, error_reply
+from busgate.gateway.bus.request import Request
+from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
+from busgate.gateway.scheduler.outcomes import BusyError
+from busgate.schemas import ds_servo, inspire_la
+
+
+def raised(call, *args) -> BaseException:
+    with pytest.raises(Exception) as caught:
+        call(*args)
+    return caught.value
+
+
+def refused(adapter, value: dict) -> ValidationError:
+    error = raised(adapter.validate_python, value)
+    assert isinstance(error, ValidationError)
+    return error
+
+
+def test_a_value_outside_its_bounds_is_out_of_range_anything_else_bad_command():
+    assert error_code(refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": 2001})) == (
+        "out_of_range")
+    assert error_code(refused(inspire_la.COMMAND_ADAPTER, {"op": "move"})) == "bad_command"
+    assert error_code(refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": "1"})) == (
+        "bad_command")
+    both = refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": 2001, "x": 1})
+    assert error_code(both) == "bad_command", "out_of_range only when every problem is a range"
+
+
+def test_an_encode_error_is_out_of_range_however_it_is_raised():
+    # The codec's own check, run by a schema's validator (pydantic wraps it), …
+    in_validator = refused(ds_servo.COMMAND_ADAPTER, {"op": "read", "address": 56, "length": 30})
+    assert error_code(in_validator) == "out_of_range"
+    # … the codec encoding what a driver planned, …
+    control_word = zcan.Write(5, zcan.CanRegister.CONTROL_WORD, 0x10)
+    assert error_code(raised(Request.of, zcan, control_word)) == "out_of_range"
+    # … and a driver's rule that is the codec's check.
+    driver = InspireLaDriver("la1", 1)
+    too_low = driver.parse('{"op":"set_overtemp","temp_c":64.9}')
+    rule = raised(driver.plan, too_low)
+    assert isinstance(rule, EncodeError) and error_code(rule) == "out_of_range"
+    assert error_reply(rule)["error"] == {"code": "out_of_range", "message": str(rule)}
+
+
+def test_a_refusal_worded_in_one_line_keeps_the_code_of_what_was_refused():
+    driver = Zlac706CanDriver("wheel", 5)
+    out_of_bounds = raised(driver.parse, '{"op":"velocity","rpm":99999}')
+    assert isinstance(out_of_bounds, CommandError) and error_code(out_of_bounds) == "out_of_range"
+    unknown = raised(driver.parse, '{"op":"fly"}')
+    assert error_code(unknown) == "bad_command"
+    stream = raised(InspireLaDriver("la1", 1).follow_target, {"position": 9999})
+    assert error_code(stream) == "out_of_range" and "follow target" in str(stream)
+    assert error_code(CommandError("move before enable")) == "bad_command"
+
+
+def test_the_bus_threads_errors_keep_their_codes_and_a_bug_is_internal():
+    cases = {
+        "busy": BusyError("queue full"),
+        "bus_unavailable": BusUnavailableError("down"),
+        "device_timeout": DeviceTimeoutError("silent", device_id=1),
+        "claimed": RefusedError("claimed", "held by ui-1"),
+        "internal": RuntimeError("a driver bug"),
+    }
+    assert {code: error_code(exc) for code, exc in cases.items()} == {c: c for c in cases}
+    assert error_reply(KeyError())["error"] == {"code": "internal", "message": "KeyError"}
+    invalid = error_reply(refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": -1}))
+    assert invalid["error"]["message"].startswith("invalid command: move.position")
