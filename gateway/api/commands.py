@@ -129,6 +129,7 @@ def refusal(exc: ValidationError | CommandError) -> RefusedError:
         return RefusedError(code, f"invalid command: {describe_validation_error(cause)}")
     if isinstance(exc, EncodeError):
         return RefusedError("out_of_range", str(exc))
+    assert isinstance(exc, CommandError)  # a ValidationError is its own cause: answered above
     return RefusedError(exc.code, str(exc))
 
 

@@ -24,8 +24,9 @@ import contextlib
 import errno
 import select
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from types import ModuleType
+from typing import Any
 
 import can
 
@@ -54,7 +55,7 @@ class CanBusOwner:
         self,
         interface: str,
         channel: str,
-        options: dict[str, object],
+        options: Mapping[str, Any],
         codec: ModuleType,
         timing: LinkTiming,
         counters: BusCounters,
@@ -108,6 +109,7 @@ class CanBusOwner:
             self.idle_until(at - PRECISE_WAIT_S)
             sleep_until(at)
         start = now()
+        assert isinstance(request.wire, CanFrame)  # a CAN codec's frames
         self._send(bus, request.wire)
         if request.expected is None:
             return Exchange(request, start, start + self.timing.wire_time(request.wire))

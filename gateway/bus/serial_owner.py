@@ -98,6 +98,7 @@ class SerialBusOwner:
         # reply can come before issued + wire + shortest reply time), and the line is taken
         # until at least ``start`` + wire time, ``start`` being when the kernel had the bytes.
         issued = now()
+        assert isinstance(request.wire, bytes)  # a UART codec's frames
         self._write(port, request.wire)
         start = now()
         wire_time = self.timing.wire_time(request.wire)

@@ -29,8 +29,9 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, cast
 
 from busgate.gateway.bus.request import LinkTiming, Request
 
@@ -96,8 +97,11 @@ class Poller(Protocol):
     """A device's telemetry reads at its ``poll_hz``."""
 
     device: str
-    period_s: float
     next_due: float
+
+    @property
+    def period_s(self) -> float:
+        """Seconds from one poll to the next."""
 
     def build(self) -> list[Request]:
         """The requests of one poll."""
@@ -132,7 +136,7 @@ class BusPlanner:
         self._expired: list[Job] = []
         self._polls: dict[str, Job] = {}
         self.tickers: list[FollowTicker] = []
-        self.pollers: list[Poller] = []
+        self.pollers: Sequence[Poller] = []
 
     def push_estop(self, job: Job) -> None:
         """E-stop jobs are never refused and go ahead of everything."""
@@ -225,7 +229,7 @@ class BusPlanner:
         return best, chosen
 
     def _candidates(self) -> list[Job]:
-        polls = sorted(self._polls.values(), key=lambda job: job.context)
+        polls = sorted(self._polls.values(), key=lambda job: cast(float, job.context))  # due time
         return [*self._commands, *polls, *list(self._scans)[:1]]
 
     def _expire(self, now: float) -> None:

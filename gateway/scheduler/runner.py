@@ -134,14 +134,15 @@ class BusRunner:
         self.counters: BusCounters = owner.counters
         self.planner = BusPlanner(timing)
         start = now()
-        self.planner.pollers = [
+        self.pollers = [
             DevicePoller(driver, poll_hz[name], start)
             for name, driver in self.drivers.items()
             if poll_hz.get(name)
         ]
         self._keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
         self.planner.tickers = list(self._keepalives.values())
-        self._poll_periods = {p.device: p.poll_period_s for p in self.planner.pollers}
+        self.planner.pollers = self.pollers
+        self._poll_periods = {p.device: p.poll_period_s for p in self.pollers}
         self.states: dict[str, dict[str, Any]] = {}
         self.streams = FollowStreams(self.planner, self.counters, self.drivers)
         self._min_write_s = float("inf")

@@ -32,6 +32,7 @@ def build_bus(
     drivers = [make_driver(device, protocol) for device in bus.devices]
     counters = BusCounters(now())
     margin = bus.reply_margin_ms / 1000
+    owner: SerialBusOwner | CanBusOwner
     if isinstance(bus, SerialBus):
         timing = link_timing(bus.protocol, bus.baudrate, margin_s=margin, gap_s=bus.gap_s)
         owner = SerialBusOwner(bus.port, protocol.codec, timing, counters)
