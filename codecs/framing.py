@@ -139,7 +139,9 @@ class StreamDecoder(Generic[Event]):
         while not isinstance(event := self.next_event(), NeedData):
             yield event
 
-    def _step(self, buf: bytearray, pos: int) -> tuple[object | None, int]:
+    def _step(
+        self, buf: bytearray, pos: int
+    ) -> tuple[Event | Discarded | ChecksumMismatch | None, int]:
         raise NotImplementedError
 
 
@@ -164,7 +166,9 @@ class HeaderFramedDecoder(StreamDecoder[Event]):
     def _decode(self, frame: bytes) -> Event | Discarded:
         raise NotImplementedError
 
-    def _step(self, buf: bytearray, pos: int) -> tuple[object | None, int]:
+    def _step(
+        self, buf: bytearray, pos: int
+    ) -> tuple[Event | Discarded | ChecksumMismatch | None, int]:
         start = buf.find(self.header, pos)
         if start < 0:
             return self._skip_to_end(buf, pos)
@@ -181,7 +185,7 @@ class HeaderFramedDecoder(StreamDecoder[Event]):
             return ChecksumMismatch(frame, expected, frame[-1]), start + 1
         return self._decode(frame), start + size
 
-    def _skip_to_end(self, buf: bytearray, pos: int) -> tuple[object | None, int]:
+    def _skip_to_end(self, buf: bytearray, pos: int) -> tuple[Discarded | None, int]:
         """No header from ``pos`` on: discard all but a trailing partial header."""
         end = len(buf)
         for keep in range(len(self.header) - 1, 0, -1):

@@ -64,15 +64,21 @@ class Register:
         """First address after this register."""
         return self.address + self.size
 
-    def check(self, value: int) -> int:
-        """Return ``value`` when it fits this register, else raise ``EncodeError``."""
+    @property
+    def limits(self) -> tuple[int, int]:
+        """The raw values it takes: ``minimum`` to ``maximum``, or what its size holds where
+        the manual gives no bound."""
         if self.signed:
             lo, hi = -(1 << (8 * self.size - 1)), (1 << (8 * self.size - 1)) - 1
         else:
             lo, hi = 0, (1 << (8 * self.size)) - 1
         lo = lo if self.minimum is None else self.minimum
         hi = hi if self.maximum is None else self.maximum
-        return require_range(self.name, value, lo, hi)
+        return lo, hi
+
+    def check(self, value: int) -> int:
+        """Return ``value`` when it fits this register, else raise ``EncodeError``."""
+        return require_range(self.name, value, *self.limits)
 
     def in_unit(self, raw: int) -> int | float | dict[str, int | float] | None:
         """``raw`` in this register's unit; for a packed register each part by name, or
@@ -145,6 +151,13 @@ class RegisterMap:
 
     def __len__(self) -> int:
         return len(self._by_name)
+
+    def default(self, name: str) -> int:
+        """The power-up value of register ``name``; ``KeyError`` when the table gives none."""
+        default = self[name].default
+        if default is None:
+            raise KeyError(f"register {name!r} has no default")
+        return default
 
     def at(self, address: int) -> Register | None:
         """The register that holds ``address``, or ``None`` for a reserved address."""

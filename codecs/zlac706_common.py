@@ -17,7 +17,7 @@ from __future__ import annotations
 import enum
 import math
 from fractions import Fraction
-from typing import Final
+from typing import Final, TypedDict
 
 from busgate.codecs.errors import EncodeError
 from busgate.codecs.registers import Access, Register, require_range
@@ -214,10 +214,24 @@ SPEED_RAW_MAX: Final = speed_raw_truncated(MAX_SPEED_RPM)
 #: A ramp value: accel steps in the high byte, decel steps in the low byte (100 ms each).
 RAMP_WORD_MAX: Final = (RAMP_MAX_MS // RAMP_STEP_MS) << 8 | RAMP_MAX_MS // RAMP_STEP_MS
 
+
+class UnitFields(TypedDict, total=False):
+    """``Register`` fields that say how a raw value reads, shared by registers of both wires."""
+
+    unit: str
+    scale: float
+    signed: bool
+    parts: tuple[str, ...]
+
+
 #: How a raw speed register reads in rpm (the same scale on both wires).
-SPEED_UNIT: Final = {"unit": "rpm", "scale": float(1 / SPEED_RAW_PER_RPM), "signed": True}
+SPEED_UNIT: Final[UnitFields] = {
+    "unit": "rpm",
+    "scale": float(1 / SPEED_RAW_PER_RPM),
+    "signed": True,
+}
 #: How a ramp register reads: accel steps in the high byte, decel in the low one, 100 ms each.
-RAMP_UNIT: Final = {"unit": "ms", "scale": RAMP_STEP_MS, "parts": ("accel", "decel")}
+RAMP_UNIT: Final[UnitFields] = {"unit": "ms", "scale": RAMP_STEP_MS, "parts": ("accel", "decel")}
 
 
 def coded_register(name: str, address: int, codes, description: str) -> Register:

@@ -19,7 +19,7 @@ Rules of this file:
 from __future__ import annotations
 
 import warnings
-from typing import Annotated, Any, Literal, Union, get_args
+from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
@@ -34,9 +34,9 @@ ErrorCode = Literal[
     "unknown_bus", "claimed", "estopped", "device_timeout", "bus_unavailable", "busy",
     "internal",
 ]  # fmt: skip
-ERROR_CODES: tuple[str, ...] = ErrorCode.__args__
+ERROR_CODES: tuple[str, ...] = get_args(ErrorCode)
 
-ProtocolName = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
+ProtocolName: TypeAlias = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
 
 #: The most ids one scan may name (every id a one-byte address leaves, bar broadcast).
 MAX_SCAN_IDS = 254
@@ -124,7 +124,10 @@ FOLLOW_MODELS: dict[str, type[CommandModel]] = {
     kind: family.schema.FollowTarget for kind, family in FAMILIES.items()
 }
 #: Any device's state, told apart by ``kind``.
-Telemetry = Annotated[Union[tuple(TELEMETRY_MODELS.values())], Field(discriminator="kind")]  # noqa: UP007
+Telemetry: TypeAlias = Annotated[  # type: ignore[valid-type]
+    Union[tuple(TELEMETRY_MODELS.values())],  # noqa: UP007
+    Field(discriminator="kind"),
+]
 TELEMETRY_ADAPTER: TypeAdapter[Any] = TypeAdapter(Telemetry)
 
 
@@ -360,7 +363,7 @@ def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
     """The kind's own commands and the gateway-level ones, told apart by ``op``."""
     (union, *_) = get_args(kind_module.Command)
     members = (*get_args(union), Claim, Release)
-    return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # noqa: UP007
+    return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # type: ignore[arg-type]  # noqa: UP007
 
 
 #: What ``<prefix>/<gw>/dev/<device>/cmd`` takes, per device kind.

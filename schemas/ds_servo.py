@@ -36,7 +36,7 @@ Position = Annotated[int, _register_range("target_position")]
 TimeMs = Annotated[int, _register_range("move_time")]
 ServoId = Annotated[int, Field(ge=codec.MIN_ID, le=codec.MAX_ID)]
 PresetNumber = Annotated[int, Field(ge=1, le=len(codec.PRESET_ADDRESSES))]
-DEFAULT_TIME_MS: int = codec.REGISTERS["move_time"].default
+DEFAULT_TIME_MS: int = codec.REGISTERS.default("move_time")
 
 
 class Ping(CommandModel):

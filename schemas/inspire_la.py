@@ -16,23 +16,25 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, model_validator
+from pydantic.fields import FieldInfo
 
 from busgate.codecs import inspire_la as codec
 from busgate.schemas.base import CommandModel, HexData
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
-def _register_range(name: str) -> Field:
+def _register_range(name: str) -> FieldInfo:
     """``Field`` bounds of a register with a range in the manual."""
     register = codec.REGISTERS[name]
     return Field(ge=register.minimum, le=register.maximum)
 
 
-def _temperature_range(name: str) -> Field:
+def _temperature_range(name: str) -> FieldInfo:
     """``Field`` bounds in °C of a register stored in tenths of a degree."""
     register = codec.REGISTERS[name]
     tenths = codec.TENTHS_PER_DEGREE
-    return Field(ge=register.minimum / tenths, le=register.maximum / tenths)
+    low, high = register.limits
+    return Field(ge=low / tenths, le=high / tenths)
 
 
 def _in_tenths(temp_c: float) -> float:

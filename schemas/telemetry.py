@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Iterable
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeAlias
 
 from pydantic import Field
 
@@ -17,7 +17,7 @@ from busgate.schemas.base import Published
 from busgate.schemas.config import Name
 from busgate.schemas.families import kinds
 
-DeviceKind = Literal[kinds()]  # type: ignore[valid-type]
+DeviceKind: TypeAlias = Literal[kinds()]  # type: ignore[valid-type]
 
 
 def flag_names(flags: Iterable[enum.Flag]) -> list[str]:

@@ -146,6 +146,7 @@ def test_register_check_uses_table_bounds_then_size_bounds() -> None:
     assert offset.check(-32768) == -32768
     with pytest.raises(errors.EncodeError):
         offset.check(32768)
+    assert target.limits == (0, 2000) and offset.limits == (-32768, 32767)
     assert not Register("pos", 1, 2, Access.READ).access.writable
     assert not Register("go", 1, 1, Access.WRITE).access.readable
 
@@ -163,6 +164,9 @@ def test_register_map_lookups_and_overlap_guards() -> None:
     assert [r.name for r in table] == ["a", "b"] and len(table) == 2
     assert table["a"] is a and table.at(3) is a and table.at(4) is None
     assert table.covering(3, 3) == [a, None, b]
+    assert RegisterMap([Register("d", 1, 1, Access.READ_WRITE, default=7)]).default("d") == 7
+    with pytest.raises(KeyError, match="no default"):
+        table.default("a")
     with pytest.raises(ValueError, match="defined twice"):
         RegisterMap([a, a])
     with pytest.raises(ValueError, match="in two registers"):

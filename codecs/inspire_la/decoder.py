@@ -106,7 +106,7 @@ def _write_command(frame: bytes) -> WriteCommand:
     return WriteCommand(frame[3], frame[5], frame[6:-1])
 
 
-_MOTION = {
+_MOTION: dict[Instruction, tuple[type[MoveCommand] | type[FollowCommand], bool]] = {
     Instruction.MOVE: (MoveCommand, True),
     Instruction.MOVE_NO_REPLY: (MoveCommand, False),
     Instruction.FOLLOW: (FollowCommand, True),

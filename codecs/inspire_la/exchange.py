@@ -57,9 +57,11 @@ class ExpectedRegisterReply(ExpectedReply):
             return False
         if isinstance(event, StatusReply):
             return True
-        if event.index != self.index:
+        if not isinstance(event, ReadReply | WriteReply) or event.index != self.index:
             return False
-        return self.length is None or len(event.data) == self.length
+        return self.length is None or (
+            isinstance(event, ReadReply) and len(event.data) == self.length
+        )
 
 
 def expected_reply(command: object) -> ExpectedReply | None:

@@ -15,6 +15,9 @@ apart, and no host has a reason to write EB).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import TypeVar
+
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import Discarded, MessageDecoder
 from busgate.codecs.zlac706_can.frames import (
@@ -35,9 +38,15 @@ from busgate.codecs.zlac706_can.frames import (
 from busgate.codecs.zlac706_can.registers import CODES, CanRegister
 from busgate.codecs.zlac706_common import AlarmFlags, named
 
+#: A write-shaped frame: ``Write`` from the host, its echoes from a node.
+_WriteShaped = TypeVar("_WriteShaped", bound=Write | WriteAck | NoSuchRegister)
+
 #: Write-shaped frames: function code → (frame class, sent on the broadcast identifier).
-_COMMANDS = {Func.WRITE: (Write, False), Func.BROADCAST_WRITE: (Write, True)}
-_ECHOES = {
+_COMMANDS: dict[int, tuple[type[Write], bool]] = {
+    Func.WRITE: (Write, False),
+    Func.BROADCAST_WRITE: (Write, True),
+}
+_ECHOES: dict[int, tuple[type[WriteAck] | type[NoSuchRegister], bool]] = {
     Func.WRITE_ACK: (WriteAck, False),
     Func.BROADCAST_ACK: (WriteAck, True),
     Func.NO_SUCH_REGISTER: (NoSuchRegister, False),
@@ -55,7 +64,9 @@ def _check_shape(message: CanFrame) -> Discarded | None:
     return None
 
 
-def _register_write(message: CanFrame, table: dict) -> object:
+def _register_write(
+    message: CanFrame, table: Mapping[int, tuple[type[_WriteShaped], bool]]
+) -> _WriteShaped | Discarded:
     """Decode a write-shaped frame (``group func 00 reg i32``) with ``table``."""
     group, func, _, register = message.data[:4]
     frame_class, broadcast = table[func]

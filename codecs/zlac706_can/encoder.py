@@ -56,7 +56,7 @@ def encode(frame: object) -> CanFrame:
         raise EncodeError(f"not a ZLAC706 CAN frame: {frame!r}", field="frame") from None
     device_id = frame.device_id  # type: ignore[attr-defined]
     require_range("device_id", device_id, BROADCAST_ID if to_all else 1, MAX_NODE_ID)
-    func = to_all if device_id == BROADCAST_ID else to_node
+    func = to_all if to_all is not None and device_id == BROADCAST_ID else to_node
     head = bytes([require_range("group", frame.group, 0, 0xFF), func, 0])  # type: ignore[attr-defined]
     return CanFrame(device_id, head + _BODIES[type(frame)](frame))
 

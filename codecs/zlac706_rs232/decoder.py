@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from typing import ClassVar, Final
+from functools import partial
+from typing import ClassVar, Final, TypeVar
 
 from busgate.codecs.framing import ChecksumMismatch, Discarded, StreamDecoder, sum8
 from busgate.codecs.zlac706_common import AlarmFlags, named
@@ -55,7 +56,10 @@ def _word(frame: bytes) -> int:
     return int.from_bytes(frame[1:3], "big", signed=REGISTERS.at(frame[0]).signed)  # type: ignore[union-attr]
 
 
-class _FirstByteFramed(StreamDecoder):
+Event = TypeVar("Event")
+
+
+class _FirstByteFramed(StreamDecoder[Event]):
     """A stream whose frames are known by their first byte (see the module docstring)."""
 
     max_frame = FRAME_SIZE
@@ -67,7 +71,9 @@ class _FirstByteFramed(StreamDecoder):
         known = b"".join(re.escape(bytes([b])) for b in sorted(cls.sizes))
         cls._known = re.compile(b"[" + known + b"]")
 
-    def _step(self, buf: bytearray, pos: int) -> tuple[object | None, int]:
+    def _step(
+        self, buf: bytearray, pos: int
+    ) -> tuple[Event | Discarded | ChecksumMismatch | None, int]:
         size = self.sizes.get(buf[pos])
         if size is None:
             found = self._known.search(buf, pos + 1)
@@ -84,10 +90,12 @@ class _FirstByteFramed(StreamDecoder):
     def _check_byte(self, frame: bytes) -> int:
         return sum8(frame[:-1])
 
-    # Subclasses define ``_decode(frame)``: a checked frame to its event.
+    def _decode(self, frame: bytes) -> Event | Discarded:
+        """A checked frame to its event; each subclass defines it."""
+        raise NotImplementedError
 
 
-class CommandDecoder(_FirstByteFramed):
+class CommandDecoder(_FirstByteFramed[Command]):
     """Decodes the host's frames, as the driver sees them.
 
     >>> decoder = CommandDecoder()
@@ -117,11 +125,11 @@ _MONITOR_BUILDERS: dict[int, Callable[[int], Reply]] = {
     MonitorItem.BUS_VOLTAGE: BusVoltage,
     MonitorItem.CURRENT: OutputCurrent,
     MonitorItem.SPEED: OutputSpeed,
-    **{item: (lambda value, item=item: PositionWord(item, value)) for item in POSITION_ITEMS},
+    **{item: partial(PositionWord, item) for item in POSITION_ITEMS},
 }
 
 
-class ReplyDecoder(_FirstByteFramed):
+class ReplyDecoder(_FirstByteFramed[Reply]):
     """Decodes the driver's frames, as the host sees them.
 
     >>> decoder = ReplyDecoder()

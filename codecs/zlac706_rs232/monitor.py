@@ -20,7 +20,7 @@ from busgate.codecs.zlac706_common import (
     amps_from_current_raw,
     rpm_from_speed_raw,
 )
-from busgate.codecs.zlac706_rs232.frames import MONITOR_FIELDS, MonitorFrame, PositionWord
+from busgate.codecs.zlac706_rs232.frames import MONITOR_FIELDS, PositionWord
 from busgate.codecs.zlac706_rs232.registers import REGISTERS, MonitorItem, join_position
 
 
@@ -38,7 +38,7 @@ class MonitorReply:
     feedback_position_raw: int
 
 
-def assemble_monitor(frames: Iterable[MonitorFrame]) -> MonitorReply:
+def assemble_monitor(frames: Iterable[object]) -> MonitorReply:
     """One ``MonitorReply`` from the eight frames of a monitor reply, in any order.
 
     Raises ``CodecError`` naming the missing items when a frame is absent.

@@ -204,7 +204,7 @@ class ZenohBridge:
         thread, once the future ``handle`` returns is done (or too late): exactly once."""
         loop = self._loop
         assert loop is not None
-        replied = Future()
+        replied: Future[bool] = Future()
         asked = time.perf_counter()
         guard: list[asyncio.TimerHandle] = []
 

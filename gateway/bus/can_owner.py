@@ -26,9 +26,9 @@ import contextlib
 import errno
 import select
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from types import ModuleType
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import can
 
@@ -61,13 +61,14 @@ class CanBusOwner(BusOwner):
         self,
         interface: str,
         channel: str,
-        options: dict[str, object],
+        options: Mapping[str, Any],
         codec: ModuleType,
         timing: LinkTiming,
         counters: BusCounters,
         on_unsolicited: Callable[[object, float], None],
     ) -> None:
         self.interface, self.channel, self.options = interface, channel, dict(options)
+        self.port = f"{interface}:{channel}"
         self.codec = codec
         self.timing = timing
         self.counters = counters
@@ -75,10 +76,6 @@ class CanBusOwner(BusOwner):
         self._bus: can.BusABC | None = None
         self._fd: int | None = None
         self._decoder = codec.ReplyDecoder()
-
-    @property
-    def port(self) -> str:
-        return f"{self.interface}:{self.channel}"
 
     @property
     def is_open(self) -> bool:
@@ -113,9 +110,11 @@ class CanBusOwner(BusOwner):
             self.idle_until(at - PRECISE_WAIT_S)
             sleep_until(at)
         start = now()
+        assert isinstance(request.wire, CanFrame)  # a CAN codec's frames
         self._send(bus, request.wire)
         wire_time = self.timing.wire_time(request.wire)
-        end, answer = start + wire_time, ()
+        answer: tuple[object, ...] | None = ()
+        end = start + wire_time
         if request.expected is not None:
             _, latest = self.timing.reply_window(request)
             answer = self._receive_until(bus, start + wire_time + latest, request.expected)
@@ -126,7 +125,7 @@ class CanBusOwner(BusOwner):
                     f"no reply from node {source} on {self.port}", device_id=source
                 )
             end = now()
-        return Exchange(request, start, end, answer)
+        return Exchange(request, start, end, answer or ())
 
     def take_unsolicited(self) -> None:
         self._receive_until(self._require_open(), now(), None, drain=True)

@@ -99,12 +99,14 @@ class SerialBusOwner(BusOwner):
         # reply can come before issued + wire + shortest reply time), and the line is taken
         # until at least ``start`` + wire time, ``start`` being when the kernel had the bytes.
         issued = now()
+        assert isinstance(request.wire, bytes)  # a UART codec's frames
         self._write(port, request.wire)
         start = now()
         wire_time = self.timing.wire_time(request.wire)
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
-        end, reply = start + wire_time, ()
+        reply: tuple[object, ...] = ()
+        end = start + wire_time
         if request.expected is not None:
             earliest, latest = self.timing.reply_window(request)
             end, reply = self._wait_reply(

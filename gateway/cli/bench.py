@@ -23,6 +23,7 @@ import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import serial
 from pydantic import ValidationError
@@ -110,7 +111,8 @@ def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: in
 
 def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
     period = args.follow_period_ms or 20.0
-    devices = [
+    # Raw entries, validated as a config file's are (so errors name "devices.<n>").
+    devices: list[Any] = [
         {
             "name": f"dev{i}",
             "kind": PROTOCOLS[args.protocol].kind,
@@ -254,6 +256,7 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
         while deadline < end:
             request = driver_class(protocol).follow_request([(d, latest[d.name]) for d in drivers])
             sleep_until(deadline)
+            assert isinstance(request.wire, bytes)  # a UART protocol's frames
             os.write(port_handle.fileno(), request.wire)
             starts.append(now())  # timed like the bus owner: when the kernel has the frame
             deadline += period

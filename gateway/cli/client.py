@@ -207,15 +207,19 @@ def _info_of(reply: zenoh.Reply) -> dict[str, Any] | None:
 
 def _is_zenoh_timeout(reply: zenoh.Reply) -> bool:
     """zenoh's own error reply when a queryable did not finish before the get's timeout."""
-    return reply.ok is None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT
+    return (
+        reply.ok is None and reply.err is not None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT
+    )
 
 
 def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
     """A reply's JSON and its (code, message) when it is an error; ``None`` for zenoh's timeout."""
     if _is_zenoh_timeout(reply):
         return None
-    sample = reply.ok
-    raw = sample.payload.to_bytes() if sample is not None else reply.err.payload.to_bytes()
+    sample, error = reply.ok, reply.err
+    answer = sample if sample is not None else error
+    assert answer is not None  # a zenoh reply carries a sample or an error
+    raw = answer.payload.to_bytes()
     try:
         body = json.loads(raw)
     except ValueError:

@@ -151,7 +151,7 @@ class Driver(abc.ABC):
         return command_from_json(self.commands, text)
 
     @abc.abstractmethod
-    def frames_of(self, command: Any) -> list[object]:
+    def frames_of(self, command: Any) -> Sequence[object]:
         """The frames that carry out ``command``, without planning it: no state changes, so
         any thread may ask (the gateway authorises a command by them before planning it)."""
 
@@ -165,7 +165,7 @@ class Driver(abc.ABC):
         targets = getattr(frame, "targets", None)
         if targets is not None:
             return frozenset(target.device_id for target in targets)
-        device_id = getattr(frame, "device_id", self.broadcast_id)
+        device_id: Any = getattr(frame, "device_id", self.broadcast_id)
         return EVERY if device_id == self.broadcast_id else frozenset({device_id})
 
     def effects(self, command: Any) -> list[tuple[Addressed, Effect]]:

@@ -81,7 +81,10 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
 #: Registers whose write moves the shaft: the target (with the move time after it) and the
 #: go-to-preset addresses.
 _MOTION_REGISTERS = frozenset(
-    {"target_position", *(codec.REGISTERS.at(a).name for a in codec.GOTO_PRESET_ADDRESSES)}
+    {
+        "target_position",
+        *(r.name for r in map(codec.REGISTERS.at, codec.GOTO_PRESET_ADDRESSES) if r is not None),
+    }
 )
 _FRAME_EFFECTS: dict[type, Effect] = {
     codec.Ping: Effect.READ,
@@ -250,11 +253,12 @@ class DsServoDriver(Driver):
     # -- interpreting ---------------------------------------------------------------------------
 
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
-        answer = None
+        answer: codec.StatusReply | None = None
         if request.expected is not None:
-            if not reply:
+            # The owner matched the reply to the request: it is the servo's status frame.
+            answer = next((e for e in reply if isinstance(e, codec.StatusReply)), None)
+            if answer is None:
                 return {}  # unconfirmed: the servo may or may not have done it
-            answer = reply[0]
             self._set_faults(answer.status)
         return _APPLY[type(request.frame)](self, request.frame, answer) or {}
 
@@ -335,7 +339,7 @@ class DsServoDriver(Driver):
         """Factory settings for "all data" (manual 2.3.7), the id included: the servo now
         answers at the factory id, and what was commanded is gone."""
         self.target = self.pending_target = self.torque_on = None
-        self._change_id(codec.REGISTERS["servo_id"].default, "reset")
+        self._change_id(codec.REGISTERS.default("servo_id"), "reset")
 
 
 # What a confirmed (or, without a reply, sent) frame does to the state; reads also answer.

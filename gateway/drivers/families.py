@@ -94,7 +94,7 @@ def check_family(family: Family) -> None:
 
 def make_driver(device: DeviceConfig, protocol: WireProtocol) -> Driver:
     """The driver of a configured device on a bus of ``protocol``."""
-    options: dict[str, object] = {"follow_period_s": device.follow_period_ms / 1000}
+    options: dict[str, Any] = {"follow_period_s": device.follow_period_ms / 1000}
     if protocol.can:
         options["heartbeat_ms"] = device.heartbeat_ms
     return driver_class(protocol)(device.name, device.id, **options)

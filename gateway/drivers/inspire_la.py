@@ -23,7 +23,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable, Sequence
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import CommandError, EncodeError
@@ -92,7 +92,7 @@ class InspireLaDriver(Driver):
         self.status: codec.StatusReply | None = None
         self.faults = codec.Fault(0)
         #: Raw values read or confirmed; the manual's defaults until then.
-        self.table = {name: codec.REGISTERS[name].default for name in _TRACKED.values()}
+        self.table = {name: codec.REGISTERS.default(name) for name in _TRACKED.values()}
         self._planned: dict[str, int] = {}
 
     # -- planning ---------------------------------------------------------------------------
@@ -180,7 +180,9 @@ class InspireLaDriver(Driver):
         An e-stopped actuator is left out of the frame rather than failing its neighbours'
         tick; ``CommandError`` when none is left or there are too many for one frame.
         """
-        moving = [(d, p) for d, p in targets if d.power is not PowerStage.ESTOPPED]
+        # A follow tick groups the targets of one driver class: here, actuators.
+        actuators = cast("Sequence[tuple[InspireLaDriver, Any]]", targets)
+        moving = [(d, p) for d, p in actuators if d.power is not PowerStage.ESTOPPED]
         if not moving:
             raise CommandError("every actuator of this follow tick is e-stopped: send enable")
         if len(moving) > cls.follow_group_limit:

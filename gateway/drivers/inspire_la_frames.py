@@ -17,7 +17,7 @@ from busgate.gateway.drivers.base import Effect
 from busgate.schemas import inspire_la as schema
 
 #: The force-sensor zero register takes exactly this value ("settable range 1").
-_ZERO_FORCE = codec.REGISTERS[codec.FORCE_ZERO].minimum
+_ZERO_FORCE = codec.REGISTERS[codec.FORCE_ZERO].limits[0]
 
 
 def _control(code: codec.ControlCode) -> Callable[[Any, int], codec.Frame]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import abc
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -75,9 +75,8 @@ class Zlac706Driver(Driver):
         '{"op":"enable"}',
     )
     deadman: ClassVar[Deadman | None] = Deadman("velocity", '{"op":"velocity","rpm":0}')
-    #: Per protocol: the frames of a command, each register's role, the keep-alive period
-    #: and the measured values its telemetry carries.
-    frames: ClassVar[Callable[[Any, int], list[Any]]]
+    #: Per protocol: the frames of a command (``frames``), each register's role, the
+    #: keep-alive period and the measured values its telemetry carries.
     roles: ClassVar[dict[int, RoleOf]]
     keepalive_period_s: ClassVar[float]
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm")
@@ -89,6 +88,11 @@ class Zlac706Driver(Driver):
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
 
     # -- planning -------------------------------------------------------------------------------
+
+    @staticmethod
+    def frames(command: Any, device_id: int) -> list[Any]:
+        """The protocol's frames of ``command`` to ``device_id``; each protocol sets it."""
+        raise NotImplementedError
 
     def frames_of(self, command: Any) -> list[object]:
         return self.frames(command, self.device_id)

@@ -29,7 +29,7 @@ Rules of this file:
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -219,6 +219,6 @@ class Zlac706State:
         self._pending.clear()
 
 
-def reverse(codes: dict[Mode, int]) -> dict[int, Mode]:
+def reverse(codes: Mapping[Mode, int]) -> dict[int, Mode]:
     """A protocol's mode codes, code → mode."""
     return {code: mode for mode, code in codes.items()}

@@ -77,7 +77,7 @@ class Execution:
             if previous_end > -math.inf:
                 self.counters.gap(start - previous_end)
             self.counters.busy_s += end - start
-        if job is None:
+        if not isinstance(source, Job):  # a follow or keep-alive tick: its ticker times the next
             source.sent(start - self._fastest_write(exchange))
         done = self.planner.finished(slot, end, failed=error is not None)
         if job is not None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -101,8 +102,11 @@ class Poller(Protocol):
     """A device's telemetry reads at its ``poll_hz``."""
 
     device: str
-    period_s: float
     next_due: float
+
+    @property
+    def period_s(self) -> float:
+        """Seconds from one poll to the next."""
 
     def build(self) -> list[Request]:
         """The requests of one poll."""
@@ -137,7 +141,7 @@ class BusPlanner:
         self._expired: list[Job] = []
         self._polls: dict[str, Job] = {}
         self.tickers: list[Ticker] = []
-        self.pollers: list[Poller] = []
+        self.pollers: Sequence[Poller] = []
 
     def push_estop(self, job: Job) -> None:
         """E-stop jobs are never refused and go ahead of everything."""

@@ -100,14 +100,15 @@ class BusRunner:
         self.counters: BusCounters = owner.counters
         self.planner = BusPlanner(timing)
         start = now()
-        self.planner.pollers = [
+        self.pollers = [
             DevicePoller(driver, poll_hz[name], start)
             for name, driver in self.drivers.items()
             if poll_hz.get(name)
         ]
+        self.planner.pollers = self.pollers
         keepalives = {name: KeepaliveTicker(d) for name, d in self.drivers.items()}
         self.planner.tickers = list(keepalives.values())
-        periods = {poller.device: poller.poll_period_s for poller in self.planner.pollers}
+        periods = {poller.device: poller.poll_period_s for poller in self.pollers}
         self.telemetry = Telemetry(name, devices, periods, on_event=on_event, on_state=on_state)
         self.streams = FollowStreams(self.planner, self.counters, self.drivers)
         self._execution = Execution(

@@ -160,7 +160,7 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
     timing, gap = runner.timing, runner.planner.gap_s
     # Steady state: what each online device's poll sends (nothing, for a ZLAC706 on CAN, whose
     # telemetry is its heartbeats); an offline device's probes come OFFLINE_PROBE_S apart.
-    polls = [(p.poll_period_s, p.driver.poll()) for p in runner.planner.pollers]
+    polls = [(p.poll_period_s, p.driver.poll()) for p in runner.pollers]
     polling = sum((_load(timing, gap, requests, 1 / period) for period, requests in polls), Load())
     ticks = _follow_frames(runner)
     follow = sum((_load(timing, gap, [request], 1 / period) for period, request in ticks), Load())

@@ -231,8 +231,8 @@ class DsServoDevice:
         limits no description; a servo with limits holds its motion inside them).
         """
         span = REGISTERS["target_position"]
-        low = max(self._table.get("min_angle"), span.minimum)
-        high = min(self._table.get("max_angle"), span.maximum)
+        low = max(self._table.get("min_angle"), span.limits[0])
+        high = min(self._table.get("max_angle"), span.limits[1])
         target = min(max(self._table.get("target_position"), low), high)
         self._table.set("target_position", target)
         if not self._table.get("torque_enable") or self._jammed_since is not None:

@@ -13,7 +13,8 @@ decides what a write sets off: this module only keeps the bytes. Rules of this f
 
 from __future__ import annotations
 
-from typing import Final
+import builtins
+from typing import Final, TypeGuard
 
 from busgate.codecs.ds_servo import ADDRESS_ONLY_WRITES, REGISTERS, TABLE_END
 from busgate.codecs.registers import Register
@@ -54,7 +55,7 @@ class DsServoTable:
     def read(self, address: int, length: int) -> bytes:
         return bytes(self._bytes[address : address + length])
 
-    def store(self, address: int, data: bytes) -> set[Register]:
+    def store(self, address: int, data: bytes) -> builtins.set[Register]:
         """Write the bytes that land in writable registers; return the registers written."""
         touched = set()
         for offset, byte in enumerate(data):
@@ -69,7 +70,7 @@ class DsServoTable:
         self._bytes[SAVED_END:] = _factory_bytes()[SAVED_END:]
 
 
-def _takes_data(register: Register | None) -> bool:
+def _takes_data(register: Register | None) -> TypeGuard[Register]:
     return (
         register is not None
         and register.access.writable

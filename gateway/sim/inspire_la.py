@@ -58,7 +58,7 @@ from busgate.gateway.sim.inspire_la_physics import (
 )
 from busgate.gateway.sim.inspire_la_table import InspireLaTable
 
-FULL_STROKE_RAW = REGISTERS[TARGET_POSITION].maximum
+FULL_STROKE_RAW = REGISTERS[TARGET_POSITION].limits[1]
 #: Over-current and stall clear by themselves after 5 s, twice; the third one latches.
 AUTO_CLEAR_S = 5.0
 AUTO_CLEARS_BEFORE_LATCH = 2
@@ -132,7 +132,7 @@ class InspireLaDevice:
             return any(t.device_id == self.device_id for t in command.targets)
         if type(command) not in self._handlers:
             return False
-        return command.device_id in (self.device_id, BROADCAST_ID)
+        return getattr(command, "device_id", None) in (self.device_id, BROADCAST_ID)
 
     def handle(self, command: object, now: float) -> list[object]:
         """Execute ``command``; the status frame, a read reply, or nothing (id 255, no-reply

@@ -59,7 +59,10 @@ def analyse(
     direction) and intervals between consecutive follow frames to the same device (a
     broadcast frame, which carries every device's target, counts as one stream)."""
     ordered = sorted(records, key=lambda r: r.start)
-    after_reply, after_silent, unresolved, turnarounds = [], [], 0, []
+    after_reply: list[float] = []
+    after_silent: list[float] = []
+    unresolved = 0
+    turnarounds: list[float] = []
     previous: WireRecord | None = None
     line_idle = None
     for record in ordered:

@@ -51,7 +51,8 @@ def _turnaround(timing: ProtocolTiming) -> tuple[float, float]:
 
 
 def _clamp(register: Register, value: int) -> int:
-    return max(register.minimum, min(register.maximum, value))
+    lo, hi = register.limits
+    return max(lo, min(hi, value))
 
 
 def _check_fault(name: str) -> AlarmFlags:
@@ -91,9 +92,11 @@ def _codes(actions: dict[int, Callable[[Zlac706Motor, float], None]]) -> Handler
 
 def _choice(name: str, values: dict[int, object]) -> Handler:
     """A coded register that selects a setting's value (work mode, position mode)."""
-    return _codes(
-        {code: (lambda motor, now, v=v: motor.store(name, v, now)) for code, v in values.items()}
-    )
+
+    def select(value: object) -> Callable[[Zlac706Motor, float], None]:
+        return lambda motor, now: motor.store(name, value, now)
+
+    return _codes({code: select(v) for code, v in values.items()})
 
 
 class HeartbeatContent(enum.IntEnum):
@@ -264,6 +267,7 @@ class Zlac706Rs232Device:
             if isinstance(command, rs232_codec.MonitorRequest):
                 self.motor.feed_keepalive(now)
                 return self._monitor(now)
+            assert isinstance(command, rs232_codec.Write)  # the only other host frame
             if not (self.external and command.register in _PC_COMMANDS):
                 _RS232_WRITES[command.register](self, command.value, now)
             return [rs232_codec.Ack(command.register)]
@@ -326,7 +330,7 @@ def _rs232_mode(device: Zlac706Rs232Device, value: int, now: float) -> None:
 
 
 Rs232Reg = rs232_codec.Rs232Register
-_RS232_MODES: Final = {
+_RS232_MODES: Final[dict[int, tuple[Mode, bool]]] = {
     rs232_codec.ControlMode.PC_SPEED: (Mode.VELOCITY, False),
     rs232_codec.ControlMode.PC_POSITION: (Mode.POSITION, False),
     rs232_codec.ControlMode.PC_TORQUE: (Mode.TORQUE, False),

@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Final
+from typing import Any, Final
 
 from busgate.codecs.zlac706_common import (
     MAX_SPEED_RPM,
@@ -150,7 +150,7 @@ class Zlac706Motor:
 
     # --- commands ----------------------------------------------------------------------------
 
-    def store(self, name: str, value: object, now: float) -> None:
+    def store(self, name: str, value: Any, now: float) -> None:
         """Write one setting and carry out what it sets off (see ``_REACTIONS``)."""
         before = getattr(self.settings, name)
         self.settings = replace(self.settings, **{name: value})
@@ -328,7 +328,8 @@ def _no_reaction(motor: Zlac706Motor, before: object, now: float) -> None:
     """Ramps, the trapezoid speed, gains and the rated current apply to what comes next."""
 
 
-_REACTIONS: dict[str, Callable[[Zlac706Motor, object, float], None]] = {
+#: What a setting's change sets off: ``reaction(motor, value_before, now)``.
+_REACTIONS: dict[str, Callable[[Zlac706Motor, Any, float], None]] = {
     "mode": Zlac706Motor._mode_changed,
     "target_speed": Zlac706Motor._speed_changed,
     "target_torque": Zlac706Motor._torque_changed,
