@@ -15,18 +15,23 @@ watch: subscribes to the state of devices and the statistics of buses, keeps the
 each (``watch_table.py``), and redraws a table at most ``REDRAW_HZ`` times a second. Rules:
 zenoh callbacks only parse and store under a lock (one slow callback would stall every other
 one); all printing happens on the main thread; the session is closed in ``finally`` (a session
-with callback subscribers left open hangs the process at exit).
+with callback subscribers left open hangs the process at exit); while watching, Ctrl-C only
+sets an event the main thread waits on, never raises wherever that thread happens to be (a
+``with`` block is not safe from an asynchronous ``KeyboardInterrupt``: one that lands as the
+table's lock is taken leaves it held, and a zenoh callback waiting for it holds the session's
+close up; under a loaded host a watch ended by Ctrl-C hung past 30 s).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
-from contextlib import suppress
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any, TextIO
 
 import zenoh
@@ -312,26 +317,36 @@ def _on_reply(table: WatchTable, wanted: zenoh.KeyExpr) -> Callable[[zenoh.Reply
     return on_reply
 
 
+@contextmanager
+def _ctrl_c() -> Iterator[threading.Event]:
+    """An event Ctrl-C sets (instead of raising ``KeyboardInterrupt``) while the block runs."""
+    pressed = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: pressed.set())
+    try:
+        yield pressed
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _wait(seconds: float | None) -> None:
-    with suppress(KeyboardInterrupt):
-        time.sleep(seconds) if seconds is not None else threading.Event().wait()
+    with _ctrl_c() as pressed:
+        pressed.wait(seconds)
 
 
 def _wait_showing_live(table: WatchTable, out: TextIO, seconds: float | None) -> None:
     """Redraw (tty) or print changed rows (pipe) until ``seconds`` pass or Ctrl-C."""
     tty = out.isatty()
     deadline = None if seconds is None else time.monotonic() + seconds
-    try:
+    with _ctrl_c() as pressed:
         while deadline is None or time.monotonic() < deadline:
-            time.sleep(1 / REDRAW_HZ)
+            if pressed.wait(1 / REDRAW_HZ):
+                return
             now = time.monotonic()
             if tty:
                 _redraw(out, table.render(now))
             else:
                 for line in table.changed_lines(now):
                     print(line, file=out, flush=True)
-    except KeyboardInterrupt:
-        pass
 
 
 def _redraw(out: TextIO, lines: list[str]) -> None:
