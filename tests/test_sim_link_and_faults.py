@@ -5,14 +5,18 @@ interface sees it, and the fault injector's decisions."""
 from __future__ import annotations
 
 import os
+import threading
 import time
 
 import can
 import pytest
 import serial
 
+from busgate.codecs import inspire_la as la
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
+from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
+from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.slcan import SlcanAdapter
 
 
@@ -123,4 +127,36 @@ def test_fault_config_is_checked_and_changeable() -> None:
         FaultConfig(late_s=-1)
     injector = FaultInjector()
     injector.configure(silent_ids=frozenset({3}))
-    assert injector.is_silent(3) and not injector.is_silent(1)
+    assert injector.config.silent_ids == {3}
+
+
+class _HeldDevice(InspireLaDevice):
+    """An actuator that answers only once the test lets it (its server's thread waits)."""
+
+    def __init__(self, device_id: int, go: threading.Event) -> None:
+        super().__init__(device_id)
+        self.go = go
+
+    def handle(self, command: object, now: float) -> list[object]:
+        self.go.wait(10)
+        return super().handle(command, now)
+
+
+def test_a_reply_meets_the_faults_of_when_its_command_came_in(wait_for) -> None:
+    """A command on record has its faults fixed: faults changed while its replies are still
+    being made (a loaded host) do not reach them, so a test that sees the command and then
+    clears a drop cannot race its own dropped reply."""
+    go = threading.Event()
+    faults = FaultInjector(FaultConfig(drop_rate=1.0))
+    with (
+        SerialSimulator(la, [_HeldDevice(1, go)], baudrate=921600, faults=faults) as simulator,
+        serial.Serial(simulator.port, 921600, timeout=0.5) as host,
+    ):
+        host.write(la.encode(la.ControlCommand(1, la.ControlCode.STATUS)))
+        wait_for(lambda: simulator.recorder.received())
+        faults.configure(drop_rate=0.0)  # the reply is not made yet: the device is held
+        go.set()
+        host.write(la.encode(la.ControlCommand(1, la.ControlCode.STATUS)))
+        assert len(host.read(la.STATUS_REPLY_SIZE)) == la.STATUS_REPLY_SIZE  # the second's
+    sent = [r for r in simulator.recorder.records if r.direction == "tx"]
+    assert len(sent) == 1, "the first reply went out although it was dropped when it came in"

@@ -25,7 +25,7 @@ from busgate.codecs.framing import Discarded
 from busgate.codecs.timing import can_time
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
-from busgate.gateway.sim.faults import FaultInjector
+from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.recorder import Recorder, WireRecord
 
 POLL_S = 0.005
@@ -90,6 +90,7 @@ class CanSimulator:
             return
         self._decoder.feed(CanFrame(message.arbitration_id, bytes(message.data)))
         for event in self._decoder.events():
+            faults = self.faults.config  # as configured when the frame came in, before its record
             self._record(
                 "rx",
                 start,
@@ -99,19 +100,19 @@ class CanSimulator:
                 getattr(event, "device_id", None),
             )
             if not isinstance(event, Discarded):
-                self._dispatch(event, end)
+                self._dispatch(event, end, faults)
 
-    def _dispatch(self, command: object, received: float) -> None:
+    def _dispatch(self, command: object, received: float, faults: FaultConfig) -> None:
         for device in self.devices:
-            if not device.accepts(command) or self.faults.is_silent(device.device_id):
+            if not device.accepts(command) or device.device_id in faults.silent_ids:
                 continue
             for reply in device.handle(command, received):
                 low, high = device.turnaround_s
-                self._send(reply, received + self._random.uniform(low, high))
+                self._send(reply, received + self._random.uniform(low, high), faults)
 
-    def _send(self, frame: object, start: float) -> None:
+    def _send(self, frame: object, start: float, faults: FaultConfig | None = None) -> None:
         wire: CanFrame = self.codec.encode(frame)
-        shaped = self.faults.shape(wire.data, checksummed=False)
+        shaped = self.faults.shape(wire.data, checksummed=False, config=faults)
         if shaped.wire is None:
             return
         start = max(start + shaped.delay_s, self._bus_free)

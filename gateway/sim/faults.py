@@ -57,12 +57,13 @@ class FaultInjector:
         with self._lock:
             self._config = replace(self._config, **changes)  # type: ignore[arg-type]
 
-    def is_silent(self, device_id: int) -> bool:
-        return device_id in self._config.silent_ids
-
-    def shape(self, wire: bytes, *, checksummed: bool = True) -> ShapedReply:
-        """Decide the fate of one reply's bytes. ``checksummed=False`` (CAN) skips corruption."""
-        config, chance = self._config, self._random.random
+    def shape(
+        self, wire: bytes, *, checksummed: bool = True, config: FaultConfig | None = None
+    ) -> ShapedReply:
+        """Decide the fate of one reply's bytes by ``config`` (by default the present one; a
+        server passes the one of the moment the command came in). ``checksummed=False`` (CAN)
+        skips corruption."""
+        config, chance = config or self._config, self._random.random
         if chance() < config.drop_rate:
             return ShapedReply(None)
         if checksummed and chance() < config.bad_checksum_rate:

@@ -7,7 +7,9 @@ Rules of this file:
    line was last free; a reply starts after the device's turnaround and each chunk of it is
    written when its last byte would have arrived, so no exchange is faster than on hardware.
 2. The devices see commands in wire order; replies go out in order, one device at a time.
-3. Faults are applied on the way out (``FaultInjector``); a silent id's device does nothing.
+3. Faults are applied on the way out (``FaultInjector``), as they were configured when the
+   command came in (before it is recorded): a test that sees the command on record and then
+   changes the faults cannot race the replies; a silent id's device does nothing.
 4. One thread owns the pty; other threads only call ``unplug``/``replug``/``faults``/``stop``.
 5. With ``busy_poll_s``, the thread polls the pty without sleeping for that long after each
    frame, so a frame's arrival is timed to a few µs instead of a wake-up latency: right for a
@@ -27,7 +29,7 @@ from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.sim.device import SimDevice
-from busgate.gateway.sim.faults import FaultInjector
+from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.recorder import Recorder, WireRecord
 
@@ -119,6 +121,7 @@ class SerialSimulator:
         self._unparsed += data
         line_start = max(arrived, self._rx_free)
         for event in self._decoder.events():
+            faults = self.faults.config  # rule 3: taken before the command is on record
             wire = self._consumed()
             end = line_start + uart_time(len(wire), self.baudrate)
             self.recorder.record(
@@ -133,7 +136,7 @@ class SerialSimulator:
                 )
             )
             if not isinstance(event, Discarded | ChecksumMismatch):
-                end = max(end, self._dispatch(event, end))
+                end = max(end, self._dispatch(event, end, faults))
             self._rx_free = line_start = end
 
     def _consumed(self) -> bytes:
@@ -145,22 +148,22 @@ class SerialSimulator:
         del self._unparsed[:used]
         return wire
 
-    def _dispatch(self, command: object, received: float) -> float:
+    def _dispatch(self, command: object, received: float, faults: FaultConfig) -> float:
         """Hand ``command`` to the devices it addresses and send their replies; return when
         the last reply left the wire."""
         line_free = received
         for device in self.devices:
-            if not device.accepts(command) or self.faults.is_silent(device.device_id):
+            if not device.accepts(command) or device.device_id in faults.silent_ids:
                 continue
             low, high = device.turnaround_s
             start = max(line_free, received) + self._random.uniform(low, high)
             for reply in device.handle(command, received):
                 # A reply of several frames (the ZLAC706 monitor) goes out back to back.
-                line_free = start = self._send(self.codec.encode(reply), reply, start)
+                line_free = start = self._send(self.codec.encode(reply), reply, start, faults)
         return line_free
 
-    def _send(self, wire: bytes, reply: object, start: float) -> float:
-        shaped = self.faults.shape(wire)
+    def _send(self, wire: bytes, reply: object, start: float, faults: FaultConfig) -> float:
+        shaped = self.faults.shape(wire, config=faults)
         if shaped.wire is None:
             return start
         start += shaped.delay_s
