@@ -1,6 +1,6 @@
 """Paired benchmark runs: this checkout against another (an earlier commit), turn about.
 
-    .venv/bin/python tests/benchmarks/paired.py /path/to/other/checkout [--pairs 3] [--seconds 4]
+    .venv/bin/python tests/benchmarks/paired.py OTHER_CHECKOUT [--pairs 3] [--seconds 4] [--only P]
 
 Each case runs ``busgate bench`` on the simulator from the other checkout's venv, then from
 this one's, ``--pairs`` times, so both meet the same machine load; the medians of each side and
@@ -53,8 +53,11 @@ def main() -> int:
     parser.add_argument("other", type=Path, help="the checkout to compare with")
     parser.add_argument("--pairs", type=int, default=3)
     parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--only", choices=[name for name, _ in CASES], help="one case")
     args = parser.parse_args()
     for protocol, arguments in CASES:
+        if args.only not in (None, protocol):
+            continue
         runs: dict[str, list[dict]] = {"other": [], "this": []}
         for _ in range(args.pairs):
             runs["other"].append(bench(args.other, protocol, arguments, args.seconds))
