@@ -1,19 +1,45 @@
 """What mutation testing (``python mutation/run.py api``) found the API tests leaving open:
 a claim over another client's claim is refused (and a claim lapses at its moment), what the
-events of claims and of the deadman say, and what ``info`` tells of each device. The claim
-table on a fake clock; the API on the LA simulator's pty and the ZLAC706 simulator on
-python-can's virtual bus, as tests/test_api.py does."""
+events of claims and of the deadman say, what ``info`` tells of each device, what every
+refusal says (a bad payload, an unknown device or id, a scan too long for its bus, a bug),
+and that a reply made from the bus's outcome is always one reply. The claim table on a fake
+clock; the API on the LA simulator's pty and the ZLAC706 simulator on python-can's virtual
+bus, as tests/test_api.py does, or on a bus runner never started where only the API's own
+checks matter."""
 
 from __future__ import annotations
 
 import json
+import logging
+import math
+from concurrent.futures import Future
 
 import pytest
+from pydantic import BaseModel, Field, ValidationError
 
-from busgate.codecs.errors import RefusedError
-from busgate.gateway.api.commands import MAX_PAYLOAD, GatewayApi
+from busgate.codecs import inspire_la as la
+from busgate.codecs.errors import CommandError, RefusedError
+from busgate.gateway.api import commands
+from busgate.gateway.api.commands import (
+    MAX_PAYLOAD,
+    SCAN_MAX_S,
+    SCAN_SLACK_S,
+    GatewayApi,
+    _chained,
+    decode_object,
+    error_reply,
+)
+from busgate.gateway.api.errors import error_code
+from busgate.gateway.api.group import scan_requests
+from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.request import LinkTiming
+from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.authority import Authority, ClaimTable
+from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.runner import BusRunner
 from tests import test_api
 
 #: The two buses of tests/test_api.py (LA and ZLAC706), as this module's fixture too.
@@ -149,3 +175,240 @@ def test_a_claim_with_a_bad_lifetime_is_refused_as_out_of_range(gateway):
     reply = api.command("la1", b'{"op":"claim","client":"alice","ttl_s":0}').result(10)
     assert reply["error"]["code"] == "out_of_range" and "ttl_s" in reply["error"]["message"]
     assert said(events, "claimed") == []
+
+
+# -- replies: the envelope, and what each refusal says ---------------------------------------
+
+
+def test_a_bug_is_answered_internal_with_its_message_or_its_type():
+    assert error_reply(ValueError("boom")) == {
+        "ok": False,
+        "error": {"code": "internal", "message": "boom"},
+    }
+    assert error_reply(KeyError())["error"] == {"code": "internal", "message": "KeyError"}
+
+
+HUGE = b'{"op":"' + b"x" * MAX_PAYLOAD + b'"}'
+
+
+@pytest.mark.parametrize(
+    ("payload", "code", "message"),
+    [
+        (HUGE, "too_large", f"payload of {len(HUGE)} bytes; at most {MAX_PAYLOAD}"),
+        (b'{"op": "\xff"}', "not_utf8", "payload is not UTF-8: invalid start byte"),
+        (
+            b'{"a": 1, "op": "move", "op": "stop"}',
+            "bad_command",
+            "key 'op' appears twice: a command is never guessed",
+        ),
+        (b"[" * 30_000 + b"]" * 30_000, "bad_command", "payload is nested too deeply"),
+        (b'{"position": NaN}', "not_json", "payload is not JSON: NaN is not a number JSON allows"),
+        (
+            b'{"position": 1e999}',
+            "not_json",
+            "payload is not JSON: 1e999 is too large for a double",
+        ),
+        (
+            b"{op: move}",
+            "not_json",
+            "payload is not JSON: Expecting property name enclosed in "
+            "double quotes: line 1 column 2 (char 1)",
+        ),
+        (b"[1]", "bad_command", "a command is a JSON object"),
+    ],
+)
+def test_a_payload_refused_before_it_is_a_command_says_why(payload, code, message):
+    with pytest.raises(RefusedError) as refused:
+        decode_object(payload)
+    assert (refused.value.code, str(refused.value)) == (code, message)
+
+
+class Ranges(BaseModel):
+    """One field per pydantic error type that means "out of its range"."""
+
+    lt: int = Field(lt=0)
+    le: int = Field(le=0)
+    gt: int = Field(gt=0)
+    ge: int = Field(ge=0)
+    step: int = Field(multiple_of=2)
+    short: list[int] = Field(min_length=1)
+    long: list[int] = Field(max_length=0)
+
+
+def test_a_command_outside_every_kind_of_range_at_once_is_out_of_range():
+    with pytest.raises(ValidationError) as invalid:
+        Ranges(lt=1, le=1, gt=0, ge=-1, step=1, short=[], long=[1])
+    assert len(invalid.value.errors()) == 7
+    assert error_code(invalid.value) == "out_of_range"
+
+
+def test_a_refused_command_keeps_its_code_and_its_message():
+    refused = error_reply(CommandError("Inspire LA group moves have no move time; drop time_ms"))
+    assert refused["error"] == {
+        "code": "bad_command",
+        "message": "Inspire LA group moves have no move time; drop time_ms",
+    }
+
+
+def test_an_unknown_device_is_named_with_the_gateway():
+    reply = GatewayApi("gw", {}).command("la9", b'{"op":"status"}').result(0)
+    assert reply["error"] == {"code": "unknown_device", "message": "no device 'la9' on gateway gw"}
+
+
+def test_an_estop_without_a_sender_is_logged_without_one(caplog):
+    with caplog.at_level("WARNING"):
+        assert GatewayApi("gw", {}).estop() == []
+    assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus"]
+
+
+# -- the authority's refusals and its log ----------------------------------------------------
+
+
+def test_ids_no_device_has_are_named_with_the_bus():
+    with pytest.raises(RefusedError) as refused:
+        authority_of_two().check([(frozenset({9, 7}), Effect.STOP)], "bob")
+    assert str(refused.value) == "no device of bus uart0 is configured with id 7, 9"
+
+
+def test_a_lapsed_claim_is_logged_with_its_device_and_client(caplog):
+    claims = ClaimTable()
+    claims.claim("la1", "alice", 10.0, now=100.0)
+    with caplog.at_level("INFO", logger="busgate.gateway.scheduler.authority"):
+        claims.check("la1", "bob", now=110.0)
+    assert [r.getMessage() for r in caplog.records] == ["device la1: claim of alice lapsed"]
+
+
+# -- replies made from the bus's outcome ------------------------------------------------------
+
+
+def test_a_reply_that_cannot_be_made_is_an_internal_error_not_silence(caplog):
+    def broken(result):
+        raise RuntimeError("no reply from this")
+
+    submitted: Future = Future()
+    answer = _chained(submitted, broken)
+    submitted.set_result({})
+    assert answer.result(0) == {
+        "ok": False,
+        "error": {"code": "internal", "message": "no reply from this"},
+    }
+    assert [r.getMessage() for r in caplog.records] == ["making a reply failed"]
+
+
+def test_an_outcome_after_its_reply_was_cancelled_is_dropped_quietly(caplog):
+    submitted: Future = Future()
+    answer = _chained(submitted, lambda result: {"ok": True})
+    assert submitted.set_running_or_notify_cancel()
+    assert answer.cancel(), "the bridge answered without waiting"
+    submitted.set_result({})  # the job had started: it finished all the same
+    assert answer.cancelled()
+    assert [r for r in caplog.records if r.levelno >= logging.WARNING] == []
+
+
+def test_a_refusal_from_the_bus_is_answered_without_a_traceback(gateway, caplog):
+    api, *_ = gateway
+    accepted(api, "la1", {"op": "claim", "client": "alice"})
+    with caplog.at_level("INFO"):
+        reply = api.command("la1", b'{"op":"move","position":5,"client":"bob"}').result(10)
+    assert reply["error"]["code"] == "claimed"
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+class BrokenFollow(Device):
+    """A driver whose follow validation has a bug."""
+
+    def follow_target(self, payload):
+        raise RuntimeError("follow bug")
+
+
+def test_a_bug_in_a_follow_is_answered_internal_and_logged_with_its_device(caplog):
+    timing = link_timing("inspire_la", 921_600, margin_s=0.05)
+    owner = SerialBusOwner("/nonexistent/tty", la, timing, BusCounters(now()))
+    devices = BusDevices([BrokenFollow("arm", 1)])
+    runner = BusRunner("b", owner, timing, devices, poll_hz={})  # not started
+    reply = GatewayApi("gw", {"b": runner}).follow("arm", b'{"position": 1}')
+    assert reply == {"ok": False, "error": {"code": "internal", "message": "follow bug"}}
+    (record,) = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert record.getMessage() == "follow on arm failed" and record.exc_info
+
+
+def test_a_group_move_to_a_device_of_no_bus_names_it(gateway):
+    api, *_ = gateway
+    move = {"op": "group_move", "targets": [{"device": "ghost", "position": 5}]}
+    reply = api.bus_command("uart0", json.dumps(move).encode()).result(10)
+    assert reply["error"] == {"code": "unknown_device", "message": "no device 'ghost' on this bus"}
+
+
+def test_a_scan_tells_which_ids_answered_on_which_protocol(gateway):
+    api, *_ = gateway
+    found = api.bus_command("uart0", b'{"op":"scan","ids":[1,2,3]}').result(10)
+    assert found == {
+        "ok": True,
+        "found": [
+            {"id": 1, "protocol": "inspire_la", "reply": "StatusReply"},
+            {"id": 2, "protocol": "inspire_la", "reply": "StatusReply"},
+        ],
+    }
+
+
+# -- how long a scan may take -----------------------------------------------------------------
+
+
+def idle_api(timing: LinkTiming) -> GatewayApi:
+    """An API whose one bus is never started: what it accepts waits there, unanswered."""
+    owner = SerialBusOwner("/nonexistent/tty", la, timing, BusCounters(now()))
+    return GatewayApi("gw", {"b": BusRunner("b", owner, timing, BusDevices([]), poll_hz={})})
+
+
+def planned(timing: LinkTiming, ids: list[int]) -> float:
+    """What a scan of ``ids`` may take on a bus of ``timing``: each probe's worst case and
+    the gap after it."""
+    return sum(timing.worst_case(p) + timing.gap_s for p in scan_requests("inspire_la", ids))
+
+
+def test_a_scan_too_long_for_its_bus_says_how_long_and_how_many_ids_fit():
+    timing = link_timing("inspire_la", 921_600, margin_s=0.5, gap_s=0.1)
+    ids = list(range(1, 11))
+    planned_s = planned(timing, ids)
+    most = int(len(ids) * SCAN_MAX_S / planned_s)
+    assert planned_s > SCAN_MAX_S and 1 <= most < len(ids)
+    reply = idle_api(timing).bus_command("b", json.dumps({"op": "scan", "ids": ids}).encode())
+    assert reply.result(0)["error"] == {
+        "code": "out_of_range",
+        "message": f"a scan of 10 ids takes up to {planned_s:.1f} s on bus b; "
+        f"ask for at most {most} ids at a time",
+    }
+
+
+def test_a_scan_that_just_fits_its_bus_goes_to_the_bus():
+    margin = SCAN_MAX_S - link_timing("inspire_la", 921_600, margin_s=0.0).worst_case(
+        scan_requests("inspire_la", [1])[0]
+    )
+    for _ in range(100):  # the margin that makes the plan exactly SCAN_MAX_S, to the last bit
+        timing = link_timing("inspire_la", 921_600, margin_s=margin)
+        if planned(timing, [1]) == SCAN_MAX_S:
+            break
+        margin = math.nextafter(margin, 0 if planned(timing, [1]) > SCAN_MAX_S else 10)
+    assert planned(timing, [1]) == SCAN_MAX_S
+    assert not idle_api(timing).bus_command("b", b'{"op":"scan","ids":[1]}').done()
+
+
+def test_a_scan_whose_room_on_the_bus_has_passed_is_answered_busy(gateway, monkeypatch):
+    """A scan's probes must all start within twice its plan and a second. With the API's
+    clock set back past that room (but not past three times the plan), the bus finds the
+    scan expired before its first probe."""
+    api, simulator, *_ = gateway
+    runner = api.runners["uart0"]
+    ids = list(range(1, 61))
+    planned_s = planned(runner.timing, ids)
+    assert planned_s <= SCAN_MAX_S
+    behind = 2.5 * planned_s + SCAN_SLACK_S
+    monkeypatch.setattr(commands, "now", lambda: now() - behind)
+    before = len(simulator.recorder.received())
+    reply = api.bus_command("uart0", json.dumps({"op": "scan", "ids": ids}).encode()).result(10)
+    assert reply["error"]["code"] == "busy"
+    assert "last 60 ids (0 probed)" in reply["error"]["message"]
+    monkeypatch.undo()
+    accepted(api, "la1", {"op": "status"})
+    probes = [r for r in simulator.recorder.received()[before:] if r.frame == "ControlCommand"]
+    assert len(probes) == 1, "only the status asked after the scan"

@@ -1,22 +1,29 @@
 """What mutation testing (``python mutation/run.py codecs``) found the codec tests leaving
 open: every range edge of a frame refuses with ``EncodeError`` naming the field and the value
 (rather than letting ``struct`` or ``int.to_bytes`` fail, or the wrong bytes out), the errors
-keep what they carry, and a few conversions at their edges. Pure calls."""
+keep what they carry, and a few conversions at their edges; decoders yield each event once, in
+order (taken a few at a time, so one that would yield for ever fails instead of hanging),
+resynchronise byte for byte and discard what they cannot use whole, with its reason; every
+refusal says in words what was wrong. Pure calls."""
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
-from busgate.codecs import ds_servo, inspire_la
+from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.ds_servo.registers import check_write
 from busgate.codecs.errors import (
+    CodecError,
     ConfigError,
     DeviceError,
     EncodeError,
     RefusedError,
 )
-from busgate.codecs.inspire_la.registers import baud_code, temperature_raw
+from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.codecs.inspire_la.registers import baud_code, register_write, temperature_raw
 from busgate.codecs.registers import Access, Register, RegisterMap
 from busgate.codecs.timing import can_time
 from busgate.codecs.zlac706_common import (
@@ -256,3 +263,269 @@ def test_can_frames_refuse_long_ids_and_long_data_by_field():
 def test_errors_carry_nothing_they_were_not_given():
     assert ConfigError("x").path == ""
     assert (DeviceError("x").device, DeviceError("x").device_id) == ("", None)
+
+
+# -- decoders, one event at a time -----------------------------------------------------------
+#
+# ``events()`` stops when the buffer holds no complete frame; taking at most one event more
+# than expected makes a decoder that would yield for ever (or re-yield a frame) fail here
+# rather than hang.
+
+
+def some_events(decoder, limit: int = 20) -> list:
+    return list(itertools.islice(decoder.events(), limit))
+
+
+LA_STATUS = inspire_la.ControlCommand(1, inspire_la.ControlCode.STATUS)
+LA_MOVE = inspire_la.MoveCommand(2, 1000)
+
+
+def test_a_stream_decoder_yields_each_frame_once_in_order():
+    decoder = inspire_la.CommandDecoder()
+    decoder.feed(inspire_la.encode(LA_STATUS) + inspire_la.encode(LA_MOVE))
+    assert some_events(decoder) == [LA_STATUS, LA_MOVE]
+    assert decoder.pending == 0
+
+
+def test_a_partial_header_waits_for_the_rest_of_its_frame():
+    wire = inspire_la.encode(LA_STATUS)
+    decoder = inspire_la.CommandDecoder()
+    decoder.feed(wire[:1])
+    assert some_events(decoder) == [] and decoder.pending == 1
+    decoder.feed(wire[1:])
+    assert some_events(decoder) == [LA_STATUS]
+
+
+def test_a_lone_byte_after_a_frame_is_no_header_even_where_the_two_would_make_one():
+    # The move to 248 ends in 0x55: with the 0xAA after it the buffer ends in 55 AA, a header
+    # that starts before the byte left over. That byte alone is no header: discarded at once.
+    move = inspire_la.MoveCommand(1, 248)
+    wire = inspire_la.encode(move)
+    assert wire[-1:] + b"\xaa" == b"\x55\xaa"  # the command header
+    decoder = inspire_la.CommandDecoder()
+    decoder.feed(wire + b"\xaa")
+    assert some_events(decoder) == [move, Discarded(b"\xaa", "no frame header")]
+    assert decoder.pending == 0
+
+
+def test_after_a_bad_checksum_the_rest_of_the_frame_is_discarded_byte_for_byte():
+    wire = inspire_la.encode(LA_STATUS)
+    bad = wire[:-1] + bytes([wire[-1] ^ 0x01])
+    decoder = inspire_la.CommandDecoder()
+    decoder.feed(bad + wire)
+    assert some_events(decoder) == [
+        ChecksumMismatch(bad, wire[-1], bad[-1]),
+        Discarded(bad[1:], "no frame header"),
+        LA_STATUS,
+    ]
+
+
+@pytest.mark.parametrize("garbage", [b"\x00", b"\x00\x13\x37"])
+def test_a_frame_split_after_garbage_waits_for_its_body(garbage):
+    for decoder, wire, event in [
+        (inspire_la.ReplyDecoder(), inspire_la.encode(LA_REPLY), LA_REPLY),
+        (ds_servo.ReplyDecoder(), ds_servo.encode(DS_REPLY), DS_REPLY),
+    ]:
+        for cut in range(1, len(wire)):
+            decoder.feed(garbage + wire[:cut])
+            assert some_events(decoder) == [Discarded(garbage, "no frame header")], cut
+            decoder.feed(wire[cut:])
+            assert some_events(decoder) == [event], cut
+
+
+LA_REPLY = inspire_la.StatusReply(1, 0, 0, 25, 0, 0, inspire_la.Fault(0))
+DS_REPLY = ds_servo.StatusReply(1, ds_servo.ServoStatus(0), b"\x07\xff")
+
+
+def test_a_message_decoder_reports_a_full_queue_once_then_the_rest():
+    decoder = zlac706_can.ReplyDecoder()
+    beat = zlac706_can.HeartbeatPosition(1, 7)
+    for _ in range(decoder.max_pending + 2):
+        decoder.feed(zlac706_can.encode(beat))
+    events = some_events(decoder, decoder.max_pending + 2)
+    assert events[0] == Discarded(b"", "2 frames dropped: decoder queue full")
+    assert events[1:] == [beat] * decoder.max_pending
+    assert some_events(decoder) == []
+
+
+def test_rs232_frames_are_yielded_once_and_unknown_bytes_between_them_discarded():
+    from busgate.codecs.zlac706_rs232.registers import Rs232Register
+
+    # The speed write 06 00 00 06 ends in a byte that is itself a known address.
+    speed = zlac706_rs232.Write(Rs232Register.SPEED, 0)
+    position = zlac706_rs232.Write(Rs232Register.POSITION_LOW, 10000)
+    decoder = zlac706_rs232.CommandDecoder()
+    decoder.feed(zlac706_rs232.encode(speed) + b"\x01" + zlac706_rs232.encode(position))
+    assert some_events(decoder) == [speed, Discarded(b"\x01", "no known address"), position]
+
+
+def test_an_rs232_checksum_mismatch_names_the_byte_received():
+    decoder = zlac706_rs232.CommandDecoder()
+    decoder.feed(bytes.fromhex("05 27 10 00"))  # position low 10000, checksum 3c
+    assert some_events(decoder, 1) == [ChecksumMismatch(bytes.fromhex("05 27 10 00"), 0x3C, 0)]
+
+
+def test_an_rs232_monitor_request_with_data_is_discarded_whole_with_its_reason():
+    decoder = zlac706_rs232.CommandDecoder()
+    decoder.feed(bytes.fromhex("80 01 81"))
+    assert some_events(decoder) == [
+        Discarded(bytes.fromhex("80 01 81"), "a monitor request carries no data")
+    ]
+
+
+def test_a_monitor_reply_names_every_item_it_lacks():
+    from busgate.codecs.zlac706_rs232 import assemble_monitor
+
+    with pytest.raises(CodecError) as missing:
+        assemble_monitor([])
+    assert str(missing.value) == (
+        "monitor reply incomplete: no STATUS, BUS_VOLTAGE, CURRENT, SPEED, "
+        "COMMANDED_POSITION_HIGH, COMMANDED_POSITION_LOW, FEEDBACK_POSITION_HIGH, "
+        "FEEDBACK_POSITION_LOW"
+    )
+
+
+def test_rs232_refusals_say_what_the_register_is_not_and_which_codes_are_allowed():
+    from busgate.codecs.zlac706_rs232.registers import Rs232Register
+
+    for frame in (zlac706_rs232.Write(0x77, 0), zlac706_rs232.Ack(0x77)):
+        error = refused(zlac706_rs232.encode, frame, field="register", value=0x77)
+        assert str(error) == "119 is not a writable RS232 register"
+    error = refused(
+        zlac706_rs232.encode, zlac706_rs232.PositionWord(0x77, 0), field="register", value=0x77
+    )
+    assert str(error) == "119 is not a position item"
+    error = refused(
+        zlac706_rs232.encode,
+        zlac706_rs232.Write(Rs232Register.MODE, 0x7777),
+        field="mode",
+        value=0x7777,
+    )
+    assert str(error) == "mode 30583 is not one of 0x00c4, 0x00c0, 0x00d0, 0x00c1"
+
+
+# -- ZLAC706 CAN decoding --------------------------------------------------------------------
+
+
+def decoded(decoder, text: str):
+    decoder.feed(CanFrame.parse(text))
+    (event,) = some_events(decoder)
+    return event
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("001#00fe0021001e04", "7 data bytes, ZLAC706 frames have 8"),
+        ("001#00fe0121001e043f", "register high byte is not 0"),
+        ("001#0077002100000000", "function 0x77 is not a node reply"),
+        ("000#00fe0021001e043f", "heartbeat on the broadcast identifier"),
+        ("001#00fe0099001e043f", "heartbeat register 0x99 is unknown"),
+        ("000#00fb001600000001", "function 0xfb belongs on a node identifier"),
+        ("001#00db001600000001", "function 0xdb belongs on identifier 0"),
+    ],
+)
+def test_a_node_frame_that_is_no_reply_is_discarded_whole_with_its_reason(text, reason):
+    frame = CanFrame.parse(text)
+    assert decoded(zlac706_can.ReplyDecoder(), text) == Discarded(frame.data, f"{text}: {reason}")
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("001#0077002100000000", "function 0x77 is not a host command"),
+        ("001#00fa00160000", "6 data bytes, ZLAC706 frames have 8"),
+        ("000#00fa001600000001", "function 0xfa belongs on a node identifier"),
+        ("001#00da001600000001", "function 0xda belongs on identifier 0"),
+    ],
+)
+def test_a_host_frame_that_is_no_command_is_discarded_whole_with_its_reason(text, reason):
+    frame = CanFrame.parse(text)
+    expected = Discarded(frame.data, f"{text}: {reason}")
+    assert decoded(zlac706_can.CommandDecoder(), text) == expected
+
+
+def test_a_position_heartbeat_takes_all_four_bytes():
+    beat = decoded(zlac706_can.ReplyDecoder(), "001#00fe002012345678")
+    assert beat == zlac706_can.HeartbeatPosition(1, 0x12345678)
+
+
+def test_zlac706_can_refusals_name_the_field():
+    refused(zlac706_can.encode, object(), field="frame", value=None)
+    refused(zlac706_can.encode, zlac706_can.Write(200, 0x16, 0), field="device_id", value=200)
+    refused(zlac706_can.encode, zlac706_can.Write(1, 0x16, 0, group=256), field="group", value=256)
+
+
+# -- DS servo, the edges ---------------------------------------------------------------------
+
+
+def test_ds_servo_ids_run_to_250_in_commands_and_replies():
+    for decoder, frame in [
+        (ds_servo.CommandDecoder(), ds_servo.Ping(250)),
+        (ds_servo.ReplyDecoder(), ds_servo.StatusReply(250, ds_servo.ServoStatus(0), b"")),
+    ]:
+        decoder.feed(ds_servo.encode(frame))
+        assert some_events(decoder) == [frame]
+
+
+def test_ds_servo_addresses_outside_a_byte_are_refused_as_such_and_0_as_no_register():
+    error = refused(check_write, 0, b"\x01", field="address", value=0)
+    assert str(error) == "address 0x00 is not in the control table"
+    error = refused(check_write, 0x100, b"\x01", field="address", value=0x100)
+    assert str(error) == "address 256 is out of range [0, 255]"
+
+
+def test_a_ds_servo_write_may_span_registers_of_different_sizes():
+    check_write(0x10, bytes.fromhex("0320 1e 00"))  # max_torque, speed_adjust, unload_condition
+
+
+def test_ds_servo_frames_that_cannot_be_sent_say_why():
+    with pytest.raises(TypeError, match="not a ds_servo frame: <object"):
+        ds_servo.encode(object())
+    long_reply = ds_servo.StatusReply(1, ds_servo.ServoStatus(0), bytes(254))
+    error = refused(ds_servo.encode, long_reply, field="params", value=254)
+    assert str(error) == "254 parameter bytes do not fit one frame (at most 253)"
+    refused(ds_servo.encode, ds_servo.Ping(254), field="device_id", value=254)
+    sync = ds_servo.SyncWrite((ds_servo.SyncTarget(254, 0, 0),))
+    error = refused(ds_servo.encode, sync, field="device_id", value=254)
+    assert str(error) == "a SYNC WRITE target cannot be sent to the broadcast id 254"
+
+
+# -- Inspire LA, the edges -------------------------------------------------------------------
+
+
+def test_an_la_control_code_outside_a_byte_is_refused_as_such_and_0_as_unknown():
+    error = refused(inspire_la.encode, inspire_la.ControlCommand(1, 0), field="code", value=0)
+    assert str(error) == "unknown control code 0x00"
+    error = refused(
+        inspire_la.encode, inspire_la.ControlCommand(1, 0x100), field="code", value=0x100
+    )
+    assert str(error) == "code 256 is out of range [0, 255]"
+
+
+def test_an_la_temperature_exactly_at_the_tolerance_is_still_whole_tenths():
+    # 1e-07 * 10 is exactly the float 1e-06: the tolerance itself, not past it.
+    assert temperature_raw(1e-07) == 0
+    refused(temperature_raw, 2e-07, field="temp_c", value=2e-07)
+
+
+def test_an_la_register_write_keeps_the_sign_of_a_signed_register():
+    command = register_write(1, "force", -2)
+    assert command.data == (-2).to_bytes(2, "little", signed=True)
+
+
+def test_only_la_command_frames_have_an_expected_reply():
+    with pytest.raises(TypeError, match="not an inspire_la command frame: <object"):
+        inspire_la.expected_reply(object())
+
+
+def test_the_speed_limit_rounds_up_from_one_half_not_later():
+    # 5 rpm is 13.65 raw, 9 rpm is 24.58: above one half, below two thirds.
+    assert [speed_raw_rounded(r) for r in (5, 9, -5)] == [14, 25, -14]
+
+
+def test_an_address_only_write_reaches_the_register_at_its_address_alone():
+    table = RegisterMap(
+        [Register("a", 0, 2, Access.READ_WRITE), Register("b", 2, 1, Access.READ_WRITE)]
+    )
+    assert table.touched(1, 0) == {"a"}
