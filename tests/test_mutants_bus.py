@@ -234,6 +234,7 @@ def test_a_frame_without_a_reply_holds_the_line_for_its_wire_time(channel, node)
         before = now()
         exchange = finished(lambda: owner.exchange(request))
         assert exchange.request is request and before <= exchange.start <= now()
+        assert exchange.reply == ()
         assert exchange.end == exchange.start + CAN_TIMING.wire_time(request.wire)
         assert node.bus.recv(timeout=5).arbitration_id == 0
     finally:
@@ -788,6 +789,7 @@ def test_a_frame_without_a_reply_holds_the_serial_line_for_its_wire_time(device)
         before = now()
         exchange = finished(lambda: owner.exchange(NO_REPLY))
         assert exchange.request is NO_REPLY and before <= exchange.start <= now()
+        assert exchange.reply == ()  # no events, but a tuple of them, as with an answer
         assert exchange.end == exchange.start + LA_TIMING.wire_time(NO_REPLY.wire)
         assert 0 < exchange.write_s <= exchange.start - before
         assert device.read(len(NO_REPLY.wire)) == NO_REPLY.wire

@@ -8,6 +8,7 @@ refusal says in words what was wrong. Pure calls."""
 
 from __future__ import annotations
 
+import enum
 import itertools
 
 import pytest
@@ -529,3 +530,29 @@ def test_an_address_only_write_reaches_the_register_at_its_address_alone():
         [Register("a", 0, 2, Access.READ_WRITE), Register("b", 2, 1, Access.READ_WRITE)]
     )
     assert table.touched(1, 0) == {"a"}
+
+
+# -- registers named in their units (busgate decode) -----------------------------------------
+
+
+def test_a_packed_register_of_zero_is_each_part_zero_not_unknown():
+    ramp = Register("ramp", 0x12, 1, Access.WRITE, unit="ms", scale=100, parts=("accel", "decel"))
+    assert ramp.in_unit(0) == {"accel": 0, "decel": 0}
+    assert ramp.in_unit(1) == {"accel": 0, "decel": 100}
+    assert ramp.in_unit(-1) is None
+
+
+def test_a_value_the_decoder_named_keeps_its_name():
+    class Mode(enum.IntEnum):
+        VELOCITY = 0x2F
+
+    register = Register("mode", 0x19, 1, Access.WRITE, scale=2)
+    assert register.reading(Mode.VELOCITY).value is Mode.VELOCITY
+    assert register.reading(0x2F).value == 0x5E  # a plain number is scaled
+
+
+def test_a_reply_names_a_register_only_at_its_first_address():
+    table = RegisterMap([Register("a", 4, 2, Access.READ_WRITE)])
+    assert [r.register for r in table.reading_at(4, 7)] == ["a"]
+    assert table.reading_at(5, 7) == []  # the register's second byte
+    assert table.reading_at(9, 7) == []  # a reserved address
