@@ -547,6 +547,24 @@ def test_the_reply_window_counts_from_the_end_of_the_frame(scripted, fake_clock)
     assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
 
 
+def test_a_reply_that_came_in_time_is_taken_when_the_owner_looks_late(scripted, fake_clock):
+    """The reply is there before the deadline, but the owner's thread is held up past it (the
+    send took the whole window, on the fake clock): one look without waiting takes it, as the
+    serial owner's last look does, rather than a timeout and an unsolicited reply."""
+    owner, node, _, heard = scripted
+    request = speed_write()
+    latest = CAN_TIMING.reply_window(request)[1]
+
+    def held_up_send(timeout: float | None) -> None:
+        node.send(ACK)
+        fake_clock.t += CAN_TIMING.wire_time(request.wire) + latest + 0.001
+
+    ScriptedBus.ON_SEND.append(held_up_send)
+    exchange = finished(lambda: owner.exchange(request))
+    assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    assert owner.counters.timeouts == 0 and heard == []
+
+
 def test_a_receive_that_fails_closes_the_link_naming_why(scripted, channel):
     owner, _, script, _ = scripted
     failure = can.CanOperationError("adapter gone")
@@ -555,6 +573,18 @@ def test_a_receive_that_fails_closes_the_link_naming_why(scripted, channel):
         finished(lambda: owner.idle_until(now()))
     assert str(lost.value) == f"CAN scripted:{channel}: adapter gone"
     assert lost.value.__cause__ is failure and not owner.is_open
+
+
+def test_a_reply_window_under_a_second_is_still_waited_for(channel, node):
+    """The owner waits for the whole window, however short: a reply the node sends a moment
+    after the request (from a thread of its own) is taken, not refused by a look too early."""
+    owner = open_can("virtual", channel, timing=link_timing("zlac706_can", 500_000, margin_s=0.9))
+    try:
+        node.answer(ACK)
+        exchange = finished(lambda: owner.exchange(speed_write()))
+        assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    finally:
+        owner.close()
 
 
 def test_a_garbled_line_costs_one_frame_and_the_reply_after_it_is_taken(scripted):

@@ -128,7 +128,7 @@ class CanBusOwner(BusOwner):
         return Exchange(request, start, end, answer or ())
 
     def take_unsolicited(self) -> None:
-        self._receive_until(self._require_open(), now(), None, drain=True)
+        self._receive_until(self._require_open(), now(), None)  # a deadline now: one look
 
     def _require_open(self) -> can.BusABC:
         if self._bus is None:
@@ -156,26 +156,28 @@ class CanBusOwner(BusOwner):
         self.counters.frames_out += 1
         self.counters.bytes_out += len(wire.data)
 
-    def _receive_until(
-        self, bus, deadline: float, expected, *, drain: bool = False
-    ) -> tuple[object, ...] | None:
-        """Receive until ``expected`` is complete or ``deadline``; with ``drain``, take only
-        what is already there."""
+    def _receive_until(self, bus, deadline: float, expected) -> tuple[object, ...] | None:
+        """Receive until ``expected`` is complete or ``deadline``, then take what is already
+        there without waiting (as the serial owner does: a reply that came in time is the
+        reply, even when this thread was held up past the deadline); ``None`` if incomplete.
+        A deadline that has passed is that one look: what came unasked, taken while idle."""
         answer: list[object] = []
-        while (remaining := deadline - now()) > 0 or drain:
-            if drain and not self._input_waiting():
-                break
+        while True:
+            remaining = deadline - now()
+            waiting = remaining > 0
+            if not waiting and not self._input_waiting():
+                return None
             try:
-                message = bus.recv(timeout=0 if drain else remaining)
+                message = bus.recv(timeout=remaining if waiting else 0)
             except (can.CanError, OSError) as exc:
                 self._fail(exc)
             except ValueError:  # a garbled line from an ASCII (slcan) adapter: one frame lost
                 self.counters.discarded_bytes += 1
                 continue
             if message is None:
-                if drain and self._fd is not None:
-                    continue  # a line that was no frame (an adapter's acknowledgement)
-                break
+                if waiting or self._fd is not None:
+                    continue  # the wait ended (then one look more), or a line that was no frame
+                return None
             for event in self._decode(message):
                 if expected is not None and expected.matches(event):
                     answer.append(event)
@@ -183,7 +185,6 @@ class CanBusOwner(BusOwner):
                     self.on_unsolicited(event, now())
             if expected is not None and len(answer) >= expected.frames:
                 return tuple(answer)
-        return None
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when it has no descriptor)."""
