@@ -38,7 +38,8 @@ def scan_ids(protocol: str) -> range:
     """The ids a scan of a ``protocol`` bus probes by default: every id the protocol allows
     (one probe on a line whose frames carry no id)."""
     entry = PROTOCOLS[protocol]
-    return entry.device_ids if entry.addressed else range(entry.device_ids.start, 1)
+    ids = entry.device_ids
+    return ids if entry.addressed else ids[:1]
 
 
 def scan_requests(protocol: str, ids: list[int] | None) -> list[Request]:
