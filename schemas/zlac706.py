@@ -168,6 +168,10 @@ Command = Annotated[
 ]
 COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
 
+#: The command that lets the device move again after a gateway e-stop (its driver's
+#: ``reenable_op``; the SDK's ``Device.enable``).
+REENABLE_COMMAND: dict[str, object] = {"op": "enable"}
+
 
 # --- the follow key and telemetry ---------------------------------------------------------------
 

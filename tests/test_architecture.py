@@ -2,8 +2,11 @@
 imports only the ones below it. A new import against the arrows fails here, naming the file.
 
     codecs  <-  schemas  <-  gateway.drivers  <-  gateway.scheduler  <-  gateway.api
-       ^                        |                                         ^
+       ^           ^            |                                         ^
        +---- gateway.bus <------+                          gateway.service <- gateway.cli
+                   |
+                 client  (the SDK: codecs' errors and the schemas; the daemon uses its
+                          session settings and errors, the command line all of it)
 
 ``gateway.sim`` (the simulators) stands beside the gateway: it uses the codecs, the bus clock
 and the protocol table, and nothing of the gateway's service uses it but the command line."""
@@ -25,16 +28,17 @@ GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "scheduler", "service", "sim")
 ALLOWED: dict[str, set[str]] = {
     "codecs": set(),
     "schemas": {"codecs"},
+    "client": {"codecs", "schemas"},
     "gateway": set(),
     "gateway.bus": {"codecs"},
     "gateway.drivers": {"codecs", "schemas", "gateway.bus"},
     "gateway.scheduler": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
-    "gateway.api": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
+    "gateway.api": {"codecs", "schemas", "client", "gateway", "gateway.bus", "gateway.drivers",
                     "gateway.scheduler"},
-    "gateway.service": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
-                        "gateway.scheduler", "gateway.api"},
+    "gateway.service": {"codecs", "schemas", "client", "gateway", "gateway.bus",
+                        "gateway.drivers", "gateway.scheduler", "gateway.api"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
-    "gateway.cli": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
+    "gateway.cli": {"codecs", "schemas", "client", "gateway", "gateway.bus", "gateway.drivers",
                     "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim"},
 }
 
@@ -66,7 +70,7 @@ def imported(path: Path) -> set[str]:
 
 def test_every_import_follows_the_arrows() -> None:
     wrong = []
-    for folder in ("codecs", "schemas", "gateway"):
+    for folder in ("client", "codecs", "schemas", "gateway"):
         for path in sorted((ROOT / folder).rglob("*.py")):
             room = room_of_file(path)
             for name in imported(path):
@@ -77,7 +81,7 @@ def test_every_import_follows_the_arrows() -> None:
 
 
 def test_every_room_is_described() -> None:
-    rooms = {"codecs", "schemas", "gateway"} | {
+    rooms = {"client", "codecs", "schemas", "gateway"} | {
         f"gateway.{p.name}" for p in (ROOT / "gateway").iterdir() if (p / "__init__.py").exists()}
     assert rooms == set(ALLOWED)
     architecture = (ROOT / "docs" / "architecture.md").read_text()

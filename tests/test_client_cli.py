@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import pytest
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.cli import client as client_cli
 from busgate.gateway.cli import main
 from busgate.gateway.cli.watch_table import WatchTable

@@ -15,8 +15,8 @@ import threading
 import pytest
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs.errors import ConfigError
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
 

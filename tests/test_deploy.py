@@ -24,8 +24,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 

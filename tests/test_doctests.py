@@ -38,7 +38,7 @@ DOCTEST_MODULES = [
     "busgate.codecs.zlac706_rs232.encoder",
     "busgate.codecs.zlac706_rs232.monitor",
     "busgate.codecs.zlac706_rs232.registers",
-    "busgate.gateway.api.zenoh_config",
+    "busgate.client.zenoh_config",
     "busgate.gateway.bus.port_access",
     "busgate.gateway.bus.stats",
     "busgate.gateway.cli.client",

@@ -30,9 +30,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.codecs.timing import uart_time
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.scheduler.planner import MAX_RETRIES
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.recorder import WireRecord

@@ -18,10 +18,10 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice

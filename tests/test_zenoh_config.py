@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from busgate.gateway.api.zenoh_config import session_config
+from busgate.client.zenoh_config import session_config
 
 
 def setting(config, key: str):

@@ -29,10 +29,10 @@ from typing import Any
 
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object
 from busgate.gateway.api.errors import error_reply
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.base import CLIENT_ID_PATTERN

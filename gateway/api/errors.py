@@ -19,21 +19,9 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from busgate.codecs.errors import BusgateError, CommandError, EncodeError
-from busgate.schemas.errors import describe_validation_error
+from busgate.codecs.errors import BusgateError, CommandError
+from busgate.schemas.errors import describe_validation_error, refusal_code
 
-#: Pydantic error types that mean "a value outside its range".
-RANGE_ERRORS = frozenset(
-    {
-        "less_than",
-        "less_than_equal",
-        "greater_than",
-        "greater_than_equal",
-        "multiple_of",
-        "too_short",
-        "too_long",
-    }
-)
 #: What a client's request may be refused with (rules 1 and 2), as opposed to a bug.
 REFUSALS = (BusgateError, ValidationError)
 
@@ -42,7 +30,7 @@ def error_code(exc: BaseException) -> str:
     """The code of ``exc`` in a reply."""
     refused = _schema_refusal(exc)
     if refused is not None:
-        return "out_of_range" if _out_of_range(refused) else "bad_command"
+        return refusal_code(refused)
     return exc.code if isinstance(exc, BusgateError) else "internal"
 
 
@@ -62,12 +50,3 @@ def _schema_refusal(exc: BaseException) -> ValidationError | None:
     if isinstance(exc, CommandError) and isinstance(exc.__cause__, ValidationError):
         return exc.__cause__
     return None
-
-
-def _out_of_range(refused: ValidationError) -> bool:
-    problems = refused.errors()
-    return bool(problems) and all(
-        problem["type"] in RANGE_ERRORS
-        or isinstance(problem.get("ctx", {}).get("error"), EncodeError)
-        for problem in problems
-    )

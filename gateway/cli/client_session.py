@@ -16,8 +16,9 @@ from contextlib import contextmanager
 
 import zenoh
 
+from busgate.client.errors import ConnectError
+from busgate.client.zenoh_config import session_config, zenoh_reason
 from busgate.codecs.errors import CommandError
-from busgate.gateway.api.zenoh_config import ZenohSessionError, session_config, zenoh_reason
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"
@@ -81,7 +82,7 @@ def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
         )
         session = zenoh.open(config)
     except zenoh.ZError as exc:
-        raise ZenohSessionError(
+        raise ConnectError(
             f"cannot open a zenoh session to {', '.join(endpoints)}: {zenoh_reason(exc)}"
         ) from exc
     try:

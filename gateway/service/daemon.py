@@ -141,16 +141,17 @@ def _check_ports(config: Config) -> set[str]:
 
 def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
     """Open the bridge's zenoh session; zenoh's refusal becomes one line
-    (``ZenohSessionError``), with whatever was opened closed again."""
+    (``ConnectError``), with whatever was opened closed again."""
     import zenoh
 
-    from busgate.gateway.api.zenoh_config import ZenohSessionError, session_refusal
+    from busgate.client.errors import ConnectError
+    from busgate.client.zenoh_config import session_refusal
 
     try:
         bridge.open(loop)
     except zenoh.ZError as exc:
         bridge.close()
-        raise ZenohSessionError(session_refusal(exc, IN_USE_HINT)) from exc
+        raise ConnectError(session_refusal(exc, IN_USE_HINT)) from exc
 
 
 def _start_metrics(runners: dict[str, BusRunner], bridge: ZenohBridge, listen: str) -> Metrics:

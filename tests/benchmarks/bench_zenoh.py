@@ -32,9 +32,9 @@ from pathlib import Path
 import can
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import cpu_s, thread_cpu_s
@@ -194,7 +194,7 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
 
 SUBSCRIBER = """
 import sys, time, zenoh
-from busgate.gateway.api.zenoh_config import session_config
+from busgate.client.zenoh_config import session_config
 from busgate.schemas.config import parse_config
 session = zenoh.open(session_config(connect=[sys.argv[1]]))
 count = [0]

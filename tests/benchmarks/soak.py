@@ -52,8 +52,8 @@ from typing import Any
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
+from busgate.client.zenoh_config import session_config
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import FOLLOW_FRAMES, PREPARE, TRAJECTORY, cpu_s

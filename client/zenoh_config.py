@@ -1,16 +1,18 @@
 """Building a ``zenoh.Config`` from busgate's few zenoh settings.
 
-One of the three modules allowed to import ``zenoh``: the bridge (``bridge.py``, the daemon's
-session), the client tools (``client_cli.py``, ``busgate send`` and ``busgate watch``) and this
-helper, which both use so that a gateway and a client read the same settings the same way.
-Everything else in busgate stays free of zenoh.
+The daemon's session (``gateway/api/bridge.py``) and every client's (``busgate.client``)
+are built here, so that a gateway and a client read the same settings the same way; it lives
+in the client's room because the client must not need the daemon, while the daemon may use
+this one module of the client.
 
 Rules: a full zenoh config file (ACL, TLS, auth …) is the base and busgate's settings are laid
 over it. ``mode`` and multicast scouting are always set (multicast off unless asked for: a
 service talks to the endpoints it is given, never to whoever answers on the LAN). ``listen``
 and ``connect`` are set when given, so endpoints written in the file survive an empty list;
 with neither ``listen`` nor a file, a session listens nowhere (zenoh's default would be every
-interface, with no authentication): it reaches others only through ``connect``.
+interface, with no authentication): it reaches others only through ``connect``. A client's
+own settings (its lease, a user name and password, the CA of a TLS endpoint) are laid on top
+only when given.
 """
 
 from __future__ import annotations
@@ -23,8 +25,6 @@ from pathlib import Path
 
 import zenoh
 
-from busgate.codecs.errors import BusgateError
-
 MODES = ("peer", "client", "router")
 
 
@@ -35,6 +35,10 @@ def session_config(
     connect: Sequence[str] = (),
     multicast_scouting: bool = False,
     config_file: str | Path | None = None,
+    lease_s: float | None = None,
+    username: str | None = None,
+    password: str | None = None,
+    ca: str | Path | None = None,
 ) -> zenoh.Config:
     """A zenoh config: ``config_file`` (if any) underneath, the given settings on top.
 
@@ -49,14 +53,15 @@ def session_config(
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if lease_s is not None:  # what this session announces: a peer that hears nothing from it
+        # for that long drops it (its liveliness tokens with it); zenoh's default is 10 s
+        config.insert_json5("transport/link/tx/lease", json.dumps(round(lease_s * 1000)))
+    if username is not None or password is not None:
+        credentials = {"user": username or "", "password": password or ""}
+        config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
+    if ca is not None:
+        config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
     return config
-
-
-class ZenohSessionError(BusgateError, ConnectionError):
-    """A zenoh session could not be opened: a client's (nothing listening, a bad endpoint …)
-    or the gateway's own (its listen endpoint in use …)."""
-
-    code = "zenoh_unavailable"
 
 
 _RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")

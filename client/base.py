@@ -1,0 +1,189 @@
+"""What the sync and asyncio faces of the SDK share: finding a device or bus by name, the
+commands the typed helpers send, telemetry as models, follow payloads, and the claims a
+client holds. Everything here returns values or ``concurrent.futures.Future``s; a face only
+waits (``sync.py``) or awaits (``aio.py``), so the two cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from busgate.client.claims import ClaimLease, Timers
+from busgate.client.core import Answer, Core, dumps, then
+from busgate.client.errors import AmbiguousError, NoAnswerError, error_for
+from busgate.client.keys import split_name
+from busgate.codecs.errors import CommandError
+from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS
+from busgate.schemas.errors import describe_validation_error, refusal_code
+from busgate.schemas.families import FAMILIES
+
+#: What a wait adds to the timeout zenoh was given before it says nobody answered (zenoh
+#: settles a query at its timeout; this covers a late settle on a loaded host).
+WAIT_MARGIN_S = 1.0
+
+
+@dataclass(frozen=True)
+class Found:
+    """A device or bus of one gateway: its name, and its kind (device) or protocol (bus)."""
+
+    gateway: str
+    name: str
+    kind: str
+
+
+def gateway_infos(answers: list[Answer]) -> dict[str, dict[str, Any]]:
+    """Each gateway's ``info`` among ``answers``, by name."""
+    return {
+        str(answer.body.get("gateway")): answer.body
+        for answer in answers
+        if answer.ok and isinstance(answer.body, dict)
+    }
+
+
+def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -> Found:
+    """The one device (``what="device"``) or bus named ``name`` in ``infos``; errors name the
+    gateways that answered (on ``asked``), or those that have it if several do."""
+    gateway, leaf = split_name(name)
+    if not infos:
+        raise NoAnswerError(f"no gateway answered on {asked}")
+    found = [
+        Found(gateway_name, leaf, kind)
+        for gateway_name, info in sorted(infos.items())
+        for kind in _named(info, what, leaf)
+        if gateway is None or gateway_name == gateway
+    ]
+    if not found:
+        code = "unknown_device" if what == "device" else "unknown_bus"
+        raise error_for(code)(
+            f"no {what} {leaf!r} on the gateways that answered ({', '.join(sorted(infos))})"
+        )
+    if len(found) > 1:
+        names = [f.gateway for f in found]
+        raise AmbiguousError(
+            f"{len(found)} gateways have a {what} {leaf!r} ({', '.join(names)}): name one, "
+            f"e.g. {names[0]}/{leaf}",
+            gateways=names,
+        )
+    return found[0]
+
+
+def _named(info: dict[str, Any], what: str, leaf: str) -> list[str]:
+    """The kinds (or protocols) of what ``info`` lists under ``leaf``."""
+    buses = info.get("buses", [])
+    if what == "bus":
+        return [str(bus.get("protocol")) for bus in buses if bus.get("name") == leaf]
+    return [
+        str(device.get("kind"))
+        for bus in buses
+        for device in bus.get("devices", [])
+        if device.get("name") == leaf
+    ]
+
+
+def as_body(command: Any) -> dict[str, Any]:
+    """A command as the JSON object sent: a dict as given, a schemas model dumped."""
+    if isinstance(command, BaseModel):
+        return command.model_dump(mode="json", exclude_none=True)
+    if isinstance(command, dict):
+        return dict(command)
+    raise CommandError(f"a command is a dict or a busgate.schemas model, not {type(command)}")
+
+
+def reenable_command(kind: str) -> dict[str, Any]:
+    """The command that lets a device of ``kind`` move again after an e-stop."""
+    return dict(FAMILIES[kind].schema.REENABLE_COMMAND)
+
+
+def refused(exc: ValidationError, what: str) -> Exception:
+    """A target refused before it was sent: the error the gateway would have answered."""
+    return error_for(refusal_code(exc))(f"invalid {what}: {describe_validation_error(exc)}")
+
+
+class Shared:
+    """What every face of one client uses: the core, the timers of its claims, its claims."""
+
+    def __init__(self, core: Core) -> None:
+        self.core = core
+        self.timers = Timers()
+        self.leases: dict[tuple[str, str], ClaimLease] = {}
+
+    def close(self) -> None:
+        self.timers.close()
+        self.core.close()
+
+    # -- finding things ------------------------------------------------------------------------
+
+    def infos(self, gateway: str | None, timeout_s: float) -> Future:
+        """A future of ``{gateway: info}`` of every gateway answering (or just ``gateway``)."""
+        key = self.core.keys.info(gateway or "*")
+        return then(self.core.ask(key, timeout_s=timeout_s), gateway_infos)
+
+    def find(self, name: str, what: str, timeout_s: float) -> Future:
+        """A future of the ``Found`` device or bus ``name`` (``"gw/x"`` or a bare ``"x"``)."""
+        gateway, _ = split_name(name)
+        asked = self.core.keys.info(gateway or "*")
+        return then(self.infos(gateway, timeout_s), lambda infos: locate(infos, name, what, asked))
+
+    # -- devices -------------------------------------------------------------------------------
+
+    def send(self, device: Found, command: Any, timeout_s: float | None) -> Future:
+        """A device command, refused with ``ClaimLostError`` while this client's claim on the
+        device is lost (the claim's own ops go through)."""
+        body = as_body(command)
+        if body.get("op") not in ("claim", "release", "end_follow"):
+            lease = self.leases.get((device.gateway, device.name))
+            if lease is not None:
+                lease.check()
+        key = self.core.keys.device(device.gateway, device.name, "cmd")
+        return self.core.command(key, body, timeout_s=timeout_s)
+
+    def claim(self, device: Found, ttl_s: float) -> ClaimLease:
+        lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s)
+        self.leases[(device.gateway, device.name)] = lease
+        return lease
+
+    def unclaim(self, lease: ClaimLease) -> Future | None:
+        if self.leases.get((lease.gateway, lease.device)) is lease:
+            del self.leases[(lease.gateway, lease.device)]
+        return lease.release()
+
+    def telemetry(self, device: Found, payload: bytes) -> Any:
+        """A state message as the telemetry model of the device's kind."""
+        return TELEMETRY_MODELS[device.kind].model_validate_json(payload)
+
+    def follow_put(self, device: Found) -> Callable[[dict[str, Any]], None]:
+        """What ``set`` of a follow stream does: check the target against the kind's follow
+        model (an error now, not an event later), then put it with this client's id."""
+        model = FOLLOW_MODELS[device.kind]
+        put = self.core.publisher(self.core.keys.device(device.gateway, device.name, "follow"))
+        client = self.core.client_id
+        leases = self.leases
+
+        def set_target(target: dict[str, Any]) -> None:
+            lease = leases.get((device.gateway, device.name))
+            if lease is not None:
+                lease.check()
+            try:
+                model.model_validate(target)
+            except ValidationError as exc:
+                raise refused(exc, f"follow target for {device.name}") from None
+            put(dumps({**target, "client": client}))
+
+        set_target.undeclare = put.undeclare  # type: ignore[attr-defined]
+        return set_target
+
+    def end_follow(self, device: Found, timeout_s: float | None) -> Future:
+        return self.send(device, {"op": "end_follow"}, timeout_s)
+
+    # -- gateways -----------------------------------------------------------------------------
+
+    def estop(self, gateway: str | None) -> None:
+        """E-stop one gateway, or every gateway of the fleet (``None``)."""
+        self.core.put(
+            self.core.keys.estop(gateway or "*"), {"client": self.core.client_id}, urgent=True
+        )

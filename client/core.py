@@ -1,0 +1,283 @@
+"""The one core of the SDK: a client's zenoh session, and every exchange with gateways as a
+``concurrent.futures.Future``; the sync face (``sync.py``) waits on those futures, the asyncio
+face (``aio.py``) awaits them, so both do exactly the same on the wire.
+
+Rules of this file:
+
+1. zenoh callbacks run on zenoh's threads and only hand over: a reply is parsed and stored,
+   a finished query settles its future, a sample goes to its sinks (which may not block).
+   One slow callback would stall every other callback of the session.
+2. Every command carries the client's id; the client's liveliness token
+   (``<prefix>/clients/<id>``) is held from ``open`` to ``close``, so that a gateway drops
+   the client's claims and streams when it goes (its lease, about 1 s by default).
+3. A reply becomes a result or one of ``busgate.client.errors``; no ``zenoh.ZError`` leaves.
+4. Gateways come and go (liveliness ``<prefix>/<gw>/alive``): a gateway going takes this
+   client's claims on it (``on_gateway_gone``); subscriptions and queries resume on their own
+   once it is back, as zenoh re-declares them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, InvalidStateError
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from busgate.client.errors import ConnectError, NoAnswerError, raise_for
+from busgate.client.keys import Keys, check_key, check_name
+from busgate.client.zenoh_config import session_config, zenoh_reason
+from busgate.codecs.errors import CommandError
+
+log = logging.getLogger(__name__)
+
+#: The payload of zenoh's own error reply when a queryable did not answer in time.
+ZENOH_TIMEOUT = b"Timeout"
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """One reply to a query: the key it came on, its JSON (text when it is not JSON), and
+    whether it is an ok reply."""
+
+    key: str
+    body: Any
+    ok: bool
+
+    @property
+    def error(self) -> dict[str, Any]:
+        """The error object of a reply that is not ok (one made up when it carries none)."""
+        error = self.body.get("error") if isinstance(self.body, dict) else None
+        if isinstance(error, dict):
+            return error
+        text = self.body if isinstance(self.body, str) else json.dumps(self.body)[:200]
+        return {"code": "internal", "message": f"a reply that is not an ok reply: {text}"}
+
+
+def answer_of(reply: zenoh.Reply) -> Answer | None:
+    """A zenoh reply as an ``Answer``; ``None`` for zenoh's own timeout reply."""
+    sample, error = reply.ok, reply.err
+    if sample is None and error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT:
+        return None
+    answer = sample if sample is not None else error
+    assert answer is not None  # a zenoh reply carries a sample or an error
+    raw = answer.payload.to_bytes()
+    try:
+        body = json.loads(raw)
+    except ValueError:
+        return Answer(str(getattr(answer, "key_expr", "")), raw.decode(errors="replace"), False)
+    ok = sample is not None and isinstance(body, dict) and body.get("ok") is True
+    return Answer(str(getattr(answer, "key_expr", "")), body, ok)
+
+
+def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str | None) -> Any:
+    """The body of the first ok answer; the error of the first other one; ``NoAnswerError``
+    when there is none."""
+    for answer in answers:
+        if answer.ok:
+            return answer.body
+    if answers:
+        raise_for(answers[0].error, gateway=gateway)
+    raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+
+
+def then(future: Future, make: Callable[[Any], Any]) -> Future:
+    """A future of ``make(result)`` (or of the exception ``future`` or ``make`` raised)."""
+    chained: Future = Future()
+
+    def settle(done: Future) -> None:
+        try:
+            result = make(done.result())
+        except BaseException as exc:  # handed to whoever waits, never raised on zenoh's thread
+            with contextlib.suppress(InvalidStateError):
+                chained.set_exception(exc)
+            return
+        with contextlib.suppress(InvalidStateError):
+            chained.set_result(result)
+
+    future.add_done_callback(settle)
+    return chained
+
+
+def dumps(body: Any) -> bytes:
+    return json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+
+
+class Core:
+    """One client's zenoh session: queries, puts, subscriptions, its liveliness token."""
+
+    def __init__(
+        self,
+        endpoints: Sequence[str] | str,
+        *,
+        client_id: str,
+        prefix: str = "busgate",
+        mode: str = "client",
+        lease_s: float = 1.0,
+        timeout_s: float = 5.0,
+        config_file: str | Path | None = None,
+        username: str | None = None,
+        password: str | None = None,
+        ca: str | Path | None = None,
+    ) -> None:
+        self.client_id = check_name("client", client_id)
+        self.keys = Keys(prefix)
+        self.timeout_s = timeout_s
+        endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        where = ", ".join(endpoints) or str(config_file)
+        try:
+            config = session_config(
+                mode=mode,
+                connect=endpoints,
+                config_file=config_file,
+                lease_s=lease_s,
+                username=username,
+                password=password,
+                ca=ca,
+            )
+            self.session = zenoh.open(config)
+        except (zenoh.ZError, ValueError) as exc:
+            reason = zenoh_reason(exc)
+            raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
+        self._lock = threading.Lock()
+        self._gone_listeners: list[Callable[[str], None]] = []
+        self.gateways_up: set[str] = set()
+        try:
+            liveliness = self.session.liveliness()
+            self._held: list[Any] = [
+                liveliness.declare_token(self.keys.client(self.client_id)),
+                liveliness.declare_subscriber(self.keys.alive("*"), self._on_alive, history=True),
+            ]
+        except zenoh.ZError as exc:
+            self.session.close()
+            raise ConnectError(f"the session to {where} refused: {zenoh_reason(exc)}") from exc
+
+    # -- lifetime ----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Undeclare everything (the token last but one) and close the session."""
+        self._held.clear()
+        with contextlib.suppress(zenoh.ZError):
+            self.session.close()
+
+    # -- exchanges ---------------------------------------------------------------------------
+
+    def ask(self, key: str, body: Any = None, *, timeout_s: float | None = None) -> Future:
+        """A query on ``key`` (with ``body`` as JSON): a future of every ``Answer``, settled
+        when zenoh says the query is over (all answered, or the timeout)."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        answers: list[Answer] = []
+        finished: Future = Future()
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            answer = answer_of(reply)
+            if answer is not None:
+                answers.append(answer)
+
+        def on_end() -> None:
+            with contextlib.suppress(InvalidStateError):
+                finished.set_result(answers)
+
+        payload = None if body is None else dumps(body)
+        try:
+            self.session.get(
+                check_key(key),
+                zenoh.handlers.Callback(on_reply, on_end),
+                payload=payload,
+                timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
+        except zenoh.ZError as exc:
+            raise CommandError(f"cannot query {key[:200]!r}: {zenoh_reason(exc)}") from exc
+        return finished
+
+    def command(self, key: str, body: dict[str, Any], *, timeout_s: float | None = None) -> Future:
+        """A command to one gateway's key, carrying this client's id: a future of the ok
+        reply's body, or of the error it is."""
+        if body.get("client", self.client_id) != self.client_id:
+            raise CommandError(
+                f"a command of client {self.client_id!r} names client {body['client']!r}"
+            )
+        waited = self.timeout_s if timeout_s is None else timeout_s
+        gateway = self.keys.gateway_of(key)
+        asked = self.ask(key, {**body, "client": self.client_id}, timeout_s=waited)
+        return then(asked, lambda answers: first_ok(answers, key, waited, gateway))
+
+    def put(self, key: str, body: Any, *, urgent: bool = False) -> None:
+        """Fire and forget; ``urgent`` (an e-stop) goes first and is never dropped."""
+        options: dict[str, Any] = {}
+        if urgent:
+            options = {
+                "congestion_control": zenoh.CongestionControl.BLOCK,
+                "priority": zenoh.Priority.REAL_TIME,
+                "express": True,
+            }
+        try:
+            self.session.put(check_key(key), dumps(body), **options)
+        except zenoh.ZError as exc:
+            raise CommandError(f"cannot put on {key[:200]!r}: {zenoh_reason(exc)}") from exc
+
+    def publisher(self, key: str) -> Callable[[bytes], None]:
+        """A put of raw payloads on one key, declared once (a follow stream's)."""
+        try:
+            publisher = self.session.declare_publisher(check_key(key), express=True)
+        except zenoh.ZError as exc:
+            raise CommandError(f"cannot publish on {key[:200]!r}: {zenoh_reason(exc)}") from exc
+
+        def put(payload: bytes) -> None:
+            try:
+                publisher.put(payload)
+            except zenoh.ZError as exc:
+                raise CommandError(f"cannot put on {key}: {zenoh_reason(exc)}") from exc
+
+        put.undeclare = publisher.undeclare  # type: ignore[attr-defined]
+        return put
+
+    def subscribe(self, key: str, sink: Callable[[str, bytes], None]) -> Callable[[], None]:
+        """Hand each sample on ``key`` to ``sink(key, payload)`` (zenoh's thread: it may not
+        block); returns what ends the subscription."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            sink(str(sample.key_expr), sample.payload.to_bytes())
+
+        try:
+            subscriber = self.session.declare_subscriber(check_key(key), on_sample)
+        except zenoh.ZError as exc:
+            raise CommandError(f"cannot subscribe to {key[:200]!r}: {zenoh_reason(exc)}") from exc
+        return lambda: _quietly(subscriber.undeclare)
+
+    # -- gateways coming and going -----------------------------------------------------------
+
+    def on_gateway_gone(self, listener: Callable[[str], None]) -> Callable[[], None]:
+        """Call ``listener(gateway)`` (zenoh's thread) when a gateway's token goes; returns
+        what stops it."""
+        with self._lock:
+            self._gone_listeners.append(listener)
+
+        def stop() -> None:
+            with self._lock, contextlib.suppress(ValueError):
+                self._gone_listeners.remove(listener)
+
+        return stop
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        gateway = self.keys.gateway_of(str(sample.key_expr))
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.gateways_up.add(gateway)
+            return
+        self.gateways_up.discard(gateway)
+        with self._lock:
+            listeners = list(self._gone_listeners)
+        for listener in listeners:
+            listener(gateway)
+
+
+def _quietly(undeclare: Callable[[], None]) -> None:
+    with contextlib.suppress(zenoh.ZError):
+        undeclare()

@@ -1,0 +1,131 @@
+"""What a client of busgate can meet, as exceptions: one class per error code of the API,
+and the failures that happen on the client's side.
+
+Rules of this file:
+
+1. The root is busgate's one ``BusgateError`` (``busgate.codecs.errors``): a program catches
+   every failure of the SDK, the gateway's refusals included, with one ``except``.
+2. Every stable code of ``{"ok": false, "error": {"code": …}}`` (``schemas.api.ERROR_CODES``)
+   has its own subclass of ``GatewayError``, made from that list, so a code added to the API
+   has its class without an edit here; ``error_for(code)`` finds it. Each carries ``.code``
+   and ``.message``; ``ClaimedError`` also the ``.holder`` its message names.
+3. What fails before a gateway could answer has its own classes: ``ConnectError`` (no zenoh
+   session), ``NoAnswerError`` (nobody answered in time), ``AmbiguousError`` (a bare name that
+   several gateways have), ``ClaimLostError`` (a claim that lapsed under the client). No
+   ``zenoh.ZError`` reaches a user: the modules that call zenoh turn it into one of these.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from busgate.codecs.errors import BusgateError
+from busgate.schemas.api import ERROR_CODES
+
+
+class GatewayError(BusgateError):
+    """A gateway refused a command or failed to carry it out: ``code`` says why (stable),
+    ``message`` says it for people (it may change between versions)."""
+
+    code = "internal"
+
+    def __init__(self, message: str, *, gateway: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.gateway = gateway
+
+
+class ClaimedError(GatewayError):
+    """The device is claimed by another client, ``holder`` (``None`` if the message does not
+    name it)."""
+
+    code = "claimed"
+
+    def __init__(self, message: str, *, gateway: str | None = None) -> None:
+        super().__init__(message, gateway=gateway)
+        holder = re.search(r"claimed by '([A-Za-z0-9_-]+)'", message)
+        self.holder = holder.group(1) if holder else None
+
+
+def _class_name(code: str) -> str:
+    """``out_of_range`` → ``OutOfRangeError``."""
+    return "".join(part.capitalize() for part in code.split("_")) + "Error"
+
+
+def _error_classes() -> dict[str, type[GatewayError]]:
+    classes: dict[str, type[GatewayError]] = {"claimed": ClaimedError}
+    for code in ERROR_CODES:
+        if code not in classes:
+            doc = f"The gateway answered ``{code}``."
+            classes[code] = type(_class_name(code), (GatewayError,), {"code": code, "__doc__": doc})
+    return classes
+
+
+#: Each error code of the API and its class.
+ERROR_CLASSES: dict[str, type[GatewayError]] = _error_classes()
+globals().update({cls.__name__: cls for cls in ERROR_CLASSES.values()})
+
+
+def error_for(code: str) -> type[GatewayError]:
+    """The class of error ``code`` (``GatewayError`` itself for a code this version does not
+    know: a newer gateway's)."""
+    return ERROR_CLASSES.get(code, GatewayError)
+
+
+def raise_for(error: Any, *, gateway: str | None = None) -> None:
+    """Raise the error an ``{"ok": false}`` reply's ``error`` object describes."""
+    if not isinstance(error, dict):
+        raise GatewayError("the gateway's reply is not ok and carries no error", gateway=gateway)
+    code, message = str(error.get("code", "internal")), str(error.get("message", ""))
+    cls = error_for(code)
+    exc = cls(message, gateway=gateway)
+    if cls is GatewayError:
+        exc.code = code  # an unknown code is still told as it came
+    raise exc
+
+
+class ConnectError(BusgateError, ConnectionError):
+    """A zenoh session could not be opened: nothing listens at the endpoints, a bad endpoint
+    or config file, refused credentials (a client's) or a listen address in use (a gateway's)."""
+
+    code = "cannot_connect"
+
+
+class NoAnswerError(BusgateError, TimeoutError):
+    """Nobody answered in time: no gateway has the key, or it is down or cut off."""
+
+    code = "no_answer"
+
+
+class AmbiguousError(BusgateError, LookupError):
+    """A bare device or bus name that several gateways have: name the gateway
+    (``"gw1/la1"``). ``gateways`` lists them."""
+
+    code = "ambiguous"
+
+    def __init__(self, message: str, *, gateways: list[str]) -> None:
+        super().__init__(message)
+        self.gateways = gateways
+
+
+class ClaimLostError(BusgateError):
+    """A claim this client holds lapsed under it (its gateway went away or restarted, or a
+    renewal was refused): motion through it is refused until the client claims again."""
+
+    code = "claim_lost"
+
+
+__all__ = [
+    "ERROR_CLASSES",
+    "AmbiguousError",
+    "BusgateError",
+    "ClaimLostError",
+    "ClaimedError",
+    "ConnectError",
+    "GatewayError",
+    "NoAnswerError",
+    "error_for",
+    "raise_for",
+    *(cls.__name__ for cls in ERROR_CLASSES.values() if cls is not ClaimedError),
+]

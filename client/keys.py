@@ -1,0 +1,90 @@
+"""The key expressions of busgate's API, as a client names them, and the checks a key passes
+before zenoh sees it. The one place the SDK spells a key; the README's API section lists the
+same keys.
+
+>>> keys = Keys("busgate")
+>>> keys.device("gw1", "la1", "cmd"), keys.bus("*", "uart0", "cmd"), keys.estop("*")
+('busgate/gw1/dev/la1/cmd', 'busgate/*/bus/uart0/cmd', 'busgate/*/estop')
+>>> split_name("gw1/la1"), split_name("la1")
+(('gw1', 'la1'), (None, 'la1'))
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from busgate.codecs.errors import CommandError
+from busgate.schemas.base import CLIENT_ID_PATTERN
+
+#: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
+MAX_KEY_BYTES = 60 * 1024
+
+#: A gateway, device or bus name as the config allows it: one chunk of a key, no wildcard
+#: (the config's ``Name`` and a client id are the same pattern).
+_NAME = re.compile(CLIENT_ID_PATTERN)
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Every key of the API under one prefix."""
+
+    prefix: str = "busgate"
+
+    def device(self, gateway: str, device: str, leaf: str) -> str:
+        """``cmd``, ``follow``, ``state`` or ``event`` of a device."""
+        return f"{self.prefix}/{gateway}/dev/{device}/{leaf}"
+
+    def bus(self, gateway: str, bus: str, leaf: str) -> str:
+        """``cmd`` or ``stats`` of a bus."""
+        return f"{self.prefix}/{gateway}/bus/{bus}/{leaf}"
+
+    def info(self, gateway: str) -> str:
+        return f"{self.prefix}/{gateway}/info"
+
+    def estop(self, gateway: str) -> str:
+        return f"{self.prefix}/{gateway}/estop"
+
+    def events(self, gateway: str) -> str:
+        return f"{self.prefix}/{gateway}/events"
+
+    def alive(self, gateway: str) -> str:
+        """The liveliness token a gateway holds while it serves."""
+        return f"{self.prefix}/{gateway}/alive"
+
+    def client(self, client_id: str) -> str:
+        """The liveliness token a client holds: its claims and streams last as long as it."""
+        return f"{self.prefix}/clients/{client_id}"
+
+    def gateway_of(self, key: str) -> str:
+        """The gateway chunk of a key under this prefix."""
+        return key[len(self.prefix) + 1 :].split("/", 1)[0]
+
+
+def check_name(what: str, name: str) -> str:
+    """``name`` when it is one chunk of a key as the config allows names; else ``CommandError``
+    (a ``*`` or ``/`` in a device name would address others than meant)."""
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise CommandError(f"not a {what} name: {str(name)[:80]!r} (1-64 of A-Z a-z 0-9 _ -)")
+    return name
+
+
+def split_name(name: str) -> tuple[str | None, str]:
+    """``"gw1/la1"`` → ``("gw1", "la1")``; a bare ``"la1"`` names no gateway."""
+    if not isinstance(name, str):
+        raise CommandError(f"a name is a string, not {type(name).__name__}")
+    gateway, _, leaf = name.rpartition("/")
+    if not gateway:
+        return None, check_name("device or bus", leaf)
+    return check_name("gateway", gateway), check_name("device or bus", leaf)
+
+
+def check_key(text: str) -> str:
+    """``text`` when it can be sent as a key: ``CommandError`` when it is too long for a zenoh
+    message (zenoh's own checks follow where the key is used)."""
+    size = len(text.encode())
+    if size > MAX_KEY_BYTES:
+        raise CommandError(
+            f"a key expression of {size} bytes: at most {MAX_KEY_BYTES} fit in a zenoh message"
+        )
+    return text

@@ -1,0 +1,270 @@
+"""The SDK's blocking face: ``connect`` → ``Client`` → ``Device`` and ``Bus``.
+
+Each method sends through the shared core (``base.py``, ``core.py``) and waits for its future
+with a timeout; every wait names what it waited for when nobody answers. Safe to use from
+several threads at once (the core is; a ``Follow`` belongs to the thread that opened it).
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from busgate.client.base import WAIT_MARGIN_S, Found, Shared, as_body, reenable_command
+from busgate.client.claims import ClaimLease
+from busgate.client.core import Core
+from busgate.client.errors import NoAnswerError
+from busgate.client.feeds import Latest, Stream
+
+DEFAULT_TIMEOUT_S = 5.0
+
+
+def wait(future: Future, timeout_s: float, what: str) -> Any:
+    """The future's result (or its exception, raised), waiting at most ``timeout_s`` plus
+    the margin zenoh may take to settle it."""
+    try:
+        return future.result(timeout_s + WAIT_MARGIN_S)
+    except FutureTimeout:
+        future.cancel()
+        raise NoAnswerError(f"{what}: no answer within {timeout_s:g} s") from None
+
+
+def connect(
+    endpoints: Sequence[str] | str = "tcp/127.0.0.1:7447",
+    *,
+    client_id: str,
+    prefix: str = "busgate",
+    mode: str = "client",
+    lease_s: float = 1.0,
+    timeout: float = DEFAULT_TIMEOUT_S,
+    config_file: str | Path | None = None,
+    username: str | None = None,
+    password: str | None = None,
+    ca: str | Path | None = None,
+) -> Client:
+    """A client of every gateway reachable through ``endpoints`` (a zenoh router, or a
+    gateway's own listen endpoint), as ``client_id``; use it as a context manager, or
+    ``close`` it. ``lease_s``: how soon gateways give up on this client when it freezes or
+    is cut off (its claims and streams go with it). ``timeout``: the default wait of every
+    command. ``ConnectError`` when no session can be opened."""
+    core = Core(
+        endpoints,
+        client_id=client_id,
+        prefix=prefix,
+        mode=mode,
+        lease_s=lease_s,
+        timeout_s=timeout,
+        config_file=config_file,
+        username=username,
+        password=password,
+        ca=ca,
+    )
+    return Client(Shared(core))
+
+
+class Client:
+    """One program's connection to a fleet of gateways."""
+
+    def __init__(self, shared: Shared) -> None:
+        self._shared = shared
+        self.client_id = shared.core.client_id
+        self.timeout = shared.core.timeout_s
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release nothing explicitly (claims and streams end with the liveliness token the
+        session holds) and close the session."""
+        self._shared.close()
+
+    def gateways(self, timeout: float = 1.0) -> dict[str, dict[str, Any]]:
+        """Every gateway that answers ``info`` within ``timeout``: its info, by name."""
+        return wait(self._shared.infos(None, timeout), timeout, "info of the gateways")
+
+    def device(self, name: str, *, timeout: float | None = None) -> Device:
+        """The device ``name``: ``"gw/la1"``, or a bare ``"la1"`` that one gateway has."""
+        waited = self.timeout if timeout is None else timeout
+        found = wait(self._shared.find(name, "device", waited), waited, f"finding {name}")
+        return Device(self._shared, found)
+
+    def bus(self, name: str, *, timeout: float | None = None) -> Bus:
+        """The bus ``name``: ``"gw/uart0"``, or a bare ``"uart0"`` that one gateway has."""
+        waited = self.timeout if timeout is None else timeout
+        found = wait(self._shared.find(name, "bus", waited), waited, f"finding bus {name}")
+        return Bus(self._shared, found)
+
+    def estop(self, gateway: str | None = None) -> None:
+        """Stop every device of ``gateway``, or of every gateway (``None``); never refused.
+        Devices stay e-stopped until each is enabled again (``Device.enable``)."""
+        self._shared.estop(gateway)
+
+
+class Device:
+    """One device of one gateway."""
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared = shared
+        self._found = found
+        self.name, self.gateway, self.kind = found.name, found.gateway, found.kind
+        self._latest: Latest | None = None
+
+    def __repr__(self) -> str:
+        return f"<Device {self.gateway}/{self.name} ({self.kind})>"
+
+    def send(self, command: Any, *, timeout: float | None = None) -> dict[str, Any]:
+        """Send a command (a dict, or a model of ``busgate.schemas``); the reply's body, or
+        the error it carries raised as its class (``bc.error_for(code)``)."""
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        sent = self._shared.send(self._found, command, waited)
+        return wait(sent, waited, f"{as_body(command).get('op')} on {self.gateway}/{self.name}")
+
+    def move(self, position: int, **fields: Any) -> dict[str, Any]:
+        """Move to ``position`` (the kind's units); ``fields`` add to the ``move`` op."""
+        return self.send({"op": "move", "position": position, **fields})
+
+    def velocity(self, rpm: float) -> dict[str, Any]:
+        """Turn at ``rpm`` (a ZLAC706 in velocity mode)."""
+        return self.send({"op": "velocity", "rpm": rpm})
+
+    def enable(self) -> dict[str, Any]:
+        """Let the device move again after an e-stop (its kind's re-enable command)."""
+        return self.send(reenable_command(self.kind))
+
+    def state(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Any:
+        """The device's latest telemetry, as its kind's model: one received in the last
+        ``max_age`` seconds, else the next to come within ``timeout``."""
+        if self._latest is None:
+            self._latest = Latest(self._shared, self._found)
+        payload = self._latest.wait(max_age, timeout)
+        if payload is None:
+            raise NoAnswerError(f"no state of {self.gateway}/{self.name} within {timeout:g} s")
+        return self._shared.telemetry(self._found, payload)
+
+    def states(self, timeout: float = 5.0) -> Iterator[Any]:
+        """Each new state message of the device, as it comes, until ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        items: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        with Stream(self._shared, self._found, items.put):
+            while (left := deadline - time.monotonic()) > 0:
+                try:
+                    payload = items.get(timeout=left)
+                except queue.Empty:
+                    return
+                yield self._shared.telemetry(self._found, payload)
+
+    def claim(self, ttl_s: float = 2.0) -> Claim:
+        """Exclusive motion control while the ``with`` block runs: claimed on entry,
+        renewed before ``ttl_s`` lapses, released on exit (``ClaimLostError`` on exit, and on
+        any motion meanwhile, if it was lost)."""
+        return Claim(self._shared, self._found, ttl_s)
+
+    def follow(self) -> Follow:
+        """A follow stream while the ``with`` block runs: ``set(position=…)`` (``rpm=…``
+        for a ZLAC706); the latest target is sent at the device's period; the stream ends
+        (``end_follow``) when the block exits."""
+        return Follow(self._shared, self._found)
+
+
+class Claim:
+    """A claim held by a ``with`` block (``Device.claim``)."""
+
+    def __init__(self, shared: Shared, found: Found, ttl_s: float) -> None:
+        self._shared, self._found, self.ttl_s = shared, found, ttl_s
+        self._lease: ClaimLease | None = None
+
+    @property
+    def lost(self) -> str | None:
+        """Why the claim was lost, or ``None`` while it holds."""
+        return None if self._lease is None else self._lease.lost
+
+    def __enter__(self) -> Claim:
+        lease = self._shared.claim(self._found, self.ttl_s)
+        timeout = self._shared.core.timeout_s
+        try:
+            wait(lease.take(), timeout, f"claim of {self._found.gateway}/{self._found.name}")
+        except BaseException:
+            self._shared.unclaim(lease)
+            raise
+        self._lease = lease
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        lease, self._lease = self._lease, None
+        assert lease is not None
+        released = self._shared.unclaim(lease)
+        if released is not None:
+            try:
+                wait(released, self._shared.core.timeout_s, f"release of {lease.device}")
+            except Exception:
+                if kind is None:
+                    raise
+        elif kind is None:
+            lease.check()
+
+
+class Follow:
+    """A follow stream held by a ``with`` block (``Device.follow``)."""
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared, self._found = shared, found
+        self._put: Any = None
+
+    def __enter__(self) -> Follow:
+        self._put = self._shared.follow_put(self._found)
+        return self
+
+    def set(self, **target: Any) -> None:
+        """The stream's new target (latest wins): ``position=…``, or ``rpm=…``."""
+        if self._put is None:
+            raise RuntimeError("set() outside the follow stream's with block")
+        self._put(target)
+
+    def __exit__(self, kind: object, exc: object, tb: object) -> None:
+        put, self._put = self._put, None
+        try:
+            ended = self._shared.end_follow(self._found, None)
+            wait(ended, self._shared.core.timeout_s, f"end of the stream of {self._found.name}")
+        except Exception:
+            if kind is None:
+                raise
+        finally:
+            put.undeclare()
+
+
+class Bus:
+    """One bus of one gateway: its group moves and scans."""
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared = shared
+        self.name, self.gateway, self.protocol = found.name, found.gateway, found.kind
+
+    def __repr__(self) -> str:
+        return f"<Bus {self.gateway}/{self.name} ({self.protocol})>"
+
+    def send(self, command: dict[str, Any], *, timeout: float | None = None) -> dict[str, Any]:
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        key = self._shared.core.keys.bus(self.gateway, self.name, "cmd")
+        sent = self._shared.core.command(key, command, timeout_s=waited)
+        return wait(sent, waited, f"{command.get('op')} on bus {self.gateway}/{self.name}")
+
+    def group_move(self, targets: list[dict[str, Any]], **options: Any) -> dict[str, Any]:
+        """Start several devices of the bus together: ``[{"device": "la1", "position": 100},
+        …]`` (``time_ms`` per target on a DS bus)."""
+        return self.send({"op": "group_move", "targets": targets}, **options)
+
+    def scan(self, ids: list[int] | None = None, *, timeout: float | None = None) -> list[Any]:
+        """Which ids answer on the bus, and as what."""
+        command: dict[str, Any] = {"op": "scan"} | ({} if ids is None else {"ids": ids})
+        return self.send(command, timeout=timeout)["found"]
