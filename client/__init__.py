@@ -21,8 +21,20 @@ exchange as a future), ``base`` (what both faces share), ``sync`` and ``aio`` (t
 from __future__ import annotations
 
 from busgate.client import aio
+from busgate.client.core import Answer, Answers
 from busgate.client.errors import *  # noqa: F403 - one class per error code, made from the list
 from busgate.client.errors import __all__ as _error_names
 from busgate.client.sync import Bus, Claim, Client, Device, Follow, connect
 
-__all__ = ["Bus", "Claim", "Client", "Device", "Follow", "aio", "connect", *_error_names]
+__all__ = [
+    "Answer",
+    "Answers",
+    "Bus",
+    "Claim",
+    "Client",
+    "Device",
+    "Follow",
+    "aio",
+    "connect",
+    *_error_names,
+]

@@ -6,6 +6,7 @@ waits (``sync.py``) or awaits (``aio.py``), so the two cannot drift apart.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -94,6 +95,13 @@ def as_body(command: Any) -> dict[str, Any]:
     raise CommandError(f"a command is a dict or a busgate.schemas model, not {type(command)}")
 
 
+def raw_payload(payload: bytes | str | dict[str, Any] | None) -> bytes | None:
+    """A raw query's or put's payload: bytes and text as given, a dict as JSON."""
+    if payload is None or isinstance(payload, bytes):
+        return payload
+    return payload.encode() if isinstance(payload, str) else dumps(payload)
+
+
 def reenable_command(kind: str) -> dict[str, Any]:
     """The command that lets a device of ``kind`` move again after an e-stop."""
     return dict(FAMILIES[kind].schema.REENABLE_COMMAND)
@@ -180,10 +188,26 @@ class Shared:
     def end_follow(self, device: Found, timeout_s: float | None) -> Future:
         return self.send(device, {"op": "end_follow"}, timeout_s)
 
-    # -- gateways -----------------------------------------------------------------------------
+    # -- gateways and raw keys ------------------------------------------------------------------
+
+    def query(self, key: str, payload: Any, timeout_s: float) -> Future:
+        """Every answer to a get on any key expression, the payload as given."""
+        return self.core.ask(key, raw_payload(payload), timeout_s=timeout_s)
+
+    def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
+        """``callback(key, body)`` for each sample on ``key`` (zenoh's thread: it may not
+        block); ``body`` is the sample's JSON, or ``None`` when it is not JSON."""
+
+        def sink(sample_key: str, payload: bytes) -> None:
+            try:
+                body = json.loads(payload)
+            except ValueError:
+                body = None
+            callback(sample_key, body)
+
+        return self.core.subscribe(key, sink)
 
     def estop(self, gateway: str | None) -> None:
         """E-stop one gateway, or every gateway of the fleet (``None``)."""
-        self.core.put(
-            self.core.keys.estop(gateway or "*"), {"client": self.core.client_id}, urgent=True
-        )
+        body = {"client": self.core.client_id}
+        self.core.put(self.core.keys.estop(gateway or "*"), dumps(body), urgent=True)

@@ -76,6 +76,13 @@ def answer_of(reply: zenoh.Reply) -> Answer | None:
     return Answer(str(getattr(answer, "key_expr", "")), body, ok)
 
 
+class Answers(list[Answer]):
+    """Every answer to one query; ``timed_out``: zenoh ended it at its timeout (a queryable
+    had not answered), not because every one had."""
+
+    timed_out = False
+
+
 def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str | None) -> Any:
     """The body of the first ok answer; the error of the first other one; ``NoAnswerError``
     when there is none."""
@@ -168,23 +175,26 @@ class Core:
 
     # -- exchanges ---------------------------------------------------------------------------
 
-    def ask(self, key: str, body: Any = None, *, timeout_s: float | None = None) -> Future:
-        """A query on ``key`` (with ``body`` as JSON): a future of every ``Answer``, settled
-        when zenoh says the query is over (all answered, or the timeout)."""
+    def ask(
+        self, key: str, payload: bytes | None = None, *, timeout_s: float | None = None
+    ) -> Future:
+        """A query on ``key`` (with ``payload``): a future of every ``Answer``, settled when
+        zenoh says the query is over (all answered, or the timeout)."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        answers: list[Answer] = []
+        answers = Answers()
         finished: Future = Future()
 
         def on_reply(reply: zenoh.Reply) -> None:
             answer = answer_of(reply)
-            if answer is not None:
+            if answer is None:
+                answers.timed_out = True
+            else:
                 answers.append(answer)
 
         def on_end() -> None:
             with contextlib.suppress(InvalidStateError):
                 finished.set_result(answers)
 
-        payload = None if body is None else dumps(body)
         try:
             self.session.get(
                 check_key(key),
@@ -206,10 +216,10 @@ class Core:
             )
         waited = self.timeout_s if timeout_s is None else timeout_s
         gateway = self.keys.gateway_of(key)
-        asked = self.ask(key, {**body, "client": self.client_id}, timeout_s=waited)
+        asked = self.ask(key, dumps({**body, "client": self.client_id}), timeout_s=waited)
         return then(asked, lambda answers: first_ok(answers, key, waited, gateway))
 
-    def put(self, key: str, body: Any, *, urgent: bool = False) -> None:
+    def put(self, key: str, payload: bytes, *, urgent: bool = False) -> None:
         """Fire and forget; ``urgent`` (an e-stop) goes first and is never dropped."""
         options: dict[str, Any] = {}
         if urgent:
@@ -219,7 +229,7 @@ class Core:
                 "express": True,
             }
         try:
-            self.session.put(check_key(key), dumps(body), **options)
+            self.session.put(check_key(key), payload, **options)
         except zenoh.ZError as exc:
             raise CommandError(f"cannot put on {key[:200]!r}: {zenoh_reason(exc)}") from exc
 

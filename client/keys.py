@@ -1,6 +1,6 @@
 """The key expressions of busgate's API, as a client names them, and the checks a key passes
-before zenoh sees it. The one place the SDK spells a key; the README's API section lists the
-same keys.
+before a session uses it (zenoh's own parser, without a session). The one place the SDK
+spells a key; the README's API section lists the same keys.
 
 >>> keys = Keys("busgate")
 >>> keys.device("gw1", "la1", "cmd"), keys.bus("*", "uart0", "cmd"), keys.estop("*")
@@ -14,6 +14,9 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+import zenoh
+
+from busgate.client.zenoh_config import zenoh_reason
 from busgate.codecs.errors import CommandError
 from busgate.schemas.base import CLIENT_ID_PATTERN
 
@@ -80,11 +83,24 @@ def split_name(name: str) -> tuple[str | None, str]:
 
 
 def check_key(text: str) -> str:
-    """``text`` when it can be sent as a key: ``CommandError`` when it is too long for a zenoh
-    message (zenoh's own checks follow where the key is used)."""
+    """``text`` when zenoh takes it as a key expression; ``CommandError`` (one line) when zenoh
+    would refuse it, or it is too long for a zenoh message (the session would panic)."""
     size = len(text.encode())
     if size > MAX_KEY_BYTES:
         raise CommandError(
             f"a key expression of {size} bytes: at most {MAX_KEY_BYTES} fit in a zenoh message"
         )
+    try:
+        zenoh.KeyExpr(text)
+    except zenoh.ZError as exc:
+        raise CommandError(f"not a key expression: {text[:200]!r} ({zenoh_reason(exc)})") from exc
     return text
+
+
+def intersects(selector: str, key: str) -> bool:
+    """Whether the key expression ``selector`` matches ``key`` (both checked already).
+
+    >>> intersects("busgate/gw1/**", "busgate/gw1/dev/la1/state"), intersects("a/*", "b/c")
+    (True, False)
+    """
+    return zenoh.KeyExpr(selector).intersects(zenoh.KeyExpr(key))

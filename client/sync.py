@@ -9,16 +9,23 @@ from __future__ import annotations
 
 import queue
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from busgate.client.base import WAIT_MARGIN_S, Found, Shared, as_body, reenable_command
+from busgate.client.base import (
+    WAIT_MARGIN_S,
+    Found,
+    Shared,
+    as_body,
+    raw_payload,
+    reenable_command,
+)
 from busgate.client.claims import ClaimLease
-from busgate.client.core import Core
+from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 
@@ -107,6 +114,24 @@ class Client:
         """Stop every device of ``gateway``, or of every gateway (``None``); never refused.
         Devices stay e-stopped until each is enabled again (``Device.enable``)."""
         self._shared.estop(gateway)
+
+    # -- raw keys (the command-line tools', and anything the typed surface lacks) ---------------
+
+    def query(self, key: str, payload: Any = None, *, timeout: float | None = None) -> Answers:
+        """Every answer to a get on the key expression ``key``, as it came (nothing added to
+        the payload, no error raised for an error reply): bytes or text as given, a dict as
+        JSON. ``.timed_out`` says zenoh stopped waiting for a queryable."""
+        waited = self.timeout if timeout is None else timeout
+        return wait(self._shared.query(key, payload, waited), waited, f"query on {key}")
+
+    def put(self, key: str, payload: Any) -> None:
+        """A put on ``key`` (bytes or text as given, a dict as JSON)."""
+        self._shared.core.put(key, raw_payload(payload) or b"")
+
+    def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
+        """``callback(key, body)`` for every sample on ``key``, on zenoh's thread (it must not
+        block: hand over and return); returns what ends the subscription."""
+        return self._shared.subscribe(key, callback)
 
 
 class Device:

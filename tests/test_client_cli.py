@@ -35,13 +35,15 @@ PUBLISH_EVERY_S = 0.05
 
 def la1_state() -> dict:
     return {"ts": time.monotonic(), "device": "la1", "kind": "inspire_la", "online": True,
-            "last_reply_age_s": 0.01, "stale": False, "position": 1000, "target": 1500,
+            "last_reply_age_s": 0.01, "stale": False, "estopped": False, "enabled": True,
+            "position": 1000, "target": 1500,
             "temperature_c": 31, "current_ma": 120, "force_g": 10, "faults": []}
 
 
 def wheel_state() -> dict:
     return {"ts": time.monotonic(), "device": "wheel", "kind": "zlac706", "online": True,
-            "stale": True, "mode": "velocity", "speed_rpm": 12.5, "target_speed_rpm": 20.0,
+            "stale": True, "estopped": True, "enabled": False, "mode": "velocity",
+            "speed_rpm": 12.5, "target_speed_rpm": 20.0,
             "current_ma": 800, "faults": ["overvoltage"]}
 
 
@@ -52,7 +54,8 @@ def ds1_state() -> dict:
 
 def uart0_stats(uptime_s: float) -> dict:
     return {"ts": time.time(), "bus": "uart0", "frames_out": int(100 * uptime_s),
-            "frames_in": int(100 * uptime_s), "timeouts": 3, "utilisation": 0.25,
+            "frames_in": int(100 * uptime_s), "timeouts": 3, "checksum_errors": 4,
+            "reconnects": 1, "utilisation": 0.25,
             "smallest_gap_s": 0.0005, "uptime_s": uptime_s}
 
 
@@ -307,18 +310,20 @@ def test_watch_once_shows_every_device_and_bus(stand_in, capsys):
     out, _ = capsys.readouterr()
     assert status == 0
     lines = out.splitlines()
-    assert lines[0].split() == ["GATEWAY", "DEVICE", "KIND", "ONLINE", "STALE", "MOTION",
-                                "TEMP_C", "CURRENT_MA", "FAULTS", "AGE"]
+    assert lines[0].split() == ["GATEWAY", "DEVICE", "KIND", "ONLINE", "STALE", "POWER",
+                                "MOTION", "TEMP_C", "CURRENT_MA", "FAULTS", "AGE"]
     rows = {line.split()[1]: line.split() for line in lines[1:4]}
-    assert rows["la1"][:9] == ["gwtest", "la1", "inspire_la", "yes", "-", "1000", "->", "1500",
-                               "31"]
-    assert rows["wheel"][:11] == ["gwtest", "wheel", "zlac706", "yes", "STALE", "12.5", "rpm",
-                                  "->", "20.0", "-", "800"]
+    assert rows["la1"][:10] == ["gwtest", "la1", "inspire_la", "yes", "-", "enabled", "1000",
+                                "->", "1500", "31"]
+    assert rows["wheel"][:12] == ["gwtest", "wheel", "zlac706", "yes", "STALE", "e-stopped",
+                                  "12.5", "rpm", "->", "20.0", "-", "800"]
     assert "overvoltage" in rows["wheel"]
-    assert rows["ds1"][:6] == ["gwtwo", "ds1", "ds_servo", "NO", "-", "-"]
+    assert rows["ds1"][:7] == ["gwtwo", "ds1", "ds_servo", "NO", "-", "-", "-"]
+    assert lines[5].split() == ["GATEWAY", "BUS", "UTILISATION", "FRAMES_S", "TIMEOUTS",
+                                "CHECKSUM_ERRORS", "RECONNECTS", "SMALLEST_GAP", "AGE"]
     bus = next(line for line in lines if line.startswith("gwtest") and "uart0" in line).split()
     assert bus[:3] == ["gwtest", "uart0", "25%"]
-    assert bus[4:7] == ["3", "0.50", "ms"]
+    assert bus[4:9] == ["3", "4", "1", "0.50", "ms"]
     assert 150 < float(bus[3]) < 250  # frames/s between samples: 2 × 100 per second of uptime
 
 
@@ -358,8 +363,8 @@ def test_watch_without_a_tty_prints_one_line_per_updated_row(stand_in, capsys):
     la1 = [line for line in lines if "device=la1 " in line]
     assert len(la1) >= 2  # once per refresh while it keeps publishing, not once per sample
     assert len(la1) <= 0.7 * client_cli.REDRAW_HZ + 1
-    assert "gateway=gwtest device=la1 kind=inspire_la online=yes stale=- motion=1000->1500" \
-        in la1[0]
+    assert ("gateway=gwtest device=la1 kind=inspire_la online=yes stale=- power=enabled "
+            "motion=1000->1500") in la1[0]
     assert any("bus=uart0 utilisation=25%" in line for line in lines)
 
 
@@ -407,6 +412,16 @@ def test_frames_per_second_come_from_consecutive_statistics():
     assert line[-1] == "0.5s"
 
 
+def test_age_is_of_the_reading_and_power_says_e_stopped_first():
+    """AGE: the device's last reply as of the state's arrival, plus the time since; a state
+    that repeats a reading does not make it young."""
+    table = WatchTable()
+    state = {**la1_state(), "last_reply_age_s": 2.0, "estopped": True, "enabled": True}
+    table.update_state("p/gw/dev/la1/state", state, 10.0)
+    cells = table.render(10.5)[1].split()
+    assert cells[4] == "e-stopped" and cells[-1] == "2.5s"
+
+
 def test_info_seeds_rows_for_devices_not_heard_from_yet():
     table = WatchTable()
     info = {"ok": True, "gateway": "gw1", "version": "0.1.0", "buses": [
@@ -415,9 +430,9 @@ def test_info_seeds_rows_for_devices_not_heard_from_yet():
             {"name": "la2", "kind": "inspire_la", "id": 2, "state": None}]}]}
     table.seed(info, lambda key: "la2" not in key)
     lines = table.render(0.0)
-    assert lines[1].split() == ["la1", "inspire_la", "NO", "-", "-", "-", "-", "-", "-"]
+    assert lines[1].split() == ["la1", "inspire_la", "NO", "-", "-", "-", "-", "-", "-", "-"]
     assert lines[2] == ""
-    assert lines[4].split() == ["uart0", "-", "-", "-", "-", "-"]
+    assert lines[4].split() == ["uart0", "-", "-", "-", "-", "-", "-", "-"]
 
 
 def test_session_config_lays_busgate_settings_over_a_zenoh_file(tmp_path):

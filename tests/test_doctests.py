@@ -13,11 +13,15 @@ import pkgutil
 
 import pytest
 
+import busgate.client
 import busgate.codecs
 import busgate.gateway
 import busgate.schemas
 
 DOCTEST_MODULES = [
+    "busgate.client",
+    "busgate.client.keys",
+    "busgate.client.zenoh_config",
     "busgate.codecs.can_frame",
     "busgate.codecs.ds_servo.decoder",
     "busgate.codecs.ds_servo.encoder",
@@ -38,7 +42,6 @@ DOCTEST_MODULES = [
     "busgate.codecs.zlac706_rs232.encoder",
     "busgate.codecs.zlac706_rs232.monitor",
     "busgate.codecs.zlac706_rs232.registers",
-    "busgate.client.zenoh_config",
     "busgate.gateway.bus.port_access",
     "busgate.gateway.bus.stats",
     "busgate.gateway.cli.client",
@@ -53,7 +56,7 @@ DOCTEST_MODULES = [
 
 def _modules() -> list[str]:
     names = []
-    for package in (busgate.codecs, busgate.schemas, busgate.gateway):
+    for package in (busgate.client, busgate.codecs, busgate.schemas, busgate.gateway):
         names.append(package.__name__)
         for info in pkgutil.walk_packages(package.__path__, prefix=package.__name__ + "."):
             if not info.name.endswith(".__main__"):  # importing it runs the command

@@ -1,25 +1,21 @@
-"""``busgate send`` and ``busgate watch``: a client's view of gateways, over zenoh.
-
-One of the modules that import ``zenoh`` (with ``client_session.py``, how these commands open
-their session, ``bridge.py``, the daemon's side, and ``zenoh_config.py``, the session settings
-both sides share). These are clients of the public API — the key expressions and the JSON
-envelope the README describes — and know nothing of buses or drivers.
+"""``busgate send`` and ``busgate watch``: a client's view of gateways, built on
+``busgate.client`` (the SDK's raw keys: these tools take any key expression, and print what
+comes back as it came).
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
-``cmd`` key. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error
-or, for a bare device name, when gateways answer (their ``info``) but none has the device
-(``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks unanswered),
-2 when nobody answered (or the session could not be opened).
+``cmd`` key, the payload as given (the gateway judges it). Exit status 0 when every reply has
+``"ok": true``, 1 when any reply is an error or, for a bare device name, when gateways answer
+(their ``info``) but none has the device (``unknown_device``: a gateway leaves a fleet-wide
+command for a device it lacks unanswered), 2 when nobody answered (or no session opened).
 
 watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
 each (``watch_table.py``), and redraws a table at most ``REDRAW_HZ`` times a second. Rules:
-zenoh callbacks only parse and store under a lock (one slow callback would stall every other
-one); all printing happens on the main thread; the session is closed in ``finally`` (a session
-with callback subscribers left open hangs the process at exit); while watching, Ctrl-C only
-sets an event the main thread waits on, never raises wherever that thread happens to be (a
-``with`` block is not safe from an asynchronous ``KeyboardInterrupt``: one that lands as the
-table's lock is taken leaves it held, and a zenoh callback waiting for it holds the session's
-close up; under a loaded host a watch ended by Ctrl-C hung past 30 s).
+the SDK's callbacks (zenoh's threads) only store under a lock; all printing happens on the
+main thread; the client is closed in ``finally``; while watching, Ctrl-C only sets an event
+the main thread waits on, never raises wherever that thread happens to be (a ``with`` block
+is not safe from an asynchronous ``KeyboardInterrupt``: one that lands as the table's lock is
+taken leaves it held, and a callback waiting for it holds the session's close up; under a
+loaded host a watch ended by Ctrl-C hung past 30 s).
 """
 
 from __future__ import annotations
@@ -34,15 +30,13 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TextIO
 
-import zenoh
-
-from busgate.gateway.cli.client_session import add_session_options, client_session, key_expr
+import busgate.client as bc
+from busgate.client.keys import check_key, intersects
+from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 
 REDRAW_HZ = 5
 NO_ANSWER, ERROR_REPLY = 2, 1
-#: The payload of zenoh's own error reply when a queryable did not finish in time.
-ZENOH_TIMEOUT = b"Timeout"
 
 
 # -- the command line -----------------------------------------------------------------------
@@ -120,52 +114,38 @@ def command_key(prefix: str, target: str) -> str:
 
 
 def run_send(args: argparse.Namespace) -> int:
-    key = str(key_expr(command_key(args.prefix, args.target)))
+    key = check_key(command_key(args.prefix, args.target))
     payload = args.command.encode()
-    with client_session(args) as session:
+    with open_client(args, "send") as client:
         if args.put:
-            session.put(key, payload)
+            client.put(key, payload)
             return 0
-        replies = list(
-            session.get(
-                key,
-                payload=payload,
-                timeout=args.timeout,
-                consolidation=zenoh.ConsolidationMode.NONE,
-            )
-        )
-        outcomes = [outcome for reply in replies if (outcome := reply_outcome(reply)) is not None]
+        answers = client.query(key, payload, timeout=args.timeout)
+        outcomes = list(answers)
         bare_name = "/" not in args.target
         if bare_name:
             outcomes = _from_gateways_that_have_it(outcomes)
         gateways = (
-            gateway_devices(session, args.prefix, args.timeout)
-            if bare_name and not outcomes
-            else {}
+            gateway_devices(client.gateways(args.timeout)) if bare_name and not outcomes else {}
         )
     if not outcomes:
-        return _no_reply(
-            args.target,
-            key,
-            gateways,
-            waited=args.timeout if any(map(_is_zenoh_timeout, replies)) else None,
-        )
+        waited = args.timeout if answers.timed_out else None
+        return _no_reply(args.target, key, gateways, waited=waited)
     status = 0
-    for body, error in outcomes:
-        print(json.dumps(body, indent=2 if args.pretty else None, ensure_ascii=False))
-        if error is not None:
-            print(f"busgate send: {error[0]}: {error[1]}", file=sys.stderr)
+    for answer in outcomes:
+        print(json.dumps(answer.body, indent=2 if args.pretty else None, ensure_ascii=False))
+        if not answer.ok:
+            error = answer.error
+            print(f"busgate send: {error.get('code')}: {error.get('message')}", file=sys.stderr)
             status = ERROR_REPLY
     return status
 
 
-def _from_gateways_that_have_it(outcomes: list) -> list:
+def _from_gateways_that_have_it(answers: list[bc.Answer]) -> list[bc.Answer]:
     """A bare device name asks every gateway; those without the device answer
     ``unknown_device``. Their replies matter only when no gateway has it."""
-    known = [
-        (body, error) for body, error in outcomes if error is None or error[0] != "unknown_device"
-    ]
-    return known or outcomes
+    known = [a for a in answers if a.ok or a.error.get("code") != "unknown_device"]
+    return known or answers
 
 
 def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: float | None) -> int:
@@ -183,63 +163,16 @@ def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: f
     return NO_ANSWER
 
 
-def gateway_devices(session: zenoh.Session, prefix: str, timeout: float) -> dict[str, set[str]]:
-    """The devices of each gateway answering ``<prefix>/*/info``, by gateway name."""
-    found: dict[str, set[str]] = {}
-    for reply in session.get(
-        f"{prefix}/*/info", timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE
-    ):
-        info = _info_of(reply)
-        if info is not None:
-            found[str(info.get("gateway", "?"))] = {
-                str(device.get("name"))
-                for bus in info.get("buses", [])
-                for device in bus.get("devices", [])
-            }
-    return found
-
-
-def _info_of(reply: zenoh.Reply) -> dict[str, Any] | None:
-    """An ok ``info`` reply's body, else ``None``."""
-    if reply.ok is None:
-        return None
-    try:
-        info = json.loads(reply.ok.payload.to_bytes())
-    except ValueError:
-        return None
-    return info if isinstance(info, dict) and info.get("ok") is True else None
-
-
-def _is_zenoh_timeout(reply: zenoh.Reply) -> bool:
-    """zenoh's own error reply when a queryable did not finish before the get's timeout."""
-    return (
-        reply.ok is None and reply.err is not None and reply.err.payload.to_bytes() == ZENOH_TIMEOUT
-    )
-
-
-def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
-    """A reply's JSON and its (code, message) when it is an error; ``None`` for zenoh's timeout."""
-    if _is_zenoh_timeout(reply):
-        return None
-    sample, error = reply.ok, reply.err
-    answer = sample if sample is not None else error
-    assert answer is not None  # a zenoh reply carries a sample or an error
-    raw = answer.payload.to_bytes()
-    try:
-        body = json.loads(raw)
-    except ValueError:
-        text = raw.decode(errors="replace")
-        return text, ("not_json", f"the reply is not JSON: {text[:200]}")
-    if isinstance(body, dict) and body.get("ok") is True and sample is not None:
-        return body, None
-    return body, _error_of(body)
-
-
-def _error_of(body: Any) -> tuple[str, str]:
-    error = body.get("error") if isinstance(body, dict) else None
-    if isinstance(error, dict):
-        return str(error.get("code", "unknown")), str(error.get("message", ""))
-    return "bad_reply", "the reply is not an ok reply and carries no error"
+def gateway_devices(infos: dict[str, dict[str, Any]]) -> dict[str, set[str]]:
+    """The devices of each gateway, from their ``info``."""
+    return {
+        gateway: {
+            str(device.get("name"))
+            for bus in info.get("buses", [])
+            for device in bus.get("devices", [])
+        }
+        for gateway, info in infos.items()
+    }
 
 
 # -- watch ----------------------------------------------------------------------------------
@@ -266,13 +199,15 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
 
 def run_watch(args: argparse.Namespace) -> int:
     state_key, stats_key, selector = watch_keys(args.prefix, args.selector)
-    wanted = key_expr(selector)
+    check_key(selector)
     table = WatchTable()
     seconds = args.seconds if args.seconds is not None else (1.5 if args.once else None)
-    with client_session(args) as session:
-        _held = _subscribe(session, table, wanted, state_key, stats_key)  # until the close
+    with open_client(args, "watch") as client:
+        _subscribe(client, table, selector, state_key, stats_key)  # until the close
         gateway = state_key.split("/")[-4]
-        session.get(f"{args.prefix}/{gateway}/info", _on_reply(table, wanted), timeout=1.0)
+        for info in client.gateways(1.0).values():
+            if gateway in ("*", info.get("gateway")):
+                table.seed(info, lambda key: intersects(selector, f"{args.prefix}/{key}"))
         if args.once:
             _wait(seconds)
         else:
@@ -286,35 +221,17 @@ def run_watch(args: argparse.Namespace) -> int:
 
 
 def _subscribe(
-    session: zenoh.Session, table: WatchTable, wanted: zenoh.KeyExpr, state_key: str, stats_key: str
-) -> list[zenoh.Subscriber]:
-    def handler(update: Callable[[str, Any, float], None]) -> Callable[[zenoh.Sample], None]:
-        def on_sample(sample: zenoh.Sample) -> None:
-            if not wanted.intersects(sample.key_expr):
-                return
-            try:
-                body = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                return  # not ours to judge; a watcher shows what it can read
-            update(str(sample.key_expr), body, time.monotonic())
+    client: bc.Client, table: WatchTable, selector: str, state_key: str, stats_key: str
+) -> None:
+    def handler(update: Callable[[str, Any, float], None]) -> Callable[[str, Any], None]:
+        def on_sample(key: str, body: Any) -> None:
+            if body is not None and intersects(selector, key):
+                update(key, body, time.monotonic())
 
         return on_sample
 
-    return [
-        session.declare_subscriber(state_key, handler(table.update_state)),
-        session.declare_subscriber(stats_key, handler(table.update_stats)),
-    ]
-
-
-def _on_reply(table: WatchTable, wanted: zenoh.KeyExpr) -> Callable[[zenoh.Reply], None]:
-    """Seeds the table from ``info`` replies, so quiet devices show before their first state."""
-
-    def on_reply(reply: zenoh.Reply) -> None:
-        info = _info_of(reply)
-        if info is not None:
-            table.seed(info, lambda key: wanted.intersects(zenoh.KeyExpr(key)))
-
-    return on_reply
+    client.subscribe(state_key, handler(table.update_state))
+    client.subscribe(stats_key, handler(table.update_stats))
 
 
 @contextmanager

@@ -1,27 +1,25 @@
-"""How ``busgate send`` and ``busgate watch`` reach gateways over zenoh: the options that pick
-the session (``--connect``, ``--prefix``, ``--mode``, ``--zenoh-config``), the session they
-open, and key expressions checked before zenoh sees them. ``DEFAULT_ENDPOINT`` is also where
-``busgate demo`` listens, so that the two commands find each other without options.
+"""How the client commands (``busgate send``, ``busgate watch``) reach gateways: the options
+that pick the session (``--connect``, ``--prefix``, ``--mode``, ``--zenoh-config`` and the
+credentials ``--user``, ``--password-file``, ``--ca``) and the ``busgate.client`` they open
+with them. ``DEFAULT_ENDPOINT`` is also where ``busgate demo`` listens, so that the commands
+find each other without options.
 
-Apart from ``client.py`` (what the commands do) so that each command stands on one way in; it
-imports ``zenoh``, and its settings come from ``gateway/api/zenoh_config.py``, which the
-daemon's side uses too.
+A password is read from a file (or ``BUSGATE_PASSWORD``), never taken on the command line,
+where every user of the host could read it in the process list.
 """
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator
-from contextlib import contextmanager
+import os
+from pathlib import Path
 
-import zenoh
-
-from busgate.client.errors import ConnectError
-from busgate.client.zenoh_config import session_config, zenoh_reason
+import busgate.client as bc
 from busgate.codecs.errors import CommandError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"
+PASSWORD_VARIABLE = "BUSGATE_PASSWORD"
 
 
 def add_session_options(parser: argparse.ArgumentParser) -> None:
@@ -49,43 +47,36 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="a zenoh config file (TLS, auth …) laid underneath",
     )
+    parser.add_argument("--user", default=None, help="zenoh user name (with --password-file)")
+    parser.add_argument(
+        "--password-file",
+        default=None,
+        metavar="FILE",
+        help=f"a file holding the user's password (default: ${PASSWORD_VARIABLE})",
+    )
+    parser.add_argument(
+        "--ca", default=None, metavar="FILE", help="the CA certificate of a tls/ endpoint"
+    )
 
 
-#: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
-MAX_KEY_BYTES = 60 * 1024
+def open_client(args: argparse.Namespace, tool: str) -> bc.Client:
+    """A ``busgate.client`` for a command-line tool (``ConnectError``: one line, exit 2)."""
+    return bc.connect(
+        args.connect or [DEFAULT_ENDPOINT],
+        client_id=f"busgate-{tool}-{os.getpid()}",
+        prefix=args.prefix,
+        mode=args.mode,
+        config_file=args.zenoh_config,
+        username=args.user,
+        password=_password(args),
+        ca=args.ca,
+    )
 
 
-def key_expr(text: str) -> zenoh.KeyExpr:
-    """``text`` as a key expression; ``CommandError`` (one line, exit 2) when zenoh would
-    refuse it or it is too long to send."""
-    if len(text.encode()) > MAX_KEY_BYTES:
-        raise CommandError(
-            f"a key expression of {len(text.encode())} bytes: at most "
-            f"{MAX_KEY_BYTES} fit in a zenoh message"
-        )
+def _password(args: argparse.Namespace) -> str | None:
+    if args.password_file is None:
+        return os.environ.get(PASSWORD_VARIABLE) if args.user is not None else None
     try:
-        return zenoh.KeyExpr(text)
-    except zenoh.ZError as exc:
-        raise CommandError(f"not a key expression: {text[:200]!r} ({zenoh_reason(exc)})") from exc
-
-
-@contextmanager
-def client_session(args: argparse.Namespace) -> Iterator[zenoh.Session]:
-    """A zenoh session for a client tool: ``--connect``, multicast scouting off; closed after."""
-    endpoints = args.connect or [DEFAULT_ENDPOINT]
-    try:
-        config = session_config(
-            mode=args.mode,
-            connect=endpoints,
-            multicast_scouting=False,
-            config_file=args.zenoh_config,
-        )
-        session = zenoh.open(config)
-    except zenoh.ZError as exc:
-        raise ConnectError(
-            f"cannot open a zenoh session to {', '.join(endpoints)}: {zenoh_reason(exc)}"
-        ) from exc
-    try:
-        yield session
-    finally:
-        session.close()
+        return Path(args.password_file).read_text().strip()
+    except OSError as exc:
+        raise CommandError(f"cannot read the password file: {exc.strerror}") from exc

@@ -20,13 +20,23 @@ DEVICE_COLUMNS = (
     "kind",
     "online",
     "stale",
+    "power",
     "motion",
     "temp_c",
     "current_ma",
     "faults",
     "age",
 )
-BUS_COLUMNS = ("bus", "utilisation", "frames_s", "timeouts", "smallest_gap", "age")
+BUS_COLUMNS = (
+    "bus",
+    "utilisation",
+    "frames_s",
+    "timeouts",
+    "checksum_errors",
+    "reconnects",
+    "smallest_gap",
+    "age",
+)
 
 
 class WatchTable:
@@ -157,12 +167,30 @@ def _device_cells(name: str, row: _Row, now: float) -> list[str]:
         _text(state.get("kind")),
         "-" if online is None else ("yes" if online else "NO"),
         "STALE" if state.get("stale") else "-",
+        _power(state),
         _motion(state),
         _text(state.get("temperature_c")),
         _text(state.get("current_ma")),
         ",".join(map(str, state.get("faults") or [])) or "-",
-        _age(row, now),
+        _reading_age(row, now),
     ]
+
+
+def _power(state: dict[str, Any]) -> str:
+    """e-stopped (motion refused until re-enabled), enabled (the motor is driven), off."""
+    if state.get("estopped"):
+        return "e-stopped"
+    enabled = state.get("enabled")
+    return "-" if enabled is None else ("enabled" if enabled else "off")
+
+
+def _reading_age(row: _Row, now: float) -> str:
+    """How old the values are: the device's last reply, as of the state's arrival, plus the
+    time since it arrived (a state repeats no reading as new: see the telemetry's ``ts``)."""
+    age = row.values.get("last_reply_age_s")
+    if row.received is None or not isinstance(age, int | float):
+        return "-"
+    return f"{age + max(0.0, now - row.received):.1f}s"
 
 
 def _motion(state: dict[str, Any]) -> str:
@@ -183,6 +211,8 @@ def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
         "-" if not isinstance(utilisation, int | float) else f"{utilisation * 100:.0f}%",
         _text(stats.get("frames_s")),
         _text(stats.get("timeouts")),
+        _text(stats.get("checksum_errors")),
+        _text(stats.get("reconnects")),
         "-" if not isinstance(gap, int | float) else f"{gap * 1000:.2f} ms",
         _age(row, now),
     ]
