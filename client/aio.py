@@ -11,14 +11,22 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
-from busgate.client.base import WAIT_MARGIN_S, Found, Shared, as_body, reenable_command
+from busgate.client.base import (
+    WAIT_MARGIN_S,
+    Found,
+    Shared,
+    as_body,
+    raw_payload,
+    reenable_command,
+    scan_command,
+)
 from busgate.client.claims import ClaimLease
-from busgate.client.core import Core
+from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.sync import DEFAULT_TIMEOUT_S
@@ -106,6 +114,20 @@ class Client:
 
     async def estop(self, gateway: str | None = None) -> None:
         self._shared.estop(gateway)  # a put: it does not wait
+
+    async def query(
+        self, key: str, payload: Any = None, *, timeout: float | None = None
+    ) -> Answers:
+        waited = self.timeout if timeout is None else timeout
+        return await wait(self._shared.query(key, payload, waited), waited, f"query on {key}")
+
+    def put(self, key: str, payload: Any) -> None:
+        self._shared.core.put(key, raw_payload(payload) or b"")
+
+    def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
+        """As ``busgate.client.Client.subscribe``: ``callback`` runs on zenoh's thread; to
+        reach the loop, hand over with ``loop.call_soon_threadsafe``."""
+        return self._shared.subscribe(key, callback)
 
 
 class Device:
@@ -203,14 +225,7 @@ class Claim:
         lease, self._lease = self._lease, None
         assert lease is not None
         released = self._shared.unclaim(lease)
-        if released is not None:
-            try:
-                await wait(released, self._shared.core.timeout_s, f"release of {lease.device}")
-            except Exception:
-                if kind is None:
-                    raise
-        elif kind is None:
-            lease.check()
+        await _settle_on_exit(self._shared, released, kind, f"release of {lease.device}")
 
 
 class Follow:
@@ -218,46 +233,53 @@ class Follow:
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
-        self._put: Any = None
+        self._set: Callable[[dict[str, Any]], None] | None = None
 
     async def __aenter__(self) -> Follow:
-        self._put = self._shared.follow_put(self._found)
+        self._set = self._shared.follow_put(self._found)
         return self
 
     def set(self, **target: Any) -> None:
-        if self._put is None:
+        if self._set is None:
             raise RuntimeError("set() outside the follow stream's async with block")
-        self._put(target)
+        self._set(target)
 
-    async def __aexit__(self, kind: object, *exc_info: object) -> None:
-        put, self._put = self._put, None
-        try:
-            ended = self._shared.end_follow(self._found, None)
-            what = f"end of the stream of {self._found.name}"
-            await wait(ended, self._shared.core.timeout_s, what)
-        except Exception:
-            if kind is None:
-                raise
-        finally:
-            put.undeclare()
+    async def __aexit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
+        set_target, self._set = self._set, None
+        assert set_target is not None
+        ended = self._shared.end_follow(self._found, set_target)
+        await _settle_on_exit(self._shared, ended, kind, f"end of the stream of {self._found.name}")
+
+
+async def _settle_on_exit(
+    shared: Shared, future: Future, kind: type[BaseException] | None, what: str
+) -> None:
+    try:
+        await wait(future, shared.core.timeout_s, what)
+    except Exception:
+        if kind is None:
+            raise
 
 
 class Bus:
     """One bus of one gateway, for asyncio."""
 
     def __init__(self, shared: Shared, found: Found) -> None:
-        self._shared = shared
+        self._shared, self._found = shared, found
         self.name, self.gateway, self.protocol = found.name, found.gateway, found.kind
+
+    def __repr__(self) -> str:
+        return f"<aio.Bus {self.gateway}/{self.name} ({self.protocol})>"
 
     async def send(self, command: dict[str, Any], *, timeout: float | None = None) -> Any:
         waited = self._shared.core.timeout_s if timeout is None else timeout
-        key = self._shared.core.keys.bus(self.gateway, self.name, "cmd")
-        sent = self._shared.core.command(key, command, timeout_s=waited)
+        sent = self._shared.bus_command(self._found, command, waited)
         return await wait(sent, waited, f"{command.get('op')} on bus {self.gateway}/{self.name}")
 
-    async def group_move(self, targets: list[dict[str, Any]], **options: Any) -> Any:
-        return await self.send({"op": "group_move", "targets": targets}, **options)
+    async def group_move(
+        self, targets: list[dict[str, Any]], *, timeout: float | None = None
+    ) -> Any:
+        return await self.send({"op": "group_move", "targets": targets}, timeout=timeout)
 
     async def scan(self, ids: list[int] | None = None, *, timeout: float | None = None) -> Any:
-        command: dict[str, Any] = {"op": "scan"} | ({} if ids is None else {"ids": ids})
-        return (await self.send(command, timeout=timeout))["found"]
+        return (await self.send(scan_command(ids), timeout=timeout))["found"]

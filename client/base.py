@@ -16,7 +16,7 @@ from pydantic import BaseModel, ValidationError
 
 from busgate.client.claims import ClaimLease, Timers
 from busgate.client.core import Answer, Core, dumps, then
-from busgate.client.errors import AmbiguousError, NoAnswerError, error_for
+from busgate.client.errors import AmbiguousError, ClaimLostError, NoAnswerError, error_for
 from busgate.client.keys import split_name
 from busgate.codecs.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS
@@ -102,6 +102,10 @@ def raw_payload(payload: bytes | str | dict[str, Any] | None) -> bytes | None:
     return payload.encode() if isinstance(payload, str) else dumps(payload)
 
 
+def scan_command(ids: list[int] | None) -> dict[str, Any]:
+    return {"op": "scan"} | ({} if ids is None else {"ids": ids})
+
+
 def reenable_command(kind: str) -> dict[str, Any]:
     """The command that lets a device of ``kind`` move again after an e-stop."""
     return dict(FAMILIES[kind].schema.REENABLE_COMMAND)
@@ -155,10 +159,20 @@ class Shared:
         self.leases[(device.gateway, device.name)] = lease
         return lease
 
-    def unclaim(self, lease: ClaimLease) -> Future | None:
+    def unclaim(self, lease: ClaimLease) -> Future:
+        """Give the claim back: a future of the release, or of ``ClaimLostError`` when the
+        claim was lost meanwhile (nothing to give back, and the block must hear of it)."""
         if self.leases.get((lease.gateway, lease.device)) is lease:
             del self.leases[(lease.gateway, lease.device)]
-        return lease.release()
+        released = lease.release()
+        if released is not None:
+            return released
+        lost: Future = Future()
+        try:
+            lease.check()
+        except ClaimLostError as exc:
+            lost.set_exception(exc)
+        return lost
 
     def telemetry(self, device: Found, payload: bytes) -> Any:
         """A state message as the telemetry model of the device's kind."""
@@ -185,8 +199,19 @@ class Shared:
         set_target.undeclare = put.undeclare  # type: ignore[attr-defined]
         return set_target
 
-    def end_follow(self, device: Found, timeout_s: float | None) -> Future:
-        return self.send(device, {"op": "end_follow"}, timeout_s)
+    def end_follow(self, device: Found, set_target: Callable[..., None]) -> Future:
+        """End the stream ``set_target`` feeds (``end_follow``: no ``stream_stale`` event)
+        and undeclare its publisher."""
+        try:
+            return self.send(device, {"op": "end_follow"}, None)
+        finally:
+            set_target.undeclare()  # type: ignore[attr-defined]
+
+    # -- buses --------------------------------------------------------------------------------
+
+    def bus_command(self, bus: Found, command: dict[str, Any], timeout_s: float) -> Future:
+        key = self.core.keys.bus(bus.gateway, bus.name, "cmd")
+        return self.core.command(key, command, timeout_s=timeout_s)
 
     # -- gateways and raw keys ------------------------------------------------------------------
 

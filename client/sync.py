@@ -13,7 +13,6 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 from busgate.client.base import (
@@ -23,6 +22,7 @@ from busgate.client.base import (
     as_body,
     raw_payload,
     reenable_command,
+    scan_command,
 )
 from busgate.client.claims import ClaimLease
 from busgate.client.core import Answers, Core
@@ -214,29 +214,21 @@ class Claim:
 
     def __enter__(self) -> Claim:
         lease = self._shared.claim(self._found, self.ttl_s)
-        timeout = self._shared.core.timeout_s
+        what = f"claim of {self._found.gateway}/{self._found.name}"
         try:
-            wait(lease.take(), timeout, f"claim of {self._found.gateway}/{self._found.name}")
+            wait(lease.take(), self._shared.core.timeout_s, what)
         except BaseException:
             self._shared.unclaim(lease)
             raise
         self._lease = lease
         return self
 
-    def __exit__(
-        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
         lease, self._lease = self._lease, None
         assert lease is not None
-        released = self._shared.unclaim(lease)
-        if released is not None:
-            try:
-                wait(released, self._shared.core.timeout_s, f"release of {lease.device}")
-            except Exception:
-                if kind is None:
-                    raise
-        elif kind is None:
-            lease.check()
+        _settle_on_exit(
+            self._shared, self._shared.unclaim(lease), kind, f"release of {lease.device}"
+        )
 
 
 class Follow:
@@ -244,52 +236,61 @@ class Follow:
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
-        self._put: Any = None
+        self._set: Callable[[dict[str, Any]], None] | None = None
 
     def __enter__(self) -> Follow:
-        self._put = self._shared.follow_put(self._found)
+        self._set = self._shared.follow_put(self._found)
         return self
 
     def set(self, **target: Any) -> None:
         """The stream's new target (latest wins): ``position=…``, or ``rpm=…``."""
-        if self._put is None:
+        if self._set is None:
             raise RuntimeError("set() outside the follow stream's with block")
-        self._put(target)
+        self._set(target)
 
-    def __exit__(self, kind: object, exc: object, tb: object) -> None:
-        put, self._put = self._put, None
-        try:
-            ended = self._shared.end_follow(self._found, None)
-            wait(ended, self._shared.core.timeout_s, f"end of the stream of {self._found.name}")
-        except Exception:
-            if kind is None:
-                raise
-        finally:
-            put.undeclare()
+    def __exit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
+        set_target, self._set = self._set, None
+        assert set_target is not None
+        ended = self._shared.end_follow(self._found, set_target)
+        _settle_on_exit(self._shared, ended, kind, f"end of the stream of {self._found.name}")
+
+
+def _settle_on_exit(
+    shared: Shared, future: Future, kind: type[BaseException] | None, what: str
+) -> None:
+    """Wait for a block's last exchange; its failure is raised unless the block is already
+    raising (that exception says more)."""
+    try:
+        wait(future, shared.core.timeout_s, what)
+    except Exception:
+        if kind is None:
+            raise
 
 
 class Bus:
     """One bus of one gateway: its group moves and scans."""
 
     def __init__(self, shared: Shared, found: Found) -> None:
-        self._shared = shared
+        self._shared, self._found = shared, found
         self.name, self.gateway, self.protocol = found.name, found.gateway, found.kind
 
     def __repr__(self) -> str:
         return f"<Bus {self.gateway}/{self.name} ({self.protocol})>"
 
     def send(self, command: dict[str, Any], *, timeout: float | None = None) -> dict[str, Any]:
+        """A bus command (``group_move``, ``scan``); the reply's body, or its error raised."""
         waited = self._shared.core.timeout_s if timeout is None else timeout
-        key = self._shared.core.keys.bus(self.gateway, self.name, "cmd")
-        sent = self._shared.core.command(key, command, timeout_s=waited)
+        sent = self._shared.bus_command(self._found, command, waited)
         return wait(sent, waited, f"{command.get('op')} on bus {self.gateway}/{self.name}")
 
-    def group_move(self, targets: list[dict[str, Any]], **options: Any) -> dict[str, Any]:
+    def group_move(
+        self, targets: list[dict[str, Any]], *, timeout: float | None = None
+    ) -> dict[str, Any]:
         """Start several devices of the bus together: ``[{"device": "la1", "position": 100},
         …]`` (``time_ms`` per target on a DS bus)."""
-        return self.send({"op": "group_move", "targets": targets}, **options)
+        return self.send({"op": "group_move", "targets": targets}, timeout=timeout)
 
     def scan(self, ids: list[int] | None = None, *, timeout: float | None = None) -> list[Any]:
-        """Which ids answer on the bus, and as what."""
-        command: dict[str, Any] = {"op": "scan"} | ({} if ids is None else {"ids": ids})
-        return self.send(command, timeout=timeout)["found"]
+        """Which ids answer on the bus (all of the protocol's when ``ids`` is None), and as
+        what."""
+        return self.send(scan_command(ids), timeout=timeout)["found"]
