@@ -41,7 +41,11 @@ class TelemetryEnvelope(Published):
     """The fields every device's state carries, whatever its kind. ``None`` in a value: not
     known yet (never read, or not reported by this device's protocol)."""
 
-    ts: float = Field(description="When the state was taken, in seconds of the gateway's clock.")
+    ts: float = Field(
+        description="When the values were read: the wall-clock time (Unix seconds) of the "
+        "device's last reply or heartbeat, the same in every state of one reading; for a device "
+        "never read, when the state was taken (last_reply_age_s is null)."
+    )
     device: Name
     kind: DeviceKind
     online: bool = Field(description="The device answered recently (or sent heartbeats).")

@@ -317,7 +317,8 @@ class Driver(abc.ABC):
         return events
 
     def state(self, now: float) -> dict[str, Any]:
-        """The telemetry with its envelope; the runner stamps it (``ts``) when it publishes."""
+        """The telemetry with its envelope; the bus's telemetry stamps it (``ts``: when it was
+        read) and marks it ``stale``."""
         return {
             "device": self.name,
             "kind": self.kind,

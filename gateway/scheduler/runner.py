@@ -149,7 +149,7 @@ class BusRunner:
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
-        """The latest state of each device."""
+        """The last state published of each device."""
         return self.telemetry.states
 
     def statistics(self) -> BusStats:
