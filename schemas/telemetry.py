@@ -56,3 +56,14 @@ class TelemetryEnvelope(Published):
         description="The values are older than a few poll periods (an oversubscribed bus, or "
         "a device not answering)."
     )
+    estopped: bool = Field(
+        description="The gateway e-stopped the device (a put on <prefix>/<gw>/estop, the "
+        "safe stop at shutdown, or an Inspire LA's own estop op): motion is refused (estopped) "
+        'until its re-enable command, {"op": "enable"} for an Inspire LA or a ZLAC706, '
+        '{"op": "torque", "on": true} for a DS servo.'
+    )
+    enabled: bool | None = Field(
+        description="The power stage drives the motor; null when not known. Inspire LA: as "
+        "commanded (its power is on; paused and estopped are not driving); DS servo: torque "
+        "on; ZLAC706: enabled as acknowledged."
+    )

@@ -184,6 +184,34 @@ def test_estop_reaches_every_bus_ahead_of_everything(gateway):
     assert "005#00fa00100000000f" in {r.wire for r in can_sim.recorder.received()}
 
 
+def test_every_state_says_estopped_from_the_estop_until_the_reenable_command(wait_for, gateway):
+    """The first state each device publishes after an e-stop says ``estopped`` and not
+    ``enabled``; its re-enable command's reply and the states after say neither."""
+    api, *_ = gateway
+    published: list[tuple[str, dict]] = []
+    for runner in api.runners.values():
+        runner.telemetry.on_state = lambda device, state: published.append((device, state))
+    for future in api.estop():
+        future.result(10)
+    mark = len(published)
+
+    def first_after(mark: int) -> dict[str, dict]:
+        firsts: dict[str, dict] = {}
+        for device, state in published[mark:]:
+            firsts.setdefault(device, state)
+        return firsts
+
+    wait_for(lambda: first_after(mark).keys() == api.devices.keys())
+    assert {d: (s["estopped"], s["enabled"]) for d, s in first_after(mark).items()} == {
+        "la1": (True, False), "la2": (True, False), "wheel": (True, False)}
+    for device, (_, driver) in api.devices.items():
+        state = accepted(api, device, json.loads(driver.reenable_op))["state"]
+        assert (state["estopped"], state["enabled"]) == (False, True), device
+    mark = len(published)
+    wait_for(lambda: first_after(mark).keys() == api.devices.keys())
+    assert not any(state["estopped"] for _, state in published[mark:])
+
+
 def test_follow_is_validated_and_claimed_like_a_command(gateway):
     api, *_ = gateway
     assert api.follow("la1", b'{"position": 1200}') is None

@@ -261,7 +261,8 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def telemetry(self, now: float) -> dict[str, Any]:
-        """The device's values in named units (``position``, ``faults`` …), without the
+        """The device's values in named units (``position``, ``faults`` …) and whether its
+        power stage drives the motor (``enabled``, ``None`` when not known), without the
         envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds."""
 
     # -- liveness ---------------------------------------------------------------------------
@@ -324,5 +325,6 @@ class Driver(abc.ABC):
             "kind": self.kind,
             "online": self.online,
             "last_reply_age_s": None if self.last_reply is None else now - self.last_reply,
+            "estopped": self.estopped,
             **self.telemetry(now),
         }
