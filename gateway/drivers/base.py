@@ -17,6 +17,7 @@ from __future__ import annotations
 import abc
 import enum
 import functools
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
@@ -84,8 +85,6 @@ class Driver(abc.ABC):
     follow_group_limit: ClassVar[int] = 1
     #: The id a frame sent to every device carries (``None``: the protocol has none).
     broadcast_id: ClassVar[int | None] = None
-    #: The command that lets the device move again after an e-stop (named in refusals).
-    reenable_op: ClassVar[str]
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         self.name = name
@@ -126,6 +125,12 @@ class Driver(abc.ABC):
     @property
     def schema(self) -> ModuleType:
         return self.protocol_entry().schema
+
+    @property
+    def reenable_op(self) -> str:
+        """The command that lets the device move again after an e-stop, as the refusals name
+        it: the kind's ``REENABLE_COMMAND`` (its schema module)."""
+        return json.dumps(self.schema.REENABLE_COMMAND)
 
     @property
     def commands(self) -> TypeAdapter[Any]:

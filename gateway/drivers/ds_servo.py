@@ -174,7 +174,6 @@ class DsServoDriver(Driver):
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"torque","on":true}',)
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
-    reenable_op: ClassVar[str] = '{"op": "torque", "on": true}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)

@@ -84,7 +84,6 @@ class InspireLaDriver(Driver):
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"enable"}',)
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
-    reenable_op: ClassVar[str] = '{"op": "enable"}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)

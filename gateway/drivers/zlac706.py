@@ -80,7 +80,6 @@ class Zlac706Driver(Driver):
     roles: ClassVar[dict[int, RoleOf]]
     keepalive_period_s: ClassVar[float]
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm")
-    reenable_op: ClassVar[str] = '{"op": "enable"}'
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         super().__init__(name, device_id, follow_period_s=follow_period_s)
