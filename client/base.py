@@ -89,7 +89,7 @@ def _named(info: dict[str, Any], what: str, leaf: str) -> list[str]:
 def as_body(command: Any) -> dict[str, Any]:
     """A command as the JSON object sent: a dict as given, a schemas model dumped."""
     if isinstance(command, BaseModel):
-        return command.model_dump(mode="json", exclude_none=True)
+        return command.model_dump(mode="json", exclude_unset=True)
     if isinstance(command, dict):
         return dict(command)
     raise CommandError(f"a command is a dict or a busgate.schemas model, not {type(command)}")

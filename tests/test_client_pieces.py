@@ -1,0 +1,124 @@
+"""The SDK's pieces that need no network: the error classes made from the API's codes, names
+and keys, finding a device among gateways' info replies, payloads, and the claims' timer.
+(The SDK against a real gateway: tests/test_client_sdk.py and its neighbours.)"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+import busgate.client as bc
+from busgate.client.base import as_body, locate, raw_payload, reenable_command
+from busgate.client.claims import Timers
+from busgate.client.errors import raise_for
+from busgate.client.keys import check_key, split_name
+from busgate.codecs.errors import BusgateError, CommandError
+from busgate.schemas import inspire_la
+from busgate.schemas.api import ERROR_CODES
+from busgate.schemas.families import FAMILIES
+
+
+@pytest.mark.parametrize("code", ERROR_CODES)
+def test_every_error_code_has_its_class_under_the_one_root(code: str) -> None:
+    cls = bc.error_for(code)
+    assert issubclass(cls, bc.GatewayError) and issubclass(cls, BusgateError)
+    assert cls is not bc.GatewayError and cls.code == code
+    assert getattr(bc, cls.__name__) is cls  # reachable as bc.<Name>Error
+    with pytest.raises(cls) as raised:
+        raise_for({"code": code, "message": "why"}, gateway="gw1")
+    assert (raised.value.code, raised.value.message, raised.value.gateway) == (code, "why", "gw1")
+
+
+def test_a_claimed_error_names_its_holder() -> None:
+    with pytest.raises(bc.ClaimedError) as raised:
+        raise_for({"code": "claimed", "message": "la1 is claimed by 'teleop-2'"})
+    assert raised.value.holder == "teleop-2"
+
+
+def test_a_code_this_version_does_not_know_is_still_told_as_it_came() -> None:
+    with pytest.raises(bc.GatewayError) as raised:
+        raise_for({"code": "from_the_future", "message": "new"})
+    assert type(raised.value) is bc.GatewayError and raised.value.code == "from_the_future"
+    with pytest.raises(bc.GatewayError, match="no error"):
+        raise_for("not an object")
+
+
+def test_client_side_failures_are_busgate_errors_too() -> None:
+    for cls in (bc.ConnectError, bc.NoAnswerError, bc.AmbiguousError, bc.ClaimLostError):
+        assert issubclass(cls, bc.BusgateError) and not issubclass(cls, bc.GatewayError)
+
+
+@pytest.mark.parametrize("name", ["la*", "gw/*", "a/b/c", "", "x" * 65, "la 1", "gw/"])
+def test_a_name_that_would_address_others_is_refused(name: str) -> None:
+    with pytest.raises(CommandError):
+        split_name(name)
+
+
+def test_a_key_zenoh_refuses_is_one_line() -> None:
+    with pytest.raises(CommandError, match="not a key expression: 'busgate//x'"):
+        check_key("busgate//x")
+    with pytest.raises(CommandError, match="at most"):
+        check_key("k/" + "x" * 70_000)
+
+
+def _info(gateway: str, *devices: tuple[str, str]) -> dict:
+    return {"ok": True, "gateway": gateway, "buses": [
+        {"name": "uart0", "protocol": "inspire_la",
+         "devices": [{"name": name, "kind": kind} for name, kind in devices]}]}
+
+
+def test_a_bare_name_finds_the_one_gateway_that_has_it() -> None:
+    infos = {"gw1": _info("gw1", ("la1", "inspire_la")), "gw2": _info("gw2", ("s1", "ds_servo"))}
+    found = locate(infos, "s1", "device", "busgate/*/info")
+    assert (found.gateway, found.name, found.kind) == ("gw2", "s1", "ds_servo")
+    assert locate(infos, "gw1/uart0", "bus", "k").kind == "inspire_la"
+
+
+def test_several_gateways_with_the_name_are_named() -> None:
+    infos = {g: _info(g, ("la1", "inspire_la")) for g in ("gw2", "gw1")}
+    with pytest.raises(bc.AmbiguousError, match=r"gw1, gw2.*gw1/la1") as raised:
+        locate(infos, "la1", "device", "k")
+    assert raised.value.gateways == ["gw1", "gw2"]
+    assert locate(infos, "gw2/la1", "device", "k").gateway == "gw2"
+
+
+def test_no_gateway_with_it_names_those_that_answered_and_nobody_is_no_answer() -> None:
+    infos = {"gw1": _info("gw1", ("la1", "inspire_la"))}
+    with pytest.raises(bc.UnknownDeviceError, match=r"'la9'.*\(gw1\)"):
+        locate(infos, "la9", "device", "k")
+    with pytest.raises(bc.UnknownBusError):
+        locate(infos, "can7", "bus", "k")
+    with pytest.raises(bc.NoAnswerError, match="busgate/gw3/info"):
+        locate({}, "gw3/la1", "device", "busgate/gw3/info")
+
+
+def test_commands_go_as_dicts_or_models_and_payloads_as_given() -> None:
+    assert as_body(inspire_la.Move(op="move", position=5)) == {"op": "move", "position": 5}
+    assert as_body({"op": "status"}) == {"op": "status"}
+    with pytest.raises(CommandError):
+        as_body(["move"])
+    assert raw_payload(b"\xff") == b"\xff" and raw_payload("{}") == b"{}"
+    assert raw_payload({"a": 1}) == b'{"a":1}' and raw_payload(None) is None
+
+
+@pytest.mark.parametrize("kind", sorted(FAMILIES))
+def test_every_kind_names_a_reenable_command_its_schema_takes(kind: str) -> None:
+    command = reenable_command(kind)
+    FAMILIES[kind].schema.COMMAND_ADAPTER.validate_python(command)
+
+
+def test_timers_call_in_time_order_on_their_own_thread_and_stop_on_close() -> None:
+    timers, called, done = Timers(), [], threading.Event()
+    start = time.monotonic()
+    timers.at(start + 0.05, lambda: called.append(("late", threading.current_thread().name)))
+    timers.at(start, lambda: called.append(("first", threading.current_thread().name)))
+    timers.at(start + 0.06, done.set)
+    assert done.wait(5.0)
+    assert [what for what, _ in called] == ["first", "late"]
+    assert {thread for _, thread in called} == {"busgate-client-timers"}
+    timers.close()
+    timers.at(time.monotonic(), lambda: called.append(("after close", "")))
+    time.sleep(0.05)
+    assert len(called) == 2
