@@ -23,8 +23,13 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from busgate.client.core import Core, then
+from busgate.client.core import Core, seconds, then
 from busgate.client.errors import ClaimLostError, GatewayError
+from busgate.schemas.api import MAX_CLAIM_S
+
+#: The shortest claim renewed in the background (a renewal every 0.1 s), and the longest the
+#: gateway grants.
+MIN_TTL_S = 0.3
 
 
 class Timers:
@@ -72,6 +77,7 @@ class ClaimLease:
     """This client's claim on one device of one gateway."""
 
     def __init__(self, core: Core, timers: Timers, gateway: str, device: str, ttl_s: float):
+        seconds("ttl_s", ttl_s, MIN_TTL_S, MAX_CLAIM_S)
         self.core = core
         self.timers = timers
         self.gateway = gateway

@@ -112,6 +112,24 @@ def then(future: Future, make: Callable[[Any], Any]) -> Future:
     return chained
 
 
+#: The bounds of a client's settings: a lease shorter than zenoh's keep-alive round would drop
+#: a healthy client; waits and leases past an hour are a mistake, not a choice.
+MIN_LEASE_S, MAX_LEASE_S = 0.1, 3600.0
+MIN_WAIT_S, MAX_WAIT_S = 0.001, 3600.0
+
+
+def seconds(what: str, value: float, least: float, most: float) -> float:
+    """``value`` when it is a number of seconds from ``least`` to ``most``; else
+    ``CommandError`` (NaN, a string, a bool …).
+
+    >>> seconds("timeout", 2, 0.001, 10)
+    2
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float) or not least <= value <= most:
+        raise CommandError(f"{what} must be a number of seconds from {least:g} to {most:g}")
+    return value
+
+
 def dumps(body: Any) -> bytes:
     return json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
 
@@ -135,7 +153,8 @@ class Core:
     ) -> None:
         self.client_id = check_name("client", client_id)
         self.keys = Keys(prefix)
-        self.timeout_s = timeout_s
+        self.timeout_s = seconds("timeout", timeout_s, MIN_WAIT_S, MAX_WAIT_S)
+        seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
         where = ", ".join(endpoints) or str(config_file)
         try:
@@ -180,7 +199,9 @@ class Core:
     ) -> Future:
         """A query on ``key`` (with ``payload``): a future of every ``Answer``, settled when
         zenoh says the query is over (all answered, or the timeout)."""
-        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        if timeout_s is None:
+            timeout_s = self.timeout_s
+        seconds("timeout", timeout_s, MIN_WAIT_S, MAX_WAIT_S)
         answers = Answers()
         finished: Future = Future()
 

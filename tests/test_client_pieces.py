@@ -56,6 +56,18 @@ def test_a_name_that_would_address_others_is_refused(name: str) -> None:
         split_name(name)
 
 
+@pytest.mark.parametrize("options", [{"lease_s": 0}, {"lease_s": "1"}, {"timeout": float("nan")},
+                                     {"timeout": -1}, {"client_id": "a*b"}, {"client_id": ""}])
+def test_settings_that_make_no_sense_are_refused_before_any_session(options) -> None:
+    with pytest.raises(CommandError):
+        bc.connect("tcp/127.0.0.1:9", **{"client_id": "ok", **options})
+
+
+def test_an_endpoint_zenoh_cannot_use_is_a_connect_error() -> None:
+    with pytest.raises(bc.ConnectError, match="cannot open a zenoh session to nonsense"):
+        bc.connect("nonsense", client_id="ok")
+
+
 def test_a_key_zenoh_refuses_is_one_line() -> None:
     with pytest.raises(CommandError, match="not a key expression: 'busgate//x'"):
         check_key("busgate//x")
