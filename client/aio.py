@@ -29,6 +29,7 @@ from busgate.client.claims import ClaimLease
 from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
+from busgate.client.follow import FollowSender
 from busgate.client.sync import DEFAULT_TIMEOUT_S
 
 
@@ -233,21 +234,26 @@ class Follow:
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
-        self._set: Callable[[dict[str, Any]], None] | None = None
+        self._sender: FollowSender | None = None
 
     async def __aenter__(self) -> Follow:
-        self._set = self._shared.follow_put(self._found)
+        self._sender = self._shared.follow(self._found)
         return self
 
+    @property
+    def sent(self) -> int:
+        """How many targets were put so far (a target replaced while it waited is not)."""
+        return 0 if self._sender is None else self._sender.puts
+
     def set(self, **target: Any) -> None:
-        if self._set is None:
+        if self._sender is None:
             raise RuntimeError("set() outside the follow stream's async with block")
-        self._set(target)
+        self._sender.set(target)
 
     async def __aexit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
-        set_target, self._set = self._set, None
-        assert set_target is not None
-        ended = self._shared.end_follow(self._found, set_target)
+        sender, self._sender = self._sender, None
+        assert sender is not None
+        ended = self._shared.end_follow(self._found, sender)
         await _settle_on_exit(self._shared, ended, kind, f"end of the stream of {self._found.name}")
 
 

@@ -12,15 +12,15 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 
 from busgate.client.claims import ClaimLease, Timers
 from busgate.client.core import Answer, Core, dumps, then
 from busgate.client.errors import AmbiguousError, ClaimLostError, NoAnswerError, error_for
+from busgate.client.follow import FollowSender
 from busgate.client.keys import split_name
 from busgate.codecs.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS
-from busgate.schemas.errors import describe_validation_error, refusal_code
 from busgate.schemas.families import FAMILIES
 
 #: What a wait adds to the timeout zenoh was given before it says nobody answered (zenoh
@@ -111,11 +111,6 @@ def reenable_command(kind: str) -> dict[str, Any]:
     return dict(FAMILIES[kind].schema.REENABLE_COMMAND)
 
 
-def refused(exc: ValidationError, what: str) -> Exception:
-    """A target refused before it was sent: the error the gateway would have answered."""
-    return error_for(refusal_code(exc))(f"invalid {what}: {describe_validation_error(exc)}")
-
-
 class Shared:
     """What every face of one client uses: the core, the timers of its claims, its claims."""
 
@@ -178,34 +173,23 @@ class Shared:
         """A state message as the telemetry model of the device's kind."""
         return TELEMETRY_MODELS[device.kind].model_validate_json(payload)
 
-    def follow_put(self, device: Found) -> Callable[[dict[str, Any]], None]:
-        """What ``set`` of a follow stream does: check the target against the kind's follow
-        model (an error now, not an event later), then put it with this client's id."""
-        model = FOLLOW_MODELS[device.kind]
-        put = self.core.publisher(self.core.keys.device(device.gateway, device.name, "follow"))
-        client = self.core.client_id
-        leases = self.leases
+    def follow(self, device: Found) -> FollowSender:
+        """The puts of a new follow stream to ``device`` (``follow.py``)."""
+        key = self.core.keys.device(device.gateway, device.name, "follow")
+        return FollowSender(
+            self.core,
+            self.timers,
+            key,
+            FOLLOW_MODELS[device.kind],
+            lambda: self.leases.get((device.gateway, device.name)),
+            device.name,
+        )
 
-        def set_target(target: dict[str, Any]) -> None:
-            lease = leases.get((device.gateway, device.name))
-            if lease is not None:
-                lease.check()
-            try:
-                model.model_validate(target)
-            except ValidationError as exc:
-                raise refused(exc, f"follow target for {device.name}") from None
-            put(dumps({**target, "client": client}))
-
-        set_target.undeclare = put.undeclare  # type: ignore[attr-defined]
-        return set_target
-
-    def end_follow(self, device: Found, set_target: Callable[..., None]) -> Future:
-        """End the stream ``set_target`` feeds (``end_follow``: no ``stream_stale`` event)
-        and undeclare its publisher."""
-        try:
-            return self.send(device, {"op": "end_follow"}, None)
-        finally:
-            set_target.undeclare()  # type: ignore[attr-defined]
+    def end_follow(self, device: Found, sender: FollowSender) -> Future:
+        """Put the stream's last target, end the stream (``end_follow``: no ``stream_stale``
+        event) and undeclare its publisher."""
+        sender.close()
+        return self.send(device, {"op": "end_follow"}, None)
 
     # -- buses --------------------------------------------------------------------------------
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -27,13 +28,16 @@ from busgate.client.core import Core, seconds, then
 from busgate.client.errors import ClaimLostError, GatewayError
 from busgate.schemas.api import MAX_CLAIM_S
 
+log = logging.getLogger(__name__)
+
 #: The shortest claim renewed in the background (a renewal every 0.1 s), and the longest the
 #: gateway grants.
 MIN_TTL_S = 0.3
 
 
 class Timers:
-    """Calls functions at monotonic times, on one daemon thread (started on first use)."""
+    """Calls functions at monotonic times, on one daemon thread (started on first use): the
+    claims' renewals and the follow streams' spaced puts."""
 
     def __init__(self) -> None:
         self._due: list[tuple[float, int, Callable[[], None]]] = []
@@ -70,7 +74,10 @@ class Timers:
                 if self._closed:
                     return
                 _, _, function = heapq.heappop(self._due)
-            function()
+            try:
+                function()
+            except Exception:  # one failed renewal or put must not stop the others
+                log.exception("a client timer failed")
 
 
 class ClaimLease:

@@ -18,6 +18,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import logging
@@ -130,8 +131,13 @@ def seconds(what: str, value: float, least: float, most: float) -> float:
     return value
 
 
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
 def dumps(body: Any) -> bytes:
-    return json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+    """``body`` as compact JSON (one encoder for every message: building one costs more than
+    encoding a small command)."""
+    return _ENCODER.encode(body).encode()
 
 
 class Core:
@@ -183,11 +189,15 @@ class Core:
         except zenoh.ZError as exc:
             self.session.close()
             raise ConnectError(f"the session to {where} refused: {zenoh_reason(exc)}") from exc
+        atexit.register(self.close)
 
     # -- lifetime ----------------------------------------------------------------------------
 
     def close(self) -> None:
-        """Undeclare everything (the token last but one) and close the session."""
+        """Undeclare everything (the token last but one) and close the session; again is a
+        no-op. Also run at interpreter exit for a client never closed: a session left open
+        with callback subscribers hangs the exit (zenoh-python #434)."""
+        atexit.unregister(self.close)
         self._held.clear()
         with contextlib.suppress(zenoh.ZError):
             self.session.close()
@@ -219,7 +229,9 @@ class Core:
         try:
             self.session.get(
                 check_key(key),
-                zenoh.handlers.Callback(on_reply, on_end),
+                # Called on zenoh's own thread (indirect, it starts a thread per query: 0.5 ms
+                # a command); both callbacks only store and settle (rule 1).
+                zenoh.handlers.Callback(on_reply, on_end, indirect=False),
                 payload=payload,
                 timeout=timeout_s,
                 consolidation=zenoh.ConsolidationMode.NONE,

@@ -28,6 +28,7 @@ from busgate.client.claims import ClaimLease
 from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
+from busgate.client.follow import FollowSender
 
 DEFAULT_TIMEOUT_S = 5.0
 
@@ -236,22 +237,28 @@ class Follow:
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
-        self._set: Callable[[dict[str, Any]], None] | None = None
+        self._sender: FollowSender | None = None
 
     def __enter__(self) -> Follow:
-        self._set = self._shared.follow_put(self._found)
+        self._sender = self._shared.follow(self._found)
         return self
 
+    @property
+    def sent(self) -> int:
+        """How many targets were put so far (a target replaced while it waited is not)."""
+        return 0 if self._sender is None else self._sender.puts
+
     def set(self, **target: Any) -> None:
-        """The stream's new target (latest wins): ``position=…``, or ``rpm=…``."""
-        if self._set is None:
+        """The stream's new target (latest wins): ``position=…``, or ``rpm=…``; checked here
+        (``OutOfRangeError``, ``BadCommandError``), put at most every 10 ms."""
+        if self._sender is None:
             raise RuntimeError("set() outside the follow stream's with block")
-        self._set(target)
+        self._sender.set(target)
 
     def __exit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
-        set_target, self._set = self._set, None
-        assert set_target is not None
-        ended = self._shared.end_follow(self._found, set_target)
+        sender, self._sender = self._sender, None
+        assert sender is not None
+        ended = self._shared.end_follow(self._found, sender)
         _settle_on_exit(self._shared, ended, kind, f"end of the stream of {self._found.name}")
 
 
