@@ -1,5 +1,6 @@
 """The zenoh API's data, as pydantic models: replies, telemetry, events, bus statistics, info,
-and the gateway-level commands (claims on a device, group moves and scans on a bus).
+and the gateway-level commands (claims and the end of a follow stream on a device, group moves
+and scans on a bus).
 
 Rules of this file:
 
@@ -66,8 +67,20 @@ class Release(CommandModel):
     client: ClientId
 
 
+class EndFollow(CommandModel):
+    """End the device's follow stream now, rather than by letting it go stale: answered
+    ``{"ok": true, "ended": true}`` at once (also when no stream was running), then the
+    stream ends with a ``stream_stopped`` event (reason ``ended by <client>``, or ``ended``)
+    and what a stale stream gets (a ZLAC706 in velocity mode 0 rpm), with no ``stream_stale``
+    event. A device claimed by another client refuses it (``claimed``); an e-stopped one does
+    not, since ending a stream moves nothing. A follow put after the ``stream_stopped``
+    event starts a new stream."""
+
+    op: Literal["end_follow"]
+
+
 #: The ops every device's ``cmd`` key takes besides its kind's own.
-GatewayCommand = Annotated[Claim | Release, Field(discriminator="op")]
+GatewayCommand = Annotated[Claim | Release | EndFollow, Field(discriminator="op")]
 GATEWAY_COMMAND_ADAPTER: TypeAdapter[GatewayCommand] = TypeAdapter(GatewayCommand)
 
 
@@ -170,6 +183,10 @@ class ReleaseReply(OkReply):
     released: Literal[True]
 
 
+class EndFollowReply(OkReply):
+    ended: Literal[True]
+
+
 class ScanFound(Published):
     id: int | None = Field(description="The id that answered.")
     protocol: ProtocolName
@@ -181,7 +198,7 @@ class ScanReply(OkReply):
 
 
 #: Any reply of a device or bus ``cmd`` queryable.
-Reply = StateReply | ClaimReply | ReleaseReply | ScanReply | ErrorReply
+Reply = StateReply | ClaimReply | ReleaseReply | EndFollowReply | ScanReply | ErrorReply
 REPLY_ADAPTER: TypeAdapter[Reply] = TypeAdapter(Reply)
 
 
@@ -362,7 +379,7 @@ EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)
 def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
     """The kind's own commands and the gateway-level ones, told apart by ``op``."""
     (union, *_) = get_args(kind_module.Command)
-    members = (*get_args(union), Claim, Release)
+    members = (*get_args(union), Claim, Release, EndFollow)
     return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # type: ignore[arg-type]  # noqa: UP007
 
 

@@ -41,7 +41,11 @@ class TelemetryEnvelope(Published):
     """The fields every device's state carries, whatever its kind. ``None`` in a value: not
     known yet (never read, or not reported by this device's protocol)."""
 
-    ts: float = Field(description="When the state was taken, in seconds of the gateway's clock.")
+    ts: float = Field(
+        description="When the values were read: the wall-clock time (Unix seconds) of the "
+        "device's last reply or heartbeat, the same in every state of one reading; for a device "
+        "never read, when the state was taken (last_reply_age_s is null)."
+    )
     device: Name
     kind: DeviceKind
     online: bool = Field(description="The device answered recently (or sent heartbeats).")
@@ -51,4 +55,15 @@ class TelemetryEnvelope(Published):
     stale: bool = Field(
         description="The values are older than a few poll periods (an oversubscribed bus, or "
         "a device not answering)."
+    )
+    estopped: bool = Field(
+        description="The gateway e-stopped the device (a put on <prefix>/<gw>/estop, the "
+        "safe stop at shutdown, or an Inspire LA's own estop op): motion is refused (estopped) "
+        'until its re-enable command, {"op": "enable"} for an Inspire LA or a ZLAC706, '
+        '{"op": "torque", "on": true} for a DS servo.'
+    )
+    enabled: bool | None = Field(
+        description="The power stage drives the motor; null when not known. Inspire LA: as "
+        "commanded (its power is on; paused and estopped are not driving); DS servo: torque "
+        "on; ZLAC706: enabled as acknowledged."
     )

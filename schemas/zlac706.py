@@ -200,7 +200,6 @@ class Zlac706Telemetry(TelemetryEnvelope):
 
     kind: Literal["zlac706"]
     mode: common.Mode | None = Field(description="Work mode as acknowledged.")
-    enabled: bool | None = Field(description="Motor enabled (shaft driven).")
     position_mode: Literal["relative", "absolute"] | None = Field(
         description="How position targets are taken."
     )

@@ -184,6 +184,34 @@ def test_estop_reaches_every_bus_ahead_of_everything(gateway):
     assert "005#00fa00100000000f" in {r.wire for r in can_sim.recorder.received()}
 
 
+def test_every_state_says_estopped_from_the_estop_until_the_reenable_command(wait_for, gateway):
+    """The first state each device publishes after an e-stop says ``estopped`` and not
+    ``enabled``; its re-enable command's reply and the states after say neither."""
+    api, *_ = gateway
+    published: list[tuple[str, dict]] = []
+    for runner in api.runners.values():
+        runner.telemetry.on_state = lambda device, state: published.append((device, state))
+    for future in api.estop():
+        future.result(10)
+    mark = len(published)
+
+    def first_after(mark: int) -> dict[str, dict]:
+        firsts: dict[str, dict] = {}
+        for device, state in published[mark:]:
+            firsts.setdefault(device, state)
+        return firsts
+
+    wait_for(lambda: first_after(mark).keys() == api.devices.keys())
+    assert {d: (s["estopped"], s["enabled"]) for d, s in first_after(mark).items()} == {
+        "la1": (True, False), "la2": (True, False), "wheel": (True, False)}
+    for device, (_, driver) in api.devices.items():
+        state = accepted(api, device, json.loads(driver.reenable_op))["state"]
+        assert (state["estopped"], state["enabled"]) == (False, True), device
+    mark = len(published)
+    wait_for(lambda: first_after(mark).keys() == api.devices.keys())
+    assert not any(state["estopped"] for _, state in published[mark:])
+
+
 def test_follow_is_validated_and_claimed_like_a_command(gateway):
     api, *_ = gateway
     assert api.follow("la1", b'{"position": 1200}') is None
@@ -206,6 +234,53 @@ def test_a_client_that_goes_loses_its_claims_streams_and_speed(wait_for, gateway
     wait_for(lambda: "005#00fa001100000000" in {r.wire for r in can_sim.recorder.received()})
     accepted(api, "la1", {"op": "move", "position": 3, "client": "other"})
     wait_for(lambda: any(e.type == "stream_stopped" for e in events))
+
+
+def follow_ticks(simulator) -> int:
+    return sum(r.frame == "FollowCommand" for r in simulator.recorder.received())
+
+
+def test_end_follow_ends_a_stream_at_once_claimed_like_a_target(wait_for, gateway):
+    """Another client's end is refused ``claimed`` and the stream goes on; the holder's is
+    answered at once and the stream ends ``stream_stopped`` with its reason, never stale."""
+    api, simulator, _, _, events = gateway
+    accepted(api, "la1", {"op": "claim", "client": "alice"})
+    assert api.follow("la1", b'{"position": 700, "client": "alice"}') is None
+    wait_for(lambda: follow_ticks(simulator) > 0)
+    assert code(ask(api, "la1", {"op": "end_follow", "client": "bob"})) == "claimed"
+    assert code(ask(api, "la1", {"op": "end_follow"})) == "claimed"
+    assert api.follow("la1", b'{"position": 710, "client": "alice"}') is None  # still running
+    assert ask(api, "la1", {"op": "end_follow", "client": "alice"}) == {"ok": True, "ended": True}
+    assert "la1" not in api._stream_clients
+    wait_for(lambda: any(e.type == "stream_stopped" for e in events))
+    ended = follow_ticks(simulator)
+    [stopped] = [e for e in events if e.type.startswith("stream_")]
+    assert (stopped.device, stopped.type, stopped.fields) == (
+        "la1", "stream_stopped", {"reason": "ended by alice"})
+    accepted(api, "la1", {"op": "status"})  # a tick still due would have gone before it
+    assert follow_ticks(simulator) == ended
+
+
+def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses_it(wait_for,
+                                                                                   gateway):
+    api, _, can_sim, _, events = gateway
+    for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
+        accepted(api, "wheel", op)
+
+    def speed_writes(since: int = 0) -> list[str]:  # register 0x11, the speed target
+        return [r.wire for r in can_sim.recorder.received()[since:]
+                if r.wire.startswith("005#00fa0011")]
+
+    assert api.follow("wheel", b'{"rpm": 120}') is None
+    wait_for(lambda: any(wire != "005#00fa001100000000" for wire in speed_writes()))
+    mark = len(can_sim.recorder.received())
+    assert ask(api, "wheel", {"op": "end_follow"}) == {"ok": True, "ended": True}
+    wait_for(lambda: "005#00fa001100000000" in speed_writes(mark))
+    assert [(e.type, e.fields) for e in events if e.type.startswith("stream_")] == [
+        ("stream_stopped", {"reason": "ended"})]
+    for future in api.estop():
+        future.result(10)
+    assert ask(api, "la2", {"op": "end_follow"}) == {"ok": True, "ended": True}
 
 
 def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(wait_for, gateway):

@@ -140,8 +140,9 @@ def test_poll_replies_become_telemetry_in_named_units() -> None:
         answer(d, request, data=data)
     assert d.state(2.0) | {"last_reply_age_s": None} == {
         "device": "arm", "kind": "ds_servo", "online": True, "last_reply_age_s": None,
-        "position": 2047, "speed_raw": 12, "current_ma": 250, "temperature_c": 31,
-        "target": 2047, "pending_target": None, "torque_on": True, "faults": [],
+        "estopped": False, "position": 2047, "speed_raw": 12, "current_ma": 250,
+        "temperature_c": 31, "target": 2047, "pending_target": None, "torque_on": True,
+        "enabled": True, "faults": [],
     }
 
 

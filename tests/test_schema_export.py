@@ -312,7 +312,8 @@ def gateway() -> tuple[GatewayApi, list[Any], DsServoDriver]:
     drivers = {"arm": arm, "arm2": spare}
     runner = SimpleNamespace(drivers=drivers, authority=Authority("uart0", drivers),
                              timing=SimpleNamespace(protocol="ds_servo"),
-                             states={"arm": published(arm, 2.0)})
+                             states={"arm": published(arm, 2.0)},
+                             stop_stream=lambda device, reason: None)
     events: list[Any] = []
     return (GatewayApi("gw1", {"uart0": runner}, on_event=events.append),
             events, arm)
@@ -335,6 +336,7 @@ def test_the_apis_replies_match_the_reply_schema():
         reply(gw.command("arm", b'{"op":"claim","client":"ui-1","ttl_s":5}')),
         error_reply(RefusedError("claimed", "arm is claimed by 'ui-1'")),
         reply(gw.command("arm", b'{"op":"release","client":"ui-1"}')),
+        reply(gw.command("arm", b'{"op":"end_follow","client":"ui-1"}')),
         reply(gw.command("nope", b"{}")),
         reply(gw.command("arm", b"\xff")),
         reply(gw.command("arm", b'{"op":"move"')),
@@ -344,7 +346,7 @@ def test_the_apis_replies_match_the_reply_schema():
         ok_reply(found=found),
     ]
     assert [r.get("error", {}).get("code") for r in replies] == [
-        None, None, "claimed", None, "unknown_device", "not_utf8", "not_json", "out_of_range",
+        None, None, "claimed", None, None, "unknown_device", "not_utf8", "not_json", "out_of_range",
         "bad_command", "too_large", None]
     assert found == [{"id": 1, "protocol": "ds_servo", "reply": "StatusReply"}]
     for answer in replies:
@@ -429,17 +431,20 @@ GOOD_COMMANDS = {
     "inspire_la": ['{"op":"move","position":1000}', '{"op":"set_overtemp","temp_c":70.5}',
                    '{"op":"write","index":55,"data":"e803"}', '{"op":"claim","client":"ui-1"}'],
     "ds_servo": ['{"op":"move","position":2048,"time_ms":1000,"client":"c_2"}',
-                 '{"op":"torque","on":false}', '{"op":"release","client":"ui-1"}'],
+                 '{"op":"torque","on":false}', '{"op":"release","client":"ui-1"}',
+                 '{"op":"end_follow"}'],
     "zlac706": ['{"op":"set_mode","mode":"velocity"}', '{"op":"velocity","rpm":-120.5}',
                 '{"op":"write","register":25,"value":1}',
-                '{"op":"claim","client":"ui-1","ttl_s":2.5}'],
+                '{"op":"claim","client":"ui-1","ttl_s":2.5}',
+                '{"op":"end_follow","client":"ui-1"}'],
     "bus": ['{"op":"group_move","targets":[{"device":"s1","position":100,"time_ms":500}]}',
             '{"op":"scan"}', '{"op":"scan","ids":[1,2,3]}'],
 }
 BAD_COMMANDS = {
     "inspire_la": ['{"op":"move","position":2001}', '{"op":"move","position":"5"}',
                    '{"op":"move","position":5,"speed":3}', '{"op":"claim"}'],
-    "ds_servo": ['{"op":"torque","on":1}', '{"op":"move","position":1,"client":"a b"}'],
+    "ds_servo": ['{"op":"torque","on":1}', '{"op":"move","position":1,"client":"a b"}',
+                 '{"op":"end_follow","position":1}'],
     "zlac706": ['{"op":"set_mode","mode":"fast"}', '{"op":"write","value":1}',
                 '{"op":"set_velocity_ramp","accel_ms":150,"decel_ms":0}',
                 '{"op":"claim","client":"ui-1","ttl_s":0}'],

@@ -163,6 +163,49 @@ def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(wait_for, se
     subscriber.undeclare()
 
 
+def test_end_follow_stops_a_stream_without_it_going_stale(wait_for, setup) -> None:
+    """alice streams to la1, which she claimed: bob's end_follow is refused ``claimed`` and
+    the stream goes on; hers ends it with ``stream_stopped`` and its reason, and a second
+    past the stale timeout (100 ms) no ``stream_stale`` came."""
+    client, simulator = setup
+    events: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/events", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    [claimed] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"claim","client":"alice"}')
+    assert claimed["ok"]
+    streaming = threading.Event()
+    target = '{"position": 900, "client": "alice"}'
+
+    def stream() -> None:
+        while not streaming.is_set():
+            client.put("busgate/gw1/dev/la1/follow", target)
+            time.sleep(0.02)
+
+    def ticks() -> int:
+        return sum(r.frame == "FollowCommand" for r in simulator.recorder.received())
+
+    streamer = threading.Thread(target=stream)
+    streamer.start()
+    try:
+        wait_for(lambda: ticks() > 5, timeout=10)
+        [refused] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"end_follow","client":"bob"}')
+        assert refused["error"]["code"] == "claimed"
+        going_on = ticks()
+        wait_for(lambda: ticks() > going_on + 5, timeout=10)
+    finally:
+        streaming.set()
+        streamer.join()
+    client.put("busgate/gw1/dev/la1/follow", target)  # the last target, then at once the end
+    [ended] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"end_follow","client":"alice"}')
+    assert ended == {"ok": True, "ended": True}
+    wait_for(lambda: any(e["type"] == "stream_stopped" for e in events))
+    time.sleep(1.1)
+    subscriber.undeclare()
+    stream_events = [(e["device"], e["type"], e.get("reason")) for e in events
+                     if e["type"].startswith("stream_")]
+    assert stream_events == [("la1", "stream_stopped", "ended by alice")]
+
+
 @pytest.mark.parametrize("payload", [
     b"[" * 1001 + b"]" * 1001,  # deeper than the JSON parser goes
     b'{"position": 800, "client": ["x"]}',

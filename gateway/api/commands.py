@@ -16,7 +16,8 @@ every rule of the API is tested without a network. Rules of this file:
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
    by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
-   ZLAC706 whose speed it commanded is brought to 0 rpm at once.
+   ZLAC706 whose speed it commanded is brought to 0 rpm at once. A client may end a stream
+   itself (``end_follow``): claimed like a follow target, never refused for an e-stop.
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
 """
 
@@ -38,7 +39,7 @@ from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.api import BusGroupMove, BusScan, Claim, Release
+from busgate.schemas.api import BusGroupMove, BusScan, Claim, EndFollow, Release
 
 MAX_PAYLOAD = 64 * 1024
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
@@ -150,23 +151,43 @@ class GatewayApi:
         fields = decode_object(payload)
         runner, driver = self._device(device)
         op, client = fields.get("op"), fields.get("client")
-        if op in ("claim", "release"):
-            return _finished(self._claim_op(runner, device, fields))
+        gateway_op = self._GATEWAY_OPS.get(op) if isinstance(op, str) else None
+        if gateway_op is not None:
+            return _finished(gateway_op(self, runner, device, fields))
         command = driver.commands.validate_python(fields)
         if driver.deadman and op == driver.deadman.op and client:
             self._deadman_clients[device] = client
         return _mapped(runner.submit(device, command, client))
 
-    def _claim_op(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
-        request = (Claim if fields.get("op") == "claim" else Release).model_validate(fields)
+    def _claim(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
+        request = Claim.model_validate(fields)
         authority = runner.authority
-        if isinstance(request, Claim):
-            authority.claims.claim(device, request.client, request.ttl_s, authority.clock())
-            self._event(device, "claimed", client=request.client, ttl_s=request.ttl_s)
-            return ok_reply(claimed_by=request.client, expires_in_s=request.ttl_s)
+        authority.claims.claim(device, request.client, request.ttl_s, authority.clock())
+        self._event(device, "claimed", client=request.client, ttl_s=request.ttl_s)
+        return ok_reply(claimed_by=request.client, expires_in_s=request.ttl_s)
+
+    def _release(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
+        request = Release.model_validate(fields)
+        authority = runner.authority
         authority.claims.release(device, request.client, authority.clock())
         self._event(device, "released", client=request.client)
         return ok_reply(released=True)
+
+    def _end_follow(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
+        """The stream ends on the bus thread (``stream_stopped``, then ``stale_stream``)."""
+        request = EndFollow.model_validate(fields)
+        authority = runner.authority
+        # The claim alone: ending a stream moves nothing, so an e-stop does not refuse it
+        # (the authority's rule 4 is for motion).
+        authority.claims.check(device, request.client, authority.clock())
+        self._stream_clients.pop(device, None)
+        runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
+        return ok_reply(ended=True)
+
+    #: The ops every device's ``cmd`` key takes besides its kind's own (``GatewayCommand``).
+    _GATEWAY_OPS: ClassVar[
+        dict[str, Callable[[GatewayApi, BusRunner, str, dict[str, Any]], dict[str, Any]]]
+    ] = {"claim": _claim, "release": _release, "end_follow": _end_follow}
 
     def follow(self, device: str, payload: bytes) -> dict[str, Any] | None:
         """A follow stream's new target; ``None`` when taken, else the error reply."""

@@ -261,7 +261,8 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def telemetry(self, now: float) -> dict[str, Any]:
-        """The device's values in named units (``position``, ``faults`` …), without the
+        """The device's values in named units (``position``, ``faults`` …) and whether its
+        power stage drives the motor (``enabled``, ``None`` when not known), without the
         envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds."""
 
     # -- liveness ---------------------------------------------------------------------------
@@ -317,11 +318,13 @@ class Driver(abc.ABC):
         return events
 
     def state(self, now: float) -> dict[str, Any]:
-        """The telemetry with its envelope; the runner stamps it (``ts``) when it publishes."""
+        """The telemetry with its envelope; the bus's telemetry stamps it (``ts``: when it was
+        read) and marks it ``stale``."""
         return {
             "device": self.name,
             "kind": self.kind,
             "online": self.online,
             "last_reply_age_s": None if self.last_reply is None else now - self.last_reply,
+            "estopped": self.estopped,
             **self.telemetry(now),
         }

@@ -268,6 +268,7 @@ class DsServoDriver(Driver):
             "target": self.target,
             "pending_target": self.pending_target,
             "torque_on": self.torque_on,
+            "enabled": self.torque_on,
             "faults": flag_names(self.faults),
         }
 

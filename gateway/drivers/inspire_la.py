@@ -310,5 +310,6 @@ class InspireLaDriver(Driver):
             **measured,
             "faults": flag_names(self.faults),
             "power": self.power.value,
+            "enabled": self.power is PowerStage.ON,  # paused and estopped are not driving
             **limits,
         }

@@ -149,7 +149,7 @@ class BusRunner:
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
-        """The latest state of each device."""
+        """The last state published of each device."""
         return self.telemetry.states
 
     def statistics(self) -> BusStats:
@@ -185,7 +185,8 @@ class BusRunner:
         return self._hand_over(queue)
 
     def stop_stream(self, device: str, reason: str) -> None:
-        """End ``device``'s follow stream now (its client went away), as if it went stale."""
+        """End ``device``'s follow stream now (its client went away, or ended it), as if it
+        went stale, but reported ``stream_stopped`` with ``reason``."""
         self._inbox.append(lambda: self.streams.end(device, reason))
         self._wake.set()
 

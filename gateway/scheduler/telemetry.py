@@ -1,10 +1,20 @@
 """What the bus thread tells clients about its devices: their events, logged and handed on,
-and a fresh state for each device with news.
+and a fresh state for each device with news that changed it.
 
 Its own module because it is the one place a published state is finished: it gets its ``ts``
 here (wall time, since clients compare it with their own clock; the drivers know only the
 bus thread's clock) and its ``stale`` flag, both for the states streamed and for the state a
 command's reply carries. Bus thread only; ``on_event`` and ``on_state`` may not block.
+
+Rules of this file:
+
+1. ``ts`` is when the values were read: the device's last reply (``last_reply``, bus clock)
+   in wall time, converted once per reply, so every state of one reading carries the same
+   ``ts``. A device never read is stamped when its state is taken (nothing was measured).
+2. A device with news is published only when its state differs from the last one published
+   in more than ``last_reply_age_s``: a follow tick that read nothing (an LA's follow frame
+   has no reply) publishes nothing, every reply does (a new ``ts``). A device with events
+   publishes its state with them.
 """
 
 from __future__ import annotations
@@ -40,12 +50,15 @@ class Telemetry:
         self.poll_periods = poll_periods
         self.on_event = on_event
         self.on_state = on_state
-        #: The latest state of each device (read from any thread, one item at a time).
+        #: The last state published of each device (read from any thread, one item at a time).
         self.states: dict[str, dict[str, Any]] = {}
+        #: Each device's last reply, bus clock, and its wall time (rule 1).
+        self._read_at: dict[str, tuple[float, float]] = {}
 
     def publish(self, moment: float) -> list[str]:
-        """Events out, and a fresh state for each device with news or events; the devices
-        that rebooted (their follow targets are stale) come back."""
+        """Events out, and a fresh state for each device with events, or with news that
+        changed its state (rule 2); the devices that rebooted (their follow targets are
+        stale) come back."""
         news = self.devices.take_news()
         rebooted = []
         for name, driver in self.devices.drivers.items():
@@ -57,18 +70,32 @@ class Telemetry:
                 if event.type == "rebooted":
                     rebooted.append(name)
             if events or name in news:
-                self.states[name] = state = self.state(driver, moment)
-                self.on_state(name, state)
+                state = self.state(driver, moment)
+                if events or _differs(state, self.states.get(name)):
+                    self.states[name] = state
+                    self.on_state(name, state)
         return rebooted
 
     def state(self, driver: Driver, moment: float) -> dict[str, Any]:
-        """The driver's state, stamped, and marked ``stale`` when its telemetry is more than
-        ``STALE_PERIODS`` poll periods old (an oversubscribed bus, or a device not answering)."""
-        state = {"ts": time.time(), **driver.state(moment)}
+        """The driver's state at ``moment`` (bus clock), stamped with when it was read (rule
+        1), and marked ``stale`` when its telemetry is more than ``STALE_PERIODS`` poll periods
+        old (an oversubscribed bus, or a device not answering)."""
+        state = {"ts": self._read_time(driver, moment), **driver.state(moment)}
         period = self.poll_periods.get(driver.name)
         age = state.get("last_reply_age_s")
         state["stale"] = period is not None and (age is None or age > STALE_PERIODS * period)
         return state
+
+    def _read_time(self, driver: Driver, moment: float) -> float:
+        """The wall time of ``driver``'s last reply, converted when first asked for; the wall
+        time now for a device never read."""
+        replied = driver.last_reply
+        if replied is None:
+            return time.time()
+        read = self._read_at.get(driver.name)
+        if read is None or read[0] != replied:
+            read = self._read_at[driver.name] = (replied, time.time() - (moment - replied))
+        return read[1]
 
     def _log(self, event: DeviceEvent) -> None:
         details = " ".join(f"{key}={value}" for key, value in event.fields.items())
@@ -79,3 +106,10 @@ class Telemetry:
             event.type,
             f" ({details})" if details else "",
         )
+
+
+def _differs(state: dict[str, Any], published: dict[str, Any] | None) -> bool:
+    """``state`` tells more than ``published`` did: anything but its age changed (rule 2)."""
+    if published is None:
+        return True
+    return {**state, "last_reply_age_s": None} != {**published, "last_reply_age_s": None}
