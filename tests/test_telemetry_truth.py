@@ -12,8 +12,8 @@ import time
 
 import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
-from busgate.gateway.api.zenoh_config import session_config
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import STALE_PERIODS, Telemetry
