@@ -170,6 +170,19 @@ def pytest_runtest_makereport(item, call):
 
 
 @pytest.fixture(scope="module")
+def module_demo():
+    """``busgate demo`` on a free loopback port for the whole module (``.endpoint``), stopped
+    after it; a test that e-stops or claims leaves its devices enabled and unclaimed."""
+    from tests.gateway_process import DemoProcess
+
+    demo = DemoProcess(f"tcp/127.0.0.1:{unused_loopback_port()}")
+    try:
+        yield demo
+    finally:
+        assert demo.terminate() == 0
+
+
+@pytest.fixture(scope="module")
 def secured_daemon(tmp_path_factory):
     """``busgate run`` under deploy/zenoh/busgate.json5 (TLS, passwords, ACL) on an LA
     simulator, for the whole module: ``tests.secured_gateway.secured_daemon_serving``."""
