@@ -31,7 +31,7 @@ from typing import Any
 
 import zenoh
 
-from busgate.client.errors import ConnectError, NoAnswerError, raise_for
+from busgate.client.errors import ConnectError, NoAnswerError, error_for, raise_for
 from busgate.client.keys import Keys, check_key, check_name
 from busgate.client.zenoh_config import session_config, zenoh_reason
 from busgate.codecs.errors import CommandError
@@ -136,8 +136,12 @@ _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 
 def dumps(body: Any) -> bytes:
     """``body`` as compact JSON (one encoder for every message: building one costs more than
-    encoding a small command)."""
-    return _ENCODER.encode(body).encode()
+    encoding a small command); ``NotJsonError`` for what JSON cannot carry (NaN, a set …),
+    the code the gateway would answer."""
+    try:
+        return _ENCODER.encode(body).encode()
+    except (TypeError, ValueError) as exc:
+        raise error_for("not_json")(f"the command cannot be sent as JSON: {exc}") from None
 
 
 class Core:

@@ -307,10 +307,6 @@ def test_an_estop_stops_the_devices_until_enable(connect, gateway) -> None:
     run(main())
 
 
-@pytest.mark.xfail(strict=True, reason="SDK bug: client/aio.py Device.state leaves its "
-                   "callback in feeds.Latest after a timeout; once that loop is closed the "
-                   "callback raises on zenoh's thread and Latest._on_state drops the waiters "
-                   "after it, so a later state() of the same Device waits in vain")
 def test_a_state_timed_out_in_a_closed_loop_does_not_starve_the_next_wait(demo, connect) -> None:
     """The demo is frozen (SIGSTOP) so the first wait times out for sure, then thawed while
     the second waits: the next sample must reach the second."""

@@ -141,10 +141,6 @@ def test_a_claim_whose_renewal_is_refused_is_lost_and_refuses_motion(
     assert patiently(lambda: la3.move(next(POSITIONS)))["ok"] is True
 
 
-@pytest.mark.xfail(strict=True, reason="SDK bug: client/base.py Shared.send refuses every op "
-                   "but claim/release/end_follow with ClaimLostError while the claim is lost, "
-                   "so a device e-stop and a status read never reach the gateway (which never "
-                   "refuses either)")
 def test_a_lost_claim_still_lets_an_estop_and_a_read_through(module_demo, connect) -> None:
     holder = connect(module_demo.endpoint, "holder")
     la3 = holder.device("la3")
