@@ -92,7 +92,12 @@ def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str
             return answer.body
     if answers:
         raise_for(answers[0].error, gateway=gateway)
-    raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+    if getattr(answers, "timed_out", True):
+        raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+    raise NoAnswerError(
+        f"nobody answered on {key}: nothing there took the query (no such gateway or device, "
+        "or the access rules keep this account from it)"
+    )
 
 
 def then(future: Future, make: Callable[[Any], Any]) -> Future:
