@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import time
 
 import can
 import pytest
@@ -13,7 +14,7 @@ from pydantic import ValidationError
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.gateway.api.commands import MAX_PAYLOAD, GatewayApi
+from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -259,6 +260,28 @@ def test_end_follow_ends_a_stream_at_once_claimed_like_a_target(wait_for, gatewa
         "la1", "stream_stopped", {"reason": "ended by alice"})
     accepted(api, "la1", {"op": "status"})  # a tick still due would have gone before it
     assert follow_ticks(simulator) == ended
+
+
+def test_a_target_of_the_client_that_ended_the_stream_coming_just_after_is_dropped(wait_for,
+                                                                                 gateway):
+    """A target that reaches the gateway after its client's end_follow was sent before it:
+    it starts no stream (which would only go stale). Another client's does, and so does the
+    same client's once the fence has passed."""
+    api, simulator, _, _, events = gateway
+    assert api.follow("la2", b'{"position": 700, "client": "alice"}') is None
+    wait_for(lambda: follow_ticks(simulator) > 0)
+    accepted(api, "la2", {"op": "end_follow", "client": "alice"})
+    wait_for(lambda: any(e.type == "stream_stopped" for e in events))
+    assert api.follow("la2", b'{"position": 701, "client": "alice"}') is None
+    accepted(api, "la2", {"op": "status"})
+    ended = follow_ticks(simulator)
+    time.sleep(END_FENCE_S)
+    assert follow_ticks(simulator) == ended  # nothing started
+    assert api.follow("la2", b'{"position": 702, "client": "alice"}') is None  # past the fence
+    wait_for(lambda: follow_ticks(simulator) > ended)
+    accepted(api, "la2", {"op": "end_follow", "client": "alice"})
+    wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == 2)
+    assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"] * 2
 
 
 def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses_it(wait_for,

@@ -17,7 +17,9 @@ every rule of the API is tested without a network. Rules of this file:
    by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
    ZLAC706 whose speed it commanded is brought to 0 rpm at once. A client may end a stream
-   itself (``end_follow``): claimed like a follow target, never refused for an e-stop.
+   itself (``end_follow``): claimed like a follow target, never refused for an e-stop; its
+   targets that come within ``END_FENCE_S`` after were sent before the end and are dropped
+   (else one that overtook nothing but arrived late would start a stream that goes stale).
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
 """
 
@@ -47,6 +49,9 @@ SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
 #: twice the plan (it shares the bus with commands, ticks and polls) plus this.
 SCAN_SLACK_S = 1.0
+#: After a client's ``end_follow``, how long its targets for that device are taken as sent
+#: before the end (a stream's staleness window).
+END_FENCE_S = 0.1
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +145,9 @@ class GatewayApi:
         #: Device → the client whose command keeps it moving (its driver's ``deadman`` op).
         self._deadman_clients: dict[str, str] = {}
         self._stream_clients: dict[str, str] = {}  # device → client of its follow stream
+        #: Device → (client, when) of its last ``end_follow``: that client's targets that come
+        #: within ``END_FENCE_S`` after were sent before it (rule 3).
+        self._ended: dict[str, tuple[str | None, float]] = {}
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -181,6 +189,7 @@ class GatewayApi:
         # (the authority's rule 4 is for motion).
         authority.claims.check(device, request.client, authority.clock())
         self._stream_clients.pop(device, None)
+        self._ended[device] = (request.client, now())
         runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
         return ok_reply(ended=True)
 
@@ -196,6 +205,8 @@ class GatewayApi:
             fields = decode_object(payload)
             target = driver.follow_target(fields)
             client = fields.get("client")
+            if self._sent_before_the_end(device, client):
+                return None
             runner.authority.check(
                 [(frozenset({driver.device_id}), Effect.MOTION)],
                 client,
@@ -210,6 +221,13 @@ class GatewayApi:
         except Exception as exc:
             log.exception("follow on %s failed", device)
             return error_reply(exc)
+
+    def _sent_before_the_end(self, device: str, client: str | None) -> bool:
+        """A target of the client that just ended ``device``'s stream, come after the end:
+        it was sent before it (it took another path, or another of zenoh's threads), and must
+        not start the stream again (rule 3)."""
+        ended = self._ended.get(device)
+        return ended is not None and ended[0] == client and now() - ended[1] < END_FENCE_S
 
     def estop(self, sender: str | None = None) -> list[Future]:
         """Stop every device of the gateway, ahead of everything; never refused."""
