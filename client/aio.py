@@ -165,10 +165,11 @@ class Device:
         if payload is None:
             loop = asyncio.get_running_loop()
             came: asyncio.Future[bytes] = loop.create_future()
-            self._latest.on_next(lambda p: loop.call_soon_threadsafe(_settle, came, p))
+            withdraw = self._latest.on_next(lambda p: loop.call_soon_threadsafe(_settle, came, p))
             try:
                 payload = await asyncio.wait_for(came, timeout)
             except TimeoutError:
+                withdraw()
                 raise NoAnswerError(
                     f"no state of {self.gateway}/{self.name} within {timeout:g} s"
                 ) from None

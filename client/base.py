@@ -102,6 +102,21 @@ def raw_payload(payload: bytes | str | dict[str, Any] | None) -> bytes | None:
     return payload.encode() if isinstance(payload, str) else dumps(payload)
 
 
+def failed_as(future: Future, make: Callable[[BaseException], BaseException]) -> Future:
+    """``future``, its exception (if any) replaced by ``make(exception)``."""
+    mapped: Future = Future()
+
+    def settle(done: Future) -> None:
+        error = done.exception()
+        if error is None:
+            mapped.set_result(done.result())
+        else:
+            mapped.set_exception(make(error))
+
+    future.add_done_callback(settle)
+    return mapped
+
+
 def scan_command(ids: list[int] | None) -> dict[str, Any]:
     return {"op": "scan"} | ({} if ids is None else {"ids": ids})
 
@@ -139,15 +154,22 @@ class Shared:
     # -- devices -------------------------------------------------------------------------------
 
     def send(self, device: Found, command: Any, timeout_s: float | None) -> Future:
-        """A device command, refused with ``ClaimLostError`` while this client's claim on the
-        device is lost (the claim's own ops go through)."""
+        """A device command. While this client has a claim on the device (held or lost), it
+        asks the gateway to refuse it unless the claim holds (``require_claim``): a lapsed
+        claim is never silently done without, and reads and stops still go through, as the
+        gateway's authority decides. Once the SDK knows the claim is lost, the gateway's
+        refusal is told as ``ClaimLostError`` with the reason, and nothing is sent while the
+        claim's gateway is gone (nothing could reach it)."""
         body = as_body(command)
-        if body.get("op") not in ("claim", "release", "end_follow"):
-            lease = self.leases.get((device.gateway, device.name))
-            if lease is not None:
-                lease.check()
         key = self.core.keys.device(device.gateway, device.name, "cmd")
-        return self.core.command(key, body, timeout_s=timeout_s)
+        lease = self.leases.get((device.gateway, device.name))
+        if lease is None:
+            return self.core.command(key, body, timeout_s=timeout_s)
+        body.setdefault("require_claim", True)
+        if lease.lost is not None and device.gateway not in self.core.gateways_up:
+            lease.check()
+        sent = self.core.command(key, body, timeout_s=timeout_s)
+        return failed_as(sent, lambda exc: lease.lost_error(exc))
 
     def claim(self, device: Found, ttl_s: float) -> ClaimLease:
         lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s)

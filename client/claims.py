@@ -25,7 +25,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from busgate.client.core import Core, seconds, then
-from busgate.client.errors import ClaimLostError, GatewayError
+from busgate.client.errors import ClaimedError, ClaimLostError, GatewayError
 from busgate.schemas.api import MAX_CLAIM_S
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,17 @@ class ClaimLease:
         """``ClaimLostError`` when the claim was lost (rule 2)."""
         if self.lost is not None:
             raise ClaimLostError(f"the claim on {self.gateway}/{self.device} was lost: {self.lost}")
+
+    def lost_error(self, refusal: BaseException) -> BaseException:
+        """The gateway's refusal of a command sent under this claim, as ``ClaimLostError``
+        (with why) when the claim is known lost and the gateway refused for want of it."""
+        if self.lost is None or not isinstance(refusal, ClaimedError | ClaimLostError):
+            return refusal
+        where = f"{self.gateway}/{self.device}"
+        return ClaimLostError(
+            f"the claim on {where} was lost: {self.lost} (the gateway: {refusal})",
+            gateway=self.gateway,
+        )
 
     def release(self) -> Future | None:
         """Stop renewing and give the claim back (nothing to give when it was lost)."""

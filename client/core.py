@@ -31,7 +31,7 @@ from typing import Any
 
 import zenoh
 
-from busgate.client.errors import ConnectError, NoAnswerError, raise_for
+from busgate.client.errors import ConnectError, NoAnswerError, error_for, raise_for
 from busgate.client.keys import Keys, check_key, check_name
 from busgate.client.zenoh_config import session_config, zenoh_reason
 from busgate.codecs.errors import CommandError
@@ -92,7 +92,12 @@ def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str
             return answer.body
     if answers:
         raise_for(answers[0].error, gateway=gateway)
-    raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+    if getattr(answers, "timed_out", True):
+        raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+    raise NoAnswerError(
+        f"nobody answered on {key}: nothing there took the query (no such gateway or device, "
+        "or the access rules keep this account from it)"
+    )
 
 
 def then(future: Future, make: Callable[[Any], Any]) -> Future:
@@ -136,8 +141,12 @@ _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 
 def dumps(body: Any) -> bytes:
     """``body`` as compact JSON (one encoder for every message: building one costs more than
-    encoding a small command)."""
-    return _ENCODER.encode(body).encode()
+    encoding a small command); ``NotJsonError`` for what JSON cannot carry (NaN, a set …),
+    the code the gateway would answer."""
+    try:
+        return _ENCODER.encode(body).encode()
+    except (TypeError, ValueError) as exc:
+        raise error_for("not_json")(f"the command cannot be sent as JSON: {exc}") from None
 
 
 class Core:

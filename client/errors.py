@@ -11,7 +11,8 @@ Rules of this file:
    and ``.message``; ``ClaimedError`` also the ``.holder`` its message names.
 3. What fails before a gateway could answer has its own classes: ``ConnectError`` (no zenoh
    session), ``NoAnswerError`` (nobody answered in time), ``AmbiguousError`` (a bare name that
-   several gateways have), ``ClaimLostError`` (a claim that lapsed under the client). No
+   several gateways have). ``ClaimLostError`` is both: the SDK raises it when it knows a claim
+   is lost, and it is the class of the gateway's ``not_claimed``. No
    ``zenoh.ZError`` reaches a user: the modules that call zenoh turn it into one of these.
 """
 
@@ -48,13 +49,25 @@ class ClaimedError(GatewayError):
         self.holder = holder.group(1) if holder else None
 
 
+class ClaimLostError(GatewayError):
+    """A claim this client took is gone (its gateway went away or restarted, a renewal was
+    refused, or it lapsed): what the client meant to do under it is refused, by the SDK when
+    it knows, else by the gateway (``not_claimed``), until the client claims again. Reads and
+    stops still go through."""
+
+    code = "not_claimed"
+
+
 def _class_name(code: str) -> str:
     """``out_of_range`` → ``OutOfRangeError``."""
     return "".join(part.capitalize() for part in code.split("_")) + "Error"
 
 
 def _error_classes() -> dict[str, type[GatewayError]]:
-    classes: dict[str, type[GatewayError]] = {"claimed": ClaimedError}
+    classes: dict[str, type[GatewayError]] = {
+        "claimed": ClaimedError,
+        "not_claimed": ClaimLostError,
+    }
     for code in ERROR_CODES:
         if code not in classes:
             doc = f"The gateway answered ``{code}``."
@@ -109,13 +122,6 @@ class AmbiguousError(BusgateError, LookupError):
         self.gateways = gateways
 
 
-class ClaimLostError(BusgateError):
-    """A claim this client holds lapsed under it (its gateway went away or restarted, or a
-    renewal was refused): motion through it is refused until the client claims again."""
-
-    code = "claim_lost"
-
-
 __all__ = [
     "ERROR_CLASSES",
     "AmbiguousError",
@@ -127,5 +133,5 @@ __all__ = [
     "NoAnswerError",
     "error_for",
     "raise_for",
-    *(cls.__name__ for cls in ERROR_CLASSES.values() if cls is not ClaimedError),
+    *(cls.__name__ for cls in ERROR_CLASSES.values() if cls not in (ClaimedError, ClaimLostError)),
 ]

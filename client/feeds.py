@@ -9,12 +9,16 @@ is not handed out as the device's latest.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from busgate.client.base import Found, Shared
+
+log = logging.getLogger(__name__)
 
 
 class Stream:
@@ -54,10 +58,17 @@ class Latest:
             return None
         return latest[1]
 
-    def on_next(self, callback: Callable[[bytes], object]) -> None:
-        """Call ``callback(payload)`` once, with the next payload (zenoh's thread)."""
+    def on_next(self, callback: Callable[[bytes], object]) -> Callable[[], None]:
+        """Call ``callback(payload)`` once, with the next payload (zenoh's thread); returns
+        what withdraws it (a wait that timed out)."""
         with self._lock:
             self._waiting.append(callback)
+
+        def withdraw() -> None:
+            with self._lock, contextlib.suppress(ValueError):
+                self._waiting.remove(callback)
+
+        return withdraw
 
     def wait(self, max_age_s: float, timeout_s: float) -> bytes | None:
         """A recent payload, else the next within ``timeout_s`` (``None``: none came)."""
@@ -71,8 +82,9 @@ class Latest:
             got.append(payload)
             came.set()
 
-        self.on_next(take)
-        came.wait(timeout_s)
+        withdraw = self.on_next(take)
+        if not came.wait(timeout_s):
+            withdraw()
         return got[0] if got else None
 
     def _on_state(self, key: str, payload: bytes) -> None:
@@ -80,7 +92,10 @@ class Latest:
             self._latest = (time.monotonic(), payload)
             waiting, self._waiting = self._waiting, []
         for callback in waiting:
-            callback(payload)
+            try:
+                callback(payload)
+            except Exception:  # a waiter gone with its event loop must not rob the others
+                log.debug("a state waiter failed", exc_info=True)
 
     def _gateway_gone(self, gateway: str) -> None:
         if gateway == self.gateway:

@@ -3,7 +3,9 @@
 Rules of this file:
 
 1. A target is checked against the kind's follow model before anything is sent (an error now,
-   not a ``command_refused`` event later), and carries the client's id.
+   not a ``command_refused`` event later), and carries the client's id; under a claim, it
+   asks the gateway to refuse it unless the claim holds (``require_claim``), and it is refused
+   here at once when the SDK knows the claim is lost.
 2. Puts are spaced at least ``MIN_PUT_INTERVAL_S`` (the shortest follow period a device
    has): a target set sooner waits, and a newer one replaces it (latest wins, as at the
    gateway's ticks). A program that sets in a tight loop so never floods the gateway — a
@@ -63,7 +65,8 @@ class FollowSender:
         except ValidationError as exc:
             message = f"invalid follow target for {self._what}: {describe_validation_error(exc)}"
             raise error_for(refusal_code(exc))(message) from None
-        payload = dumps({**target, "client": self._client})
+        claim = {} if lease is None else {"require_claim": True}
+        payload = dumps({**target, **claim, "client": self._client})
         with self._lock:
             self.sets += 1
             if self._armed or time.monotonic() < self._next_put:

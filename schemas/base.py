@@ -26,6 +26,10 @@ class CommandModel(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
     client: ClientId | None = None
+    #: A client that claimed sends this, so that nothing it meant to do under its claim is
+    #: done without it: refused (``not_claimed``) unless ``client`` holds the claim of every
+    #: device the command needs a claim for (reads and stops need none).
+    require_claim: bool = False
 
 
 class Published(BaseModel):

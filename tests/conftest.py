@@ -163,3 +163,29 @@ def pytest_runtest_makereport(item, call):
         report.outcome = "failed"
         report.longrepr = f"skipped under CI, which installs every tool: {report.longrepr}"
 
+
+# -- gateways as child processes, started once per module (each start costs seconds) ---------
+# The test-helper modules are imported inside the fixtures: tests/test_ci_rules.py runs this
+# file's text in a scratch directory where ``tests`` is no package.
+
+
+@pytest.fixture(scope="module")
+def module_demo():
+    """``busgate demo`` on a free loopback port for the whole module (``.endpoint``), stopped
+    after it; a test that e-stops or claims leaves its devices enabled and unclaimed."""
+    from tests.gateway_process import DemoProcess
+
+    demo = DemoProcess(f"tcp/127.0.0.1:{unused_loopback_port()}")
+    try:
+        yield demo
+    finally:
+        assert demo.terminate() == 0
+
+
+@pytest.fixture(scope="module")
+def secured_daemon(tmp_path_factory):
+    """``busgate run`` under deploy/zenoh/busgate.json5 (TLS, passwords, ACL) on an LA
+    simulator, for the whole module: ``tests.secured_gateway.secured_daemon_serving``."""
+    from tests.secured_gateway import secured_daemon_serving
+
+    yield from secured_daemon_serving(tmp_path_factory)

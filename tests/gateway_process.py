@@ -1,6 +1,7 @@
 """``busgate`` as a child process, the way a user or systemd starts it: ``run_busgate`` for a
 command that ends (a refusal), ``GatewayProcess`` for ``busgate run`` serving until SIGTERM,
-its log read line by line on a thread so that a test waits for the line it expects."""
+its log read line by line on a thread so that a test waits for the line it expects, and
+``DemoProcess`` for ``busgate demo``, started once it printed its hints."""
 
 from __future__ import annotations
 
@@ -66,4 +67,40 @@ class GatewayProcess:
     def stop(self) -> int:
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(timeout=TIMEOUT_S)
+
+
+class DemoProcess:
+    """``busgate demo --listen ENDPOINT`` as a child, returned once it serves; ``hints`` holds
+    what it printed."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
+        self.process = subprocess.Popen([*BUSGATE, "demo", "--listen", endpoint],
+                                        stdout=subprocess.PIPE, text=True)
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.hints = self._wait_for_hints()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self._lines.put(line)
+        self._lines.put("")  # end of output
+
+    def _wait_for_hints(self) -> str:
+        lines: list[str] = []
+        while not lines or not lines[-1].startswith("Ctrl-C"):
+            try:
+                line = self._lines.get(timeout=TIMEOUT_S)
+            except queue.Empty:
+                self.process.kill()
+                raise
+            assert line, f"the demo ended before it served: {''.join(lines)!r}"
+            lines.append(line)
+        return "".join(lines)
+
+    def terminate(self, signum: int = signal.SIGTERM) -> int:
+        """Stop the demo with ``signum`` (SIGTERM or SIGINT, as Ctrl-C): its exit status."""
+        if self.process.poll() is None:
+            self.process.send_signal(signum)
         return self.process.wait(timeout=TIMEOUT_S)

@@ -46,8 +46,9 @@ def test_a_code_this_version_does_not_know_is_still_told_as_it_came() -> None:
 
 
 def test_client_side_failures_are_busgate_errors_too() -> None:
-    for cls in (bc.ConnectError, bc.NoAnswerError, bc.AmbiguousError, bc.ClaimLostError):
+    for cls in (bc.ConnectError, bc.NoAnswerError, bc.AmbiguousError):
         assert issubclass(cls, bc.BusgateError) and not issubclass(cls, bc.GatewayError)
+    assert bc.error_for("not_claimed") is bc.ClaimLostError  # the SDK's and the gateway's
 
 
 @pytest.mark.parametrize("name", ["la*", "gw/*", "a/b/c", "", "x" * 65, "la 1", "gw/"])

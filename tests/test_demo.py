@@ -6,11 +6,8 @@ is refused in one line."""
 from __future__ import annotations
 
 import json
-import queue
-import signal
 import subprocess
 import sys
-import threading
 
 import pytest
 import zenoh
@@ -19,38 +16,9 @@ from busgate.client.zenoh_config import session_config
 from busgate.codecs.errors import ConfigError
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
+from tests.gateway_process import TIMEOUT_S, DemoProcess
 
-START_TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
 ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
-
-
-class DemoProcess:
-    """``busgate demo --listen ENDPOINT`` as a child; ``hints`` holds what it printed."""
-
-    def __init__(self, endpoint: str) -> None:
-        command = [sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen", endpoint]
-        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
-        self._lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-        self.hints = self._wait_for_hints()
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self._lines.put(line)
-        self._lines.put("")  # end of output
-
-    def _wait_for_hints(self) -> str:
-        lines = []
-        while not lines or not lines[-1].startswith("Ctrl-C"):
-            line = self._lines.get(timeout=START_TIMEOUT_S)
-            assert line, f"the demo ended before it served: {''.join(lines)!r}"
-            lines.append(line)
-        return "".join(lines)
-
-    def terminate(self) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)
-        return self.process.wait(timeout=START_TIMEOUT_S)
 
 
 @pytest.fixture
@@ -102,7 +70,7 @@ def test_the_demo_serves_every_device_and_an_actuator_moves(wait_for, demo) -> N
 def test_a_second_demo_on_the_same_endpoint_is_refused_in_one_line(demo) -> None:
     _, _, endpoint = demo
     second = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
-                             endpoint], capture_output=True, text=True, timeout=START_TIMEOUT_S)
+                             endpoint], capture_output=True, text=True, timeout=TIMEOUT_S)
     refusal = (f"busgate demo: error: zenoh cannot listen on {endpoint}: it is in use (another "
                f"busgate demo or run?)")
     assert (second.returncode, second.stderr.splitlines(), second.stdout) == (2, [refusal], "")

@@ -7,27 +7,22 @@ kernel's equivalent (PR_SET_MDWE)."""
 
 from __future__ import annotations
 
-import ctypes
 import itertools
 import json
 import re
 import shutil
-import signal
-import socket
 import subprocess
-import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
-from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from tests.secured_gateway import ZENOH
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 UNIT = DEPLOY / "busgate.service"
@@ -35,7 +30,6 @@ NETWORK = DEPLOY / "systemd-networkd" / "80-can0.network"
 RULES = DEPLOY / "udev" / "99-busgate.rules"
 SYSUSERS = DEPLOY / "sysusers.d" / "busgate.conf"
 TMPFILES = DEPLOY / "tmpfiles.d" / "busgate.conf"
-ZENOH = DEPLOY / "zenoh" / "busgate.json5"
 NETWORKD = Path("/lib/systemd/systemd-networkd")
 
 
@@ -168,120 +162,10 @@ def test_sysusers_and_tmpfiles_create_the_user_and_the_config_directory(tmp_path
 # -- the zenoh config: TLS, user/password, access control, with the real daemon -----------
 
 
-def _openssl(*args: str | Path) -> None:
-    subprocess.run(["openssl", *map(str, args)], check=True, capture_output=True)
-
-
-def _certificates(directory: Path) -> None:
-    """A CA, and a certificate for 127.0.0.1 it signed: the files the json5 names."""
-    directory.mkdir()
-    ec = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes")
-    _openssl("req", "-x509", *ec, "-keyout", directory / "ca.key", "-out", directory / "ca.pem",
-             "-days", "2", "-subj", "/CN=busgate test CA",
-             "-addext", "basicConstraints=critical,CA:TRUE",
-             "-addext", "keyUsage=critical,keyCertSign")
-    _openssl("req", *ec, "-keyout", directory / "busgate.key", "-out", directory / "busgate.csr",
-             "-subj", "/CN=localhost")
-    (directory / "ext.cnf").write_text("subjectAltName=IP:127.0.0.1,DNS:localhost\n"
-                                       "basicConstraints=CA:FALSE\n")
-    _openssl("x509", "-req", "-in", directory / "busgate.csr", "-CA", directory / "ca.pem",
-             "-CAkey", directory / "ca.key", "-CAcreateserial", "-days", "2",
-             "-out", directory / "busgate.pem", "-extfile", directory / "ext.cnf")
-
-
 def test_the_zenoh_config_loads_in_zenoh() -> None:
     config = json.loads(str(zenoh.Config.from_file(str(ZENOH))))
     assert config["access_control"]["enabled"] is True
     assert config["transport"]["auth"]["usrpwd"]["dictionary_file"].startswith("/etc/busgate/")
-
-
-#: ``busgate run`` as systemd would start it with MemoryDenyWriteExecute=yes: the kernel's
-#: PR_SET_MDWE refuses writable-and-executable memory for the rest of the process's life, the
-#: same promise the unit's seccomp filter enforces.
-MDWE_RUN = """
-import ctypes, mmap, sys
-libc = ctypes.CDLL(None, use_errno=True)
-if libc.prctl(65, 1, 0, 0, 0) != 0:  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
-    sys.exit(f"PR_SET_MDWE refused: errno {ctypes.get_errno()}")
-try:
-    mmap.mmap(-1, 4096, prot=mmap.PROT_READ | mmap.PROT_WRITE | mmap.PROT_EXEC)
-    sys.exit("a writable and executable mapping was allowed")
-except PermissionError:
-    pass
-from busgate.gateway.cli import main
-sys.exit(main(["run", "--config", sys.argv[1]]))
-"""
-
-
-def _kernel_has_mdwe() -> bool:
-    libc = ctypes.CDLL(None, use_errno=True)
-    return libc.prctl(66, 0, 0, 0, 0) >= 0  # PR_GET_MDWE: EINVAL before Linux 6.3
-
-
-@dataclass
-class SecuredGateway:
-    """The daemon under deploy/zenoh/busgate.json5, as its clients reach it."""
-
-    etc: Path
-    port: int
-    simulator: SerialSimulator
-    sessions: list[zenoh.Session] = field(default_factory=list)
-
-    def connect(self, user: str | None = None, password: str | None = None, *,
-                scheme: str = "tls", mode: str = "client",
-                insist: bool = False) -> zenoh.Session:
-        """A session to the gateway's port (with no usrpwd when ``user`` is None), closed after
-        the test; ``zenoh.ZError`` when zenoh cannot open it. A peer makes its connection in
-        the background unless it must ``insist``: then opening it waits for the attempt and
-        fails with it, as a client's does."""
-        config = session_config(mode=mode, connect=[f"{scheme}/127.0.0.1:{self.port}"])
-        if insist:
-            config.insert_json5("connect/exit_on_failure", "true")
-            config.insert_json5("connect/timeout_ms", "0")
-        config.insert_json5("transport/link/tls/root_ca_certificate",
-                            json.dumps(str(self.etc / "tls/ca.pem")))
-        if user is not None:
-            config.insert_json5("transport/auth/usrpwd",
-                                json.dumps({"user": user, "password": password}))
-        self.sessions.append(zenoh.open(config))
-        return self.sessions[-1]
-
-    def close_sessions(self) -> None:
-        while self.sessions:
-            self.sessions.pop().close()
-
-
-@pytest.fixture(scope="module")
-def secured_daemon(tmp_path_factory):
-    """``busgate run`` (under PR_SET_MDWE where the kernel has it) on the LA simulator, its
-    zenoh session from deploy/zenoh/busgate.json5 with the files moved under a scratch /etc
-    (users operator and viewer): started once for the module, as each start costs seconds."""
-    if shutil.which("openssl") is None:
-        pytest.skip("openssl is not installed here (needed to make test certificates)")
-    etc = tmp_path_factory.mktemp("etc")
-    _certificates(etc / "tls")
-    (etc / "zenoh-users.txt").write_text("operator:op-secret\nviewer:view-secret\n")
-    json5 = etc / "zenoh.json5"
-    json5.write_text(ZENOH.read_text().replace("/etc/busgate/", f"{etc}/"))
-    port = _free_port()
-    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
-        toml = etc / "busgate.toml"
-        toml.write_text(GATEWAY_TOML.format(config_file=json5, endpoint=f"tls/127.0.0.1:{port}",
-                                            port=simulator.port))
-        command = ([sys.executable, "-c", MDWE_RUN, str(toml)] if _kernel_has_mdwe()
-                   else [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(toml)])
-        log = etc / "daemon.log"  # a file, not a pipe: nobody reads it while the module runs
-        with log.open("w") as stderr:
-            daemon = subprocess.Popen(command, stderr=stderr)
-        gateway = SecuredGateway(etc, port, simulator)
-        try:
-            _wait_listening(daemon, port)
-            yield gateway
-        finally:
-            gateway.close_sessions()
-            daemon.send_signal(signal.SIGTERM)
-            daemon.wait(timeout=20)
-        assert daemon.returncode == 0, log.read_text()
 
 
 @pytest.fixture
@@ -301,30 +185,6 @@ def viewer(secured_gateway) -> zenoh.Session:
     return _ready(secured_gateway.connect("viewer", "view-secret"))
 
 
-#: ``reply_margin_ms``: the simulator shares the test's process and this machine's two busy
-#: cores, so a scheduling hiccup of a few ms must not pass for a lost reply.
-GATEWAY_TOML = """
-[gateway]
-name = "gw1"
-
-[zenoh]
-config_file = "{config_file}"
-listen = ["{endpoint}"]
-
-[[buses]]
-name = "uart0"
-transport = "serial"
-port = "{port}"
-baudrate = 921600
-reply_margin_ms = 10
-
-[[buses.devices]]
-name = "la1"
-kind = "inspire_la"
-id = 1
-poll_hz = 20
-"""
-
 INFO = "busgate/gw1/info"
 LA1 = "busgate/gw1/dev/la1"
 ESTOP = la.ControlCommand(1, la.ControlCode.ESTOP)
@@ -332,25 +192,6 @@ ESTOP = la.ControlCommand(1, la.ControlCode.ESTOP)
 SETTLE_S = 0.5
 #: Target positions used once in this module: a frame carrying one came from its test.
 FRESH_TARGETS = itertools.count(101, 13)
-
-
-def _free_port() -> int:
-    """conftest's ``free_port`` for the module-scoped daemon (that fixture is per test)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _wait_listening(daemon: subprocess.Popen, port: int) -> None:
-    deadline = time.monotonic() + 20
-    while True:
-        assert daemon.poll() is None, "the daemon exited"
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            return
-        except OSError:
-            assert time.monotonic() < deadline, "the daemon does not listen"
-            time.sleep(0.05)
 
 
 def _answers(session: zenoh.Session, key: str, payload: str = "", timeout: float = 10.0) -> list:

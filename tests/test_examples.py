@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 import busgate.client as bc
-from tests.test_demo import DemoProcess
+from tests.gateway_process import DemoProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "docs" / "examples"

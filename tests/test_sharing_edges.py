@@ -311,6 +311,32 @@ def test_a_follow_target_is_refused_while_another_client_holds_the_device(gatewa
     assert frames(la_sim, "FollowCommand", "GroupFollowCommand") == []
 
 
+def test_require_claim_refuses_what_needs_a_claim_the_client_does_not_hold(gateway):
+    """A client that claimed sends ``require_claim``: once its claim is gone, what needs the
+    claim is refused ``not_claimed`` on every path, and reads and stops still go through."""
+    api, la_sim, _ = gateway
+    needing = {"client": "A", "require_claim": True}
+    assert code(ask(api, "la2", {"op": "move", "position": 1601, **needing})) == "not_claimed"
+    assert code(api.follow("la2", json.dumps({"position": 1602, **needing}).encode())) == \
+        "not_claimed"
+    assert code(ask_bus(api, "uart0", {"op": "group_move", **needing,
+                                       "targets": [{"device": "la2", "position": 1603}]})) == \
+        "not_claimed"
+    assert accepted(api, "la2", {"op": "status", **needing})  # a read
+    assert accepted(api, "la2", {"op": "pause", **needing})  # a stop
+    accepted(api, "la2", {"op": "claim", "client": "B"})  # another holds it: that is said
+    assert code(ask(api, "la2", {"op": "move", "position": 1604, **needing})) == "claimed"
+    accepted(api, "la2", {"op": "release", "client": "B"})
+    accepted(api, "la2", {"op": "claim", "client": "A"})
+    accepted(api, "la2", {"op": "move", "position": 1605, **needing})
+    settled(api, "la2")
+    moves = frames(la_sim, "MoveCommand", "GroupMoveCommand", "FollowCommand",
+                   "GroupFollowCommand")
+    sent = {p for p in range(1601, 1606) if any(p.to_bytes(2, "little").hex() in r.wire
+                                               for r in moves)}
+    assert sent == {1605}  # only what the held claim allowed reached the wire
+
+
 @pytest.mark.parametrize(("bus", "command", "expected"), [
     ("uart0", {"op": "group_move", "targets": [{"device": "ghost", "position": 5}]},
      "unknown_device"),

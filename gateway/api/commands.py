@@ -196,7 +196,11 @@ class GatewayApi:
             fields = decode_object(payload)
             target = driver.follow_target(fields)
             client = fields.get("client")
-            runner.authority.check([(frozenset({driver.device_id}), Effect.MOTION)], client)
+            runner.authority.check(
+                [(frozenset({driver.device_id}), Effect.MOTION)],
+                client,
+                require_claim=fields.get("require_claim") is True,
+            )
             if client is not None:
                 self._stream_clients[device] = client
             runner.follow(device, target)

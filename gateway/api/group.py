@@ -31,7 +31,8 @@ def group_command(runner: BusRunner, request) -> tuple[str, Any]:
         for target, driver in zip(request.targets, drivers, strict=True)
     ]
     first = drivers[0]
-    return first.name, first.parse(json.dumps({"op": "group_move", "targets": targets}))
+    command = {"op": "group_move", "targets": targets, "require_claim": request.require_claim}
+    return first.name, first.parse(json.dumps(command))
 
 
 def scan_ids(protocol: str) -> range:

@@ -9,7 +9,9 @@ follow target. Rules of this file:
 1. An id that no device of the bus is configured with is refused (``unknown_device``), unless
    the frame only reads.
 2. Reads and stops are never refused.
-3. Anything else needs the claim of every device it addresses (``claimed``, naming the holder).
+3. Anything else needs the claim of every device it addresses (``claimed``, naming the holder);
+   a request that asks for it (``require_claim``) is refused unless its client holds that
+   claim itself (``not_claimed``: the claim it took lapsed, or it never took one).
 4. Motion to an e-stopped device is refused (``estopped``, naming the op that re-enables it).
 """
 
@@ -59,6 +61,17 @@ class ClaimTable:
         with self._lock:
             self._check(device, client, now)
 
+    def require(self, device: str, client: str | None, now: float) -> None:
+        """``not_claimed`` unless ``client`` holds ``device`` now (rule 3)."""
+        with self._lock:
+            self._check(device, client, now)
+            if device not in self._holders:
+                raise RefusedError(
+                    "not_claimed",
+                    f"{device} is not claimed by {client!r}: its claim lapsed or was never "
+                    "taken; claim it again",
+                )
+
     def drop_client(self, client: str) -> list[str]:
         """Release every claim of ``client`` (it went away); the devices it held."""
         with self._lock:
@@ -92,15 +105,22 @@ class Authority:
         self.clock = clock
         self.claims = ClaimTable()
 
-    def check(self, effects: Iterable[tuple[Addressed, Effect]], client: str | None) -> None:
+    def check(
+        self,
+        effects: Iterable[tuple[Addressed, Effect]],
+        client: str | None,
+        *,
+        require_claim: bool = False,
+    ) -> None:
         """Refuse (``RefusedError``) unless ``client`` may send frames with these effects."""
         moment = self.clock()
+        judge = self.claims.require if require_claim else self.claims.check
         for ids, effect in effects:
             devices = self._devices(ids, effect)
             if effect <= Effect.STOP:
                 continue
             for driver in devices:
-                self.claims.check(driver.name, client, moment)
+                judge(driver.name, client, moment)
             if effect is Effect.MOTION:
                 for driver in devices:
                     if driver.estopped:

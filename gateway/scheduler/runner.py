@@ -226,7 +226,9 @@ class BusRunner:
         try:
             if driver is None:
                 raise CommandError(f"no device {device!r} on bus {self.name}")
-            self.authority.check(driver.effects(command), client)
+            self.authority.check(
+                driver.effects(command), client, require_claim=command.require_claim
+            )
             requests = driver.plan(command)
         except BusgateError as exc:
             outcomes.settle(future, error=exc)

@@ -1,0 +1,273 @@
+"""What the SDK does when things go wrong, against real gateways as child processes: a client
+frozen by SIGSTOP loses its claim within its short lease, a claim taken over after a lapse is
+reported lost, a gateway restarted under a live client is used again by the same ``Client``
+(and the claim held across the restart is reported lost), and the deploy config's accounts
+(TLS, user names and passwords, ACL: tests/secured_gateway.py) decide who may command.
+
+The figures the contract names are printed (run with ``-s`` to see them): how long after its
+SIGSTOP another client could move the frozen client's device, and how long after the restart
+the same client's commands and telemetry worked again.
+"""
+
+from __future__ import annotations
+
+import itertools
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+import busgate.client as bc
+from tests.gateway_process import DemoProcess
+from tests.sdk_helpers import fresh_positions, patiently, the_client_id
+from tests.secured_gateway import ACCOUNTS
+
+POSITIONS = fresh_positions(102)
+#: Hang guards, not speed requirements.
+DEADLINE_S = 10.0
+CHILD_TIMEOUT_S = 30.0
+#: The contract's bounds: a frozen client's claim is gone this soon (its lease is 1 s), and a
+#: restarted gateway serves the same client again this soon after it is back.
+LEASE_BOUND_S = 2.0
+RECOVERY_BOUND_S = 10.0
+SESSIONS = itertools.count(1)
+
+
+@pytest.fixture
+def connect(request):
+    """``connect(endpoint, suffix, **options)``: a client named after the test, closed after
+    it."""
+    clients: list[bc.Client] = []
+
+    def open_client(endpoint: str, suffix: str = "", **options) -> bc.Client:
+        name = f"{request.node.name}-{suffix}" if suffix else request.node.name
+        clients.append(bc.connect(endpoint, client_id=the_client_id(name), **options))
+        return clients[-1]
+
+    yield open_client
+    for client in clients:
+        client.close()
+
+
+def until_it_works(attempt, deadline_s: float):
+    """``attempt()``'s result once it stops raising ``NoAnswerError``, and when."""
+    deadline = time.monotonic() + deadline_s
+    while True:
+        try:
+            return attempt(), time.monotonic()
+        except bc.NoAnswerError:
+            assert time.monotonic() < deadline, "it never worked again"
+            time.sleep(0.05)
+
+
+# -- the short lease: a frozen client's claim ------------------------------------------------
+
+#: A client that claims la2 for far longer than the test (only its lease can end the claim),
+#: says so, and waits to be frozen.
+FROZEN_CLIENT = """
+import sys
+import busgate.client as bc
+with bc.connect(sys.argv[1], client_id=sys.argv[2]) as client:
+    with client.device("la2").claim(ttl_s=600.0):
+        print("claimed", flush=True)
+        sys.stdin.readline()
+"""
+
+
+def test_a_frozen_clients_claim_is_lost_within_2_s(module_demo, connect) -> None:
+    other = connect(module_demo.endpoint, "other")
+    la2 = other.device("la2")
+    patiently(la2.enable)
+    frozen_id = the_client_id("frozen-claimant")
+    child = subprocess.Popen([sys.executable, "-c", FROZEN_CLIENT, module_demo.endpoint, frozen_id],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline() == "claimed\n"
+        with pytest.raises(bc.ClaimedError) as refused:
+            la2.move(next(POSITIONS))
+        assert refused.value.holder == frozen_id
+        child.send_signal(signal.SIGSTOP)
+        frozen = time.monotonic()
+        while True:
+            try:
+                assert patiently(lambda: la2.move(next(POSITIONS)))["ok"] is True
+                break
+            except bc.ClaimedError:
+                assert time.monotonic() - frozen < CHILD_TIMEOUT_S, "the claim never went"
+                time.sleep(0.02)
+        lost_after = time.monotonic() - frozen
+        print(f"\nSIGSTOP -> another client's move succeeds: {lost_after:.2f} s")
+        assert lost_after < LEASE_BOUND_S
+    finally:
+        child.send_signal(signal.SIGCONT)
+        child.kill()
+        child.wait(timeout=CHILD_TIMEOUT_S)
+
+
+# -- a claim lost to another client ----------------------------------------------------------
+
+
+def _take_over(endpoint: str, connect, holder: bc.Client, device: str) -> bc.Client:
+    """Release ``holder``'s claim on ``device`` as its own id would (client ids are
+    self-chosen), and claim it as another client whose block the caller enters: the holder's
+    next renewal is refused ``claimed``."""
+    twin = bc.connect(endpoint, client_id=holder.client_id)
+    try:
+        assert patiently(lambda: twin.device(device).send({"op": "release"}))["ok"] is True
+    finally:
+        twin.close()
+    return connect(endpoint, "thief")
+
+
+def test_a_claim_whose_renewal_is_refused_is_lost_and_refuses_motion(
+        module_demo, connect, wait_for) -> None:
+    holder = connect(module_demo.endpoint, "holder")
+    la3 = holder.device("la3")
+    patiently(la3.enable)
+    with pytest.raises(bc.ClaimLostError), la3.claim(ttl_s=1.0) as claim:
+        thief = _take_over(module_demo.endpoint, connect, holder, "la3")
+        with thief.device("la3").claim(ttl_s=5.0):
+            wait_for(lambda: claim.lost is not None, timeout=DEADLINE_S)
+            assert "claimed" in claim.lost
+            with pytest.raises(bc.ClaimLostError):
+                la3.move(next(POSITIONS))
+            with pytest.raises(bc.ClaimLostError), la3.follow() as stream:
+                stream.set(position=next(POSITIONS))
+        time.sleep(0.5)  # past the holder's renewal period (TTL / 3): it must not renew
+        third = connect(module_demo.endpoint, "third").device("la3")
+        assert patiently(lambda: third.move(next(POSITIONS)))["ok"]
+    assert patiently(lambda: la3.move(next(POSITIONS)))["ok"] is True
+
+
+def test_a_lost_claim_still_lets_an_estop_and_a_read_through(module_demo, connect) -> None:
+    holder = connect(module_demo.endpoint, "holder")
+    la3 = holder.device("la3")
+    patiently(la3.enable)
+    try:
+        with pytest.raises(bc.ClaimLostError), la3.claim(ttl_s=1.0) as claim:
+            thief = _take_over(module_demo.endpoint, connect, holder, "la3")
+            with thief.device("la3").claim(ttl_s=5.0):
+                deadline = time.monotonic() + DEADLINE_S
+                while claim.lost is None:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+                for op in ("status", "estop"):  # what the gateway never refuses
+                    try:
+                        reply = patiently(la3.send, {"op": op})
+                    except bc.ClaimLostError as exc:
+                        pytest.fail(f"{op} refused by the SDK: {exc}")
+                    assert reply["ok"] is True, reply
+    finally:
+        patiently(la3.enable)
+
+
+# -- a gateway restarted under a live client -------------------------------------------------
+
+
+def test_a_gateway_restart_under_a_live_client(free_port, connect, wait_for) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    gateway = DemoProcess(endpoint)
+    try:
+        client = connect(endpoint)
+        la1 = client.device("la1")
+        assert patiently(la1.enable)["ok"] is True and la1.state().device == "la1"
+        # a TTL far past the test: only the gateway's going can tell the claim is lost
+        with pytest.raises(bc.ClaimLostError), la1.claim(ttl_s=600.0) as claim:
+            assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
+            stopped, stopped_wall = time.monotonic(), time.time()
+            assert gateway.terminate(signal.SIGINT) == 0
+            wait_for(lambda: claim.lost is not None, timeout=DEADLINE_S)
+            with pytest.raises(bc.ClaimLostError):
+                la1.move(next(POSITIONS))
+            gateway = DemoProcess(endpoint)  # the same endpoint
+            served = time.monotonic()
+            with pytest.raises(bc.ClaimLostError):
+                la1.move(next(POSITIONS))  # still lost: never silently re-taken
+        # the same Client and Device, once its session found the gateway again
+        reply, answered = until_it_works(
+            lambda: patiently(lambda: la1.send({"op": "status"}, timeout=1.0)), RECOVERY_BOUND_S)
+        assert reply["ok"] is True
+        state, read = until_it_works(lambda: la1.state(timeout=1.0), RECOVERY_BOUND_S)
+        assert state.device == "la1" and state.ts > stopped_wall, "not read by the new gateway"
+        print(f"\nrestart: back in {served - stopped:.2f} s; then send answered after "
+              f"{answered - served:.2f} s, state after {read - served:.2f} s")
+        assert read - served < RECOVERY_BOUND_S and answered - served < RECOVERY_BOUND_S
+        other = connect(endpoint, "other")
+        with la1.claim(ttl_s=2.0):  # a claim the new gateway holds for this client
+            with pytest.raises(bc.ClaimedError) as refused:
+                other.device("la1").move(next(POSITIONS))
+            assert refused.value.holder == client.client_id
+            assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
+    finally:
+        assert gateway.terminate() == 0
+
+
+# -- accounts: the deploy config's TLS, passwords and ACL -------------------------------------
+
+
+def _secured(daemon, account: str | None, password: str | None = None, *,
+             scheme: str = "tls", ca: bool = True, **options) -> bc.Client:
+    """A client of the secured daemon as ``account`` (a client id of its own each time)."""
+    return bc.connect(f"{scheme}/127.0.0.1:{daemon.port}",
+                      client_id=the_client_id(f"{account}-{scheme}-{next(SESSIONS)}"),
+                      username=account, password=password,
+                      ca=daemon.etc / "tls/ca.pem" if ca else None, **options)
+
+
+def test_an_operator_over_tls_can_move(secured_daemon, wait_for) -> None:
+    with _secured(secured_daemon, "operator", ACCOUNTS["operator"]) as operator:
+        assert set(operator.gateways()) == {"gw1"}
+        la1 = operator.device("la1")
+        patiently(la1.enable)
+        target = next(POSITIONS)
+        assert patiently(lambda: la1.move(target))["state"]["target"] == target
+        wait_for(lambda: la1.state().position == target, timeout=DEADLINE_S)
+        with la1.claim(ttl_s=1.0):  # its liveliness token is allowed: claims work
+            assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
+
+
+def test_a_viewer_reads_state_but_gets_no_answer_to_a_command(secured_daemon) -> None:
+    """The ACL hides the command keys from a viewer: its commands are not refused with a
+    code, nobody answers them (at once: zenoh knows no queryable for them), and its e-stop
+    put is dropped."""
+    with _secured(secured_daemon, "operator", ACCOUNTS["operator"]) as operator, \
+            _secured(secured_daemon, "viewer", ACCOUNTS["viewer"], timeout=3.0) as viewer:
+        assert set(viewer.gateways()) == {"gw1"}
+        la1 = viewer.device("la1")
+        assert la1.state(timeout=5.0).device == "la1"
+        assert len(list(la1.states(timeout=1.0))) >= 2
+        mine = operator.device("la1")
+        patiently(mine.enable)
+        target = next(POSITIONS)
+        for attempt in (lambda: la1.move(target), lambda: la1.send({"op": "status"}),
+                        lambda: la1.claim(ttl_s=1.0).__enter__(),
+                        lambda: viewer.bus("uart0").scan([1])):
+            asked = time.monotonic()
+            with pytest.raises(bc.NoAnswerError):
+                attempt()
+            assert time.monotonic() - asked < 3.0, "it waited for the timeout"
+        viewer.estop()  # no error: a put is not answered
+        assert set(viewer.gateways()) == {"gw1"}  # so the gateway has had the e-stop put
+        moved = patiently(mine.move, next(POSITIONS))
+        assert moved["ok"] is True, "the viewer's e-stop got through"
+
+
+TURNED_AWAY = {
+    "wrong password": ("operator", "guess", {}),
+    "unknown user": ("intruder", "op-secret", {}),
+    "no credentials": (None, None, {}),
+    "plain tcp": ("operator", ACCOUNTS["operator"], {"scheme": "tcp"}),
+    "no CA": ("operator", ACCOUNTS["operator"], {"ca": False}),
+}
+
+
+@pytest.mark.parametrize("way", TURNED_AWAY.values(), ids=TURNED_AWAY)
+def test_a_client_turned_away_raises_connect_error(secured_daemon, way) -> None:
+    account, password, options = way
+    with pytest.raises(bc.ConnectError) as refused:
+        _secured(secured_daemon, account, password, **options).close()
+    assert isinstance(refused.value, bc.BusgateError) and isinstance(refused.value,
+                                                                      ConnectionError)
+    assert f"127.0.0.1:{secured_daemon.port}" in str(refused.value)

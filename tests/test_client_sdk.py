@@ -1,0 +1,476 @@
+"""The SDK's blocking face (``busgate.client``) against a real ``busgate demo`` child process,
+and a second real gateway (``gw2``: ``busgate run`` on an Inspire LA simulator, a peer of the
+demo) so that the fleet has two gateways, ``la1`` on both, a device that never answers and a
+bus that is down: finding devices by name, telemetry, commands and the typed helpers, every
+refusal the SDK can provoke with its code, claims (held past their TTL by renewal), follow
+streams ending with ``end_follow``, bus group moves and scans, and e-stops of one gateway or
+the fleet.
+
+One demo for the module (each start costs about a second); each test connects clients of its
+own (a few ms), and a test that e-stops enables every device again. Positions are fresh per
+command (``fresh_positions``), so a state showing one was made by that command. Commands that
+must go through are sent ``patiently`` (again after a ``device_timeout``: the simulators share
+a loaded machine with everything else).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+import busgate.client as bc
+from busgate.codecs import inspire_la as la
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.api import ERROR_CODES, TELEMETRY_MODELS
+from busgate.schemas.inspire_la import Move
+from tests.gateway_process import GatewayProcess, serial_bus
+from tests.sdk_helpers import (
+    DEMO_DEVICES,
+    STALE_S,
+    EventWatch,
+    fresh_positions,
+    patiently,
+    the_client_id,
+)
+
+POSITIONS = fresh_positions(101)
+#: A hang guard for conditions waited for, not a speed requirement.
+DEADLINE_S = 10.0
+
+
+@pytest.fixture(scope="module")
+def demo(module_demo):
+    return module_demo
+
+
+@pytest.fixture
+def connect(demo, request):
+    """``connect(suffix)``: a client of the demo's endpoint (id from the test's name and
+    ``suffix``), closed after the test."""
+    clients: list[bc.Client] = []
+
+    def open_client(suffix: str = "", **options) -> bc.Client:
+        client_id = the_client_id(f"{request.node.name}-{suffix}" if suffix else request.node.name)
+        clients.append(bc.connect(demo.endpoint, client_id=client_id, **options))
+        return clients[-1]
+
+    yield open_client
+    for client in clients:
+        client.close()
+
+
+@pytest.fixture
+def client(connect) -> bc.Client:
+    return connect()
+
+
+@pytest.fixture(scope="module")
+def gw2(demo, tmp_path_factory):
+    """``busgate run`` as gateway ``gw2``, a peer that connects to the demo (clients of the
+    demo reach both): bus ``uart0`` on an LA simulator with ``la1`` (as the demo has) and
+    ``la5``, an id the simulator does not answer, and bus ``uart1`` on a port that does not
+    exist (its ``la9`` is on a bus that is down)."""
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
+        config = tmp_path_factory.mktemp("gw2") / "gw2.toml"
+        config.write_text(f'[gateway]\nname = "gw2"\n[zenoh]\nconnect = ["{demo.endpoint}"]\n'
+                          + serial_bus("uart0", simulator.port, "la1")
+                          + '[[buses.devices]]\nname = "la5"\nkind = "inspire_la"\nid = 5\n'
+                          + serial_bus("uart1", "/dev/busgate-test-no-such-port", "la9"))
+        gateway = GatewayProcess(config)
+        try:
+            gateway.wait_for("serving")
+            with bc.connect(demo.endpoint, client_id="gw2-fixture") as probe:
+                deadline = time.monotonic() + DEADLINE_S
+                while set(probe.gateways()) != {"demo", "gw2"}:
+                    assert time.monotonic() < deadline, "gw2 never reached the demo's clients"
+                yield gateway
+        finally:
+            assert gateway.stop() == 0, gateway.lines
+
+
+def enable_every_device(client: bc.Client, *gateways: str) -> None:
+    """Let every device of the demo (and of ``gateways``) move again after an e-stop."""
+    names = [f"demo/{name}" for name in DEMO_DEVICES] + [f"{gw}/la1" for gw in gateways]
+    for name in names:
+        patiently(client.device(name).enable)
+
+
+def settled(device, wait_for, **expected) -> None:
+    """Wait until ``device``'s telemetry shows ``expected`` (field: value)."""
+    wait_for(lambda: all(getattr(device.state(), key) == value
+                         for key, value in expected.items()), timeout=DEADLINE_S)
+
+
+# -- finding gateways and devices ------------------------------------------------------------
+
+
+def test_gateways_answers_each_gateway_of_the_fleet_with_its_info(client, gw2) -> None:
+    infos = client.gateways(timeout=1.0)
+    assert set(infos) == {"demo", "gw2"}
+    devices = {name: {d["name"]: d["kind"] for bus in info["buses"] for d in bus["devices"]}
+               for name, info in infos.items()}
+    assert devices == {"demo": DEMO_DEVICES,
+                       "gw2": {"la1": "inspire_la", "la5": "inspire_la", "la9": "inspire_la"}}
+    assert infos["demo"]["ok"] is True and infos["demo"]["gateway"] == "demo"
+
+
+def test_a_device_is_found_by_gateway_and_name_or_by_a_name_one_gateway_has(
+        client, gw2) -> None:
+    for name, kind in DEMO_DEVICES.items():
+        device = client.device(f"demo/{name}")
+        assert (device.name, device.gateway, device.kind) == (name, "demo", kind)
+    servo = client.device("servo1")  # only the demo has one
+    assert (servo.name, servo.gateway, servo.kind) == ("servo1", "demo", "ds_servo")
+    other = client.device("gw2/la1")
+    assert (other.name, other.gateway, other.kind) == ("la1", "gw2", "inspire_la")
+
+
+def test_a_bare_name_that_several_gateways_have_is_ambiguous_naming_them(client, gw2) -> None:
+    with pytest.raises(bc.AmbiguousError) as ambiguous:
+        client.device("la1")
+    assert ambiguous.value.gateways == ["demo", "gw2"]
+    assert "demo/la1" in str(ambiguous.value)
+    with pytest.raises(bc.AmbiguousError) as bus:
+        client.bus("uart0")
+    assert bus.value.gateways == ["demo", "gw2"]
+    assert isinstance(ambiguous.value, bc.BusgateError)
+
+
+@pytest.mark.parametrize("name", ["la7", "demo/la9", "gw2/servo1"])
+def test_a_device_no_gateway_has_is_unknown_device(client, gw2, name) -> None:
+    with pytest.raises(bc.error_for("unknown_device")) as unknown:
+        client.device(name)
+    assert unknown.value.code == "unknown_device"
+    assert isinstance(unknown.value, bc.GatewayError)
+
+
+@pytest.mark.parametrize("name", ["uart9", "demo/uart9"])
+def test_a_bus_no_gateway_has_is_unknown_bus(client, name) -> None:
+    with pytest.raises(bc.error_for("unknown_bus")) as unknown:
+        client.bus(name)
+    assert unknown.value.code == "unknown_bus"
+
+
+def test_a_gateway_nobody_runs_is_no_answer(client) -> None:
+    with pytest.raises(bc.NoAnswerError):
+        client.device("gw9/la1", timeout=0.5)
+    with pytest.raises(bc.NoAnswerError):
+        client.bus("gw9/uart0", timeout=0.5)
+
+
+# -- telemetry -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(DEMO_DEVICES))
+def test_state_is_the_telemetry_model_of_the_devices_kind(client, name) -> None:
+    device = client.device(f"demo/{name}")
+    state = device.state(timeout=2.0)
+    assert type(state) is TELEMETRY_MODELS[device.kind]
+    assert (state.device, state.kind) == (name, device.kind)
+
+
+def test_states_yields_each_new_sample_until_the_timeout(client) -> None:
+    la2 = client.device("demo/la2")
+    patiently(la2.enable)
+    target = next(POSITIONS)
+    samples = []
+    started = time.monotonic()
+    for state in la2.states(timeout=1.5):
+        if not samples:
+            patiently(lambda: la2.move(target))  # a sample after this one shows the new target
+        samples.append(state)
+    elapsed = time.monotonic() - started
+    assert all(type(s) is TELEMETRY_MODELS["inspire_la"] for s in samples)
+    assert any(s.target == target for s in samples), "no sample came after the move"
+    stamps = [s.ts for s in samples]  # when each was read: a state with events repeats one
+    assert stamps == sorted(stamps) and len(set(stamps)) >= 5, stamps  # polled at 10 Hz
+    assert 1.5 <= elapsed < 1.5 + 2.0, "the iteration did not end at its timeout"
+
+
+# -- commands ---------------------------------------------------------------------------------
+
+
+def test_send_takes_a_dict_or_a_schemas_model_and_returns_the_reply_body(
+        client, wait_for) -> None:
+    la2 = client.device("demo/la2")
+    patiently(la2.enable)
+    first, second = next(POSITIONS), next(POSITIONS)
+    reply = patiently(lambda: la2.send({"op": "move", "position": first}))
+    assert reply["ok"] is True and reply["state"]["target"] == first
+    reply = patiently(lambda: la2.send(Move(op="move", position=second)))
+    assert reply["ok"] is True and reply["state"]["target"] == second
+    settled(la2, wait_for, position=second, target=second)
+
+
+def test_move_and_enable_drive_an_actuator(client, wait_for) -> None:
+    la3 = client.device("demo/la3")
+    assert patiently(la3.enable)["state"]["power"] == "on"
+    target = next(POSITIONS)
+    assert patiently(lambda: la3.move(target))["state"]["target"] == target
+    settled(la3, wait_for, position=target)
+
+
+def test_velocity_turns_a_wheel(client, wait_for) -> None:
+    wheel = client.device("wheel")
+    patiently(lambda: wheel.send({"op": "set_mode", "mode": "velocity"}))
+    patiently(wheel.enable)
+    try:
+        reply = patiently(lambda: wheel.velocity(100))
+        assert reply["state"]["target_speed_rpm"] == pytest.approx(100, abs=0.5)
+        wait_for(lambda: (wheel.state().speed_rpm or 0) > 50, timeout=DEADLINE_S)
+    finally:
+        patiently(lambda: wheel.velocity(0))
+
+
+def test_a_servo_moves_after_torque_on(client, wait_for) -> None:
+    servo = client.device("servo2")
+    assert patiently(servo.enable)["state"]["torque_on"] is True
+    patiently(lambda: servo.move(1000))
+    settled(servo, wait_for, position=1000)
+
+
+# -- refusals, each with its code ------------------------------------------------------------
+
+
+def test_every_error_code_has_its_class_under_gateway_error() -> None:
+    for code in ERROR_CODES:
+        cls = bc.error_for(code)
+        assert issubclass(cls, bc.GatewayError) and issubclass(cls, bc.BusgateError), code
+        assert cls.code == code and cls is not bc.GatewayError, code
+        assert getattr(bc, cls.__name__) is cls, f"bc.{cls.__name__} is not exported"
+        assert cls("message").code == code
+    assert len({bc.error_for(code) for code in ERROR_CODES}) == len(ERROR_CODES)
+    assert bc.error_for("a_code_of_a_newer_gateway") is bc.GatewayError
+
+
+REFUSED = {
+    "bad_command": {"op": "spin"},
+    "a float for an integer": {"op": "move", "position": 1.5},
+    "an unknown field": {"op": "move", "position": 1, "speed": 3},
+    "out_of_range": {"op": "move", "position": 2001},
+    "too_large": {"op": "move", "position": 1, "pad": "x" * 70_000},
+    # not_utf8 cannot be sent: the SDK's JSON is ASCII, a lone surrogate goes escaped
+    "a lone surrogate": {"op": "move", "position": 1, "note": "\ud800"},
+}
+CODES = {"bad_command": "bad_command", "a float for an integer": "bad_command",
+         "an unknown field": "bad_command", "out_of_range": "out_of_range",
+         "too_large": "too_large", "a lone surrogate": "bad_command"}
+
+
+@pytest.mark.parametrize("case", REFUSED)
+def test_the_gateways_refusal_is_raised_as_its_codes_class(client, case) -> None:
+    la2 = client.device("demo/la2")
+    with pytest.raises(bc.error_for(CODES[case])) as refused:
+        la2.send(REFUSED[case])
+    assert refused.value.code == CODES[case] and refused.value.gateway == "demo"
+    assert refused.value.message
+
+
+def test_out_of_range_for_each_kind_and_for_the_typed_helpers(client) -> None:
+    with pytest.raises(bc.error_for("out_of_range")):
+        client.device("demo/la2").move(-1)
+    with pytest.raises(bc.error_for("out_of_range")):
+        client.device("servo1").move(99_999)
+    with pytest.raises(bc.error_for("out_of_range")):
+        client.device("wheel").velocity(1e6)
+
+
+def test_a_device_that_never_answers_is_device_timeout(client, gw2) -> None:
+    with pytest.raises(bc.error_for("device_timeout")) as timed_out:
+        client.device("la5").move(100)
+    assert timed_out.value.code == "device_timeout" and timed_out.value.gateway == "gw2"
+
+
+def test_a_bus_that_is_down_is_bus_unavailable(client, gw2) -> None:
+    with pytest.raises(bc.error_for("bus_unavailable")) as down:
+        client.device("la9").move(100)
+    assert down.value.code == "bus_unavailable" and down.value.gateway == "gw2"
+    with pytest.raises(bc.error_for("bus_unavailable")):
+        client.bus("gw2/uart1").scan([1])
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, {1, 2}], ids=["nan", "inf", "a set"])
+def test_a_command_json_cannot_carry_is_refused_as_a_busgate_error(client, value) -> None:
+    with pytest.raises(bc.error_for("not_json")):
+        client.device("demo/la2").send({"op": "move", "position": value})
+
+
+def test_what_no_schema_allows_is_refused_before_it_is_sent(client) -> None:
+    la2 = client.device("demo/la2")
+    with pytest.raises(bc.BusgateError):
+        la2.send([("op", "move")])  # neither a dict nor a model
+    with pytest.raises(bc.BusgateError):
+        la2.send({"op": "move", "position": 1, "client": "someone-else"})
+
+
+# -- claims ----------------------------------------------------------------------------------
+
+
+def test_a_claim_refuses_others_naming_the_holder_and_is_released_on_exit(connect) -> None:
+    holder, other = connect("holder"), connect("other")
+    mine, theirs = holder.device("demo/la2"), other.device("demo/la2")
+    patiently(mine.enable)
+    with mine.claim(ttl_s=2.0) as claim:
+        with pytest.raises(bc.ClaimedError) as refused:
+            theirs.move(next(POSITIONS))
+        assert refused.value.code == "claimed" and refused.value.holder == holder.client_id
+        assert isinstance(refused.value, bc.error_for("claimed"))
+        assert patiently(lambda: mine.move(next(POSITIONS)))["ok"] is True
+        assert claim.lost is None
+    assert patiently(lambda: theirs.move(next(POSITIONS)))["ok"] is True
+
+
+def test_a_claim_is_released_when_its_block_raises(connect) -> None:
+    holder, other = connect("holder"), connect("other")
+    mine, theirs = holder.device("demo/la3"), other.device("demo/la3")
+    patiently(mine.enable)
+    with pytest.raises(ZeroDivisionError), mine.claim(ttl_s=2.0):
+        with pytest.raises(bc.ClaimedError):
+            theirs.move(next(POSITIONS))
+        1 / 0  # noqa: B018 - the block fails
+    assert patiently(lambda: theirs.move(next(POSITIONS)))["ok"] is True
+
+
+def test_a_claim_is_renewed_past_its_ttl_while_the_block_runs(connect) -> None:
+    """TTL 1 s, held 3 s: the other client is refused throughout, the holder moves."""
+    holder, other = connect("holder"), connect("other")
+    mine, theirs = holder.device("demo/la1"), other.device("demo/la1")
+    patiently(mine.enable)
+    refusals = []
+    with mine.claim(ttl_s=1.0) as claim:
+        started = time.monotonic()
+        while (held := time.monotonic() - started) < 3.0:
+            with pytest.raises(bc.ClaimedError) as refused:
+                theirs.move(next(POSITIONS))
+            assert refused.value.holder == holder.client_id
+            moved = patiently(mine.move, next(POSITIONS))
+            assert moved["ok"] is True, f"the holder was refused at {held:.2f} s"
+            refusals.append(held)
+            time.sleep(0.05)
+        assert claim.lost is None
+    assert max(refusals) > 2.5 and len(refusals) >= 10, refusals
+    assert patiently(lambda: theirs.move(next(POSITIONS)))["ok"] is True, "not released on exit"
+
+
+# -- follow streams --------------------------------------------------------------------------
+
+
+def test_a_follow_stream_takes_the_latest_target_and_ends_with_end_follow(
+        demo, client, wait_for) -> None:
+    """A few targets, the last one kept fresh for a few ticks; the block's exit sends
+    end_follow: the gateway reports stream_stopped, ended by this client, and no
+    stream_stale, watched 1.5 s past the stale timeout. The block stays well inside the
+    stale timeout between targets (an idle stream would rightly go stale)."""
+    la1 = client.device("demo/la1")
+    patiently(la1.enable)
+    with EventWatch(demo.endpoint) as watch:
+        started = time.monotonic()
+        with la1.claim(ttl_s=2.0):
+            wait_for(lambda: watch.of("la1", "claimed", since=started))  # the watch hears
+            with la1.follow() as stream:
+                for position in (600, 800, 1000, 1200):  # latest wins
+                    stream.set(position=position)
+                for _ in range(3):  # a few ticks of the follow period (20 ms) with it
+                    time.sleep(STALE_S / 4)
+                    stream.set(position=1200)
+        ended = time.monotonic()
+        time.sleep(STALE_S + 1.5)
+        ends = watch.of("la1", "stream_stopped", "stream_stale", since=started)
+    assert [(e["type"], e.get("reason")) for e in ends] == [
+        ("stream_stopped", f"ended by {client.client_id}")]
+    assert time.monotonic() - ended > STALE_S + 1.5
+    settled(la1, wait_for, target=1200, position=1200)
+
+
+def test_a_follow_target_no_schema_allows_is_refused_before_it_is_sent(client) -> None:
+    la1 = client.device("demo/la1")
+    with la1.follow() as stream:
+        with pytest.raises(bc.error_for("out_of_range")):
+            stream.set(position=2001)
+        with pytest.raises(bc.error_for("bad_command")):
+            stream.set(rpm=10)
+    with pytest.raises(RuntimeError):
+        stream.set(position=100)
+
+
+# -- buses -----------------------------------------------------------------------------------
+
+
+def test_group_move_starts_several_devices_of_a_bus(client, wait_for) -> None:
+    uart0 = client.bus("demo/uart0")
+    assert (uart0.name, uart0.gateway, uart0.protocol) == ("uart0", "demo", "inspire_la")
+    la2, la3 = client.device("demo/la2"), client.device("demo/la3")
+    patiently(la2.enable)
+    patiently(la3.enable)
+    first, second = next(POSITIONS), next(POSITIONS)
+    reply = patiently(lambda: uart0.group_move([{"device": "la2", "position": first},
+                                                {"device": "la3", "position": second}]))
+    assert reply["ok"] is True
+    settled(la2, wait_for, position=first)
+    settled(la3, wait_for, position=second)
+
+
+def test_a_group_move_naming_a_device_of_no_bus_is_unknown_device(client) -> None:
+    uart0 = client.bus("demo/uart0")
+    with pytest.raises(bc.error_for("unknown_device")) as unknown:
+        uart0.group_move([{"device": "la2", "position": 10}, {"device": "servo1", "position": 10}])
+    assert unknown.value.gateway == "demo" and "servo1" in unknown.value.message
+    with pytest.raises(bc.error_for("out_of_range")):
+        uart0.group_move([{"device": "la2", "position": 2001}])
+
+
+def test_scan_tells_which_ids_answer(client) -> None:
+    found = patiently(lambda: client.bus("demo/uart0").scan([1, 2, 9]))
+    assert sorted(f["id"] for f in found) == [1, 2]
+    assert {f["protocol"] for f in found} == {"inspire_la"}
+    assert [f["id"] for f in patiently(lambda: client.bus("demo/uart1").scan([2]))] == [2]
+
+
+# -- e-stops ---------------------------------------------------------------------------------
+
+
+def test_an_estop_of_one_gateway_stops_its_devices_until_enable(client, gw2, wait_for) -> None:
+    la1, servo1, other = (client.device(n) for n in ("demo/la1", "servo1", "gw2/la1"))
+    for device in (la1, servo1, other):
+        patiently(device.enable)
+    try:
+        client.estop("demo")
+        wait_for(lambda: la1.state().estopped and servo1.state().estopped, timeout=DEADLINE_S)
+        for device in (la1, servo1):
+            with pytest.raises(bc.error_for("estopped")) as refused:
+                device.move(next(POSITIONS))
+            assert refused.value.code == "estopped" and refused.value.gateway == "demo"
+        # gw2 got no e-stop: its move after the e-stop (same session, so in order) goes
+        assert patiently(lambda: other.move(next(POSITIONS)))["ok"] is True
+        assert other.state().estopped is False
+        patiently(la1.enable)
+        assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
+        with pytest.raises(bc.error_for("estopped")):
+            servo1.move(1500)  # still e-stopped: only its own enable lets it go
+        patiently(servo1.enable)
+        assert patiently(lambda: servo1.move(1500))["ok"] is True
+    finally:
+        enable_every_device(client, "gw2")
+
+
+def test_an_estop_of_the_fleet_stops_every_gateway(client, gw2, wait_for) -> None:
+    devices = [client.device(name) for name in ("demo/la1", "demo/servo2", "gw2/la1")]
+    for device in devices:
+        patiently(device.enable)
+    try:
+        client.estop()
+        wait_for(lambda: all(device.state().estopped for device in devices), timeout=DEADLINE_S)
+        for device in devices:
+            with pytest.raises(bc.error_for("estopped")) as refused:
+                device.move(next(POSITIONS))
+            assert refused.value.gateway == device.gateway
+        for device in devices:
+            patiently(device.enable)
+            assert device.state(max_age=0.0).estopped is False
+        for device in devices:
+            assert patiently(device.move, next(POSITIONS))["ok"] is True
+    finally:
+        enable_every_device(client, "gw2")
