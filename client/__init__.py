@@ -24,7 +24,7 @@ from busgate.client import aio
 from busgate.client.core import Answer, Answers
 from busgate.client.errors import *  # noqa: F403 - one class per error code, made from the list
 from busgate.client.errors import __all__ as _error_names
-from busgate.client.sync import Bus, Claim, Client, Device, Follow, connect
+from busgate.client.sync import Bus, Claim, Client, Device, Follow, Trajectory, connect
 
 __all__ = [
     "Answer",
@@ -34,6 +34,7 @@ __all__ = [
     "Client",
     "Device",
     "Follow",
+    "Trajectory",
     "aio",
     "connect",
     *_error_names,

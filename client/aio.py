@@ -16,6 +16,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
+from busgate.client import trajectories
 from busgate.client.base import (
     WAIT_MARGIN_S,
     Found,
@@ -31,6 +32,7 @@ from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.sync import DEFAULT_TIMEOUT_S
+from busgate.client.trajectories import Watch, one_gateway, play_body, result_wait_s
 
 
 async def wait(future: Future, timeout_s: float, what: str) -> Any:
@@ -115,6 +117,24 @@ class Client:
 
     async def estop(self, gateway: str | None = None) -> None:
         self._shared.estop(gateway)  # a put: it does not wait
+
+    async def play(
+        self,
+        devices: list[str],
+        points: list[dict[str, Any]],
+        *,
+        id: str | None = None,  # noqa: A002 - the contract's field name
+        timeout: float | None = None,
+        **options: Any,
+    ) -> Trajectory:
+        """As ``busgate.client.Client.play``."""
+        waited = self.timeout if timeout is None else timeout
+        found = await wait(self._shared.find_devices(devices, waited), waited, "finding devices")
+        gateway = one_gateway(found)
+        body = play_body(self.client_id, id, [f.name for f in found], points, options)
+        started = trajectories.start(self._shared, gateway, body, waited)
+        watch, accepted = await wait(started, waited, f"play of {body['id']} on {gateway}")
+        return Trajectory(self._shared, watch, accepted)
 
     async def query(
         self, key: str, payload: Any = None, *, timeout: float | None = None
@@ -266,6 +286,61 @@ async def _settle_on_exit(
     except Exception:
         if kind is None:
             raise
+
+
+class Trajectory:
+    """A trajectory a gateway plays (``await c.play(...)``), for asyncio: as
+    ``busgate.client.Trajectory``."""
+
+    def __init__(self, shared: Shared, watch: Watch, accepted: dict[str, Any]) -> None:
+        self._shared, self._watch = shared, watch
+        self.id, self.gateway = watch.id, watch.gateway
+        self.devices: list[str] = accepted["devices"]
+        self.start_at: float = accepted["start_at"]
+        self.end_at: float = accepted["end_at"]
+
+    async def __aenter__(self) -> Trajectory:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        self.close()
+
+    @property
+    def result(self) -> dict[str, Any] | None:
+        return self._watch.result
+
+    async def wait(self, timeout: float | None = None) -> dict[str, Any]:
+        waited = result_wait_s(self.end_at, timeout)
+        return await wait(self._watch.finished, waited, f"the result of trajectory {self.id}")
+
+    async def cancel(self, *, timeout: float | None = None) -> dict[str, Any]:
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        sent = trajectories.cancel(self._shared, self.gateway, self.id, waited)
+        return await wait(sent, waited, f"cancel of trajectory {self.id}")
+
+    async def feedback(self, timeout: float | None = None) -> AsyncIterator[dict[str, Any]]:
+        loop = asyncio.get_running_loop()
+        items: asyncio.Queue[dict[str, Any]] = asyncio.Queue()
+
+        def sink(message: dict[str, Any]) -> None:
+            loop.call_soon_threadsafe(items.put_nowait, message)
+
+        deadline = time.monotonic() + result_wait_s(self.end_at, timeout)
+        remove = self._watch.add_sink(sink)
+        try:
+            while self._watch.result is None and (left := deadline - time.monotonic()) > 0:
+                try:
+                    message = await asyncio.wait_for(items.get(), left)
+                except TimeoutError:
+                    return
+                if "result" in message:
+                    return
+                yield message
+        finally:
+            remove()
+
+    def close(self) -> None:
+        self._watch.close()
 
 
 class Bus:

@@ -51,6 +51,14 @@ class Keys:
     def events(self, gateway: str) -> str:
         return f"{self.prefix}/{gateway}/events"
 
+    def trajectory(self, gateway: str) -> str:
+        """The queryable a gateway plays trajectories on."""
+        return f"{self.prefix}/{gateway}/trajectory"
+
+    def feedback(self, gateway: str, trajectory_id: str) -> str:
+        """A trajectory's feedback, then its result."""
+        return f"{self.prefix}/{gateway}/trajectory/{trajectory_id}/feedback"
+
     def alive(self, gateway: str) -> str:
         """The liveliness token a gateway holds while it serves."""
         return f"{self.prefix}/{gateway}/alive"

@@ -15,6 +15,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 from typing import Any
 
+from busgate.client import trajectories
 from busgate.client.base import (
     WAIT_MARGIN_S,
     Found,
@@ -29,6 +30,7 @@ from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
+from busgate.client.trajectories import Watch, one_gateway, play_body, result_wait_s
 
 DEFAULT_TIMEOUT_S = 5.0
 
@@ -115,6 +117,27 @@ class Client:
         """Stop every device of ``gateway``, or of every gateway (``None``); never refused.
         Devices stay e-stopped until each is enabled again (``Device.enable``)."""
         self._shared.estop(gateway)
+
+    def play(
+        self,
+        devices: list[str],
+        points: list[dict[str, Any]],
+        *,
+        id: str | None = None,  # noqa: A002 - the contract's field name
+        timeout: float | None = None,
+        **options: Any,
+    ) -> Trajectory:
+        """Have the devices' gateway play a trajectory (``points`` as the trajectory key
+        takes them; ``options``: ``start_at``, ``interpolation``, ``path_tolerance``,
+        ``goal_tolerance``, ``goal_time_s``); the devices must be on one gateway. Returns
+        once it is accepted, with its ``start_at`` and ``end_at``."""
+        waited = self.timeout if timeout is None else timeout
+        found = wait(self._shared.find_devices(devices, waited), waited, "finding the devices")
+        gateway = one_gateway(found)
+        body = play_body(self.client_id, id, [f.name for f in found], points, options)
+        started = trajectories.start(self._shared, gateway, body, waited)
+        watch, accepted = wait(started, waited, f"play of {body['id']} on {gateway}")
+        return Trajectory(self._shared, watch, accepted)
 
     # -- raw keys (the command-line tools', and anything the typed surface lacks) ---------------
 
@@ -272,6 +295,66 @@ def _settle_on_exit(
     except Exception:
         if kind is None:
             raise
+
+
+class Trajectory:
+    """A trajectory a gateway plays for this client (``Client.play``): its ``id``,
+    ``gateway``, ``devices``, ``start_at`` and ``end_at`` (wall clock, as telemetry's ``ts``)."""
+
+    def __init__(self, shared: Shared, watch: Watch, accepted: dict[str, Any]) -> None:
+        self._shared, self._watch = shared, watch
+        self.id, self.gateway = watch.id, watch.gateway
+        self.devices: list[str] = accepted["devices"]
+        self.start_at: float = accepted["start_at"]
+        self.end_at: float = accepted["end_at"]
+
+    def __repr__(self) -> str:
+        return f"<Trajectory {self.gateway}/{self.id} {self.devices}>"
+
+    def __enter__(self) -> Trajectory:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    @property
+    def result(self) -> dict[str, Any] | None:
+        """The result message once it came (``result``, ``reason``, ``errors``), else None."""
+        return self._watch.result
+
+    def wait(self, timeout: float | None = None) -> dict[str, Any]:
+        """The result (``{"result": "succeeded" | "canceled" | "replaced" | "aborted",
+        "reason"?, "errors"}``); by default waits until 30 s past ``end_at``."""
+        waited = result_wait_s(self.end_at, timeout)
+        return wait(self._watch.finished, waited, f"the result of trajectory {self.id}")
+
+    def cancel(self, *, timeout: float | None = None) -> dict[str, Any]:
+        """Each device decelerates to a stop and holds; the result is ``canceled``."""
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        sent = trajectories.cancel(self._shared, self.gateway, self.id, waited)
+        return wait(sent, waited, f"cancel of trajectory {self.id}")
+
+    def feedback(self, timeout: float | None = None) -> Iterator[dict[str, Any]]:
+        """Each feedback message as it comes (``t_s``, per device ``desired``,
+        ``commanded``, ``measured``, ``error``), until the result or ``timeout``."""
+        deadline = time.monotonic() + result_wait_s(self.end_at, timeout)
+        items: queue.SimpleQueue[dict[str, Any]] = queue.SimpleQueue()
+        remove = self._watch.add_sink(items.put)
+        try:
+            while self._watch.result is None and (left := deadline - time.monotonic()) > 0:
+                try:
+                    message = items.get(timeout=left)
+                except queue.Empty:
+                    return
+                if "result" in message:
+                    return
+                yield message
+        finally:
+            remove()
+
+    def close(self) -> None:
+        """Stop listening to the trajectory (it plays on)."""
+        self._watch.close()
 
 
 class Bus:

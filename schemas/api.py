@@ -355,6 +355,26 @@ class EstopEvent(Event):
     key: str = Field(description="The key expression the e-stop was put on.")
 
 
+class TrajectoryStartedEvent(Event):
+    """A trajectory was accepted (``<prefix>/<gw>/trajectory``); ``device`` is ``"*"``."""
+
+    type: Literal["trajectory_started"]
+    id: str
+    client: ClientId | None = None
+    start_at: float = Field(description="When its t_s is 0, Unix seconds.")
+    end_at: float = Field(description="When its last point is due, Unix seconds.")
+
+
+class TrajectoryEndedEvent(Event):
+    """A trajectory's result (also on ``<prefix>/<gw>/trajectory/<id>/feedback``)."""
+
+    type: Literal["trajectory_ended"]
+    id: str
+    client: ClientId | None = None
+    result: Literal["succeeded", "canceled", "replaced", "aborted"]
+    reason: str | None = Field(default=None, description="Why it was aborted.")
+
+
 class CommandRefusedEvent(Event):
     """A command put (no reply possible) was refused: the error as a reply would carry it."""
 
@@ -366,7 +386,7 @@ class CommandRefusedEvent(Event):
 KnownEvent = Annotated[
     OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
     | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
-    | EstopEvent
+    | EstopEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
     | CommandRefusedEvent,
     Field(discriminator="type"),
 ]  # fmt: skip

@@ -9,7 +9,8 @@ imports only the ones below it. A new import against the arrows fails here, nami
                           session settings and errors, the command line all of it)
 
 ``gateway.sim`` (the simulators) stands beside the gateway: it uses the codecs, the bus clock
-and the protocol table, and nothing of the gateway's service uses it but the command line."""
+and the protocol table, and nothing of the gateway's service uses it but the command line.
+``gateway.trajectory`` (a trajectory's pure sampling) stands on the codecs and schemas alone."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "scheduler", "service", "sim")
+GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "scheduler", "service", "sim", "trajectory")
 
 #: Each room and the rooms it may import ("gateway" is the package itself: its version).
 ALLOWED: dict[str, set[str]] = {
@@ -34,12 +35,15 @@ ALLOWED: dict[str, set[str]] = {
     "gateway.drivers": {"codecs", "schemas", "gateway.bus"},
     "gateway.scheduler": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.api": {"codecs", "schemas", "client", "gateway", "gateway.bus", "gateway.drivers",
-                    "gateway.scheduler"},
+                    "gateway.scheduler", "gateway.trajectory"},
     "gateway.service": {"codecs", "schemas", "client", "gateway", "gateway.bus",
-                        "gateway.drivers", "gateway.scheduler", "gateway.api"},
+                        "gateway.drivers", "gateway.scheduler", "gateway.api",
+                        "gateway.trajectory"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
+    "gateway.trajectory": {"codecs", "schemas"},
     "gateway.cli": {"codecs", "schemas", "client", "gateway", "gateway.bus", "gateway.drivers",
-                    "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim"},
+                    "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim",
+                    "gateway.trajectory"},
 }
 
 

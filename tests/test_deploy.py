@@ -350,6 +350,9 @@ ATTEMPTS = {
     "put a device e-stop": Attempt("put", f"{LA1}/cmd", lambda p: {"op": "estop"}, stops=True),
     "put the gateway's e-stop": Attempt("put", "busgate/gw1/estop", lambda p: {}, stops=True),
     "put the fleet's e-stop": Attempt("put", "busgate/*/estop", lambda p: {}, stops=True),
+    "get a trajectory": Attempt("get", "busgate/gw1/trajectory", lambda p: {
+        "op": "play", "id": f"to-{p}", "devices": ["la1"],
+        "points": [{"t_s": 0.04, "positions": [p]}]}),
 }
 
 
@@ -365,6 +368,19 @@ def test_a_viewers_command_never_reaches_the_wire_an_operators_does(
     assert attempt.asks(viewer_target) not in _asked_since(simulator, mark), "a viewer's got out"
     attempt.send(operator, operator_target)  # the same attempt shows up when allowed
     wait_for(lambda: attempt.asks(operator_target) in _asked_since(simulator, mark))
+
+
+def test_every_account_reads_a_trajectorys_feedback(operator, viewer, wait_for) -> None:
+    _enable(operator)
+    heard: list[dict] = []
+    viewer.declare_subscriber("busgate/gw1/trajectory/*/feedback",
+                              lambda s: heard.append(json.loads(s.payload.to_bytes())))
+    play = {"op": "play", "id": "seen", "devices": ["la1"],
+            "points": [{"t_s": 0.3, "positions": [next(FRESH_TARGETS)]}]}
+    [reply] = _answers(operator, "busgate/gw1/trajectory", json.dumps(play))
+    assert reply["ok"] is True, reply
+    wait_for(lambda: any(m.get("result") for m in heard))
+    assert any("t_s" in m for m in heard)  # feedback before the result
 
 
 def test_no_account_passes_fake_telemetry_info_or_liveliness_to_another(

@@ -51,6 +51,8 @@ DOCTEST_MODULES = [
     "busgate.gateway.drivers.inspire_la_frames",
     "busgate.gateway.drivers.zlac706_can",
     "busgate.gateway.drivers.zlac706_rs232",
+    "busgate.gateway.scheduler.trajectory_ticks",
+    "busgate.gateway.trajectory.interpolation",
     "busgate.schemas.telemetry",
 ]
 

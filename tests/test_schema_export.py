@@ -43,7 +43,7 @@ from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import Telemetry
-from busgate.schemas import api
+from busgate.schemas import api, trajectory
 from busgate.schemas.config import Config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -439,6 +439,12 @@ GOOD_COMMANDS = {
                 '{"op":"end_follow","client":"ui-1"}'],
     "bus": ['{"op":"group_move","targets":[{"device":"s1","position":100,"time_ms":500}]}',
             '{"op":"scan"}', '{"op":"scan","ids":[1,2,3]}'],
+    "trajectory": ['{"op":"play","id":"pick-1","devices":["la1","s1"],"start_at":1796150000.25,'
+                   '"points":[{"t_s":0,"positions":[500,2048]},{"t_s":0.8,"positions":[1500,'
+                   '3000],"velocities":[0,0]}],"path_tolerance":[100,200],"goal_time_s":0.5}',
+                   '{"op":"play","id":"w","devices":["wheel"],"interpolation":"quintic",'
+                   '"points":[{"t_s":1,"rpms":[-120.5],"accelerations":[10]}]}',
+                   '{"op":"cancel","id":"pick-1","client":"arm-ctl"}', '{"op":"status"}'],
 }
 BAD_COMMANDS = {
     "inspire_la": ['{"op":"move","position":2001}', '{"op":"move","position":"5"}',
@@ -449,8 +455,15 @@ BAD_COMMANDS = {
                 '{"op":"set_velocity_ramp","accel_ms":150,"decel_ms":0}',
                 '{"op":"claim","client":"ui-1","ttl_s":0}'],
     "bus": ['{"op":"group_move","targets":[]}', '{"op":"scan","ids":[256]}', '{"op":"estop"}'],
+    "trajectory": ['{"op":"play","id":"p","devices":["la1"],"points":[]}',
+                   '{"op":"play","id":"p","devices":["la1"],"points":[{"t_s":-1,"positions":[1]}]}',
+                   '{"op":"play","id":"p","devices":["la1"],"points":[{"t_s":0,"positions":[1.5]}]}',
+                   '{"op":"play","id":"p","devices":["la1"],"points":[{"t_s":0,"positions":[1]}],'
+                   '"interpolation":"spline"}',
+                   '{"op":"cancel"}', '{"op":"status","id":"p"}'],
 }
-ADAPTERS = {**api.DEVICE_COMMAND_ADAPTERS, "bus": api.BUS_COMMAND_ADAPTER}
+ADAPTERS = {**api.DEVICE_COMMAND_ADAPTERS, "bus": api.BUS_COMMAND_ADAPTER,
+            "trajectory": trajectory.TRAJECTORY_COMMAND_ADAPTER}
 
 
 @pytest.mark.parametrize(("kind", "text"),

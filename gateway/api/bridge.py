@@ -23,7 +23,7 @@ import re
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from typing import Any
 
@@ -32,7 +32,8 @@ import zenoh
 from busgate.client.zenoh_config import session_config
 from busgate.codecs.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object
-from busgate.gateway.api.errors import error_reply
+from busgate.gateway.api.errors import REFUSALS, error_reply
+from busgate.gateway.api.trajectories import Trajectories
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.base import CLIENT_ID_PATTERN
@@ -76,6 +77,12 @@ class ZenohBridge:
         self._keep: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
+        self.trajectories = Trajectories(
+            api, self.base, self._put_any, lambda event: self.events.append(event)
+        )
+        #: Trajectory commands run here, off zenoh's threads and the loop (a 1 MiB play is
+        #: parsed and sampled whole): one at a time, in the order they came.
+        self._trajectory_worker = ThreadPoolExecutor(1, thread_name_prefix="trajectory")
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -100,6 +107,7 @@ class ZenohBridge:
             session.declare_queryable(f"{base}/bus/*/cmd", self._on_bus_query),
             session.declare_subscriber(f"{base}/estop", self._on_estop),
             session.declare_queryable(f"{base}/info", self._on_info),
+            session.declare_queryable(f"{base}/trajectory", self._on_trajectory),
             session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
             session.liveliness().declare_token(f"{base}/alive"),
         ]
@@ -125,6 +133,7 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything and close the session (last, at shutdown)."""
+        self._trajectory_worker.shutdown(wait=False, cancel_futures=True)
         session, self._session = self._session, None
         self._device_tokens.clear()
         self._publishers.clear()
@@ -138,6 +147,7 @@ class ZenohBridge:
         next_stats = 0.0
         while not stop.is_set():
             self.publish_states()
+            self.trajectories.tick()
             self.publish_events()
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
@@ -177,6 +187,15 @@ class ZenohBridge:
 
         self._answer(query, info, f"{self.base}/info")
 
+    def _on_trajectory(self, query: zenoh.Query) -> None:
+        payload = _payload(query)
+        worker, trajectories = self._trajectory_worker, self.trajectories
+        self._answer(
+            query,
+            lambda: worker.submit(_replying, trajectories, payload),
+            f"{self.base}/trajectory",
+        )
+
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         device = str(sample.key_expr).split("/")[-2]
         result = self.api.command(device, sample.payload.to_bytes())
@@ -198,6 +217,7 @@ class ZenohBridge:
         if sample.kind == zenoh.SampleKind.DELETE:
             client = str(sample.key_expr).split("/")[-1]
             self._call_soon(self.api.client_left, client)
+            self._call_soon(self.trajectories.client_left, client)
 
     def _answer(self, query: zenoh.Query, handle: Callable[[], Future], key: str) -> None:
         """Reply on ``key`` (concrete, even when the query had wildcards), on the loop's
@@ -284,6 +304,11 @@ class ZenohBridge:
         if publisher is not None:
             publisher.put(_dumps(value))
 
+    def _put_any(self, key: str, value: dict[str, Any]) -> None:
+        """A put on a key with no declared publisher (a trajectory's feedback)."""
+        if self._session is not None:
+            self._session.put(key, _dumps(value), congestion_control=zenoh.CongestionControl.DROP)
+
     def _track_liveliness(self, device: str, online: bool) -> None:
         if self._session is None:
             return
@@ -302,6 +327,17 @@ def _sender(payload: bytes) -> str | None:
     except RefusedError:
         return None
     return client if isinstance(client, str) and re.fullmatch(CLIENT_ID_PATTERN, client) else None
+
+
+def _replying(trajectories: Trajectories, payload: bytes) -> dict[str, Any]:
+    """The trajectory key's reply to ``payload``, whatever happens (as ``answered`` does)."""
+    try:
+        return trajectories.command(payload)
+    except REFUSALS as exc:
+        return error_reply(exc)
+    except Exception as exc:
+        log.exception("trajectory command failed")
+        return error_reply(exc)
 
 
 def _payload(query: zenoh.Query) -> bytes:

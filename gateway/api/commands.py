@@ -84,10 +84,11 @@ def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return value
 
 
-def decode_object(payload: bytes) -> dict[str, Any]:
-    """Bytes off the network to a JSON object, or ``RefusedError`` saying what is wrong."""
-    if len(payload) > MAX_PAYLOAD:
-        raise RefusedError("too_large", f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD}")
+def decode_object(payload: bytes, *, limit: int = MAX_PAYLOAD) -> dict[str, Any]:
+    """Bytes off the network to a JSON object, or ``RefusedError`` saying what is wrong
+    (``limit``: the most bytes this key takes)."""
+    if len(payload) > limit:
+        raise RefusedError("too_large", f"payload of {len(payload)} bytes; at most {limit}")
     try:
         text = payload.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -1,9 +1,9 @@
 """``busgate schema``: the JSON Schemas of the public data, written to ``schemas/json/``.
 
 One file per thing a client sends or reads: the commands of each device kind's ``cmd`` key
-(its own ops plus ``claim`` / ``release``), the bus ``cmd`` key's ops, the replies, each
-kind's telemetry and follow target, the events, the bus statistics, the info reply, and the
-config file.
+(its own ops plus ``claim`` / ``release``), the bus ``cmd`` key's ops, the trajectory key's
+ops, the replies, each kind's telemetry and follow target, the events, the bus statistics, the
+info reply, and the config file.
 
 Rules: the files are generated, never edited by hand, and the output is deterministic (keys
 sorted, two-space indent, one trailing newline) so that ``--check`` (and the test suite)
@@ -21,7 +21,7 @@ from typing import Any
 
 from pydantic import TypeAdapter
 
-from busgate.schemas import api
+from busgate.schemas import api, trajectory
 from busgate.schemas.config import Config
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
@@ -43,6 +43,12 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
         "busgate bus command",
         "A JSON command for <prefix>/<gw>/bus/<bus>/cmd: group_move or scan.",
         api.BUS_COMMAND_ADAPTER,
+    ),
+    "command.trajectory.json": (
+        "busgate trajectory command",
+        "A JSON command for <prefix>/<gw>/trajectory: play a trajectory on several devices, "
+        "cancel one, or ask what is playing.",
+        trajectory.TRAJECTORY_COMMAND_ADAPTER,
     ),
     "reply.json": (
         "busgate reply",

@@ -29,6 +29,7 @@ from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
 from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+from busgate.gateway.scheduler.trajectory_ticks import TrajectoryTicker
 
 
 class Execution:
@@ -113,8 +114,8 @@ class Execution:
     def _answered(self, slot: Slot, exchange: Exchange) -> None:
         """Hand the reply (possibly none, for frames without one) to every driver the frame
         was for: the job's device, or each device of a coalesced follow frame (rule 1)."""
-        if isinstance(slot.source, FollowTicker):
-            drivers = [stream.driver for stream in slot.source.streams.values()]
+        if isinstance(slot.source, FollowTicker | TrajectoryTicker):
+            drivers = slot.source.carried()
         else:
             drivers = [d for d in [self._driver_for(slot)] if d is not None]
         for driver in drivers:

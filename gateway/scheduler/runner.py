@@ -52,10 +52,12 @@ from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
 from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
+from busgate.gateway.scheduler.plays import Plays
 from busgate.gateway.scheduler.polling import DevicePoller
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
+from busgate.gateway.scheduler.trajectory_ticks import Sampler
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +113,7 @@ class BusRunner:
         periods = {poller.device: poller.poll_period_s for poller in self.pollers}
         self.telemetry = Telemetry(name, devices, periods, on_event=on_event, on_state=on_state)
         self.streams = FollowStreams(self.planner, self.counters, self.drivers)
+        self.plays = Plays(self.planner, self.counters, self.drivers, self.streams)
         self._execution = Execution(
             owner,
             self.planner,
@@ -203,6 +206,16 @@ class BusRunner:
         self._inbox.append(lambda: self._start_stream(device, target, moment))
         self._wake.set()
 
+    def play(self, samplers: dict[str, Sampler], start: float) -> None:
+        """Play each device's trajectory sampler on the grid from ``start`` (bus clock)."""
+        self._inbox.append(lambda: self.plays.start(samplers, start))
+        self._wake.set()
+
+    def stop_playing(self, device: str, *, speed: bool) -> None:
+        """``device`` leaves its trajectory: it holds, or (``speed``) ramps to 0 rpm."""
+        self._inbox.append(lambda: self.plays.stop(device, speed=speed))
+        self._wake.set()
+
     def stop(self, timeout: float = 1.0) -> None:
         """Stop the streams, put the devices in their safe state, close the bus."""
         self._stop.set()
@@ -254,6 +267,7 @@ class BusRunner:
                 job, RefusedError("estopped", "an e-stop cancelled it before it was carried out")
             )
         self.streams.end_all("estop")
+        self.plays.end_all()
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
 
@@ -373,6 +387,7 @@ class BusRunner:
         for job in self.planner.drop_commands():
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} went down"))
         self.streams.end_all("bus down")
+        self.plays.end_all()
         for driver in self.drivers.values():
             driver.went_offline("bus down")
         self.owner.close()
@@ -393,6 +408,7 @@ class BusRunner:
     def _shut_down(self) -> None:
         """Last deeds of the bus thread: safe state for every device, then close."""
         self.streams.end_all("shutdown")
+        self.plays.end_all()
         for job in self.planner.drop_commands():
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
         if self.owner.is_open:

@@ -8,7 +8,8 @@ Rules of this file:
 2. A stream that goes stale or is stopped for one device (its client left, it rebooted) is
    reported with an event and followed by the device's ``stale_stream`` requests (a ZLAC706
    gets 0 rpm) as a command. Streams ended all at once (e-stop, lost bus, shutdown) are only
-   reported: what comes next puts every device in its safe state anyway.
+   reported: what comes next puts every device in its safe state anyway; so is a stream a
+   trajectory takes over (``drop``): the trajectory goes on from where it left the device.
 """
 
 from __future__ import annotations
@@ -65,6 +66,15 @@ class FollowStreams:
             if device in ticker.streams:
                 ticker.stop(device)
                 self._ended(self.drivers[device], "stream_stopped", reason=reason)
+
+    def drop(self, device: str, reason: str) -> None:
+        """End ``device``'s stream without its stale-stream requests (a trajectory takes the
+        device from where the stream left it); reported ``stream_stopped``."""
+        for ticker in self._tickers():
+            if device in ticker.streams:
+                ticker.stop(device)
+                self._streams.pop(device, None)
+                self.drivers[device].emit("stream_stopped", reason=reason)
 
     def end_all(self, reason: str) -> None:
         """End every stream, reported only (rule 2)."""

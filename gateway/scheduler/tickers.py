@@ -74,6 +74,10 @@ class FollowTicker:
     def stop(self, name: str) -> None:
         self.streams.pop(name, None)
 
+    def carried(self) -> list[Driver]:
+        """The devices a tick's frame carries."""
+        return [stream.driver for stream in self.streams.values()]
+
     def next_due(self) -> float | None:
         return self._due if self.streams else None
 

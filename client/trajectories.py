@@ -1,0 +1,133 @@
+"""Trajectories a gateway plays for this client: the ``play`` request, and what the gateway
+says of it afterwards (feedback, then one result), for both faces of the SDK.
+
+Rules: the feedback key is subscribed before ``play`` is sent, so a result that comes at once
+is not missed; the zenoh callback only stores a message and wakes the readers (their sinks
+may not block); a trajectory's devices are found by name like any device, and must all be on
+one gateway.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
+
+from busgate.client.base import Shared
+from busgate.client.core import then
+from busgate.codecs.errors import CommandError
+
+_ids = itertools.count(1)
+
+#: The fields of a ``play`` besides devices and points, as the SDK's ``play`` names them.
+PLAY_OPTIONS = (
+    "start_at",
+    "interpolation",
+    "path_tolerance",
+    "goal_tolerance",
+    "goal_time_s",
+)
+
+
+def one_gateway(found: list[Any]) -> str:
+    """The one gateway of a trajectory's devices (``CommandError`` when they are on several:
+    each gateway plays its own)."""
+    gateways = sorted({device.gateway for device in found})
+    if len(gateways) != 1:
+        raise CommandError(
+            f"a trajectory plays the devices of one gateway, not of {', '.join(gateways)}: "
+            "play one trajectory per gateway, with the same start_at"
+        )
+    return gateways[0]
+
+
+def result_wait_s(end_at: float, timeout: float | None) -> float:
+    """How long to wait for a result: ``timeout``, or until 30 s past ``end_at``."""
+    return timeout if timeout is not None else max(1.0, end_at - time.time() + 30.0)
+
+
+def play_body(
+    client_id: str,
+    trajectory_id: str | None,
+    devices: list[str],
+    points: list[dict[str, Any]],
+    options: dict[str, Any],
+) -> dict[str, Any]:
+    """The ``play`` command (``None`` options left out)."""
+    chosen = trajectory_id or f"{client_id}-{os.getpid()}-{next(_ids)}"
+    given = {name: options[name] for name in PLAY_OPTIONS if options.get(name) is not None}
+    return {"op": "play", "id": chosen, "devices": devices, "points": points, **given}
+
+
+class Watch:
+    """What a gateway says of one trajectory: each feedback message, then its result."""
+
+    def __init__(self, shared: Shared, gateway: str, trajectory_id: str) -> None:
+        self.gateway = gateway
+        self.id = trajectory_id
+        self._lock = threading.Lock()
+        self._sinks: list[Callable[[dict[str, Any]], object]] = []
+        self.result: dict[str, Any] | None = None
+        self.finished: Future = Future()
+        self._end = shared.core.subscribe(
+            shared.core.keys.feedback(gateway, trajectory_id), self._on_message
+        )
+
+    def add_sink(self, sink: Callable[[dict[str, Any]], object]) -> Callable[[], None]:
+        """``sink(message)`` for each message from now on (zenoh's thread); returns what
+        removes it."""
+        with self._lock:
+            self._sinks.append(sink)
+
+        def remove() -> None:
+            with self._lock:
+                if sink in self._sinks:
+                    self._sinks.remove(sink)
+
+        return remove
+
+    def close(self) -> None:
+        self._end()
+
+    def _on_message(self, key: str, payload: bytes) -> None:
+        try:
+            message = json.loads(payload)
+        except ValueError:
+            return
+        if not isinstance(message, dict):
+            return
+        with self._lock:
+            sinks = list(self._sinks)
+            if "result" in message and self.result is None:
+                self.result = message
+        for sink in sinks:
+            sink(message)
+        if "result" in message and not self.finished.done():
+            self.finished.set_result(message)
+
+
+def start(shared: Shared, gateway: str, body: dict[str, Any], timeout_s: float) -> Future:
+    """Watch, then send ``play``: a future of (``Watch``, the reply's ``trajectory``)."""
+    watch = Watch(shared, gateway, body["id"])
+    sent = shared.core.command(shared.core.keys.trajectory(gateway), body, timeout_s=timeout_s)
+
+    def accepted(reply: dict[str, Any]) -> tuple[Watch, dict[str, Any]]:
+        return watch, reply["trajectory"]
+
+    def refused(done: Future) -> None:
+        if done.exception() is not None:
+            watch.close()
+
+    chained = then(sent, accepted)
+    chained.add_done_callback(refused)
+    return chained
+
+
+def cancel(shared: Shared, gateway: str, trajectory_id: str, timeout_s: float) -> Future:
+    key = shared.core.keys.trajectory(gateway)
+    return shared.core.command(key, {"op": "cancel", "id": trajectory_id}, timeout_s=timeout_s)

@@ -1,0 +1,124 @@
+"""The trajectories one bus plays: which ticker carries each device, and how a device leaves
+one (the end of its trajectory, a replacement, a cancel or an abort).
+
+Rules of this file:
+
+1. Bus thread only, but for ``commanded``, which any thread may read (the feedback).
+2. A device plays one trajectory at a time: a new one takes it from its old one (and from its
+   follow stream, ended quietly: the trajectory goes on from where the stream was) from the
+   next tick on.
+3. A device leaves a trajectory holding where it was commanded last (a position device's
+   target stops changing at once), or, for a device whose trajectory moves a speed, ramping
+   it to 0 over ``RAMP_S`` on its grid, then sending what a stale stream gets (0 rpm).
+   E-stop, a lost bus and shutdown take every device out at once; what follows them puts
+   every device in its safe state anyway.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.planner import BusPlanner, Job
+from busgate.gateway.scheduler.streams import FollowStreams
+from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
+
+#: How long a speed is ramped to 0 when its device leaves a trajectory early.
+RAMP_S = 0.5
+
+
+class Plays:
+    """Starts, feeds and ends the trajectories of the devices of one bus."""
+
+    def __init__(
+        self,
+        planner: BusPlanner,
+        counters: BusCounters,
+        drivers: dict[str, Driver],
+        streams: FollowStreams,
+    ) -> None:
+        self.planner = planner
+        self.counters = counters
+        self.drivers = drivers
+        self.streams = streams
+        self._tickers: dict[str, TrajectoryTicker] = {}  # device → its ticker
+
+    def commanded(self, device: str) -> tuple[float, Any] | None:
+        """Any thread: (seconds from its trajectory's start, target) of ``device``'s last tick."""
+        ticker = self._tickers.get(device)
+        return None if ticker is None else ticker.commanded.get(device)
+
+    def start(self, samplers: dict[str, Sampler], start: float) -> None:
+        """Play each device's sampler from ``start`` (bus clock) on (rule 2)."""
+        for name, sample in samplers.items():
+            driver = self.drivers[name]
+            self._leave(name)
+            self.streams.drop(name, "trajectory")
+            ticker = self._ticker_for(driver, start)
+            ticker.add(driver, sample)
+            self._tickers[name] = ticker
+
+    def stop(self, device: str, *, speed: bool) -> None:
+        """``device`` leaves its trajectory (rule 3): it holds, or its speed ramps to 0."""
+        ticker = self._tickers.get(device)
+        if ticker is None:
+            return
+        last = ticker.commanded.get(device)
+        if not speed or last is None:
+            self._leave(device)
+            return
+        from_s, rpm = last
+        ticker.add(ticker.playing[device].driver, _ramp_to_zero(from_s, rpm))
+        ticker.ramping[device] = from_s + RAMP_S  # on this ticker's grid until then
+
+    def end_all(self) -> None:
+        """Every device out at once (rule 3: an e-stop, a lost bus, shutdown)."""
+        for name in list(self._tickers):
+            self._leave(name)
+
+    def after_tick(self, ticker: TrajectoryTicker) -> None:
+        """A ticker sent its frame: devices whose ramp is done leave, with their stale-stream
+        requests (0 rpm)."""
+        for name, until in list(ticker.ramping.items()):
+            commanded = ticker.commanded.get(name)
+            if commanded is not None and commanded[0] >= until:
+                driver = ticker.playing[name].driver
+                self._leave(name)
+                requests = driver.stale_stream()
+                if requests:
+                    self.planner.push_command(Job(name, deque(requests)))
+
+    def _leave(self, device: str) -> None:
+        ticker = self._tickers.pop(device, None)
+        if ticker is None:
+            return
+        ticker.remove(device)
+        ticker.ramping.pop(device, None)
+        if not ticker.playing and ticker in self.planner.tickers:
+            self.planner.tickers.remove(ticker)
+
+    def _ticker_for(self, driver: Driver, start: float) -> TrajectoryTicker:
+        period = driver.follow_period_s
+        for ticker in self.planner.tickers:
+            if (
+                isinstance(ticker, TrajectoryTicker)
+                and ticker.driver_class is type(driver)
+                and ticker.period_s == period
+                and ticker.start == start
+                and ticker.has_room(driver)
+            ):
+                return ticker
+        ticker = TrajectoryTicker(type(driver), period, start, self.counters, self.after_tick)
+        self.planner.tickers.append(ticker)
+        return ticker
+
+
+def _ramp_to_zero(from_s: float, rpm: float) -> Sampler:
+    """A speed ramp from ``rpm`` at ``from_s`` to 0 over ``RAMP_S``."""
+
+    def sample(t_s: float) -> dict[str, Any]:
+        return {"rpm": rpm * max(0.0, 1 - (t_s - from_s) / RAMP_S)}
+
+    return sample

@@ -1,0 +1,112 @@
+"""The ticks of trajectories the gateway plays: each device's target sampled at its period,
+on a grid shared by every bus.
+
+Rules of this file:
+
+1. Tick ``k`` of a trajectory is due at ``start + k × period`` (bus clock), for every bus
+   alike, so buses that start together stay together. A tick is sent at its slot or, late,
+   as soon as it can; the next one is the first slot at least a full period after the late
+   one actually started: no interval is shorter than the period, and the grid is never left.
+2. What a tick sends is the trajectory sampled at the tick's slot (``sample(slot − start)``, a
+   follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
+   is), not at the moment the frame happens to leave: the wire carries the interpolant at
+   the grid's times, whatever the host's jitter.
+3. Devices of one driver kind, one period and one start share a ticker and a frame (every
+   Inspire LA of a bus in one 0xF3 frame, DS servos in one SYNC WRITE), up to the kind's
+   ``follow_group_limit``.
+4. ``commanded`` holds, per device, the slot time and the value of its last tick, replaced
+   whole, so other threads (the feedback) read it without a lock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from busgate.gateway.bus.request import Request
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Driver
+
+#: A sampler: seconds from the trajectory's start → the device's follow payload (one key).
+Sampler = Callable[[float], dict[str, Any]]
+
+
+@dataclass(frozen=True, slots=True)
+class Playing:
+    """One device of a trajectory on this ticker."""
+
+    driver: Driver
+    sample: Sampler
+
+
+class TrajectoryTicker:
+    """Sends the sampled targets of its devices on the trajectory's grid, in one frame."""
+
+    def __init__(
+        self,
+        driver_class: type[Driver],
+        period_s: float,
+        start: float,
+        counters: BusCounters,
+        on_sent: Callable[[TrajectoryTicker], None] = lambda ticker: None,
+    ) -> None:
+        self.driver_class = driver_class
+        self.period_s = period_s
+        self.start = start
+        self.counters = counters
+        self.on_sent = on_sent
+        self.playing: dict[str, Playing] = {}
+        #: Each device's last tick: (seconds from the start, the value sent) (rule 4).
+        self.commanded: dict[str, tuple[float, float]] = {}
+        #: Devices ramping out of their trajectory, and when (seconds from the start) it ends.
+        self.ramping: dict[str, float] = {}
+        self._due = start
+        self._last_start: float | None = None
+
+    def has_room(self, driver: Driver) -> bool:
+        limit = self.driver_class.follow_group_limit
+        return driver.name in self.playing or len(self.playing) < limit
+
+    def add(self, driver: Driver, sample: Sampler) -> None:
+        self.playing[driver.name] = Playing(driver, sample)
+
+    def remove(self, name: str) -> None:
+        self.playing.pop(name, None)
+
+    def carried(self) -> list[Driver]:
+        """The devices a tick's frame carries."""
+        return [member.driver for member in self.playing.values()]
+
+    def next_due(self) -> float | None:
+        return self._due if self.playing else None
+
+    def build(self, now: float) -> Request | None:
+        if not self.playing:
+            return None
+        t_s = self._due - self.start  # rule 2: the slot's time, not now's
+        targets = []
+        for name, member in self.playing.items():
+            payload = member.sample(t_s)
+            (value,) = payload.values()
+            targets.append((member.driver, member.driver.follow_target(payload)))
+            self.commanded[name] = (t_s, value)
+        return self.driver_class.follow_request(targets)
+
+    def sent(self, start: float) -> None:
+        if self._last_start is not None:
+            self.counters.follow_interval(start - self._last_start, self.period_s)
+        self._last_start = start
+        self._due = next_slot(self.start, self.period_s, start + self.period_s)
+        self.on_sent(self)
+
+
+def next_slot(start: float, period_s: float, earliest: float) -> float:
+    """The first slot ``start + k × period_s`` (k ≥ 0) at or after ``earliest`` (rule 1).
+
+    >>> next_slot(10.0, 0.02, 10.02), next_slot(10.0, 0.02, 10.0201), next_slot(10.0, 0.02, 9.0)
+    (10.02, 10.04, 10.0)
+    """
+    k = max(0, math.ceil((earliest - start) / period_s - 1e-9))
+    return start + k * period_s
