@@ -5,8 +5,13 @@ Rules of this file:
 
 1. Tick ``k`` of a trajectory is due at ``start + k × period`` (bus clock), for every bus
    alike, so buses that start together stay together. A tick is sent at its slot or, late,
-   as soon as it can; the next one is the first slot at least a full period after the late
-   one actually started: no interval is shorter than the period, and the grid is never left.
+   as soon as it can. A write cannot start before its slot and always starts a little after
+   it (the host's wake-up, the write call): a tick that started within ``ON_TIME_S`` of its
+   slot (the contract's alignment bound) is on time, and the next slot follows it; after a
+   later one, the next tick is the first slot at least a full period after it actually
+   started. So the grid is never left, a late tick is not made up by a burst, and no interval
+   is shorter than the period by more than ``ON_TIME_S``. (Bounding the next slot by every
+   tick's own start would make nearly every tick late and leave every other slot out.)
 2. What a tick sends is the trajectory sampled at the tick's slot (``sample(slot − start)``, a
    follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
    is), not at the moment the frame happens to leave: the wire carries the interpolant at
@@ -29,6 +34,9 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 
+#: How long after its slot a tick may start and still be on time (rule 1): the 1 ms within
+#: which the buses' ticks of one slot are aligned.
+ON_TIME_S = 0.001
 #: A sampler: seconds from the trajectory's start → the device's follow payload (one key).
 Sampler = Callable[[float], dict[str, Any]]
 
@@ -98,7 +106,9 @@ class TrajectoryTicker:
         if self._last_start is not None:
             self.counters.follow_interval(start - self._last_start, self.period_s)
         self._last_start = start
-        self._due = next_slot(self.start, self.period_s, start + self.period_s)
+        on_time = start - self._due <= ON_TIME_S
+        earliest = (self._due if on_time else start) + self.period_s  # rule 1
+        self._due = next_slot(self.start, self.period_s, earliest)
         self.on_sent(self)
 
 
