@@ -17,10 +17,10 @@ from hypothesis import strategies as st
 from busgate.codecs import inspire_la as la
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
-from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.drivers.inspire_la import InspireLaDriver, PowerStage
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
-from busgate.gateway.scheduler.plays import RAMP_S, Plays
+from busgate.gateway.scheduler.plays import END_ALL, RAMP_S, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker
 from busgate.gateway.scheduler.trajectory_ticks import ON_TIME_S, TrajectoryTicker, next_slot
@@ -96,12 +96,38 @@ def test_a_tick_built_late_sends_the_path_at_its_slot_not_at_the_moment_of_build
     ticker = la_ticker()
     assert ticker.next_due() == START
     assert positions(ticker.build(START + 0.015)) == {1: slot_value(0)}
-    assert ticker.commanded["la1"] == (0.0, slot_value(0))
     ticker.sent(START + 0.016)  # 16 ms late: the next slot is a full period after that
+    assert ticker.commanded["la1"] == (0.0, slot_value(0))
     assert ticker.next_due() == pytest.approx(START + 2 * PERIOD)
     assert positions(ticker.build(START + 0.05)) == {1: slot_value(2)} == {1: 40}
+    ticker.sent(START + 0.05)
     t_s, value = ticker.commanded["la1"]
     assert (t_s, value) == (pytest.approx(2 * PERIOD), 40)
+
+
+def test_a_slot_is_sampled_at_k_periods_exactly_whatever_the_bus_clock_reads():
+    """At 1000.0 s of bus clock, slot 1's bus time less the start is 0.01999999999998181 s:
+    a path at 0.5 (a half: sent as 1) there would be sent as 0."""
+    half_way = Path(0.0, [Knot(2 * PERIOD, 1.0)], "linear")
+    assert (START + PERIOD) - START < PERIOD and sent(half_way.at(PERIOD)) == 1
+    ticker = la_ticker(path=half_way)
+    for k in range(3):
+        assert positions(ticker.build(ticker.next_due())) == {1: [0, 1, 1][k]}
+        ticker.sent(ticker.next_due())
+    assert ticker.commanded["la1"] == (2 * PERIOD, 1)
+
+
+def test_commanded_is_what_was_sent_not_a_tick_built_ahead_and_put_off():
+    """The bus thread builds a tick ahead of its slot and may put it off (new work came):
+    until it is sent, the feedback and the verdict see the tick before it."""
+    ticker = la_ticker()
+    ticker.build(START)
+    ticker.sent(START)
+    ticker.build(START + PERIOD - 0.003)  # prepared 3 ms ahead, then put off
+    assert ticker.commanded["la1"] == (0.0, 0)
+    ticker.build(START + PERIOD)
+    ticker.sent(START + PERIOD)
+    assert ticker.commanded["la1"] == (pytest.approx(PERIOD), 20)
 
 
 def test_a_tick_a_little_after_its_slot_is_on_time_and_every_slot_is_sent():
@@ -170,11 +196,48 @@ def test_the_devices_of_a_ticker_share_one_frame_each_with_its_own_path():
     assert isinstance(request.frame, la.GroupFollowCommand) and request.expected is None
     assert positions(request) == {1: 20, 2: 1920}
     assert ticker.carried() == [la1, la2]
+    ticker.sent(START + PERIOD)
     assert ticker.commanded == {"la1": (pytest.approx(PERIOD), 20),
                                 "la2": (pytest.approx(PERIOD), 1920)}
     ticker.remove("la1")
     ticker.remove("la2")
     assert ticker.next_due() is None and ticker.build(START + 1) is None
+
+
+def test_a_device_that_cannot_take_its_target_is_left_out_and_no_tick_raises():
+    """An e-stopped actuator, a ZLAC706 out of velocity mode: each is left out with its
+    reason and its neighbours' frame goes on; with no device left the slot passes without a
+    frame and the next one is due (the bus thread takes an exception for a bug)."""
+    la1, la2 = InspireLaDriver("la1", 1), InspireLaDriver("la2", 2)
+    ticker = la_ticker(la1, la2)
+    la1.safe_stop()  # its e-stop
+    assert positions(ticker.build(START)) == {2: 0}
+    assert ticker.carried() == [la2] and set(ticker.refused) == {"la1"}
+    assert "e-stopped" in ticker.refused["la1"]
+    ticker.sent(START)
+    la2.safe_stop()
+    assert ticker.build(START + PERIOD) is None
+    assert ticker.next_due() is None  # nobody left to tick for
+    wheel = can_driver()  # no mode yet: a speed target is refused
+    ticker = TrajectoryTicker(Zlac706CanDriver, PERIOD, START, BusCounters(0.0))
+    ticker.add(wheel, lambda t_s: {"rpm": 100.0})
+    ticker.add(InspireLaDriver("la3", 3), position_of(RAMP_UP))  # stays: it can take its own
+    ticker.remove("la3")
+    assert ticker.build(START + 0.0005) is None
+    assert "velocity mode" in ticker.refused["wheel"]
+
+
+def test_a_slot_without_a_frame_passes_and_the_next_is_after_now():
+    la1, la2 = InspireLaDriver("la1", 1), InspireLaDriver("la2", 2)
+    passed = []
+    ticker = TrajectoryTicker(InspireLaDriver, PERIOD, START, BusCounters(0.0), passed.append)
+    ticker.add(la1, position_of(RAMP_UP))
+    la1.safe_stop()
+    ticker.add(la2, position_of(RAMP_UP))
+    la2.safe_stop()
+    assert ticker.build(START + 0.05) is None and passed == [ticker]
+    ticker.add(la2, position_of(RAMP_UP))  # were it still playing, the next slot is after now
+    assert ticker.next_due() == pytest.approx(START + 0.06)
 
 
 def test_a_ticker_has_room_for_its_kinds_group_limit():
@@ -303,13 +366,50 @@ def test_a_speed_that_never_ticked_leaves_at_once():
     assert trajectory_tickers(planner) == [] and planner.queued == 0
 
 
-def test_end_all_takes_every_device_out_at_once():
+def test_a_device_left_out_leaves_its_trajectory_with_the_reason_until_it_plays_again():
+    la1, la2 = InspireLaDriver("la1", 1), InspireLaDriver("la2", 2)
+    planner, plays, _ = bus_of(la1, la2)
+    plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)
+    tick(planner, START)
+    la1.safe_stop()
+    assert positions(tick(planner, START + PERIOD)) == {2: 20}
+    assert plays.commanded("la1") is None
+    start, reason = plays.refusal("la1")
+    assert start == START and reason.startswith("could not take its target") and (
+        "e-stopped" in reason)
+    assert plays.refusal("la2") is None
+    la2.safe_stop()
+    assert planner.decide(START + 2 * PERIOD) == math.inf  # the slot passed, the ticker went
+    assert trajectory_tickers(planner) == [] and plays.refusal("la2")[0] == START
+    la1.power = PowerStage.ON  # enabled again
+    plays.start({"la1": position_of(RAMP_UP)}, START + 1.0)
+    assert plays.refusal("la1") is None
+
+
+def test_a_device_that_left_is_held_where_its_last_tick_sent_it():
+    planner, plays, _ = bus_of(*three_actuators())
+    plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)
+    for k in range(3):
+        tick(planner, START + k * PERIOD)
+    assert plays.held("la1") is None  # playing: commanded says where it is
+    plays.stop("la1", speed=False)
+    assert plays.held("la1") == (START + 2 * PERIOD, 40)
+    plays.start({"la2": position_of(RAMP_UP)}, START + 1.0)  # taken by another: held too
+    assert plays.held("la2") == (START + 2 * PERIOD, 40)
+    assert plays.held("la3") is None
+
+
+def test_end_all_takes_every_device_out_at_once_saying_so():
     wheel = velocity_driver(can_driver(), rpm=0)
     planner, plays, _ = bus_of(*three_actuators(), wheel)
     plays.start({"la1": position_of(RAMP_UP), "wheel": lambda t_s: {"rpm": 300.0}}, START)
     plays.start({"la2": position_of(RAMP_UP)}, START + 0.005)
     tick(planner, START)
+    tick(planner, START + 0.002)  # the wheel's ticker: one device a frame
     plays.stop("wheel", speed=True)  # ramping: out at once all the same
     plays.end_all()
     assert trajectory_tickers(planner) == [] and planner.queued == 0
     assert all(plays.commanded(name) is None for name in ("la1", "la2", "wheel"))
+    assert plays.refusal("la1") == plays.refusal("wheel") == (START, END_ALL)
+    assert plays.refusal("la2") == (START + 0.005, END_ALL)  # the start of its own trajectory
+    assert plays.refusal("la3") is None  # it played nothing
