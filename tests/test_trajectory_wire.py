@@ -26,7 +26,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 
 import pytest
+import zenoh
 
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
@@ -40,13 +42,16 @@ from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.plays import RAMP_S
 from busgate.gateway.scheduler.trajectory_ticks import ON_TIME_S
 from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Path, paths_of, sent
 from busgate.schemas.config import SerialBus
 from busgate.schemas.trajectory import TrajectoryPlay
-from tests.conftest import wait_until
+from tests.conftest import unused_loopback_port, wait_until
+from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.simulated_buses import SimulatedGateway, simulated_gateway
+from tests.test_zenoh_api import connected, get
 
 BASE = "busgate/gw"
 #: Reply margins that leave room, between the ticks of a 20 ms period, for the polls that
@@ -725,3 +730,139 @@ def test_a_play_needing_more_of_a_bus_than_it_has_is_refused_naming_the_bus():
             assert ticks(sim, mark) == []
         finally:
             runner.stop()
+
+
+# -- end to end: busgate run, zenoh ------------------------------------------------------------
+
+
+@dataclass
+class Served:
+    """``busgate run`` over the LA and DS simulators, and a client session that reaches it."""
+
+    client: zenoh.Session
+    la_sim: SerialSimulator
+    ds_sim: SerialSimulator
+
+    def subscribe(self, key: str) -> list[dict]:
+        received: list[dict] = []
+        subscriber = self.client.declare_subscriber(
+            key, lambda s: received.append(json.loads(s.payload.to_bytes()) | {"_at": now()}))
+        self._subscribers.append(subscriber)
+        return received
+
+    def ask(self, command: dict) -> dict:
+        [reply] = get(self.client, "busgate/gw1/trajectory", json.dumps(command))
+        return reply
+
+    def __post_init__(self) -> None:
+        self._subscribers: list = []
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory) -> Iterator[Served]:
+    la_sim = SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)], baudrate=921_600)
+    ds_sim = SerialSimulator(ds, [DsServoDevice(1), DsServoDevice(2)], baudrate=1_000_000)
+    for simulator in (la_sim, ds_sim):
+        simulator.start()
+    endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
+    buses = (bus_table("uart0", la_sim.port, 921_600,
+                       {name: ("inspire_la", i) for name, i in LA_IDS.items()},
+                       reply_margin_ms=MARGIN_MS),
+             bus_table("uart1", ds_sim.port, 1_000_000,
+                       {name: ("ds_servo", i) for name, i in DS_IDS.items()},
+                       reply_margin_ms=MARGIN_MS))
+    gateway = GatewayProcess(write_config(tmp_path_factory.mktemp("gw") / "gw.toml", endpoint,
+                                          *buses))
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        gateway.wait_for("serving")
+        connected(client)
+
+        def online() -> bool:
+            [info] = get(client, "busgate/gw1/info", "")
+            states = [d["state"] for bus in info["buses"] for d in bus["devices"]]
+            return all(state and state["online"] for state in states)
+
+        wait_until(online, timeout=20)
+        yield Served(client, la_sim, ds_sim)
+    finally:
+        client.close()
+        assert gateway.stop() == 0
+        for simulator in (la_sim, ds_sim):
+            simulator.stop()
+
+
+def test_through_zenoh_a_play_ticks_both_buses_and_reports_on_its_keys(served):
+    """The reply names the trajectory's times and devices; both buses tick every slot's
+    interpolant from start_at; feedback at least ten a second on the trajectory's feedback
+    key, then its result there and on the gateway's events."""
+    feedback = served.subscribe("busgate/gw1/trajectory/e2e/feedback")
+    events = served.subscribe("busgate/gw1/events")
+    marks = {"uart0": len(served.la_sim.recorder.received()),
+             "uart1": len(served.ds_sim.recorder.received())}
+    start_at = time.time() + 0.3
+    command_ = {"op": "play", "id": "e2e", "devices": EVERY_SERVO, "start_at": start_at,
+                "interpolation": "cubic",
+                "points": [{"t_s": 0.0, "positions": [500, 500, 500, 2048, 2048]},
+                           *POINTS["cubic"]]}
+    reply = served.ask(command_)
+    start_bus = now() + (start_at - time.time())
+    assert reply == {"ok": True, "trajectory": {"id": "e2e", "start_at": start_at,
+                                                "end_at": start_at + 0.45,
+                                                "devices": EVERY_SERVO}}
+    wait_until(lambda: any("result" in body for body in feedback))
+    *progress, result = feedback
+    assert result["result"] == "succeeded" and result["id"] == "e2e"
+    first = progress[0]["ts"]
+    for n, body in enumerate(progress):
+        assert first + n * 0.1 <= body["ts"] < first + n * 0.1 + 4 * ROUND_S, (n, body["ts"])
+    assert progress[-1]["t_s"] > 0.35 and len(progress[-1]["devices"]) == 5
+    paths = dict(zip(EVERY_SERVO, paths_of(TrajectoryPlay.model_validate(command_),
+                                           [0.0] * 5), strict=True))  # from its t_s 0 point
+    played = Played("e2e", command_, reply, start_at, start_bus, paths, marks)
+    timed = {}
+    for name, simulator, ids in (("uart0", served.la_sim, LA_IDS),
+                                 ("uart1", served.ds_sim, DS_IDS)):
+        found = ticks(simulator, marks[name])
+        slots = slots_of(found, start_bus, played.expected(ids))
+        assert slots[0] == 0 and start_bus - 1e-4 <= found[0].start <= start_bus + LOOSE_S
+        timed[name] = dict(zip(slots, (tick.start for tick in found), strict=True))
+    for k in timed["uart0"].keys() & timed["uart1"].keys():
+        assert abs(timed["uart0"][k] - timed["uart1"][k]) <= LOOSE_S, f"slot {k}"
+    wait_until(lambda: any(e["type"] == "trajectory_ended" for e in events))
+    mine = [(e["type"], e.get("result")) for e in events if e.get("id") == "e2e"]
+    assert mine == [("trajectory_started", None), ("trajectory_ended", "succeeded")]
+    assert all(e["device"] == "*" for e in events if e.get("id") == "e2e")
+
+
+def test_through_zenoh_status_cancel_and_a_refusal(served):
+    feedback = served.subscribe("busgate/gw1/trajectory/long/feedback")
+    reply = served.ask({"op": "play", "id": "long", "devices": ["la1", "arm1"],
+                        "points": [{"t_s": 2.0, "positions": [1500, 3000]}]})
+    assert reply["ok"] and reply["trajectory"]["start_at"] > time.time()  # start_at: LEAD_S
+    [listed] = served.ask({"op": "status"})["trajectories"]
+    assert listed["id"] == "long" and listed["devices"] == ["la1", "arm1"]
+    refused = served.ask({"op": "play", "id": "bad", "devices": ["la9"],
+                          "points": [{"t_s": 1.0, "positions": [1]}]})
+    assert refused["error"]["code"] == "unknown_device"
+    assert served.ask({"op": "cancel", "id": "long"}) == {"ok": True, "canceled": "long"}
+    wait_until(lambda: any("result" in body for body in feedback))
+    assert feedback[-1]["result"] == "canceled"
+    assert served.ask({"op": "status"}) == {"ok": True, "trajectories": []}
+
+
+def test_through_zenoh_the_clients_liveliness_token_gone_aborts_its_trajectory(served):
+    """alice holds la2's claim and plays it; her token goes: the trajectory is aborted
+    ``client gone`` (and her claim released)."""
+    feedback = served.subscribe("busgate/gw1/trajectory/alices/feedback")
+    token = served.client.liveliness().declare_token("busgate/clients/alice")
+    [claimed] = get(served.client, "busgate/gw1/dev/la2/cmd",
+                    '{"op":"claim","client":"alice"}')
+    assert claimed["ok"]
+    reply = served.ask({"op": "play", "id": "alices", "client": "alice", "devices": ["la2"],
+                        "points": [{"t_s": 2.0, "positions": [100]}], "require_claim": True})
+    assert reply["ok"], reply
+    wait_until(lambda: feedback and feedback[-1]["t_s"] > 0.2)
+    token.undeclare()
+    wait_until(lambda: any("result" in body for body in feedback))
+    assert (feedback[-1]["result"], feedback[-1]["reason"]) == ("aborted", "client gone")
