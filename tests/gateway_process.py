@@ -29,6 +29,17 @@ def serial_bus(name: str, port: str, device: str, *, device_id: int = 1) -> str:
             f"id = {device_id}\n")
 
 
+def bus_table(name: str, port: str, baudrate: int, devices: dict[str, tuple[str, int]],
+              **options: object) -> str:
+    """One ``[[buses]]`` table of a serial bus with ``devices`` (name → (kind, id)) and
+    ``options`` (``reply_margin_ms = 10`` …)."""
+    text = (f'[[buses]]\nname = "{name}"\ntransport = "serial"\nport = "{port}"\n'
+            f"baudrate = {baudrate}\n" + "".join(f"{k} = {v}\n" for k, v in options.items()))
+    for device, (kind, device_id) in devices.items():
+        text += f'[[buses.devices]]\nname = "{device}"\nkind = "{kind}"\nid = {device_id}\n'
+    return text
+
+
 def write_config(path: Path, endpoint: str, *buses: str, name: str = "gw1",
                  metrics: str | None = None) -> Path:
     """A gateway config listening on ``endpoint`` only (and serving metrics on ``metrics``),

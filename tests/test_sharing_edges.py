@@ -9,26 +9,18 @@ the bus had every chance to send what it should not have."""
 
 from __future__ import annotations
 
-import itertools
 import json
 
-import can
 import pytest
 
-from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
-from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.service.assembly import build_bus
-from busgate.gateway.sim.can_server import CanSimulator
-from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.gateway.sim.zlac706 import Zlac706CanDevice
-from busgate.schemas.config import CanBus, SerialBus
+from tests.simulated_buses import la_bus, simulated_gateway
 
-_channels = itertools.count()
 TARGET_INDEX = la.REGISTERS[la.TARGET_POSITION].address
 
 
@@ -36,39 +28,11 @@ TARGET_INDEX = la.REGISTERS[la.TARGET_POSITION].address
 MARGIN_MS = 50
 
 
-def la_bus(port: str) -> SerialBus:
-    return SerialBus(name="uart0", transport="serial", port=port, baudrate=921_600,
-                     reply_margin_ms=MARGIN_MS,
-                     devices=[{"name": f"la{i}", "kind": "inspire_la", "id": i} for i in (1, 2, 3)])
-
-
 @pytest.fixture
-def gateway(wait_for):
+def gateway():
     """Three LA actuators, two DS servos, one ZLAC706, each family on its own bus."""
-    la_sim = SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)], baudrate=921_600)
-    ds_sim = SerialSimulator(ds, [DsServoDevice(1), DsServoDevice(2)], baudrate=1_000_000)
-    channel = f"test-edges-{next(_channels)}"
-    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
-                           bus=can.Bus(interface="virtual", channel=channel))
-    for simulator in (la_sim, ds_sim, can_sim):
-        simulator.start()
-    buses = [
-        la_bus(la_sim.port),
-        SerialBus(name="uart1", transport="serial", port=ds_sim.port, baudrate=1_000_000,
-                  reply_margin_ms=MARGIN_MS, devices=[{"name": "arm1", "kind": "ds_servo", "id": 1},
-                           {"name": "arm2", "kind": "ds_servo", "id": 2}]),
-        CanBus(name="can0", transport="can", interface="virtual", channel=channel,
-               reply_margin_ms=MARGIN_MS,
-               devices=[{"name": "wheel", "kind": "zlac706", "id": 5, "heartbeat_ms": 50}]),
-    ]
-    runners = {bus.name: build_bus(bus).start() for bus in buses}
-    api = GatewayApi("gw", runners)
-    wait_for(lambda: all(driver.online for _, driver in api.devices.values()))
-    yield api, la_sim, ds_sim
-    for runner in runners.values():
-        runner.stop()
-    for simulator in (la_sim, ds_sim, can_sim):
-        simulator.stop()
+    with simulated_gateway(margin_ms=MARGIN_MS) as world:
+        yield world.api, world.la_sim, world.ds_sim
 
 
 def ask(api: GatewayApi, device: str, command: dict | bytes) -> dict:
@@ -210,7 +174,8 @@ def test_a_command_not_started_by_its_deadline_is_answered_busy_and_never_sent(
 def test_a_command_cancelled_before_it_started_is_never_sent(wait_for):
     with SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)],
                          baudrate=921_600) as la_sim:
-        runner = build_bus(la_bus(la_sim.port))  # not started: the command waits in its inbox
+        # Not started: the command waits in its inbox.
+        runner = build_bus(la_bus(la_sim.port, MARGIN_MS))
         api = GatewayApi("gw", {"uart0": runner})
         pending = api.command("la1", b'{"op":"move","position":1234}')
         assert pending.cancel()  # what the bridge does when its reply guard fires

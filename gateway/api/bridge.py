@@ -215,9 +215,14 @@ class ZenohBridge:
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            client = str(sample.key_expr).split("/")[-1]
-            self._call_soon(self.api.client_left, client)
-            self._call_soon(self.trajectories.client_left, client)
+            self._call_soon(self._client_left, str(sample.key_expr).split("/")[-1])
+
+    def _client_left(self, client: str) -> None:
+        """The loop's thread: the client's trajectories end ``client gone`` first, in the same
+        callback, so that no round of the loop sees them under claims already released (and
+        aborts them ``claim lost`` instead); then its claims, streams and speeds go."""
+        self.trajectories.client_left(client)
+        self.api.client_left(client)
 
     def _answer(self, query: zenoh.Query, handle: Callable[[], Future], key: str) -> None:
         """Reply on ``key`` (concrete, even when the query had wildcards), on the loop's

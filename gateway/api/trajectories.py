@@ -6,7 +6,8 @@ Rules of this file:
 1. A ``play`` is refused, with a stable code and nothing moving, when: the points are
    malformed (``bad_command``; too many: ``out_of_range``); a device is not on this gateway
    (``unknown_device``) or has no stream of the trajectory's values (``bad_command``); one is
-   claimed by another client (``claimed``), e-stopped (``estopped``), offline
+   claimed by another client (``claimed``) or, with ``require_claim``, not by its client
+   (``not_claimed``), e-stopped (``estopped``), offline
    (``device_timeout``) or on a bus that is down (``bus_unavailable``); a value sent at any
    tick would be outside its device's range (``out_of_range``: every tick of the grid is
    sampled, so overshoot between points is caught); ``start_at`` is past, too close to now
@@ -15,14 +16,20 @@ Rules of this file:
 2. Accepted, each device's bus samples it on the shared grid (``scheduler.trajectory_ticks``)
    from the one start time; a device of another running trajectory is taken from it, whose
    result is ``replaced``.
-3. Watched on the loop's thread (``tick``), a running trajectory ends ``succeeded`` once past
-   its last point every device is within its goal tolerance (at once without one), else is
-   ``aborted`` (each device holding, a speed ramped to 0) on: an e-stop, a device offline, its
-   client gone, a claim it played under lost, a measured value off the path by more than its
-   path tolerance (compared with the path at the moment the value was read), or no goal by
-   ``goal_time_s`` after the last point. ``cancel`` ends it ``canceled`` the same way.
+3. Watched on the loop's thread (``tick``), a running trajectory ends ``succeeded`` once every
+   device has been sent its last point's value (the first tick at or after it) and is within
+   its goal tolerance (at once without one), else is ``aborted`` (each device holding, a speed
+   ramped to 0) on: an e-stop, a device offline, its client gone, a claim it played under
+   lost, a device claimed by another client, a device its bus took out of it (it could no
+   longer take its target, or every device was stopped: ``Plays.refusal``), a measured value
+   off the path by more than its path tolerance (compared with the path at the moment the
+   value was read), or no goal by ``goal_time_s`` after the last point. All but the
+   tolerances are watched from the moment it is accepted, before its start too. ``cancel``
+   ends it ``canceled`` the same way.
 4. Feedback goes out at least ``1 / FEEDBACK_EVERY_S`` times a second on
-   ``<prefix>/<gw>/trajectory/<id>/feedback``; the result once, there and as an event.
+   ``<prefix>/<gw>/trajectory/<id>/feedback``, on a grid of that period from the first (a
+   round of the loop that comes late does not push the later ones back); the result once,
+   there and as an event.
 5. ``command`` may run long (a 1 MiB payload is parsed and every tick sampled): it runs on a
    worker thread, never on zenoh's or the loop's; the running table is shared under a lock.
 """
@@ -57,6 +64,11 @@ MIN_LEAD_S = 0.02
 MAX_AHEAD_S = 3600.0
 #: The share of a bus's time a trajectory's ticks may take, beside what it does already.
 BUS_SHARE = 0.9
+
+#: How long past its last point (and ``goal_time_s``) a trajectory waits for the tick that
+#: sends each device that point's value (the next slot, a period at most) before it is
+#: aborted: a bus that stopped ticking without any other reason to abort.
+LAST_TICK_WAIT_S = 1.0
 
 #: Per values field: the follow payload's key and the telemetry's measured field.
 FIELDS = {"positions": ("position", "position"), "rpms": ("rpm", "speed_rpm")}
@@ -93,6 +105,7 @@ class Running:
     client: str | None
     members: list[Member]
     start_at: float  # wall
+    start_bus: float  # the same moment, bus clock: the start its devices' tickers have
     end_s: float
     goal_time_s: float
     next_feedback: float = 0.0
@@ -156,6 +169,7 @@ class Trajectories:
             request.client,
             members,
             start_at,
+            start_bus,
             max(m.path.end_s for m in members),
             request.goal_time_s,
         )
@@ -196,7 +210,9 @@ class Trajectories:
                 if verdict is not None:
                     self._end(running, *verdict)
                 elif moment >= running.next_feedback:
-                    running.next_feedback = moment + FEEDBACK_EVERY_S
+                    due = running.next_feedback  # rule 4: on the grid, unless a period behind
+                    since = due if moment - due < FEEDBACK_EVERY_S else moment
+                    running.next_feedback = since + FEEDBACK_EVERY_S
                     self.publish(self._feedback_key(running), self._feedback(running, moment))
 
     def client_left(self, client: str) -> None:
@@ -213,7 +229,7 @@ class Trajectories:
         members = []
         for index, (name, path) in enumerate(zip(request.devices, paths, strict=True)):
             runner, driver = self._device(name)
-            self._check_device(runner, driver, request.client)
+            self._check_device(runner, driver, request.client, request.require_claim)
             member = Member(
                 name,
                 runner,
@@ -239,23 +255,31 @@ class Trajectories:
             )
         return found
 
-    def _check_device(self, runner: BusRunner, driver: Driver, client: str | None) -> None:
+    def _check_device(
+        self, runner: BusRunner, driver: Driver, client: str | None, require_claim: bool
+    ) -> None:
         if not runner.owner.is_open:
             raise RefusedError("bus_unavailable", f"bus {runner.name} of {driver.name} is down")
-        runner.authority.claims.check(driver.name, client, runner.authority.clock())
+        claims = runner.authority.claims
+        judge = claims.require if require_claim else claims.check
+        judge(driver.name, client, runner.authority.clock())
         if driver.estopped:
             raise driver.estopped_error()
         if not driver.online:
             raise RefusedError("device_timeout", f"{driver.name} is offline: it does not answer")
 
     def _start_value(self, name: str, key: str) -> float:
-        """Where ``name`` is commanded: its trajectory's last tick, its state's target, else
-        its measured value (0 when nothing is known)."""
+        """Where ``name`` is commanded: its trajectory's last tick, while it plays, or once it
+        left while nothing was read from it since; else its state's target, else its measured
+        value (0 when nothing is known)."""
         runner, _ = self._device(name)
         commanded = runner.plays.commanded(name)
         if commanded is not None:
             return commanded[1]
         state = runner.states.get(name) or {}
+        held = runner.plays.held(name)
+        if held is not None and not _read_after(state, held[0]):
+            return held[1]  # the state was read before that tick: its target is older
         fields = ("target", "position") if key == "position" else ("target_speed_rpm", "speed_rpm")
         known = [float(state[f]) for f in fields if state.get(f) is not None]
         return known[0] if known else 0.0
@@ -299,17 +323,21 @@ class Trajectories:
 
     def _verdict(self, running: Running, moment: float) -> tuple[str, ...] | None:
         """``(result, reason)`` once ``running`` is over, else ``None`` (rule 3)."""
-        t_s = moment - running.start_at
-        if t_s < 0:
-            return None
         for member in running.members:
             driver = member.driver
             if driver.estopped:
                 return ("aborted", "estop")
             if not driver.online:
                 return ("aborted", f"{member.name} offline")
-            if member.claimed and not _holds(member.runner, member.name, running.client):
-                return ("aborted", f"claim on {member.name} lost")
+            claim = _claim_problem(member, running.client)
+            if claim is not None:
+                return ("aborted", claim)
+            refused = member.runner.plays.refusal(member.name)
+            if refused is not None and refused[0] == running.start_bus:  # not an older one's
+                return ("aborted", f"{member.name} {refused[1]}")
+        t_s = moment - running.start_at
+        if t_s < 0:
+            return None
         errors = self._errors(running)
         running.errors = errors
         if t_s <= running.end_s:
@@ -319,8 +347,11 @@ class Trajectories:
                 if tolerance is not None and error is not None and abs(error) > tolerance:
                     return ("aborted", "path_tolerance")
             return None
-        reached = all(_within(errors.get(m.name), m.goal_tolerance) for m in running.members)
-        if reached:
+        if not all(_sent_last(m) for m in running.members):  # on their way: the next tick
+            if t_s > running.end_s + running.goal_time_s + LAST_TICK_WAIT_S:
+                return ("aborted", "its last point was not sent")
+            return None
+        if all(_within(errors.get(m.name), m.goal_tolerance) for m in running.members):
             return ("succeeded",)
         if t_s > running.end_s + running.goal_time_s:
             return ("aborted", "goal_tolerance")
@@ -386,6 +417,31 @@ def _within(error: float | None, tolerance: float | None) -> bool:
 
 def _nth(values: list[float] | None, index: int) -> float | None:
     return None if values is None else values[index]
+
+
+def _read_after(state: dict[str, Any], moment: float) -> bool:
+    """Whether ``state`` was read (its ``ts``, wall clock) after ``moment`` (bus clock)."""
+    read = state.get("ts")
+    return read is not None and now() - (time.time() - read) > moment
+
+
+def _sent_last(member: Member) -> bool:
+    """Whether ``member``'s bus has sent it its last point's value (a tick at or after it)."""
+    commanded = member.runner.plays.commanded(member.name)
+    return commanded is not None and commanded[0] >= member.path.end_s
+
+
+def _claim_problem(member: Member, client: str | None) -> str | None:
+    """Why ``client``'s trajectory may no longer move ``member``: the claim it played under
+    lapsed or went, or another client claimed the device; ``None`` when it may."""
+    runner, device = member.runner, member.name
+    if member.claimed and not _holds(runner, device, client):
+        return f"claim on {device} lost"
+    try:
+        runner.authority.claims.check(device, client, runner.authority.clock())
+    except BusgateError as exc:
+        return str(exc)
+    return None
 
 
 def _holds(runner: BusRunner, device: str, client: str | None) -> bool:

@@ -3,7 +3,8 @@ one (the end of its trajectory, a replacement, a cancel or an abort).
 
 Rules of this file:
 
-1. Bus thread only, but for ``commanded``, which any thread may read (the feedback).
+1. Bus thread only, but for ``commanded``, ``held`` and ``refusal``, which any thread may read
+   (the feedback, the next play).
 2. A device plays one trajectory at a time: a new one takes it from its old one (and from its
    follow stream, ended quietly: the trajectory goes on from where the stream was) from the
    next tick on.
@@ -12,6 +13,14 @@ Rules of this file:
    it to 0 over ``RAMP_S`` on its grid, then sending what a stale stream gets (0 rpm).
    E-stop, a lost bus and shutdown take every device out at once; what follows them puts
    every device in its safe state anyway.
+4. Once a device left, ``held`` keeps when its last tick went and what it carried: where the
+   device is commanded until something newer is known of it (a trajectory that follows
+   starts there).
+5. A device whose trajectory was ended here, not by its player (its ticker left it out for
+   good: it could not take its target; or every device was taken out: ``end_all``), keeps
+   why in ``refusal``, with the start of the trajectory it was playing, until it starts
+   another one: that trajectory is over (``busgate.gateway.api.trajectories`` aborts it,
+   even when the device has been enabled again since).
 """
 
 from __future__ import annotations
@@ -27,6 +36,8 @@ from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
 
 #: How long a speed is ramped to 0 when its device leaves a trajectory early.
 RAMP_S = 0.5
+#: Why a device left its trajectory in ``end_all`` (rule 5).
+END_ALL = "was stopped with every device of its bus (an e-stop, the bus lost, or shutdown)"
 
 
 class Plays:
@@ -44,17 +55,30 @@ class Plays:
         self.drivers = drivers
         self.streams = streams
         self._tickers: dict[str, TrajectoryTicker] = {}  # device → its ticker
+        #: Device → (the start of the trajectory it was playing, why it was ended) (rule 5).
+        self._refusals: dict[str, tuple[float, str]] = {}
+        self._held: dict[str, tuple[float, Any]] = {}  # device → its last tick (rule 4)
 
     def commanded(self, device: str) -> tuple[float, Any] | None:
         """Any thread: (seconds from its trajectory's start, target) of ``device``'s last tick."""
         ticker = self._tickers.get(device)
         return None if ticker is None else ticker.commanded.get(device)
 
+    def held(self, device: str) -> tuple[float, Any] | None:
+        """Any thread: (bus time, target) of the last tick of ``device`` once it left its
+        trajectory (rule 4)."""
+        return self._held.get(device)
+
+    def refusal(self, device: str) -> tuple[float, str] | None:
+        """Any thread: (its start, why) of the trajectory of ``device`` ended here (rule 5)."""
+        return self._refusals.get(device)
+
     def start(self, samplers: dict[str, Sampler], start: float) -> None:
         """Play each device's sampler from ``start`` (bus clock) on (rule 2)."""
         for name, sample in samplers.items():
             driver = self.drivers[name]
             self._leave(name)
+            self._refusals.pop(name, None)
             self.streams.drop(name, "trajectory")
             ticker = self._ticker_for(driver, start)
             ticker.add(driver, sample)
@@ -75,12 +99,17 @@ class Plays:
 
     def end_all(self) -> None:
         """Every device out at once (rule 3: an e-stop, a lost bus, shutdown)."""
-        for name in list(self._tickers):
+        for name, ticker in list(self._tickers.items()):
+            self._refusals[name] = (ticker.start, END_ALL)
             self._leave(name)
 
     def after_tick(self, ticker: TrajectoryTicker) -> None:
-        """A ticker sent its frame: devices whose ramp is done leave, with their stale-stream
-        requests (0 rpm)."""
+        """A ticker's slot went by: devices it left out leave (rule 5); devices whose ramp is
+        done leave, with their stale-stream requests (0 rpm)."""
+        while ticker.refused:
+            name, reason = ticker.refused.popitem()
+            self._refusals[name] = (ticker.start, f"could not take its target: {reason}")
+            self._leave(name)
         for name, until in list(ticker.ramping.items()):
             commanded = ticker.commanded.get(name)
             if commanded is not None and commanded[0] >= until:
@@ -94,6 +123,9 @@ class Plays:
         ticker = self._tickers.pop(device, None)
         if ticker is None:
             return
+        last, sent_at = ticker.commanded.get(device), ticker.last_sent
+        if last is not None and sent_at is not None:
+            self._held[device] = (sent_at, last[1])  # rule 4
         ticker.remove(device)
         ticker.ramping.pop(device, None)
         if not ticker.playing and ticker in self.planner.tickers:

@@ -5,17 +5,30 @@ Rules of this file:
 
 1. Tick ``k`` of a trajectory is due at ``start + k × period`` (bus clock), for every bus
    alike, so buses that start together stay together. A tick is sent at its slot or, late,
-   as soon as it can; the next one is the first slot at least a full period after the late
-   one actually started: no interval is shorter than the period, and the grid is never left.
-2. What a tick sends is the trajectory sampled at the tick's slot (``sample(slot − start)``, a
+   as soon as it can. A write cannot start before its slot and always starts a little after
+   it (the host's wake-up, the write call): a tick that started within ``ON_TIME_S`` of its
+   slot (the contract's alignment bound) is on time, and the next slot follows it; after a
+   later one, the next tick is the first slot at least a full period after it actually
+   started. So the grid is never left, a late tick is not made up by a burst, and no interval
+   is shorter than the period by more than ``ON_TIME_S``. (Bounding the next slot by every
+   tick's own start would make nearly every tick late and leave every other slot out.)
+2. What a tick sends is the trajectory sampled at the tick's slot (``sample(k × period)``, a
    follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
    is), not at the moment the frame happens to leave: the wire carries the interpolant at
-   the grid's times, whatever the host's jitter.
+   the grid's times, whatever the host's jitter. The time is ``k × period`` itself, not the
+   slot's bus time less the start, whose rounding depends on how long the host has been up
+   and can tip a value that is a half in exact arithmetic to either side.
 3. Devices of one driver kind, one period and one start share a ticker and a frame (every
    Inspire LA of a bus in one 0xF3 frame, DS servos in one SYNC WRITE), up to the kind's
    ``follow_group_limit``.
-4. ``commanded`` holds, per device, the slot time and the value of its last tick, replaced
-   whole, so other threads (the feedback) read it without a lock.
+4. ``commanded`` holds, per device, the slot time and the value of its last tick sent (a tick
+   built ahead of its slot and then put off is not), replaced whole, so other threads (the
+   feedback) read it without a lock.
+5. A device that can no longer take its target (e-stopped on its own, or its driver refuses
+   the target: a ZLAC706 switched out of velocity mode) is left out of the frame and off the
+   ticker, its reason in ``refused`` for ``on_tick``; its neighbours' tick goes on. With no
+   device left, the slot passes without a frame. Nothing a device does makes a tick raise:
+   the bus thread takes an exception for a bug and reopens the bus.
 """
 
 from __future__ import annotations
@@ -25,10 +38,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from busgate.codecs.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 
+#: How long after its slot a tick may start and still be on time (rule 1): the 1 ms within
+#: which the buses' ticks of one slot are aligned.
+ON_TIME_S = 0.001
 #: A sampler: seconds from the trajectory's start → the device's follow payload (one key).
 Sampler = Callable[[float], dict[str, Any]]
 
@@ -50,20 +67,26 @@ class TrajectoryTicker:
         period_s: float,
         start: float,
         counters: BusCounters,
-        on_sent: Callable[[TrajectoryTicker], None] = lambda ticker: None,
+        on_tick: Callable[[TrajectoryTicker], None] = lambda ticker: None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
         self.start = start
         self.counters = counters
-        self.on_sent = on_sent
+        #: Called after each slot, its frame sent or (rule 5) passed without one.
+        self.on_tick = on_tick
         self.playing: dict[str, Playing] = {}
-        #: Each device's last tick: (seconds from the start, the value sent) (rule 4).
+        #: Each device's last tick sent: (seconds from the start, the value) (rule 4).
         self.commanded: dict[str, tuple[float, float]] = {}
         #: Devices ramping out of their trajectory, and when (seconds from the start) it ends.
         self.ramping: dict[str, float] = {}
+        #: Devices left out because they could not take their target, and why (rule 5).
+        self.refused: dict[str, str] = {}
+        self._k = 0  # the next slot's index
         self._due = start
         self._last_start: float | None = None
+        self._built: dict[str, tuple[float, float]] = {}  # what the frame being sent carries
+        self._carried: list[Driver] = []
 
     def has_room(self, driver: Driver) -> bool:
         limit = self.driver_class.follow_group_limit
@@ -76,30 +99,63 @@ class TrajectoryTicker:
         self.playing.pop(name, None)
 
     def carried(self) -> list[Driver]:
-        """The devices a tick's frame carries."""
-        return [member.driver for member in self.playing.values()]
+        """The devices the last frame built carries."""
+        return list(self._carried)
 
     def next_due(self) -> float | None:
         return self._due if self.playing else None
 
+    @property
+    def last_sent(self) -> float | None:
+        """When (bus clock) the last frame went out; ``None`` before the first."""
+        return self._last_start
+
     def build(self, now: float) -> Request | None:
         if not self.playing:
             return None
-        t_s = self._due - self.start  # rule 2: the slot's time, not now's
-        targets = []
-        for name, member in self.playing.items():
+        t_s = self._k * self.period_s  # rule 2: the slot's time, not now's
+        targets: list[tuple[Driver, Any]] = []
+        built: dict[str, tuple[float, float]] = {}
+        for name, member in list(self.playing.items()):
+            driver = member.driver
             payload = member.sample(t_s)
             (value,) = payload.values()
-            targets.append((member.driver, member.driver.follow_target(payload)))
-            self.commanded[name] = (t_s, value)
+            try:
+                if driver.estopped:
+                    raise driver.estopped_error()
+                targets.append((driver, driver.follow_target(payload)))
+            except (CommandError, RefusedError) as exc:  # rule 5
+                self.refused[name] = str(exc)
+                self.remove(name)
+                continue
+            built[name] = (t_s, value)
+        if not targets:
+            self._pass(now)
+            return None
+        self._built = built
+        self._carried = [driver for driver, _ in targets]
         return self.driver_class.follow_request(targets)
 
     def sent(self, start: float) -> None:
         if self._last_start is not None:
             self.counters.follow_interval(start - self._last_start, self.period_s)
         self._last_start = start
-        self._due = next_slot(self.start, self.period_s, start + self.period_s)
-        self.on_sent(self)
+        self.commanded.update(self._built)  # rule 4: one assignment per device
+        if start - self._due <= ON_TIME_S:  # rule 1
+            self._go_to(self._k + 1)
+        else:
+            self._go_to(slot_index(self.start, self.period_s, start + self.period_s))
+        self.on_tick(self)
+
+    def _pass(self, now: float) -> None:
+        """No device could take its target: the slot passes without a frame (rule 5), and the
+        next one is due after ``now`` (the planner asks again at once)."""
+        self._go_to(max(self._k + 1, slot_index(self.start, self.period_s, now)))
+        self.on_tick(self)
+
+    def _go_to(self, k: int) -> None:
+        self._k = k
+        self._due = self.start + k * self.period_s
 
 
 def next_slot(start: float, period_s: float, earliest: float) -> float:
@@ -108,5 +164,9 @@ def next_slot(start: float, period_s: float, earliest: float) -> float:
     >>> next_slot(10.0, 0.02, 10.02), next_slot(10.0, 0.02, 10.0201), next_slot(10.0, 0.02, 9.0)
     (10.02, 10.04, 10.0)
     """
-    k = max(0, math.ceil((earliest - start) / period_s - 1e-9))
-    return start + k * period_s
+    return start + slot_index(start, period_s, earliest) * period_s
+
+
+def slot_index(start: float, period_s: float, earliest: float) -> int:
+    """``k`` of ``next_slot``: a moment within a billionth of a period of a slot is that slot."""
+    return max(0, math.ceil((earliest - start) / period_s - 1e-9))
