@@ -388,6 +388,20 @@ def test_a_canceled_trajectory_holds_every_position_within_a_period(world, playe
     assert player.ask({"op": "cancel", "id": played.id})["error"]["code"] == "bad_command"
 
 
+def test_a_follow_target_for_a_playing_device_is_refused_busy_and_never_sent(world, player):
+    """A follow stream and a trajectory would fight over the device's target: while it
+    plays, its follow targets are refused ``busy``; once it is over, one is taken again."""
+    played = player.play(["la2"], [{"t_s": 0.6, "positions": [1777]}])
+    player.run_until(lambda: time.time() > played.start_at + 0.1)
+    refused = world.api.follow("la2", b'{"position": 444}')
+    assert refused is not None and refused["error"]["code"] == "busy"
+    player.finished(played)
+    settled(world, "la2")
+    assert all(444 not in t.values.values() for t in ticks(world.la_sim, played.marks["uart0"]))
+    assert world.api.follow("la2", b'{"position": 445}') is None  # no trajectory: taken
+    assert command(world, "la2", {"op": "end_follow"})["ok"]
+
+
 def test_a_play_naming_a_playing_device_takes_it_over_and_the_old_one_is_replaced(world, player):
     """The old trajectory's ticks stop carrying the device taken (and the one it leaves
     holds); the new one's carry its path from where the old one had commanded it."""

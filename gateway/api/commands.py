@@ -208,6 +208,12 @@ class GatewayApi:
             client = fields.get("client")
             if self._sent_before_the_end(device, client):
                 return None
+            if runner.plays.playing(device):
+                raise RefusedError(
+                    "busy",
+                    f"{device} is playing a trajectory: cancel it first (a follow stream and "
+                    "a trajectory would fight over its target)",
+                )
             runner.authority.check(
                 [(frozenset({driver.device_id}), Effect.MOTION)],
                 client,

@@ -3,8 +3,8 @@ one (the end of its trajectory, a replacement, a cancel or an abort).
 
 Rules of this file:
 
-1. Bus thread only, but for ``commanded``, ``held`` and ``refusal``, which any thread may read
-   (the feedback, the next play).
+1. Bus thread only, but for ``playing``, ``commanded``, ``held`` and ``refusal``, which any
+   thread may read (the API, the feedback, the next play).
 2. A device plays one trajectory at a time: a new one takes it from its old one (and from its
    follow stream, ended quietly: the trajectory goes on from where the stream was) from the
    next tick on.
@@ -58,6 +58,10 @@ class Plays:
         #: Device → (the start of the trajectory it was playing, why it was ended) (rule 5).
         self._refusals: dict[str, tuple[float, str]] = {}
         self._held: dict[str, tuple[float, Any]] = {}  # device → its last tick (rule 4)
+
+    def playing(self, device: str) -> bool:
+        """Any thread: ``device`` is in a trajectory (its ticks carry it)."""
+        return device in self._tickers
 
     def commanded(self, device: str) -> tuple[float, Any] | None:
         """Any thread: (seconds from its trajectory's start, target) of ``device``'s last tick."""
