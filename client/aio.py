@@ -32,7 +32,7 @@ from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.sync import DEFAULT_TIMEOUT_S
-from busgate.client.trajectories import Watch, one_gateway, play_body, result_wait_s
+from busgate.client.trajectories import Handle, one_gateway, play_body, result_wait_s
 
 
 async def wait(future: Future, timeout_s: float, what: str) -> Any:
@@ -288,16 +288,9 @@ async def _settle_on_exit(
             raise
 
 
-class Trajectory:
+class Trajectory(Handle):
     """A trajectory a gateway plays (``await c.play(...)``), for asyncio: as
     ``busgate.client.Trajectory``."""
-
-    def __init__(self, shared: Shared, watch: Watch, accepted: dict[str, Any]) -> None:
-        self._shared, self._watch = shared, watch
-        self.id, self.gateway = watch.id, watch.gateway
-        self.devices: list[str] = accepted["devices"]
-        self.start_at: float = accepted["start_at"]
-        self.end_at: float = accepted["end_at"]
 
     async def __aenter__(self) -> Trajectory:
         return self
@@ -305,17 +298,12 @@ class Trajectory:
     async def __aexit__(self, *exc_info: object) -> None:
         self.close()
 
-    @property
-    def result(self) -> dict[str, Any] | None:
-        return self._watch.result
-
     async def wait(self, timeout: float | None = None) -> dict[str, Any]:
         waited = result_wait_s(self.end_at, timeout)
         return await wait(self._watch.finished, waited, f"the result of trajectory {self.id}")
 
     async def cancel(self, *, timeout: float | None = None) -> dict[str, Any]:
-        waited = self._shared.core.timeout_s if timeout is None else timeout
-        sent = trajectories.cancel(self._shared, self.gateway, self.id, waited)
+        sent, waited = self._cancel(timeout)
         return await wait(sent, waited, f"cancel of trajectory {self.id}")
 
     async def feedback(self, timeout: float | None = None) -> AsyncIterator[dict[str, Any]]:
@@ -338,9 +326,6 @@ class Trajectory:
                 yield message
         finally:
             remove()
-
-    def close(self) -> None:
-        self._watch.close()
 
 
 class Bus:

@@ -30,7 +30,7 @@ from busgate.client.core import Answers, Core
 from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
-from busgate.client.trajectories import Watch, one_gateway, play_body, result_wait_s
+from busgate.client.trajectories import Handle, one_gateway, play_body, result_wait_s
 
 DEFAULT_TIMEOUT_S = 5.0
 
@@ -297,30 +297,15 @@ def _settle_on_exit(
             raise
 
 
-class Trajectory:
+class Trajectory(Handle):
     """A trajectory a gateway plays for this client (``Client.play``): its ``id``,
     ``gateway``, ``devices``, ``start_at`` and ``end_at`` (wall clock, as telemetry's ``ts``)."""
-
-    def __init__(self, shared: Shared, watch: Watch, accepted: dict[str, Any]) -> None:
-        self._shared, self._watch = shared, watch
-        self.id, self.gateway = watch.id, watch.gateway
-        self.devices: list[str] = accepted["devices"]
-        self.start_at: float = accepted["start_at"]
-        self.end_at: float = accepted["end_at"]
-
-    def __repr__(self) -> str:
-        return f"<Trajectory {self.gateway}/{self.id} {self.devices}>"
 
     def __enter__(self) -> Trajectory:
         return self
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
-
-    @property
-    def result(self) -> dict[str, Any] | None:
-        """The result message once it came (``result``, ``reason``, ``errors``), else None."""
-        return self._watch.result
 
     def wait(self, timeout: float | None = None) -> dict[str, Any]:
         """The result (``{"result": "succeeded" | "canceled" | "replaced" | "aborted",
@@ -330,8 +315,7 @@ class Trajectory:
 
     def cancel(self, *, timeout: float | None = None) -> dict[str, Any]:
         """Each device decelerates to a stop and holds; the result is ``canceled``."""
-        waited = self._shared.core.timeout_s if timeout is None else timeout
-        sent = trajectories.cancel(self._shared, self.gateway, self.id, waited)
+        sent, waited = self._cancel(timeout)
         return wait(sent, waited, f"cancel of trajectory {self.id}")
 
     def feedback(self, timeout: float | None = None) -> Iterator[dict[str, Any]]:
@@ -351,10 +335,6 @@ class Trajectory:
                 yield message
         finally:
             remove()
-
-    def close(self) -> None:
-        """Stop listening to the trajectory (it plays on)."""
-        self._watch.close()
 
 
 class Bus:

@@ -111,6 +111,35 @@ class Watch:
             self.finished.set_result(message)
 
 
+class Handle:
+    """What both faces' ``Trajectory`` are: a trajectory a gateway plays for this client, its
+    ``id``, ``gateway``, ``devices``, ``start_at`` and ``end_at`` (wall clock, as telemetry's
+    ``ts``), and what the gateway said of it."""
+
+    def __init__(self, shared: Shared, watch: Watch, accepted: dict[str, Any]) -> None:
+        self._shared, self._watch = shared, watch
+        self.id, self.gateway = watch.id, watch.gateway
+        self.devices: list[str] = accepted["devices"]
+        self.start_at: float = accepted["start_at"]
+        self.end_at: float = accepted["end_at"]
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.gateway}/{self.id} {self.devices}>"
+
+    @property
+    def result(self) -> dict[str, Any] | None:
+        """The result message once it came (``result``, ``reason``, ``errors``), else None."""
+        return self._watch.result
+
+    def close(self) -> None:
+        """Stop listening to the trajectory (it plays on)."""
+        self._watch.close()
+
+    def _cancel(self, timeout: float | None) -> tuple[Future, float]:
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        return cancel(self._shared, self.gateway, self.id, waited), waited
+
+
 def start(shared: Shared, gateway: str, body: dict[str, Any], timeout_s: float) -> Future:
     """Watch, then send ``play``: a future of (``Watch``, the reply's ``trajectory``)."""
     watch = Watch(shared, gateway, body["id"])
