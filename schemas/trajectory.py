@@ -30,6 +30,10 @@ MAX_TRAJECTORY_POINTS = 10_000
 #: The largest payload the trajectory key takes, in bytes (every other key takes the API's
 #: ``MAX_PAYLOAD``, ``busgate.gateway.api.commands``).
 MAX_TRAJECTORY_PAYLOAD = 1024 * 1024
+#: The longest a trajectory may last, and the longest ``goal_time_s``, in seconds: the gateway
+#: checks every tick of a play's grid before it accepts it, and a point a day away (or at
+#: 1e300 s) would hold its one trajectory worker, and every cancel behind it, for hours.
+MAX_TRAJECTORY_S = 3600.0
 
 #: How the points are joined: straight lines, Hermite cubics (positions and velocities) or
 #: quintics (positions, velocities and accelerations).
@@ -41,6 +45,8 @@ ValuesField = Literal["positions", "rpms"]
 _PER_DEVICE_FIELDS: tuple[str, ...] = ("positions", "rpms", "velocities", "accelerations")
 
 NonNegative = Annotated[float, Field(ge=0)]
+#: Seconds within a trajectory's reach.
+Seconds = Annotated[float, Field(ge=0, le=MAX_TRAJECTORY_S)]
 
 
 class TrajectoryPoint(BaseModel):
@@ -50,7 +56,7 @@ class TrajectoryPoint(BaseModel):
 
     model_config = CommandModel.model_config
 
-    t_s: NonNegative
+    t_s: Seconds
     positions: list[int] | None = None
     rpms: list[float] | None = None
     velocities: list[float] | None = None
@@ -92,7 +98,7 @@ class TrajectoryPlay(CommandModel):
     interpolation: Interpolation | None = None
     path_tolerance: list[NonNegative] | None = None
     goal_tolerance: list[NonNegative] | None = None
-    goal_time_s: NonNegative = 0.0
+    goal_time_s: Seconds = 0.0
 
     @model_validator(mode="after")
     def _structure(self) -> TrajectoryPlay:

@@ -192,6 +192,10 @@ def test_more_points_than_the_limit_are_out_of_range():
                           goal_tolerance=None),
     play(points=points({"t_s": -0.1}, {}, {})), play(goal_time_s=-1),
     play(path_tolerance=[100, -1, 200]), play(goal_tolerance=[0, 0, -0.5]),
+    # past an hour: every tick of the grid is checked before a play is accepted, and a point
+    # at 1e300 s would hold the gateway's trajectory worker (and every cancel) for ever
+    play(points=points({}, {}, {"t_s": 3600.5})), play(points=points({}, {}, {"t_s": 1e300})),
+    play(goal_time_s=3601),
 ])  # fmt: skip
 def test_a_value_outside_its_bounds_is_out_of_range(value):
     assert refusal_code(refused(value)) == "out_of_range"
