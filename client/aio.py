@@ -129,7 +129,8 @@ class Client:
     ) -> Trajectory:
         """As ``busgate.client.Client.play``."""
         waited = self.timeout if timeout is None else timeout
-        found = await wait(self._shared.find_devices(devices, waited), waited, "finding devices")
+        finding = self._shared.find_all(devices, "device", waited)
+        found = await wait(finding, waited, "finding devices")
         gateway = one_gateway(found)
         body = play_body(self.client_id, id, [f.name for f in found], points, options)
         started = trajectories.start(self._shared, gateway, body, waited)

@@ -145,22 +145,21 @@ class Shared:
         key = self.core.keys.info(gateway or "*")
         return then(self.core.ask(key, timeout_s=timeout_s), gateway_infos)
 
-    def find_devices(self, names: list[str], timeout_s: float) -> Future:
-        """A future of the ``Found`` device of each name, from one ``info`` query of the
-        gateways they name (all, when any name is bare)."""
+    def find_all(self, names: list[str], what: str, timeout_s: float) -> Future:
+        """A future of the ``Found`` device or bus (``what``) of each name (``"gw/x"`` or a
+        bare ``"x"``), from one ``info`` query of the gateways they name (all, when any name
+        is bare)."""
         gateways = {split_name(name)[0] for name in names}
         gateway = gateways.pop() if len(gateways) == 1 else None
         asked = self.core.keys.info(gateway or "*")
         return then(
             self.infos(gateway, timeout_s),
-            lambda infos: [locate(infos, name, "device", asked) for name in names],
+            lambda infos: [locate(infos, name, what, asked) for name in names],
         )
 
     def find(self, name: str, what: str, timeout_s: float) -> Future:
-        """A future of the ``Found`` device or bus ``name`` (``"gw/x"`` or a bare ``"x"``)."""
-        gateway, _ = split_name(name)
-        asked = self.core.keys.info(gateway or "*")
-        return then(self.infos(gateway, timeout_s), lambda infos: locate(infos, name, what, asked))
+        """A future of the ``Found`` device or bus ``name``."""
+        return then(self.find_all([name], what, timeout_s), lambda found: found[0])
 
     # -- devices -------------------------------------------------------------------------------
 

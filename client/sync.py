@@ -132,7 +132,8 @@ class Client:
         ``goal_tolerance``, ``goal_time_s``); the devices must be on one gateway. Returns
         once it is accepted, with its ``start_at`` and ``end_at``."""
         waited = self.timeout if timeout is None else timeout
-        found = wait(self._shared.find_devices(devices, waited), waited, "finding the devices")
+        finding = self._shared.find_all(devices, "device", waited)
+        found = wait(finding, waited, "finding the devices")
         gateway = one_gateway(found)
         body = play_body(self.client_id, id, [f.name for f in found], points, options)
         started = trajectories.start(self._shared, gateway, body, waited)
