@@ -194,6 +194,26 @@ def test_estop_goes_ahead_and_stops_every_device(wait_for, simulator) -> None:
         runner.stop()
 
 
+def test_an_estop_latches_every_device_before_it_ends_their_plays(wait_for, simulator) -> None:
+    """A trajectory's watcher, on another thread, that sees its play ended must see its
+    devices e-stopped too (its result says ``estop``, not "stopped with every device")."""
+    runner = build_bus(bus(simulator.port)).start()
+    seen: list[bool] = []
+    end_all = runner.plays.end_all
+
+    def ending(*args, **kwargs):
+        seen.append(all(driver.estopped for driver in runner.drivers.values()))
+        return end_all(*args, **kwargs)
+
+    runner.plays.end_all = ending
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        runner.estop().result(10)
+        assert seen == [True]
+    finally:
+        runner.stop()
+
+
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()

@@ -266,9 +266,11 @@ class BusRunner:
             outcomes.fail(
                 job, RefusedError("estopped", "an e-stop cancelled it before it was carried out")
             )
+        # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
+        # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
+        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.streams.end_all("estop")
         self.plays.end_all()
-        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
 
     def _start_stream(self, device: str, target: Any, moment: float) -> None:
