@@ -115,6 +115,11 @@ class Client:
         found = await wait(self._shared.find(name, "bus", waited), waited, f"finding bus {name}")
         return Bus(self._shared, found)
 
+    def on_gateways(self, callback: Callable[[str, bool], None]) -> Callable[[], None]:
+        """As ``busgate.client.Client.on_gateways`` (the callback runs on zenoh's thread:
+        ``loop.call_soon_threadsafe`` brings it to the loop)."""
+        return self._shared.core.on_gateways(callback)
+
     async def estop(self, gateway: str | None = None) -> None:
         self._shared.estop(gateway)  # a put: it does not wait
 

@@ -15,7 +15,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from busgate.client.claims import ClaimLease, Timers
-from busgate.client.core import Answer, Core, dumps, then
+from busgate.client.core import UNPARSED, Answer, Core, dumps, then
 from busgate.client.errors import AmbiguousError, ClaimLostError, NoAnswerError, error_for
 from busgate.client.follow import FollowSender
 from busgate.client.keys import split_name
@@ -242,7 +242,7 @@ class Shared:
         def sink(sample_key: str, payload: bytes) -> None:
             try:
                 body = json.loads(payload)
-            except ValueError:
+            except UNPARSED:
                 body = None
             callback(sample_key, body)
 

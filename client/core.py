@@ -61,6 +61,11 @@ class Answer:
         return {"code": "internal", "message": f"a reply that is not an ok reply: {text}"}
 
 
+#: What ``json.loads`` raises on a payload that is not JSON, or is nested past its depth (a
+#: hostile peer's answer or sample, never to escape into zenoh's callback thread).
+UNPARSED = (ValueError, RecursionError)
+
+
 def answer_of(reply: zenoh.Reply) -> Answer | None:
     """A zenoh reply as an ``Answer``; ``None`` for zenoh's own timeout reply."""
     sample, error = reply.ok, reply.err
@@ -71,7 +76,7 @@ def answer_of(reply: zenoh.Reply) -> Answer | None:
     raw = answer.payload.to_bytes()
     try:
         body = json.loads(raw)
-    except ValueError:
+    except UNPARSED:
         return Answer(str(getattr(answer, "key_expr", "")), raw.decode(errors="replace"), False)
     ok = sample is not None and isinstance(body, dict) and body.get("ok") is True
     return Answer(str(getattr(answer, "key_expr", "")), body, ok)
@@ -187,7 +192,7 @@ class Core:
             reason = zenoh_reason(exc)
             raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
         self._lock = threading.Lock()
-        self._gone_listeners: list[Callable[[str], None]] = []
+        self._listeners: list[Callable[[str, bool], None]] = []
         self.gateways_up: set[str] = set()
         try:
             liveliness = self.session.liveliness()
@@ -306,28 +311,36 @@ class Core:
 
     # -- gateways coming and going -----------------------------------------------------------
 
-    def on_gateway_gone(self, listener: Callable[[str], None]) -> Callable[[], None]:
-        """Call ``listener(gateway)`` (zenoh's thread) when a gateway's token goes; returns
-        what stops it."""
+    def on_gateways(self, listener: Callable[[str, bool], None]) -> Callable[[], None]:
+        """Call ``listener(gateway, alive)`` (zenoh's thread) when a gateway's token comes
+        (``True``) or goes (``False``), first for each gateway up now; returns what stops it."""
         with self._lock:
-            self._gone_listeners.append(listener)
+            self._listeners.append(listener)
+            up = sorted(self.gateways_up)
+        for gateway in up:
+            listener(gateway, True)
 
         def stop() -> None:
             with self._lock, contextlib.suppress(ValueError):
-                self._gone_listeners.remove(listener)
+                self._listeners.remove(listener)
 
         return stop
 
+    def on_gateway_gone(self, listener: Callable[[str], None]) -> Callable[[], None]:
+        """Call ``listener(gateway)`` (zenoh's thread) when a gateway's token goes."""
+        return self.on_gateways(lambda gateway, alive: None if alive else listener(gateway))
+
     def _on_alive(self, sample: zenoh.Sample) -> None:
         gateway = self.keys.gateway_of(str(sample.key_expr))
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.gateways_up.add(gateway)
-            return
-        self.gateways_up.discard(gateway)
+        alive = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
-            listeners = list(self._gone_listeners)
+            if alive:
+                self.gateways_up.add(gateway)
+            else:
+                self.gateways_up.discard(gateway)
+            listeners = list(self._listeners)
         for listener in listeners:
-            listener(gateway)
+            listener(gateway, alive)
 
 
 def _quietly(undeclare: Callable[[], None]) -> None:

@@ -113,6 +113,12 @@ class Client:
         found = wait(self._shared.find(name, "bus", waited), waited, f"finding bus {name}")
         return Bus(self._shared, found)
 
+    def on_gateways(self, callback: Callable[[str, bool], None]) -> Callable[[], None]:
+        """``callback(gateway, alive)`` as each gateway comes (``True``: first for each one up
+        now) and goes (``False``: its liveliness token went, as when its process ended), on
+        zenoh's thread (it must not block); returns what stops it."""
+        return self._shared.core.on_gateways(callback)
+
     def estop(self, gateway: str | None = None) -> None:
         """Stop every device of ``gateway``, or of every gateway (``None``); never refused.
         Devices stay e-stopped until each is enabled again (``Device.enable``)."""

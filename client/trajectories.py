@@ -19,7 +19,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from busgate.client.base import Shared
-from busgate.client.core import then
+from busgate.client.core import UNPARSED, then
 from busgate.codecs.errors import CommandError
 
 _ids = itertools.count(1)
@@ -97,7 +97,7 @@ class Watch:
     def _on_message(self, key: str, payload: bytes) -> None:
         try:
             message = json.loads(payload)
-        except ValueError:
+        except UNPARSED:
             return
         if not isinstance(message, dict):
             return
