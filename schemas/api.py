@@ -236,6 +236,10 @@ class BusStatistics(Published):
 
     ts: float = Field(description="Wall-clock time of the snapshot, Unix seconds.")
     bus: Name
+    up: bool = Field(
+        description="The port or interface is the gateway's: false while it is lost and "
+        "being opened again."
+    )
     frames_out: int
     frames_in: int
     bytes_out: int

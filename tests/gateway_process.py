@@ -6,6 +6,7 @@ its log read line by line on a thread so that a test waits for the line it expec
 from __future__ import annotations
 
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -82,16 +83,20 @@ class GatewayProcess:
 
 
 class DemoProcess:
-    """``busgate demo --listen ENDPOINT`` as a child, returned once it serves; ``hints`` holds
-    what it printed."""
+    """``busgate demo --listen ENDPOINT`` as a child (its dashboard on a free port, unless
+    ``options`` say otherwise), returned once it serves; ``hints`` holds what it printed and
+    ``dashboard`` the URL it printed (``None`` without one)."""
 
-    def __init__(self, endpoint: str) -> None:
+    def __init__(self, endpoint: str, *options: str) -> None:
         self.endpoint = endpoint
-        self.process = subprocess.Popen([*BUSGATE, "demo", "--listen", endpoint],
+        options = options or ("--dashboard-listen", "127.0.0.1:0")
+        self.process = subprocess.Popen([*BUSGATE, "demo", "--listen", endpoint, *options],
                                         stdout=subprocess.PIPE, text=True)
         self._lines: queue.Queue[str] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
         self.hints = self._wait_for_hints()
+        shown = re.search(r"in a browser: (\S+)", self.hints)
+        self.dashboard = shown.group(1) if shown else None
 
     def _read(self) -> None:
         for line in self.process.stdout:

@@ -302,7 +302,8 @@ class ZenohBridge:
     def publish_stats(self) -> None:
         for bus, runner in self.runners.items():
             stats = asdict(runner.statistics())
-            self._put(f"{self.base}/bus/{bus}/stats", {"ts": time.time(), "bus": bus, **stats})
+            body = {"ts": time.time(), "bus": bus, "up": runner.owner.is_open, **stats}
+            self._put(f"{self.base}/bus/{bus}/stats", body)
 
     def _put(self, key: str, value: dict[str, Any]) -> None:
         publisher = self._publishers.get(key)

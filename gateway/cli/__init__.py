@@ -34,7 +34,15 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "busgate.gateway.cli.check_config",
         "validate a config and print each bus's budget",
     ),
+    "dashboard": (
+        "busgate.gateway.cli.dashboard",
+        "serve a live web page of every gateway: devices, plots, events, e-stop",
+    ),
     "demo": ("busgate.gateway.cli.demo", "run the gateway on simulated devices of every kind"),
+    "router": (
+        "busgate.gateway.cli.router",
+        "run a zenoh router for many gateways (where zenohd is not installed)",
+    ),
     "schema": (
         "busgate.gateway.cli.schema",
         "write the JSON Schemas of commands, replies, telemetry, events and config",

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+from typing import Any
 
 import busgate.client as bc
 from busgate.codecs.errors import CommandError
@@ -61,16 +62,21 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
 
 def open_client(args: argparse.Namespace, tool: str) -> bc.Client:
     """A ``busgate.client`` for a command-line tool (``ConnectError``: one line, exit 2)."""
-    return bc.connect(
-        args.connect or [DEFAULT_ENDPOINT],
-        client_id=f"busgate-{tool}-{os.getpid()}",
-        prefix=args.prefix,
-        mode=args.mode,
-        config_file=args.zenoh_config,
-        username=args.user,
-        password=_password(args),
-        ca=args.ca,
-    )
+    return bc.connect(**client_options(args, tool))
+
+
+def client_options(args: argparse.Namespace, tool: str) -> dict[str, Any]:
+    """What ``bc.connect`` and ``bc.aio.connect`` take, from the options above."""
+    return {
+        "endpoints": args.connect or [DEFAULT_ENDPOINT],
+        "client_id": f"busgate-{tool}-{os.getpid()}",
+        "prefix": args.prefix,
+        "mode": args.mode,
+        "config_file": args.zenoh_config,
+        "username": args.user,
+        "password": _password(args),
+        "ca": args.ca,
+    }
 
 
 def _password(args: argparse.Namespace) -> str | None:

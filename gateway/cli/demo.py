@@ -11,8 +11,11 @@ Rules of this file:
    contend with the bus threads for the GIL).
 3. Simulators start before the gateway and stop after it, so the frames the gateway sends on
    its way out (each device's safe state) still reach a device.
-4. The hints are printed only once the gateway serves, and they are commands that work as
-   printed: ``--connect`` appears when the endpoint is not the client tools' default.
+4. The hints are printed only once the gateway and its dashboard serve, and they are
+   commands that work as printed: ``--connect`` appears when the endpoint is not the client
+   tools' default.
+5. The dashboard is the one ``busgate dashboard`` serves, on the same loop as the gateway,
+   reaching it through zenoh like any client; it stops when the gateway does.
 """
 
 from __future__ import annotations
@@ -21,18 +24,24 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import os
 import shlex
 import shutil
 import sys
 import threading
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from busgate.client import aio
+from busgate.codecs.errors import CommandError
+from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
-from busgate.gateway.service.daemon import serve
+from busgate.gateway.service.daemon import serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices
+from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.config import Config, parse_config
 from busgate.schemas.families import PROTOCOLS
 
@@ -77,6 +86,28 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})",
     )
     demo.add_argument(
+        "--connect",
+        default=None,
+        metavar="ENDPOINT",
+        help="join a zenoh router here (as a client) instead of listening",
+    )
+    demo.add_argument(
+        "--name", default=GATEWAY_NAME, help=f"the gateway's name (default {GATEWAY_NAME})"
+    )
+    demo.add_argument(
+        "--dashboard-listen",
+        default=DEFAULT_LISTEN,
+        metavar="HOST:PORT",
+        help=f"serve the dashboard here (default {DEFAULT_LISTEN}; port 0: any free one)",
+    )
+    demo.add_argument("--no-dashboard", action="store_true", help="serve no dashboard")
+    demo.add_argument(
+        "--record",
+        default=None,
+        metavar="DIR",
+        help="write each simulator's wire record to DIR/<bus>.jsonl (JSON lines)",
+    )
+    demo.add_argument(
         "--metrics-listen",
         default=None,
         metavar="HOST:PORT",
@@ -86,18 +117,40 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    dashboard = None if args.no_dashboard else Listen.parse(args.dashboard_listen)
     logging.basicConfig(level="INFO", format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as simulators:
-        links = {bus.name: _start_simulator(bus, simulators) for bus in DEMO_BUSES}
-        config = demo_config(links, listen=args.listen, metrics_listen=args.metrics_listen)
-        asyncio.run(_serve_announcing(config, _hints(config, links)))
+        records = None if args.record is None else _record_dir(args.record)
+        links = {bus.name: _start_simulator(bus, simulators, records) for bus in DEMO_BUSES}
+        config = demo_config(
+            links,
+            listen=args.listen,
+            connect=args.connect,
+            name=args.name,
+            metrics_listen=args.metrics_listen,
+        )
+        asyncio.run(_serve_announcing(config, links, dashboard))
     return 0
 
 
-def _start_simulator(bus: DemoBus, stack: contextlib.ExitStack) -> dict[str, Any]:
-    """Start ``bus``'s simulator (stopped when ``stack`` closes); return the config keys that
-    lead the gateway to it."""
+def _record_dir(path: str) -> Path:
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CommandError(f"cannot write wire records in {path}: {exc.strerror}") from exc
+    return folder
+
+
+def _start_simulator(
+    bus: DemoBus, stack: contextlib.ExitStack, records: Path | None
+) -> dict[str, Any]:
+    """Start ``bus``'s simulator (stopped when ``stack`` closes), recording its wire in
+    ``records``/<bus>.jsonl when given; return the config keys that lead the gateway to it."""
     protocol = PROTOCOLS[bus.protocol]
+    recorder = None
+    if records is not None:
+        recorder = Recorder(stack.enter_context((records / f"{bus.name}.jsonl").open("w")))
     options = {"heartbeat_ms": bus.heartbeat_ms} if protocol.can else {}
     devices = make_devices(bus.protocol, [ident for _, ident in bus.devices], **options)
     if protocol.can:
@@ -112,23 +165,33 @@ def _start_simulator(bus: DemoBus, stack: contextlib.ExitStack) -> dict[str, Any
                 devices,
                 bitrate=bus.rate,
                 bus=can.Bus(interface="virtual", channel=channel),
+                recorder=recorder,
             )
         )
         return {"transport": "can", "interface": "virtual", "channel": channel, "bitrate": bus.rate}
     from busgate.gateway.sim.serial_server import SerialSimulator
 
-    simulator = stack.enter_context(SerialSimulator(protocol.codec, devices, baudrate=bus.rate))
+    simulator = stack.enter_context(
+        SerialSimulator(protocol.codec, devices, baudrate=bus.rate, recorder=recorder)
+    )
     return {"transport": "serial", "port": simulator.port, "baudrate": bus.rate}
 
 
 def demo_config(
-    links: dict[str, dict[str, Any]], *, listen: str, metrics_listen: str | None = None
+    links: dict[str, dict[str, Any]],
+    *,
+    listen: str,
+    connect: str | None = None,
+    name: str = GATEWAY_NAME,
+    metrics_listen: str | None = None,
 ) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
-    Raises ``ConfigError`` (naming the key) for a bad endpoint or metrics address."""
+    With ``connect``, it joins a router there as a zenoh client instead of listening. Raises
+    ``ConfigError`` (naming the key) for a bad name, endpoint or metrics address."""
+    zenoh = {"mode": "client", "connect": [connect]} if connect else {"listen": [listen]}
     document: dict[str, Any] = {
-        "gateway": {"name": GATEWAY_NAME},
-        "zenoh": {"mode": "peer", "listen": [listen]},
+        "gateway": {"name": name},
+        "zenoh": {"mode": "peer", **zenoh},
         "buses": [
             {
                 "name": bus.name,
@@ -151,11 +214,12 @@ def demo_config(
     return parse_config(document)
 
 
-def _hints(config: Config, links: dict[str, dict[str, Any]]) -> str:
-    """What the demo serves, and two commands to try from another terminal."""
-    [listen] = config.zenoh.listen
-    connect = "" if listen == DEFAULT_ENDPOINT else f" --connect {shlex.quote(listen)}"
-    lines = [f"busgate demo: gateway {config.gateway.name!r} is serving on {listen}"]
+def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | None) -> str:
+    """What the demo serves, two commands to try from another terminal, and the dashboard."""
+    endpoint = _endpoint(config)
+    connect = "" if endpoint == DEFAULT_ENDPOINT else f" --connect {shlex.quote(endpoint)}"
+    how = "joined the router at" if config.zenoh.connect else "is serving on"
+    lines = [f"busgate demo: gateway {config.gateway.name!r} {how} {endpoint}"]
     for bus in config.buses:
         link = links[bus.name]
         where = (
@@ -170,9 +234,16 @@ def _hints(config: Config, links: dict[str, dict[str, Any]]) -> str:
         "From another terminal, move an actuator and watch every device:",
         f"  {program} send {first} {shlex.quote(TRY_COMMAND)}{connect}",
         f"  {program} watch {config.gateway.name}{connect}",
-        "Ctrl-C stops the demo.",
     ]
+    if dashboard is not None:
+        lines.append(f"Or see them in a browser: {dashboard}")
+    lines.append("Ctrl-C stops the demo.")
     return "\n".join(lines)
+
+
+def _endpoint(config: Config) -> str:
+    """Where clients reach the demo: the router it joined, or where it listens."""
+    return (config.zenoh.connect or config.zenoh.listen)[0]
 
 
 def _program() -> str:
@@ -186,12 +257,41 @@ def _program() -> str:
     return shlex.quote(sys.argv[0])
 
 
-async def _serve_announcing(config: Config, announcement: str) -> None:
-    """``serve`` until SIGTERM/SIGINT, printing ``announcement`` once it serves."""
+async def _serve_announcing(
+    config: Config, links: dict[str, dict[str, Any]], dashboard: Listen | None
+) -> None:
+    """``serve`` (and the dashboard) until SIGTERM/SIGINT, printing the hints once both serve.
+    A dashboard that cannot listen stops the gateway too, and its error is raised."""
+    stop = stop_on_signals(asyncio.get_running_loop())
     ready = threading.Event()  # set by ``serve`` on this loop's thread
-    serving = asyncio.create_task(serve(config, ready=ready))
+    serving = asyncio.create_task(serve(config, ready=ready, stop=stop))
     while not (ready.is_set() or serving.done()):
         await asyncio.wait({serving}, timeout=READY_POLL_S)
-    if ready.is_set():
-        print(announcement, flush=True)
+    if not ready.is_set():
+        await serving  # its error
+        return
+    url: str | None = None
+    showing: asyncio.Task | None = None
+    if dashboard is not None:
+        shown: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        showing = asyncio.create_task(_dashboard(config, dashboard, stop, shown.set_result))
+        await asyncio.wait({shown, showing}, return_when=asyncio.FIRST_COMPLETED)
+        if not shown.done():
+            stop.set()
+            await serving
+            await showing  # its error
+        url = shown.result()
+    print(_hints(config, links, url), flush=True)
     await serving
+    if showing is not None:
+        await showing
+
+
+async def _dashboard(
+    config: Config, listen: Listen, stop: asyncio.Event, on_ready: Callable[[str], None]
+) -> None:
+    client = await aio.connect(_endpoint(config), client_id=f"busgate-demo-{os.getpid()}")
+    try:
+        await serve_dashboard(client, listen, stop, on_ready=on_ready)
+    finally:
+        await client.close()

@@ -81,7 +81,7 @@ async def serve(
     expected_up = _check_ports(config)
     tune_interpreter()
     loop = asyncio.get_running_loop()
-    stop = stop or _stop_on_signals(loop)
+    stop = stop or stop_on_signals(loop)
     notifier = Notifier()
     events: deque[DeviceEvent] = deque(maxlen=EVENT_BACKLOG)
     states: deque[tuple[str, dict]] = deque(maxlen=STATE_BACKLOG)
@@ -216,7 +216,8 @@ def _stop_buses(runners: dict[str, BusRunner]) -> None:
         thread.join()
 
 
-def _stop_on_signals(loop: asyncio.AbstractEventLoop) -> asyncio.Event:
+def stop_on_signals(loop: asyncio.AbstractEventLoop) -> asyncio.Event:
+    """An event set on SIGTERM or SIGINT."""
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(NotImplementedError, RuntimeError):

@@ -1,0 +1,90 @@
+"""The dashboard's one view of the zenoh network: a ``busgate.client.aio`` client's
+subscriptions (every gateway's device states, bus statistics and events, and the gateways'
+liveliness) poured into a ``Fleet``, and each gateway's ``info`` asked for as it comes.
+
+However many browsers watch, the gateways see one client: this one (issue 16: many browsers
+cost the gateways nothing more).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from busgate.client import aio
+from busgate.client.errors import GatewayError
+from busgate.client.keys import Keys
+from busgate.codecs.errors import BusgateError
+from busgate.dashboard.fleet import Fleet
+
+log = logging.getLogger(__name__)
+
+INFO_WAIT_S = 2.0
+#: How often a gateway whose ``info`` did not answer is asked again, while it is up.
+INFO_TRIES = 5
+
+
+class Feed:
+    """Keeps ``fleet`` up to date from ``client`` until ``close``."""
+
+    def __init__(self, client: aio.Client, fleet: Fleet, prefix: str) -> None:
+        self._client, self._fleet, self._keys = client, fleet, Keys(prefix)
+        self._loop = asyncio.get_running_loop()
+        self._asking: set[asyncio.Task] = set()
+        self._ends: list[Callable[[], None]] = [
+            client.subscribe(self._keys.device("*", "*", "state"), self._on_state),
+            client.subscribe(self._keys.bus("*", "*", "stats"), self._on_stats),
+            client.subscribe(self._keys.events("*"), self._on_event),
+            client.on_gateways(self._on_gateway),
+        ]
+
+    def close(self) -> None:
+        for end in self._ends:
+            end()
+        for task in self._asking:
+            task.cancel()
+
+    # -- zenoh's threads -------------------------------------------------------------------------
+
+    def _chunks(self, key: str) -> list[str]:
+        return key[len(self._keys.prefix) + 1 :].split("/")
+
+    def _on_state(self, key: str, body: Any) -> None:
+        gateway, _, device, _ = self._chunks(key)
+        self._fleet.state(gateway, device, body)
+
+    def _on_stats(self, key: str, body: Any) -> None:
+        gateway, _, bus, _ = self._chunks(key)
+        self._fleet.stats(gateway, bus, body)
+
+    def _on_event(self, key: str, body: Any) -> None:
+        self._fleet.event(self._chunks(key)[0], body)
+
+    def _on_gateway(self, gateway: str, alive: bool) -> None:
+        if not alive:
+            self._fleet.gateway_gone(gateway)
+        elif self._fleet.gateway_up(gateway):
+            self._loop.call_soon_threadsafe(self._ask_info, gateway)
+
+    # -- the loop --------------------------------------------------------------------------------
+
+    def _ask_info(self, gateway: str) -> None:
+        task = self._loop.create_task(self._info(gateway))
+        self._asking.add(task)
+        task.add_done_callback(self._asking.discard)
+
+    async def _info(self, gateway: str) -> None:
+        for _ in range(INFO_TRIES):
+            with contextlib.suppress(BusgateError, GatewayError):
+                answers = await self._client.query(self._keys.info(gateway), timeout=INFO_WAIT_S)
+                for answer in answers:
+                    if answer.ok:
+                        self._fleet.info(gateway, answer.body)
+                        return
+            if not self._fleet.has(gateway):
+                return
+            await asyncio.sleep(INFO_WAIT_S / 2)
+        log.warning("gateway %s is up but its info did not answer", gateway)

@@ -1,0 +1,297 @@
+"""What the dashboard knows of the fleet: every gateway up, its buses and devices, each
+device's latest state and the last minute of what its plots show, the events; and, since the
+browsers were last told, what changed (``drain``).
+
+Rules of this file:
+
+1. Fed from zenoh's threads, read from the server's loop: every method takes the lock, does
+   no I/O and returns at once.
+2. Nothing here trusts a sample. A gateway's data is taken only while its liveliness token is
+   up (a sample that arrives after it went does not bring it back), a device's state only for
+   a device the gateway's ``info`` lists, a plotted value only when it is a finite number; a
+   payload that is not the JSON object it should be is dropped. What is kept is bounded: at
+   most ``MAX_GATEWAYS`` gateways and ``MAX_DEVICES`` devices each, ``HISTORY_S`` of samples
+   per device, ``EVENTS_KEPT`` events.
+3. A plot sample is taken at most every ``SAMPLE_EVERY_S`` per device (the latest state
+   wins): the browser draws a minute of them for every device, at 50 devices too.
+4. What the browsers get is JSON made of what came in, under the dashboard's own names:
+   ``snapshot()`` for a browser that just connected, ``drain()`` for the others since.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+HISTORY_S = 60.0
+SAMPLE_EVERY_S = 0.05
+EVENTS_KEPT = 500
+MAX_GATEWAYS = 256
+MAX_DEVICES = 512
+#: The plotted fields of a sample, after its time: position, target, current.
+PLOTTED = ("position", "target", "current_ma")
+#: A device's target where its kind has no ``target`` (a ZLAC706 in speed mode plots it too).
+TARGET_FIELDS = ("target", "target_speed_rpm")
+
+
+def number(value: Any) -> float | None:
+    """``value`` when it is a finite number (not a bool), else ``None``."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def clean(value: Any) -> Any:
+    """``value`` with every non-finite float made ``None``: JSON has no NaN, and a browser's
+    ``JSON.parse`` refuses the whole message that carries one."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: clean(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [clean(item) for item in value]
+    return value
+
+
+def sample_of(state: dict[str, Any]) -> list[float | None] | None:
+    """``[ts, position, target, current_ma]`` of a state; ``None`` without a time."""
+    ts = number(state.get("ts"))
+    if ts is None:
+        return None
+    target = next((number(state.get(f)) for f in TARGET_FIELDS if state.get(f) is not None), None)
+    return [ts, number(state.get("position")), target, number(state.get("current_ma"))]
+
+
+class Device:
+    """One device: its kind, bus, latest state and plot samples."""
+
+    def __init__(self, kind: str, bus: str) -> None:
+        self.kind, self.bus = kind, bus
+        self.state: dict[str, Any] | None = None
+        self.samples: deque[list[float | None]] = deque()
+        self.pending: list[list[float | None]] = []  # samples the browsers have not had
+        self.last_sample_at = -math.inf
+
+    def take(self, state: dict[str, Any]) -> None:
+        self.state = state
+        sample = sample_of(state)
+        if sample is None:
+            return
+        ts = sample[0]
+        assert ts is not None
+        if ts - self.last_sample_at < SAMPLE_EVERY_S and self.samples:
+            self.samples[-1] = sample  # rule 3: the latest of the interval
+            if self.pending:
+                self.pending[-1] = sample
+            else:
+                self.pending.append(sample)
+        else:
+            self.samples.append(sample)
+            self.pending.append(sample)
+            self.last_sample_at = ts
+        while self.samples and self.samples[0][0] < ts - HISTORY_S:  # type: ignore[operator]
+            self.samples.popleft()
+
+
+class Gateway:
+    """One gateway up: its version, buses (with their last statistics) and devices."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.version: str | None = None
+        self.buses: dict[str, dict[str, Any]] = {}
+        self.devices: dict[str, Device] = {}
+
+    def view(self) -> dict[str, Any]:
+        """The gateway as the page lists it (without device states)."""
+        return {
+            "name": self.name,
+            "version": self.version,
+            "buses": [
+                {
+                    "name": name,
+                    **bus,
+                    "devices": [d for d, v in self.devices.items() if v.bus == name],
+                }
+                for name, bus in self.buses.items()
+            ],
+        }
+
+
+class Fleet:
+    """Every gateway up, and what changed since the last ``drain``."""
+
+    def __init__(self, clock: Callable[[], float] = time.time) -> None:
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._gateways: dict[str, Gateway] = {}
+        self._events: deque[dict[str, Any]] = deque(maxlen=EVENTS_KEPT)
+        self._changed_gateways: set[str] = set()
+        self._gone: set[str] = set()
+        self._changed_states: set[tuple[str, str]] = set()
+        self._new_events: list[dict[str, Any]] = []
+
+    # -- what comes in (zenoh's threads) ---------------------------------------------------------
+
+    def gateway_up(self, name: str) -> bool:
+        """A gateway's token came: ``True`` when it is new here (its ``info`` is wanted)."""
+        with self._lock:
+            if name in self._gateways or len(self._gateways) >= MAX_GATEWAYS:
+                return False
+            self._gateways[name] = Gateway(name)
+            self._gone.discard(name)
+            self._changed_gateways.add(name)
+            return True
+
+    def has(self, name: str) -> bool:
+        with self._lock:
+            return name in self._gateways
+
+    def gateway_gone(self, name: str) -> None:
+        with self._lock:
+            if self._gateways.pop(name, None) is None:
+                return
+            self._changed_gateways.discard(name)
+            self._changed_states = {k for k in self._changed_states if k[0] != name}
+            self._gone.add(name)
+
+    def info(self, name: str, info: Any) -> None:
+        """The gateway's ``info`` answer: its version, buses and devices (with their last
+        states); a malformed one is dropped."""
+        buses = info.get("buses") if isinstance(info, dict) else None
+        if not isinstance(buses, list):
+            return
+        buses = clean(buses)
+        with self._lock:
+            gateway = self._gateways.get(name)
+            if gateway is None:
+                return
+            version = info.get("version")
+            gateway.version = version if isinstance(version, str) else None
+            for bus in buses:
+                self._take_bus(gateway, bus)
+            self._changed_gateways.add(name)
+
+    def _take_bus(self, gateway: Gateway, bus: Any) -> None:
+        if not isinstance(bus, dict) or not isinstance(bus.get("name"), str):
+            return
+        gateway.buses.setdefault(bus["name"], {"protocol": str(bus.get("protocol")), "stats": None})
+        for device in bus.get("devices") or ():
+            if not isinstance(device, dict) or not isinstance(device.get("name"), str):
+                continue
+            if device["name"] not in gateway.devices and len(gateway.devices) < MAX_DEVICES:
+                gateway.devices[device["name"]] = Device(str(device.get("kind")), bus["name"])
+            if isinstance(device.get("state"), dict):
+                self._take_state(gateway, device["name"], device["state"])
+
+    def state(self, gateway: str, device: str, state: Any) -> None:
+        if not isinstance(state, dict):
+            return
+        state = clean(state)
+        with self._lock:
+            found = self._gateways.get(gateway)
+            if found is not None:
+                self._take_state(found, device, state)
+
+    def _take_state(self, gateway: Gateway, name: str, state: dict[str, Any]) -> None:
+        device = gateway.devices.get(name)
+        if device is not None:
+            device.take(state)
+            self._changed_states.add((gateway.name, name))
+
+    def stats(self, gateway: str, bus: str, stats: Any) -> None:
+        """A bus's statistics, with its frames per second since the previous ones."""
+        if not isinstance(stats, dict):
+            return
+        stats = clean(stats)
+        with self._lock:
+            found = self._gateways.get(gateway)
+            if found is None or bus not in found.buses:
+                return
+            kept = found.buses[bus]
+            kept["frames_per_s"] = _rate(kept.get("stats"), stats)
+            kept["stats"] = stats
+            self._changed_gateways.add(gateway)
+
+    def event(self, gateway: str, event: Any) -> None:
+        if not isinstance(event, dict):
+            return
+        event = clean(event)
+        with self._lock:
+            if gateway not in self._gateways:
+                return
+            entry = {"gateway": gateway, "event": event}
+            self._events.append(entry)
+            self._new_events.append(entry)
+            del self._new_events[:-EVENTS_KEPT]
+
+    # -- what goes out (the server's loop) -------------------------------------------------------
+
+    def snapshot(self) -> dict[str, Any]:
+        """Everything, for a browser that just connected."""
+        with self._lock:
+            return {
+                "now": self._clock(),
+                "gateways": [g.view() for g in self._gateways.values()],
+                "devices": [
+                    _device_view(g.name, name, device, list(device.samples))
+                    for g in self._gateways.values()
+                    for name, device in g.devices.items()
+                ],
+                "events": list(self._events),
+            }
+
+    def drain(self) -> dict[str, Any] | None:
+        """What changed since the last drain (``None``: nothing did)."""
+        with self._lock:
+            if not (
+                self._changed_gateways or self._gone or self._changed_states or self._new_events
+            ):
+                return None
+            devices = []
+            for gateway_name, name in sorted(self._changed_states):
+                device = self._gateways[gateway_name].devices[name]
+                devices.append(_device_view(gateway_name, name, device, device.pending))
+                device.pending = []
+            delta = {
+                "now": self._clock(),
+                "gateways": [self._gateways[g].view() for g in sorted(self._changed_gateways)],
+                "gone": sorted(self._gone),
+                "devices": devices,
+                "events": self._new_events,
+            }
+            self._changed_gateways, self._gone, self._changed_states = set(), set(), set()
+            self._new_events = []
+            return delta
+
+
+def _device_view(
+    gateway: str, name: str, device: Device, samples: list[list[float | None]]
+) -> dict[str, Any]:
+    return {
+        "gateway": gateway,
+        "device": name,
+        "kind": device.kind,
+        "bus": device.bus,
+        "state": device.state,
+        "samples": samples,
+    }
+
+
+def _rate(before: Any, after: dict[str, Any]) -> float | None:
+    """Frames (out and in) per second between two statistics of one bus."""
+    if not isinstance(before, dict):
+        return None
+    try:
+        frames = (after["frames_out"] + after["frames_in"]) - (
+            before["frames_out"] + before["frames_in"]
+        )
+        elapsed = after["ts"] - before["ts"]
+        rate = frames / elapsed if elapsed > 0 else None
+    except (KeyError, TypeError, OverflowError):
+        return None
+    return number(rate)

@@ -1,0 +1,268 @@
+// busgate fleet dashboard: what the server pushes (/events: a snapshot, then what changed,
+// as Server-Sent Events) drawn as a card per gateway and per device, with a minute of
+// position/target and current in uPlot charts, redrawn RENDER_EVERY_MS.
+//
+// Rules of this file:
+// 1. Text from the network goes into the page as text (textContent, never innerHTML).
+// 2. Times are the gateways' (wall clock, seconds); "now" is the server's, carried by each
+//    message, so an off browser clock moves nothing.
+// 3. The only requests are the e-stops and the enables, POSTed as JSON to /api/...
+"use strict";
+
+const HISTORY_S = 60;
+const RENDER_EVERY_MS = 100;
+const EVENTS_SHOWN = 300;
+const STATS_STALE_S = 3;
+const VALUES = [  // [label, how to read it off a state, unit]
+  ["position", (s) => s.position, ""],
+  ["target", (s) => s.target ?? s.target_speed_rpm, ""],
+  ["speed", (s) => s.speed_rpm ?? s.speed_raw, ""],
+  ["current", (s) => s.current_ma, "mA"],
+  ["temperature", (s) => s.temperature_c, "°C"],
+  ["force", (s) => s.force_g, "g"],
+  ["faults", (s) => (s.faults && s.faults.length ? s.faults.join(", ") : "none"), ""],
+  ["age", null, "s"],
+];
+
+const gateways = new Map();  // name → {element, buses: tbody, devices: container}
+const devices = new Map();   // "gw/dev" → {element, fields, state, t, position, target, current, charts}
+let clockOffset = 0;         // server's now − Date.now()/1000
+let renders = 0;
+
+const $ = (id) => document.getElementById(id);
+const now = () => Date.now() / 1000 + clockOffset;
+
+function fromTemplate(id) {
+  return $(id).content.firstElementChild.cloneNode(true);
+}
+
+function shown(value, unit) {
+  if (value === null || value === undefined) return "—";
+  if (typeof value === "number") {
+    const text = Number.isInteger(value) ? String(value) : value.toFixed(2);
+    return unit ? `${text} ${unit}` : text;
+  }
+  return String(value);
+}
+
+// -- gateways ------------------------------------------------------------------------------
+
+function gatewayCard(name) {
+  let gateway = gateways.get(name);
+  if (gateway) return gateway;
+  const element = fromTemplate("gateway-template");
+  element.dataset.gateway = name;
+  element.querySelector(".gateway-name").textContent = name;
+  element.querySelector(".estop-gateway").addEventListener("click", () => estop(name));
+  $("gateways").append(element);
+  gateway = {element, buses: element.querySelector("tbody"), devices: element.querySelector(".devices")};
+  gateways.set(name, gateway);
+  return gateway;
+}
+
+function showGateway(view) {
+  const gateway = gatewayCard(view.name);
+  gateway.element.querySelector(".gateway-version").textContent = view.version ? `busgate ${view.version}` : "";
+  gateway.buses.replaceChildren(...view.buses.map(busRow));
+  for (const bus of view.buses) for (const name of bus.devices) deviceCard(view.name, name);
+}
+
+function busRow(bus) {
+  const stats = bus.stats || {};
+  const up = bus.stats !== null && stats.up !== false && now() - (stats.ts || 0) < STATS_STALE_S;
+  const row = document.createElement("tr");
+  row.dataset.bus = bus.name;
+  const cells = [
+    bus.name, bus.protocol, up ? "up" : "down",
+    stats.utilisation === undefined ? "—" : `${(100 * stats.utilisation).toFixed(1)} %`,
+    bus.frames_per_s === undefined || bus.frames_per_s === null ? "—" : bus.frames_per_s.toFixed(0),
+    shown(stats.timeouts), shown(stats.checksum_errors), shown(stats.reconnects),
+  ];
+  for (const [i, text] of cells.entries()) {
+    const cell = document.createElement("td");
+    cell.textContent = text;
+    if (i === 2) cell.className = up ? "up" : "down";
+    row.append(cell);
+  }
+  return row;
+}
+
+function forgetGateway(name) {
+  const gateway = gateways.get(name);
+  if (!gateway) return;
+  for (const key of [...devices.keys()]) {
+    if (key.startsWith(`${name}/`)) {
+      for (const chart of devices.get(key).charts) chart.destroy();
+      devices.delete(key);
+    }
+  }
+  gateway.element.remove();
+  gateways.delete(name);
+}
+
+// -- devices -------------------------------------------------------------------------------
+
+function deviceCard(gatewayName, name) {
+  const key = `${gatewayName}/${name}`;
+  let device = devices.get(key);
+  if (device) return device;
+  const element = fromTemplate("device-template");
+  element.dataset.device = key;
+  element.querySelector(".device-name").textContent = name;
+  element.querySelector(".enable").addEventListener("click", () => enable(key));
+  const list = element.querySelector(".values");
+  const fields = {};
+  for (const [label] of VALUES) {
+    const term = document.createElement("dt");
+    term.textContent = label;
+    const value = document.createElement("dd");
+    value.dataset.field = label;
+    value.textContent = "—";
+    list.append(term, value);
+    fields[label] = value;
+  }
+  gatewayCard(gatewayName).devices.append(element);
+  device = {element, fields, state: null, t: [], position: [], target: [], current: [], charts: []};
+  device.charts = [
+    chart(element.querySelector(".position-chart"), [["position", "#2563eb"], ["target", "#f59e0b", [4, 3]]]),
+    chart(element.querySelector(".current-chart"), [["current mA", "#dc2626"]]),
+  ];
+  devices.set(key, device);
+  return device;
+}
+
+function chart(where, lines) {
+  const series = [{}, ...lines.map(([label, stroke, dash]) => ({label, stroke, dash, width: 1.5, spanGaps: true}))];
+  const empty = series.map(() => []);
+  return new uPlot({
+    width: Math.max(where.clientWidth, 200), height: 110, series, legend: {show: true, live: false},
+    cursor: {show: false}, scales: {x: {time: true}}, axes: [{size: 24}, {size: 48}],
+  }, empty, where);
+}
+
+function showDevice(view) {
+  const device = deviceCard(view.gateway, view.device);
+  device.element.querySelector(".kind").textContent = view.kind;
+  if (view.state) device.state = view.state;
+  for (const [t, position, target, current] of view.samples) {
+    if (device.t.length && t <= device.t[device.t.length - 1]) continue;
+    device.t.push(t); device.position.push(position); device.target.push(target); device.current.push(current);
+  }
+  const state = device.state;
+  if (!state) return;
+  for (const [label, read, unit] of VALUES) if (read) device.fields[label].textContent = shown(read(state), unit);
+  device.fields.faults.classList.toggle("faulted", Boolean(state.faults && state.faults.length));
+  const link = !state.online ? "offline" : state.stale ? "stale" : "online";
+  const power = state.estopped ? "e-stopped" : state.enabled === true ? "enabled" : state.enabled === false ? "off" : "unknown";
+  setBadge(device.element.querySelector(".link-badge"), link);
+  setBadge(device.element.querySelector(".power-badge"), power);
+}
+
+function setBadge(badge, value) {
+  badge.textContent = value;
+  badge.dataset.value = value;
+}
+
+// -- the charts, and the ages, every RENDER_EVERY_MS ----------------------------------------
+
+function render() {
+  const end = now();
+  const start = end - HISTORY_S;
+  for (const device of devices.values()) {
+    let drop = 0;
+    while (drop < device.t.length && device.t[drop] < start) drop++;
+    if (drop) for (const series of [device.t, device.position, device.target, device.current]) series.splice(0, drop);
+    const last = device.t.length - 1;
+    // A state is published when it changes: the last one holds until now.
+    const t = last < 0 ? [] : [...device.t, end];
+    const hold = (series) => (last < 0 ? [] : [...series, series[last]]);
+    device.charts[0].setData([t, hold(device.position), hold(device.target)], false);
+    device.charts[1].setData([t, hold(device.current)], false);
+    for (const chart of device.charts) chart.setScale("x", {min: start, max: end});
+    const state = device.state;
+    if (state && typeof state.ts === "number") {
+      const age = (state.last_reply_age_s ?? 0) + Math.max(0, end - state.ts);
+      device.fields.age.textContent = shown(age, "s");
+    }
+  }
+  renders++;
+}
+
+// -- events --------------------------------------------------------------------------------
+
+function showEvent({gateway, event}) {
+  const item = document.createElement("li");
+  item.className = String(event.type);
+  const {ts, device, type, ...rest} = event;
+  const when = typeof ts === "number" ? new Date(ts * 1000).toLocaleTimeString() : "?";
+  const where = document.createElement("span");
+  where.textContent = `${when} ${gateway}/${device} `;
+  const what = document.createElement("span");
+  what.className = "type";
+  what.textContent = String(type);
+  const details = document.createElement("span");
+  const pairs = Object.entries(rest).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`);
+  details.textContent = pairs.length ? ` ${pairs.join(" ")}` : "";
+  item.append(where, what, details);
+  const list = $("events");
+  list.prepend(item);
+  while (list.children.length > EVENTS_SHOWN) list.lastElementChild.remove();
+}
+
+// -- what the server pushes ----------------------------------------------------------------
+
+function apply(message, fresh) {
+  clockOffset = message.now - Date.now() / 1000;
+  if (fresh) {
+    for (const name of [...gateways.keys()]) forgetGateway(name);
+    $("events").replaceChildren();
+  }
+  for (const name of message.gone || []) forgetGateway(name);
+  for (const view of message.gateways) showGateway(view);
+  for (const view of message.devices) showDevice(view);
+  for (const entry of message.events) showEvent(entry);
+  $("empty").hidden = gateways.size > 0;
+  $("counts").textContent = `${gateways.size} gateways · ${devices.size} devices`;
+}
+
+function connect() {
+  const source = new EventSource("/events");
+  source.addEventListener("snapshot", (e) => { apply(JSON.parse(e.data), true); setLink("live"); });
+  source.addEventListener("delta", (e) => apply(JSON.parse(e.data), false));
+  source.addEventListener("error", () => setLink("connecting"));
+}
+
+function setLink(state) {
+  $("link").dataset.state = state;
+  $("link").textContent = state === "live" ? "live" : "reconnecting…";
+}
+
+// -- the two actions -----------------------------------------------------------------------
+
+async function post(path, body, what) {
+  try {
+    const response = await fetch(path, {method: "POST", headers: {"Content-Type": "application/json"},
+                                        body: JSON.stringify(body)});
+    const reply = await response.json();
+    notice(reply.ok ? `${what}: sent` : `${what}: ${reply.error.code}: ${reply.error.message}`);
+  } catch (error) {
+    notice(`${what}: ${error}`);
+  }
+}
+
+function notice(text) {
+  const line = $("notice");
+  line.textContent = text;
+  line.hidden = false;
+}
+
+const estop = (gateway) => post("/api/estop", {gateway}, gateway ? `e-stop ${gateway}` : "fleet e-stop");
+const enable = (device) => post("/api/enable", {device}, `enable ${device}`);
+
+$("estop-fleet").addEventListener("click", () => estop(null));
+window.busgateDashboard = {  // for the browser tests: what the charts hold
+  series: (key) => { const d = devices.get(key); return d && {t: d.t, position: d.position, target: d.target, current: d.current}; },
+  renders: () => renders,
+};
+connect();
+setInterval(render, RENDER_EVERY_MS);

@@ -1,0 +1,111 @@
+"""The dashboard in a real browser (``tests.browser``: Debian's Chromium under Playwright),
+served by ``busgate demo``: every device appears with its state, values and plots move while
+a client moves a device, events are logged, and the buttons e-stop and re-enable."""
+
+from __future__ import annotations
+
+import pytest
+
+import busgate.client as bc
+from tests.browser import browser_page, needs_chromium
+
+pytestmark = needs_chromium
+
+DEVICES = ["la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"]
+WAIT_MS = 15_000  # a hang guard: conditions are waited for, not timed
+
+
+@pytest.fixture(scope="module")
+def client(module_demo):
+    with bc.connect(module_demo.endpoint, client_id="browser-test") as c:
+        yield c
+
+
+@pytest.fixture
+def page(module_demo):
+    with browser_page(module_demo.dashboard) as page:
+        page.wait_for_selector("#link[data-state=live]", timeout=WAIT_MS)
+        yield page
+
+
+def device(page, name: str):
+    return page.locator(f'article[data-device="demo/{name}"]')
+
+
+def field(page, name: str, label: str) -> str:
+    return device(page, name).locator(f'dd[data-field="{label}"]').inner_text()
+
+
+def badges(page, name: str) -> tuple[str, str]:
+    card = device(page, name)
+    return (card.locator(".link-badge").get_attribute("data-value"),
+            card.locator(".power-badge").get_attribute("data-value"))
+
+
+def until(page, condition: str, *args) -> None:
+    page.wait_for_function(condition, arg=list(args), timeout=WAIT_MS)
+
+
+def test_every_bus_and_device_of_the_gateway_appears_online(page) -> None:
+    gateway = page.locator('section[data-gateway="demo"]')
+    assert gateway.locator(".gateway-name").inner_text() == "demo"
+    rows = gateway.locator("tbody tr")
+    until(page, "() => document.querySelectorAll('section[data-gateway=demo] td.up').length == 4")
+    assert sorted(rows.nth(i).get_attribute("data-bus") for i in range(4)) == [
+        "can0", "rs232", "uart0", "uart1"]
+    cards = page.locator("article[data-device]")
+    assert sorted(cards.nth(i).get_attribute("data-device") for i in range(cards.count())) == (
+        sorted(f"demo/{name}" for name in DEVICES))
+    for name in DEVICES:
+        assert badges(page, name)[0] == "online", name
+    assert badges(page, "la1")[1] == "enabled" and badges(page, "wheel")[1] == "off"
+    assert field(page, "la1", "temperature").endswith("°C")
+    assert field(page, "la1", "faults") == "none"
+    assert page.locator("#counts").inner_text() == "1 gateways · 7 devices"
+
+
+def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> None:
+    la1 = client.device("la1")
+    start = la1.state().position
+    goal = 1900 if start < 1000 else 100
+    renders = page.evaluate("() => window.busgateDashboard.renders()")
+    la1.move(goal)
+    until(page, "([goal]) => document.querySelector("
+          "'article[data-device=\"demo/la1\"] dd[data-field=target]').textContent == String(goal)",
+          goal)
+    until(page, "([goal]) => document.querySelector("
+          "'article[data-device=\"demo/la1\"] dd[data-field=position]').textContent == String(goal)",
+          goal)
+    series = page.evaluate("() => window.busgateDashboard.series('demo/la1')")
+    positions = [p for p in series["position"] if p is not None]
+    between = [p for p in positions if min(start, goal) < p < max(start, goal)]
+    assert between, "the plot holds the way there, not only the ends"
+    assert series["target"][-1] == goal and positions[-1] == goal
+    assert series["t"] == sorted(series["t"])
+    assert page.evaluate("() => window.busgateDashboard.renders()") > renders
+    la1.move(start)
+
+
+def test_a_claim_appears_in_the_event_log(page, client) -> None:
+    with client.device("la2").claim(ttl_s=2.0):
+        until(page, "() => [...document.querySelectorAll('#events li')].some("
+              "li => li.textContent.includes('demo/la2 claimed') "
+              "&& li.textContent.includes('client=browser-test'))")
+    until(page, "() => [...document.querySelectorAll('#events li')].some("
+          "li => li.textContent.includes('demo/la2 released'))")
+
+
+def test_the_gateway_estop_button_stops_every_device_and_enable_brings_each_back(
+        page, client) -> None:
+    page.locator('section[data-gateway="demo"] .estop-gateway').click()
+    until(page, "() => [...document.querySelectorAll('article[data-device] .power-badge')]"
+          ".every(b => b.dataset.value === 'e-stopped')")
+    assert "e-stop demo: sent" in page.locator("#notice").inner_text()
+    until(page, "() => [...document.querySelectorAll('#events li.estop')].length > 0")
+    for name in DEVICES:
+        device(page, name).locator("button.enable").click()
+        until(page, "([key]) => document.querySelector(`article[data-device=\"${key}\"] "
+              ".power-badge`).dataset.value !== 'e-stopped'", f"demo/{name}")
+    assert badges(page, "la1")[1] == "enabled" and badges(page, "servo1")[1] == "enabled"
+    client.device("wheel").send({"op": "disable"})  # as the demo starts them
+    client.device("drive").send({"op": "disable"})

@@ -1,0 +1,158 @@
+"""The dashboard's model of the fleet (``busgate.dashboard.fleet``), fed as zenoh would feed
+it, hostile samples included, on a fake clock: what it keeps, what it drops, what a browser
+is told and when."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from busgate.dashboard.fleet import (
+    EVENTS_KEPT,
+    HISTORY_S,
+    MAX_DEVICES,
+    MAX_GATEWAYS,
+    SAMPLE_EVERY_S,
+    Fleet,
+)
+
+
+def info(*devices: str, bus: str = "uart0") -> dict:
+    return {"ok": True, "gateway": "gw1", "version": "9.9",
+            "buses": [{"name": bus, "protocol": "inspire_la",
+                       "devices": [{"name": d, "kind": "inspire_la", "id": i + 1, "state": None}
+                                   for i, d in enumerate(devices)]}]}
+
+
+def state(ts: float, position: float = 0, **fields) -> dict:
+    return {"ts": ts, "device": "la1", "kind": "inspire_la", "online": True, "position": position,
+            "target": position, "current_ma": 12, **fields}
+
+
+def up(fleet: Fleet, *devices: str, name: str = "gw1") -> None:
+    assert fleet.gateway_up(name)
+    fleet.info(name, info(*devices))
+
+
+def test_a_gateway_is_shown_once_up_with_its_buses_and_devices_and_gone_when_it_goes() -> None:
+    fleet = Fleet(clock=lambda: 100.0)
+    assert fleet.drain() is None
+    up(fleet, "la1", "la2")
+    delta = fleet.drain()
+    assert delta["now"] == 100.0 and delta["gone"] == []
+    [gateway] = delta["gateways"]
+    assert gateway["name"] == "gw1" and gateway["version"] == "9.9"
+    assert gateway["buses"] == [{"name": "uart0", "protocol": "inspire_la", "stats": None,
+                                 "devices": ["la1", "la2"]}]
+    assert fleet.drain() is None  # told once
+    assert not fleet.gateway_up("gw1")  # already known: no second info asked
+    fleet.gateway_gone("gw1")
+    assert fleet.drain()["gone"] == ["gw1"]
+    assert fleet.snapshot()["gateways"] == [] and not fleet.has("gw1")
+
+
+def test_nothing_is_taken_for_a_gateway_that_is_not_up_or_a_device_its_info_does_not_list() -> None:
+    fleet = Fleet()
+    fleet.state("gw1", "la1", state(1.0))
+    fleet.info("gw1", info("la1"))
+    fleet.event("gw1", {"ts": 1.0, "device": "la1", "type": "online"})
+    fleet.stats("gw1", "uart0", {"ts": 1.0, "frames_out": 1, "frames_in": 1})
+    assert fleet.drain() is None and fleet.snapshot()["gateways"] == []
+    up(fleet, "la1")
+    fleet.drain()
+    fleet.state("gw1", "ghost", state(2.0))
+    fleet.stats("gw1", "nobus", {"ts": 1.0})
+    assert fleet.drain() is None
+    fleet.gateway_gone("gw1")
+    fleet.drain()
+    fleet.state("gw1", "la1", state(3.0))  # a sample late after the token went: not brought back
+    assert fleet.drain() is None and not fleet.has("gw1")
+
+
+def test_a_state_is_told_with_the_samples_since_the_last_drain_at_most_one_per_interval() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.drain()
+    step = SAMPLE_EVERY_S / 5
+    for n in range(10):  # two intervals' worth: the latest of each interval is kept
+        fleet.state("gw1", "la1", state(10.0 + n * step, position=n))
+    [device] = fleet.drain()["devices"]
+    assert device["state"]["position"] == 9
+    assert [s[1] for s in device["samples"]] == [4, 9]
+    assert device["samples"][0] == [10.0 + 4 * step, 4, 4, 12]
+    assert fleet.drain() is None
+    fleet.state("gw1", "la1", state(20.0, position=50))
+    [device] = fleet.drain()["devices"]
+    assert [s[1] for s in device["samples"]] == [50]  # only what is new
+
+
+def test_a_minute_of_samples_is_kept_and_a_new_browser_gets_it_all() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    for n in range(200):
+        fleet.state("gw1", "la1", state(n * 1.0, position=n))
+    [device] = fleet.snapshot()["devices"]
+    times = [s[0] for s in device["samples"]]
+    assert times[0] >= 199 - HISTORY_S and times[-1] == 199.0
+    assert len(times) == HISTORY_S + 1
+
+
+def test_what_is_not_a_finite_number_is_not_plotted_and_no_nan_reaches_a_browser() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.state("gw1", "la1", state(1.0, position=math.nan, target=True, current_ma="12",
+                                    temperature_c=math.inf, nested={"x": [-math.inf]}))
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, None, None, None]]
+    assert device["state"]["temperature_c"] is None and device["state"]["nested"] == {"x": [None]}
+    json.dumps(fleet.snapshot(), allow_nan=False)  # what the hub sends: strict JSON
+    fleet.state("gw1", "la1", {"ts": "soon", "position": 3})  # no time: a state, no sample
+    assert fleet.drain()["devices"][0]["samples"] == []
+
+
+def test_malformed_payloads_are_dropped() -> None:
+    fleet = Fleet()
+    assert fleet.gateway_up("gw1")
+    for body in (None, [], "x", 3, {"buses": "no"}, {"buses": [1, {"name": 2}]}):
+        fleet.info("gw1", body)
+    fleet.info("gw1", {"buses": [{"name": "uart0", "devices": [None, {"name": None}, {}]}]})
+    assert fleet.snapshot()["devices"] == []
+    up_info = info("la1")
+    fleet.info("gw1", up_info)
+    for body in (None, [], "x"):
+        fleet.state("gw1", "la1", body)
+        fleet.stats("gw1", "uart0", body)
+        fleet.event("gw1", body)
+    assert fleet.snapshot()["events"] == [] and fleet.snapshot()["devices"][0]["state"] is None
+
+
+def test_frames_per_second_come_from_two_statistics_of_a_bus() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.stats("gw1", "uart0", {"ts": 10.0, "frames_out": 100, "frames_in": 90, "up": True})
+    fleet.stats("gw1", "uart0", {"ts": 12.0, "frames_out": 300, "frames_in": 290, "up": True})
+    [bus] = fleet.drain()["gateways"][0]["buses"]
+    assert bus["frames_per_s"] == 200.0 and bus["stats"]["frames_out"] == 300
+    fleet.stats("gw1", "uart0", {"ts": 12.0, "frames_out": "x", "frames_in": 1})
+    [bus] = fleet.drain()["gateways"][0]["buses"]
+    assert bus["frames_per_s"] is None
+
+
+def test_events_are_kept_to_a_bound_and_each_told_once() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.drain()
+    for n in range(EVENTS_KEPT + 10):
+        fleet.event("gw1", {"ts": n, "device": "la1", "type": "claimed"})
+    told = fleet.drain()["events"]
+    assert len(told) == EVENTS_KEPT and told[-1]["event"]["ts"] == EVENTS_KEPT + 9
+    assert told[0] == {"gateway": "gw1", "event": {"ts": 10, "device": "la1", "type": "claimed"}}
+    assert fleet.drain() is None and len(fleet.snapshot()["events"]) == EVENTS_KEPT
+
+
+def test_a_flood_of_gateways_or_devices_is_bounded() -> None:
+    fleet = Fleet()
+    assert all(fleet.gateway_up(f"gw{n}") for n in range(MAX_GATEWAYS))
+    assert not fleet.gateway_up("one-too-many")
+    fleet.info("gw0", info(*(f"d{n}" for n in range(MAX_DEVICES + 5))))
+    assert sum(d["gateway"] == "gw0" for d in fleet.snapshot()["devices"]) == MAX_DEVICES

@@ -1,0 +1,162 @@
+"""The dashboard over real HTTP, served by ``busgate demo`` (a child process) beside its
+gateway: the page and its files, the event stream, and every refusal of what a browser, a
+page on another site, or a tired operator might send, each checked to have moved nothing."""
+
+from __future__ import annotations
+
+import hashlib
+import http.client
+import json
+import re
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+
+import busgate.client as bc
+from busgate.dashboard.app import MAX_BODY
+
+VENDOR = Path(__file__).resolve().parent.parent / "dashboard" / "static" / "vendor"
+DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
+
+
+@pytest.fixture(scope="module")
+def dashboard(module_demo):
+    assert module_demo.dashboard is not None, module_demo.hints
+    return urlsplit(module_demo.dashboard)
+
+
+@pytest.fixture(scope="module")
+def client(module_demo):
+    with bc.connect(module_demo.endpoint, client_id="dashboard-http-test") as c:
+        yield c
+
+
+def request(where, method: str, path: str, body: bytes | None = None,
+            headers: dict | None = None) -> tuple[int, bytes, dict]:
+    connection = http.client.HTTPConnection(where.hostname, where.port, timeout=10)
+    try:
+        connection.request(method, path, body=body, headers=headers or {})
+        response = connection.getresponse()
+        return response.status, response.read(), dict(response.getheaders())
+    finally:
+        connection.close()
+
+
+def post(where, path: str, body: object, **headers: str) -> tuple[int, dict]:
+    raw = body if isinstance(body, bytes) else json.dumps(body).encode()
+    status, reply, _ = request(where, "POST", path, raw,
+                               {"Content-Type": "application/json", **headers})
+    return status, json.loads(reply)
+
+
+def events(where, count: int) -> list[tuple[str, dict]]:
+    """The first ``count`` events of one browser's stream."""
+    connection = http.client.HTTPConnection(where.hostname, where.port, timeout=10)
+    connection.request("GET", "/events")
+    response = connection.getresponse()
+    assert response.status == 200
+    assert response.getheader("content-type").startswith("text/event-stream")
+    found, name = [], None
+    try:
+        while len(found) < count:
+            line = response.fp.readline().decode().rstrip("\n")
+            if line.startswith("event: "):
+                name = line[7:]
+            elif line.startswith("data: "):
+                found.append((name, json.loads(line[6:])))
+    finally:
+        connection.close()
+    return found
+
+
+def power(client) -> dict[str, bool]:
+    """Each demo device's ``estopped``, from a fresh info."""
+    [info] = client.gateways(timeout=2.0).values()
+    return {d["name"]: d["state"]["estopped"] for bus in info["buses"] for d in bus["devices"]}
+
+
+def test_the_page_its_script_and_the_vendored_library_are_served(dashboard) -> None:
+    status, page, headers = request(dashboard, "GET", "/")
+    assert status == 200 and b"<title>busgate fleet</title>" in page
+    assert headers["content-type"].startswith("text/html")
+    for name in re.findall(rb'(?:src|href)="(/static/[^"]+)"', page):
+        assert request(dashboard, "GET", name.decode())[0] == 200, name
+    table = (VENDOR / "README.md").read_text()
+    for file, digest in re.findall(r"\| (\S+) \| ([0-9a-f]{64}) \|", table):
+        assert hashlib.sha256((VENDOR / file).read_bytes()).hexdigest() == digest, file
+    assert "MIT License" in (VENDOR / "LICENSE.uPlot").read_text()
+    assert request(dashboard, "GET", "/static/../app.py")[0] == 404
+
+
+def test_a_browser_gets_a_snapshot_of_every_device_then_what_changes(dashboard) -> None:
+    (first, snapshot), *rest = events(dashboard, 6)
+    assert first == "snapshot"
+    assert [g["name"] for g in snapshot["gateways"]] == ["demo"]
+    assert {d["device"] for d in snapshot["devices"]} == DEVICES
+    assert {b["name"] for b in snapshot["gateways"][0]["buses"]} == {"uart0", "uart1", "can0",
+                                                                       "rs232"}
+    assert all(name == "delta" for name, _ in rest)
+    stamps = [body["now"] for _, body in rest]
+    assert stamps == sorted(stamps) and stamps[0] >= snapshot["now"]
+    assert any(body["devices"] or body["gateways"] for _, body in rest)
+
+
+def test_a_page_on_another_site_that_rebinds_its_name_gets_nothing(dashboard) -> None:
+    for path in ("/", "/events"):
+        assert request(dashboard, "GET", path, headers={"Host": "evil.example"})[0] == 400
+    status, _, _ = request(dashboard, "POST", "/api/estop", b"{}",
+                           {"Host": "evil.example:80", "Content-Type": "application/json"})
+    assert status == 400
+
+
+@pytest.mark.parametrize(("body", "headers", "status"), [
+    (b"{}", {"Content-Type": "text/plain"}, 415),  # what a form on another site can send
+    (b"{}", {"Content-Type": "application/x-www-form-urlencoded"}, 415),
+    (b"{}", {"Content-Type": "application/json", "Origin": "http://evil.example"}, 403),
+    (b"{" + b" " * MAX_BODY + b"}", {"Content-Type": "application/json"}, 413),
+    (b"{not json", {"Content-Type": "application/json"}, 400),
+    (b"[" * 100_000, {"Content-Type": "application/json"}, 413),
+    (b"[1]", {"Content-Type": "application/json"}, 400),
+    (b'{"gateway": "*"}', {"Content-Type": "application/json"}, 400),
+    (b'{"gateway": "demo/x"}', {"Content-Type": "application/json"}, 400),
+    (b'{"gateway": 7}', {"Content-Type": "application/json"}, 400),
+    (b"\xff\xfe", {"Content-Type": "application/json"}, 400),
+])
+def test_an_estop_asked_wrongly_is_refused_and_stops_nothing(
+        dashboard, client, body, headers, status) -> None:
+    got, reply, _ = request(dashboard, "POST", "/api/estop", body, headers)
+    assert got == status, reply
+    assert json.loads(reply)["ok"] is False
+    assert not any(power(client).values())
+
+
+@pytest.mark.parametrize(("body", "status", "code"), [
+    ({"device": "la1"}, 400, "bad_request"),  # a bare name: which gateway's?
+    ({"device": "demo/la*"}, 400, "bad_request"),
+    ({"device": ["demo/la1"]}, 400, "bad_request"),
+    ({}, 400, "bad_request"),
+    ({"device": "demo/nothing"}, 502, "unknown_device"),
+])
+def test_an_enable_asked_wrongly_is_refused(dashboard, body, status, code) -> None:
+    got, reply = post(dashboard, "/api/enable", body)
+    assert (got, reply["ok"], reply["error"]["code"]) == (status, False, code), reply
+
+
+def test_only_posts_act(dashboard) -> None:
+    for path in ("/api/estop", "/api/enable"):
+        assert request(dashboard, "GET", path)[0] == 405
+
+
+def test_the_gateway_estop_stops_every_device_and_each_enable_brings_one_back(
+        dashboard, client, wait_for) -> None:
+    origin = f"http://{dashboard.netloc}"
+    assert post(dashboard, "/api/estop", {"gateway": "demo"}, Origin=origin) == (
+        200, {"ok": True, "estop": "demo"})
+    wait_for(lambda: all(power(client).values()))
+    for device in sorted(DEVICES):
+        status, reply = post(dashboard, "/api/enable", {"device": f"demo/{device}"})
+        assert status == 200 and reply["ok"] and reply["device"] == f"demo/{device}", reply
+    wait_for(lambda: not any(power(client).values()))
+    client.device("wheel").send({"op": "disable"})  # as the demo starts it
+    client.device("drive").send({"op": "disable"})
