@@ -82,7 +82,43 @@ class GatewayProcess:
         return self.process.wait(timeout=TIMEOUT_S)
 
 
-class DemoProcess:
+class ServingProcess:
+    """``busgate ARGS`` as a child that prints on stdout until it serves (``demo``,
+    ``router``, ``dashboard``), returned once a line starting with ``ready`` came; ``printed``
+    holds what it printed up to it."""
+
+    def __init__(self, *args: str, ready: str, stderr=None) -> None:
+        self.process = subprocess.Popen([*BUSGATE, *args], stdout=subprocess.PIPE, text=True,
+                                        stderr=stderr)
+        self._lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.printed = self._wait_for(ready)
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self._lines.put(line)
+        self._lines.put("")  # end of output
+
+    def _wait_for(self, ready: str) -> str:
+        lines: list[str] = []
+        while not lines or not lines[-1].startswith(ready):
+            try:
+                line = self._lines.get(timeout=TIMEOUT_S)
+            except queue.Empty:
+                self.process.kill()
+                raise
+            assert line, f"busgate {self.process.args[3]} ended before it served: {lines!r}"
+            lines.append(line)
+        return "".join(lines)
+
+    def terminate(self, signum: int = signal.SIGTERM) -> int:
+        """Stop it with ``signum`` (SIGTERM or SIGINT, as Ctrl-C): its exit status."""
+        if self.process.poll() is None:
+            self.process.send_signal(signum)
+        return self.process.wait(timeout=TIMEOUT_S)
+
+
+class DemoProcess(ServingProcess):
     """``busgate demo --listen ENDPOINT`` as a child (its dashboard on a free port, unless
     ``options`` say otherwise), returned once it serves; ``hints`` holds what it printed and
     ``dashboard`` the URL it printed (``None`` without one)."""
@@ -90,33 +126,7 @@ class DemoProcess:
     def __init__(self, endpoint: str, *options: str) -> None:
         self.endpoint = endpoint
         options = options or ("--dashboard-listen", "127.0.0.1:0")
-        self.process = subprocess.Popen([*BUSGATE, "demo", "--listen", endpoint, *options],
-                                        stdout=subprocess.PIPE, text=True)
-        self._lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-        self.hints = self._wait_for_hints()
+        super().__init__("demo", "--listen", endpoint, *options, ready="Ctrl-C")
+        self.hints = self.printed
         shown = re.search(r"in a browser: (\S+)", self.hints)
         self.dashboard = shown.group(1) if shown else None
-
-    def _read(self) -> None:
-        for line in self.process.stdout:
-            self._lines.put(line)
-        self._lines.put("")  # end of output
-
-    def _wait_for_hints(self) -> str:
-        lines: list[str] = []
-        while not lines or not lines[-1].startswith("Ctrl-C"):
-            try:
-                line = self._lines.get(timeout=TIMEOUT_S)
-            except queue.Empty:
-                self.process.kill()
-                raise
-            assert line, f"the demo ended before it served: {''.join(lines)!r}"
-            lines.append(line)
-        return "".join(lines)
-
-    def terminate(self, signum: int = signal.SIGTERM) -> int:
-        """Stop the demo with ``signum`` (SIGTERM or SIGINT, as Ctrl-C): its exit status."""
-        if self.process.poll() is None:
-            self.process.send_signal(signum)
-        return self.process.wait(timeout=TIMEOUT_S)

@@ -70,12 +70,9 @@ def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> Non
     goal = 1900 if start < 1000 else 100
     renders = page.evaluate("() => window.busgateDashboard.renders()")
     la1.move(goal)
-    until(page, "([goal]) => document.querySelector("
-          "'article[data-device=\"demo/la1\"] dd[data-field=target]').textContent == String(goal)",
-          goal)
-    until(page, "([goal]) => document.querySelector("
-          "'article[data-device=\"demo/la1\"] dd[data-field=position]').textContent == String(goal)",
-          goal)
+    for label in ("target", "position"):
+        until(page, "([selector, goal]) => document.querySelector(selector).textContent == goal",
+              f'article[data-device="demo/la1"] dd[data-field={label}]', str(goal))
     series = page.evaluate("() => window.busgateDashboard.series('demo/la1')")
     positions = [p for p in series["position"] if p is not None]
     between = [p for p in positions if min(start, goal) < p < max(start, goal)]

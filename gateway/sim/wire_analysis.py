@@ -44,8 +44,11 @@ class WireFigures:
 
 
 def load_records(path: str | Path) -> list[WireRecord]:
+    """The records of a file, but a last line still being written (no newline yet)."""
     with open(path) as stream:
-        return [WireRecord.from_json(line) for line in stream if line.strip()]
+        return [
+            WireRecord.from_json(line) for line in stream if line.endswith("\n") and line.strip()
+        ]
 
 
 def analyse(
