@@ -1,9 +1,10 @@
 """deploy/: every file is there and is what its tool accepts, checked with the tool itself
-wherever this machine has it: the unit with ``systemd-analyze verify`` and ``security
---offline``, the .network against systemd-networkd's own key table, sysusers.d and tmpfiles.d by
-applying them to a scratch root, the zenoh config by opening the real daemon with it (TLS,
-passwords, access control), and MemoryDenyWriteExecute= by running the daemon under the
-kernel's equivalent (PR_SET_MDWE)."""
+wherever this machine has it: both units (the gateway's and the router's) with
+``systemd-analyze verify`` and ``security --offline``, the .network against systemd-networkd's
+own key table, sysusers.d and tmpfiles.d by applying them to a scratch root, the zenoh config by
+opening the real daemon with it (TLS, passwords, access control), and MemoryDenyWriteExecute=
+by running the daemon under the kernel's equivalent (PR_SET_MDWE; the router's:
+tests/test_router.py)."""
 
 from __future__ import annotations
 
@@ -21,11 +22,14 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
+from busgate.gateway.cli import build_parser
 from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.secured_gateway import ZENOH
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 UNIT = DEPLOY / "busgate.service"
+ROUTER_UNIT = DEPLOY / "busgate-router.service"
+UNITS = {path.name: path for path in (UNIT, ROUTER_UNIT)}
 NETWORK = DEPLOY / "systemd-networkd" / "80-can0.network"
 RULES = DEPLOY / "udev" / "99-busgate.rules"
 SYSUSERS = DEPLOY / "sysusers.d" / "busgate.conf"
@@ -51,7 +55,7 @@ def unit_options(path: Path) -> dict[str, dict[str, list[str]]]:
 
 
 def test_every_deploy_file_is_there() -> None:
-    for path in (UNIT, NETWORK, RULES, SYSUSERS, TMPFILES, ZENOH):
+    for path in (UNIT, ROUTER_UNIT, NETWORK, RULES, SYSUSERS, TMPFILES, ZENOH):
         assert path.is_file() and path.read_text().strip(), path
 
 
@@ -77,15 +81,54 @@ def test_the_unit_has_every_option_the_issue_names() -> None:
     assert "RestrictRealtime" not in service, "SCHED_FIFO for the bus threads needs realtime"
 
 
-def _scratch_root(tmp_path: Path) -> Path:
-    """A root holding the unit, its ExecStart and the host's units it refers to."""
+#: The hardening both units share, option by option (the router needs no device, group or
+#: realtime priority, so it adds to these rather than leaving any out).
+SHARED_HARDENING = (
+    "User", "Group", "UMask", "DevicePolicy", "CapabilityBoundingSet", "NoNewPrivileges",
+    "ProtectSystem", "ProtectHome", "PrivateTmp", "ProtectProc", "ProtectKernelTunables",
+    "ProtectKernelModules", "ProtectKernelLogs", "ProtectControlGroups", "ProtectClock",
+    "ProtectHostname", "RemoveIPC", "PrivateMounts", "RestrictNamespaces", "LockPersonality",
+    "MemoryDenyWriteExecute", "RestrictSUIDSGID", "SystemCallArchitectures",
+    "SystemCallErrorNumber", "Restart", "StartLimitIntervalSec", "StartLimitBurst",
+)
+
+
+def test_the_router_unit_runs_busgate_router_hardened_as_the_gateways() -> None:
+    options, gateway = unit_options(ROUTER_UNIT), unit_options(UNIT)
+    service, gateway_service = options["Service"], gateway["Service"]
+    program, *arguments = service["ExecStart"][0].split()
+    assert program == gateway_service["ExecStart"][0].split()[0] == "/opt/busgate/bin/busgate"
+    assert arguments == ["router", "--listen", "tcp/0.0.0.0:7447"]
+    parsed = build_parser("router").parse_args(arguments)  # what the command line accepts
+    assert parsed.listen == ["tcp/0.0.0.0:7447"] and parsed.config is None
+    assert service["Type"] in (["simple"], ["exec"]), "the router does not speak sd_notify"
+    for key in ("NotifyAccess", "WatchdogSec", "SupplementaryGroups", "DeviceAllow",
+                "LimitRTPRIO"):
+        assert key not in service, f"{key}= is the gateway's, not the router's"
+    assert service["DevicePolicy"] == ["closed"] and service["PrivateDevices"] == ["yes"]
+    assert service["RestrictRealtime"] == ["yes"]
+    assert set(service["RestrictAddressFamilies"][0].split()) == {
+        "AF_NETLINK", "AF_UNIX", "AF_INET", "AF_INET6"}
+    assert service["SystemCallFilter"][0] == "@system-service"
+    for key in SHARED_HARDENING:
+        assert service.get(key, options["Unit"].get(key)) == gateway_service.get(
+            key, gateway["Unit"].get(key)), key
+    assert options["Install"] == gateway["Install"] == {"WantedBy": ["multi-user.target"]}
+    header = ROUTER_UNIT.read_text().split("\n[Unit]", 1)[0]
+    assert "zenohd is the recommended router" in header
+    assert "install -m 644 deploy/busgate-router.service /etc/systemd/system/" in header
+    assert "systemctl enable --now busgate-router" in header
+
+
+def _scratch_root(tmp_path: Path, unit: Path) -> Path:
+    """A root holding ``unit``, its ExecStart and the host's units it refers to."""
     root = tmp_path / "root"
-    executable = root / unit_options(UNIT)["Service"]["ExecStart"][0].split()[0].lstrip("/")
+    executable = root / unit_options(unit)["Service"]["ExecStart"][0].split()[0].lstrip("/")
     executable.parent.mkdir(parents=True)
     executable.write_text("#!/bin/sh\n")
     executable.chmod(0o755)
     (root / "etc/systemd/system").mkdir(parents=True)
-    shutil.copy(UNIT, root / "etc/systemd/system")
+    shutil.copy(unit, root / "etc/systemd/system")
     shutil.copytree("/usr/lib/systemd/system", root / "usr/lib/systemd/system", symlinks=True)
     return root
 
@@ -96,18 +139,21 @@ needs_systemd_analyze = pytest.mark.skipif(
 
 
 @needs_systemd_analyze
-def test_systemd_analyze_verify_is_clean(tmp_path) -> None:
-    root = _scratch_root(tmp_path)
-    result = subprocess.run(["systemd-analyze", "verify", f"--root={root}", "busgate.service"],
+@pytest.mark.parametrize("name", UNITS)
+def test_systemd_analyze_verify_is_clean(tmp_path, name) -> None:
+    root = _scratch_root(tmp_path, UNITS[name])
+    result = subprocess.run(["systemd-analyze", "verify", f"--root={root}", name],
                             capture_output=True, text=True, check=False)
     assert result.returncode == 0 and not (result.stdout + result.stderr).strip(), result
 
 
 @needs_systemd_analyze
-def test_systemd_analyze_security_exposure_is_2_5_or_better() -> None:
+@pytest.mark.parametrize("name", UNITS)
+def test_systemd_analyze_security_exposure_is_2_5_or_better(name) -> None:
     result = subprocess.run(["systemd-analyze", "security", "--offline=true", "--no-pager",
-                             str(UNIT)], capture_output=True, text=True, check=False)
-    found = re.search(r"Overall exposure level for busgate\.service: (\d+\.\d)", result.stdout)
+                             str(UNITS[name])], capture_output=True, text=True, check=False)
+    found = re.search(rf"Overall exposure level for {re.escape(name)}: (\d+\.\d)",
+                      result.stdout)
     assert found, result
     assert float(found.group(1)) <= 2.5, result.stdout
 
