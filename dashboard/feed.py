@@ -2,8 +2,8 @@
 subscriptions (every gateway's device states, bus statistics and events, and the gateways'
 liveliness) poured into a ``Fleet``, and each gateway's ``info`` asked for as it comes.
 
-However many browsers watch, the gateways see one client: this one (issue 16: many browsers
-cost the gateways nothing more).
+However many browsers watch, the gateways see one client: this one, so that many browsers
+cost the gateways nothing more.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ipaddress
+import re
 import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -27,6 +28,8 @@ from busgate.dashboard.fleet import Fleet
 from busgate.dashboard.hub import Hub
 
 DEFAULT_LISTEN = "127.0.0.1:8080"
+#: A port as digits only: ``int`` would also take " 80", "+80", "8_0" and "٨٠".
+PORT = re.compile(r"[0-9]{1,5}")
 STARTED_POLL_S = 0.02
 GRACE_S = 2  # how long a stop waits for requests under way
 
@@ -41,11 +44,14 @@ class Listen:
     @classmethod
     def parse(cls, text: str) -> Listen:
         """``HOST:PORT`` (``[::1]:8080`` for IPv6); ``CommandError`` for anything else."""
-        host, colon, port = text.rpartition(":")
-        host = host.removeprefix("[").removesuffix("]")
+        written, colon, port = text.rpartition(":")
+        bracketed = written.startswith("[") and written.endswith("]")
+        host = written[1:-1] if bracketed else written
         try:
-            ipaddress.ip_address(host)
-            number = int(port, 10)
+            address = ipaddress.ip_address(host)
+            number = int(port) if PORT.fullmatch(port) else -1
+            if (address.version == 6) != bracketed:  # "::1:8080" is an address, not a port
+                number = -1
         except ValueError:
             number = -1
         if not colon or not 0 <= number <= 65535:

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 
 TIMEOUT_S = 30.0  # a hang guard, not a speed requirement
@@ -87,9 +88,11 @@ class ServingProcess:
     ``router``, ``dashboard``), returned once a line starting with ``ready`` came; ``printed``
     holds what it printed up to it."""
 
-    def __init__(self, *args: str, ready: str, stderr=None) -> None:
-        self.process = subprocess.Popen([*BUSGATE, *args], stdout=subprocess.PIPE, text=True,
-                                        stderr=stderr)
+    def __init__(self, *args: str, ready: str, stderr=None, within: Sequence[str] = ()) -> None:
+        """``within``: what the command runs under (``ip netns exec NAME``, which execs it:
+        the child's PID is busgate's own)."""
+        self.process = subprocess.Popen([*within, *BUSGATE, *args], stdout=subprocess.PIPE,
+                                        text=True, stderr=stderr)
         self._lines: queue.Queue[str] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
         self.printed = self._wait_for(ready)
@@ -123,10 +126,10 @@ class DemoProcess(ServingProcess):
     ``options`` say otherwise), returned once it serves; ``hints`` holds what it printed and
     ``dashboard`` the URL it printed (``None`` without one)."""
 
-    def __init__(self, endpoint: str, *options: str) -> None:
+    def __init__(self, endpoint: str, *options: str, within: Sequence[str] = ()) -> None:
         self.endpoint = endpoint
         options = options or ("--dashboard-listen", "127.0.0.1:0")
-        super().__init__("demo", "--listen", endpoint, *options, ready="Ctrl-C")
+        super().__init__("demo", "--listen", endpoint, *options, ready="Ctrl-C", within=within)
         self.hints = self.printed
         shown = re.search(r"in a browser: (\S+)", self.hints)
         self.dashboard = shown.group(1) if shown else None

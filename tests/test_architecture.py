@@ -6,7 +6,9 @@ imports only the ones below it. A new import against the arrows fails here, nami
        +---- gateway.bus <------+                          gateway.service <- gateway.cli
                    |
                  client  (the SDK: codecs' errors and the schemas; the daemon uses its
-                          session settings and errors, the command line all of it)
+                   ^      session settings and errors, the command line all of it)
+                   |
+               dashboard  (the fleet's web page: on the SDK alone; the command line serves it)
 
 ``gateway.sim`` (the simulators) stands beside the gateway: it uses the codecs, the bus clock
 and the protocol table, and nothing of the gateway's service uses it but the command line.
@@ -30,6 +32,7 @@ ALLOWED: dict[str, set[str]] = {
     "codecs": set(),
     "schemas": {"codecs"},
     "client": {"codecs", "schemas"},
+    "dashboard": {"codecs", "schemas", "client"},
     "gateway": set(),
     "gateway.bus": {"codecs"},
     "gateway.drivers": {"codecs", "schemas", "gateway.bus"},
@@ -41,7 +44,8 @@ ALLOWED: dict[str, set[str]] = {
                         "gateway.trajectory"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.trajectory": {"codecs", "schemas"},
-    "gateway.cli": {"codecs", "schemas", "client", "gateway", "gateway.bus", "gateway.drivers",
+    "gateway.cli": {"codecs", "schemas", "client", "dashboard", "gateway", "gateway.bus",
+                    "gateway.drivers",
                     "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim",
                     "gateway.trajectory"},
 }
@@ -74,7 +78,7 @@ def imported(path: Path) -> set[str]:
 
 def test_every_import_follows_the_arrows() -> None:
     wrong = []
-    for folder in ("client", "codecs", "schemas", "gateway"):
+    for folder in ("client", "codecs", "dashboard", "schemas", "gateway"):
         for path in sorted((ROOT / folder).rglob("*.py")):
             room = room_of_file(path)
             for name in imported(path):
@@ -85,7 +89,7 @@ def test_every_import_follows_the_arrows() -> None:
 
 
 def test_every_room_is_described() -> None:
-    rooms = {"client", "codecs", "schemas", "gateway"} | {
+    rooms = {"client", "codecs", "dashboard", "schemas", "gateway"} | {
         f"gateway.{p.name}" for p in (ROOT / "gateway").iterdir() if (p / "__init__.py").exists()}
     assert rooms == set(ALLOWED)
     architecture = (ROOT / "docs" / "architecture.md").read_text()

@@ -117,6 +117,50 @@ def test_gateways_answers_each_gateway_of_the_fleet_with_its_info(client, gw2) -
     assert infos["demo"]["ok"] is True and infos["demo"]["gateway"] == "demo"
 
 
+def test_on_gateways_tells_each_gateway_up_now_then_as_they_come_and_go(
+        connect, demo, tmp_path, wait_for) -> None:
+    """The demo is up when the callback is set: told at once. A gateway that joins and
+    leaves is told too (its liveliness token), and a callback stopped hears nothing more."""
+    client = connect()
+    heard: list[tuple[str, bool]] = []
+    stop = client.on_gateways(lambda name, alive: heard.append((name, alive)))
+    assert ("demo", True) in heard
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
+        config = tmp_path / "gw3.toml"
+        config.write_text(f'[gateway]\nname = "gw3"\n[zenoh]\nconnect = ["{demo.endpoint}"]\n'
+                          + serial_bus("uart0", simulator.port, "la1"))
+        gateway = GatewayProcess(config)
+        try:
+            gateway.wait_for("serving")
+            wait_for(lambda: ("gw3", True) in heard, timeout=DEADLINE_S)
+        finally:
+            assert gateway.stop() == 0, gateway.lines
+        wait_for(lambda: ("gw3", False) in heard, timeout=DEADLINE_S)
+    stop()
+    count = len(heard)
+    gateway = GatewayProcess(config)  # again: nobody listens now
+    try:
+        gateway.wait_for("serving")
+        wait_for(lambda: "gw3" in client.gateways(), timeout=DEADLINE_S)
+    finally:
+        assert gateway.stop() == 0
+    assert len(heard) == count and heard.count(("demo", False)) == 0
+
+
+def test_a_sample_nested_past_the_parsers_depth_is_not_json_to_a_subscriber(
+        connect, wait_for) -> None:
+    client = connect()
+    got: list[object] = []
+    end = client.subscribe("busgate/sdk-test/deep", lambda key, body: got.append((key, body)))
+    try:
+        client.put("busgate/sdk-test/deep", "[" * 100_000 + "]" * 100_000)
+        client.put("busgate/sdk-test/deep", {"after": True})
+        wait_for(lambda: len(got) == 2, timeout=DEADLINE_S)
+    finally:
+        end()
+    assert got == [("busgate/sdk-test/deep", None), ("busgate/sdk-test/deep", {"after": True})]
+
+
 def test_a_device_is_found_by_gateway_and_name_or_by_a_name_one_gateway_has(
         client, gw2) -> None:
     for name, kind in DEMO_DEVICES.items():

@@ -1,5 +1,6 @@
-"""Three gateways (processes, each on its own simulated devices of every kind), one
-``busgate router``, and ``busgate dashboard`` connected to the router, on loopback ports
+"""Three gateways (processes, each on its own simulated devices of every kind, each in a
+network namespace of its own joined by a veth pair where the machine allows it, else on
+loopback), one ``busgate router``, and ``busgate dashboard`` connected to the router
 (``tests.fleet``), watched in a real browser: everything appears, moves and is logged, the
 fleet e-stop button reaches every device of every gateway (checked on each simulator's wire
 record), and a gateway that dies leaves the page within 2 s and comes back when restarted."""
@@ -12,13 +13,13 @@ import pytest
 
 import busgate.client as bc
 from tests.browser import browser_page, needs_chromium
-from tests.fleet import DEVICES_PER_GATEWAY, running_fleet
+from tests.fleet import DEVICES_PER_GATEWAY, Hosts, running_fleet
 
 pytestmark = needs_chromium
 
 NAMES = ["gw1", "gw2", "gw3"]
 WAIT_MS = 20_000  # a hang guard: conditions are waited for, not timed
-GONE_WITHIN_MS = 2_000  # the issue's bound for a dead gateway to leave the page
+GONE_WITHIN_MS = 2_000  # the contract's bound for a dead gateway to leave the page
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +47,16 @@ def until(page, condition: str, *args, timeout: int = WAIT_MS) -> None:
 
 def cards_of(page, gateway: str) -> int:
     return page.locator(f'section[data-gateway="{gateway}"] article[data-device]').count()
+
+
+def test_each_gateway_joins_the_router_from_a_host_of_its_own_where_possible(fleet) -> None:
+    assert fleet.on_hosts == Hosts.possible()
+    addresses = {gateway.connect for gateway in fleet.gateways.values()}
+    if fleet.on_hosts:  # a veth pair each, the router listening on this side of every one
+        assert len(addresses) == 3 and not any("127.0.0.1" in a for a in addresses)
+        assert all(g.within[:3] == ["ip", "netns", "exec"] for g in fleet.gateways.values())
+    else:
+        assert addresses == {fleet.router}
 
 
 def test_every_gateway_and_every_device_appears(page) -> None:

@@ -10,7 +10,7 @@ its PID. On a 2-core machine the gateways' processes alone (their simulators in 
 most of a core, and the browser the better part of another: what is measured shares them.
 
     .venv/bin/python tests/benchmarks/bench_fleet.py [--gateways 3] [--trials 20]
-                                                    [--seconds 10] [--synthetic 8]
+                                                    [--seconds 10] [--synthetic 8] [--kills 5]
 
 1. Fleet e-stop: every device enabled and still, then an e-stop of the fleet, ``--trials``
    times each way, the ways taking turns: by the SDK's put (``Client.estop()``) with no page
@@ -25,7 +25,9 @@ most of a core, and the browser the better part of another: what is measured sha
    ``--seconds``: the states per second the gateways published (counted by a subscriber
    here), the dashboard process's CPU (utime + stime from /proc, % of one core) and the page's
    redraws (its ``render`` every 100 ms, charts drawn: time p50/p99, and redraws per second).
-3. The page alone with more than 50 devices: a router, the dashboard and the page, with
+3. A gateway killed with SIGKILL, ``--kills`` times: the time until its card leaves the page
+   (its liveliness token gone at the router), and, restarted, until its 7 devices are back.
+4. The page alone with more than 50 devices: a router, the dashboard and the page, with
    ``--synthetic`` gateways of 7 devices whose states (a sine at 20 Hz each) come from one
    zenoh session here (``SyntheticGateways``: telemetry only, no simulators to share the
    cores with): the page's redraws and the dashboard's CPU.
@@ -198,6 +200,26 @@ def full_rate(fleet: Fleet, client: bc.Client, page, seconds: float, dashboard_p
     print(f"   page redraw {figures(times)}, {rate:.1f} redraws/s")
 
 
+def gone_and_back(fleet: Fleet, page, trials: int) -> None:
+    """A gateway killed (SIGKILL) until its card leaves the page, and restarted until its
+    devices are all back on it."""
+    gone, back = [], []
+    name = next(iter(fleet.gateways))
+    for _ in range(trials):
+        killed = time.monotonic()
+        fleet.kill_gateway(name)
+        page.wait_for_function(f"() => !document.querySelector('section[data-gateway={name}]')",
+                               polling=10, timeout=10_000)
+        gone.append(time.monotonic() - killed)
+        started = time.monotonic()
+        fleet.start_gateway(name)  # returns once the demo serves
+        page.wait_for_function(f"() => document.querySelectorAll('section[data-gateway={name}] "
+                               f"article[data-device]').length == 7", polling=10, timeout=30_000)
+        back.append(time.monotonic() - started)
+    print(f"3. a gateway killed with SIGKILL, {trials} times: gone from the page {figures(gone)};"
+          f" restarted, all its devices back on the page {figures(back, 's', 1.0)}")
+
+
 class SyntheticGateways:
     """Gateways that are telemetry only, for the page's load without the simulators' CPU:
     ``count`` liveliness tokens and ``info`` queryables, and 7 Inspire LA states each
@@ -259,7 +281,7 @@ def many_on_page(folder: Path, count: int, seconds: float) -> None:
                 cpu = (cpu_seconds(fleet.dashboard_pid) - cpu_before) / elapsed
         finally:
             synthetic.close()
-    print(f"3. the page alone with {7 * count} devices ({count} synthetic gateways, 7 states "
+    print(f"4. the page alone with {7 * count} devices ({count} synthetic gateways, 7 states "
           f"each at {synthetic.hz:g} Hz: {7 * count * synthetic.hz:.0f}/s), {seconds:g} s:")
     print(f"   page redraw {figures(times)}, {rate:.1f} redraws/s; the dashboard process's "
           f"CPU {100 * cpu:.1f} % of one core")
@@ -271,6 +293,7 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=20)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--synthetic", type=int, default=8)
+    parser.add_argument("--kills", type=int, default=5)
     args = parser.parse_args()
     names = [f"gw{n}" for n in range(1, args.gateways + 1)]
     with tempfile.TemporaryDirectory() as folder, \
@@ -285,6 +308,7 @@ def main() -> None:
                                    ".length == n", arg=[7 * len(names)], timeout=60_000)
             estop_trials(fleet, client, args.trials, {"put, page open": None, "button": page})
             full_rate(fleet, client, page, args.seconds, fleet.dashboard_pid)
+            gone_and_back(fleet, page, args.kills)
     with tempfile.TemporaryDirectory() as folder:
         many_on_page(Path(folder), args.synthetic, args.seconds)
 

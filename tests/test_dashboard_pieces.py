@@ -1,0 +1,149 @@
+"""The dashboard's pieces below HTTP: where it may listen (``Listen``), and the hub's push to
+browsers on a real asyncio loop (a snapshot and every change after it, once each; a browser
+that falls behind let go, not waited for); and ``busgate dashboard``'s refusals, each one
+line with exit status 2 before anything listens."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+
+import pytest
+
+from busgate.codecs.errors import CommandError
+from busgate.dashboard.fleet import Fleet
+from busgate.dashboard.hub import BACKLOG, Hub
+from busgate.dashboard.server import Listen
+from tests.gateway_process import run_busgate
+
+
+@pytest.mark.parametrize(("text", "host", "port"), [
+    ("127.0.0.1:8080", "127.0.0.1", 8080),
+    ("0.0.0.0:0", "0.0.0.0", 0),
+    ("[::1]:65535", "::1", 65535),
+])
+def test_an_address_and_a_port_are_taken(text, host, port) -> None:
+    assert Listen.parse(text) == Listen(host, port)
+
+
+@pytest.mark.parametrize("text", [
+    "", ":", "8080", "127.0.0.1", "127.0.0.1:", "localhost:8080", "example.com:80",
+    "127.0.0.1:65536", "127.0.0.1:-1", "127.0.0.1:+80", "127.0.0.1: 80", "127.0.0.1:8_0",
+    "127.0.0.1:٨٠", "::1:8080", "[::1]", "127.0.0.1:80:80", "1.2.3:99", "x" * 10_000,
+])
+def test_anything_else_is_refused(text) -> None:
+    with pytest.raises(CommandError, match="HOST:PORT"):
+        Listen.parse(text)
+
+
+def test_the_hosts_a_browser_may_name_follow_the_address() -> None:
+    assert Listen("127.0.0.1", 1).allowed_hosts == ["127.0.0.1", "localhost"]
+    assert Listen("::1", 1).allowed_hosts == ["[::1]", "localhost"]
+    assert Listen("192.0.2.7", 1).allowed_hosts == ["192.0.2.7"]
+    assert Listen("0.0.0.0", 1).allowed_hosts == ["*"]
+    assert Listen("0.0.0.0", 1).url(8080) == "http://127.0.0.1:8080/"
+    assert Listen("::1", 1).url(8080) == "http://[::1]:8080/"
+
+
+def test_a_port_in_use_is_refused_naming_it() -> None:
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = taken.getsockname()[1]
+        with pytest.raises(CommandError, match=f"cannot listen on 127.0.0.1:{port}: "):
+            Listen("127.0.0.1", port).bind()
+    finally:
+        taken.close()
+
+
+def events_of(chunks: list[bytes]) -> list[tuple[str, dict]]:
+    found = []
+    for chunk in chunks:
+        name, data = chunk.decode().rstrip("\n").split("\n")
+        found.append((name.removeprefix("event: "), json.loads(data.removeprefix("data: "))))
+    return found
+
+
+def fleet_with_a_device() -> Fleet:
+    fleet = Fleet(clock=lambda: 5.0)
+    fleet.gateway_up("gw1")
+    fleet.info("gw1", {"version": "1", "buses": [{"name": "uart0", "protocol": "inspire_la",
+                       "devices": [{"name": "la1", "kind": "inspire_la"}]}]})
+    return fleet
+
+
+def test_a_browser_gets_a_snapshot_then_each_change_once() -> None:
+    async def run() -> list[bytes]:
+        fleet = fleet_with_a_device()
+        hub = Hub(fleet)
+        stream = hub.stream()
+        first = await anext(stream)  # the snapshot, taken with the browser joining
+        fleet.state("gw1", "la1", {"ts": 1.0, "position": 7})
+        hub.push()
+        hub.push()  # nothing new: nothing sent
+        fleet.event("gw1", {"ts": 2.0, "device": "la1", "type": "claimed"})
+        hub.push()
+        chunks = [first, await anext(stream), await anext(stream)]
+        hub.let_go()
+        with pytest.raises(StopAsyncIteration):
+            await anext(stream)
+        assert hub.browsers == 0
+        return chunks
+
+    (snapshot_name, snapshot), (_, state), (_, claimed) = events_of(asyncio.run(run()))
+    assert snapshot_name == "snapshot" and snapshot["gateways"][0]["name"] == "gw1"
+    assert [d["state"] for d in state["devices"]] == [{"ts": 1.0, "position": 7}]
+    assert claimed["events"] == [{"gateway": "gw1", "event": {"ts": 2.0, "device": "la1",
+                                                              "type": "claimed"}}]
+    assert claimed["devices"] == []
+
+
+def test_a_browser_that_falls_behind_is_let_go_and_the_others_are_not() -> None:
+    async def run() -> tuple[list[bytes], list[bytes], int]:
+        fleet = fleet_with_a_device()
+        hub = Hub(fleet)
+        slow, quick = hub.stream(), hub.stream()
+        slow_seen = [await anext(slow)]
+        quick_seen = [await anext(quick)]
+        for n in range(BACKLOG + 1):  # one more than the slow browser's queue holds
+            fleet.state("gw1", "la1", {"ts": float(n), "position": n})
+            hub.push()
+            quick_seen.append(await anext(quick))
+        browsers = hub.browsers
+        slow_seen += [chunk async for chunk in slow]  # what is left: nothing, it ends
+        return slow_seen, quick_seen, browsers
+
+    slow_seen, quick_seen, browsers = asyncio.run(run())
+    assert browsers == 1  # the quick one
+    assert len(slow_seen) == 1  # its snapshot; its backlog was dropped with it
+    assert len(quick_seen) == BACKLOG + 2
+    positions = [e[1]["devices"][0]["state"]["position"] for e in events_of(quick_seen[1:])]
+    assert positions == list(range(BACKLOG + 1))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--listen", "localhost:8080"], "error: listen on HOST:PORT"),
+    (["--listen", "127.0.0.1:99999"], "error: listen on HOST:PORT"),
+    (["--connect", "nonsense"], "error: cannot open a zenoh session to nonsense"),
+])
+def test_busgate_dashboard_refuses_in_one_line(args, message) -> None:
+    done = run_busgate("dashboard", *args)
+    assert done.returncode == 2 and message in done.stderr, done
+    assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+
+
+def test_busgate_dashboard_refuses_a_port_in_use(module_demo) -> None:
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = taken.getsockname()[1]
+        done = run_busgate("dashboard", "--connect", module_demo.endpoint,
+                           "--listen", f"127.0.0.1:{port}")
+    finally:
+        taken.close()
+    assert done.returncode == 2, done
+    assert done.stderr.strip() == (f"busgate dashboard: error: the dashboard cannot listen on "
+                                   f"127.0.0.1:{port}: Address already in use")
