@@ -109,7 +109,10 @@ def create_app(hub: Hub, actions: Actions, *, allowed_hosts: list[str]) -> Starl
                 _checked(check_name, "gateway", gateway)
         except Refused as exc:
             return refusal(exc.status, exc.code, exc.message)
-        await actions.estop(gateway)
+        try:
+            await actions.estop(gateway)
+        except BusgateError as exc:  # the session could not put it
+            return refusal(502, "not_sent", str(exc))
         return JSONResponse({"ok": True, "estop": gateway or "*"})
 
     async def enable(request: Request) -> Response:

@@ -17,6 +17,7 @@ process of the machine (``busgate.gateway.sim.recorder``).
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import secrets
 import shutil
@@ -36,20 +37,36 @@ from tests.conftest import unused_loopback_port
 from tests.gateway_process import DemoProcess, ServingProcess
 
 DEVICES_PER_GATEWAY = sum(len(bus.devices) for bus in DEMO_BUSES)
+#: How far before the moment looked after a record is still read: records are in the order
+#: their frames arrived, give or take a reader thread's turn.
+LOOK_BACK_S = 1.0
 
 
-def received(path: Path) -> list[WireRecord]:
-    """The frames a bus's devices received so far, from the record its simulator is writing:
-    a line that does not parse (being written, or torn by a read racing the write) is left
-    for the next look."""
-    records = []
-    with contextlib.suppress(FileNotFoundError), path.open() as lines:
-        for line in lines:
-            with contextlib.suppress(ValueError, KeyError):
-                record = WireRecord.from_json(line)
+class Tail:
+    """The frames a bus's devices received, from the record its simulator is writing: each
+    look reads only what was added since the last (a line not yet ended waits for the next)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.received: list[WireRecord] = []
+        self.unreadable = 0  # lines that did not parse (none are expected)
+        self._offset = 0
+
+    def read(self) -> list[WireRecord]:
+        with contextlib.suppress(FileNotFoundError), self.path.open("rb") as stream:
+            stream.seek(self._offset)
+            added = stream.read()
+            ended = added.rfind(b"\n") + 1
+            self._offset += ended
+            for line in added[:ended].splitlines():
+                try:
+                    record = WireRecord.from_json(line.decode())
+                except (ValueError, KeyError):
+                    self.unreadable += 1
+                    continue
                 if record.direction == "rx":
-                    records.append(record)
-    return records
+                    self.received.append(record)
+        return self.received
 
 
 def _wire(wire: bytes | CanFrame) -> str:
@@ -122,8 +139,12 @@ class Gateway:
     within: list[str] = field(default_factory=list)  # its host's command prefix (netns)
     process: DemoProcess | None = None
 
-    def record(self, bus: str) -> Path:
-        return self.records / f"{bus}.jsonl"
+    tails: dict[str, Tail] = field(default_factory=dict)
+
+    def received(self, bus: str) -> list[WireRecord]:
+        """What ``bus``'s devices received so far (since the gateway last started)."""
+        tail = self.tails.setdefault(bus, Tail(self.records / f"{bus}.jsonl"))
+        return tail.read()
 
 
 @dataclass
@@ -138,6 +159,7 @@ class Fleet:
 
     def start_gateway(self, name: str) -> None:
         gateway = self.gateways[name]
+        gateway.tails.clear()  # its records are written anew
         gateway.process = DemoProcess(
             gateway.connect, "--connect", gateway.connect, "--name", name, "--no-dashboard",
             "--record", str(gateway.records), within=gateway.within)
@@ -156,11 +178,13 @@ class Fleet:
         for gateway in self.gateways.values():
             for bus in DEMO_BUSES:
                 wires = safe_stop_wires(bus)
-                for record in received(gateway.record(bus.name)):
+                for record in reversed(gateway.received(bus.name)):
+                    if record.start < moment - LOOK_BACK_S:  # in order, near enough
+                        break
                     for ident, wire in wires.items():
                         key = (gateway.name, bus.name, ident)
-                        if record.start > moment and record.wire == wire and key not in found:
-                            found[key] = record.start
+                        if record.start > moment and record.wire == wire:
+                            found[key] = min(record.start, found.get(key, math.inf))
         return found
 
     def expected_stops(self) -> set[tuple[str, str, int]]:

@@ -236,23 +236,38 @@ function draw(device, start, end) {
 
 // -- events --------------------------------------------------------------------------------
 
+let lastEvent = {key: null, item: null, count: 0};
+
 function showEvent({gateway, event}) {
-  const item = document.createElement("li");
-  item.className = String(event.type);
   const {ts, device, type, ...rest} = event;
   const when = typeof ts === "number" ? new Date(ts * 1000).toLocaleTimeString() : "?";
+  const pairs = Object.entries(rest).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`);
+  // The same event again (a claim renewed, a device going on and off line) folds into one
+  // line with a count, so one chatty device does not push the others' events away.
+  const key = JSON.stringify([gateway, device, type, pairs]);
+  if (key === lastEvent.key && lastEvent.item.isConnected) {
+    lastEvent.count++;
+    lastEvent.item.querySelector(".when").textContent = `${when} ${gateway}/${device} `;
+    lastEvent.item.querySelector(".count").textContent = ` ×${lastEvent.count}`;
+    return;
+  }
+  const item = document.createElement("li");
+  item.className = String(type);
   const where = document.createElement("span");
+  where.className = "when";
   where.textContent = `${when} ${gateway}/${device} `;
   const what = document.createElement("span");
   what.className = "type";
   what.textContent = String(type);
   const details = document.createElement("span");
-  const pairs = Object.entries(rest).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`);
   details.textContent = pairs.length ? ` ${pairs.join(" ")}` : "";
-  item.append(where, what, details);
+  const count = document.createElement("span");
+  count.className = "count";
+  item.append(where, what, details, count);
   const list = $("events");
   list.prepend(item);
   while (list.children.length > EVENTS_SHOWN) list.lastElementChild.remove();
+  lastEvent = {key, item, count: 1};
 }
 
 // -- what the server pushes ----------------------------------------------------------------

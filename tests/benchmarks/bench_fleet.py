@@ -108,8 +108,12 @@ def estop_once(fleet: Fleet, client: bc.Client, page) -> dict[tuple[str, str, in
         page.evaluate("() => document.getElementById('estop-fleet').click()")
     else:
         client.estop()
-    wait_until(lambda: set(fleet.estop_frames_after(started)) == expected,
-               "an e-stop frame on every device")
+    try:
+        wait_until(lambda: set(fleet.estop_frames_after(started)) == expected,
+                   "an e-stop frame on every device")
+    except TimeoutError:
+        missing = sorted(expected - set(fleet.estop_frames_after(started)))
+        raise TimeoutError(f"no e-stop frame on the wire of {missing}") from None
     return {key: at - started for key, at in fleet.estop_frames_after(started).items()}
 
 
@@ -134,6 +138,9 @@ def estop_trials(fleet: Fleet, client: bc.Client, trials: int, pages: dict) -> N
         print(f"   {how} → every device stopped: {figures(values)}")
     for key, values in sorted(to_bus.items()):
         print(f"   {key} (its first device): {figures(values)}")
+    unreadable = sum(t.unreadable for g in fleet.gateways.values() for t in g.tails.values())
+    if unreadable:
+        print(f"   ({unreadable} lines of the wire records did not parse)")
     enable_all(client, names)
 
 
