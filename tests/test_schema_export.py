@@ -43,7 +43,7 @@ from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import Telemetry
-from busgate.schemas import api, trajectory
+from busgate.schemas import api, exported, trajectory
 from busgate.schemas.config import Config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -179,15 +179,15 @@ def test_the_committed_schemas_are_up_to_date():
 
 def test_the_schema_folder_holds_data_only():
     assert {p.suffix for p in SCHEMA_DIR.iterdir()} == {".json"}
-    assert sorted(p.name for p in SCHEMA_DIR.iterdir()) == sorted(schema_cli.SCHEMAS)
+    assert sorted(p.name for p in SCHEMA_DIR.iterdir()) == sorted(exported.SCHEMAS)
 
 
 def test_output_is_deterministic_and_ends_with_one_newline():
-    first, second = schema_cli.generated(), schema_cli.generated()
+    first, second = exported.generated(), exported.generated()
     assert first == second
     for text in first.values():
         assert text.endswith("}\n") and not text.endswith("\n\n")
-        assert json.loads(text)["$schema"] == schema_cli.DRAFT
+        assert json.loads(text)["$schema"] == exported.DRAFT
 
 
 def test_check_names_the_stale_files_and_writing_fixes_them(tmp_path, capsys):
@@ -405,10 +405,11 @@ def test_bus_stats_match_the_bus_stats_schema_and_name_every_counter():
     for interval in (0.0201, 0.0199, 0.0202):
         counters.follow_interval(interval, 0.02)
     for snapshot in (counters.snapshot(2.0), BusCounters(started=0.0).snapshot(1.0)):
-        stats = {"ts": time.time(), "bus": "uart0", **asdict(snapshot)}
+        stats = {"ts": time.time(), "bus": "uart0", "up": True, **asdict(snapshot)}
         assert_valid("bus_stats.json", stats)
         api.BusStatistics.model_validate(stats)
-    assert set(api.BusStatistics.model_fields) == {f.name for f in fields(BusStats)} | {"ts", "bus"}
+    assert set(api.BusStatistics.model_fields) == (
+        {f.name for f in fields(BusStats)} | {"ts", "bus", "up"})
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "deploy" / "config").glob("*.toml")),
