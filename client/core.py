@@ -23,6 +23,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
@@ -299,9 +300,18 @@ class Core:
     def subscribe(self, key: str, sink: Callable[[str, bytes], None]) -> Callable[[], None]:
         """Hand each sample on ``key`` to ``sink(key, payload)`` (zenoh's thread: it may not
         block); returns what ends the subscription."""
+        return self.subscribe_timed(key, lambda key, payload, ns: sink(key, payload))
+
+    def subscribe_timed(
+        self, key: str, sink: Callable[[str, bytes, int], None]
+    ) -> Callable[[], None]:
+        """As ``subscribe``, with each sample's time in ns since the epoch: its zenoh
+        timestamp where it carries one, else when it arrived here."""
 
         def on_sample(sample: zenoh.Sample) -> None:
-            sink(str(sample.key_expr), sample.payload.to_bytes())
+            stamp = sample.timestamp
+            ns = time.time_ns() if stamp is None else _timestamp_ns(stamp)
+            sink(str(sample.key_expr), sample.payload.to_bytes(), ns)
 
         try:
             subscriber = self.session.declare_subscriber(check_key(key), on_sample)
@@ -341,6 +351,11 @@ class Core:
             listeners = list(self._listeners)
         for listener in listeners:
             listener(gateway, alive)
+
+
+def _timestamp_ns(stamp: zenoh.Timestamp) -> int:
+    moment = stamp.get_time()  # a datetime, in UTC
+    return int(moment.timestamp()) * 1_000_000_000 + moment.microsecond * 1_000
 
 
 def _quietly(undeclare: Callable[[], None]) -> None:

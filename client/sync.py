@@ -159,6 +159,14 @@ class Client:
         """A put on ``key`` (bytes or text as given, a dict as JSON)."""
         self._shared.core.put(key, raw_payload(payload) or b"")
 
+    def subscribe_raw(
+        self, key: str, callback: Callable[[str, bytes, int], None]
+    ) -> Callable[[], None]:
+        """``callback(key, payload, ns)`` for every sample on ``key``: its bytes as they came
+        and its time (ns since the epoch: zenoh's timestamp where it has one, else its
+        arrival), on zenoh's thread; returns what ends the subscription (``busgate record``)."""
+        return self._shared.core.subscribe_timed(key, callback)
+
     def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
         """``callback(key, body)`` for every sample on ``key``, on zenoh's thread (it must not
         block: hand over and return); returns what ends the subscription."""

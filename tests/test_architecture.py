@@ -25,7 +25,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "scheduler", "service", "sim", "trajectory")
+GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "recording", "scheduler", "service", "sim",
+                 "trajectory")
 
 #: Each room and the rooms it may import ("gateway" is the package itself: its version).
 ALLOWED: dict[str, set[str]] = {
@@ -44,10 +45,10 @@ ALLOWED: dict[str, set[str]] = {
                         "gateway.trajectory"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.trajectory": {"codecs", "schemas"},
+    "gateway.recording": {"codecs", "schemas"},
     "gateway.cli": {"codecs", "schemas", "client", "dashboard", "gateway", "gateway.bus",
-                    "gateway.drivers",
-                    "gateway.scheduler", "gateway.api", "gateway.service", "gateway.sim",
-                    "gateway.trajectory"},
+                    "gateway.drivers", "gateway.recording", "gateway.scheduler", "gateway.api",
+                    "gateway.service", "gateway.sim", "gateway.trajectory"},
 }
 
 

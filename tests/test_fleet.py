@@ -14,6 +14,7 @@ import pytest
 import busgate.client as bc
 from tests.browser import browser_page, needs_chromium
 from tests.fleet import DEVICES_PER_GATEWAY, Hosts, running_fleet
+from tests.sdk_helpers import patiently
 
 pytestmark = needs_chromium
 
@@ -96,9 +97,9 @@ def test_the_fleet_estop_button_stops_every_device_of_every_gateway_on_the_wire(
     until(page, "() => [...document.querySelectorAll('article[data-device] .power-badge')]"
           ".every(b => b.dataset.value === 'e-stopped')")
     for gateway in NAMES:
-        for device in client.gateways()[gateway]["buses"]:
-            for entry in device["devices"]:
-                client.device(f"{gateway}/{entry['name']}").enable()
+        for bus in client.gateways()[gateway]["buses"]:
+            for entry in bus["devices"]:
+                patiently(client.device(f"{gateway}/{entry['name']}").enable)
     until(page, "() => ![...document.querySelectorAll('article[data-device] .power-badge')]"
           ".some(b => b.dataset.value === 'e-stopped')")
 

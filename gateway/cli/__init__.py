@@ -39,6 +39,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "serve a live web page of every gateway: devices, plots, events, e-stop",
     ),
     "demo": ("busgate.gateway.cli.demo", "run the gateway on simulated devices of every kind"),
+    "record": (
+        "busgate.gateway.cli.record",
+        "record the fleet's telemetry to an MCAP file (--info: what a file holds)",
+    ),
+    "replay": ("busgate.gateway.cli.record", "publish a recording's telemetry again"),
     "router": (
         "busgate.gateway.cli.router",
         "run a zenoh router for many gateways (where zenohd is not installed)",

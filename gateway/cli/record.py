@@ -1,0 +1,218 @@
+"""``busgate record`` and ``busgate replay``: the fleet's telemetry to an MCAP file and back
+(``busgate.gateway.recording.mcap_log``), through a ``busgate.client`` session opened with
+the client commands' options.
+
+Rules of this file:
+
+1. Recording never blocks zenoh's threads: a sample is put in a bounded queue and written by
+   one writer thread. When the queue is full (a disk slower than the fleet) the sample is
+   dropped and counted; the progress line and the last line say how many.
+2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
+   queue is written out, and the file gets its summary and index (a complete MCAP file).
+3. An existing file is never overwritten: a recording is evidence.
+4. Replay publishes only telemetry (``mcap_log.REPLAYED_LEAVES``): never a command, a follow
+   target or an e-stop, whatever the file holds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import IO
+
+from busgate.client.keys import check_key
+from busgate.codecs.errors import CommandError
+from busgate.gateway.cli.client_session import add_session_options, open_client
+from busgate.gateway.recording import mcap_log
+
+QUEUE_MAX = 100_000
+PROGRESS_EVERY_S = 1.0
+MAX_SPEED = 1000.0
+PREFIX_METADATA = "busgate"
+
+
+def add_parsers(subparsers: argparse._SubParsersAction) -> None:
+    record = subparsers.add_parser(
+        "record",
+        description="Record every message under the prefix (states, events, bus statistics, "
+        "trajectory feedback, e-stops), or the KEYEXPRs given, to an MCAP file: a channel "
+        "per key, JSON messages with their JSON Schemas. Ends on Ctrl-C, SIGTERM or "
+        "--seconds with a complete file. --info FILE prints what a file holds.",
+    )
+    add_session_options(record)
+    record.add_argument("keys", nargs="*", metavar="KEYEXPR", help="what to record")
+    record.add_argument("-o", "--output", metavar="FILE.mcap", help="the file to write")
+    record.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    record.add_argument("--info", metavar="FILE.mcap", help="print a file's channels and span")
+    record.set_defaults(handler=run_record)
+    replay = subparsers.add_parser(
+        "replay",
+        description="Publish a recording's telemetry again at its pace (or --speed times "
+        "it), so busgate watch and the dashboard can be pointed at it. Never publishes a "
+        "command, follow target or e-stop.",
+    )
+    add_session_options(replay)
+    replay.add_argument("file", metavar="FILE.mcap")
+    replay.add_argument("--speed", type=float, default=1.0, help="how much faster (default 1)")
+    replay.set_defaults(handler=run_replay)
+
+
+# -- record -----------------------------------------------------------------------------------
+
+
+def run_record(args: argparse.Namespace) -> int:
+    if args.info is not None:
+        return _print_info(Path(args.info))
+    if args.output is None:
+        raise CommandError("name the file to write: -o FILE.mcap (or --info FILE.mcap)")
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise CommandError(f"--seconds is a positive number, not {args.seconds}")
+    keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]
+    try:
+        stream = Path(args.output).open("xb")  # noqa: SIM115 - rule 3; closed by the with below
+    except FileExistsError:
+        raise CommandError(f"{args.output} exists: a recording is never overwritten") from None
+    except OSError as exc:
+        raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+    with stream, open_client(args, "record") as client:
+        recording = Recording(stream, args.prefix)
+        ends = [client.subscribe_raw(key, recording.take) for key in keys]
+        until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
+        print(f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
+              file=sys.stderr, flush=True)
+        try:
+            recording.run_until_stopped(args.seconds)
+        finally:
+            for end in ends:
+                end()
+            recording.close()
+    return 0
+
+
+class Recording:
+    """Samples in (``take``, zenoh's threads), the file written on one thread (rule 1)."""
+
+    def __init__(self, stream: IO[bytes], prefix: str) -> None:
+        self._log = mcap_log.McapLog(stream, prefix)
+        self._log.metadata(PREFIX_METADATA, {"prefix": prefix})
+        self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
+        self.dropped = 0
+        self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
+        self._writer.start()
+
+    def take(self, key: str, payload: bytes, ns: int) -> None:
+        try:
+            self._queue.put_nowait((key, payload, ns))
+        except queue.Full:
+            self.dropped += 1
+
+    def _write(self) -> None:
+        while (item := self._queue.get()) is not None:
+            self._log.add(*item)
+
+    def run_until_stopped(self, seconds: float | None) -> None:
+        """Show progress until a signal or ``seconds`` (rule 2)."""
+        stop = threading.Event()
+        previous = {
+            s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)
+        }
+        started = time.monotonic()
+        try:
+            while not stop.wait(
+                PROGRESS_EVERY_S
+                if seconds is None
+                else min(PROGRESS_EVERY_S, max(0.0, started + seconds - time.monotonic()))
+            ):
+                self._progress(time.monotonic() - started, end="\r")
+                if seconds is not None and time.monotonic() - started >= seconds:
+                    break
+        finally:
+            for number, handler in previous.items():
+                signal.signal(number, handler)
+        self._elapsed = time.monotonic() - started
+
+    def _progress(self, elapsed: float, end: str) -> None:
+        log = self._log
+        rate = log.messages / elapsed if elapsed > 0 else 0.0
+        print(
+            f"busgate record: {log.messages} messages, {log.bytes / 1024:.0f} KiB, "
+            f"{rate:.0f}/s, {self.dropped} dropped",
+            end=end,
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def close(self) -> None:
+        """Write what is queued, then the summary and index."""
+        self._queue.put(None)
+        self._writer.join()
+        self._log.finish()
+        self._progress(getattr(self, "_elapsed", 0.0), end="\n")
+        if self.dropped:
+            print(
+                f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
+                file=sys.stderr,
+            )
+
+
+def _print_info(path: Path) -> int:
+    try:
+        with path.open("rb") as stream:
+            found = mcap_log.summary(stream)
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+    except Exception as exc:  # the mcap reader's errors have no common base
+        raise CommandError(f"{path} is not a complete MCAP file: {exc}") from None
+    span = (found["end_ns"] - found["start_ns"]) / 1e9 if found["messages"] else 0.0
+    print(
+        f"{path}: {found['messages']} messages in {len(found['channels'])} channels over "
+        f"{span:.3f} s"
+    )
+    for channel in found["channels"]:
+        print(
+            f"  {channel['messages']:>8}  {channel['topic']}  ({channel['schema'] or 'no schema'})"
+        )
+    return 0
+
+
+# -- replay -----------------------------------------------------------------------------------
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
+        raise CommandError(f"--speed is above 0 and at most {MAX_SPEED:g}, not {args.speed}")
+    path = Path(args.file)
+    try:
+        stream = path.open("rb")
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+    with stream, open_client(args, "replay") as client:
+        recorded_prefix = mcap_log.recorded_metadata(stream, PREFIX_METADATA).get("prefix")
+        sent = skipped = 0
+        first: int | None = None
+        started = time.monotonic()
+        for message in mcap_log.messages(stream):
+            leaf = message.topic.rsplit("/", 1)[-1]
+            if leaf not in mcap_log.REPLAYED_LEAVES:  # rule 4
+                skipped += 1
+                continue
+            first = message.log_time_ns if first is None else first
+            due = started + (message.log_time_ns - first) / 1e9 / args.speed
+            time.sleep(max(0.0, due - time.monotonic()))
+            topic = message.topic
+            if recorded_prefix and topic.startswith(recorded_prefix + "/"):
+                topic = args.prefix + topic[len(recorded_prefix) :]
+            client.put(topic, message.data)
+            sent += 1
+    print(
+        f"busgate replay: {sent} messages in {time.monotonic() - started:.1f} s; {skipped} "
+        "on command or e-stop keys left out",
+        file=sys.stderr,
+    )
+    return 0

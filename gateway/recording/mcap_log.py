@@ -1,0 +1,162 @@
+"""busgate's messages in an MCAP file: one channel per key, message encoding ``json``, each
+channel's schema the JSON Schema its key's messages follow (``busgate.schemas.exported``,
+schema encoding ``jsonschema``), so that Foxglove, PlotJuggler or Rerun plot the fields as
+they are.
+
+Rules of this file:
+
+1. A key's schema comes from the key's shape alone (and, for a state, the device's kind in
+   the message): ``.../dev/<d>/state`` a kind's telemetry, ``.../dev/<d>/event`` and
+   ``.../events`` the event, ``.../bus/<b>/stats`` the bus statistics. A key of no known
+   shape (an e-stop, a trajectory's feedback) gets a channel without a schema.
+2. Times are nanoseconds: the log time when the sample was taken (zenoh's timestamp where it
+   has one), the publish time the message's own ``ts`` (else the log time).
+3. Replay publishes only what is telemetry: never on a key that commands or stops
+   (``REPLAYED_LEAVES`` names what may be published again).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import IO, Any
+
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from busgate.schemas.exported import SCHEMAS, generated
+
+LIBRARY = "busgate"
+#: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
+REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback"})
+
+
+def schema_name(key: str, prefix: str, body: Any) -> str | None:
+    """The file name of the JSON Schema the messages on ``key`` follow (rule 1)."""
+    chunks = key[len(prefix) + 1 :].split("/") if key.startswith(prefix + "/") else []
+    if len(chunks) == 4 and chunks[1] == "dev" and chunks[3] == "state":
+        kind = body.get("kind") if isinstance(body, dict) else None
+        name = f"telemetry.{kind}.json"
+        return name if name in SCHEMAS else None
+    if (len(chunks) == 4 and chunks[1] == "dev" and chunks[3] == "event") or (
+        len(chunks) == 2 and chunks[1] == "events"
+    ):
+        return "event.json"
+    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "stats":
+        return "bus_stats.json"
+    return None
+
+
+def publish_time_ns(body: Any, log_time_ns: int) -> int:
+    """The message's own ``ts`` in ns (rule 2), else its log time."""
+    ts = body.get("ts") if isinstance(body, dict) else None
+    if isinstance(ts, int | float) and not isinstance(ts, bool) and math.isfinite(ts) and ts > 0:
+        return int(ts * 1e9)
+    return log_time_ns
+
+
+class McapLog:
+    """Writes messages to an MCAP stream, a channel per key (opened on its first message)."""
+
+    def __init__(self, stream: IO[bytes], prefix: str) -> None:
+        self._writer = Writer(stream)
+        self._writer.start(profile="", library=LIBRARY)
+        self._prefix = prefix
+        self._texts = generated()
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.messages = 0
+        self.bytes = 0
+
+    def add(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        try:
+            body = json.loads(payload)
+        except (ValueError, RecursionError):
+            body = None
+        channel = self._channels.get(key)
+        if channel is None:
+            channel = self._channels[key] = self._writer.register_channel(
+                topic=key, message_encoding="json", schema_id=self._schema(key, body)
+            )
+        self._writer.add_message(
+            channel,
+            log_time=log_time_ns,
+            data=payload,
+            publish_time=publish_time_ns(body, log_time_ns),
+            sequence=self.messages,
+        )
+        self.messages += 1
+        self.bytes += len(payload)
+
+    def _schema(self, key: str, body: Any) -> int:
+        name = schema_name(key, self._prefix, body)
+        if name is None:
+            return 0  # MCAP's "no schema"
+        if name not in self._schemas:
+            self._schemas[name] = self._writer.register_schema(
+                name=name.removesuffix(".json"),
+                encoding="jsonschema",
+                data=self._texts[name].encode(),
+            )
+        return self._schemas[name]
+
+    def metadata(self, name: str, values: dict[str, str]) -> None:
+        """A metadata record (what ``recorded_metadata`` reads back)."""
+        self._writer.add_metadata(name, values)
+
+    def finish(self) -> None:
+        """Write the summary and the index: the file is complete and readable."""
+        self._writer.finish()
+
+
+@dataclass(frozen=True)
+class Recorded:
+    topic: str
+    data: bytes
+    log_time_ns: int
+
+
+def messages(stream: IO[bytes]) -> Iterator[Recorded]:
+    """Every message of an MCAP file, in log-time order."""
+    stream.seek(0)
+    for _, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+        yield Recorded(channel.topic, message.data, message.log_time)
+
+
+def recorded_metadata(stream: IO[bytes], name: str) -> dict[str, str]:
+    """The values of the metadata record ``name`` (empty when there is none)."""
+    stream.seek(0)
+    found = {}
+    for record in make_reader(stream).iter_metadata():
+        if record.name == name:
+            found = dict(record.metadata)
+    return found
+
+
+def summary(stream: IO[bytes]) -> dict[str, Any]:
+    """What a file holds: each channel's topic, schema and message count, and the time span
+    (ns) of its messages."""
+    found = make_reader(stream).get_summary()
+    if found is None or found.statistics is None:
+        raise ValueError("the file has no summary (it was not finished)")
+    statistics = found.statistics
+    counts = Counter(statistics.channel_message_counts)
+    channels = []
+    for channel_id, channel in sorted(found.channels.items(), key=lambda item: item[1].topic):
+        schema = found.schemas.get(channel.schema_id)
+        channels.append(
+            {
+                "topic": channel.topic,
+                "schema": schema.name if schema is not None else None,
+                "messages": counts[channel_id],
+            }
+        )
+    return {
+        "messages": statistics.message_count,
+        "start_ns": statistics.message_start_time,
+        "end_ns": statistics.message_end_time,
+        "channels": channels,
+    }

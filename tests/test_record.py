@@ -1,0 +1,169 @@
+"""``busgate record`` and ``busgate replay`` as child processes against ``busgate demo``: the
+file read back with the ``mcap`` library's own reader (a channel per key, each with its JSON
+Schema, every message published while it recorded, times in order), SIGINT ending it with a
+complete file, every refusal one line with exit status 2, and replay publishing the
+telemetry again, in order and never early, and nothing on a command or e-stop key."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+
+import pytest
+from mcap.reader import make_reader
+
+import busgate.client as bc
+from busgate.schemas.exported import generated
+from tests.gateway_process import BUSGATE, TIMEOUT_S, run_busgate
+
+TEST_KEY = "busgate/rec-test/dev/x/state"
+COUNT = 60
+EVERY_S = 0.01
+
+
+@pytest.fixture(scope="module")
+def client(module_demo):
+    with bc.connect(module_demo.endpoint, client_id="record-test") as c:
+        yield c
+
+
+def record(module_demo, path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([*BUSGATE, "record", "--connect", module_demo.endpoint, "-o",
+                             str(path), *args], stderr=subprocess.PIPE, text=True)
+
+
+def wait_recording(recorder: subprocess.Popen) -> str:
+    """Its first line, once its subscriptions are declared."""
+    line = recorder.stderr.readline()
+    assert line.startswith("busgate record: recording "), line
+    time.sleep(0.5)  # its subscriptions reached the demo
+    return line
+
+
+def publish_known(client) -> list[bytes]:
+    """``COUNT`` states of a made-up device, ``EVERY_S`` apart, plus a command and an e-stop
+    put under the prefix (what replay must never publish again)."""
+    sent = []
+    for n in range(COUNT):
+        payload = json.dumps({"ts": time.time(), "device": "x", "kind": "inspire_la",
+                              "n": n}).encode()
+        client.put(TEST_KEY, payload)
+        sent.append(payload)
+        time.sleep(EVERY_S)
+    client.put("busgate/rec-test/dev/x/cmd", {"op": "move", "position": 1})
+    client.put("busgate/rec-test/estop", {"client": "record-test"})
+    return sent
+
+
+@pytest.fixture(scope="module")
+def recorded(module_demo, client, tmp_path_factory):
+    path = tmp_path_factory.mktemp("record") / "demo.mcap"
+    recorder = record(module_demo, path)
+    try:
+        line = wait_recording(recorder)
+        assert line.rstrip() == f"busgate record: recording busgate/** to {path} until Ctrl-C"
+        sent = publish_known(client)
+        time.sleep(0.5)
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        _, stderr = recorder.communicate(timeout=TIMEOUT_S)
+    assert recorder.returncode == 0, stderr
+    return path, sent, stderr
+
+
+def test_every_channel_has_its_key_and_schema_and_every_message_came(recorded) -> None:
+    path, sent, stderr = recorded
+    assert "0 dropped" in stderr.splitlines()[-1]
+    texts = generated()
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None  # finished: indexed
+        topics = {c.topic: c for c in summary.channels.values()}
+        for topic, channel in topics.items():
+            assert channel.message_encoding == "json"
+            if topic.endswith(("/state", "/stats", "/events", "/event")):
+                schema = summary.schemas[channel.schema_id]
+                assert schema.encoding == "jsonschema"
+                assert schema.data.decode() == texts[f"{schema.name}.json"], topic
+        assert summary.schemas[topics["busgate/demo/dev/la1/state"].schema_id].name == (
+            "telemetry.inspire_la")
+        assert summary.schemas[topics["busgate/demo/bus/uart0/stats"].schema_id].name == (
+            "bus_stats")
+        assert topics["busgate/rec-test/estop"].schema_id == 0  # no schema for an e-stop
+        ours = [(m.data, m.log_time, m.publish_time)
+                for _, c, m in reader.iter_messages(topics=[TEST_KEY], log_time_order=False)]
+    assert [data for data, _, _ in ours] == sent
+    log_times = [log for _, log, _ in ours]
+    assert log_times == sorted(log_times)
+    for data, _, published in ours:
+        assert published == int(json.loads(data)["ts"] * 1e9)
+
+
+def test_info_names_each_channel_its_count_and_the_span(recorded) -> None:
+    path, _, _ = recorded
+    done = run_busgate("record", "--info", str(path))
+    assert done.returncode == 0, done
+    first, *channels = done.stdout.splitlines()
+    assert first.startswith(f"{path}: ") and " messages in " in first and first.endswith(" s")
+    assert f"  {COUNT:>8}  {TEST_KEY}  (telemetry.inspire_la)" in channels
+    assert f"  {1:>8}  busgate/rec-test/estop  (no schema)" in channels
+
+
+def test_replay_publishes_the_telemetry_again_in_order_never_early_and_no_command(
+        recorded, module_demo, client) -> None:
+    path, sent, _ = recorded
+    heard: list[tuple[str, bytes, float]] = []
+    end = client.subscribe_raw("replayed/**",
+                               lambda key, payload, ns: heard.append((key, payload,
+                                                                      time.monotonic())))
+    try:
+        done = run_busgate("replay", str(path), "--connect", module_demo.endpoint,
+                           "--prefix", "replayed", "--speed", "2")
+        time.sleep(0.5)
+    finally:
+        end()
+    assert done.returncode == 0, done
+    assert "2 on command or e-stop keys left out" in done.stderr
+    ours = [(payload, at) for key, payload, at in heard if key == "replayed/rec-test/dev/x/state"]
+    assert [payload for payload, _ in ours] == sent
+    assert not [key for key, _, _ in heard if key.endswith(("/cmd", "/estop", "/follow"))]
+    assert {key.split("/")[1] for key, _, _ in heard} >= {"demo", "rec-test"}
+    # paced: the last came no sooner than the recorded span, at twice the speed, after the
+    # first (a sleep never wakes early); how close to the pace it keeps, a benchmark's to say
+    assert ours[-1][1] - ours[0][1] >= (COUNT - 1) * EVERY_S / 2 * 0.9
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["record"], "name the file to write"),
+    (["record", "-o", "{tmp}/x.mcap", "--seconds", "0"], "--seconds is a positive number"),
+    (["record", "-o", "{tmp}/x.mcap", "--seconds", "nan"], "--seconds is a positive number"),
+    (["record", "-o", "{tmp}/x.mcap", "a//b"], "a//b"),
+    (["record", "-o", "{tmp}/exists.mcap"], "exists: a recording is never overwritten"),
+    (["record", "-o", "{tmp}/no/such/dir/x.mcap"], "cannot write"),
+    (["record", "--info", "{tmp}/none.mcap"], "cannot read"),
+    (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),
+    (["replay", "{tmp}/none.mcap"], "cannot read"),
+    (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is above 0"),
+    (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is above 0"),
+])
+def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message) -> None:
+    (tmp_path / "exists.mcap").write_bytes(b"not an mcap file")
+    done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),
+                       "--connect", "tcp/127.0.0.1:1")
+    assert done.returncode == 2, done
+    assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_seconds_ends_a_recording_with_a_complete_file(module_demo, tmp_path) -> None:
+    path = tmp_path / "short.mcap"
+    recorder = record(module_demo, path, "--seconds", "1", "busgate/demo/dev/la1/state")
+    _, stderr = recorder.communicate(timeout=TIMEOUT_S)
+    assert recorder.returncode == 0, stderr
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics.message_count > 0
+    assert {c.topic for c in summary.channels.values()} == {"busgate/demo/dev/la1/state"}
