@@ -84,8 +84,11 @@ def run_record(args: argparse.Namespace) -> int:
         recording = Recording(stream, args.prefix)
         ends = [client.subscribe_raw(key, recording.take) for key in keys]
         until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
-        print(f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
-              file=sys.stderr, flush=True)
+        print(
+            f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
+            file=sys.stderr,
+            flush=True,
+        )
         try:
             recording.run_until_stopped(args.seconds)
         finally:
@@ -103,6 +106,7 @@ class Recording:
         self._log.metadata(PREFIX_METADATA, {"prefix": prefix})
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self.dropped = 0
+        self.elapsed_s = 0.0
         self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
         self._writer.start()
 
@@ -119,23 +123,18 @@ class Recording:
     def run_until_stopped(self, seconds: float | None) -> None:
         """Show progress until a signal or ``seconds`` (rule 2)."""
         stop = threading.Event()
-        previous = {
-            s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)
-        }
+        stopping = (signal.SIGINT, signal.SIGTERM)
+        previous = {number: signal.signal(number, lambda *_: stop.set()) for number in stopping}
         started = time.monotonic()
+        deadline = math.inf if seconds is None else started + seconds
         try:
-            while not stop.wait(
-                PROGRESS_EVERY_S
-                if seconds is None
-                else min(PROGRESS_EVERY_S, max(0.0, started + seconds - time.monotonic()))
-            ):
+            while not stop.is_set() and time.monotonic() < deadline:
+                stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
                 self._progress(time.monotonic() - started, end="\r")
-                if seconds is not None and time.monotonic() - started >= seconds:
-                    break
         finally:
             for number, handler in previous.items():
                 signal.signal(number, handler)
-        self._elapsed = time.monotonic() - started
+        self.elapsed_s = time.monotonic() - started
 
     def _progress(self, elapsed: float, end: str) -> None:
         log = self._log
@@ -153,7 +152,7 @@ class Recording:
         self._queue.put(None)
         self._writer.join()
         self._log.finish()
-        self._progress(getattr(self, "_elapsed", 0.0), end="\n")
+        self._progress(self.elapsed_s, end="\n")
         if self.dropped:
             print(
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
