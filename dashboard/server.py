@@ -21,6 +21,7 @@ from typing import Any
 import uvicorn
 
 from busgate.client import aio
+from busgate.client.errors import error_for
 from busgate.codecs.errors import CommandError
 from busgate.dashboard.app import create_app
 from busgate.dashboard.feed import Feed
@@ -31,6 +32,7 @@ DEFAULT_LISTEN = "127.0.0.1:8080"
 #: A port as digits only: ``int`` would also take " 80", "+80", "8_0" and "٨٠".
 PORT = re.compile(r"[0-9]{1,5}")
 STARTED_POLL_S = 0.02
+ENABLE_TRIES = 3
 GRACE_S = 2  # how long a stop waits for requests under way
 
 
@@ -101,8 +103,17 @@ class ClientActions:
         await self._client.estop(gateway)
 
     async def enable(self, device: str) -> dict[str, Any]:
+        """The device's re-enable command, sent again (``ENABLE_TRIES`` in all) while its reply
+        times out: a timeout says nothing of whether it was taken, and enabling an enabled
+        device changes nothing."""
         found = await self._client.device(device)
-        return await found.enable()
+        for attempt in range(1, ENABLE_TRIES + 1):
+            try:
+                return await found.enable()
+            except error_for("device_timeout"):
+                if attempt == ENABLE_TRIES:
+                    raise
+        raise AssertionError("unreachable")
 
 
 class _EmbeddedServer(uvicorn.Server):

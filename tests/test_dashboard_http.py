@@ -15,6 +15,7 @@ import pytest
 
 import busgate.client as bc
 from busgate.dashboard.app import MAX_BODY
+from tests.sdk_helpers import patiently
 
 VENDOR = Path(__file__).resolve().parent.parent / "dashboard" / "static" / "vendor"
 DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
@@ -158,5 +159,5 @@ def test_the_gateway_estop_stops_every_device_and_each_enable_brings_one_back(
         status, reply = post(dashboard, "/api/enable", {"device": f"demo/{device}"})
         assert status == 200 and reply["ok"] and reply["device"] == f"demo/{device}", reply
     wait_for(lambda: not any(power(client).values()))
-    client.device("wheel").send({"op": "disable"})  # as the demo starts it
-    client.device("drive").send({"op": "disable"})
+    patiently(client.device("wheel").send, {"op": "disable"})  # as the demo starts it
+    patiently(client.device("drive").send, {"op": "disable"})

@@ -6,6 +6,7 @@ is refused in one line."""
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 
@@ -86,3 +87,21 @@ def test_the_demo_config_is_validated_like_any_config() -> None:
     with pytest.raises(ConfigError) as refused:
         demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen="9108")
     assert refused.value.path == "metrics.listen"
+
+
+def test_a_dashboard_port_in_use_stops_the_demo_saying_what_else_to_do(free_port) -> None:
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = taken.getsockname()[1]
+        done = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
+                               f"tcp/127.0.0.1:{free_port()}", "--dashboard-listen",
+                               f"127.0.0.1:{port}"], capture_output=True, text=True,
+                              timeout=TIMEOUT_S)
+    finally:
+        taken.close()
+    assert done.returncode == 2 and done.stdout == "", done
+    assert done.stderr.splitlines()[-1] == (
+        f"busgate demo: error: the dashboard cannot listen on 127.0.0.1:{port}: Address already "
+        "in use (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard serves none)")

@@ -19,7 +19,7 @@ from tests.sdk_helpers import patiently
 pytestmark = needs_chromium
 
 NAMES = ["gw1", "gw2", "gw3"]
-WAIT_MS = 20_000  # a hang guard: conditions are waited for, not timed
+WAIT_MS = 40_000  # a hang guard: conditions are waited for, not timed
 GONE_WITHIN_MS = 2_000  # the contract's bound for a dead gateway to leave the page
 
 
@@ -74,7 +74,7 @@ def test_every_gateway_and_every_device_appears(page) -> None:
 def test_a_device_moved_through_the_router_moves_on_the_page(page, client) -> None:
     la1 = client.device("gw2/la1")
     goal = 1700 if la1.state().position < 1000 else 300
-    la1.move(goal)
+    patiently(la1.move, goal)
     until(page, "([goal]) => document.querySelector('article[data-device=\"gw2/la1\"] "
           "dd[data-field=position]').textContent == String(goal)", goal)
     series = page.evaluate("() => window.busgateDashboard.series('gw2/la1')")

@@ -24,7 +24,7 @@ const VALUES = [  // [label, how to read it off a state, unit]
   ["current", (s) => s.current_ma, "mA"],
   ["temperature", (s) => s.temperature_c, "°C"],
   ["force", (s) => s.force_g, "g"],
-  ["faults", (s) => (s.faults && s.faults.length ? s.faults.join(", ") : "none"), ""],
+  ["faults", (s) => (faultsOf(s).length ? faultsOf(s).join(", ") : "none"), ""],
   ["age", null, "s"],
 ];
 
@@ -36,6 +36,7 @@ const renderMs = [];         // how long the last renders took (the benchmark re
 const RENDER_TIMES_KEPT = 600;
 
 const $ = (id) => document.getElementById(id);
+const faultsOf = (state) => (Array.isArray(state.faults) ? state.faults.map(String) : []);
 const now = () => Date.now() / 1000 + clockOffset;
 
 function fromTemplate(id) {
@@ -172,7 +173,7 @@ function showDevice(view) {
   const state = device.state;
   if (!state) return;
   for (const [label, read, unit] of VALUES) if (read) setText(device.fields[label], shown(read(state), unit));
-  device.fields.faults.classList.toggle("faulted", Boolean(state.faults && state.faults.length));
+  device.fields.faults.classList.toggle("faulted", faultsOf(state).length > 0);
   const link = !state.online ? "offline" : state.stale ? "stale" : "online";
   const power = state.estopped ? "e-stopped" : state.enabled === true ? "enabled" : state.enabled === false ? "off" : "unknown";
   setBadge(device.element.querySelector(".link-badge"), link);
@@ -236,38 +237,42 @@ function draw(device, start, end) {
 
 // -- events --------------------------------------------------------------------------------
 
-let lastEvent = {key: null, item: null, count: 0};
+const shownEvents = new Map();  // an event's text (without its time) → its line
 
 function showEvent({gateway, event}) {
   const {ts, device, type, ...rest} = event;
   const when = typeof ts === "number" ? new Date(ts * 1000).toLocaleTimeString() : "?";
   const pairs = Object.entries(rest).map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`);
-  // The same event again (a claim renewed, a device going on and off line) folds into one
-  // line with a count, so one chatty device does not push the others' events away.
-  const key = JSON.stringify([gateway, device, type, pairs]);
-  if (key === lastEvent.key && lastEvent.item.isConnected) {
-    lastEvent.count++;
-    lastEvent.item.querySelector(".when").textContent = `${when} ${gateway}/${device} `;
-    lastEvent.item.querySelector(".count").textContent = ` ×${lastEvent.count}`;
-    return;
-  }
-  const item = document.createElement("li");
-  item.className = String(type);
-  const where = document.createElement("span");
-  where.className = "when";
-  where.textContent = `${when} ${gateway}/${device} `;
-  const what = document.createElement("span");
-  what.className = "type";
-  what.textContent = String(type);
-  const details = document.createElement("span");
-  details.textContent = pairs.length ? ` ${pairs.join(" ")}` : "";
-  const count = document.createElement("span");
-  count.className = "count";
-  item.append(where, what, details, count);
   const list = $("events");
+  // The same event again (a claim renewed, a device going on and off line) folds into its
+  // line, moved to the top with a count, so one chatty device does not push the others away.
+  const key = JSON.stringify([gateway, device, type, pairs]);
+  let item = shownEvents.get(key);
+  if (item) {
+    item.busgateCount++;
+    item.querySelector(".count").textContent = ` ×${item.busgateCount}`;
+  } else {
+    item = document.createElement("li");
+    item.className = String(type);
+    item.busgateKey = key;
+    item.busgateCount = 1;
+    const what = document.createElement("span");
+    what.className = "type";
+    what.textContent = String(type);
+    const details = document.createElement("span");
+    details.textContent = pairs.length ? ` ${pairs.join(" ")}` : "";
+    const count = document.createElement("span");
+    count.className = "count";
+    item.append(document.createElement("span"), what, details, count);
+    item.firstChild.className = "when";
+    shownEvents.set(key, item);
+  }
+  item.querySelector(".when").textContent = `${when} ${gateway}/${device} `;
   list.prepend(item);
-  while (list.children.length > EVENTS_SHOWN) list.lastElementChild.remove();
-  lastEvent = {key, item, count: 1};
+  while (list.children.length > EVENTS_SHOWN) {
+    shownEvents.delete(list.lastElementChild.busgateKey);
+    list.lastElementChild.remove();
+  }
 }
 
 // -- what the server pushes ----------------------------------------------------------------
@@ -277,13 +282,25 @@ function apply(message, fresh) {
   if (fresh) {
     for (const name of [...gateways.keys()]) forgetGateway(name);
     $("events").replaceChildren();
+    shownEvents.clear();
   }
   for (const name of message.gone || []) forgetGateway(name);
-  for (const view of message.gateways) showGateway(view);
-  for (const view of message.devices) showDevice(view);
-  for (const entry of message.events) showEvent(entry);
+  // One malformed view (a hostile or broken gateway's) is left out, never the rest.
+  for (const view of message.gateways) guarded(showGateway, view);
+  for (const view of message.devices) guarded(showDevice, view);
+  for (const entry of message.events) guarded(showEvent, entry);
   $("empty").hidden = gateways.size > 0;
   $("counts").textContent = `${gateways.size} gateways · ${devices.size} devices`;
+}
+
+let leftOut = 0;  // views that could not be shown (the tests read it)
+
+function guarded(show, view) {
+  try {
+    show(view);
+  } catch {
+    leftOut++;
+  }
 }
 
 function connect() {
@@ -325,6 +342,7 @@ window.busgateDashboard = {  // for the browser tests and the benchmark
   series: (key) => { const d = devices.get(key); return d && {t: d.t, position: d.position, target: d.target, current: d.current}; },
   renders: () => renders,
   renderMs: () => [...renderMs],
+  leftOut: () => leftOut,
 };
 connect();
 setInterval(render, RENDER_EVERY_MS);

@@ -279,7 +279,13 @@ async def _serve_announcing(
         if not shown.done():
             stop.set()
             await serving
-            await showing  # its error
+            try:
+                await showing
+            except CommandError as exc:  # where else it could go, for a new user
+                raise CommandError(
+                    f"{exc} (--dashboard-listen 127.0.0.1:0 takes any free port, "
+                    "--no-dashboard serves none)"
+                ) from None
         url = shown.result()
     print(_hints(config, links, url), flush=True)
     await serving
