@@ -407,9 +407,10 @@ def test_end_all_takes_every_device_out_at_once_saying_so():
     tick(planner, START)
     tick(planner, START + 0.002)  # the wheel's ticker: one device a frame
     plays.stop("wheel", speed=True)  # ramping: out at once all the same
-    plays.end_all()
+    plays.end_all("the bus lost")
+    lost = END_ALL.format(why="the bus lost")
     assert trajectory_tickers(planner) == [] and planner.queued == 0
     assert all(plays.commanded(name) is None for name in ("la1", "la2", "wheel"))
-    assert plays.refusal("la1") == plays.refusal("wheel") == (START, END_ALL)
-    assert plays.refusal("la2") == (START + 0.005, END_ALL)  # the start of its own trajectory
+    assert plays.refusal("la1") == plays.refusal("wheel") == (START, lost)
+    assert plays.refusal("la2") == (START + 0.005, lost)  # the start of its own trajectory
     assert plays.refusal("la3") is None  # it played nothing

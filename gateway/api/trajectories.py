@@ -47,6 +47,7 @@ from busgate.codecs.errors import BusgateError, RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object, ok_reply
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.scheduler.plays import ESTOPPED
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.interpolation import Path, paths_of, sent
 from busgate.schemas.trajectory import (
@@ -334,6 +335,8 @@ class Trajectories:
                 return ("aborted", claim)
             refused = member.runner.plays.refusal(member.name)
             if refused is not None and refused[0] == running.start_bus:  # not an older one's
+                if refused[1] == ESTOPPED:  # (an LA's state may lag its latch: a reply in flight)
+                    return ("aborted", "estop")
                 return ("aborted", f"{member.name} {refused[1]}")
         t_s = moment - running.start_at
         if t_s < 0:

@@ -36,8 +36,12 @@ from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
 
 #: How long a speed is ramped to 0 when its device leaves a trajectory early.
 RAMP_S = 0.5
-#: Why a device left its trajectory in ``end_all`` (rule 5).
-END_ALL = "was stopped with every device of its bus (an e-stop, the bus lost, or shutdown)"
+#: Why a device left its trajectory in ``end_all`` (rule 5), by what ended them all.
+END_ALL = "was stopped with every device of its bus ({why})"
+#: What ``end_all`` is told on an e-stop; its refusal is ``ESTOPPED`` (a watcher tells the
+#: e-stop by it, whatever a driver's state says at that moment).
+ESTOP = "an e-stop"
+ESTOPPED = END_ALL.format(why=ESTOP)
 
 
 class Plays:
@@ -101,10 +105,10 @@ class Plays:
         ticker.add(ticker.playing[device].driver, _ramp_to_zero(from_s, rpm))
         ticker.ramping[device] = from_s + RAMP_S  # on this ticker's grid until then
 
-    def end_all(self) -> None:
-        """Every device out at once (rule 3: an e-stop, a lost bus, shutdown)."""
+    def end_all(self, why: str) -> None:
+        """Every device out at once (rule 3: an e-stop, a lost bus, shutdown: ``why``)."""
         for name, ticker in list(self._tickers.items()):
-            self._refusals[name] = (ticker.start, END_ALL)
+            self._refusals[name] = (ticker.start, END_ALL.format(why=why))
             self._leave(name)
 
     def after_tick(self, ticker: TrajectoryTicker) -> None:

@@ -52,7 +52,7 @@ from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
 from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
-from busgate.gateway.scheduler.plays import Plays
+from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.polling import DevicePoller
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
@@ -270,7 +270,7 @@ class BusRunner:
         # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
         self.streams.end_all("estop")
-        self.plays.end_all()
+        self.plays.end_all(ESTOP)
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
 
     def _start_stream(self, device: str, target: Any, moment: float) -> None:
@@ -389,7 +389,7 @@ class BusRunner:
         for job in self.planner.drop_commands():
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} went down"))
         self.streams.end_all("bus down")
-        self.plays.end_all()
+        self.plays.end_all("the bus lost")
         for driver in self.drivers.values():
             driver.went_offline("bus down")
         self.owner.close()
@@ -410,7 +410,7 @@ class BusRunner:
     def _shut_down(self) -> None:
         """Last deeds of the bus thread: safe state for every device, then close."""
         self.streams.end_all("shutdown")
-        self.plays.end_all()
+        self.plays.end_all("shutdown")
         for job in self.planner.drop_commands():
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
         if self.owner.is_open:
