@@ -54,7 +54,7 @@ def _certificates(directory: Path) -> None:
 #: ``busgate run`` as systemd would start it with MemoryDenyWriteExecute=yes: the kernel's
 #: PR_SET_MDWE refuses writable-and-executable memory for the rest of the process's life, the
 #: same promise the unit's seccomp filter enforces.
-MDWE_RUN = """
+MDWE_PRELUDE = """
 import ctypes, mmap, sys
 libc = ctypes.CDLL(None, use_errno=True)
 if libc.prctl(65, 1, 0, 0, 0) != 0:  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
@@ -65,8 +65,8 @@ try:
 except PermissionError:
     pass
 from busgate.gateway.cli import main
-sys.exit(main(["run", "--config", sys.argv[1]]))
 """
+MDWE_RUN = MDWE_PRELUDE + 'sys.exit(main(["run", "--config", sys.argv[1]]))\n'
 
 
 def _kernel_has_mdwe() -> bool:

@@ -30,7 +30,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.conftest import unused_loopback_port
 from tests.gateway_process import BUSGATE, TIMEOUT_S, GatewayProcess, run_busgate, serial_bus
-from tests.secured_gateway import _kernel_has_mdwe
+from tests.secured_gateway import MDWE_PRELUDE, _kernel_has_mdwe
 
 SERVING = re.compile(r"^busgate router: serving on (?P<where>.+) \(zenoh (?P<version>\S+), "
                      r"id (?P<zid>[0-9a-f]+)\)$")
@@ -38,19 +38,7 @@ SERVING = re.compile(r"^busgate router: serving on (?P<where>.+) \(zenoh (?P<ver
 QUIET = {key: value for key, value in os.environ.items() if key != "RUST_LOG"}
 #: The router's code under PR_SET_MDWE (what MemoryDenyWriteExecute=yes enforces), as in
 #: tests/secured_gateway.py for the daemon.
-MDWE_ROUTER = """
-import ctypes, mmap, sys
-libc = ctypes.CDLL(None, use_errno=True)
-if libc.prctl(65, 1, 0, 0, 0) != 0:  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
-    sys.exit(f"PR_SET_MDWE refused: errno {ctypes.get_errno()}")
-try:
-    mmap.mmap(-1, 4096, prot=mmap.PROT_READ | mmap.PROT_WRITE | mmap.PROT_EXEC)
-    sys.exit("a writable and executable mapping was allowed")
-except PermissionError:
-    pass
-from busgate.gateway.cli import main
-sys.exit(main(["router", *sys.argv[1:]]))
-"""
+MDWE_ROUTER = MDWE_PRELUDE + 'sys.exit(main(["router", *sys.argv[1:]]))\n'
 
 
 def loopback() -> str:

@@ -39,7 +39,6 @@ import argparse
 import contextlib
 import json
 import math
-import os
 import sys
 import tempfile
 import threading
@@ -53,6 +52,7 @@ import zenoh
 import busgate.client as bc
 from busgate.client.zenoh_config import session_config
 from busgate.gateway.bus.stats import percentile
+from busgate.gateway.cli.bench import cpu_s
 from tests.browser import browser_page
 from tests.fleet import Fleet, running_fleet
 
@@ -144,11 +144,6 @@ def estop_trials(fleet: Fleet, client: bc.Client, trials: int, pages: dict) -> N
     enable_all(client, names)
 
 
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 @contextlib.contextmanager
 def sines(client: bc.Client, gateways: list[str]):
     """Every mover of ``gateways`` following a sine until the block ends."""
@@ -193,10 +188,11 @@ def full_rate(fleet: Fleet, client: bc.Client, page, seconds: float, dashboard_p
         0, states[0] + 1))
     with sines(client, list(fleet.gateways)):
         time.sleep(2.0)  # the streams under way
-        cpu_before, states_before, started = cpu_seconds(dashboard_pid), states[0], time.monotonic()
+        cpu_before, started = cpu_s(f"/proc/{dashboard_pid}/stat"), time.monotonic()
+        states_before = states[0]
         times, rate = redraws(page, seconds)
         elapsed = time.monotonic() - started
-        cpu = (cpu_seconds(dashboard_pid) - cpu_before) / elapsed
+        cpu = (cpu_s(f"/proc/{dashboard_pid}/stat") - cpu_before) / elapsed
         published = (states[0] - states_before) / elapsed
     end()
     count = page.locator("article[data-device]").count()
@@ -282,10 +278,10 @@ def many_on_page(folder: Path, count: int, seconds: float) -> None:
                                        "'article[data-device]').length == n",
                                        arg=[7 * count], timeout=60_000)
                 time.sleep(2.0)
-                cpu_before, started = cpu_seconds(fleet.dashboard_pid), time.monotonic()
+                cpu_before, started = cpu_s(f"/proc/{fleet.dashboard_pid}/stat"), time.monotonic()
                 times, rate = redraws(page, seconds)
                 elapsed = time.monotonic() - started
-                cpu = (cpu_seconds(fleet.dashboard_pid) - cpu_before) / elapsed
+                cpu = (cpu_s(f"/proc/{fleet.dashboard_pid}/stat") - cpu_before) / elapsed
         finally:
             synthetic.close()
     print(f"4. the page alone with {7 * count} devices ({count} synthetic gateways, 7 states "

@@ -17,7 +17,7 @@ and ``busgate replay`` as child processes, a subscriber here; every process ende
 from __future__ import annotations
 
 import argparse
-import os
+import math
 import subprocess
 import sys
 import tempfile
@@ -28,16 +28,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: 
 
 import busgate.client as bc
 from busgate.gateway.bus.stats import percentile
+from busgate.gateway.cli.bench import cpu_s
 from busgate.gateway.recording import mcap_log
 from tests.conftest import unused_loopback_port
 from tests.gateway_process import BUSGATE, DemoProcess
 
 DEVICES = 7
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> None:
@@ -62,10 +58,11 @@ def main() -> None:
             text=True,
         )
         recorder.stderr.readline()  # recording: its subscriptions are declared
-        cpu_before, started = cpu_seconds(recorder.pid), time.monotonic()
+        cpu_before, started = cpu_s(f"/proc/{recorder.pid}/stat"), time.monotonic()
         cpu = cpu_before
         while recorder.poll() is None:
-            cpu = cpu_seconds(recorder.pid)  # the last reading before it ends
+            reading = cpu_s(f"/proc/{recorder.pid}/stat")  # the last reading before it ends
+            cpu = cpu if math.isnan(reading) else reading
             time.sleep(0.2)
         elapsed = time.monotonic() - started
         with path.open("rb") as stream:
