@@ -24,8 +24,9 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
+import busgate.client as bc
 from busgate.client.keys import check_key
 from busgate.codecs.errors import CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
@@ -160,14 +161,20 @@ class Recording:
             )
 
 
-def _print_info(path: Path) -> int:
+def _summary(path: Path) -> dict[str, Any]:
+    """The file's summary (``mcap_log.summary``); ``CommandError`` when it cannot be read or
+    is not a complete MCAP file."""
     try:
         with path.open("rb") as stream:
-            found = mcap_log.summary(stream)
+            return mcap_log.summary(stream)
     except OSError as exc:
         raise CommandError(f"cannot read {path}: {exc.strerror}") from None
     except Exception as exc:  # the mcap reader's errors have no common base
         raise CommandError(f"{path} is not a complete MCAP file: {exc}") from None
+
+
+def _print_info(path: Path) -> int:
+    found = _summary(path)
     span = (found["end_ns"] - found["start_ns"]) / 1e9 if found["messages"] else 0.0
     print(
         f"{path}: {found['messages']} messages in {len(found['channels'])} channels over "
@@ -187,31 +194,43 @@ def run_replay(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
         raise CommandError(f"--speed is above 0 and at most {MAX_SPEED:g}, not {args.speed}")
     path = Path(args.file)
-    try:
-        stream = path.open("rb")
-    except OSError as exc:
-        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
-    with stream, open_client(args, "replay") as client:
+    _summary(path)  # a file that is no complete recording is refused before any session
+    with path.open("rb") as stream, open_client(args, "replay") as client:
         recorded_prefix = mcap_log.recorded_metadata(stream, PREFIX_METADATA).get("prefix")
-        sent = skipped = 0
-        first: int | None = None
         started = time.monotonic()
-        for message in mcap_log.messages(stream):
-            leaf = message.topic.rsplit("/", 1)[-1]
-            if leaf not in mcap_log.REPLAYED_LEAVES:  # rule 4
-                skipped += 1
-                continue
-            first = message.log_time_ns if first is None else first
-            due = started + (message.log_time_ns - first) / 1e9 / args.speed
-            time.sleep(max(0.0, due - time.monotonic()))
-            topic = message.topic
-            if recorded_prefix and topic.startswith(recorded_prefix + "/"):
-                topic = args.prefix + topic[len(recorded_prefix) :]
-            client.put(topic, message.data)
-            sent += 1
+        try:
+            sent, skipped = _publish(client, stream, recorded_prefix, args, started)
+        except Exception as exc:  # a chunk the reader cannot read, past the summary
+            raise CommandError(f"{path} could not be read to its end: {exc}") from None
     print(
         f"busgate replay: {sent} messages in {time.monotonic() - started:.1f} s; {skipped} "
         "on command or e-stop keys left out",
         file=sys.stderr,
     )
     return 0
+
+
+def _publish(
+    client: bc.Client,
+    stream: IO[bytes],
+    recorded_prefix: str | None,
+    args: argparse.Namespace,
+    started: float,
+) -> tuple[int, int]:
+    """Publish the file's telemetry at its pace: (messages sent, messages left out)."""
+    sent = skipped = 0
+    first: int | None = None
+    for message in mcap_log.messages(stream):
+        leaf = message.topic.rsplit("/", 1)[-1]
+        if leaf not in mcap_log.REPLAYED_LEAVES:  # rule 4
+            skipped += 1
+            continue
+        first = message.log_time_ns if first is None else first
+        due = started + (message.log_time_ns - first) / 1e9 / args.speed
+        time.sleep(max(0.0, due - time.monotonic()))
+        topic = message.topic
+        if recorded_prefix and topic.startswith(recorded_prefix + "/"):
+            topic = args.prefix + topic[len(recorded_prefix) :]
+        client.put(topic, message.data)
+        sent += 1
+    return sent, skipped
