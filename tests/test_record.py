@@ -147,6 +147,7 @@ def test_replay_publishes_the_telemetry_again_in_order_never_early_and_no_comman
     (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),
     (["replay", "{tmp}/none.mcap"], "cannot read"),
     (["replay", "{tmp}/exists.mcap"], "is not a complete MCAP file"),  # before any session
+    (["replay", "{tmp}/exists.mcap", "--prefix", "a*b"], "a*b"),
     (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is above 0"),
     (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is above 0"),
 ])

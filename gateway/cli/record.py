@@ -28,7 +28,7 @@ from typing import IO, Any
 
 import busgate.client as bc
 from busgate.client.keys import check_key
-from busgate.codecs.errors import CommandError
+from busgate.codecs.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
 
@@ -193,6 +193,7 @@ def _print_info(path: Path) -> int:
 def run_replay(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
         raise CommandError(f"--speed is above 0 and at most {MAX_SPEED:g}, not {args.speed}")
+    check_key(args.prefix)
     path = Path(args.file)
     _summary(path)  # a file that is no complete recording is refused before any session
     with path.open("rb") as stream, open_client(args, "replay") as client:
@@ -200,6 +201,8 @@ def run_replay(args: argparse.Namespace) -> int:
         started = time.monotonic()
         try:
             sent, skipped = _publish(client, stream, recorded_prefix, args, started)
+        except BusgateError:
+            raise  # the session's own refusal, as it is
         except Exception as exc:  # a chunk the reader cannot read, past the summary
             raise CommandError(f"{path} could not be read to its end: {exc}") from None
     print(
