@@ -515,7 +515,9 @@ def test_an_estop_of_the_fleet_stops_every_gateway(client, gw2, wait_for) -> Non
             assert refused.value.gateway == device.gateway
         for device in devices:
             patiently(device.enable)
-            assert device.state(max_age=0.0).estopped is False
+            # a state read by a poll already under way may still say e-stopped: the next says
+            wait_for(lambda d=device: d.state(max_age=0.0).estopped is False,
+                     timeout=DEADLINE_S)
         for device in devices:
             assert patiently(device.move, next(POSITIONS))["ok"] is True
     finally:
