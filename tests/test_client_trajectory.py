@@ -12,6 +12,7 @@ import pytest
 
 import busgate.client as bc
 from busgate.codecs.errors import CommandError
+from tests.sdk_helpers import patiently
 
 TIMEOUT_S = 10.0  # a hang guard, not a speed requirement
 
@@ -25,7 +26,8 @@ def client(module_demo):
 def test_a_play_is_accepted_feeds_back_and_ends_with_one_result(client) -> None:
     before = time.time()
     points = [{"t_s": 0.3, "positions": [1400, 900]}, {"t_s": 0.6, "positions": [800, 600]}]
-    with client.play(["la1", "demo/la2"], points, goal_tolerance=[40, 40], goal_time_s=2.0) as t:
+    with patiently(lambda: client.play(["la1", "demo/la2"], points, goal_tolerance=[40, 40],
+                                       goal_time_s=2.0)) as t:
         assert (t.gateway, t.devices) == ("demo", ["la1", "la2"])
         assert before < t.start_at < t.end_at and t.end_at - t.start_at == pytest.approx(0.6)
         feedback = list(t.feedback(timeout=TIMEOUT_S))
@@ -39,8 +41,9 @@ def test_a_play_is_accepted_feeds_back_and_ends_with_one_result(client) -> None:
 
 def test_a_new_play_replaces_the_old_and_cancel_ends_it_canceled(client) -> None:
     long = [{"t_s": 5.0, "positions": [1900]}]
-    first = client.play(["la3"], long)
-    second = client.play(["la3", "servo1"], [{"t_s": 5.0, "positions": [1900, 3000]}])
+    first = patiently(lambda: client.play(["la3"], long))  # (offline a moment, under load)
+    second = patiently(lambda: client.play(["la3", "servo1"],
+                                           [{"t_s": 5.0, "positions": [1900, 3000]}]))
     assert first.wait(timeout=TIMEOUT_S)["result"] == "replaced"
     [status] = client.query("busgate/demo/trajectory", {"op": "status"})
     assert [r["id"] for r in status.body["trajectories"]] == [second.id]
