@@ -281,9 +281,13 @@ class OnlineEvent(Event):
     type: Literal["online"]
 
 
+#: An ``offline`` event's reason when the device's bus went down (its port or interface lost).
+BUS_DOWN_REASON = "bus down"
+
+
 class OfflineEvent(Event):
     type: Literal["offline"]
-    reason: str
+    reason: str = Field(description=f"Why: no reply, {BUS_DOWN_REASON!r}, heartbeats stopped …")
 
 
 class FaultEvent(Event):

@@ -51,6 +51,19 @@ class MetricsSection(Section):
     listen: Annotated[str, Field(pattern=r"^[^:\s]+:\d{1,5}$")]
 
 
+class RecorderSection(Section):
+    """The flight recorder: the last ``seconds`` of the gateway's telemetry, commands and
+    frames in memory, written to ``dir`` as one MCAP file per incident (an e-stop, a fault
+    raised, a bus down, SIGUSR1). The oldest files go once they take more than
+    ``max_total_mb``."""
+
+    seconds: Annotated[float, Field(ge=1, le=600)] = 60.0
+    dir: Annotated[str, Field(pattern=r"^/[^\x00]*$", max_length=1024)] = (
+        "/var/lib/busgate/incidents"
+    )
+    max_total_mb: Annotated[int, Field(ge=1, le=1_000_000)] = 1024
+
+
 class DeviceConfig(Section):
     name: Name
     kind: Literal[kinds()]  # type: ignore[valid-type]
@@ -123,6 +136,7 @@ class Config(Section):
     gateway: GatewaySection
     zenoh: ZenohSection = ZenohSection()
     metrics: MetricsSection | None = None
+    recorder: RecorderSection | None = None
     buses: Annotated[list[Bus], Field(min_length=1)]
 
     @model_validator(mode="after")

@@ -1,8 +1,9 @@
 """The JSON Schemas of busgate's public data, made from the models: one per thing a client
 sends or reads (each device kind's commands, the bus and trajectory commands, the replies,
-each kind's telemetry and follow target, the events, the bus statistics, the info reply) and
-the config file. ``busgate schema`` writes them to ``schemas/json/``; a recording names them
-for its channels (``busgate.gateway.recording``).
+each kind's telemetry and follow target, the events, the bus statistics, the info reply), the
+config file, and what only an incident file holds (a bus's frames, the commands). ``busgate
+schema`` writes them to ``schemas/json/``; a recording names them for its channels
+(``busgate.gateway.recording``).
 
 Rules: the text of a schema is deterministic (keys sorted, two-space indent, one trailing
 newline), so the files compare as text.
@@ -15,7 +16,7 @@ from typing import Any
 
 from pydantic import TypeAdapter
 
-from busgate.schemas import api, trajectory
+from busgate.schemas import api, recording, trajectory
 from busgate.schemas.config import Config
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
@@ -73,6 +74,17 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
         "busgate bus statistics",
         "What <prefix>/<gw>/bus/<bus>/stats carries, once a second.",
         api.BusStatistics,
+    ),
+    "frame.json": (
+        "busgate recorded frame",
+        "What <prefix>/<gw>/bus/<bus>/frames holds in an incident file: one frame or read on "
+        "the bus.",
+        recording.RecordedFrame,
+    ),
+    "recorded_command.json": (
+        "busgate recorded command",
+        "What <prefix>/<gw>/commands holds in an incident file: a command and its answer.",
+        recording.RecordedCommand,
     ),
     "info.json": (
         "busgate info",

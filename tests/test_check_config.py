@@ -77,6 +77,21 @@ def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys)
     assert f"warning: buses[0].port: {tmp_path / 'usb-nothing'} does not exist" in out
 
 
+def test_a_recorder_folder_this_user_cannot_write_is_a_warning(tmp_path, capsys) -> None:
+    (tmp_path / "a-file").write_text("")
+    path = write(tmp_path, [la(1)])
+    plain = path.read_text()
+    for folder, warned in ((tmp_path / "a-file" / "incidents", True),
+                           (tmp_path / "new" / "incidents", False)):
+        path.write_text(plain.replace("[[buses]]", f'[recorder]\ndir = "{folder}"\n[[buses]]'))
+        assert main(["check-config", str(path)]) == 0
+        out = capsys.readouterr().out
+        assert f"flight recorder (60 s) into {folder}" in out.splitlines()[0]
+        assert (f"warning: recorder.dir: {tmp_path / 'a-file'} is not a directory; busgate run "
+                "refuses to start so" in out) is warned
+    assert not (tmp_path / "new").exists()  # checked, not made
+
+
 def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> None:
     path = tmp_path / "can.toml"
     path.write_text(

@@ -74,6 +74,24 @@ def test_the_issue_example_loads_with_defaults(tmp_path) -> None:
     assert uart.devices[0].poll_hz == 20 and can.devices[0].follow_period_ms == 20
 
 
+def test_the_flight_recorder_is_off_unless_its_table_is_there() -> None:
+    assert parse_config(BASE).recorder is None
+    recorder = parse_config({**BASE, "recorder": {}}).recorder
+    assert recorder is not None
+    assert (recorder.seconds, recorder.dir) == (60, "/var/lib/busgate/incidents")
+
+
+@pytest.mark.parametrize(("change", "path"), [
+    ({"seconds": 0}, "recorder.seconds"), ({"seconds": 601}, "recorder.seconds"),
+    ({"seconds": "60"}, "recorder.seconds"), ({"dir": "incidents"}, "recorder.dir"),
+    ({"dir": ""}, "recorder.dir"), ({"dir": "/var/\x00lib"}, "recorder.dir"),
+    ({"max_total_mb": 0}, "recorder.max_total_mb"), ({"size": 1}, "recorder.size"),
+])
+def test_a_recorder_setting_out_of_bounds_is_refused_naming_it(change, path) -> None:
+    error = refused(lambda d: d.update(recorder=change))
+    assert error.path == path
+
+
 def test_follow_period_outside_10_to_50_ms_is_refused_with_its_key_path() -> None:
     for period in (9.9, 50.1):
         error = refused(lambda d, p=period: d["buses"][0]["devices"][0].update(follow_period_ms=p))

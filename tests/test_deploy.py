@@ -24,6 +24,7 @@ import zenoh
 from busgate.codecs import inspire_la as la
 from busgate.gateway.cli import build_parser
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.config import RecorderSection
 from tests.secured_gateway import ZENOH
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
@@ -79,6 +80,15 @@ def test_the_unit_has_every_option_the_issue_names() -> None:
         "AF_CAN", "AF_NETLINK", "AF_UNIX", "AF_INET", "AF_INET6"}
     assert {"char-ttyUSB rw", "char-ttyACM rw", "char-ttyS rw"} <= set(service["DeviceAllow"])
     assert "RestrictRealtime" not in service, "SCHED_FIFO for the bus threads needs realtime"
+
+
+def test_the_unit_lets_the_daemon_write_the_recorders_default_dir_and_nothing_else() -> None:
+    service = unit_options(UNIT)["Service"]
+    assert service["ProtectSystem"] == ["strict"]  # everything read-only ...
+    [state] = service["StateDirectory"]  # ... but this one, made for the service's user
+    assert "/var/lib/" + state == RecorderSection().dir
+    for key in ("ReadWritePaths", "CacheDirectory", "LogsDirectory", "RuntimeDirectory"):
+        assert key not in service, f"{key}= would let it write elsewhere"
 
 
 #: The hardening both units share, option by option (the router needs no device, group or

@@ -72,6 +72,12 @@ class ZenohBridge:
         self.states = states  # every new device state, filled by the bus threads, drained here
         #: Called with each command's time from query to reply (the metrics' histogram).
         self.on_latency: Callable[[float], None] = lambda seconds: None
+        #: Called with every message published: key, body, and the bytes sent (the flight
+        #: recorder's ring); on the loop's thread.
+        self.on_published: Callable[[str, dict[str, Any], bytes], None] | None = None
+        #: Called with every command (key, payload) and its reply (``None`` for what gets none:
+        #: an e-stop, a follow target taken); on the thread that has the reply.
+        self.on_command: Callable[[str, bytes, dict[str, Any] | None], None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
@@ -160,15 +166,15 @@ class ZenohBridge:
         device = str(query.key_expr).split("/")[-2]
         if self._not_ours(query, device, self.api.devices):
             return
-        reply_key = f"{self.base}/dev/{device}/cmd"
-        self._answer(query, lambda: self.api.command(device, _payload(query)), reply_key)
+        reply_key, payload = f"{self.base}/dev/{device}/cmd", _payload(query)
+        self._answer(query, lambda: self.api.command(device, payload), reply_key, payload)
 
     def _on_bus_query(self, query: zenoh.Query) -> None:
         bus = str(query.key_expr).split("/")[-2]
         if self._not_ours(query, bus, self.runners):
             return
-        reply_key = f"{self.base}/bus/{bus}/cmd"
-        self._answer(query, lambda: self.api.bus_command(bus, _payload(query)), reply_key)
+        reply_key, payload = f"{self.base}/bus/{bus}/cmd", _payload(query)
+        self._answer(query, lambda: self.api.bus_command(bus, payload), reply_key, payload)
 
     @staticmethod
     def _not_ours(query: zenoh.Query, name: str, known) -> bool:
@@ -194,24 +200,29 @@ class ZenohBridge:
             query,
             lambda: worker.submit(_replying, trajectories, payload),
             f"{self.base}/trajectory",
+            payload,
         )
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
-        device = str(sample.key_expr).split("/")[-2]
-        result = self.api.command(device, sample.payload.to_bytes())
-        result.add_done_callback(lambda done: self._report_put(device, done.result()))
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        device = key.split("/")[-2]
+        result = self.api.command(device, payload)
+        result.add_done_callback(lambda done: self._report_put(device, key, payload, done.result()))
 
     def _on_follow(self, sample: zenoh.Sample) -> None:
-        device = str(sample.key_expr).split("/")[-2]
-        refused = self.api.follow(device, sample.payload.to_bytes())
-        if refused is not None:
-            self._report_put(device, refused)
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        device = key.split("/")[-2]
+        refused = self.api.follow(device, payload)
+        self._report_put(device, key, payload, refused)
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
-        sender = _sender(sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
+        sender = _sender(payload)
         self.api.estop(sender)
         fields = {"key": str(sample.key_expr)} | ({"client": sender} if sender else {})
         self.events.append(DeviceEvent("*", "estop", fields))
+        if self.on_command is not None:
+            self.on_command(str(sample.key_expr), payload, None)
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
@@ -224,9 +235,16 @@ class ZenohBridge:
         self.trajectories.client_left(client)
         self.api.client_left(client)
 
-    def _answer(self, query: zenoh.Query, handle: Callable[[], Future], key: str) -> None:
+    def _answer(
+        self,
+        query: zenoh.Query,
+        handle: Callable[[], Future],
+        key: str,
+        payload: bytes | None = None,
+    ) -> None:
         """Reply on ``key`` (concrete, even when the query had wildcards), on the loop's
-        thread, once the future ``handle`` returns is done (or too late): exactly once."""
+        thread, once the future ``handle`` returns is done (or too late): exactly once. A
+        command's ``payload`` goes to ``on_command`` with its reply."""
         loop = self._loop
         assert loop is not None
         replied: Future[bool] = Future()
@@ -244,6 +262,8 @@ class ZenohBridge:
             finally:
                 query.drop()
                 self.on_latency(time.perf_counter() - asked)
+                if payload is not None and self.on_command is not None:
+                    self.on_command(key, payload, reply)
 
         try:
             result = handle()
@@ -273,9 +293,14 @@ class ZenohBridge:
         result.add_done_callback(done)
         loop.call_soon_threadsafe(arm_guard)
 
-    def _report_put(self, device: str, reply: dict[str, Any]) -> None:
-        if not reply.get("ok"):
+    def _report_put(
+        self, device: str, key: str, payload: bytes, reply: dict[str, Any] | None
+    ) -> None:
+        """A put's outcome (``None``: a follow target taken): a refusal is an event."""
+        if reply is not None and not reply.get("ok"):
             self.events.append(DeviceEvent(device, "command_refused", reply["error"]))
+        if self.on_command is not None:
+            self.on_command(key, payload, reply)
 
     def _call_soon(self, function, *args: Any) -> None:
         if self._loop is not None and not self._loop.is_closed():
@@ -308,12 +333,18 @@ class ZenohBridge:
     def _put(self, key: str, value: dict[str, Any]) -> None:
         publisher = self._publishers.get(key)
         if publisher is not None:
-            publisher.put(_dumps(value))
+            data = _dumps(value)
+            publisher.put(data)
+            if self.on_published is not None:
+                self.on_published(key, value, data)
 
     def _put_any(self, key: str, value: dict[str, Any]) -> None:
         """A put on a key with no declared publisher (a trajectory's feedback)."""
         if self._session is not None:
-            self._session.put(key, _dumps(value), congestion_control=zenoh.CongestionControl.DROP)
+            data = _dumps(value)
+            self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
+            if self.on_published is not None:
+                self.on_published(key, value, data)
 
     def _track_liveliness(self, device: str, online: bool) -> None:
         if self._session is None:

@@ -36,7 +36,7 @@ from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import Discarded
 from busgate.gateway.bus.clock import now, sleep_until
-from busgate.gateway.bus.owner import BusOwner
+from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 
@@ -153,6 +153,8 @@ class CanBusOwner(BusOwner):
                 time.sleep(0.001)
             except OSError as exc:
                 self._fail(exc)
+        if self.tap is not None:
+            self.tap((now(), TX, wire))
         self.counters.frames_out += 1
         self.counters.bytes_out += len(wire.data)
 
@@ -206,7 +208,10 @@ class CanBusOwner(BusOwner):
         if message.is_extended_id or message.is_remote_frame:
             self.counters.discarded_bytes += len(message.data)
             return []
-        self._decoder.feed(CanFrame(message.arbitration_id, bytes(message.data)))
+        frame = CanFrame(message.arbitration_id, bytes(message.data))
+        if self.tap is not None:
+            self.tap((now(), RX, frame))
+        self._decoder.feed(frame)
         events = []
         for event in self._decoder.events():
             if isinstance(event, Discarded):

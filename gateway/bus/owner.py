@@ -16,6 +16,9 @@ Rules of every owner:
    arrival time to the sink the owner was made with, whenever it reads its line: while it
    waits for a reply and while idle. A question-and-answer line has none: idle, its owner
    only waits.
+4. When it has a ``tap`` (the flight recorder), every frame it writes and every read from its
+   line goes to it, with the host's time, on the bus thread: ``(time, TX or RX, bytes or
+   CanFrame)``. The tap only appends; it never waits.
 """
 
 from __future__ import annotations
@@ -25,12 +28,16 @@ import time
 from collections.abc import Callable
 from typing import ClassVar
 
+from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 
 #: ``pause(seconds)``: wait that long; true when the wait was cut short (new work for the bus).
 Pause = Callable[[float], bool]
+#: Directions of a tapped frame (rule 4): written by the gateway, or read by it.
+TX, RX = "tx", "rx"
+Tap = Callable[[tuple[float, str, bytes | CanFrame]], None]
 
 
 class BusOwner(abc.ABC):
@@ -43,6 +50,8 @@ class BusOwner(abc.ABC):
     #: While idle, the longest pause between two looks for frames nobody asked for
     #: (``math.inf``: none come, so idle time is only waiting).
     idle_batch_s: ClassVar[float]
+    #: Where every frame goes as well (rule 4); ``None``: nowhere.
+    tap: Tap | None = None
 
     @property
     @abc.abstractmethod

@@ -30,7 +30,7 @@ import serial
 from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import ChecksumMismatch, Discarded, ExpectedReply
 from busgate.gateway.bus.clock import now, sleep_until
-from busgate.gateway.bus.owner import BusOwner
+from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
@@ -102,6 +102,8 @@ class SerialBusOwner(BusOwner):
         assert isinstance(request.wire, bytes)  # a UART codec's frames
         self._write(port, request.wire)
         start = now()
+        if self.tap is not None:
+            self.tap((start, TX, request.wire))
         wire_time = self.timing.wire_time(request.wire)
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
@@ -145,6 +147,8 @@ class SerialBusOwner(BusOwner):
             if not data:
                 raise serial.SerialException("the port reports data but returns none (unplugged?)")
             arrived = now()
+            if self.tap is not None:
+                self.tap((arrived, RX, data))
             self.counters.bytes_in += len(data)
             self._decoder.feed(data)
             for event in self._decoder.events():
@@ -193,7 +197,10 @@ class SerialBusOwner(BusOwner):
         there was any (it was on the line a moment ago)."""
         waiting = port.in_waiting
         if waiting:
-            self._decoder.feed(port.read(waiting))
+            data = port.read(waiting)
+            if self.tap is not None:
+                self.tap((now(), RX, data))
+            self._decoder.feed(data)
             for event in self._decoder.events():
                 if isinstance(event, Discarded):
                     self.counters.discarded_bytes += len(event.data)

@@ -4,7 +4,8 @@ Rules of this file: it checks without touching hardware. Whatever ``busgate run`
 (``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
 exit status 1. What only this host or the load decides — a port that does not exist here, is
 locked by another process or that this user may not read and write, a bus whose streams cannot
-all fit — is a warning: printed with the budget, exit status 0.
+all fit, a flight recorder's folder this user cannot write — is a warning: printed with the
+budget, exit status 0.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 from busgate.codecs.errors import ConfigError
 from busgate.gateway.bus.port_access import missing, port_problem
+from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
@@ -38,6 +40,11 @@ def check_config(args: argparse.Namespace) -> int:
             print(f"error: {line}", file=sys.stderr)
         return 1
     print(f"{args.file}: valid; {_overview(config)}")
+    if config.recorder is not None and (problem := folder_problem(Path(config.recorder.dir))):
+        print(
+            f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
+            "the service user to check its access; the systemd unit makes the default dir)"
+        )
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)
         print(budget.summary())
@@ -53,9 +60,14 @@ def check_config(args: argparse.Namespace) -> int:
 def _overview(config: Config) -> str:
     devices = sum(len(bus.devices) for bus in config.buses)
     metrics = f"metrics on {config.metrics.listen}" if config.metrics else "no metrics endpoint"
+    recorder = (
+        f"flight recorder ({config.recorder.seconds:g} s) into {config.recorder.dir}"
+        if config.recorder
+        else "no flight recorder"
+    )
     return (
         f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
-        f"{metrics}"
+        f"{metrics}, {recorder}"
     )
 
 

@@ -108,6 +108,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="write each simulator's wire record to DIR/<bus>.jsonl (JSON lines)",
     )
     demo.add_argument(
+        "--incidents",
+        default=None,
+        metavar="DIR",
+        help="turn the flight recorder on: an incident file (MCAP) in DIR on each e-stop, "
+        "fault, bus down or SIGUSR1",
+    )
+    demo.add_argument(
         "--metrics-listen",
         default=None,
         metavar="HOST:PORT",
@@ -128,6 +135,7 @@ def run_demo(args: argparse.Namespace) -> int:
             connect=args.connect,
             name=args.name,
             metrics_listen=args.metrics_listen,
+            incidents=None if args.incidents is None else os.path.abspath(args.incidents),
         )
         asyncio.run(_serve_announcing(config, links, dashboard))
     return 0
@@ -184,9 +192,11 @@ def demo_config(
     connect: str | None = None,
     name: str = GATEWAY_NAME,
     metrics_listen: str | None = None,
+    incidents: str | None = None,
 ) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
-    With ``connect``, it joins a router there as a zenoh client instead of listening. Raises
+    With ``connect``, it joins a router there as a zenoh client instead of listening; with
+    ``incidents`` (an absolute path), its flight recorder writes there. Raises
     ``ConfigError`` (naming the key) for a bad name, endpoint or metrics address."""
     zenoh = {"mode": "client", "connect": [connect]} if connect else {"listen": [listen]}
     document: dict[str, Any] = {
@@ -211,6 +221,8 @@ def demo_config(
     }
     if metrics_listen is not None:
         document["metrics"] = {"listen": metrics_listen}
+    if incidents is not None:
+        document["recorder"] = {"dir": incidents}
     return parse_config(document)
 
 

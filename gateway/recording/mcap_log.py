@@ -7,8 +7,9 @@ Rules of this file:
 
 1. A key's schema comes from the key's shape alone (and, for a state, the device's kind in
    the message): ``.../dev/<d>/state`` a kind's telemetry, ``.../dev/<d>/event`` and
-   ``.../events`` the event, ``.../bus/<b>/stats`` the bus statistics. A key of no known
-   shape (an e-stop, a trajectory's feedback) gets a channel without a schema.
+   ``.../events`` the event, ``.../bus/<b>/stats`` the bus statistics; in an incident file
+   (``flight``) ``.../bus/<b>/frames`` a frame and ``.../commands`` a command. A key of no
+   known shape (an e-stop, a trajectory's feedback) gets a channel without a schema.
 2. Times are nanoseconds: the log time when the sample was taken (zenoh's timestamp where it
    has one), the publish time the message's own ``ts`` (else the log time).
 3. Replay publishes only what is telemetry: never on a key that commands or stops
@@ -45,8 +46,10 @@ def schema_name(key: str, prefix: str, body: Any) -> str | None:
         len(chunks) == 2 and chunks[1] == "events"
     ):
         return "event.json"
-    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "stats":
-        return "bus_stats.json"
+    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] in ("stats", "frames"):
+        return "bus_stats.json" if chunks[3] == "stats" else "frame.json"
+    if len(chunks) == 2 and chunks[1] == "commands":
+        return "recorded_command.json"
     return None
 
 
@@ -71,11 +74,13 @@ class McapLog:
         self.messages = 0
         self.bytes = 0
 
-    def add(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        try:
-            body = json.loads(payload)
-        except (ValueError, RecursionError):
-            body = None
+    def add(self, key: str, payload: bytes, log_time_ns: int, *, body: Any = None) -> None:
+        """One message; ``body`` is ``payload`` parsed, when the caller has it already."""
+        if body is None:
+            try:
+                body = json.loads(payload)
+            except (ValueError, RecursionError):
+                body = None
         channel = self._channels.get(key)
         if channel is None:
             channel = self._channels[key] = self._writer.register_channel(

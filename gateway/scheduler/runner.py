@@ -58,6 +58,7 @@ from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.scheduler.trajectory_ticks import Sampler
+from busgate.schemas.api import BUS_DOWN_REASON
 
 log = logging.getLogger(__name__)
 
@@ -391,7 +392,7 @@ class BusRunner:
         self.streams.end_all("bus down")
         self.plays.end_all("the bus lost")
         for driver in self.drivers.values():
-            driver.went_offline("bus down")
+            driver.went_offline(BUS_DOWN_REASON)
         self.owner.close()
 
     def _ask_realtime(self) -> None:

@@ -10,6 +10,9 @@ Under systemd (Type=notify) it says READY once every bus is open, pings the watc
 while every bus thread keeps its schedule, and says STOPPING on the way out.
 Then it stops in order, within about a second: the streams and the devices (each bus puts its
 devices in their safe state and closes, all buses at once), and the zenoh session last.
+With ``[recorder]`` in the config the flight recorder keeps the last seconds of everything and
+writes an incident file on an e-stop, a fault, a bus down or SIGUSR1 (``recording.flight``);
+without, SIGUSR1 only says so in the log (it never ends the daemon).
 """
 
 from __future__ import annotations
@@ -27,10 +30,12 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 from busgate.codecs.errors import BusgateError, BusUnavailableError
+from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.budget import bus_budget
@@ -95,6 +100,8 @@ async def serve(
     }
     api = GatewayApi(config.gateway.name, runners, on_event=events.append)
     bridge = zenoh_side.ZenohBridge(config, api, runners, events, states)
+    recorder = _flight_recorder(config, runners, bridge)  # a folder it cannot write: refused
+    _incident_on_sigusr1(loop, recorder)
     _open_session(bridge, loop)  # first: a gateway nobody can reach opens no port
     metrics: Metrics | None = None
     try:
@@ -112,6 +119,8 @@ async def serve(
         async with asyncio.TaskGroup() as tasks:
             tasks.create_task(_ready_when_open(notifier, config, runners, stop))
             tasks.create_task(watchdog.run(stop))
+            if recorder is not None:
+                tasks.create_task(recorder.run(stop))
             await bridge.publish_forever(stop)
     finally:
         notifier.stopping(f"gateway {config.gateway.name} stopping")
@@ -119,8 +128,50 @@ async def serve(
             metrics.stop()
         await asyncio.to_thread(_stop_buses, runners)
         bridge.publish_events()
+        if recorder is not None:  # after the buses: their last frames are in it
+            await asyncio.to_thread(recorder.flush)
         bridge.close()
         log.info("gateway %s stopped", config.gateway.name)
+
+
+def _flight_recorder(
+    config: Config, runners: dict[str, BusRunner], bridge: ZenohBridge
+) -> FlightRecorder | None:
+    """The flight recorder, fed by the bridge and tapping every bus; ``None`` when the config
+    has no ``[recorder]``."""
+    if config.recorder is None:
+        return None
+    recorder = FlightRecorder(
+        config.recorder,
+        prefix=config.gateway.prefix,
+        gateway=config.gateway.name,
+        buses={name: list(runner.drivers) for name, runner in runners.items()},
+        version=installed_version(),
+    )
+    recorder.prepare()
+    bridge.on_published = recorder.on_published
+    bridge.on_command = recorder.on_command
+    for name, runner in runners.items():
+        runner.owner.tap = recorder.tap(name)
+    log.info(
+        "flight recorder: the last %g s kept, incidents written to %s",
+        config.recorder.seconds,
+        config.recorder.dir,
+    )
+    return recorder
+
+
+def _incident_on_sigusr1(loop: asyncio.AbstractEventLoop, recorder: FlightRecorder | None) -> None:
+    """SIGUSR1 asks for an incident file; without a recorder it is said so, and nothing ends."""
+
+    def asked() -> None:
+        if recorder is None:
+            log.warning("SIGUSR1: no flight recorder ([recorder] in the config turns it on)")
+        else:
+            recorder.trigger(Trigger("signal", "SIGUSR1 from an operator"))
+
+    with contextlib.suppress(NotImplementedError, RuntimeError):
+        loop.add_signal_handler(signal.SIGUSR1, asked)
 
 
 def _check_ports(config: Config) -> set[str]:

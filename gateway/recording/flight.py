@@ -1,0 +1,353 @@
+"""The daemon's flight recorder: the last seconds of everything, written out when something
+goes wrong.
+
+It keeps, in rings (``ring.Ring``) of ``[recorder].seconds``: every message the gateway
+publishes (states, events, bus statistics, trajectory feedback: key and bytes as sent), every
+command it was sent (key, payload, and the code it answered), and every frame on every bus
+(bytes and the host's time, handed over by each bus owner's ``tap`` on its own thread). An
+e-stop, a fault raised, a bus going down, or SIGUSR1 triggers an incident: ``AFTER_S`` later
+(so that the stop itself is in it) the rings are written as one MCAP file in ``[recorder].dir``
+(``mcap_log.McapLog``: the channels ``busgate record`` writes, plus ``<base>/commands`` and
+``<base>/bus/<bus>/frames``), and the oldest files are pruned to ``max_total_mb``.
+
+Rules of this file:
+
+1. Nothing here delays a frame: a bus thread only appends a tuple to its ring (``tap``);
+   building and writing the file happens on the recorder's own thread, at a lower priority.
+2. A file is complete or absent: it is written as ``*.mcap.part`` and renamed once finished.
+3. Triggers that come while an incident is gathered or written, or within ``HOLDOFF_S`` of
+   the last one, go into the next file, whose metadata names every one: a device whose
+   faults flap is written every ``HOLDOFF_S``, not on each flap.
+4. Shutdown writes a pending incident after the buses have stopped (their last frames in it),
+   never before: the devices' safe state comes first.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import heapq
+import json
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import BusgateError
+from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.owner import Tap
+from busgate.gateway.recording.mcap_log import McapLog
+from busgate.gateway.recording.ring import Ring
+from busgate.schemas.api import BUS_DOWN_REASON
+from busgate.schemas.config import RecorderSection
+
+log = logging.getLogger(__name__)
+
+#: How long after a trigger the incident is written: the stop and its answers are in it.
+AFTER_S = 1.0
+#: The least time between two incident files (rule 3).
+HOLDOFF_S = 10.0
+#: The most entries a ring holds per second of ``seconds``, so that its memory is bounded
+#: whatever comes; past these rates a ring holds fewer seconds. A UART bus at 921600 baud
+#: carries under 2000 frames a second; 20 devices polled at 100 Hz publish 2000 states.
+FRAMES_PER_S = 5_000
+MESSAGES_PER_S = 5_000
+#: The niceness of the writing thread: the bus threads come first when the CPU is short.
+WRITER_NICENESS = 10
+#: Of a payload that is no JSON object, this much is kept as text.
+TEXT_KEPT = 256
+INCIDENT_GLOB = "incident-*.mcap"
+METADATA = "incident"
+
+
+@dataclass(frozen=True, slots=True)
+class Trigger:
+    """Why an incident is written: ``slug`` for the file name, ``text`` for people."""
+
+    slug: str
+    text: str
+
+
+def trigger_of(event: dict[str, Any], bus_of: dict[str, str]) -> Trigger | None:
+    """The trigger an event is (an e-stop, a fault raised, a device offline because its bus
+    went down), or ``None``."""
+    kind, device = event.get("type"), str(event.get("device"))
+    if kind == "estop":
+        sender = event.get("client")
+        return Trigger("estop", f"e-stop{f' from {sender}' if sender else ''}")
+    if kind == "fault" and event.get("raised"):
+        return Trigger(f"fault-{device}", f"fault on {device}: {', '.join(event['raised'])}")
+    if kind == "offline" and event.get("reason") == BUS_DOWN_REASON:
+        bus = bus_of.get(device, device)
+        return Trigger(f"bus-down-{bus}", f"bus {bus} down")
+    return None
+
+
+class FlightRecorder:
+    """The rings of one gateway, and the incidents written from them."""
+
+    def __init__(
+        self,
+        settings: RecorderSection,
+        *,
+        prefix: str,
+        gateway: str,
+        buses: dict[str, Iterable[str]],
+        version: str,
+    ) -> None:
+        self.settings = settings
+        self.folder = Path(settings.dir)
+        self.prefix, self.gateway, self.version = prefix, gateway, version
+        self.base = f"{prefix}/{gateway}"
+        seconds = settings.seconds
+        self.frames = {bus: Ring(seconds, int(seconds * FRAMES_PER_S)) for bus in buses}
+        self.bus_of = {device: bus for bus, devices in buses.items() for device in devices}
+        self.published = Ring(seconds, int(seconds * MESSAGES_PER_S))
+        self.commands = Ring(seconds, int(seconds * MESSAGES_PER_S))
+        self._events_key = f"{self.base}/events"
+        self._pending: list[Trigger] = []
+        self._pending_lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake: asyncio.Event | None = None
+        self._writer = ThreadPoolExecutor(
+            1, thread_name_prefix="incident", initializer=_lower_priority
+        )
+        #: Every incident file written, newest last (what the tests and the log name).
+        self.written: list[Path] = []
+
+    # -- start -------------------------------------------------------------------------------
+
+    def prepare(self) -> None:
+        """Make the folder (refusing, in one line, one that cannot be written) and remove
+        what a crash left half written."""
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            probe = self.folder / f".busgate-write-test-{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise BusgateError(
+                f"recorder: cannot write incident files in {self.folder}: "
+                f"{exc.strerror or exc} (the [recorder] dir of the config)"
+            ) from exc
+        for part in self.folder.glob(INCIDENT_GLOB + ".part"):
+            with contextlib.suppress(OSError):
+                part.unlink()
+
+    # -- what comes in (any thread) ------------------------------------------------------------
+
+    def tap(self, bus: str) -> Tap:
+        """What the bus owner of ``bus`` calls with each frame (rule 1)."""
+        return self.frames[bus].append
+
+    def on_published(self, key: str, body: dict[str, Any], data: bytes) -> None:
+        """A message the gateway published (``body`` as ``data`` encodes it)."""
+        self.published.append((now(), key, data))
+        if key == self._events_key:
+            trigger = trigger_of(body, self.bus_of)
+            if trigger is not None:
+                self.trigger(trigger)
+
+    def on_command(self, key: str, payload: bytes, reply: dict[str, Any] | None) -> None:
+        """A command and its reply (``None``: taken, with nothing to answer)."""
+        self.commands.append((now(), key, payload, _code(reply)))
+
+    def trigger(self, trigger: Trigger) -> None:
+        """Ask for an incident file (any thread)."""
+        with self._pending_lock:
+            self._pending.append(trigger)
+        loop, wake = self._loop, self._wake
+        if loop is not None and wake is not None and not loop.is_closed():
+            loop.call_soon_threadsafe(wake.set)
+
+    # -- incidents (the loop, then the writer's thread) ---------------------------------------
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Write an incident after each trigger (rule 3) until ``stop``; what is pending then
+        is for ``flush`` (rule 4)."""
+        self._loop, self._wake = asyncio.get_running_loop(), asyncio.Event()
+        if self._pending:
+            self._wake.set()
+        while not stop.is_set():
+            await _unless(stop, self._wake.wait())
+            await _unless(stop, asyncio.sleep(AFTER_S))
+            if stop.is_set():
+                return
+            self._wake.clear()
+            writing = self._loop.run_in_executor(self._writer, self.write_pending)
+            await _unless(stop, asyncio.shield(writing))
+            await _unless(stop, asyncio.sleep(HOLDOFF_S))
+
+    def flush(self) -> None:
+        """Write what is pending and wait for the writer (at shutdown, rule 4)."""
+        self._writer.submit(self.write_pending).result()
+        self._writer.shutdown(wait=True)
+
+    def write_pending(self) -> Path | None:
+        """The pending triggers' incident file, written now (``None`` when none is pending
+        or it could not be written: that is logged)."""
+        with self._pending_lock:
+            triggers, self._pending = self._pending, []
+        if not triggers:
+            return None
+        try:
+            path = self.write_incident(triggers, now())
+        except Exception:  # a full disk, a folder gone: said, and the gateway goes on
+            log.exception("incident (%s) not written", "; ".join(t.text for t in triggers))
+            return None
+        self.written.append(path)
+        self._prune(path)
+        return path
+
+    def write_incident(self, triggers: list[Trigger], at: float) -> Path:
+        """The rings' last ``seconds`` before ``at`` (a ``now()`` time) as one MCAP file."""
+        wall_offset = time.time() - now()
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(at + wall_offset))
+        millis = int((at + wall_offset) % 1 * 1000)
+        name = f"incident-{self.gateway}-{stamp}.{millis:03d}Z-{_slug(triggers[0].slug)}.mcap"
+        path = self.folder / name
+        part = path.with_name(name + ".part")
+        start = at - self.settings.seconds
+        with part.open("wb") as stream:
+            mcap = McapLog(stream, self.prefix)
+            for t, key, data, body in heapq.merge(
+                self._published_since(start),
+                self._commands_since(start, wall_offset),
+                *(self._frames_since(bus, start, wall_offset) for bus in self.frames),
+                key=lambda entry: entry[0],
+            ):
+                mcap.add(key, data, int((t + wall_offset) * 1e9), body=body)
+            mcap.metadata(
+                METADATA,
+                {
+                    "gateway": self.gateway,
+                    "triggers": "; ".join(trigger.text for trigger in triggers),
+                    "triggered_at": f"{at + wall_offset:.6f}",
+                    "seconds": f"{self.settings.seconds:g}",
+                    "version": self.version,
+                },
+            )
+            mcap.finish()
+        os.replace(part, path)
+        log.warning(
+            "incident written: %s (%s; %d messages, %.0f KiB)",
+            path,
+            "; ".join(trigger.text for trigger in triggers),
+            mcap.messages,
+            path.stat().st_size / 1024,
+        )
+        return path
+
+    def _published_since(self, start: float) -> Iterator[tuple[float, str, bytes, Any]]:
+        for t, key, data in self.published.since(start):
+            yield t, key, data, None
+
+    def _commands_since(
+        self, start: float, wall_offset: float
+    ) -> Iterator[tuple[float, str, bytes, Any]]:
+        key = f"{self.base}/commands"
+        for t, on_key, payload, code in self.commands.since(start):
+            body = recorded_command(t + wall_offset, on_key, payload, code)
+            yield t, key, _dumps(body), body
+
+    def _frames_since(
+        self, bus: str, start: float, wall_offset: float
+    ) -> Iterator[tuple[float, str, bytes, Any]]:
+        key = f"{self.base}/bus/{bus}/frames"
+        for t, direction, wire in self.frames[bus].since(start):
+            text = str(wire) if isinstance(wire, CanFrame) else wire.hex()
+            body = {"ts": t + wall_offset, "bus": bus, "dir": direction, "wire": text}
+            yield t, key, _dumps(body), body
+
+    def _prune(self, keep: Path) -> None:
+        """The oldest incident files go until all take at most ``max_total_mb`` (the one
+        just written stays, however large)."""
+        budget = self.settings.max_total_mb * 1024 * 1024
+        files = []
+        for path in self.folder.glob(INCIDENT_GLOB):
+            with contextlib.suppress(OSError):
+                files.append((path.stat().st_mtime, path.name, path.stat().st_size, path))
+        total = sum(size for _, _, size, _ in files)
+        for _, _, size, path in sorted(files):
+            if total <= budget:
+                break
+            if path == keep:
+                continue
+            with contextlib.suppress(OSError):
+                path.unlink()
+                total -= size
+                log.info("incident pruned: %s (over max_total_mb)", path)
+
+
+def folder_problem(folder: Path) -> str | None:
+    """Why this user could not write incident files in ``folder`` here (``busgate run`` would
+    refuse to start), or ``None``: for ``busgate check-config``."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    if os.access(existing, os.W_OK | os.X_OK):
+        return None
+    if existing == folder:
+        return f"{folder} is not writable by this user"
+    return f"{folder} does not exist and this user may not make it in {existing}"
+
+
+def recorded_command(ts: float, key: str, payload: bytes, code: str) -> dict[str, Any]:
+    """A command as an incident file holds it (``schemas.recording.RecordedCommand``)."""
+    try:
+        command = json.loads(payload)
+    except (ValueError, RecursionError):
+        command = None
+    if not isinstance(command, dict):
+        text = payload[: TEXT_KEPT * 4].decode("utf-8", "replace")[:TEXT_KEPT]
+        return {"ts": ts, "key": key, "client": None, "command": None, "text": text, "code": code}
+    client = command.get("client")
+    return {
+        "ts": ts,
+        "key": key,
+        "client": client if isinstance(client, str) else None,
+        "command": command,
+        "text": None,
+        "code": code,
+    }
+
+
+def _code(reply: dict[str, Any] | None) -> str:
+    if reply is None or reply.get("ok"):
+        return "ok"
+    return str(reply.get("error", {}).get("code", "internal"))
+
+
+def _dumps(body: dict[str, Any]) -> bytes:
+    return json.dumps(body, separators=(",", ":"), default=str).encode()
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_-]+", "-", text)[:64] or "incident"
+
+
+def _lower_priority() -> None:
+    """The writer's thread yields the CPU to the bus threads (rule 1); Linux sets a
+    thread's niceness by its id."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICENESS)
+
+
+async def _unless(stop: asyncio.Event, awaitable: Any) -> None:
+    """Await ``awaitable`` unless ``stop`` is set first (then it is cancelled)."""
+    waiting = asyncio.ensure_future(awaitable)
+    stopping = asyncio.ensure_future(stop.wait())
+    await asyncio.wait({waiting, stopping}, return_when=asyncio.FIRST_COMPLETED)
+    for task in (waiting, stopping):
+        task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await waiting

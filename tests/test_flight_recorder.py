@@ -1,0 +1,336 @@
+"""The flight recorder's pieces without a daemon: the ring (forgets by age and by count, a
+snapshot taken while other threads append loses and repeats nothing), what triggers an
+incident, the incident file read back with the ``mcap`` library (every channel its schema,
+every message valid against it, times in order, the triggers in its metadata), pruning to
+the size budget, coalescing triggers, and the folder checks that refuse a recorder that could
+not write."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import threading
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.errors import BusgateError
+from busgate.gateway.bus.clock import now
+from busgate.gateway.recording import flight
+from busgate.gateway.recording.flight import FlightRecorder, Trigger, folder_problem, trigger_of
+from busgate.gateway.recording.ring import CHUNK, Ring
+from busgate.schemas.api import BUS_DOWN_REASON
+from busgate.schemas.config import RecorderSection
+from tests.test_schema_export import assert_valid, inspire_la_state
+
+BUSES = {"uart0": ["la1", "la2"], "can0": ["wheel"]}
+
+
+# --- the ring -------------------------------------------------------------------------------
+
+
+def test_the_ring_forgets_what_is_older_than_its_seconds() -> None:
+    ring = Ring(seconds=1.0, max_entries=10**6)
+    for n in range(CHUNK * 10):
+        ring.append((n * 0.01, n))  # 100 entries a second, 25.6 s in all
+    kept = list(ring.since(0.0))
+    newest = kept[-1][0]
+    assert kept[-1][1] == CHUNK * 10 - 1
+    assert [n for _, n in kept] == list(range(kept[0][1], CHUNK * 10))  # none lost between
+    assert newest - kept[0][0] <= 1.0 + CHUNK * 0.01  # at most a chunk beyond its seconds
+    assert len(ring) == len(kept)
+
+
+def test_the_ring_holds_at_most_its_entries_whatever_the_rate() -> None:
+    ring = Ring(seconds=1e9, max_entries=CHUNK * 4)
+    for n in range(CHUNK * 100):
+        ring.append((0.0, n))
+    assert CHUNK * 4 <= len(ring) <= CHUNK * 5
+    assert list(ring.since(0.0))[-1] == (0.0, CHUNK * 100 - 1)
+
+
+def test_since_leaves_out_what_came_before_it() -> None:
+    ring = Ring(seconds=100.0, max_entries=10**6)
+    for n in range(1000):
+        ring.append((float(n), n))
+    assert [n for _, n in ring.since(990.0)] == list(range(990, 1000))
+
+
+def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
+    ring = Ring(seconds=1e9, max_entries=10**7)
+    writers, per_writer = 4, 20_000
+    seen: list[list[tuple]] = []
+    done = threading.Event()
+
+    def write(writer: int) -> None:
+        for n in range(per_writer):
+            ring.append((0.0, writer, n))
+
+    def read() -> None:
+        while not done.is_set():
+            seen.append(list(ring.since(0.0)))
+
+    reader = threading.Thread(target=read)
+    threads = [threading.Thread(target=write, args=(w,)) for w in range(writers)]
+    reader.start()
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    done.set()
+    reader.join()
+    seen.append(list(ring.since(0.0)))
+    for snapshot in seen:
+        for writer in range(writers):
+            numbers = [n for _, w, n in snapshot if w == writer]
+            assert numbers == list(range(len(numbers)))  # each writer's, in order, no gap
+    assert len(seen[-1]) == writers * per_writer
+
+
+# --- what triggers an incident -----------------------------------------------------------------
+
+
+BUS_OF = {"la1": "uart0", "wheel": "can0"}
+
+
+@pytest.mark.parametrize(
+    ("event", "slug"),
+    [
+        ({"type": "estop", "device": "*", "key": "busgate/gw/estop"}, "estop"),
+        ({"type": "estop", "device": "*", "client": "teleop"}, "estop"),
+        ({"type": "fault", "device": "la1", "faults": ["overheat"], "raised": ["overheat"],
+          "cleared": []}, "fault-la1"),
+        ({"type": "offline", "device": "wheel", "reason": BUS_DOWN_REASON}, "bus-down-can0"),
+    ],
+)
+def test_these_events_trigger_an_incident(event, slug) -> None:
+    found = trigger_of(event, BUS_OF)
+    assert found is not None and found.slug == slug
+    if event.get("client"):
+        assert "teleop" in found.text
+
+
+@pytest.mark.parametrize(
+    "event",
+    [
+        {"type": "fault", "device": "la1", "faults": [], "raised": [], "cleared": ["overheat"]},
+        {"type": "offline", "device": "la1", "reason": "no reply"},
+        {"type": "online", "device": "la1"},
+        {"type": "claimed", "device": "la1", "client": "a", "ttl_s": 2.0},
+        {"type": ["estop"]},
+        {},
+    ],
+)
+def test_other_events_do_not(event) -> None:
+    assert trigger_of(event, BUS_OF) is None
+
+
+# --- an incident file --------------------------------------------------------------------------
+
+
+def recorder(tmp_path: Path, **settings) -> FlightRecorder:
+    made = FlightRecorder(
+        RecorderSection(dir=str(tmp_path), **settings),
+        prefix="busgate",
+        gateway="gw",
+        buses=BUSES,
+        version="test",
+    )
+    made.prepare()
+    return made
+
+
+def state(device: str, position: int) -> dict:
+    """A state as an Inspire LA driver publishes it (checked against its schema in the file)."""
+    return inspire_la_state() | {"device": device, "position": position}
+
+
+def feed(made: FlightRecorder, count: int = 20) -> None:
+    """``count`` rounds of what a gateway hands its recorder: a state, a command, frames."""
+    tap_uart, tap_can = made.tap("uart0"), made.tap("can0")
+    for n in range(count):
+        body = state("la1", n)
+        made.on_published("busgate/gw/dev/la1/state", body, json.dumps(body).encode())
+        command = {"op": "move", "position": n, "client": "teleop"}
+        made.on_command("busgate/gw/dev/la1/cmd", json.dumps(command).encode(), {"ok": True})
+        tap_uart((now(), "tx", bytes([0x55, 0xAA, n])))
+        tap_uart((now(), "rx", bytes([0xAA, 0x55, n])))
+        tap_can((now(), "tx", CanFrame(0x601, bytes([n]))))
+    made.on_command("busgate/gw/dev/la1/cmd", b"\xff not json", {"ok": False, "error": {
+        "code": "not_utf8", "message": "no"}})
+    made.on_command("busgate/gw/estop", b"", None)
+
+
+def read(path: Path):
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        messages = [(schema, channel.topic, message) for schema, channel, message
+                    in reader.iter_messages(log_time_order=False)]
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return summary, messages, metadata
+
+
+def test_an_incident_file_holds_every_channel_with_its_schema_in_order(tmp_path) -> None:
+    made = recorder(tmp_path)
+    feed(made)
+    path = made.write_incident([Trigger("estop", "e-stop from teleop")], now())
+    assert path.parent == tmp_path and path.name.startswith("incident-gw-")
+    assert path.name.endswith("-estop.mcap") and not list(tmp_path.glob("*.part"))
+    summary, messages, metadata = read(path)
+    topics = {channel.topic: summary.schemas.get(channel.schema_id)
+              for channel in summary.channels.values()}
+    assert {topic: schema.name if schema else None for topic, schema in topics.items()} == {
+        "busgate/gw/dev/la1/state": "telemetry.inspire_la",
+        "busgate/gw/commands": "recorded_command",
+        "busgate/gw/bus/uart0/frames": "frame",
+        "busgate/gw/bus/can0/frames": "frame",
+    }
+    assert all(schema.encoding == "jsonschema" for schema in topics.values())
+    counts = {}
+    for schema, topic, message in messages:
+        counts[topic] = counts.get(topic, 0) + 1
+        assert_valid(f"{schema.name}.json", json.loads(message.data))
+    assert counts == {"busgate/gw/dev/la1/state": 20, "busgate/gw/commands": 22,
+                      "busgate/gw/bus/uart0/frames": 40, "busgate/gw/bus/can0/frames": 20}
+    times = [message.log_time for _, _, message in messages]
+    assert times == sorted(times)  # written in time order
+    assert metadata["incident"]["triggers"] == "e-stop from teleop"
+    assert metadata["incident"]["gateway"] == "gw"
+
+
+def test_frames_and_commands_read_back_as_they_were(tmp_path) -> None:
+    made = recorder(tmp_path)
+    feed(made, count=3)
+    _, messages, _ = read(made.write_incident([Trigger("signal", "SIGUSR1")], now()))
+    bodies = [(topic, json.loads(m.data)) for _, topic, m in messages]
+    uart = [body for topic, body in bodies if topic.endswith("uart0/frames")]
+    assert [(b["dir"], b["wire"]) for b in uart[:2]] == [("tx", "55aa00"), ("rx", "aa5500")]
+    can = [body["wire"] for topic, body in bodies if topic.endswith("can0/frames")]
+    assert can == ["601#00", "601#01", "601#02"]
+    commands = [body for topic, body in bodies if topic.endswith("/commands")]
+    assert commands[0]["client"] == "teleop" and commands[0]["command"]["position"] == 0
+    assert commands[0]["code"] == "ok"
+    refused = commands[-2]
+    assert refused["command"] is None and refused["text"].endswith("not json")
+    assert refused["code"] == "not_utf8"
+    assert commands[-1]["key"] == "busgate/gw/estop" and commands[-1]["code"] == "ok"
+
+
+def test_only_the_last_seconds_go_into_the_file(tmp_path) -> None:
+    made = recorder(tmp_path, seconds=1.0)
+    tap = made.tap("uart0")
+    at = now()
+    tap((at - 5.0, "tx", b"\x01"))  # long before: left out
+    tap((at - 0.5, "tx", b"\x02"))
+    _, messages, _ = read(made.write_incident([Trigger("signal", "SIGUSR1")], at))
+    assert [json.loads(m.data)["wire"] for _, _, m in messages] == ["02"]
+
+
+def test_old_incidents_are_pruned_to_the_budget_and_the_new_one_stays(tmp_path) -> None:
+    made = recorder(tmp_path, max_total_mb=1)
+    old = []
+    for n in range(3):
+        path = tmp_path / f"incident-gw-2026010{n}T000000.000Z-estop.mcap"
+        path.write_bytes(b"x" * 400_000)
+        os.utime(path, (1_000_000 + n, 1_000_000 + n))
+        old.append(path)
+    unrelated = tmp_path / "notes.txt"
+    unrelated.write_bytes(b"y" * 2_000_000)
+    made.trigger(Trigger("signal", "SIGUSR1"))
+    newest = made.write_pending()
+    assert newest is not None and newest.exists()
+    assert [path.exists() for path in old] == [False, True, True]  # 1 MiB: two of 400 kB left
+    assert unrelated.exists()  # only incident files are the recorder's
+
+
+def test_a_file_larger_than_the_budget_is_kept_alone(tmp_path) -> None:
+    made = recorder(tmp_path, max_total_mb=1)
+    earlier = tmp_path / "incident-gw-20260101T000000.000Z-estop.mcap"
+    earlier.write_bytes(b"x" * 10)
+    os.utime(earlier, (1_000_000, 1_000_000))
+    tap = made.tap("uart0")
+    for _ in range(20_000):
+        tap((now(), "tx", os.urandom(32)))  # what no compression makes smaller
+    made.trigger(Trigger("signal", "SIGUSR1"))
+    newest = made.write_pending()
+    assert newest is not None and newest.stat().st_size > 1024 * 1024
+    assert not earlier.exists()
+
+
+def test_a_write_that_fails_is_logged_and_the_recorder_goes_on(tmp_path, caplog) -> None:
+    made = recorder(tmp_path / "incidents")
+    made.trigger(Trigger("estop", "e-stop"))
+    (tmp_path / "incidents").rmdir()
+    assert made.write_pending() is None
+    assert "incident (e-stop) not written" in caplog.text
+    made.prepare()
+    made.trigger(Trigger("estop", "e-stop"))
+    assert made.write_pending() is not None
+
+
+def test_prepare_removes_what_a_crash_left_half_written(tmp_path) -> None:
+    part = tmp_path / "incident-gw-20260101T000000.000Z-estop.mcap.part"
+    part.write_bytes(b"half")
+    recorder(tmp_path)
+    assert not part.exists()
+
+
+def test_a_folder_that_cannot_be_written_is_refused_in_one_line(tmp_path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    made = FlightRecorder(RecorderSection(dir=str(blocker / "incidents")), prefix="busgate",
+                          gateway="gw", buses=BUSES, version="test")
+    with pytest.raises(BusgateError, match=r"recorder: cannot write incident files in .*a-file"):
+        made.prepare()
+    assert folder_problem(blocker / "incidents") == f"{blocker} is not a directory"
+    assert folder_problem(tmp_path / "new" / "deeper") is None  # it can be made
+
+
+# --- triggers coalesce -----------------------------------------------------------------------
+
+
+def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, monkeypatch):
+    monkeypatch.setattr(flight, "AFTER_S", 0.2)
+    monkeypatch.setattr(flight, "HOLDOFF_S", 0.5)
+    made = recorder(tmp_path)
+    feed(made, count=2)
+
+    async def scenario() -> None:
+        stop = asyncio.Event()
+        running = asyncio.create_task(made.run(stop))
+        await asyncio.sleep(0.05)
+        made.trigger(Trigger("estop", "e-stop"))
+        made.trigger(Trigger("fault-la1", "fault on la1: overheat"))
+        await asyncio.sleep(0.4)  # written once AFTER_S has passed
+        assert len(made.written) == 1
+        made.trigger(Trigger("bus-down-uart0", "bus uart0 down"))  # within the hold-off
+        made.trigger(Trigger("signal", "SIGUSR1"))
+        await asyncio.sleep(0.2)
+        assert len(made.written) == 1
+        await asyncio.sleep(0.8)
+        assert len(made.written) == 2
+        made.trigger(Trigger("estop", "e-stop"))
+        stop.set()  # pending at the stop: for flush, after the buses
+        await running
+        assert len(made.written) == 2
+        await asyncio.to_thread(made.flush)
+        assert len(made.written) == 3
+
+    asyncio.run(scenario())
+    triggers = [read(path)[2]["incident"]["triggers"] for path in made.written]
+    assert triggers == ["e-stop; fault on la1: overheat", "bus uart0 down; SIGUSR1", "e-stop"]
+    assert made.written[0].name.endswith("-estop.mcap")
+    assert made.written[1].name.endswith("-bus-down-uart0.mcap")
+
+
+def test_an_event_published_on_the_events_key_is_what_triggers(tmp_path) -> None:
+    made = recorder(tmp_path)
+    estop = {"ts": 1.0, "device": "*", "type": "estop", "key": "busgate/gw/estop"}
+    made.on_published("busgate/gw/dev/la1/event", estop, json.dumps(estop).encode())
+    assert made.write_pending() is None  # the device's copy of it: no trigger twice
+    made.on_published("busgate/gw/events", estop, json.dumps(estop).encode())
+    assert made.write_pending() is not None
