@@ -8,15 +8,16 @@ not write."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import os
 import threading
+import time
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
-from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import BusgateError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.recording import flight
@@ -32,11 +33,16 @@ BUSES = {"uart0": ["la1", "la2"], "can0": ["wheel"]}
 # --- the ring -------------------------------------------------------------------------------
 
 
+def since(ring: Ring, start: float) -> list[tuple]:
+    """The ring's entries from ``start`` on, as the incident writer takes them."""
+    return [entry for chunk in ring.chunks(start) for entry in chunk if entry[0] >= start]
+
+
 def test_the_ring_forgets_what_is_older_than_its_seconds() -> None:
     ring = Ring(seconds=1.0, max_entries=10**6)
     for n in range(CHUNK * 10):
         ring.append((n * 0.01, n))  # 100 entries a second, 25.6 s in all
-    kept = list(ring.since(0.0))
+    kept = since(ring, 0.0)
     newest = kept[-1][0]
     assert kept[-1][1] == CHUNK * 10 - 1
     assert [n for _, n in kept] == list(range(kept[0][1], CHUNK * 10))  # none lost between
@@ -49,14 +55,14 @@ def test_the_ring_holds_at_most_its_entries_whatever_the_rate() -> None:
     for n in range(CHUNK * 100):
         ring.append((0.0, n))
     assert CHUNK * 4 <= len(ring) <= CHUNK * 5
-    assert list(ring.since(0.0))[-1] == (0.0, CHUNK * 100 - 1)
+    assert since(ring, 0.0)[-1] == (0.0, CHUNK * 100 - 1)
 
 
 def test_since_leaves_out_what_came_before_it() -> None:
     ring = Ring(seconds=100.0, max_entries=10**6)
     for n in range(1000):
         ring.append((float(n), n))
-    assert [n for _, n in ring.since(990.0)] == list(range(990, 1000))
+    assert [n for _, n in since(ring, 990.0)] == list(range(990, 1000))
 
 
 def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
@@ -71,7 +77,7 @@ def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
 
     def read() -> None:
         while not done.is_set():
-            seen.append(list(ring.since(0.0)))
+            seen.append(since(ring, 0.0))
 
     reader = threading.Thread(target=read)
     threads = [threading.Thread(target=write, args=(w,)) for w in range(writers)]
@@ -82,12 +88,24 @@ def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
         thread.join()
     done.set()
     reader.join()
-    seen.append(list(ring.since(0.0)))
+    seen.append(since(ring, 0.0))
     for snapshot in seen:
         for writer in range(writers):
             numbers = [n for _, w, n in snapshot if w == writer]
             assert numbers == list(range(len(numbers)))  # each writer's, in order, no gap
     assert len(seen[-1]) == writers * per_writer
+
+
+def test_what_the_rings_hold_is_nothing_the_garbage_collector_walks(tmp_path) -> None:
+    """A minute of 20 devices is near a million entries: were they objects the collector
+    tracks, each full collection would walk them all, stopping every thread (bus ones too)."""
+    made = recorder(tmp_path)
+    feed(made, count=3)
+    gc.collect()
+    rings = [made.published, made.commands, *made.frames.values()]
+    entries = [entry for ring in rings for entry in since(ring, 0.0)]
+    assert len(entries) == 3 * 5 + 2
+    assert not any(gc.is_tracked(entry) for entry in entries)
 
 
 # --- what triggers an incident -----------------------------------------------------------------
@@ -156,9 +174,9 @@ def feed(made: FlightRecorder, count: int = 20) -> None:
         made.on_published("busgate/gw/dev/la1/state", body, json.dumps(body).encode())
         command = {"op": "move", "position": n, "client": "teleop"}
         made.on_command("busgate/gw/dev/la1/cmd", json.dumps(command).encode(), {"ok": True})
-        tap_uart((now(), "tx", bytes([0x55, 0xAA, n])))
-        tap_uart((now(), "rx", bytes([0xAA, 0x55, n])))
-        tap_can((now(), "tx", CanFrame(0x601, bytes([n]))))
+        tap_uart((now(), "tx", bytes([0x55, 0xAA, n]), None))
+        tap_uart((now(), "rx", bytes([0xAA, 0x55, n]), None))
+        tap_can((now(), "tx", bytes([n]), 0x601))
     made.on_command("busgate/gw/dev/la1/cmd", b"\xff not json", {"ok": False, "error": {
         "code": "not_utf8", "message": "no"}})
     made.on_command("busgate/gw/estop", b"", None)
@@ -224,8 +242,8 @@ def test_only_the_last_seconds_go_into_the_file(tmp_path) -> None:
     made = recorder(tmp_path, seconds=1.0)
     tap = made.tap("uart0")
     at = now()
-    tap((at - 5.0, "tx", b"\x01"))  # long before: left out
-    tap((at - 0.5, "tx", b"\x02"))
+    tap((at - 5.0, "tx", b"\x01", None))  # long before: left out
+    tap((at - 0.5, "tx", b"\x02", None))
     _, messages, _ = read(made.write_incident([Trigger("signal", "SIGUSR1")], at))
     assert [json.loads(m.data)["wire"] for _, _, m in messages] == ["02"]
 
@@ -254,7 +272,7 @@ def test_a_file_larger_than_the_budget_is_kept_alone(tmp_path) -> None:
     os.utime(earlier, (1_000_000, 1_000_000))
     tap = made.tap("uart0")
     for _ in range(20_000):
-        tap((now(), "tx", os.urandom(32)))  # what no compression makes smaller
+        tap((now(), "tx", os.urandom(32), None))  # what no compression makes smaller
     made.trigger(Trigger("signal", "SIGUSR1"))
     newest = made.write_pending()
     assert newest is not None and newest.stat().st_size > 1024 * 1024
@@ -294,10 +312,17 @@ def test_a_folder_that_cannot_be_written_is_refused_in_one_line(tmp_path) -> Non
 
 
 def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, monkeypatch):
-    monkeypatch.setattr(flight, "AFTER_S", 0.2)
-    monkeypatch.setattr(flight, "HOLDOFF_S", 0.5)
+    monkeypatch.setattr(flight, "AFTER_S", 0.1)
+    monkeypatch.setattr(flight, "HOLDOFF_S", 2.0)
     made = recorder(tmp_path)
     feed(made, count=2)
+
+    async def written(count: int) -> float:
+        for _ in range(200):
+            if len(made.written) >= count:
+                return time.monotonic()
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"{len(made.written)} files, not {count}")
 
     async def scenario() -> None:
         stop = asyncio.Event()
@@ -305,14 +330,11 @@ def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, mon
         await asyncio.sleep(0.05)
         made.trigger(Trigger("estop", "e-stop"))
         made.trigger(Trigger("fault-la1", "fault on la1: overheat"))
-        await asyncio.sleep(0.4)  # written once AFTER_S has passed
-        assert len(made.written) == 1
+        first = await written(1)
         made.trigger(Trigger("bus-down-uart0", "bus uart0 down"))  # within the hold-off
         made.trigger(Trigger("signal", "SIGUSR1"))
-        await asyncio.sleep(0.2)
-        assert len(made.written) == 1
-        await asyncio.sleep(0.8)
-        assert len(made.written) == 2
+        second = await written(2)
+        assert second - first >= 2.0
         made.trigger(Trigger("estop", "e-stop"))
         stop.set()  # pending at the stop: for flush, after the buses
         await running

@@ -154,7 +154,7 @@ class CanBusOwner(BusOwner):
             except OSError as exc:
                 self._fail(exc)
         if self.tap is not None:
-            self.tap((now(), TX, wire))
+            self.tap((now(), TX, wire.data, wire.arbitration_id))
         self.counters.frames_out += 1
         self.counters.bytes_out += len(wire.data)
 
@@ -208,10 +208,10 @@ class CanBusOwner(BusOwner):
         if message.is_extended_id or message.is_remote_frame:
             self.counters.discarded_bytes += len(message.data)
             return []
-        frame = CanFrame(message.arbitration_id, bytes(message.data))
+        data = bytes(message.data)
         if self.tap is not None:
-            self.tap((now(), RX, frame))
-        self._decoder.feed(frame)
+            self.tap((now(), RX, data, message.arbitration_id))
+        self._decoder.feed(CanFrame(message.arbitration_id, data))
         events = []
         for event in self._decoder.events():
             if isinstance(event, Discarded):

@@ -17,8 +17,9 @@ Rules of every owner:
    waits for a reply and while idle. A question-and-answer line has none: idle, its owner
    only waits.
 4. When it has a ``tap`` (the flight recorder), every frame it writes and every read from its
-   line goes to it, with the host's time, on the bus thread: ``(time, TX or RX, bytes or
-   CanFrame)``. The tap only appends; it never waits.
+   line goes to it, with the host's time, on the bus thread: ``(time, TX or RX, bytes, CAN
+   identifier or None)``, plain values only (a tuple of them is nothing the garbage
+   collector walks). The tap only appends; it never waits.
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ import time
 from collections.abc import Callable
 from typing import ClassVar
 
-from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
@@ -37,7 +37,7 @@ from busgate.gateway.bus.stats import BusCounters
 Pause = Callable[[float], bool]
 #: Directions of a tapped frame (rule 4): written by the gateway, or read by it.
 TX, RX = "tx", "rx"
-Tap = Callable[[tuple[float, str, bytes | CanFrame]], None]
+Tap = Callable[[tuple[float, str, bytes, int | None]], None]
 
 
 class BusOwner(abc.ABC):

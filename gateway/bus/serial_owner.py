@@ -103,7 +103,7 @@ class SerialBusOwner(BusOwner):
         self._write(port, request.wire)
         start = now()
         if self.tap is not None:
-            self.tap((start, TX, request.wire))
+            self.tap((start, TX, request.wire, None))
         wire_time = self.timing.wire_time(request.wire)
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
@@ -148,7 +148,7 @@ class SerialBusOwner(BusOwner):
                 raise serial.SerialException("the port reports data but returns none (unplugged?)")
             arrived = now()
             if self.tap is not None:
-                self.tap((arrived, RX, data))
+                self.tap((arrived, RX, data, None))
             self.counters.bytes_in += len(data)
             self._decoder.feed(data)
             for event in self._decoder.events():
@@ -199,7 +199,7 @@ class SerialBusOwner(BusOwner):
         if waiting:
             data = port.read(waiting)
             if self.tap is not None:
-                self.tap((now(), RX, data))
+                self.tap((now(), RX, data, None))
             self._decoder.feed(data)
             for event in self._decoder.events():
                 if isinstance(event, Discarded):

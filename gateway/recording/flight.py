@@ -7,13 +7,15 @@ command it was sent (key, payload, and the code it answered), and every frame on
 (bytes and the host's time, handed over by each bus owner's ``tap`` on its own thread). An
 e-stop, a fault raised, a bus going down, or SIGUSR1 triggers an incident: ``AFTER_S`` later
 (so that the stop itself is in it) the rings are written as one MCAP file in ``[recorder].dir``
-(``mcap_log.McapLog``: the channels ``busgate record`` writes, plus ``<base>/commands`` and
+(the channels ``busgate record`` writes, plus ``<base>/commands`` and
 ``<base>/bus/<bus>/frames``), and the oldest files are pruned to ``max_total_mb``.
 
 Rules of this file:
 
-1. Nothing here delays a frame: a bus thread only appends a tuple to its ring (``tap``);
-   building and writing the file happens on the recorder's own thread, at a lower priority.
+1. Nothing here delays a frame: a bus thread only appends a tuple of plain values to its
+   ring (``tap``); the file is built and written by a process of its own at a lower priority
+   (``incident_file``: its work would hold the GIL, and its garbage set off collections
+   that stop every thread), fed the rings' chunks down a pipe by the recorder's thread.
 2. A file is complete or absent: it is written as ``*.mcap.part`` and renamed once finished.
 3. Triggers that come while an incident is gathered or written, or within ``HOLDOFF_S`` of
    the last one, go into the next file, whose metadata names every one: a device whose
@@ -26,24 +28,23 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import heapq
-import json
 import logging
 import os
+import pickle
 import re
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
-from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.errors import BusgateError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import Tap
-from busgate.gateway.recording.mcap_log import McapLog
 from busgate.gateway.recording.ring import Ring
 from busgate.schemas.api import BUS_DOWN_REASON
 from busgate.schemas.config import RecorderSection
@@ -59,10 +60,9 @@ HOLDOFF_S = 10.0
 #: carries under 2000 frames a second; 20 devices polled at 100 Hz publish 2000 states.
 FRAMES_PER_S = 5_000
 MESSAGES_PER_S = 5_000
-#: The niceness of the writing thread: the bus threads come first when the CPU is short.
-WRITER_NICENESS = 10
-#: Of a payload that is no JSON object, this much is kept as text.
-TEXT_KEPT = 256
+#: The module that writes the file, in a process of its own (rule 1).
+WRITER = "busgate.gateway.recording.incident_file"
+PICKLE_PROTOCOL = 5
 INCIDENT_GLOB = "incident-*.mcap"
 METADATA = "incident"
 
@@ -116,9 +116,7 @@ class FlightRecorder:
         self._pending_lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
-        self._writer = ThreadPoolExecutor(
-            1, thread_name_prefix="incident", initializer=_lower_priority
-        )
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="incident")
         #: Every incident file written, newest last (what the tests and the log name).
         self.written: list[Path] = []
 
@@ -149,7 +147,7 @@ class FlightRecorder:
 
     def on_published(self, key: str, body: dict[str, Any], data: bytes) -> None:
         """A message the gateway published (``body`` as ``data`` encodes it)."""
-        self.published.append((now(), key, data))
+        self.published.append((now(), sys.intern(key), data))
         if key == self._events_key:
             trigger = trigger_of(body, self.bus_of)
             if trigger is not None:
@@ -157,7 +155,7 @@ class FlightRecorder:
 
     def on_command(self, key: str, payload: bytes, reply: dict[str, Any] | None) -> None:
         """A command and its reply (``None``: taken, with nothing to answer)."""
-        self.commands.append((now(), key, payload, _code(reply)))
+        self.commands.append((now(), sys.intern(key), payload, _code(reply)))
 
     def trigger(self, trigger: Trigger) -> None:
         """Ask for an incident file (any thread)."""
@@ -207,64 +205,66 @@ class FlightRecorder:
         return path
 
     def write_incident(self, triggers: list[Trigger], at: float) -> Path:
-        """The rings' last ``seconds`` before ``at`` (a ``now()`` time) as one MCAP file."""
+        """The rings' last ``seconds`` before ``at`` (a ``now()`` time) as one MCAP file,
+        written by a process of its own (``incident_file``: rule 1)."""
         wall_offset = time.time() - now()
         stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(at + wall_offset))
         millis = int((at + wall_offset) % 1 * 1000)
         name = f"incident-{self.gateway}-{stamp}.{millis:03d}Z-{_slug(triggers[0].slug)}.mcap"
         path = self.folder / name
         part = path.with_name(name + ".part")
-        start = at - self.settings.seconds
-        with part.open("wb") as stream:
-            mcap = McapLog(stream, self.prefix)
-            for t, key, data, body in heapq.merge(
-                self._published_since(start),
-                self._commands_since(start, wall_offset),
-                *(self._frames_since(bus, start, wall_offset) for bus in self.frames),
-                key=lambda entry: entry[0],
-            ):
-                mcap.add(key, data, int((t + wall_offset) * 1e9), body=body)
-            mcap.metadata(
-                METADATA,
-                {
-                    "gateway": self.gateway,
-                    "triggers": "; ".join(trigger.text for trigger in triggers),
-                    "triggered_at": f"{at + wall_offset:.6f}",
-                    "seconds": f"{self.settings.seconds:g}",
-                    "version": self.version,
-                },
-            )
-            mcap.finish()
+        header = {
+            "prefix": self.prefix,
+            "base": self.base,
+            "start": at - self.settings.seconds,
+            "wall_offset": wall_offset,
+            "metadata_name": METADATA,
+            "metadata": {
+                "gateway": self.gateway,
+                "triggers": "; ".join(trigger.text for trigger in triggers),
+                "triggered_at": f"{at + wall_offset:.6f}",
+                "seconds": f"{self.settings.seconds:g}",
+                "version": self.version,
+            },
+        }
+        with subprocess.Popen(
+            [sys.executable, "-m", WRITER, str(part)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        ) as writer:
+            assert writer.stdin is not None
+            with contextlib.suppress(BrokenPipeError):  # it ended: its stderr says why
+                self._send(writer.stdin, header)
+            out, err = writer.communicate()
+        if writer.returncode != 0:
+            with contextlib.suppress(OSError):
+                part.unlink()
+            complaint = err.decode(errors="replace").strip().splitlines()
+            raise OSError(complaint[-1] if complaint else f"its writer exited {writer.returncode}")
         os.replace(part, path)
         log.warning(
-            "incident written: %s (%s; %d messages, %.0f KiB)",
+            "incident written: %s (%s; %s messages, %.0f KiB)",
             path,
-            "; ".join(trigger.text for trigger in triggers),
-            mcap.messages,
+            header["metadata"]["triggers"],
+            out.decode().strip(),
             path.stat().st_size / 1024,
         )
         return path
 
-    def _published_since(self, start: float) -> Iterator[tuple[float, str, bytes, Any]]:
-        for t, key, data in self.published.since(start):
-            yield t, key, data, None
-
-    def _commands_since(
-        self, start: float, wall_offset: float
-    ) -> Iterator[tuple[float, str, bytes, Any]]:
-        key = f"{self.base}/commands"
-        for t, on_key, payload, code in self.commands.since(start):
-            body = recorded_command(t + wall_offset, on_key, payload, code)
-            yield t, key, _dumps(body), body
-
-    def _frames_since(
-        self, bus: str, start: float, wall_offset: float
-    ) -> Iterator[tuple[float, str, bytes, Any]]:
-        key = f"{self.base}/bus/{bus}/frames"
-        for t, direction, wire in self.frames[bus].since(start):
-            text = str(wire) if isinstance(wire, CanFrame) else wire.hex()
-            body = {"ts": t + wall_offset, "bus": bus, "dir": direction, "wire": text}
-            yield t, key, _dumps(body), body
+    def _send(self, pipe: IO[bytes], header: dict[str, Any]) -> None:
+        """The snapshot down the writer's pipe, chunk by chunk (``incident_file`` rule 1):
+        each pickle holds the GIL for microseconds, the pipe's writes none."""
+        start = header["start"]
+        pickle.dump(header, pipe, PICKLE_PROTOCOL)
+        for chunk in self.published.chunks(start):
+            pickle.dump(("published", chunk), pipe, PICKLE_PROTOCOL)
+        for chunk in self.commands.chunks(start):
+            pickle.dump(("commands", chunk), pipe, PICKLE_PROTOCOL)
+        for bus, ring in self.frames.items():
+            for chunk in ring.chunks(start):
+                pickle.dump(("frames", bus, chunk), pipe, PICKLE_PROTOCOL)
+        pickle.dump(None, pipe, PICKLE_PROTOCOL)
 
     def _prune(self, keep: Path) -> None:
         """The oldest incident files go until all take at most ``max_total_mb`` (the one
@@ -301,45 +301,14 @@ def folder_problem(folder: Path) -> str | None:
     return f"{folder} does not exist and this user may not make it in {existing}"
 
 
-def recorded_command(ts: float, key: str, payload: bytes, code: str) -> dict[str, Any]:
-    """A command as an incident file holds it (``schemas.recording.RecordedCommand``)."""
-    try:
-        command = json.loads(payload)
-    except (ValueError, RecursionError):
-        command = None
-    if not isinstance(command, dict):
-        text = payload[: TEXT_KEPT * 4].decode("utf-8", "replace")[:TEXT_KEPT]
-        return {"ts": ts, "key": key, "client": None, "command": None, "text": text, "code": code}
-    client = command.get("client")
-    return {
-        "ts": ts,
-        "key": key,
-        "client": client if isinstance(client, str) else None,
-        "command": command,
-        "text": None,
-        "code": code,
-    }
-
-
 def _code(reply: dict[str, Any] | None) -> str:
     if reply is None or reply.get("ok"):
         return "ok"
     return str(reply.get("error", {}).get("code", "internal"))
 
 
-def _dumps(body: dict[str, Any]) -> bytes:
-    return json.dumps(body, separators=(",", ":"), default=str).encode()
-
-
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "-", text)[:64] or "incident"
-
-
-def _lower_priority() -> None:
-    """The writer's thread yields the CPU to the bus threads (rule 1); Linux sets a
-    thread's niceness by its id."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICENESS)
 
 
 async def _unless(stop: asyncio.Event, awaitable: Any) -> None:

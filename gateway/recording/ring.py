@@ -6,7 +6,8 @@ Rules of this file:
    append, and every ``CHUNK`` entries a chunk closed. Any thread may append.
 2. A reader never holds the lock while it copies many entries: the ring is kept as closed
    chunks (never changed again) and one open chunk, so a snapshot copies the chunk list and
-   the open chunk under the lock and reads the rest outside it.
+   the open chunk under the lock and reads the rest outside it. A closed chunk is never
+   changed, so a reader may keep it.
 3. It forgets by age and by count: a chunk goes once its newest entry is older than
    ``seconds`` before the newest appended, and the oldest goes whenever more than
    ``max_entries`` are held, so memory is bounded whatever the rate.
@@ -18,7 +19,6 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from collections.abc import Iterator
 
 #: Entries per chunk: small enough that the open one copies in microseconds.
 CHUNK = 256
@@ -48,14 +48,13 @@ class Ring:
         while closed and (len(closed) > self._max_chunks or closed[0][-1][0] < horizon):
             closed.popleft()
 
-    def since(self, start: float) -> Iterator[tuple]:
-        """The entries from ``start`` on, oldest first (rule 2: copied, not held)."""
+    def chunks(self, start: float) -> list[list[tuple]]:
+        """The chunks holding the entries from ``start`` on, oldest first (rule 2: the closed
+        ones as they are, the open one copied); the first may begin before ``start``."""
         with self._lock:
             chunks = list(self._closed)
             tail = list(self._open)
-        for chunk in (*chunks, tail):
-            if chunk and chunk[-1][0] >= start:
-                yield from (entry for entry in chunk if entry[0] >= start)
+        return [chunk for chunk in (*chunks, tail) if chunk and chunk[-1][0] >= start]
 
     def __len__(self) -> int:
         with self._lock:
