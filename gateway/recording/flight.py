@@ -246,7 +246,7 @@ class FlightRecorder:
         log.warning(
             "incident written: %s (%s; %s messages, %.0f KiB)",
             path,
-            header["metadata"]["triggers"],
+            "; ".join(trigger.text for trigger in triggers),
             out.decode().strip(),
             path.stat().st_size / 1024,
         )
