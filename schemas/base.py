@@ -8,6 +8,7 @@ Ranges come from the codecs' register tables, never retyped here.
 
 from __future__ import annotations
 
+import re
 from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -15,6 +16,13 @@ from pydantic import BaseModel, ConfigDict, Field
 #: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
 CLIENT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
+
+
+def client_named(value: object) -> str | None:
+    """``value`` when it is a valid client id (what a payload's ``client`` names), else
+    ``None``: for what only reports a client, never trusts it."""
+    return value if isinstance(value, str) and re.fullmatch(CLIENT_ID_PATTERN, value) else None
+
 
 #: Raw bytes written to a device, as hex without spaces (``"e803"``).
 HexData = Annotated[str, Field(pattern=r"^(?:[0-9a-fA-F]{2})+$", max_length=512)]

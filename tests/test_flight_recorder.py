@@ -39,41 +39,51 @@ def since(ring: Ring, start: float) -> list[tuple]:
 
 
 def test_the_ring_forgets_what_is_older_than_its_seconds() -> None:
-    ring = Ring(seconds=1.0, max_entries=10**6)
+    ring = Ring(seconds=1.0, max_entries=10**6, max_bytes=10**9)
     for n in range(CHUNK * 10):
-        ring.append((n * 0.01, n))  # 100 entries a second, 25.6 s in all
+        ring.append((n * 0.01, n, b""))  # 100 entries a second, 25.6 s in all
     kept = since(ring, 0.0)
     newest = kept[-1][0]
     assert kept[-1][1] == CHUNK * 10 - 1
-    assert [n for _, n in kept] == list(range(kept[0][1], CHUNK * 10))  # none lost between
+    assert [n for _, n, _ in kept] == list(range(kept[0][1], CHUNK * 10))  # none lost between
     assert newest - kept[0][0] <= 1.0 + CHUNK * 0.01  # at most a chunk beyond its seconds
     assert len(ring) == len(kept)
 
 
 def test_the_ring_holds_at_most_its_entries_whatever_the_rate() -> None:
-    ring = Ring(seconds=1e9, max_entries=CHUNK * 4)
+    ring = Ring(seconds=1e9, max_entries=CHUNK * 4, max_bytes=10**9)
     for n in range(CHUNK * 100):
-        ring.append((0.0, n))
+        ring.append((0.0, n, b""))
     assert CHUNK * 4 <= len(ring) <= CHUNK * 5
-    assert since(ring, 0.0)[-1] == (0.0, CHUNK * 100 - 1)
+    assert since(ring, 0.0)[-1] == (0.0, CHUNK * 100 - 1, b"")
+
+
+def test_the_ring_holds_at_most_its_bytes_whatever_a_peer_sends() -> None:
+    ring = Ring(seconds=1e9, max_entries=10**6, max_bytes=1_000_000)
+    for n in range(2000):
+        ring.append((float(n), n, bytes(10_000)))  # 20 MB in all, in a few entries
+    kept = since(ring, 0.0)
+    held = sum(len(data) for _, _, data in kept)
+    assert 1_000_000 - 10_000 * 16 < held <= 1_000_000 + 1_000_000 // 16 + 10_000
+    assert kept[-1][1] == 1999 and [n for _, n, _ in kept] == list(range(kept[0][1], 2000))
 
 
 def test_since_leaves_out_what_came_before_it() -> None:
-    ring = Ring(seconds=100.0, max_entries=10**6)
+    ring = Ring(seconds=100.0, max_entries=10**6, max_bytes=10**9)
     for n in range(1000):
-        ring.append((float(n), n))
-    assert [n for _, n in since(ring, 990.0)] == list(range(990, 1000))
+        ring.append((float(n), n, b""))
+    assert [n for _, n, _ in since(ring, 990.0)] == list(range(990, 1000))
 
 
 def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
-    ring = Ring(seconds=1e9, max_entries=10**7)
+    ring = Ring(seconds=1e9, max_entries=10**7, max_bytes=10**12)
     writers, per_writer = 4, 20_000
     seen: list[list[tuple]] = []
     done = threading.Event()
 
     def write(writer: int) -> None:
         for n in range(per_writer):
-            ring.append((0.0, writer, n))
+            ring.append((0.0, writer, b"", n))
 
     def read() -> None:
         while not done.is_set():
@@ -91,7 +101,7 @@ def test_a_snapshot_while_threads_append_loses_and_repeats_nothing() -> None:
     seen.append(since(ring, 0.0))
     for snapshot in seen:
         for writer in range(writers):
-            numbers = [n for _, w, n in snapshot if w == writer]
+            numbers = [n for _, w, _, n in snapshot if w == writer]
             assert numbers == list(range(len(numbers)))  # each writer's, in order, no gap
     assert len(seen[-1]) == writers * per_writer
 
@@ -104,7 +114,7 @@ def test_what_the_rings_hold_is_nothing_the_garbage_collector_walks(tmp_path) ->
     gc.collect()
     rings = [made.published, made.commands, *made.frames.values()]
     entries = [entry for ring in rings for entry in since(ring, 0.0)]
-    assert len(entries) == 3 * 5 + 2
+    assert len(entries) == 3 * 5 + 4  # 5 each round, and the 4 commands after
     assert not any(gc.is_tracked(entry) for entry in entries)
 
 
@@ -179,6 +189,10 @@ def feed(made: FlightRecorder, count: int = 20) -> None:
         tap_can((now(), "tx", bytes([n]), 0x601))
     made.on_command("busgate/gw/dev/la1/cmd", b"\xff not json", {"ok": False, "error": {
         "code": "not_utf8", "message": "no"}})
+    made.on_command("busgate/gw/dev/la1/cmd", b'{"op":"move","position":NaN,"client":"no spaces"}',
+                    {"ok": False, "error": {"code": "not_json", "message": "NaN"}})
+    made.on_command("busgate/gw/dev/la1/cmd", b'{"op":"claim","client":"not a valid id!"}',
+                    {"ok": False, "error": {"code": "bad_command", "message": "client"}})
     made.on_command("busgate/gw/estop", b"", None)
 
 
@@ -212,7 +226,7 @@ def test_an_incident_file_holds_every_channel_with_its_schema_in_order(tmp_path)
     for schema, topic, message in messages:
         counts[topic] = counts.get(topic, 0) + 1
         assert_valid(f"{schema.name}.json", json.loads(message.data))
-    assert counts == {"busgate/gw/dev/la1/state": 20, "busgate/gw/commands": 22,
+    assert counts == {"busgate/gw/dev/la1/state": 20, "busgate/gw/commands": 24,
                       "busgate/gw/bus/uart0/frames": 40, "busgate/gw/bus/can0/frames": 20}
     times = [message.log_time for _, _, message in messages]
     assert times == sorted(times)  # written in time order
@@ -232,9 +246,12 @@ def test_frames_and_commands_read_back_as_they_were(tmp_path) -> None:
     commands = [body for topic, body in bodies if topic.endswith("/commands")]
     assert commands[0]["client"] == "teleop" and commands[0]["command"]["position"] == 0
     assert commands[0]["code"] == "ok"
-    refused = commands[-2]
+    refused = commands[-4]
     assert refused["command"] is None and refused["text"].endswith("not json")
     assert refused["code"] == "not_utf8"
+    nan, bad_client = commands[-3], commands[-2]  # what no schema allows is not passed on
+    assert nan["command"] is None and "NaN" in nan["text"] and nan["client"] is None
+    assert bad_client["command"]["op"] == "claim" and bad_client["client"] is None
     assert commands[-1]["key"] == "busgate/gw/estop" and commands[-1]["code"] == "ok"
 
 
@@ -317,12 +334,15 @@ def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, mon
     made = recorder(tmp_path)
     feed(made, count=2)
 
+    def incident_files(folder: Path) -> list[Path]:
+        return sorted(folder.glob("incident-*.mcap"))  # the names begin with their time
+
     async def written(count: int) -> float:
         for _ in range(200):
-            if len(made.written) >= count:
+            if len(incident_files(tmp_path)) >= count:
                 return time.monotonic()
             await asyncio.sleep(0.05)
-        raise AssertionError(f"{len(made.written)} files, not {count}")
+        raise AssertionError(f"{len(incident_files(tmp_path))} files, not {count}")
 
     async def scenario() -> None:
         stop = asyncio.Event()
@@ -338,15 +358,15 @@ def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, mon
         made.trigger(Trigger("estop", "e-stop"))
         stop.set()  # pending at the stop: for flush, after the buses
         await running
-        assert len(made.written) == 2
+        assert len(incident_files(tmp_path)) == 2
         await asyncio.to_thread(made.flush)
-        assert len(made.written) == 3
+        assert len(incident_files(tmp_path)) == 3
 
     asyncio.run(scenario())
-    triggers = [read(path)[2]["incident"]["triggers"] for path in made.written]
+    triggers = [read(path)[2]["incident"]["triggers"] for path in incident_files(tmp_path)]
     assert triggers == ["e-stop; fault on la1: overheat", "bus uart0 down; SIGUSR1", "e-stop"]
-    assert made.written[0].name.endswith("-estop.mcap")
-    assert made.written[1].name.endswith("-bus-down-uart0.mcap")
+    assert incident_files(tmp_path)[0].name.endswith("-estop.mcap")
+    assert incident_files(tmp_path)[1].name.endswith("-bus-down-uart0.mcap")
 
 
 def test_an_event_published_on_the_events_key_is_what_triggers(tmp_path) -> None:

@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import re
 import time
 from collections import deque
 from collections.abc import Callable
@@ -36,7 +35,7 @@ from busgate.gateway.api.errors import REFUSALS, error_reply
 from busgate.gateway.api.trajectories import Trajectories
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.base import CLIENT_ID_PATTERN
+from busgate.schemas.base import client_named
 from busgate.schemas.config import Config
 
 log = logging.getLogger(__name__)
@@ -360,10 +359,9 @@ def _sender(payload: bytes) -> str | None:
     """The client an e-stop payload names (``{"client": "teleop"}``), if it names one validly:
     for the log only, the e-stop itself takes any payload."""
     try:
-        client = decode_object(payload).get("client")
+        return client_named(decode_object(payload).get("client"))
     except RefusedError:
         return None
-    return client if isinstance(client, str) and re.fullmatch(CLIENT_ID_PATTERN, client) else None
 
 
 def _replying(trajectories: Trajectories, payload: bytes) -> dict[str, Any]:

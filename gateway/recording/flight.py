@@ -55,11 +55,14 @@ log = logging.getLogger(__name__)
 AFTER_S = 1.0
 #: The least time between two incident files (rule 3).
 HOLDOFF_S = 10.0
-#: The most entries a ring holds per second of ``seconds``, so that its memory is bounded
-#: whatever comes; past these rates a ring holds fewer seconds. A UART bus at 921600 baud
-#: carries under 2000 frames a second; 20 devices polled at 100 Hz publish 2000 states.
+#: The most entries, and bytes, a ring holds per second of ``seconds``, so that its memory is
+#: bounded whatever comes (a peer's commands too); past these rates a ring holds fewer
+#: seconds. A UART bus at 921600 baud carries under 2000 frames, 92 KB, a second; 20 devices
+#: at full rate publish some 2000 states, 0.7 MB, a second.
 FRAMES_PER_S = 5_000
+FRAME_BYTES_PER_S = 256 * 1024
 MESSAGES_PER_S = 5_000
+MESSAGE_BYTES_PER_S = 2 * 1024 * 1024
 #: The module that writes the file, in a process of its own (rule 1).
 WRITER = "busgate.gateway.recording.incident_file"
 PICKLE_PROTOCOL = 5
@@ -107,18 +110,23 @@ class FlightRecorder:
         self.prefix, self.gateway, self.version = prefix, gateway, version
         self.base = f"{prefix}/{gateway}"
         seconds = settings.seconds
-        self.frames = {bus: Ring(seconds, int(seconds * FRAMES_PER_S)) for bus in buses}
+        self.frames = {
+            bus: Ring(seconds, int(seconds * FRAMES_PER_S), int(seconds * FRAME_BYTES_PER_S))
+            for bus in buses
+        }
         self.bus_of = {device: bus for bus, devices in buses.items() for device in devices}
-        self.published = Ring(seconds, int(seconds * MESSAGES_PER_S))
-        self.commands = Ring(seconds, int(seconds * MESSAGES_PER_S))
+        self.published = Ring(
+            seconds, int(seconds * MESSAGES_PER_S), int(seconds * MESSAGE_BYTES_PER_S)
+        )
+        self.commands = Ring(
+            seconds, int(seconds * MESSAGES_PER_S), int(seconds * MESSAGE_BYTES_PER_S)
+        )
         self._events_key = f"{self.base}/events"
         self._pending: list[Trigger] = []
         self._pending_lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._wake: asyncio.Event | None = None
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="incident")
-        #: Every incident file written, newest last (what the tests and the log name).
-        self.written: list[Path] = []
 
     # -- start -------------------------------------------------------------------------------
 
@@ -200,7 +208,6 @@ class FlightRecorder:
         except Exception:  # a full disk, a folder gone: said, and the gateway goes on
             log.exception("incident (%s) not written", "; ".join(t.text for t in triggers))
             return None
-        self.written.append(path)
         self._prune(path)
         return path
 
@@ -273,7 +280,8 @@ class FlightRecorder:
         files = []
         for path in self.folder.glob(INCIDENT_GLOB):
             with contextlib.suppress(OSError):
-                files.append((path.stat().st_mtime, path.name, path.stat().st_size, path))
+                found = path.stat()
+                files.append((found.st_mtime, path.name, found.st_size, path))
         total = sum(size for _, _, size, _ in files)
         for _, _, size, path in sorted(files):
             if total <= budget:

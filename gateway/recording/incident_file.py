@@ -30,7 +30,9 @@ import sys
 from collections.abc import Iterator
 from typing import IO, Any
 
+from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.recording.mcap_log import McapLog
+from busgate.schemas.base import client_named
 
 #: Of a payload that is no JSON object, this much is kept as text.
 TEXT_KEPT = 256
@@ -42,28 +44,37 @@ Message = tuple[float, str, bytes, Any]
 
 
 def recorded_command(ts: float, key: str, payload: bytes, code: str) -> dict[str, Any]:
-    """A command as an incident file holds it (``schemas.recording.RecordedCommand``)."""
-    try:
-        command = json.loads(payload)
-    except (ValueError, RecursionError):
-        command = None
-    if not isinstance(command, dict):
+    """A command as an incident file holds it (``schemas.recording.RecordedCommand``): a
+    payload that is no JSON object the file can hold as it is (NaN, infinities) is kept as
+    text, and a client is named only when its id is valid."""
+    command = _json_object(payload)
+    if command is None:
         text = payload[: TEXT_KEPT * 4].decode("utf-8", "replace")[:TEXT_KEPT]
         return {"ts": ts, "key": key, "client": None, "command": None, "text": text, "code": code}
-    client = command.get("client")
     return {
         "ts": ts,
         "key": key,
-        "client": client if isinstance(client, str) else None,
+        "client": client_named(command.get("client")),
         "command": command,
         "text": None,
         "code": code,
     }
 
 
+def _json_object(payload: bytes) -> dict[str, Any] | None:
+    """``payload`` as a JSON object that writes back as JSON, else ``None``."""
+    try:
+        value = json.loads(payload)
+        json.dumps(value, allow_nan=False)  # NaN and infinities are no JSON
+    except (ValueError, RecursionError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
 def recorded_frame(ts: float, bus: str, direction: str, data: bytes, can_id: int | None):
-    """A frame as an incident file holds it (``schemas.recording.RecordedFrame``)."""
-    wire = data.hex() if can_id is None else f"{can_id:03x}#{data.hex()}"
+    """A frame as an incident file holds it (``schemas.recording.RecordedFrame``): a CAN
+    frame in the codecs' text form (``CanFrame``)."""
+    wire = data.hex() if can_id is None else str(CanFrame(can_id, data))
     return {"ts": ts, "bus": bus, "dir": direction, "wire": wire}
 
 

@@ -46,8 +46,10 @@ def schema_name(key: str, prefix: str, body: Any) -> str | None:
         len(chunks) == 2 and chunks[1] == "events"
     ):
         return "event.json"
-    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] in ("stats", "frames"):
-        return "bus_stats.json" if chunks[3] == "stats" else "frame.json"
+    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "stats":
+        return "bus_stats.json"
+    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "frames":
+        return "frame.json"
     if len(chunks) == 2 and chunks[1] == "commands":
         return "recorded_command.json"
     return None
