@@ -369,6 +369,18 @@ def test_triggers_that_come_together_make_one_file_naming_them_all(tmp_path, mon
     assert incident_files(tmp_path)[1].name.endswith("-bus-down-uart0.mcap")
 
 
+def test_a_flood_of_triggers_names_each_once_and_at_most_so_many(tmp_path) -> None:
+    made = recorder(tmp_path)
+    for n in range(10_000):
+        made.trigger(Trigger("estop", "e-stop"))
+        made.trigger(Trigger(f"fault-d{n}", f"fault on d{n}: overheat"))
+    path = made.write_pending()
+    assert path is not None and path.name.endswith("-estop.mcap")
+    named = read(path)[2]["incident"]["triggers"].split("; ")
+    assert named[:2] == ["e-stop", "fault on d0: overheat"]
+    assert len(named) == flight.TRIGGERS_NAMED == len(set(named))
+
+
 def test_an_event_published_on_the_events_key_is_what_triggers(tmp_path) -> None:
     made = recorder(tmp_path)
     estop = {"ts": 1.0, "device": "*", "type": "estop", "key": "busgate/gw/estop"}

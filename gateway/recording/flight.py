@@ -18,8 +18,9 @@ Rules of this file:
    that stop every thread), fed the rings' chunks down a pipe by the recorder's thread.
 2. A file is complete or absent: it is written as ``*.mcap.part`` and renamed once finished.
 3. Triggers that come while an incident is gathered or written, or within ``HOLDOFF_S`` of
-   the last one, go into the next file, whose metadata names every one: a device whose
-   faults flap is written every ``HOLDOFF_S``, not on each flap.
+   the last one, go into the next file, whose metadata names each (the first
+   ``TRIGGERS_NAMED`` different ones): a device whose faults flap is written every
+   ``HOLDOFF_S``, not on each flap.
 4. Shutdown writes a pending incident after the buses have stopped (their last frames in it),
    never before: the devices' safe state comes first.
 """
@@ -66,6 +67,8 @@ MESSAGE_BYTES_PER_S = 2 * 1024 * 1024
 #: The module that writes the file, in a process of its own (rule 1).
 WRITER = "busgate.gateway.recording.incident_file"
 PICKLE_PROTOCOL = 5
+#: The most triggers one file names (each once): a peer's flood of e-stops is one line.
+TRIGGERS_NAMED = 32
 INCIDENT_GLOB = "incident-*.mcap"
 METADATA = "incident"
 
@@ -168,7 +171,8 @@ class FlightRecorder:
     def trigger(self, trigger: Trigger) -> None:
         """Ask for an incident file (any thread)."""
         with self._pending_lock:
-            self._pending.append(trigger)
+            if trigger not in self._pending and len(self._pending) < TRIGGERS_NAMED:
+                self._pending.append(trigger)
         loop, wake = self._loop, self._wake
         if loop is not None and wake is not None and not loop.is_closed():
             loop.call_soon_threadsafe(wake.set)

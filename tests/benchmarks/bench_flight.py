@@ -224,7 +224,10 @@ def main() -> None:
         f" kept)"
     )
     for start, end, cpu, path in windows:
-        print(f"   incident {path.name}: written in {end - start:.2f} s, {cpu:.2f} s of CPU")
+        print(
+            f"   incident {path.name}: written in {end - start:.2f} s (the daemon meanwhile "
+            f"{cpu:.2f} s of CPU)"
+        )
     errors = follow_errors_ms(windows[-1][3])
     writing = [
         error for t, error in errors if any(start <= t <= end for start, end, *_ in windows[:-1])
