@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import threading
 import time
 
 import can
@@ -16,6 +17,7 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.bus.clock import now
+from busgate.gateway.scheduler.tickers import FRESH_PERIODS, MIN_FRESH_S
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -282,6 +284,39 @@ def test_a_target_of_the_client_that_ended_the_stream_coming_just_after_is_dropp
     accepted(api, "la2", {"op": "end_follow", "client": "alice"})
     wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == 2)
     assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"] * 2
+
+
+def test_a_target_checked_as_the_stream_ends_is_handed_to_the_bus_before_the_end(wait_for,
+                                                                                 gateway):
+    """zenoh takes a target and its client's end_follow on two threads. A target that passed
+    the fence before the end came is handed to the bus before the end is: the stream that
+    target starts is the one the end stops, and nothing goes stale (a target held between
+    its check and its hand-over once started a stream after the end)."""
+    api, _, _, _, events = gateway
+    runner, _ = api.devices["la1"]
+    in_check, go_on = threading.Event(), threading.Event()
+    check = runner.authority.check
+
+    def held_check(*args, **kwargs):
+        in_check.set()
+        assert go_on.wait(10)
+        return check(*args, **kwargs)
+
+    runner.authority.check = held_check
+    target = threading.Thread(target=api.follow, args=("la1", b'{"position": 700, "client": "a"}'))
+    target.start()
+    assert in_check.wait(10)
+    runner.authority.check = check
+    end = threading.Thread(target=ask, args=(api, "la1", {"op": "end_follow", "client": "a"}))
+    end.start()
+    end.join(0.2)
+    assert end.is_alive()  # the end waits for the target checked before it
+    go_on.set()
+    target.join(10)
+    end.join(10)
+    wait_for(lambda: any(e.type == "stream_stopped" for e in events))
+    time.sleep(3 * max(FRESH_PERIODS * 0.050, MIN_FRESH_S))  # a stale stream would be seen
+    assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"]
 
 
 def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses_it(wait_for,

@@ -20,6 +20,9 @@ every rule of the API is tested without a network. Rules of this file:
    itself (``end_follow``): claimed like a follow target, never refused for an e-stop; its
    targets that come within ``END_FENCE_S`` after were sent before the end and are dropped
    (else one that overtook nothing but arrived late would start a stream that goes stale).
+   A target and an end taken at once on two of zenoh's threads are handed to the bus in
+   the order they passed the fence (one lock over the check and the hand-over), so a target
+   checked before the end can never start its stream after it.
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
 """
 
@@ -30,6 +33,7 @@ import functools
 import json
 import logging
 import math
+import threading
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
@@ -152,6 +156,7 @@ class GatewayApi:
         #: Device → (client, when) of its last ``end_follow``: that client's targets that come
         #: within ``END_FENCE_S`` after were sent before it (rule 3).
         self._ended: dict[str, tuple[str | None, float]] = {}
+        self._fence = threading.Lock()  # a target's check and hand-over vs an end (rule 3)
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -192,9 +197,10 @@ class GatewayApi:
         # The claim alone: ending a stream moves nothing, so an e-stop does not refuse it
         # (the authority's rule 4 is for motion).
         authority.claims.check(device, request.client, authority.clock())
-        self._stream_clients.pop(device, None)
-        self._ended[device] = (request.client, now())
-        runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
+        with self._fence:
+            self._stream_clients.pop(device, None)
+            self._ended[device] = (request.client, now())
+            runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
         return ok_reply(ended=True)
 
     #: The ops every device's ``cmd`` key takes besides its kind's own (``GatewayCommand``).
@@ -209,22 +215,23 @@ class GatewayApi:
             fields = decode_object(payload)
             target = driver.follow_target(fields)
             client = fields.get("client")
-            if self._sent_before_the_end(device, client):
-                return None
-            if runner.plays.playing(device):
-                raise RefusedError(
-                    "busy",
-                    f"{device} is playing a trajectory: cancel it first (a follow stream and "
-                    "a trajectory would fight over its target)",
+            with self._fence:
+                if self._sent_before_the_end(device, client):
+                    return None
+                if runner.plays.playing(device):
+                    raise RefusedError(
+                        "busy",
+                        f"{device} is playing a trajectory: cancel it first (a follow stream and "
+                        "a trajectory would fight over its target)",
+                    )
+                runner.authority.check(
+                    [(frozenset({driver.device_id}), Effect.MOTION)],
+                    client,
+                    require_claim=fields.get("require_claim") is True,
                 )
-            runner.authority.check(
-                [(frozenset({driver.device_id}), Effect.MOTION)],
-                client,
-                require_claim=fields.get("require_claim") is True,
-            )
-            if client is not None:
-                self._stream_clients[device] = client
-            runner.follow(device, target)
+                if client is not None:
+                    self._stream_clients[device] = client
+                runner.follow(device, target)
             return None
         except REFUSALS as exc:
             return error_reply(exc)
