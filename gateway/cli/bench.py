@@ -21,6 +21,7 @@ import os
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ from pydantic import ValidationError
 
 from busgate.codecs.errors import BusUnavailableError, CommandError
 from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
+from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import driver_class, make_driver
@@ -244,24 +246,41 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
     period = (args.follow_period_ms or 10.0) / 1000
     drivers = baseline_drivers(args, used, port, baudrate)
     latest = {d.name: d.follow_target(d.follow_sample(0.0, 0)) for d in drivers}
-    starts = []
-    deadline = now()
-    end = deadline + args.seconds
+    end = now() + args.seconds
     client = threading.Thread(
         target=feed_targets, args=(drivers, args, latest.__setitem__, end), daemon=True
     )
     client.start()
+    follow_request = driver_class(protocol).follow_request
+    starts = bare_follow_loop(
+        port, baudrate, lambda: follow_request([(d, latest[d.name]) for d in drivers]), period, end
+    )
+    client.join()
+    return interval_figures(starts, period)
+
+
+def bare_follow_loop(
+    port: str, baudrate: int, request_of: Callable[[], Request], period_s: float, end: float
+) -> list[float]:
+    """The yardstick: sleep then spin to each deadline and write the frame ``request_of``
+    makes, until ``end``; when the kernel had each frame (timed like the bus owner)."""
+    starts: list[float] = []
     tighten_timer_slack()
-    with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as port_handle:
+    deadline = now()
+    with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as handle:
         while deadline < end:
-            request = driver_class(protocol).follow_request([(d, latest[d.name]) for d in drivers])
+            request = request_of()
             sleep_until(deadline)
             assert isinstance(request.wire, bytes)  # a UART protocol's frames
-            os.write(port_handle.fileno(), request.wire)
-            starts.append(now())  # timed like the bus owner: when the kernel has the frame
-            deadline += period
-    client.join()
-    errors = sorted(b - a - period for a, b in itertools.pairwise(starts))
+            os.write(handle.fileno(), request.wire)
+            starts.append(now())
+            deadline += period_s
+    return starts
+
+
+def interval_figures(starts: list[float], period_s: float) -> dict:
+    """Follow interval error figures of frames written at ``starts``."""
+    errors = sorted(b - a - period_s for a, b in itertools.pairwise(starts))
     return {
         "follow_intervals": len(errors),
         "follow_error_p50_ms": _ms(percentile(errors, 0.5)),

@@ -40,7 +40,7 @@ from busgate.codecs.errors import (
     CommandError,
     RefusedError,
 )
-from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack
+from busgate.gateway.bus.clock import name_thread, now, sleep_until, tighten_timer_slack
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
@@ -282,6 +282,7 @@ class BusRunner:
     # -- bus thread: the loop ---------------------------------------------------------------
 
     def _run(self) -> None:
+        name_thread(self._thread.name)
         self._ask_realtime()
         tighten_timer_slack()
         try:
