@@ -6,7 +6,9 @@ interval error (p50/p99, and how many intervals fell under the period), timeouts
 Without ``--port`` it starts the built-in simulator in a child process (so the CPU figure is
 the gateway's alone) and also reports what the devices saw on the wire. ``--baseline`` then
 runs a plain sleep-then-spin pyserial loop on the same port for the same time, under the same
-client load (a thread streaming targets), the yardstick for follow jitter on this machine.
+client load (a thread streaming targets), the yardstick for follow jitter on this machine;
+with ``--follow-period-ms 0``, a plain write-read-wait-the-gap polling loop instead, the
+yardstick for exchanges per second.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import itertools
 import json
 import math
 import os
+import select
 import tempfile
 import threading
 import time
@@ -44,6 +47,8 @@ from busgate.schemas.errors import describe_validation_error
 from busgate.schemas.families import PROTOCOLS
 
 ONLINE_TIMEOUT_S = 5.0
+#: The polling baseline's wait for a reply before it counts a timeout and goes on.
+REPLY_WAIT_S = 0.02
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -95,7 +100,8 @@ def run_bench(args: argparse.Namespace) -> int:
             port = simulator.enter_context(SimProcess(args.protocol, sim_args)).port
         figures, window, drivers = measure(args, ids, port, baudrate)
         if args.baseline and not protocol.can:
-            figures["baseline"] = baseline(args, drivers, port, baudrate)
+            run_baseline = baseline if args.follow_period_ms else polling_baseline
+            figures["baseline"] = run_baseline(args, drivers, port, baudrate)
         if record is not None:
             simulator.close()  # stop the simulator so that its record is complete
             figures["device_side"] = device_side(args, record, window)
@@ -276,6 +282,40 @@ def bare_follow_loop(
             starts.append(now())
             deadline += period_s
     return starts
+
+
+def polling_baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> dict:
+    """A plain polling loop: each device's poll in turn, written, its reply read, then the
+    gap waited from the reply's last byte (sleep then spin); no scheduler."""
+    protocol = PROTOCOLS[args.protocol]
+    min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else None
+    gap_s = protocol.timing.default_gap_s if min_gap is None else min_gap
+    polls = [request for driver in used for request in driver.poll()]
+    decoder = protocol.codec.ReplyDecoder()
+    exchanges = timeouts = 0
+    tighten_timer_slack()
+    started = now()
+    end = started + args.seconds
+    with serial.Serial(port, baudrate, timeout=0, write_timeout=0.5) as handle:
+        fd = handle.fileno()
+        for request in itertools.cycle(polls):
+            if now() >= end:
+                break
+            assert isinstance(request.wire, bytes)  # a UART protocol's frames
+            os.write(fd, request.wire)
+            deadline = now() + REPLY_WAIT_S
+            replied = None
+            while replied is None and select.select([fd], [], [], max(0.0, deadline - now()))[0]:
+                decoder.feed(os.read(fd, 4096))
+                if any(True for _ in decoder.events()):
+                    replied = now()
+            if replied is None:
+                timeouts += 1
+                replied = now()
+            exchanges += 1
+            sleep_until(replied + gap_s)
+    elapsed = now() - started
+    return {"frames_out_per_s": round(exchanges / elapsed, 1), "timeouts": timeouts}
 
 
 def interval_figures(starts: list[float], period_s: float) -> dict:

@@ -10,7 +10,7 @@ Rules of this file:
    millisecond (``clock.sleep_until``), waking early only when new work arrives or a frame
    nobody asked for brought news (the owner's idle work: ``BusOwner.idle_until``). What starts
    at the deadline is decided (and its frame encoded) just before, so at the deadline only
-   the write is left. A new target of a running follow stream is stored where the next tick
+   the write is left; a wait cut short decides again. A new target of a running follow stream is stored where the next tick
    reads it, without waking the thread.
 3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
    streams, marks the devices offline and reconnects with backoff (``link``); the devices are
@@ -311,12 +311,17 @@ class BusRunner:
             self._wait_until(decision - PREPARE_S, precise=False)
             return
         prepared = self.planner.decide(decision)
-        if not isinstance(prepared, Slot) or prepared.priority is not Priority.FOLLOW:
-            # Only a follow tick is worth an uninterruptible wait; anything else waits where
-            # new work (an e-stop) can still wake it, and is decided again at its moment.
-            self._wait_until(decision)
-        elif self._wait_until(decision - FINAL_WAIT_S, precise=False):
-            self._execute(prepared, at=decision)
+        if not isinstance(prepared, Slot):
+            self._wait_until(decision)  # nothing starts then: decided again at that moment
+        elif prepared.priority is Priority.FOLLOW:
+            # Only a follow tick is worth an uninterruptible last wait (its frame goes at its
+            # moment to the µs).
+            if self._wait_until(decision - FINAL_WAIT_S, precise=False):
+                self._execute(prepared, at=decision)
+        elif self._wait_until(decision):
+            # Anything else waits where new work (an e-stop) still wakes it, and then is
+            # decided again; else it starts as prepared, nothing left to do after the gap.
+            self._execute(prepared)
 
     def _answer_expired(self) -> None:
         for job in self.planner.take_expired():
