@@ -17,7 +17,6 @@ Rules of this file:
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import time
 from collections import deque
@@ -37,19 +36,13 @@ from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.base import client_named
 from busgate.schemas.config import Config
+from busgate.schemas.encoding import message_json
 
 log = logging.getLogger(__name__)
 
 REPLY_TIMEOUT_S = 10.0
 PUBLISH_EVERY_S = 0.005
 STATS_EVERY_S = 1.0
-
-
-_ENCODER = json.JSONEncoder(separators=(",", ":"), default=str)
-
-
-def _dumps(value: Any) -> bytes:
-    return _ENCODER.encode(value).encode()
 
 
 class ZenohBridge:
@@ -257,7 +250,7 @@ class ZenohBridge:
             for timer in guard:  # answered: the query is not kept for the guard's 10 s
                 timer.cancel()
             try:
-                query.reply(key, _dumps(reply))
+                query.reply(key, message_json(reply))
             finally:
                 query.drop()
                 self.on_latency(time.perf_counter() - asked)
@@ -332,7 +325,7 @@ class ZenohBridge:
     def _put(self, key: str, value: dict[str, Any]) -> None:
         publisher = self._publishers.get(key)
         if publisher is not None:
-            data = _dumps(value)
+            data = message_json(value)
             publisher.put(data)
             if self.on_published is not None:
                 self.on_published(key, value, data)
@@ -340,7 +333,7 @@ class ZenohBridge:
     def _put_any(self, key: str, value: dict[str, Any]) -> None:
         """A put on a key with no declared publisher (a trajectory's feedback)."""
         if self._session is not None:
-            data = _dumps(value)
+            data = message_json(value)
             self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
             if self.on_published is not None:
                 self.on_published(key, value, data)

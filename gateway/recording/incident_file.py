@@ -33,6 +33,7 @@ from typing import IO, Any
 from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.recording.mcap_log import McapLog
 from busgate.schemas.base import client_named
+from busgate.schemas.encoding import message_json
 
 #: Of a payload that is no JSON object, this much is kept as text.
 TEXT_KEPT = 256
@@ -78,10 +79,6 @@ def recorded_frame(ts: float, bus: str, direction: str, data: bytes, can_id: int
     return {"ts": ts, "bus": bus, "dir": direction, "wire": wire}
 
 
-def _dumps(body: dict[str, Any]) -> bytes:
-    return json.dumps(body, separators=(",", ":"), default=str).encode()
-
-
 class Snapshot:
     """What came down the pipe, sorted by stream, ready to be merged in time order."""
 
@@ -124,13 +121,13 @@ class Snapshot:
         key = f"{self.base}/commands"
         for t, on_key, payload, code in self._recent(self.commands):
             body = recorded_command(t + self.wall_offset, on_key, payload, code)
-            yield t, key, _dumps(body), body
+            yield t, key, message_json(body), body
 
     def _frames(self, bus: str) -> Iterator[Message]:
         key = f"{self.base}/bus/{bus}/frames"
         for t, direction, data, can_id in self._recent(self.frames[bus]):
             body = recorded_frame(t + self.wall_offset, bus, direction, data, can_id)
-            yield t, key, _dumps(body), body
+            yield t, key, message_json(body), body
 
 
 def _time(entry: tuple) -> float:

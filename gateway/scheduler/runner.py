@@ -10,8 +10,8 @@ Rules of this file:
    millisecond (``clock.sleep_until``), waking early only when new work arrives or a frame
    nobody asked for brought news (the owner's idle work: ``BusOwner.idle_until``). What starts
    at the deadline is decided (and its frame encoded) just before, so at the deadline only
-   the write is left; a wait cut short decides again. A new target of a running follow stream is stored where the next tick
-   reads it, without waking the thread.
+   the write is left; a wait cut short decides again. A new target of a running follow
+   stream is stored where the next tick reads it, without waking the thread.
 3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
    streams, marks the devices offline and reconnects with backoff (``link``); the devices are
    re-initialised once it is back.
