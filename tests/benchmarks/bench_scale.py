@@ -77,59 +77,75 @@ def position(t_s: float, bus: int, index: int) -> int:
 # -- the gateway ---------------------------------------------------------------------------
 
 
-def gateway_step(scratch: Path, ports: list[str], seconds: float, sims: list[SimProcess]) -> dict:
-    """The daemon on the N buses under a streaming client: its window, its CPU by thread, its
-    stats (host side), and the simulators' CPU."""
+def gateway_step(
+    scratch: Path, ports: list[str], seconds: float, sims: list[SimProcess], daemons: int
+) -> dict:
+    """The N buses, split over ``daemons`` daemons (``bench0``, ``bench1`` …), under a
+    streaming client: the window, the daemons' CPU by thread, their stats (host side), and
+    the simulators' CPU."""
 
     def sims_cpu_s() -> float:
         return sum(cpu_s(f"/proc/{sim.process.pid}/stat") for sim in sims)
 
-    endpoint = free_endpoint()
-    config = "".join(
-        serial_bus(
-            f"bus{n}",
-            port,
-            "inspire_la",
-            list(IDS),
-            BAUD,
-            poll_hz=POLL_HZ,
-            follow_period_ms=round(PERIOD_S * 1000),
-        )
-        for n, port in enumerate(ports)
-    )
-    daemon = Daemon(scratch, endpoint, config)
+    gateways = [f"bench{k}" for k in range(daemons)]
+    owner = {f"bus{n}": gateways[n * daemons // len(ports)] for n in range(len(ports))}
+    endpoints = [free_endpoint() for _ in gateways]
+    started_daemons: list[Daemon] = []
     stats: dict[str, dict] = {}
     try:
-        with zenoh.open(session_config(connect=[endpoint])) as session:
-            wait_ready(session)
+        for gateway, endpoint in zip(gateways, endpoints, strict=True):
+            config = "".join(
+                serial_bus(
+                    bus,
+                    ports[n],
+                    "inspire_la",
+                    list(IDS),
+                    BAUD,
+                    poll_hz=POLL_HZ,
+                    follow_period_ms=round(PERIOD_S * 1000),
+                )
+                for n, bus in enumerate(owner)
+                if owner[bus] == gateway
+            )
+            started_daemons.append(Daemon(scratch, endpoint, config, name=gateway))
+        with zenoh.open(session_config(connect=endpoints)) as session:
+            for gateway in gateways:
+                wait_ready(session, gateway=gateway)
             session.declare_subscriber(
-                "busgate/bench/bus/*/stats",
+                "busgate/*/bus/*/stats",
                 lambda sample: stats.__setitem__(
                     str(sample.key_expr), json.loads(sample.payload.to_bytes())
                 ),
             )
-            for name in (f"bus{n}-{i}" for n in range(len(ports)) for i in IDS):
-                session.get(
-                    f"busgate/bench/dev/{name}/cmd", payload='{"op":"enable"}', timeout=5
-                ).recv()
+            devices = {
+                f"busgate/{owner[f'bus{n}']}/dev/bus{n}-{ident}": (n, index)
+                for n in range(len(ports))
+                for index, ident in enumerate(IDS)
+            }
+            for key in devices:
+                session.get(f"{key}/cmd", payload='{"op":"enable"}', timeout=5).recv()
             stop = threading.Event()
-            streamer = threading.Thread(target=stream, args=(session, len(ports), stop))
+            streamer = threading.Thread(target=stream, args=(session, devices, stop))
             streamer.start()
             try:
                 time.sleep(WARM_UP_S)
-                before, cpu_before, started = dict(stats), daemon.cpu_s(), now()
-                sims_before, threads_before = sims_cpu_s(), threads_cpu_s(daemon.process.pid)
+                pids = [daemon.process.pid for daemon in started_daemons]
+                before, started = dict(stats), now()
+                cpu_before = sum(daemon.cpu_s() for daemon in started_daemons)
+                sims_before, threads_before = sims_cpu_s(), threads_cpu_s(pids)
                 time.sleep(seconds)
-                cpu, ended = daemon.cpu_s() - cpu_before, now()
+                cpu = sum(daemon.cpu_s() for daemon in started_daemons) - cpu_before
+                ended = now()
                 sims_cpu = sims_cpu_s() - sims_before
-                threads = threads_cpu_s(daemon.process.pid)
+                threads = threads_cpu_s(pids)
                 time.sleep(1.5)  # one more stats sample, covering the window
                 after = dict(stats)
             finally:
                 stop.set()
                 streamer.join()
     finally:
-        daemon.stop()
+        for daemon in started_daemons:
+            daemon.stop()
     buses = list(after.values())
     elapsed = ended - started
     return {
@@ -149,28 +165,27 @@ def gateway_step(scratch: Path, ports: list[str], seconds: float, sims: list[Sim
     }
 
 
-def threads_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds of the daemon's threads by role: its bus threads (named ``bus-<bus>``),
-    its other Python threads (the event loop's: publishing), and zenoh's own (Rust)."""
+def threads_cpu_s(pids: list[int]) -> dict[str, float]:
+    """CPU seconds of the daemons' threads by role: their bus threads (named ``bus-<bus>``),
+    their other Python threads (the event loop's: publishing), and zenoh's own (Rust)."""
     used: dict[str, float] = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
+    for task in (task for pid in pids for task in Path(f"/proc/{pid}/task").iterdir()):
         name = (task / "comm").read_text().strip()
         role = "bus" if name.startswith("bus-") else "python" if name == "python" else "zenoh"
         used[role] = used.get(role, 0.0) + cpu_s(str(task / "stat"))
     return used
 
 
-def stream(session: zenoh.Session, buses: int, stop: threading.Event) -> None:
+def stream(session: zenoh.Session, devices: dict[str, tuple[int, int]], stop) -> None:
+    """A new target for every device (key → bus and index) at ``TARGET_HZ``, until ``stop``."""
     publishers = {
-        (n, index): session.declare_publisher(f"busgate/bench/dev/bus{n}-{ident}/follow")
-        for n in range(buses)
-        for index, ident in enumerate(IDS)
+        key: (session.declare_publisher(f"{key}/follow"), where) for key, where in devices.items()
     }
     start = now()
     deadline = start
     while not stop.is_set():
         t = now() - start
-        for (n, index), publisher in publishers.items():
+        for publisher, (n, index) in publishers.values():
             publisher.put(json.dumps({"position": position(t, n, index)}))
         deadline += 1 / TARGET_HZ
         time.sleep(max(0.0, deadline - now()))
@@ -265,7 +280,7 @@ def wire_figures(records: list[Path], window: tuple[float, float]) -> dict:
     }
 
 
-def step(buses: int, seconds: float) -> dict:
+def step(buses: int, seconds: float, daemons: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as folder:
         scratch = Path(folder)
         records = [scratch / f"wire{n}.jsonl" for n in range(buses)]
@@ -277,7 +292,7 @@ def step(buses: int, seconds: float) -> dict:
                 for record in records
             ]
             ports = [sim.port for sim in sims]
-            gateway = gateway_step(scratch, ports, seconds, sims)
+            gateway = gateway_step(scratch, ports, seconds, sims, min(daemons, buses))
             bare = bare_step(ports, seconds)
         return {
             "gateway": gateway | wire_figures(records, gateway["window"]),
@@ -310,6 +325,9 @@ def main() -> None:
     parser.add_argument("--buses", default="1,2,4,8", help="the values of N, e.g. 1,2,4,8")
     parser.add_argument("--seconds", type=float, default=10.0, help="measured per step")
     parser.add_argument("--runs", type=int, default=1)
+    parser.add_argument(
+        "--daemons", type=int, default=1, help="split the buses over this many daemons"
+    )
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
     args = parser.parse_args()
     if args.bare:
@@ -317,8 +335,12 @@ def main() -> None:
         return
     for run in range(1, args.runs + 1):
         for buses in (int(n) for n in args.buses.split(",")):
-            figures = step(buses, args.seconds)
-            print(f"run {run}, {buses} bus(es) of {len(IDS)} LA, {args.seconds:g} s:")
+            figures = step(buses, args.seconds, args.daemons)
+            daemons = min(args.daemons, buses)
+            print(
+                f"run {run}, {buses} bus(es) of {len(IDS)} LA, {daemons} daemon(s), "
+                f"{args.seconds:g} s:"
+            )
             print(line("gateway", figures["gateway"]))
             print(line("bare", figures["bare"]), flush=True)
 
