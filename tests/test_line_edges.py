@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import threading
+import time
+from collections import deque
 
 import pytest
 
@@ -19,6 +21,10 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.execution import Execution
+from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -58,6 +64,36 @@ def test_a_frame_waits_the_gap_after_a_late_reply_it_flushed(tmp_path, wait_for)
             # The write started (``start - write_s``) a whole gap after the late reply was
             # read, which was no earlier than ``asked``.
             assert sent.start - sent.write_s - asked >= GAP_S
+            # The exchange names when it last read a byte: the late reply, flushed after
+            # ``asked``; the gap counted from there is a whole one.
+            assert asked <= sent.last_byte_before
+            assert sent.start - sent.write_s - sent.last_byte_before >= GAP_S
+        finally:
+            owner.close()
+
+
+def test_the_gap_statistic_counts_from_a_stray_byte_read_before_the_write(tmp_path) -> None:
+    """Noise on a line quiet for long: the smallest-gap figure is the gap after the noise was
+    read (what the next frame waited), not the long quiet since the last exchange."""
+    link = PtyLink(str(tmp_path / "usb-la"))
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=BAUD, link=link) as simulator:
+        owner = owner_on(simulator.port)
+        planner = BusPlanner(owner.timing)
+        execution = Execution(owner, planner, BusDevices([InspireLaDriver("la1", 1)]), {},
+                              state_of=lambda device: None, late_reply_holdoff_s=0.01)
+
+        def poll() -> None:
+            execution.run(Slot(status(1), Priority.POLL,
+                               Job("la1", deque([status(1)]), Priority.POLL)))
+
+        try:
+            poll()
+            time.sleep(0.2)
+            simulator.link.write(b"\x00\x13")  # two stray bytes towards the host
+            time.sleep(0.01)
+            owner.counters.smallest_gap_s = None
+            poll()
+            assert GAP_S <= owner.counters.smallest_gap_s < 0.1
         finally:
             owner.close()
 

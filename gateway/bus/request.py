@@ -7,6 +7,7 @@ scheduler's budget and the owner's timeout can never disagree.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from types import ModuleType
 
@@ -45,6 +46,9 @@ class Exchange:
     end: float
     reply: tuple[object, ...] = field(default_factory=tuple)
     write_s: float = 0.0
+    #: When the owner last read a byte off the line before this write (a late reply it
+    #: flushed, noise); ``-inf`` when it never did, or cannot tell (CAN).
+    last_byte_before: float = -math.inf
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,7 +8,9 @@ Rules of this file:
    left from an earlier exchange ``late``. A reply that arrives after its timeout is never
    taken for the next request's reply.
 2. The gap counts from the last byte seen on the line: when the flush finds anything (a late
-   reply, noise), the write waits until ``gap_s`` has passed since then, and looks again.
+   reply, noise), the write waits until ``gap_s`` has passed since then, and looks again. The
+   exchange says when that byte was read (``last_byte_before``), so the gap statistic counts
+   from it too.
 3. ``SerialException`` and ``OSError`` mean the link is down: the port is closed at once and
    ``BusIOError`` raised.
 4. Waiting for a reply uses ``select`` on the port's descriptor with the absolute deadline,
@@ -55,6 +57,7 @@ class SerialBusOwner(BusOwner):
         self._serial: serial.Serial | None = None
         self._decoder = codec.ReplyDecoder()
         self._early = 0  # replies of the exchange in progress that came too early
+        self._last_byte = -math.inf  # when a byte was last read off the line (rule 2)
 
     @property
     def is_open(self) -> bool:
@@ -95,6 +98,7 @@ class SerialBusOwner(BusOwner):
         if at is not None:
             sleep_until(at)
         self._wait_for_quiet(port)
+        last_byte = self._last_byte
         # Two clocks on the write: the frame cannot have left before ``issued`` (so no true
         # reply can come before issued + wire + shortest reply time), and the line is taken
         # until at least ``start`` + wire time, ``start`` being when the kernel had the bytes.
@@ -114,7 +118,9 @@ class SerialBusOwner(BusOwner):
             end, reply = self._wait_reply(
                 port, request.expected, issued + wire_time + earliest, start + wire_time + latest
             )
-        return Exchange(request, start, end, reply, write_s=start - issued)
+        return Exchange(
+            request, start, end, reply, write_s=start - issued, last_byte_before=last_byte
+        )
 
     def take_unsolicited(self) -> None:
         """Nothing to take (rule 5): whatever is on the line between exchanges is a late reply
@@ -146,7 +152,7 @@ class SerialBusOwner(BusOwner):
             data = os.read(fd, 4096)
             if not data:
                 raise serial.SerialException("the port reports data but returns none (unplugged?)")
-            arrived = now()
+            arrived = self._last_byte = now()
             if self.tap is not None:
                 self.tap((arrived, RX, data, None))
             self.counters.bytes_in += len(data)
@@ -198,8 +204,9 @@ class SerialBusOwner(BusOwner):
         waiting = port.in_waiting
         if waiting:
             data = port.read(waiting)
+            self._last_byte = now()
             if self.tap is not None:
-                self.tap((now(), RX, data, None))
+                self.tap((self._last_byte, RX, data, None))
             self._decoder.feed(data)
             for event in self._decoder.events():
                 if isinstance(event, Discarded):

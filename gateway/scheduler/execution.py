@@ -75,8 +75,11 @@ class Execution:
         else:
             start, end = exchange.start, exchange.end
             self._answered(slot, exchange)
-            if previous_end > -math.inf:
-                self.counters.gap(start - previous_end)
+            # The gap from the line's last activity: the previous exchange's end, or a byte
+            # read since (a late reply flushed before this write).
+            line_busy = max(previous_end, exchange.last_byte_before)
+            if line_busy > -math.inf:
+                self.counters.gap(start - line_busy)
             self.counters.busy_s += end - start
         if not isinstance(source, Job):  # a follow or keep-alive tick: its ticker times the next
             source.sent(start - self._fastest_write(exchange))
