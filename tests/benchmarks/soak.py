@@ -56,8 +56,9 @@ from busgate.client.zenoh_config import session_config
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.cli.bench import FOLLOW_FRAMES, PREPARE, TRAJECTORY, cpu_s
+from busgate.gateway.cli.bench import cpu_s, follow_frame_names
 from busgate.gateway.cli.client import reply_outcome
+from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import WireFigures, analyse, load_records
 from busgate.schemas.families import PROTOCOLS
@@ -101,9 +102,11 @@ LINES = (
 )
 CAN_IDS = (1, 2)
 CAN_DEVICES = [f"can-{i}" for i in CAN_IDS]
-#: Every device and its protocol (the key of bench's PREPARE and TRAJECTORY).
+#: Every device and its protocol.
 PROTOCOL_OF = {**{d: line.protocol for line in LINES for d in line.devices},
                **dict.fromkeys(CAN_DEVICES, "zlac706_can")}
+#: Every device's driver class: what makes it ready to follow, and its follow samples.
+DRIVER_OF = {device: driver_class(PROTOCOLS[protocol]) for device, protocol in PROTOCOL_OF.items()}
 
 
 def can_bus(port: str) -> str:
@@ -199,10 +202,10 @@ class Streamer(Client):
 
     def work(self, session: zenoh.Session) -> None:
         for device in self.devices:
-            for command in PREPARE[PROTOCOL_OF[device]]:
+            for command in DRIVER_OF[device].follow_preparation:
                 self.tally.ask(session, f"{BASE}/dev/{device}/cmd", command)
-        publishers = [(session.declare_publisher(f"{BASE}/dev/{d}/follow"), TRAJECTORY[
-            PROTOCOL_OF[d]], i) for i, d in enumerate(self.devices)]
+        publishers = [(session.declare_publisher(f"{BASE}/dev/{d}/follow"),
+                       DRIVER_OF[d].follow_sample, i) for i, d in enumerate(self.devices)]
         while not self.stop.wait(self.step_s):
             moment = now()
             for publisher, trajectory, index in publishers:
@@ -364,7 +367,10 @@ def device_side(scratch: Path, window: tuple[float, float]) -> dict[str, WireFig
     for line in LINES:
         records = [r for r in load_records(scratch / f"{line.bus}.jsonl")
                    if window[0] <= r.start <= window[1]]
-        figures[line.bus] = analyse(records, min_gap_s=line.gap_s, follow_frames=FOLLOW_FRAMES,
+        drivers = [DRIVER_OF[device](device, i) for device, i in zip(line.devices, line.ids,
+                                                                   strict=True)]
+        figures[line.bus] = analyse(records, min_gap_s=line.gap_s,
+                                    follow_frames=follow_frame_names(drivers),
                                     follow_period_s=line.follow_period_ms / 1000)
     return figures
 
