@@ -4,11 +4,12 @@ Not a test (pytest does not collect it). Everything on this machine, on 127.0.0.
 multicast scouting off: the simulators, the daemon (``busgate run``) and the bare loops as
 child processes, the streaming client here; every process ended by its PID.
 
-    .venv/bin/python tests/benchmarks/bench_scale.py [--buses 1,2,4,8] [--seconds 10] [--runs 2]
+    .venv/bin/python tests/benchmarks/bench_scale.py [--buses 1,2,4,6,8] [--daemons 2] [--runs 2]
 
 For each N: N simulated UARTs of 3 Inspire LA actuators at 921600 baud (``busgate sim``,
-each recording its wire). First the gateway: one daemon drives all N buses, every device
-followed at 10 ms and polled at 20 Hz, a client here putting a new target to every device
+each recording its wire). First the gateway: one daemon drives all N buses (``--daemons K``:
+K daemons, the buses split evenly, each its own gateway name), every device followed at 10 ms
+and polled at 20 Hz, a client here putting a new target to every device
 at 50 Hz over zenoh. Then, on the same simulators for the same time, the yardstick: N bare
 sleep-then-spin loops in one process (one thread each, ``busgate bench --baseline``'s loop)
 writing each bus's follow frame every 10 ms with targets a thread there updates at 50 Hz.
@@ -322,7 +323,7 @@ def line(name: str, figures: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--buses", default="1,2,4,8", help="the values of N, e.g. 1,2,4,8")
+    parser.add_argument("--buses", default="1,2,4,6,8", help="the values of N, e.g. 1,2,4,8")
     parser.add_argument("--seconds", type=float, default=10.0, help="measured per step")
     parser.add_argument("--runs", type=int, default=1)
     parser.add_argument(

@@ -23,11 +23,13 @@ HERE = Path(__file__).resolve().parents[2]
 #: (name, bench arguments after the protocol)
 CASES = [
     ("inspire_la", ["--ids", "1,2,3", "--follow-period-ms", "10", "--poll-hz", "20"]),
+    ("inspire_la", ["--ids", "1,2,3", "--follow-period-ms", "0", "--poll-hz", "1000"]),
     ("ds_servo", ["--ids", "1,2,3", "--follow-period-ms", "10", "--poll-hz", "20"]),
     ("zlac706_can", ["--follow-period-ms", "20", "--poll-hz", "10"]),
 ]
 FIGURES = ["frames_out_per_s", "follow_error_p50_ms", "follow_error_p99_ms",
-           "cpu_percent_bus_thread", "timeouts", "skipped_polls"]  # fmt: skip
+           "cpu_percent_bus_thread", "cpu_percent_process", "timeouts",
+           "skipped_polls"]  # fmt: skip
 
 
 def bench(checkout: Path, protocol: str, arguments: list[str], seconds: float) -> dict:
@@ -65,6 +67,8 @@ def main() -> int:
         print(f"{protocol} {' '.join(arguments)} ({args.pairs} pairs of {args.seconds:g} s)")
         for figure in FIGURES:
             sides = {name: [run[figure] for run in side] for name, side in runs.items()}
+            if None in sides["other"] + sides["this"]:
+                continue  # a figure this case has none of (follow error without a stream)
             other, this = (statistics.median(sides[name]) for name in ("other", "this"))
             print(
                 f"  {figure:24} other {other:9.3f} {sides['other']}  this {this:9.3f} "
