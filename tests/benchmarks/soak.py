@@ -56,8 +56,7 @@ from busgate.client.zenoh_config import session_config
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
-from busgate.gateway.cli.bench import cpu_s, follow_frame_names
-from busgate.gateway.cli.client import reply_outcome
+from busgate.gateway.cli.bench import cpu_s
 from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import WireFigures, analyse, load_records
@@ -85,6 +84,9 @@ class SerialLine:
     follow_period_ms: float
     poll_hz: float
     status: str  # the get the polling client sends its devices
+    #: The frames its follow ticks are (a fresh ZLAC706 driver refuses a target until its mode
+    #: is known, so the names cannot be asked of one here).
+    follow_frames: tuple[str, ...]
 
     @property
     def devices(self) -> list[str]:
@@ -96,9 +98,12 @@ class SerialLine:
 
 
 LINES = (
-    SerialLine("la", "inspire_la", "inspire_la", (1, 2, 3), 921_600, 10, 20, '{"op":"status"}'),
-    SerialLine("ds", "ds_servo", "ds_servo", (1, 2), 1_000_000, 20, 20, '{"op":"ping"}'),
-    SerialLine("rs232", "zlac706_rs232", "zlac706", (1,), 115_200, 20, 10, '{"op":"monitor"}'),
+    SerialLine("la", "inspire_la", "inspire_la", (1, 2, 3), 921_600, 10, 20, '{"op":"status"}',
+               ("FollowCommand", "GroupFollowCommand")),
+    SerialLine("ds", "ds_servo", "ds_servo", (1, 2), 1_000_000, 20, 20, '{"op":"ping"}',
+               ("SyncWrite",)),
+    SerialLine("rs232", "zlac706_rs232", "zlac706", (1,), 115_200, 20, 10, '{"op":"monitor"}',
+               ("Write",)),
 )
 CAN_IDS = (1, 2)
 CAN_DEVICES = [f"can-{i}" for i in CAN_IDS]
@@ -159,6 +164,18 @@ class GetTally:
             for (op, code), n in sorted(self.outcomes.items()):
                 table.setdefault(op, {})[code] = n
         return table
+
+
+def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
+    """A gateway's reply as (body, (code, message) when it is a refusal); ``None`` for an
+    error reply of zenoh's own (no body of the gateway's)."""
+    if reply.ok is None:
+        return None
+    body = json.loads(reply.ok.payload.to_bytes())
+    if isinstance(body, dict) and body.get("ok") is False:
+        error = body.get("error") or {}
+        return body, (str(error.get("code")), str(error.get("message")))
+    return body, None
 
 
 def _code(outcome: tuple[Any, tuple[str, str] | None] | None) -> str:
@@ -367,10 +384,8 @@ def device_side(scratch: Path, window: tuple[float, float]) -> dict[str, WireFig
     for line in LINES:
         records = [r for r in load_records(scratch / f"{line.bus}.jsonl")
                    if window[0] <= r.start <= window[1]]
-        drivers = [DRIVER_OF[device](device, i) for device, i in zip(line.devices, line.ids,
-                                                                   strict=True)]
         figures[line.bus] = analyse(records, min_gap_s=line.gap_s,
-                                    follow_frames=follow_frame_names(drivers),
+                                    follow_frames=line.follow_frames,
                                     follow_period_s=line.follow_period_ms / 1000)
     return figures
 
