@@ -38,6 +38,18 @@ def test_bench_reports_what_it_achieved_on_the_simulator() -> None:
     assert device["frames_received"] >= 1, "the simulator's record covers the window"
 
 
+def test_the_polling_yardstick_exchanges_with_every_device_on_the_same_port() -> None:
+    """Polling only, ``--baseline`` is a bare polling loop: it gets replies (a loop that wrote
+    without reading would count every poll a timeout), and its rate is the same order as the
+    gateway's (both wait the reply and the gap)."""
+    figures = bench("--protocol", "inspire_la", "--ids", "1,2", "--seconds", "1",
+                    "--follow-period-ms", "0", "--poll-hz", "1000", "--baseline")
+    bare = figures["baseline"]
+    assert bare["frames_out_per_s"] > 0 and bare["timeouts"] < bare["frames_out_per_s"] / 10
+    assert figures["frames_out_per_s"] > bare["frames_out_per_s"] / 4
+    assert "follow_error_p99_ms" not in bare
+
+
 def test_bench_on_can_through_the_slcan_simulator() -> None:
     figures = bench("--protocol", "zlac706_can", "--seconds", "1", "--follow-period-ms", "20",
                     "--reply-margin-ms", "10")
