@@ -21,9 +21,10 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
 from busgate.gateway.scheduler.outcomes import BusyError
-from busgate.gateway.scheduler.planner import Job
+from busgate.gateway.scheduler.planner import Job, Priority
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
@@ -119,6 +120,36 @@ def test_runner_carries_out_commands_and_polls(wait_for, simulator) -> None:
         assert stats.frames_in > 0 and stats.smallest_gap_s >= 0.001
     finally:
         runner.stop()
+
+
+@pytest.mark.parametrize("cut_short", [False, True])
+def test_a_poll_decided_before_its_moment_starts_as_decided_unless_its_wait_was_cut_short(
+        monkeypatch, simulator, cut_short) -> None:
+    """This thread plays the bus thread, on a clock that stands still. A poll due within
+    ``PREPARE_S`` is decided then; when its wait reaches the moment it goes as decided (no
+    second decision after the gap); when new work (an e-stop) cut the wait short, nothing is
+    sent: the next turn decides again, the new work first."""
+    runner = build_bus(bus(simulator.port))  # not started
+    moment = now()
+    monkeypatch.setattr(runner_module, "now", lambda: moment)
+    for poller in runner.pollers:
+        poller.next_due = moment + runner_module.PREPARE_S / 2
+    waits: list[float] = []
+    sent: list[tuple] = []
+
+    def wait_until(deadline: float, *, precise: bool = True) -> bool:
+        waits.append(deadline)
+        return not cut_short
+
+    monkeypatch.setattr(runner, "_wait_until", wait_until)
+    monkeypatch.setattr(runner, "_execute", lambda slot, at=None: sent.append((slot, at)))
+    runner._step()
+    assert waits == [moment + runner_module.PREPARE_S / 2]  # one wait, to the poll's moment
+    if cut_short:
+        assert sent == []
+    else:
+        [(slot, at)] = sent
+        assert slot.priority is Priority.POLL and at is None  # at its moment already
 
 
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
