@@ -52,6 +52,7 @@ from typing import Any
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
+from busgate.client.core import Answer, answer_of
 from busgate.client.zenoh_config import session_config
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
 from busgate.gateway.bus.clock import now
@@ -146,9 +147,9 @@ class GetTally:
         """Send one get and count its outcome: ``ok``, the error code, or ``lost``."""
         asked = now()
         replies = session.get(key, payload=payload, timeout=GET_TIMEOUT_S)
-        outcomes = [outcome for reply in replies if (outcome := reply_outcome(reply)) is not None]
+        answers = [answer for reply in replies if (answer := answer_of(reply)) is not None]
         took = now() - asked
-        code = _code(outcomes[0] if outcomes else None)
+        code = _code(answers[0] if answers else None)
         with self._lock:
             self.outcomes[json.loads(payload)["op"], code] += 1
             self.seconds.append(took)
@@ -166,23 +167,10 @@ class GetTally:
         return table
 
 
-def reply_outcome(reply: zenoh.Reply) -> tuple[Any, tuple[str, str] | None] | None:
-    """A gateway's reply as (body, (code, message) when it is a refusal); ``None`` for an
-    error reply of zenoh's own (no body of the gateway's)."""
-    if reply.ok is None:
-        return None
-    body = json.loads(reply.ok.payload.to_bytes())
-    if isinstance(body, dict) and body.get("ok") is False:
-        error = body.get("error") or {}
-        return body, (str(error.get("code")), str(error.get("message")))
-    return body, None
-
-
-def _code(outcome: tuple[Any, tuple[str, str] | None] | None) -> str:
-    if outcome is None:
+def _code(answer: Answer | None) -> str:
+    if answer is None:
         return "lost"
-    _, error = outcome
-    return "ok" if error is None else error[0]
+    return "ok" if answer.ok else str(answer.error.get("code"))
 
 
 class Client(threading.Thread):
