@@ -284,12 +284,18 @@ def bare_follow_loop(
     return starts
 
 
+def line_gap_s(args: argparse.Namespace) -> float:
+    """The UART gap the bench's bus keeps: ``--min-gap-ms``, else the protocol's."""
+    if args.min_gap_ms is not None:
+        return args.min_gap_ms / 1000
+    return PROTOCOLS[args.protocol].timing.default_gap_s
+
+
 def polling_baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> dict:
     """A plain polling loop: each device's poll in turn, written, its reply read, then the
     gap waited from the reply's last byte (sleep then spin); no scheduler."""
     protocol = PROTOCOLS[args.protocol]
-    min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else None
-    gap_s = protocol.timing.default_gap_s if min_gap is None else min_gap
+    gap_s = line_gap_s(args)
     polls = [request for driver in used for request in driver.poll()]
     decoder = protocol.codec.ReplyDecoder()
     exchanges = timeouts = 0
@@ -352,13 +358,11 @@ def follow_frame_names(drivers: list[Driver]) -> set[str]:
 
 
 def device_side(args: argparse.Namespace, record: Path, window: tuple[float, float, set]) -> dict:
-    timing = PROTOCOLS[args.protocol].timing
-    min_gap = args.min_gap_ms / 1000 if args.min_gap_ms is not None else timing.default_gap_s
     start, end, follow_frames = window
     records = [r for r in load_records(record) if start <= r.start <= end]
     figures = analyse(
         records,
-        min_gap_s=min_gap,
+        min_gap_s=line_gap_s(args),
         follow_frames=follow_frames,
         follow_period_s=(args.follow_period_ms or 0) / 1000 or None,
     )
