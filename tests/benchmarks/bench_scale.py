@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import statistics
 import subprocess
 import sys
@@ -45,6 +44,7 @@ from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
 from busgate.client.zenoh_config import session_config
 from busgate.gateway.bus.clock import now, tune_interpreter
+from busgate.gateway.bus.request import Request
 from busgate.gateway.cli.bench import (
     bare_follow_loop,
     cpu_s,
@@ -70,9 +70,10 @@ def drivers_of(bus: int) -> list[InspireLaDriver]:
     return [InspireLaDriver(f"bus{bus}-{i}", i) for i in IDS]
 
 
-def position(t_s: float, bus: int, index: int) -> int:
-    """Every device a sine of its own phase, as ``follow_sample`` would give."""
-    return round(1000 + 500 * math.sin(2 * math.pi * t_s + bus + index))
+def target(t_s: float, bus: int, index: int) -> dict:
+    """Device ``index`` of bus ``bus`` at ``t_s``: the driver's follow sample, each device of
+    every bus its own phase."""
+    return InspireLaDriver.follow_sample(t_s, bus * len(IDS) + index)
 
 
 # -- the gateway ---------------------------------------------------------------------------
@@ -187,7 +188,7 @@ def stream(session: zenoh.Session, devices: dict[str, tuple[int, int]], stop) ->
     while not stop.is_set():
         t = now() - start
         for publisher, (n, index) in publishers.values():
-            publisher.put(json.dumps({"position": position(t, n, index)}))
+            publisher.put(json.dumps(target(t, n, index)))
         deadline += 1 / TARGET_HZ
         time.sleep(max(0.0, deadline - now()))
 
@@ -211,7 +212,7 @@ def bare_loops(ports: list[str], seconds: float) -> dict:
     tune_interpreter()  # as the daemon does
     drivers = [drivers_of(n) for n in range(len(ports))]
     latest = {
-        (n, index): driver.follow_target({"position": position(0.0, n, index)})
+        (n, index): driver.follow_target(target(0.0, n, index))
         for n, bus in enumerate(drivers)
         for index, driver in enumerate(bus)
     }
@@ -225,13 +226,16 @@ def bare_loops(ports: list[str], seconds: float) -> dict:
             t = now() - started
             for n, bus in enumerate(drivers):
                 for index, driver in enumerate(bus):
-                    latest[n, index] = driver.follow_target({"position": position(t, n, index)})
+                    latest[n, index] = driver.follow_target(target(t, n, index))
 
     def loop(n: int) -> None:
         bus = drivers[n]
-        request_of = lambda: InspireLaDriver.follow_request(  # noqa: E731
-            [(driver, latest[n, index]) for index, driver in enumerate(bus)]
-        )
+
+        def request_of() -> Request:
+            return InspireLaDriver.follow_request(
+                [(driver, latest[n, index]) for index, driver in enumerate(bus)]
+            )
+
         time.sleep(max(0.0, started - now()))
         starts = bare_follow_loop(ports[n], BAUD, request_of, PERIOD_S, end)
         figures.append(interval_figures(starts, PERIOD_S))
