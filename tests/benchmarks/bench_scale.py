@@ -38,6 +38,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
@@ -325,13 +326,39 @@ def line(name: str, figures: dict) -> str:
     return text
 
 
+#: How a refusal names what ``positive`` takes.
+WORDS = {int: "whole number", float: "number"}
+
+
+def positive(kind: type) -> Any:
+    """An argparse type: a ``kind`` number above 0, else a one-line refusal."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = 0
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"{text!r}: a {WORDS[kind]} above 0")
+        return value
+
+    return parse
+
+
+def bus_counts(text: str) -> list[int]:
+    """``--buses``: bus counts above 0, comma-separated."""
+    return [positive(int)(part) for part in text.split(",")]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--buses", default="1,2,4,6,8", help="the values of N, e.g. 1,2,4,8")
-    parser.add_argument("--seconds", type=float, default=10.0, help="measured per step")
-    parser.add_argument("--runs", type=int, default=1)
     parser.add_argument(
-        "--daemons", type=int, default=1, help="split the buses over this many daemons"
+        "--buses", type=bus_counts, default="1,2,4,6,8", help="the values of N, e.g. 1,2,4,8"
+    )
+    parser.add_argument("--seconds", type=positive(float), default=10.0, help="measured per step")
+    parser.add_argument("--runs", type=positive(int), default=1)
+    parser.add_argument(
+        "--daemons", type=positive(int), default=1, help="split the buses over this many daemons"
     )
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
     args = parser.parse_args()
@@ -339,7 +366,7 @@ def main() -> None:
         print(json.dumps(bare_loops(args.bare.split(","), args.seconds)))
         return
     for run in range(1, args.runs + 1):
-        for buses in (int(n) for n in args.buses.split(",")):
+        for buses in args.buses:
             figures = step(buses, args.seconds, args.daemons)
             daemons = min(args.daemons, buses)
             print(
