@@ -329,6 +329,7 @@ def interval_figures(starts: list[float], period_s: float) -> dict:
     errors = sorted(b - a - period_s for a, b in itertools.pairwise(starts))
     return {
         "follow_intervals": len(errors),
+        "follow_intervals_under_period": sum(1 for error in errors if error < 0),
         "follow_error_p50_ms": _ms(percentile(errors, 0.5)),
         "follow_error_p99_ms": _ms(percentile(errors, 0.99)),
         "follow_error_min_ms": _ms(errors[0] if errors else None),
