@@ -9,6 +9,7 @@ own, read back from their codec frames."""
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import pytest
 from hypothesis import given
@@ -23,12 +24,18 @@ from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.plays import END_ALL, RAMP_S, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker
-from busgate.gateway.scheduler.trajectory_ticks import ON_TIME_S, TrajectoryTicker, next_slot
+from busgate.gateway.scheduler.trajectory_ticks import (
+    GRID_STRETCH,
+    ON_TIME_S,
+    TrajectoryTicker,
+    next_slot,
+)
 from busgate.gateway.trajectory.interpolation import Knot, Path, sent
 from tests.test_driver_zlac706 import can_driver, velocity_driver, wire
 from tests.test_planner import run as carried_out
 
 PERIOD = 0.02
+GRID = PERIOD * GRID_STRETCH  # the slots' spacing (rule 1 of trajectory_ticks.py)
 START = 1000.0  # bus clock: a perf_counter far from 0, as on a host that has been up a while
 TIMING = link_timing("inspire_la", 921_600, margin_s=0.0, gap_s=0.001)
 #: A linear path from 0 to 1000 in one second: every slot's value differs from its neighbours'.
@@ -58,7 +65,7 @@ def la_ticker(*drivers: InspireLaDriver, path: Path = RAMP_UP) -> TrajectoryTick
 
 
 def slot_value(k: int, path: Path = RAMP_UP) -> int:
-    return sent(path.at(k * PERIOD))
+    return sent(path.at(k * GRID))
 
 
 # --- next_slot ------------------------------------------------------------------------------
@@ -98,23 +105,23 @@ def test_a_tick_built_late_sends_the_path_at_its_slot_not_at_the_moment_of_build
     assert positions(ticker.build(START + 0.015)) == {1: slot_value(0)}
     ticker.sent(START + 0.016)  # 16 ms late: the next slot is a full period after that
     assert ticker.commanded["la1"] == (0.0, slot_value(0))
-    assert ticker.next_due() == pytest.approx(START + 2 * PERIOD)
+    assert ticker.next_due() == pytest.approx(START + 2 * GRID)
     assert positions(ticker.build(START + 0.05)) == {1: slot_value(2)} == {1: 40}
     ticker.sent(START + 0.05)
     t_s, value = ticker.commanded["la1"]
-    assert (t_s, value) == (pytest.approx(2 * PERIOD), 40)
+    assert (t_s, value) == (pytest.approx(2 * GRID), 40)
 
 
 def test_a_slot_is_sampled_at_k_periods_exactly_whatever_the_bus_clock_reads():
-    """At 1000.0 s of bus clock, slot 1's bus time less the start is 0.01999999999998181 s:
+    """At 1000.0 s of bus clock, slot 2's bus time less the start is 0.0403999999999769 s:
     a path at 0.5 (a half: sent as 1) there would be sent as 0."""
-    half_way = Path(0.0, [Knot(2 * PERIOD, 1.0)], "linear")
-    assert (START + PERIOD) - START < PERIOD and sent(half_way.at(PERIOD)) == 1
+    half_way = Path(0.0, [Knot(4 * GRID, 1.0)], "linear")
+    assert (START + 2 * GRID) - START < 2 * GRID and sent(half_way.at(2 * GRID)) == 1
     ticker = la_ticker(path=half_way)
     for k in range(3):
-        assert positions(ticker.build(ticker.next_due())) == {1: [0, 1, 1][k]}
+        assert positions(ticker.build(ticker.next_due())) == {1: [0, 0, 1][k]}
         ticker.sent(ticker.next_due())
-    assert ticker.commanded["la1"] == (2 * PERIOD, 1)
+    assert ticker.commanded["la1"] == (2 * GRID, 1)
 
 
 def test_commanded_is_what_was_sent_not_a_tick_built_ahead_and_put_off():
@@ -123,11 +130,11 @@ def test_commanded_is_what_was_sent_not_a_tick_built_ahead_and_put_off():
     ticker = la_ticker()
     ticker.build(START)
     ticker.sent(START)
-    ticker.build(START + PERIOD - 0.003)  # prepared 3 ms ahead, then put off
+    ticker.build(START + GRID - 0.003)  # prepared 3 ms ahead, then put off
     assert ticker.commanded["la1"] == (0.0, 0)
-    ticker.build(START + PERIOD)
-    ticker.sent(START + PERIOD)
-    assert ticker.commanded["la1"] == (pytest.approx(PERIOD), 20)
+    ticker.build(START + GRID)
+    ticker.sent(START + GRID)
+    assert ticker.commanded["la1"] == (pytest.approx(GRID), 20)
 
 
 def test_a_tick_a_little_after_its_slot_is_on_time_and_every_slot_is_sent():
@@ -146,29 +153,50 @@ lateness = st.one_of(st.floats(0.0, ON_TIME_S), st.floats(ON_TIME_S, 3 * PERIOD)
 
 
 @given(st.lists(lateness, min_size=2, max_size=60))
-def test_ticks_stay_on_the_grid_and_none_is_less_than_a_period_after_a_late_one(latenesses):
+def test_ticks_stay_on_the_grid_and_no_interval_is_shorter_than_the_period(latenesses):
     """Each tick starts ``lateness`` after it is due: every one is built at a slot with the
-    path's value there; an on-time tick is followed by the next slot; a late one by the first
-    slot a full period after it started; so no interval is shorter than the period by more
-    than ``ON_TIME_S``, and none at all after a late tick."""
+    path's value there and is due at its slot or a full period after the tick before,
+    whichever is later, so no interval is ever shorter than the period; after a tick within
+    ``ON_TIME_S`` of its slot comes the next slot, after a later one the first slot a full
+    period on. (The rule before allowed an interval ``ON_TIME_S`` short.)"""
     ticker = la_ticker()
-    previous = None  # (slot index, start, lateness) of the tick before
+    previous = None  # (slot index, start) of the tick before
     for late in latenesses:
         due = ticker.next_due()
-        k = round((due - START) / PERIOD)
-        assert due == pytest.approx(START + k * PERIOD, abs=1e-9)
+        k = math.floor((due - START) / GRID + 1e-9)  # due at its slot, or held back after it
+        slot = START + k * GRID
         start = due + late
         assert positions(ticker.build(start)) == {1: slot_value(k)}
-        if previous is not None:
-            last_k, last_start, last_late = previous
-            assert start - last_start >= PERIOD - ON_TIME_S - 1e-9
-            if last_late > ON_TIME_S:
-                assert start - last_start >= PERIOD - 1e-9
-                assert due - PERIOD < last_start + PERIOD + 1e-9  # and no slot more is skipped
-            else:
+        if previous is None:
+            assert (k, due) == (0, START)
+        else:
+            last_k, last_start = previous
+            assert due == max(slot, last_start + PERIOD)  # never a short interval
+            if last_start - (START + last_k * GRID) <= ON_TIME_S:
                 assert k == last_k + 1
+            else:  # drifted: the first slot a period on, and none passed needlessly
+                assert slot >= last_start + PERIOD - 1e-9 > slot - GRID
         ticker.sent(start)
-        previous = (k, start, start - due)  # its lateness as the clock has it
+        previous = (k, start)
+
+
+def test_ticks_each_a_little_late_keep_every_slot_and_every_interval_at_the_period():
+    """A host whose writes start 60 µs after they are due, and a tick 0.9 ms late every so
+    often: the stretched grid gives the lateness back, so no slot is left out, the next tick
+    is on its slot again, and no interval is under the period (on the rule before, the tick
+    after the late one made an interval of 19.16 ms)."""
+    ticker = la_ticker()
+    starts, slots = [], []
+    for index in range(200):
+        due = ticker.next_due()
+        slots.append(math.floor((due - START) / GRID + 1e-9))
+        start = due + (0.0009 if index % 7 == 0 else 0.00006)
+        ticker.build(start)
+        ticker.sent(start)
+        starts.append(start)
+    assert slots == list(range(200))
+    assert min(b - a for a, b in pairwise(starts)) >= PERIOD
+    assert max(s - (START + k * GRID) for s, k in zip(starts, slots, strict=True)) < 0.0011
 
 
 def test_each_interval_is_counted_against_the_period():
@@ -192,13 +220,13 @@ def test_the_devices_of_a_ticker_share_one_frame_each_with_its_own_path():
     ticker.add(la2, position_of(other))
     ticker.build(START)
     ticker.sent(START)
-    request = ticker.build(START + PERIOD)
+    request = ticker.build(START + GRID)
     assert isinstance(request.frame, la.GroupFollowCommand) and request.expected is None
-    assert positions(request) == {1: 20, 2: 1920}
+    assert positions(request) == {1: 20, 2: sent(other.at(GRID))} == {1: 20, 2: 1919}
     assert ticker.carried() == [la1, la2]
-    ticker.sent(START + PERIOD)
-    assert ticker.commanded == {"la1": (pytest.approx(PERIOD), 20),
-                                "la2": (pytest.approx(PERIOD), 1920)}
+    ticker.sent(START + GRID)
+    assert ticker.commanded == {"la1": (pytest.approx(GRID), 20),
+                                "la2": (pytest.approx(GRID), 1919)}
     ticker.remove("la1")
     ticker.remove("la2")
     assert ticker.next_due() is None and ticker.build(START + 1) is None
@@ -216,7 +244,7 @@ def test_a_device_that_cannot_take_its_target_is_left_out_and_no_tick_raises():
     assert "e-stopped" in ticker.refused["la1"]
     ticker.sent(START)
     la2.safe_stop()
-    assert ticker.build(START + PERIOD) is None
+    assert ticker.build(START + GRID) is None
     assert ticker.next_due() is None  # nobody left to tick for
     wheel = can_driver()  # no mode yet: a speed target is refused
     ticker = TrajectoryTicker(Zlac706CanDriver, PERIOD, START, BusCounters(0.0))
@@ -283,8 +311,8 @@ def test_devices_started_together_share_one_ticker_and_one_frame():
     assert len(trajectory_tickers(planner)) == 1
     assert planner.decide(START - 0.01) == START  # nothing before the start
     assert positions(tick(planner, START)) == {1: 0, 2: 0, 3: 0}
-    assert positions(tick(planner, START + PERIOD)) == {1: 20, 2: 20, 3: 20}
-    assert plays.commanded("la2") == (pytest.approx(PERIOD), 20)
+    assert positions(tick(planner, START + GRID)) == {1: 20, 2: 20, 3: 20}
+    assert plays.commanded("la2") == (pytest.approx(GRID), 20)
     assert plays.commanded("la9") is None
 
 
@@ -295,14 +323,14 @@ def test_a_new_start_takes_a_device_from_its_old_ticker_from_the_next_tick():
     later = START + 5 * PERIOD + 0.003  # another grid
     down = Path(500.0, [Knot(1.0, 0.0)], "linear")
     plays.start({"la2": position_of(down)}, later)
-    assert positions(tick(planner, START + PERIOD)) == {1: 20}  # la2 has left the old ticker
+    assert positions(tick(planner, START + GRID)) == {1: 20}  # la2 has left the old ticker
     assert plays.commanded("la2") is None  # until its new trajectory's first tick
     for k in range(2, 6):
-        assert positions(tick(planner, START + k * PERIOD)) == {1: slot_value(k)}
+        assert positions(tick(planner, START + k * GRID)) == {1: slot_value(k)}
     assert positions(tick(planner, later)) == {2: 500}
     plays.start({"la1": position_of(down)}, later)  # its old ticker is left empty: dropped
     assert len(trajectory_tickers(planner)) == 1
-    assert positions(tick(planner, later + PERIOD)) == {1: 490, 2: 490}
+    assert positions(tick(planner, later + GRID)) == {1: 490, 2: 490}
 
 
 def test_a_trajectory_takes_a_device_from_its_follow_stream_without_stopping_it():
@@ -324,13 +352,13 @@ def test_a_position_device_stopped_holds_its_last_target():
     planner, plays, _ = bus_of(*three_actuators())
     plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)
     for k in range(3):
-        tick(planner, START + k * PERIOD)
+        tick(planner, START + k * GRID)
     plays.stop("la1", speed=False)
-    assert positions(tick(planner, START + 3 * PERIOD)) == {2: 60}
+    assert positions(tick(planner, START + 3 * GRID)) == {2: slot_value(3)}
     assert plays.commanded("la1") is None
     plays.stop("la2", speed=False)
     assert trajectory_tickers(planner) == [] and planner.queued == 0
-    assert planner.decide(START + 4 * PERIOD) == math.inf  # nothing more to send
+    assert planner.decide(START + 4 * GRID) == math.inf  # nothing more to send
 
 
 def test_a_speed_stopped_ramps_to_zero_over_ramp_s_then_gets_the_stale_stream_stop():
@@ -338,22 +366,22 @@ def test_a_speed_stopped_ramps_to_zero_over_ramp_s_then_gets_the_stale_stream_st
     planner, plays, _ = bus_of(wheel)
     plays.start({"wheel": lambda t_s: {"rpm": 300.0}}, START)
     for k in range(6):
-        tick(planner, START + k * PERIOD)
+        tick(planner, START + k * GRID)
     plays.stop("wheel", speed=True)
     [ticker] = trajectory_tickers(planner)
-    ramp_ticks = round(RAMP_S / PERIOD)
+    ramp_ticks = math.ceil(RAMP_S / GRID)  # the last one at or past the ramp's end: 0 rpm
     sent_rpms = []
     for k in range(6, 6 + ramp_ticks):
-        request = tick(planner, START + k * PERIOD).request
+        request = tick(planner, START + k * GRID).request
         t_s, rpm = ticker.commanded["wheel"]
-        expected = 300.0 * (1 - (t_s - 5 * PERIOD) / RAMP_S)
+        expected = 300.0 * max(0.0, 1 - (t_s - 5 * GRID) / RAMP_S)
         assert rpm == pytest.approx(expected, abs=1e-9)
         assert wire([request]) == wire([Zlac706CanDriver.follow_request(
             [(wheel, wheel.follow_target({"rpm": rpm}))])])
         sent_rpms.append(rpm)
     assert sent_rpms == sorted(sent_rpms, reverse=True) and sent_rpms[-1] == pytest.approx(0)
     assert trajectory_tickers(planner) == [] and plays.commanded("wheel") is None
-    stop = planner.decide(START + (6 + ramp_ticks) * PERIOD)
+    stop = planner.decide(START + (6 + ramp_ticks) * GRID)
     assert isinstance(stop, Slot) and isinstance(stop.source, Job)
     assert wire(list(stop.source.requests)) == wire(wheel.stale_stream())  # 0 rpm
 
@@ -372,14 +400,14 @@ def test_a_device_left_out_leaves_its_trajectory_with_the_reason_until_it_plays_
     plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)
     tick(planner, START)
     la1.safe_stop()
-    assert positions(tick(planner, START + PERIOD)) == {2: 20}
+    assert positions(tick(planner, START + GRID)) == {2: 20}
     assert plays.commanded("la1") is None
     start, reason = plays.refusal("la1")
     assert start == START and reason.startswith("could not take its target") and (
         "e-stopped" in reason)
     assert plays.refusal("la2") is None
     la2.safe_stop()
-    assert planner.decide(START + 2 * PERIOD) == math.inf  # the slot passed, the ticker went
+    assert planner.decide(START + 2 * GRID) == math.inf  # the slot passed, the ticker went
     assert trajectory_tickers(planner) == [] and plays.refusal("la2")[0] == START
     la1.power = PowerStage.ON  # enabled again
     plays.start({"la1": position_of(RAMP_UP)}, START + 1.0)
@@ -390,12 +418,12 @@ def test_a_device_that_left_is_held_where_its_last_tick_sent_it():
     planner, plays, _ = bus_of(*three_actuators())
     plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)
     for k in range(3):
-        tick(planner, START + k * PERIOD)
+        tick(planner, START + k * GRID)
     assert plays.held("la1") is None  # playing: commanded says where it is
     plays.stop("la1", speed=False)
-    assert plays.held("la1") == (START + 2 * PERIOD, 40)
+    assert plays.held("la1") == (START + 2 * GRID, 40)
     plays.start({"la2": position_of(RAMP_UP)}, START + 1.0)  # taken by another: held too
-    assert plays.held("la2") == (START + 2 * PERIOD, 40)
+    assert plays.held("la2") == (START + 2 * GRID, 40)
     assert plays.held("la3") is None
 
 

@@ -3,19 +3,21 @@ on a grid shared by every bus.
 
 Rules of this file:
 
-1. Tick ``k`` of a trajectory is due at ``start + k × period`` (bus clock), for every bus
-   alike, so buses that start together stay together. A tick is sent at its slot or, late,
-   as soon as it can. A write cannot start before its slot and always starts a little after
-   it (the host's wake-up, the write call): a tick that started within ``ON_TIME_S`` of its
-   slot (the contract's alignment bound) is on time, and the next slot follows it; after a
-   later one, the next tick is the first slot at least a full period after it actually
-   started. So the grid is never left, a late tick is not made up by a burst, and no interval
-   is shorter than the period by more than ``ON_TIME_S``. (Bounding the next slot by every
-   tick's own start would make nearly every tick late and leave every other slot out.)
-2. What a tick sends is the trajectory sampled at the tick's slot (``sample(k × period)``, a
+1. Tick ``k`` of a trajectory is due at its slot, ``start + k × grid``, for every bus alike
+   (so buses that start together stay together), and never before the previous tick's start
+   plus the device's period: no interval is ever shorter than the period. The grid's period
+   is the device's stretched by ``GRID_STRETCH``: every write starts a little after it is
+   due (the host's wake-up, the write call), and a grid of exactly the period would carry
+   each tick's lateness into the next one's earliest start, so that it grew tick after tick;
+   the stretch gives each interval that slack back, and a tick a little late is followed
+   by one on its slot again. A tick that started over ``ON_TIME_S`` after its slot (the
+   contract's alignment bound: a hiccup, a busy line) has drifted: the next is the first
+   slot a full period after it, so the grid is never left and a late tick is not made up by
+   a burst.
+2. What a tick sends is the trajectory sampled at the tick's slot (``sample(k × grid)``, a
    follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
    is), not at the moment the frame happens to leave: the wire carries the interpolant at
-   the grid's times, whatever the host's jitter. The time is ``k × period`` itself, not the
+   the grid's times, whatever the host's jitter. The time is ``k × grid`` itself, not the
    slot's bus time less the start, whose rounding depends on how long the host has been up
    and can tip a value that is a half in exact arithmetic to either side.
 3. Devices of one driver kind, one period and one start share a ticker and a frame (every
@@ -43,9 +45,12 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 
-#: How long after its slot a tick may start and still be on time (rule 1): the 1 ms within
-#: which the buses' ticks of one slot are aligned.
+#: How long after its slot a tick may start and the next still be on the following slot
+#: (rule 1): the 1 ms within which the buses' ticks of one slot are aligned.
 ON_TIME_S = 0.001
+#: The grid's period over the device's (rule 1): 1 % is 100 µs a tick at 10 ms, several times
+#: what a tick usually starts late on this kind of host, so lateness does not pile up.
+GRID_STRETCH = 1.01
 #: A sampler: seconds from the trajectory's start → the device's follow payload (one key).
 Sampler = Callable[[float], dict[str, Any]]
 
@@ -71,6 +76,8 @@ class TrajectoryTicker:
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
+        #: The grid's period (rule 1): slot ``k`` is at ``start + k × grid_s``.
+        self.grid_s = period_s * GRID_STRETCH
         self.start = start
         self.counters = counters
         #: Called after each slot, its frame sent or (rule 5) passed without one.
@@ -83,7 +90,7 @@ class TrajectoryTicker:
         #: Devices left out because they could not take their target, and why (rule 5).
         self.refused: dict[str, str] = {}
         self._k = 0  # the next slot's index
-        self._due = start
+        self._due = start  # its slot, or a period after the last tick started if that is later
         self._last_start: float | None = None
         self._built: dict[str, tuple[float, float]] = {}  # what the frame being sent carries
         self._carried: list[Driver] = []
@@ -113,7 +120,7 @@ class TrajectoryTicker:
     def build(self, now: float) -> Request | None:
         if not self.playing:
             return None
-        t_s = self._k * self.period_s  # rule 2: the slot's time, not now's
+        t_s = self._k * self.grid_s  # rule 2: the slot's time, not now's
         targets: list[tuple[Driver, Any]] = []
         built: dict[str, tuple[float, float]] = {}
         for name, member in list(self.playing.items()):
@@ -141,21 +148,27 @@ class TrajectoryTicker:
             self.counters.follow_interval(start - self._last_start, self.period_s)
         self._last_start = start
         self.commanded.update(self._built)  # rule 4: one assignment per device
-        if start - self._due <= ON_TIME_S:  # rule 1
+        if start - self._slot(self._k) <= ON_TIME_S:  # rule 1
             self._go_to(self._k + 1)
-        else:
-            self._go_to(slot_index(self.start, self.period_s, start + self.period_s))
+        else:  # drifted: the first slot a full period on
+            self._go_to(slot_index(self.start, self.grid_s, start + self.period_s))
         self.on_tick(self)
 
     def _pass(self, now: float) -> None:
         """No device could take its target: the slot passes without a frame (rule 5), and the
         next one is due after ``now`` (the planner asks again at once)."""
-        self._go_to(max(self._k + 1, slot_index(self.start, self.period_s, now)))
+        self._go_to(max(self._k + 1, slot_index(self.start, self.grid_s, now)))
         self.on_tick(self)
 
     def _go_to(self, k: int) -> None:
+        """Slot ``k`` is next: due at it, and never before a period after the last tick."""
         self._k = k
-        self._due = self.start + k * self.period_s
+        last = self._last_start
+        slot = self._slot(k)
+        self._due = slot if last is None else max(slot, last + self.period_s)
+
+    def _slot(self, k: int) -> float:
+        return self.start + k * self.grid_s
 
 
 def next_slot(start: float, period_s: float, earliest: float) -> float:
