@@ -6,7 +6,8 @@ Rules of this file:
 1. Only the trajectory's structure is judged here: one value per device in every list, times
    that only go forward, positions or speeds throughout. A value's range is its device kind's,
    and nothing here knows which device is which kind: the API checks each device's values
-   against its kind's ``FollowTarget``. Every number must be finite (``CommandModel``).
+   against its kind's ``FollowTarget``. Every number must be finite (``CommandModel``) and
+   within ``MAX_MAGNITUDE`` (``out_of_range``), so no path overflows a float.
 2. A trajectory moves positions (whole units, as every kind's positions are) or, for ZLAC706
    devices in velocity mode, speeds (``rpms``, any number as a ``Rpm`` is): never both.
 3. A structural problem is a ``ValueError`` raised by a validator (pydantic's ``value_error``:
@@ -30,9 +31,8 @@ MAX_TRAJECTORY_POINTS = 10_000
 #: The largest payload the trajectory key takes, in bytes (every other key takes the API's
 #: ``MAX_PAYLOAD``, ``busgate.gateway.api.commands``).
 MAX_TRAJECTORY_PAYLOAD = 1024 * 1024
-#: The longest a trajectory may last, and the longest ``goal_time_s``, in seconds: the gateway
-#: checks every tick of a play's grid before it accepts it, and a point a day away (or at
-#: 1e300 s) would hold its one trajectory worker, and every cancel behind it, for hours.
+#: The longest a trajectory may last, and the longest ``goal_time_s``, in seconds: a bound a
+#: robot's plans stay far inside, which keeps every time a float of fine resolution.
 MAX_TRAJECTORY_S = 3600.0
 
 #: How the points are joined: straight lines, Hermite cubics (positions and velocities) or
@@ -44,7 +44,15 @@ ValuesField = Literal["positions", "rpms"]
 #: A point's lists that carry one value per device.
 _PER_DEVICE_FIELDS: tuple[str, ...] = ("positions", "rpms", "velocities", "accelerations")
 
+#: The largest magnitude of a point's value, velocity (units/s) or acceleration (units/s²):
+#: past every kind's range by far (each kind checks its own), and small enough that a path's
+#: polynomial stays a float with room to spare (a segment of ``MAX_TRAJECTORY_S`` at this
+#: acceleration has coefficients of 1e16, where 1e308 would overflow to infinity).
+MAX_MAGNITUDE = 1e9
+
 NonNegative = Annotated[float, Field(ge=0)]
+Magnitude = Annotated[float, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
+WholeMagnitude = Annotated[int, Field(ge=-MAX_MAGNITUDE, le=MAX_MAGNITUDE)]
 #: Seconds within a trajectory's reach.
 Seconds = Annotated[float, Field(ge=0, le=MAX_TRAJECTORY_S)]
 
@@ -57,10 +65,10 @@ class TrajectoryPoint(BaseModel):
     model_config = CommandModel.model_config
 
     t_s: Seconds
-    positions: list[int] | None = None
-    rpms: list[float] | None = None
-    velocities: list[float] | None = None
-    accelerations: list[float] | None = None
+    positions: list[WholeMagnitude] | None = None
+    rpms: list[Magnitude] | None = None
+    velocities: list[Magnitude] | None = None
+    accelerations: list[Magnitude] | None = None
 
     @model_validator(mode="after")
     def _positions_or_rpms(self) -> TrajectoryPoint:

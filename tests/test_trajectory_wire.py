@@ -35,15 +35,15 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs import zlac706_common as zcommon
 from busgate.codecs.can_frame import CanFrame
-from busgate.gateway.api.bridge import _replying
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.trajectories import Trajectories
+from busgate.gateway.api.trajectory_lanes import answer
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.drivers.ds_servo import DsServoDriver
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.scheduler.plays import RAMP_S
-from busgate.gateway.scheduler.trajectory_ticks import ON_TIME_S
+from busgate.gateway.scheduler.trajectory_ticks import GRID_STRETCH, ON_TIME_S
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -61,6 +61,7 @@ BASE = "busgate/gw"
 #: measure where the devices are (tests.simulated_buses).
 MARGIN_MS = 10
 PERIOD = 0.02  # every device's follow period (the default)
+GRID = PERIOD * GRID_STRETCH  # the slots' spacing (rule 1 of trajectory_ticks.py)
 #: Ticks a bus may still send once a play has ended: the one its thread was sending then.
 IN_FLIGHT = 1
 ROUND_S = 0.005  # the bridge's publish round (PUBLISH_EVERY_S)
@@ -106,7 +107,7 @@ class Played:
 
     def expected(self, ids: dict[str, int]) -> Callable[[int], dict[int, int]]:
         """Slot k's targets of the devices ``ids`` names, by id."""
-        return lambda k: {i: sent(self.paths[name].at(k * PERIOD)) for name, i in ids.items()
+        return lambda k: {i: sent(self.paths[name].at(k * GRID)) for name, i in ids.items()
                           if name in self.paths}
 
 
@@ -125,7 +126,7 @@ class Player:
 
     def ask(self, command: dict) -> dict:
         """The reply the trajectory key gives (the bridge's own path, refusals mapped)."""
-        return _replying(self.trajectories, json.dumps(command).encode())
+        return answer(self.trajectories.command, json.dumps(command).encode())
 
     def play(self, devices: list[str], points: list[dict], *, lead_s: float = 0.12,
              **fields) -> Played:
@@ -235,7 +236,7 @@ def slots_of(found: list[Tick], start_bus: float,
     of no slot it could be."""
     slots, previous = [], -1
     for tick in found:
-        latest = math.floor((tick.start - start_bus) / PERIOD + 0.05)
+        latest = math.floor((tick.start - start_bus) / GRID + 0.05)
         for k in range(latest, previous, -1):
             if expected(k) == tick.values:
                 break
@@ -253,7 +254,7 @@ def assert_never_early(found: list[Tick], slots: list[int], start_bus: float, na
     the frame's own transmission). How late a tick may be is a matter of this host's load:
     ``bench_trajectory`` measures it against the 1 ms the contract names."""
     for tick, k in zip(found, slots, strict=True):
-        assert tick.start >= start_bus + k * PERIOD - 1e-4, f"{name}: slot {k} early"
+        assert tick.start >= start_bus + k * GRID - 1e-4, f"{name}: slot {k} early"
 
 
 def settled(world: SimulatedGateway, device: str) -> None:
@@ -303,7 +304,7 @@ def test_every_tick_carries_the_interpolant_at_its_slot_on_both_buses_together(
         slots = slots_of(found, played.start_bus, played.expected(ids))
         assert slots[0] == 0, name
         assert_never_early(found, slots, played.start_bus, name)
-        last = played.expected(ids)(math.ceil(0.45 / PERIOD))
+        last = played.expected(ids)(math.ceil(0.45 / GRID))
         assert found[-1].values == last, f"{name}: the last point's values were never sent"
         timed[name] = set(slots)
     assert 0 in timed["uart0"] & timed["uart1"]
@@ -486,17 +487,17 @@ def test_a_speed_trajectory_sends_each_slots_rpm_and_a_cancel_ramps_it_to_zero(w
         path, full = played.paths["wheel"], zcommon.speed_raw_truncated(300.0)
         last_full = max(i for i, t in enumerate(found) if t.values == {5: full})
         slots = slots_of(found[: last_full + 1], played.start_bus,
-                         lambda k: {5: zcommon.speed_raw_truncated(path.at(k * PERIOD))})
+                         lambda k: {5: zcommon.speed_raw_truncated(path.at(k * GRID))})
         ramp_from = slots[-1]
 
         def ramp(k: int) -> dict[int, int]:
-            left = max(0.0, 1 - (k - ramp_from) * PERIOD / RAMP_S)
+            left = max(0.0, 1 - (k - ramp_from) * GRID / RAMP_S)
             return {5: zcommon.speed_raw_truncated(300.0 * left)}
 
         *ramped, stop = found[last_full + 1:]
         ramp_slots = slots_of(ramped, played.start_bus, ramp)
         assert ramped[0].values[5] < full and ramped[-1].values == stop.values == {5: 0}
-        assert ramp_slots[-1] >= ramp_from + round(RAMP_S / PERIOD)  # 0 reached at RAMP_S
+        assert ramp_slots[-1] >= ramp_from + math.ceil(RAMP_S / GRID)  # 0 reached at RAMP_S
     finally:
         command(world, "wheel", {"op": "velocity", "rpm": 0})
         command(world, "wheel", {"op": "disable"})
@@ -721,6 +722,21 @@ REFUSALS = {
     "too many points": ({"points": [{"t_s": 0.001 * i, "positions": [1, 1]}
                                     for i in range(1, 10_002)]}, None, "out_of_range"),
     "start_at past": ({"start_at": "past"}, None, "out_of_range"),
+    # Numbers the JSON takes, each answered with a refusal code (they were ``internal``).
+    "a velocity of 1e308": ({"points": [
+        {"t_s": 0.2, "positions": [1000, 1000], "velocities": [1e308, 0]}]},
+        None, "out_of_range"),
+    "an acceleration of 1e308 in a quintic": ({"interpolation": "quintic", "points": [
+        {"t_s": 0.2, "positions": [1000, 1000], "accelerations": [1e308, 0]}]},
+        None, "out_of_range"),
+    "a position of 10**400": ({"points": [{"t_s": 0.2, "positions": [10**400, 1000]}]},
+                              None, "out_of_range"),
+    "a velocity the schema takes whose path overshoots": ({"points": [
+        {"t_s": 0.2, "positions": [1000, 1000], "velocities": [-1e9, 0]}]},
+        None, "out_of_range"),
+    "an overshoot between the ticks of an hour-long segment": ({"points": [
+        {"t_s": 3600.0, "positions": [1990, 1000], "velocities": [100, 0]}]},
+        None, "out_of_range"),
 }
 
 
@@ -750,6 +766,31 @@ def test_a_refused_play_has_its_code_and_nothing_reaches_the_wire(world, player,
         next(steps, None)
 
 
+def test_a_running_trajectorys_id_is_refused_to_another_client_and_replaces_for_its_own(
+        world, player):
+    """Client B plays an unrelated device under A's running id: refused, naming the id, and
+    A's trajectory goes on; A reusing its own id replaces it, as ever."""
+    alices = player.play(["la1"], [{"t_s": 1.0, "positions": [700]}], client="alice")
+    bobs = {"op": "play", "id": alices.id, "client": "bob", "devices": ["arm1"],
+            "points": [{"t_s": 0.2, "positions": [1000]}], "start_at": time.time() + 0.05}
+    reply = player.ask(bobs)
+    assert reply["error"]["code"] == "bad_command" and repr(alices.id) in reply["error"]["message"]
+    assert player.result(alices.id) is None
+    assert [t["id"] for t in player.ask({"op": "status"})["trajectories"]] == [alices.id]
+    again = alices.command | {"devices": ["arm1"], "points": bobs["points"],
+                              "start_at": time.time() + 0.05}
+    assert player.ask(again)["ok"]
+    assert player.result(alices.id)["result"] == "replaced"
+
+
+def test_an_hour_long_play_is_checked_by_its_segments_and_plays(world, player):
+    """One point an hour away: accepted (on the rule before, every one of its 180,000 ticks
+    was sampled and checked first), and cancelled."""
+    played = player.play(["la1"], [{"t_s": 3600.0, "positions": [1500]}], goal_time_s=3600.0)
+    assert played.reply["trajectory"]["end_at"] == pytest.approx(played.start_at + 3600.0)
+    assert player.ask({"op": "cancel", "id": played.id})["ok"]
+
+
 def test_a_play_needing_more_of_a_bus_than_it_has_is_refused_naming_the_bus():
     """Three actuators at 19200 baud ticking every 10 ms: each 0xF3 frame takes 8 ms of the
     line, its gap 1 ms more, and the bus polls them besides."""
@@ -765,7 +806,7 @@ def test_a_play_needing_more_of_a_bus_than_it_has_is_refused_naming_the_bus():
             trajectories = Trajectories(api, BASE, lambda key, body: None, lambda event: None)
             mark = len(sim.recorder.received())
             start_at = time.time() + 0.05
-            reply = _replying(trajectories, json.dumps({
+            reply = answer(trajectories.command, json.dumps({
                 "op": "play", "id": "t", "devices": ["la1", "la2", "la3"], "start_at": start_at,
                 "points": [{"t_s": 0.2, "positions": [5, 5, 5]}]}).encode())
             assert reply["error"]["code"] == "out_of_range"

@@ -21,7 +21,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
 
@@ -30,8 +30,9 @@ import zenoh
 from busgate.client.zenoh_config import session_config
 from busgate.codecs.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object
-from busgate.gateway.api.errors import REFUSALS, error_reply
+from busgate.gateway.api.errors import error_reply
 from busgate.gateway.api.trajectories import Trajectories
+from busgate.gateway.api.trajectory_lanes import TrajectoryLanes
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.base import client_named
@@ -79,8 +80,8 @@ class ZenohBridge:
             api, self.base, self._put_any, lambda event: self.events.append(event)
         )
         #: Trajectory commands run here, off zenoh's threads and the loop (a 1 MiB play is
-        #: parsed and sampled whole): one at a time, in the order they came.
-        self._trajectory_worker = ThreadPoolExecutor(1, thread_name_prefix="trajectory")
+        #: parsed and checked whole): plays in their lane, cancels and status in another.
+        self._trajectory_lanes = TrajectoryLanes(self.trajectories.command)
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -131,7 +132,7 @@ class ZenohBridge:
 
     def close(self) -> None:
         """Undeclare everything and close the session (last, at shutdown)."""
-        self._trajectory_worker.shutdown(wait=False, cancel_futures=True)
+        self._trajectory_lanes.close()
         session, self._session = self._session, None
         self._device_tokens.clear()
         self._publishers.clear()
@@ -187,13 +188,8 @@ class ZenohBridge:
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
         payload = _payload(query)
-        worker, trajectories = self._trajectory_worker, self.trajectories
-        self._answer(
-            query,
-            lambda: worker.submit(_replying, trajectories, payload),
-            f"{self.base}/trajectory",
-            payload,
-        )
+        lanes = self._trajectory_lanes
+        self._answer(query, lambda: lanes.submit(payload), f"{self.base}/trajectory", payload)
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
@@ -355,17 +351,6 @@ def _sender(payload: bytes) -> str | None:
         return client_named(decode_object(payload).get("client"))
     except RefusedError:
         return None
-
-
-def _replying(trajectories: Trajectories, payload: bytes) -> dict[str, Any]:
-    """The trajectory key's reply to ``payload``, whatever happens (as ``answered`` does)."""
-    try:
-        return trajectories.command(payload)
-    except REFUSALS as exc:
-        return error_reply(exc)
-    except Exception as exc:
-        log.exception("trajectory command failed")
-        return error_reply(exc)
 
 
 def _payload(query: zenoh.Query) -> bytes:

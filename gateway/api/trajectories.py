@@ -8,14 +8,16 @@ Rules of this file:
    (``unknown_device``) or has no stream of the trajectory's values (``bad_command``); one is
    claimed by another client (``claimed``) or, with ``require_claim``, not by its client
    (``not_claimed``), e-stopped (``estopped``), offline
-   (``device_timeout``) or on a bus that is down (``bus_unavailable``); a value sent at any
-   tick would be outside its device's range (``out_of_range``: every tick of the grid is
-   sampled, so overshoot between points is caught); ``start_at`` is past, too close to now
-   for the buses, or over an hour ahead (``out_of_range``); the ticks would need more of a
-   bus's time than it has (``out_of_range``, naming the bus).
+   (``device_timeout``) or on a bus that is down (``bus_unavailable``); a value of its path
+   would be outside its device's range (``out_of_range``: the whole path is bounded segment
+   by segment, ``trajectory.bounds``, so overshoot between points is caught at a cost that
+   grows with the points, not with the ticks); ``start_at`` is past, too close to now for
+   the buses, or over an hour ahead (``out_of_range``); the ticks would need more of a bus's
+   time than it has (``out_of_range``, naming the bus); its ``id`` is that of a trajectory
+   another client is playing (``bad_command``, naming the id).
 2. Accepted, each device's bus samples it on the shared grid (``scheduler.trajectory_ticks``)
    from the one start time; a device of another running trajectory is taken from it, whose
-   result is ``replaced``.
+   result is ``replaced``, as is a trajectory of the same client under the same id.
 3. Watched on the loop's thread (``tick``), a running trajectory ends ``succeeded`` once every
    device has been sent its last point's value (the first tick at or after it) and is within
    its goal tolerance (at once without one), else is ``aborted`` (each device holding, a speed
@@ -30,25 +32,26 @@ Rules of this file:
    ``<prefix>/<gw>/trajectory/<id>/feedback``, on a grid of that period from the first (a
    round of the loop that comes late does not push the later ones back); the result once,
    there and as an event.
-5. ``command`` may run long (a 1 MiB payload is parsed and every tick sampled): it runs on a
-   worker thread, never on zenoh's or the loop's; the running table is shared under a lock.
+5. ``command`` may run long (a 1 MiB payload is parsed and checked): it runs on a lane's
+   thread (``trajectory_lanes``), never on zenoh's or the loop's; the running table is shared
+   under a lock.
 """
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from busgate.codecs.errors import BusgateError, RefusedError
+from busgate.codecs.errors import BusgateError, CommandError, RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object, ok_reply
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver
 from busgate.gateway.scheduler.plays import ESTOPPED
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.trajectory.bounds import value_refused
 from busgate.gateway.trajectory.interpolation import Path, paths_of, sent
 from busgate.schemas.trajectory import (
     MAX_TRAJECTORY_PAYLOAD,
@@ -90,8 +93,19 @@ class Member:
     claimed: bool  # its client held the device's claim when it started
 
     def sample(self, t_s: float) -> dict[str, Any]:
-        value = self.path.at(t_s)
+        return self.payload(self.path.at(t_s))
+
+    def payload(self, value: float) -> dict[str, Any]:
+        """The follow payload that sends ``value``."""
         return {self.key: sent(value) if self.key == "position" else value}
+
+    def takes(self, value: float) -> bool:
+        """Whether the device takes ``value`` as its target."""
+        try:
+            self.driver.follow_target(self.payload(value))
+        except (CommandError, RefusedError):
+            return False
+        return True
 
     def measured(self) -> tuple[float, float] | None:
         """(wall time read, value) of the device's last published state."""
@@ -175,6 +189,7 @@ class Trajectories:
             request.goal_time_s,
         )
         with self._lock:
+            self._check_id(request)
             taken = {m.name for m in members}
             for other in list(self._running.values()):
                 if other.id == request.id or taken & {m.name for m in other.members}:
@@ -242,9 +257,19 @@ class Trajectories:
                 _nth(request.goal_tolerance, index),
                 request.client is not None and _holds(runner, name, request.client),
             )
-            _check_range(member, driver.follow_period_s, request.goal_time_s)
+            _check_path(member)
             members.append(member)
         return members
+
+    def _check_id(self, request: TrajectoryPlay) -> None:
+        """A running trajectory's id is its client's (rule 1): under the lock."""
+        other = self._running.get(request.id)
+        if other is not None and other.client != request.client:
+            raise RefusedError(
+                "bad_command",
+                f"trajectory id {request.id!r} is taken by a trajectory another client plays: "
+                "choose another id",
+            )
 
     def _device(self, name: str) -> tuple[BusRunner, Driver]:
         found = self.api.devices.get(name)
@@ -456,10 +481,9 @@ def _holds(runner: BusRunner, device: str, client: str | None) -> bool:
     return True
 
 
-def _check_range(member: Member, period_s: float, goal_time_s: float) -> None:
-    """Every value a tick would send is in the device's range (rule 1): the extremes of the
-    samples on the whole grid go through the device's follow check."""
-    ticks = math.ceil((member.path.end_s + goal_time_s) / period_s) + 1
-    samples = [member.sample(k * period_s)[member.key] for k in range(ticks)]
-    for value in (min(samples), max(samples)):
-        member.driver.follow_target({member.key: value})
+def _check_path(member: Member) -> None:
+    """Every value of the path is in the device's range (rule 1), else the device's own
+    refusal of a value the path reaches."""
+    refused = value_refused(member.path, member.takes)
+    if refused is not None:
+        member.driver.follow_target(member.payload(refused))  # raises, saying why

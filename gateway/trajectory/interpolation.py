@@ -40,32 +40,30 @@ class Knot:
     acceleration: float = 0.0
 
 
-def _segment(a: Knot, b: Knot, t_s: float, interpolation: str) -> float:
-    """The value at ``t_s`` (``a.t_s`` ≤ ``t_s`` ≤ ``b.t_s``) of the segment from ``a`` to ``b``."""
+def coefficients(a: Knot, b: Knot, interpolation: str) -> tuple[float, ...]:
+    """The segment from ``a`` to ``b`` as a polynomial in ``s`` (0 at ``a``, 1 at ``b``): its
+    coefficients from the constant up. Integer factors only, so exact numbers (the tests'
+    ``Fraction``s) give exact coefficients; the bounds (``trajectory.bounds``) read the same
+    polynomial the ticks evaluate."""
     span = b.t_s - a.t_s
-    s = (t_s - a.t_s) / span
-    if interpolation == "linear":
-        return a.value + (b.value - a.value) * s
-    if interpolation == "cubic":
-        h00 = 2 * s**3 - 3 * s**2 + 1
-        h10 = s**3 - 2 * s**2 + s
-        h01 = -2 * s**3 + 3 * s**2
-        h11 = s**3 - s**2
-        return h00 * a.value + h10 * span * a.velocity + h01 * b.value + h11 * span * b.velocity
-    return _quintic(a, b, s, span)
-
-
-def _quintic(a: Knot, b: Knot, s: float, span: float) -> float:
-    """The quintic with ``a``'s and ``b``'s value, velocity and acceleration at its ends, at
-    ``s`` (0–1) of a segment ``span`` seconds long. Integer coefficients only, as in every
-    segment: exact numbers (the tests' ``Fraction``s) evaluate it exactly."""
-    v0, v1 = a.velocity * span, b.velocity * span
-    a0, a1 = a.acceleration * span**2, b.acceleration * span**2
     d = b.value - a.value
+    if interpolation == "linear":
+        return (a.value, d)
+    v0, v1 = a.velocity * span, b.velocity * span
+    if interpolation == "cubic":  # Hermite
+        return (a.value, v0, 3 * d - 2 * v0 - v1, -2 * d + v0 + v1)
+    a0, a1 = a.acceleration * span**2, b.acceleration * span**2
     c3 = (20 * d - 12 * v0 - 8 * v1 - 3 * a0 + a1) / 2
     c4 = (-30 * d + 16 * v0 + 14 * v1 + 3 * a0 - 2 * a1) / 2
     c5 = (12 * d - 6 * v0 - 6 * v1 - a0 + a1) / 2
-    return a.value + v0 * s + a0 / 2 * s**2 + c3 * s**3 + c4 * s**4 + c5 * s**5
+    return (a.value, v0, a0 / 2, c3, c4, c5)
+
+
+def _horner(coefficients: Sequence[float], s: float) -> float:
+    value = coefficients[-1]
+    for c in reversed(coefficients[:-1]):
+        value = value * s + c
+    return value
 
 
 def sent(value: float) -> int:
@@ -93,6 +91,8 @@ class Path:
         self.knots: tuple[Knot, ...] = (*first, *knots)
         self.interpolation = interpolation
         self._times = [knot.t_s for knot in self.knots]
+        #: Each segment's polynomial in its own ``s`` (``coefficients``), in order.
+        self.segments = [coefficients(a, b, interpolation) for a, b in pairwise(self.knots)]
 
     @property
     def end_s(self) -> float:
@@ -106,7 +106,8 @@ class Path:
         if t_s <= 0:
             return self.knots[0].value
         after = bisect.bisect_right(self._times, t_s)
-        return _segment(self.knots[after - 1], self.knots[after], t_s, self.interpolation)
+        a, b = self.knots[after - 1], self.knots[after]
+        return _horner(self.segments[after - 1], (t_s - a.t_s) / (b.t_s - a.t_s))
 
 
 def paths_of(play: TrajectoryPlay, starts: Sequence[float]) -> list[Path]:

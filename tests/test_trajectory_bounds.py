@@ -1,0 +1,87 @@
+"""A path's values against a device's range, found per segment (gateway/trajectory/bounds.py):
+random paths of every interpolation against a range, compared with the path sampled densely;
+the cost counted in looks at the range, not in time, whatever the path's duration."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from busgate.gateway.trajectory.bounds import bernstein, value_refused
+from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Knot, Path
+
+LOW, HIGH = 0.0, 2000.0
+
+
+def within(value: float) -> bool:
+    return LOW <= value <= HIGH
+
+
+def densely(path: Path, per_segment: int = 400) -> list[float]:
+    """The path sampled at ``per_segment`` points of each segment and at every knot."""
+    samples = []
+    for a, b in zip(path.knots, path.knots[1:], strict=False):
+        samples += [path.at(a.t_s + (b.t_s - a.t_s) * i / per_segment) for i in range(per_segment)]
+    return [*samples, path.knots[-1].value]
+
+
+knots = st.lists(
+    st.tuples(st.floats(0.05, 5.0), st.floats(-500, 2500), st.floats(-3000, 3000),
+              st.floats(-30_000, 30_000)),
+    min_size=1, max_size=6,
+)
+
+
+def path_of(start: float, points, interpolation: str) -> Path:
+    t_s, made = 0.0, []
+    for gap, value, velocity, acceleration in points:
+        t_s += gap
+        made.append(Knot(t_s, value, velocity, acceleration))
+    return Path(start, made, interpolation)
+
+
+@given(st.floats(0, 2000), knots, st.sampled_from(INTERPOLATIONS))
+def test_a_value_out_of_range_is_found_and_a_path_within_it_passes(start, points, interpolation):
+    path = path_of(start, points, interpolation)
+    refused = value_refused(path, within)
+    values = densely(path)
+    if refused is None:  # every value in range: so is every sample (to a rounding error)
+        assert all(LOW - 1e-9 <= v <= HIGH + 1e-9 for v in values)
+    else:  # a value out of range the path reaches, to within the dense sampling's step
+        assert not within(refused)
+        reach = max(values) - min(values)
+        assert min(values) - 1e-3 * reach - 1e-9 <= refused <= max(values) + 1e-3 * reach + 1e-9
+
+
+def test_an_overshoot_between_points_is_found_though_both_points_are_in_range():
+    path = Path(1000.0, [Knot(0.2, 1990.0, 8000.0), Knot(0.4, 1990.0)], "cubic")
+    refused = value_refused(path, within)
+    assert refused is not None and HIGH < refused <= max(densely(path)) + 1e-6
+
+
+@pytest.mark.parametrize("seconds", [1.0, 3600.0])
+def test_the_cost_is_per_segment_whatever_the_duration(seconds):
+    """The same shape over a second and over an hour: the same looks at the range, and no
+    sample of the path (an hour at 10 ms was 360,000 of them)."""
+    path = Path(0.0, [Knot(seconds / 2, 1500.0), Knot(seconds, 300.0)], "quintic")
+    looks: list[float] = []
+
+    def counted(value: float) -> bool:
+        looks.append(value)
+        return within(value)
+
+    sampled = []
+    path.at = lambda t_s: sampled.append(t_s)  # type: ignore[method-assign]
+    assert value_refused(path, counted) is None
+    assert len(looks) == 2 and sampled == []
+
+
+def test_bernstein_bounds_hold_a_polynomials_values():
+    coefficients = [1.0, -4.0, 6.0, -2.0]  # 1 - 4s + 6s² - 2s³
+    form = bernstein(coefficients)
+    assert form[0] == 1.0 and form[-1] == pytest.approx(1.0)
+    for i in range(101):
+        s = i / 100
+        value = sum(c * s**k for k, c in enumerate(coefficients))
+        assert min(form) - 1e-12 <= value <= max(form) + 1e-12
