@@ -10,9 +10,11 @@ Rules of this file:
 2. A request that asks to act is refused, with nothing sent, unless it is a ``POST`` of a
    JSON object of at most ``MAX_BODY`` bytes, with ``Content-Type: application/json`` (a form
    on another site cannot send one without the CORS preflight this app never answers), from
-   no other origin than the page's own, naming a gateway and device as names are spelled.
-3. Every request's ``Host`` is one of the hosts the dashboard listens as (``allowed_hosts``):
-   a page on another site that rebinds its DNS name to 127.0.0.1 gets a 400, not the fleet.
+   no origin but the dashboard's own (``http`` or ``https``, a host of ``hosts``, the port
+   the request was sent to), naming a gateway and device as names are spelled.
+3. Every request's ``Host`` names one of ``hosts`` (the names the dashboard answers to, port
+   aside), never any: a page on another site that rebinds its DNS name to this machine gets a
+   400 and reaches no route, whatever address the dashboard listens on.
 4. Replies to actions are JSON: ``{"ok": true, ...}`` or ``{"ok": false, "error": {"code",
    "message"}}`` with a 4xx status for a refused request and 502 when the gateway refused or
    did not answer.
@@ -20,17 +22,21 @@ Rules of this file:
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import re
+from collections.abc import Set
 from pathlib import Path
 from typing import Any, Protocol
 
 from starlette.applications import Starlette
+from starlette.datastructures import Headers
 from starlette.middleware import Middleware
-from starlette.middleware.trustedhost import TrustedHostMiddleware
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from busgate.client.errors import GatewayError
 from busgate.client.keys import check_name, split_name
@@ -39,6 +45,11 @@ from busgate.dashboard.hub import Hub
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY = 1024
+#: ``HOST[:PORT]`` as a ``Host`` header or an origin carries it: a DNS name (253 characters at
+#: most) or an IPv4 address, or an IPv6 address in brackets.
+HOST_AND_PORT = re.compile(
+    r"(?:\[(?P<ipv6>[0-9A-Fa-f:.]+)\]|(?P<name>[A-Za-z0-9._-]{1,253}))(?::(?P<port>[0-9]{1,5}))?"
+)
 
 
 class Actions(Protocol):
@@ -59,19 +70,46 @@ def refusal(status: int, code: str, message: str) -> JSONResponse:
     return JSONResponse({"ok": False, "error": {"code": code, "message": message}}, status)
 
 
-async def _request_body(request: Request) -> dict[str, Any]:
+def host_and_port(text: str) -> tuple[str, str | None] | None:
+    """The host (lower case; an IPv6 address bare, in its short form) and the port of
+    ``HOST[:PORT]``; ``None`` when ``text`` is not that."""
+    found = HOST_AND_PORT.fullmatch(text)
+    if found is None:
+        return None
+    if found["ipv6"] is None:
+        return found["name"].lower(), found["port"]
+    try:
+        return ipaddress.IPv6Address(found["ipv6"]).compressed, found["port"]
+    except ValueError:
+        return None
+
+
+def _is_own_origin(origin: str, host: str, hosts: Set[str]) -> bool:
+    """Rule 2: ``origin`` is ``http`` or ``https`` (a proxy in front may speak TLS), on a host
+    of ``hosts`` and on the port of the request's ``host``."""
+    scheme, separator, rest = origin.partition("://")
+    where, sent_to = host_and_port(rest), host_and_port(host)
+    if scheme not in ("http", "https") or not separator or where is None or sent_to is None:
+        return False
+    return where[0] in hosts and where[1] == sent_to[1]
+
+
+async def _request_body(request: Request, hosts: Set[str]) -> dict[str, Any]:
     """The request's JSON object, checked as rule 2 says; else ``Refused``."""
     origin = request.headers.get("origin")
-    if origin is not None and origin != f"{request.url.scheme}://{request.url.netloc}":
+    if origin is not None and not _is_own_origin(origin, request.headers.get("host", ""), hosts):
         raise Refused(403, "forbidden", f"requests from {origin[:100]} are not taken")
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if kind != "application/json":
         raise Refused(415, "bad_request", "send application/json")
     raw = b""
-    async for chunk in request.stream():
-        raw += chunk
-        if len(raw) > MAX_BODY:
-            raise Refused(413, "bad_request", f"a request is at most {MAX_BODY} bytes")
+    try:
+        async for chunk in request.stream():
+            raw += chunk
+            if len(raw) > MAX_BODY:
+                raise Refused(413, "bad_request", f"a request is at most {MAX_BODY} bytes")
+    except ClientDisconnect:  # gone, or closed by the server for sending too slowly
+        raise Refused(400, "bad_request", "the body did not come whole") from None
     try:
         body = json.loads(raw)
     except (ValueError, RecursionError):
@@ -88,8 +126,24 @@ def _checked(check: Any, *args: Any) -> Any:
         raise Refused(400, "bad_request", str(exc)) from None
 
 
-def create_app(hub: Hub, actions: Actions, *, allowed_hosts: list[str]) -> Starlette:
-    """The dashboard's ASGI app."""
+class _KnownHostsOnly:
+    """Rule 3, in front of every route."""
+
+    def __init__(self, app: ASGIApp, hosts: Set[str]) -> None:
+        self._app, self._hosts = app, hosts
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        host = Headers(scope=scope).get("host", "")
+        found = host_and_port(host)
+        if scope["type"] == "http" and (found is None or found[0] not in self._hosts):
+            message = f"{host[:100]!r} is not a name this dashboard answers to"
+            await refusal(400, "unknown_host", message)(scope, receive, send)
+            return
+        await self._app(scope, receive, send)
+
+
+def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
+    """The dashboard's ASGI app, answering as ``hosts`` (``host_and_port``'s form) alone."""
 
     async def page(request: Request) -> Response:
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
@@ -103,7 +157,7 @@ def create_app(hub: Hub, actions: Actions, *, allowed_hosts: list[str]) -> Starl
 
     async def estop(request: Request) -> Response:
         try:
-            body = await _request_body(request)
+            body = await _request_body(request, hosts)
             gateway = body.get("gateway")
             if gateway is not None:
                 _checked(check_name, "gateway", gateway)
@@ -117,7 +171,7 @@ def create_app(hub: Hub, actions: Actions, *, allowed_hosts: list[str]) -> Starl
 
     async def enable(request: Request) -> Response:
         try:
-            body = await _request_body(request)
+            body = await _request_body(request, hosts)
             device = body.get("device")
             if not isinstance(device, str):
                 raise Refused(400, "bad_request", 'name the device: {"device": "gw/la1"}')
@@ -142,5 +196,5 @@ def create_app(hub: Hub, actions: Actions, *, allowed_hosts: list[str]) -> Starl
             Route("/api/enable", enable, methods=["POST"]),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
-        middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)],
+        middleware=[Middleware(_KnownHostsOnly, hosts=hosts)],
     )

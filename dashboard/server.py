@@ -5,6 +5,19 @@ served by uvicorn on the caller's loop until ``stop`` is set.
 uvicorn is started as a part of a larger program (``busgate demo`` runs the gateway on the
 same loop): it installs no signal handlers of its own, configures no logging, and is told to
 stop by the caller's ``stop`` event.
+
+Rules of this file:
+
+1. The dashboard answers to the names a browser reaches its address by, and to those given
+   with ``--allow-host``, never to any name: ``0.0.0.0`` and ``::`` mean the loopback names and
+   this machine's name, not ``*`` (``app`` rule 3). Nothing is resolved: a lookup of the
+   machine's name can leave the machine (DNS), and an address the operator wants a browser
+   to use is named with ``--allow-host``.
+2. Nothing on the network holds the server for ever: a request comes whole within
+   ``REQUEST_TIMEOUT_S`` of the connection's opening or of the previous reply, or its
+   connection is closed; an idle connection is closed after as long; a request that finds
+   ``MAX_CONNECTIONS`` open, its own included, gets a 503; no more than ``MAX_HEAD_BYTES`` of
+   an unfinished head is kept.
 """
 
 from __future__ import annotations
@@ -14,16 +27,18 @@ import contextlib
 import ipaddress
 import re
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+import h11
 import uvicorn
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from busgate.client import aio
 from busgate.client.errors import error_for
 from busgate.codecs.errors import CommandError
-from busgate.dashboard.app import create_app
+from busgate.dashboard.app import create_app, host_and_port
 from busgate.dashboard.feed import Feed
 from busgate.dashboard.fleet import Fleet
 from busgate.dashboard.hub import Hub
@@ -34,18 +49,30 @@ PORT = re.compile(r"[0-9]{1,5}")
 STARTED_POLL_S = 0.02
 ENABLE_TRIES = 3
 GRACE_S = 2  # how long a stop waits for requests under way
+#: How long a connection has to send a request whole (from its opening, or from the end of
+#: the previous reply), and how long it may then stay idle (rule 2).
+REQUEST_TIMEOUT_S = 5
+#: Open connections (an event stream holds one per browser) at which a request gets a 503.
+MAX_CONNECTIONS = 100
+#: The most of a request line and headers kept while they have not ended (h11's
+#: ``max_incomplete_event_size``, its default said here); past it, a 400.
+MAX_HEAD_BYTES = 16 * 1024
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
 @dataclass(frozen=True)
 class Listen:
-    """Where the dashboard listens: an IP address and a TCP port (0: any free one)."""
+    """Where the dashboard listens: an IP address and a TCP port (0: any free one), and the
+    names it answers to besides its own (``--allow-host``, as ``allowed_name`` spells them)."""
 
     host: str
     port: int
+    also_named: tuple[str, ...] = ()
 
     @classmethod
-    def parse(cls, text: str) -> Listen:
-        """``HOST:PORT`` (``[::1]:8080`` for IPv6); ``CommandError`` for anything else."""
+    def parse(cls, text: str, also_named: Iterable[str] = ()) -> Listen:
+        """``HOST:PORT`` (``[::1]:8080`` for IPv6), answering to ``also_named`` too;
+        ``CommandError`` for anything else."""
         written, colon, port = text.rpartition(":")
         bracketed = written.startswith("[") and written.endswith("]")
         host = written[1:-1] if bracketed else written
@@ -61,17 +88,18 @@ class Listen:
                 f"listen on HOST:PORT with HOST an IP address, e.g. {DEFAULT_LISTEN}, "
                 f"not {text[:100]!r}"
             )
-        return cls(host, number)
+        return cls(host, number, tuple(allowed_name(name) for name in also_named))
 
-    @property
-    def allowed_hosts(self) -> list[str]:
-        """The ``Host`` headers a browser sends to this address (``app`` rule 3): any, when it
-        listens on every interface (the README says what that means)."""
+    def names(self) -> set[str]:
+        """The hosts a browser may name in its ``Host`` header (rule 1), in ``app``'s form: the
+        address (and ``localhost`` for a loopback one, ``LOOPBACK_NAMES`` and this machine's
+        name for every interface), and ``also_named``."""
         address = ipaddress.ip_address(self.host)
         if address.is_unspecified:
-            return ["*"]
-        names = [f"[{self.host}]" if address.version == 6 else self.host]
-        return [*names, "localhost"] if address.is_loopback else names
+            own = [*LOOPBACK_NAMES, socket.gethostname().lower()]
+        else:
+            own = [address.compressed, *(["localhost"] if address.is_loopback else [])]
+        return {*own, *self.also_named}
 
     def bind(self) -> socket.socket:
         """A TCP socket bound here; ``CommandError`` when the address cannot be had."""
@@ -91,6 +119,20 @@ class Listen:
         address = ipaddress.ip_address(self.host)
         shown = "127.0.0.1" if address.is_unspecified else self.host
         return f"http://{f'[{shown}]' if ':' in shown else shown}:{port}/"
+
+
+def allowed_name(text: str) -> str:
+    """A name to answer to (``--allow-host``): a DNS name or an IP address, without a port,
+    in ``app``'s form; ``CommandError`` for anything else."""
+    with contextlib.suppress(ValueError):
+        return ipaddress.ip_address(text).compressed
+    found = host_and_port(text)
+    if found is None or found[1] is not None:
+        raise CommandError(
+            f"a name to answer to is a DNS name or an IP address, without a port, "
+            f"not {text[:100]!r}"
+        )
+    return found[0]
 
 
 class ClientActions:
@@ -122,6 +164,39 @@ class _EmbeddedServer(uvicorn.Server):
         yield  # the caller's program owns SIGTERM and SIGINT
 
 
+class _DeadlineProtocol(H11Protocol):
+    """uvicorn's HTTP/1.1 with rule 2's deadline: uvicorn's keep-alive timer starts only once
+    a reply is sent and stops at the first byte after it, so a client that sends half a
+    request line, or a head and part of a body, would be kept for ever. Here a timer of
+    ``timeout_keep_alive`` starts with the connection and again with each reply, and when it
+    fires while the request is not in whole, the connection is closed."""
+
+    _deadline: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._start_deadline()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._start_deadline()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+        super().connection_lost(exc)
+
+    def _start_deadline(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+        if not self.transport.is_closing():
+            self._deadline = self.loop.call_later(self.timeout_keep_alive, self._on_deadline)
+
+    def _on_deadline(self) -> None:
+        if self.conn.their_state in (h11.IDLE, h11.SEND_BODY):  # no request, or half of one
+            self.transport.close()
+
+
 async def serve_dashboard(
     client: aio.Client,
     listen: Listen,
@@ -132,19 +207,24 @@ async def serve_dashboard(
 ) -> None:
     """Serve the dashboard on ``listen`` until ``stop`` is set; ``on_ready(url)`` once it
     listens. ``CommandError`` when the address cannot be listened on."""
+    hosts = listen.names()
     fleet = Fleet()
     feed = Feed(client, fleet, prefix)
     hub = Hub(fleet)
-    app = create_app(hub, ClientActions(client), allowed_hosts=listen.allowed_hosts)
+    app = create_app(hub, ClientActions(client), hosts=hosts)
     config = uvicorn.Config(
         app,
         host=listen.host,
         port=listen.port,
+        http=_DeadlineProtocol,
         log_config=None,
         log_level="warning",
         access_log=False,
         lifespan="off",
         timeout_graceful_shutdown=GRACE_S,
+        timeout_keep_alive=REQUEST_TIMEOUT_S,
+        limit_concurrency=MAX_CONNECTIONS,
+        h11_max_incomplete_event_size=MAX_HEAD_BYTES,
     )
     server = _EmbeddedServer(config)
     bound = listen.bind()  # here, so that a port in use is an error, not uvicorn's exit

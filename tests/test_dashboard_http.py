@@ -1,6 +1,7 @@
 """The dashboard over real HTTP, served by ``busgate demo`` (a child process) beside its
 gateway: the page and its files, the event stream, and every refusal of what a browser, a
-page on another site, or a tired operator might send, each checked to have moved nothing."""
+page on another site, or a tired operator might send, each checked to have moved nothing; and
+``busgate dashboard --allow-host`` answering to the name it was given."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import pytest
 
 import busgate.client as bc
 from busgate.dashboard.app import MAX_BODY
+from tests.gateway_process import ServingProcess
 from tests.sdk_helpers import patiently
 
 VENDOR = Path(__file__).resolve().parent.parent / "dashboard" / "static" / "vendor"
@@ -109,6 +111,19 @@ def test_a_page_on_another_site_that_rebinds_its_name_gets_nothing(dashboard) ->
     status, _, _ = request(dashboard, "POST", "/api/estop", b"{}",
                            {"Host": "evil.example:80", "Content-Type": "application/json"})
     assert status == 400
+
+
+def test_busgate_dashboard_answers_to_a_name_given_with_allow_host(module_demo) -> None:
+    served = ServingProcess("dashboard", "--connect", module_demo.endpoint, "--listen",
+                            "127.0.0.1:0", "--allow-host", "Robot.Example",
+                            ready="busgate dashboard")
+    try:
+        where = urlsplit(served.printed.split()[-1])
+        for host, status in [(f"robot.example:{where.port}", 200), (where.netloc, 200),
+                             (f"other.example:{where.port}", 400)]:
+            assert request(where, "GET", "/", headers={"Host": host})[0] == status, host
+    finally:
+        assert served.terminate() == 0
 
 
 @pytest.mark.parametrize(("body", "headers", "status"), [

@@ -1,6 +1,7 @@
-"""The dashboard's pieces below HTTP: where it may listen (``Listen``), and the hub's push to
-browsers on a real asyncio loop (a snapshot and every change after it, once each; a browser
-that falls behind let go, not waited for); and ``busgate dashboard``'s refusals, each one
+"""The dashboard's pieces below HTTP: where it may listen and the names it answers to
+(``Listen``), and the hub's push to browsers on a real asyncio loop (a snapshot and every
+change after it, once each; a browser that falls behind let go, not waited for); and
+``busgate dashboard``'s refusals (and ``busgate demo``'s of a name for its dashboard), each one
 line with exit status 2 before anything listens."""
 
 from __future__ import annotations
@@ -37,13 +38,26 @@ def test_anything_else_is_refused(text) -> None:
         Listen.parse(text)
 
 
-def test_the_hosts_a_browser_may_name_follow_the_address() -> None:
-    assert Listen("127.0.0.1", 1).allowed_hosts == ["127.0.0.1", "localhost"]
-    assert Listen("::1", 1).allowed_hosts == ["[::1]", "localhost"]
-    assert Listen("192.0.2.7", 1).allowed_hosts == ["192.0.2.7"]
-    assert Listen("0.0.0.0", 1).allowed_hosts == ["*"]
+def test_the_hosts_a_browser_may_name_follow_the_address_and_allow_host() -> None:
+    assert Listen("127.0.0.1", 1).names() == {"127.0.0.1", "localhost"}
+    assert Listen("0:0::1", 1).names() == {"::1", "localhost"}
+    assert Listen("192.0.2.7", 1).names() == {"192.0.2.7"}
+    machine = {"localhost", "127.0.0.1", "::1", socket.gethostname().lower()}
+    for everywhere in ("0.0.0.0", "::"):
+        assert Listen(everywhere, 1).names() == machine  # nothing resolved, never "*"
+    also = Listen.parse("192.0.2.7:80", ["Robot.Example", "[0:0::1]", "fe80::1", "10.0.0.9"])
+    assert also.names() == {"192.0.2.7", "robot.example", "::1", "fe80::1", "10.0.0.9"}
     assert Listen("0.0.0.0", 1).url(8080) == "http://127.0.0.1:8080/"
     assert Listen("::1", 1).url(8080) == "http://[::1]:8080/"
+
+
+@pytest.mark.parametrize("name", [
+    "", "*", "*.example", "robot.example:8080", "[::1]:80", "http://robot.example", "a b",
+    "user@robot.example", "robot.example/", "[zz::1]", "x" * 10_000,
+])
+def test_a_name_to_answer_to_is_a_name_or_an_address_alone(name) -> None:
+    with pytest.raises(CommandError, match="a DNS name or an IP address, without a port"):
+        Listen.parse("127.0.0.1:0", [name])
 
 
 def test_a_port_in_use_is_refused_naming_it() -> None:
@@ -123,13 +137,15 @@ def test_a_browser_that_falls_behind_is_let_go_and_the_others_are_not() -> None:
     assert positions == list(range(BACKLOG + 1))
 
 
-@pytest.mark.parametrize(("args", "message"), [
-    (["--listen", "localhost:8080"], "error: listen on HOST:PORT"),
-    (["--listen", "127.0.0.1:99999"], "error: listen on HOST:PORT"),
-    (["--connect", "nonsense"], "error: cannot open a zenoh session to nonsense"),
+@pytest.mark.parametrize(("command", "args", "message"), [
+    ("dashboard", ["--listen", "localhost:8080"], "error: listen on HOST:PORT"),
+    ("dashboard", ["--listen", "127.0.0.1:99999"], "error: listen on HOST:PORT"),
+    ("dashboard", ["--connect", "nonsense"], "error: cannot open a zenoh session to nonsense"),
+    ("dashboard", ["--allow-host", "robot.example:8080"], "error: a name to answer to is a"),
+    ("demo", ["--dashboard-allow-host", "*"], "error: a name to answer to is a"),
 ])
-def test_busgate_dashboard_refuses_in_one_line(args, message) -> None:
-    done = run_busgate("dashboard", *args)
+def test_busgate_dashboard_and_demo_refuse_in_one_line(command, args, message) -> None:
+    done = run_busgate(command, *args)
     assert done.returncode == 2 and message in done.stderr, done
     assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
 

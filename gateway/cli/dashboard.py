@@ -35,13 +35,21 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         metavar="HOST:PORT",
         help=f"where the page is served (default {DEFAULT_LISTEN}; port 0: any free one)",
     )
+    dashboard.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a host name (or address) a browser may reach the page by, besides the listen "
+        "address's own: the robot's DNS name, a proxy's (repeatable)",
+    )
     dashboard.set_defaults(handler=run_dashboard)
 
 
 def run_dashboard(args: argparse.Namespace) -> int:
     from busgate.dashboard.server import Listen
 
-    listen = Listen.parse(args.listen)  # refused before any session opens
+    listen = Listen.parse(args.listen, args.allow_host)  # refused before any session opens
     asyncio.run(_serve(args, listen))
     return 0
 

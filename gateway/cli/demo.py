@@ -100,6 +100,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         metavar="HOST:PORT",
         help=f"serve the dashboard here (default {DEFAULT_LISTEN}; port 0: any free one)",
     )
+    demo.add_argument(
+        "--dashboard-allow-host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a host name the dashboard answers to besides its address's own (repeatable)",
+    )
     demo.add_argument("--no-dashboard", action="store_true", help="serve no dashboard")
     demo.add_argument(
         "--record",
@@ -124,7 +131,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
-    dashboard = None if args.no_dashboard else Listen.parse(args.dashboard_listen)
+    dashboard = (
+        None
+        if args.no_dashboard
+        else Listen.parse(args.dashboard_listen, args.dashboard_allow_host)
+    )
     logging.basicConfig(level="INFO", format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as simulators:
         records = None if args.record is None else _record_dir(args.record)

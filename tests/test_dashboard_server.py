@@ -1,0 +1,195 @@
+"""The dashboard's own server (``serve_dashboard``) in this process, over real sockets on
+127.0.0.1, on a client that reaches no zenoh and records what it is asked to do: the names
+it answers to whatever it listens on (a page that rebinds its DNS name to the machine gets
+nothing), the origins it takes an action from, and what it holds of a client that sends half
+a request or opens too many connections."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import queue
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from types import SimpleNamespace
+from urllib.parse import SplitResult, urlsplit
+
+import pytest
+
+from busgate.dashboard import server
+from busgate.dashboard.server import Listen, serve_dashboard
+from tests.test_dashboard_http import request
+
+ATTACKER = "rebind.attacker.example:8080"
+#: The request deadline while these tests run (the dashboard's own is ``REQUEST_TIMEOUT_S``).
+SHORT_S = 0.5
+
+
+class RecordingClient:
+    """What ``serve_dashboard`` asks of a ``busgate.client.aio`` client, without zenoh: it
+    hears of no gateway and records each e-stop and enable (``asked``)."""
+
+    def __init__(self) -> None:
+        self.asked: list[tuple[str, str | None]] = []
+
+    def subscribe(self, key: str, callback: object) -> object:
+        return lambda: None
+
+    def on_gateways(self, callback: object) -> object:
+        return lambda: None
+
+    async def estop(self, gateway: str | None) -> None:
+        self.asked.append(("estop", gateway))
+
+    async def device(self, name: str) -> SimpleNamespace:
+        async def enable() -> dict:
+            self.asked.append(("enable", name))
+            return {"ok": True}
+
+        return SimpleNamespace(enable=enable)
+
+
+@contextlib.contextmanager
+def served(listen: Listen) -> Iterator[tuple[SplitResult, RecordingClient]]:
+    """``serve_dashboard`` on ``listen``, on a loop in a thread of its own, until the block
+    ends: where to reach it (127.0.0.1 and its port) and its client."""
+    client, urls = RecordingClient(), queue.Queue()
+    loop, stop = asyncio.new_event_loop(), asyncio.Event()
+    serving = serve_dashboard(client, listen, stop, on_ready=urls.put)
+    thread = threading.Thread(target=loop.run_until_complete, args=(serving,))
+    thread.start()
+    try:
+        yield urlsplit(urls.get(timeout=10)), client
+    finally:
+        loop.call_soon_threadsafe(stop.set)
+        thread.join(timeout=10)
+        loop.close()
+
+
+def act(where: SplitResult, host: str, origin: str | None = None) -> tuple[int, dict]:
+    """An enable of demo/la1 as a browser sends it, naming ``host`` (and ``origin``)."""
+    headers = {"Host": host, "Content-Type": "application/json"}
+    if origin is not None:
+        headers["Origin"] = origin
+    status, reply, _ = request(where, "POST", "/api/enable", b'{"device": "demo/la1"}', headers)
+    return status, json.loads(reply)
+
+
+@pytest.mark.parametrize(("address", "names"), [
+    ("0.0.0.0", ["localhost", "127.0.0.1", "[::1]", socket.gethostname()]),
+    ("127.0.0.1", ["localhost", "127.0.0.1"]),
+])
+def test_a_page_that_rebinds_its_name_to_the_dashboard_gets_nothing_whatever_it_listens_on(
+        address, names) -> None:
+    with served(Listen(address, 0)) as (where, client):
+        for name in names:  # what a browser on this machine names it by
+            assert request(where, "GET", "/", headers={"Host": f"{name}:{where.port}"})[0] == 200
+        for path in ("/", "/static/app.js"):
+            status, reply, _ = request(where, "GET", path, headers={"Host": ATTACKER})
+            assert status == 400 and json.loads(reply)["error"]["code"] == "unknown_host"
+        status, reply = act(where, ATTACKER, f"http://{ATTACKER}")
+        assert status == 400, reply
+        assert reply["error"] == {"code": "unknown_host", "message": f"{ATTACKER!r} is not a "
+                                  "name this dashboard answers to"}
+        assert client.asked == []
+        assert act(where, where.netloc, f"http://{where.netloc}")[0] == 200
+        assert client.asked == [("enable", "demo/la1")]
+
+
+def test_a_name_given_with_allow_host_is_answered_and_acted_for() -> None:
+    with served(Listen.parse("127.0.0.1:0", ["Robot.Example"])) as (where, client):
+        host = f"robot.example:{where.port}"
+        assert request(where, "GET", "/", headers={"Host": host})[0] == 200
+        assert act(where, host, f"http://{host}")[0] == 200
+        assert act(where, f"robot.example.evil:{where.port}")[0] == 400
+        assert client.asked == [("enable", "demo/la1")]
+
+
+def test_an_action_is_taken_from_the_dashboards_own_origins_alone() -> None:
+    with served(Listen("127.0.0.1", 0)) as (where, client):
+        port = where.port
+        for origin, status in [
+            (f"http://127.0.0.1:{port}", 200),
+            (f"https://127.0.0.1:{port}", 200),  # a proxy in front that speaks TLS
+            (f"http://localhost:{port}", 200),
+            (f"http://{ATTACKER}", 403),
+            (f"http://rebind.attacker.example:{port}", 403),
+            ("http://127.0.0.1:1", 403),  # another port of the machine: another site
+            ("http://127.0.0.1", 403),
+            (f"ftp://127.0.0.1:{port}", 403),
+            (f"http://user@127.0.0.1:{port}", 403),
+            ("null", 403),  # a sandboxed frame, a file
+        ]:
+            before = len(client.asked)
+            got, reply = act(where, f"127.0.0.1:{port}", origin)
+            assert got == status, (origin, reply)
+            assert len(client.asked) == before + (status == 200), origin
+
+
+def closed_at(connection: socket.socket) -> float:
+    """When the server closed ``connection`` (``time.monotonic``), having sent nothing on it."""
+    connection.settimeout(10 * SHORT_S)
+    assert connection.recv(1024) == b""
+    return time.monotonic()
+
+
+def readable_now(connection: socket.socket) -> bytes:
+    """What ``connection`` has for reading now; fails when the server closed it."""
+    connection.settimeout(0.1)
+    seen = b""
+    while True:
+        try:
+            chunk = connection.recv(65536)
+        except TimeoutError:
+            return seen
+        assert chunk, f"closed by the server after {seen[:200]!r}"
+        seen += chunk
+
+
+def test_a_half_sent_request_is_closed_within_the_deadline_and_an_event_stream_is_not(
+        monkeypatch, caplog) -> None:
+    monkeypatch.setattr(server, "REQUEST_TIMEOUT_S", SHORT_S)
+    with served(Listen("127.0.0.1", 0)) as (where, client):
+        address = ("127.0.0.1", where.port)
+        head = f"Host: {where.netloc}\r\nContent-Type: application/json\r\n"
+        halves = [
+            b"GET / HT",  # half a request line
+            f"POST /api/estop HTTP/1.1\r\n{head}Content-Length: 100\r\n\r\n{{".encode(),
+            f"POST /api/estop HTTP/1.1\r\n{head}".encode(),  # headers, not their end
+        ]
+        stream = socket.create_connection(address)
+        stream.sendall(f"GET /events HTTP/1.1\r\nHost: {where.netloc}\r\n\r\n".encode())
+        opened = time.monotonic()  # the deadline starts later, with the server's accept
+        clients = [socket.create_connection(address) for _ in halves]
+        for connection, half in zip(clients, halves, strict=True):
+            connection.sendall(half)
+        took = [closed_at(connection) - opened for connection in clients]
+        assert all(0.9 * SHORT_S < seconds < 4 * SHORT_S for seconds in took), took
+
+        kept = socket.create_connection(address)  # a whole request, then half of the next
+        asked = time.monotonic()  # the deadline starts later, with the reply
+        kept.sendall(f"GET /nothing HTTP/1.1\r\nHost: {where.netloc}\r\n\r\n".encode())
+        time.sleep(0.1)
+        assert readable_now(kept).startswith(b"HTTP/1.1 404 ")
+        kept.sendall(b"GET /nothing HTTP/1.1\r\nHo")
+        assert 0.9 * SHORT_S < closed_at(kept) - asked < 4 * SHORT_S
+
+        assert b"event: snapshot" in readable_now(stream)  # well past the deadline, still open
+        for connection in [stream, kept, *clients]:
+            connection.close()
+    assert client.asked == []
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == []
+
+
+def test_a_request_that_finds_too_many_connections_open_gets_a_503(monkeypatch) -> None:
+    monkeypatch.setattr(server, "MAX_CONNECTIONS", 3)
+    with served(Listen("127.0.0.1", 0)) as (where, _):
+        idle = [socket.create_connection(("127.0.0.1", where.port)) for _ in range(2)]
+        assert request(where, "GET", "/")[0] == 503  # its own is the third
+        for connection in idle:
+            connection.close()
+        time.sleep(0.1)  # the server sees them go
+        assert request(where, "GET", "/")[0] == 200
