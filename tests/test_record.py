@@ -2,7 +2,9 @@
 file read back with the ``mcap`` library's own reader (a channel per key, each with its JSON
 Schema, every message published while it recorded, times in order), SIGINT ending it with a
 complete file, every refusal one line with exit status 2, and replay publishing the
-telemetry again, in order and never early, and nothing on a command or e-stop key."""
+telemetry again, in order and never early, and nothing on a command or e-stop key: under
+``replay`` unless told otherwise, never outside the prefix it is given, and not under the
+demo's own prefix while the demo is live there, unless ``--onto-live``."""
 
 from __future__ import annotations
 
@@ -13,8 +15,10 @@ import time
 
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 
 import busgate.client as bc
+from busgate.gateway.recording.mcap_log import McapLog
 from busgate.schemas.exported import generated
 from tests.gateway_process import BUSGATE, TIMEOUT_S, run_busgate
 
@@ -55,6 +59,21 @@ def publish_known(client) -> list[bytes]:
     client.put("busgate/rec-test/dev/x/cmd", {"op": "move", "position": 1})
     client.put("busgate/rec-test/estop", {"client": "record-test"})
     return sent
+
+
+def replayed(client, heard_on: str, path, module_demo, *args: str):
+    """``busgate replay FILE ARGS`` against the demo, and what was heard on the key expression
+    ``heard_on`` meanwhile: (key, payload, arrival)."""
+    heard: list[tuple[str, bytes, float]] = []
+    end = client.subscribe_raw(heard_on,
+                               lambda key, payload, ns: heard.append((key, payload,
+                                                                      time.monotonic())))
+    try:
+        done = run_busgate("replay", str(path), "--connect", module_demo.endpoint, *args)
+        time.sleep(0.5)
+    finally:
+        end()
+    return done, heard
 
 
 @pytest.fixture(scope="module")
@@ -112,21 +131,16 @@ def test_info_names_each_channel_its_count_and_the_span(recorded) -> None:
     assert f"  {1:>8}  busgate/rec-test/estop  (no schema)" in channels
 
 
-def test_replay_publishes_the_telemetry_again_in_order_never_early_and_no_command(
+def test_replay_where_no_gateway_is_live_publishes_telemetry_in_order_never_early_no_command(
         recorded, module_demo, client) -> None:
+    """The demo is live under ``busgate``, not under ``replayed``: the replay goes."""
     path, sent, _ = recorded
-    heard: list[tuple[str, bytes, float]] = []
-    end = client.subscribe_raw("replayed/**",
-                               lambda key, payload, ns: heard.append((key, payload,
-                                                                      time.monotonic())))
-    try:
-        done = run_busgate("replay", str(path), "--connect", module_demo.endpoint,
-                           "--prefix", "replayed", "--speed", "2")
-        time.sleep(0.5)
-    finally:
-        end()
+    done, heard = replayed(client, "replayed/**", path, module_demo, "--prefix", "replayed",
+                           "--speed", "2")
     assert done.returncode == 0, done
-    assert "2 on command or e-stop keys left out" in done.stderr
+    first, *_, last = done.stderr.splitlines()
+    assert first == f"busgate replay: replaying {path} under replayed/**"
+    assert last.endswith("; 2 on command or e-stop keys and 0 outside busgate/** left out")
     ours = [(payload, at) for key, payload, at in heard if key == "replayed/rec-test/dev/x/state"]
     assert [payload for payload, _ in ours] == sent
     assert not [key for key, _, _ in heard if key.endswith(("/cmd", "/estop", "/follow"))]
@@ -134,6 +148,64 @@ def test_replay_publishes_the_telemetry_again_in_order_never_early_and_no_comman
     # paced: the last came no sooner than the recorded span, at twice the speed, after the
     # first (a sleep never wakes early); how close to the pace it keeps, a benchmark's to say
     assert ours[-1][1] - ours[0][1] >= (COUNT - 1) * EVERY_S / 2 * 0.9
+
+
+def test_replay_publishes_under_replay_by_default(recorded, module_demo, client) -> None:
+    path, sent, _ = recorded
+    done, heard = replayed(client, "*/rec-test/**", path, module_demo, "--speed", "4")
+    assert done.returncode == 0, done
+    assert {key.split("/")[0] for key, _, _ in heard} == {"replay"}  # none under busgate
+    assert [payload for key, payload, _ in heard if key == "replay/rec-test/dev/x/state"] == sent
+    assert done.stderr.splitlines()[0] == f"busgate replay: replaying {path} under replay/**"
+
+
+def test_replay_under_a_live_gateways_prefix_is_refused_before_it_publishes(
+        recorded, module_demo, client) -> None:
+    """The demo, a gateway as any other, holds its liveliness token under ``busgate``."""
+    path, _, _ = recorded
+    done, heard = replayed(client, "*/rec-test/**", path, module_demo, "--prefix", "busgate",
+                           "--speed", "4")
+    assert done.returncode == 2, done
+    assert done.stderr.splitlines() == [
+        "busgate replay: error: --prefix busgate is live (gateway demo): a replay there writes "
+        "into its telemetry; use another --prefix (default replay) or add --onto-live"]
+    assert heard == []
+
+
+def test_replay_onto_live_goes_under_the_live_prefix(recorded, module_demo, client) -> None:
+    path, sent, _ = recorded
+    done, heard = replayed(client, "*/rec-test/**", path, module_demo, "--prefix", "busgate",
+                           "--onto-live", "--speed", "4")
+    assert done.returncode == 0, done
+    assert done.stderr.splitlines()[0] == f"busgate replay: replaying {path} under busgate/**"
+    assert [payload for key, payload, _ in heard if key == TEST_KEY] == sent
+
+
+def test_replay_leaves_out_a_key_outside_the_recorded_prefix(tmp_path, module_demo,
+                                                              client) -> None:
+    """A file whose keys are not all under the prefix it names (made so, or recorded from
+    key expressions outside it): only those under it are published, under ``--prefix``."""
+    path = tmp_path / "mixed.mcap"
+    with path.open("wb") as stream:
+        log = McapLog(stream, "rec")
+        log.add("rec/gw9/dev/la1/state", b'{"n": 1}', time.time_ns())
+        log.add("busgate/gw9/dev/la1/state", b'{"n": 2}', time.time_ns())
+        log.finish()
+    done, heard = replayed(client, "*/gw9/**", path, module_demo)
+    assert done.returncode == 0, done
+    assert [(key, payload) for key, payload, _ in heard] == [
+        ("replay/gw9/dev/la1/state", b'{"n": 1}')]
+    assert done.stderr.splitlines()[-1].endswith("and 1 outside rec/** left out")
+
+
+def write_foreign(path) -> None:
+    """A complete MCAP file of another tool: its keys under no prefix it names."""
+    with path.open("wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        channel = writer.register_channel("busgate/gw9/dev/la1/state", "json", 0)
+        writer.add_message(channel, log_time=1, data=b"{}", publish_time=1)
+        writer.finish()
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -150,9 +222,11 @@ def test_replay_publishes_the_telemetry_again_in_order_never_early_and_no_comman
     (["replay", "{tmp}/exists.mcap", "--prefix", "a*b"], "a*b"),
     (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is above 0"),
     (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is above 0"),
+    (["replay", "{tmp}/foreign.mcap"], "names no prefix its keys were recorded under"),
 ])
 def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message) -> None:
     (tmp_path / "exists.mcap").write_bytes(b"not an mcap file")
+    write_foreign(tmp_path / "foreign.mcap")
     done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),
                        "--connect", "tcp/127.0.0.1:1")
     assert done.returncode == 2, done

@@ -12,6 +12,11 @@ Rules of this file:
 3. An existing file is never overwritten: a recording is evidence.
 4. Replay publishes only telemetry (``mcap_log.REPLAYED_LEAVES``): never a command, a follow
    target or an e-stop, whatever the file holds.
+5. Replay publishes only under ``--prefix`` (default ``replay``, no live gateway's), a key
+   under it in place of the recorded prefix: a key outside the recorded prefix is left out,
+   a file naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
+   token, asked for with a bounded get) is refused before anything is published, unless
+   ``--onto-live``: recorded states would go out on that gateway's own keys.
 """
 
 from __future__ import annotations
@@ -26,8 +31,11 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+import zenoh
+
 import busgate.client as bc
-from busgate.client.keys import check_key
+from busgate.client.keys import Keys, check_key
+from busgate.client.zenoh_config import zenoh_reason
 from busgate.codecs.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
@@ -35,7 +43,10 @@ from busgate.gateway.recording import mcap_log
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
 MAX_SPEED = 1000.0
-PREFIX_METADATA = "busgate"
+#: Where a replay publishes unless told otherwise: a prefix no live gateway uses (rule 5).
+REPLAY_PREFIX = "replay"
+#: How long replay waits for the live gateways' liveliness tokens (a router answers at once).
+LIVE_WAIT_S = 1.0
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -55,10 +66,24 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     replay = subparsers.add_parser(
         "replay",
         description="Publish a recording's telemetry again at its pace (or --speed times "
-        "it), so busgate watch and the dashboard can be pointed at it. Never publishes a "
-        "command, follow target or e-stop.",
+        f"it), under --prefix (default {REPLAY_PREFIX}) in place of the recorded prefix, so "
+        "busgate watch and the dashboard can be pointed at it. Never publishes a command, "
+        "follow target or e-stop, nor outside --prefix; refuses a --prefix a gateway is live "
+        "under, unless --onto-live.",
+        conflict_handler="resolve",  # its own --prefix replaces the session options' one
     )
     add_session_options(replay)
+    replay.add_argument(
+        "--prefix",
+        default=REPLAY_PREFIX,
+        help="publish under this prefix in place of the recorded one (default "
+        f"{REPLAY_PREFIX}: no live gateway's)",
+    )
+    replay.add_argument(
+        "--onto-live",
+        action="store_true",
+        help="replay even where a gateway is live under --prefix: onto its own keys",
+    )
     replay.add_argument("file", metavar="FILE.mcap")
     replay.add_argument("--speed", type=float, default=1.0, help="how much faster (default 1)")
     replay.set_defaults(handler=run_replay)
@@ -104,7 +129,6 @@ class Recording:
 
     def __init__(self, stream: IO[bytes], prefix: str) -> None:
         self._log = mcap_log.McapLog(stream, prefix)
-        self._log.metadata(PREFIX_METADATA, {"prefix": prefix})
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self.dropped = 0
         self.elapsed_s = 0.0
@@ -196,44 +220,91 @@ def run_replay(args: argparse.Namespace) -> int:
     check_key(args.prefix)
     path = Path(args.file)
     _summary(path)  # a file that is no complete recording is refused before any session
+    recorded_prefix = _recorded_prefix(path)
     with path.open("rb") as stream, open_client(args, "replay") as client:
-        recorded_prefix = mcap_log.recorded_metadata(stream, PREFIX_METADATA).get("prefix")
+        _refuse_live_prefix(client, args)
+        print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
         started = time.monotonic()
         try:
-            sent, skipped = _publish(client, stream, recorded_prefix, args, started)
+            sent, skipped, outside = _publish(client, stream, recorded_prefix, args, started)
         except BusgateError:
             raise  # the session's own refusal, as it is
         except Exception as exc:  # a chunk the reader cannot read, past the summary
             raise CommandError(f"{path} could not be read to its end: {exc}") from None
     print(
         f"busgate replay: {sent} messages in {time.monotonic() - started:.1f} s; {skipped} "
-        "on command or e-stop keys left out",
+        f"on command or e-stop keys and {outside} outside {recorded_prefix}/** left out",
         file=sys.stderr,
     )
     return 0
 
 
+def _recorded_prefix(path: Path) -> str:
+    """The prefix the file's keys were recorded under; ``CommandError`` when it names none
+    (rule 5: its keys could not be put under ``--prefix``)."""
+    with path.open("rb") as stream:
+        found = mcap_log.recorded_prefix(stream)
+    if found is None:
+        raise CommandError(f"{path} names no prefix its keys were recorded under")
+    return found
+
+
+def _refuse_live_prefix(client: bc.Client, args: argparse.Namespace) -> None:
+    """``CommandError`` when a gateway is live under ``--prefix`` and ``--onto-live`` is not
+    given (rule 5): asked before anything is published."""
+    if args.onto_live:
+        return
+    live = _live_gateways(client, args.prefix)
+    if live:
+        raise CommandError(
+            f"--prefix {args.prefix} is live (gateway {', '.join(live)}): a replay there "
+            f"writes into its telemetry; use another --prefix (default {REPLAY_PREFIX}) or "
+            "add --onto-live"
+        )
+
+
+def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
+    """The gateways holding their liveliness token under ``prefix`` (``Keys.alive``, which the
+    client's session was opened with): the replies to a liveliness get on that session (the
+    SDK has no call for one), bounded by ``LIVE_WAIT_S``, and those the SDK's own liveliness
+    subscriber has seen by its end: zenoh (1.10.2) leaves a token out of a get's replies when
+    it declared it to that subscriber already, as it mostly has right after the session
+    opened."""
+    keys = Keys(prefix)
+    live: set[str] = set()
+    stop = client.on_gateways(lambda gateway, alive: live.add(gateway) if alive else None)
+    try:
+        replies = client._shared.core.session.liveliness().get(keys.alive("*"), timeout=LIVE_WAIT_S)
+        live.update(keys.gateway_of(str(r.ok.key_expr)) for r in replies if r.ok is not None)
+    except zenoh.ZError as exc:
+        raise CommandError(f"cannot ask which gateways are live: {zenoh_reason(exc)}") from exc
+    finally:
+        stop()
+    return sorted(live)
+
+
 def _publish(
     client: bc.Client,
     stream: IO[bytes],
-    recorded_prefix: str | None,
+    recorded_prefix: str,
     args: argparse.Namespace,
     started: float,
-) -> tuple[int, int]:
-    """Publish the file's telemetry at its pace: (messages sent, messages left out)."""
-    sent = skipped = 0
+) -> tuple[int, int, int]:
+    """Publish the file's telemetry at its pace under ``--prefix``: (messages sent, left out
+    on command or e-stop keys, left out outside the recorded prefix)."""
+    sent = skipped = outside = 0
     first: int | None = None
     for message in mcap_log.messages(stream):
         leaf = message.topic.rsplit("/", 1)[-1]
         if leaf not in mcap_log.REPLAYED_LEAVES:  # rule 4
             skipped += 1
             continue
+        if not message.topic.startswith(recorded_prefix + "/"):  # rule 5
+            outside += 1
+            continue
         first = message.log_time_ns if first is None else first
         due = started + (message.log_time_ns - first) / 1e9 / args.speed
         time.sleep(max(0.0, due - time.monotonic()))
-        topic = message.topic
-        if recorded_prefix and topic.startswith(recorded_prefix + "/"):
-            topic = args.prefix + topic[len(recorded_prefix) :]
-        client.put(topic, message.data)
+        client.put(args.prefix + message.topic[len(recorded_prefix) :], message.data)
         sent += 1
-    return sent, skipped
+    return sent, skipped, outside

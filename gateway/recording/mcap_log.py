@@ -14,6 +14,9 @@ Rules of this file:
    has one), the publish time the message's own ``ts`` (else the log time).
 3. Replay publishes only what is telemetry: never on a key that commands or stops
    (``REPLAYED_LEAVES`` names what may be published again).
+4. A file names the prefix its keys were recorded under (the metadata record
+   ``PREFIX_METADATA``, written as the file opens), so that replay can put them under
+   another (``recorded_prefix``).
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ from mcap.writer import Writer
 from busgate.schemas.exported import SCHEMAS, generated
 
 LIBRARY = "busgate"
+#: The metadata record naming the prefix the file's keys were recorded under (rule 4).
+PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
 REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback"})
 
@@ -64,11 +69,13 @@ def publish_time_ns(body: Any, log_time_ns: int) -> int:
 
 
 class McapLog:
-    """Writes messages to an MCAP stream, a channel per key (opened on its first message)."""
+    """Writes messages to an MCAP stream, a channel per key (opened on its first message), the
+    keys under ``prefix`` (rule 4)."""
 
     def __init__(self, stream: IO[bytes], prefix: str) -> None:
         self._writer = Writer(stream)
         self._writer.start(profile="", library=LIBRARY)
+        self._writer.add_metadata(PREFIX_METADATA, {"prefix": prefix})
         self._prefix = prefix
         self._texts = generated()
         self._schemas: dict[str, int] = {}
@@ -111,7 +118,7 @@ class McapLog:
         return self._schemas[name]
 
     def metadata(self, name: str, values: dict[str, str]) -> None:
-        """A metadata record (what ``recorded_metadata`` reads back)."""
+        """A metadata record of the caller's (an incident's triggers)."""
         self._writer.add_metadata(name, values)
 
     def finish(self) -> None:
@@ -133,13 +140,14 @@ def messages(stream: IO[bytes]) -> Iterator[Recorded]:
         yield Recorded(channel.topic, message.data, message.log_time)
 
 
-def recorded_metadata(stream: IO[bytes], name: str) -> dict[str, str]:
-    """The values of the metadata record ``name`` (empty when there is none)."""
+def recorded_prefix(stream: IO[bytes]) -> str | None:
+    """The prefix the file's keys were recorded under (rule 4); ``None`` when it names none
+    (a file of another tool, or written before files named it)."""
     stream.seek(0)
-    found = {}
+    found = None
     for record in make_reader(stream).iter_metadata():
-        if record.name == name:
-            found = dict(record.metadata)
+        if record.name == PREFIX_METADATA:
+            found = record.metadata.get("prefix") or None
     return found
 
 
