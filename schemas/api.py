@@ -79,8 +79,19 @@ class EndFollow(CommandModel):
     op: Literal["end_follow"]
 
 
+class ResetEstop(CommandModel):
+    """Out of the gateway's e-stop: the device goes back to the power state it had before the
+    stop and holds still. Enabled before, it is enabled again with its target where it is (a
+    position device) or at 0 rpm (a speed device); off before, it stays off. Nothing moves
+    until a new command. Answered with its state (at once when it was not e-stopped); a
+    device claimed by another client refuses it (``claimed``). ``<prefix>/<gw>/estop/reset``
+    (a put) resets every device of the gateway."""
+
+    op: Literal["reset_estop"]
+
+
 #: The ops every device's ``cmd`` key takes besides its kind's own.
-GatewayCommand = Annotated[Claim | Release | EndFollow, Field(discriminator="op")]
+GatewayCommand = Annotated[Claim | Release | EndFollow | ResetEstop, Field(discriminator="op")]
 GATEWAY_COMMAND_ADAPTER: TypeAdapter[GatewayCommand] = TypeAdapter(GatewayCommand)
 
 
@@ -363,6 +374,14 @@ class EstopEvent(Event):
     key: str = Field(description="The key expression the e-stop was put on.")
 
 
+class EstopResetEvent(Event):
+    """The gateway's e-stop was reset: on one device (``device`` names it) or on every one
+    (``device`` is ``"*"``, from ``<prefix>/<gw>/estop/reset``)."""
+
+    type: Literal["estop_reset"]
+    client: ClientId | None = None
+
+
 class TrajectoryStartedEvent(Event):
     """A trajectory was accepted (``<prefix>/<gw>/trajectory``); ``device`` is ``"*"``."""
 
@@ -394,7 +413,7 @@ class CommandRefusedEvent(Event):
 KnownEvent = Annotated[
     OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
     | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
-    | EstopEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
+    | EstopEvent | EstopResetEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
     | CommandRefusedEvent,
     Field(discriminator="type"),
 ]  # fmt: skip
@@ -407,7 +426,7 @@ EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)
 def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
     """The kind's own commands and the gateway-level ones, told apart by ``op``."""
     (union, *_) = get_args(kind_module.Command)
-    members = (*get_args(union), Claim, Release, EndFollow)
+    members = (*get_args(union), Claim, Release, EndFollow, ResetEstop)
     return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # type: ignore[arg-type]  # noqa: UP007
 
 

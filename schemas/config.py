@@ -2,12 +2,15 @@
 
 Rules of this file: everything a running gateway relies on is checked here, before any port
 is opened, and every refusal names its key path (``buses[0].devices[1].follow_period_ms``)
-and what is allowed. Kinds, their protocols per transport, id ranges and timing limits come
-from the family registry (``busgate.schemas.families``) and the codecs it names, so a limit is
-written down once. Whether a port exists is not checked here: that is
-the host's business, and ``busgate check-config`` reports it as a warning. The host is looked at
-once: symlinks are resolved (``os.path.realpath``), so that two buses naming one device file
-(``/dev/ttyUSB0`` and a udev link to it) are refused instead of fighting over the port.
+and what is allowed. A key no table takes is named with its table and the key it most likely
+misspells (``buses[0]: unknown key `baudrat` (did you mean `baudrate`?)``), told once: the
+key it misspells is not reported missing as well. Kinds, their protocols per transport, id
+ranges and timing limits come from the family registry (``busgate.schemas.families``) and the
+codecs it names, so a limit is written down once. Whether a port exists is not checked here:
+that is the host's business, and ``busgate check-config`` reports it as a warning. The host is
+looked at once: symlinks are resolved (``os.path.realpath``), so that two buses naming one
+device file (``/dev/ttyUSB0`` and a udev link to it) are refused instead of fighting over the
+port.
 """
 
 from __future__ import annotations
@@ -15,11 +18,12 @@ from __future__ import annotations
 import os
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from busgate.codecs.errors import ConfigError
+from busgate.schemas.errors import closest, suggestion
 from busgate.schemas.families import PROTOCOLS, kinds, protocol_of
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
@@ -28,6 +32,8 @@ KeyPrefix = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1
 Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 
 FOLLOW_PERIOD_MS = (10.0, 50.0)  # the actuators' follow mode: a fixed period of 10–50 ms
+#: An unknown key's refusal lists the keys of its table when there are at most this many.
+LISTED_KEYS = 6
 
 
 class Section(BaseModel):
@@ -219,17 +225,65 @@ def parse_config(data: dict[str, Any]) -> Config:
     try:
         return Config.model_validate(data)
     except ValidationError as exc:
-        problems = [_describe(error) for error in exc.errors(include_url=False)]
+        problems = [_describe(error) for error in _told_once(exc.errors(include_url=False))]
         raise ConfigError("\n".join(text for _, text in problems), path=problems[0][0]) from exc
+
+
+def _told_once(errors: list[Any]) -> list[Any]:
+    """``errors`` without the missing keys that an unknown key of their table misspells."""
+    misspelt = {
+        (*error["loc"][:-1], closest(str(error["loc"][-1]), _keys_at(error["loc"][:-1])))
+        for error in errors
+        if error["type"] == "extra_forbidden"
+    }
+    return [e for e in errors if not (e["type"] == "missing" and e["loc"] in misspelt)]
 
 
 def _describe(error: Any) -> tuple[str, str]:
     """(key path, one line) for a pydantic error; our own checks put the path in the message."""
+    if error["type"] == "extra_forbidden":
+        return _unknown_key(error["loc"])
     message = error["msg"].removeprefix("Value error, ")
     path = _key_path(error["loc"])
     if not path:
         return message.split(":", 1)[0], message
     return path, f"{path}: {message}"
+
+
+def _unknown_key(loc: tuple[int | str, ...]) -> tuple[str, str]:
+    """(key path, one line) for a key its table does not take: ``buses[0]: unknown key
+    `baudrat` (did you mean `baudrate`?)``, or the table's keys when none is close and they
+    are few."""
+    table, key = _key_path(loc[:-1]), str(loc[-1])
+    line = f"unknown key `{key}`{suggestion(key, _keys_at(loc[:-1]), listed=LISTED_KEYS)}"
+    return _key_path(loc), f"{table}: {line}" if table else line
+
+
+def _keys_at(loc: tuple[int | str, ...]) -> list[str]:
+    """The keys of the table at pydantic location ``loc`` (``('buses', 0, 'serial')``: a
+    serial bus's), read from the models: a key leads to its value's tables (a list's items, a
+    union's members), a union's tag to the member it names."""
+    tables: list[type[BaseModel]] = [Config]
+    for part in loc:
+        if isinstance(part, str):
+            tables = [inner for table in tables for inner in _tables_under(table, part)]
+    return [key for table in tables for key in table.model_fields]
+
+
+def _tables_under(table: type[BaseModel], part: str) -> list[type[BaseModel]]:
+    """Where ``part`` of a location leads from ``table``: its key's tables, or ``table`` itself
+    when ``part`` is its tag (a field that is ``Literal[part]``, as ``transport``)."""
+    if part in table.model_fields:
+        return _tables_in(table.model_fields[part].annotation)
+    tagged = any(get_args(field.annotation) == (part,) for field in table.model_fields.values())
+    return [table] if tagged else []
+
+
+def _tables_in(annotation: Any) -> list[type[BaseModel]]:
+    """The models in a field's type (``list[DeviceConfig]``, ``SerialBus | CanBus`` …)."""
+    if isinstance(annotation, type):
+        return [annotation] if issubclass(annotation, BaseModel) else []
+    return [table for arg in get_args(annotation) for table in _tables_in(arg)]
 
 
 def load_config(path: str | Path) -> Config:

@@ -1,14 +1,19 @@
 """Turning a JSON text into a command model, with one readable line when it is refused.
 
 Pydantic's ``ValidationError`` becomes a ``CommandError`` raised from it, whose message names
-every offending field, so the CLI and the zenoh API report the same words. The code a reply
-gives it is the ``ValidationError``'s (``refusal_code``): ``out_of_range`` when only values
-were outside their bounds, else ``bad_command``; the gateway's replies
-(``busgate.gateway.api.errors``) and the client's own checks (``busgate.client``) both ask it.
+every offending field, so the CLI and the zenoh API report the same words. An op the family
+does not have is told in one line of its own, with the op it most likely misspells
+(``suggestion``, which also serves the config's unknown keys). The code a reply gives it is the
+``ValidationError``'s (``refusal_code``): ``out_of_range`` when only values were outside their
+bounds, else ``bad_command``; the gateway's replies (``busgate.gateway.api.errors``) and the
+client's own checks (``busgate.client``) both ask it.
 """
 
 from __future__ import annotations
 
+import difflib
+import re
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
@@ -29,12 +34,58 @@ RANGE_ERRORS = frozenset(
 )
 
 
-def command_from_json(adapter: TypeAdapter[Any], text: str | bytes) -> Any:
-    """Validate ``text`` as a command; raise ``CommandError`` with a one-line reason."""
+#: How much of an unknown op a refusal repeats (a peer may send 64 KiB of one).
+SHOWN_OP_CHARS = 40
+#: A quoted tag in pydantic's ``expected_tags`` (``'move', 'follow'``).
+_QUOTED_TAG = re.compile(r"'([^']*)'")
+
+
+def command_from_json(adapter: TypeAdapter[Any], text: str | bytes, family: str) -> Any:
+    """Validate ``text`` as one of ``family``'s commands; raise ``CommandError`` with a
+    one-line reason (``describe_command_error``)."""
+    return _command(adapter.validate_json, text, family)
+
+
+def command_from_object(adapter: TypeAdapter[Any], fields: Any, family: str) -> Any:
+    """``command_from_json`` for a JSON object already parsed."""
+    return _command(adapter.validate_python, fields, family)
+
+
+def _command(validate: Callable[[Any], Any], value: Any, family: str) -> Any:
     try:
-        return adapter.validate_json(text)
+        return validate(value)
     except ValidationError as exc:
-        raise CommandError(f"invalid command: {describe_validation_error(exc)}") from exc
+        raise CommandError(describe_command_error(exc, family)) from exc
+
+
+def describe_command_error(exc: ValidationError, family: str) -> str:
+    """``unknown op `mvoe` for inspire_la (did you mean `move`?)`` when the command's op is
+    none of the family's (every op it has when none is close); else ``invalid command: ``
+    and every problem (``describe_validation_error``)."""
+    errors = exc.errors(include_url=False)
+    if len(errors) == 1 and errors[0]["type"] == "union_tag_invalid" and not errors[0]["loc"]:
+        op, expected = errors[0]["ctx"]["tag"], errors[0]["ctx"]["expected_tags"]
+        shown = _one_line(op, SHOWN_OP_CHARS)
+        return f"unknown op `{shown}` for {family}{suggestion(op, _QUOTED_TAG.findall(expected))}"
+    return f"invalid command: {describe_validation_error(exc)}"
+
+
+def suggestion(word: str, choices: Sequence[str], *, listed: int | None = None) -> str:
+    """What follows a ``word`` that is none of ``choices``: `` (did you mean `move`?)`` for the
+    one it most likely misspells (``closest``); else the choices, when there are at most
+    ``listed`` of them (``None``: however many), or nothing."""
+    meant = closest(word, choices)
+    if meant is not None:
+        return f" (did you mean `{meant}`?)"
+    if listed is None or len(choices) <= listed:
+        return f" (allowed: {', '.join(f'`{choice}`' for choice in choices)})"
+    return ""
+
+
+def closest(word: str, choices: Sequence[str]) -> str | None:
+    """The choice ``word`` most likely misspells (``difflib``'s ratio 0.6 or more), if any."""
+    matches = difflib.get_close_matches(word, choices, n=1)
+    return matches[0] if matches else None
 
 
 def describe_validation_error(exc: ValidationError) -> str:
@@ -56,3 +107,9 @@ def refusal_code(exc: ValidationError) -> str:
         for problem in problems
     )
     return "out_of_range" if in_range else "bad_command"
+
+
+def _one_line(text: str, most: int) -> str:
+    """``text`` with its control characters escaped, cut to ``most`` characters (``…``)."""
+    escaped = text.encode("unicode_escape").decode("ascii")
+    return escaped if len(escaped) <= most else escaped[:most] + "…"

@@ -23,6 +23,7 @@ from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.schemas.api import DEVICE_COMMAND_ADAPTERS
 from busgate.schemas.config import CanBus, SerialBus
 
 _channels = itertools.count()
@@ -114,6 +115,23 @@ def test_hostile_payloads_are_refused_with_a_stable_code_and_never_sent(gateway,
     accepted(api, "la1", {"op": "status"})  # the proof that the bus had its chance
     sent = [r for r in simulator.recorder.received()[before:] if r.frame == "MoveCommand"]
     assert sent == []
+
+
+def test_an_unknown_op_is_one_line_naming_the_op_it_most_likely_misspells(gateway) -> None:
+    """Among the kind's ops and the gateway's (``release``); every op when none is close. The
+    code is the schema's, as for any other malformed command."""
+    api, *_ = gateway
+
+    def refusal(message: str) -> dict:
+        return {"ok": False, "error": {"code": "bad_command", "message": message}}
+
+    assert ask(api, "la1", {"op": "mvoe", "position": 5}) == refusal(
+        "unknown op `mvoe` for inspire_la (did you mean `move`?)")
+    assert ask(api, "la1", {"op": "relase", "client": "c1"}) == refusal(
+        "unknown op `relase` for inspire_la (did you mean `release`?)")
+    ops = ", ".join(f"`{op}`" for op in DEVICE_COMMAND_ADAPTERS["zlac706"].core_schema["choices"])
+    assert ask(api, "wheel", {"op": "fly"}) == refusal(
+        f"unknown op `fly` for zlac706 (allowed: {ops})")
 
 
 @pytest.mark.parametrize(("device", "command", "found_by"), [

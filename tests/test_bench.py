@@ -10,6 +10,8 @@ import json
 import subprocess
 import sys
 
+from busgate.gateway.cli import build_parser, main
+
 #: What the device side reports, whatever its values.
 DEVICE_SIDE = {"frames_received", "smallest_gap_after_reply_ms", "gaps_after_reply_below_minimum",
                "follow_frames", "smallest_follow_interval_ms", "follow_intervals_under_period"}
@@ -63,3 +65,11 @@ def test_bench_refuses_a_bad_setting_in_one_line() -> None:
     result = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "follow_period_ms" in result.stderr
+
+
+def test_kind_is_the_protocol_option_under_its_earlier_name(capsys) -> None:
+    """Scripts written for earlier releases say ``--kind``."""
+    assert build_parser("bench").parse_args(["bench", "--kind", "zlac706_can"]).protocol == (
+        "zlac706_can")
+    assert main(["bench", "--kind", "inspire_la", "--ids", ","]) == 2
+    assert capsys.readouterr().err == "busgate bench: error: --ids names no device\n"

@@ -61,6 +61,13 @@ def test_a_broken_config_names_each_key_path_and_exits_1(tmp_path, capsys) -> No
     assert captured.out == ""
 
 
+def test_a_misspelt_key_is_one_error_naming_the_key_it_means(tmp_path, capsys) -> None:
+    path = write(tmp_path, [la(1).replace("kind", "knd")])
+    assert main(["check-config", str(path)]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "error: buses[0].devices[0]: unknown key `knd` (did you mean `kind`?)"]
+
+
 def test_an_unreadable_or_non_toml_file_is_an_error(tmp_path, capsys) -> None:
     assert main(["check-config", str(tmp_path / "absent.toml")]) == 1
     bad = tmp_path / "bad.toml"

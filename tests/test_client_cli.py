@@ -233,6 +233,38 @@ def test_a_device_no_gateway_has_is_unknown_device_naming_the_gateways(gateway, 
     assert main(["send", "la1", '{"op":"status"}', "--connect", gateway]) == 0
 
 
+def test_a_device_the_named_gateway_lacks_is_unknown_device_from_that_gateway(module_demo,
+                                                                              capsys):
+    # <gateway>/<device>, as the SDK names a device on one gateway: that gateway answers.
+    status = main(["send", "demo/la9", '{"op":"status"}', "--connect", module_demo.endpoint])
+    out, err = capsys.readouterr()
+    assert (status, json.loads(out)["error"]["code"]) == (1, "unknown_device")
+    assert err == "busgate send: unknown_device: no device 'la9' on gateway demo\n"
+    assert main(["send", "demo/la1", '{"op":"status"}', "--connect", module_demo.endpoint]) == 0
+
+
+def test_a_misspelt_op_is_one_line_whether_got_or_put(module_demo, wait_for, capsys):
+    line = "unknown op `mvoe` for inspire_la (did you mean `move`?)"
+    send = ["send", "demo/la1", '{"op":"mvoe","position":5}', "--connect", module_demo.endpoint]
+    assert main(send) == 1
+    out, err = capsys.readouterr()
+    assert json.loads(out)["error"] == {"code": "bad_command", "message": line}
+    assert err == f"busgate send: bad_command: {line}\n"
+
+    refused: list[dict] = []
+    with zenoh.open(session_config(mode="client", connect=[module_demo.endpoint])) as session:
+        session.declare_subscriber("busgate/demo/events", lambda sample: refused.append(
+            json.loads(sample.payload.to_bytes())))
+
+        def put_refused() -> bool:  # put until the subscription has reached the gateway
+            assert main([*send, "--put"]) == 0
+            return any(event["type"] == "command_refused" for event in refused)
+
+        wait_for(put_refused, timeout=10)
+    assert {(e["code"], e["message"]) for e in refused if e["type"] == "command_refused"} == {
+        ("bad_command", line)}
+
+
 def test_a_gateway_that_never_answers_in_time_counts_as_nobody(stand_in, capsys):
     started = time.monotonic()
     status = main(["send", "busgate/gwtest/dev/mute/cmd", '{"op":"stop"}', "--timeout", "0.3",

@@ -161,6 +161,31 @@ def test_unknown_keys_and_wrong_types_are_refused_not_ignored() -> None:
     assert refused(lambda d: d["buses"][0].update(baudrate="fast")).path == "buses[0].baudrate"
 
 
+def _misspell(table: dict, key: str, typo: str) -> None:
+    table[typo] = table.pop(key)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (lambda d: _misspell(d["buses"][0], "baudrate", "baudrat"),
+     "buses[0]: unknown key `baudrat` (did you mean `baudrate`?)"),
+    (lambda d: _misspell(d["buses"][0]["devices"][0], "kind", "knd"),
+     "buses[0].devices[0]: unknown key `knd` (did you mean `kind`?)"),
+    (lambda d: d["buses"].append(_second_bus("can0", chanel="can0")),
+     "buses[1]: unknown key `chanel` (did you mean `channel`?)"),
+    (lambda d: _misspell(d, "buses", "bsues"), "unknown key `bsues` (did you mean `buses`?)"),
+    (lambda d: d.update(recorder={"size": 1}),
+     "recorder: unknown key `size` (allowed: `seconds`, `dir`, `max_total_mb`)"),
+    (lambda d: d["buses"][0].update(xyz=1), "buses[0]: unknown key `xyz`"),
+    (lambda d: _misspell(d["buses"][0], "port", "xyz"),
+     "buses[0].port: Field required\nbuses[0]: unknown key `xyz`"),
+])
+def test_an_unknown_key_is_one_line_naming_the_key_it_most_likely_misspells(change,
+                                                                              message) -> None:
+    """The key it misspells is not reported missing as well; a key with no close match is
+    named alone, with its table's keys when they are few; another missing key stays."""
+    assert str(refused(change)) == message
+
+
 def test_unreadable_and_malformed_files(tmp_path) -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "missing.toml")

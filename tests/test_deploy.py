@@ -465,3 +465,20 @@ def test_no_account_passes_fake_telemetry_info_or_liveliness_to_another(
     assert alive == ["busgate/gw1/alive"], alive
     fake_info.undeclare()
     fake_alive.undeclare()
+
+
+def test_only_the_operator_resets_the_gateways_estop(
+        secured_gateway, operator, viewer, wait_for) -> None:
+    """After an e-stop of the enabled la1, a viewer's put on the reset key is refused by the
+    access control (no enable goes out), the operator's brings la1 back enabled."""
+    _enable(operator)
+    simulator = secured_gateway.simulator
+    operator.put("busgate/gw1/estop", b"{}")
+    wait_for(lambda: ESTOP in _frames_since(simulator, 0))
+    mark = len(simulator.recorder.received())
+    enable = la.ControlCommand(1, la.ControlCode.ENABLE)
+    viewer.put("busgate/gw1/estop/reset", b"{}")
+    _gateway_had_its_chance(viewer, simulator)
+    assert enable not in _frames_since(simulator, mark), "a viewer reset the e-stop"
+    operator.put("busgate/gw1/estop/reset", b"{}")
+    wait_for(lambda: enable in _frames_since(simulator, mark))

@@ -52,6 +52,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.drivers.zlac706_can",
     "busgate.gateway.drivers.zlac706_rs232",
     "busgate.gateway.scheduler.trajectory_ticks",
+    "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
     "busgate.schemas.telemetry",
 ]

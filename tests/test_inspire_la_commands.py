@@ -242,6 +242,7 @@ def test_cli_encode_defaults_to_id_1(capsys):
         (['{"op":"move","position":2001}'], "position: Input should be less than or equal to 2000"),
         (['{"op":"write","index":3,"data":"00"}'], "address 3 is reserved"),
         (["{not json"], "invalid command"),
+        (['{"op":"mvoe"}'], "error: unknown op `mvoe` for inspire_la (did you mean `move`?)\n"),
     ],
 )
 def test_cli_encode_refusals_are_one_line(capsys, argv, message):

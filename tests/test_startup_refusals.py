@@ -82,6 +82,19 @@ def test_a_config_that_is_not_utf8_is_one_line_naming_the_file(tmp_path, capsys)
     assert capsys.readouterr().err.splitlines() == [f"error: {refusal}"]
 
 
+def test_every_line_of_a_refusal_has_the_prefix(tmp_path, endpoint, capsys) -> None:
+    bus = serial_bus("uart0", "/dev/ttyUSB0", "la1").replace("baudrate", "baudrat")
+    config = write_config(tmp_path / "gw.toml", endpoint, bus + "poll_hz = 0\n")
+    refusal = ["buses[0].devices[0].poll_hz: Input should be greater than 0",
+               "buses[0]: unknown key `baudrat` (did you mean `baudrate`?)"]
+
+    run = run_busgate("run", "--config", str(config))
+    assert (run.returncode, run.stderr.splitlines()) == (
+        2, [f"busgate run: error: {line}" for line in refusal])
+    assert main(["check-config", str(config)]) == 1
+    assert capsys.readouterr().err.splitlines() == [f"error: {line}" for line in refusal]
+
+
 # -- zenoh ----------------------------------------------------------------------------------
 
 

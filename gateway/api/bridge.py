@@ -105,6 +105,7 @@ class ZenohBridge:
             session.declare_subscriber(f"{base}/dev/*/follow", self._on_follow),
             session.declare_queryable(f"{base}/bus/*/cmd", self._on_bus_query),
             session.declare_subscriber(f"{base}/estop", self._on_estop),
+            session.declare_subscriber(f"{base}/estop/reset", self._on_estop_reset),
             session.declare_queryable(f"{base}/info", self._on_info),
             session.declare_queryable(f"{base}/trajectory", self._on_trajectory),
             session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
@@ -209,6 +210,12 @@ class ZenohBridge:
         self.api.estop(sender)
         fields = {"key": str(sample.key_expr)} | ({"client": sender} if sender else {})
         self.events.append(DeviceEvent("*", "estop", fields))
+        if self.on_command is not None:
+            self.on_command(str(sample.key_expr), payload, None)
+
+    def _on_estop_reset(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        self.api.reset_estop(_sender(payload))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
 

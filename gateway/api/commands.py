@@ -7,10 +7,13 @@ every rule of the API is tested without a network. Rules of this file:
    JSON (NaN, infinities and numbers past a double included), an object with a key twice,
    not an object, or not a valid command; the reply says why with a stable code
    (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``, ``out_of_range``,
-   ``unknown_device`` …) and a human message, the code from the one mapping of exceptions
-   to codes (``busgate.gateway.api.errors``), as for what the bus refuses later. Whatever
-   the payload, there is exactly one reply: a bug becomes ``internal``, logged with its
-   traceback. The payload is parsed once: the command is validated from the parsed object.
+   ``unknown_device`` …) and a human message (for an op the device's key does not take,
+   one line naming the op it most likely misspells: ``busgate.schemas.errors``), the code
+   from the one mapping of exceptions to codes (``busgate.gateway.api.errors``), as for what
+   the bus refuses later. Whatever the payload, there is exactly one reply: a bug becomes
+   ``internal``, logged with its traceback. The payload is parsed once: the command is
+   validated from the parsed object, against every op the device's key takes (its kind's
+   and the gateway's: ``DEVICE_COMMAND_ADAPTERS``).
 2. Claims: a client may hold exclusive motion control of a device; others get ``claimed``
    (naming the holder) until release, the TTL lapses, or the holder's liveliness goes. Reads
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
@@ -45,7 +48,16 @@ from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.api import BusGroupMove, BusScan, Claim, EndFollow, Release
+from busgate.schemas.api import (
+    DEVICE_COMMAND_ADAPTERS,
+    BusGroupMove,
+    BusScan,
+    Claim,
+    EndFollow,
+    Release,
+    ResetEstop,
+)
+from busgate.schemas.errors import command_from_object
 
 MAX_PAYLOAD = 64 * 1024
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
@@ -170,8 +182,9 @@ class GatewayApi:
         op, client = fields.get("op"), fields.get("client")
         gateway_op = self._GATEWAY_OPS.get(op) if isinstance(op, str) else None
         if gateway_op is not None:
-            return _finished(gateway_op(self, runner, device, fields))
-        command = driver.commands.validate_python(fields)
+            reply = gateway_op(self, runner, device, fields)
+            return reply if isinstance(reply, Future) else _finished(reply)
+        command = command_from_object(DEVICE_COMMAND_ADAPTERS[driver.kind], fields, driver.kind)
         if driver.deadman and op == driver.deadman.op and client:
             self._deadman_clients[device] = client
         return _mapped(runner.submit(device, command, client))
@@ -203,10 +216,25 @@ class GatewayApi:
             runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
         return ok_reply(ended=True)
 
-    #: The ops every device's ``cmd`` key takes besides its kind's own (``GatewayCommand``).
+    def _reset_estop(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> Future:
+        """Out of the e-stop on the bus thread (``Driver.reset_estop``); the claim alone is
+        judged: the reset moves nothing."""
+        request = ResetEstop.model_validate(fields)
+        authority = runner.authority
+        authority.claims.check(device, request.client, authority.clock())
+        self._event(device, "estop_reset", **_client_field(request.client))
+        return _mapped(runner.reset_estop(device))
+
+    #: The ops every device's ``cmd`` key takes besides its kind's own (``GatewayCommand``):
+    #: a reply, or a future of one.
     _GATEWAY_OPS: ClassVar[
-        dict[str, Callable[[GatewayApi, BusRunner, str, dict[str, Any]], dict[str, Any]]]
-    ] = {"claim": _claim, "release": _release, "end_follow": _end_follow}
+        dict[str, Callable[[GatewayApi, BusRunner, str, dict[str, Any]], dict[str, Any] | Future]]
+    ] = {
+        "claim": _claim,
+        "release": _release,
+        "end_follow": _end_follow,
+        "reset_estop": _reset_estop,
+    }
 
     def follow(self, device: str, payload: bytes) -> dict[str, Any] | None:
         """A follow stream's new target; ``None`` when taken, else the error reply."""
@@ -250,6 +278,13 @@ class GatewayApi:
         """Stop every device of the gateway, ahead of everything; never refused."""
         log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
         return [runner.estop() for runner in self.runners.values()]
+
+    def reset_estop(self, sender: str | None = None) -> list[Future]:
+        """Every device of the gateway out of its e-stop, holding still
+        (``Driver.reset_estop``)."""
+        log.warning("e-stop reset of every bus%s", f" from {sender}" if sender else "")
+        self._event("*", "estop_reset", **_client_field(sender))
+        return [runner.reset_estop() for runner in self.runners.values()]
 
     @answered
     def bus_command(self, bus: str, payload: bytes) -> Future:
@@ -346,6 +381,10 @@ class GatewayApi:
 
     def _event(self, device: str, type_: str, **fields: Any) -> None:
         self.on_event(DeviceEvent(device, type_, fields))
+
+
+def _client_field(client: str | None) -> dict[str, str]:
+    return {"client": client} if client else {}
 
 
 def _finished(reply: dict[str, Any]) -> Future:

@@ -1,9 +1,11 @@
 """The ``busgate`` command: one parser, subcommands added by the modules that own them.
 
 A ``BusgateError`` (a bad command line, a refused command) is printed as one line and exits
-with status 2, never as a traceback. ``busgate --version`` prints the installed version;
-``busgate`` alone prints the help, listing the commands, on stderr and exits with status 2 (a
-command is missing, as for any other usage error).
+with status 2, never as a traceback; one that names several problems (a config refused by
+``busgate run``) is printed one line each, every line with the command's prefix. ``busgate
+--version`` prints the installed version; ``busgate`` alone prints the help, listing the
+commands, on stderr and exits with status 2 (a command is missing, as for any other usage
+error).
 """
 
 from __future__ import annotations
@@ -83,5 +85,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.handler(args)
     except BusgateError as exc:
-        print(f"busgate {args.subcommand}: error: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines() or [type(exc).__name__]:
+            print(f"busgate {args.subcommand}: error: {line}", file=sys.stderr)
         return 2

@@ -56,7 +56,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "bench",
         description=__doc__.split("\n\n")[1],
     )
-    bench.add_argument("--protocol", required=True, choices=sorted(PROTOCOLS), help="wire protocol")
+    bench.add_argument(
+        "--protocol",
+        "--kind",  # its name in earlier releases, still in users' scripts
+        required=True,
+        choices=sorted(PROTOCOLS),
+        metavar="PROTOCOL",
+        help=f"wire protocol: {', '.join(sorted(PROTOCOLS))}",
+    )
     bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
     bench.add_argument("--ids", default="1", help="device ids, e.g. 1,2,3 (default 1)")
     bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")

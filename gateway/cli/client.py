@@ -3,10 +3,13 @@
 comes back as it came).
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
-``cmd`` key, the payload as given (the gateway judges it). Exit status 0 when every reply has
-``"ok": true``, 1 when any reply is an error or, for a bare device name, when gateways answer
-(their ``info``) but none has the device (``unknown_device``: a gateway leaves a fleet-wide
-command for a device it lacks unanswered), 2 when nobody answered (or no session opened).
+``cmd`` key, the payload as given (the gateway judges it). The device is named as the SDK
+names it: ``la1`` on whichever gateway has it, ``gw1/la1`` on gateway ``gw1`` (which answers
+``unknown_device`` itself when it lacks the device); any other target with a ``/`` is the key
+expression. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error
+or, for a bare device name, when gateways answer (their ``info``) but none has the device
+(``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks
+unanswered), 2 when nobody answered (or no session opened).
 
 watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
 each (``watch_table.py``), and redraws a table at most ``REDRAW_HZ`` times a second. Rules:
@@ -31,7 +34,8 @@ from contextlib import contextmanager
 from typing import Any, TextIO
 
 import busgate.client as bc
-from busgate.client.keys import check_key, intersects
+from busgate.client.keys import Keys, check_key, intersects, split_name
+from busgate.codecs.errors import CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 
@@ -46,13 +50,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     send = subparsers.add_parser(
         "send",
         description="Send a JSON command to a device's cmd key and print each reply. A bare "
-        "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers); an "
-        "argument with a '/' is used as the key expression as given. Exit status: 0 all "
-        "replies ok, 1 an error reply or no gateway has the device (unknown_device), 2 nobody "
-        "answered.",
+        "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers), "
+        "<gateway>/<device> means <prefix>/<gateway>/dev/<device>/cmd; any other argument "
+        "with a '/' is used as the key expression as given. Exit status: 0 all replies ok, 1 "
+        "an error reply or no gateway has the device (unknown_device), 2 nobody answered.",
     )
     send.add_argument(
-        "target", help="a device name, or a key expression such as busgate/gw1/bus/uart0/cmd"
+        "target",
+        help="a device name, gateway/device, or a key expression such as busgate/gw1/bus/uart0/cmd",
     )
     send.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
     send.add_argument(
@@ -105,12 +110,21 @@ def _positive(text: str) -> float:
 
 
 def command_key(prefix: str, target: str) -> str:
-    """The key a ``send`` goes to.
+    """The key a ``send`` goes to: a device on every gateway, one on a gateway named as the
+    SDK names it (``split_name``), else the key expression given.
 
-    >>> command_key("busgate", "la1"), command_key("busgate", "busgate/gw1/bus/uart0/cmd")
-    ('busgate/*/dev/la1/cmd', 'busgate/gw1/bus/uart0/cmd')
+    >>> command_key("busgate", "la1"), command_key("busgate", "gw1/la1")
+    ('busgate/*/dev/la1/cmd', 'busgate/gw1/dev/la1/cmd')
+    >>> command_key("busgate", "busgate/gw1/bus/uart0/cmd")
+    'busgate/gw1/bus/uart0/cmd'
     """
-    return target if "/" in target else f"{prefix}/*/dev/{target}/cmd"
+    if "/" not in target:
+        return Keys(prefix).device("*", target, "cmd")
+    try:
+        gateway, device = split_name(target)
+    except CommandError:  # more than <gateway>/<device>, or a wildcard: a key expression
+        return target
+    return target if gateway is None else Keys(prefix).device(gateway, device, "cmd")
 
 
 def run_send(args: argparse.Namespace) -> int:

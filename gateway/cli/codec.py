@@ -58,7 +58,7 @@ def run_encode(args: argparse.Namespace) -> int:
     protocol = PROTOCOLS[args.protocol]
     if args.id is not None and not protocol.addressed:
         raise CommandError(f"{protocol.name} frames carry no device id; drop --id")
-    command = command_from_json(protocol.schema.COMMAND_ADAPTER, args.command)
+    command = command_from_json(protocol.schema.COMMAND_ADAPTER, args.command, protocol.kind)
     device_id = DEFAULT_ID if args.id is None else args.id
     for frame in driver_class(protocol)("encode", device_id).frames_of(command):
         print(wire_text(protocol.codec.encode(frame)))

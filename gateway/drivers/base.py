@@ -100,6 +100,9 @@ class Driver(abc.ABC):
         self.restore_pending = False
         #: Set by ``safe_stop`` (a gateway e-stop), cleared when ``reenable_op`` is planned.
         self.estop_latched = False
+        #: Whether the device was driving its motor when the e-stop latched: what
+        #: ``reset_estop`` puts back (``note_estop``).
+        self.driving_before_estop = False
         self._events: list[DeviceEvent] = []
 
     # -- what the registry says of this driver -------------------------------------------------
@@ -148,12 +151,14 @@ class Driver(abc.ABC):
     def estopped_error(self) -> RefusedError:
         """The refusal of motion while e-stopped, saying how to recover."""
         return RefusedError(
-            "estopped", f"{self.name} is e-stopped: send {self.reenable_op} to let it move again"
+            "estopped",
+            f'{self.name} is e-stopped: send {{"op":"reset_estop"}} to reset it (it holds '
+            f"still in the power state it had), or {self.reenable_op} to let it move again",
         )
 
     def parse(self, text: str | bytes) -> Any:
         """A JSON command for this kind, validated (``CommandError`` when refused)."""
-        return command_from_json(self.commands, text)
+        return command_from_json(self.commands, text, self.kind)
 
     @abc.abstractmethod
     def frames_of(self, command: Any) -> Sequence[object]:
@@ -188,7 +193,46 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def safe_stop(self) -> list[Request]:
-        """The requests that put the device in its safe state (e-stop, shutdown)."""
+        """The requests that put the device in its safe state (e-stop, shutdown); each
+        driver's calls ``note_estop`` first."""
+
+    def note_estop(self) -> None:
+        """Before a safe stop: whether the device is driving now, unless an e-stop already
+        latched (a second one must not forget what the first stopped)."""
+        if not self.estopped:
+            self.driving_before_estop = self.driving()
+
+    def driving(self) -> bool:
+        """Whether the motor is driven (power stage, torque, enable) as far as the gateway
+        knows; not known counts as not."""
+        return False
+
+    def reset_estop(self) -> list[Request]:
+        """Out of the gateway's e-stop, back in the power state the device had before it and
+        holding still: driving again with its target where it is (``hold_still``), or still
+        off with the latch cleared (``stay_off``). Nothing moves until a new command; nothing
+        is sent when the device is not e-stopped."""
+        if not self.estopped:
+            return []
+        if self.driving_before_estop:
+            self.driving_before_estop = False
+            return self.hold_still()
+        self.stay_off()
+        return []
+
+    def hold_still(self) -> list[Request]:
+        """The requests that drive the motor again with its target at its present position
+        (or a speed of 0), planned as its own commands are."""
+        self.stay_off()
+        return []
+
+    def stay_off(self) -> None:
+        """The latch cleared, the motor left undriven: a new command may drive it."""
+        self.estop_latched = False
+
+    def switched_off(self) -> None:
+        """A command switched the motor off: a reset that follows leaves it off."""
+        self.driving_before_estop = False
 
     def init(self) -> list[Request]:
         """The requests that (re)initialise the device after the bus (re)opens or it rebooted:

@@ -202,8 +202,11 @@ class DsServoDriver(Driver):
             Request.of(codec, frame, idempotent=idempotent)
             for frame in frames_for(command, self.device_id)
         ]
-        if isinstance(command, schema.Torque) and command.on:
-            self.estop_latched = False  # the re-enable op: the servo may move again
+        if isinstance(command, schema.Torque):
+            if command.on:
+                self.estop_latched = False  # the re-enable op: the servo may move again
+            else:
+                self.switched_off()
         return requests
 
     def poll(self) -> list[Request]:
@@ -216,8 +219,25 @@ class DsServoDriver(Driver):
         """Torque off: the manual documents no value for the lock (e-stop) flag at 0x30, and
         torque off is its one documented way to stop driving the shaft. The servo goes limp:
         a load it was holding against gravity is no longer held."""
+        self.note_estop()
         self.estop_latched = True
         return [Request.of(codec, codec.Write(self.device_id, _TORQUE, b"\x00"), idempotent=True)]
+
+    def driving(self) -> bool:
+        return self.torque_on is True
+
+    def hold_still(self) -> list[Request]:
+        """The target at the present position first, then torque on: the servo holds where it
+        is instead of going back to the target it had. Its position not known, it stays off
+        (torque on would drive it to an old target)."""
+        here = self.measured["position"]
+        if here is None:
+            self.stay_off()
+            return []
+        low, high = codec.REGISTERS["target_position"].limits
+        target = schema.Move(op="move", position=min(max(here, low), high))
+        requests = self.plan(target)
+        return requests + self.plan(schema.Torque(op="torque", on=True))
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         return self.follow_payload(payload).position

@@ -123,6 +123,10 @@ class InspireLaDriver(Driver):
         # The state changes only once every check passed and every frame encoded.
         for values in writes:
             self._planned.update(values)
+        if isinstance(command, schema.Estop):  # a client's own e-stop: reset as the gateway's
+            self.note_estop()
+        elif isinstance(command, schema.Pause):
+            self.switched_off()
         self.power = self._power_after(command, moves_me)
         return requests
 
@@ -147,8 +151,25 @@ class InspireLaDriver(Driver):
 
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""
+        self.note_estop()
         self.power = PowerStage.ESTOPPED
         return [self._estop()]
+
+    def driving(self) -> bool:
+        return self.power is PowerStage.ON
+
+    def hold_still(self) -> list[Request]:
+        """Enable (no motion until a new target, manual 3.5.4), and a target at the present
+        position, so that the target it had before the stop is gone for good."""
+        requests = self.plan(schema.Enable(op="enable"))
+        if self.status is not None:
+            low, high = codec.REGISTERS["target_position"].limits
+            here = min(max(self.status.position_raw, low), high)
+            requests += self.plan(schema.Move(op="move", position=here))
+        return requests
+
+    def stay_off(self) -> None:
+        self.power = PowerStage.PAUSED  # off, and a new target switches it on
 
     def _estop(self) -> Request:
         return _request(

@@ -61,6 +61,7 @@ def _rpm(raw: int | None) -> float | None:
 
 _STOP = schema.Velocity(op="velocity", rpm=0.0)
 _RELEASE = schema.Disable(op="disable")
+_ENABLE = schema.Enable(op="enable")
 
 
 # -- the driver -------------------------------------------------------------------------------
@@ -113,8 +114,11 @@ class Zlac706Driver(Driver):
                 changes.update(change)
                 outlook = replace(outlook, **change)
         self.machine.planned(changes)
-        if changes.get(Role.ENABLE.value):
+        enabled = changes.get(Role.ENABLE.value)
+        if enabled:
             self.estop_latched = False  # the re-enable op: the motor may run again
+        elif enabled is False:
+            self.switched_off()
         return requests
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
@@ -139,9 +143,21 @@ class Zlac706Driver(Driver):
         """Speed 0 (unless the mode is known not to be velocity), then release the motor.
 
         The queue is dropped on an e-stop, so the writes still in flight are forgotten."""
+        self.note_estop()
         self.estop_latched = True
         self.machine.forget_pending()
         return [*self.stale_stream(), *self._unchecked(_RELEASE)]
+
+    def driving(self) -> bool:
+        return self.machine.settings.enabled is True
+
+    def hold_still(self) -> list[Request]:
+        """Enabled again: in velocity mode at 0 rpm (the speed the stop left preset), in
+        position mode holding where it is (no target is written: a target moves it)."""
+        requests = self.plan(_ENABLE)
+        if self.machine.expected().mode is Mode.VELOCITY:
+            requests += self.plan(_STOP)
+        return requests
 
     def stale_stream(self) -> list[Request]:
         """0 rpm: a client that stopped streaming speeds must not leave the wheel turning."""

@@ -198,6 +198,12 @@ class BusRunner:
         """Put every device of the bus in its safe state, ahead of everything else."""
         return self._hand_over(self._plan_estop)
 
+    def reset_estop(self, device: str | None = None) -> Future:
+        """``device`` (``None``: every device of the bus) out of the gateway's e-stop, each
+        in the power state it had before and holding still (``Driver.reset_estop``)."""
+        start_by = now() + COMMAND_START_S
+        return self._hand_over(lambda future: self._plan_reset(device, start_by, future))
+
     def follow(self, device: str, target: Any) -> None:
         """The latest follow target of ``device`` (validated with its driver's
         ``follow_target``); streaming starts, or goes on, at the device's period."""
@@ -273,6 +279,16 @@ class BusRunner:
         self.streams.end_all("estop")
         self.plays.end_all(ESTOP)
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
+
+    def _plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
+        drivers = list(self.drivers.values()) if device is None else [self.drivers[device]]
+        requests = deque(r for driver in drivers for r in driver.reset_estop())
+        # Every device's frames go, whatever one silent device does (as an e-stop's).
+        self._queue_job(
+            Job(
+                device or "*", requests, keep_going=device is None, start_by=start_by, future=future
+            )
+        )
 
     def _start_stream(self, device: str, target: Any, moment: float) -> None:
         driver = self.drivers.get(device)
