@@ -11,9 +11,12 @@ client with ``ZError`` before anything is sent.
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 import zenoh
 
+from busgate.codecs import inspire_la as la
 from tests import test_zenoh_api
 
 # The daemon, a client session and the simulator, as test_zenoh_api runs them.
@@ -77,3 +80,23 @@ def test_a_malformed_key_is_refused_by_the_client(setup, key) -> None:
     with pytest.raises(zenoh.ZError, match="Invalid Key Expr"):
         client.get(key, payload=MOVE, timeout=1.0)
     assert_serves_on_and_nothing_moved(client, simulator, before)
+
+
+def test_a_put_on_every_key_logs_no_traceback_and_no_reset_rides_along(
+        setup, caplog, capfd) -> None:
+    """A put on ``**`` reaches every subscriber of the gateway: the device command and follow
+    ones find no device in it (dropped, no traceback: any peer could flood the log), the
+    e-stop takes it (a stop is never refused), and the reset, whose key it matches too,
+    ignores it: a reset names its gateway's key exactly."""
+    client, simulator = setup
+    caplog.set_level(logging.DEBUG, logger="busgate")
+    before = len(simulator.recorder.received())
+    for key in ("**", "busgate/gw1/estop/**"):
+        client.put(key, MOVE)
+    assert_serves_on_and_nothing_moved(client, simulator, before)
+    [state] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status"}')
+    assert state["state"]["estopped"], "the e-stop took the put"
+    enable = la.encode(la.ControlCommand(1, la.ControlCode.ENABLE)).hex()
+    assert enable not in [r.wire for r in simulator.recorder.received()[before:]]
+    problems = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
+    assert problems == [] and "Traceback" not in capfd.readouterr().err

@@ -157,27 +157,37 @@ class ZenohBridge:
     # -- zenoh callbacks (zenoh's threads: hand over only) ----------------------------------
 
     def _on_device_query(self, query: zenoh.Query) -> None:
-        device = str(query.key_expr).split("/")[-2]
-        if self._not_ours(query, device, self.api.devices):
+        device = self._ours(query, "dev", self.api.devices)
+        if device is None:
             return
         reply_key, payload = f"{self.base}/dev/{device}/cmd", _payload(query)
         self._answer(query, lambda: self.api.command(device, payload), reply_key, payload)
 
     def _on_bus_query(self, query: zenoh.Query) -> None:
-        bus = str(query.key_expr).split("/")[-2]
-        if self._not_ours(query, bus, self.runners):
+        bus = self._ours(query, "bus", self.runners)
+        if bus is None:
             return
         reply_key, payload = f"{self.base}/bus/{bus}/cmd", _payload(query)
         self._answer(query, lambda: self.api.bus_command(bus, payload), reply_key, payload)
 
-    @staticmethod
-    def _not_ours(query: zenoh.Query, name: str, known) -> bool:
-        """A query with wildcards that names nothing of this gateway (``busgate/*/dev/la9/cmd``
-        sent to a fleet) is left to the gateways that have it: dropped without a reply."""
-        if name in known or "*" not in str(query.key_expr):
-            return False
+    def _named(self, key: str, room: str) -> str | None:
+        """The name in a key of the shape ``<base>/<room>/<name>/<leaf>``; ``None`` for a key
+        of another shape (``**`` matches every key: it names no device)."""
+        chunks = key.split("/")
+        if len(chunks) != self.base.count("/") + 4 or chunks[-3] != room:
+            return None
+        return chunks[-2]
+
+    def _ours(self, query: zenoh.Query, room: str, known) -> str | None:
+        """The device or bus ``query`` names; ``None`` when a query with wildcards names
+        nothing of this gateway (``busgate/*/dev/la9/cmd`` sent to a fleet, or ``**``): it is
+        left to the gateways that have it, dropped without a reply."""
+        key = str(query.key_expr)
+        name = self._named(key, room)
+        if name is not None and (name in known or "*" not in key):
+            return name
         query.drop()
-        return True
+        return None
 
     def _on_info(self, query: zenoh.Query) -> None:
         def info() -> Future:
@@ -194,13 +204,19 @@ class ZenohBridge:
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        device = key.split("/")[-2]
+        device = self._named(key, "dev")
+        if device is None:
+            log.debug("put on %s names no device: dropped", key)
+            return
         result = self.api.command(device, payload)
         result.add_done_callback(lambda done: self._report_put(device, key, payload, done.result()))
 
     def _on_follow(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        device = key.split("/")[-2]
+        device = self._named(key, "dev")
+        if device is None:
+            log.debug("follow target on %s names no device: dropped", key)
+            return
         refused = self.api.follow(device, payload)
         self._report_put(device, key, payload, refused)
 
@@ -214,7 +230,12 @@ class ZenohBridge:
             self.on_command(str(sample.key_expr), payload, None)
 
     def _on_estop_reset(self, sample: zenoh.Sample) -> None:
-        payload = sample.payload.to_bytes()
+        """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``
+        reaches the e-stop too, and a reset must never ride along with a stop."""
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if key != f"{self.base}/estop/reset":
+            log.warning("e-stop reset on %s ignored: a reset names its gateway's key", key)
+            return
         self.api.reset_estop(_sender(payload))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
