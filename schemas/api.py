@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
-from busgate.schemas.base import ClientId, CommandModel, OpenPublished, Published
+from busgate.schemas.base import ClientId, CommandModel, FollowSeq, OpenPublished, Published
 from busgate.schemas.config import Name
 from busgate.schemas.families import FAMILIES, PROTOCOLS
 from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
@@ -74,9 +74,14 @@ class EndFollow(CommandModel):
     and what a stale stream gets (a ZLAC706 in velocity mode 0 rpm), with no ``stream_stale``
     event. A device claimed by another client refuses it (``claimed``); an e-stopped one does
     not, since ending a stream moves nothing. A follow put after the ``stream_stopped``
-    event starts a new stream."""
+    event starts a new stream. ``seq``, the client's count of what it sent this device's
+    stream (targets and ends alike), orders the end against the targets: one of the client's
+    targets with a lower ``seq`` was sent before the end and is dropped whenever it arrives,
+    one with a higher ``seq`` starts a new stream at once (without ``seq`` on both, a target
+    within ``END_FENCE_S`` of the end is taken as sent before it)."""
 
     op: Literal["end_follow"]
+    seq: FollowSeq | None = None
 
 
 class ResetEstop(CommandModel):

@@ -40,6 +40,18 @@ class CommandModel(BaseModel):
     require_claim: bool = False
 
 
+#: A client's count of what it sends to one device's follow stream (its targets and the
+#: ``end_follow`` that ends it), increasing: it orders a target against an end whichever of
+#: zenoh's threads each reached the gateway on.
+FollowSeq = Annotated[int, Field(ge=0, le=2**63 - 1)]
+
+
+class FollowModel(CommandModel):
+    """Base of what a follow key takes: a target, the client, and the client's ``seq``."""
+
+    seq: FollowSeq | None = None
+
+
 class Published(BaseModel):
     """Base of what the gateway publishes and clients only read: closed, no coercion."""
 

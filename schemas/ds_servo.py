@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field, TypeAdapter, model_validator
 from pydantic.fields import FieldInfo
 
 from busgate.codecs import ds_servo as codec
-from busgate.schemas.base import CommandModel, HexData
+from busgate.schemas.base import CommandModel, FollowModel, HexData
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
@@ -168,9 +168,9 @@ REENABLE_COMMAND: dict[str, object] = {"op": "torque", "on": True}
 # --- the follow key and telemetry ---------------------------------------------------------------
 
 
-class FollowTarget(CommandModel):
+class FollowTarget(FollowModel):
     """What ``<prefix>/<gw>/dev/<device>/follow`` takes: one absolute position, and the sending
-    client (the latest target is sent at the device's follow period)."""
+    client and its ``seq`` (the latest target is sent at the device's follow period)."""
 
     position: Position
 

@@ -19,7 +19,7 @@ from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, model_valida
 from pydantic.fields import FieldInfo
 
 from busgate.codecs import inspire_la as codec
-from busgate.schemas.base import CommandModel, HexData
+from busgate.schemas.base import CommandModel, FollowModel, HexData
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
@@ -217,9 +217,9 @@ REENABLE_COMMAND: dict[str, object] = {"op": "enable"}
 # --- the follow key and telemetry ---------------------------------------------------------------
 
 
-class FollowTarget(CommandModel):
+class FollowTarget(FollowModel):
     """What ``<prefix>/<gw>/dev/<device>/follow`` takes: the target position, and the sending
-    client (the latest target is sent at the device's follow period)."""
+    client and its ``seq`` (the latest target is sent at the device's follow period)."""
 
     position: Position
 

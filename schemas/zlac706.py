@@ -21,7 +21,7 @@ from pydantic import Field, Strict, TypeAdapter
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
-from busgate.schemas.base import CommandModel, Published
+from busgate.schemas.base import CommandModel, FollowModel, Published
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 _POSITION = can.REGISTERS["target_position"]
@@ -176,9 +176,9 @@ REENABLE_COMMAND: dict[str, object] = {"op": "enable"}
 # --- the follow key and telemetry ---------------------------------------------------------------
 
 
-class FollowTarget(CommandModel):
+class FollowTarget(FollowModel):
     """What ``<prefix>/<gw>/dev/<device>/follow`` takes: a speed (velocity mode), and the
-    sending client (the latest speed is sent at the device's follow period)."""
+    sending client and its ``seq`` (the latest speed is sent at the device's follow period)."""
 
     rpm: Rpm
 

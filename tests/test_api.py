@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
+from busgate.gateway.api import commands
 from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.bus.clock import now
 from busgate.gateway.scheduler.tickers import FRESH_PERIODS, MIN_FRESH_S
@@ -302,6 +303,31 @@ def test_a_target_of_the_client_that_ended_the_stream_coming_just_after_is_dropp
     accepted(api, "la2", {"op": "end_follow", "client": "alice"})
     wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == 2)
     assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"] * 2
+
+
+def test_numbered_targets_are_ordered_against_the_end_by_their_seq_not_by_a_fence(
+        wait_for, gateway, monkeypatch):
+    """With ``seq`` on the targets and the end (as the SDK sends them), the order holds by
+    construction: a target numbered below the end is dropped however late it comes (the
+    fence shrunk to nothing cannot let it through), one numbered above starts a new stream at
+    once (the fence would have dropped it for half a second)."""
+    monkeypatch.setattr(commands, "END_FENCE_S", 0.0)
+    api, simulator, _, _, events = gateway
+    assert api.follow("la2", b'{"position": 700, "client": "carol", "seq": 1}') is None
+    wait_for(lambda: follow_ticks(simulator) > 0)
+    accepted(api, "la2", {"op": "end_follow", "client": "carol", "seq": 3})
+    wait_for(lambda: any(e.type == "stream_stopped" for e in events))
+    time.sleep(0.05)  # past the (shrunk) fence: only the numbers can tell
+    assert api.follow("la2", b'{"position": 701, "client": "carol", "seq": 2}') is None
+    accepted(api, "la2", {"op": "status"})
+    ended = follow_ticks(simulator)
+    accepted(api, "la2", {"op": "status"})  # a stream started would have ticked by now
+    assert follow_ticks(simulator) == ended
+    monkeypatch.setattr(commands, "END_FENCE_S", 10.0)  # a fence could not let this one by
+    assert api.follow("la2", b'{"position": 702, "client": "carol", "seq": 4}') is None
+    wait_for(lambda: follow_ticks(simulator) > ended)
+    accepted(api, "la2", {"op": "end_follow", "client": "carol", "seq": 5})
+    wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == 2)
 
 
 def test_a_target_checked_as_the_stream_ends_is_handed_to_the_bus_before_the_end(wait_for,

@@ -20,12 +20,16 @@ every rule of the API is tested without a network. Rules of this file:
    by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
    ZLAC706 whose speed it commanded is brought to 0 rpm at once. A client may end a stream
-   itself (``end_follow``): claimed like a follow target, never refused for an e-stop; its
-   targets that come within ``END_FENCE_S`` after were sent before the end and are dropped
-   (else one that overtook nothing but arrived late would start a stream that goes stale).
-   A target and an end taken at once on two of zenoh's threads are handed to the bus in
-   the order they passed the fence (one lock over the check and the hand-over), so a target
-   checked before the end can never start its stream after it.
+   itself (``end_follow``): claimed like a follow target, never refused for an e-stop. zenoh
+   hands a put (a target) and a query (the end) to different threads, so a target sent
+   before the end may be taken after it; it must not start a stream that then goes stale.
+   The order holds by construction when the client numbers what it sends a stream
+   (``seq``, as the SDK does): a target of that client numbered below the end was sent
+   before it and is dropped, whenever it arrives; one above starts a new stream at once.
+   Without numbers on both, the client's targets within ``END_FENCE_S`` of the end are
+   taken as sent before it. A target and an end taken at once on two of zenoh's threads are
+   handed to the bus in the order they passed the fence (one lock over the check and the
+   hand-over), so a target checked before the end can never start its stream after it.
 4. Nothing here blocks: commands go to the bus runners and come back as futures.
 """
 
@@ -65,11 +69,12 @@ SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
 #: twice the plan (it shares the bus with commands, ticks and polls) plus this.
 SCAN_SLACK_S = 1.0
-#: After a client's ``end_follow``, how long its targets for that device are taken as sent
-#: before the end. zenoh hands a put and a query to their callbacks on different threads, so
-#: a target sent just before the end can be taken after it; on a loaded host that was seen
-#: past 100 ms (CI), so the fence is wider. A client that streams again that soon after
-#: ending loses its first half second of targets.
+#: After a client's ``end_follow`` without ``seq``, how long its targets for that device
+#: without one are taken as sent before the end (rule 3). zenoh hands a put and a query to
+#: their callbacks on different threads, so a target sent just before the end can be taken
+#: after it; on a loaded host that was seen past 100 ms (CI), so the fence is wider. A client
+#: that streams again that soon after ending loses its first half second of targets: the
+#: SDK numbers its targets and ends (``seq``) and never meets the fence.
 END_FENCE_S = 0.5
 
 log = logging.getLogger(__name__)
@@ -165,9 +170,9 @@ class GatewayApi:
         #: Device → the client whose command keeps it moving (its driver's ``deadman`` op).
         self._deadman_clients: dict[str, str] = {}
         self._stream_clients: dict[str, str] = {}  # device → client of its follow stream
-        #: Device → (client, when) of its last ``end_follow``: that client's targets that come
-        #: within ``END_FENCE_S`` after were sent before it (rule 3).
-        self._ended: dict[str, tuple[str | None, float]] = {}
+        #: Device → (client, when, seq) of its last ``end_follow``: which of that client's
+        #: targets were sent before it (rule 3).
+        self._ended: dict[str, tuple[str | None, float, int | None]] = {}
         self._fence = threading.Lock()  # a target's check and hand-over vs an end (rule 3)
 
     # -- commands ---------------------------------------------------------------------------
@@ -212,7 +217,7 @@ class GatewayApi:
         authority.claims.check(device, request.client, authority.clock())
         with self._fence:
             self._stream_clients.pop(device, None)
-            self._ended[device] = (request.client, now())
+            self._ended[device] = (request.client, now(), request.seq)
             runner.stop_stream(device, f"ended by {request.client}" if request.client else "ended")
         return ok_reply(ended=True)
 
@@ -242,9 +247,9 @@ class GatewayApi:
             runner, driver = self._device(device)
             fields = decode_object(payload)
             target = driver.follow_target(fields)
-            client = fields.get("client")
+            client, seq = fields.get("client"), fields.get("seq")
             with self._fence:
-                if self._sent_before_the_end(device, client):
+                if self._sent_before_the_end(device, client, seq):
                     return None
                 if runner.plays.playing(device):
                     raise RefusedError(
@@ -267,12 +272,17 @@ class GatewayApi:
             log.exception("follow on %s failed", device)
             return error_reply(exc)
 
-    def _sent_before_the_end(self, device: str, client: str | None) -> bool:
-        """A target of the client that just ended ``device``'s stream, come after the end:
-        it was sent before it (it took another path, or another of zenoh's threads), and must
-        not start the stream again (rule 3)."""
+    def _sent_before_the_end(self, device: str, client: str | None, seq: int | None) -> bool:
+        """A target of the client that ended ``device``'s stream, come after the end but sent
+        before it (it took another of zenoh's threads): it must not start the stream again
+        (rule 3). By its ``seq`` against the end's when both have one, else by the fence."""
         ended = self._ended.get(device)
-        return ended is not None and ended[0] == client and now() - ended[1] < END_FENCE_S
+        if ended is None or ended[0] != client:
+            return False
+        _, when, end_seq = ended
+        if seq is not None and end_seq is not None:
+            return seq < end_seq
+        return now() - when < END_FENCE_S
 
     def estop(self, sender: str | None = None) -> list[Future]:
         """Stop every device of the gateway, ahead of everything; never refused."""
