@@ -121,7 +121,14 @@ class Client:
         return self._shared.core.on_gateways(callback)
 
     async def estop(self, gateway: str | None = None) -> None:
-        self._shared.estop(gateway)  # a put: it does not wait
+        """As ``busgate.client.Client.estop``: the put goes before anything is awaited."""
+        checked = self._shared.estop(gateway)
+        await wait(checked, self.timeout, f"whether {gateway} is up (e-stop put)")
+
+    async def reset_estop(self, gateway: str) -> None:
+        """As ``busgate.client.Client.reset_estop``."""
+        checked = self._shared.reset_estop(gateway)
+        await wait(checked, self.timeout, f"whether {gateway} is up (reset put)")
 
     async def play(
         self,
@@ -183,6 +190,9 @@ class Device:
 
     async def enable(self) -> dict[str, Any]:
         return await self.send(reenable_command(self.kind))
+
+    async def reset_estop(self) -> dict[str, Any]:
+        return await self.send({"op": "reset_estop"})
 
     async def state(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Any:
         if self._latest is None:

@@ -16,9 +16,15 @@ from pydantic import BaseModel
 
 from busgate.client.claims import ClaimLease, Timers
 from busgate.client.core import UNPARSED, Answer, Core, dumps, then
-from busgate.client.errors import AmbiguousError, ClaimLostError, NoAnswerError, error_for
+from busgate.client.errors import (
+    AmbiguousError,
+    ClaimLostError,
+    NoAnswerError,
+    UnknownGatewayError,
+    error_for,
+)
 from busgate.client.follow import FollowSender
-from busgate.client.keys import split_name
+from busgate.client.keys import check_name, split_name
 from busgate.codecs.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS
 from busgate.schemas.families import FAMILIES
@@ -115,6 +121,26 @@ def failed_as(future: Future, make: Callable[[BaseException], BaseException]) ->
 
     future.add_done_callback(settle)
     return mapped
+
+
+def settled(value: Any) -> Future:
+    """A future already done with ``value``."""
+    done: Future = Future()
+    done.set_result(value)
+    return done
+
+
+def known_gateway(gateway: str, known: set[str], key: str) -> None:
+    """Nothing when ``gateway`` is among the gateways ``known``; else the
+    ``UnknownGatewayError`` that names them (what was put on ``key`` reached nobody)."""
+    if gateway not in known:
+        up = sorted(known)
+        raise UnknownGatewayError(
+            f"no gateway {gateway!r} is up: the put on {key} reached none (the gateways that "
+            f"answer: {', '.join(up) or 'none'})",
+            gateway=gateway,
+            gateways=up,
+        )
 
 
 def scan_command(ids: list[int] | None) -> dict[str, Any]:
@@ -248,7 +274,38 @@ class Shared:
 
         return self.core.subscribe(key, sink)
 
-    def estop(self, gateway: str | None) -> None:
-        """E-stop one gateway, or every gateway of the fleet (``None``)."""
-        body = {"client": self.core.client_id}
-        self.core.put(self.core.keys.estop(gateway or "*"), dumps(body), urgent=True)
+    def estop(self, gateway: str | None) -> Future:
+        """E-stop one gateway, or every gateway of the fleet (``None``, or ``"*"`` as the
+        key names it): see ``to_gateway``."""
+        if gateway is None or gateway == "*":
+            self.core.put(self.core.keys.estop("*"), self.signed(), urgent=True)
+            return settled(None)
+        return self.to_gateway(self.core.keys.estop, gateway)
+
+    def reset_estop(self, gateway: str) -> Future:
+        """Have one gateway reset its e-stop: see ``to_gateway``. It goes as an e-stop does:
+        zenoh keeps the order of puts of one priority only, and an e-stop put after a reset
+        must never overtake it."""
+        return self.to_gateway(self.core.keys.estop_reset, gateway)
+
+    def to_gateway(self, key: Callable[[str], str], gateway: str) -> Future:
+        """Put this client's id on ``key(gateway)`` at once, with an e-stop's priority, then
+        check that a gateway of that name is up: the future's ``None``, or
+        ``UnknownGatewayError`` naming those that answer. The put comes first, so that a
+        safety stop is never slowed by a lookup (a put nobody takes is harmless). A gateway
+        whose liveliness token this client has seen is known at once; else every gateway's
+        ``info`` is asked for (just after a connect the tokens are still coming, and a
+        liveliness query then answers from that partial view: none). Not a gateway's name
+        (``""``, ``None``, a wildcard): ``CommandError``, a ``ValueError``, nothing put."""
+        where = key(check_name("gateway", gateway))
+        self.core.put(where, self.signed(), urgent=True)
+        if gateway in self.core.gateways_up:
+            return settled(None)
+        return then(
+            self.infos(None, self.core.timeout_s),
+            lambda infos: known_gateway(gateway, {*infos, *self.core.gateways_up}, where),
+        )
+
+    def signed(self) -> bytes:
+        """The body of a put to gateways: this client's id."""
+        return dumps({"client": self.core.client_id})

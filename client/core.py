@@ -4,9 +4,11 @@ face (``aio.py``) awaits them, so both do exactly the same on the wire.
 
 Rules of this file:
 
-1. zenoh callbacks run on zenoh's threads and only hand over: a reply is parsed and stored,
-   a finished query settles its future, a sample goes to its sinks (which may not block).
-   One slow callback would stall every other callback of the session.
+1. Callbacks only hand over. A reply is parsed and stored and a finished query settles its
+   future on zenoh's own thread, where one slow callback would stall every other one of the
+   session. A sample goes to its sinks (which may not block) on its subscription's thread
+   (rule 5): a slow one holds up that subscription, and the whole session once its queue in
+   zenoh is full.
 2. Every command carries the client's id; the client's liveliness token
    (``<prefix>/clients/<id>``) is held from ``open`` to ``close``, so that a gateway drops
    the client's claims and streams when it goes (its lease, about 1 s by default).
@@ -14,16 +16,29 @@ Rules of this file:
 4. Gateways come and go (liveliness ``<prefix>/<gw>/alive``): a gateway going takes this
    client's claims on it (``on_gateway_gone``); subscriptions and queries resume on their own
    once it is back, as zenoh re-declares them.
+5. Nothing of a client holds its program's exit. Python joins every non-daemon thread
+   (``threading._shutdown``) before it runs any ``atexit`` handler, and zenoh calls a plain
+   function given as a callback on a non-daemon ``threading.Thread`` of its own until the
+   session closes: a program that never closed its client never ended. So zenoh is never
+   given one: a query's callbacks run on zenoh's thread (``indirect=False``), and each
+   subscription is declared with zenoh's channel and drained by a daemon thread of its own
+   (as fast as zenoh's threads: a callback on zenoh's thread would cost each sample a Python
+   thread state made and dropped, about 10 µs). A client never closed is closed at exit by
+   a ``weakref.finalize`` (its registry holds no client, and none once closed), on a daemon
+   thread given ``EXIT_CLOSE_S``: zenoh's close waits for its callbacks under way, and a
+   subscription whose sink never returns leaves one under way once its queue is full (zenoh
+   waits to put a sample in it); the exit must not wait for that (the process ends anyway,
+   and the gateways see the client go).
 """
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import json
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
@@ -41,6 +56,11 @@ log = logging.getLogger(__name__)
 
 #: The payload of zenoh's own error reply when a queryable did not answer in time.
 ZENOH_TIMEOUT = b"Timeout"
+
+#: How long the close at interpreter exit of a client never closed may take (rule 5).
+EXIT_CLOSE_S = 0.5
+#: What a subscription is declared with: zenoh's own queue of samples, drained (rule 5).
+CHANNEL: zenoh.handlers.DefaultHandler[Any] = zenoh.handlers.DefaultHandler()
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,26 +216,27 @@ class Core:
         self._listeners: list[Callable[[str, bool], None]] = []
         self.gateways_up: set[str] = set()
         try:
-            liveliness = self.session.liveliness()
+            liveliness, alive = self.session.liveliness(), self.keys.alive("*")
             self._held: list[Any] = [
                 liveliness.declare_token(self.keys.client(self.client_id)),
-                liveliness.declare_subscriber(self.keys.alive("*"), self._on_alive, history=True),
+                _drained(
+                    liveliness.declare_subscriber(alive, CHANNEL, history=True),
+                    self._on_alive,
+                    alive,
+                ),
             ]
         except zenoh.ZError as exc:
             self.session.close()
             raise ConnectError(f"the session to {where} refused: {zenoh_reason(exc)}") from exc
-        atexit.register(self.close)
+        self._at_exit = weakref.finalize(self, _close_in_time, self.session, self._held)
 
     # -- lifetime ----------------------------------------------------------------------------
 
     def close(self) -> None:
         """Undeclare everything (the token last but one) and close the session; again is a
-        no-op. Also run at interpreter exit for a client never closed: a session left open
-        with callback subscribers hangs the exit (zenoh-python #434)."""
-        atexit.unregister(self.close)
-        self._held.clear()
-        with contextlib.suppress(zenoh.ZError):
-            self.session.close()
+        no-op. A client never closed is closed at interpreter exit (rule 5)."""
+        if self._at_exit.detach() is not None:
+            _close(self.session, self._held)
 
     # -- exchanges ---------------------------------------------------------------------------
 
@@ -298,8 +319,8 @@ class Core:
         return put
 
     def subscribe(self, key: str, sink: Callable[[str, bytes], None]) -> Callable[[], None]:
-        """Hand each sample on ``key`` to ``sink(key, payload)`` (zenoh's thread: it may not
-        block); returns what ends the subscription."""
+        """Hand each sample on ``key`` to ``sink(key, payload)`` (the subscription's thread: it
+        may not block); returns what ends the subscription."""
         return self.subscribe_timed(key, lambda key, payload, ns: sink(key, payload))
 
     def subscribe_timed(
@@ -314,9 +335,10 @@ class Core:
             sink(str(sample.key_expr), sample.payload.to_bytes(), ns)
 
         try:
-            subscriber = self.session.declare_subscriber(check_key(key), on_sample)
+            subscriber = self.session.declare_subscriber(check_key(key), CHANNEL)
         except zenoh.ZError as exc:
             raise CommandError(f"cannot subscribe to {key[:200]!r}: {zenoh_reason(exc)}") from exc
+        _drained(subscriber, on_sample, key)
         return lambda: _quietly(subscriber.undeclare)
 
     # -- gateways coming and going -----------------------------------------------------------
@@ -351,6 +373,42 @@ class Core:
             listeners = list(self._listeners)
         for listener in listeners:
             listener(gateway, alive)
+
+
+def _drained(subscriber: Any, on_sample: Callable[[Any], None], key: str) -> Any:
+    """``subscriber`` (declared with ``CHANNEL``) drained into ``on_sample`` by a daemon thread
+    of its own until it is undeclared or the session closes (rule 5)."""
+
+    def drain() -> None:
+        for sample in subscriber:
+            try:
+                on_sample(sample)
+            except Exception:  # one sample that fails a sink must not end the subscription
+                log.exception("a sample on %s failed its subscriber", key[:200])
+
+    threading.Thread(target=drain, name=f"busgate {key[:100]}", daemon=True).start()
+    return subscriber
+
+
+def _close(session: zenoh.Session, held: list[Any]) -> None:
+    held.clear()
+    with contextlib.suppress(zenoh.ZError):
+        session.close()
+
+
+def _close_in_time(session: zenoh.Session, held: list[Any]) -> None:
+    """``_close`` of a client never closed, waited for at most ``EXIT_CLOSE_S`` (rule 5)."""
+    closing = threading.Thread(
+        target=_close, args=(session, held), name="busgate-client-close", daemon=True
+    )
+    closing.start()
+    closing.join(EXIT_CLOSE_S)
+    if closing.is_alive():
+        log.warning(
+            "a busgate client's session was still closing %g s into the exit (a callback under "
+            "way does not return): the program ends without waiting for it",
+            EXIT_CLOSE_S,
+        )
 
 
 def _timestamp_ns(stamp: zenoh.Timestamp) -> int:

@@ -12,8 +12,10 @@ Rules of this file:
 3. What fails before a gateway could answer has its own classes: ``ConnectError`` (no zenoh
    session), ``NoAnswerError`` (nobody answered in time), ``AmbiguousError`` (a bare name that
    several gateways have). ``ClaimLostError`` is both: the SDK raises it when it knows a claim
-   is lost, and it is the class of the gateway's ``not_claimed``. No
-   ``zenoh.ZError`` reaches a user: the modules that call zenoh turn it into one of these.
+   is lost, and it is the class of the gateway's ``not_claimed``. ``UnknownGatewayError``
+   (``unknown_gateway``) is the SDK's own finding, in the family of ``unknown_device``: no
+   gateway of the name given is up; ``error_for`` finds it too. No ``zenoh.ZError`` reaches
+   a user: the modules that call zenoh turn it into one of these.
 """
 
 from __future__ import annotations
@@ -58,6 +60,19 @@ class ClaimLostError(GatewayError):
     code = "not_claimed"
 
 
+class UnknownGatewayError(GatewayError):
+    """No gateway of the name given is up (none answers under it): a misspelt name, or a
+    gateway that is down. ``gateway`` is the name; ``gateways`` those that do answer."""
+
+    code = "unknown_gateway"
+
+    def __init__(
+        self, message: str, *, gateway: str | None = None, gateways: list[str] | None = None
+    ) -> None:
+        super().__init__(message, gateway=gateway)
+        self.gateways = gateways or []
+
+
 def _class_name(code: str) -> str:
     """``out_of_range`` → ``OutOfRangeError``."""
     return "".join(part.capitalize() for part in code.split("_")) + "Error"
@@ -67,6 +82,7 @@ def _error_classes() -> dict[str, type[GatewayError]]:
     classes: dict[str, type[GatewayError]] = {
         "claimed": ClaimedError,
         "not_claimed": ClaimLostError,
+        "unknown_gateway": UnknownGatewayError,
     }
     for code in ERROR_CODES:
         if code not in classes:
@@ -75,7 +91,7 @@ def _error_classes() -> dict[str, type[GatewayError]]:
     return classes
 
 
-#: Each error code of the API and its class.
+#: Each error code of the API and its class (and the SDK's own ``unknown_gateway``).
 ERROR_CLASSES: dict[str, type[GatewayError]] = _error_classes()
 globals().update({cls.__name__: cls for cls in ERROR_CLASSES.values()})
 

@@ -5,6 +5,8 @@ spells a key; the README's API section lists the same keys.
 >>> keys = Keys("busgate")
 >>> keys.device("gw1", "la1", "cmd"), keys.bus("*", "uart0", "cmd"), keys.estop("*")
 ('busgate/gw1/dev/la1/cmd', 'busgate/*/bus/uart0/cmd', 'busgate/*/estop')
+>>> keys.estop_reset("gw1")
+'busgate/gw1/estop/reset'
 >>> split_name("gw1/la1"), split_name("la1")
 (('gw1', 'la1'), (None, 'la1'))
 """
@@ -47,6 +49,10 @@ class Keys:
 
     def estop(self, gateway: str) -> str:
         return f"{self.prefix}/{gateway}/estop"
+
+    def estop_reset(self, gateway: str) -> str:
+        """Where a gateway takes the reset of its e-stop."""
+        return f"{self.prefix}/{gateway}/estop/reset"
 
     def events(self, gateway: str) -> str:
         return f"{self.prefix}/{gateway}/events"

@@ -120,9 +120,20 @@ class Client:
         return self._shared.core.on_gateways(callback)
 
     def estop(self, gateway: str | None = None) -> None:
-        """Stop every device of ``gateway``, or of every gateway (``None``); never refused.
-        Devices stay e-stopped until each is enabled again (``Device.enable``)."""
-        self._shared.estop(gateway)
+        """Stop every device of ``gateway``, or of every gateway (``None``); no gateway
+        refuses it. Devices stay e-stopped until each is reset (``reset_estop``) or enabled
+        again (``Device.enable``). The put goes first, never slowed by a check; then
+        ``UnknownGatewayError`` when no gateway of that name is up (known at once for one
+        this client has seen). Not a gateway's name (``""``): ``ValueError``, nothing sent."""
+        wait(self._shared.estop(gateway), self.timeout, f"whether {gateway} is up (e-stop put)")
+
+    def reset_estop(self, gateway: str) -> None:
+        """Every device of ``gateway`` (a name: never the fleet) out of its e-stop, as
+        ``Device.reset_estop``: a put of this client's id on ``<prefix>/<gateway>/estop/reset``
+        (the gateway answers nothing), checked as ``estop`` checks."""
+        wait(
+            self._shared.reset_estop(gateway), self.timeout, f"whether {gateway} is up (reset put)"
+        )
 
     def play(
         self,
@@ -203,6 +214,12 @@ class Device:
     def enable(self) -> dict[str, Any]:
         """Let the device move again after an e-stop (its kind's re-enable command)."""
         return self.send(reenable_command(self.kind))
+
+    def reset_estop(self) -> dict[str, Any]:
+        """Out of the gateway's e-stop, back in the power state the device had before it and
+        holding still: nothing moves until a new command (``{"op": "reset_estop"}``, as
+        ``send`` sends it)."""
+        return self.send({"op": "reset_estop"})
 
     def state(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Any:
         """The device's latest telemetry, as its kind's model: one received in the last
