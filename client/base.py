@@ -247,7 +247,7 @@ class Shared:
         """Put the stream's last target, end the stream (``end_follow``: no ``stream_stale``
         event) and undeclare its publisher."""
         sender.close()
-        return self.send(device, {"op": "end_follow"}, None)
+        return self.send(device, {"op": "end_follow", "seq": self.core.next_seq()}, None)
 
     # -- buses --------------------------------------------------------------------------------
 

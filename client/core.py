@@ -34,6 +34,7 @@ Rules of this file:
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import logging
 import threading
@@ -193,6 +194,8 @@ class Core:
         ca: str | Path | None = None,
     ) -> None:
         self.client_id = check_name("client", client_id)
+        #: What numbers this client's follow targets and ends (``next_seq``).
+        self._seq = itertools.count(time.time_ns())
         self.keys = Keys(prefix)
         self.timeout_s = seconds("timeout", timeout_s, MIN_WAIT_S, MAX_WAIT_S)
         seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
@@ -229,6 +232,13 @@ class Core:
             self.session.close()
             raise ConnectError(f"the session to {where} refused: {zenoh_reason(exc)}") from exc
         self._at_exit = weakref.finalize(self, _close_in_time, self.session, self._held)
+
+    def next_seq(self) -> int:
+        """The next number of what this client sends a follow stream (a target, an
+        ``end_follow``): increasing, from the wall clock's nanoseconds when the client opened,
+        so a client that restarts under the same id numbers past its last run. The gateway
+        orders a target against an end by it (``gateway.api.commands`` rule 3)."""
+        return next(self._seq)
 
     # -- lifetime ----------------------------------------------------------------------------
 

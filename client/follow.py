@@ -12,6 +12,10 @@ Rules of this file:
    flood queued its own claim renewals behind thousands of puts until the claim lapsed.
 3. No target is put twice: a program that stops setting lets the stream go stale, as it
    should (the gateway's deadman for a stream).
+4. Each target carries the client's next ``seq``, taken as it is put in line, and the
+   ``end_follow`` after the last one a higher one: the gateway drops a target numbered below
+   the end whichever of zenoh's threads brought it late, and starts a stream at once for one
+   above.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ class FollowSender:
     ) -> None:
         self._publish = core.publisher(key)
         self._client = core.client_id
+        self._seq = core.next_seq
         self._timers = timers
         self._model = model
         self._lease_of: Any = lease_of  # () -> ClaimLease | None, looked up at each set
@@ -66,8 +71,8 @@ class FollowSender:
             message = f"invalid follow target for {self._what}: {describe_validation_error(exc)}"
             raise error_for(refusal_code(exc))(message) from None
         claim = {} if lease is None else {"require_claim": True}
-        payload = dumps({**target, **claim, "client": self._client})
-        with self._lock:
+        with self._lock:  # numbered in the order they are put (rule 4)
+            payload = dumps({**target, **claim, "client": self._client, "seq": self._seq()})
             self.sets += 1
             if self._armed or time.monotonic() < self._next_put:
                 self._pending = payload

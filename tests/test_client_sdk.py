@@ -431,6 +431,23 @@ def test_a_follow_stream_takes_the_latest_target_and_ends_with_end_follow(
     settled(la1, wait_for, target=1200, position=1200)
 
 
+def test_a_stream_started_right_after_one_ended_takes_its_first_targets(
+        demo, client, wait_for) -> None:
+    """The SDK numbers its targets and ends (``seq``): the gateway tells a target sent after
+    the end from one sent before it by its number, so a new stream's first targets are taken
+    at once (the 0.5 s fence for clients that do not number would drop them)."""
+    la1 = client.device("demo/la1")
+    patiently(la1.enable)
+    with la1.follow() as stream:
+        stream.set(position=700)
+        time.sleep(STALE_S / 4)
+    with la1.follow() as stream:  # at once: well inside END_FENCE_S of the end
+        for _ in range(4):
+            stream.set(position=1300)
+            time.sleep(STALE_S / 4)
+    settled(la1, wait_for, target=1300, position=1300)
+
+
 def test_a_follow_target_no_schema_allows_is_refused_before_it_is_sent(client) -> None:
     la1 = client.device("demo/la1")
     with la1.follow() as stream:

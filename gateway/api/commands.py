@@ -350,6 +350,10 @@ class GatewayApi:
                 del self._stream_clients[device]
                 runner, _ = self.devices[device]
                 runner.stop_stream(device, f"client {client} gone")
+        with self._fence:  # its ends order nothing more: its next targets start streams
+            for device, (owner, _, _) in list(self._ended.items()):
+                if owner == client:
+                    del self._ended[device]
         for device, owner in list(self._deadman_clients.items()):
             if owner == client:
                 del self._deadman_clients[device]
