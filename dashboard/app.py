@@ -1,10 +1,11 @@
 """The dashboard's web side (Starlette): the page, its static files, the event stream, and
-the only two things a browser may ask of the fleet: an e-stop (one gateway's, or the fleet's)
-and the re-enable of one device.
+the only three things a browser may ask of the fleet: an e-stop (one gateway's, or the
+fleet's), the reset of one gateway's e-stop (never the fleet's), and the re-enable of one
+device.
 
 Rules of this file:
 
-1. Nothing but e-stop and enable reaches a gateway from here; both go through
+1. Nothing but e-stop, its reset and enable reaches a gateway from here; all three go through
    ``busgate.client`` under the dashboard's own zenoh account, so the deploy ACL decides what
    the dashboard may do (a viewer account stops nothing), not the browser.
 2. A request that asks to act is refused, with nothing sent, unless it is a ``POST`` of a
@@ -16,8 +17,9 @@ Rules of this file:
    aside), never any: a page on another site that rebinds its DNS name to this machine gets a
    400 and reaches no route, whatever address the dashboard listens on.
 4. Replies to actions are JSON: ``{"ok": true, ...}`` or ``{"ok": false, "error": {"code",
-   "message"}}`` with a 4xx status for a refused request and 502 when the gateway refused or
-   did not answer.
+   "message"}}`` with a 4xx status for a refused request, 404 ``unknown_gateway`` when no
+   gateway of the name is up (an e-stop was put all the same), and 502 when the gateway
+   refused or did not answer; ``failure`` says which, for every route.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from busgate.client.errors import GatewayError
+from busgate.client.errors import GatewayError, UnknownGatewayError
 from busgate.client.keys import check_name, split_name
 from busgate.codecs.errors import BusgateError
 from busgate.dashboard.hub import Hub
@@ -57,6 +59,8 @@ class Actions(Protocol):
 
     async def estop(self, gateway: str | None) -> None: ...
 
+    async def reset_estop(self, gateway: str) -> None: ...
+
     async def enable(self, device: str) -> dict[str, Any]: ...
 
 
@@ -68,6 +72,16 @@ class Refused(Exception):
 
 def refusal(status: int, code: str, message: str) -> JSONResponse:
     return JSONResponse({"ok": False, "error": {"code": code, "message": message}}, status)
+
+
+def failure(exc: BusgateError, unanswered: str) -> JSONResponse:
+    """Rule 4: the reply to what the SDK raised, with ``unanswered`` as the code of a failure
+    no gateway told (the session's, or no answer in time)."""
+    if isinstance(exc, UnknownGatewayError):
+        return refusal(404, exc.code, exc.message)
+    if isinstance(exc, GatewayError):
+        return refusal(502, exc.code, exc.message)
+    return refusal(502, unanswered, str(exc))
 
 
 def host_and_port(text: str) -> tuple[str, str | None] | None:
@@ -126,6 +140,12 @@ def _checked(check: Any, *args: Any) -> Any:
         raise Refused(400, "bad_request", str(exc)) from None
 
 
+def _gateway(body: dict[str, Any]) -> str | None:
+    """The gateway ``body`` names, spelled as names are; ``None`` when it names none."""
+    gateway = body.get("gateway")
+    return None if gateway is None else _checked(check_name, "gateway", gateway)
+
+
 class _KnownHostsOnly:
     """Rule 3, in front of every route."""
 
@@ -157,17 +177,27 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
 
     async def estop(request: Request) -> Response:
         try:
-            body = await _request_body(request, hosts)
-            gateway = body.get("gateway")
-            if gateway is not None:
-                _checked(check_name, "gateway", gateway)
+            gateway = _gateway(await _request_body(request, hosts))
         except Refused as exc:
             return refusal(exc.status, exc.code, exc.message)
         try:
             await actions.estop(gateway)
-        except BusgateError as exc:  # the session could not put it
-            return refusal(502, "not_sent", str(exc))
+        except BusgateError as exc:
+            return failure(exc, "not_sent")
         return JSONResponse({"ok": True, "estop": gateway or "*"})
+
+    async def reset_estop(request: Request) -> Response:
+        try:
+            gateway = _gateway(await _request_body(request, hosts))
+            if gateway is None:  # a reset is never the fleet's
+                raise Refused(400, "bad_request", 'name the gateway: {"gateway": "gw1"}')
+        except Refused as exc:
+            return refusal(exc.status, exc.code, exc.message)
+        try:
+            await actions.reset_estop(gateway)
+        except BusgateError as exc:
+            return failure(exc, "not_sent")
+        return JSONResponse({"ok": True, "reset_estop": gateway})
 
     async def enable(request: Request) -> Response:
         try:
@@ -182,10 +212,8 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
             return refusal(exc.status, exc.code, exc.message)
         try:
             reply = await actions.enable(device)
-        except GatewayError as exc:
-            return refusal(502, exc.code, exc.message)
         except BusgateError as exc:
-            return refusal(502, "no_answer", str(exc))
+            return failure(exc, "no_answer")
         return JSONResponse({"ok": True, "device": device, "reply": reply})
 
     return Starlette(
@@ -193,6 +221,7 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
             Route("/", page),
             Route("/events", events),
             Route("/api/estop", estop, methods=["POST"]),
+            Route("/api/reset_estop", reset_estop, methods=["POST"]),
             Route("/api/enable", enable, methods=["POST"]),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],

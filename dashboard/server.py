@@ -136,13 +136,16 @@ def allowed_name(text: str) -> str:
 
 
 class ClientActions:
-    """The two things a browser may ask (``app.Actions``), done with the SDK."""
+    """The three things a browser may ask (``app.Actions``), done with the SDK."""
 
     def __init__(self, client: aio.Client) -> None:
         self._client = client
 
     async def estop(self, gateway: str | None) -> None:
         await self._client.estop(gateway)
+
+    async def reset_estop(self, gateway: str) -> None:
+        await self._client.reset_estop(gateway)
 
     async def enable(self, device: str) -> dict[str, Any]:
         """The device's re-enable command, sent again (``ENABLE_TRIES`` in all) while its reply

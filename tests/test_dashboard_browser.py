@@ -1,6 +1,7 @@
 """The dashboard in a real browser (``tests.browser``: Debian's Chromium under Playwright),
 served by ``busgate demo``: every device appears with its state, values and plots move while
-a client moves a device, events are logged, and the buttons e-stop and re-enable."""
+a client moves a device, events are logged, and the buttons e-stop, reset the e-stop (once
+the operator confirms) and re-enable."""
 
 from __future__ import annotations
 
@@ -18,6 +19,8 @@ from tests.sdk_helpers import patiently
 pytestmark = needs_chromium
 
 DEVICES = ["la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"]
+#: Each device's power badge as the demo starts it (a test that changes one puts it back).
+AS_STARTED = {name: "off" if name in ("wheel", "drive") else "enabled" for name in DEVICES}
 WAIT_MS = 15_000  # a hang guard: conditions are waited for, not timed
 
 
@@ -113,6 +116,32 @@ def test_the_gateway_estop_button_stops_every_device_and_enable_brings_each_back
     assert badges(page, "la1")[1] == "enabled" and badges(page, "servo1")[1] == "enabled"
     patiently(client.device("wheel").send, {"op": "disable"})  # as the demo starts them
     patiently(client.device("drive").send, {"op": "disable"})
+
+
+def until_powers(page, want: dict[str, str]) -> None:
+    """Until the power badge of each device ``want`` names shows what it says."""
+    until(page, "([want]) => Object.entries(want).every(([name, value]) => document.querySelector("
+          "`article[data-device=\"demo/${name}\"] .power-badge`)?.dataset.value === value)", want)
+
+
+def test_the_reset_button_asks_first_and_puts_every_device_back_as_it_was(page) -> None:
+    until_powers(page, AS_STARTED)
+    page.locator('section[data-gateway="demo"] .estop-gateway').click()
+    until_powers(page, dict.fromkeys(DEVICES, "e-stopped"))
+    asked, resets = [], []
+    page.on("request", lambda r: r.url.endswith("/api/reset_estop") and resets.append(r.post_data))
+    reset = page.locator('section[data-gateway="demo"] .reset-estop')
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.dismiss()))
+    reset.click()
+    page.once("dialog", lambda dialog: (asked.append(dialog.message), dialog.accept()))
+    reset.click()
+    until_powers(page, AS_STARTED)
+    assert asked == 2 * ["Reset the e-stop of gateway demo? Each device goes back to the power "
+                         "state it had before the stop and holds still; nothing moves until a "
+                         "new command."]
+    assert [json.loads(body) for body in resets] == [{"gateway": "demo"}]  # dismissed: nothing
+    assert "reset demo: sent" in page.locator("#notice").inner_text()
+    until(page, "() => [...document.querySelectorAll('#events li.estop_reset')].length > 0")
 
 
 def test_hostile_telemetry_is_shown_as_text_and_the_page_goes_on(page, client, module_demo) -> None:

@@ -1,7 +1,8 @@
 """The dashboard over real HTTP, served by ``busgate demo`` (a child process) beside its
 gateway: the page and its files, the event stream, and every refusal of what a browser, a
-page on another site, or a tired operator might send, each checked to have moved nothing; and
-``busgate dashboard --allow-host`` answering to the name it was given."""
+page on another site, or a tired operator might send, each checked to have moved nothing; the
+e-stop, its reset and the enable reaching the gateway; and ``busgate dashboard --allow-host``
+answering to the name it was given."""
 
 from __future__ import annotations
 
@@ -73,10 +74,10 @@ def events(where, count: int) -> list[tuple[str, dict]]:
     return found
 
 
-def power(client) -> dict[str, bool]:
-    """Each demo device's ``estopped``, from a fresh info."""
+def power(client, field: str = "estopped") -> dict[str, bool]:
+    """Each demo device's ``estopped`` (or another ``field`` of its state), from a fresh info."""
     [info] = client.gateways(timeout=2.0).values()
-    return {d["name"]: d["state"]["estopped"] for bus in info["buses"] for d in bus["devices"]}
+    return {d["name"]: d["state"][field] for bus in info["buses"] for d in bus["devices"]}
 
 
 def test_the_page_its_script_and_the_vendored_library_are_served(dashboard) -> None:
@@ -139,9 +140,10 @@ def test_busgate_dashboard_answers_to_a_name_given_with_allow_host(module_demo) 
     (b'{"gateway": 7}', {"Content-Type": "application/json"}, 400),
     (b"\xff\xfe", {"Content-Type": "application/json"}, 400),
 ])
-def test_an_estop_asked_wrongly_is_refused_and_stops_nothing(
-        dashboard, client, body, headers, status) -> None:
-    got, reply, _ = request(dashboard, "POST", "/api/estop", body, headers)
+@pytest.mark.parametrize("path", ["/api/estop", "/api/reset_estop"])
+def test_an_estop_or_a_reset_asked_wrongly_is_refused_and_stops_nothing(
+        dashboard, client, path, body, headers, status) -> None:
+    got, reply, _ = request(dashboard, "POST", path, body, headers)
     assert got == status, reply
     assert json.loads(reply)["ok"] is False
     assert not any(power(client).values())
@@ -159,8 +161,24 @@ def test_an_enable_asked_wrongly_is_refused(dashboard, body, status, code) -> No
     assert (got, reply["ok"], reply["error"]["code"]) == (status, False, code), reply
 
 
+@pytest.mark.parametrize(("path", "body", "status", "code"), [
+    ("/api/estop", {"gateway": "nowhere"}, 404, "unknown_gateway"),  # put all the same
+    ("/api/reset_estop", {"gateway": "nowhere"}, 404, "unknown_gateway"),
+    ("/api/reset_estop", {}, 400, "bad_request"),  # a reset is never the fleet's
+    ("/api/reset_estop", {"gateway": None}, 400, "bad_request"),
+])
+def test_a_gateway_that_is_not_up_is_a_404_and_a_reset_names_one(
+        dashboard, client, path, body, status, code) -> None:
+    got, reply = post(dashboard, path, body)
+    assert (got, reply["ok"], reply["error"]["code"]) == (status, False, code), reply
+    if code == "unknown_gateway":
+        assert reply["error"]["message"].startswith("no gateway 'nowhere' is up"), reply
+        assert "demo" in reply["error"]["message"]  # the gateways that answer
+    assert not any(power(client).values())
+
+
 def test_only_posts_act(dashboard) -> None:
-    for path in ("/api/estop", "/api/enable"):
+    for path in ("/api/estop", "/api/reset_estop", "/api/enable"):
         assert request(dashboard, "GET", path)[0] == 405
 
 
@@ -176,3 +194,16 @@ def test_the_gateway_estop_stops_every_device_and_each_enable_brings_one_back(
     wait_for(lambda: not any(power(client).values()))
     patiently(client.device("wheel").send, {"op": "disable"})  # as the demo starts it
     patiently(client.device("drive").send, {"op": "disable"})
+
+
+def test_the_gateway_reset_puts_every_device_back_as_it_was_before_the_estop(
+        dashboard, client, wait_for) -> None:
+    before = power(client, "enabled")
+    assert not all(before.values()) and any(before.values())  # the demo's wheel and drive: off
+    assert post(dashboard, "/api/estop", {"gateway": "demo"})[0] == 200
+    wait_for(lambda: all(power(client).values()))
+    origin = f"http://{dashboard.netloc}"
+    assert post(dashboard, "/api/reset_estop", {"gateway": "demo"}, Origin=origin) == (
+        200, {"ok": True, "reset_estop": "demo"})
+    wait_for(lambda: not any(power(client).values()))
+    wait_for(lambda: power(client, "enabled") == before)

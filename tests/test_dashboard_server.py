@@ -30,7 +30,7 @@ SHORT_S = 0.5
 
 class RecordingClient:
     """What ``serve_dashboard`` asks of a ``busgate.client.aio`` client, without zenoh: it
-    hears of no gateway and records each e-stop and enable (``asked``)."""
+    hears of no gateway and records each e-stop, reset and enable (``asked``)."""
 
     def __init__(self) -> None:
         self.asked: list[tuple[str, str | None]] = []
@@ -43,6 +43,9 @@ class RecordingClient:
 
     async def estop(self, gateway: str | None) -> None:
         self.asked.append(("estop", gateway))
+
+    async def reset_estop(self, gateway: str) -> None:
+        self.asked.append(("reset_estop", gateway))
 
     async def device(self, name: str) -> SimpleNamespace:
         async def enable() -> dict:
@@ -69,34 +72,44 @@ def served(listen: Listen) -> Iterator[tuple[SplitResult, RecordingClient]]:
         loop.close()
 
 
-def act(where: SplitResult, host: str, origin: str | None = None) -> tuple[int, dict]:
-    """An enable of demo/la1 as a browser sends it, naming ``host`` (and ``origin``)."""
+#: Each action a browser may send, as it sends it, and what the client is then asked.
+ACTIONS = {
+    "enable": ("/api/enable", b'{"device": "demo/la1"}', ("enable", "demo/la1")),
+    "reset_estop": ("/api/reset_estop", b'{"gateway": "demo"}', ("reset_estop", "demo")),
+}
+
+
+def act(where: SplitResult, host: str, origin: str | None = None,
+        action: str = "enable") -> tuple[int, dict]:
+    """An action (``ACTIONS``) as a browser sends it, naming ``host`` (and ``origin``)."""
     headers = {"Host": host, "Content-Type": "application/json"}
     if origin is not None:
         headers["Origin"] = origin
-    status, reply, _ = request(where, "POST", "/api/enable", b'{"device": "demo/la1"}', headers)
+    path, body, _ = ACTIONS[action]
+    status, reply, _ = request(where, "POST", path, body, headers)
     return status, json.loads(reply)
 
 
+@pytest.mark.parametrize("action", ACTIONS)
 @pytest.mark.parametrize(("address", "names"), [
     ("0.0.0.0", ["localhost", "127.0.0.1", "[::1]", socket.gethostname()]),
     ("127.0.0.1", ["localhost", "127.0.0.1"]),
 ])
 def test_a_page_that_rebinds_its_name_to_the_dashboard_gets_nothing_whatever_it_listens_on(
-        address, names) -> None:
+        address, names, action) -> None:
     with served(Listen(address, 0)) as (where, client):
         for name in names:  # what a browser on this machine names it by
             assert request(where, "GET", "/", headers={"Host": f"{name}:{where.port}"})[0] == 200
         for path in ("/", "/static/app.js"):
             status, reply, _ = request(where, "GET", path, headers={"Host": ATTACKER})
             assert status == 400 and json.loads(reply)["error"]["code"] == "unknown_host"
-        status, reply = act(where, ATTACKER, f"http://{ATTACKER}")
+        status, reply = act(where, ATTACKER, f"http://{ATTACKER}", action)
         assert status == 400, reply
         assert reply["error"] == {"code": "unknown_host", "message": f"{ATTACKER!r} is not a "
                                   "name this dashboard answers to"}
         assert client.asked == []
-        assert act(where, where.netloc, f"http://{where.netloc}")[0] == 200
-        assert client.asked == [("enable", "demo/la1")]
+        assert act(where, where.netloc, f"http://{where.netloc}", action)[0] == 200
+        assert client.asked == [ACTIONS[action][2]]
 
 
 def test_a_name_given_with_allow_host_is_answered_and_acted_for() -> None:
@@ -108,7 +121,8 @@ def test_a_name_given_with_allow_host_is_answered_and_acted_for() -> None:
         assert client.asked == [("enable", "demo/la1")]
 
 
-def test_an_action_is_taken_from_the_dashboards_own_origins_alone() -> None:
+@pytest.mark.parametrize("action", ACTIONS)
+def test_an_action_is_taken_from_the_dashboards_own_origins_alone(action) -> None:
     with served(Listen("127.0.0.1", 0)) as (where, client):
         port = where.port
         for origin, status in [
@@ -124,9 +138,10 @@ def test_an_action_is_taken_from_the_dashboards_own_origins_alone() -> None:
             ("null", 403),  # a sandboxed frame, a file
         ]:
             before = len(client.asked)
-            got, reply = act(where, f"127.0.0.1:{port}", origin)
+            got, reply = act(where, f"127.0.0.1:{port}", origin, action)
             assert got == status, (origin, reply)
             assert len(client.asked) == before + (status == 200), origin
+        assert set(client.asked) == {ACTIONS[action][2]}
 
 
 def closed_at(connection: socket.socket) -> float:

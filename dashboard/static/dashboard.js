@@ -6,7 +6,8 @@
 // 1. Text from the network goes into the page as text (textContent, never innerHTML).
 // 2. Times are the gateways' (wall clock, seconds); "now" is the server's, carried by each
 //    message, so an off browser clock moves nothing.
-// 3. The only requests are the e-stops and the enables, POSTed as JSON to /api/...
+// 3. The only requests are the e-stops, a gateway's reset of its e-stop (once the operator
+//    confirms it) and the enables, POSTed as JSON to /api/...
 // 4. Drawing is the page's cost: a chart is redrawn only while its card is on screen (and the
 //    tab is shown), and only when a sample came or its minute slid by a pixel; its data is
 //    kept up to date whether drawn or not.
@@ -61,6 +62,7 @@ function gatewayCard(name) {
   element.dataset.gateway = name;
   element.querySelector(".gateway-name").textContent = name;
   element.querySelector(".estop-gateway").addEventListener("click", () => estop(name));
+  element.querySelector(".reset-estop").addEventListener("click", () => resetEstop(name));
   $("gateways").append(element);
   gateway = {element, buses: element.querySelector("tbody"), devices: element.querySelector(".devices")};
   gateways.set(name, gateway);
@@ -315,7 +317,7 @@ function setLink(state) {
   $("link").textContent = state === "live" ? "live" : "reconnecting…";
 }
 
-// -- the two actions -----------------------------------------------------------------------
+// -- the three actions ---------------------------------------------------------------------
 
 async function post(path, body, what) {
   try {
@@ -336,6 +338,12 @@ function notice(text) {
 
 const estop = (gateway) => post("/api/estop", {gateway}, gateway ? `e-stop ${gateway}` : "fleet e-stop");
 const enable = (device) => post("/api/enable", {device}, `enable ${device}`);
+
+function resetEstop(gateway) {
+  const asked = `Reset the e-stop of gateway ${gateway}? Each device goes back to the power state `
+    + "it had before the stop and holds still; nothing moves until a new command.";
+  if (confirm(asked)) post("/api/reset_estop", {gateway}, `reset ${gateway}`);
+}
 
 $("estop-fleet").addEventListener("click", () => estop(null));
 window.busgateDashboard = {  // for the browser tests and the benchmark

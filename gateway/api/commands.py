@@ -351,8 +351,8 @@ class GatewayApi:
                 runner, _ = self.devices[device]
                 runner.stop_stream(device, f"client {client} gone")
         with self._fence:  # its ends order nothing more: its next targets start streams
-            for device, (owner, _, _) in list(self._ended.items()):
-                if owner == client:
+            for device, ended in list(self._ended.items()):
+                if ended[0] == client:
                     del self._ended[device]
         for device, owner in list(self._deadman_clients.items()):
             if owner == client:
