@@ -202,6 +202,7 @@ def main() -> int:
 def report(plays, loaded, stats, seconds: float) -> None:
     aligned, firsts, at_slot, at_arrival = [], {"la": [], "ds": []}, [], []
     missed = {"la": 0, "ds": 0}
+    late: dict[str, list[float]] = {"la": [], "ds": []}
     slots_total = 0
     for index, (start_bus, paths) in enumerate(plays):
         # Its ticks: to its result (a few held ticks after its end), before the next's start.
@@ -215,6 +216,7 @@ def report(plays, loaded, stats, seconds: float) -> None:
             missed[bus] += sum(1 for k in range(last + 1) if k not in found)
             names = LA if bus == "la" else DS
             for k, (arrived, values) in found.items():
+                late[bus].append(arrived - (start_bus + k * GRID_S))
                 for name, value in zip(names, values, strict=True):
                     at_slot.append(abs(value - paths[name].at(k * GRID_S)))
                     at_arrival.append(abs(value - paths[name].at(arrived - start_bus)))
@@ -227,7 +229,7 @@ def report(plays, loaded, stats, seconds: float) -> None:
     for bus, values in firsts.items():
         shown = ", ".join(f"{v * 1e6:.0f}" for v in values)
         print(f"first tick on {bus} after start_at, µs: {shown}; slots without a tick: "
-              f"{missed[bus]}")
+              f"{missed[bus]}; each tick after its slot, µs: {spread(late[bus], 1e6)}")
     print(f"sampling error at the slot's time, units: {spread(at_slot, 1, 3)}")
     print(f"sampling error at the arrival time, units: {spread(at_arrival, 1, 3)}")
     for bus, body in sorted(stats.items()):
