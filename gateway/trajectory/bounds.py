@@ -7,10 +7,11 @@ Rules of this file:
 2. A segment's polynomial is written in Bernstein form over its ``s`` in [0, 1]: the values it
    takes lie between its least and greatest coefficient, and its first and last coefficients
    are values it takes (the knots' own values are looked at first: a form's last
-   coefficient is a sum, rounded). A segment whose bounds the device takes is done; one whose end the
-   device refuses has that value to show; otherwise its two halves (de Casteljau) are looked
-   at, whose bounds close in on its values, down to ``MAX_DEPTH`` halvings, past which the
-   bound itself is taken as a value (it is within a rounding error of one).
+   coefficient is a sum, rounded). A segment whose bounds the device takes is done; one
+   whose end the device refuses has that value to show; otherwise its two halves (de
+   Casteljau) are looked at, whose bounds close in on its values, down to ``MAX_DEPTH``
+   halvings, past which the bound itself is taken as a value (it is within a rounding error
+   of one).
 3. What is checked is the whole continuous path, so a value any tick could send is in it
    (every tick samples the path, ``trajectory_ticks`` rule 2). It is the stricter check: an
    overshoot that falls between two ticks is refused too.
@@ -20,6 +21,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from itertools import pairwise
 from math import comb
@@ -59,10 +61,15 @@ def bernstein(coefficients: Sequence[float]) -> list[float]:
     >>> bernstein([0.0, 2.0, -1.0])  # 2s - s²: 0 at 0, 1 at 1, at most 1 between
     [0.0, 1.0, 1.0]
     """
-    n = len(coefficients) - 1
-    return [
-        sum(comb(i, j) / comb(n, j) * coefficients[j] for j in range(i + 1)) for i in range(n + 1)
-    ]
+    rows = _to_bernstein(len(coefficients) - 1)
+    return [sum(w * c for w, c in zip(row, coefficients, strict=False)) for row in rows]
+
+
+@functools.cache
+def _to_bernstein(n: int) -> tuple[tuple[float, ...], ...]:
+    """The weights that make a degree-``n`` polynomial's Bernstein coefficients from its power
+    coefficients: row ``i`` holds C(i, j) / C(n, j) for j ≤ i."""
+    return tuple(tuple(comb(i, j) / comb(n, j) for j in range(i + 1)) for i in range(n + 1))
 
 
 def _refused_in(form: list[float], takes: Takes, depth: int) -> float | None:
