@@ -4,12 +4,15 @@ the cost counted in looks at the range, not in time, whatever the path's duratio
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from busgate.gateway.trajectory.bounds import bernstein, value_refused
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Knot, Path
+from busgate.schemas.trajectory import MAX_MAGNITUDE, MAX_TRAJECTORY_S
 
 LOW, HIGH = 0.0, 2000.0
 
@@ -85,3 +88,32 @@ def test_bernstein_bounds_hold_a_polynomials_values():
         s = i / 100
         value = sum(c * s**k for k, c in enumerate(coefficients))
         assert min(form) - 1e-12 <= value <= max(form) + 1e-12
+
+
+# Every number the play schema takes, at its extremes: the path and its check stay finite.
+extreme = st.one_of(st.floats(-MAX_MAGNITUDE, MAX_MAGNITUDE), st.sampled_from(
+    [MAX_MAGNITUDE, -MAX_MAGNITUDE, 5e-324, -5e-324, 0.0]))
+times = st.one_of(st.floats(5e-324, MAX_TRAJECTORY_S), st.sampled_from([5e-324, 1e-9]))
+
+
+@given(st.lists(st.tuples(times, extreme, extreme, extreme), min_size=1, max_size=4),
+       st.sampled_from(INTERPOLATIONS), extreme)
+def test_any_play_the_schema_takes_gives_a_finite_path_and_a_verdict(points, interpolation,
+                                                                     start):
+    """Values, velocities and accelerations anywhere within ±``MAX_MAGNITUDE`` and points as
+    close or as far apart as floats allow (an hour at most): the check answers (a value
+    refused, or none) and every value of the path is finite, never an overflow (that was
+    ``internal``)."""
+    t_s, knots = 0.0, []
+    for gap, value, velocity, acceleration in points:
+        if t_s + gap <= t_s or t_s + gap > MAX_TRAJECTORY_S:
+            break
+        t_s += gap
+        knots.append(Knot(t_s, round(value), velocity, acceleration))
+    if not knots:
+        return
+    path = Path(start, knots, interpolation)
+    refused = value_refused(path, within)
+    assert refused is None or (math.isfinite(refused) and not within(refused))
+    for knot in path.knots:
+        assert math.isfinite(path.at(knot.t_s / 2)) and math.isfinite(path.at(knot.t_s))
