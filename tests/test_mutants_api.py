@@ -1,4 +1,4 @@
-"""What mutation testing (``python mutation/run.py api``) found the API tests leaving open:
+"""What mutation testing (``python tools/mutation/run.py api``) found the API tests leaving open:
 a claim over another client's claim is refused (and a claim lapses at its moment), what the
 events of claims and of the deadman say, what ``info`` tells of each device, what every
 refusal says (a bad payload, an unknown device or id, a scan too long for its bus, a bug),

@@ -1,4 +1,4 @@
-"""What mutation testing (``python mutation/run.py bus``) found the bus tests leaving open,
+"""What mutation testing (``python tools/mutation/run.py bus``) found the bus tests leaving open,
 at the level of each owner's promise: what an exchange puts on the wire, returns and raises
 (and names), what every counter counts, where a reply window starts and ends, what is early,
 how idle time is spent, how python-can's and pyserial's failures are classified, what is

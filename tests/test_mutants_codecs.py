@@ -1,4 +1,4 @@
-"""What mutation testing (``python mutation/run.py codecs``) found the codec tests leaving
+"""What mutation testing (``python tools/mutation/run.py codecs``) found the codec tests leaving
 open: every range edge of a frame refuses with ``EncodeError`` naming the field and the value
 (rather than letting ``struct`` or ``int.to_bytes`` fail, or the wrong bytes out), the errors
 keep what they carry, and a few conversions at their edges; decoders yield each event once, in

@@ -1,4 +1,4 @@
-"""The scheduler's rules that mutation testing (``python mutation/run.py scheduler``) found
+"""The scheduler's rules that mutation testing (``python tools/mutation/run.py scheduler``) found
 untested: retries and deadlines, poll order and skips, boundaries of the follow slot and the
 reply holdoff, ticks that restart after a pause, and the follow streams' lifecycle (which
 ticker carries a stream, what its end sends). Pure calls on a fake clock; nothing sleeps."""

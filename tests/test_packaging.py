@@ -52,9 +52,9 @@ def test_console_script_runs() -> None:
 
 
 def test_the_view_for_static_tools_maps_busgate_onto_the_folders() -> None:
-    """``view/busgate/<folder>`` leads to each folder, by a relative link that survives a clone
-    anywhere (docs/architecture.md: static tools and editors)."""
+    """``tools/typecheck/busgate/<folder>`` leads to each folder, by a relative link that survives
+    a clone anywhere (docs/architecture.md: static tools and editors)."""
     for folder in FOLDERS:
-        link = ROOT / "view" / "busgate" / folder
+        link = ROOT / "tools" / "typecheck" / "busgate" / folder
         assert link.is_symlink() and not Path(link.readlink()).is_absolute(), link
         assert link.resolve() == (ROOT / folder).resolve()

@@ -1,12 +1,13 @@
-"""Mutation testing on demand (never in CI): ``.venv/bin/python mutation/run.py [package ...]``.
+"""Mutation testing on demand (never in CI):
+``.venv/bin/python tools/mutation/run.py [package ...]``.
 
 Why a driver rather than a bare ``mutmut run``: mutmut names each mutant after its file's path
 (with a leading ``src/`` stripped) and switches a mutant on only inside functions whose
 ``__module__`` has that name. Our folders install as ``busgate.codecs`` and ``busgate.gateway``
 through setuptools' package-dir, so ``codecs/framing.py`` would be called ``codecs.framing``
 while the tests import ``busgate.codecs.framing``, and no mutant would ever be switched on.
-So this script copies the package into ``mutation/work/<package>/src/busgate/<folder>``, with
-tests/ and a pyproject.toml holding pytest's options and mutmut's, and runs mutmut there: the
+So this script copies the package into ``tools/mutation/work/<package>/src/busgate/<folder>``,
+with tests/ and a pyproject.toml holding pytest's options and mutmut's, and runs mutmut there: the
 copy is named ``busgate.<folder>`` and imported ahead of the editable install, and the folders
 left uncopied still come from the editable install.
 
@@ -26,11 +27,11 @@ for that counts a mutant as killed that it never caught.
 
 Each run starts afresh and prints killed / total per package, with survivors and timeouts;
 ``results.json`` in the package's work folder keeps each mutant's status, and ``cd
-mutation/work/<package> && ../../../.venv/bin/mutmut show NAME`` shows a mutant as a diff.
-``--again`` reruns only the mutants the last run did not kill, with the current tests, and
-merges the result into the last run's (for checking new tests; the source must be unchanged).
-mutation/EQUIVALENT.md lists every survivor: the equivalent ones with the reason, and the
-open ones (waiting for a killing test).
+tools/mutation/work/<package> && ../../../../.venv/bin/mutmut show NAME`` shows a mutant as a
+diff. ``--again`` reruns only the mutants the last run did not kill, with the current tests,
+and merges the result into the last run's (for checking new tests; the source must be
+unchanged). tools/mutation/EQUIVALENT.md lists every survivor: the equivalent ones with the
+reason, and the open ones (waiting for a killing test).
 """
 
 from __future__ import annotations
@@ -45,8 +46,8 @@ import tomllib
 from collections import Counter
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-WORK = ROOT / "mutation" / "work"
+ROOT = Path(__file__).resolve().parents[2]  # this file is tools/mutation/run.py
+WORK = ROOT / "tools" / "mutation" / "work"
 MUTMUT = Path(sys.executable).parent / "mutmut"
 CHILDREN = 2  # one package at a time, two mutants at once: the machine has two cores
 
@@ -94,7 +95,7 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
 # a timeout.
 MUTMUT_SETTINGS: dict[str, dict[str, object]] = {"bus": {"timeout_constant": 3.0}}
 
-CONFTEST = '''"""Written by mutation/run.py: quick, repeatable property tests under mutation."""
+CONFTEST = '''"""Written by tools/mutation/run.py: quick, repeatable property tests, mutated."""
 from hypothesis import settings
 
 settings.register_profile("mutation", max_examples=10, derandomize=True, deadline=None)
