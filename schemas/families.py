@@ -1,60 +1,49 @@
-"""The device families busgate drives, each described once: the registry.
+"""The device families busgate drives, each described once: the registry of their data.
 
 Rules of this file:
 
 1. A family is one ``Family`` entry in ``FAMILIES``; every table of kinds, protocols,
-   transports, id ranges, timing, telemetry models, command schemas, drivers, simulator models
-   and demo devices derives from it. Nothing else lists the families.
+   transports, id ranges, timing, telemetry models and command schemas derives from it.
+   Nothing else lists the families' data.
 2. Wire facts (timing, device ids, whether frames carry an id) belong to the protocol's codec
    and are read from it (``TIMING``, ``DEVICE_IDS``, ``ADDRESSED``); a family's JSON side
-   (commands, follow payload, telemetry) belongs to its schema module; what the gateway does
-   with a device (frames under the device's rules, scan probe, group moves, follow stream,
-   deadman stop) belongs to its driver class. The entry only names them.
-3. Parts are named by import path and loaded on first use: the schemas sit below the gateway,
-   so this file imports no gateway code, and ``busgate --help`` loads no family at all.
-   ``busgate.gateway.families`` loads the gateway's parts and checks that a family has every
-   part, naming the one that is missing.
+   (commands, follow payload, telemetry) belongs to its schema module. The entry holds the
+   codec module itself, imported here (an arrow the import-direction test sees), and names
+   the schema module, in this room, to import on first use (the schema modules build their
+   types on the config's names, and the config is built on this registry).
+3. What drives and simulates a protocol is the gateway's, registered beside the drivers and
+   the simulators (``busgate.gateway.drivers.families.DRIVERS``,
+   ``busgate.gateway.sim.models.MODELS``, each one row per protocol, python-can's
+   ``BACKENDS`` style); the devices the demo simulates are the demo's
+   (``busgate.gateway.cli.demo``). This data layer names nothing above it.
 
-Adding a family: its codec (``busgate.codecs.<protocol>``), schema (``busgate.schemas.<kind>``),
-driver and simulator modules, then one ``Family`` here (docs/architecture.md has the recipe).
+Adding a family: its codec (``busgate.codecs.<protocol>``) and schema
+(``busgate.schemas.<kind>``) modules and one ``Family`` here, then its driver and simulator
+rows (docs/architecture.md has the recipe).
 """
 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Literal
 
+from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
 from busgate.codecs.timing import ProtocolTiming
 
 Transport = Literal["serial", "can"]
 
 
 @dataclass(frozen=True, slots=True)
-class Demo:
-    """What ``busgate demo`` simulates of a protocol: a bus's name and its devices (name, id)."""
-
-    bus: str
-    devices: tuple[tuple[str, int], ...]
-
-
-@dataclass(frozen=True, slots=True)
 class WireProtocol:
-    """One wire protocol of a family: how its frames travel and what drives and simulates a
-    device speaking it (``module:Class`` import paths)."""
+    """One wire protocol of a family: its name, its family's kind, the transport its frames
+    travel on, and its codec module."""
 
     name: str
     kind: str
     transport: Transport
-    codec_module: str
-    driver: str
-    simulator: str
-    demo: Demo
-
-    @property
-    def codec(self) -> ModuleType:
-        return importlib.import_module(self.codec_module)
+    codec: ModuleType
 
     @property
     def timing(self) -> ProtocolTiming:
@@ -86,36 +75,17 @@ class Family:
     JSON commands, follow payload and telemetry model), and one ``WireProtocol`` per transport."""
 
     kind: str
-    schema_module: str
     protocols: tuple[WireProtocol, ...]
+    #: The schema module's name (rule 2): ``busgate.schemas.<kind>`` unless given.
+    schema_module: str = field(default="")
 
     @property
     def schema(self) -> ModuleType:
-        return importlib.import_module(self.schema_module)
+        return importlib.import_module(self.schema_module or f"busgate.schemas.{self.kind}")
 
     def on(self, transport: str) -> WireProtocol | None:
         """The family's protocol on ``transport``, if it has one."""
         return next((p for p in self.protocols if p.transport == transport), None)
-
-
-def _family(kind: str, *protocols: tuple[str, Transport, str, str, Demo]) -> Family:
-    """A family whose modules sit where the recipe puts them."""
-    return Family(
-        kind,
-        f"busgate.schemas.{kind}",
-        tuple(
-            WireProtocol(
-                name,
-                kind,
-                transport,
-                f"busgate.codecs.{name}",
-                f"busgate.gateway.drivers.{name}:{driver}",
-                f"busgate.gateway.sim.{simulator}",
-                demo,
-            )
-            for name, transport, driver, simulator, demo in protocols
-        ),
-    )
 
 
 FAMILIES: dict[str, Family] = {}
@@ -138,24 +108,16 @@ def register(family: Family) -> None:
 PROTOCOLS: dict[str, WireProtocol] = {}
 
 for _entry in (
-    _family(
-        "inspire_la",
-        ("inspire_la", "serial", "InspireLaDriver", "inspire_la:InspireLaDevice",
-         Demo("uart0", (("la1", 1), ("la2", 2), ("la3", 3)))),
-    ),
-    _family(
-        "ds_servo",
-        ("ds_servo", "serial", "DsServoDriver", "ds_servo:DsServoDevice",
-         Demo("uart1", (("servo1", 1), ("servo2", 2)))),
-    ),
-    _family(
+    Family("inspire_la", (WireProtocol("inspire_la", "inspire_la", "serial", inspire_la),)),
+    Family("ds_servo", (WireProtocol("ds_servo", "ds_servo", "serial", ds_servo),)),
+    Family(
         "zlac706",
-        ("zlac706_can", "can", "Zlac706CanDriver", "zlac706:Zlac706CanDevice",
-         Demo("can0", (("wheel", 1),))),
-        ("zlac706_rs232", "serial", "Zlac706Rs232Driver", "zlac706:Zlac706Rs232Device",
-         Demo("rs232", (("drive", 1),))),
+        (
+            WireProtocol("zlac706_can", "zlac706", "can", zlac706_can),
+            WireProtocol("zlac706_rs232", "zlac706", "serial", zlac706_rs232),
+        ),
     ),
-):  # fmt: skip
+):
     register(_entry)
 
 

@@ -1,13 +1,17 @@
-"""The family registry (schemas/families.py): every table derives from it, a family missing a
-part is refused naming the part, and a new family is its modules plus one entry.
+"""The family registry (schemas/families.py) and the gateway's tables beside it (the drivers'
+``DRIVERS``, the simulators' ``MODELS``, the demo's buses): every table derives from the
+registry or is held to it, a family missing a part is refused naming the part, and a new
+family is its modules, one entry and a row in each of the gateway's two tables.
 
 The throwaway family ("la_clone") is built from the Inspire LA's modules: a codec, schema,
-driver and simulator module of its own that reuse the LA's code, and one ``Family``. It runs
-in a child process, since registering must come before the schemas build their types.
+driver and simulator module of its own that reuse the LA's code, one ``Family`` and its two
+rows. It runs in a child process, since registering must come before the schemas build their
+types.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
@@ -16,12 +20,17 @@ from pathlib import Path
 
 import pytest
 
+from busgate.codecs import inspire_la
 from busgate.gateway.cli.demo import DEMO_BUSES
-from busgate.gateway.drivers.families import FamilyError, check_family, driver_class
-from busgate.gateway.sim.models import model_class
+from busgate.gateway.drivers import families
+from busgate.gateway.drivers.base import Effect
+from busgate.gateway.drivers.ds_servo import DsServoDriver
+from busgate.gateway.drivers.families import DRIVERS, FamilyError, check_family, driver_class
+from busgate.gateway.sim import models
+from busgate.gateway.sim.models import MODELS, model_class
 from busgate.schemas import api
 from busgate.schemas.config import parse_config
-from busgate.schemas.families import FAMILIES, PROTOCOLS, Demo, Family, WireProtocol, register
+from busgate.schemas.families import FAMILIES, PROTOCOLS, Family, WireProtocol, register
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -40,6 +49,7 @@ def test_the_tables_are_the_registry() -> None:
     assert set(api.FOLLOW_MODELS) == kinds
     assert {bus.protocol for bus in DEMO_BUSES} == set(PROTOCOLS)
     assert set(api.ProtocolName.__args__) == set(PROTOCOLS)
+    assert set(DRIVERS) == set(MODELS) == set(PROTOCOLS)
 
 
 def _bus(kind: str, transport: str, ids: list[int]) -> dict:
@@ -78,7 +88,7 @@ def test_a_kind_or_protocol_is_registered_once() -> None:
 
 # --- a family missing a part --------------------------------------------------------------------
 
-#: Modules of a broken family, each lacking one part (or naming what does not exist).
+#: Modules of a broken family, each lacking one part.
 BROKEN = {
     "no_timing_codec": "from busgate.codecs.inspire_la import encode, expected_reply, "
                        "CommandDecoder, ReplyDecoder, readings, DEVICE_IDS, ADDRESSED\n",
@@ -103,40 +113,58 @@ def broken_modules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.syspath_prepend(str(tmp_path))
 
 
-def _family(**parts: str) -> Family:
-    protocol = {"codec_module": "busgate.codecs.inspire_la",
-                "driver": "busgate.gateway.drivers.inspire_la:InspireLaDriver",
-                "simulator": "busgate.gateway.sim.inspire_la:InspireLaDevice"}
-    schema = parts.pop("schema_module", "busgate.schemas.inspire_la")
-    protocol.update(parts)
-    return Family("inspire_la", schema, (WireProtocol("inspire_la", "inspire_la", "serial",
-                                                  demo=Demo("b", (("d", 1),)), **protocol),))
+def _family(codec: str = "busgate.codecs.inspire_la",
+            schema: str = "busgate.schemas.inspire_la") -> Family:
+    protocol = WireProtocol("inspire_la", "inspire_la", "serial", importlib.import_module(codec))
+    return Family("inspire_la", (protocol,), schema_module=schema)
 
 
 @pytest.mark.usefixtures("broken_modules")
 @pytest.mark.parametrize(("parts", "named"), [
-    ({"codec_module": "no_timing_codec"}, "codec no_timing_codec has no TIMING"),
-    ({"codec_module": "busgate.codecs.no_such"}, "codec busgate.codecs.no_such cannot be imported"),
-    ({"schema_module": "no_follow_schema"}, "schema module no_follow_schema has no FollowTarget"),
-    ({"schema_module": "busgate.schemas.ds_servo"}, "telemetry model's kind is not 'inspire_la'"),
-    ({"driver": "no_probe_driver:Nope"}, "driver no_probe_driver:Nope does not exist"),
-    ({"driver": "no_probe_driver:NoProbe"}, "driver no_probe_driver:NoProbe does not define probe"),
-    ({"driver": "busgate.gateway.drivers.base:Effect"}, "is not a Driver class"),
+    ({"codec": "no_timing_codec"}, "codec no_timing_codec has no TIMING"),
+    ({"schema": "no_follow_schema"}, "schema module no_follow_schema has no FollowTarget"),
+    ({"schema": "busgate.schemas.no_such"}, "its schema module cannot be imported"),
+    ({"schema": "busgate.schemas.ds_servo"}, "telemetry model's kind is not 'inspire_la'"),
 ])  # fmt: skip
 def test_a_family_missing_a_part_is_refused_naming_it(parts: dict, named: str) -> None:
     with pytest.raises(FamilyError, match=named):
         check_family(_family(**parts))
 
 
+def _no_probe() -> type:
+    return importlib.import_module("no_probe_driver").NoProbe
+
+
+@pytest.mark.usefixtures("broken_modules")
+@pytest.mark.parametrize(("row", "named"), [
+    (None, "no driver is registered for it"),
+    (_no_probe, "driver NoProbe does not define probe"),
+    (lambda: Effect, "driver Effect is not a Driver class"),
+    (lambda: DsServoDriver, "driver DsServoDriver names another protocol"),
+])  # fmt: skip
+def test_a_protocol_whose_driver_row_is_missing_or_wrong_is_refused_naming_it(
+        monkeypatch: pytest.MonkeyPatch, row, named: str) -> None:
+    if row is None:
+        monkeypatch.delitem(families.DRIVERS, "inspire_la")
+    else:
+        monkeypatch.setitem(families.DRIVERS, "inspire_la", row())
+    with pytest.raises(FamilyError, match=named):
+        check_family(_family())
+
+
 @pytest.mark.usefixtures("broken_modules")
 def test_a_simulator_missing_a_part_is_refused_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:
-    broken = _family(simulator="no_handle_sim:Device").protocols[0]
-    monkeypatch.setitem(PROTOCOLS, "inspire_la", broken)
-    with pytest.raises(FamilyError, match="simulator no_handle_sim:Device has no handle"):
+    broken = importlib.import_module("no_handle_sim").Device
+    monkeypatch.setitem(models.MODELS, "inspire_la", broken)
+    with pytest.raises(FamilyError, match="simulator Device has no handle"):
         model_class("inspire_la")
+    monkeypatch.delitem(models.MODELS, "inspire_la")
+    with pytest.raises(FamilyError, match="no simulator model is registered"):
+        model_class("inspire_la")
+    assert inspire_la.TIMING  # the codec itself was never the problem
 
 
-# --- a fifth family: four modules and one entry ---------------------------------------------------
+# --- a fifth family: four modules, one entry and two rows -----------------------------------------
 
 CLONE_MODULES = {
     "la_clone_codec": "from busgate.codecs.inspire_la import *  # noqa: F403\n",
@@ -151,7 +179,7 @@ CLONE_MODULES = {
     "la_clone_driver": textwrap.dedent("""\
         from busgate.gateway.drivers.inspire_la import InspireLaDriver
         class CloneDriver(InspireLaDriver):
-            pass
+            protocol = "la_clone"
         """),
     "la_clone_sim": textwrap.dedent("""\
         from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -164,12 +192,17 @@ CLONE_MODULES = {
 #: with its driver against its simulator (the real serial owner on a pty), the telemetry.
 CLONE_RUN = textwrap.dedent("""\
     import json, sys, time
-    from busgate.schemas.families import Demo, Family, WireProtocol, register
-    register(Family("la_clone", "la_clone_schema", (WireProtocol(
-        "la_clone", "la_clone", "serial", "la_clone_codec", "la_clone_driver:CloneDriver",
-        "la_clone_sim:CloneDevice", Demo("clones", (("c1", 1),))),)))
+    import la_clone_codec
+    from busgate.schemas.families import Family, WireProtocol, register
+    register(Family("la_clone", (WireProtocol("la_clone", "la_clone", "serial", la_clone_codec),),
+                    schema_module="la_clone_schema"))
 
-    from busgate.gateway.drivers.families import check_family
+    from la_clone_driver import CloneDriver
+    from la_clone_sim import CloneDevice
+    from busgate.gateway.drivers.families import DRIVERS, check_family
+    from busgate.gateway.sim.models import MODELS
+    DRIVERS["la_clone"] = CloneDriver
+    MODELS["la_clone"] = CloneDevice
     from busgate.gateway.service.assembly import build_bus
     from busgate.gateway.sim.models import make_devices
     from busgate.gateway.sim.serial_server import SerialSimulator

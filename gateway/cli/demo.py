@@ -66,9 +66,17 @@ class DemoBus:
         return HEARTBEAT_MS if PROTOCOLS[self.protocol].can else 0
 
 
-#: One bus per protocol of every family, at the protocol's default rate (the registry's demo).
+#: The demo's simulated buses and devices: one bus per protocol of every family (a test holds
+#: it to the registry), each at the protocol's default rate.
+_DEMO_DEVICES: dict[str, tuple[str, tuple[tuple[str, int], ...]]] = {
+    "inspire_la": ("uart0", (("la1", 1), ("la2", 2), ("la3", 3))),
+    "ds_servo": ("uart1", (("servo1", 1), ("servo2", 2))),
+    "zlac706_can": ("can0", (("wheel", 1),)),
+    "zlac706_rs232": ("rs232", (("drive", 1),)),
+}
 DEMO_BUSES = tuple(
-    DemoBus(p.demo.bus, p.name, p.timing.default_rate, p.demo.devices) for p in PROTOCOLS.values()
+    DemoBus(bus, protocol, PROTOCOLS[protocol].timing.default_rate, devices)
+    for protocol, (bus, devices) in _DEMO_DEVICES.items()
 )
 
 

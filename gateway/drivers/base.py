@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import abc
 import enum
-import functools
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -73,7 +72,7 @@ class Driver(abc.ABC):
     """One device on a bus, as the gateway knows it.
 
     Its kind, codec and command schema are the registry's (``busgate.schemas.families``):
-    the entry that names the driver class says them, so a driver does not repeat them.
+    the entry of its ``protocol`` says them, so a driver does not repeat them.
     """
 
     #: The commands that make a device ready to follow (sent by ``busgate bench``, and planned
@@ -85,6 +84,9 @@ class Driver(abc.ABC):
     follow_group_limit: ClassVar[int] = 1
     #: The id a frame sent to every device carries (``None``: the protocol has none).
     broadcast_id: ClassVar[int | None] = None
+    #: The protocol this class drives, by its name in the registry (each family's driver sets
+    #: it; ``busgate.gateway.drivers.families.DRIVERS`` is the table of them).
+    protocol: ClassVar[str]
 
     def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
         self.name = name
@@ -108,14 +110,9 @@ class Driver(abc.ABC):
     # -- what the registry says of this driver -------------------------------------------------
 
     @classmethod
-    @functools.cache
     def protocol_entry(cls) -> WireProtocol:
-        """The registry's entry that names this class (looked up once per class)."""
-        path = f"{cls.__module__}:{cls.__qualname__}"
-        for protocol in PROTOCOLS.values():
-            if protocol.driver == path:
-                return protocol
-        raise TypeError(f"no registered protocol names the driver {path}")
+        """The registry's entry of the protocol this class drives (``protocol``)."""
+        return PROTOCOLS[cls.protocol]
 
     @property
     def kind(self) -> str:

@@ -171,6 +171,7 @@ class DsServoDriver(Driver):
     every exchange, not only polls.
     """
 
+    protocol: ClassVar[str] = "ds_servo"
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"torque","on":true}',)
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID

@@ -1,20 +1,27 @@
-"""The gateway's side of the family registry: each protocol's driver loaded, and a family
-checked for every part it must have.
+"""The gateway's side of the family registry: what drives each protocol, and a family checked
+for every part it must have.
 
-The registry (``busgate.schemas.families``) names a family's parts by import path. Here they
-are loaded on first use and checked, so that a family missing a part fails with a message
-naming the part and where it was looked for, rather than with a ``KeyError`` deep in start-up.
-A simulator model is checked where simulators are made (``busgate.gateway.sim.models``).
+Rules of this file:
+
+1. ``DRIVERS`` is the one table of drivers: a row per protocol of the registry
+   (``busgate.schemas.families``), the class itself beside the driver modules (python-can's
+   ``BACKENDS`` style), and each class names its protocol (``Driver.protocol``). A family's
+   simulator model is registered the same way beside the simulators
+   (``busgate.gateway.sim.models.MODELS``).
+2. A family missing a part fails with a ``FamilyError`` naming the part, rather than with a
+   ``KeyError`` deep in start-up.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib
 from typing import Any
 
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.drivers.base import FAMILY_PARTS, Driver
+from busgate.gateway.drivers.ds_servo import DsServoDriver
+from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
+from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.schemas.config import DeviceConfig
 from busgate.schemas.families import PROTOCOLS, Family, WireProtocol
 
@@ -30,20 +37,11 @@ SCHEMA_PARTS = ("Command", "COMMAND_ADAPTER", "FollowTarget", "TELEMETRY_MODEL")
 SIMULATOR_PARTS = ("accepts", "handle", "spontaneous", "reboot", "inject_fault")
 
 
-def load(path: str, part: str, owner: str) -> Any:
-    """The object at ``module:name`` (or the module at ``module``), or a ``FamilyError``
-    naming ``part`` of ``owner``."""
-    module_name, _, name = path.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise FamilyError(f"{owner}: its {part} {path} cannot be imported ({exc})") from exc
-    if not name:
-        return module
-    try:
-        return getattr(module, name)
-    except AttributeError:
-        raise FamilyError(f"{owner}: its {part} {path} does not exist") from None
+#: Each protocol's driver class (rule 1).
+DRIVERS: dict[str, type[Driver]] = {
+    cls.protocol: cls
+    for cls in (InspireLaDriver, DsServoDriver, Zlac706CanDriver, Zlac706Rs232Driver)
+}
 
 
 def require(obj: Any, names: tuple[str, ...], part: str, owner: str) -> None:
@@ -53,20 +51,23 @@ def require(obj: Any, names: tuple[str, ...], part: str, owner: str) -> None:
         raise FamilyError(f"{owner}: its {part} has no {', '.join(missing)}")
 
 
-@functools.cache
 def driver_class(protocol: WireProtocol) -> type[Driver]:
-    """The driver class of ``protocol``, checked: a concrete ``Driver`` with every part."""
+    """The driver class of ``protocol``, checked: a concrete ``Driver`` of that protocol with
+    every part (rule 2)."""
     owner = f"protocol {protocol.name}"
-    cls = load(protocol.driver, "driver", owner)
+    cls = DRIVERS.get(protocol.name)
+    if cls is None:
+        raise FamilyError(f"{owner}: no driver is registered for it (DRIVERS)")
+    name = cls.__qualname__
     if not (isinstance(cls, type) and issubclass(cls, Driver)):
-        raise FamilyError(f"{owner}: its driver {protocol.driver} is not a Driver class")
+        raise FamilyError(f"{owner}: its driver {name} is not a Driver class")
+    if getattr(cls, "protocol", None) != protocol.name:
+        raise FamilyError(f"{owner}: its driver {name} names another protocol")
     lacking = sorted(getattr(cls, "__abstractmethods__", ())) + [
         part for part in FAMILY_PARTS if not _defines(cls, part)
     ]
     if lacking:
-        raise FamilyError(
-            f"{owner}: its driver {protocol.driver} does not define {', '.join(lacking)}"
-        )
+        raise FamilyError(f"{owner}: its driver {name} does not define {', '.join(lacking)}")
     return cls
 
 
@@ -82,13 +83,16 @@ def _defines(cls: type[Driver], name: str) -> bool:
 def check_family(family: Family) -> None:
     """Load every part of ``family`` and check it; ``FamilyError`` names the first missing."""
     owner = f"family {family.kind}"
-    schema = load(family.schema_module, "schema module", owner)
-    require(schema, SCHEMA_PARTS, f"schema module {family.schema_module}", owner)
+    try:
+        schema = family.schema
+    except ImportError as exc:
+        raise FamilyError(f"{owner}: its schema module cannot be imported ({exc})") from exc
+    require(schema, SCHEMA_PARTS, f"schema module {schema.__name__}", owner)
     if schema.TELEMETRY_MODEL.model_fields["kind"].annotation.__args__ != (family.kind,):
         raise FamilyError(f"{owner}: its telemetry model's kind is not {family.kind!r}")
     for protocol in family.protocols:
-        codec = load(protocol.codec_module, "codec", f"protocol {protocol.name}")
-        require(codec, CODEC_PARTS, f"codec {protocol.codec_module}", f"protocol {protocol.name}")
+        codec = protocol.codec
+        require(codec, CODEC_PARTS, f"codec {codec.__name__}", f"protocol {protocol.name}")
         driver_class(protocol)
 
 

@@ -81,6 +81,7 @@ def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
 class InspireLaDriver(Driver):
     """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
 
+    protocol: ClassVar[str] = "inspire_la"
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"enable"}',)
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID

@@ -140,6 +140,7 @@ PROBE_REGISTER = 0x7E
 class Zlac706CanDriver(Zlac706Driver):
     """One ZLAC706 node on a CAN bus."""
 
+    protocol: ClassVar[str] = "zlac706_can"
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
     frames = staticmethod(frames_for)
     roles: ClassVar[dict[int, RoleOf]] = ROLES

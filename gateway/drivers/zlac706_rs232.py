@@ -143,6 +143,8 @@ _MONITOR = Request.of(codec, codec.MonitorRequest(), idempotent=True)
 class Zlac706Rs232Driver(Zlac706Driver):
     """The ZLAC706 at the other end of an RS232 link."""
 
+    protocol: ClassVar[str] = "zlac706_rs232"
+
     frames = staticmethod(frames_for)
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual asks for a monitor at least once a second in speed mode; 0.2 s of margin.
