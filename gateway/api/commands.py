@@ -211,10 +211,8 @@ class GatewayApi:
     def _end_follow(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         """The stream ends on the bus thread (``stream_stopped``, then ``stale_stream``)."""
         request = EndFollow.model_validate(fields)
-        authority = runner.authority
-        # The claim alone: ending a stream moves nothing, so an e-stop does not refuse it
-        # (the authority's rule 4 is for motion).
-        authority.claims.check(device, request.client, authority.clock())
+        # Ending a stream moves nothing: the claim alone, never refused for an e-stop.
+        runner.authority.judge(device, Effect.SETTING, request.client)
         with self._fence:
             self._stream_clients.pop(device, None)
             self._ended[device] = (request.client, now(), request.seq)
@@ -225,8 +223,7 @@ class GatewayApi:
         """Out of the e-stop on the bus thread (``Driver.reset_estop``); the claim alone is
         judged: the reset moves nothing."""
         request = ResetEstop.model_validate(fields)
-        authority = runner.authority
-        authority.claims.check(device, request.client, authority.clock())
+        runner.authority.judge(device, Effect.SETTING, request.client)
         self._event(device, "estop_reset", **_client_field(request.client))
         return _mapped(runner.reset_estop(device))
 
@@ -257,10 +254,8 @@ class GatewayApi:
                         f"{device} is playing a trajectory: cancel it first (a follow stream and "
                         "a trajectory would fight over its target)",
                     )
-                runner.authority.check(
-                    [(frozenset({driver.device_id}), Effect.MOTION)],
-                    client,
-                    require_claim=fields.get("require_claim") is True,
+                runner.authority.judge(
+                    device, Effect.MOTION, client, require_claim=fields.get("require_claim") is True
                 )
                 if client is not None:
                     self._stream_clients[device] = client

@@ -48,7 +48,7 @@ from typing import Any
 from busgate.codecs.errors import BusgateError, CommandError, RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object, ok_reply
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.plays import ESTOPPED
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.bounds import value_refused
@@ -286,11 +286,7 @@ class Trajectories:
     ) -> None:
         if not runner.owner.is_open:
             raise RefusedError("bus_unavailable", f"bus {runner.name} of {driver.name} is down")
-        claims = runner.authority.claims
-        judge = claims.require if require_claim else claims.check
-        judge(driver.name, client, runner.authority.clock())
-        if driver.estopped:
-            raise driver.estopped_error()
+        runner.authority.judge(driver.name, Effect.MOTION, client, require_claim=require_claim)
         if not driver.online:
             raise RefusedError("device_timeout", f"{driver.name} is offline: it does not answer")
 
@@ -466,7 +462,7 @@ def _claim_problem(member: Member, client: str | None) -> str | None:
     if member.claimed and not _holds(runner, device, client):
         return f"claim on {device} lost"
     try:
-        runner.authority.claims.check(device, client, runner.authority.clock())
+        runner.authority.judge(device, Effect.SETTING, client)  # the claim (an e-stop: above)
     except BusgateError as exc:
         return str(exc)
     return None
@@ -475,7 +471,7 @@ def _claim_problem(member: Member, client: str | None) -> str | None:
 def _holds(runner: BusRunner, device: str, client: str | None) -> bool:
     """Whether ``client`` holds ``device``'s claim now."""
     try:
-        runner.authority.claims.require(device, client, runner.authority.clock())
+        runner.authority.judge(device, Effect.SETTING, client, require_claim=True)
     except BusgateError:
         return False
     return True

@@ -3,8 +3,10 @@
 A request is judged by what its frames do to the devices they address (a group frame's
 targets, every device of the bus for a broadcast), never by the key it came through: a
 ``group_move`` sent on ``dev/la1/cmd`` is checked on every actuator it moves. Each bus has one
-``Authority``; the bus thread asks it before planning a command, the API before taking a
-follow target. Rules of this file:
+``Authority``, the one judge of every path: the bus thread asks it before planning a command;
+the API before taking a follow target, accepting a trajectory play (and while it plays), ending
+a stream or resetting an e-stop (``judge``: one device by name, by what the request does to
+it). Rules of this file:
 
 1. An id that no device of the bus is configured with is refused (``unknown_device``), unless
    the frame only reads.
@@ -125,6 +127,15 @@ class Authority:
                 for driver in devices:
                     if driver.estopped:
                         raise driver.estopped_error()
+
+    def judge(
+        self, device: str, effect: Effect, client: str | None, *, require_claim: bool = False
+    ) -> None:
+        """``check`` for a request that does ``effect`` to ``device`` alone, named: a follow
+        target or a trajectory's tick moves it (``MOTION``), ending its stream or resetting
+        its e-stop sets it (``SETTING``: the claim, never refused for an e-stop)."""
+        driver = self.drivers[device]
+        self.check([(frozenset({driver.device_id}), effect)], client, require_claim=require_claim)
 
     def _devices(self, ids: Addressed, effect: Effect) -> list[Driver]:
         if ids is EVERY:
