@@ -18,6 +18,8 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.api import commands
 from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.bus.clock import now
+from busgate.gateway.drivers import inspire_la as inspire_la_driver
+from busgate.gateway.drivers import inspire_la_frames as la_frames
 from busgate.gateway.scheduler.tickers import FRESH_PERIODS, MIN_FRESH_S
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -172,6 +174,22 @@ def test_a_command_comes_back_with_the_device_state(gateway):
     api, *_ = gateway
     reply = ask(api, "la1", {"op": "move", "position": 1500})
     assert reply["ok"] and reply["state"]["target"] == 1500 and reply["state"]["device"] == "la1"
+
+
+def test_a_command_is_planned_once_its_effects_read_from_the_frames_it_plans(
+        gateway, monkeypatch):
+    """The bus thread builds a command's frames once: the authority judges their effects and
+    the driver plans those same frames (they were built twice, for each)."""
+    api, *_ = gateway
+    built = []
+
+    def counted(command, device_id):
+        built.append(command)
+        return la_frames.frames_for(command, device_id)
+
+    monkeypatch.setattr(inspire_la_driver, "frames_for", counted)
+    assert ask(api, "la1", {"op": "move", "position": 1400})["ok"]
+    assert [type(c).__name__ for c in built] == ["Move"]
 
 
 def test_a_claim_keeps_others_out_until_release_but_never_stops_an_estop(gateway):

@@ -76,7 +76,7 @@ class Device(Driver):
 
     kind = protocol = "test"
     reenable_op = "enable"
-    plan = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
+    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
     apply = lambda self, *a: {}  # noqa: E731
     effect = lambda self, frame: Effect.MOTION  # noqa: E731
 

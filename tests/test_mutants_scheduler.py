@@ -45,7 +45,7 @@ class Follower(Driver):
 
     kind = protocol = "test"
     follow_group_limit = 2
-    plan = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
+    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
     apply = lambda self, *a: {}  # noqa: E731
     effect = lambda self, frame: Effect.MOTION  # noqa: E731
 

@@ -53,7 +53,7 @@ class FollowingDriver(Driver):
     def follow_request(cls, targets):
         return silent_request(3 + 3 * len(targets))
 
-    plan = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
+    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
     apply = lambda self, *a: {}  # noqa: E731
     effect = lambda self, frame: Effect.MOTION  # noqa: E731
 

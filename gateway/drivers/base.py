@@ -175,14 +175,20 @@ class Driver(abc.ABC):
         device_id: Any = getattr(frame, "device_id", self.broadcast_id)
         return EVERY if device_id == self.broadcast_id else frozenset({device_id})
 
-    def effects(self, command: Any) -> list[tuple[Addressed, Effect]]:
-        """What each frame of ``command`` does, and to which ids."""
-        return [(self.addressed(frame), self.effect(frame)) for frame in self.frames_of(command)]
+    def effects_of(self, frames: Sequence[object]) -> list[tuple[Addressed, Effect]]:
+        """What each of ``frames`` does, and to which ids."""
+        return [(self.addressed(frame), self.effect(frame)) for frame in frames]
+
+    def plan(self, command: Any) -> list[Request]:
+        """The requests that carry out ``command`` now, its frames built here (the runner
+        builds them once, judges their effects and plans them: ``plan_frames``)."""
+        return self.plan_frames(command, self.frames_of(command))
 
     @abc.abstractmethod
-    def plan(self, command: Any) -> list[Request]:
-        """The requests that carry out ``command`` now; ``CommandError`` when the device's
-        state forbids it (e.g. a ZLAC706 position target before enable)."""
+    def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
+        """The requests that carry out ``command`` by ``frames`` (its ``frames_of``), and the
+        state they change; ``CommandError`` when the device's state forbids it (e.g. a ZLAC706
+        position target before enable), nothing changed then."""
 
     @abc.abstractmethod
     def poll(self) -> list[Request]:

@@ -187,22 +187,19 @@ class DsServoDriver(Driver):
     # -- planning -------------------------------------------------------------------------------
 
     def frames_of(self, command: Any) -> list[codec.Frame]:
+        if type(command) not in _FRAME_FOR:
+            raise CommandError(f"ds_servo has no command {type(command).__name__}")
         return frames_for(command, self.device_id)
 
     def effect(self, frame: object) -> Effect:
         return frame_effect(frame)  # type: ignore[arg-type]
 
-    def plan(self, command: Any) -> list[Request]:
-        if type(command) not in _FRAME_FOR:
-            raise CommandError(f"ds_servo has no command {type(command).__name__}")
+    def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         if isinstance(command, schema.SetId) and command.new_id == self.device_id:
             # Nothing to change, and a confirmation could not be told from a no-op.
             raise CommandError(f"servo {self.name} already has id {self.device_id}")
         idempotent = type(command) in _IDEMPOTENT
-        requests = [
-            Request.of(codec, frame, idempotent=idempotent)
-            for frame in frames_for(command, self.device_id)
-        ]
+        requests = [Request.of(codec, frame, idempotent=idempotent) for frame in frames]
         if isinstance(command, schema.Torque):
             if command.on:
                 self.estop_latched = False  # the re-enable op: the servo may move again

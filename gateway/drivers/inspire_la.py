@@ -74,7 +74,7 @@ _STATUS_FIELDS = {
 }
 
 
-def _request(frame: codec.Frame, *, idempotent: bool) -> Request:
+def _request(frame: object, *, idempotent: bool) -> Request:
     return Request.of(codec, frame, idempotent=idempotent)
 
 
@@ -107,11 +107,10 @@ class InspireLaDriver(Driver):
     def effect(self, frame: object) -> Effect:
         return frame_effect(frame)  # type: ignore[arg-type]
 
-    def plan(self, command: Any) -> list[Request]:
+    def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         moves_me = self._moves_me(command)
         if moves_me:
             self.require_power()
-        frames = frames_for(command, self.device_id)
         writes = [
             codec.register_values(frame.index, frame.data)
             for frame in frames

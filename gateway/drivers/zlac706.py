@@ -100,11 +100,11 @@ class Zlac706Driver(Driver):
     def effect(self, frame: object) -> Effect:
         return role_effect(*self._role(frame, self.machine.settings))
 
-    def plan(self, command: Any) -> list[Request]:
+    def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         """The command's requests, refused (``CommandError``) when the order rules forbid it."""
         outlook = self.machine.expected()
         requests, changes = [], {}
-        for frame in self.frames(command, self.device_id):
+        for frame in frames:
             role, value = self._role(frame, outlook)
             if role is not None:
                 check(role, value, outlook)

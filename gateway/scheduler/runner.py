@@ -246,10 +246,11 @@ class BusRunner:
         try:
             if driver is None:
                 raise CommandError(f"no device {device!r} on bus {self.name}")
+            frames = driver.frames_of(command)  # built once: judged, then planned
             self.authority.check(
-                driver.effects(command), client, require_claim=command.require_claim
+                driver.effects_of(frames), client, require_claim=command.require_claim
             )
-            requests = driver.plan(command)
+            requests = driver.plan_frames(command, frames)
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
             return
