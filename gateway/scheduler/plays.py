@@ -3,8 +3,9 @@ one (the end of its trajectory, a replacement, a cancel or an abort).
 
 Rules of this file:
 
-1. Bus thread only, but for ``playing``, ``commanded``, ``held`` and ``refusal``, which any
-   thread may read (the API, the feedback, the next play).
+1. Bus thread only. Other threads (the API, the feedback, the next play) read ``playing``,
+   ``commanded``, ``held`` and ``refusal`` from a ``PlaysView``, a snapshot the bus thread
+   publishes whole (one assignment) after every change, never from its live tables.
 2. A device plays one trajectory at a time: a new one takes it from its old one (and from its
    follow stream, ended quietly: the trajectory goes on from where the stream was) from the
    next tick on.
@@ -26,6 +27,8 @@ Rules of this file:
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from busgate.gateway.bus.stats import BusCounters
@@ -42,6 +45,17 @@ END_ALL = "was stopped with every device of its bus ({why})"
 #: e-stop by it, whatever a driver's state says at that moment).
 ESTOP = "an e-stop"
 ESTOPPED = END_ALL.format(why=ESTOP)
+
+
+@dataclass(frozen=True, slots=True)
+class PlaysView:
+    """What one bus plays, as its thread last published it (rule 1): never changed once made."""
+
+    #: Device → (seconds from its trajectory's start, target) of its last tick.
+    commanded: Mapping[str, tuple[float, Any]] = field(default_factory=dict)
+    held: Mapping[str, tuple[float, Any]] = field(default_factory=dict)
+    refusals: Mapping[str, tuple[float, str]] = field(default_factory=dict)
+    playing: frozenset[str] = frozenset()
 
 
 class Plays:
@@ -62,24 +76,25 @@ class Plays:
         #: Device → (the start of the trajectory it was playing, why it was ended) (rule 5).
         self._refusals: dict[str, tuple[float, str]] = {}
         self._held: dict[str, tuple[float, Any]] = {}  # device → its last tick (rule 4)
+        #: The snapshot other threads read (rule 1).
+        self.view = PlaysView()
 
     def playing(self, device: str) -> bool:
         """Any thread: ``device`` is in a trajectory (its ticks carry it)."""
-        return device in self._tickers
+        return device in self.view.playing
 
     def commanded(self, device: str) -> tuple[float, Any] | None:
         """Any thread: (seconds from its trajectory's start, target) of ``device``'s last tick."""
-        ticker = self._tickers.get(device)
-        return None if ticker is None else ticker.commanded.get(device)
+        return self.view.commanded.get(device)
 
     def held(self, device: str) -> tuple[float, Any] | None:
         """Any thread: (bus time, target) of the last tick of ``device`` once it left its
         trajectory (rule 4)."""
-        return self._held.get(device)
+        return self.view.held.get(device)
 
     def refusal(self, device: str) -> tuple[float, str] | None:
         """Any thread: (its start, why) of the trajectory of ``device`` ended here (rule 5)."""
-        return self._refusals.get(device)
+        return self.view.refusals.get(device)
 
     def start(self, samplers: dict[str, Sampler], start: float) -> None:
         """Play each device's sampler from ``start`` (bus clock) on (rule 2)."""
@@ -91,6 +106,7 @@ class Plays:
             ticker = self._ticker_for(driver, start)
             ticker.add(driver, sample)
             self._tickers[name] = ticker
+        self._publish()
 
     def stop(self, device: str, *, speed: bool) -> None:
         """``device`` leaves its trajectory (rule 3): it holds, or its speed ramps to 0."""
@@ -100,6 +116,7 @@ class Plays:
         last = ticker.commanded.get(device)
         if not speed or last is None:
             self._leave(device)
+            self._publish()
             return
         from_s, rpm = last
         ticker.add(ticker.playing[device].driver, _ramp_to_zero(from_s, rpm))
@@ -110,6 +127,7 @@ class Plays:
         for name, ticker in list(self._tickers.items()):
             self._refusals[name] = (ticker.start, END_ALL.format(why=why))
             self._leave(name)
+        self._publish()
 
     def after_tick(self, ticker: TrajectoryTicker) -> None:
         """A ticker's slot went by: devices it left out leave (rule 5); devices whose ramp is
@@ -126,6 +144,18 @@ class Plays:
                 requests = driver.stale_stream()
                 if requests:
                     self.planner.push_command(Job(name, deque(requests)))
+        self._publish()
+
+    def _publish(self) -> None:
+        """A new snapshot for the other threads (rule 1): copies, one assignment."""
+        commanded = {}
+        for name, ticker in self._tickers.items():
+            last = ticker.commanded.get(name)
+            if last is not None:
+                commanded[name] = last
+        self.view = PlaysView(
+            commanded, dict(self._held), dict(self._refusals), frozenset(self._tickers)
+        )
 
     def _leave(self, device: str) -> None:
         ticker = self._tickers.pop(device, None)

@@ -24,8 +24,8 @@ Rules of this file:
    Inspire LA of a bus in one 0xF3 frame, DS servos in one SYNC WRITE), up to the kind's
    ``follow_group_limit``.
 4. ``commanded`` holds, per device, the slot time and the value of its last tick sent (a tick
-   built ahead of its slot and then put off is not), replaced whole, so other threads (the
-   feedback) read it without a lock.
+   built ahead of its slot and then put off is not); other threads read it from the bus's
+   published ``PlaysView`` (``plays`` rule 1), never here.
 5. A device that can no longer take its target (e-stopped on its own, or its driver refuses
    the target: a ZLAC706 switched out of velocity mode) is left out of the frame and off the
    ticker, its reason in ``refused`` for ``on_tick``; its neighbours' tick goes on. With no
