@@ -21,6 +21,7 @@ exchange as a future), ``base`` (what both faces share), ``sync`` and ``aio`` (t
 from __future__ import annotations
 
 from busgate.client import aio
+from busgate.client.base import FleetDevice
 from busgate.client.core import Answer, Answers
 from busgate.client.errors import *  # noqa: F403 - one class per error code, made from the list
 from busgate.client.errors import __all__ as _error_names
@@ -33,6 +34,7 @@ __all__ = [
     "Claim",
     "Client",
     "Device",
+    "FleetDevice",
     "Follow",
     "Trajectory",
     "aio",

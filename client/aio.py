@@ -19,6 +19,7 @@ from typing import Any
 from busgate.client import trajectories
 from busgate.client.base import (
     WAIT_MARGIN_S,
+    FleetDevice,
     Found,
     Shared,
     as_body,
@@ -33,6 +34,7 @@ from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.sync import DEFAULT_TIMEOUT_S
 from busgate.client.trajectories import Handle, one_gateway, play_body, result_wait_s
+from busgate.schemas.api import InfoReply
 
 
 async def wait(future: Future, timeout_s: float, what: str) -> Any:
@@ -102,8 +104,13 @@ class Client:
     async def close(self) -> None:
         await asyncio.to_thread(self._shared.close)
 
-    async def gateways(self, timeout: float = 1.0) -> dict[str, dict[str, Any]]:
-        return await wait(self._shared.infos(None, timeout), timeout, "info of the gateways")
+    async def gateways(self, timeout: float = 1.0) -> dict[str, InfoReply]:
+        """As ``busgate.client.Client.gateways``: ``InfoReply`` models, by name."""
+        return await wait(self._shared.gateways(timeout), timeout, "info of the gateways")
+
+    async def devices(self, timeout: float = 1.0) -> list[FleetDevice]:
+        """As ``busgate.client.Client.devices``."""
+        return await wait(self._shared.devices(timeout), timeout, "devices of the gateways")
 
     async def device(self, name: str, *, timeout: float | None = None) -> Device:
         waited = self.timeout if timeout is None else timeout

@@ -7,12 +7,13 @@ waits (``sync.py``) or awaits (``aio.py``), so the two cannot drift apart.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from busgate.client.claims import ClaimLease, Timers
 from busgate.client.core import UNPARSED, Answer, Core, dumps, then
@@ -24,10 +25,13 @@ from busgate.client.errors import (
     error_for,
 )
 from busgate.client.follow import FollowSender
-from busgate.client.keys import check_name, split_name
+from busgate.client.keys import Keys, check_name, split_name
 from busgate.codecs.errors import CommandError
-from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS
+from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
+from busgate.schemas.telemetry import TelemetryEnvelope
+
+log = logging.getLogger(__name__)
 
 #: What a wait adds to the timeout zenoh was given before it says nobody answered (zenoh
 #: settles a query at its timeout; this covers a late settle on a loaded host).
@@ -43,13 +47,69 @@ class Found:
     kind: str
 
 
+@dataclass(frozen=True)
+class FleetDevice:
+    """One device of the fleet as its gateway's ``info`` lists it (``Client.devices``): its
+    gateway, bus, name, kind and id, and its last state (its kind's telemetry model, as
+    ``Device.state()`` gives it; ``None`` before the gateway had one)."""
+
+    gateway: str
+    bus: str
+    name: str
+    kind: str
+    id: int
+    state: TelemetryEnvelope | None
+
+
 def gateway_infos(answers: list[Answer]) -> dict[str, dict[str, Any]]:
-    """Each gateway's ``info`` among ``answers``, by name."""
+    """Each gateway's ``info`` among ``answers``, by name, as it came: what finding a device
+    and knowing a gateway is up need (its names), however the rest of the reply reads."""
     return {
         str(answer.body.get("gateway")): answer.body
         for answer in answers
         if answer.ok and isinstance(answer.body, dict)
     }
+
+
+def info_models(answers: list[Answer], keys: Keys) -> dict[str, InfoReply]:
+    """Each gateway's ``info`` among ``answers`` as an ``InfoReply``, by name, in order. A
+    reply that is not one (an error, not JSON, a field or device kind this SDK does not know)
+    leaves its sender out, with a warning naming it: one bad peer never fails the fleet's
+    answer. Validated as the JSON it came as (an enum's value is its text there)."""
+    infos: dict[str, InfoReply] = {}
+    for answer in answers:
+        try:
+            info = InfoReply.model_validate_json(json.dumps(answer.body))
+        except UNPARSED as exc:  # a ValidationError is a ValueError; a deep reply, recursion
+            log.warning(
+                "gateway %.64r left out: its info reply is not an InfoReply (%s)",
+                keys.gateway_of(answer.key),
+                _first_error(exc),
+            )
+            continue
+        infos[info.gateway] = info
+    return dict(sorted(infos.items()))
+
+
+def _first_error(exc: Exception) -> str:
+    """What is wrong with a reply, in a line: the first of pydantic's errors and their count."""
+    if not isinstance(exc, ValidationError):
+        return str(exc)[:200]
+    first = exc.errors(include_url=False, include_input=False)[0]
+    where = ".".join(str(part) for part in first["loc"]) or "the reply"
+    more = exc.error_count() - 1
+    return f"{where}: {first['msg']}" + (f"; {more} more" if more else "")
+
+
+def fleet_devices(infos: dict[str, InfoReply]) -> list[FleetDevice]:
+    """Every device of ``infos``, one each, by gateway then name."""
+    devices = [
+        FleetDevice(gateway, bus.name, device.name, device.kind, device.id, device.state)
+        for gateway, info in infos.items()
+        for bus in info.buses
+        for device in bus.devices
+    ]
+    return sorted(devices, key=lambda d: (d.gateway, d.name, d.bus))
 
 
 def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -> Found:
@@ -167,9 +227,21 @@ class Shared:
     # -- finding things ------------------------------------------------------------------------
 
     def infos(self, gateway: str | None, timeout_s: float) -> Future:
-        """A future of ``{gateway: info}`` of every gateway answering (or just ``gateway``)."""
+        """A future of ``{gateway: info}`` of every gateway answering (or just ``gateway``),
+        each as it came (``gateway_infos``)."""
         key = self.core.keys.info(gateway or "*")
         return then(self.core.ask(key, timeout_s=timeout_s), gateway_infos)
+
+    def gateways(self, timeout_s: float) -> Future:
+        """A future of ``{gateway: InfoReply}`` of every gateway answering within
+        ``timeout_s`` whose reply is one (``info_models``)."""
+        keys = self.core.keys
+        asked = self.core.ask(keys.info("*"), timeout_s=timeout_s)
+        return then(asked, lambda answers: info_models(answers, keys))
+
+    def devices(self, timeout_s: float) -> Future:
+        """A future of every device of those gateways, as ``FleetDevice``s in order."""
+        return then(self.gateways(timeout_s), fleet_devices)
 
     def find_all(self, names: list[str], what: str, timeout_s: float) -> Future:
         """A future of the ``Found`` device or bus (``what``) of each name (``"gw/x"`` or a

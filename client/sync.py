@@ -18,6 +18,7 @@ from typing import Any
 from busgate.client import trajectories
 from busgate.client.base import (
     WAIT_MARGIN_S,
+    FleetDevice,
     Found,
     Shared,
     as_body,
@@ -31,6 +32,7 @@ from busgate.client.errors import NoAnswerError
 from busgate.client.feeds import Latest, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.trajectories import Handle, one_gateway, play_body, result_wait_s
+from busgate.schemas.api import InfoReply
 
 DEFAULT_TIMEOUT_S = 5.0
 
@@ -97,9 +99,17 @@ class Client:
         session holds) and close the session."""
         self._shared.close()
 
-    def gateways(self, timeout: float = 1.0) -> dict[str, dict[str, Any]]:
-        """Every gateway that answers ``info`` within ``timeout``: its info, by name."""
-        return wait(self._shared.infos(None, timeout), timeout, "info of the gateways")
+    def gateways(self, timeout: float = 1.0) -> dict[str, InfoReply]:
+        """Every gateway that answers ``info`` within ``timeout``: its info, by name, as the
+        model ``busgate.schemas.api.InfoReply`` (``info.buses[0].devices``; ``info["buses"]``
+        too, as scripts written against the earlier release read it). A gateway whose reply
+        does not validate is left out, with a warning naming it."""
+        return wait(self._shared.gateways(timeout), timeout, "info of the gateways")
+
+    def devices(self, timeout: float = 1.0) -> list[FleetDevice]:
+        """Every device of the gateways ``gateways(timeout)`` gives, one ``FleetDevice`` each
+        (gateway, bus, name, kind, id and last state), by gateway then name."""
+        return wait(self._shared.devices(timeout), timeout, "devices of the gateways")
 
     def device(self, name: str, *, timeout: float | None = None) -> Device:
         """The device ``name``: ``"gw/la1"``, or a bare ``"la1"`` that one gateway has."""

@@ -24,7 +24,14 @@ from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
-from busgate.schemas.base import ClientId, CommandModel, FollowSeq, OpenPublished, Published
+from busgate.schemas.base import (
+    ClientId,
+    CommandModel,
+    FollowSeq,
+    OpenPublished,
+    Published,
+    ReadByKey,
+)
 from busgate.schemas.config import Name
 from busgate.schemas.families import FAMILIES, PROTOCOLS
 from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
@@ -221,20 +228,20 @@ REPLY_ADAPTER: TypeAdapter[Reply] = TypeAdapter(Reply)
 # --- info: <prefix>/<gw>/info ---------------------------------------------------------------------
 
 
-class DeviceInfo(Published):
+class DeviceInfo(ReadByKey):
     name: Name
     kind: DeviceKind
     id: int
     state: Telemetry | None = Field(description="The last state published; null before the first.")
 
 
-class BusInfo(Published):
+class BusInfo(ReadByKey):
     name: Name
     protocol: ProtocolName
     devices: list[DeviceInfo]
 
 
-class InfoReply(Published):
+class InfoReply(ReadByKey):
     """The gateway, its version, its buses and each bus's devices."""
 
     ok: Literal[True]

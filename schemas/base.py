@@ -9,7 +9,7 @@ Ranges come from the codecs' register tables, never retyped here.
 from __future__ import annotations
 
 import re
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -56,6 +56,29 @@ class Published(BaseModel):
     """Base of what the gateway publishes and clients only read: closed, no coercion."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class ReadByKey(Published):
+    """Published data that can also be read as the JSON object it came as: ``info["buses"]``
+    is ``info.buses``, and ``get`` and ``in`` answer as a dict's would. Kept for scripts
+    written against the earlier release, whose ``Client.gateways()`` returned the raw reply;
+    new code reads attributes (a device's state too: ``device["state"]["position"]`` is
+    ``device.state.position``). Reads only: iterating gives pydantic's ``(field, value)``
+    pairs, ``==`` compares models, and ``model_dump(mode="json")`` gives the object itself."""
+
+    def __getitem__(self, key: str) -> Any:
+        if key in type(self).model_fields:
+            return getattr(self, key)
+        raise KeyError(key)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
+    def __contains__(self, key: object) -> bool:
+        return isinstance(key, str) and key in type(self).model_fields
 
 
 class OpenPublished(BaseModel):

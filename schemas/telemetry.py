@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal, TypeAlias
 
 from pydantic import Field
 
-from busgate.schemas.base import Published
+from busgate.schemas.base import ReadByKey
 from busgate.schemas.config import Name
 from busgate.schemas.families import kinds
 
@@ -37,7 +37,7 @@ def fault_literal(flags: Iterable[enum.Flag]) -> Any:
     return Literal[tuple(flag_names(flags))]
 
 
-class TelemetryEnvelope(Published):
+class TelemetryEnvelope(ReadByKey):
     """The fields every device's state carries, whatever its kind. ``None`` in a value: not
     known yet (never read, or not reported by this device's protocol)."""
 

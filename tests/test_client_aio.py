@@ -19,7 +19,7 @@ from collections.abc import Awaitable, Callable
 import pytest
 
 import busgate.client as bc
-from busgate.schemas.api import TELEMETRY_MODELS
+from busgate.schemas.api import TELEMETRY_MODELS, InfoReply
 from busgate.schemas.inspire_la import Move
 from tests.sdk_helpers import (
     DEMO_DEVICES,
@@ -101,6 +101,27 @@ def test_connect_as_an_async_context_manager_or_awaited(connect) -> None:
             assert (await client.device("servo1")).kind == "ds_servo"
         finally:
             await client.close()
+
+    run(main())
+
+
+def test_gateways_are_info_models_read_by_key_too_and_devices_list_each_in_order(
+        connect) -> None:
+    async def main() -> None:
+        async with connect() as client:
+            infos = await client.gateways(timeout=1.0)
+            devices = await client.devices(timeout=1.0)
+        [info] = infos.values()
+        assert type(info) is InfoReply and info.gateway == "demo"
+        listed = {d.name: (bus.name, d.kind, d.id) for bus in info.buses for d in bus.devices}
+        assert listed == {d["name"]: (bus["name"], d["kind"], d["id"])
+                          for bus in info["buses"] for d in bus["devices"]}
+        assert [(d.gateway, d.name) for d in devices] == [("demo", n) for n in sorted(listed)]
+        assert all(type(d) is bc.FleetDevice for d in devices)
+        assert {d.name: (d.bus, d.kind, d.id) for d in devices} == listed
+        assert {d.name: d.kind for d in devices} == DEMO_DEVICES
+        for device in devices:
+            assert device.state is None or type(device.state) is TELEMETRY_MODELS[device.kind]
 
     run(main())
 

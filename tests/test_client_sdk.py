@@ -15,16 +15,21 @@ a loaded machine with everything else).
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 import time
 
 import pytest
+import zenoh
 
 import busgate.client as bc
+from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
+from busgate.gateway import installed_version
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.schemas.api import ERROR_CODES, TELEMETRY_MODELS
+from busgate.schemas.api import ERROR_CODES, TELEMETRY_MODELS, BusInfo, DeviceInfo, InfoReply
 from busgate.schemas.inspire_la import Move
 from tests.gateway_process import GatewayProcess, serial_bus
 from tests.sdk_helpers import (
@@ -107,14 +112,126 @@ def settled(device, wait_for, **expected) -> None:
 # -- finding gateways and devices ------------------------------------------------------------
 
 
-def test_gateways_answers_each_gateway_of_the_fleet_with_its_info(client, gw2) -> None:
+#: The devices of ``gw2``, by bus.
+GW2_BUSES = {"uart0": {"la1": 1, "la5": 5}, "uart1": {"la9": 1}}
+
+
+def test_gateways_answers_each_gateway_of_the_fleet_with_its_info_as_models(client, gw2) -> None:
     infos = client.gateways(timeout=1.0)
-    assert set(infos) == {"demo", "gw2"}
-    devices = {name: {d["name"]: d["kind"] for bus in info["buses"] for d in bus["devices"]}
+    assert list(infos) == ["demo", "gw2"]
+    for name, info in infos.items():
+        assert type(info) is InfoReply
+        assert (info.ok, info.gateway, info.version) == (True, name, installed_version())
+        for bus in info.buses:
+            assert type(bus) is BusInfo
+            for device in bus.devices:
+                assert type(device) is DeviceInfo
+                assert device.state is None or type(device.state) is TELEMETRY_MODELS[device.kind]
+    devices = {name: {d.name: d.kind for bus in info.buses for d in bus.devices}
                for name, info in infos.items()}
     assert devices == {"demo": DEMO_DEVICES,
                        "gw2": {"la1": "inspire_la", "la5": "inspire_la", "la9": "inspire_la"}}
-    assert infos["demo"]["ok"] is True and infos["demo"]["gateway"] == "demo"
+    gw2_buses = {bus.name: {d.name: d.id for d in bus.devices} for bus in infos["gw2"].buses}
+    assert gw2_buses == GW2_BUSES
+    assert infos["demo"].buses[0].devices[0].state is not None  # the demo's la1 is read
+
+
+def test_gateways_replies_read_by_key_as_the_earlier_release_gave_them(client, gw2) -> None:
+    """What scripts written when ``gateways()`` returned the raw reply do still works: every
+    key of the reply, its buses and their devices reads as the model's field."""
+    infos = client.gateways(timeout=1.0)
+    info = infos["demo"]
+    assert info["ok"] is True and info["gateway"] == "demo" and info["buses"] is info.buses
+    devices = {name: {d["name"]: d["kind"] for bus in info["buses"] for d in bus["devices"]}
+               for name, info in infos.items()}
+    assert devices["demo"] == DEMO_DEVICES and set(devices["gw2"]) == {"la1", "la5", "la9"}
+    bus = info["buses"][0]
+    device = bus["devices"][0]
+    assert (bus["name"], bus["protocol"]) == (bus.name, bus.protocol)
+    assert (device["id"], device["state"]) == (device.id, device.state)
+    assert device["state"].device == device["name"]  # the state: the kind's model
+    assert device["state"]["position"] == device.state.position  # read by key too
+    assert info.get("version") == installed_version() and info.get("nothing", 7) == 7
+    assert "version" in info and "state" in device and "nothing" not in info and 1 not in info
+    with pytest.raises(KeyError, match="nothing"):
+        info["nothing"]
+
+
+@pytest.fixture
+def junk_gateways(demo):
+    """A bare zenoh session, a peer of the demo (as ``gw2`` is), posing as gateways whose
+    ``info`` is not an info reply: ``junk-text`` answers text, ``junk-short`` an object
+    without ``version``, ``junk-kind`` a device of a kind this SDK does not know. Their buses
+    hold no device another gateway has, so nothing else of the module finds them."""
+    session = zenoh.open(session_config(mode="peer", connect=[demo.endpoint]))
+    device = {"name": "x1", "kind": "inspire_la", "id": 1, "state": None}
+    bodies = {
+        "junk-text": "not json at all",
+        "junk-short": json.dumps({"ok": True, "gateway": "junk-short", "buses": []}),
+        "junk-kind": json.dumps({"ok": True, "gateway": "junk-kind", "version": "9", "buses": [
+            {"name": "uart0", "protocol": "inspire_la",
+             "devices": [device, {**device, "name": "x2", "kind": "warp_drive"}]}]}),
+    }  # fmt: skip
+
+    def answering(key: str, body: str):
+        return lambda query: query.reply(key, body)
+
+    held = [session.declare_queryable(f"busgate/{name}/info",
+                                      answering(f"busgate/{name}/info", body))
+            for name, body in bodies.items()]
+    try:
+        yield sorted(bodies)
+    finally:
+        held.clear()
+        session.close()
+
+
+def test_a_gateway_whose_info_does_not_validate_is_left_out_with_a_warning_naming_it(
+        client, gw2, junk_gateways, caplog, wait_for) -> None:
+    """One bad peer never fails the fleet's answer: ``gateways()`` and ``devices()`` leave it
+    out, and say whom and why."""
+
+    def junk_answering() -> int:
+        answers = client.query("busgate/*/info", timeout=1.0)
+        return sum(answer.key.startswith("busgate/junk-") for answer in answers)
+
+    wait_for(lambda: junk_answering() == 3, timeout=DEADLINE_S)
+    with caplog.at_level(logging.WARNING, logger="busgate.client"):
+        infos = client.gateways(timeout=1.0)
+        devices = client.devices(timeout=1.0)
+    assert list(infos) == ["demo", "gw2"]
+    assert {d.gateway for d in devices} == {"demo", "gw2"}
+    why = {"junk-text": "the reply: Input should be an object",
+           "junk-short": "version: Field required",
+           "junk-kind": "buses.0.devices.1.kind: Input should be 'inspire_la'"}
+    said = sorted(r.getMessage() for r in caplog.records if r.name == "busgate.client.base")
+    assert [line.split(" (")[0] for line in said] == [  # each call names each
+        f"gateway {name!r} left out: its info reply is not an InfoReply"
+        for name in junk_gateways for _ in range(2)]
+    for line in said:
+        assert why[line.split("'")[1]] in line, line
+
+
+def test_devices_lists_every_device_of_the_fleet_by_gateway_then_name(client, gw2) -> None:
+    devices = client.devices(timeout=1.0)
+    assert all(type(d) is bc.FleetDevice for d in devices)
+    expected = sorted([("demo", name) for name in DEMO_DEVICES]
+                      + [("gw2", name) for names in GW2_BUSES.values() for name in names])
+    assert [(d.gateway, d.name) for d in devices] == expected
+    infos = client.gateways(timeout=1.0)
+    for device in devices:
+        [bus] = [b for b in infos[device.gateway].buses
+                 if device.name in {d.name for d in b.devices}]
+        [listed] = [d for d in bus.devices if d.name == device.name]
+        assert (device.bus, device.kind, device.id) == (bus.name, listed.kind, listed.id)
+        assert device.state is None or type(device.state) is TELEMETRY_MODELS[device.kind]
+    gw2 = {d.name: (d.bus, d.id) for d in devices if d.gateway == "gw2"}
+    assert gw2 == {"la1": ("uart0", 1), "la5": ("uart0", 5), "la9": ("uart1", 1)}
+    demo = {d.name: d.kind for d in devices if d.gateway == "demo"}
+    assert demo == DEMO_DEVICES
+    assert next(d for d in devices if d.name == "la1").state.position is not None
+    with pytest.raises(AttributeError):
+        devices[0].name = "other"  # frozen
 
 
 def test_on_gateways_tells_each_gateway_up_now_then_as_they_come_and_go(

@@ -77,7 +77,7 @@ def events(where, count: int) -> list[tuple[str, dict]]:
 def power(client, field: str = "estopped") -> dict[str, bool]:
     """Each demo device's ``estopped`` (or another ``field`` of its state), from a fresh info."""
     [info] = client.gateways(timeout=2.0).values()
-    return {d["name"]: d["state"][field] for bus in info["buses"] for d in bus["devices"]}
+    return {d.name: getattr(d.state, field) for bus in info.buses for d in bus.devices}
 
 
 def test_the_page_its_script_and_the_vendored_library_are_served(dashboard) -> None:

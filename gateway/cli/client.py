@@ -38,6 +38,7 @@ from busgate.client.keys import Keys, check_key, intersects, split_name
 from busgate.codecs.errors import CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
+from busgate.schemas.api import InfoReply
 
 REDRAW_HZ = 5
 NO_ANSWER, ERROR_REPLY = 2, 1
@@ -177,14 +178,10 @@ def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: f
     return NO_ANSWER
 
 
-def gateway_devices(infos: dict[str, dict[str, Any]]) -> dict[str, set[str]]:
+def gateway_devices(infos: dict[str, InfoReply]) -> dict[str, set[str]]:
     """The devices of each gateway, from their ``info``."""
     return {
-        gateway: {
-            str(device.get("name"))
-            for bus in info.get("buses", [])
-            for device in bus.get("devices", [])
-        }
+        gateway: {device.name for bus in info.buses for device in bus.devices}
         for gateway, info in infos.items()
     }
 
@@ -219,9 +216,10 @@ def run_watch(args: argparse.Namespace) -> int:
     with open_client(args, "watch") as client:
         _subscribe(client, table, selector, state_key, stats_key)  # until the close
         gateway = state_key.split("/")[-4]
-        for info in client.gateways(1.0).values():
-            if gateway in ("*", info.get("gateway")):
-                table.seed(info, lambda key: intersects(selector, f"{args.prefix}/{key}"))
+        for name, info in client.gateways(1.0).items():
+            if gateway in ("*", name):
+                seeding = info.model_dump(mode="json")  # the table holds what came as JSON
+                table.seed(seeding, lambda key: intersects(selector, f"{args.prefix}/{key}"))
         if args.once:
             _wait(seconds)
         else:

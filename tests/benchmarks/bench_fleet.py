@@ -70,9 +70,7 @@ def figures(values: list[float], unit: str = "ms", scale: float = 1000.0) -> str
 
 
 def devices_of(client: bc.Client) -> list[str]:
-    infos = client.gateways(timeout=2.0)
-    return [f"{g}/{d['name']}" for g, info in sorted(infos.items())
-            for bus in info["buses"] for d in bus["devices"]]
+    return [f"{d.gateway}/{d.name}" for d in client.devices(timeout=2.0)]
 
 
 def wait_until(condition, what: str, timeout_s: float = 20.0) -> None:
