@@ -26,7 +26,7 @@ from busgate.client.errors import (
 )
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, check_name, split_name
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
 from busgate.schemas.telemetry import TelemetryEnvelope

@@ -51,7 +51,7 @@ import zenoh
 from busgate.client.errors import ConnectError, NoAnswerError, error_for, raise_for
 from busgate.client.keys import Keys, check_key, check_name
 from busgate.client.zenoh_config import session_config, zenoh_reason
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 
 log = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@ and the failures that happen on the client's side.
 
 Rules of this file:
 
-1. The root is busgate's one ``BusgateError`` (``busgate.codecs.errors``): a program catches
+1. The root is busgate's one ``BusgateError`` (``busgate.errors``): a program catches
    every failure of the SDK, the gateway's refusals included, with one ``except``.
 2. Every stable code of ``{"ok": false, "error": {"code": …}}`` (``schemas.api.ERROR_CODES``)
    has its own subclass of ``GatewayError``, made from that list, so a code added to the API
@@ -23,7 +23,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from busgate.codecs.errors import BusgateError
+from busgate.errors import BusgateError
 from busgate.schemas.api import ERROR_CODES
 
 

@@ -29,7 +29,7 @@ from pydantic import ValidationError
 from busgate.client.claims import ClaimLease, Timers
 from busgate.client.core import Core, dumps
 from busgate.client.errors import error_for
-from busgate.schemas.errors import describe_validation_error, refusal_code
+from busgate.schemas.validation import describe_validation_error, refusal_code
 
 #: The shortest follow period of any device (10 ms): more puts a second only flood.
 MIN_PUT_INTERVAL_S = 0.01

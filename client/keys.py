@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import zenoh
 
 from busgate.client.zenoh_config import zenoh_reason
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.schemas.base import CLIENT_ID_PATTERN
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.

@@ -20,7 +20,7 @@ from typing import Any
 
 from busgate.client.base import Shared
 from busgate.client.core import UNPARSED, then
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 
 _ids = itertools.count(1)
 

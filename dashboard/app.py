@@ -42,8 +42,8 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from busgate.client.errors import GatewayError, UnknownGatewayError
 from busgate.client.keys import check_name, split_name
-from busgate.codecs.errors import BusgateError
 from busgate.dashboard.hub import Hub
+from busgate.errors import BusgateError
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_BODY = 1024

@@ -17,8 +17,8 @@ from typing import Any
 from busgate.client import aio
 from busgate.client.errors import GatewayError
 from busgate.client.keys import Keys
-from busgate.codecs.errors import BusgateError
 from busgate.dashboard.fleet import Fleet
+from busgate.errors import BusgateError
 
 log = logging.getLogger(__name__)
 

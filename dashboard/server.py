@@ -37,11 +37,11 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from busgate.client import aio
 from busgate.client.errors import error_for
-from busgate.codecs.errors import CommandError
 from busgate.dashboard.app import create_app, host_and_port
 from busgate.dashboard.feed import Feed
 from busgate.dashboard.fleet import Fleet
 from busgate.dashboard.hub import Hub
+from busgate.errors import CommandError
 
 DEFAULT_LISTEN = "127.0.0.1:8080"
 #: A port as digits only: ``int`` would also take " 80", "+80", "8_0" and "٨٠".

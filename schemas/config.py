@@ -22,9 +22,9 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from busgate.codecs.errors import ConfigError
-from busgate.schemas.errors import closest, suggestion
+from busgate.errors import ConfigError
 from busgate.schemas.families import PROTOCOLS, kinds, protocol_of
+from busgate.schemas.validation import closest, suggestion
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
 Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]

@@ -12,7 +12,7 @@ Rules of this file:
    devices in velocity mode, speeds (``rpms``, any number as a ``Rpm`` is): never both.
 3. A structural problem is a ``ValueError`` raised by a validator (pydantic's ``value_error``:
    ``bad_command``), its one line naming the point and field; too many points is pydantic's
-   own ``too_long`` (``out_of_range``, ``busgate.schemas.errors.refusal_code``).
+   own ``too_long`` (``out_of_range``, ``busgate.schemas.validation.refusal_code``).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.codecs.errors import BusIOError, DeviceTimeoutError
+from busgate.errors import BusIOError, DeviceTimeoutError
 from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request

@@ -15,7 +15,7 @@ from concurrent.futures import Future
 import pytest
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.errors import BusIOError, BusUnavailableError, BusyError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
@@ -23,7 +23,6 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
-from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import Job, Priority
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice

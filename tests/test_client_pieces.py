@@ -14,7 +14,7 @@ from busgate.client.base import as_body, locate, raw_payload, reenable_command
 from busgate.client.claims import Timers
 from busgate.client.errors import raise_for
 from busgate.client.keys import check_key, split_name
-from busgate.codecs.errors import BusgateError, CommandError
+from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
 from busgate.schemas.api import ERROR_CODES
 from busgate.schemas.families import FAMILIES

@@ -11,7 +11,7 @@ import time
 import pytest
 
 import busgate.client as bc
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from tests.sdk_helpers import patiently
 
 TIMEOUT_S = 10.0  # a hang guard, not a speed requirement

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from busgate.codecs.errors import ConfigError
+from busgate.errors import ConfigError
 from busgate.schemas.config import CanBus, SerialBus, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parent.parent

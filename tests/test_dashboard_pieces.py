@@ -12,10 +12,10 @@ import socket
 
 import pytest
 
-from busgate.codecs.errors import CommandError
 from busgate.dashboard.fleet import Fleet
 from busgate.dashboard.hub import BACKLOG, Hub
 from busgate.dashboard.server import Listen
+from busgate.errors import CommandError
 from tests.gateway_process import run_busgate
 
 

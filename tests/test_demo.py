@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from busgate.client.zenoh_config import session_config
-from busgate.codecs.errors import ConfigError
+from busgate.errors import ConfigError
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
 from tests.gateway_process import TIMEOUT_S, DemoProcess

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from busgate.codecs import ds_servo as ds
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters

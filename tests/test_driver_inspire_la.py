@@ -11,7 +11,7 @@ import typing
 import pytest
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import CommandError, RefusedError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters

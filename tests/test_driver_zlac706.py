@@ -12,7 +12,7 @@ import pytest
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner

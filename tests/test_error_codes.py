@@ -1,4 +1,4 @@
-"""The one mapping from an exception to its reply's code (gateway/api/errors.py), on the
+"""The one mapping from an exception to its reply's code (gateway/api/replies.py), on the
 exceptions each path really raises: the schemas' refusals as pydantic makes them, as the CLI
 and the drivers word them, the codecs' encode errors, the bus thread's, and a bug. Pure
 calls."""
@@ -9,18 +9,18 @@ import pytest
 from pydantic import ValidationError
 
 from busgate.codecs import zlac706_can as zcan
-from busgate.codecs.errors import (
+from busgate.codecs.errors import EncodeError
+from busgate.errors import (
     BusUnavailableError,
+    BusyError,
     CommandError,
     DeviceTimeoutError,
-    EncodeError,
     RefusedError,
 )
-from busgate.gateway.api.errors import error_code, error_reply
+from busgate.gateway.api.replies import error_code, error_reply
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
-from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.schemas import ds_servo, inspire_la
 
 

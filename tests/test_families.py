@@ -21,11 +21,12 @@ from pathlib import Path
 import pytest
 
 from busgate.codecs import inspire_la
+from busgate.errors import FamilyError
 from busgate.gateway.cli.demo import DEMO_BUSES
 from busgate.gateway.drivers import families
 from busgate.gateway.drivers.base import Effect
 from busgate.gateway.drivers.ds_servo import DsServoDriver
-from busgate.gateway.drivers.families import DRIVERS, FamilyError, check_family, driver_class
+from busgate.gateway.drivers.families import DRIVERS, check_family, driver_class
 from busgate.gateway.sim import models
 from busgate.gateway.sim.models import MODELS, model_class
 from busgate.schemas import api

@@ -8,7 +8,7 @@ from __future__ import annotations
 from concurrent.futures import wait
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.scheduler.outcomes import BusyError
+from busgate.errors import BusyError
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.inspire_la import InspireLaDevice

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from busgate.codecs.errors import BusgateError
+from busgate.errors import BusgateError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.recording import flight
 from busgate.gateway.recording.flight import FlightRecorder, Trigger, folder_problem, trigger_of

@@ -15,7 +15,7 @@ from collections import deque
 import pytest
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import DeviceTimeoutError
+from busgate.errors import DeviceTimeoutError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner

@@ -18,7 +18,7 @@ import pytest
 from pydantic import BaseModel, Field, ValidationError
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import CommandError, RefusedError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api import commands
 from busgate.gateway.api.commands import (
     MAX_PAYLOAD,
@@ -29,8 +29,8 @@ from busgate.gateway.api.commands import (
     decode_object,
     error_reply,
 )
-from busgate.gateway.api.errors import error_code
 from busgate.gateway.api.group import scan_requests
+from busgate.gateway.api.replies import error_code
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner

@@ -35,7 +35,7 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.can_frame import CanFrame
-from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus import can_owner as can_owner_module
 from busgate.gateway.bus import owner as owner_module
 from busgate.gateway.bus import serial_owner as serial_owner_module

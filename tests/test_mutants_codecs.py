@@ -16,13 +16,7 @@ import pytest
 from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.ds_servo.registers import check_write
-from busgate.codecs.errors import (
-    CodecError,
-    ConfigError,
-    DeviceError,
-    EncodeError,
-    RefusedError,
-)
+from busgate.codecs.errors import CodecError, EncodeError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
 from busgate.codecs.inspire_la.registers import baud_code, register_write, temperature_raw
 from busgate.codecs.registers import Access, Register, RegisterMap
@@ -34,6 +28,7 @@ from busgate.codecs.zlac706_common import (
     speed_raw_truncated,
     torque_raw_from_amps,
 )
+from busgate.errors import ConfigError, DeviceError, RefusedError
 
 
 def refused(call, *args, field: str, value: object) -> EncodeError:

@@ -12,8 +12,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FOLDERS = {"client": "busgate.client", "codecs": "busgate.codecs",
-           "dashboard": "busgate.dashboard", "gateway": "busgate.gateway",
-           "schemas": "busgate.schemas"}
+           "dashboard": "busgate.dashboard", "errors": "busgate.errors",
+           "gateway": "busgate.gateway", "schemas": "busgate.schemas"}
 
 
 def _packages_on_disk() -> set[str]:

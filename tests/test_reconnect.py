@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 
-from busgate.codecs.errors import BusUnavailableError
+from busgate.errors import BusUnavailableError
 from busgate.gateway.scheduler.link import (
     BACKOFF_FIRST_S,
     BACKOFF_MAX_S,

@@ -28,10 +28,10 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
-from busgate.codecs.errors import RefusedError
+from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, ok_reply
-from busgate.gateway.api.errors import error_reply
 from busgate.gateway.api.group import scan_requests, scan_result
+from busgate.gateway.api.replies import error_reply
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.cli import main
 from busgate.gateway.cli import schema as schema_cli

@@ -14,7 +14,7 @@ import time
 import pytest
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import BusUnavailableError
+from busgate.errors import BusUnavailableError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing

@@ -18,7 +18,7 @@ import pytest
 import serial
 
 from busgate.codecs import inspire_la as la
-from busgate.codecs.errors import BusUnavailableError
+from busgate.errors import BusUnavailableError
 from busgate.gateway.bus.port_access import UDEV_RULES, describe_open_error
 from busgate.gateway.cli import main
 from busgate.gateway.service.assembly import build_bus

@@ -12,7 +12,6 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from busgate.schemas.errors import describe_validation_error, refusal_code
 from busgate.schemas.trajectory import (
     MAX_TRAJECTORY_PAYLOAD,
     MAX_TRAJECTORY_POINTS,
@@ -21,6 +20,7 @@ from busgate.schemas.trajectory import (
     TrajectoryPlay,
     TrajectoryStatus,
 )
+from busgate.schemas.validation import describe_validation_error, refusal_code
 
 EXAMPLE: dict[str, Any] = {
     "op": "play",

@@ -9,7 +9,7 @@ from pydantic import ValidationError
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_rs232 as rs232
-from busgate.codecs.errors import CommandError, EncodeError
+from busgate.codecs.errors import EncodeError
 from busgate.codecs.zlac706_common import (
     AlarmFlags,
     ramp_word,
@@ -17,6 +17,7 @@ from busgate.codecs.zlac706_common import (
     speed_raw_truncated,
     torque_raw_from_amps,
 )
+from busgate.errors import CommandError
 from busgate.gateway.cli import main
 from busgate.gateway.drivers import zlac706_can as can_driver
 from busgate.gateway.drivers import zlac706_rs232 as rs232_driver

@@ -28,9 +28,9 @@ from typing import Any
 import zenoh
 
 from busgate.client.zenoh_config import session_config
-from busgate.codecs.errors import RefusedError
+from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object
-from busgate.gateway.api.errors import error_reply
+from busgate.gateway.api.replies import error_reply
 from busgate.gateway.api.trajectories import Trajectories
 from busgate.gateway.api.trajectory_lanes import TrajectoryLanes
 from busgate.gateway.drivers.base import DeviceEvent

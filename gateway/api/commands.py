@@ -8,8 +8,8 @@ every rule of the API is tested without a network. Rules of this file:
    not an object, or not a valid command; the reply says why with a stable code
    (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``, ``out_of_range``,
    ``unknown_device`` …) and a human message (for an op the device's key does not take,
-   one line naming the op it most likely misspells: ``busgate.schemas.errors``), the code
-   from the one mapping of exceptions to codes (``busgate.gateway.api.errors``), as for what
+   one line naming the op it most likely misspells: ``busgate.schemas.validation``), the code
+   from the one mapping of exceptions to codes (``busgate.gateway.api.replies``), as for what
    the bus refuses later. Whatever the payload, there is exactly one reply: a bug becomes
    ``internal``, logged with its traceback. The payload is parsed once: the command is
    validated from the parsed object, against every op the device's key takes (its kind's
@@ -45,10 +45,10 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
-from busgate.codecs.errors import RefusedError
+from busgate.errors import RefusedError
 from busgate.gateway import installed_version
-from busgate.gateway.api.errors import REFUSALS, error_reply
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
+from busgate.gateway.api.replies import REFUSALS, error_reply
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.runner import BusRunner
@@ -61,7 +61,7 @@ from busgate.schemas.api import (
     Release,
     ResetEstop,
 )
-from busgate.schemas.errors import command_from_object
+from busgate.schemas.validation import command_from_object
 
 MAX_PAYLOAD = 64 * 1024
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.

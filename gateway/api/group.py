@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from busgate.codecs.errors import RefusedError
+from busgate.errors import RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.scheduler.runner import BusRunner

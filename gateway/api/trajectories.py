@@ -45,7 +45,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from busgate.codecs.errors import BusgateError, CommandError, RefusedError
+from busgate.errors import BusgateError, CommandError, RefusedError
 from busgate.gateway.api.commands import GatewayApi, decode_object, ok_reply
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect

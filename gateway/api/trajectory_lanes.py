@@ -25,10 +25,9 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
-from busgate.codecs.errors import RefusedError
+from busgate.errors import BusyError, RefusedError
 from busgate.gateway.api.commands import decode_object
-from busgate.gateway.api.errors import REFUSALS, error_reply
-from busgate.gateway.scheduler.outcomes import BusyError
+from busgate.gateway.api.replies import REFUSALS, error_reply
 
 log = logging.getLogger(__name__)
 

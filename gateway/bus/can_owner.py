@@ -33,8 +33,8 @@ from typing import Any, ClassVar
 import can
 
 from busgate.codecs.can_frame import CanFrame
-from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import Discarded
+from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request

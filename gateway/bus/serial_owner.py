@@ -29,8 +29,8 @@ from typing import ClassVar
 
 import serial
 
-from busgate.codecs.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.codecs.framing import ChecksumMismatch, Discarded, ExpectedReply
+from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.port_access import describe_open_error

@@ -15,7 +15,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from busgate.codecs.errors import BusgateError
+from busgate.errors import BusgateError
 from busgate.gateway import installed_version
 
 #: Each command, the module that adds its parser and carries it out, and its line in the

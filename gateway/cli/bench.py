@@ -32,7 +32,7 @@ from typing import Any
 import serial
 from pydantic import ValidationError
 
-from busgate.codecs.errors import BusUnavailableError, CommandError
+from busgate.errors import BusUnavailableError, CommandError
 from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import percentile
@@ -43,8 +43,8 @@ from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.config import CanBus, SerialBus
-from busgate.schemas.errors import describe_validation_error
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.validation import describe_validation_error
 
 ONLINE_TIMEOUT_S = 5.0
 #: The polling baseline's wait for a reply before it counts a timeout and goes on.

@@ -14,7 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from busgate.codecs.errors import ConfigError
+from busgate.errors import ConfigError
 from busgate.gateway.bus.port_access import missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget

@@ -35,7 +35,7 @@ from typing import Any, TextIO
 
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key, intersects, split_name
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply

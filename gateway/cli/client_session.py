@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import busgate.client as bc
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"

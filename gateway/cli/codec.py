@@ -14,12 +14,12 @@ import json
 import sys
 
 from busgate.codecs.can_frame import CanFrame
-from busgate.codecs.errors import CommandError
 from busgate.codecs.framing import ChecksumMismatch, Discarded
+from busgate.errors import CommandError
 from busgate.gateway.cli.jsonify import to_jsonable
 from busgate.gateway.drivers.families import driver_class
-from busgate.schemas.errors import command_from_json
 from busgate.schemas.families import PROTOCOLS, WireProtocol
+from busgate.schemas.validation import command_from_json
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive
 

@@ -36,8 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from busgate.client import aio
-from busgate.codecs.errors import CommandError
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
+from busgate.errors import CommandError
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
 from busgate.gateway.service.daemon import serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices

@@ -36,7 +36,7 @@ import zenoh
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key
 from busgate.client.zenoh_config import zenoh_reason
-from busgate.codecs.errors import BusgateError, CommandError
+from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import zenoh
 
 from busgate.client.zenoh_config import session_config, session_refusal, zenoh_reason
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 
 IN_USE_HINT = "another busgate router, zenohd or gateway?"
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)

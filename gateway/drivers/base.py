@@ -24,10 +24,10 @@ from typing import Any, ClassVar
 
 from pydantic import TypeAdapter, ValidationError
 
-from busgate.codecs.errors import CommandError, RefusedError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
-from busgate.schemas.errors import command_from_json, describe_validation_error
 from busgate.schemas.families import PROTOCOLS, WireProtocol
+from busgate.schemas.validation import command_from_json, describe_validation_error
 
 #: What a family's driver must define beyond the abstract methods (see ``Driver``).
 FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe")

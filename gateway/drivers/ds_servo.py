@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any, ClassVar, Final
 
 from busgate.codecs import ds_servo as codec
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver, Effect
 from busgate.schemas import ds_servo as schema

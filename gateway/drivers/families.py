@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from busgate.errors import FamilyError
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.drivers.base import FAMILY_PARTS, Driver
 from busgate.gateway.drivers.ds_servo import DsServoDriver
@@ -24,11 +25,6 @@ from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.schemas.config import DeviceConfig
 from busgate.schemas.families import PROTOCOLS, Family, WireProtocol
-
-
-class FamilyError(Exception):
-    """A registered family lacks a part, or a part is not what the registry needs."""
-
 
 #: What each part must offer, by the names the gateway uses.
 CODEC_PARTS = ("encode", "expected_reply", "CommandDecoder", "ReplyDecoder", "readings",

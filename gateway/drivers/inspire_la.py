@@ -26,7 +26,8 @@ from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, cast
 
 from busgate.codecs import inspire_la as codec
-from busgate.codecs.errors import CommandError, EncodeError
+from busgate.codecs.errors import EncodeError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver, Effect
 from busgate.gateway.drivers.inspire_la_frames import frame_effect, frames_for

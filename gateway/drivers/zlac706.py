@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Deadman, Driver, Effect
 from busgate.gateway.drivers.zlac706_state import (

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_can as codec
 from busgate.codecs import zlac706_common as common
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.zlac706 import Zlac706Driver

@@ -26,7 +26,8 @@ from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
 from busgate.codecs import zlac706_rs232 as codec
-from busgate.codecs.errors import CodecError, CommandError
+from busgate.codecs.errors import CodecError
+from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.zlac706 import Zlac706Driver
 from busgate.gateway.drivers.zlac706_state import Role, RoleOf, reverse

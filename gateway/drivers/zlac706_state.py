@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from busgate.codecs import zlac706_common as common
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.drivers.base import Effect
 
 Mode = common.Mode

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from busgate.codecs.errors import BusgateError
+from busgate.errors import BusgateError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import Tap
 from busgate.gateway.recording.ring import Ring

@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
-from busgate.codecs.errors import RefusedError
+from busgate.errors import RefusedError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 
-from busgate.codecs.errors import BusIOError, DeviceTimeoutError
+from busgate.errors import BusIOError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Exchange, Request

@@ -19,19 +19,12 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
-from busgate.codecs.errors import BusgateError
+from busgate.errors import BusgateError, BusyError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.scheduler.planner import Job
 
 #: The device's state for a job's result (``None``: the job is for no one device).
 StateOf = Callable[[str], dict[str, Any] | None]
-
-
-class BusyError(BusgateError):
-    """The bus's command queue is full, or a command found no room before its deadline;
-    nothing was sent: try again."""
-
-    code = "busy"
 
 
 def may_start(job: Job) -> bool:

@@ -33,10 +33,11 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from busgate.codecs.errors import (
+from busgate.errors import (
     BusgateError,
     BusIOError,
     BusUnavailableError,
+    BusyError,
     CommandError,
     RefusedError,
 )
@@ -50,7 +51,6 @@ from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
-from busgate.gateway.scheduler.outcomes import BusyError
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.polling import DevicePoller

@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from busgate.codecs.errors import CommandError, RefusedError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver

@@ -29,7 +29,7 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING
 
-from busgate.codecs.errors import BusgateError, BusUnavailableError
+from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import tune_interpreter

@@ -12,7 +12,7 @@ import signal
 import threading
 import uuid
 
-from busgate.codecs.errors import CommandError
+from busgate.errors import CommandError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices

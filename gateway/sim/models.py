@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from busgate.gateway.drivers.families import SIMULATOR_PARTS, FamilyError, require
+from busgate.errors import FamilyError
+from busgate.gateway.drivers.families import SIMULATOR_PARTS, require
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice

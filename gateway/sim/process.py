@@ -7,7 +7,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 
-from busgate.codecs.errors import BusUnavailableError
+from busgate.errors import BusUnavailableError
 
 START_TIMEOUT_S = 20.0
 

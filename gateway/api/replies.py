@@ -5,7 +5,7 @@ zenoh callback, a command refused while the bus thread planned it (an encode err
 authority, a driver's state rule), a job that failed on the wire. Nothing before it turns one
 exception into another to get a code. Rules:
 
-1. One of busgate's own errors carries its class's code (``busgate.codecs.errors``; a
+1. One of busgate's own errors carries its class's code (``busgate.errors``; a
    ``RefusedError`` names its own). An ``EncodeError`` is ``out_of_range`` wherever it arose.
 2. A schema's refusal (pydantic's ``ValidationError``, or the one-line ``CommandError`` made
    from it) is ``out_of_range`` when every problem is a value outside its bounds, a codec's
@@ -19,8 +19,8 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from busgate.codecs.errors import BusgateError, CommandError
-from busgate.schemas.errors import describe_validation_error, refusal_code
+from busgate.errors import BusgateError, CommandError
+from busgate.schemas.validation import describe_validation_error, refusal_code
 
 #: What a client's request may be refused with (rules 1 and 2), as opposed to a bug.
 REFUSALS = (BusgateError, ValidationError)
