@@ -5,7 +5,7 @@ same classes; the codecs' own errors (``busgate.codecs.errors``) and the SDK's
 (``busgate.client.errors``) join it. Rules of this file:
 
 1. Every class carries a stable ``code``: the zenoh API puts it verbatim into error replies
-   (``busgate.gateway.api.replies`` maps every exception there, whichever thread raised it),
+   (``busgate.schemas.replies`` maps every exception there, whichever thread raised it),
    so renaming a code is a breaking change. A class is here because something raises it, and
    each class is defined once, in the room of what raises it when only that room does.
 2. Exceptions carry structured attributes (device, register, …) besides their message, and

@@ -29,7 +29,7 @@ from busgate.schemas.config import Name
 #: The most points one trajectory may have.
 MAX_TRAJECTORY_POINTS = 10_000
 #: The largest payload the trajectory key takes, in bytes (every other key takes the API's
-#: ``MAX_PAYLOAD``, ``busgate.gateway.api.commands``).
+#: ``MAX_PAYLOAD``, ``busgate.schemas.payload``).
 MAX_TRAJECTORY_PAYLOAD = 1024 * 1024
 #: The longest a trajectory may last, and the longest ``goal_time_s``, in seconds: a bound a
 #: robot's plans stay far inside, which keeps every time a float of fine resolution.

@@ -5,7 +5,7 @@ every offending field, so the CLI and the zenoh API report the same words. An op
 does not have is told in one line of its own, with the op it most likely misspells
 (``suggestion``, which also serves the config's unknown keys). The code a reply gives it is the
 ``ValidationError``'s (``refusal_code``): ``out_of_range`` when only values were outside their
-bounds, else ``bad_command``; the gateway's replies (``busgate.gateway.api.replies``) and the
+bounds, else ``bad_command``; the gateway's replies (``busgate.schemas.replies``) and the
 client's own checks (``busgate.client``) both ask it.
 """
 

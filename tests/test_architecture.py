@@ -12,7 +12,8 @@ imports only the ones below it. A new import against the arrows fails here, nami
 
 ``gateway.sim`` (the simulators) stands beside the gateway: it uses the codecs, the bus clock
 and the protocol table, and nothing of the gateway's service uses it but the command line.
-``gateway.trajectory`` (a trajectory's pure sampling) stands on the codecs and schemas alone.
+``gateway.trajectory`` (trajectories played by the gateway: their pure sampling and bounds,
+their checks, verdicts and lanes) stands on the scheduler; the API's bridge serves it.
 ``errors`` (busgate's one exception tree) is below every room: each may import it."""
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ ALLOWED: dict[str, set[str]] = {
                         "gateway.drivers", "gateway.scheduler", "gateway.api",
                         "gateway.recording", "gateway.trajectory"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
-    "gateway.trajectory": {"codecs", "schemas"},
+    "gateway.trajectory": {"codecs", "schemas", "gateway.bus", "gateway.drivers",
+                           "gateway.scheduler"},
     "gateway.recording": {"codecs", "schemas", "gateway.bus"},
     "gateway.cli": {"codecs", "schemas", "client", "dashboard", "gateway", "gateway.bus",
                     "gateway.drivers", "gateway.recording", "gateway.scheduler", "gateway.api",

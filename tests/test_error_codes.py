@@ -1,4 +1,4 @@
-"""The one mapping from an exception to its reply's code (gateway/api/replies.py), on the
+"""The one mapping from an exception to its reply's code (schemas/replies.py), on the
 exceptions each path really raises: the schemas' refusals as pydantic makes them, as the CLI
 and the drivers word them, the codecs' encode errors, the bus thread's, and a bug. Pure
 calls."""
@@ -17,11 +17,11 @@ from busgate.errors import (
     DeviceTimeoutError,
     RefusedError,
 )
-from busgate.gateway.api.replies import error_code, error_reply
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.schemas import ds_servo, inspire_la
+from busgate.schemas.replies import error_code, error_reply
 
 
 def raised(call, *args) -> BaseException:

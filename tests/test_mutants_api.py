@@ -30,7 +30,6 @@ from busgate.gateway.api.commands import (
     error_reply,
 )
 from busgate.gateway.api.group import scan_requests
-from busgate.gateway.api.replies import error_code
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner
@@ -40,6 +39,7 @@ from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.authority import Authority, ClaimTable
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.schemas.replies import error_code
 from tests import test_api
 
 #: The two buses of tests/test_api.py (LA and ZLAC706), as this module's fixture too.

@@ -31,7 +31,6 @@ from busgate.codecs.can_frame import CanFrame
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, ok_reply
 from busgate.gateway.api.group import scan_requests, scan_result
-from busgate.gateway.api.replies import error_reply
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.cli import main
 from busgate.gateway.cli import schema as schema_cli
@@ -45,6 +44,7 @@ from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.schemas import api, exported, trajectory
 from busgate.schemas.config import Config
+from busgate.schemas.replies import error_reply
 
 ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = ROOT / "schemas" / "json"

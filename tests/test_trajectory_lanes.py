@@ -1,4 +1,4 @@
-"""The trajectory key's lanes (gateway/api/trajectory_lanes.py), with real threads and a command
+"""The trajectory key's lanes (gateway/trajectory/lanes.py), with real threads and a command
 that holds its lane until the test lets it go: a cancel or a status never waits behind plays;
 plays wait at most ``MAX_WAITING_PLAYS`` deep and are answered ``busy`` past that or past
 their start deadline, never carried out; what cannot be read on arrival is a play's."""
@@ -10,8 +10,8 @@ import threading
 
 import pytest
 
-from busgate.gateway.api import trajectory_lanes
-from busgate.gateway.api.trajectory_lanes import MAX_WAITING_PLAYS, Lane, TrajectoryLanes
+from busgate.gateway.trajectory import lanes as trajectory_lanes
+from busgate.gateway.trajectory.lanes import MAX_WAITING_PLAYS, Lane, TrajectoryLanes
 
 TIMEOUT_S = 5.0
 

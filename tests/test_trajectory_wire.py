@@ -36,8 +36,6 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.codecs import zlac706_common as zcommon
 from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.api.trajectories import Trajectories
-from busgate.gateway.api.trajectory_lanes import answer
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.drivers.ds_servo import DsServoDriver
@@ -49,6 +47,8 @@ from busgate.gateway.sim.ds_servo import DsServoDevice
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Path, paths_of, sent
+from busgate.gateway.trajectory.lanes import answer
+from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import SerialBus
 from busgate.schemas.trajectory import TrajectoryPlay
 from tests.conftest import unused_loopback_port, wait_until

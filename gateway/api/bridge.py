@@ -29,15 +29,16 @@ import zenoh
 
 from busgate.client.zenoh_config import session_config
 from busgate.errors import RefusedError
-from busgate.gateway.api.commands import GatewayApi, decode_object
-from busgate.gateway.api.replies import error_reply
-from busgate.gateway.api.trajectories import Trajectories
-from busgate.gateway.api.trajectory_lanes import TrajectoryLanes
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.trajectory.lanes import TrajectoryLanes
+from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.base import client_named
 from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
+from busgate.schemas.payload import decode_object
+from busgate.schemas.replies import error_reply
 
 log = logging.getLogger(__name__)
 

@@ -3,13 +3,14 @@
 The bridge (the only zenoh module) hands payloads here and sends back what comes out; so
 every rule of the API is tested without a network. Rules of this file:
 
-1. A payload is refused before anything reaches a bus when it is over 64 KiB, not UTF-8, not
-   JSON (NaN, infinities and numbers past a double included), an object with a key twice,
-   not an object, or not a valid command; the reply says why with a stable code
+1. A payload is refused before anything reaches a bus (``busgate.schemas.payload``) when it
+   is over 64 KiB, not UTF-8, not JSON (NaN, infinities and numbers past a double included),
+   an object with a key twice, not an object, or not a valid command; the reply says why with
+   a stable code
    (``not_utf8``, ``not_json``, ``too_large``, ``bad_command``, ``out_of_range``,
    ``unknown_device`` …) and a human message (for an op the device's key does not take,
    one line naming the op it most likely misspells: ``busgate.schemas.validation``), the code
-   from the one mapping of exceptions to codes (``busgate.gateway.api.replies``), as for what
+   from the one mapping of exceptions to codes (``busgate.schemas.replies``), as for what
    the bus refuses later. Whatever the payload, there is exactly one reply: a bug becomes
    ``internal``, logged with its traceback. The payload is parsed once: the command is
    validated from the parsed object, against every op the device's key takes (its kind's
@@ -37,9 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import json
 import logging
-import math
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
@@ -48,7 +47,6 @@ from typing import Any, ClassVar
 from busgate.errors import RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
-from busgate.gateway.api.replies import REFUSALS, error_reply
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.runner import BusRunner
@@ -61,9 +59,10 @@ from busgate.schemas.api import (
     Release,
     ResetEstop,
 )
+from busgate.schemas.payload import MAX_PAYLOAD, decode_object, ok_reply
+from busgate.schemas.replies import REFUSALS, error_reply
 from busgate.schemas.validation import command_from_object
 
-MAX_PAYLOAD = 64 * 1024
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
@@ -78,58 +77,6 @@ SCAN_SLACK_S = 1.0
 END_FENCE_S = 0.5
 
 log = logging.getLogger(__name__)
-
-
-def ok_reply(**fields: Any) -> dict[str, Any]:
-    return {"ok": True, **fields}
-
-
-class _DuplicateKey(ValueError):
-    pass
-
-
-def _reject_constant(name: str) -> float:
-    raise ValueError(f"{name} is not a number JSON allows")
-
-
-def _finite(text: str) -> float:
-    value = float(text)
-    if math.isinf(value):
-        raise ValueError(f"{text} is too large for a double")
-    return value
-
-
-def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    value = dict(pairs)
-    if len(value) < len(pairs):
-        keys = [key for key, _ in pairs]
-        twice = next(key for key in keys if keys.count(key) > 1)
-        raise _DuplicateKey(f"key {twice!r} appears twice: a command is never guessed")
-    return value
-
-
-def decode_object(payload: bytes, *, limit: int = MAX_PAYLOAD) -> dict[str, Any]:
-    """Bytes off the network to a JSON object, or ``RefusedError`` saying what is wrong
-    (``limit``: the most bytes this key takes)."""
-    if len(payload) > limit:
-        raise RefusedError("too_large", f"payload of {len(payload)} bytes; at most {limit}")
-    try:
-        text = payload.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise RefusedError("not_utf8", f"payload is not UTF-8: {exc.reason}") from exc
-    try:
-        value = json.loads(
-            text, parse_constant=_reject_constant, parse_float=_finite, object_pairs_hook=_object
-        )
-    except _DuplicateKey as exc:
-        raise RefusedError("bad_command", str(exc)) from exc
-    except RecursionError as exc:
-        raise RefusedError("bad_command", "payload is nested too deeply") from exc
-    except ValueError as exc:
-        raise RefusedError("not_json", f"payload is not JSON: {exc}") from exc
-    if not isinstance(value, dict):
-        raise RefusedError("bad_command", "a command is a JSON object")
-    return value
 
 
 def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
@@ -429,4 +376,4 @@ def _settle(answer: Future, done: Future, make: Callable[[Any], dict[str, Any]])
         answer.set_result(reply)
 
 
-__all__ = ["MAX_PAYLOAD", "GatewayApi", "decode_object", "ok_reply"]
+__all__ = ["MAX_PAYLOAD", "GatewayApi", "decode_object"]

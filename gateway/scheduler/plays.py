@@ -20,7 +20,7 @@ Rules of this file:
 5. A device whose trajectory was ended here, not by its player (its ticker left it out for
    good: it could not take its target; or every device was taken out: ``end_all``), keeps
    why in ``refusal``, with the start of the trajectory it was playing, until it starts
-   another one: that trajectory is over (``busgate.gateway.api.trajectories`` aborts it,
+   another one: that trajectory is over (``busgate.gateway.trajectory.playing`` aborts it,
    even when the device has been enabled again since).
 """
 

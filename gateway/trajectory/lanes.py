@@ -26,8 +26,8 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from busgate.errors import BusyError, RefusedError
-from busgate.gateway.api.commands import decode_object
-from busgate.gateway.api.replies import REFUSALS, error_reply
+from busgate.schemas.payload import decode_object
+from busgate.schemas.replies import REFUSALS, error_reply
 
 log = logging.getLogger(__name__)
 
