@@ -1,5 +1,5 @@
-"""The zenoh API's data, as pydantic models: replies, telemetry, events, bus statistics, info,
-and the gateway-level commands (claims and the end of a follow stream on a device, group moves
+"""The zenoh API's data, as pydantic models: replies, telemetry, bus statistics, info, and the
+gateway-level commands (claims and the end of a follow stream on a device, group moves
 and scans on a bus).
 
 Rules of this file:
@@ -8,7 +8,7 @@ Rules of this file:
    closed, no coercion, no NaN). What the gateway publishes is described here, not built
    here: the drivers, the runner and the bridge produce plain dicts, and
    ``tests/test_schema_export.py`` checks real ones against these models and the exported
-   JSON Schemas, so the two cannot drift apart unnoticed.
+   JSON Schemas, so the two cannot drift apart unnoticed. The events are ``events``'.
 2. Telemetry, bus statistics and info are closed (``extra="forbid"``): every key is named and
    given its unit here, and a key a driver adds without documenting it fails the test. Ok
    replies and events are open: a read adds ``data`` and ``values``, and an event type may
@@ -19,7 +19,6 @@ Rules of this file:
 
 from __future__ import annotations
 
-import warnings
 from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
@@ -287,149 +286,6 @@ class BusStatistics(Published):
     follow_intervals: int = Field(description="Follow intervals measured.")
     utilisation: Annotated[float, Field(ge=0, le=1)] = Field(description="Busy share of time.")
     uptime_s: float
-
-
-# --- events: <prefix>/<gw>/dev/<device>/event and <prefix>/<gw>/events ----------------------------
-
-
-class Event(OpenPublished):
-    """Every event's envelope; ``device`` is ``"*"`` for what concerns the whole gateway."""
-
-    ts: float = Field(description="Wall-clock time, Unix seconds.")
-    device: str
-    type: str
-
-
-class OnlineEvent(Event):
-    type: Literal["online"]
-
-
-#: An ``offline`` event's reason when the device's bus went down (its port or interface lost).
-BUS_DOWN_REASON = "bus down"
-
-
-class OfflineEvent(Event):
-    type: Literal["offline"]
-    reason: str = Field(description=f"Why: no reply, {BUS_DOWN_REASON!r}, heartbeats stopped …")
-
-
-class FaultEvent(Event):
-    """The set of faults changed (names as in the kind's telemetry)."""
-
-    type: Literal["fault"]
-    faults: list[str]
-    raised: list[str]
-    cleared: list[str]
-
-
-class IdChangedEvent(Event):
-    type: Literal["id_changed"]
-    old_id: int
-    new_id: int
-
-
-# ``register`` shadows ``BaseModel.register`` (ABCMeta's hook): pydantic warns, and without an
-# explicit ``Field(...)`` it takes that method for the field's default, making it optional.
-with warnings.catch_warnings():
-    warnings.filterwarnings("ignore", message='Field name "register"', category=UserWarning)
-
-    class RejectedEvent(Event):
-        """The device refused a write (ZLAC706 on CAN: no such register)."""
-
-        type: Literal["rejected"]
-        register: int = Field(...)
-        reason: str
-
-
-class StreamStaleEvent(Event):
-    """The follow stream got no new target in time: the gateway stopped streaming."""
-
-    type: Literal["stream_stale"]
-
-
-class StreamStoppedEvent(Event):
-    type: Literal["stream_stopped"]
-    reason: str
-
-
-class RebootedEvent(Event):
-    """The device powered up again under the gateway (seen in its replies or heartbeats):
-    its follow stream was dropped and its settings are written again; nothing moves it until
-    a fresh command."""
-
-    type: Literal["rebooted"]
-    evidence: str = Field(description="What showed it, e.g. the position counter back at 0.")
-    restoring: int = Field(description="How many setting writes are sent again.")
-
-
-class ClaimedEvent(Event):
-    type: Literal["claimed"]
-    client: ClientId
-    ttl_s: float
-
-
-class ReleasedEvent(Event):
-    type: Literal["released"]
-    client: ClientId
-
-
-class StoppedEvent(Event):
-    """The gateway stopped the device on a client's behalf (deadman: the client is gone)."""
-
-    type: Literal["stopped"]
-    client: ClientId
-    reason: str
-
-
-class EstopEvent(Event):
-    type: Literal["estop"]
-    key: str = Field(description="The key expression the e-stop was put on.")
-
-
-class EstopResetEvent(Event):
-    """The gateway's e-stop was reset: on one device (``device`` names it) or on every one
-    (``device`` is ``"*"``, from ``<prefix>/<gw>/estop/reset``)."""
-
-    type: Literal["estop_reset"]
-    client: ClientId | None = None
-
-
-class TrajectoryStartedEvent(Event):
-    """A trajectory was accepted (``<prefix>/<gw>/trajectory``); ``device`` is ``"*"``."""
-
-    type: Literal["trajectory_started"]
-    id: str
-    client: ClientId | None = None
-    start_at: float = Field(description="When its t_s is 0, Unix seconds.")
-    end_at: float = Field(description="When its last point is due, Unix seconds.")
-
-
-class TrajectoryEndedEvent(Event):
-    """A trajectory's result (also on ``<prefix>/<gw>/trajectory/<id>/feedback``)."""
-
-    type: Literal["trajectory_ended"]
-    id: str
-    client: ClientId | None = None
-    result: Literal["succeeded", "canceled", "replaced", "aborted"]
-    reason: str | None = Field(default=None, description="Why it was aborted.")
-
-
-class CommandRefusedEvent(Event):
-    """A command put (no reply possible) was refused: the error as a reply would carry it."""
-
-    type: Literal["command_refused"]
-    code: ErrorCode
-    message: str
-
-
-KnownEvent = Annotated[
-    OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
-    | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
-    | EstopEvent | EstopResetEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
-    | CommandRefusedEvent,
-    Field(discriminator="type"),
-]  # fmt: skip
-EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)
 
 
 # --- everything a device's cmd key takes ----------------------------------------------------------

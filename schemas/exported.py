@@ -16,7 +16,7 @@ from typing import Any
 
 from pydantic import TypeAdapter
 
-from busgate.schemas import api, recording, trajectory
+from busgate.schemas import api, events, recording, trajectory
 from busgate.schemas.config import Config
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
@@ -68,7 +68,7 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
     "event.json": (
         "busgate event",
         "What <prefix>/<gw>/dev/<device>/event and <prefix>/<gw>/events carry.",
-        api.EVENT_ADAPTER,
+        events.EVENT_ADAPTER,
     ),
     "bus_stats.json": (
         "busgate bus statistics",

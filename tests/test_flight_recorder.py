@@ -23,8 +23,8 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.recording import flight
 from busgate.gateway.recording.flight import FlightRecorder, Trigger, folder_problem, trigger_of
 from busgate.gateway.recording.ring import CHUNK, Ring
-from busgate.schemas.api import BUS_DOWN_REASON
 from busgate.schemas.config import RecorderSection
+from busgate.schemas.events import BUS_DOWN_REASON
 from tests.test_schema_export import assert_valid, inspire_la_state
 
 BUSES = {"uart0": ["la1", "la2"], "can0": ["wheel"]}

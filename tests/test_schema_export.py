@@ -44,6 +44,7 @@ from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.schemas import api, exported, trajectory
 from busgate.schemas.config import Config
+from busgate.schemas.events import EVENT_ADAPTER
 from busgate.schemas.replies import error_reply
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -392,7 +393,7 @@ def test_events_from_drivers_and_the_api_match_the_event_schema():
                      "claimed", "released", "command_refused", "estop"]
     for event in events:
         assert_valid("event.json", event_body(event))
-        api.EVENT_ADAPTER.validate_python(event_body(event))
+        EVENT_ADAPTER.validate_python(event_body(event))
 
 
 # --- bus statistics, config ---------------------------------------------------------------------

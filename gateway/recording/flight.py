@@ -47,8 +47,8 @@ from busgate.errors import BusgateError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import Tap
 from busgate.gateway.recording.ring import Ring
-from busgate.schemas.api import BUS_DOWN_REASON
 from busgate.schemas.config import RecorderSection
+from busgate.schemas.events import BUS_DOWN_REASON
 
 log = logging.getLogger(__name__)
 

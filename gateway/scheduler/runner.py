@@ -58,7 +58,7 @@ from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.scheduler.trajectory_ticks import Sampler
-from busgate.schemas.api import BUS_DOWN_REASON
+from busgate.schemas.events import BUS_DOWN_REASON
 
 log = logging.getLogger(__name__)
 

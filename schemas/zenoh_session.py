@@ -1,0 +1,99 @@
+"""Building a ``zenoh.Config`` from busgate's few zenoh settings.
+
+The daemon's session (``gateway/api/bridge.py``) and every client's (``busgate.client``)
+are built here, so that a gateway and a client read the same settings the same way; it lives
+in the data layer below both (a room of its own would be one module), so neither imports the
+other for it. The one module of the schemas that imports ``zenoh``, and only when it is
+imported itself (``busgate.schemas`` does not import it): the command line's offline commands
+never load zenoh.
+
+Rules: a full zenoh config file (ACL, TLS, auth …) is the base and busgate's settings are laid
+over it. ``mode`` and multicast scouting are always set (multicast off unless asked for: a
+service talks to the endpoints it is given, never to whoever answers on the LAN). ``listen``
+and ``connect`` are set when given, so endpoints written in the file survive an empty list;
+with neither ``listen`` nor a file, a session listens nowhere (zenoh's default would be every
+interface, with no authentication): it reaches others only through ``connect``. A client's
+own settings (its lease, a user name and password, the CA of a TLS endpoint) are laid on top
+only when given.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import zenoh
+
+MODES = ("peer", "client", "router")
+
+
+def session_config(
+    *,
+    mode: str = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast_scouting: bool = False,
+    config_file: str | Path | None = None,
+    lease_s: float | None = None,
+    username: str | None = None,
+    password: str | None = None,
+    ca: str | Path | None = None,
+) -> zenoh.Config:
+    """A zenoh config: ``config_file`` (if any) underneath, the given settings on top.
+
+    Raises ``ValueError`` for an unknown mode; zenoh itself rejects a malformed file or endpoint.
+    """
+    if mode not in MODES:
+        raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
+    config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    if listen or not config_file:  # zenoh's own default listens on every interface
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if lease_s is not None:  # what this session announces: a peer that hears nothing from it
+        # for that long drops it (its liveliness tokens with it); zenoh's default is 10 s
+        config.insert_json5("transport/link/tx/lease", json.dumps(round(lease_s * 1000)))
+    if username is not None or password is not None:
+        credentials = {"user": username or "", "password": password or ""}
+        config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
+    if ca is not None:
+        config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
+    return config
+
+
+_RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """The human part of a zenoh error: its first line without the " at <rust source>:<line>"
+    zenoh appends to each message it wraps.
+
+    >>> zenoh_reason(Exception("listener bound to tcp/h:1: [h:1: in use at /x/tcp.rs:61.] "
+    ...                        "at /x/unicast.rs:338."))
+    'listener bound to tcp/h:1: [h:1: in use]'
+    """
+    return _RUST_SOURCE.sub("", str(exc).splitlines()[0]).strip()
+
+
+_LISTENER = re.compile(r"listener bound to (\S+?): ")
+
+
+def session_refusal(exc: BaseException, in_use_hint: str) -> str:
+    """What to tell when zenoh would not open the gateway's session (``exc``); an endpoint
+    in use gets ``in_use_hint`` (who probably holds it).
+
+    >>> session_refusal(Exception("Can not create a new TCP listener bound to "
+    ...     "tcp/127.0.0.1:7447: [127.0.0.1:7447: Address already in use (os error 98)]"),
+    ...     "another busgate demo or run?")
+    'zenoh cannot listen on tcp/127.0.0.1:7447: it is in use (another busgate demo or run?)'
+    """
+    reason = zenoh_reason(exc)
+    listener = _LISTENER.search(reason)
+    if listener is not None and f"(os error {errno.EADDRINUSE})" in reason:
+        return f"zenoh cannot listen on {listener.group(1)}: it is in use ({in_use_hint})"
+    return f"cannot open the zenoh session: {reason}"
