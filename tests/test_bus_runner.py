@@ -247,12 +247,12 @@ def test_an_estop_latches_every_device_before_it_ends_their_plays(wait_for, simu
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()
-    runner._queue_job(Job("la1", deque([status(1)]), future=first))
+    runner._work.queue_job(Job("la1", deque([status(1)]), future=first))
     assert isinstance(first.exception(0), BusUnavailableError), "the port is not open yet"
     runner.owner.open()
     runner.planner._command_limit = 1
-    runner._queue_job(Job("la1", deque([status(1)]), future=second))
-    runner._queue_job(Job("la1", deque([status(1)]), future=third))
+    runner._work.queue_job(Job("la1", deque([status(1)]), future=second))
+    runner._work.queue_job(Job("la1", deque([status(1)]), future=third))
     runner.owner.close()
     assert not second.done()
     assert isinstance(third.exception(0), BusyError) and BusyError.code == "busy"

@@ -19,9 +19,13 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import logging
+import os
 import sys
 import threading
 import time
+
+log = logging.getLogger(__name__)
 
 #: The most a wait spins: the lead a thread starts with, and the most it learns.
 SPIN_S = 0.00025
@@ -69,6 +73,17 @@ def sleep_until(deadline: float, *, spin_s: float | None = None) -> float:
 def tighten_timer_slack() -> bool:
     """Ask Linux for a 1 ns timer slack for the calling thread; ``False`` where unsupported."""
     return _prctl(_PR_SET_TIMERSLACK, 1)
+
+
+def ask_realtime(priority: int, who: str) -> bool:
+    """Run the calling thread under SCHED_FIFO at ``priority``; refused (no privilege), a
+    warning naming ``who``, and it runs at normal priority."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        log.warning("%s: SCHED_FIFO %d refused (%s); normal priority", who, priority, exc)
+        return False
+    return True
 
 
 def name_thread(name: str) -> bool:

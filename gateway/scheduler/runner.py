@@ -18,15 +18,14 @@ Rules of this file:
 4. Results go back through ``concurrent.futures.Future`` (``outcomes``: thread-safe, and
    awaitable from asyncio with ``asyncio.wrap_future``); device events and each new device
    state go out through ``telemetry``.
-5. A client's command is authorised (``authority``) on the bus thread, right before it is
-   planned; it must start within ``COMMAND_START_S`` of being handed over, else it is dropped
+5. A client's command is authorised (``authority``) on the bus thread (``work``), right before
+   it is planned; it must start within ``COMMAND_START_S`` of being handed over, else it is dropped
    and answered ``busy``. A job whose future was cancelled before it started is never sent.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -34,30 +33,32 @@ from concurrent.futures import Future
 from typing import Any
 
 from busgate.errors import (
-    BusgateError,
     BusIOError,
     BusUnavailableError,
-    BusyError,
-    CommandError,
-    RefusedError,
 )
-from busgate.gateway.bus.clock import name_thread, now, sleep_until, tighten_timer_slack
+from busgate.gateway.bus.clock import (
+    ask_realtime,
+    name_thread,
+    now,
+    sleep_until,
+    tighten_timer_slack,
+)
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler import outcomes
-from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
-from busgate.gateway.scheduler.plays import ESTOP, Plays
+from busgate.gateway.scheduler.plays import Plays
 from busgate.gateway.scheduler.polling import DevicePoller
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.scheduler.trajectory_ticks import Sampler
+from busgate.gateway.scheduler.work import BusWork
 from busgate.schemas.events import BUS_DOWN_REASON
 
 log = logging.getLogger(__name__)
@@ -99,7 +100,6 @@ class BusRunner:
         self.timing = timing
         self.devices = devices
         self.drivers = devices.drivers
-        self.authority = Authority(name, self.drivers)
         self.counters: BusCounters = owner.counters
         self.planner = BusPlanner(timing)
         start = now()
@@ -115,6 +115,10 @@ class BusRunner:
         self.telemetry = Telemetry(name, devices, periods, on_event=on_event, on_state=on_state)
         self.streams = FollowStreams(self.planner, self.counters, self.drivers)
         self.plays = Plays(self.planner, self.counters, self.drivers, self.streams)
+        self._work = BusWork(
+            name, owner, self.drivers, self.planner, self.streams, self.plays, self._state_of
+        )
+        self.authority = self._work.authority
         self._execution = Execution(
             owner,
             self.planner,
@@ -164,7 +168,7 @@ class BusRunner:
         the future gets the result dict, or the refusal."""
         start_by = now() + COMMAND_START_S
         return self._hand_over(
-            lambda future: self._plan_command(device, command, client, start_by, future)
+            lambda future: self._work.plan_command(device, command, client, start_by, future)
         )
 
     def scan(self, requests: list[Request], start_by: float) -> Future:
@@ -172,21 +176,7 @@ class BusRunner:
         future gets a list of ``(request, reply events or None)``. For commissioning. Probes
         only ask, so they need no authorisation."""
 
-        def queue(future: Future) -> None:
-            probes = deque(requests)
-            self._queue_job(
-                Job(
-                    "*",
-                    probes,
-                    keep_going=True,
-                    outcomes=[],
-                    start_by=start_by,
-                    scan=True,
-                    future=future,
-                )
-            )
-
-        return self._hand_over(queue)
+        return self._hand_over(lambda future: self._work.plan_scan(requests, start_by, future))
 
     def stop_stream(self, device: str, reason: str) -> None:
         """End ``device``'s follow stream now (its client went away, or ended it), as if it
@@ -196,13 +186,13 @@ class BusRunner:
 
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
-        return self._hand_over(self._plan_estop)
+        return self._hand_over(self._work.plan_estop)
 
     def reset_estop(self, device: str | None = None) -> Future:
         """``device`` (``None``: every device of the bus) out of the gateway's e-stop, each
         in the power state it had before and holding still (``Driver.reset_estop``)."""
         start_by = now() + COMMAND_START_S
-        return self._hand_over(lambda future: self._plan_reset(device, start_by, future))
+        return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future))
 
     def follow(self, device: str, target: Any) -> None:
         """The latest follow target of ``device`` (validated with its driver's
@@ -210,7 +200,7 @@ class BusRunner:
         moment = now()
         if self.streams.store_latest(device, target, moment):
             return
-        self._inbox.append(lambda: self._start_stream(device, target, moment))
+        self._inbox.append(lambda: self._work.start_stream(device, target, moment))
         self._wake.set()
 
     def play(self, samplers: dict[str, Sampler], start: float) -> None:
@@ -237,70 +227,12 @@ class BusRunner:
         self._wake.set()
         return future
 
-    # -- bus thread: inbox ------------------------------------------------------------------
-
-    def _plan_command(
-        self, device: str, command: Any, client: str | None, start_by: float, future: Future
-    ) -> None:
-        driver = self.drivers.get(device)
-        try:
-            if driver is None:
-                raise CommandError(f"no device {device!r} on bus {self.name}")
-            frames = driver.frames_of(command)  # built once: judged, then planned
-            self.authority.check(
-                driver.effects_of(frames), client, require_claim=command.require_claim
-            )
-            requests = driver.plan_frames(command, frames)
-        except BusgateError as exc:
-            outcomes.settle(future, error=exc)
-            return
-        except Exception as exc:  # a driver bug: answered ``internal``, the bus goes on
-            log.exception("bus %s: planning %r for %s failed", self.name, command, device)
-            outcomes.settle(future, error=exc)
-            return
-        self._queue_job(Job(device, deque(requests), start_by=start_by, future=future))
-
-    def _queue_job(self, job: Job) -> None:
-        if not self.owner.is_open:
-            outcomes.fail(job, BusUnavailableError(f"bus {self.name} is down"))
-        elif not job.requests:
-            outcomes.complete(job, self._state_of)
-        elif not self.planner.push_command(job):
-            self.counters.busy_commands += 1
-            outcomes.fail(job, BusyError(f"bus {self.name}: command queue full; nothing was sent"))
-
-    def _plan_estop(self, future: Future) -> None:
-        for job in self.planner.drop_commands():
-            outcomes.fail(
-                job, RefusedError("estopped", "an e-stop cancelled it before it was carried out")
-            )
-        # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
-        # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
-        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
-        self.streams.end_all("estop")
-        self.plays.end_all(ESTOP)
-        self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
-
-    def _plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
-        drivers = list(self.drivers.values()) if device is None else [self.drivers[device]]
-        requests = deque(r for driver in drivers for r in driver.reset_estop())
-        # Every device's frames go, whatever one silent device does (as an e-stop's).
-        self._queue_job(
-            Job(
-                device or "*", requests, keep_going=device is None, start_by=start_by, future=future
-            )
-        )
-
-    def _start_stream(self, device: str, target: Any, moment: float) -> None:
-        driver = self.drivers.get(device)
-        if driver is not None and self.owner.is_open:
-            self.streams.start(driver, target, moment)
-
     # -- bus thread: the loop ---------------------------------------------------------------
 
     def _run(self) -> None:
         name_thread(self._thread.name)
-        self._ask_realtime()
+        if self.realtime_priority is not None:
+            ask_realtime(self.realtime_priority, f"bus {self.name}")
         tighten_timer_slack()
         try:
             while not self._stop.is_set():
@@ -410,33 +342,16 @@ class BusRunner:
         log.warning("bus %s lost: %s", self.name, exc)
         if slot is not None and isinstance(slot.source, Job):
             outcomes.fail(slot.source, BusUnavailableError(str(exc)))
-        for job in self.planner.drop_commands():
-            outcomes.fail(job, BusUnavailableError(f"bus {self.name} went down"))
-        self.streams.end_all("bus down")
-        self.plays.end_all("the bus lost")
+        down = BusUnavailableError(f"bus {self.name} went down")
+        self._work.end_everything("bus down", "the bus lost", down)
         for driver in self.drivers.values():
             driver.went_offline(BUS_DOWN_REASON)
         self.owner.close()
 
-    def _ask_realtime(self) -> None:
-        if self.realtime_priority is None:
-            return
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.realtime_priority))
-        except (PermissionError, OSError) as exc:
-            log.warning(
-                "bus %s: SCHED_FIFO %d refused (%s); running at normal priority",
-                self.name,
-                self.realtime_priority,
-                exc,
-            )
-
     def _shut_down(self) -> None:
         """Last deeds of the bus thread: safe state for every device, then close."""
-        self.streams.end_all("shutdown")
-        self.plays.end_all("shutdown")
-        for job in self.planner.drop_commands():
-            outcomes.fail(job, BusUnavailableError(f"bus {self.name} is stopping"))
+        stopping = BusUnavailableError(f"bus {self.name} is stopping")
+        self._work.end_everything("shutdown", "shutdown", stopping)
         if self.owner.is_open:
             self._execution.last_words([r for d in self.drivers.values() for r in d.safe_stop()])
         self._drain_inbox()

@@ -1,0 +1,119 @@
+"""What a bus thread does with the work other threads hand it: a command judged and planned,
+an e-stop, a reset, a scan, a stream started; and every stream, trajectory and waiting command
+ended at once (an e-stop, a bus lost, the shutdown).
+
+Rules of this file: bus thread only (the runner calls it from its inbox and its loop); each
+outcome goes to the job's future (``outcomes``), a refusal as the refusal, a driver's bug as
+``internal`` with its traceback logged, and the bus goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any
+
+from busgate.errors import BusgateError, BusUnavailableError, BusyError, CommandError, RefusedError
+from busgate.gateway.bus.owner import BusOwner
+from busgate.gateway.bus.request import Request
+from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler import outcomes
+from busgate.gateway.scheduler.authority import Authority
+from busgate.gateway.scheduler.planner import BusPlanner, Job
+from busgate.gateway.scheduler.plays import ESTOP, Plays
+from busgate.gateway.scheduler.streams import FollowStreams
+
+log = logging.getLogger(__name__)
+
+
+class BusWork:
+    """The bus thread's handling of what it was handed (the rules above)."""
+
+    def __init__(
+        self,
+        name: str,
+        owner: BusOwner,
+        drivers: dict[str, Driver],
+        planner: BusPlanner,
+        streams: FollowStreams,
+        plays: Plays,
+        state_of: Callable[[str], dict[str, Any] | None],
+    ) -> None:
+        self.name = name
+        self.owner = owner
+        self.drivers = drivers
+        self.authority = Authority(name, drivers)
+        self.counters: BusCounters = owner.counters
+        self.planner = planner
+        self.streams = streams
+        self.plays = plays
+        self.state_of = state_of
+
+    def plan_scan(self, requests: list[Request], start_by: float, future: Future) -> None:
+        probes = Job("*", deque(requests), keep_going=True, outcomes=[], scan=True)
+        probes.start_by, probes.future = start_by, future
+        self.queue_job(probes)
+
+    def plan_command(
+        self, device: str, command: Any, client: str | None, start_by: float, future: Future
+    ) -> None:
+        driver = self.drivers.get(device)
+        try:
+            if driver is None:
+                raise CommandError(f"no device {device!r} on bus {self.name}")
+            frames = driver.frames_of(command)  # built once: judged, then planned
+            self.authority.check(
+                driver.effects_of(frames), client, require_claim=command.require_claim
+            )
+            requests = driver.plan_frames(command, frames)
+        except BusgateError as exc:
+            outcomes.settle(future, error=exc)
+            return
+        except Exception as exc:  # a driver bug: answered ``internal``, the bus goes on
+            log.exception("bus %s: planning %r for %s failed", self.name, command, device)
+            outcomes.settle(future, error=exc)
+            return
+        self.queue_job(Job(device, deque(requests), start_by=start_by, future=future))
+
+    def queue_job(self, job: Job) -> None:
+        if not self.owner.is_open:
+            outcomes.fail(job, BusUnavailableError(f"bus {self.name} is down"))
+        elif not job.requests:
+            outcomes.complete(job, self.state_of)
+        elif not self.planner.push_command(job):
+            self.counters.busy_commands += 1
+            outcomes.fail(job, BusyError(f"bus {self.name}: command queue full; nothing was sent"))
+
+    def plan_estop(self, future: Future) -> None:
+        # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
+        # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
+        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
+        cancelled = RefusedError("estopped", "an e-stop cancelled it before it was carried out")
+        self.end_everything("estop", ESTOP, cancelled)
+        self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
+
+    def end_everything(self, streams_why: str, plays_why: str, jobs_error: BusgateError) -> None:
+        """Every stream and trajectory ended, every command waiting failed with
+        ``jobs_error``: an e-stop, a bus lost, the shutdown."""
+        self.streams.end_all(streams_why)
+        self.plays.end_all(plays_why)
+        for job in self.planner.drop_commands():
+            outcomes.fail(job, jobs_error)
+
+    def plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
+        drivers = list(self.drivers.values()) if device is None else [self.drivers[device]]
+        requests = deque(r for driver in drivers for r in driver.reset_estop())
+        # Every device's frames go, whatever one silent device does (as an e-stop's).
+        self.queue_job(
+            Job(
+                device or "*", requests, keep_going=device is None, start_by=start_by, future=future
+            )
+        )
+
+    def start_stream(self, device: str, target: Any, moment: float) -> None:
+        driver = self.drivers.get(device)
+        if driver is not None and self.owner.is_open:
+            self.streams.start(driver, target, moment)
