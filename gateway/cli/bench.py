@@ -117,45 +117,24 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
-    """The bus the benchmark runs, checked like a config file's (bad values are refused)."""
+    """The bus the benchmark runs, checked like a config file's (bad values are refused, the
+    devices named ``devices.<n>`` as a file's are)."""
+    protocol = PROTOCOLS[args.protocol]
+    kind, period = protocol.kind, args.follow_period_ms or 20.0
+    devices: list[Any] = [
+        {"name": f"dev{i}", "kind": kind, "id": i, "poll_hz": args.poll_hz,
+         "follow_period_ms": period}
+        for i in ids
+    ]  # fmt: skip
+    common = {"name": "bench", "devices": devices, "reply_margin_ms": args.reply_margin_ms}
     try:
-        return _bus_config(args, ids, port, baudrate)
+        if protocol.can:
+            return CanBus(transport="can", interface="slcan", channel=port,
+                          options={"sleep_after_open": 0}, **common)  # fmt: skip
+        return SerialBus(transport="serial", port=port, baudrate=baudrate,
+                         min_gap_ms=args.min_gap_ms, **common)  # fmt: skip
     except ValidationError as exc:
         raise CommandError(f"bench: {describe_validation_error(exc)}") from exc
-
-
-def _bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
-    period = args.follow_period_ms or 20.0
-    # Raw entries, validated as a config file's are (so errors name "devices.<n>").
-    devices: list[Any] = [
-        {
-            "name": f"dev{i}",
-            "kind": PROTOCOLS[args.protocol].kind,
-            "id": i,
-            "poll_hz": args.poll_hz,
-            "follow_period_ms": period,
-        }
-        for i in ids
-    ]
-    if PROTOCOLS[args.protocol].can:
-        return CanBus(
-            name="bench",
-            transport="can",
-            interface="slcan",
-            channel=port,
-            devices=devices,
-            options={"sleep_after_open": 0},
-            reply_margin_ms=args.reply_margin_ms,
-        )
-    return SerialBus(
-        name="bench",
-        transport="serial",
-        port=port,
-        baudrate=baudrate,
-        min_gap_ms=args.min_gap_ms,
-        devices=devices,
-        reply_margin_ms=args.reply_margin_ms,
-    )
 
 
 def measure(
