@@ -13,18 +13,22 @@ A program (against ``busgate demo``)::
             f.set(position=1200)
 
 The same as coroutines: ``busgate.client.aio``. The rooms: ``core`` (the zenoh session, every
-exchange as a future), ``base`` (what both faces share), ``sync`` and ``aio`` (the faces),
-``claims`` (renewed in the background), ``feeds`` (telemetry), ``errors``, ``keys``, and
-``zenoh_config`` (the session settings, shared with the daemon).
+exchange as a future) and ``messages`` (what the exchanges carry); ``base`` (what both faces
+share below their methods); ``surface``, ``devices`` and ``trajectories`` (every method of
+both faces, written once as the steps it waits for: ``steps``), made each face's methods by
+``faces``; ``sync`` and ``aio`` (the faces: their classes and blocks); ``claims`` (renewed in
+the background), ``feeds`` (telemetry), ``errors`` and ``keys``. The zenoh session settings
+are ``busgate.schemas.zenoh_session``'s, shared with the daemon (``zenoh_config`` still names
+them for scripts of earlier releases).
 """
 
 from __future__ import annotations
 
 from busgate.client import aio
 from busgate.client.base import FleetDevice
-from busgate.client.core import Answer, Answers
 from busgate.client.errors import *  # noqa: F403 - one class per error code, made from the list
 from busgate.client.errors import __all__ as _error_names
+from busgate.client.messages import Answer, Answers
 from busgate.client.sync import Bus, Claim, Client, Device, Follow, Trajectory, connect
 
 __all__ = [

@@ -1,7 +1,7 @@
-"""What the sync and asyncio faces of the SDK share: finding a device or bus by name, the
-commands the typed helpers send, telemetry as models, follow payloads, and the claims a
-client holds. Everything here returns values or ``concurrent.futures.Future``s; a face only
-waits (``sync.py``) or awaits (``aio.py``), so the two cannot drift apart.
+"""What the sync and asyncio faces of the SDK share below their methods (``surface.py``):
+finding a device or bus by name, the commands the typed helpers send, telemetry as models,
+follow payloads, and the claims a client holds. Everything here returns values or
+``concurrent.futures.Future``s, which the shared methods wait for (``steps.py``).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from busgate.client.claims import ClaimLease, Timers
-from busgate.client.core import UNPARSED, Answer, Core, dumps, then
+from busgate.client.core import Core
 from busgate.client.errors import (
     AmbiguousError,
     ClaimLostError,
@@ -26,16 +26,13 @@ from busgate.client.errors import (
 )
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, check_name, split_name
+from busgate.client.messages import UNPARSED, Answer, dumps, then
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
 from busgate.schemas.telemetry import TelemetryEnvelope
 
 log = logging.getLogger(__name__)
-
-#: What a wait adds to the timeout zenoh was given before it says nobody answered (zenoh
-#: settles a query at its timeout; this covers a late settle on a loaded host).
-WAIT_MARGIN_S = 1.0
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,9 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from busgate.client.core import Core, seconds, then
+from busgate.client.core import Core
 from busgate.client.errors import ClaimedError, ClaimLostError, GatewayError
+from busgate.client.messages import seconds, then
 from busgate.schemas.api import MAX_CLAIM_S
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,7 @@
 """The one core of the SDK: a client's zenoh session, and every exchange with gateways as a
-``concurrent.futures.Future``; the sync face (``sync.py``) waits on those futures, the asyncio
-face (``aio.py``) awaits them, so both do exactly the same on the wire.
+``concurrent.futures.Future`` (what the exchanges carry: ``messages.py``); the sync face
+(``sync.py``) waits on those futures, the asyncio face (``aio.py``) awaits them (both run the
+same operations, ``surface.py``), so both do exactly the same on the wire.
 
 Rules of this file:
 
@@ -42,50 +43,40 @@ import time
 import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from busgate.client.errors import ConnectError, NoAnswerError, error_for, raise_for
+from busgate.client.errors import ConnectError
 from busgate.client.keys import Keys, check_key, check_name
-from busgate.client.zenoh_config import session_config, zenoh_reason
+from busgate.client.messages import (
+    MAX_LEASE_S,
+    MAX_WAIT_S,
+    MIN_LEASE_S,
+    MIN_WAIT_S,
+    UNPARSED,
+    Answer,
+    Answers,
+    dumps,
+    first_ok,
+    seconds,
+    then,
+)
 from busgate.errors import CommandError
+from busgate.schemas.zenoh_session import session_config, zenoh_reason
 
 log = logging.getLogger(__name__)
 
 #: The payload of zenoh's own error reply when a queryable did not answer in time.
 ZENOH_TIMEOUT = b"Timeout"
 
+#: How long a client waits for an answer unless told otherwise (``connect``'s ``timeout``).
+DEFAULT_TIMEOUT_S = 5.0
 #: How long the close at interpreter exit of a client never closed may take (rule 5).
 EXIT_CLOSE_S = 0.5
 #: What a subscription is declared with: zenoh's own queue of samples, drained (rule 5).
 CHANNEL: zenoh.handlers.DefaultHandler[Any] = zenoh.handlers.DefaultHandler()
-
-
-@dataclass(frozen=True, slots=True)
-class Answer:
-    """One reply to a query: the key it came on, its JSON (text when it is not JSON), and
-    whether it is an ok reply."""
-
-    key: str
-    body: Any
-    ok: bool
-
-    @property
-    def error(self) -> dict[str, Any]:
-        """The error object of a reply that is not ok (one made up when it carries none)."""
-        error = self.body.get("error") if isinstance(self.body, dict) else None
-        if isinstance(error, dict):
-            return error
-        text = self.body if isinstance(self.body, str) else json.dumps(self.body)[:200]
-        return {"code": "internal", "message": f"a reply that is not an ok reply: {text}"}
-
-
-#: What ``json.loads`` raises on a payload that is not JSON, or is nested past its depth (a
-#: hostile peer's answer or sample, never to escape into zenoh's callback thread).
-UNPARSED = (ValueError, RecursionError)
 
 
 def answer_of(reply: zenoh.Reply) -> Answer | None:
@@ -104,90 +95,19 @@ def answer_of(reply: zenoh.Reply) -> Answer | None:
     return Answer(str(getattr(answer, "key_expr", "")), body, ok)
 
 
-class Answers(list[Answer]):
-    """Every answer to one query; ``timed_out``: zenoh ended it at its timeout (a queryable
-    had not answered), not because every one had."""
-
-    timed_out = False
-
-
-def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str | None) -> Any:
-    """The body of the first ok answer; the error of the first other one; ``NoAnswerError``
-    when there is none."""
-    for answer in answers:
-        if answer.ok:
-            return answer.body
-    if answers:
-        raise_for(answers[0].error, gateway=gateway)
-    if getattr(answers, "timed_out", True):
-        raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
-    raise NoAnswerError(
-        f"nobody answered on {key}: nothing there took the query (no such gateway or device, "
-        "or the access rules keep this account from it)"
-    )
-
-
-def then(future: Future, make: Callable[[Any], Any]) -> Future:
-    """A future of ``make(result)`` (or of the exception ``future`` or ``make`` raised)."""
-    chained: Future = Future()
-
-    def settle(done: Future) -> None:
-        try:
-            result = make(done.result())
-        except BaseException as exc:  # handed to whoever waits, never raised on zenoh's thread
-            with contextlib.suppress(InvalidStateError):
-                chained.set_exception(exc)
-            return
-        with contextlib.suppress(InvalidStateError):
-            chained.set_result(result)
-
-    future.add_done_callback(settle)
-    return chained
-
-
-#: The bounds of a client's settings: a lease shorter than zenoh's keep-alive round would drop
-#: a healthy client; waits and leases past an hour are a mistake, not a choice.
-MIN_LEASE_S, MAX_LEASE_S = 0.1, 3600.0
-MIN_WAIT_S, MAX_WAIT_S = 0.001, 3600.0
-
-
-def seconds(what: str, value: float, least: float, most: float) -> float:
-    """``value`` when it is a number of seconds from ``least`` to ``most``; else
-    ``CommandError`` (NaN, a string, a bool …).
-
-    >>> seconds("timeout", 2, 0.001, 10)
-    2
-    """
-    if isinstance(value, bool) or not isinstance(value, int | float) or not least <= value <= most:
-        raise CommandError(f"{what} must be a number of seconds from {least:g} to {most:g}")
-    return value
-
-
-_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
-
-
-def dumps(body: Any) -> bytes:
-    """``body`` as compact JSON (one encoder for every message: building one costs more than
-    encoding a small command); ``NotJsonError`` for what JSON cannot carry (NaN, a set …),
-    the code the gateway would answer."""
-    try:
-        return _ENCODER.encode(body).encode()
-    except (TypeError, ValueError) as exc:
-        raise error_for("not_json")(f"the command cannot be sent as JSON: {exc}") from None
-
-
 class Core:
-    """One client's zenoh session: queries, puts, subscriptions, its liveliness token."""
+    """One client's zenoh session: queries, puts, subscriptions, its liveliness token. What it
+    is opened with is what ``connect`` takes (``surface.connecting``), as documented there."""
 
     def __init__(
         self,
-        endpoints: Sequence[str] | str,
+        endpoints: Sequence[str] | str = "tcp/127.0.0.1:7447",
         *,
         client_id: str,
         prefix: str = "busgate",
         mode: str = "client",
         lease_s: float = 1.0,
-        timeout_s: float = 5.0,
+        timeout: float = DEFAULT_TIMEOUT_S,
         config_file: str | Path | None = None,
         username: str | None = None,
         password: str | None = None,
@@ -197,7 +117,7 @@ class Core:
         #: What numbers this client's follow targets and ends (``next_seq``).
         self._seq = itertools.count(time.time_ns())
         self.keys = Keys(prefix)
-        self.timeout_s = seconds("timeout", timeout_s, MIN_WAIT_S, MAX_WAIT_S)
+        self.timeout_s = seconds("timeout", timeout, MIN_WAIT_S, MAX_WAIT_S)
         seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
         where = ", ".join(endpoints) or str(config_file)

@@ -27,8 +27,9 @@ from typing import Any
 from pydantic import ValidationError
 
 from busgate.client.claims import ClaimLease, Timers
-from busgate.client.core import Core, dumps
+from busgate.client.core import Core
 from busgate.client.errors import error_for
+from busgate.client.messages import dumps
 from busgate.schemas.validation import describe_validation_error, refusal_code
 
 #: The shortest follow period of any device (10 ms): more puts a second only flood.

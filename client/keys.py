@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import zenoh
 
-from busgate.client.zenoh_config import zenoh_reason
 from busgate.errors import CommandError
 from busgate.schemas.base import CLIENT_ID_PATTERN
+from busgate.schemas.zenoh_session import zenoh_reason
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
 MAX_KEY_BYTES = 60 * 1024

@@ -19,7 +19,10 @@ from concurrent.futures import Future
 from typing import Any
 
 from busgate.client.base import Shared
-from busgate.client.core import UNPARSED, then
+from busgate.client.faces import Face, feeding, waiting
+from busgate.client.feeds import Inbox
+from busgate.client.messages import UNPARSED, then
+from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.errors import CommandError
 
 _ids = itertools.count(1)
@@ -111,7 +114,7 @@ class Watch:
             self.finished.set_result(message)
 
 
-class Handle:
+class Handle(Face):
     """What both faces' ``Trajectory`` are: a trajectory a gateway plays for this client, its
     ``id``, ``gateway``, ``devices``, ``start_at`` and ``end_at`` (wall clock, as telemetry's
     ``ts``), and what the gateway said of it."""
@@ -135,9 +138,35 @@ class Handle:
         """Stop listening to the trajectory (it plays on)."""
         self._watch.close()
 
-    def _cancel(self, timeout: float | None) -> tuple[Future, float]:
+    @waiting
+    def wait(self, timeout: float | None = None) -> Steps[dict[str, Any]]:
+        """The result (``{"result": "succeeded" | "canceled" | "replaced" | "aborted",
+        "reason"?, "errors"}``); by default waits until 30 s past ``end_at``."""
+        waited = result_wait_s(self.end_at, timeout)
+        return (yield Wait(self._watch.finished, waited, f"the result of trajectory {self.id}"))
+
+    @waiting
+    def cancel(self, *, timeout: float | None = None) -> Steps[dict[str, Any]]:
+        """Each device decelerates to a stop and holds; the result is ``canceled``."""
         waited = self._shared.core.timeout_s if timeout is None else timeout
-        return cancel(self._shared, self.gateway, self.id, waited), waited
+        sent = send_cancel(self._shared, self.gateway, self.id, waited)
+        return (yield Wait(sent, waited, f"cancel of trajectory {self.id}"))
+
+    @feeding
+    def feedback(self, timeout: float | None = None) -> Items[dict[str, Any]]:
+        """Each feedback message as it comes (``t_s``, per device ``desired``,
+        ``commanded``, ``measured``, ``error``), until the result or ``timeout``."""
+        deadline = time.monotonic() + result_wait_s(self.end_at, timeout)
+        inbox: Inbox[dict[str, Any]] = Inbox()
+        remove = self._watch.add_sink(inbox.put)
+        try:
+            while self._watch.result is None and (left := deadline - time.monotonic()) > 0:
+                message = yield Next(inbox.next(), left)
+                if message is None or "result" in message:
+                    return
+                yield message
+        finally:
+            remove()
 
 
 def start(shared: Shared, gateway: str, body: dict[str, Any], timeout_s: float) -> Future:
@@ -157,6 +186,6 @@ def start(shared: Shared, gateway: str, body: dict[str, Any], timeout_s: float) 
     return chained
 
 
-def cancel(shared: Shared, gateway: str, trajectory_id: str, timeout_s: float) -> Future:
+def send_cancel(shared: Shared, gateway: str, trajectory_id: str, timeout_s: float) -> Future:
     key = shared.core.keys.trajectory(gateway)
     return shared.core.command(key, {"op": "cancel", "id": trajectory_id}, timeout_s=timeout_s)

@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.zenoh_session import session_config
 
 ZENOH = Path(__file__).resolve().parent.parent / "deploy" / "zenoh" / "busgate.json5"
 #: The accounts of the daemon's password file: ``operator`` may command, ``viewer`` only read.

@@ -21,13 +21,13 @@ from dataclasses import dataclass, field
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la
 from busgate.gateway.cli import client as client_cli
 from busgate.gateway.cli import main
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import GatewayProcess, serial_bus, write_config
 
 PUBLISH_EVERY_S = 0.05

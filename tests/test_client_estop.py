@@ -24,7 +24,7 @@ import pytest
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
+from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port
 from tests.sdk_helpers import the_client_id
 

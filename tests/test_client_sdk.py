@@ -24,13 +24,13 @@ import pytest
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway import installed_version
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.api import ERROR_CODES, TELEMETRY_MODELS, BusInfo, DeviceInfo, InfoReply
 from busgate.schemas.inspire_la import Move
+from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import GatewayProcess, serial_bus
 from tests.sdk_helpers import (
     DEMO_DEVICES,

@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
+from busgate.schemas.zenoh_session import session_config
 from tests.browser import browser_page, needs_chromium
 from tests.sdk_helpers import patiently
 

@@ -13,10 +13,10 @@ import sys
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.errors import ConfigError
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import TIMEOUT_S, DemoProcess
 
 ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}

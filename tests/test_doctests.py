@@ -20,9 +20,8 @@ import busgate.schemas
 
 DOCTEST_MODULES = [
     "busgate.client",
-    "busgate.client.core",
     "busgate.client.keys",
-    "busgate.client.zenoh_config",
+    "busgate.client.messages",
     "busgate.codecs.can_frame",
     "busgate.codecs.ds_servo.decoder",
     "busgate.codecs.ds_servo.encoder",
@@ -55,6 +54,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
     "busgate.schemas.telemetry",
+    "busgate.schemas.zenoh_session",
 ]
 
 

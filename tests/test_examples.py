@@ -1,5 +1,6 @@
-"""Every program in docs/examples/, and the README's SDK quick start, run as a user runs them:
-a child process against a real ``busgate demo``, to the end, with what they print checked.
+"""Every program in docs/examples/, run as a user runs them: a child process against a real
+``busgate demo``, to the end, with what they print checked (the README's program and the
+manual's other blocks: tests/test_docs.py).
 
 One demo serves the module (starting one costs seconds); the programs run one after another,
 each leaving the devices movable (the e-stop example enables them again).

@@ -30,7 +30,6 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.codecs.timing import uart_time
 from busgate.gateway.scheduler.planner import MAX_RETRIES
@@ -38,6 +37,7 @@ from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.recorder import WireRecord
 from busgate.gateway.sim.wire_analysis import load_records
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.zenoh_session import session_config
 
 GATEWAY, BUS = "flood", "uart0"
 CLIENTS, COMMANDS_EACH = 4, 300

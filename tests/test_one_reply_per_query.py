@@ -1,6 +1,6 @@
 """Whatever a client sends, every get on every queryable key gets exactly one reply, carrying a
-code the README lists: a property over arbitrary JSON values and byte strings, against the
-real daemon (``serve``) on a real zenoh session, with the LA simulator behind it.
+code the manual lists (docs/api.md): a property over arbitrary JSON values and byte strings,
+against the real daemon (``serve``) on a real zenoh session, with the LA simulator behind it.
 
 The default run is a bounded profile; ``-m slow`` runs many more examples."""
 
@@ -20,11 +20,12 @@ from tests.test_zenoh_api import served
 
 KEYS = ["busgate/gw1/dev/la1/cmd", "busgate/gw1/dev/la2/cmd", "busgate/gw1/bus/uart0/cmd",
         "busgate/gw1/info"]
-README = (Path(__file__).parents[1] / "README.md").read_text()
-#: The error codes of the README's table (its first column), after "Error codes are stable".
-_CODE_TABLE = README[README.index("Error codes are stable"):].split("\n\n")[1]
-README_CODES = {code for cell in re.findall(r"^\| (`[^|]+`) \|", _CODE_TABLE, re.MULTILINE)
-                for code in re.findall(r"`([a-z0-9_]+)`", cell)}
+API_PAGE = (Path(__file__).parents[1] / "docs" / "api.md").read_text()
+#: The error codes of the API page's table (its first column), after "Error codes are stable".
+_CODE_TABLE = API_PAGE[API_PAGE.index("Error codes are stable"):].split("\n\n")[1]
+DOCUMENTED_CODES = {code
+                    for cell in re.findall(r"^\| (`[^|]+`) \|", _CODE_TABLE, re.MULTILINE)
+                    for code in re.findall(r"`([a-z0-9_]+)`", cell)}
 
 #: Ops the devices and the bus know, with fields drawn from what they take: so that examples
 #: reach validation, claims and planning, not only the JSON parser. Nothing here rewrites an
@@ -77,11 +78,11 @@ def check_one_reply(client: zenoh.Session, key: str, payload: bytes) -> None:
     assert len(answers) == 1, f"{len(answers)} replies on {key} to {payload[:80]!r}"
     [answer] = answers
     if not answer["ok"]:
-        assert answer["error"]["code"] in README_CODES, answer
+        assert answer["error"]["code"] in DOCUMENTED_CODES, answer
 
 
-def test_the_readme_lists_the_codes_this_test_accepts():
-    assert {"bad_command", "estopped", "busy", "internal", "claimed"} <= README_CODES
+def test_the_api_page_lists_the_codes_this_test_accepts():
+    assert {"bad_command", "estopped", "busy", "internal", "claimed"} <= DOCUMENTED_CODES
 
 
 @BOUNDED

@@ -23,11 +23,11 @@ import pytest
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.cli import main
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port
 from tests.gateway_process import BUSGATE, TIMEOUT_S, GatewayProcess, run_busgate, serial_bus
 from tests.secured_gateway import MDWE_PRELUDE, _kernel_has_mdwe

@@ -12,13 +12,13 @@ import time
 
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import STALE_PERIODS, Telemetry
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.zenoh_session import session_config
 from tests.test_telemetry import telemetry_of
 from tests.test_zenoh_api import Daemon, config_for, connected
 

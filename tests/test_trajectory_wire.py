@@ -29,7 +29,6 @@ from dataclasses import dataclass, replace
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
@@ -51,6 +50,7 @@ from busgate.gateway.trajectory.lanes import answer
 from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import SerialBus
 from busgate.schemas.trajectory import TrajectoryPlay
+from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.simulated_buses import SimulatedGateway, simulated_gateway

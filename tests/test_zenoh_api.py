@@ -18,7 +18,6 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
@@ -27,6 +26,7 @@ from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import parse_config
+from busgate.schemas.zenoh_session import session_config
 
 
 def config_for(port: str, endpoint: str) -> dict:

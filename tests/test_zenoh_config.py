@@ -1,4 +1,5 @@
-"""``session_config``: busgate's few zenoh settings laid over zenoh's, with safe defaults."""
+"""``session_config`` (``busgate.schemas.zenoh_session``): busgate's few zenoh settings laid
+over zenoh's, with safe defaults."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import json
 
 import pytest
 
-from busgate.client.zenoh_config import session_config
+from busgate.schemas.zenoh_session import session_config
 
 
 def setting(config, key: str):
@@ -38,3 +39,14 @@ def test_a_files_endpoints_survive_an_empty_listen(tmp_path) -> None:
 def test_an_unknown_mode_is_refused() -> None:
     with pytest.raises(ValueError, match="mode"):
         session_config(mode="bridge")
+
+
+def test_scripts_of_earlier_releases_still_import_the_settings_from_the_client() -> None:
+    """They moved below the daemon and the SDK (``busgate.schemas.zenoh_session``); the
+    SDK's old module names the same functions."""
+    from busgate.client import zenoh_config
+    from busgate.schemas import zenoh_session
+
+    for name in zenoh_config.__all__:
+        assert getattr(zenoh_config, name) is getattr(zenoh_session, name)
+    assert set(zenoh_config.__all__) >= {"session_config", "zenoh_reason", "session_refusal"}

@@ -27,7 +27,6 @@ from typing import Any
 
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.base import DeviceEvent
@@ -39,6 +38,7 @@ from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
+from busgate.schemas.zenoh_session import session_config
 
 log = logging.getLogger(__name__)
 

@@ -35,10 +35,10 @@ import zenoh
 
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key
-from busgate.client.zenoh_config import zenoh_reason
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
+from busgate.schemas.zenoh_session import zenoh_reason
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0

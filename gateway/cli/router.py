@@ -34,8 +34,8 @@ from pathlib import Path
 
 import zenoh
 
-from busgate.client.zenoh_config import session_config, session_refusal, zenoh_reason
 from busgate.errors import CommandError
+from busgate.schemas.zenoh_session import session_config, session_refusal, zenoh_reason
 
 IN_USE_HINT = "another busgate router, zenohd or gateway?"
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)

@@ -196,7 +196,7 @@ def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
     import zenoh
 
     from busgate.client.errors import ConnectError
-    from busgate.client.zenoh_config import session_refusal
+    from busgate.schemas.zenoh_session import session_refusal
 
     try:
         bridge.open(loop)

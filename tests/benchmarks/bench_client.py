@@ -59,8 +59,8 @@ from typing import Any
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
 from busgate.gateway.bus.stats import percentile
+from busgate.schemas.zenoh_session import session_config
 
 DEVICE = "demo/la1"
 CMD_KEY = "busgate/demo/dev/la1/cmd"

@@ -50,9 +50,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: 
 import zenoh
 
 import busgate.client as bc
-from busgate.client.zenoh_config import session_config
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import cpu_s
+from busgate.schemas.zenoh_session import session_config
 from tests.browser import browser_page
 from tests.fleet import Fleet, running_fleet
 

@@ -39,13 +39,13 @@ import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 from mcap.reader import make_reader
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import follow_frame_names
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.recording.flight import AFTER_S, HOLDOFF_S
 from busgate.gateway.sim.process import SimProcess
+from busgate.schemas.zenoh_session import session_config
 
 LA_IDS = (1, 2, 3, 4, 5)
 CAN_BUSES = ("can0", "can1", "can2")

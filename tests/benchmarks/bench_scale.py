@@ -45,7 +45,6 @@ from typing import Any
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
-from busgate.client.zenoh_config import session_config
 from busgate.gateway.bus.clock import now, tune_interpreter
 from busgate.gateway.bus.request import Request
 from busgate.gateway.cli.bench import (
@@ -58,6 +57,7 @@ from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.zenoh_session import session_config
 
 IDS = (1, 2, 3)
 BAUD = 921_600

@@ -42,7 +42,6 @@ from pathlib import Path
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.gateway.bus.clock import now
@@ -54,6 +53,7 @@ from busgate.gateway.sim.wire_analysis import load_records
 from busgate.gateway.trajectory.interpolation import Path as Trajectory
 from busgate.gateway.trajectory.interpolation import paths_of
 from busgate.schemas.trajectory import TrajectoryPlay
+from busgate.schemas.zenoh_session import session_config
 
 PERIOD_S = 0.02  # every device's default follow period
 GRID_S = PERIOD_S * GRID_STRETCH  # the slots' spacing (rule 1 of trajectory_ticks.py)

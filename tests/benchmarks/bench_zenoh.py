@@ -32,7 +32,6 @@ from pathlib import Path
 import can
 import zenoh
 
-from busgate.client.zenoh_config import session_config
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can
 from busgate.gateway.bus.clock import now
@@ -44,6 +43,7 @@ from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import load_records
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.config import parse_config
+from busgate.schemas.zenoh_session import session_config
 
 
 def free_endpoint() -> str:
@@ -201,7 +201,7 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
 
 SUBSCRIBER = """
 import sys, time, zenoh
-from busgate.client.zenoh_config import session_config
+from busgate.schemas.zenoh_session import session_config
 from busgate.schemas.config import parse_config
 session = zenoh.open(session_config(connect=[sys.argv[1]]))
 count = [0]

@@ -53,7 +53,6 @@ import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
 from busgate.client.core import Answer, answer_of
-from busgate.client.zenoh_config import session_config
 from busgate.gateway.api.bridge import REPLY_TIMEOUT_S
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import percentile
@@ -62,6 +61,7 @@ from busgate.gateway.drivers.families import driver_class
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import WireFigures, analyse, load_records
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.zenoh_session import session_config
 
 BASE = "busgate/bench"  # bench_zenoh's Daemon names the gateway "bench"
 FAULTS = "--bad-checksum-rate 0.02 --garbage-rate 0.02 --drop-rate 0.01"

@@ -1,0 +1,229 @@
+"""What a device, a bus, a claim and a follow stream of either face are and do, each method
+written once (``steps.py``); ``Claim`` and ``Follow`` here are type variables, each face's own
+classes (``Device.claim`` of the blocking face is a ``bc.Claim``, of the asyncio face a
+``bc.aio.Claim``). A face's module adds only the ways into and out of a block (``with`` or
+``async with``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from typing import Any, Generic, Self, TypeVar
+
+from busgate.client.base import Found, Shared, as_body, reenable_command, scan_command
+from busgate.client.claims import ClaimLease
+from busgate.client.errors import NoAnswerError
+from busgate.client.faces import Face, feeding, waiting
+from busgate.client.feeds import Inbox, Latest, Stream
+from busgate.client.follow import FollowSender
+from busgate.client.steps import Items, Next, Steps, Wait
+
+Claim = TypeVar("Claim")
+Follow = TypeVar("Follow")
+
+
+class DeviceBase(Face, Generic[Claim, Follow]):
+    """One device of one gateway, of either face."""
+
+    _Claim: Callable[[Shared, Found, float], Claim]
+    _Follow: Callable[[Shared, Found], Follow]
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared = shared
+        self._found = found
+        self.name, self.gateway, self.kind = found.name, found.gateway, found.kind
+        self._latest: Latest | None = None
+
+    def __repr__(self) -> str:
+        return f"<{self._prefix}Device {self.gateway}/{self.name} ({self.kind})>"
+
+    def _sending(self, command: Any, timeout: float | None) -> Steps[dict[str, Any]]:
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        sent = self._shared.send(self._found, command, waited)
+        return (yield Wait(sent, waited, f"{as_body(command).get('op')} on {self._where()}"))
+
+    def _where(self) -> str:
+        return f"{self.gateway}/{self.name}"
+
+    @waiting
+    def send(self, command: Any, *, timeout: float | None = None) -> Steps[dict[str, Any]]:
+        """Send a command (a dict, or a model of ``busgate.schemas``); the reply's body, or
+        the error it carries raised as its class (``bc.error_for(code)``)."""
+        return (yield from self._sending(command, timeout))
+
+    @waiting
+    def move(self, position: int, **fields: Any) -> Steps[dict[str, Any]]:
+        """Move to ``position`` (the kind's units); ``fields`` add to the ``move`` op."""
+        return (yield from self._sending({"op": "move", "position": position, **fields}, None))
+
+    @waiting
+    def velocity(self, rpm: float) -> Steps[dict[str, Any]]:
+        """Turn at ``rpm`` (a ZLAC706 in velocity mode)."""
+        return (yield from self._sending({"op": "velocity", "rpm": rpm}, None))
+
+    @waiting
+    def enable(self) -> Steps[dict[str, Any]]:
+        """Let the device move again after an e-stop (its kind's re-enable command)."""
+        return (yield from self._sending(reenable_command(self.kind), None))
+
+    @waiting
+    def reset_estop(self) -> Steps[dict[str, Any]]:
+        """Out of the gateway's e-stop, back in the power state the device had before it and
+        holding still: nothing moves until a new command (``{"op": "reset_estop"}``, as
+        ``send`` sends it)."""
+        return (yield from self._sending({"op": "reset_estop"}, None))
+
+    @waiting
+    def state(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Steps[Any]:
+        """The device's latest telemetry, as its kind's model: one received in the last
+        ``max_age`` seconds, else the next to come within ``timeout``."""
+        if self._latest is None:
+            self._latest = Latest(self._shared, self._found)
+        payload = self._latest.recent(max_age)
+        if payload is None:
+            payload = yield Next(self._latest.next(), timeout)
+        if payload is None:
+            raise NoAnswerError(f"no state of {self._where()} within {timeout:g} s")
+        return self._shared.telemetry(self._found, payload)
+
+    @feeding
+    def states(self, timeout: float = 5.0) -> Items[Any]:
+        """Each new state message of the device, as it comes, until ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        inbox: Inbox[bytes] = Inbox()
+        with Stream(self._shared, self._found, inbox.put):
+            while (left := deadline - time.monotonic()) > 0:
+                payload = yield Next(inbox.next(), left)
+                if payload is None:
+                    return
+                yield self._shared.telemetry(self._found, payload)
+
+    def claim(self, ttl_s: float = 2.0) -> Claim:
+        """Exclusive motion control while the ``with`` block runs: claimed on entry,
+        renewed before ``ttl_s`` lapses, released on exit (``ClaimLostError`` on exit, and on
+        any motion meanwhile, if it was lost)."""
+        return self._Claim(self._shared, self._found, ttl_s)
+
+    def follow(self) -> Follow:
+        """A follow stream while the ``with`` block runs: ``set(position=…)`` (``rpm=…``
+        for a ZLAC706); the latest target is sent at the device's period; the stream ends
+        (``end_follow``) when the block exits."""
+        return self._Follow(self._shared, self._found)
+
+
+class BusBase(Face):
+    """One bus of one gateway, of either face."""
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared, self._found = shared, found
+        self.name, self.gateway, self.protocol = found.name, found.gateway, found.kind
+
+    def __repr__(self) -> str:
+        return f"<{self._prefix}Bus {self.gateway}/{self.name} ({self.protocol})>"
+
+    def _sending(self, command: dict[str, Any], timeout: float | None) -> Steps[dict[str, Any]]:
+        waited = self._shared.core.timeout_s if timeout is None else timeout
+        sent = self._shared.bus_command(self._found, command, waited)
+        what = f"{command.get('op')} on bus {self.gateway}/{self.name}"
+        return (yield Wait(sent, waited, what))
+
+    @waiting
+    def send(
+        self, command: dict[str, Any], *, timeout: float | None = None
+    ) -> Steps[dict[str, Any]]:
+        """A bus command (``group_move``, ``scan``); the reply's body, or its error raised."""
+        return (yield from self._sending(command, timeout))
+
+    @waiting
+    def group_move(
+        self, targets: list[dict[str, Any]], *, timeout: float | None = None
+    ) -> Steps[dict[str, Any]]:
+        """Start several devices of the bus together: ``[{"device": "la1", "position": 100},
+        …]`` (``time_ms`` per target on a DS bus)."""
+        return (yield from self._sending({"op": "group_move", "targets": targets}, timeout))
+
+    @waiting
+    def scan(
+        self, ids: list[int] | None = None, *, timeout: float | None = None
+    ) -> Steps[list[Any]]:
+        """Which ids answer on the bus (all of the protocol's when ``ids`` is None), and as
+        what."""
+        return (yield from self._sending(scan_command(ids), timeout))["found"]
+
+
+def _settled(
+    shared: Shared, future: Future, kind: type[BaseException] | None, what: str
+) -> Steps[None]:
+    """Wait for a block's last exchange; its failure is raised unless the block is already
+    raising (that exception says more)."""
+    try:
+        yield Wait(future, shared.core.timeout_s, what)
+    except Exception:
+        if kind is None:
+            raise
+
+
+class ClaimBase(Face):
+    """A claim held by a block (``Device.claim``), of either face."""
+
+    def __init__(self, shared: Shared, found: Found, ttl_s: float) -> None:
+        self._shared, self._found, self.ttl_s = shared, found, ttl_s
+        self._lease: ClaimLease | None = None
+
+    @property
+    def lost(self) -> str | None:
+        """Why the claim was lost, or ``None`` while it holds."""
+        return None if self._lease is None else self._lease.lost
+
+    def _taken(self) -> Steps[Self]:
+        """Claim (the block's entry); given back at once when that fails or is cancelled."""
+        lease = self._shared.claim(self._found, self.ttl_s)
+        what = f"claim of {self._found.gateway}/{self._found.name}"
+        try:
+            yield Wait(lease.take(), self._shared.core.timeout_s, what)
+        except BaseException:
+            self._shared.unclaim(lease)
+            raise
+        self._lease = lease
+        return self
+
+    def _given_back(self, kind: type[BaseException] | None) -> Steps[None]:
+        """Release the claim (the block's exit)."""
+        lease, self._lease = self._lease, None
+        assert lease is not None
+        released = self._shared.unclaim(lease)
+        yield from _settled(self._shared, released, kind, f"release of {lease.device}")
+
+
+class FollowBase(Face):
+    """A follow stream held by a block (``Device.follow``), of either face."""
+
+    def __init__(self, shared: Shared, found: Found) -> None:
+        self._shared, self._found = shared, found
+        self._sender: FollowSender | None = None
+
+    def _opened(self) -> Self:
+        """Open the stream (the block's entry)."""
+        self._sender = self._shared.follow(self._found)
+        return self
+
+    @property
+    def sent(self) -> int:
+        """How many targets were put so far (a target replaced while it waited is not)."""
+        return 0 if self._sender is None else self._sender.puts
+
+    def set(self, **target: Any) -> None:
+        """The stream's new target (latest wins): ``position=…``, or ``rpm=…``; checked here
+        (``OutOfRangeError``, ``BadCommandError``), put at most every 10 ms."""
+        if self._sender is None:
+            raise RuntimeError(f"set() outside the follow stream's {self._block} block")
+        self._sender.set(target)
+
+    def _ended(self, kind: type[BaseException] | None) -> Steps[None]:
+        """End the stream (the block's exit)."""
+        sender, self._sender = self._sender, None
+        assert sender is not None
+        ended = self._shared.end_follow(self._found, sender)
+        yield from _settled(self._shared, ended, kind, f"end of the stream of {self._found.name}")

@@ -1,0 +1,113 @@
+"""What crosses a client's session, apart from the session itself (``core.py``): each reply as
+an ``Answer`` and a query's as ``Answers``, the body of the first ok one or the error it is,
+a future of what follows from another's result (``then``), the checks of a client's numbers
+of seconds, and the JSON every message is sent as.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, InvalidStateError
+from dataclasses import dataclass
+from typing import Any
+
+from busgate.client.errors import NoAnswerError, error_for, raise_for
+from busgate.errors import CommandError
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    """One reply to a query: the key it came on, its JSON (text when it is not JSON), and
+    whether it is an ok reply."""
+
+    key: str
+    body: Any
+    ok: bool
+
+    @property
+    def error(self) -> dict[str, Any]:
+        """The error object of a reply that is not ok (one made up when it carries none)."""
+        error = self.body.get("error") if isinstance(self.body, dict) else None
+        if isinstance(error, dict):
+            return error
+        text = self.body if isinstance(self.body, str) else json.dumps(self.body)[:200]
+        return {"code": "internal", "message": f"a reply that is not an ok reply: {text}"}
+
+
+#: What ``json.loads`` raises on a payload that is not JSON, or is nested past its depth (a
+#: hostile peer's answer or sample, never to escape into zenoh's callback thread).
+UNPARSED = (ValueError, RecursionError)
+
+
+class Answers(list[Answer]):
+    """Every answer to one query; ``timed_out``: zenoh ended it at its timeout (a queryable
+    had not answered), not because every one had."""
+
+    timed_out = False
+
+
+def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str | None) -> Any:
+    """The body of the first ok answer; the error of the first other one; ``NoAnswerError``
+    when there is none."""
+    for answer in answers:
+        if answer.ok:
+            return answer.body
+    if answers:
+        raise_for(answers[0].error, gateway=gateway)
+    if getattr(answers, "timed_out", True):
+        raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
+    raise NoAnswerError(
+        f"nobody answered on {key}: nothing there took the query (no such gateway or device, "
+        "or the access rules keep this account from it)"
+    )
+
+
+def then(future: Future, make: Callable[[Any], Any]) -> Future:
+    """A future of ``make(result)`` (or of the exception ``future`` or ``make`` raised)."""
+    chained: Future = Future()
+
+    def settle(done: Future) -> None:
+        try:
+            result = make(done.result())
+        except BaseException as exc:  # handed to whoever waits, never raised on zenoh's thread
+            with contextlib.suppress(InvalidStateError):
+                chained.set_exception(exc)
+            return
+        with contextlib.suppress(InvalidStateError):
+            chained.set_result(result)
+
+    future.add_done_callback(settle)
+    return chained
+
+
+#: The bounds of a client's settings: a lease shorter than zenoh's keep-alive round would drop
+#: a healthy client; waits and leases past an hour are a mistake, not a choice.
+MIN_LEASE_S, MAX_LEASE_S = 0.1, 3600.0
+MIN_WAIT_S, MAX_WAIT_S = 0.001, 3600.0
+
+
+def seconds(what: str, value: float, least: float, most: float) -> float:
+    """``value`` when it is a number of seconds from ``least`` to ``most``; else
+    ``CommandError`` (NaN, a string, a bool …).
+
+    >>> seconds("timeout", 2, 0.001, 10)
+    2
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float) or not least <= value <= most:
+        raise CommandError(f"{what} must be a number of seconds from {least:g} to {most:g}")
+    return value
+
+
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
+def dumps(body: Any) -> bytes:
+    """``body`` as compact JSON (one encoder for every message: building one costs more than
+    encoding a small command); ``NotJsonError`` for what JSON cannot carry (NaN, a set …),
+    the code the gateway would answer."""
+    try:
+        return _ENCODER.encode(body).encode()
+    except (TypeError, ValueError) as exc:
+        raise error_for("not_json")(f"the command cannot be sent as JSON: {exc}") from None
