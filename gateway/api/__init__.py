@@ -1,3 +1,3 @@
 """The zenoh API: the gateway's commands without zenoh (``commands``), group moves and scans
-(``group``), and the one module that speaks zenoh for the daemon (``bridge``, with
-``zenoh_config``)."""
+(``group``), and the one module that speaks zenoh for the daemon (``bridge``, its session
+built by ``busgate.schemas.zenoh_session``)."""

@@ -1,3 +1,5 @@
-"""A trajectory played by the gateway: pure sampling (``interpolation``: each device's value
-as a function of the time since the trajectory's start, from the ``play`` command's points and
-the device's start value). No clock, thread or I/O here."""
+"""The trajectories the gateway plays: their commands and watching (``playing``), a play's
+checks (``checks``), a running one's verdict (``verdicts``), where the commands wait
+(``lanes``); and, pure (no clock, thread or I/O), each device's value as a function of the time
+since the start (``interpolation``) and whether a device takes every value of a path
+(``bounds``)."""
