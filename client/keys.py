@@ -1,6 +1,6 @@
 """The key expressions of busgate's API, as a client names them, and the checks a key passes
 before a session uses it (zenoh's own parser, without a session). The one place the SDK
-spells a key; the README's API section lists the same keys.
+spells a key; docs/api.md lists the same keys.
 
 >>> keys = Keys("busgate")
 >>> keys.device("gw1", "la1", "cmd"), keys.bus("*", "uart0", "cmd"), keys.estop("*")

@@ -2,7 +2,7 @@
 
 orjson, since encoding was a quarter of the publishing thread's profile (cProfile on thread
 time, 2000 ZLAC706 states a second): a 13-field state takes 3.8 µs with the standard
-library's encoder and 0.46 µs with orjson here (``timeit``, README "Scale and cost"). What orjson
+library's encoder and 0.46 µs with orjson here (``timeit``, docs/performance.md). What orjson
 cannot write (an integer past 64 bits, which only a peer's payload quoted back can hold) goes
 through the standard library's encoder, so every message is written. orjson writes NaN and
 infinities as ``null``, which a JSON parser reads (the standard library writes ``NaN``, which

@@ -2,8 +2,8 @@
 ``busgate.client`` session opened with the client commands' options and credentials.
 
 It listens on 127.0.0.1 unless told otherwise: whoever reaches the page sees every gateway
-and may e-stop any and enable any device, with the dashboard's zenoh account (README,
-"The fleet dashboard").
+and may e-stop any, reset its e-stop and enable any device, with the dashboard's zenoh
+account (docs/fleet.md, "Who may do what").
 """
 
 from __future__ import annotations
