@@ -12,9 +12,16 @@ import pytest
 
 import busgate.client as bc
 from busgate.errors import CommandError
-from tests.sdk_helpers import patiently
+from tests.sdk_helpers import patiently, patiently_async
 
 TIMEOUT_S = 10.0  # a hang guard, not a speed requirement
+#: Plays of a test that expects one to succeed, at most: under load a simulated device may
+#: miss three polls and go offline a moment, which rightly aborts the trajectory moving it.
+TRIES = 3
+
+
+def offline_abort(result: dict) -> bool:
+    return result["result"] == "aborted" and "offline" in result.get("reason", "")
 
 
 @pytest.fixture(scope="module")
@@ -24,14 +31,17 @@ def client(module_demo):
 
 
 def test_a_play_is_accepted_feeds_back_and_ends_with_one_result(client) -> None:
-    before = time.time()
     points = [{"t_s": 0.3, "positions": [1400, 900]}, {"t_s": 0.6, "positions": [800, 600]}]
-    with patiently(lambda: client.play(["la1", "demo/la2"], points, goal_tolerance=[40, 40],
-                                       goal_time_s=2.0)) as t:
-        assert (t.gateway, t.devices) == ("demo", ["la1", "la2"])
-        assert before < t.start_at < t.end_at and t.end_at - t.start_at == pytest.approx(0.6)
-        feedback = list(t.feedback(timeout=TIMEOUT_S))
-        result = t.wait(timeout=TIMEOUT_S)
+    for _ in range(TRIES):
+        before = time.time()
+        with patiently(lambda: client.play(["la1", "demo/la2"], points, goal_tolerance=[40, 40],
+                                           goal_time_s=2.0)) as t:
+            assert (t.gateway, t.devices) == ("demo", ["la1", "la2"])
+            assert before < t.start_at < t.end_at and t.end_at - t.start_at == pytest.approx(0.6)
+            feedback = list(t.feedback(timeout=TIMEOUT_S))
+            result = t.wait(timeout=TIMEOUT_S)
+        if not offline_abort(result):
+            break
     assert result["result"] == "succeeded" and result["id"] == t.id
     assert t.result == result
     assert len(feedback) >= 5  # ten a second over at least 0.6 s
@@ -41,13 +51,17 @@ def test_a_play_is_accepted_feeds_back_and_ends_with_one_result(client) -> None:
 
 def test_a_new_play_replaces_the_old_and_cancel_ends_it_canceled(client) -> None:
     long = [{"t_s": 5.0, "positions": [1900]}]
-    first = patiently(lambda: client.play(["la3"], long))  # (offline a moment, under load)
-    second = patiently(lambda: client.play(["la3", "servo1"],
-                                           [{"t_s": 5.0, "positions": [1900, 3000]}]))
-    assert first.wait(timeout=TIMEOUT_S)["result"] == "replaced"
-    [status] = client.query("busgate/demo/trajectory", {"op": "status"})
+    for _ in range(TRIES):  # (a device offline a moment, under load, aborts the second)
+        first = patiently(lambda: client.play(["la3"], long))
+        second = patiently(lambda: client.play(["la3", "servo1"],
+                                               [{"t_s": 5.0, "positions": [1900, 3000]}]))
+        assert first.wait(timeout=TIMEOUT_S)["result"] == "replaced"
+        [status] = client.query("busgate/demo/trajectory", {"op": "status"})
+        time.sleep(0.2)
+        if [r["id"] for r in status.body["trajectories"]] == [second.id] and second.result is None:
+            break
+        second.wait(timeout=TIMEOUT_S)
     assert [r["id"] for r in status.body["trajectories"]] == [second.id]
-    time.sleep(0.2)
     assert second.cancel()["canceled"] == second.id
     assert second.wait(timeout=TIMEOUT_S)["result"] == "canceled"
     with pytest.raises(bc.BadCommandError, match="no trajectory"):
@@ -56,7 +70,7 @@ def test_a_new_play_replaces_the_old_and_cancel_ends_it_canceled(client) -> None
 
 def test_refusals_are_the_classes_of_their_codes_and_nothing_runs(client) -> None:
     with pytest.raises(bc.OutOfRangeError, match="less than or equal to 2000"):
-        client.play(["la1"], [{"t_s": 0.2, "positions": [2500]}])
+        patiently(lambda: client.play(["la1"], [{"t_s": 0.2, "positions": [2500]}]))
     with pytest.raises(bc.BadCommandError, match="after"):
         client.play(["la1"], [{"t_s": 0.4, "positions": [1]}, {"t_s": 0.2, "positions": [2]}])
     with pytest.raises(bc.OutOfRangeError, match="start_at"):
@@ -81,9 +95,13 @@ def test_a_trajectory_plays_the_devices_of_one_gateway() -> None:
 def test_the_asyncio_face_plays_too(module_demo) -> None:
     async def main() -> tuple[list, dict]:
         async with bc.aio.connect(module_demo.endpoint, client_id="trajectory-aio") as c:
-            t = await c.play(["la2"], [{"t_s": 0.3, "positions": [1234]}])
-            feedback = [message async for message in t.feedback(timeout=TIMEOUT_S)]
-            return feedback, await t.wait(timeout=TIMEOUT_S)
+            for _ in range(TRIES):
+                t = await patiently_async(c.play, ["la2"], [{"t_s": 0.3, "positions": [1234]}])
+                feedback = [message async for message in t.feedback(timeout=TIMEOUT_S)]
+                result = await t.wait(timeout=TIMEOUT_S)
+                if not offline_abort(result):
+                    break
+            return feedback, result
 
     feedback, result = asyncio.run(main())
     assert result["result"] == "succeeded" and len(feedback) >= 2

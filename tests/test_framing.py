@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from busgate.codecs import errors
+from busgate import errors
+from busgate.codecs import errors as codec_errors
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import (
     NEED_DATA,
@@ -140,11 +141,11 @@ def test_expected_reply_matches_kind_and_source() -> None:
 def test_register_check_uses_table_bounds_then_size_bounds() -> None:
     target = Register("target", 0x37, 2, Access.READ_WRITE, minimum=0, maximum=2000)
     assert target.check(2000) == 2000
-    with pytest.raises(errors.EncodeError, match="target 2001 is out of range"):
+    with pytest.raises(codec_errors.EncodeError, match="target 2001 is out of range"):
         target.check(2001)
     offset = Register("offset", 0x14, 2, Access.READ_WRITE, signed=True)
     assert offset.check(-32768) == -32768
-    with pytest.raises(errors.EncodeError):
+    with pytest.raises(codec_errors.EncodeError):
         offset.check(32768)
     assert target.limits == (0, 2000) and offset.limits == (-32768, 32767)
     assert not Register("pos", 1, 2, Access.READ).access.writable
@@ -153,7 +154,7 @@ def test_register_check_uses_table_bounds_then_size_bounds() -> None:
 
 def test_require_range_refuses_non_integers() -> None:
     for bad in (True, 1.0, "1", None):
-        with pytest.raises(errors.EncodeError, match="must be an integer"):
+        with pytest.raises(codec_errors.EncodeError, match="must be an integer"):
             require_range("x", bad, 0, 10)
 
 
@@ -178,13 +179,16 @@ def test_can_frame_text_round_trip_and_refusals() -> None:
     assert frame == CanFrame(1, bytes.fromhex("00fa0011fffff556"))
     assert str(frame) == "001#00fa0011fffff556"
     for bad in ("00fa", "#00", "xyz#00", "800#00", "001#" + "00" * 9, "001#0"):
-        with pytest.raises(errors.EncodeError):
+        with pytest.raises(codec_errors.EncodeError):
             CanFrame.parse(bad)
 
 
 def test_error_tree_codes_and_builtin_twins() -> None:
-    assert issubclass(errors.EncodeError, ValueError) and errors.EncodeError.code == "out_of_range"
-    assert issubclass(errors.EncodeError, errors.CommandError), "a command the wire cannot carry"
+    """The codecs' errors join busgate's one tree (``busgate.errors``) with codes of their own."""
+    encode = codec_errors.EncodeError
+    assert issubclass(encode, ValueError) and encode.code == "out_of_range"
+    assert issubclass(encode, errors.CommandError), "a command the wire cannot carry"
+    assert issubclass(codec_errors.CodecError, errors.BusgateError)
     assert issubclass(errors.DeviceTimeoutError, TimeoutError)
     assert issubclass(errors.BusUnavailableError, ConnectionError)
     silent = errors.DeviceTimeoutError("no reply", device="la1", device_id=1)
