@@ -27,7 +27,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import re
-from collections.abc import Set
+from collections.abc import Awaitable, Callable, Set
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -175,29 +175,28 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
         )
 
-    async def estop(request: Request) -> Response:
+    async def to_gateway(
+        request: Request, act: Callable[[Any], Awaitable[None]], done: str, *, fleet: bool
+    ) -> Response:
+        """An action on the gateway the body names (the fleet's when none is named, if
+        ``fleet``), answered ``{"ok": true, done: gateway}``."""
         try:
             gateway = _gateway(await _request_body(request, hosts))
-        except Refused as exc:
-            return refusal(exc.status, exc.code, exc.message)
-        try:
-            await actions.estop(gateway)
-        except BusgateError as exc:
-            return failure(exc, "not_sent")
-        return JSONResponse({"ok": True, "estop": gateway or "*"})
-
-    async def reset_estop(request: Request) -> Response:
-        try:
-            gateway = _gateway(await _request_body(request, hosts))
-            if gateway is None:  # a reset is never the fleet's
+            if gateway is None and not fleet:
                 raise Refused(400, "bad_request", 'name the gateway: {"gateway": "gw1"}')
         except Refused as exc:
             return refusal(exc.status, exc.code, exc.message)
         try:
-            await actions.reset_estop(gateway)
+            await act(gateway)
         except BusgateError as exc:
             return failure(exc, "not_sent")
-        return JSONResponse({"ok": True, "reset_estop": gateway})
+        return JSONResponse({"ok": True, done: gateway or "*"})
+
+    async def estop(request: Request) -> Response:
+        return await to_gateway(request, actions.estop, "estop", fleet=True)
+
+    async def reset_estop(request: Request) -> Response:  # a reset is never the fleet's
+        return await to_gateway(request, actions.reset_estop, "reset_estop", fleet=False)
 
     async def enable(request: Request) -> Response:
         try:

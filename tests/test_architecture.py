@@ -111,7 +111,6 @@ ZENOH_IMPORTERS = {
     "gateway/api/bridge.py",
     "gateway/service/daemon.py",
     "gateway/cli/router.py",
-    "gateway/cli/record.py",
 }
 
 

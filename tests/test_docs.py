@@ -40,7 +40,6 @@ import pytest
 
 import busgate.client as bc
 from busgate.gateway.cli import COMMANDS, build_parser
-from tests.gateway_process import DemoProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -97,15 +96,9 @@ def by_name(blocks: list[Block]) -> dict:
 
 
 @pytest.fixture(scope="module")
-def demo_endpoint():
-    from tests.conftest import unused_loopback_port
-
-    endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
-    demo = DemoProcess(endpoint)
-    try:
-        yield endpoint
-    finally:
-        assert demo.terminate() == 0
+def demo_endpoint(module_demo) -> str:
+    """Where the module's demo (``conftest.module_demo``) serves."""
+    return module_demo.endpoint
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 
 import busgate.client as bc
-from tests.gateway_process import DemoProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "docs" / "examples"
@@ -25,15 +24,9 @@ RUN_TIMEOUT_S = 60.0  # a hang guard, not a speed requirement
 
 
 @pytest.fixture(scope="module")
-def demo_endpoint():
-    from tests.conftest import unused_loopback_port
-
-    endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
-    demo = DemoProcess(endpoint)
-    try:
-        yield endpoint
-    finally:
-        assert demo.terminate() == 0
+def demo_endpoint(module_demo) -> str:
+    """Where the module's demo (``conftest.module_demo``) serves."""
+    return module_demo.endpoint
 
 
 def run(program: Path, *args: str) -> str:

@@ -235,7 +235,7 @@ class ZenohBridge:
         reaches the e-stop too, and a reset must never ride along with a stop."""
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
         if key != f"{self.base}/estop/reset":
-            log.warning("e-stop reset on %s ignored: a reset names its gateway's key", key)
+            log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
         self.api.reset_estop(_sender(payload))
         if self.on_command is not None:

@@ -31,14 +31,11 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-import zenoh
-
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
-from busgate.schemas.zenoh_session import zenoh_reason
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
@@ -264,22 +261,18 @@ def _refuse_live_prefix(client: bc.Client, args: argparse.Namespace) -> None:
 
 
 def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
-    """The gateways holding their liveliness token under ``prefix`` (``Keys.alive``, which the
-    client's session was opened with): the replies to a liveliness get on that session (the
-    SDK has no call for one), bounded by ``LIVE_WAIT_S``, and those the SDK's own liveliness
-    subscriber has seen by its end: zenoh (1.10.2) leaves a token out of a get's replies when
-    it declared it to that subscriber already, as it mostly has right after the session
-    opened."""
+    """The gateways up under ``prefix`` (the client's session was opened with it), judged as
+    the SDK judges whether a named gateway is up (``Shared.to_gateway``): the liveliness tokens
+    its subscriber has seen, and whatever answers ``info`` within ``LIVE_WAIT_S`` (right after
+    a session opens, zenoh may not have told it every token yet)."""
     keys = Keys(prefix)
     live: set[str] = set()
     stop = client.on_gateways(lambda gateway, alive: live.add(gateway) if alive else None)
     try:
-        replies = client._shared.core.session.liveliness().get(keys.alive("*"), timeout=LIVE_WAIT_S)
-        live.update(keys.gateway_of(str(r.ok.key_expr)) for r in replies if r.ok is not None)
-    except zenoh.ZError as exc:
-        raise CommandError(f"cannot ask which gateways are live: {zenoh_reason(exc)}") from exc
+        answers = client.query(keys.info("*"), timeout=LIVE_WAIT_S)
     finally:
         stop()
+    live.update(keys.gateway_of(answer.key) for answer in answers)
     return sorted(live)
 
 
