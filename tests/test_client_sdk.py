@@ -603,7 +603,14 @@ def test_a_group_move_naming_a_device_of_no_bus_is_unknown_device(client) -> Non
 
 
 def test_scan_tells_which_ids_answer(client) -> None:
-    found = patiently(lambda: client.bus("demo/uart0").scan([1, 2, 9]))
+    """A scan sends each probe once: under load a reply may come after its window and its id
+    is missing from that scan (CI saw it), so it is asked again; an id that never answers
+    never shows up."""
+    for _ in range(3):
+        found = patiently(lambda: client.bus("demo/uart0").scan([1, 2, 9]))
+        assert 9 not in {f["id"] for f in found}
+        if sorted(f["id"] for f in found) == [1, 2]:
+            break
     assert sorted(f["id"] for f in found) == [1, 2]
     assert {f["protocol"] for f in found} == {"inspire_la"}
     assert [f["id"] for f in patiently(lambda: client.bus("demo/uart1").scan([2]))] == [2]
