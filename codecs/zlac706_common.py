@@ -28,6 +28,7 @@ __all__ = [
     "GAIN_MIN",
     "MAX_CURRENT_A",
     "MAX_SPEED_RPM",
+    "PULSES_PER_TURN",
     "RAMP_MAX_MS",
     "RAMP_STEP_MS",
     "RATED_CURRENT_MAX_MA",
@@ -46,6 +47,9 @@ __all__ = [
 
 #: Hub motors are limited to ±1000 rpm (manual 8.1.2 step 4 note 3, section 3).
 MAX_SPEED_RPM: Final = 1000
+#: Encoder pulses per turn of the hub motor: the manual's positioning resolution, 1/10000 of a
+#: turn (section 1). Position targets and reports count these.
+PULSES_PER_TURN: Final = 10_000
 #: Raw speed units per rpm: 8192 per 3000 rpm (CAN) = 16384 per 6000 rpm (RS232).
 SPEED_RAW_PER_RPM: Final = Fraction(8192, 3000)
 

@@ -26,6 +26,7 @@ from pydantic import BaseModel, Field, TypeAdapter, model_validator
 from busgate.schemas.base import (
     ClientId,
     CommandModel,
+    FollowModel,
     FollowSeq,
     OpenPublished,
     Published,
@@ -33,6 +34,7 @@ from busgate.schemas.base import (
 )
 from busgate.schemas.config import Name
 from busgate.schemas.families import FAMILIES, PROTOCOLS
+from busgate.schemas.joints import MAX_SI, JointType
 from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
 
 #: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
@@ -106,6 +108,39 @@ GatewayCommand = Annotated[Claim | Release | EndFollow | ResetEstop, Field(discr
 GATEWAY_COMMAND_ADAPTER: TypeAdapter[GatewayCommand] = TypeAdapter(GatewayCommand)
 
 
+#: A value in SI: finite, and within ``MAX_SI`` (past it is a typo, never a joint's).
+SiValue = Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)]
+
+
+class JointCommand(CommandModel):
+    """Move a position joint to ``position``, or turn a velocity joint at ``velocity``, in SI
+    (``docs/joints.md``): refused ``out_of_range`` beyond the joint's limits."""
+
+    op: Literal["joint"]
+    position: SiValue | None = None
+    velocity: SiValue | None = None
+
+    @model_validator(mode="after")
+    def _one_value(self) -> JointCommand:
+        if (self.position is None) == (self.velocity is None):
+            raise ValueError("a joint command gives a position or a velocity, one of them")
+        return self
+
+
+class JointFollow(FollowModel):
+    """A follow target in SI: ``joint`` (a position joint's position) or ``joint_velocity``
+    (a velocity joint's velocity). Held within the joint's limits, never refused for them."""
+
+    joint: SiValue | None = None
+    joint_velocity: SiValue | None = None
+
+    @model_validator(mode="after")
+    def _one_value(self) -> JointFollow:
+        if (self.joint is None) == (self.joint_velocity is None):
+            raise ValueError("a joint follow target gives joint or joint_velocity, one of them")
+        return self
+
+
 class BusGroupTarget(BaseModel):
     """One device of a bus ``group_move``: its name, target position, and (DS servos) the move
     time in ms. The position's range is the device kind's, checked by its driver."""
@@ -155,6 +190,7 @@ BUS_COMMAND_ADAPTER: TypeAdapter[BusCommand] = TypeAdapter(BusCommand)
 TELEMETRY_MODELS: dict[str, type[TelemetryEnvelope]] = {
     kind: family.schema.TELEMETRY_MODEL for kind, family in FAMILIES.items()
 }
+#: Each kind's own follow target; every follow key also takes a joint's (``JointFollow``).
 FOLLOW_MODELS: dict[str, type[CommandModel]] = {
     kind: family.schema.FollowTarget for kind, family in FAMILIES.items()
 }
@@ -227,10 +263,30 @@ REPLY_ADAPTER: TypeAdapter[Reply] = TypeAdapter(Reply)
 # --- info: <prefix>/<gw>/info ---------------------------------------------------------------------
 
 
+class JointInfo(ReadByKey):
+    """A device's joint: its name, type, unit, calibration (``si = offset + scale × raw``)
+    and limits, in SI (``null``: none)."""
+
+    name: Name
+    type: JointType
+    unit: str = Field(description='"m", "rad", or "raw" for a device without a joint table.')
+    scale: float = Field(description="SI per raw unit.")
+    offset: float = Field(description="SI value at raw 0.")
+    min: float
+    max: float
+    max_velocity: float | None = Field(description="Unit per second.")
+    max_acceleration: float | None = Field(description="Unit per second².")
+    max_effort: float | None = Field(description="In effort_unit.")
+    effort_unit: str | None = Field(description="The unit of the joint's effort.")
+    raw_per_turn: float | None = Field(description="Raw position units in one turn.")
+    configured: bool = Field(description="A joint table configured it (else raw units).")
+
+
 class DeviceInfo(ReadByKey):
     name: Name
     kind: DeviceKind
     id: int
+    joint: JointInfo
     state: Telemetry | None = Field(description="The last state published; null before the first.")
 
 
@@ -247,6 +303,34 @@ class InfoReply(ReadByKey):
     gateway: Name
     version: str
     buses: list[BusInfo]
+
+
+# --- every joint: <prefix>/<gw>/joints -----------------------------------------------------------
+
+
+class JointReading(ReadByKey):
+    """One joint in the joints message: its values in SI and how fresh they are."""
+
+    name: Name
+    device: Name
+    type: JointType
+    unit: str
+    position: float | None
+    velocity: float | None
+    effort: float | None
+    ts: float | None = Field(
+        description="When the values were read (as the device's state's ts); null: never."
+    )
+    stale: bool = Field(description="The values are older than a few poll periods.")
+
+
+class JointsMessage(ReadByKey):
+    """Every joint of a gateway in one message, published when any joint was read again,
+    at most at its fastest poll rate."""
+
+    gateway: Name
+    ts: float = Field(description="When it was published, Unix seconds.")
+    joints: list[JointReading]
 
 
 # --- bus statistics: <prefix>/<gw>/bus/<bus>/stats ------------------------------------------------
@@ -294,7 +378,7 @@ class BusStatistics(Published):
 def _device_commands(kind_module: Any) -> TypeAdapter[Any]:
     """The kind's own commands and the gateway-level ones, told apart by ``op``."""
     (union, *_) = get_args(kind_module.Command)
-    members = (*get_args(union), Claim, Release, EndFollow, ResetEstop)
+    members = (*get_args(union), Claim, Release, EndFollow, ResetEstop, JointCommand)
     return TypeAdapter(Annotated[Union[members], Field(discriminator="op")])  # type: ignore[arg-type]  # noqa: UP007
 
 

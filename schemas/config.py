@@ -23,7 +23,8 @@ from typing import Annotated, Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from busgate.errors import ConfigError
-from busgate.schemas.families import PROTOCOLS, kinds, protocol_of
+from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
+from busgate.schemas.joints import JointTable, table_problems
 from busgate.schemas.validation import closest, suggestion
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
@@ -78,6 +79,9 @@ class DeviceConfig(Section):
     follow_period_ms: Annotated[float, Field(ge=FOLLOW_PERIOD_MS[0], le=FOLLOW_PERIOD_MS[1])] = 20.0
     #: ZLAC706 on CAN: the heartbeat interval set with the vendor tool (0 = no heartbeats).
     heartbeat_ms: Annotated[int, Field(ge=0, le=60_000)] = 0
+    #: The device as a joint in SI units: name, unit, calibration, limits (docs/joints.md).
+    #: Without it, a joint in the family's raw units limited by the device's own range.
+    joint: JointTable | None = None
 
 
 class BusBase(Section):
@@ -151,6 +155,7 @@ class Config(Section):
         _require_unique("buses", [d.name for bus in self.buses for d in bus.devices], "device name")
         for index, bus in enumerate(self.buses):
             _check_bus(f"buses[{index}]", bus)
+        _require_distinct_joint_names(self.buses)
         _require_own_device_files(self.buses)
         return self
 
@@ -161,6 +166,24 @@ def _require_unique(path: str, names: list[str], what: str) -> None:
         if name in seen:
             raise ValueError(f"{path}: {what} {name!r} is used twice; names must be unique")
         seen.add(name)
+
+
+def _require_distinct_joint_names(buses: list[SerialBus | CanBus]) -> None:
+    """A joint's name names one device: no other device or joint of the gateway has it
+    (clients find a device by either)."""
+    owner: dict[str, str] = {d.name: d.name for bus in buses for d in bus.devices}
+    for bus_index, bus in enumerate(buses):
+        for index, device in enumerate(bus.devices):
+            name = device.joint.name if device.joint is not None else None
+            if name is None or name == device.name:
+                continue
+            if name in owner:
+                raise ValueError(
+                    f"buses[{bus_index}].devices[{index}].joint.name: {name!r} already names "
+                    f"{'device' if owner[name] == name else 'the joint of'} {owner[name]!r}; "
+                    "joint names must be unique"
+                )
+            owner[name] = device.name
 
 
 def _require_own_device_files(buses: list[SerialBus | CanBus]) -> None:
@@ -214,6 +237,10 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
         if device.id in ids:
             raise ValueError(f"{path}.devices[{index}].id: id {device.id} is used twice on the bus")
         ids.add(device.id)
+        if device.joint is not None:
+            declaration = FAMILIES[device.kind].schema.JOINT
+            for key, problem in table_problems(declaration, device.joint):
+                raise ValueError(f"{path}.devices[{index}].joint.{key}: {problem}")
     if isinstance(bus, SerialBus) and bus.gap_s < protocol.timing.min_gap_s:
         minimum = protocol.timing.min_gap_s * 1000
         raise ValueError(f"{path}.min_gap_ms: {protocol.name} needs at least {minimum:g} ms")

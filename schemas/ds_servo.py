@@ -20,6 +20,7 @@ from pydantic.fields import FieldInfo
 
 from busgate.codecs import ds_servo as codec
 from busgate.schemas.base import CommandModel, FollowModel, HexData
+from busgate.schemas.joints import JointDeclaration
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
@@ -197,3 +198,19 @@ class DsServoTelemetry(TelemetryEnvelope):
 
 
 TELEMETRY_MODEL = DsServoTelemetry
+
+_TARGET = codec.REGISTERS["target_position"]
+#: The servo as a joint (``busgate.schemas.joints``): one turn is 4096 counts; its speed
+#: register's unit is undocumented, so its velocity is not known; its motor current is its
+#: effort, in amperes.
+JOINT = JointDeclaration(
+    raw_range=_TARGET.limits,
+    position="position",
+    target="target",
+    move=("move", "position"),
+    follow_position="position",
+    raw_per_turn=_TARGET.limits[1] + 1,
+    effort="current_ma",
+    effort_unit="A",
+    effort_per_raw=1e-3,
+)

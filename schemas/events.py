@@ -148,11 +148,22 @@ class CommandRefusedEvent(Event):
     message: str
 
 
+class LimitedEvent(Event):
+    """A follow stream's target was first held within its joint's limits (clamped to a
+    position limit, or its step bounded by ``max_velocity`` or ``max_acceleration``); told
+    once per stream."""
+
+    type: Literal["limited"]
+    joint: str = Field(description="The joint's name.")
+    limit: Literal["min", "max", "max_velocity", "max_acceleration"]
+    value: float = Field(description="What the client asked for, in the joint's units.")
+
+
 KnownEvent = Annotated[
     OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
     | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
     | EstopEvent | EstopResetEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
-    | CommandRefusedEvent,
+    | CommandRefusedEvent | LimitedEvent,
     Field(discriminator="type"),
 ]  # fmt: skip
 EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)

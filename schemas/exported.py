@@ -60,11 +60,16 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
         f"follow.{kind}.json": (
             f"busgate {kind} follow target",
             f"What <prefix>/<gw>/dev/<device>/follow takes for a {kind} device: the latest "
-            "target, sent at the device's follow period.",
-            model,
+            "target (the kind's own, or the joint's in SI), sent at the device's follow period.",
+            model | api.JointFollow,
         )
         for kind, model in api.FOLLOW_MODELS.items()
     },
+    "joints.json": (
+        "busgate joints",
+        "What <prefix>/<gw>/joints carries: every joint of the gateway in SI units.",
+        api.JointsMessage,
+    ),
     "event.json": (
         "busgate event",
         "What <prefix>/<gw>/dev/<device>/event and <prefix>/<gw>/events carry.",

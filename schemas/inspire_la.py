@@ -20,6 +20,7 @@ from pydantic.fields import FieldInfo
 
 from busgate.codecs import inspire_la as codec
 from busgate.schemas.base import CommandModel, FollowModel, HexData
+from busgate.schemas.joints import JointDeclaration
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 
@@ -249,3 +250,17 @@ class InspireLaTelemetry(TelemetryEnvelope):
 
 
 TELEMETRY_MODEL = InspireLaTelemetry
+
+_TARGET = codec.REGISTERS["target_position"]
+#: The actuator as a joint (``busgate.schemas.joints``): a stroke position, no measured speed,
+#: the force sensor's reading as its effort (g of force to newtons).
+JOINT = JointDeclaration(
+    raw_range=_TARGET.limits,
+    position="position",
+    target="target",
+    move=("move", "position"),
+    follow_position="position",
+    effort="force_g",
+    effort_unit="N",
+    effort_per_raw=9.80665e-3,
+)

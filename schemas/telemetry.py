@@ -16,6 +16,7 @@ from pydantic import Field
 from busgate.schemas.base import ReadByKey
 from busgate.schemas.config import Name
 from busgate.schemas.families import kinds
+from busgate.schemas.joints import JointState
 
 DeviceKind: TypeAlias = Literal[kinds()]  # type: ignore[valid-type]
 
@@ -61,6 +62,9 @@ class TelemetryEnvelope(ReadByKey):
         "safe stop at shutdown, or an Inspire LA's own estop op): motion is refused (estopped) "
         'until its re-enable command, {"op": "enable"} for an Inspire LA or a ZLAC706, '
         '{"op": "torque", "on": true} for a DS servo.'
+    )
+    joint: JointState = Field(
+        description="The device as a joint, in SI units (docs/joints.md), from this reading."
     )
     enabled: bool | None = Field(
         description="The power stage drives the motor; null when not known. Inspire LA: as "

@@ -22,6 +22,7 @@ from pydantic import Field, Strict, TypeAdapter
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
 from busgate.schemas.base import CommandModel, FollowModel, Published
+from busgate.schemas.joints import JointDeclaration
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
 _POSITION = can.REGISTERS["target_position"]
@@ -222,3 +223,25 @@ class Zlac706Telemetry(TelemetryEnvelope):
 
 
 TELEMETRY_MODEL = Zlac706Telemetry
+
+#: The hub motor as a joint (``busgate.schemas.joints``): a wheel commanded by speed (velocity
+#: mode; ``type = "position"`` for position mode), its position counted in encoder pulses
+#: (10000 a turn by the manual's note 6: ``raw_per_turn`` in the table when yours differs),
+#: speeds in rpm (exact in rad/s), its output current as its effort, bounded in torque mode.
+JOINT = JointDeclaration(
+    raw_range=_POSITION.limits,
+    position="position",
+    target="target",
+    move=("move", "position"),
+    types=("velocity", "position"),
+    speed_rpm="speed_rpm",
+    target_speed_rpm="target_speed_rpm",
+    turn=("velocity", "rpm"),
+    follow_velocity="rpm",
+    raw_per_turn=common.PULSES_PER_TURN,
+    effort="current_ma",
+    effort_unit="A",
+    effort_per_raw=1e-3,
+    effort_limited=True,
+    top_speed=common.MAX_SPEED_RPM,
+)

@@ -173,9 +173,12 @@ CLONE_MODULES = {
         from typing import Literal
         from busgate.schemas.inspire_la import Command, COMMAND_ADAPTER, FollowTarget
         from busgate.schemas.inspire_la import InspireLaTelemetry
+        from busgate.schemas.joints import JointDeclaration
         class CloneTelemetry(InspireLaTelemetry):
             kind: Literal["la_clone"]
         TELEMETRY_MODEL = CloneTelemetry
+        JOINT = JointDeclaration(raw_range=(0, 2000), position="position", target="target",
+                                 move=("move", "position"), follow_position="position")
         """),
     "la_clone_driver": textwrap.dedent("""\
         from busgate.gateway.drivers.inspire_la import InspireLaDriver
@@ -217,7 +220,8 @@ CLONE_RUN = textwrap.dedent("""\
     with SerialSimulator(codec, make_devices("la_clone", [1]), baudrate=921600) as sim:
         config = parse_config({"gateway": {"name": "g"}, "buses": [{
             "name": "clones", "transport": "serial", "port": sim.port, "baudrate": 921600,
-            "devices": [{"name": "c1", "kind": "la_clone", "id": 1}]}]})
+            "devices": [{"name": "c1", "kind": "la_clone", "id": 1, "joint": {
+                "name": "slide", "unit": "m", "scale": 1e-5, "max": 0.015}}]}]})
         states = []
         runner = build_bus(config.buses[0], on_state=lambda d, s: states.append(s)).start()
         try:
@@ -227,6 +231,11 @@ CLONE_RUN = textwrap.dedent("""\
             driver = runner.drivers["c1"]
             reply = runner.submit("c1", driver.parse('{"op":"move","position":1500}')).result(10)
             out["reply"] = api.TELEMETRY_ADAPTER.validate_python(reply["state"]).target
+            out["joint"] = reply["state"]["joint"]["name"]
+            try:
+                runner.submit("c1", driver.parse('{"op":"move","position":1600}')).result(10)
+            except Exception as exc:
+                out["beyond"] = str(exc)
             while not states and time.monotonic() < deadline:
                 time.sleep(0.01)
             out["state"] = api.TELEMETRY_ADAPTER.validate_python(states[-1]).kind
@@ -244,4 +253,6 @@ def test_a_throwaway_family_built_from_an_existing_one_runs(tmp_path: Path) -> N
     assert result.returncode == 0, result.stderr
     out = json.loads(result.stdout)
     assert out == {"schema": ["inspire_la", "ds_servo", "zlac706", "la_clone"], "reply": 1500,
+                   "joint": "slide",
+                   "beyond": "joint slide: position 0.016 m is beyond its max 0.015 m",
                    "state": "la_clone"}

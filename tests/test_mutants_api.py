@@ -34,13 +34,14 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.drivers.base import DeviceEvent, Effect
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.authority import Authority, ClaimTable
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.replies import error_code
 from tests import test_api
+from tests.stand_in_driver import StandInDriver
 
 #: The two buses of tests/test_api.py (LA and ZLAC706), as this module's fixture too.
 gateway = test_api.gateway
@@ -71,14 +72,10 @@ def test_a_claim_lapses_at_its_moment_and_anyone_may_release_a_free_device():
     claims.check("la1", "carol", now=112.0)
 
 
-class Device(Driver):
+class Device(StandInDriver):
     """The least driver the authority needs: a name and an id."""
 
-    kind = protocol = "test"
     reenable_op = "enable"
-    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
-    apply = lambda self, *a: {}  # noqa: E731
-    effect = lambda self, frame: Effect.MOTION  # noqa: E731
 
 
 def authority_of_two() -> Authority:

@@ -11,11 +11,12 @@ from collections import deque
 from busgate.codecs.framing import ExpectedReply
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver, Effect
+from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+from tests.stand_in_driver import StandInDriver
 
 GAP = 0.001
 TIMING = link_timing("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
@@ -39,15 +40,11 @@ class Poller:
         return [asking()]
 
 
-class Follower(Driver):
+class Follower(StandInDriver):
     """A driver whose follow frame spells out its targets, so a test can read what a tick
     carries; its stale stream asks for a stop."""
 
-    kind = protocol = "test"
     follow_group_limit = 2
-    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
-    apply = lambda self, *a: {}  # noqa: E731
-    effect = lambda self, frame: Effect.MOTION  # noqa: E731
 
     @classmethod
     def follow_request(cls, targets):

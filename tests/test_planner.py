@@ -11,10 +11,10 @@ from busgate.codecs.framing import ExpectedReply
 from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver, Effect
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.tickers import FollowTicker
+from tests.stand_in_driver import StandInDriver
 
 GAP = 0.001
 TIMING = link_timing("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
@@ -43,19 +43,14 @@ class Poller:
         return [status_request()]
 
 
-class FollowingDriver(Driver):
+class FollowingDriver(StandInDriver):
     """The least driver a follow ticker needs: it coalesces targets into one frame."""
 
-    kind = protocol = "test"
     follow_group_limit = 2
 
     @classmethod
     def follow_request(cls, targets):
         return silent_request(3 + 3 * len(targets))
-
-    plan_frames = poll = safe_stop = telemetry = frames_of = lambda self, *a: []
-    apply = lambda self, *a: {}  # noqa: E731
-    effect = lambda self, frame: Effect.MOTION  # noqa: E731
 
 
 def ticker_at(planner: BusPlanner, now: float, period: float = 0.010) -> FollowTicker:

@@ -203,7 +203,8 @@ def test_a_port_this_user_may_not_open_is_reported_with_what_to_do(endpoint) -> 
         finally:
             assert gateway.stop() == 0
     assert check.returncode == 0, check.stderr
-    [warning] = [line for line in check.stdout.splitlines() if line.startswith("warning:")]
+    [warning] = [line for line in check.stdout.splitlines() if line.startswith("warning: buses[0]:")
+                 or line.startswith("warning: buses[0].port")]
     denied = f"{port}: permission denied for user "
     assert warning.startswith(f"warning: buses[0].port: {denied}")
     assert logged.startswith(f"WARNING busgate: bus uart0: {denied}")

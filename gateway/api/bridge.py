@@ -29,6 +29,7 @@ import zenoh
 
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
@@ -83,6 +84,12 @@ class ZenohBridge:
         #: Trajectory commands run here, off zenoh's threads and the loop (a 1 MiB play is
         #: parsed and checked whole): plays in their lane, cancels and status in another.
         self._trajectory_lanes = TrajectoryLanes(self.trajectories.command)
+        fastest_poll_hz = max(d.poll_hz for bus in config.buses for d in bus.devices)
+        self.joints = JointsFeed(
+            config.gateway.name,
+            (driver for _, driver in api.devices.values()),
+            min_interval_s=1 / fastest_poll_hz,
+        )
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -121,6 +128,9 @@ class ZenohBridge:
             key = f"{base}/bus/{bus}/stats"
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
         self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
+        self._publishers[f"{base}/joints"] = session.declare_publisher(
+            f"{base}/joints", congestion_control=drop
+        )
         where = (
             zenoh_section.listen
             or zenoh_section.config_file
@@ -332,6 +342,10 @@ class ZenohBridge:
             device, state = self.states.popleft()
             self._put(f"{self.base}/dev/{device}/state", state)
             self._track_liveliness(device, bool(state.get("online")))
+            self.joints.take(device, state)
+        joints = self.joints.due(time.monotonic(), time.time())
+        if joints is not None:
+            self._put(f"{self.base}/joints", joints)
 
     def publish_events(self) -> None:
         while self.events:

@@ -56,6 +56,8 @@ from busgate.schemas.api import (
     BusScan,
     Claim,
     EndFollow,
+    JointCommand,
+    JointFollow,
     Release,
     ResetEstop,
 )
@@ -136,10 +138,15 @@ class GatewayApi:
         if gateway_op is not None:
             reply = gateway_op(self, runner, device, fields)
             return reply if isinstance(reply, Future) else _finished(reply)
-        command = command_from_object(DEVICE_COMMAND_ADAPTERS[driver.kind], fields, driver.kind)
-        if driver.deadman and op == driver.deadman.op and client:
+        adapter = DEVICE_COMMAND_ADAPTERS[driver.kind]
+        command = command_from_object(adapter, fields, driver.kind)
+        in_si = isinstance(command, JointCommand)
+        if in_si:  # the kind's own command, in its raw units (refused beyond a limit)
+            command = command_from_object(adapter, _kind_command(driver, command), driver.kind)
+        if driver.deadman and command.op == driver.deadman.op and client:
             self._deadman_clients[device] = client
-        return _mapped(runner.submit(device, command, client))
+        submitted = runner.submit(device, command, client)
+        return _chained(submitted, _joint_reply) if in_si else _mapped(submitted)
 
     def _claim(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         request = Claim.model_validate(fields)
@@ -190,7 +197,7 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             fields = decode_object(payload)
-            target = driver.follow_target(fields)
+            target = _follow_target(driver, fields)
             client, seq = fields.get("client"), fields.get("seq")
             with self._fence:
                 if self._sent_before_the_end(device, client, seq):
@@ -319,6 +326,7 @@ class GatewayApi:
                             "name": device,
                             "kind": driver.kind,
                             "id": driver.device_id,
+                            "joint": driver.joint.describe(),
                             "state": runner.states.get(device),
                         }
                         for device, driver in runner.drivers.items()
@@ -337,6 +345,35 @@ class GatewayApi:
 
     def _event(self, device: str, type_: str, **fields: Any) -> None:
         self.on_event(DeviceEvent(device, type_, fields))
+
+
+def _kind_command(driver: Driver, command: JointCommand) -> dict[str, Any]:
+    """The device kind's own command for a joint command in SI, with its client fields."""
+    joint = driver.joint
+    if command.position is not None:
+        fields = joint.move_command(command.position)
+    else:
+        assert command.velocity is not None  # the model's rule: one of them
+        fields = joint.turn_command(command.velocity)
+    return {**fields, **command.model_dump(include={"client", "require_claim"})}
+
+
+def _joint_reply(result: dict[str, Any]) -> dict[str, Any]:
+    """A joint command's reply: the device's state, and its joint's on its own."""
+    return ok_reply(**result, joint=result["state"]["joint"])
+
+
+def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
+    """A follow payload's target in the family's units: the kind's own payload validated by
+    its driver, or a joint's (``joint``, ``joint_velocity``: SI) as asked, unclamped (the
+    stream's limiter holds it within the joint's limits) once the nearest payload the kind
+    takes passed its driver's checks (a ZLAC706 streams speeds in velocity mode only)."""
+    if "joint" not in fields and "joint_velocity" not in fields:
+        return driver.follow_target(fields)
+    request = JointFollow.model_validate(fields)
+    payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
+    driver.follow_target({**payload, **request.model_dump(include={"client", "seq"})})
+    return raw
 
 
 def _client_field(client: str | None) -> dict[str, str]:

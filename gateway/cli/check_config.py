@@ -51,6 +51,12 @@ def check_config(args: argparse.Namespace) -> int:
         problems = [
             *host_warnings(f"buses[{index}]", bus),
             *(f"buses[{index}]: {text}" for text in budget.warnings()),
+            *(
+                f"buses[{index}].devices[{at}]: {device.name} has no joint table: it is a joint "
+                "in raw units limited only by the device's own range (docs/joints.md)"
+                for at, device in enumerate(bus.devices)
+                if device.joint is None
+            ),
         ]
         for problem in problems:
             print(f"warning: {problem}")

@@ -20,17 +20,18 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 from pydantic import TypeAdapter, ValidationError
 
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.schemas.families import PROTOCOLS, WireProtocol
+from busgate.schemas.joints import Joint, JointDeclaration, Quantity
 from busgate.schemas.validation import command_from_json, describe_validation_error
 
 #: What a family's driver must define beyond the abstract methods (see ``Driver``).
-FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe")
+FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe", "setpoints")
 
 #: Consecutive unanswered requests after which a device is marked offline.
 OFFLINE_AFTER = 3
@@ -48,6 +49,17 @@ class Effect(enum.IntEnum):
 #: The devices a frame addresses: a set of ids, or ``EVERY`` device of the bus (broadcast).
 EVERY = None
 Addressed = frozenset[int] | None
+
+
+class Setpoint(NamedTuple):
+    """What a frame sets on the device with ``device_id``, in the units its family declares
+    (``busgate.schemas.joints``): a position (raw), a speed or an effort. ``value`` is
+    ``None`` when the frame sets a position the gateway cannot know (a preset stored in the
+    device): a limited joint refuses it."""
+
+    device_id: int
+    quantity: Quantity
+    value: float | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,10 +100,20 @@ class Driver(abc.ABC):
     #: it; ``busgate.gateway.drivers.families.DRIVERS`` is the table of them).
     protocol: ClassVar[str]
 
-    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
+    def __init__(
+        self,
+        name: str,
+        device_id: int,
+        *,
+        follow_period_s: float = 0.02,
+        joint: Joint | None = None,
+    ) -> None:
         self.name = name
         self.device_id = device_id
         self.follow_period_s = follow_period_s
+        #: The device as a joint: SI units, calibration, limits (its config's table, or the
+        #: family's raw joint).
+        self.joint = joint or Joint.of(name, self.joint_declaration(), None)
         self.online = False
         self.was_online = False
         self.last_reply: float | None = None
@@ -113,6 +135,11 @@ class Driver(abc.ABC):
     def protocol_entry(cls) -> WireProtocol:
         """The registry's entry of the protocol this class drives (``protocol``)."""
         return PROTOCOLS[cls.protocol]
+
+    @classmethod
+    def joint_declaration(cls) -> JointDeclaration:
+        """What the family's raw fields mean as a joint (its schema module's ``JOINT``)."""
+        return cls.protocol_entry().schema.JOINT  # type: ignore[no-any-return]
 
     @property
     def kind(self) -> str:
@@ -174,6 +201,14 @@ class Driver(abc.ABC):
             return frozenset(target.device_id for target in targets)
         device_id: Any = getattr(frame, "device_id", self.broadcast_id)
         return EVERY if device_id == self.broadcast_id else frozenset({device_id})
+
+    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
+        """What ``frames`` (one command's, its ``frames_of``) set on each device they address:
+        a position, a speed or an effort, in the family's units (``JointDeclaration``). The
+        authority judges these against each device's joint before anything is planned; a
+        frame that sets none of them (a read, a setting) adds none. Any thread may ask: the
+        driver's state is only read (a relative target is judged from the position known)."""
+        return []
 
     def effects_of(self, frames: Sequence[object]) -> list[tuple[Addressed, Effect]]:
         """What each of ``frames`` does, and to which ids."""
@@ -245,8 +280,9 @@ class Driver(abc.ABC):
     # A family's driver defines the four parts below (``FAMILY_PARTS``; the registry's check
     # names one that is missing); the defaults serve drivers that are not a family's.
 
-    def follow_target(self, payload: dict[str, Any]) -> Any:
-        """Validate a follow stream's payload (``{"position": P}``…); ``CommandError`` if bad."""
+    def follow_target(self, payload: dict[str, Any]) -> float:
+        """A follow stream's payload (``{"position": P}``…) validated: the value it sets, in
+        the family's units (a raw position, or a speed); ``CommandError`` if bad."""
         raise CommandError(f"{self.kind} has no follow stream")
 
     def follow_payload(self, payload: dict[str, Any]) -> Any:
@@ -257,9 +293,9 @@ class Driver(abc.ABC):
             raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
 
     @classmethod
-    def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
-        """One frame carrying the latest follow targets of up to ``follow_group_limit``
-        devices of this kind on one bus."""
+    def follow_request(cls, targets: Sequence[tuple[Driver, float]]) -> Request:
+        """One frame carrying the latest follow targets (``follow_target``'s values) of up to
+        ``follow_group_limit`` devices of this kind on one bus."""
         raise CommandError(f"{cls.protocol_entry().kind} has no follow stream")
 
     @staticmethod
@@ -372,11 +408,13 @@ class Driver(abc.ABC):
     def state(self, now: float) -> dict[str, Any]:
         """The telemetry with its envelope; the bus's telemetry stamps it (``ts``: when it was
         read) and marks it ``stale``."""
+        telemetry = self.telemetry(now)
         return {
             "device": self.name,
             "kind": self.kind,
             "online": self.online,
             "last_reply_age_s": None if self.last_reply is None else now - self.last_reply,
             "estopped": self.estopped,
-            **self.telemetry(now),
+            **telemetry,
+            "joint": self.joint.state(telemetry),
         }

@@ -1,10 +1,12 @@
 """DS servo driver: a ``busgate.schemas.ds_servo`` command becomes the codec frames that do it,
 and the servo's status replies become its state (``DsServoDriver``).
 
-Every op is one frame (``frames_for``, also used by the CLI). ``action`` and ``group_move``
-always go to the broadcast id, whatever ``device_id`` says: they are bus-level ops, one frame
-for every servo on the bus; the other ops go to ``device_id`` and the codec refuses the ones
-the manual forbids to broadcast (ping, read, deferred move) when it encodes them.
+Every op is one frame (``frames_for``, also used by the CLI); each frame says what it does
+(``frame_effect``) and the position targets it sets (``frame_setpoints``). ``action`` and
+``group_move`` always go to the broadcast id, whatever ``device_id`` says: they are bus-level
+ops, one frame for every servo on the bus; the other ops go to ``device_id`` and the codec
+refuses the ones the manual forbids to broadcast (ping, read, deferred move) when it encodes
+them.
 
 Rules of the driver (below ``frames_for``):
 
@@ -26,7 +28,7 @@ from typing import Any, ClassVar, Final
 from busgate.codecs import ds_servo as codec
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect
+from busgate.gateway.drivers.base import Driver, Effect, Setpoint
 from busgate.schemas import ds_servo as schema
 from busgate.schemas.telemetry import flag_names
 
@@ -103,9 +105,30 @@ def frame_effect(frame: codec.Frame) -> Effect:
         return _FRAME_EFFECTS[type(frame)]
     if frame.address == _TORQUE and frame.data == b"\x00":
         return Effect.STOP
-    if codec.REGISTERS.touched(frame.address, len(frame.data)) & _MOTION_REGISTERS:
+    if _writes_motion(frame):
         return Effect.MOTION
     return Effect.SETTING
+
+
+def _writes_motion(frame: codec.Write) -> bool:
+    """Whether ``frame`` reaches the target (with the move time after it) or a go-to-preset
+    address."""
+    return bool(codec.REGISTERS.touched(frame.address, len(frame.data)) & _MOTION_REGISTERS)
+
+
+def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
+    """The position targets ``frame`` sets, raw: a stored move's (its ACTION sets nothing
+    more), each SYNC WRITE target under its own id, and a write's value of the target
+    register; ``None`` for a go-to-preset (the preset is stored in the servo) and for a write
+    of part of the target register."""
+    if isinstance(frame, codec.RegWrite):
+        return [Setpoint(frame.device_id, "position", frame.position_raw)]
+    if isinstance(frame, codec.SyncWrite):
+        return [Setpoint(t.device_id, "position", t.position_raw) for t in frame.targets]
+    if isinstance(frame, codec.Write) and _writes_motion(frame):
+        written = codec.values_from(frame.address, frame.data).get("target_position")
+        return [Setpoint(frame.device_id, "position", written)]
+    return []
 
 
 # --- the driver ------------------------------------------------------------------------------
@@ -176,8 +199,8 @@ class DsServoDriver(Driver):
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
 
-    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
-        super().__init__(name, device_id, follow_period_s=follow_period_s)
+    def __init__(self, name: str, device_id: int, **options: Any) -> None:
+        super().__init__(name, device_id, **options)
         self.measured: dict[str, int | None] = dict.fromkeys(_MEASURED.values())
         self.target: int | None = None
         self.pending_target: int | None = None  # a REG WRITE waiting for ACTION
@@ -193,6 +216,9 @@ class DsServoDriver(Driver):
 
     def effect(self, frame: object) -> Effect:
         return frame_effect(frame)  # type: ignore[arg-type]
+
+    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
+        return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
 
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         if isinstance(command, schema.SetId) and command.new_id == self.device_id:

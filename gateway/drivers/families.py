@@ -25,11 +25,12 @@ from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.schemas.config import DeviceConfig
 from busgate.schemas.families import PROTOCOLS, Family, WireProtocol
+from busgate.schemas.joints import Joint
 
 #: What each part must offer, by the names the gateway uses.
 CODEC_PARTS = ("encode", "expected_reply", "CommandDecoder", "ReplyDecoder", "readings",
                "TIMING", "DEVICE_IDS", "ADDRESSED")  # fmt: skip
-SCHEMA_PARTS = ("Command", "COMMAND_ADAPTER", "FollowTarget", "TELEMETRY_MODEL")
+SCHEMA_PARTS = ("Command", "COMMAND_ADAPTER", "FollowTarget", "TELEMETRY_MODEL", "JOINT")
 SIMULATOR_PARTS = ("accepts", "handle", "spontaneous", "reboot", "inject_fault")
 
 
@@ -94,10 +95,14 @@ def check_family(family: Family) -> None:
 
 def make_driver(device: DeviceConfig, protocol: WireProtocol) -> Driver:
     """The driver of a configured device on a bus of ``protocol``."""
-    options: dict[str, Any] = {"follow_period_s": device.follow_period_ms / 1000}
+    cls = driver_class(protocol)
+    options: dict[str, Any] = {
+        "follow_period_s": device.follow_period_ms / 1000,
+        "joint": Joint.of(device.name, cls.joint_declaration(), device.joint),
+    }
     if protocol.can:
         options["heartbeat_ms"] = device.heartbeat_ms
-    return driver_class(protocol)(device.name, device.id, **options)
+    return cls(device.name, device.id, **options)
 
 
 def link_timing(protocol: str, rate: int, *, margin_s: float, gap_s: float = 0.0) -> LinkTiming:

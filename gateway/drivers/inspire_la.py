@@ -29,8 +29,8 @@ from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import EncodeError
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect
-from busgate.gateway.drivers.inspire_la_frames import frame_effect, frames_for
+from busgate.gateway.drivers.base import Driver, Effect, Setpoint
+from busgate.gateway.drivers.inspire_la_frames import frame_effect, frame_setpoints, frames_for
 from busgate.schemas import inspire_la as schema
 from busgate.schemas.telemetry import flag_names
 
@@ -87,8 +87,8 @@ class InspireLaDriver(Driver):
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
 
-    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
-        super().__init__(name, device_id, follow_period_s=follow_period_s)
+    def __init__(self, name: str, device_id: int, **options: Any) -> None:
+        super().__init__(name, device_id, **options)
         self.power = PowerStage.ON  # the actuator works from power-up (manual 3.5.4)
         self.status: codec.StatusReply | None = None
         self.faults = codec.Fault(0)
@@ -107,6 +107,9 @@ class InspireLaDriver(Driver):
 
     def effect(self, frame: object) -> Effect:
         return frame_effect(frame)  # type: ignore[arg-type]
+
+    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
+        return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
 
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         moves_me = self._moves_me(command)

@@ -1,6 +1,7 @@
 """Inspire LA commands as frames: a ``busgate.schemas.inspire_la`` command becomes the codec
 frames that do it (``frames_for``, stateless), and each frame says what it does to the
-actuators it addresses (``frame_effect``, by which the gateway authorises it).
+actuators it addresses (``frame_effect``, by which the gateway authorises it) and the position
+targets it sets on them (``frame_setpoints``, by which the gateway keeps each joint's limits).
 
 Every op is one frame. ``group_move`` and ``group_follow`` always go to the broadcast id 255,
 whatever ``device_id`` says. The ``set_*`` ops and ``zero_force`` write one whole register of
@@ -10,10 +11,10 @@ the control table, checked against the table's absolute bounds only.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeGuard
 
 from busgate.codecs import inspire_la as codec
-from busgate.gateway.drivers.base import Effect
+from busgate.gateway.drivers.base import Effect, Setpoint
 from busgate.schemas import inspire_la as schema
 
 #: The force-sensor zero register takes exactly this value ("settable range 1").
@@ -99,8 +100,27 @@ def frame_effect(frame: codec.Frame) -> Effect:
         return Effect.READ
     if isinstance(frame, codec.ControlCommand):
         return _CONTROL_EFFECTS.get(frame.code, Effect.SETTING)
-    if isinstance(frame, codec.WriteCommand) and codec.TARGET_POSITION in (
-        codec.REGISTERS.touched(frame.index, len(frame.data))
-    ):
+    if _writes_target(frame):
         return Effect.MOTION
     return Effect.SETTING
+
+
+def _writes_target(frame: codec.Frame) -> TypeGuard[codec.WriteCommand]:
+    """Whether ``frame`` is a raw write reaching the target-position register."""
+    return isinstance(frame, codec.WriteCommand) and codec.TARGET_POSITION in (
+        codec.REGISTERS.touched(frame.index, len(frame.data))
+    )
+
+
+def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
+    """The position targets ``frame`` sets, raw: a move's or a follow target, each target of
+    a group frame under its own id, and a raw write's value of the target register (``None``
+    when it writes one byte of it: the other byte is the device's, not known here)."""
+    if isinstance(frame, codec.MoveCommand | codec.FollowCommand):
+        return [Setpoint(frame.device_id, "position", frame.position_raw)]
+    if isinstance(frame, codec.GroupMoveCommand | codec.GroupFollowCommand):
+        return [Setpoint(t.device_id, "position", t.position_raw) for t in frame.targets]
+    if _writes_target(frame):
+        written = codec.register_values(frame.index, frame.data).get(codec.TARGET_POSITION)
+        return [Setpoint(frame.device_id, "position", written)]
+    return []

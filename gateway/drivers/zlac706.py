@@ -1,7 +1,8 @@
 """The ZLAC706 driver behaviour shared by the CAN and the RS232 driver: planning under the
-state machine's rules (``zlac706_state``), the state from acknowledged writes, faults,
-keep-alive, follow stream, safe stop and telemetry. Each protocol's module (``zlac706_can``,
-``zlac706_rs232``) adds its frames, its registers' roles and its refresh.
+state machine's rules (``zlac706_state``), the targets a command sets, the state from
+acknowledged writes, faults, keep-alive, follow stream, safe stop and telemetry. Each
+protocol's module (``zlac706_can``, ``zlac706_rs232``) adds its frames, its registers' roles
+and its refresh.
 """
 
 from __future__ import annotations
@@ -9,14 +10,14 @@ from __future__ import annotations
 import abc
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Deadman, Driver, Effect
+from busgate.gateway.drivers.base import Deadman, Driver, Effect, Setpoint
 from busgate.gateway.drivers.zlac706_state import (
     REBOOT_POSITION_JUMP,
     RESTORED,
@@ -31,6 +32,7 @@ from busgate.gateway.drivers.zlac706_state import (
     role_effect,
 )
 from busgate.schemas import zlac706 as schema
+from busgate.schemas.joints import Quantity
 from busgate.schemas.telemetry import flag_names
 
 
@@ -82,8 +84,8 @@ class Zlac706Driver(Driver):
     keepalive_period_s: ClassVar[float]
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm")
 
-    def __init__(self, name: str, device_id: int, *, follow_period_s: float = 0.02) -> None:
-        super().__init__(name, device_id, follow_period_s=follow_period_s)
+    def __init__(self, name: str, device_id: int, **options: Any) -> None:
+        super().__init__(name, device_id, **options)
         self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
 
@@ -102,17 +104,12 @@ class Zlac706Driver(Driver):
 
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         """The command's requests, refused (``CommandError``) when the order rules forbid it."""
-        outlook = self.machine.expected()
         requests, changes = [], {}
-        for frame in frames:
-            role, value = self._role(frame, outlook)
+        for frame, role, value, outlook in self._walk(frames):
             if role is not None:
                 check(role, value, outlook)
+                changes.update(outlook.change(role, value))
             requests.append(self._request(frame, role, outlook))
-            if role is not None:  # the next frame is checked against what this one sets
-                change = outlook.change(role, value)
-                changes.update(change)
-                outlook = replace(outlook, **change)
         self.machine.planned(changes)
         enabled = changes.get(Role.ENABLE.value)
         if enabled:
@@ -120,6 +117,47 @@ class Zlac706Driver(Driver):
         elif enabled is False:
             self.switched_off()
         return requests
+
+    def _walk(
+        self, frames: Sequence[object]
+    ) -> Iterator[tuple[object, Role | None, Any, Settings]]:
+        """Each of ``frames`` with its role, its value and the settings it meets: the outlook
+        once the writes queued so far and the frames before it have landed (the state is
+        left as it is)."""
+        outlook = self.machine.expected()
+        for frame in frames:
+            role, value = self._role(frame, outlook)
+            yield frame, role, value, outlook
+            if role is not None:
+                outlook = replace(outlook, **outlook.change(role, value))
+
+    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
+        """The position (pulses), speed (rpm) and torque (A) targets ``frames`` write. A
+        relative position is judged from the position measured last, and is ``None`` when no
+        position was measured or the position mode is not known; a position's high half
+        (RS232) sets nothing until the low half joins it."""
+        return [
+            Setpoint(self.device_id, *target)
+            for _frame, role, value, outlook in self._walk(frames)
+            if (target := self._target(role, value, outlook)) is not None
+        ]
+
+    def _target(
+        self, role: Role | None, value: Any, settings: Settings
+    ) -> tuple[Quantity, float | None] | None:
+        """What a write in ``role`` of ``value`` sets, as ``(quantity, value)``: position
+        mode's top speed is a speed too (a move never runs faster)."""
+        if role in (Role.SPEED, Role.MAX_SPEED):
+            return "velocity", common.rpm_from_speed_raw(value)
+        if role is Role.TORQUE:
+            return "effort", float(value / common.TORQUE_RAW_PER_A)
+        if role is not Role.POSITION:
+            return None
+        if settings.relative is False:
+            return "position", value
+        here = self.measured["position"]
+        known = settings.relative is True and here is not None and value is not None
+        return "position", here + value if known else None
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
         return Request.of(self.codec, frame, idempotent=is_idempotent(role, settings))
@@ -175,8 +213,9 @@ class Zlac706Driver(Driver):
     def keepalive_request(self) -> Request:
         """What refreshes the device: the speed write (CAN), the monitor request (RS232)."""
 
-    def follow_target(self, payload: dict[str, Any]) -> schema.Velocity:
-        """``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706 streams speeds)."""
+    def follow_target(self, payload: dict[str, Any]) -> float:
+        """The speed of ``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706
+        streams speeds)."""
         if "position" in payload:
             raise CommandError(
                 'a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
@@ -184,19 +223,19 @@ class Zlac706Driver(Driver):
             )
         rpm = self.follow_payload(payload).rpm
         check(Role.SPEED, rpm, self.machine.expected())
-        return schema.Velocity(op="velocity", rpm=rpm)
+        return float(rpm)
 
     @staticmethod
     def follow_sample(t_s: float, index: int) -> dict[str, Any]:
         return {"rpm": round(300 * math.sin(t_s * math.pi + index))}
 
     @classmethod
-    def follow_request(cls, targets: Sequence[tuple[Driver, Any]]) -> Request:
+    def follow_request(cls, targets: Sequence[tuple[Driver, float]]) -> Request:
         """The speed write of one device (a ZLAC706 frame addresses one node)."""
         if len(targets) != cls.follow_group_limit:
             raise CommandError(f"a ZLAC706 speed write carries one device, not {len(targets)}")
-        driver, command = targets[0]
-        (frame,) = cls.frames(command, driver.device_id)
+        driver, rpm = targets[0]
+        (frame,) = cls.frames(schema.Velocity(op="velocity", rpm=rpm), driver.device_id)
         return Request.of(cls.protocol_entry().codec, frame, idempotent=True)
 
     # -- interpreting ---------------------------------------------------------------------------

@@ -147,10 +147,8 @@ class Zlac706CanDriver(Zlac706Driver):
     #: The manual's limit is 500 ms; 100 ms of margin for a busy bus and the host.
     keepalive_period_s: ClassVar[float] = 0.4
 
-    def __init__(
-        self, name: str, device_id: int, *, follow_period_s: float = 0.02, heartbeat_ms: int = 0
-    ) -> None:
-        super().__init__(name, device_id, follow_period_s=follow_period_s)
+    def __init__(self, name: str, device_id: int, *, heartbeat_ms: int = 0, **options: Any) -> None:
+        super().__init__(name, device_id, **options)
         self.heartbeat_s = heartbeat_ms / 1000
         self.last_heartbeat: float | None = None
 

@@ -17,6 +17,9 @@ with CAN (``zlac706_state``). What is RS232's own:
 2. The keep-alive is the monitor, every 0.8 s (the manual: at least once a second).
 3. An acknowledgement (``addr addr``) names the register only; the value the state takes is
    the one written.
+4. A target's low half (register 05) is joined to the high half written before it; with no
+   high half known (none written since the gateway started, or the drive rebooted) the target
+   is not known either: ``None``, which a limited joint refuses.
 """
 
 from __future__ import annotations
@@ -125,9 +128,12 @@ ROLES: dict[int, RoleOf] = {
         Role.POSITION_MODE, lambda raw, _s: raw == codec.PositionMode.RELATIVE
     ),
     Reg.POSITION_HIGH: RoleOf(Role.POSITION_HIGH),
-    # The low half completes the target: joined to the high half written just before it.
+    # The low half completes the target: joined to the high half written before it (rule 4).
     Reg.POSITION_LOW: RoleOf(
-        Role.POSITION, lambda raw, s: codec.join_position(s.position_high or 0, raw)
+        Role.POSITION,
+        lambda raw, s: (
+            None if s.position_high is None else codec.join_position(s.position_high, raw)
+        ),
     ),
     Reg.SPEED: RoleOf(Role.SPEED),
     Reg.TORQUE: RoleOf(Role.TORQUE),

@@ -37,7 +37,7 @@ LIBRARY = "busgate"
 #: The metadata record naming the prefix the file's keys were recorded under (rule 4).
 PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
-REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback"})
+REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints"})
 
 
 def schema_name(key: str, prefix: str, body: Any) -> str | None:
@@ -57,6 +57,8 @@ def schema_name(key: str, prefix: str, body: Any) -> str | None:
         return "frame.json"
     if len(chunks) == 2 and chunks[1] == "commands":
         return "recorded_command.json"
+    if len(chunks) == 2 and chunks[1] == "joints":
+        return "joints.json"
     return None
 
 

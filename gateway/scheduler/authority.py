@@ -15,6 +15,11 @@ it). Rules of this file:
    a request that asks for it (``require_claim``) is refused unless its client holds that
    claim itself (``not_claimed``: the claim it took lapsed, or it never took one).
 4. Motion to an e-stopped device is refused (``estopped``, naming the op that re-enables it).
+5. What sets a device's position, speed or effort beyond its joint's limits is refused
+   (``out_of_range``, naming the joint, the limit and the value): the positions, speeds and
+   efforts its frames set (``Driver.setpoints``), judged by the joint of each device they
+   address (``busgate.schemas.joints``). Follow streams are held within the limits instead
+   (``gateway.scheduler.limiter``), and trajectory plays are checked whole before they start.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from dataclasses import dataclass
 
 from busgate.errors import RefusedError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect
+from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect, Setpoint
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +132,14 @@ class Authority:
                 for driver in devices:
                     if driver.estopped:
                         raise driver.estopped_error()
+
+    def check_limits(self, setpoints: Iterable[Setpoint]) -> None:
+        """Refuse (``out_of_range``) what sets a device beyond its joint's limits (rule 5)."""
+        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        for setpoint in setpoints:
+            driver = by_id.get(setpoint.device_id)
+            if driver is not None:  # an id no device has was refused by ``check``
+                driver.joint.check(setpoint.quantity, setpoint.value)
 
     def judge(
         self, device: str, effect: Effect, client: str | None, *, require_claim: bool = False

@@ -43,8 +43,11 @@ class FollowStreams:
         stream.latest = (target, moment)
         return True
 
-    def start(self, driver: Driver, target: Any, moment: float) -> None:
-        """Start (or feed) ``driver``'s stream on a ticker of its kind and period with room."""
+    def start(
+        self, driver: Driver, target: Any, moment: float, *, ends_on_target: bool = False
+    ) -> None:
+        """Start (or feed) ``driver``'s stream on a ticker of its kind and period with room;
+        with ``ends_on_target``, a ramp to ``target`` that ends there (``tickers`` rule 5)."""
         period = driver.follow_period_s
         tickers = self._tickers()
         chosen = next((t for t in tickers if driver.name in t.streams), None) or next(
@@ -56,9 +59,13 @@ class FollowStreams:
             None,
         )
         if chosen is None:
-            chosen = FollowTicker(type(driver), period, self.counters, self._went_stale)
+            chosen = FollowTicker(
+                type(driver), period, self.counters, self._went_stale, self._reached
+            )
             self.planner.tickers.append(chosen)
-        self._streams[driver.name] = chosen.update(driver, target, moment)
+        self._streams[driver.name] = chosen.update(
+            driver, target, moment, ends_on_target=ends_on_target
+        )
 
     def end(self, device: str, reason: str) -> None:
         """End ``device``'s stream now, as if it went stale (rule 2)."""
@@ -83,6 +90,10 @@ class FollowStreams:
                 ticker.stop(name)
                 self._streams.pop(name, None)
                 self.drivers[name].emit("stream_stopped", reason=reason)
+
+    def _reached(self, driver: Driver) -> None:
+        """A ramp sent its target: the device keeps it; nothing to report."""
+        self._streams.pop(driver.name, None)
 
     def _went_stale(self, driver: Driver) -> None:
         self._ended(driver, "stream_stale")

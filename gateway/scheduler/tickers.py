@@ -9,6 +9,12 @@ Rules of this file:
 3. Streams of one driver kind and one period share a ticker, up to the kind's
    ``follow_group_limit`` per frame (15 Inspire LA actuators in one 0xF3 broadcast frame, many
    DS servos in one SYNC WRITE); more streams open another ticker.
+4. What a tick sends of a stream is its latest target held within the device's joint limits
+   (``limiter``), from where the device was commanded when the stream started; the first
+   tick that holds a target back raises a ``limited`` event, once per stream.
+5. A ramp (a one-shot speed the gateway brings a velocity joint to at its max_acceleration:
+   ``ends_on_target``) never goes stale: it ends, through ``on_reached``, with the tick that
+   sends its target, and the device keeps that speed.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import Any
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.limiter import StreamLimiter
 
 MIN_FRESH_S = 0.1
 FRESH_PERIODS = 3
@@ -32,6 +39,35 @@ class FollowStream:
 
     driver: Driver
     latest: tuple[Any, float]
+    limiter: StreamLimiter
+    told_limited: bool = False
+    ends_on_target: bool = False  # a ramp (rule 5)
+
+    def next_target(self) -> float:
+        """The latest target, held within the joint's limits (rule 4)."""
+        wanted = self.latest[0]
+        target, limit = self.limiter.step(wanted)
+        if limit is not None and not self.told_limited:
+            self.told_limited = True
+            joint = self.driver.joint
+            value = (
+                joint.position_si(wanted)
+                if joint.follows == "position"
+                else joint.velocity_si(wanted)
+            )
+            self.driver.emit("limited", joint=joint.name, limit=limit, value=value)
+        return target
+
+
+def commanded(driver: Driver, now: float) -> float | None:
+    """Where a stream of ``driver`` starts from: its commanded position target (else its
+    measured position), or its commanded speed (else 0), in the family's units."""
+    declaration, telemetry = driver.joint.declaration, driver.telemetry(now)
+    if driver.joint.follows == "position":
+        target = telemetry.get(declaration.target)
+        return target if target is not None else telemetry.get(declaration.position)
+    speed = telemetry.get(declaration.target_speed_rpm or "")
+    return 0.0 if speed is None else speed
 
 
 class FollowTicker:
@@ -43,12 +79,14 @@ class FollowTicker:
         period_s: float,
         counters: BusCounters,
         on_stale: Callable[[Driver], None],
+        on_reached: Callable[[Driver], None] = lambda driver: None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
         self.fresh_s = max(FRESH_PERIODS * period_s, MIN_FRESH_S)
         self.counters = counters
         self.on_stale = on_stale
+        self.on_reached = on_reached
         self.streams: dict[str, FollowStream] = {}
         self._due: float | None = None
         self._last_start: float | None = None
@@ -58,13 +96,18 @@ class FollowTicker:
         limit = self.driver_class.follow_group_limit
         return driver.name in self.streams or len(self.streams) < limit
 
-    def update(self, driver: Driver, target: Any, now: float) -> FollowStream:
-        """A new target for ``driver``; a new ticker starts ticking at once."""
+    def update(
+        self, driver: Driver, target: Any, now: float, *, ends_on_target: bool = False
+    ) -> FollowStream:
+        """A new target for ``driver`` (a ramp's, rule 5, with ``ends_on_target``); a new
+        ticker starts ticking at once."""
         stream = self.streams.get(driver.name)
         if stream is None:
-            stream = self.streams[driver.name] = FollowStream(driver, (target, now))
+            limiter = StreamLimiter(driver.joint, self.period_s, commanded(driver, now))
+            stream = self.streams[driver.name] = FollowStream(driver, (target, now), limiter)
         else:
             stream.latest = (target, now)
+        stream.ends_on_target = ends_on_target
         if self._due is None:
             last = self._last_start
             self._due = now if last is None else max(now, last + self.period_s)
@@ -83,13 +126,19 @@ class FollowTicker:
 
     def build(self, now: float) -> Request | None:
         for name, stream in list(self.streams.items()):
-            if now - stream.latest[1] > self.fresh_s:
+            if not stream.ends_on_target and now - stream.latest[1] > self.fresh_s:
                 del self.streams[name]
                 self.on_stale(stream.driver)
         if not self.streams:
             self._due = None
             return None
-        targets = [(s.driver, s.latest[0]) for s in self.streams.values()]
+        targets = []
+        for name, stream in list(self.streams.items()):
+            target = stream.next_target()
+            targets.append((stream.driver, target))
+            if stream.ends_on_target and target == stream.latest[0]:
+                del self.streams[name]  # this tick sends the ramp's end (rule 5)
+                self.on_reached(stream.driver)
         return self.driver_class.follow_request(targets)
 
     def sent(self, start: float) -> None:

@@ -16,6 +16,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from busgate.errors import BusgateError, BusUnavailableError, BusyError, CommandError, RefusedError
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
@@ -68,7 +69,13 @@ class BusWork:
             self.authority.check(
                 driver.effects_of(frames), client, require_claim=command.require_claim
             )
-            requests = driver.plan_frames(command, frames)
+            self.authority.check_limits(driver.setpoints(frames))
+            ramp = self._speed_ramp(driver, command)
+            if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
+                self.start_stream(device, driver.follow_target(ramp), now(), ends_on_target=True)
+                requests = []
+            else:
+                requests = driver.plan_frames(command, frames)
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
             return
@@ -113,7 +120,23 @@ class BusWork:
             )
         )
 
-    def start_stream(self, device: str, target: Any, moment: float) -> None:
+    def start_stream(
+        self, device: str, target: Any, moment: float, *, ends_on_target: bool = False
+    ) -> None:
         driver = self.drivers.get(device)
         if driver is not None and self.owner.is_open:
-            self.streams.start(driver, target, moment)
+            self.streams.start(driver, target, moment, ends_on_target=ends_on_target)
+
+    @staticmethod
+    def _speed_ramp(driver: Driver, command: Any) -> dict[str, Any] | None:
+        """The follow payload of the ramp a one-shot speed becomes on a velocity joint with a
+        ``max_acceleration`` (its family's speed command, ``JointDeclaration.turn``), or
+        ``None``: the command is planned as it is."""
+        joint = driver.joint
+        turn, field = joint.declaration.turn, joint.declaration.follow_velocity
+        if joint.type != "velocity" or joint.max_acceleration is None or turn is None:
+            return None
+        op, value = turn
+        if field is None or getattr(command, "op", None) != op:
+            return None
+        return {field: getattr(command, value)}

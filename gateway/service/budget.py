@@ -211,7 +211,7 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
     return frames
 
 
-def _follow_target(driver: Driver) -> object:
+def _follow_target(driver: Driver) -> float:
     """A representative follow target, validated by the driver itself once the commands that
     make it ready to follow are planned (a ZLAC706 streams speeds in velocity mode only).
     Frame sizes do not depend on the values."""

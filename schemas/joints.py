@@ -1,0 +1,381 @@
+"""Joints: every configured device as one joint in SI units, with its calibration and limits.
+
+A family says once, in its schema module (``JOINT``, a ``JointDeclaration``), which of its raw
+telemetry fields are the joint's position, velocity and effort, what a raw unit of each is,
+and which of its commands and follow payloads set a position or a speed. The config's
+``[buses.devices.joint]`` table (``JointTable``) gives a device its joint's name, unit,
+calibration and limits. ``Joint`` is the two together: the pure conversions and checks that
+every path uses. Generic code reads these and names no family field.
+
+Rules of this file:
+
+1. Calibration is linear: ``si = offset + scale × raw`` for a position; a velocity or an
+   acceleration scales by ``scale`` alone. A speed the family counts in turns per minute
+   (``rpm``) is ``raw_per_turn / 60`` raw position units per second.
+2. Limits are SI. A position joint's limits in raw units are the whole counts inside them and
+   inside the device's range (``raw_limits``), so a target rounded from SI never crosses one.
+3. Without a table a device is a joint in raw units (``unit = "raw"``, scale 1) whose limits
+   are the device's own range, so the joint vocabulary works on every device.
+4. A refusal is ``out_of_range`` and names the joint, the limit and the value, in the joint's
+   unit; nothing here sends anything.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from busgate.errors import RefusedError
+from busgate.schemas.base import Published
+
+JointType = Literal["position", "velocity"]
+#: What a command or a follow target sets: a position (raw units), a speed (the family's
+#: speed unit: rpm or raw units per second) or an effort (the family's effort unit).
+Quantity = Literal["position", "velocity", "effort"]
+#: A limit is refused past this (as the trajectory schema's values: past it is a typo).
+MAX_SI = 1e9
+#: How far past a limit a value still counts as on it (floating-point noise, relative).
+ON_THE_LIMIT = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class JointDeclaration:
+    """What a family's raw fields mean as a joint; each family's schema module has one
+    (``JOINT``). Field names are the family's telemetry fields, in raw units."""
+
+    #: The position targets the device takes, raw (its target register's range).
+    raw_range: tuple[int, int]
+    #: Telemetry fields of the measured position and of the commanded position target.
+    position: str
+    target: str
+    #: The command that sets a position target, as ``(op, field)``; the follow payload's field
+    #: of a position joint.
+    move: tuple[str, str]
+    follow_position: str | None = None
+    #: The joint types the family can be; the first is a device's when its table names none.
+    types: tuple[JointType, ...] = ("position",)
+    #: The speed the family measures and commands, in rpm (``None``: not measured).
+    speed_rpm: str | None = None
+    target_speed_rpm: str | None = None
+    #: The command that sets a speed (velocity joints), as ``(op, field)``, and the follow
+    #: payload's field of a velocity joint.
+    turn: tuple[str, str] | None = None
+    follow_velocity: str | None = None
+    #: Raw position units in one turn of the shaft, by the manual (``None``: not a rotary
+    #: device); a table's ``raw_per_turn`` overrides it.
+    raw_per_turn: float | None = None
+    #: The effort the family measures: its field, its SI unit and the unit per raw count.
+    effort: str | None = None
+    effort_unit: str | None = None
+    effort_per_raw: float = 1.0
+    #: Whether a command sets an effort the gateway can bound (``max_effort``).
+    effort_limited: bool = False
+    #: The fastest speed the device takes, in its speed unit (``None``: no speed commands).
+    top_speed: float | None = None
+
+
+class JointTable(BaseModel):
+    """A device's ``[buses.devices.joint]`` table (docs/joints.md)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")] | None = None
+    type: JointType | None = None
+    unit: Literal["m", "rad"]
+    scale: Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)]
+    offset: Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)] = 0.0
+    min: Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)] | None = None
+    max: Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)] | None = None
+    max_velocity: Annotated[float, Field(gt=0, le=MAX_SI)] | None = None
+    max_acceleration: Annotated[float, Field(gt=0, le=MAX_SI)] | None = None
+    max_effort: Annotated[float, Field(gt=0, le=MAX_SI)] | None = None
+    raw_per_turn: Annotated[float, Field(gt=0, le=MAX_SI)] | None = None
+
+
+class JointState(Published):
+    """A joint's values in SI, from the same reading as the rest of its device's state
+    (``null`` where the family cannot know)."""
+
+    name: str = Field(description="The joint's name (its table's, else the device's).")
+    unit: str = Field(description='Position unit: "m", "rad", or "raw" without a table.')
+    position: float | None = Field(description="Position, in unit.")
+    velocity: float | None = Field(description="Velocity, in unit per second.")
+    effort: float | None = Field(description="Effort, in the joint's effort unit (info).")
+
+
+def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tuple[str, str]]:
+    """``(key, what is wrong)`` for each key of ``table`` that ``declaration``'s family cannot
+    take (``check-config`` and the config's validation refuse them)."""
+    problems = []
+    if table.scale == 0:
+        problems.append(("scale", "must not be 0 (SI per raw unit; negative flips the direction)"))
+    if table.type is not None and table.type not in declaration.types:
+        problems.append(("type", f"must be one of {', '.join(declaration.types)}"))
+    if table.min is not None and table.max is not None and table.min >= table.max:
+        problems.append(("min", f"{table.min:g} must be below max {table.max:g}"))
+    if table.max_effort is not None and not declaration.effort_limited:
+        problems.append(("max_effort", "this kind has no command whose effort can be bounded"))
+    if table.raw_per_turn is not None and declaration.raw_per_turn is None:
+        problems.append(("raw_per_turn", "this kind is not a rotary device"))
+    if problems or table.scale == 0:
+        return problems
+    low, high = sorted(table.offset + table.scale * raw for raw in declaration.raw_range)
+    for key in ("min", "max"):
+        value = getattr(table, key)
+        if value is not None and not low - _slack(low) <= value <= high + _slack(high):
+            problems.append(
+                (key, f"{value:g} {table.unit} is outside the device's range {low:g}–{high:g}")
+            )
+    return problems
+
+
+def _slack(value: float) -> float:
+    return ON_THE_LIMIT * max(1.0, abs(value))
+
+
+@dataclass(frozen=True, slots=True)
+class Joint:
+    """One device as a joint: the conversions between its raw units and SI, and its limits."""
+
+    name: str
+    type: JointType
+    unit: str
+    scale: float
+    offset: float
+    min: float
+    max: float
+    max_velocity: float | None
+    max_acceleration: float | None
+    max_effort: float | None
+    raw_per_turn: float | None
+    declaration: JointDeclaration
+    #: A table configured it (else: raw units, the device's range).
+    configured: bool
+
+    @classmethod
+    def of(cls, device: str, declaration: JointDeclaration, table: JointTable | None) -> Joint:
+        """The joint of ``device``: its table's, or the raw joint (rule 3)."""
+        low, high = declaration.raw_range
+        if table is None:
+            return cls(device, declaration.types[0], "raw", 1.0, 0.0, low, high, None, None,
+                       None, declaration.raw_per_turn, declaration, False)  # fmt: skip
+        ends = sorted(table.offset + table.scale * raw for raw in (low, high))
+        joint_type = table.type or declaration.types[0]
+        return cls(
+            table.name or device,
+            joint_type,
+            table.unit,
+            table.scale,
+            table.offset,
+            ends[0] if table.min is None else table.min,
+            ends[1] if table.max is None else table.max,
+            table.max_velocity,
+            table.max_acceleration,
+            table.max_effort,
+            table.raw_per_turn or declaration.raw_per_turn,
+            declaration,
+            True,
+        )
+
+    # -- positions ------------------------------------------------------------------------------
+
+    def position_si(self, raw: float) -> float:
+        return self.offset + self.scale * raw
+
+    def position_raw(self, si: float) -> float:
+        """The raw position of ``si``, unrounded."""
+        return (si - self.offset) / self.scale
+
+    @property
+    def raw_limits(self) -> tuple[int, int]:
+        """The whole raw positions inside the limits and the device's range (rule 2)."""
+        ends = sorted((self.position_raw(self.min), self.position_raw(self.max)))
+        low = math.ceil(ends[0] - _slack(ends[0]))
+        high = math.floor(ends[1] + _slack(ends[1]))
+        range_low, range_high = self.declaration.raw_range
+        return max(low, range_low), min(high, range_high)
+
+    @property
+    def limited(self) -> bool:
+        """Whether the position limits are narrower than the device's own range."""
+        return self.raw_limits != self.declaration.raw_range
+
+    def target_raw(self, si: float) -> int:
+        """The raw target of the SI position ``si``: refused beyond a limit, else rounded to
+        the nearest whole count inside the limits."""
+        self.check_position_si(si)
+        low, high = self.raw_limits
+        return min(max(round(self.position_raw(si)), low), high)
+
+    def check_position_si(self, si: float) -> None:
+        if not self.min - _slack(self.min) <= si <= self.max + _slack(self.max):
+            limit, side = (self.min, "min") if si < self.min else (self.max, "max")
+            raise self._refusal("position", si, self.unit, side, limit)
+
+    def check_position(self, raw: float | None) -> None:
+        """Refuse a raw position target outside the limits; ``None`` (a target the gateway
+        cannot know, as a stored preset) is refused when the joint is limited."""
+        if raw is None:
+            if self.limited:
+                raise RefusedError(
+                    "out_of_range",
+                    f"joint {self.name}: the command moves to a position the gateway cannot "
+                    f"know, so it cannot keep the joint within {self._range()}",
+                )
+            return
+        low, high = self.raw_limits
+        if not low <= raw <= high:
+            self.check_position_si(self.position_si(raw))
+            # Inside in SI yet outside the whole counts: the nearest count is past the limit.
+            side, limit = ("min", self.min) if raw < low else ("max", self.max)
+            raise self._refusal("position", self.position_si(raw), self.unit, side, limit)
+
+    # -- speeds and efforts --------------------------------------------------------------------
+
+    def velocity_si(self, speed: float) -> float:
+        """SI velocity of a speed in the family's unit (rpm when it declares one, else raw
+        units per second)."""
+        return self.scale * speed * self._raw_per_s(1.0)
+
+    def speed_of(self, velocity: float) -> float:
+        """The family's speed for the SI ``velocity`` (inverse of ``velocity_si``)."""
+        return velocity / (self.scale * self._raw_per_s(1.0))
+
+    def _raw_per_s(self, speed: float) -> float:
+        if self.declaration.speed_rpm is not None and self.raw_per_turn is not None:
+            return speed * self.raw_per_turn / 60.0
+        return speed
+
+    def check_velocity(self, speed: float) -> None:
+        """Refuse a speed (the family's unit) past ``max_velocity``."""
+        if self.max_velocity is None:
+            return
+        velocity = self.velocity_si(speed)
+        if abs(velocity) > self.max_velocity * (1 + ON_THE_LIMIT):
+            raise self._refusal(
+                "velocity", velocity, f"{self.unit}/s", "max_velocity", self.max_velocity
+            )
+
+    def check_effort(self, effort: float) -> None:
+        """Refuse an effort (the family's effort unit) past ``max_effort``."""
+        if self.max_effort is not None and abs(effort) > self.max_effort * (1 + ON_THE_LIMIT):
+            unit = self.declaration.effort_unit or ""
+            raise self._refusal("effort", effort, unit, "max_effort", self.max_effort)
+
+    def check(self, quantity: Quantity, value: float | None) -> None:
+        """Refuse what sets ``quantity`` to ``value`` beyond a limit (rule 4)."""
+        if quantity == "position":
+            self.check_position(value)
+        elif value is not None and quantity == "velocity":
+            self.check_velocity(value)
+        elif value is not None:
+            self.check_effort(value)
+
+    # -- commands in SI -----------------------------------------------------------------------
+
+    def move_command(self, position: float) -> dict[str, Any]:
+        """The kind's own command that moves a position joint to ``position`` (SI)."""
+        if self.type != "position":
+            raise RefusedError(
+                "bad_command",
+                f"joint {self.name} is a velocity joint: send a velocity, not a position",
+            )
+        op, field = self.declaration.move
+        return {"op": op, field: self.target_raw(position)}
+
+    def turn_command(self, velocity: float) -> dict[str, Any]:
+        """The kind's own command that turns a velocity joint at ``velocity`` (SI)."""
+        turn = self.declaration.turn
+        if self.type != "velocity" or turn is None:
+            raise RefusedError(
+                "bad_command",
+                f"joint {self.name} is a position joint: send a position, not a velocity",
+            )
+        speed = self.speed_of(velocity)
+        self.check_velocity(speed)
+        op, field = turn
+        return {"op": op, field: speed}
+
+    @property
+    def follows(self) -> Literal["position", "velocity"]:
+        """What the family's follow stream carries: positions, or speeds."""
+        return "position" if self.declaration.follow_position is not None else "velocity"
+
+    def kind_follow(
+        self, position: float | None, velocity: float | None
+    ) -> tuple[dict[str, Any], float]:
+        """The kind's own follow payload nearest a joint follow target (SI), inside what the
+        device takes (the stream's limiter then holds it within the joint's limits), and the
+        raw value asked for, unclamped: ``(payload, raw)``."""
+        declaration = self.declaration
+        if self.follows == "position":
+            if position is None:
+                raise RefusedError(
+                    "bad_command",
+                    f"joint {self.name} follows positions: send joint, not joint_velocity",
+                )
+            low, high = declaration.raw_range
+            raw = self.position_raw(position)
+            field = declaration.follow_position
+            assert field is not None  # ``follows`` says so
+            return {field: min(max(round(raw), low), high)}, raw
+        if velocity is None or declaration.follow_velocity is None:
+            raise RefusedError(
+                "bad_command",
+                f"joint {self.name} follows speeds: send joint_velocity, not joint",
+            )
+        speed = self.speed_of(velocity)
+        top = declaration.top_speed if declaration.top_speed is not None else math.inf
+        return {declaration.follow_velocity: min(max(speed, -top), top)}, speed
+
+    # -- what clients read ---------------------------------------------------------------------
+
+    def state(self, telemetry: Mapping[str, Any]) -> dict[str, Any]:
+        """The joint's values in SI from one reading of the device (``None``: not known)."""
+        declaration = self.declaration
+        position = telemetry.get(declaration.position)
+        speed = telemetry.get(declaration.speed_rpm) if declaration.speed_rpm else None
+        effort = telemetry.get(declaration.effort) if declaration.effort else None
+        return {
+            "name": self.name,
+            "unit": self.unit,
+            "position": None if position is None else self.position_si(position),
+            "velocity": None if speed is None else self.velocity_si(speed),
+            "effort": None
+            if effort is None
+            else math.copysign(1.0, self.scale) * effort * declaration.effort_per_raw,
+        }
+
+    def describe(self) -> dict[str, Any]:
+        """What ``info`` says of the joint."""
+        return {
+            "name": self.name,
+            "type": self.type,
+            "unit": self.unit,
+            "scale": self.scale,
+            "offset": self.offset,
+            "min": self.min,
+            "max": self.max,
+            "max_velocity": self.max_velocity,
+            "max_acceleration": self.max_acceleration,
+            "max_effort": self.max_effort,
+            "effort_unit": self.declaration.effort_unit,
+            "raw_per_turn": self.raw_per_turn,
+            "configured": self.configured,
+        }
+
+    def _range(self) -> str:
+        return f"{self.min:g}–{self.max:g} {self.unit}"
+
+    def _refusal(
+        self, what: str, value: float, unit: str, limit_name: str, limit: float
+    ) -> RefusedError:
+        return RefusedError(
+            "out_of_range",
+            f"joint {self.name}: {what} {value:g} {unit} is beyond its {limit_name} "
+            f"{limit:g} {unit}",
+        )
