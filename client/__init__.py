@@ -16,8 +16,9 @@ The same as coroutines: ``busgate.client.aio``. The rooms: ``core`` (the zenoh s
 exchange as a future) and ``messages`` (what the exchanges carry); ``base`` (what both faces
 share below their methods); ``surface``, ``devices`` and ``trajectories`` (every method of
 both faces, written once as the steps it waits for: ``steps``), made each face's methods by
-``faces``; ``sync`` and ``aio`` (the faces: their classes and blocks); ``claims`` (renewed in
-the background), ``feeds`` (telemetry), ``errors`` and ``keys``. The zenoh session settings
+``faces``; ``joints`` (a device as a joint, in SI); ``sync`` and ``aio`` (the faces: their
+classes and blocks); ``claims`` (renewed in the background), ``feeds`` (telemetry),
+``errors`` and ``keys``. The zenoh session settings
 are ``busgate.schemas.zenoh_session``'s, shared with the daemon (``zenoh_config`` still names
 them for scripts of earlier releases).
 """
@@ -28,8 +29,25 @@ from busgate.client import aio
 from busgate.client.base import FleetDevice
 from busgate.client.errors import *  # noqa: F403 - one class per error code, made from the list
 from busgate.client.errors import __all__ as _error_names
-from busgate.client.messages import Answer, Answers
-from busgate.client.sync import Bus, Claim, Client, Device, Follow, Trajectory, connect
+from busgate.client.messages import (
+    Answer,
+    Answers,
+    JointInfo,
+    JointReading,
+    JointsMessage,
+    JointState,
+)
+from busgate.client.sync import (
+    Bus,
+    Claim,
+    Client,
+    Device,
+    Follow,
+    Joint,
+    JointFollow,
+    Trajectory,
+    connect,
+)
 
 __all__ = [
     "Answer",
@@ -40,6 +58,12 @@ __all__ = [
     "Device",
     "FleetDevice",
     "Follow",
+    "Joint",
+    "JointFollow",
+    "JointInfo",
+    "JointReading",
+    "JointState",
+    "JointsMessage",
     "Trajectory",
     "aio",
     "connect",

@@ -15,10 +15,11 @@ from __future__ import annotations
 import functools
 import inspect
 from collections.abc import Generator
-from typing import Any
+from typing import Any, Self
 
-from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase
+from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase, StreamBase
 from busgate.client.faces import Awaiting, init_taking
+from busgate.client.joints import JointBase, JointFollowBase
 from busgate.client.steps import arun
 from busgate.client.surface import ClientBase, connecting
 from busgate.client.trajectories import Handle
@@ -59,20 +60,34 @@ class Claim(Awaiting, ClaimBase):
         await arun(self._given_back(kind))
 
 
-class Follow(Awaiting, FollowBase):
-    """``async with device.follow() as f``: ``f.set(…)`` does not wait (a put)."""
+class _Stream(Awaiting, StreamBase):
+    """A follow stream's ``async with`` block: opened on entry, ended on exit."""
 
-    async def __aenter__(self) -> Follow:
+    async def __aenter__(self) -> Self:
         return self._opened()
 
     async def __aexit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
         await arun(self._ended(kind))
 
 
-class Device(Awaiting, DeviceBase[Claim, Follow]):
+class Follow(_Stream, FollowBase):
+    """``async with device.follow() as f``: ``f.set(…)`` does not wait (a put)."""
+
+
+class JointFollow(_Stream, JointFollowBase):
+    """``async with joint.follow() as f``: ``f.set(value)`` does not wait (a put)."""
+
+
+class Joint(Awaiting, JointBase["Device", JointFollow]):
+    """One device as a joint, for asyncio (``busgate.client.Joint``'s methods)."""
+
+    _JointFollow = JointFollow
+
+
+class Device(Awaiting, DeviceBase[Claim, Follow, Joint]):
     """One device of one gateway, for asyncio (``busgate.client.Device``'s methods)."""
 
-    _Claim, _Follow = Claim, Follow
+    _Claim, _Follow, _Joint = Claim, Follow, Joint
 
 
 class Bus(Awaiting, BusBase):
@@ -90,7 +105,7 @@ class Trajectory(Awaiting, Handle):
         self.close()
 
 
-class Client(Awaiting, ClientBase[Device, Bus, Trajectory]):
+class Client(Awaiting, ClientBase[Device, Bus, Trajectory, Joint]):
     """One program's connection to a fleet of gateways, for asyncio."""
 
     _Device, _Bus, _Trajectory = Device, Bus, Trajectory

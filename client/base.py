@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -24,9 +25,10 @@ from busgate.client.errors import (
     UnknownGatewayError,
     error_for,
 )
+from busgate.client.feeds import Latest
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, check_name, split_name
-from busgate.client.messages import UNPARSED, Answer, dumps, then
+from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, then
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
@@ -37,18 +39,21 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Found:
-    """A device or bus of one gateway: its name, and its kind (device) or protocol (bus)."""
+    """A device or bus of one gateway: its name, and its kind (device) or protocol (bus); a
+    device's joint as its gateway's ``info`` describes it (``None``: it describes none)."""
 
     gateway: str
     name: str
     kind: str
+    joint: JointInfo | None = None
 
 
 @dataclass(frozen=True)
 class FleetDevice:
     """One device of the fleet as its gateway's ``info`` lists it (``Client.devices``): its
-    gateway, bus, name, kind and id, and its last state (its kind's telemetry model, as
-    ``Device.state()`` gives it; ``None`` before the gateway had one)."""
+    gateway, bus, name, kind and id, its last state (its kind's telemetry model, as
+    ``Device.state()`` gives it; ``None`` before the gateway had one), and its joint (name,
+    type, unit, calibration and limits)."""
 
     gateway: str
     bus: str
@@ -56,6 +61,7 @@ class FleetDevice:
     kind: str
     id: int
     state: TelemetryEnvelope | None
+    joint: JointInfo | None = None
 
 
 def gateway_infos(answers: list[Answer]) -> dict[str, dict[str, Any]]:
@@ -101,7 +107,9 @@ def _first_error(exc: Exception) -> str:
 def fleet_devices(infos: dict[str, InfoReply]) -> list[FleetDevice]:
     """Every device of ``infos``, one each, by gateway then name."""
     devices = [
-        FleetDevice(gateway, bus.name, device.name, device.kind, device.id, device.state)
+        FleetDevice(
+            gateway, bus.name, device.name, device.kind, device.id, device.state, device.joint
+        )
         for gateway, info in infos.items()
         for bus in info.buses
         for device in bus.devices
@@ -110,15 +118,16 @@ def fleet_devices(infos: dict[str, InfoReply]) -> list[FleetDevice]:
 
 
 def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -> Found:
-    """The one device (``what="device"``) or bus named ``name`` in ``infos``; errors name the
-    gateways that answered (on ``asked``), or those that have it if several do."""
+    """The one device (``what="device"``) or bus named ``name`` in ``infos``; a device is
+    named by its own name or its joint's. Errors name the gateways that answered (on
+    ``asked``), or those that have it if several do."""
     gateway, leaf = split_name(name)
     if not infos:
         raise NoAnswerError(f"no gateway answered on {asked}")
     found = [
-        Found(gateway_name, leaf, kind)
+        found
         for gateway_name, info in sorted(infos.items())
-        for kind in _named(info, what, leaf)
+        for found in _named(gateway_name, info, what, leaf)
         if gateway is None or gateway_name == gateway
     ]
     if not found:
@@ -136,17 +145,44 @@ def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -
     return found[0]
 
 
-def _named(info: dict[str, Any], what: str, leaf: str) -> list[str]:
-    """The kinds (or protocols) of what ``info`` lists under ``leaf``."""
+def _named(gateway: str, info: dict[str, Any], what: str, leaf: str) -> list[Found]:
+    """What ``info`` lists under ``leaf``: the buses of that name, or the devices of that
+    name or whose joint has it."""
     buses = info.get("buses", [])
     if what == "bus":
-        return [str(bus.get("protocol")) for bus in buses if bus.get("name") == leaf]
+        return [
+            Found(gateway, leaf, str(bus.get("protocol")))
+            for bus in buses
+            if bus.get("name") == leaf
+        ]
     return [
-        str(device.get("kind"))
+        Found(gateway, str(device.get("name")), str(device.get("kind")), joint_info(device))
         for bus in buses
         for device in bus.get("devices", [])
-        if device.get("name") == leaf
+        if leaf in (device.get("name"), _joint_name(device))
     ]
+
+
+def _joint_name(device: dict[str, Any]) -> Any:
+    joint = device.get("joint")
+    return joint.get("name") if isinstance(joint, dict) else None
+
+
+def joint_info(device: dict[str, Any]) -> JointInfo | None:
+    """The joint an ``info`` reply's ``device`` describes, or ``None`` when it describes none
+    (a gateway of an earlier release) or one this SDK cannot read (a warning names it)."""
+    joint = device.get("joint")
+    if joint is None:
+        return None
+    try:
+        return JointInfo.model_validate_json(json.dumps(joint))
+    except UNPARSED as exc:
+        log.warning(
+            "the joint of device %.64r is left undescribed: %s",
+            device.get("name"),
+            _first_error(exc),
+        )
+        return None
 
 
 def as_body(command: Any) -> dict[str, Any]:
@@ -216,6 +252,8 @@ class Shared:
         self.core = core
         self.timers = Timers()
         self.leases: dict[tuple[str, str], ClaimLease] = {}
+        self._latest: dict[str, Latest] = {}
+        self._latest_lock = threading.Lock()
 
     def close(self) -> None:
         self.timers.close()
@@ -300,14 +338,24 @@ class Shared:
         """A state message as the telemetry model of the device's kind."""
         return TELEMETRY_MODELS[device.kind].model_validate_json(payload)
 
-    def follow(self, device: Found) -> FollowSender:
-        """The puts of a new follow stream to ``device`` (``follow.py``)."""
+    def latest(self, key: str, gateway: str) -> Latest:
+        """The latest message on ``key``, one of ``gateway``'s, subscribed at the first ask
+        and kept until the client closes (one subscription per key however often asked)."""
+        with self._latest_lock:
+            latest = self._latest.get(key)
+            if latest is None:
+                latest = self._latest[key] = Latest(self.core, key, gateway)
+            return latest
+
+    def follow(self, device: Found, model: Any = None) -> FollowSender:
+        """The puts of a new follow stream to ``device`` (``follow.py``), each target checked
+        against ``model`` (the follow target of the device's kind when ``None``)."""
         key = self.core.keys.device(device.gateway, device.name, "follow")
         return FollowSender(
             self.core,
             self.timers,
             key,
-            FOLLOW_MODELS[device.kind],
+            FOLLOW_MODELS[device.kind] if model is None else model,
             lambda: self.leases.get((device.gateway, device.name)),
             device.name,
         )

@@ -1,8 +1,8 @@
 """What a device, a bus, a claim and a follow stream of either face are and do, each method
-written once (``steps.py``); ``Claim`` and ``Follow`` here are type variables, each face's own
-classes (``Device.claim`` of the blocking face is a ``bc.Claim``, of the asyncio face a
-``bc.aio.Claim``). A face's module adds only the ways into and out of a block (``with`` or
-``async with``).
+written once (``steps.py``); ``Claim``, ``Follow`` and ``Joint`` here are type variables, each
+face's own classes (``Device.claim`` of the blocking face is a ``bc.Claim``, of the asyncio face
+a ``bc.aio.Claim``). A face's module adds only the ways into and out of a block (``with`` or
+``async with``). A device's joint is ``joints.py``'s.
 """
 
 from __future__ import annotations
@@ -16,25 +16,27 @@ from busgate.client.base import Found, Shared, as_body, reenable_command, scan_c
 from busgate.client.claims import ClaimLease
 from busgate.client.errors import NoAnswerError
 from busgate.client.faces import Face, feeding, waiting
-from busgate.client.feeds import Inbox, Latest, Stream
+from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.steps import Items, Next, Steps, Wait
 
 Claim = TypeVar("Claim")
 Follow = TypeVar("Follow")
+Joint = TypeVar("Joint")
 
 
-class DeviceBase(Face, Generic[Claim, Follow]):
+class DeviceBase(Face, Generic[Claim, Follow, Joint]):
     """One device of one gateway, of either face."""
 
     _Claim: Callable[[Shared, Found, float], Claim]
     _Follow: Callable[[Shared, Found], Follow]
+    _Joint: Callable[[Any], Joint]
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared = shared
         self._found = found
         self.name, self.gateway, self.kind = found.name, found.gateway, found.kind
-        self._latest: Latest | None = None
+        self._joint: Joint | None = None
 
     def __repr__(self) -> str:
         return f"<{self._prefix}Device {self.gateway}/{self.name} ({self.kind})>"
@@ -75,15 +77,26 @@ class DeviceBase(Face, Generic[Claim, Follow]):
         ``send`` sends it)."""
         return (yield from self._sending({"op": "reset_estop"}, None))
 
+    @property
+    def joint(self) -> Joint:
+        """The device as a joint, in SI units: its name, type, unit, calibration and limits
+        as its gateway's ``info`` describes them, its state, and its moves and streams."""
+        if self._joint is None:
+            self._joint = self._Joint(self)
+        return self._joint
+
     @waiting
     def state(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Steps[Any]:
         """The device's latest telemetry, as its kind's model: one received in the last
         ``max_age`` seconds, else the next to come within ``timeout``."""
-        if self._latest is None:
-            self._latest = Latest(self._shared, self._found)
-        payload = self._latest.recent(max_age)
+        return (yield from self._latest_state(timeout, max_age))
+
+    def _latest_state(self, timeout: float, max_age: float) -> Steps[Any]:
+        key = self._shared.core.keys.device(self.gateway, self.name, "state")
+        latest = self._shared.latest(key, self.gateway)
+        payload = latest.recent(max_age)
         if payload is None:
-            payload = yield Next(self._latest.next(), timeout)
+            payload = yield Next(latest.next(), timeout)
         if payload is None:
             raise NoAnswerError(f"no state of {self._where()} within {timeout:g} s")
         return self._shared.telemetry(self._found, payload)
@@ -93,7 +106,8 @@ class DeviceBase(Face, Generic[Claim, Follow]):
         """Each new state message of the device, as it comes, until ``timeout`` seconds."""
         deadline = time.monotonic() + timeout
         inbox: Inbox[bytes] = Inbox()
-        with Stream(self._shared, self._found, inbox.put):
+        key = self._shared.core.keys.device(self.gateway, self.name, "state")
+        with Stream(self._shared.core, key, inbox.put):
             while (left := deadline - time.monotonic()) > 0:
                 payload = yield Next(inbox.next(), left)
                 if payload is None:
@@ -107,9 +121,10 @@ class DeviceBase(Face, Generic[Claim, Follow]):
         return self._Claim(self._shared, self._found, ttl_s)
 
     def follow(self) -> Follow:
-        """A follow stream while the ``with`` block runs: ``set(position=…)`` (``rpm=…``
-        for a ZLAC706); the latest target is sent at the device's period; the stream ends
-        (``end_follow``) when the block exits."""
+        """A follow stream while the ``with`` block runs: ``set(**target)`` with the fields
+        of the follow target of the device's kind (``busgate.schemas``' ``FollowTarget``:
+        ``position=…`` for an Inspire LA); the latest target is sent at the device's period;
+        the stream ends (``end_follow``) when the block exits. In SI: ``joint.follow()``."""
         return self._Follow(self._shared, self._found)
 
 
@@ -197,8 +212,12 @@ class ClaimBase(Face):
         yield from _settled(self._shared, released, kind, f"release of {lease.device}")
 
 
-class FollowBase(Face):
-    """A follow stream held by a block (``Device.follow``), of either face."""
+class StreamBase(Face):
+    """A follow stream held by a block, of either face: a device's (``FollowBase``) or a
+    joint's (``joints.JointFollowBase``), each with its own ``set``."""
+
+    #: What each target is checked against (``None``: the follow target of the device's kind).
+    _model: Any = None
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
@@ -206,7 +225,7 @@ class FollowBase(Face):
 
     def _opened(self) -> Self:
         """Open the stream (the block's entry)."""
-        self._sender = self._shared.follow(self._found)
+        self._sender = self._shared.follow(self._found, self._model)
         return self
 
     @property
@@ -214,9 +233,7 @@ class FollowBase(Face):
         """How many targets were put so far (a target replaced while it waited is not)."""
         return 0 if self._sender is None else self._sender.puts
 
-    def set(self, **target: Any) -> None:
-        """The stream's new target (latest wins): ``position=…``, or ``rpm=…``; checked here
-        (``OutOfRangeError``, ``BadCommandError``), put at most every 10 ms."""
+    def _put(self, target: dict[str, Any]) -> None:
         if self._sender is None:
             raise RuntimeError(f"set() outside the follow stream's {self._block} block")
         self._sender.set(target)
@@ -227,3 +244,13 @@ class FollowBase(Face):
         assert sender is not None
         ended = self._shared.end_follow(self._found, sender)
         yield from _settled(self._shared, ended, kind, f"end of the stream of {self._found.name}")
+
+
+class FollowBase(StreamBase):
+    """A device's follow stream held by a block (``Device.follow``), of either face."""
+
+    def set(self, **target: Any) -> None:
+        """The stream's new target (latest wins), the fields of the follow target of the
+        device's kind (``position=…`` for an Inspire LA); checked here (``OutOfRangeError``,
+        ``BadCommandError``), put at most every 10 ms."""
+        self._put(target)

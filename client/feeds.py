@@ -1,11 +1,13 @@
-"""A device's state messages as a client reads them: the latest one (``Latest``, for
-``Device.state``) and each one as it comes (``Stream``, for ``Device.states``); and the
-``Inbox`` that hands what zenoh's threads bring to a reader, one future at a time.
+"""The messages a gateway publishes on one key as a client reads them: a device's states or a
+gateway's joints, the latest one (``Latest``, for ``Device.state``, ``Joint.state`` and
+``Client.joints``) and each one as it comes (``Stream``, for ``Device.states`` and
+``Client.joints_feed``); and the ``Inbox`` that hands what zenoh's threads bring to a reader,
+one future at a time.
 
 Rules: the zenoh callback only stores the payload and its arrival time and settles the futures
 of its readers (whose callbacks may not block); parsing into the kind's model happens in the
-reader's thread or task. A gateway going away clears what ``Latest`` holds: the last state of a
-gateway that is gone is not handed out as the device's latest. A reader that gave up (its
+reader's thread or task. A gateway going away clears what ``Latest`` holds: the last message of
+a gateway that is gone is not handed out as its latest. A reader that gave up (its
 future cancelled, as at a timeout) takes nothing from those that still wait.
 """
 
@@ -19,22 +21,21 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, Generic, TypeVar
 
-from busgate.client.base import Found, Shared
+from busgate.client.core import Core
 
 T = TypeVar("T")
 
 
 class Stream:
-    """Each state payload of one device to ``sink`` while the ``with`` block runs."""
+    """Each payload on ``key`` to ``sink`` while the ``with`` block runs."""
 
-    def __init__(self, shared: Shared, found: Found, sink: Callable[[bytes], Any]) -> None:
-        self._key = shared.core.keys.device(found.gateway, found.name, "state")
-        self._shared, self._sink = shared, sink
+    def __init__(self, core: Core, key: str, sink: Callable[[bytes], Any]) -> None:
+        self._key, self._core, self._sink = key, core, sink
         self._end: Callable[[], None] | None = None
 
     def __enter__(self) -> Stream:
         sink = self._sink
-        self._end = self._shared.core.subscribe(self._key, lambda key, payload: sink(payload))
+        self._end = self._core.subscribe(self._key, lambda key, payload: sink(payload))
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -70,16 +71,16 @@ class Inbox(Generic[T]):
 
 
 class Latest:
-    """The latest state payload of one device, kept from the first ask to the client's close."""
+    """The latest payload on ``key``, a key of ``gateway``'s, kept from the first ask to the
+    client's close."""
 
-    def __init__(self, shared: Shared, found: Found) -> None:
-        self.gateway = found.gateway
+    def __init__(self, core: Core, key: str, gateway: str) -> None:
+        self.gateway = gateway
         self._lock = threading.Lock()
         self._latest: tuple[float, bytes] | None = None
         self._waiting: list[Future] = []
-        key = shared.core.keys.device(found.gateway, found.name, "state")
-        shared.core.subscribe(key, self._on_state)
-        shared.core.on_gateway_gone(self._gateway_gone)
+        core.subscribe(key, self._on_message)
+        core.on_gateway_gone(self._gateway_gone)
 
     def recent(self, max_age_s: float) -> bytes | None:
         """The latest payload if it came in the last ``max_age_s`` seconds."""
@@ -101,7 +102,7 @@ class Latest:
             with self._lock, contextlib.suppress(ValueError):
                 self._waiting.remove(came)
 
-    def _on_state(self, key: str, payload: bytes) -> None:
+    def _on_message(self, key: str, payload: bytes) -> None:
         with self._lock:
             self._latest = (time.monotonic(), payload)
             waiting, self._waiting = self._waiting, []

@@ -57,6 +57,10 @@ class Keys:
     def events(self, gateway: str) -> str:
         return f"{self.prefix}/{gateway}/events"
 
+    def joints(self, gateway: str) -> str:
+        """Every joint of a gateway, in SI, each time one was read again."""
+        return f"{self.prefix}/{gateway}/joints"
+
     def trajectory(self, gateway: str) -> str:
         """The queryable a gateway plays trajectories on."""
         return f"{self.prefix}/{gateway}/trajectory"

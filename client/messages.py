@@ -2,12 +2,20 @@
 an ``Answer`` and a query's as ``Answers``, the body of the first ok one or the error it is,
 a future of what follows from another's result (``then``), the checks of a client's numbers
 of seconds, and the JSON every message is sent as.
+
+The models of what gateways publish are ``busgate.schemas``' (closed: every field the gateway
+publishes is named and typed there, and ``tests/test_schema_export.py`` holds the gateway to
+them), named here for the SDK: a device's joint in its state (``JointState``) and in ``info``
+(``JointInfo``), and a gateway's joints message (``JointsMessage`` of ``JointReading``s). A
+message that does not validate (a field this SDK does not know) is left out with a warning
+naming its gateway, as ``gateways()`` leaves out an ``info`` (``joints_message``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
@@ -15,6 +23,12 @@ from typing import Any
 
 from busgate.client.errors import NoAnswerError, error_for, raise_for
 from busgate.errors import CommandError
+from busgate.schemas.api import JointInfo as JointInfo
+from busgate.schemas.api import JointReading as JointReading
+from busgate.schemas.api import JointsMessage as JointsMessage
+from busgate.schemas.joints import JointState as JointState
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,6 +53,26 @@ class Answer:
 #: What ``json.loads`` raises on a payload that is not JSON, or is nested past its depth (a
 #: hostile peer's answer or sample, never to escape into zenoh's callback thread).
 UNPARSED = (ValueError, RecursionError)
+
+
+#: The gateways whose joints messages were told to be unreadable (told once each).
+_unreadable: set[str] = set()
+
+
+def joints_message(payload: bytes, gateway: str) -> JointsMessage | None:
+    """A joints message of ``gateway`` as the model; ``None`` when it is not one (a warning
+    names the gateway, the first time)."""
+    try:
+        return JointsMessage.model_validate_json(payload)
+    except UNPARSED as exc:
+        if gateway not in _unreadable and len(_unreadable) < 256:
+            _unreadable.add(gateway)
+            log.warning(
+                "joints messages of gateway %.64r left out: not a JointsMessage (%s)",
+                gateway,
+                str(exc).replace("\n", " ")[:200],
+            )
+        return None
 
 
 class Answers(list[Answer]):

@@ -14,21 +14,27 @@ classes, so that a type checker knows ``bc.connect(…).device(…)`` for a ``bc
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from busgate.client import trajectories
 from busgate.client.base import FleetDevice, Found, Shared, raw_payload
 from busgate.client.core import Core
-from busgate.client.faces import Face, taking, waiting
-from busgate.client.messages import Answers
-from busgate.client.steps import Call, Steps, Wait
+from busgate.client.devices import DeviceBase
+from busgate.client.errors import NoAnswerError
+from busgate.client.faces import Face, feeding, taking, waiting
+from busgate.client.feeds import Inbox, Stream
+from busgate.client.keys import check_name
+from busgate.client.messages import Answers, JointsMessage, joints_message
+from busgate.client.steps import Call, Items, Next, Steps, Wait
 from busgate.client.trajectories import Watch, one_gateway, play_body
 from busgate.schemas.api import InfoReply
 
-Device = TypeVar("Device")
+Device = TypeVar("Device", bound=DeviceBase[Any, Any, Any])
 Bus = TypeVar("Bus")
 Trajectory = TypeVar("Trajectory")
+Joint = TypeVar("Joint")
 
 
 @taking(Core)
@@ -42,7 +48,7 @@ def connecting(*args: Any, **options: Any) -> Steps[Shared]:
     return Shared(core)
 
 
-class ClientBase(Face, Generic[Device, Bus, Trajectory]):
+class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint]):
     """One program's connection to a fleet of gateways, of either face."""
 
     _Device: Callable[[Shared, Found], Device]
@@ -80,9 +86,53 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory]):
 
     @waiting
     def device(self, name: str, *, timeout: float | None = None) -> Steps[Device]:
-        """The device ``name``: ``"gw/la1"``, or a bare ``"la1"`` that one gateway has."""
+        """The device ``name``: ``"gw/la1"``, or a bare ``"la1"`` that one gateway has; a
+        joint's name finds its device."""
         found = yield from self._found(name, "device", timeout, f"finding {name}")
         return self._Device(self._shared, found)
+
+    @waiting
+    def joint(self, name: str, *, timeout: float | None = None) -> Steps[Joint]:
+        """The joint ``name`` (``"gw/lift"``, or a bare ``"lift"`` that one gateway has), or
+        the joint of the device ``name``: ``device(name).joint``."""
+        found = yield from self._found(name, "device", timeout, f"finding {name}")
+        joint: Joint = self._Device(self._shared, found).joint
+        return joint
+
+    @waiting
+    def joints(
+        self, gateway: str, timeout: float = 2.0, *, max_age: float = 1.0
+    ) -> Steps[JointsMessage]:
+        """The latest joints message of ``gateway`` (every joint of it in SI, published when
+        any was read again): one received in the last ``max_age`` seconds, else the next
+        within ``timeout``."""
+        latest = self._shared.latest(self._joints_key(gateway), gateway)
+        payload = latest.recent(max_age)
+        message = None if payload is None else joints_message(payload, gateway)
+        deadline = time.monotonic() + timeout
+        while message is None and (left := deadline - time.monotonic()) > 0:
+            payload = yield Next(latest.next(), left)
+            message = None if payload is None else joints_message(payload, gateway)
+        if message is None:
+            raise NoAnswerError(f"no joints message of {gateway} within {timeout:g} s")
+        return message
+
+    @feeding
+    def joints_feed(self, gateway: str, timeout: float = 5.0) -> Items[JointsMessage]:
+        """Each new joints message of ``gateway``, as it comes, until ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        inbox: Inbox[bytes] = Inbox()
+        with Stream(self._shared.core, self._joints_key(gateway), inbox.put):
+            while (left := deadline - time.monotonic()) > 0:
+                payload = yield Next(inbox.next(), left)
+                if payload is None:
+                    return
+                message = joints_message(payload, gateway)
+                if message is not None:
+                    yield message
+
+    def _joints_key(self, gateway: str) -> str:
+        return self._shared.core.keys.joints(check_name("gateway", gateway))
 
     @waiting
     def bus(self, name: str, *, timeout: float | None = None) -> Steps[Bus]:

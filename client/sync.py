@@ -9,9 +9,12 @@ several threads at once (the core is; a ``Follow`` belongs to the thread that op
 
 from __future__ import annotations
 
+from typing import Self
+
 from busgate.client.core import DEFAULT_TIMEOUT_S
-from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase
+from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase, StreamBase
 from busgate.client.faces import Blocking, opener
+from busgate.client.joints import JointBase, JointFollowBase
 from busgate.client.steps import run
 from busgate.client.surface import ClientBase, connecting
 from busgate.client.trajectories import Handle
@@ -23,6 +26,8 @@ __all__ = [
     "Client",
     "Device",
     "Follow",
+    "Joint",
+    "JointFollow",
     "Trajectory",
     "connect",
 ]
@@ -38,20 +43,34 @@ class Claim(Blocking, ClaimBase):
         run(self._given_back(kind))
 
 
-class Follow(Blocking, FollowBase):
-    """A follow stream held by a ``with`` block (``Device.follow``)."""
+class _Stream(Blocking, StreamBase):
+    """A follow stream's ``with`` block: opened on entry, ended on exit."""
 
-    def __enter__(self) -> Follow:
+    def __enter__(self) -> Self:
         return self._opened()
 
     def __exit__(self, kind: type[BaseException] | None, *exc_info: object) -> None:
         run(self._ended(kind))
 
 
-class Device(Blocking, DeviceBase[Claim, Follow]):
+class Follow(_Stream, FollowBase):
+    """A follow stream held by a ``with`` block (``Device.follow``)."""
+
+
+class JointFollow(_Stream, JointFollowBase):
+    """A joint's follow stream held by a ``with`` block (``Joint.follow``): targets in SI."""
+
+
+class Joint(Blocking, JointBase["Device", JointFollow]):
+    """One device as a joint, in SI units (``Device.joint``)."""
+
+    _JointFollow = JointFollow
+
+
+class Device(Blocking, DeviceBase[Claim, Follow, Joint]):
     """One device of one gateway."""
 
-    _Claim, _Follow = Claim, Follow
+    _Claim, _Follow, _Joint = Claim, Follow, Joint
 
 
 class Bus(Blocking, BusBase):
@@ -69,7 +88,7 @@ class Trajectory(Blocking, Handle):
         self.close()
 
 
-class Client(Blocking, ClientBase[Device, Bus, Trajectory]):
+class Client(Blocking, ClientBase[Device, Bus, Trajectory, Joint]):
     """One program's connection to a fleet of gateways."""
 
     _Device, _Bus, _Trajectory = Device, Bus, Trajectory

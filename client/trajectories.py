@@ -27,13 +27,16 @@ from busgate.errors import CommandError
 
 _ids = itertools.count(1)
 
-#: The fields of a ``play`` besides devices and points, as the SDK's ``play`` names them.
+#: The fields of a ``play`` besides devices and points, as the SDK's ``play`` names them
+#: (``units``: ``"joint"`` for SI positions, velocities, accelerations and tolerances; left
+#: out, the devices' raw units).
 PLAY_OPTIONS = (
     "start_at",
     "interpolation",
     "path_tolerance",
     "goal_tolerance",
     "goal_time_s",
+    "units",
 )
 
 
@@ -61,7 +64,8 @@ def play_body(
     points: list[dict[str, Any]],
     options: dict[str, Any],
 ) -> dict[str, Any]:
-    """The ``play`` command (``None`` options left out)."""
+    """The ``play`` command (``None`` options left out: without ``units``, a play in the
+    devices' raw units, its payload as it always was)."""
     chosen = trajectory_id or f"{client_id}-{os.getpid()}-{next(_ids)}"
     given = {name: options[name] for name in PLAY_OPTIONS if options.get(name) is not None}
     return {"op": "play", "id": chosen, "devices": devices, "points": points, **given}
@@ -155,7 +159,8 @@ class Handle(Face):
     @feeding
     def feedback(self, timeout: float | None = None) -> Items[dict[str, Any]]:
         """Each feedback message as it comes (``t_s``, per device ``desired``,
-        ``commanded``, ``measured``, ``error``), until the result or ``timeout``."""
+        ``commanded``, ``measured``, ``error`` in raw units, and ``joint``: the same in its
+        joint's SI ``unit``), until the result or ``timeout``."""
         deadline = time.monotonic() + result_wait_s(self.end_at, timeout)
         inbox: Inbox[dict[str, Any]] = Inbox()
         remove = self._watch.add_sink(inbox.put)

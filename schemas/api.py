@@ -286,7 +286,9 @@ class DeviceInfo(ReadByKey):
     name: Name
     kind: DeviceKind
     id: int
-    joint: JointInfo
+    joint: JointInfo | None = Field(
+        default=None, description="The device as a joint; absent from gateways before joints."
+    )
     state: Telemetry | None = Field(description="The last state published; null before the first.")
 
 

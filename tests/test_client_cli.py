@@ -37,14 +37,18 @@ def la1_state() -> dict:
     return {"ts": time.monotonic(), "device": "la1", "kind": "inspire_la", "online": True,
             "last_reply_age_s": 0.01, "stale": False, "estopped": False, "enabled": True,
             "position": 1000, "target": 1500,
-            "temperature_c": 31, "current_ma": 120, "force_g": 10, "faults": []}
+            "temperature_c": 31, "current_ma": 120, "force_g": 10, "faults": [],
+            "joint": {"name": "la1", "unit": "m", "position": 0.005, "velocity": None,
+                      "effort": 0.098}}
 
 
 def wheel_state() -> dict:
     return {"ts": time.monotonic(), "device": "wheel", "kind": "zlac706", "online": True,
             "stale": True, "estopped": True, "enabled": False, "mode": "velocity",
             "speed_rpm": 12.5, "target_speed_rpm": 20.0,
-            "current_ma": 800, "faults": ["overvoltage"]}
+            "current_ma": 800, "faults": ["overvoltage"],
+            "joint": {"name": "wheel", "unit": "rad", "position": 3.2, "velocity": 1.309,
+                      "effort": 0.8}}
 
 
 def ds1_state() -> dict:
@@ -343,12 +347,12 @@ def test_watch_once_shows_every_device_and_bus(stand_in, capsys):
     assert status == 0
     lines = out.splitlines()
     assert lines[0].split() == ["GATEWAY", "DEVICE", "KIND", "ONLINE", "STALE", "POWER",
-                                "MOTION", "TEMP_C", "CURRENT_MA", "FAULTS", "AGE"]
+                                "JOINT", "MOTION", "TEMP_C", "CURRENT_MA", "FAULTS", "AGE"]
     rows = {line.split()[1]: line.split() for line in lines[1:4]}
-    assert rows["la1"][:10] == ["gwtest", "la1", "inspire_la", "yes", "-", "enabled", "1000",
-                                "->", "1500", "31"]
-    assert rows["wheel"][:12] == ["gwtest", "wheel", "zlac706", "yes", "STALE", "e-stopped",
-                                  "12.5", "rpm", "->", "20.0", "-", "800"]
+    assert rows["la1"][:12] == ["gwtest", "la1", "inspire_la", "yes", "-", "enabled", "0.005",
+                                "m", "1000", "->", "1500", "31"]
+    assert rows["wheel"][:14] == ["gwtest", "wheel", "zlac706", "yes", "STALE", "e-stopped",
+                                  "1.309", "rad/s", "12.5", "rpm", "->", "20.0", "-", "800"]
     assert "overvoltage" in rows["wheel"]
     assert rows["ds1"][:7] == ["gwtwo", "ds1", "ds_servo", "NO", "-", "-", "-"]
     assert lines[5].split() == ["GATEWAY", "BUS", "UTILISATION", "FRAMES_S", "TIMEOUTS",
@@ -396,7 +400,7 @@ def test_watch_without_a_tty_prints_one_line_per_updated_row(stand_in, capsys):
     assert len(la1) >= 2  # once per refresh while it keeps publishing, not once per sample
     assert len(la1) <= 0.7 * client_cli.REDRAW_HZ + 1
     assert ("gateway=gwtest device=la1 kind=inspire_la online=yes stale=- power=enabled "
-            "motion=1000->1500") in la1[0]
+            "joint=0.005m motion=1000->1500") in la1[0]
     assert any("bus=uart0 utilisation=25%" in line for line in lines)
 
 
@@ -462,7 +466,8 @@ def test_info_seeds_rows_for_devices_not_heard_from_yet():
             {"name": "la2", "kind": "inspire_la", "id": 2, "state": None}]}]}
     table.seed(info, lambda key: "la2" not in key)
     lines = table.render(0.0)
-    assert lines[1].split() == ["la1", "inspire_la", "NO", "-", "-", "-", "-", "-", "-", "-"]
+    assert lines[1].split() == ["la1", "inspire_la", "NO", "-", "-", "-", "-", "-", "-", "-",
+                                "-"]
     assert lines[2] == ""
     assert lines[4].split() == ["uart0", "-", "-", "-", "-", "-", "-", "-"]
 

@@ -74,6 +74,7 @@ def test_every_bus_and_device_of_the_gateway_appears_online(page) -> None:
 
 
 def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> None:
+    """The values raw, the plot its joint's in SI (``la1``'s calibration, from ``info``)."""
     la1 = client.device("la1")
     start = la1.state().position
     goal = 1900 if start < 1000 else 100
@@ -83,10 +84,14 @@ def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> Non
         until(page, "([selector, goal]) => document.querySelector(selector).textContent == goal",
               f'article[data-device="demo/la1"] dd[data-field={label}]', str(goal))
     series = page.evaluate("() => window.busgateDashboard.series('demo/la1')")
+    joint = la1.joint.info
+    low, high = sorted(joint.offset + joint.scale * raw for raw in (start, goal))
+    reached = joint.offset + joint.scale * goal
     positions = [p for p in series["position"] if p is not None]
-    between = [p for p in positions if min(start, goal) < p < max(start, goal)]
+    between = [p for p in positions if low < p < high]
     assert between, "the plot holds the way there, not only the ends"
-    assert series["target"][-1] == goal and positions[-1] == goal
+    assert series["target"][-1] == pytest.approx(reached)
+    assert positions[-1] == pytest.approx(reached)
     assert series["t"] == sorted(series["t"])
     assert page.evaluate("() => window.busgateDashboard.renders()") > renders
     patiently(la1.move, start)
@@ -178,3 +183,23 @@ def test_hostile_telemetry_is_shown_as_text_and_the_page_goes_on(page, client, m
         queryable.undeclare()
         session.close()
     until(page, "() => !document.querySelector('section[data-gateway=evil]')")
+
+
+def test_each_device_shows_its_joint_with_its_unit_beside_its_raw_values(page, client) -> None:
+    """A position joint's position and target in its unit, a velocity joint's velocity in its
+    unit a second, the raw values beside them."""
+    la3 = client.device("la3")
+    patiently(la3.enable)
+    joint = la3.joint.info
+    goal = 1500 if la3.state().position != 1500 else 1502
+    shown = page.evaluate("([v, unit]) => `${Number(v.toPrecision(4))} ${unit}`",
+                          [joint.offset + joint.scale * goal, joint.unit])
+    patiently(la3.joint.move, joint.offset + joint.scale * goal)
+    until(page, "([shown]) => document.querySelector('article[data-device=\"demo/la3\"] "
+          "dd[data-field=joint]').textContent == shown", shown)
+    assert field(page, "la3", "position") == str(goal)  # the raw value stays beside it
+    assert field(page, "la3", "joint target") == shown
+    assert field(page, "la3", "effort").endswith(" N")
+    wheel = client.joint("wheel")
+    until(page, "([unit]) => document.querySelector('article[data-device=\"demo/wheel\"] "
+          "dd[data-field=joint]').textContent.endsWith(` ${unit}/s`)", wheel.unit)

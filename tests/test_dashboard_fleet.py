@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
+
 from busgate.dashboard.fleet import (
     EVENTS_KEPT,
     HISTORY_S,
@@ -156,3 +158,117 @@ def test_a_flood_of_gateways_or_devices_is_bounded() -> None:
     assert not fleet.gateway_up("one-too-many")
     fleet.info("gw0", info(*(f"d{n}" for n in range(MAX_DEVICES + 5))))
     assert sum(d["gateway"] == "gw0" for d in fleet.snapshot()["devices"]) == MAX_DEVICES
+
+
+# -- joints ------------------------------------------------------------------------------------
+
+LIFT = {"name": "lift", "type": "position", "unit": "m", "scale": 1e-5, "offset": 0.001,
+        "min": 0.002, "max": 0.018, "max_velocity": None, "max_acceleration": None,
+        "max_effort": None, "effort_unit": "N", "raw_per_turn": None, "configured": True}
+WHEEL = {**LIFT, "name": "wheel", "type": "velocity", "unit": "rad",
+         "scale": 2 * math.pi / 10000, "offset": 0.0, "effort_unit": "A", "raw_per_turn": 10000}
+
+
+def with_joint(joint: dict | None, kind: str = "inspire_la", device: str = "la1") -> dict:
+    entry = {"name": device, "kind": kind, "id": 1, "state": None}
+    return {"ok": True, "gateway": "gw1", "version": "9.9", "buses": [
+        {"name": "uart0", "protocol": kind,
+         "devices": [entry if joint is None else {**entry, "joint": joint}]}]}
+
+
+def joint_state(ts: float, **joint) -> dict:
+    return state(ts, position=1000, target=1200, joint={
+        "name": "lift", "unit": "m", "position": 0.011, "velocity": None, "effort": 0.5, **joint})
+
+
+def described(joint: dict | None, kind: str = "inspire_la", device: str = "la1") -> Fleet:
+    fleet = Fleet()
+    assert fleet.gateway_up("gw1")
+    fleet.info("gw1", with_joint(joint, kind, device))
+    fleet.drain()
+    return fleet
+
+
+def test_a_position_joint_is_plotted_and_told_in_si_its_target_by_its_calibration() -> None:
+    fleet = described(LIFT)
+    fleet.state("gw1", "la1", joint_state(1.0))
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, 0.011, pytest.approx(0.001 + 1200 * 1e-5), 12]]
+    assert device["joint"] == {
+        "name": "lift", "type": "position", "value": 0.011, "value_unit": "m",
+        "target": pytest.approx(0.013), "velocity": None, "velocity_unit": "m/s",
+        "effort": 0.5, "effort_unit": "N"}
+    assert device["state"]["position"] == 1000  # the raw values, as they came
+
+
+def test_a_velocity_joint_is_plotted_by_its_velocity_and_its_target_speed_in_si() -> None:
+    fleet = described(WHEEL, kind="zlac706", device="wheel")
+    fleet.state("gw1", "wheel", {"ts": 1.0, "kind": "zlac706", "speed_rpm": 59.0,
+                                 "target_speed_rpm": 60.0, "current_ma": 300, "joint": {
+                                     "name": "wheel", "unit": "rad", "position": 3.0,
+                                     "velocity": 6.18, "effort": 0.3}})
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, 6.18, pytest.approx(2 * math.pi), 300]]
+    told = device["joint"]
+    assert (told["value"], told["value_unit"], told["velocity_unit"]) == (6.18, "rad/s", "rad/s")
+
+
+def test_a_joint_in_raw_units_converts_one_to_one() -> None:
+    raw = {**LIFT, "name": "la1", "unit": "raw", "scale": 1.0, "offset": 0.0, "min": 0.0,
+           "max": 2000.0, "configured": False}
+    fleet = described(raw)
+    fleet.state("gw1", "la1", joint_state(1.0, name="la1", unit="raw", position=1000.0))
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, 1000.0, 1200.0, 12]]
+
+
+def test_a_state_without_a_joint_is_plotted_raw_and_told_without_one() -> None:
+    fleet = described(None)  # a gateway of an earlier release
+    fleet.state("gw1", "la1", state(1.0, position=700, target=800))
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, 700, 800, 12]] and device["joint"] is None
+    wheel = described(None, kind="zlac706", device="wheel")  # a velocity joint unless told
+    wheel.state("gw1", "wheel", {"ts": 1.0, "position": 5, "speed_rpm": 30.0,
+                                 "target_speed_rpm": 40.0})
+    assert wheel.drain()["devices"][0]["samples"] == [[1.0, 30.0, 40.0, None]]
+
+
+@pytest.mark.parametrize("joint", [
+    {"scale": 0.0}, {"scale": math.nan}, {"scale": "1"}, {"unit": "furlong"},
+    {"type": "sideways"}, {"type": "velocity"}, {"name": 3}, {"offset": 1e300}, "not an object",
+], ids=["zero scale", "nan scale", "text scale", "unit", "type", "a type LA cannot be",
+        "name", "offset past bounds", "not an object"])
+def test_a_malformed_joint_description_leaves_the_target_unknown_never_the_page(joint) -> None:
+    fleet = described({**LIFT, **joint} if isinstance(joint, dict) else joint)
+    fleet.state("gw1", "la1", joint_state(1.0))
+    [device] = fleet.drain()["devices"]
+    assert device["samples"] == [[1.0, 0.011, None, 12]]  # its value from its state still
+    assert device["joint"]["value"] == 0.011 and device["joint"]["target"] is None
+    json.dumps(fleet.snapshot(), allow_nan=False)
+
+
+@pytest.mark.parametrize("values", [
+    "not an object", {"position": "0.011"}, {"position": math.inf}, {"position": True},
+    {"name": ["x"], "unit": {"m": 1}}, {"unit": "m" * 1000, "name": "n" * 1000},
+], ids=["not an object", "text", "inf", "bool", "not text", "long"])
+def test_a_malformed_joint_in_a_state_is_shown_as_nothing_known(values) -> None:
+    fleet = described(None)
+    joint = values if isinstance(values, str) else {"position": 0.01, **values}
+    fleet.state("gw1", "la1", state(1.0, joint=joint))
+    [device] = fleet.drain()["devices"]
+    told = device["joint"]
+    if isinstance(values, str):
+        assert told is None and device["samples"] == [[1.0, 0, 0, 12]]  # plotted raw
+    else:
+        assert told["value"] in (None, 0.01) and told["target"] is None
+        assert told["name"] is None or len(told["name"]) <= 64
+        assert len(told["value_unit"]) <= 16
+    json.dumps(fleet.snapshot(), allow_nan=False)
+
+
+def test_a_target_past_what_a_float_holds_is_not_plotted() -> None:
+    fleet = described({**LIFT, "scale": 1e9, "offset": 0.0})
+    fleet.state("gw1", "la1", joint_state(1.0, position=1.0) | {"target": 1e308})
+    [device] = fleet.drain()["devices"]
+    assert device["samples"][0][2] is None
+    json.dumps(fleet.snapshot(), allow_nan=False)

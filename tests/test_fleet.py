@@ -78,7 +78,9 @@ def test_a_device_moved_through_the_router_moves_on_the_page(page, client) -> No
     until(page, "([goal]) => document.querySelector('article[data-device=\"gw2/la1\"] "
           "dd[data-field=position]').textContent == String(goal)", goal)
     series = page.evaluate("() => window.busgateDashboard.series('gw2/la1')")
-    assert series["position"][-1] == goal and len(series["t"]) > 2
+    joint = la1.joint.info  # the plot is of its joint, in SI
+    assert series["position"][-1] == pytest.approx(joint.offset + joint.scale * goal)
+    assert len(series["t"]) > 2
 
 
 def test_an_event_of_one_gateway_appears(page, client) -> None:

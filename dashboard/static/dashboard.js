@@ -1,6 +1,8 @@
 // busgate fleet dashboard: what the server pushes (/events: a snapshot, then what changed,
-// as Server-Sent Events) drawn as a card per gateway and per device, with a minute of
-// position/target and current in uPlot charts, redrawn RENDER_EVERY_MS.
+// as Server-Sent Events) drawn as a card per gateway and per device, with a minute of its
+// joint's value and target (in SI: a position, or a velocity joint's velocity) and current in
+// uPlot charts, redrawn RENDER_EVERY_MS. The joint's values come from the server (view.joint,
+// made by dashboard/fleet.py), the raw values from the device's state.
 //
 // Rules of this file:
 // 1. Text from the network goes into the page as text (textContent, never innerHTML).
@@ -18,15 +20,18 @@ const RENDER_EVERY_MS = 100;
 const AGE_EVERY_RENDERS = 5;  // the ages, twice a second: a repaint of every card each time
 const EVENTS_SHOWN = 300;
 const STATS_STALE_S = 3;
-const VALUES = [  // [label, how to read it off a state, unit]
-  ["position", (s) => s.position, ""],
-  ["target", (s) => s.target ?? s.target_speed_rpm, ""],
-  ["speed", (s) => s.speed_rpm ?? s.speed_raw, ""],
-  ["current", (s) => s.current_ma, "mA"],
-  ["temperature", (s) => s.temperature_c, "°C"],
-  ["force", (s) => s.force_g, "g"],
-  ["faults", (s) => (faultsOf(s).length ? faultsOf(s).join(", ") : "none"), ""],
-  ["age", null, "s"],
+const VALUES = [  // [label, how to read it off a state and its joint's view, as text]
+  ["joint", (s, j, name) => named(j, name, j && si(j.value, j.value_unit))],
+  ["joint target", (s, j) => j && si(j.target, j.value_unit)],
+  ["velocity", (s, j) => j && si(j.velocity, j.velocity_unit)],
+  ["effort", (s, j) => j && si(j.effort, j.effort_unit)],
+  ["position", (s) => shown(s.position, "")],  // raw, in the device's own units
+  ["target", (s) => shown(s.target, "")],
+  ["current", (s) => shown(s.current_ma, "mA")],
+  ["temperature", (s) => shown(s.temperature_c, "°C")],
+  ["force", (s) => shown(s.force_g, "g")],
+  ["faults", (s) => (faultsOf(s).length ? faultsOf(s).join(", ") : "none")],
+  ["age", null],
 ];
 
 const gateways = new Map();  // name → {element, buses: tbody, devices: container}
@@ -51,6 +56,17 @@ function shown(value, unit) {
     return unit ? `${text} ${unit}` : text;
   }
   return String(value);
+}
+
+function si(value, unit) {  // an SI value: four significant digits (0.0051 m, 1.571 rad/s)
+  if (typeof value !== "number") return shown(value, unit);
+  const text = String(Number(value.toPrecision(4)));
+  return typeof unit === "string" && unit ? `${text} ${unit}` : text;
+}
+
+function named(joint, device, text) {  // a joint's name before its value, when not the device's
+  if (!joint) return "—";
+  return typeof joint.name === "string" && joint.name !== device ? `${joint.name}: ${text}` : text;
 }
 
 // -- gateways ------------------------------------------------------------------------------
@@ -132,12 +148,12 @@ function deviceCard(gatewayName, name) {
     fields[label] = value;
   }
   gatewayCard(gatewayName).devices.append(element);
-  device = {element, fields, state: null, t: [], position: [], target: [], current: [], charts: [],
-            visible: false, dirty: true, drawnAt: -Infinity};
+  device = {element, name, fields, state: null, joint: null, t: [], position: [], target: [],
+            current: [], charts: [], visible: false, dirty: true, drawnAt: -Infinity};
   element.busgateDevice = device;
   onScreen.observe(element);
   device.charts = [
-    chart(element.querySelector(".position-chart"), [["position", "#2563eb"], ["target", "#f59e0b", [4, 3]]]),
+    chart(element.querySelector(".position-chart"), [["joint", "#2563eb"], ["target", "#f59e0b", [4, 3]]]),
     chart(element.querySelector(".current-chart"), [["current mA", "#dc2626"]]),
   ];
   devices.set(key, device);
@@ -167,6 +183,7 @@ function showDevice(view) {
   const device = deviceCard(view.gateway, view.device);
   device.element.querySelector(".kind").textContent = view.kind;
   if (view.state) device.state = view.state;
+  if (view.joint !== undefined) device.joint = view.joint;
   for (const [t, position, target, current] of view.samples) {
     if (device.t.length && t <= device.t[device.t.length - 1]) continue;
     device.t.push(t); device.position.push(position); device.target.push(target); device.current.push(current);
@@ -174,7 +191,10 @@ function showDevice(view) {
   }
   const state = device.state;
   if (!state) return;
-  for (const [label, read, unit] of VALUES) if (read) setText(device.fields[label], shown(read(state), unit));
+  const joint = device.joint && typeof device.joint === "object" ? device.joint : null;
+  for (const [label, read] of VALUES) {
+    if (read) setText(device.fields[label], String(read(state, joint, device.name) ?? "—"));
+  }
   device.fields.faults.classList.toggle("faulted", faultsOf(state).length > 0);
   const link = !state.online ? "offline" : state.stale ? "stale" : "online";
   const power = state.estopped ? "e-stopped" : state.enabled === true ? "enabled" : state.enabled === false ? "off" : "unknown";

@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import contextlib
 import logging
+import math
 import os
 import shlex
 import shutil
@@ -78,6 +79,36 @@ DEMO_BUSES = tuple(
     DemoBus(bus, protocol, PROTOCOLS[protocol].timing.default_rate, devices)
     for protocol, (bus, devices) in _DEMO_DEVICES.items()
 )
+
+_TURN = 2 * math.pi
+#: The hub motors' velocity joint: 10000 encoder pulses a turn (the manual's), at most 15 rad/s
+#: (143 rpm: 1.3 m/s on a 6.5-inch wheel).
+_HUB_MOTOR: dict[str, Any] = {
+    "type": "velocity",
+    "unit": "rad",
+    "scale": _TURN / 10_000,
+    "max_velocity": 15.0,
+}
+#: Each demo device's joint table (``[buses.devices.joint]``, docs/joints.md), as examples of
+#: plausible SI calibrations. Position limits are left out, so each is its device's whole
+#: range (the tests drive the demo's devices through all of it and stream big steps to them):
+#:
+#: - ``la1``–``la3``: a 10 mm stroke over raw 0–2000, 5 µm a count: 0–0.010 m.
+#: - ``servo1``, ``servo2``: one turn in 4096 counts, centred (raw 2048 is 0 rad): −π to
+#:   π − 2π/4096 rad, streamed or played at most one turn a second (2π rad/s).
+#: - ``wheel``: a small robot's wheel, ``_HUB_MOTOR``.
+#: - ``drive``: a cart's drive, ``_HUB_MOTOR`` that also speeds up and slows down at most at
+#:   10 rad/s² (0 to 15 rad/s in 1.5 s): a step in speed, one-shot or streamed, becomes a ramp
+#:   (the reply to a one-shot speed comes at once, with the speed the ramp starts from).
+DEMO_JOINTS: dict[str, dict[str, Any]] = {
+    **{la: {"unit": "m", "scale": 5e-6} for la in ("la1", "la2", "la3")},
+    **{
+        servo: {"unit": "rad", "scale": _TURN / 4096, "offset": -math.pi, "max_velocity": _TURN}
+        for servo in ("servo1", "servo2")
+    },
+    "wheel": _HUB_MOTOR,
+    "drive": {**_HUB_MOTOR, "max_acceleration": 10.0},
+}
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -231,6 +262,7 @@ def demo_config(
                         "kind": PROTOCOLS[bus.protocol].kind,
                         "id": ident,
                         "heartbeat_ms": bus.heartbeat_ms,
+                        "joint": DEMO_JOINTS.get(name),
                     }
                     for name, ident in bus.devices
                 ],

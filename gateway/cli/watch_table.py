@@ -7,13 +7,23 @@ parsed JSON bodies (``update_state``, ``update_stats``, ``seed``) and the main t
 (``render``, ``changed_lines``). Rules of this file: a callback only stores under the one
 lock (a slow callback would stall every other one); the main thread takes a snapshot under it
 and formats outside it.
+
+Each device shows its joint in SI (``JOINT``: a position joint's position in its unit, a
+velocity joint's velocity in its unit per second, from the state's ``joint``) beside its raw
+values (``MOTION``: measured → target, in the family's units, read through the family's joint
+declaration, so that no family's field is named here). A joint's type is its gateway's
+``info``'s, else the type its family takes when a config names none.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from typing import Any
+
+from busgate.schemas.families import FAMILIES
+from busgate.schemas.joints import JointDeclaration
 
 DEVICE_COLUMNS = (
     "device",
@@ -21,6 +31,7 @@ DEVICE_COLUMNS = (
     "online",
     "stale",
     "power",
+    "joint",
     "motion",
     "temp_c",
     "current_ma",
@@ -76,9 +87,15 @@ class WatchTable:
                     self._buses.setdefault((gateway, name), _Row({}, None))
                 for device in bus.get("devices", []):
                     state = device.get("state") if isinstance(device.get("state"), dict) else {}
-                    row = _Row({"kind": device.get("kind"), **state}, None)
-                    if wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
-                        self._devices.setdefault((gateway, str(device.get("name"))), row)
+                    if not wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
+                        continue
+                    row = self._devices.setdefault(
+                        (gateway, str(device.get("name"))),
+                        _Row({"kind": device.get("kind"), **state}, None),
+                    )
+                    joint = device.get("joint")
+                    if isinstance(joint, dict) and joint.get("type") in _JOINT_TYPES:
+                        row.joint_type = joint["type"]
 
     def render(self, now: float) -> list[str]:
         """The whole table, devices then buses."""
@@ -122,8 +139,9 @@ class WatchTable:
     def _store(self, rows: dict, key: str, values: dict[str, Any], now: float) -> None:
         with self._lock:
             row = rows.get(_names(key))
-            reported = row.reported if row else float("-inf")
-            rows[_names(key)] = _Row(values, now, reported)
+            stored = rows[_names(key)] = _Row(values, now)
+            if row is not None:
+                stored.reported, stored.joint_type = row.reported, row.joint_type
 
     def _snapshot(self) -> tuple[list, list, bool]:
         with self._lock:
@@ -133,12 +151,12 @@ class WatchTable:
 
 
 class _Row:
-    __slots__ = ("received", "reported", "values")
+    __slots__ = ("joint_type", "received", "reported", "values")
 
-    def __init__(
-        self, values: dict[str, Any], received: float | None, reported: float = float("-inf")
-    ) -> None:
-        self.values, self.received, self.reported = values, received, reported
+    def __init__(self, values: dict[str, Any], received: float | None) -> None:
+        self.values, self.received, self.reported = values, received, float("-inf")
+        #: The joint's type as its gateway's ``info`` describes it (``None``: not told).
+        self.joint_type: str | None = None
 
 
 def _names(key: str) -> tuple[str, str]:
@@ -168,7 +186,8 @@ def _device_cells(name: str, row: _Row, now: float) -> list[str]:
         "-" if online is None else ("yes" if online else "NO"),
         "STALE" if state.get("stale") else "-",
         _power(state),
-        _motion(state),
+        _joint(name, state, _joint_type(row)),
+        _motion(state, _joint_type(row)),
         _text(state.get("temperature_c")),
         _text(state.get("current_ma")),
         ",".join(map(str, state.get("faults") or [])) or "-",
@@ -193,14 +212,74 @@ def _reading_age(row: _Row, now: float) -> str:
     return f"{age + max(0.0, now - row.received):.1f}s"
 
 
-def _motion(state: dict[str, Any]) -> str:
-    if state.get("mode") == "velocity" or ("position" not in state and "speed_rpm" in state):
-        speed = f"{_text(state.get('speed_rpm'))} rpm"
-        target = state.get("target_speed_rpm")
-        return speed if target is None else f"{speed} -> {_text(target)}"
-    if "position" in state or "target" in state:
-        return f"{_text(state.get('position'))} -> {_text(state.get('target'))}"
-    return "-"
+_JOINT_TYPES = ("position", "velocity")
+
+
+def _declaration(state: dict[str, Any]) -> JointDeclaration | None:
+    """What the family of the device's kind says its raw fields are as a joint."""
+    kind = state.get("kind")
+    family = FAMILIES.get(kind) if isinstance(kind, str) else None
+    return None if family is None else getattr(family.schema, "JOINT", None)
+
+
+def _joint_type(row: _Row) -> str:
+    """The joint's type: its gateway's ``info``'s, else its family's first (a config that
+    names none gets it)."""
+    if row.joint_type is not None:
+        return row.joint_type
+    declaration = _declaration(row.values)
+    return "position" if declaration is None else declaration.types[0]
+
+
+def _joint(device: str, state: dict[str, Any], joint_type: str) -> str:
+    """The joint's value in SI with its unit: a position joint's position, a velocity joint's
+    velocity (per second); its name before it when it is not the device's."""
+    joint = state.get("joint")
+    if not isinstance(joint, dict) or not isinstance(joint.get("unit"), str):
+        return "-"
+    unit = joint["unit"][:16]
+    value = _finite(joint.get(joint_type))
+    shown = "-" if value is None else f"{_number(value)} {unit}"
+    if joint_type == "velocity" and shown != "-":
+        shown += "/s"
+    name = joint.get("name")
+    return f"{name[:64]}: {shown}" if isinstance(name, str) and name != device else shown
+
+
+def _motion(state: dict[str, Any], joint_type: str) -> str:
+    """The raw values: measured -> target, of the joint's position or (a velocity joint) of
+    its speed in rpm, as the family names them."""
+    declaration = _declaration(state)
+    if declaration is None:
+        return "-"
+    if joint_type == "velocity" and declaration.speed_rpm is not None:
+        measured, unit = state.get(declaration.speed_rpm), " rpm"
+        target = state.get(declaration.target_speed_rpm or "")
+    else:
+        measured, unit = state.get(declaration.position), ""
+        target = state.get(declaration.target)
+    if measured is None and target is None:
+        return "-"
+    shown = f"{_text(measured)}{unit}"
+    return shown if target is None else f"{shown} -> {_text(target)}"
+
+
+def _finite(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _number(value: float) -> str:
+    """Four significant digits, never in powers of ten above 1e-4: ``0.0051``, ``1.571``,
+    ``1500``, ``123457``."""
+    if value == 0:
+        return "0"
+    if abs(value) < 1e-4:
+        return f"{value:.3g}"
+    decimals = max(0, 3 - math.floor(math.log10(abs(value))))
+    text = f"{value:.{decimals}f}"
+    return text.rstrip("0").rstrip(".") if "." in text else text
 
 
 def _bus_cells(name: str, row: _Row, now: float) -> list[str]:

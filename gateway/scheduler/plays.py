@@ -114,12 +114,14 @@ class Plays:
         if ticker is None:
             return
         last = ticker.commanded.get(device)
-        if not speed or last is None:
+        driver = self.drivers[device]
+        field = driver.joint_declaration().follow_velocity if speed else None
+        if field is None or last is None:  # a position, or no speed its family streams
             self._leave(device)
             self._publish()
             return
-        from_s, rpm = last
-        ticker.add(ticker.playing[device].driver, _ramp_to_zero(from_s, rpm))
+        from_s, value = last
+        ticker.add(driver, _ramp_to_zero(field, from_s, value))
         ticker.ramping[device] = from_s + RAMP_S  # on this ticker's grid until then
 
     def end_all(self, why: str) -> None:
@@ -185,10 +187,11 @@ class Plays:
         return ticker
 
 
-def _ramp_to_zero(from_s: float, rpm: float) -> Sampler:
-    """A speed ramp from ``rpm`` at ``from_s`` to 0 over ``RAMP_S``."""
+def _ramp_to_zero(field: str, from_s: float, speed: float) -> Sampler:
+    """A speed ramp from ``speed`` at ``from_s`` to 0 over ``RAMP_S``, in the follow payload's
+    ``field`` (the family's ``follow_velocity``)."""
 
     def sample(t_s: float) -> dict[str, Any]:
-        return {"rpm": rpm * max(0.0, 1 - (t_s - from_s) / RAMP_S)}
+        return {field: speed * max(0.0, 1 - (t_s - from_s) / RAMP_S)}
 
     return sample

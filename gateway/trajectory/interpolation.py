@@ -14,6 +14,10 @@ Rules of this file:
 3. A position is sent as the interpolant rounded to the nearest unit, halves away from zero
    (``sent``): the same rule in every test and on every wire. A speed (rpm) is sent as it is:
    the codec scales it to its wire's finer unit, which rounding to whole rpm would throw away.
+4. A path is in the device's raw units, whatever the play's ``units``: a play in joint units
+   has each point converted first (``raw_knot``: the position by the joint's calibration,
+   velocity and acceleration divided by its scale), unrounded and unclamped, so everything
+   downstream (bounds, ticks, feedback) is raw and a value past a limit stays past it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 from typing import get_args
 
+from busgate.schemas.joints import Joint
 from busgate.schemas.trajectory import Interpolation, TrajectoryPlay, TrajectoryPoint
 
 INTERPOLATIONS: tuple[str, ...] = get_args(Interpolation)
@@ -110,16 +115,42 @@ class Path:
         return _horner(self.segments[after - 1], (t_s - a.t_s) / (b.t_s - a.t_s))
 
 
-def paths_of(play: TrajectoryPlay, starts: Sequence[float]) -> list[Path]:
+def paths_of(
+    play: TrajectoryPlay, starts: Sequence[float], joints: Sequence[Joint] | None = None
+) -> list[Path]:
     """One ``Path`` per device of ``play``, in its order, each from the device's start value
-    (its last target, or its measured value), joined as ``play.interpolation_used``."""
+    (its last target, or its measured value, raw), joined as ``play.interpolation_used``;
+    ``joints`` (the devices' own, in order) convert a play in joint units (rule 4)."""
     if len(starts) != len(play.devices):
         raise ValueError(f"{len(starts)} start values for {len(play.devices)} devices")
-    interpolation = play.interpolation_used
+    if joints is not None and len(joints) != len(play.devices):
+        raise ValueError(f"{len(joints)} joints for {len(play.devices)} devices")
     return [
-        Path(start, [_knot(point, device) for point in play.points], interpolation)
+        path_of(play, device, start, None if joints is None else joints[device])
         for device, start in enumerate(starts)
     ]
+
+
+def path_of(play: TrajectoryPlay, device: int, start: float, joint: Joint | None = None) -> Path:
+    """The path of the ``device``-th device of ``play`` from ``start`` (raw), its points
+    converted by ``joint`` when the play is in joint units (rule 4)."""
+    knots = [_knot(point, device) for point in play.points]
+    if play.units == "joint":
+        if joint is None:
+            raise ValueError("a play in joint units needs each device's joint")
+        knots = [raw_knot(knot, joint) for knot in knots]
+    return Path(start, knots, play.interpolation_used)
+
+
+def raw_knot(knot: Knot, joint: Joint) -> Knot:
+    """``knot`` in SI (a position, its velocity and acceleration) in ``joint``'s raw units,
+    unrounded (rule 4)."""
+    return Knot(
+        knot.t_s,
+        joint.position_raw(knot.value),
+        knot.velocity / joint.scale,
+        knot.acceleration / joint.scale,
+    )
 
 
 def _knot(point: TrajectoryPoint, device: int) -> Knot:

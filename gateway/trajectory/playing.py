@@ -13,7 +13,8 @@ Rules of this file:
 4. Feedback goes out at least ``1 / FEEDBACK_EVERY_S`` times a second on
    ``<prefix>/<gw>/trajectory/<id>/feedback``, on a grid of that period from the first (a
    round of the loop that comes late does not push the later ones back); the result once,
-   there and as an event.
+   there and as an event. Each device's values are raw, as its path is, and again in its
+   joint's SI unit (``joint``), whatever units the play was given in.
 5. ``command`` may run long (a 1 MiB payload is parsed and checked): it runs on a lane's
    thread (``lanes``), never on zenoh's or the loop's; the running table is shared
    under a lock.
@@ -151,15 +152,27 @@ class Trajectories:
         t_s = moment - running.start_at
         devices = []
         for member in running.members:
-            measured = member.measured()
-            commanded = member.runner.plays.commanded(member.name)
+            desired = member.value(t_s)
+            last = member.runner.plays.commanded(member.name)
+            commanded = None if last is None else last[1]
+            read = member.measured()
+            measured = None if read is None else read[1]
+            error = running.errors.get(member.name)
             devices.append(
                 {
                     "device": member.name,
-                    "desired": member.sample(t_s)[member.key],
-                    "commanded": None if commanded is None else commanded[1],
-                    "measured": None if measured is None else measured[1],
-                    "error": running.errors.get(member.name),
+                    "desired": desired,
+                    "commanded": commanded,
+                    "measured": measured,
+                    "error": error,
+                    "joint": {  # the same in SI (rule 4)
+                        "name": member.driver.joint.name,
+                        "unit": member.si_unit,
+                        "desired": member.si(desired),
+                        "commanded": None if commanded is None else member.si(commanded),
+                        "measured": None if measured is None else member.si(measured),
+                        "error": None if error is None else member.si_difference(error),
+                    },
                 }
             )
         return {"ts": moment, "id": running.id, "t_s": t_s, "devices": devices}
@@ -172,7 +185,7 @@ class Trajectories:
             del self._running[running.id]
         for member in running.members:
             if member.name not in keep:
-                member.runner.stop_playing(member.name, speed=member.key == "rpm")
+                member.runner.stop_playing(member.name, speed=member.speed)
         body = {"ts": time.time(), "id": running.id, "result": result,
                 "errors": running.errors} | ({"reason": reason} if reason else {})  # fmt: skip
         self.publish(self._feedback_key(running), body)
