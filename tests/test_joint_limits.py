@@ -25,6 +25,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.config import parse_config
+from tests.wire_frames import received, written_speed
 
 TURN = 2 * math.pi
 _channels = itertools.count()
@@ -85,25 +86,16 @@ def accepted(api: GatewayApi, device: str, command: dict) -> dict:
 
 def la_targets(simulator, since: int) -> list[tuple[str, int, int]]:
     """(frame, id, position) of every target the LA simulator received since ``since``."""
-    targets = []
-    for record in simulator.recorder.received()[since:]:
-        decoder = la.CommandDecoder()
-        decoder.feed(bytes.fromhex(record.wire))
-        for frame in decoder.events():
-            for target in getattr(frame, "targets", None) or [frame]:
-                if hasattr(target, "position_raw"):
-                    targets.append((record.frame, target.device_id, target.position_raw))
-    return targets
+    return [(record.frame, target.device_id, target.position_raw)
+            for record, frame in received(simulator, since, la)
+            for target in getattr(frame, "targets", None) or [frame]
+            if hasattr(target, "position_raw")]
 
 
 def speeds(can_sim, since: int) -> list[float]:
     """Every speed written to the wheel since ``since``, rpm."""
-    found = []
-    for record in can_sim.recorder.received()[since:]:
-        data = bytes.fromhex(record.wire.split("#")[1])
-        if data[:2] == b"\x00\xfa" and data[3] == 0x11:
-            found.append(rpm_from_speed_raw(int.from_bytes(data[4:], "big", signed=True)))
-    return found
+    return [rpm_from_speed_raw(speed) for _, frame in received(can_sim, since, zcan)
+            if (speed := written_speed(frame)) is not None]
 
 
 @pytest.mark.parametrize(("device", "command", "words"), [
@@ -209,12 +201,11 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
     assert written and written[0] <= 1.2 + 0.4 and max(written) <= 60
     assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise([0.0, *written]))
     assert max(written) > 40  # 1 s of ramp reached most of the way to 60 rpm
-    # A one-shot speed is a ramp too, from where the device was commanded (0 rpm once the
-    # stream's end was acknowledged: a stream that ends stops the wheel at once), and it is kept.
-    _, wheel = api.devices["wheel"]
-    deadline = time.monotonic() + 5
-    while wheel.telemetry(0.0)["target_speed_rpm"] != 0 and time.monotonic() < deadline:
-        time.sleep(0.02)
+    # A one-shot speed is a ramp too, from where the device was commanded, and it is kept. A
+    # stream that ends stops the wheel at once (0 rpm, queued as a command): a command after
+    # it is answered once that stop went out.
+    accepted(api, "wheel", {"op": "enable"})
+    assert api.devices["wheel"][1].telemetry(0.0)["target_speed_rpm"] == 0
     before = len(can_sim.recorder.received())
     accepted(api, "wheel", {"op": "joint", "velocity": TURN / 2})  # 30 rpm: 25 ticks
     time.sleep(1.0)

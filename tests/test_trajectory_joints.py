@@ -31,7 +31,6 @@ from hypothesis import strategies as st
 from busgate.client.trajectories import play_body
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
@@ -51,6 +50,7 @@ from busgate.schemas.joints import Joint, JointTable
 from busgate.schemas.trajectory import TRAJECTORY_COMMAND_ADAPTER, TrajectoryPlay
 from busgate.schemas.validation import describe_validation_error, refusal_code
 from tests.conftest import wait_until
+from tests.wire_frames import received, tick_targets, written_speed
 
 BASE = "busgate/gw"
 MARGIN_MS = 10  # as tests/test_trajectory_wire.py: room for the polls between ticks
@@ -166,31 +166,16 @@ def command(world: World, device: str, fields: dict) -> dict:
 
 
 def la_ticks(world: World, since: int) -> list[dict[int, int]]:
-    """Each trajectory tick (a follow frame without reply) the LA bus received after its
-    ``since``-th frame: each actuator's target, by id."""
-    found = []
-    for record in world.la_sim.recorder.received()[since:]:
-        decoder = la.CommandDecoder()
-        decoder.feed(bytes.fromhex(record.wire))
-        for frame in decoder.events():
-            if isinstance(frame, la.GroupFollowCommand):
-                found.append({t.device_id: t.position_raw for t in frame.targets})
-            elif isinstance(frame, la.FollowCommand) and not frame.reply:
-                found.append({frame.device_id: frame.position_raw})
-    return found
+    """Each trajectory tick the LA bus received after its ``since``-th frame: each
+    actuator's target, by id."""
+    found = (tick_targets(frame) for _, frame in received(world.la_sim, since, la))
+    return [targets for targets in found if targets is not None]
 
 
 def speed_writes(world: World, since: int) -> list[int]:
     """The speed writes the ZLAC706 received after its ``since``-th frame (raw values)."""
-    found = []
-    for record in world.can_sim.recorder.received()[since:]:
-        identifier, data = record.wire.split("#")
-        decoder = zcan.CommandDecoder()
-        decoder.feed(CanFrame(int(identifier, 16), bytes.fromhex(data)))
-        found += [frame.value for frame in decoder.events()
-                  if isinstance(frame, zcan.Write)
-                  and frame.register == zcan.CanRegister.TARGET_SPEED]  # fmt: skip
-    return found
+    found = (written_speed(frame) for _, frame in received(world.can_sim, since, zcan))
+    return [speed for speed in found if speed is not None]
 
 
 def marks(world: World) -> tuple[int, int]:

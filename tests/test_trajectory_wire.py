@@ -33,7 +33,6 @@ from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs import zlac706_common as zcommon
-from busgate.codecs.can_frame import CanFrame
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
@@ -55,6 +54,7 @@ from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.simulated_buses import SimulatedGateway, simulated_gateway
 from tests.test_zenoh_api import connected, get
+from tests.wire_frames import received, tick_targets, written_speed
 
 BASE = "busgate/gw"
 #: Reply margins that leave room, between the ticks of a 20 ms period, for the polls that
@@ -204,30 +204,15 @@ def ticks(simulator, since: int, codec=None) -> list[Tick]:
     """The tick frames (follow frames without reply) a serial simulator received after its
     ``since``-th frame."""
     codec = codec or (la if simulator.codec is la else ds)
-    found = []
-    for record in simulator.recorder.received()[since:]:
-        decoder = codec.CommandDecoder()
-        decoder.feed(bytes.fromhex(record.wire))
-        for frame in decoder.events():
-            if isinstance(frame, la.GroupFollowCommand | ds.SyncWrite):
-                found.append(Tick(record.start, {t.device_id: t.position_raw
-                                                 for t in frame.targets}))
-            elif isinstance(frame, la.FollowCommand) and not frame.reply:
-                found.append(Tick(record.start, {frame.device_id: frame.position_raw}))
-    return found
+    return [Tick(record.start, targets) for record, frame in received(simulator, since, codec)
+            if (targets := tick_targets(frame)) is not None]
 
 
 def speed_ticks(world: SimulatedGateway, since: int) -> list[Tick]:
     """The speed writes the ZLAC706 received after its ``since``-th frame (raw values, id 5)."""
-    found = []
-    for record in world.can_sim.recorder.received()[since:]:
-        identifier, data = record.wire.split("#")
-        decoder = zcan.CommandDecoder()
-        decoder.feed(CanFrame(int(identifier, 16), bytes.fromhex(data)))
-        for frame in decoder.events():
-            if isinstance(frame, zcan.Write) and frame.register == zcan.CanRegister.TARGET_SPEED:
-                found.append(Tick(record.start, {frame.device_id: frame.value}))
-    return found
+    return [Tick(record.start, {5: speed})
+            for record, frame in received(world.can_sim, since, zcan)
+            if (speed := written_speed(frame)) is not None]
 
 
 def slots_of(found: list[Tick], start_bus: float,
