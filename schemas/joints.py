@@ -38,6 +38,8 @@ JointType = Literal["position", "velocity"]
 Quantity = Literal["position", "velocity", "effort"]
 #: A limit is refused past this (as the trajectory schema's values: past it is a typo).
 MAX_SI = 1e9
+#: The smallest |scale| a table may give: below it an SI value of MAX_SI is no float of raw.
+MIN_SCALE = 1e-12
 #: How far past a limit a value still counts as on it (floating-point noise, relative).
 ON_THE_LIMIT = 1e-9
 
@@ -111,8 +113,14 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
     """``(key, what is wrong)`` for each key of ``table`` that ``declaration``'s family cannot
     take (``check-config`` and the config's validation refuse them)."""
     problems = []
-    if table.scale == 0:
-        problems.append(("scale", "must not be 0 (SI per raw unit; negative flips the direction)"))
+    if abs(table.scale) < MIN_SCALE:
+        problems.append(
+            (
+                "scale",
+                f"must be at least {MIN_SCALE:g} in size (SI per raw unit; not 0; negative "
+                "flips the direction)",
+            )
+        )
     if table.type is not None and table.type not in declaration.types:
         problems.append(("type", f"must be one of {', '.join(declaration.types)}"))
     if table.min is not None and table.max is not None and table.min >= table.max:
@@ -121,7 +129,7 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
         problems.append(("max_effort", "this kind has no command whose effort can be bounded"))
     if table.raw_per_turn is not None and declaration.raw_per_turn is None:
         problems.append(("raw_per_turn", "this kind is not a rotary device"))
-    if problems or table.scale == 0:
+    if problems:
         return problems
     low, high = sorted(table.offset + table.scale * raw for raw in declaration.raw_range)
     for key in ("min", "max"):

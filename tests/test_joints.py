@@ -131,7 +131,8 @@ def config_with(joint: dict, kind: str = "inspire_la") -> dict:
 
 
 @pytest.mark.parametrize(("joint", "path", "words"), [
-    ({"unit": "m", "scale": 0.0}, "joint.scale", "must not be 0"),
+    ({"unit": "m", "scale": 0.0}, "joint.scale", "not 0"),
+    ({"unit": "m", "scale": -1e-300}, "joint.scale", "at least 1e-12 in size"),
     ({"unit": "m", "scale": 1e-5, "min": 0.01, "max": 0.005}, "joint.min", "below max"),
     ({"unit": "m", "scale": 1e-5, "max": 0.05}, "joint.max", "outside the device's range 0–0.02"),
     ({"unit": "m", "scale": 1e-5, "max_effort": 3.0}, "joint.max_effort", "no command"),
