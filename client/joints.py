@@ -29,7 +29,7 @@ from busgate.client.messages import JointInfo, JointState
 from busgate.client.steps import Steps
 from busgate.errors import CommandError
 from busgate.schemas.api import JointFollow as JointTarget
-from busgate.schemas.families import FAMILIES
+from busgate.schemas.joints import declaration_of
 
 if TYPE_CHECKING:
     from busgate.client.devices import DeviceBase
@@ -39,13 +39,9 @@ def follow_field(kind: str) -> str | None:
     """The field of a joint follow target of a device of ``kind``: ``joint`` when its
     family's stream carries positions, ``joint_velocity`` when it carries speeds; ``None``
     when it has no stream, or the kind is not one this SDK knows (rule 3)."""
-    family = FAMILIES.get(kind)
-    declaration = None if family is None else getattr(family.schema, "JOINT", None)
-    if declaration is None:
-        return None
-    if declaration.follow_position is not None:
-        return "joint"
-    return "joint_velocity" if declaration.follow_velocity is not None else None
+    declaration = declaration_of(kind)
+    follows = None if declaration is None else declaration.follows
+    return {"position": "joint", "velocity": "joint_velocity", None: None}[follows]
 
 
 Device = TypeVar("Device", bound="DeviceBase[Any, Any, Any]")

@@ -17,11 +17,10 @@ Rules of this file:
 4. What the browsers get is JSON made of what came in, under the dashboard's own names:
    ``snapshot()`` for a browser that just connected, ``drain()`` for the others since.
 5. A device is shown as its joint, in SI (``JointView``): a position joint's position, a
-   velocity joint's velocity, and its target converted by the calibration its gateway's
-   ``info`` describes (``busgate.schemas.joints.Joint``: the family's joint declaration
-   names the raw fields, so no family's field is named here). A state without a ``joint``
-   (a gateway of an earlier release) is plotted raw, as the family's declaration reads it; a
-   joint that is missing or malformed leaves its values ``None``, never the page broken.
+   velocity joint's velocity, and its target, as its state's ``joint`` says them. A state
+   without a ``joint`` (a gateway of an earlier release) is plotted raw, as the family's
+   joint declaration reads it (``busgate.schemas.joints``), so no family's field is named
+   here; a joint that is malformed leaves its values ``None``, never the page broken.
 """
 
 from __future__ import annotations
@@ -34,10 +33,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from pydantic import ValidationError
-
-from busgate.schemas.families import FAMILIES
-from busgate.schemas.joints import Joint, JointDeclaration, JointTable
+from busgate.schemas.joints import declaration_of, type_told
 
 HISTORY_S = 60.0
 SAMPLE_EVERY_S = 0.05
@@ -74,34 +70,6 @@ def _text(value: Any, most: int) -> str | None:
     return value[:most] if isinstance(value, str) else None
 
 
-def _declaration(kind: str) -> JointDeclaration | None:
-    family = FAMILIES.get(kind)
-    return None if family is None else getattr(family.schema, "JOINT", None)
-
-
-def described_joint(kind: str, described: Any) -> Joint | None:
-    """The joint an ``info`` device entry describes (``described``: its ``joint``), as the
-    conversions of its raw values to SI; ``None`` when it describes none a device of
-    ``kind`` can be (a calibration is taken only as a joint table would be: finite, within
-    bounds, a length unit or an angle, or raw units)."""
-    declaration = _declaration(kind)
-    if declaration is None or not isinstance(described, dict):
-        return None
-    name, joint_type = described.get("name"), described.get("type")
-    if not isinstance(name, str) or joint_type not in declaration.types:
-        return None
-    if described.get("unit") == "raw":
-        return Joint.of(name[:MAX_NAME], declaration, None)
-    table = {key: described.get(key) for key in ("unit", "scale", "offset", "raw_per_turn")}
-    if declaration.raw_per_turn is None:
-        table["raw_per_turn"] = None  # not a rotary device: none to override
-    try:
-        parsed = JointTable.model_validate({**table, "type": joint_type})
-    except ValidationError:
-        return None
-    return None if parsed.scale == 0 else Joint.of(name[:MAX_NAME], declaration, parsed)
-
-
 @dataclass(frozen=True, slots=True)
 class JointView:
     """What a device's row and plot show of its joint, in SI, from one state: its value (a
@@ -118,21 +86,20 @@ class JointView:
     effort_unit: str | None
 
     @classmethod
-    def of(cls, kind: str, joint: Joint | None, state: dict[str, Any]) -> JointView | None:
-        """The view of ``state`` (distrusted) of a device of ``kind`` whose ``info``
-        described ``joint``; ``None`` when the state carries no joint object (rule 5)."""
+    def of(cls, kind: str, state: dict[str, Any]) -> JointView | None:
+        """The view of ``state`` (distrusted) of a device of ``kind``; ``None`` when the
+        state carries no joint object (rule 5)."""
         values = state.get("joint")
         if not isinstance(values, dict):
             return None
-        declaration = _declaration(kind)
-        joint_type = joint.type if joint is not None else _first_type(declaration)
-        unit = joint.unit if joint is not None else _text(values.get("unit"), MAX_UNIT)
+        declaration = declaration_of(kind)
+        joint_type = type_told(kind, values)
         return cls(
-            joint.name if joint is not None else _text(values.get("name"), MAX_NAME),
+            _text(values.get("name"), MAX_NAME),
             joint_type,
-            unit,
+            _text(values.get("unit"), MAX_UNIT),
             number(values.get(joint_type)),
-            _target_si(joint, state),
+            number(values.get("target")),
             number(values.get("velocity")),
             number(values.get("effort")),
             None if declaration is None else declaration.effort_unit,
@@ -155,53 +122,30 @@ class JointView:
         }
 
 
-def _first_type(declaration: JointDeclaration | None) -> str:
-    """The type a device's joint has when its config names none."""
-    return "position" if declaration is None else declaration.types[0]
-
-
-def _target_si(joint: Joint | None, state: dict[str, Any]) -> float | None:
-    """The device's target (of its joint's position, or of a velocity joint's speed) in SI,
-    by its joint's calibration."""
-    if joint is None:
-        return None
-    declaration = joint.declaration
-    if joint.type == "velocity":
-        speed = number(state.get(declaration.target_speed_rpm or ""))
-        return None if speed is None else number(joint.velocity_si(speed))
-    raw = number(state.get(declaration.target))
-    return None if raw is None else number(joint.position_si(raw))
-
-
 def _raw_sample(kind: str, state: dict[str, Any]) -> tuple[float | None, float | None]:
     """The raw value and target of a state that carries no joint (rule 5)."""
-    declaration = _declaration(kind)
+    declaration = declaration_of(kind)
     if declaration is None:
         return None, None
-    if declaration.types[0] == "velocity" and declaration.speed_rpm is not None:
-        fields = (declaration.speed_rpm, declaration.target_speed_rpm or "")
-    else:
-        fields = (declaration.position, declaration.target)
-    return number(state.get(fields[0])), number(state.get(fields[1]))
+    measured, target = declaration.raw_fields(declaration.types[0])
+    return number(state.get(measured)), number(state.get(target))
 
 
-def sample_of(kind: str, joint: Joint | None, state: dict[str, Any]) -> list[float | None] | None:
+def sample_of(kind: str, state: dict[str, Any]) -> list[float | None] | None:
     """``[ts, joint value, joint target, current_ma]`` of a state; ``None`` without a time."""
     ts = number(state.get("ts"))
     if ts is None:
         return None
-    view = JointView.of(kind, joint, state)
+    view = JointView.of(kind, state)
     value, target = _raw_sample(kind, state) if view is None else (view.value, view.target)
     return [ts, value, target, number(state.get("current_ma"))]
 
 
 class Device:
-    """One device: its kind, bus, joint (as ``info`` describes it), latest state and plot
-    samples."""
+    """One device: its kind, bus, latest state and plot samples."""
 
     def __init__(self, kind: str, bus: str) -> None:
         self.kind, self.bus = kind, bus
-        self.joint: Joint | None = None
         self.state: dict[str, Any] | None = None
         self.samples: deque[list[float | None]] = deque()
         self.pending: list[list[float | None]] = []  # samples the browsers have not had
@@ -209,7 +153,7 @@ class Device:
 
     def take(self, state: dict[str, Any]) -> None:
         self.state = state
-        sample = sample_of(self.kind, self.joint, state)
+        sample = sample_of(self.kind, state)
         if sample is None:
             return
         ts = sample[0]
@@ -316,9 +260,6 @@ class Fleet:
                 continue
             if device["name"] not in gateway.devices and len(gateway.devices) < MAX_DEVICES:
                 gateway.devices[device["name"]] = Device(str(device.get("kind")), bus["name"])
-            known = gateway.devices.get(device["name"])
-            if known is not None:
-                known.joint = described_joint(known.kind, device.get("joint"))
             if isinstance(device.get("state"), dict):
                 self._take_state(gateway, device["name"], device["state"])
 
@@ -406,7 +347,7 @@ class Fleet:
 def _device_view(
     gateway: str, name: str, device: Device, samples: list[list[float | None]]
 ) -> dict[str, Any]:
-    view = None if device.state is None else JointView.of(device.kind, device.joint, device.state)
+    view = None if device.state is None else JointView.of(device.kind, device.state)
     return {
         "gateway": gateway,
         "device": name,

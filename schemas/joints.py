@@ -25,14 +25,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from busgate.errors import RefusedError
 from busgate.schemas.base import Published
+from busgate.schemas.families import FAMILIES
 
 JointType = Literal["position", "velocity"]
+JOINT_TYPES: tuple[JointType, ...] = get_args(JointType)
 #: What a command or a follow target sets: a position (raw units), a speed (the family's
 #: speed unit: rpm or raw units per second) or an effort (the family's effort unit).
 Quantity = Literal["position", "velocity", "effort"]
@@ -79,6 +81,36 @@ class JointDeclaration:
     #: The fastest speed the device takes, in its speed unit (``None``: no speed commands).
     top_speed: float | None = None
 
+    def raw_fields(self, joint_type: JointType) -> tuple[str, str]:
+        """The telemetry fields of a joint's value, measured and commanded, raw: a velocity
+        joint's speed when the family measures one, else its position."""
+        if joint_type == "velocity" and self.speed_rpm is not None:
+            return self.speed_rpm, self.target_speed_rpm or self.speed_rpm
+        return self.position, self.target
+
+    @property
+    def follows(self) -> Literal["position", "velocity"] | None:
+        """What the family's follow stream carries: positions, speeds, or nothing."""
+        if self.follow_position is not None:
+            return "position"
+        return "velocity" if self.follow_velocity is not None else None
+
+
+def type_told(kind: str, joint: Any) -> JointType:
+    """The type a state's ``joint`` (distrusted) says, else the one a device of ``kind`` has
+    when its config names none (a state of a gateway of an earlier release)."""
+    told = joint.get("type") if isinstance(joint, dict) else None
+    declaration = declaration_of(kind)
+    default: JointType = "position" if declaration is None else declaration.types[0]
+    return next((known for known in JOINT_TYPES if known == told), default)
+
+
+def declaration_of(kind: str) -> JointDeclaration | None:
+    """The joint declaration of the family of ``kind`` (``None``: no such kind, or a family
+    without one), for what reads a device's state by its kind."""
+    family = FAMILIES.get(kind)
+    return None if family is None else getattr(family.schema, "JOINT", None)
+
 
 class JointTable(BaseModel):
     """A device's ``[buses.devices.joint]`` table (docs/joints.md)."""
@@ -103,10 +135,15 @@ class JointState(Published):
     (``null`` where the family cannot know)."""
 
     name: str = Field(description="The joint's name (its table's, else the device's).")
+    type: JointType = Field(description="A position joint, or a velocity joint.")
     unit: str = Field(description='Position unit: "m", "rad", or "raw" without a table.')
     position: float | None = Field(description="Position, in unit.")
     velocity: float | None = Field(description="Velocity, in unit per second.")
     effort: float | None = Field(description="Effort, in the joint's effort unit (info).")
+    target: float | None = Field(
+        description="What the joint is commanded to: a position joint's position, in unit; "
+        "a velocity joint's velocity, in unit per second."
+    )
 
 
 def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tuple[str, str]]:
@@ -311,7 +348,7 @@ class Joint:
     @property
     def follows(self) -> Literal["position", "velocity"]:
         """What the family's follow stream carries: positions, or speeds."""
-        return "position" if self.declaration.follow_position is not None else "velocity"
+        return self.declaration.follows or "velocity"
 
     def kind_follow(
         self, position: float | None, velocity: float | None
@@ -348,14 +385,18 @@ class Joint:
         position = telemetry.get(declaration.position)
         speed = telemetry.get(declaration.speed_rpm) if declaration.speed_rpm else None
         effort = telemetry.get(declaration.effort) if declaration.effort else None
+        target = telemetry.get(declaration.raw_fields(self.type)[1])
+        to_si = self.velocity_si if self.type == "velocity" else self.position_si
         return {
             "name": self.name,
+            "type": self.type,
             "unit": self.unit,
             "position": None if position is None else self.position_si(position),
             "velocity": None if speed is None else self.velocity_si(speed),
             "effort": None
             if effort is None
             else math.copysign(1.0, self.scale) * effort * declaration.effort_per_raw,
+            "target": None if target is None else to_si(target),
         }
 
     def describe(self) -> dict[str, Any]:

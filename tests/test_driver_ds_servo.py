@@ -144,8 +144,8 @@ def test_poll_replies_become_telemetry_in_named_units() -> None:
         "temperature_c": 31, "target": 2047, "pending_target": None, "torque_on": True,
         "enabled": True, "faults": [],
         # Without a joint table: raw units, its current as its effort in A.
-        "joint": {"name": "arm", "unit": "raw", "position": 2047.0, "velocity": None,
-                  "effort": 0.25},
+        "joint": {"name": "arm", "type": "position", "unit": "raw", "position": 2047.0,
+                  "velocity": None, "effort": 0.25, "target": 2047.0},
     }
 
 

@@ -67,14 +67,19 @@ def test_a_speed_comes_back_from_si(rpm, turn, flip):
 def test_rpm_to_rad_per_s_is_exact_with_the_manuals_pulses_per_turn():
     assert wheel().velocity_si(60.0) == pytest.approx(TURN, rel=1e-15)
     assert wheel(scale=-TURN / 10_000).velocity_si(60.0) == pytest.approx(-TURN, rel=1e-15)
+    # A velocity joint's target is its commanded speed, in SI.
+    state = wheel().state({"target_speed_rpm": 60.0, "speed_rpm": 30.0, "target": 5})
+    assert (state["type"], state["target"]) == ("velocity", pytest.approx(TURN))
 
 
 def test_the_joint_state_is_in_si_with_the_direction_of_the_scale():
     joint = la_joint(scale=-5e-6, offset=0.01)
     state = joint.state({"position": 1000, "force_g": 1000})
-    assert state == {"name": "la1", "unit": "m", "position": pytest.approx(0.005),
-                     "velocity": None, "effort": pytest.approx(-9.80665)}
+    assert state == {"name": "la1", "type": "position", "unit": "m",
+                     "position": pytest.approx(0.005), "velocity": None,
+                     "effort": pytest.approx(-9.80665), "target": None}
     assert joint.state({"position": None, "force_g": None})["position"] is None
+    assert joint.state({"target": 200})["target"] == pytest.approx(0.009)
 
 
 def test_a_device_without_a_table_is_a_raw_joint_limited_by_its_range():

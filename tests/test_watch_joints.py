@@ -1,6 +1,6 @@
 """``busgate watch``'s table (``busgate.gateway.cli.watch_table``) shows each device's joint in
 SI with its unit beside its raw values, fed plain dicts as zenoh's callbacks would: a position
-joint's position, a velocity joint's velocity (its type from ``info``, else its family's), the
+joint's position, a velocity joint's velocity (its type its state's, else its family's), the
 raw values through the family's joint declaration, and a joint missing or malformed as ``-``."""
 
 from __future__ import annotations
@@ -35,10 +35,8 @@ def cells(table: WatchTable, device: str) -> list[str]:
     return [cell for cell in line.split("  ") if cell]
 
 
-def row(state: dict, device: str = "la1", info: dict | None = None) -> list[str]:
+def row(state: dict, device: str = "la1") -> list[str]:
     table = WatchTable()
-    if info is not None:
-        table.seed(info, lambda key: True)
     table.update_state(f"busgate/gw1/dev/{device}/state", state, 1.0)
     return cells(table, device)
 
@@ -53,20 +51,19 @@ def test_a_position_joint_shows_its_position_in_si_beside_the_raw_values() -> No
 def test_a_velocity_joint_shows_its_velocity_per_second_and_its_speed_raw() -> None:
     shown = row(wheel_state(), "wheel")
     assert shown[JOINT] == "1.571 rad/s"  # a ZLAC706 is a velocity joint unless told
+    assert row(wheel_state(type="velocity"), "wheel")[JOINT] == "1.571 rad/s"
     assert shown[MOTION] == "15.0 rpm -> 15.0"
 
 
-def test_the_joints_type_is_its_gateways_info_when_told() -> None:
-    info = {"gateway": "gw1", "buses": [{"name": "can0", "devices": [
-        {"name": "wheel", "kind": "zlac706", "joint": {"name": "wheel", "type": "position"}}]}]}
-    shown = row(wheel_state(), "wheel", info)
+def test_the_joints_type_is_its_states_when_told() -> None:
+    shown = row(wheel_state(type="position"), "wheel")
     assert shown[JOINT] == "0.7757 rad" and shown[MOTION] == "1234"
-    table = WatchTable()  # the type stays with the row as new states replace the old
-    table.seed(info, lambda key: True)
+    table = WatchTable()
     for _ in range(2):
-        table.update_state("busgate/gw1/dev/wheel/state", wheel_state(), 1.0)
+        table.update_state("busgate/gw1/dev/wheel/state", wheel_state(type="position"), 1.0)
     assert cells(table, "wheel")[JOINT] == "0.7757 rad"
     assert table.changed_lines(1.0)[0].split()[JOINT + 1] == "joint=0.7757rad"
+    assert row(wheel_state(type="sideways"), "wheel")[JOINT] == "1.571 rad/s"  # distrusted
 
 
 @pytest.mark.parametrize("joint", [

@@ -11,8 +11,8 @@ and formats outside it.
 Each device shows its joint in SI (``JOINT``: a position joint's position in its unit, a
 velocity joint's velocity in its unit per second, from the state's ``joint``) beside its raw
 values (``MOTION``: measured → target, in the family's units, read through the family's joint
-declaration, so that no family's field is named here). A joint's type is its gateway's
-``info``'s, else the type its family takes when a config names none.
+declaration, so that no family's field is named here). A joint's type is its state's, else
+the type its family takes when a config names none (a gateway of an earlier release).
 """
 
 from __future__ import annotations
@@ -22,8 +22,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from busgate.schemas.families import FAMILIES
-from busgate.schemas.joints import JointDeclaration
+from busgate.schemas.joints import JointType, declaration_of, type_told
 
 DEVICE_COLUMNS = (
     "device",
@@ -87,15 +86,9 @@ class WatchTable:
                     self._buses.setdefault((gateway, name), _Row({}, None))
                 for device in bus.get("devices", []):
                     state = device.get("state") if isinstance(device.get("state"), dict) else {}
-                    if not wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
-                        continue
-                    row = self._devices.setdefault(
-                        (gateway, str(device.get("name"))),
-                        _Row({"kind": device.get("kind"), **state}, None),
-                    )
-                    joint = device.get("joint")
-                    if isinstance(joint, dict) and joint.get("type") in _JOINT_TYPES:
-                        row.joint_type = joint["type"]
+                    row = _Row({"kind": device.get("kind"), **state}, None)
+                    if wanted(f"{gateway}/dev/{device.get('name', '?')}/state"):
+                        self._devices.setdefault((gateway, str(device.get("name"))), row)
 
     def render(self, now: float) -> list[str]:
         """The whole table, devices then buses."""
@@ -139,9 +132,8 @@ class WatchTable:
     def _store(self, rows: dict, key: str, values: dict[str, Any], now: float) -> None:
         with self._lock:
             row = rows.get(_names(key))
-            stored = rows[_names(key)] = _Row(values, now)
-            if row is not None:
-                stored.reported, stored.joint_type = row.reported, row.joint_type
+            reported = row.reported if row else float("-inf")
+            rows[_names(key)] = _Row(values, now, reported)
 
     def _snapshot(self) -> tuple[list, list, bool]:
         with self._lock:
@@ -151,12 +143,12 @@ class WatchTable:
 
 
 class _Row:
-    __slots__ = ("joint_type", "received", "reported", "values")
+    __slots__ = ("received", "reported", "values")
 
-    def __init__(self, values: dict[str, Any], received: float | None) -> None:
-        self.values, self.received, self.reported = values, received, float("-inf")
-        #: The joint's type as its gateway's ``info`` describes it (``None``: not told).
-        self.joint_type: str | None = None
+    def __init__(
+        self, values: dict[str, Any], received: float | None, reported: float = float("-inf")
+    ) -> None:
+        self.values, self.received, self.reported = values, received, reported
 
 
 def _names(key: str) -> tuple[str, str]:
@@ -186,8 +178,8 @@ def _device_cells(name: str, row: _Row, now: float) -> list[str]:
         "-" if online is None else ("yes" if online else "NO"),
         "STALE" if state.get("stale") else "-",
         _power(state),
-        _joint(name, state, _joint_type(row)),
-        _motion(state, _joint_type(row)),
+        _joint(name, state, _joint_type(state)),
+        _motion(state, _joint_type(state)),
         _text(state.get("temperature_c")),
         _text(state.get("current_ma")),
         ",".join(map(str, state.get("faults") or [])) or "-",
@@ -212,26 +204,12 @@ def _reading_age(row: _Row, now: float) -> str:
     return f"{age + max(0.0, now - row.received):.1f}s"
 
 
-_JOINT_TYPES = ("position", "velocity")
-
-
-def _declaration(state: dict[str, Any]) -> JointDeclaration | None:
-    """What the family of the device's kind says its raw fields are as a joint."""
+def _joint_type(state: dict[str, Any]) -> JointType:
     kind = state.get("kind")
-    family = FAMILIES.get(kind) if isinstance(kind, str) else None
-    return None if family is None else getattr(family.schema, "JOINT", None)
+    return type_told(kind if isinstance(kind, str) else "", state.get("joint"))
 
 
-def _joint_type(row: _Row) -> str:
-    """The joint's type: its gateway's ``info``'s, else its family's first (a config that
-    names none gets it)."""
-    if row.joint_type is not None:
-        return row.joint_type
-    declaration = _declaration(row.values)
-    return "position" if declaration is None else declaration.types[0]
-
-
-def _joint(device: str, state: dict[str, Any], joint_type: str) -> str:
+def _joint(device: str, state: dict[str, Any], joint_type: JointType) -> str:
     """The joint's value in SI with its unit: a position joint's position, a velocity joint's
     velocity (per second); its name before it when it is not the device's."""
     joint = state.get("joint")
@@ -246,18 +224,16 @@ def _joint(device: str, state: dict[str, Any], joint_type: str) -> str:
     return f"{name[:64]}: {shown}" if isinstance(name, str) and name != device else shown
 
 
-def _motion(state: dict[str, Any], joint_type: str) -> str:
+def _motion(state: dict[str, Any], joint_type: JointType) -> str:
     """The raw values: measured -> target, of the joint's position or (a velocity joint) of
     its speed in rpm, as the family names them."""
-    declaration = _declaration(state)
+    kind = state.get("kind")
+    declaration = declaration_of(kind) if isinstance(kind, str) else None
     if declaration is None:
         return "-"
-    if joint_type == "velocity" and declaration.speed_rpm is not None:
-        measured, unit = state.get(declaration.speed_rpm), " rpm"
-        target = state.get(declaration.target_speed_rpm or "")
-    else:
-        measured, unit = state.get(declaration.position), ""
-        target = state.get(declaration.target)
+    measured_field, target_field = declaration.raw_fields(joint_type)
+    measured, target = state.get(measured_field), state.get(target_field)
+    unit = " rpm" if measured_field == declaration.speed_rpm else ""
     if measured is None and target is None:
         return "-"
     shown = f"{_text(measured)}{unit}"
