@@ -1,16 +1,19 @@
 """A path's values against a device's range, found per segment (gateway/trajectory/bounds.py):
 random paths of every interpolation against a range, compared with the path sampled densely;
-the cost counted in looks at the range, not in time, whatever the path's duration."""
+the cost counted in looks at the range, not in time, whatever the path's duration; and the
+bounds of its derivatives (a joint's velocity and acceleration limits) against its sampled
+rates."""
 
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from busgate.gateway.trajectory.bounds import bernstein, value_refused
+from busgate.gateway.trajectory.bounds import bernstein, rate_bounds, rate_refused, value_refused
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Knot, Path
 from busgate.schemas.trajectory import MAX_MAGNITUDE, MAX_TRAJECTORY_S
 
@@ -117,3 +120,58 @@ def test_any_play_the_schema_takes_gives_a_finite_path_and_a_verdict(points, int
     assert refused is None or (math.isfinite(refused) and not within(refused))
     for knot in path.knots:
         assert math.isfinite(path.at(knot.t_s / 2)) and math.isfinite(path.at(knot.t_s))
+
+
+# -- the derivative's bounds, per segment --------------------------------------------------------
+
+PER_SEGMENT = 64
+
+
+def quotients(path: Path, order: int) -> list[tuple[list[float], float]]:
+    """Per segment: its difference quotients of ``order`` (1: ``(p(t+h) - p(t)) / h``, 2: the
+    second difference over ``h²``) on a grid of ``PER_SEGMENT`` steps, each equal to the
+    derivative somewhere on the segment (the mean value theorem), and how far rounding may
+    move them (each value's, and each time's times the path's speed)."""
+    found = []
+    for a, b in pairwise(path.knots):
+        h = (b.t_s - a.t_s) / PER_SEGMENT
+        values = [path.at(a.t_s + i * h) for i in range(PER_SEGMENT)] + [b.value]
+        steps = [(q - p) / h for p, q in pairwise(values)]
+        if order == 1:
+            made = steps
+        else:
+            made = [
+                (r - 2 * q + p) / h**2
+                for p, q, r in zip(values, values[1:], values[2:], strict=False)
+            ]
+        rounding = max(abs(v) for v in values) + max(abs(v) for v in steps) * b.t_s + 1.0
+        found.append((made, 16 * 2.3e-16 * rounding / h**order))
+    return found
+
+
+@pytest.mark.parametrize("order", [1, 2])
+@given(st.floats(0, 2000), knots, st.sampled_from(INTERPOLATIONS))
+def test_a_segments_derivative_bound_holds_its_sampled_rates(order, start, points, interpolation):
+    """Every difference quotient on a segment is within that segment's bound of the
+    derivative; a limit twice the largest quotient is never refused, and one below the
+    largest is, with a value past it."""
+    path = path_of(start, points, interpolation)
+    sampled = quotients(path, order)
+    for (low, high), (made, slack) in zip(rate_bounds(path, order), sampled, strict=True):
+        width = slack + 1e-9 * max(abs(low), abs(high))
+        assert all(low - width <= q <= high + width for q in made)
+    largest = max(max(abs(q) for q in made) for made, _ in sampled)
+    slack = max(s for _, s in sampled)
+    limit = 2 * largest + 10 * slack + 1e-6
+    assert rate_refused(path, order, lambda rate: abs(rate) <= limit) is None
+    if largest > 10 * slack + 1e-6:
+        below = largest / 2
+        found = rate_refused(path, order, lambda rate: abs(rate) <= below)
+        assert found is not None and abs(found.value) > below
+        assert 0 <= found.t_s <= path.end_s
+
+
+def test_a_derivative_past_a_float_is_refused_as_infinite():
+    path = Path(0.0, [Knot(5e-324, 1000.0)], "linear")
+    found = rate_refused(path, 1, lambda rate: abs(rate) <= 1e6)
+    assert found is not None and found.value == math.inf and found.t_s == 0.0

@@ -21,12 +21,9 @@ import math
 import time
 from collections.abc import Iterator
 from dataclasses import astuple, dataclass
-from itertools import pairwise
 
 import can
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from busgate.client.trajectories import play_body
 from busgate.codecs import inspire_la as la
@@ -40,9 +37,8 @@ from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
-from busgate.gateway.trajectory.bounds import rate_bounds, rate_refused
 from busgate.gateway.trajectory.checks import members_of
-from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Knot, Path, paths_of
+from busgate.gateway.trajectory.interpolation import Knot, paths_of
 from busgate.gateway.trajectory.lanes import answer
 from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import CanBus, SerialBus
@@ -418,74 +414,6 @@ def test_the_sdks_play_sends_units_only_when_given():
     joint = play_body("c", "t", ["la1"], points, {"units": "joint"})
     assert joint["units"] == "joint"
     TrajectoryPlay.model_validate(joint)
-
-
-# -- the derivative's bounds, per segment --------------------------------------------------------
-
-knots = st.lists(
-    st.tuples(st.floats(0.05, 5.0), st.floats(-500, 2500), st.floats(-3000, 3000),
-              st.floats(-30_000, 30_000)),
-    min_size=1, max_size=5,
-)  # fmt: skip
-PER_SEGMENT = 64
-
-
-def path_of(start: float, points, interpolation: str) -> Path:
-    t_s, made = 0.0, []
-    for gap, value, velocity, acceleration in points:
-        t_s += gap
-        made.append(Knot(t_s, value, velocity, acceleration))
-    return Path(start, made, interpolation)
-
-
-def quotients(path: Path, order: int) -> list[tuple[list[float], float]]:
-    """Per segment: its difference quotients of ``order`` (1: ``(p(t+h) - p(t)) / h``, 2: the
-    second difference over ``h²``) on a grid of ``PER_SEGMENT`` steps, each equal to the
-    derivative somewhere on the segment (the mean value theorem), and how far rounding may
-    move them (each value's, and each time's times the path's speed)."""
-    found = []
-    for a, b in pairwise(path.knots):
-        h = (b.t_s - a.t_s) / PER_SEGMENT
-        values = [path.at(a.t_s + i * h) for i in range(PER_SEGMENT)] + [b.value]
-        steps = [(q - p) / h for p, q in pairwise(values)]
-        if order == 1:
-            made = steps
-        else:
-            made = [
-                (r - 2 * q + p) / h**2
-                for p, q, r in zip(values, values[1:], values[2:], strict=False)
-            ]
-        rounding = max(abs(v) for v in values) + max(abs(v) for v in steps) * b.t_s + 1.0
-        found.append((made, 16 * 2.3e-16 * rounding / h**order))
-    return found
-
-
-@pytest.mark.parametrize("order", [1, 2])
-@given(st.floats(0, 2000), knots, st.sampled_from(INTERPOLATIONS))
-def test_a_segments_derivative_bound_holds_its_sampled_rates(order, start, points, interpolation):
-    """Every difference quotient on a segment is within that segment's bound of the
-    derivative; a limit twice the largest quotient is never refused, and one below the
-    largest is, with a value past it."""
-    path = path_of(start, points, interpolation)
-    sampled = quotients(path, order)
-    for (low, high), (made, slack) in zip(rate_bounds(path, order), sampled, strict=True):
-        width = slack + 1e-9 * max(abs(low), abs(high))
-        assert all(low - width <= q <= high + width for q in made)
-    largest = max(max(abs(q) for q in made) for made, _ in sampled)
-    slack = max(s for _, s in sampled)
-    limit = 2 * largest + 10 * slack + 1e-6
-    assert rate_refused(path, order, lambda rate: abs(rate) <= limit) is None
-    if largest > 10 * slack + 1e-6:
-        below = largest / 2
-        found = rate_refused(path, order, lambda rate: abs(rate) <= below)
-        assert found is not None and abs(found.value) > below
-        assert 0 <= found.t_s <= path.end_s
-
-
-def test_a_derivative_past_a_float_is_refused_as_infinite():
-    path = Path(0.0, [Knot(5e-324, 1000.0)], "linear")
-    found = rate_refused(path, 1, lambda rate: abs(rate) <= 1e6)
-    assert found is not None and found.value == math.inf and found.t_s == 0.0
 
 
 def test_a_velocity_joints_raw_driver_has_no_speed_limit():
