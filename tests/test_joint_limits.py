@@ -98,6 +98,13 @@ def speeds(can_sim, since: int) -> list[float]:
             if (speed := written_speed(frame)) is not None]
 
 
+def ramp_of(written: list[float]) -> list[float]:
+    """The speeds in the order each was first written: a later write of one already written
+    is the keep-alive's (it repeats the last speed the drive acknowledged, and runs when acks
+    were late for its period, as on a loaded host), never a new target."""
+    return list(dict.fromkeys(written))
+
+
 @pytest.mark.parametrize(("device", "command", "words"), [
     ("la1", {"op": "move", "position": 1700}, "joint gripper_left: position 0.0085 m is beyond "
                                               "its max 0.008 m"),
@@ -181,7 +188,7 @@ def test_a_follow_step_becomes_a_ramp_at_max_velocity_and_is_told_once(gateway):
 
 
 def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refused(gateway):
-    api, simulators, _ = gateway
+    api, simulators, events = gateway
     accepted(api, "wheel", {"op": "set_mode", "mode": "velocity"})
     accepted(api, "wheel", {"op": "enable"})
     too_fast = ask(api, "wheel", {"op": "joint", "velocity": 7.0})
@@ -190,21 +197,24 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
         too_fast["error"]["message"]
     assert ask(api, "wheel", {"op": "velocity", "rpm": 61})["error"]["code"] == "out_of_range"
     can_sim = simulators["can0"]
-    before = len(can_sim.recorder.received())
-    deadline = time.monotonic() + 1.0
-    while time.monotonic() < deadline:  # a step to 3 turns a second: past max_velocity too
-        assert api.follow("wheel", b'{"joint_velocity": 18.85, "client": "c2"}') is None
-        time.sleep(0.01)
-    written = speeds(can_sim, before)
-    api.command("wheel", b'{"op": "end_follow", "client": "c2"}').result(10)
+    for _ in range(3):  # a stream this host let go stale (stopped at once) is streamed again
+        before, told = len(can_sim.recorder.received()), len(events)
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:  # a step to 3 turns a second: past max_velocity too
+            assert api.follow("wheel", b'{"joint_velocity": 18.85, "client": "c2"}') is None
+            time.sleep(0.01)
+        written = speeds(can_sim, before)
+        api.command("wheel", b'{"op": "end_follow", "client": "c2"}').result(10)
+        accepted(api, "wheel", {"op": "enable"})  # answered once the end's stop went out
+        if not any(e.type == "stream_stale" for e in events[told:] if e.device == "wheel"):
+            break
     # 60 rpm/s at a 20 ms period: 1.2 rpm a tick, whole raw units truncated on the wire.
-    assert written and written[0] <= 1.2 + 0.4 and max(written) <= 60
-    assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise([0.0, *written]))
+    assert written and written[0] <= 1.2 + 0.4 and max(written) <= 60, written
+    steps = list(itertools.pairwise([0.0, *ramp_of(written)]))
+    assert all(0 <= b - a <= 1.2 + 0.4 for a, b in steps), written
     assert max(written) > 40  # 1 s of ramp reached most of the way to 60 rpm
-    # A one-shot speed is a ramp too, from where the device was commanded, and it is kept. A
-    # stream that ends stops the wheel at once (0 rpm, queued as a command): a command after
-    # it is answered once that stop went out.
-    accepted(api, "wheel", {"op": "enable"})
+    # A one-shot speed is a ramp too, from where the device was commanded (0 rpm: a stream
+    # that ends stops the wheel at once), and it is kept.
     assert api.devices["wheel"][1].telemetry(0.0)["target_speed_rpm"] == 0
     before = len(can_sim.recorder.received())
     accepted(api, "wheel", {"op": "joint", "velocity": TURN / 2})  # 30 rpm: 25 ticks
@@ -212,5 +222,5 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
     written = speeds(can_sim, before)
     accepted(api, "wheel", {"op": "disable"})
     assert written[0] <= 1.2 + 0.4 and written[-1] == pytest.approx(30, abs=0.4)
-    assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise(written))
+    assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise(ramp_of(written))), written
     assert len(written) >= 25
