@@ -28,3 +28,10 @@ class EncodeError(CodecError, CommandError):
         super().__init__(message)
         self.field = field
         self.value = value
+
+
+class CdrError(CodecError):
+    """Bytes that are not a valid CDR payload of the type being read (a ROS 2 message:
+    ``busgate.codecs.ros2``); it never leaves ``messages.decode``, which answers ``None``."""
+
+    code = "malformed_cdr"

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from busgate.errors import ConfigError
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.joints import JointTable, table_problems
+from busgate.schemas.ros2 import Ros2Section
 from busgate.schemas.validation import closest, suggestion
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
@@ -147,6 +148,7 @@ class Config(Section):
     zenoh: ZenohSection = ZenohSection()
     metrics: MetricsSection | None = None
     recorder: RecorderSection | None = None
+    ros2: Ros2Section | None = None
     buses: Annotated[list[Bus], Field(min_length=1)]
 
     @model_validator(mode="after")

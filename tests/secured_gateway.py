@@ -1,7 +1,8 @@
 """The daemon under deploy/zenoh/busgate.json5 (TLS, user names and passwords, access
 control) as its clients reach it, for tests/test_deploy.py (raw zenoh sessions) and
 tests/test_client_resilience.py (the SDK): the certificates, the accounts, and ``busgate run``
-on an Inspire LA simulator (``secured_daemon_serving``, conftest's ``secured_daemon``)."""
+(a ROS 2 node too) on an Inspire LA simulator (``secured_daemon_serving``, conftest's
+``secured_daemon``)."""
 
 from __future__ import annotations
 
@@ -108,7 +109,9 @@ class SecuredGateway:
 
 
 #: ``reply_margin_ms``: the simulator shares the test's process and this machine's two busy
-#: cores, so a scheduling hiccup of a few ms must not pass for a lost reply.
+#: cores, so a scheduling hiccup of a few ms must not pass for a lost reply. ``[ros2]`` with
+#: its defaults (domain 0, node ``busgate_gw1``: the names the json5's ROS rules are written
+#: for); la1 has no joint table, so in ROS it is the raw joint ``la1``.
 GATEWAY_TOML = """
 [gateway]
 name = "gw1"
@@ -116,6 +119,8 @@ name = "gw1"
 [zenoh]
 config_file = "{config_file}"
 listen = ["{endpoint}"]
+
+[ros2]
 
 [[buses]]
 name = "uart0"

@@ -29,8 +29,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "recording", "scheduler", "service", "sim",
-                 "trajectory")
+GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "recording", "ros2", "scheduler", "service",
+                 "sim", "trajectory")
 
 #: Each room and the rooms it may import ("gateway" is the package itself: its version).
 #: The folders that install as busgate's rooms.
@@ -52,7 +52,9 @@ ALLOWED: dict[str, set[str]] = {
                     "gateway.scheduler", "gateway.trajectory"},
     "gateway.service": {"codecs", "schemas", "client", "gateway", "gateway.bus",
                         "gateway.drivers", "gateway.scheduler", "gateway.api",
-                        "gateway.recording", "gateway.trajectory"},
+                        "gateway.recording", "gateway.ros2", "gateway.trajectory"},
+    "gateway.ros2": {"codecs", "schemas", "gateway.api", "gateway.drivers",
+                     "gateway.scheduler"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.trajectory": {"codecs", "schemas", "gateway.bus", "gateway.drivers",
                            "gateway.scheduler"},
@@ -111,6 +113,7 @@ ZENOH_IMPORTERS = {
     "gateway/api/bridge.py",
     "gateway/service/daemon.py",
     "gateway/cli/router.py",
+    "gateway/ros2/node.py",
 }
 
 

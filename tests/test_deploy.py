@@ -22,6 +22,7 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
+from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.gateway.cli import build_parser
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import RecorderSection
@@ -482,3 +483,90 @@ def test_only_the_operator_resets_the_gateways_estop(
     assert enable not in _frames_since(simulator, mark), "a viewer reset the e-stop"
     operator.put("busgate/gw1/estop/reset", b"{}")
     wait_for(lambda: enable in _frames_since(simulator, mark))
+
+
+# -- the ROS 2 face under the same access control (domain 0, node busgate_gw1) --------------
+# Last in the module: the face's e-stop is reset, and its hold on la1 left to lapse, by the
+# tests themselves, so nothing after them would find la1 stopped or held.
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+TRIGGER = "std_srvs/srv/Trigger"
+NODE = "busgate_gw1"
+#: The GID and sequence numbers of the tests' ROS publisher and service client.
+ROS_GID = bytes(range(rmw_zenoh.GID_SIZE))
+ROS_SEQUENCE = itertools.count(1)
+
+
+def _ros_key(name: str, type_name: str) -> str:
+    return rmw_zenoh.data_key(0, name, type_name, "jazzy")
+
+
+def _ros_attachment() -> bytes:
+    return rmw_zenoh.attachment(next(ROS_SEQUENCE), time.time_ns(), ROS_GID)
+
+
+def _la1_estopped(session: zenoh.Session) -> bool:
+    [info] = _until_answered(session, INFO)
+    return next(device["state"]["estopped"] for bus in info["buses"]
+                for device in bus["devices"] if device["name"] == "la1")
+
+
+def test_every_account_reads_the_ros_joint_states(operator, viewer, wait_for) -> None:
+    heard: dict[str, list] = {"operator": [], "viewer": []}
+    for session, got in ((operator, heard["operator"]), (viewer, heard["viewer"])):
+        session.declare_subscriber("0/robot_joint_states/**", lambda s, got=got: got.append((
+            messages.decode(JOINT_STATE, s.payload.to_bytes()),
+            rmw_zenoh.read_attachment(s.attachment.to_bytes() if s.attachment else None))))
+    wait_for(lambda: all(got for got in heard.values()))
+    for got in heard.values():
+        state, attachment = got[0]
+        assert state is not None and "la1" in state["name"], state
+        assert attachment is not None  # rmw_zenoh's, or a ROS subscriber would drop it
+
+
+def test_a_viewers_ros_estop_call_is_unanswered_an_operators_stops_every_bus(
+        secured_gateway, operator, viewer, wait_for) -> None:
+    """The e-stop service stops whatever its request looks like: the access control alone
+    keeps a viewer from it. The operator's call is answered once every bus stopped; the
+    operator's reset brings la1 back enabled, as the test found it."""
+    _enable(operator)
+    simulator = secured_gateway.simulator
+    key = _ros_key(f"/{NODE}/estop", TRIGGER)
+    request = messages.encode(f"{TRIGGER}_Request", {})
+    mark = len(simulator.recorder.received())
+    assert list(viewer.get(key, payload=request, attachment=_ros_attachment(),
+                           timeout=SETTLE_S)) == [], "a viewer was answered"
+    _gateway_had_its_chance(viewer, simulator)
+    assert "estop" not in _asked_since(simulator, mark), "a viewer's e-stop got out"
+    [reply] = operator.get(key, payload=request, attachment=_ros_attachment(), timeout=10)
+    assert reply.ok is not None, reply.err.payload.to_string()
+    response = messages.decode(f"{TRIGGER}_Response", reply.ok.payload.to_bytes())
+    assert response is not None and response["success"] is True, response
+    wait_for(lambda: "estop" in _asked_since(simulator, mark))
+    mark = len(simulator.recorder.received())
+    operator.put("busgate/gw1/estop/reset", b"{}")
+    wait_for(lambda: la.ControlCommand(1, la.ControlCode.ENABLE) in _frames_since(simulator, mark))
+    wait_for(lambda: not _la1_estopped(operator))
+
+
+def test_a_viewers_ros_joint_command_never_reaches_the_wire_an_operators_does(
+        secured_gateway, operator, viewer, wait_for) -> None:
+    """la1 has no joint table: in ROS it is the raw joint ``la1``, a position in counts. The
+    operator's command makes the face hold la1 (as any ROS controller's) until the hold
+    lapses, which the test waits for."""
+    _enable(operator)  # so that nothing but the access control could stop the viewer
+    simulator = secured_gateway.simulator
+    key = _ros_key("/robot_joint_commands", JOINT_STATE)
+    viewer_target, operator_target = next(FRESH_TARGETS), next(FRESH_TARGETS)
+
+    def command(target: int) -> bytes:
+        return messages.encode(JOINT_STATE, {"name": ["la1"], "position": [float(target)]})
+
+    mark = len(simulator.recorder.received())
+    viewer.put(key, command(viewer_target), attachment=_ros_attachment())
+    _gateway_had_its_chance(viewer, simulator)
+    assert viewer_target not in _asked_since(simulator, mark), "a viewer's command got out"
+    operator.put(key, command(operator_target), attachment=_ros_attachment())
+    wait_for(lambda: operator_target in _asked_since(simulator, mark))
+    enable = json.dumps({"op": "enable"})  # refused ``claimed`` while the face holds la1
+    wait_for(lambda: _answers(operator, f"{LA1}/cmd", enable)[0]["ok"], timeout=10)

@@ -220,7 +220,11 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
     accepted(api, "wheel", {"op": "joint", "velocity": TURN / 2})  # 30 rpm: 25 ticks
     time.sleep(1.0)
     written = speeds(can_sim, before)
+    # The ramp's last write is the drive's acknowledged speed, which its keep-alive repeats
+    # (the last tick's reply is the wheel's though its stream ended as the tick was built).
+    kept = api.devices["wheel"][1].telemetry(0.0)["target_speed_rpm"]
     accepted(api, "wheel", {"op": "disable"})
+    assert kept == ramp_of(written)[-1] == written[-1], written
     assert written[0] <= 1.2 + 0.4 and written[-1] == pytest.approx(30, abs=0.4)
     assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise(ramp_of(written))), written
     assert len(written) >= 25

@@ -73,6 +73,9 @@ class ZenohBridge:
         #: Called with every command (key, payload) and its reply (``None`` for what gets none:
         #: an e-stop, a follow target taken); on the thread that has the reply.
         self.on_command: Callable[[str, bytes, dict[str, Any] | None], None] | None = None
+        #: Called with every joints message published (the ROS face's joint states); on the
+        #: loop's thread.
+        self.on_joints: Callable[[dict[str, Any]], None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
@@ -137,6 +140,12 @@ class ZenohBridge:
             or "no listen endpoint: reachable only through connect"
         )
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
+
+    @property
+    def session(self) -> zenoh.Session:
+        """The open session (the ROS face lives on it too)."""
+        assert self._session is not None, "open() first"
+        return self._session
 
     def connections(self) -> int:
         """Open zenoh transports: the clients, peers and routers connected now."""
@@ -210,8 +219,8 @@ class ZenohBridge:
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
         payload = _payload(query)
-        lanes = self._trajectory_lanes
-        self._answer(query, lambda: lanes.submit(payload), f"{self.base}/trajectory", payload)
+        submit = self.submit_trajectory
+        self._answer(query, lambda: submit(payload), f"{self.base}/trajectory", payload)
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
@@ -233,12 +242,22 @@ class ZenohBridge:
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
-        sender = _sender(payload)
-        self.api.estop(sender)
-        fields = {"key": str(sample.key_expr)} | ({"client": sender} if sender else {})
-        self.events.append(DeviceEvent("*", "estop", fields))
+        self.estop(_sender(payload), str(sample.key_expr))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
+
+    def estop(self, sender: str | None, key: str) -> list[Future]:
+        """Every device of the gateway stopped, ahead of everything, told as an ``estop``
+        event naming where it came from (``key``); any thread."""
+        stopped = self.api.estop(sender)
+        fields = {"key": key} | ({"client": sender} if sender else {})
+        self.events.append(DeviceEvent("*", "estop", fields))
+        return stopped
+
+    def submit_trajectory(self, payload: bytes) -> Future:
+        """A trajectory command (``<base>/trajectory``'s payload) in its lane: the reply's
+        future."""
+        return self._trajectory_lanes.submit(payload)
 
     def _on_estop_reset(self, sample: zenoh.Sample) -> None:
         """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``
@@ -346,6 +365,8 @@ class ZenohBridge:
         joints = self.joints.due(time.monotonic(), time.time())
         if joints is not None:
             self._put(f"{self.base}/joints", joints)
+            if self.on_joints is not None:
+                self.on_joints(joints)
 
     def publish_events(self) -> None:
         while self.events:

@@ -221,6 +221,34 @@ class GatewayApi:
             log.exception("follow on %s failed", device)
             return error_reply(exc)
 
+    def ramp_to(
+        self, device: str, fields: dict[str, Any], client: str, claim_ttl_s: float
+    ) -> dict[str, Any] | None:
+        """A joint's new target (``{"joint": x}`` or ``{"joint_velocity": v}``) from a client
+        that sends a target once and expects it kept, as a ROS controller does: ``client``
+        holds ``device`` while its targets come (each renews the claim for ``claim_ttl_s``;
+        another client's claim refuses it), and the device ramps to the target within its
+        joint's limits and stays there (``BusRunner.ramp``). ``None`` when taken, else the
+        error reply; an e-stopped device is refused ``estopped``."""
+        try:
+            runner, driver = self._device(device)
+            target = _follow_target(driver, fields)
+            if runner.plays.playing(device):
+                raise RefusedError(
+                    "busy", f"{device} is playing a trajectory: a target would fight over it"
+                )
+            authority = runner.authority
+            if authority.claims.hold(device, client, claim_ttl_s, authority.clock()):
+                self._event(device, "claimed", client=client, ttl_s=claim_ttl_s)
+            authority.judge(device, Effect.MOTION, client)
+            runner.ramp(device, target)
+            return None
+        except REFUSALS as exc:
+            return error_reply(exc)
+        except Exception as exc:
+            log.exception("ramp on %s failed", device)
+            return error_reply(exc)
+
     def _sent_before_the_end(self, device: str, client: str | None, seq: int | None) -> bool:
         """A target of the client that ended ``device``'s stream, come after the end but sent
         before it (it took another of zenoh's threads): it must not start the stream again

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from busgate.client import aio
+from busgate.codecs.ros2.rmw_zenoh import resolve
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
 from busgate.errors import CommandError
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
@@ -166,6 +167,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         metavar="HOST:PORT",
         help="serve Prometheus metrics here (default: off)",
     )
+    demo.add_argument(
+        "--ros2",
+        action="store_true",
+        help="be a ROS 2 node too (rmw_zenoh's wire format, domain 0): joint states on "
+        "/robot_joint_states, commands on /robot_joint_commands (the [ros2] table's defaults)",
+    )
     demo.set_defaults(handler=run_demo)
 
 
@@ -186,6 +193,7 @@ def run_demo(args: argparse.Namespace) -> int:
             name=args.name,
             metrics_listen=args.metrics_listen,
             incidents=None if args.incidents is None else os.path.abspath(args.incidents),
+            ros2=args.ros2,
         )
         asyncio.run(_serve_announcing(config, links, dashboard))
     return 0
@@ -243,10 +251,12 @@ def demo_config(
     name: str = GATEWAY_NAME,
     metrics_listen: str | None = None,
     incidents: str | None = None,
+    ros2: bool = False,
 ) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
     With ``connect``, it joins a router there as a zenoh client instead of listening; with
-    ``incidents`` (an absolute path), its flight recorder writes there. Raises
+    ``incidents`` (an absolute path), its flight recorder writes there; with ``ros2``, it is a
+    ROS 2 node too (``[ros2]`` with its defaults). Raises
     ``ConfigError`` (naming the key) for a bad name, endpoint or metrics address."""
     zenoh = {"mode": "client", "connect": [connect]} if connect else {"listen": [listen]}
     document: dict[str, Any] = {
@@ -274,6 +284,8 @@ def demo_config(
         document["metrics"] = {"listen": metrics_listen}
     if incidents is not None:
         document["recorder"] = {"dir": incidents}
+    if ros2:
+        document["ros2"] = {}
     return parse_config(document)
 
 
@@ -300,6 +312,18 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
     ]
     if dashboard is not None:
         lines.append(f"Or see them in a browser: {dashboard}")
+    if config.ros2 is not None:
+        ros2 = config.ros2
+        node = ros2.node_of(config.gateway.name)
+        states = resolve(ros2.joint_states, ros2.namespace, node)
+        lines += [
+            f"ROS 2 (rmw_zenoh, domain {ros2.domain_id}): node {resolve(node, ros2.namespace, '')}"
+            f", joint states on {states}, commands on "
+            f"{resolve(ros2.joint_commands, ros2.namespace, node)}; from a ROS shell:",
+            "  export RMW_IMPLEMENTATION=rmw_zenoh_cpp "
+            f'ZENOH_CONFIG_OVERRIDE=\'mode="client";connect/endpoints=["{endpoint}"]\'',
+            f"  ros2 topic echo {states}",
+        ]
     lines.append("Ctrl-C stops the demo.")
     return "\n".join(lines)
 

@@ -56,6 +56,23 @@ class ClaimTable:
             self._holders[device] = Holder(client, now + ttl_s)
         log.info("device %s claimed by %s for %.1f s", device, client, ttl_s)
 
+    def hold(self, device: str, client: str, ttl_s: float, now: float) -> bool:
+        """``claim`` for a client that renews with every command it sends (the ROS face): only
+        a new claim is logged; ``True`` when the claim is new."""
+        with self._lock:
+            self._check(device, client, now)
+            new = device not in self._holders
+            self._holders[device] = Holder(client, now + ttl_s)
+        if new:
+            log.info("device %s claimed by %s while its commands flow", device, client)
+        return new
+
+    def holder(self, device: str, now: float) -> str | None:
+        """Who holds ``device`` now."""
+        with self._lock:
+            held = self._holders.get(device)
+            return held.client if held is not None and held.until > now else None
+
     def release(self, device: str, client: str, now: float) -> None:
         with self._lock:
             self._check(device, client, now)

@@ -78,6 +78,11 @@ class StreamLimiter:
         self.value = value
         return self._sent(value), limit or held
 
+    def goal(self, wanted: float) -> float:
+        """What a stream aiming at ``wanted`` ends up sending: ``wanted`` within the limits, as
+        the wire takes it (a ramp ends when it sends this: ``tickers`` rule 5)."""
+        return self._sent(_clamp(wanted, self.low, self.high))
+
     def _range_limit(self, wanted: float) -> Limit:
         if self.follows == "velocity":
             return "max_velocity"

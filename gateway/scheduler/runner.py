@@ -203,6 +203,17 @@ class BusRunner:
         self._inbox.append(lambda: self._work.start_stream(device, target, moment))
         self._wake.set()
 
+    def ramp(self, device: str, target: Any) -> None:
+        """Bring ``device`` to ``target`` (a follow target) within its joint's limits, and
+        leave it there (``tickers`` rule 5): a stream that never goes stale and ends on its
+        target. Always through the bus thread, so a target never lands on a ramp that has just
+        ended (a ROS command is sent once and must not be lost)."""
+        moment = now()
+        self._inbox.append(
+            lambda: self._work.start_stream(device, target, moment, ends_on_target=True)
+        )
+        self._wake.set()
+
     def play(self, samplers: dict[str, Sampler], start: float) -> None:
         """Play each device's trajectory sampler on the grid from ``start`` (bus clock)."""
         self._inbox.append(lambda: self.plays.start(samplers, start))

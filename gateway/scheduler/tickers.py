@@ -12,9 +12,10 @@ Rules of this file:
 4. What a tick sends of a stream is its latest target held within the device's joint limits
    (``limiter``), from where the device was commanded when the stream started; the first
    tick that holds a target back raises a ``limited`` event, once per stream.
-5. A ramp (a one-shot speed the gateway brings a velocity joint to at its max_acceleration:
-   ``ends_on_target``) never goes stale: it ends, through ``on_reached``, with the tick that
-   sends its target, and the device keeps that speed.
+5. A ramp (``ends_on_target``: a one-shot speed the gateway brings a velocity joint to at its
+   max_acceleration, a ROS command's position or speed) never goes stale: it ends, through
+   ``on_reached``, with the tick that sends its target (held within the limits: a target
+   beyond one ends on the limit), and the device keeps it.
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ class FollowTicker:
         self._due: float | None = None
         self._last_start: float | None = None
         self._continuing = False  # the next tick follows the previous one without a pause
+        self._carried: list[Driver] = []
 
     def has_room(self, driver: Driver) -> bool:
         limit = self.driver_class.follow_group_limit
@@ -118,8 +120,10 @@ class FollowTicker:
         self.streams.pop(name, None)
 
     def carried(self) -> list[Driver]:
-        """The devices a tick's frame carries."""
-        return [stream.driver for stream in self.streams.values()]
+        """The devices the last tick's frame carried: a ramp's last tick carries its device
+        though its stream ended as the tick was built (rule 5), and that device's reply is
+        still its own (a ZLAC706 keeps the speed it acknowledged)."""
+        return self._carried
 
     def next_due(self) -> float | None:
         return self._due if self.streams else None
@@ -132,13 +136,14 @@ class FollowTicker:
         if not self.streams:
             self._due = None
             return None
-        targets = []
+        targets: list[tuple[Driver, float]] = []
         for name, stream in list(self.streams.items()):
             target = stream.next_target()
             targets.append((stream.driver, target))
-            if stream.ends_on_target and target == stream.latest[0]:
+            if stream.ends_on_target and target == stream.limiter.goal(stream.latest[0]):
                 del self.streams[name]  # this tick sends the ramp's end (rule 5)
                 self.on_reached(stream.driver)
+        self._carried = [driver for driver, _ in targets]
         return self.driver_class.follow_request(targets)
 
     def sent(self, start: float) -> None:

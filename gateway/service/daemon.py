@@ -12,7 +12,8 @@ Then it stops in order, within about a second: the streams and the devices (each
 devices in their safe state and closes, all buses at once), and the zenoh session last.
 With ``[recorder]`` in the config the flight recorder keeps the last seconds of everything and
 writes an incident file on an e-stop, a fault, a bus down or SIGUSR1 (``recording.flight``);
-without, SIGUSR1 only says so in the log (it never ends the daemon).
+without, SIGUSR1 only says so in the log (it never ends the daemon). With ``[ros2]`` the
+gateway is a ROS 2 node too, on the same session (``gateway.ros2``).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from busgate.schemas.config import Config, load_config
 
 if TYPE_CHECKING:
     from busgate.gateway.api.bridge import ZenohBridge
+    from busgate.gateway.ros2.face import Ros2Face
 
 log = logging.getLogger("busgate")
 
@@ -100,9 +102,12 @@ async def serve(
     }
     api = GatewayApi(config.gateway.name, runners, on_event=events.append)
     bridge = zenoh_side.ZenohBridge(config, api, runners, events, states)
+    ros2 = _ros2_face(config, api, bridge)
     recorder = _flight_recorder(config, runners, bridge)  # a folder it cannot write: refused
     _incident_on_sigusr1(loop, recorder)
     _open_session(bridge, loop)  # first: a gateway nobody can reach opens no port
+    if ros2 is not None:
+        ros2.open()
     metrics: Metrics | None = None
     try:
         if config.metrics is not None:  # before the buses too: a refusal leaves them unopened
@@ -121,6 +126,8 @@ async def serve(
             tasks.create_task(watchdog.run(stop))
             if recorder is not None:
                 tasks.create_task(recorder.run(stop))
+            if ros2 is not None:
+                tasks.create_task(ros2.run(stop))
             await bridge.publish_forever(stop)
     finally:
         notifier.stopping(f"gateway {config.gateway.name} stopping")
@@ -130,8 +137,19 @@ async def serve(
         bridge.publish_events()
         if recorder is not None:  # after the buses: their last frames are in it
             await asyncio.to_thread(recorder.flush)
+        if ros2 is not None:
+            ros2.close()
         bridge.close()
         log.info("gateway %s stopped", config.gateway.name)
+
+
+def _ros2_face(config: Config, api: GatewayApi, bridge: ZenohBridge) -> Ros2Face | None:
+    """The ROS 2 face on the bridge's session, with ``[ros2]`` in the config."""
+    if config.ros2 is None:
+        return None
+    from busgate.gateway.ros2.face import Ros2Face  # needs zenoh, as the bridge does
+
+    return Ros2Face(config.ros2, api, bridge)
 
 
 def _flight_recorder(

@@ -1,0 +1,283 @@
+"""busgate in ROS 2: a node on the gateway's own zenoh session, in rmw_zenoh's wire format, so
+ros2_control's topic-based system, MoveIt and the joint trajectory controller drive the
+gateway's joints with no bridge.
+
+Rules of this file:
+
+1. Joint states out: every joint by its joint name, in SI (NaN where unknown), stamped with
+   the newest reading's time, each time the gateway's joints message goes out (when joints
+   were read again, at most at the fastest poll rate).
+2. Joint commands in act under the ``client`` of ``[ros2]`` like any client's: each commanded
+   joint is held by that client while its commands come (``CLAIM_TTL_S`` from the last) and
+   ramps to its target within its limits (``GatewayApi.ramp_to``); a refusal (claimed by
+   another client, e-stopped, a trajectory playing) moves nothing and is said once in the log
+   and in the diagnostics until a command for that joint is taken again. A velocity joint
+   without a command for ``command_timeout_s`` ramps to 0.
+3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
+   under the same client; its refusal is logged and shown in the joints' diagnostics.
+4. The e-stop service stops every bus whatever its request looks like; the reset service
+   brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
+   once a second; ``/diagnostics`` once a second.
+5. Zenoh callbacks hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import threading
+import time
+from collections.abc import Iterable
+from concurrent.futures import Future
+from dataclasses import asdict
+from typing import Any
+
+from busgate.codecs.ros2 import rmw_zenoh
+from busgate.errors import RefusedError
+from busgate.gateway.api.bridge import ZenohBridge
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.ros2.commands import Commands, JointRef
+from busgate.gateway.ros2.diagnostics import BusHealth, JointHealth, diagnostic_array
+from busgate.gateway.ros2.node import NodeName, Ros2Node
+from busgate.gateway.ros2.trajectory import trajectory_command
+from busgate.schemas.encoding import message_json
+from busgate.schemas.replies import error_reply
+from busgate.schemas.ros2 import Ros2Section
+
+log = logging.getLogger(__name__)
+
+#: How long a joint stays held by the face after its last command (rule 2): long enough that
+#: a controller's steady stream keeps it, short enough that another client gets it soon
+#: after ROS stops commanding.
+CLAIM_TTL_S = 2.0
+#: How often the periodic work looks at the time (velocity timeouts, the e-stop state).
+TICK_S = 0.005
+EVERY_SECOND_S = 1.0
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+BOOL = "std_msgs/msg/Bool"
+TRIGGER = "std_srvs/srv/Trigger"
+
+
+class Ros2Face:
+    """The gateway's ROS 2 node (the rules above)."""
+
+    def __init__(self, section: Ros2Section, api: GatewayApi, bridge: ZenohBridge) -> None:
+        self.section = section
+        self.api = api
+        self.bridge = bridge
+        self.node_name = section.node_of(api.name)
+        self.joints = {
+            driver.joint.name: JointRef(driver.joint.name, device, driver.joint.type)
+            for device, (_, driver) in api.devices.items()
+        }
+        self.commands = Commands(self.joints, section.command_timeout_s)
+        self._commands_lock = threading.Lock()
+        self._refusals: dict[str, str] = {}  # joint → its last refused command (rule 2)
+        self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
+        self._node: Ros2Node | None = None
+        self._estopped: bool | None = None
+
+    # -- lifetime ---------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """The node and its entities, on the bridge's open session."""
+        section = self.section
+        self._node = node = Ros2Node(
+            self.bridge.session,
+            NodeName(section.domain_id, section.namespace, self.node_name, section.distro),
+        )
+        self._states = node.publisher(section.joint_states, JOINT_STATE, rmw_zenoh.SENSOR_DATA)
+        self._diagnostics = node.publisher(section.diagnostics, DIAGNOSTIC_ARRAY, rmw_zenoh.DEFAULT)
+        self._estop_state = node.publisher(section.estopped, BOOL, rmw_zenoh.DEFAULT)
+        node.subscription(section.joint_commands, JOINT_STATE, rmw_zenoh.COMMANDS, self._command)
+        node.subscription(
+            section.joint_trajectory, JOINT_TRAJECTORY, rmw_zenoh.DEFAULT, self._trajectory
+        )
+        node.service(section.estop, TRIGGER, self._estop, always=True)
+        node.service(section.reset_estop, TRIGGER, self._reset_estop)
+        self.bridge.on_joints = self.publish_joints
+        log.info(
+            "ROS 2 node %s up (domain %d, %s definitions): joint states on %s, commands on %s",
+            node.name.resolve(self.node_name),
+            section.domain_id,
+            section.distro,
+            node.name.resolve(section.joint_states),
+            node.name.resolve(section.joint_commands),
+        )
+
+    def close(self) -> None:
+        self.bridge.on_joints = None
+        node, self._node = self._node, None
+        if node is not None:
+            node.close()
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """The periodic work (rules 2 and 4), on the loop's thread."""
+        next_second = 0.0
+        while not stop.is_set():
+            moment = time.monotonic()
+            self._stop_silent_joints(moment)
+            estopped = self._gateway_estopped()
+            every_second = moment >= next_second
+            if estopped != self._estopped or every_second:
+                self._estopped = estopped
+                self._estop_state.publish({"data": estopped})
+            if every_second:
+                next_second = moment + EVERY_SECOND_S
+                self._diagnostics.publish(self.diagnostics())
+            await asyncio.sleep(TICK_S)
+
+    # -- out --------------------------------------------------------------------------------
+
+    def publish_joints(self, joints: dict[str, Any]) -> None:
+        """The gateway's joints message as a JointState (rule 1)."""
+        entries = joints["joints"]
+        read = [entry["ts"] for entry in entries if entry["ts"] is not None]
+        self._states.publish(
+            {
+                "header": {"stamp": _stamp(max(read) if read else joints["ts"]), "frame_id": ""},
+                "name": [entry["name"] for entry in entries],
+                "position": [_number(entry["position"]) for entry in entries],
+                "velocity": [_number(entry["velocity"]) for entry in entries],
+                "effort": [_number(entry["effort"]) for entry in entries],
+            }
+        )
+
+    def diagnostics(self) -> dict[str, Any]:
+        """The DiagnosticArray of this moment."""
+        joints = []
+        for joint in self.joints.values():
+            runner, driver = self.api.devices[joint.device]
+            authority = runner.authority
+            joints.append(
+                JointHealth(
+                    joint=joint.name,
+                    device=joint.device,
+                    hardware_id=f"{driver.kind} id {driver.device_id} on bus {runner.name}",
+                    state=runner.states.get(joint.device),
+                    claimed_by=authority.claims.holder(joint.device, authority.clock()),
+                    refusal=self._refusals.get(joint.name),
+                )
+            )
+        buses = []
+        for name, runner in self.api.runners.items():
+            stats = asdict(runner.statistics())
+            errors = stats["timeouts"] + stats["checksum_errors"]
+            new_errors = errors - self._errors_seen.get(name, errors)
+            self._errors_seen[name] = errors
+            buses.append(BusHealth(name, runner.owner.is_open, stats, new_errors))
+        with self._commands_lock:  # zenoh's threads add to it
+            unknown = set(self.commands.unknown)
+        return diagnostic_array(self.node_name, _stamp(time.time()), joints, buses, unknown)
+
+    # -- in (zenoh's threads: hand over only) -----------------------------------------------
+
+    def _command(self, message: dict[str, Any]) -> None:
+        with self._commands_lock:
+            targets, unknown = self.commands.take(message, time.monotonic())
+        for name in unknown:
+            log.warning("ros2: a command names no joint of this gateway: %r (ignored)", name)
+        for target in targets:
+            self._ramp(target.joint, target.follow_fields)
+
+    def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
+        refused = self.api.ramp_to(joint.device, fields, self.section.client, CLAIM_TTL_S)
+        if refused is None:
+            self._refusals.pop(joint.name, None)
+            return
+        self._refused([joint.name], refused["error"]["message"])
+
+    def _trajectory(self, message: dict[str, Any]) -> None:
+        names = message.get("joint_names") or []
+        try:
+            command = trajectory_command(message, self.joints, self.section.client)
+        except RefusedError as exc:
+            self._refused(names, str(exc))
+            return
+        answer = self.bridge.submit_trajectory(message_json(command))
+        answer.add_done_callback(lambda done: self._trajectory_answered(names, done.result()))
+
+    def _trajectory_answered(self, names: list[str], reply: dict[str, Any]) -> None:
+        if reply.get("ok"):
+            for name in names:
+                self._refusals.pop(name, None)
+        else:
+            self._refused(names, f"trajectory: {reply['error']['message']}")
+
+    def _refused(self, joints: Iterable[str], message: str) -> None:
+        for name in joints:
+            if self._refusals.get(name) != message:
+                log.warning("ros2: command for joint %s refused: %s", name, message)
+            self._refusals[name] = message
+
+    def _estop(self, request: dict[str, Any]) -> Future:
+        key = f"ros2 {self._resolve(self.section.estop)}"
+        stopped = self.bridge.estop(self.section.client, key)
+        with self._commands_lock:
+            self.commands.forget(self.joints)
+        return _when_all(stopped, "every bus stopped")
+
+    def _reset_estop(self, request: dict[str, Any]) -> Future:
+        return _when_all(self.api.reset_estop(self.section.client), "every bus reset")
+
+    # -- the loop's thread -------------------------------------------------------------------
+
+    def _stop_silent_joints(self, moment: float) -> None:
+        with self._commands_lock:
+            silent = self.commands.expired(moment)
+        for joint in silent:
+            log.info(
+                "ros2: no command for velocity joint %s in %g s: ramping to 0",
+                joint.name,
+                self.section.command_timeout_s,
+            )
+            self.bridge.events.append(
+                DeviceEvent(joint.device, "stream_stale", {"client": self.section.client})
+            )
+            self._ramp(joint, {"joint_velocity": 0.0})
+
+    def _gateway_estopped(self) -> bool:
+        return any(driver.estopped for _, driver in self.api.devices.values())
+
+    def _resolve(self, name: str) -> str:
+        return rmw_zenoh.resolve(name, self.section.namespace, self.node_name)
+
+
+def _when_all(futures: list[Future], done_message: str) -> Future:
+    """A Trigger response once every bus's future is done: success when none failed."""
+    answer: Future = Future()
+    left = [len(futures)]
+    lock = threading.Lock()
+
+    def one_done(_: Future) -> None:
+        with lock:
+            left[0] -= 1
+            if left[0]:
+                return
+        failures = [f.exception() for f in futures if f.exception() is not None]
+        if failures:
+            reasons = "; ".join(error_reply(e)["error"]["message"] for e in failures if e)
+            answer.set_result({"success": False, "message": reasons})
+        else:
+            answer.set_result({"success": True, "message": done_message})
+
+    if not futures:
+        answer.set_result({"success": True, "message": done_message})
+    for future in futures:
+        future.add_done_callback(one_done)
+    return answer
+
+
+def _stamp(seconds: float) -> dict[str, int]:
+    """A ``builtin_interfaces/Time`` of Unix ``seconds``."""
+    nanoseconds = int(seconds * 1e9)
+    return {"sec": nanoseconds // 1_000_000_000, "nanosec": nanoseconds % 1_000_000_000}
+
+
+def _number(value: float | None) -> float:
+    return math.nan if value is None else float(value)

@@ -1,0 +1,168 @@
+"""A ROS 2 node on a zenoh session, as rmw_zenoh makes one: liveliness tokens that make the
+node and its entities visible to ``ros2 node list`` and ``ros2 topic list``, publishers and
+subscriptions on rmw_zenoh's data keys, and service servers as queryables.
+
+Rules of this file:
+
+1. Every entity declares its liveliness token before it carries data, and every sample,
+   request and reply carries rmw_zenoh's attachment (sequence number, source time, GID):
+   rmw_zenoh's subscribers drop samples without one.
+2. What comes off the network never raises: a payload that is not the type's CDR is dropped
+   (and counted, with a debug line), a request without its attachment or CDR is answered with
+   an error reply and nothing is done, but for the e-stop's (``always=True``): an e-stop is
+   carried out whatever its request looks like.
+3. Zenoh's callbacks hand over: a subscription's handler and a service's handler are given
+   decoded messages on zenoh's thread and must only hand work on (``bridge`` rule 1); a
+   service's reply is sent when the handler's future is done, whichever thread that is.
+4. Our publishers drop rather than block (congestion control DROP): a slow ROS subscriber
+   never stalls the gateway.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from busgate.codecs.ros2 import messages, rmw_zenoh
+from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
+
+log = logging.getLogger(__name__)
+
+#: A service handler: the decoded request in, a future of the response out.
+ServiceHandler = Callable[[dict[str, Any]], "Future[dict[str, Any]]"]
+
+
+@dataclass(frozen=True, slots=True)
+class NodeName:
+    """Where the node is in the ROS graph."""
+
+    domain_id: int
+    namespace: str
+    name: str
+    distro: str
+
+    def resolve(self, name: str) -> str:
+        """A topic or service name, fully qualified (``~/x`` is under the node)."""
+        return rmw_zenoh.resolve(name, self.namespace, self.name)
+
+
+class Ros2Publisher:
+    """One publisher: CDR of its type, with the attachment (rule 1)."""
+
+    def __init__(self, publisher: zenoh.Publisher, type_name: str, gid: bytes) -> None:
+        self._publisher = publisher
+        self.type_name = type_name
+        self._gid = gid
+        self._sequence = itertools.count(1)
+        self._lock = threading.Lock()  # the sequence numbers go out in order
+        self.published = 0
+
+    def publish(self, message: dict[str, Any]) -> None:
+        data = messages.encode(self.type_name, message)
+        with self._lock:
+            attachment = rmw_zenoh.attachment(next(self._sequence), time.time_ns(), self._gid)
+            self._publisher.put(data, attachment=attachment)
+            self.published += 1
+
+
+class Ros2Node:
+    """The node's entities on ``session`` (the rules above)."""
+
+    def __init__(self, session: zenoh.Session, name: NodeName) -> None:
+        self.session = session
+        self.name = name
+        self.zid = str(session.zid())
+        self.dropped = 0  # samples and requests that were not their type's CDR (rule 2)
+        self._entity_ids = itertools.count(1)
+        self._keep: list[Any] = []
+        self._node = rmw_zenoh.Node(name.domain_id, self.zid, 0, name.name, name.namespace)
+        self._keep.append(session.liveliness().declare_token(rmw_zenoh.node_token(self._node)))
+
+    def publisher(self, topic: str, type_name: str, qos: Qos) -> Ros2Publisher:
+        key = self._announce(EntityKind.PUBLISHER, topic, type_name, qos)
+        publisher = self.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.DROP
+        )
+        self._keep.append(publisher)
+        return Ros2Publisher(publisher, type_name, rmw_zenoh.new_gid())
+
+    def subscription(
+        self,
+        topic: str,
+        type_name: str,
+        qos: Qos,
+        handler: Callable[[dict[str, Any]], None],
+    ) -> None:
+        key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
+
+        def received(sample: zenoh.Sample) -> None:
+            message = messages.decode(type_name, sample.payload.to_bytes())
+            if message is None:
+                self._drop(f"{topic}: a sample that is not {type_name} CDR")
+                return
+            handler(message)
+
+        self._keep.append(self.session.declare_subscriber(key, received))
+
+    def service(
+        self, name: str, type_name: str, handler: ServiceHandler, *, always: bool = False
+    ) -> None:
+        """A service server of ``type_name`` (``std_srvs/srv/Trigger``); with ``always`` a
+        request is carried out even when it is not well formed (rule 2: the e-stop)."""
+        key = self._announce(EntityKind.SERVICE_SERVER, name, type_name, rmw_zenoh.SERVICES)
+        request_type, response_type = f"{type_name}_Request", f"{type_name}_Response"
+        gid = rmw_zenoh.new_gid()
+
+        def asked(query: zenoh.Query) -> None:
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            request = messages.decode(request_type, raw)
+            sent = rmw_zenoh.read_attachment(
+                query.attachment.to_bytes() if query.attachment is not None else None
+            )
+            if (request is None or sent is None) and not always:
+                self._drop(f"{name}: a request without its attachment or not {request_type}")
+                query.reply_err(f"not a {type_name} request with rmw_zenoh's attachment")
+                query.drop()
+                return
+            sequence, client = (sent.sequence, sent.gid) if sent is not None else (0, gid)
+
+            def reply(done: Future) -> None:
+                try:
+                    attachment = rmw_zenoh.attachment(sequence, time.time_ns(), client)
+                    payload = messages.encode(response_type, done.result())
+                    query.reply(key, payload, attachment=attachment)
+                except Exception:  # the query may have gone: nothing more to do for it
+                    log.exception("%s: the reply could not be sent", name)
+                finally:
+                    query.drop()
+
+            handler(request or {}).add_done_callback(reply)
+
+        self._keep.append(self.session.declare_queryable(key, asked, complete=True))
+
+    def close(self) -> None:
+        """Undeclare everything (the tokens go: the node leaves the graph)."""
+        for entity in reversed(self._keep):
+            entity.undeclare()
+        self._keep.clear()
+
+    def _announce(self, kind: EntityKind, name: str, type_name: str, qos: Qos) -> str:
+        """The entity's liveliness token (rule 1); its data key."""
+        full, distro = self.name.resolve(name), self.name.distro
+        token = rmw_zenoh.entity_token(
+            self._node, next(self._entity_ids), kind, full, type_name, distro, qos
+        )
+        self._keep.append(self.session.liveliness().declare_token(token))
+        return rmw_zenoh.data_key(self.name.domain_id, full, type_name, distro)
+
+    def _drop(self, what: str) -> None:
+        self.dropped += 1
+        log.debug("ros2: dropped %s", what)

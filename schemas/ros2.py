@@ -1,0 +1,78 @@
+"""The ``[ros2]`` table of the config: busgate's face in ROS 2, on rmw_zenoh's wire format.
+
+Rules of this file:
+
+1. The table's presence turns the face on; every key has the default a ROS user expects
+   (``robot_joint_states`` and ``robot_joint_commands`` are what ros2_control's topic-based
+   system uses), so ``[ros2]`` alone is a working face.
+2. Every name is checked by ROS's rules (``busgate.codecs.ros2.rmw_zenoh``) before the gateway
+   starts: a name ROS would refuse is refused here, naming the key, never a topic nobody can
+   reach.
+3. ``node`` defaults to ``busgate_<gateway>`` (``-`` becoming ``_``: ROS node names are
+   identifiers); ``client`` is the client id the face's commands act under, in claims and
+   events, as any client's.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from busgate.codecs.ros2.rmw_zenoh import (
+    DISTROS,
+    name_problem,
+    namespace_problem,
+    node_name_problem,
+)
+from busgate.schemas.base import ClientId
+
+#: The topics and services of the face, by key (rule 1's defaults).
+TOPIC_DEFAULTS: dict[str, str] = {
+    "joint_states": "robot_joint_states",
+    "joint_commands": "robot_joint_commands",
+    "joint_trajectory": "joint_trajectory",
+    "diagnostics": "/diagnostics",
+    "estopped": "~/estopped",
+    "estop": "~/estop",
+    "reset_estop": "~/reset_estop",
+}
+
+
+class Ros2Section(BaseModel):
+    """``[ros2]``: the ROS 2 face (the rules above)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    domain_id: Annotated[int, Field(ge=0, le=232)] = 0
+    namespace: str = ""
+    node: str | None = None
+    client: ClientId = "ros2"
+    distro: Literal[DISTROS] = "jazzy"  # type: ignore[valid-type]
+    command_timeout_s: Annotated[float, Field(gt=0, le=60)] = 0.5
+    joint_states: str = TOPIC_DEFAULTS["joint_states"]
+    joint_commands: str = TOPIC_DEFAULTS["joint_commands"]
+    joint_trajectory: str = TOPIC_DEFAULTS["joint_trajectory"]
+    diagnostics: str = TOPIC_DEFAULTS["diagnostics"]
+    estopped: str = TOPIC_DEFAULTS["estopped"]
+    estop: str = TOPIC_DEFAULTS["estop"]
+    reset_estop: str = TOPIC_DEFAULTS["reset_estop"]
+
+    @model_validator(mode="after")
+    def _names(self) -> Ros2Section:
+        problem = namespace_problem(self.namespace)
+        if problem is not None:
+            raise ValueError(f"namespace: {problem}")
+        if self.node is not None:
+            problem = node_name_problem(self.node)
+            if problem is not None:
+                raise ValueError(f"node: {problem}")
+        for key in TOPIC_DEFAULTS:
+            problem = name_problem(getattr(self, key))
+            if problem is not None:
+                raise ValueError(f"{key}: {problem}")
+        return self
+
+    def node_of(self, gateway: str) -> str:
+        """The node's name (rule 3)."""
+        return self.node if self.node is not None else f"busgate_{gateway.replace('-', '_')}"

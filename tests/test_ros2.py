@@ -1,0 +1,344 @@
+"""The ROS 2 face end to end, against an independent implementation of rmw_zenoh's format:
+ROBOTIS's ``zenoh-ros2-sdk`` (which decodes with ``rosbags``) subscribes to the gateway's joint
+states, diagnostics and e-stop state, publishes commands and trajectories, calls its services
+and lists its topics; the simulators' wire records say what reached the devices.
+
+One daemon (``serve`` on a thread, zenoh on 127.0.0.1 only, no multicast) serves every test.
+The SDK would clone message definitions with git: it is given a directory made at test time
+from rosbags' ROS 2 Jazzy definitions, so nothing reaches the network."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy
+import pytest
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+from busgate.codecs import inspire_la as la
+from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.zlac706_common import rpm_from_speed_raw
+from busgate.gateway.sim.can_server import CanSimulator
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.schemas.zenoh_session import session_config
+from tests.conftest import unused_loopback_port
+from tests.test_zenoh_api import Daemon, connected, get
+from tests.wire_frames import received, tick_targets, written_speed
+
+TURN = 2 * math.pi
+NODE = "busgate_gw1"
+#: la1: 5 µm a count, 1–8 mm, at most 10 mm/s (at 20 ms, 40 counts a tick).
+GRIPPER = {"name": "gripper", "unit": "m", "scale": 5e-6, "min": 0.001, "max": 0.008,
+           "max_velocity": 0.01}
+#: the wheel: a velocity joint, at most 2 turns a second, 8 turns a second².
+WHEEL = {"name": "wheel", "unit": "rad", "scale": TURN / 10_000, "max_velocity": 2 * TURN,
+         "max_acceleration": 8 * TURN}
+MESSAGE_TYPES = [
+    "builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration", "std_msgs/msg/Header",
+    "std_msgs/msg/Bool", "sensor_msgs/msg/JointState", "trajectory_msgs/msg/JointTrajectory",
+    "trajectory_msgs/msg/JointTrajectoryPoint", "diagnostic_msgs/msg/DiagnosticArray",
+    "diagnostic_msgs/msg/DiagnosticStatus", "diagnostic_msgs/msg/KeyValue",
+    "service_msgs/msg/ServiceEventInfo",
+]
+#: std_srvs/srv/Trigger as ROS 2 defines it (rosbags has no service types).
+TRIGGER_SRV = "---\nbool success\nstring message\n"
+_channels = itertools.count()
+#: What ROS 2 publishes as the type hash of sensor_msgs/msg/JointState (rosidl, Jazzy).
+JOINT_STATE_HASH = "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e"
+
+
+def messages_dir(root: Path) -> Path:
+    """A messages directory for the SDK: each type's own definition, from rosbags' Jazzy
+    store (``generate_msgdef``'s first section; the rest are its dependencies)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name in MESSAGE_TYPES:
+        package, _, message = name.split("/")
+        text = store.generate_msgdef(name, ros_version=2)[0].split("\n" + "=" * 80)[0]
+        path = root / package / "msg" / f"{message}.msg"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text + "\n")
+    (root / "std_srvs" / "srv").mkdir(parents=True)
+    (root / "std_srvs" / "srv" / "Trigger.srv").write_text(TRIGGER_SRV)
+    return root
+
+
+class Received:
+    """What an SDK subscriber got, for waiting on."""
+
+    def __init__(self) -> None:
+        self.messages: list = []
+        self.changed = threading.Condition()
+
+    def __call__(self, message) -> None:
+        with self.changed:
+            self.messages.append(message)
+            self.changed.notify_all()
+
+    def wait(self, predicate, timeout: float = 10.0):
+        """The first message (from now on) ``predicate`` holds for."""
+        with self.changed:
+            start = len(self.messages)
+            deadline = time.monotonic() + timeout
+            while True:
+                for message in self.messages[start:]:
+                    if predicate(message):
+                        return message
+                start = len(self.messages)
+                left = deadline - time.monotonic()
+                assert left > 0, "no such message came"
+                self.changed.wait(left)
+
+
+@pytest.fixture(scope="module")
+def ros(tmp_path_factory):
+    """The daemon with ``[ros2]``, its simulators, a plain zenoh client, and the SDK set up
+    to reach it."""
+    sdk = pytest.importorskip("zenoh_ros2_sdk")
+    from zenoh_ros2_sdk import message_registry
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    port = unused_loopback_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    la_sim = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
+    channel = f"test-ros2-{next(_channels)}"
+    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
+                           bus=can.Bus(interface="virtual", channel=channel))
+    for simulator in (la_sim, can_sim):
+        simulator.start()
+    daemon = Daemon({
+        "gateway": {"name": "gw1"},
+        "zenoh": {"listen": [endpoint]},
+        "ros2": {},
+        "buses": [
+            {"name": "uart0", "transport": "serial", "port": la_sim.port, "baudrate": 921_600,
+             "reply_margin_ms": 50, "devices": [
+                 {"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 50, "joint": GRIPPER},
+                 {"name": "la2", "kind": "inspire_la", "id": 2, "poll_hz": 50}]},
+            {"name": "can0", "transport": "can", "interface": "virtual", "channel": channel,
+             "reply_margin_ms": 50, "devices": [
+                 {"name": "drive", "kind": "zlac706", "id": 5, "heartbeat_ms": 50,
+                  "joint": WHEEL}]}],
+    })
+    client = connected(zenoh.open(session_config(mode="peer", connect=[endpoint])))
+    message_registry._registry = None
+    message_registry.get_registry(str(messages_dir(tmp_path_factory.mktemp("msgs"))))
+    ZenohSession._instance = None
+    session = ZenohSession.get_instance("127.0.0.1", port)
+    world = {"sdk": sdk, "port": port, "client": client, "la": la_sim, "can": can_sim,
+             "entities": [], "types": session.store.types}
+    yield world
+    for entity in world["entities"]:
+        entity.close()
+    session.session.close()
+    ZenohSession._instance = None
+    message_registry._registry = None
+    client.close()
+    daemon.shutdown()
+    for simulator in (la_sim, can_sim):
+        simulator.stop()
+
+
+def subscribe(ros, topic: str, type_name: str) -> Received:
+    got = Received()
+    ros["entities"].append(ros["sdk"].ROS2Subscriber(
+        topic, type_name, got, router_ip="127.0.0.1", router_port=ros["port"]))
+    return got
+
+
+def publisher(ros, topic: str, type_name: str, qos: str | None = None):
+    made = ros["sdk"].ROS2Publisher(topic, type_name, router_ip="127.0.0.1",
+                                    router_port=ros["port"], qos=qos)
+    ros["entities"].append(made)
+    time.sleep(0.3)  # the gateway's subscription learns of it before its first sample
+    return made
+
+
+def service(ros, name: str):
+    # The SDK refuses an empty request definition; rosidl gives an empty request this one
+    # field (and hashes it so), which is what the SDK is told here.
+    made = ros["sdk"].ROS2ServiceClient(
+        name, "std_srvs/srv/Trigger", router_ip="127.0.0.1", router_port=ros["port"],
+        timeout=10.0, request_definition="uint8 structure_needs_at_least_one_member",
+        response_definition="bool success\nstring message")
+    ros["entities"].append(made)
+    return made
+
+
+def header(ros):
+    types = ros["types"]
+    return types["std_msgs/msg/Header"](types["builtin_interfaces/msg/Time"](0, 0), "")
+
+
+def joint_state(ros, names: list[str], **values: list[float]) -> dict:
+    """A JointState's fields for the SDK's publisher (rosbags takes float arrays as numpy)."""
+    return {"header": header(ros), "name": names} | {
+        field: numpy.array(values.get(field, []), dtype=numpy.float64)
+        for field in ("position", "velocity", "effort")}
+
+
+def command(ros, device: str, payload: dict) -> dict:
+    [reply] = get(ros["client"], f"busgate/gw1/dev/{device}/cmd", json.dumps(payload))
+    return reply
+
+
+def la_targets(ros, since: int, device_id: int) -> list[int]:
+    """Every follow target the LA bus received for ``device_id`` after its ``since``-th frame."""
+    return [targets[device_id] for _, frame in received(ros["la"], since, la)
+            if (targets := tick_targets(frame)) and device_id in targets]
+
+
+def wait_for_target(ros, since: int, device_id: int, target: int) -> list[int]:
+    deadline = time.monotonic() + 10
+    while (targets := la_targets(ros, since, device_id))[-1:] != [target]:
+        assert time.monotonic() < deadline, f"no ramp to {target}: {targets[-5:]}"
+        time.sleep(0.02)
+    return targets
+
+
+def test_joint_states_reach_a_ros_subscriber_in_si_with_nan_where_unknown(ros) -> None:
+    states = subscribe(ros, "/robot_joint_states", "sensor_msgs/msg/JointState")
+    message = states.wait(lambda m: list(m.name) == ["gripper", "la2", "wheel"])
+    assert math.isnan(message.velocity[0])  # an LA reports no velocity
+    position_raw = next(d for d in get(ros["client"], "busgate/gw1/info", "")[0]["buses"][0]
+                    ["devices"] if d["name"] == "la1")["state"]["position"]
+    assert message.position[0] == pytest.approx(position_raw * 5e-6, abs=0.0005)
+    assert message.header.stamp.sec > 1_700_000_000  # when the values were read
+
+
+def test_the_node_its_topics_and_services_are_listed(ros) -> None:
+    discovery = ros["sdk"]
+    topics = dict(discovery.get_topic_names_and_types(domain_id=0, router_ip="127.0.0.1",
+                                                      router_port=ros["port"], timeout=2.0))
+    assert topics["/robot_joint_states"] == ["sensor_msgs/msg/JointState"]
+    assert topics["/robot_joint_commands"] == ["sensor_msgs/msg/JointState"]
+    assert topics["/joint_trajectory"] == ["trajectory_msgs/msg/JointTrajectory"]
+    assert topics["/diagnostics"] == ["diagnostic_msgs/msg/DiagnosticArray"]
+    assert topics[f"/{NODE}/estopped"] == ["std_msgs/msg/Bool"]
+    services = dict(discovery.get_service_names_and_types(domain_id=0, router_ip="127.0.0.1",
+                                                          router_port=ros["port"], timeout=2.0))
+    assert services[f"/{NODE}/estop"] == services[f"/{NODE}/reset_estop"] == [
+        "std_srvs/srv/Trigger"]
+    info = discovery.get_topic_info("/robot_joint_states", domain_id=0, router_ip="127.0.0.1",
+                                    router_port=ros["port"], timeout=2.0, verbose=True)
+    [ours] = [p for p in info.publishers if p.node_name == NODE]
+    assert (ours.topic_type, ours.type_hash) == ("sensor_msgs/msg/JointState", JOINT_STATE_HASH)
+    assert ours.qos == "2::,5:,:,:,,"  # sensor data: best effort, keep last 5
+
+
+def test_a_position_command_ramps_within_the_limits_and_is_held(ros) -> None:
+    commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState",
+                         qos="::,1:,:,:,,")
+    since = len(ros["la"].recorder.received())
+    commands.publish(**joint_state(ros, ["gripper"], position=[0.004]))
+    targets = wait_for_target(ros, since, 1, 800)
+    steps = [abs(b - a) for a, b in itertools.pairwise(targets)]
+    assert max(steps) <= 40  # 10 mm/s at 20 ms: 40 counts a tick
+    time.sleep(0.5)  # silence: the joint stays where it was sent, no stop
+    assert command(ros, "la1", {"op": "status"})["state"]["target"] == 800
+    since = len(ros["la"].recorder.received())
+    commands.publish(**joint_state(ros, ["gripper"], position=[0.5]))  # past max
+    targets = wait_for_target(ros, since, 1, 1600)  # 8 mm: clamped to the limit
+    assert max(targets) == 1600
+
+
+def test_a_command_for_a_joint_another_client_holds_moves_nothing(ros) -> None:
+    assert command(ros, "la2", {"op": "claim", "client": "teleop", "ttl_s": 30})["ok"]
+    diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
+    try:
+        since = len(ros["la"].recorder.received())
+        commands.publish(**joint_state(ros, ["la2", "elbow"], position=[1500.0, 1.0]))
+
+        def la2_status(array):
+            return next((s for s in array.status if s.name == f"{NODE}: joint la2"), None)
+
+        told = diagnostics.wait(lambda a: la2_status(a) is not None
+                                and la2_status(a).level == 1)
+        values = {kv.key: kv.value for kv in la2_status(told).values}
+        assert values["claimed_by"] == "teleop" and "teleop" in values["last_refusal"]
+        [commands_status] = [s for s in told.status if s.name == f"{NODE}: commands"]
+        assert commands_status.level == 1 and "elbow" in commands_status.message
+        assert la_targets(ros, since, 2) == []
+    finally:
+        assert command(ros, "la2", {"op": "release", "client": "teleop"})["ok"]
+
+
+def test_a_silent_velocity_joint_ramps_to_zero_after_the_timeout(ros) -> None:
+    assert command(ros, "drive", {"op": "set_mode", "mode": "velocity"})["ok"]
+    assert command(ros, "drive", {"op": "enable"})["ok"]
+    commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
+    since = len(ros["can"].recorder.received())
+    commands.publish(**joint_state(ros, ["wheel"], velocity=[TURN]))  # 60 rpm
+    sent = time.monotonic()
+
+    def speeds() -> list[tuple[float, float]]:
+        return [(record.start, rpm_from_speed_raw(speed))
+                for record, frame in received(ros["can"], since, zcan)
+                if (speed := written_speed(frame)) is not None]
+
+    deadline = time.monotonic() + 10
+    while not any(rpm > 59 for _, rpm in speeds()) or speeds()[-1][1] != 0:  # 60 rpm, raw
+        assert time.monotonic() < deadline, f"no ramp up and down: {speeds()[-5:]}"
+        time.sleep(0.02)
+    written = speeds()
+    top = next(i for i, (_, rpm) in enumerate(written) if rpm > 59)
+    held = written[top][1]
+    first_lower = next(t for t, rpm in written[top:] if rpm < held)
+    stopped = next(t for t, rpm in written[top:] if rpm == 0)
+    # The ramp down starts after the timeout (the first write came when the command was
+    # taken: never earlier than that), and goes down at 8 turns/s²: 60 rpm in 125 ms.
+    assert first_lower - written[0][0] >= 0.5
+    assert stopped - first_lower >= 0.1
+    assert [rpm for _, rpm in written[top:]] == sorted((rpm for _, rpm in written[top:]),
+                                                       reverse=True)
+    assert time.monotonic() - sent < 10
+    assert command(ros, "drive", {"op": "disable"})["ok"]
+
+
+def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros) -> None:
+    # A trajectory starts from where the joint is: within its limits (a simulator starts at 0)
+    assert command(ros, "la1", {"op": "joint", "position": 0.003})["ok"]
+    trajectories = publisher(ros, "/joint_trajectory", "trajectory_msgs/msg/JointTrajectory")
+    since = len(ros["la"].recorder.received())
+    types = ros["types"]
+
+    def point(position: float, seconds: float):
+        empty = numpy.array([], dtype=numpy.float64)
+        whole, fraction = divmod(seconds, 1)
+        duration = types["builtin_interfaces/msg/Duration"](int(whole), round(fraction * 1e9))
+        return types["trajectory_msgs/msg/JointTrajectoryPoint"](
+            numpy.array([position]), empty, empty, empty, duration)
+
+    trajectories.publish(header=header(ros), joint_names=["gripper"], points=[point(0.002, 0.4)])
+    wait_for_target(ros, since, 1, 400)
+    trajectories.publish(header=header(ros), joint_names=["gripper"], points=[point(0.007, 30)])
+    deadline = time.monotonic() + 10
+    while not get(ros["client"], "busgate/gw1/trajectory", '{"op":"status"}')[0]["trajectories"]:
+        assert time.monotonic() < deadline, "the trajectory does not play"
+        time.sleep(0.05)
+    trajectories.publish(header=header(ros), joint_names=[], points=[])
+    while get(ros["client"], "busgate/gw1/trajectory", '{"op":"status"}')[0]["trajectories"]:
+        assert time.monotonic() < deadline, "the empty trajectory did not cancel it"
+        time.sleep(0.05)
+
+
+def test_the_estop_service_stops_every_bus_and_the_reset_brings_them_back(ros) -> None:
+    estopped = subscribe(ros, f"/{NODE}/estopped", "std_msgs/msg/Bool")
+    estopped.wait(lambda m: m.data is False)
+    response = service(ros, f"/{NODE}/estop").call()
+    assert response.success is True
+    estopped.wait(lambda m: m.data is True, timeout=3)
+    info = get(ros["client"], "busgate/gw1/info", "")[0]
+    assert all(d["state"]["estopped"] for bus in info["buses"] for d in bus["devices"])
+    response = service(ros, f"/{NODE}/reset_estop").call()
+    assert response.success is True, response.message
+    estopped.wait(lambda m: m.data is False, timeout=3)

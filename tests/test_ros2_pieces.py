@@ -1,0 +1,141 @@
+"""The ROS 2 face's pure parts: what a commands message asks of each joint (NaN and short lists
+are no command, unknown names told once, velocity joints timed out on a fake clock), a ROS
+trajectory as the gateway's command, and the diagnostics' levels."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from busgate.errors import RefusedError
+from busgate.gateway.ros2.commands import Commands, JointRef
+from busgate.gateway.ros2.diagnostics import (
+    ERROR,
+    OK,
+    STALE,
+    WARN,
+    BusHealth,
+    JointHealth,
+    diagnostic_array,
+)
+from busgate.gateway.ros2.trajectory import ROS_TRAJECTORY_ID, trajectory_command
+
+GRIPPER = JointRef("gripper", "la1", "position")
+WHEEL = JointRef("wheel", "drive", "velocity")
+JOINTS = {j.name: j for j in (GRIPPER, WHEEL)}
+
+
+def commands() -> Commands:
+    return Commands(dict(JOINTS), timeout_s=0.5)
+
+
+def test_each_joint_takes_its_interface_and_nan_or_a_short_list_is_no_command() -> None:
+    taken = commands()
+    targets, unknown = taken.take(
+        {"name": ["gripper", "wheel"], "position": [0.004, 9.0], "velocity": [1.0, 2.5]}, 0.0
+    )
+    assert [(t.joint.name, t.value, t.follow_fields) for t in targets] == [
+        ("gripper", 0.004, {"joint": 0.004}),
+        ("wheel", 2.5, {"joint_velocity": 2.5}),
+    ]
+    assert unknown == []
+    targets, _ = taken.take({"name": ["gripper", "wheel"], "position": [math.nan]}, 0.1)
+    assert targets == []  # NaN for the gripper, no velocity list for the wheel
+    targets, _ = taken.take({"name": ["wheel"], "velocity": [math.inf]}, 0.2)
+    assert targets == []
+
+
+def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
+    taken = commands()
+    targets, unknown = taken.take({"name": ["elbow", "gripper"], "position": [1.0, 0.002]}, 0.0)
+    assert unknown == ["elbow"] and [t.joint for t in targets] == [GRIPPER]
+    assert taken.take({"name": ["elbow"], "position": [1.0]}, 0.1) == ([], [])
+
+
+def test_a_silent_velocity_joint_is_due_a_stop_once_and_a_position_joint_never() -> None:
+    taken = commands()
+    taken.take({"name": ["gripper", "wheel"], "position": [0.004, 0], "velocity": [0, 1.0]}, 0.0)
+    assert taken.expired(0.5) == []
+    assert taken.expired(0.51) == [WHEEL]
+    assert taken.expired(5.0) == []  # told once per silence
+    taken.take({"name": ["wheel"], "velocity": [1.0]}, 6.0)
+    taken.forget(["wheel"])  # stopped otherwise (an e-stop)
+    assert taken.expired(7.0) == []
+
+
+def point(seconds: float, positions: list[float], **fields: list[float]) -> dict:
+    whole, fraction = divmod(seconds, 1)
+    return {"positions": positions, "time_from_start": {"sec": int(whole),
+            "nanosec": round(fraction * 1e9)}} | fields
+
+
+def test_a_ros_trajectory_is_a_joint_play_interpolated_by_the_fields_it_gives() -> None:
+    message = {"joint_names": ["gripper"], "points": [point(0.5, [0.002]), point(1.25, [0.004])]}
+    command = trajectory_command(message, JOINTS, "ros2")
+    assert command == {"op": "play", "id": ROS_TRAJECTORY_ID, "client": "ros2",
+                       "devices": ["la1"], "units": "joint",
+                       "points": [{"t_s": 0.5, "positions": [0.002]},
+                                  {"t_s": 1.25, "positions": [0.004]}]}
+    message["points"] = [point(1, [0.002], velocities=[0.0], accelerations=[0.0]),
+                         point(2, [0.004], velocities=[0.0], accelerations=[0.0])]
+    message["header"] = {"stamp": {"sec": 1_700_000_000, "nanosec": 500_000_000}}
+    command = trajectory_command(message, JOINTS, "ros2")
+    assert command["interpolation"] == "quintic" and command["start_at"] == 1_700_000_000.5
+    assert command["points"][1] == {"t_s": 2.0, "positions": [0.004], "velocities": [0.0],
+                                    "accelerations": [0.0]}
+    message["points"][1].pop("velocities")  # not on every point: not used
+    assert "velocities" not in trajectory_command(message, JOINTS, "ros2")["points"][0]
+
+
+def test_an_empty_trajectory_cancels_and_a_joint_it_cannot_move_is_refused() -> None:
+    assert trajectory_command({"joint_names": ["gripper"], "points": []}, JOINTS, "ros2") == {
+        "op": "cancel", "id": ROS_TRAJECTORY_ID, "client": "ros2"}
+    with pytest.raises(RefusedError, match="elbow"):
+        trajectory_command({"joint_names": ["elbow"], "points": [point(1, [0])]}, JOINTS, "r")
+    with pytest.raises(RefusedError, match="velocity joint"):
+        trajectory_command({"joint_names": ["wheel"], "points": [point(1, [0])]}, JOINTS, "r")
+
+
+def health(state: dict | None, **fields) -> JointHealth:
+    return JointHealth(**({"joint": "gripper", "device": "la1", "hardware_id": "la1",
+                           "state": state, "claimed_by": None, "refusal": None} | fields))
+
+
+@pytest.mark.parametrize(("joint", "level", "message"), [
+    (health(None), STALE, "no reading"),
+    (health({"online": False, "stale": True}), ERROR, "offline"),
+    (health({"online": True, "stale": False, "estopped": True}), ERROR, "e-stopped"),
+    (health({"online": True, "stale": False, "faults": ["overheat"]}), ERROR, "faults: overheat"),
+    (health({"online": True, "stale": True}), STALE, "reading stale"),
+    (health({"online": True, "stale": False}, claimed_by="teleop",
+            refusal="la1 is claimed by 'teleop'"), WARN,
+     "command refused: la1 is claimed by 'teleop'"),
+    (health({"online": True, "stale": False}), OK, "ok"),
+])
+def test_a_joints_level_is_its_worst_reason(joint, level, message) -> None:
+    [status, _] = diagnostic_array("node", {"sec": 1, "nanosec": 2}, [joint], [])["status"]
+    assert (status["level"], status["message"]) == (level, message)
+    assert status["name"] == "node: joint gripper"
+    values = {kv["key"]: kv["value"] for kv in status["values"]}
+    assert values["claimed_by"] == (joint.claimed_by or "")
+
+
+def test_unknown_joint_names_are_a_warning_of_the_commands_status() -> None:
+    statuses = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [], {"elbow", "arm"})
+    assert [(s["name"], s["level"], s["message"]) for s in statuses["status"]] == [
+        ("n: commands", WARN, "commands name unknown joints: arm, elbow")]
+    quiet = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [])["status"][-1]
+    assert (quiet["level"], quiet["message"]) == (OK, "ok")
+
+
+def test_a_bus_is_an_error_when_down_and_a_warning_when_it_erred() -> None:
+    stats = {"utilisation": 0.25, "timeouts": 3, "smallest_gap_s": None}
+    levels = [s["level"] for s in diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [
+        BusHealth("uart0", False, stats, 0), BusHealth("uart1", True, stats, 2),
+        BusHealth("can0", True, stats, 0)])["status"]]
+    assert levels == [ERROR, WARN, OK, OK]
+    [up, _] = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [],
+                               [BusHealth("can0", True, stats, 0)])["status"]
+    assert {kv["key"]: kv["value"] for kv in up["values"]} == {
+        "up": "true", "utilisation": "0.25", "timeouts": "3"}
