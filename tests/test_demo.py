@@ -1,6 +1,7 @@
 """``busgate demo`` as a new user runs it: a child process serving every simulated device on
 a zenoh endpoint of its own; a real client session moves an actuator, sees every device of
-every kind online, and the demo stops cleanly on SIGTERM; a second demo on the same endpoint
+every kind online (and, with ``--ros2``, their joint states in ROS 2), and the demo stops
+cleanly on SIGTERM; a second demo on the same endpoint
 is refused in one line."""
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import sys
 import pytest
 import zenoh
 
+from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.errors import ConfigError
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
@@ -25,7 +27,7 @@ ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
 @pytest.fixture
 def demo(free_port):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    process = DemoProcess(endpoint)
+    process = DemoProcess(endpoint, "--dashboard-listen", "127.0.0.1:0", "--ros2")
     client = zenoh.open(session_config(connect=[endpoint]))
     try:
         yield process, client, endpoint
@@ -54,6 +56,19 @@ def test_the_demo_serves_every_device_and_an_actuator_moves(wait_for, demo) -> N
     wait_for(lambda: online() == ALL_DEVICES)
     protocols = {bus["protocol"] for bus in get(client, "busgate/demo/info")["buses"]}
     assert protocols == {"inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232"}
+
+    # --ros2: the demo is a ROS 2 node too, and says how to reach it
+    assert ("ROS 2 (rmw_zenoh, domain 0): node /busgate_demo, joint states on "
+            "/robot_joint_states, commands on /robot_joint_commands") in process.hints
+    assert f'connect/endpoints=["{endpoint}"]' in process.hints
+    joint_states: list[dict | None] = []
+    ros_states = client.declare_subscriber(
+        rmw_zenoh.data_key(0, "/robot_joint_states", "sensor_msgs/msg/JointState", "jazzy"),
+        lambda sample: joint_states.append(
+            messages.decode("sensor_msgs/msg/JointState", sample.payload.to_bytes())))
+    wait_for(lambda: joint_states)
+    ros_states.undeclare()
+    assert joint_states[-1] is not None and len(joint_states[-1]["name"]) == len(ALL_DEVICES)
 
     positions: list[int] = []
     subscriber = client.declare_subscriber(

@@ -24,33 +24,51 @@ from busgate.gateway.ros2.trajectory import ROS_TRAJECTORY_ID, trajectory_comman
 GRIPPER = JointRef("gripper", "la1", "position")
 WHEEL = JointRef("wheel", "drive", "velocity")
 JOINTS = {j.name: j for j in (GRIPPER, WHEEL)}
+NOW = 1_700_000_000.0  # Unix seconds
 
 
 def commands() -> Commands:
     return Commands(dict(JOINTS), timeout_s=0.5)
 
 
-def test_each_joint_takes_its_interface_and_nan_or_a_short_list_is_no_command() -> None:
-    taken = commands()
-    targets, unknown = taken.take(
+def test_each_joint_takes_its_interface_and_nan_or_inf_is_no_command() -> None:
+    taken = commands().take(
         {"name": ["gripper", "wheel"], "position": [0.004, 9.0], "velocity": [1.0, 2.5]}, 0.0
     )
-    assert [(t.joint.name, t.value, t.follow_fields) for t in targets] == [
+    assert [(t.joint.name, t.value, t.follow_fields) for t in taken.targets] == [
         ("gripper", 0.004, {"joint": 0.004}),
         ("wheel", 2.5, {"joint_velocity": 2.5}),
     ]
-    assert unknown == []
-    targets, _ = taken.take({"name": ["gripper", "wheel"], "position": [math.nan]}, 0.1)
-    assert targets == []  # NaN for the gripper, no velocity list for the wheel
-    targets, _ = taken.take({"name": ["wheel"], "velocity": [math.inf]}, 0.2)
-    assert targets == []
+    assert taken.unknown == taken.problems == []
+    nan = commands().take({"name": ["gripper", "wheel"], "position": [math.nan, 1.0]}, 0.1)
+    assert nan.targets == nan.problems == []  # NaN for the gripper, no velocity list at all
+    assert commands().take({"name": ["wheel"], "velocity": [math.inf]}, 0.2).targets == []
+
+
+def test_a_list_of_one_interface_only_goes_to_the_joints_of_that_interface_in_order() -> None:
+    """ros2_control's topic-based system: each joint's command in its interface's list only."""
+    taken = commands().take({"name": ["wheel", "gripper"], "position": [0.004],
+                             "velocity": [1.5]}, 0.0)
+    assert [(t.joint.name, t.value) for t in taken.targets] == [("gripper", 0.004),
+                                                                ("wheel", 1.5)]
+    assert taken.problems == []
+
+
+def test_a_list_that_cannot_say_whose_each_value_is_moves_nothing() -> None:
+    more = {**JOINTS, "wrist": JointRef("wrist", "s1", "position")}
+    taken = Commands(more, 0.5).take(
+        {"name": ["gripper", "wrist", "wheel"], "position": [0.004]}, 0.0)
+    assert taken.targets == []
+    assert taken.problems == ["position has 1 values for 3 names, 2 of them position joints: "
+                              "whose is each? (give every name a value, NaN for none)"]
 
 
 def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
     taken = commands()
-    targets, unknown = taken.take({"name": ["elbow", "gripper"], "position": [1.0, 0.002]}, 0.0)
-    assert unknown == ["elbow"] and [t.joint for t in targets] == [GRIPPER]
-    assert taken.take({"name": ["elbow"], "position": [1.0]}, 0.1) == ([], [])
+    first = taken.take({"name": ["elbow", "gripper"], "position": [1.0, 0.002]}, 0.0)
+    assert first.unknown == ["elbow"] and [t.joint for t in first.targets] == [GRIPPER]
+    again = taken.take({"name": ["elbow"], "position": [1.0]}, 0.1)
+    assert again.unknown == again.targets == again.problems == []
 
 
 def test_a_silent_velocity_joint_is_due_a_stop_once_and_a_position_joint_never() -> None:
@@ -72,7 +90,7 @@ def point(seconds: float, positions: list[float], **fields: list[float]) -> dict
 
 def test_a_ros_trajectory_is_a_joint_play_interpolated_by_the_fields_it_gives() -> None:
     message = {"joint_names": ["gripper"], "points": [point(0.5, [0.002]), point(1.25, [0.004])]}
-    command = trajectory_command(message, JOINTS, "ros2")
+    command = trajectory_command(message, JOINTS, "ros2", NOW)
     assert command == {"op": "play", "id": ROS_TRAJECTORY_ID, "client": "ros2",
                        "devices": ["la1"], "units": "joint",
                        "points": [{"t_s": 0.5, "positions": [0.002]},
@@ -80,21 +98,26 @@ def test_a_ros_trajectory_is_a_joint_play_interpolated_by_the_fields_it_gives() 
     message["points"] = [point(1, [0.002], velocities=[0.0], accelerations=[0.0]),
                          point(2, [0.004], velocities=[0.0], accelerations=[0.0])]
     message["header"] = {"stamp": {"sec": 1_700_000_000, "nanosec": 500_000_000}}
-    command = trajectory_command(message, JOINTS, "ros2")
+    command = trajectory_command(message, JOINTS, "ros2", NOW)
     assert command["interpolation"] == "quintic" and command["start_at"] == 1_700_000_000.5
+    for now in (NOW + 0.5, NOW + 0.4):  # a stamp past, or too near to keep: now
+        assert "start_at" not in trajectory_command(message, JOINTS, "ros2", now)
     assert command["points"][1] == {"t_s": 2.0, "positions": [0.004], "velocities": [0.0],
                                     "accelerations": [0.0]}
     message["points"][1].pop("velocities")  # not on every point: not used
-    assert "velocities" not in trajectory_command(message, JOINTS, "ros2")["points"][0]
+    assert "velocities" not in trajectory_command(message, JOINTS, "ros2", NOW)["points"][0]
 
 
 def test_an_empty_trajectory_cancels_and_a_joint_it_cannot_move_is_refused() -> None:
-    assert trajectory_command({"joint_names": ["gripper"], "points": []}, JOINTS, "ros2") == {
+    assert trajectory_command({"joint_names": ["gripper"], "points": []}, JOINTS, "ros2",
+                              NOW) == {
         "op": "cancel", "id": ROS_TRAJECTORY_ID, "client": "ros2"}
     with pytest.raises(RefusedError, match="elbow"):
-        trajectory_command({"joint_names": ["elbow"], "points": [point(1, [0])]}, JOINTS, "r")
+        trajectory_command({"joint_names": ["elbow"], "points": [point(1, [0])]}, JOINTS, "r",
+                           NOW)
     with pytest.raises(RefusedError, match="velocity joint"):
-        trajectory_command({"joint_names": ["wheel"], "points": [point(1, [0])]}, JOINTS, "r")
+        trajectory_command({"joint_names": ["wheel"], "points": [point(1, [0])]}, JOINTS, "r",
+                           NOW)
 
 
 def health(state: dict | None, **fields) -> JointHealth:

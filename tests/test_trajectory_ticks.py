@@ -341,7 +341,7 @@ def test_a_trajectory_takes_a_device_from_its_follow_stream_without_stopping_it(
     la1.drain_events()
     plays.start({"la1": position_of(RAMP_UP)}, START)
     [follow] = [t for t in planner.tickers if isinstance(t, FollowTicker)]
-    assert follow.carried() == [la2]
+    assert list(follow.streams) == ["la2"]  # la1 left its stream for the trajectory
     assert [(e.type, e.fields) for e in la1.drain_events()] == [
         ("stream_stopped", {"reason": "trajectory"})]
     assert planner.queued == 0  # no stale-stream requests: the trajectory goes on from there

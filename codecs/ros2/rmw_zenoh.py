@@ -2,8 +2,9 @@
 
 A ROS 2 node on rmw_zenoh finds a topic by its data key and lists it by liveliness tokens;
 its subscriber drops a sample without the attachment. This file spells all of that as
-strings and bytes (the facts: shared/ROS2_NOTES.md, from rmw_zenoh's design doc and
-sources), and holds ROS's name rules, so a gateway can speak to ROS without ROS.
+strings and bytes (the facts from rmw_zenoh's docs/design.md and its sources:
+liveliness_utils.cpp, qos.cpp, attachment_helpers.cpp; docs/ros2.md says which), and holds
+ROS's name rules, so a gateway can speak to ROS without ROS.
 
 Rules of this file:
 

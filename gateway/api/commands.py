@@ -44,7 +44,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
-from busgate.errors import RefusedError
+from busgate.errors import BusUnavailableError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
@@ -229,7 +229,8 @@ class GatewayApi:
         holds ``device`` while its targets come (each renews the claim for ``claim_ttl_s``;
         another client's claim refuses it), and the device ramps to the target within its
         joint's limits and stays there (``BusRunner.ramp``). ``None`` when taken, else the
-        error reply; an e-stopped device is refused ``estopped``."""
+        error reply: an e-stopped device is refused ``estopped``, one on a bus that is down
+        ``bus_unavailable``, and neither is claimed."""
         try:
             runner, driver = self._device(device)
             target = _follow_target(driver, fields)
@@ -237,10 +238,12 @@ class GatewayApi:
                 raise RefusedError(
                     "busy", f"{device} is playing a trajectory: a target would fight over it"
                 )
+            if not runner.owner.is_open:
+                raise BusUnavailableError(f"bus {runner.name} is down: {device} cannot move")
             authority = runner.authority
+            authority.judge(device, Effect.MOTION, client)  # claimed by another, e-stopped
             if authority.claims.hold(device, client, claim_ttl_s, authority.clock()):
                 self._event(device, "claimed", client=client, ttl_s=claim_ttl_s)
-            authority.judge(device, Effect.MOTION, client)
             runner.ramp(device, target)
             return None
         except REFUSALS as exc:

@@ -317,7 +317,7 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
         node = ros2.node_of(config.gateway.name)
         states = resolve(ros2.joint_states, ros2.namespace, node)
         lines += [
-            f"ROS 2 (rmw_zenoh, domain {ros2.domain_id}): node {resolve(node, ros2.namespace, '')}"
+            f"ROS 2 (rmw_zenoh, domain {ros2.domain_id}): node {resolve('~', ros2.namespace, node)}"
             f", joint states on {states}, commands on "
             f"{resolve(ros2.joint_commands, ros2.namespace, node)}; from a ROS shell:",
             "  export RMW_IMPLEMENTATION=rmw_zenoh_cpp "

@@ -4,9 +4,12 @@ velocity joint has waited too long for its next command.
 Rules of this file:
 
 1. A joint is named by its joint name; a position joint takes the message's ``position``, a
-   velocity joint its ``velocity``; a list shorter than ``name``, or a NaN, is "no command"
-   for that joint (ros2_control fills what it commands and leaves NaN elsewhere). An infinite
-   value is no command either: no limit can make a target of it.
+   velocity joint its ``velocity``. A list as long as ``name`` gives each named joint its
+   value, by index (sensor_msgs' rule: every list as long as the names, or empty). A list as
+   long as the named joints of its interface gives them their values in order: ros2_control's
+   topic-based system writes a joint's command only into the list of its command interface.
+   A list of any other length cannot say which value is whose: it moves nothing and is told
+   (``Taken.problems``). A NaN or infinite value is no command for that joint.
 2. A name no joint has is reported once (``unknown`` of the first message that names it),
    then ignored.
 3. A position joint's command is kept: it goes to its target and stays (silence is never a
@@ -47,6 +50,16 @@ class Target:
 
 
 @dataclass(slots=True)
+class Taken:
+    """What one message asks: its targets, the names no joint has (told the first time),
+    and what in it cannot be taken (rule 1)."""
+
+    targets: list[Target] = field(default_factory=list)
+    unknown: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+@dataclass(slots=True)
 class Commands:
     """The commands topic's messages, joint by joint (the rules above)."""
 
@@ -55,28 +68,44 @@ class Commands:
     unknown: set[str] = field(default_factory=set)
     _moving: dict[str, float] = field(default_factory=dict)  # velocity joint → last command
 
-    def take(self, message: dict[str, Any], now: float) -> tuple[list[Target], list[str]]:
-        """The targets ``message`` sets, and the names in it no joint has, reported for the
-        first time (rule 2)."""
+    def take(self, message: dict[str, Any], now: float) -> Taken:
+        """The targets ``message`` sets (the rules above)."""
         names = message.get("name") or []
-        positions, velocities = message.get("position") or [], message.get("velocity") or []
-        targets: list[Target] = []
-        new_unknown: list[str] = []
-        for index, name in enumerate(names):
+        taken = Taken()
+        known: list[JointRef] = []
+        for name in names:
             joint = self.joints.get(name)
-            if joint is None:
-                if name not in self.unknown:
-                    self.unknown.add(name)
-                    new_unknown.append(name)
+            if joint is not None:
+                known.append(joint)
+            elif name not in self.unknown:
+                self.unknown.add(name)
+                taken.unknown.append(name)
+        for interface in ("position", "velocity"):  # a joint type is its list's name
+            values = message.get(interface) or []
+            if not values:
                 continue
-            values = positions if joint.type == "position" else velocities
-            value = values[index] if index < len(values) else math.nan
-            if not math.isfinite(value):
-                continue
-            targets.append(Target(joint, float(value)))
-            if joint.type == "velocity":
-                self._moving[joint.name] = now
-        return targets, new_unknown
+            if len(values) == len(names):
+                pairs = [
+                    (self.joints[name], value)
+                    for name, value in zip(names, values, strict=True)
+                    if name in self.joints and self.joints[name].type == interface
+                ]
+            else:
+                mine = [joint for joint in known if joint.type == interface]
+                if len(values) != len(mine):
+                    taken.problems.append(
+                        f"{interface} has {len(values)} values for {len(names)} names, "
+                        f"{len(mine)} of them {interface} joints: whose is each? (give every "
+                        "name a value, NaN for none)"
+                    )
+                    continue
+                pairs = list(zip(mine, values, strict=True))
+            for joint, value in pairs:
+                if math.isfinite(value):
+                    taken.targets.append(Target(joint, float(value)))
+                    if interface == "velocity":
+                        self._moving[joint.name] = now
+        return taken
 
     def expired(self, now: float) -> list[JointRef]:
         """The velocity joints whose last command is older than ``timeout_s``: each is due a
@@ -87,6 +116,7 @@ class Commands:
         return [self.joints[name] for name in late]
 
     def forget(self, joints: Iterable[str]) -> None:
-        """Joints stopped otherwise (an e-stop): no stop is due for them."""
+        """Joints stopped otherwise (an e-stop), or whose command was refused: no stop is due
+        for them."""
         for name in joints:
             self._moving.pop(name, None)

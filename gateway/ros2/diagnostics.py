@@ -11,9 +11,10 @@ Rules of this file:
 2. A bus's level: ERROR when it is down, WARN when it timed out or saw bad checksums since
    the last status, else OK; its values are its counters and utilisation.
 3. Names are ``<node>: joint <name>`` and ``<node>: bus <name>``; ``hardware_id`` is the
-   device's (``<kind> id <n>``) or the bus's name.
-4. One more status, ``<node>: commands``, is WARN while commands have named joints the gateway
-   does not have (each is told in the log once), naming them.
+   device's (``<kind> id <n> on bus <bus>``) or the bus's name.
+4. One more status, ``<node>: commands``, is WARN once commands have named joints the gateway
+   does not have (each is told in the log once), naming them: a controller's config that
+   names them needs fixing.
 5. Pure: states, statistics and refusals in, the message out.
 """
 

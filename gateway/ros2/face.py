@@ -8,7 +8,8 @@ Rules of this file:
    the newest reading's time, each time the gateway's joints message goes out (when joints
    were read again, at most at the fastest poll rate).
 2. Joint commands in act under the ``client`` of ``[ros2]`` like any client's: each commanded
-   joint is held by that client while its commands come (``CLAIM_TTL_S`` from the last) and
+   joint is held by that client while its commands come (``CLAIM_TTL_S`` from the last, or
+   twice ``command_timeout_s`` when that is longer) and
    ramps to its target within its limits (``GatewayApi.ramp_to``); a refusal (claimed by
    another client, e-stopped, a trajectory playing) moves nothing and is said once in the log
    and in the diagnostics until a command for that joint is taken again. A velocity joint
@@ -19,16 +20,19 @@ Rules of this file:
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
    once a second; ``/diagnostics`` once a second.
 5. Zenoh callbacks hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
+6. The face never ends the gateway: a failure of its periodic work or of a publication (a
+   bug) is logged once, with its traceback, and the gateway serves on.
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
@@ -76,11 +80,14 @@ class Ros2Face:
             for device, (_, driver) in api.devices.items()
         }
         self.commands = Commands(self.joints, section.command_timeout_s)
+        #: A velocity joint is held past its command timeout (its stop is the face's).
+        self._claim_ttl_s = max(CLAIM_TTL_S, 2 * section.command_timeout_s)
         self._commands_lock = threading.Lock()
         self._refusals: dict[str, str] = {}  # joint → its last refused command (rule 2)
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
         self._node: Ros2Node | None = None
         self._estopped: bool | None = None
+        self._failed: set[str] = set()  # what failed and was told (rule 6)
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -121,21 +128,37 @@ class Ros2Face:
         next_second = 0.0
         while not stop.is_set():
             moment = time.monotonic()
-            self._stop_silent_joints(moment)
-            estopped = self._gateway_estopped()
             every_second = moment >= next_second
-            if estopped != self._estopped or every_second:
-                self._estopped = estopped
-                self._estop_state.publish({"data": estopped})
             if every_second:
                 next_second = moment + EVERY_SECOND_S
-                self._diagnostics.publish(self.diagnostics())
+            self._guarded("the periodic work", functools.partial(self._round, moment, every_second))
             await asyncio.sleep(TICK_S)
+
+    def _round(self, moment: float, every_second: bool) -> None:
+        self._stop_silent_joints(moment)
+        estopped = self._gateway_estopped()
+        if estopped != self._estopped or every_second:
+            self._estopped = estopped
+            self._estop_state.publish({"data": estopped})
+        if every_second:
+            self._diagnostics.publish(self.diagnostics())
+
+    def _guarded(self, what: str, work: Callable[[], None]) -> None:
+        """``work``, whose failure (a bug) is logged once and never ends the gateway (rule 6)."""
+        try:
+            work()
+        except Exception:
+            if what not in self._failed:
+                self._failed.add(what)
+                log.exception("ros2: %s failed (told once; the gateway goes on)", what)
 
     # -- out --------------------------------------------------------------------------------
 
     def publish_joints(self, joints: dict[str, Any]) -> None:
         """The gateway's joints message as a JointState (rule 1)."""
+        self._guarded("publishing joint states", lambda: self._publish_joints(joints))
+
+    def _publish_joints(self, joints: dict[str, Any]) -> None:
         entries = joints["joints"]
         read = [entry["ts"] for entry in entries if entry["ts"] is not None]
         self._states.publish(
@@ -179,23 +202,27 @@ class Ros2Face:
 
     def _command(self, message: dict[str, Any]) -> None:
         with self._commands_lock:
-            targets, unknown = self.commands.take(message, time.monotonic())
-        for name in unknown:
+            taken = self.commands.take(message, time.monotonic())
+        for name in taken.unknown:
             log.warning("ros2: a command names no joint of this gateway: %r (ignored)", name)
-        for target in targets:
+        for problem in taken.problems:
+            self._refused(message.get("name") or [], problem)
+        for target in taken.targets:
             self._ramp(target.joint, target.follow_fields)
 
     def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
-        refused = self.api.ramp_to(joint.device, fields, self.section.client, CLAIM_TTL_S)
+        refused = self.api.ramp_to(joint.device, fields, self.section.client, self._claim_ttl_s)
         if refused is None:
             self._refusals.pop(joint.name, None)
             return
+        with self._commands_lock:  # it never moved: no stop is due for it
+            self.commands.forget([joint.name])
         self._refused([joint.name], refused["error"]["message"])
 
     def _trajectory(self, message: dict[str, Any]) -> None:
         names = message.get("joint_names") or []
         try:
-            command = trajectory_command(message, self.joints, self.section.client)
+            command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
             self._refused(names, str(exc))
             return

@@ -5,7 +5,8 @@ Rules of this file:
 
 1. The joints are named by their joint names and moved in their SI units (``"units":
    "joint"``); each point's time is its ``time_from_start``; ``header.stamp`` is when the
-   trajectory starts, or now when it is zero (the controller's convention).
+   trajectory starts, or now when it is zero or past (the controller's convention), and
+   when it is less than ``START_LEAD_S`` ahead: the gateway wants a start it can keep.
 2. The interpolation is chosen by the fields present: positions alone are joined by straight
    lines, with velocities on every point by cubics, with accelerations too by quintics. A
    field given on some points only is not used (it cannot shape every segment).
@@ -25,13 +26,16 @@ from busgate.gateway.ros2.commands import JointRef
 
 #: The id of the trajectory ROS plays (rule 3).
 ROS_TRAJECTORY_ID = "ros2"
+#: A stamp nearer than this starts the trajectory now (rule 1): the play is checked whole
+#: first, and a start it cannot keep is refused (``gateway.trajectory.checks.MIN_LEAD_S``).
+START_LEAD_S = 0.2
 
 
 def trajectory_command(
-    message: dict[str, Any], joints: dict[str, JointRef], client: str
+    message: dict[str, Any], joints: dict[str, JointRef], client: str, now: float
 ) -> dict[str, Any]:
-    """The trajectory key's command for ``message`` (a play, or a cancel when it is empty);
-    ``RefusedError`` for a joint it cannot move (rule 4)."""
+    """The trajectory key's command for ``message`` (a play, or a cancel when it is empty),
+    at Unix time ``now``; ``RefusedError`` for a joint it cannot move (rule 4)."""
     names, points = message.get("joint_names") or [], message.get("points") or []
     if not names or not points:
         return {"op": "cancel", "id": ROS_TRAJECTORY_ID, "client": client}
@@ -62,7 +66,7 @@ def trajectory_command(
         command["interpolation"] = "quintic"
     stamp = (message.get("header") or {}).get("stamp") or {}
     start = stamp.get("sec", 0) + stamp.get("nanosec", 0) / 1e9
-    if start > 0:
+    if start > now + START_LEAD_S:
         command["start_at"] = start
     return command
 
