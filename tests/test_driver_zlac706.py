@@ -221,6 +221,21 @@ def test_can_keepalive_repeats_the_speed_while_enabled_and_non_zero() -> None:
     assert d.keepalive(4.0) is None
 
 
+def test_can_keepalive_repeats_the_last_speed_written_even_when_its_ack_is_late() -> None:
+    """A follow tick's stop whose ack came too late (missed) must not let the keep-alive bring
+    back the speed before it: it repeats the stop until the drive has taken it."""
+    d = velocity_driver(can_driver())
+    run(d, plan(d, '{"op":"enable"}'))
+    stop = Zlac706CanDriver.follow_request([(d, 0.0)])
+    d.missed(1.0)  # its ack never came in time
+    assert d.telemetry(0)["target_speed_rpm"] == pytest.approx(500, abs=0.4)  # acknowledged
+    assert wire([d.keepalive(1.5)[1]]) == wire([stop]) == ["001#00fa001100000000"]
+    run(d, [stop])  # now taken: nothing turns, nothing to keep alive
+    assert d.keepalive(2.0) is None
+    faster = Zlac706CanDriver.follow_request([(d, 600.0)])  # a tick, its ack lost too
+    assert wire([d.keepalive(2.5)[1]]) == wire([faster])
+
+
 def test_safe_stop_zeroes_the_speed_then_releases() -> None:
     d = velocity_driver(can_driver())
     run(d, plan(d, '{"op":"enable"}'))

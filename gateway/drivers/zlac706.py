@@ -88,6 +88,7 @@ class Zlac706Driver(Driver):
         super().__init__(name, device_id, **options)
         self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
+        self.speed_sent_raw: int | None = None  # the last speed written (``_note_speed``)
 
     # -- planning -------------------------------------------------------------------------------
 
@@ -160,7 +161,16 @@ class Zlac706Driver(Driver):
         return "position", here + value if known else None
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
+        self._note_speed(frame)
         return Request.of(self.codec, frame, idempotent=is_idempotent(role, settings))
+
+    def _note_speed(self, frame: object) -> None:
+        """A speed write about to go out: the speed the gateway last commanded, which the
+        keep-alive repeats (not the last one acknowledged: an ack that came too late must not
+        bring back the speed before it, a stop above all)."""
+        role, value = self._role(frame, self.machine.settings)
+        if role is Role.SPEED:
+            self.speed_sent_raw = value
 
     def _unchecked(self, command: Any) -> list[Request]:
         """Requests the gateway itself sends (safe stop, init): no order rules apply."""
@@ -205,9 +215,19 @@ class Zlac706Driver(Driver):
 
     def keepalive(self, now: float) -> tuple[float, Request] | None:
         settings = self.machine.settings
-        if settings.mode is Mode.VELOCITY and settings.enabled and settings.speed_raw:
+        turning = self.commanded_speed_raw or settings.speed_raw  # a stop not yet acknowledged
+        if settings.mode is Mode.VELOCITY and settings.enabled and turning:
             return self.keepalive_period_s, self.keepalive_request()
         return None
+
+    @property
+    def commanded_speed_raw(self) -> int:
+        """The speed the keep-alive repeats: the last one written, else the last one
+        acknowledged. While an ack is lost or late the two differ, and the keep-alive goes on
+        (a stop too) until the device has taken the last command."""
+        if self.speed_sent_raw is None:
+            return self.machine.settings.speed_raw or 0
+        return self.speed_sent_raw
 
     @abc.abstractmethod
     def keepalive_request(self) -> Request:
@@ -236,6 +256,8 @@ class Zlac706Driver(Driver):
             raise CommandError(f"a ZLAC706 speed write carries one device, not {len(targets)}")
         driver, rpm = targets[0]
         (frame,) = cls.frames(schema.Velocity(op="velocity", rpm=rpm), driver.device_id)
+        assert isinstance(driver, Zlac706Driver)
+        driver._note_speed(frame)
         return Request.of(cls.protocol_entry().codec, frame, idempotent=True)
 
     # -- interpreting ---------------------------------------------------------------------------
@@ -260,6 +282,7 @@ class Zlac706Driver(Driver):
         """Power-up: released, every setting at its default until ``restore`` lands."""
         self.machine = Zlac706State()
         self.machine.settings = Settings(enabled=False)
+        self.speed_sent_raw = None
 
     def take_alarms(self, alarms: common.AlarmFlags) -> None:
         """New alarm bits; one ``fault`` event when the fault names change."""

@@ -181,8 +181,8 @@ class Zlac706CanDriver(Zlac706Driver):
         return self._unchecked(schema.Disable(op="disable"))
 
     def keepalive_request(self) -> Request:
-        """The last speed written, again."""
-        speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.machine.settings.speed_raw or 0)
+        """The last speed written, again (``commanded_speed_raw``)."""
+        speed = codec.Write(self.device_id, Reg.TARGET_SPEED, self.commanded_speed_raw)
         return Request.of(codec, speed, idempotent=True)
 
     def refreshes_keepalive(self, request: Request) -> bool:
