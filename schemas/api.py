@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
 from busgate.schemas.base import (
+    MAX_CLAIM_S,
     ClientId,
     CommandModel,
     FollowModel,
@@ -49,9 +50,6 @@ ProtocolName: TypeAlias = Literal[tuple(PROTOCOLS)]  # type: ignore[valid-type]
 
 #: The most ids one scan may name (every id a one-byte address leaves, bar broadcast).
 MAX_SCAN_IDS = 254
-
-#: The longest claim a client may ask for, in seconds.
-MAX_CLAIM_S = 3600.0
 
 
 # --- gateway-level commands -----------------------------------------------------------------------

@@ -28,6 +28,10 @@ def client_named(value: object) -> str | None:
 HexData = Annotated[str, Field(pattern=r"^(?:[0-9a-fA-F]{2})+$", max_length=512)]
 
 
+#: The longest claim a client may ask for, in seconds.
+MAX_CLAIM_S = 3600.0
+
+
 class CommandModel(BaseModel):
     """Base of every JSON command: strict, closed, immutable."""
 

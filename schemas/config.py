@@ -23,8 +23,9 @@ from typing import Annotated, Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from busgate.errors import ConfigError
+from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
-from busgate.schemas.joints import JointTable, table_problems
+from busgate.schemas.joints import Joint, JointTable, table_problems
 from busgate.schemas.ros2 import Ros2Section
 from busgate.schemas.validation import closest, suggestion
 
@@ -150,6 +151,7 @@ class Config(Section):
     recorder: RecorderSection | None = None
     ros2: Ros2Section | None = None
     buses: Annotated[list[Bus], Field(min_length=1)]
+    bases: list[BaseConfig] = []
 
     @model_validator(mode="after")
     def _check_buses(self) -> Config:
@@ -159,6 +161,7 @@ class Config(Section):
             _check_bus(f"buses[{index}]", bus)
         _require_distinct_joint_names(self.buses)
         _require_own_device_files(self.buses)
+        _check_bases(self.bases, self.buses)
         return self
 
 
@@ -186,6 +189,37 @@ def _require_distinct_joint_names(buses: list[SerialBus | CanBus]) -> None:
                     "joint names must be unique"
                 )
             owner[name] = device.name
+
+
+def _check_bases(bases: list[BaseConfig], buses: list[SerialBus | CanBus]) -> None:
+    """Each base's wheels: devices of the gateway, ZLAC706 velocity joints in rad, in one
+    base only, fast enough for its limits (``schemas.bases``)."""
+    devices = {device.name: device for bus in buses for device in bus.devices}
+    _require_unique("bases", [base.name for base in bases], "base name")
+    taken: dict[str, str] = {}
+    for index, base in enumerate(bases):
+        for side in ("left", "right"):
+            name = getattr(base, side)
+            path = f"bases[{index}].{side}"
+            device = devices.get(name)
+            if device is None:
+                raise ValueError(f"{path}: no device {name!r} in the config's buses")
+            if device.kind != "zlac706":
+                raise ValueError(
+                    f"{path}: {name!r} is a {device.kind}; a base's wheels are zlac706"
+                )
+            if name in taken:
+                raise ValueError(f"{path}: {name!r} is a wheel of base {taken[name]!r} already")
+            taken[name] = base.name
+            joint = Joint.of(name, FAMILIES[device.kind].schema.JOINT, device.joint)
+            if joint.type != "velocity" or joint.unit != "rad":
+                raise ValueError(
+                    f"{path}: {name!r} must be a velocity joint in rad (a joint table with "
+                    'unit = "rad" and its scale, rad a pulse): the base speaks rad/s'
+                )
+            problem = wheel_problem(base, side, reachable_radps(joint))
+            if problem is not None:
+                raise ValueError(f"bases[{index}]: {problem}")
 
 
 def _require_own_device_files(buses: list[SerialBus | CanBus]) -> None:

@@ -29,8 +29,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-GATEWAY_ROOMS = ("api", "bus", "cli", "drivers", "recording", "ros2", "scheduler", "service",
-                 "sim", "trajectory")
+GATEWAY_ROOMS = ("api", "base", "bus", "cli", "drivers", "recording", "ros2", "scheduler",
+                 "service", "sim", "trajectory")
 
 #: Each room and the rooms it may import ("gateway" is the package itself: its version).
 #: The folders that install as busgate's rooms.
@@ -48,10 +48,11 @@ ALLOWED: dict[str, set[str]] = {
     "gateway.bus": {"codecs"},
     "gateway.drivers": {"codecs", "schemas", "gateway.bus"},
     "gateway.scheduler": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
-    "gateway.api": {"codecs", "schemas", "gateway", "gateway.bus", "gateway.drivers",
-                    "gateway.scheduler", "gateway.trajectory"},
+    "gateway.api": {"codecs", "schemas", "gateway", "gateway.base", "gateway.bus",
+                    "gateway.drivers", "gateway.scheduler", "gateway.trajectory"},
+    "gateway.base": {"codecs", "schemas", "gateway.bus", "gateway.drivers", "gateway.scheduler"},
     "gateway.service": {"codecs", "schemas", "client", "gateway", "gateway.bus",
-                        "gateway.drivers", "gateway.scheduler", "gateway.api",
+                        "gateway.drivers", "gateway.scheduler", "gateway.api", "gateway.base",
                         "gateway.recording", "gateway.ros2", "gateway.trajectory"},
     "gateway.ros2": {"codecs", "schemas", "gateway.api", "gateway.drivers",
                      "gateway.scheduler"},

@@ -30,6 +30,7 @@ import zenoh
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.joints import JointsFeed
+from busgate.gateway.base.bases import Bases
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
@@ -88,6 +89,12 @@ class ZenohBridge:
         #: parsed and checked whole): plays in their lane, cancels and status in another.
         self._trajectory_lanes = TrajectoryLanes(self.trajectories.command)
         fastest_poll_hz = max(d.poll_hz for bus in config.buses for d in bus.devices)
+        self.bases = Bases(
+            config.bases,
+            api,
+            lambda event: self.events.append(event),
+            lambda name, odometry: self._put(f"{self.base}/base/{name}/odom", odometry),
+        )
         self.joints = JointsFeed(
             config.gateway.name,
             (driver for _, driver in api.devices.values()),
@@ -119,6 +126,8 @@ class ZenohBridge:
             session.declare_subscriber(f"{base}/estop/reset", self._on_estop_reset),
             session.declare_queryable(f"{base}/info", self._on_info),
             session.declare_queryable(f"{base}/trajectory", self._on_trajectory),
+            session.declare_queryable(f"{base}/base/*/cmd", self._on_base_query),
+            session.declare_subscriber(f"{base}/base/*/twist", self._on_twist),
             session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
             session.liveliness().declare_token(f"{base}/alive"),
         ]
@@ -134,6 +143,9 @@ class ZenohBridge:
         self._publishers[f"{base}/joints"] = session.declare_publisher(
             f"{base}/joints", congestion_control=drop
         )
+        for name in self.bases.bases:
+            key = f"{base}/base/{name}/odom"
+            self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
         where = (
             zenoh_section.listen
             or zenoh_section.config_file
@@ -168,6 +180,7 @@ class ZenohBridge:
         while not stop.is_set():
             self.publish_states()
             self.trajectories.tick()
+            self.bases.tick()
             self.publish_events()
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
@@ -208,6 +221,25 @@ class ZenohBridge:
             return name
         query.drop()
         return None
+
+    def _on_base_query(self, query: zenoh.Query) -> None:
+        name = self._ours(query, "base", self.bases.bases)
+        if name is None:
+            return
+        reply_key, payload = f"{self.base}/base/{name}/cmd", _payload(query)
+        self._answer(query, lambda: self.bases.command(name, payload), reply_key, payload)
+
+    def _on_twist(self, sample: zenoh.Sample) -> None:
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        name = self._named(key, "base")
+        if name is None:
+            log.debug("twist on %s names no base: dropped", key)
+            return
+        refused = self.bases.twist(name, payload)
+        if refused is not None:
+            self.events.append(DeviceEvent(name, "command_refused", refused["error"]))
+        if self.on_command is not None:
+            self.on_command(key, payload, refused)
 
     def _on_info(self, query: zenoh.Query) -> None:
         def info() -> Future:
@@ -279,6 +311,7 @@ class ZenohBridge:
         callback, so that no round of the loop sees them under claims already released (and
         aborts them ``claim lost`` instead); then its claims, streams and speeds go."""
         self.trajectories.client_left(client)
+        self.bases.client_left(client)
         self.api.client_left(client)
 
     def _answer(
@@ -362,6 +395,7 @@ class ZenohBridge:
             self._put(f"{self.base}/dev/{device}/state", state)
             self._track_liveliness(device, bool(state.get("online")))
             self.joints.take(device, state)
+            self.bases.take_state(device, state)
         joints = self.joints.due(time.monotonic(), time.time())
         if joints is not None:
             self._put(f"{self.base}/joints", joints)

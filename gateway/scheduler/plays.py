@@ -182,7 +182,18 @@ class Plays:
                 and ticker.has_room(driver)
             ):
                 return ticker
-        ticker = TrajectoryTicker(type(driver), period, start, self.counters, self.after_tick)
+        sibling = next(
+            (
+                t
+                for t in self.planner.tickers
+                if isinstance(t, TrajectoryTicker) and t.period_s == period and t.start == start
+            ),
+            None,
+        )
+        group = sibling.group if sibling is not None else None  # ``trajectory_ticks`` rule 6
+        ticker = TrajectoryTicker(
+            type(driver), period, start, self.counters, self.after_tick, group
+        )
         self.planner.tickers.append(ticker)
         return ticker
 

@@ -31,6 +31,10 @@ Rules of this file:
    ticker, its reason in ``refused`` for ``on_tick``; its neighbours' tick goes on. With no
    device left, the slot passes without a frame. Nothing a device does makes a tick raise:
    the bus thread takes an exception for a bug and reopens the bus.
+6. Tickers of one bus on one grid (devices whose frames cannot be one: a ZLAC706 a frame)
+   share a ``SlotGroup``: the first tick of a slot is judged on time or late by rule 1, and
+   the ticks after it in that slot, back to back behind it on the line, are judged with it,
+   so that a base's second wheel does not lose every other slot to its first's exchange.
 """
 
 from __future__ import annotations
@@ -55,6 +59,14 @@ GRID_STRETCH = 1.01
 Sampler = Callable[[float], dict[str, Any]]
 
 
+@dataclass(slots=True)
+class SlotGroup:
+    """The tickers of one bus on one grid (rule 6): the last slot judged, and its verdict."""
+
+    slot: int = -1
+    on_time: bool = True
+
+
 @dataclass(frozen=True, slots=True)
 class Playing:
     """One device of a trajectory on this ticker."""
@@ -73,6 +85,7 @@ class TrajectoryTicker:
         start: float,
         counters: BusCounters,
         on_tick: Callable[[TrajectoryTicker], None] = lambda ticker: None,
+        group: SlotGroup | None = None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
@@ -94,6 +107,7 @@ class TrajectoryTicker:
         self._last_start: float | None = None
         self._built: dict[str, tuple[float, float]] = {}  # what the frame being sent carries
         self._carried: list[Driver] = []
+        self.group = group or SlotGroup()
 
     def has_room(self, driver: Driver) -> bool:
         limit = self.driver_class.follow_group_limit
@@ -148,11 +162,17 @@ class TrajectoryTicker:
             self.counters.follow_interval(start - self._last_start, self.period_s)
         self._last_start = start
         self.commanded.update(self._built)  # rule 4: one assignment per device
-        if start - self._slot(self._k) <= ON_TIME_S:  # rule 1
+        if self._on_time(start):  # rules 1 and 6
             self._go_to(self._k + 1)
         else:  # drifted: the first slot a full period on
             self._go_to(slot_index(self.start, self.grid_s, start + self.period_s))
         self.on_tick(self)
+
+    def _on_time(self, start: float) -> bool:
+        group = self.group
+        if group.slot != self._k:  # the first tick of this slot on the bus (rule 6)
+            group.slot, group.on_time = self._k, start - self._slot(self._k) <= ON_TIME_S
+        return group.on_time
 
     def _pass(self, now: float) -> None:
         """No device could take its target: the slot passes without a frame (rule 5), and the

@@ -1,0 +1,366 @@
+"""The gateway's bases: ``<p>/<gw>/base/<name>/cmd``, ``…/twist`` and ``…/odom``.
+
+Rules of this file:
+
+1. A base moves only as a whole. A twist is judged against both wheels as any client's
+   motion (claims, e-stop) and refused unless both are on (``enable``); then both wheels play
+   the base's ``Drive`` from one start, so each slot's speeds come from one twist.
+2. A claim of the base is the claim of both wheels, taken or refused together; a client that
+   holds either wheel blocks the base, and a base's claim blocks each wheel.
+3. A base never drives on one wheel: when one wheel leaves the play (its device offline,
+   e-stopped, refused its target), the other is ramped to 0 at once, with a ``base_stopped``
+   event naming the wheel and why. An e-stop takes both out.
+4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
+   putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
+   (``stream_stale``, ``stopped``); once at rest with nothing holding it (both wheels have sent
+   0 rpm: ``drive`` rule 3), its play ends and the wheels keep 0 rpm.
+5. Odometry comes from the wheels' readings (their joints' measured positions), published on
+   ``…/odom`` whenever both have been read past the last step. The two wheels are read at
+   different moments (each its own heartbeat): the step is taken at the earlier of their
+   latest readings, the other wheel's position there interpolated between its last two, so a
+   lag between them is not taken for a turn.
+6. Wheels are put in velocity mode when they come online (``set_mode``, once per time they
+   come online).
+7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks);
+   ``tick`` and ``take_state`` run on the loop's thread.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from busgate.errors import RefusedError
+from busgate.gateway.base.drive import Drive
+from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
+from busgate.gateway.bus.clock import now
+from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.scheduler.runner import BusRunner
+from busgate.schemas.bases import (
+    BASE_COMMAND_ADAPTER,
+    BaseClaim,
+    BaseConfig,
+    BasePower,
+    BaseRelease,
+    BaseStop,
+    ResetOdometry,
+    TwistCommand,
+    TwistTarget,
+    reachable_radps,
+)
+from busgate.schemas.payload import decode_object, ok_reply
+from busgate.schemas.replies import REFUSALS, error_reply
+
+log = logging.getLogger(__name__)
+
+#: How long after a play started its wheels may still be missing from their buses' plays (the
+#: bus threads take the play from their inboxes) before a missing one counts as gone.
+PLAY_TAKEN_S = 0.2
+VELOCITY_MODE = b'{"op":"set_mode","mode":"velocity"}'
+
+
+class Gateway(Protocol):
+    """What a base needs of its gateway (``busgate.gateway.api.commands.GatewayApi``): its
+    name, its devices with their buses' runners, and the device commands (enable, mode)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def devices(self) -> Mapping[str, tuple[BusRunner, Driver]]: ...
+
+    def command(self, device: str, payload: bytes) -> Future: ...
+
+
+@dataclass(slots=True)
+class Wheel:
+    name: str
+    runner: BusRunner
+    driver: Driver
+    #: (position rad, ts) of its last two readings, the latest last
+    readings: tuple[tuple[float, float], ...] = ()
+    online: bool = False
+
+
+@dataclass(slots=True)
+class LiveBase:
+    """One configured base and what it is doing."""
+
+    config: BaseConfig
+    wheels: tuple[Wheel, Wheel]
+    drive: Drive
+    odometry: Odometry
+    client: str | None = None  # whose twist drives it (the deadman's)
+    playing_since: float | None = None  # bus clock
+    stale_told: bool = False
+    odometry_ts: float | None = None
+    events: list[DeviceEvent] = field(default_factory=list)
+
+    @property
+    def names(self) -> tuple[str, str]:
+        return self.wheels[0].name, self.wheels[1].name
+
+
+class Bases:
+    """Every base of the gateway (the rules above)."""
+
+    def __init__(
+        self,
+        configs: list[BaseConfig],
+        api: Gateway,
+        on_event: Callable[[DeviceEvent], None],
+        publish: Callable[[str, dict[str, Any]], None],
+    ) -> None:
+        self.api = api
+        self.on_event = on_event
+        self.publish = publish  # (base name, odometry message)
+        self.bases = {config.name: self._live(config) for config in configs}
+        self._wheel_of = {w.name: (b, w) for b in self.bases.values() for w in b.wheels}
+
+    def _live(self, config: BaseConfig) -> LiveBase:
+        wheels = (
+            Wheel(config.left, *self.api.devices[config.left]),
+            Wheel(config.right, *self.api.devices[config.right]),
+        )
+        left, right = wheels[0].driver.joint, wheels[1].driver.joint
+        reachable = min(reachable_radps(left), reachable_radps(right))
+        geometry = Geometry(
+            config.wheel_radius_m,
+            config.track_m,
+            config.max_linear_mps,
+            config.max_angular_radps,
+            config.max_linear_accel,
+            config.max_angular_accel,
+            reachable,
+        )
+        return LiveBase(config, wheels, Drive(geometry, left, right), Odometry(geometry))
+
+    # -- commands (zenoh's threads) -------------------------------------------------------------
+
+    def command(self, name: str, payload: bytes) -> Future:
+        """The reply to a query on ``…/base/<name>/cmd``, as a future."""
+        try:
+            base = self._base(name)
+            request = BASE_COMMAND_ADAPTER.validate_python(decode_object(payload))
+            if isinstance(request, TwistCommand):
+                hold = request.duration_s or base.config.cmd_timeout_s
+                twist = Twist(request.linear, request.angular)
+                return _done(self._drive(base, twist, hold, request.client, request.require_claim))
+            if isinstance(request, BasePower):
+                return self._power(base, request.op)
+            return _done(self._other(base, request))
+        except REFUSALS as exc:
+            return _done(error_reply(exc))
+        except Exception as exc:
+            log.exception("base %s: command failed", name)
+            return _done(error_reply(exc))
+
+    def twist(self, name: str, payload: bytes) -> dict[str, Any] | None:
+        """A put on ``…/base/<name>/twist``: ``None`` when taken, else the error reply."""
+        try:
+            base = self._base(name)
+            target = TwistTarget.model_validate(decode_object(payload))
+            reply = self._drive(
+                base,
+                Twist(target.linear, target.angular),
+                base.config.cmd_timeout_s,
+                target.client,
+                target.require_claim,
+            )
+            return None if reply.get("ok") else reply
+        except REFUSALS as exc:
+            return error_reply(exc)
+
+    def _drive(
+        self, base: LiveBase, twist: Twist, hold_s: float, client: str | None, require: bool
+    ) -> dict[str, Any]:
+        for wheel in base.wheels:  # rule 1: as any client's motion, both wheels
+            wheel.runner.authority.judge(wheel.name, Effect.MOTION, client, require_claim=require)
+            telemetry = wheel.driver.telemetry(now())
+            if not telemetry.get("enabled") or telemetry.get("mode") != "velocity":
+                raise RefusedError(
+                    "bad_command",
+                    f"base {base.config.name}: wheel {wheel.name} is not on in velocity mode: "
+                    'send {"op": "enable"} to the base first',
+                )
+        moment = now()
+        target = base.drive.command(twist, moment, hold_s)
+        base.client, base.stale_told = client, False
+        if base.playing_since is None:
+            base.drive.begin(moment, base.drive.sent)
+            base.playing_since = moment
+            for side, wheel in enumerate(base.wheels):
+                wheel.runner.play({wheel.name: base.drive.sampler(side)}, moment)
+        return ok_reply(base=self._status(base) | {"target": _twist(target)})
+
+    def _other(self, base: LiveBase, request: Any) -> dict[str, Any]:
+        if isinstance(request, BaseStop):
+            base.drive.stop()
+        elif isinstance(request, BaseClaim):
+            self._claim(base, request.client, request.ttl_s)
+        elif isinstance(request, BaseRelease):
+            for wheel in base.wheels:
+                authority = wheel.runner.authority
+                authority.claims.release(wheel.name, request.client, authority.clock())
+        elif isinstance(request, ResetOdometry):
+            base.odometry.reset()
+        return ok_reply(base=self._status(base))
+
+    def _claim(self, base: LiveBase, client: str, ttl_s: float) -> None:
+        """Both wheels or neither (rule 2)."""
+        for wheel in base.wheels:
+            authority = wheel.runner.authority
+            authority.claims.check(wheel.name, client, authority.clock())
+        taken: list[Wheel] = []
+        try:
+            for wheel in base.wheels:
+                authority = wheel.runner.authority
+                authority.claims.claim(wheel.name, client, ttl_s, authority.clock())
+                taken.append(wheel)
+        except RefusedError:
+            for wheel in taken:  # another client took the other wheel meanwhile
+                authority = wheel.runner.authority
+                authority.claims.release(wheel.name, client, authority.clock())
+            raise
+        self._event(base, "claimed", client=client, ttl_s=ttl_s)
+
+    def _power(self, base: LiveBase, op: str) -> Future:
+        """Both power stages: velocity mode then enable, or disable (and stop the twist)."""
+        if op == "disable":
+            base.drive.stop()
+        payloads = [VELOCITY_MODE, b'{"op":"enable"}'] if op == "enable" else [b'{"op":"disable"}']
+        replies = [
+            self.api.command(wheel.name, payload) for payload in payloads for wheel in base.wheels
+        ]
+        answer: Future = Future()
+
+        def one_done(_: Future) -> None:
+            if all(reply.done() for reply in replies) and not answer.done():
+                failed = [r.result() for r in replies if not r.result().get("ok")]
+                answer.set_result(failed[0] if failed else ok_reply(base=self._status(base)))
+
+        for reply in replies:
+            reply.add_done_callback(one_done)
+        return answer
+
+    def client_left(self, client: str) -> None:
+        """The deadman: a base its client drove ramps to 0."""
+        for base in self.bases.values():
+            if base.client == client and base.playing_since is not None:
+                base.drive.stop()
+                self._event(base, "stopped", client=client, reason="client gone")
+
+    # -- the loop's thread ----------------------------------------------------------------------
+
+    def tick(self) -> None:
+        """Plays that ended, a wheel that left, a twist that timed out (rules 3 and 4)."""
+        moment = now()
+        for base in self.bases.values():
+            if base.playing_since is None:
+                continue
+            gone = [
+                w
+                for w in base.wheels
+                if not w.runner.plays.playing(w.name) and moment - base.playing_since > PLAY_TAKEN_S
+            ]
+            if gone:
+                self._one_wheel_gone(base, gone[0])
+            elif base.drive.finished(moment):
+                for wheel in base.wheels:  # both have sent 0 (``drive`` rule 3): they keep it
+                    wheel.runner.stop_playing(wheel.name, speed=False)
+                base.playing_since = None
+            elif not base.stale_told and moment > base.drive.held_until:
+                base.stale_told = True
+                self._event(base, "stream_stale", client=base.client)
+
+    def _one_wheel_gone(self, base: LiveBase, wheel: Wheel) -> None:
+        refusal = wheel.runner.plays.refusal(wheel.name)
+        reason = refusal[1] if refusal is not None else "left the base's play"
+        base.drive.stop()
+        for other in base.wheels:
+            if other is not wheel:
+                other.runner.stop_playing(other.name, speed=True)
+        base.playing_since = None
+        self._event(base, "base_stopped", wheel=wheel.name, reason=reason)
+
+    def take_state(self, device: str, state: dict[str, Any]) -> None:
+        """A wheel's new state: odometry (rule 5), velocity mode (rule 6)."""
+        found = self._wheel_of.get(device)
+        if found is None:
+            return
+        base, wheel = found
+        online = bool(state.get("online"))
+        if online and not wheel.online and state.get("mode") != "velocity":
+            self.api.command(device, VELOCITY_MODE)
+        wheel.online = online
+        joint, ts = state.get("joint") or {}, state.get("ts")
+        position = joint.get("position")
+        if position is None or ts is None or state.get("stale"):
+            return
+        if wheel.readings and ts <= wheel.readings[-1][1]:
+            return  # the same reading again
+        wheel.readings = (*wheel.readings[-1:], (position, ts))
+        if not all(w.readings for w in base.wheels):
+            return
+        at = min(w.readings[-1][1] for w in base.wheels)
+        left, right = (_at(w.readings, at) for w in base.wheels)
+        if base.odometry.take(left, right, at):
+            pose, twist = base.odometry.pose, base.odometry.twist
+            self.publish(
+                base.config.name,
+                {
+                    "base": base.config.name,
+                    "ts": at,
+                    "x": pose.x,
+                    "y": pose.y,
+                    "theta": pose.theta,
+                    "linear": twist.linear,
+                    "angular": twist.angular,
+                },
+            )
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _base(self, name: str) -> LiveBase:
+        base = self.bases.get(name)
+        if base is None:
+            raise RefusedError("unknown_device", f"no base {name!r} on gateway {self.api.name}")
+        return base
+
+    def _status(self, base: LiveBase) -> dict[str, Any]:
+        pose = base.odometry.pose
+        return {
+            "name": base.config.name,
+            "wheels": list(base.names),
+            "driving": base.playing_since is not None,
+            "client": base.client,
+            "twist": _twist(base.drive.sent),
+            "odometry": {"x": pose.x, "y": pose.y, "theta": pose.theta},
+        }
+
+    def _event(self, base: LiveBase, type_: str, **fields: Any) -> None:
+        self.on_event(DeviceEvent(base.config.name, type_, {"base": base.config.name, **fields}))
+
+
+def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:
+    """A wheel's position at ``moment``, between its last two readings (position, ts)."""
+    position, ts = readings[-1]
+    if ts <= moment or len(readings) < 2:
+        return position
+    before, before_ts = readings[0]
+    if moment <= before_ts:
+        return before
+    return before + (position - before) * (moment - before_ts) / (ts - before_ts)
+
+
+def _twist(twist: Twist) -> dict[str, float]:
+    return {"linear": twist.linear, "angular": twist.angular}
+
+
+def _done(reply: dict[str, Any]) -> Future:
+    future: Future = Future()
+    future.set_result(reply)
+    return future

@@ -1,0 +1,239 @@
+"""A base on the wire: two simulated ZLAC706 on one virtual CAN bus, the real bus runner, the
+gateway's API and its bases (without zenoh), a thread standing in for the loop's rounds. Both
+wheels' speeds of a slot leave together, a step in twist becomes a ramp, the deadman ramps
+both down after ``cmd_timeout_s``, claims hold between the base and its wheels both ways, the
+e-stop stops the base, a wheel that leaves stops the other, and the odometry follows the
+wheels' encoders."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import re
+import threading
+import time
+from collections import deque
+from itertools import pairwise
+
+import can
+import pytest
+
+from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.zlac706_common import rpm_from_speed_raw
+from busgate.errors import ConfigError
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.base.bases import Bases
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.sim.can_server import CanSimulator
+from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.schemas.config import parse_config
+from tests.wire_frames import received, written_speed
+
+TURN = 2 * math.pi
+#: Each wheel: 10000 pulses a turn, the right one mirrored; at most 3 turns a second.
+LEFT = {"name": "left_wheel", "unit": "rad", "scale": TURN / 10_000, "max_velocity": 3 * TURN}
+RIGHT = {"name": "right_wheel", "unit": "rad", "scale": -TURN / 10_000,
+         "max_velocity": 3 * TURN}
+BASE = {"name": "base", "left": "wl", "right": "wr", "wheel_radius_m": 0.0825, "track_m": 0.4,
+        "max_linear_mps": 1.0, "max_angular_radps": 2.0, "max_linear_accel": 2.0,
+        "max_angular_accel": 6.0, "cmd_timeout_s": 0.3}
+_channels = itertools.count()
+
+
+def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None):
+    tables = {"wl": LEFT, "wr": RIGHT} | wheel_tables
+    return parse_config({"gateway": {"name": "gw"}, "bases": bases, "buses": [
+        {"name": "can0", "transport": "can", "interface": "virtual", "channel": channel,
+         "reply_margin_ms": 50, "devices": [
+             {"name": name, "kind": "zlac706", "id": i, "heartbeat_ms": 20, "joint": table}
+             for i, (name, table) in enumerate(tables.items(), 1)]}]})
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    ({"left": "nothing"}, "bases[0].left: no device 'nothing' in the config's buses"),
+    ({"right": "wl"}, "left and right are both 'wl'"),
+    ({"max_linear_mps": 2.0}, "max_linear_mps 2 needs the wheels at 24.24 rad/s"),
+    ({"max_angular_radps": 9.0}, "max_angular_radps 9 needs the wheels at 21.82 rad/s"),
+])
+def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None:
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        config_of([BASE | change])
+
+
+def test_a_wheel_in_two_bases_or_without_a_joint_in_rad_is_refused() -> None:
+    with pytest.raises(ConfigError, match="'wl' is a wheel of base 'base' already"):
+        config_of([BASE, BASE | {"name": "other", "right": "w3"}], w3=RIGHT | {"name": "w3"})
+    with pytest.raises(ConfigError, match='must be a velocity joint in rad'):
+        config_of([BASE], wr=None)
+
+
+class World:
+    """The bus, the API, the bases, and a thread doing the loop's rounds."""
+
+    def __init__(self) -> None:
+        channel = f"test-base-{next(_channels)}"
+        self.sim = CanSimulator(zcan, [Zlac706CanDevice(1, heartbeat_ms=20),
+                                       Zlac706CanDevice(2, heartbeat_ms=20)],
+                                bus=can.Bus(interface="virtual", channel=channel))
+        self.sim.start()
+        config = config_of([BASE], channel)
+        self.events: deque = deque()
+        self.states: deque = deque()
+        self.odometry: list[dict] = []
+        runner = build_bus(config.buses[0], on_event=self.events.append,
+                           on_state=lambda device, state: self.states.append((device, state)))
+        self.runner = runner.start()
+        self.api = GatewayApi("gw", {"can0": runner}, on_event=self.events.append)
+        self.bases = Bases(config.bases, self.api, self.events.append,
+                           lambda name, odometry: self.odometry.append(odometry))
+        self._stop = threading.Event()
+        self._rounds = threading.Thread(target=self._loop, daemon=True)
+        self._rounds.start()
+        deadline = time.monotonic() + 20
+        while not all(d.online for _, d in self.api.devices.values()):
+            assert time.monotonic() < deadline, "the wheels did not come online"
+            time.sleep(0.02)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            while self.states:
+                self.bases.take_state(*self.states.popleft())
+            self.bases.tick()
+            time.sleep(0.005)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._rounds.join(2)
+        self.runner.stop()
+        self.sim.stop()
+
+    def base(self, command: dict) -> dict:
+        return self.bases.command("base", json.dumps(command).encode()).result(10)
+
+    def wheel(self, device: str, command: dict) -> dict:
+        return self.api.command(device, json.dumps(command).encode()).result(10)
+
+    def speeds(self, since: int) -> list[tuple[float, int, float]]:
+        """(when, node, rpm) of every speed write since the ``since``-th frame."""
+        return [(record.start, frame.device_id, rpm_from_speed_raw(speed))
+                for record, frame in received(self.sim, since, zcan)
+                if (speed := written_speed(frame)) is not None]
+
+    def wait_rest(self) -> None:
+        deadline = time.monotonic() + 10
+        while self.bases.bases["base"].playing_since is not None:
+            assert time.monotonic() < deadline, "the base did not come to rest"
+            time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def world():
+    made = World()
+    yield made
+    made.close()
+
+
+def test_a_twist_to_a_base_whose_wheels_are_off_is_refused_naming_enable(world) -> None:
+    assert world.wheel("wl", {"op": "disable"})["ok"]
+    reply = world.base({"op": "twist", "linear": 0.2})
+    assert reply["error"]["code"] == "bad_command"
+    assert 'send {"op": "enable"} to the base first' in reply["error"]["message"]
+    assert world.base({"op": "enable"})["ok"]
+    state = {name: world.api.devices[name][1].telemetry(0.0) for name in ("wl", "wr")}
+    assert all(s["enabled"] and s["mode"] == "velocity" for s in state.values())
+
+
+def test_a_twist_ramps_both_wheels_together_and_the_deadman_ramps_them_down(world) -> None:
+    assert world.base({"op": "enable"})["ok"]
+    since = len(world.sim.recorder.received())
+    reply = world.base({"op": "twist", "linear": 0.5, "angular": 0.0})
+    assert reply["ok"] and reply["base"]["target"] == {"linear": 0.5, "angular": 0.0}
+    world.wait_rest()
+    writes = world.speeds(since)
+    left = [(t, rpm) for t, node, rpm in writes if node == 1]
+    right = [(t, rpm) for t, node, rpm in writes if node == 2]
+    # each slot: the left wheel's write, then the right's, back to back, mirrored (the play
+    # may end between the two writes of its last slot, both at rest)
+    assert len(right) > 10
+    partners = []
+    for t_right, rpm_right in right:
+        t_left, rpm_left = max((w for w in left if w[0] <= t_right), default=(-1.0, None))
+        assert 0 <= t_right - t_left < 0.01, (t_left, t_right)  # one slot: half a period
+        assert rpm_right == pytest.approx(-rpm_left, abs=0.4)
+        partners.append(t_left)
+    alone = [rpm for t, rpm in left if t not in partners]
+    assert len(alone) <= 1 and all(rpm == 0 for rpm in alone), alone
+    ramp = [rpm for _, rpm in left]
+    top = 0.5 / 0.0825 * 60 / TURN  # 57.9 rpm at 0.5 m/s
+    step = 2.0 * 0.0202 / 0.0825 * 60 / TURN  # 2 m/s² for a 20.2 ms slot: 4.7 rpm
+    assert max(ramp) == pytest.approx(top, abs=0.4)
+    # a slot the host let pass (a tick over 1 ms late gives up the next) is a step of two
+    assert all(abs(b - a) <= step * max(1, round((tb - ta) / 0.0202)) + 0.4
+               for (ta, a), (tb, b) in pairwise(left)), ramp
+    assert ramp[0] <= step + 0.4 and ramp[-1] == 0
+    # held for cmd_timeout_s (0.3 s) from the command, then down: the top is short-lived
+    held = [t for t, rpm in left if rpm == pytest.approx(top, abs=0.4)]
+    assert held and held[-1] - left[0][0] < 0.3 + 0.25 + 0.1
+    assert any(e.type == "stream_stale" and e.device == "base" for e in world.events)
+
+
+def test_claims_hold_between_the_base_and_its_wheels_both_ways(world) -> None:
+    assert world.wheel("wr", {"op": "claim", "client": "teleop", "ttl_s": 30})["ok"]
+    try:
+        refused = world.base({"op": "twist", "linear": 0.1, "client": "nav"})
+        assert refused["error"]["code"] == "claimed" and "teleop" in refused["error"]["message"]
+        refused = world.base({"op": "claim", "client": "nav"})
+        assert refused["error"]["code"] == "claimed"
+        assert world.api.devices["wl"][0].authority.claims.holder("wl", time.monotonic()) is None
+    finally:
+        assert world.wheel("wr", {"op": "release", "client": "teleop"})["ok"]
+    assert world.base({"op": "claim", "client": "nav", "ttl_s": 30})["ok"]
+    try:
+        for wheel in ("wl", "wr"):
+            refused = world.wheel(wheel, {"op": "velocity", "rpm": 10, "client": "teleop"})
+            assert refused["error"]["code"] == "claimed" and "nav" in refused["error"]["message"]
+    finally:
+        assert world.base({"op": "release", "client": "nav"})["ok"]
+
+
+def test_the_estop_stops_the_base_and_a_twist_after_it_is_refused(world) -> None:
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
+    time.sleep(0.2)
+    for stopped in world.api.estop("test"):
+        stopped.result(5)
+    world.wait_rest()
+    assert any(e.type == "base_stopped" for e in world.events)
+    refused = world.base({"op": "twist", "linear": 0.3})
+    assert refused["error"]["code"] == "estopped"
+    for reset in world.api.reset_estop("test"):
+        reset.result(5)
+
+
+def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
+    def pulses() -> tuple[int, int]:
+        return tuple(world.api.devices[name][1].telemetry(0.0)["position"]
+                     for name in ("wl", "wr"))
+
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "reset_odometry"})["ok"]
+    time.sleep(0.1)
+    told, before = len(world.odometry), pulses()
+    assert world.base({"op": "twist", "linear": 0.5, "duration_s": 1.0})["ok"]
+    world.wait_rest()
+    time.sleep(0.2)
+    last, after = world.odometry[-1], pulses()
+    assert len(world.odometry) > told + 20  # at the heartbeats' rate
+    # straight ahead, as far as the encoders say (the mirrored right motor counts down):
+    # about 0.5 m (0.25 s up, 0.75 s at 0.5 m/s, 0.25 s down)
+    turned = [(b - a) * TURN / 10_000 for a, b in zip(before, after, strict=True)]
+    travelled = 0.0825 * (turned[0] - turned[1]) / 2
+    assert last["x"] == pytest.approx(travelled, abs=0.002)
+    assert travelled == pytest.approx(0.5, abs=0.1)
+    # the right wheel's write of each slot follows the left's by an exchange: a real, small
+    # turn while the speed changes (the encoders say so), not the odometry's
+    assert abs(last["y"]) < 0.01 and abs(last["theta"]) < math.radians(1)
+    assert world.base({"op": "reset_odometry"})["ok"]
+    time.sleep(0.1)
+    assert abs(world.odometry[-1]["x"]) < 0.002

@@ -1,0 +1,111 @@
+"""A differential drive's arithmetic, exact: a twist to its wheels and back, saturation that
+keeps the path's curvature, acceleration steps within the limits on a fake clock, the drive's
+samples shared by both wheels of a slot, and odometry from the wheels' positions."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from busgate.gateway.base.drive import Drive
+from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
+from busgate.schemas.joints import Joint, JointTable
+from busgate.schemas.zlac706 import JOINT as ZLAC_JOINT
+
+GEOMETRY = Geometry(wheel_radius_m=0.0825, track_m=0.40, max_linear=1.0, max_angular=2.0,
+                    max_linear_accel=0.8, max_angular_accel=3.0, max_wheel=15.0)
+speeds = st.floats(-50, 50, allow_nan=False)
+
+
+@given(speeds, speeds)
+def test_a_twist_and_its_wheels_give_each_other_back(linear, angular) -> None:
+    twist = GEOMETRY.twist(*GEOMETRY.wheels(Twist(linear, angular)))
+    assert twist.linear == pytest.approx(linear, abs=1e-9)
+    assert twist.angular == pytest.approx(angular, abs=1e-9)
+
+
+@given(speeds, speeds)
+def test_saturation_keeps_the_curvature_and_every_limit(linear, angular) -> None:
+    held = GEOMETRY.saturated(Twist(linear, angular))
+    assert abs(held.linear) <= 1.0 + 1e-9 and abs(held.angular) <= 2.0 + 1e-9
+    assert all(abs(w) <= 15.0 + 1e-9 for w in GEOMETRY.wheels(held))
+    # one factor for both: the curvature (and the direction of each) is the one asked for
+    assert held.linear * angular == pytest.approx(held.angular * linear, abs=1e-9)
+    assert math.copysign(1, held.linear) == math.copysign(1, linear) or held.linear == 0
+    if abs(linear) <= 1.0 and abs(angular) <= 2.0 and all(
+            abs(w) <= 15 for w in GEOMETRY.wheels(Twist(linear, angular))):
+        assert held == Twist(linear, angular)
+
+
+@given(st.floats(-1, 1), st.floats(-2, 2), st.floats(-1, 1), st.floats(-2, 2),
+       st.floats(0.001, 0.05))
+def test_a_step_moves_toward_its_target_within_the_accelerations(v0, w0, v1, w1, dt) -> None:
+    step = GEOMETRY.step(Twist(v0, w0), Twist(v1, w1), dt)
+    assert abs(step.linear - v0) <= 0.8 * dt + 1e-12
+    assert abs(step.angular - w0) <= 3.0 * dt + 1e-12
+    # on the straight line from now to the target, never past it
+    along = [(s - a) / (b - a) for s, a, b in ((step.linear, v0, v1), (step.angular, w0, w1))
+             if abs(b - a) > 1e-6]
+    assert all(-1e-9 <= f <= 1 + 1e-9 for f in along)
+    if along:
+        assert max(along) - min(along) <= 1e-6
+
+
+def test_from_rest_a_step_in_twist_becomes_a_ramp_that_keeps_the_curvature() -> None:
+    twist, slot = Twist(), 0.02
+    seen = []
+    for _ in range(200):
+        twist = GEOMETRY.step(twist, Twist(0.5, 1.0), slot)
+        seen.append(twist)
+    assert seen[0] == Twist(0.5 * 0.016 / 0.5 * 1.0, 0.016 * 2.0)  # linear limit: 0.8 × 20 ms
+    assert all(t.angular == pytest.approx(2 * t.linear) for t in seen)
+    assert seen[-1] == Twist(0.5, 1.0)
+    reached = next(i for i, t in enumerate(seen) if t == Twist(0.5, 1.0))
+    assert reached == math.ceil(0.5 / (0.8 * slot)) - 1  # 0.5 m/s at 0.8 m/s²: 0.625 s
+
+
+def wheel_joint(scale: float) -> Joint:
+    table = JointTable.model_validate({"unit": "rad", "scale": scale})
+    return Joint.of("wheel", ZLAC_JOINT, table)
+
+
+def test_both_wheels_of_a_slot_get_speeds_of_one_twist_and_the_deadman_ramps_down() -> None:
+    left, right = wheel_joint(math.tau / 10_000), wheel_joint(-math.tau / 10_000)  # mirrored
+    drive = Drive(GEOMETRY, left, right)
+    drive.command(Twist(0.4, 0.0), now=100.0, hold_s=0.5)
+    drive.begin(100.0, Twist())
+    samples = [(drive.sampler(0)(k * 0.02)["rpm"], drive.sampler(1)(k * 0.02)["rpm"])
+               for k in range(1, 60)]
+    # straight ahead: the mirrored right motor turns the other way, as much
+    assert all(a == pytest.approx(-b) for a, b in samples)
+    top = max(a for a, _ in samples)
+    assert top == pytest.approx(0.4 / 0.0825 * 60 / math.tau)  # 0.4 m/s reached, in rpm
+    held = [a for a, _ in samples]
+    peak = held.index(top)
+    # after the 0.5 s hold (slot 25), down at 0.8 m/s² like the way up
+    assert peak < 25 < len(held) - 1 and held[-1] < top
+    assert held[-1] == held[-2] == 0 and drive.finished(100.0 + 60 * 0.02)
+    assert not drive.finished(100.0 + 0.4)  # the command still holds
+
+
+def test_odometry_of_a_square_drive_returns_to_the_start() -> None:
+    odometry, left, right, at = Odometry(GEOMETRY), 0.0, 0.0, 0.0
+    odometry.take(left, right, at)
+    side_rad = 1.0 / 0.0825  # 1 m
+    quarter = (math.pi / 2) * 0.20 / 0.0825  # each wheel's turn for 90° on the spot
+    for _ in range(4):
+        for _ in range(50):
+            left, right, at = left + side_rad / 50, right + side_rad / 50, at + 0.02
+            odometry.take(left, right, at)
+        for _ in range(50):
+            left, right, at = left - quarter / 50, right + quarter / 50, at + 0.02
+            odometry.take(left, right, at)
+    pose = odometry.pose
+    assert (pose.x, pose.y) == (pytest.approx(0, abs=1e-9), pytest.approx(0, abs=1e-9))
+    assert pose.theta == pytest.approx(0, abs=1e-9)
+    odometry.reset()
+    assert not odometry.take(left, right, at + 1)  # the new start
+    assert odometry.pose.x == 0
