@@ -11,6 +11,9 @@ Rules of this file:
 3. ``node`` defaults to ``busgate_<gateway>`` (``-`` becoming ``_``: ROS node names are
    identifiers); ``client`` is the client id the face's commands act under, in claims and
    events, as any client's.
+4. A base (``[[bases]]``) takes ``cmd_vel`` and publishes ``odom`` and the ``tf`` transform
+   ``odom_frame`` → ``base_frame``. With several bases, each one's relative names are under
+   its name (``<base>/cmd_vel``) and its frames prefixed (``<base>/odom``): ``topic_of``.
 """
 
 from __future__ import annotations
@@ -27,7 +30,10 @@ from busgate.codecs.ros2.rmw_zenoh import (
 )
 from busgate.schemas.base import ClientId
 
-#: The topics and services of the face, by key (rule 1's defaults).
+#: A tf frame id: what tf2 takes (no leading slash).
+FRAME_ID = r"^[A-Za-z_][A-Za-z0-9_/]{0,127}$"
+#: The topics and services of the face, by key (rule 1's defaults). ``cmd_vel``, ``odom`` and
+#: ``tf`` are each base's (rule 4).
 TOPIC_DEFAULTS: dict[str, str] = {
     "joint_states": "robot_joint_states",
     "joint_commands": "robot_joint_commands",
@@ -36,6 +42,9 @@ TOPIC_DEFAULTS: dict[str, str] = {
     "estopped": "~/estopped",
     "estop": "~/estop",
     "reset_estop": "~/reset_estop",
+    "cmd_vel": "cmd_vel",
+    "odom": "odom",
+    "tf": "/tf",
 }
 
 
@@ -57,6 +66,11 @@ class Ros2Section(BaseModel):
     estopped: str = TOPIC_DEFAULTS["estopped"]
     estop: str = TOPIC_DEFAULTS["estop"]
     reset_estop: str = TOPIC_DEFAULTS["reset_estop"]
+    cmd_vel: str = TOPIC_DEFAULTS["cmd_vel"]
+    odom: str = TOPIC_DEFAULTS["odom"]
+    tf: str = TOPIC_DEFAULTS["tf"]
+    odom_frame: Annotated[str, Field(pattern=FRAME_ID)] = "odom"
+    base_frame: Annotated[str, Field(pattern=FRAME_ID)] = "base_link"
 
     @model_validator(mode="after")
     def _names(self) -> Ros2Section:
@@ -72,6 +86,18 @@ class Ros2Section(BaseModel):
             if problem is not None:
                 raise ValueError(f"{key}: {problem}")
         return self
+
+    def topic_of(self, key: str, base: str, bases: int) -> str:
+        """The name of base ``base``'s topic ``key`` (``cmd_vel``, ``odom``, ``tf``), one of
+        ``bases`` bases (rule 4); absolute names and ``~/`` names are each base's only with a
+        single base."""
+        name = getattr(self, key)
+        return name if bases == 1 or name.startswith(("/", "~")) else f"{base}/{name}"
+
+    def frame_of(self, key: str, base: str, bases: int) -> str:
+        """Base ``base``'s tf frame ``key`` (``odom_frame``, ``base_frame``) (rule 4)."""
+        frame = getattr(self, key)
+        return frame if bases == 1 else f"{base}/{frame}"
 
     def node_of(self, gateway: str) -> str:
         """The node's name (rule 3)."""

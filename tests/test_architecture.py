@@ -54,7 +54,7 @@ ALLOWED: dict[str, set[str]] = {
     "gateway.service": {"codecs", "schemas", "client", "gateway", "gateway.bus",
                         "gateway.drivers", "gateway.scheduler", "gateway.api", "gateway.base",
                         "gateway.recording", "gateway.ros2", "gateway.trajectory"},
-    "gateway.ros2": {"codecs", "schemas", "gateway.api", "gateway.drivers",
+    "gateway.ros2": {"codecs", "schemas", "gateway.api", "gateway.base", "gateway.drivers",
                      "gateway.scheduler"},
     "gateway.sim": {"codecs", "schemas", "gateway.bus", "gateway.drivers"},
     "gateway.trajectory": {"codecs", "schemas", "gateway.bus", "gateway.drivers",

@@ -32,11 +32,13 @@ ANSWERED = {
         "busgate/gw1/dev/" + "x" * 60_000 + "/cmd", "unknown_device"),
     "device of spaces and accents": ("busgate/gw1/dev/" + "é " * 2000 + "/cmd", "unknown_device"),
     "5000-char bus": ("busgate/gw1/bus/" + "b" * 5000 + "/cmd", "unknown_bus"),
+    "5000-char base": ("busgate/gw1/base/" + "b" * 5000 + "/cmd", "unknown_device"),
 }
 # Keys no queryable of the gateway matches: the get ends with no reply.
 UNMATCHED = {
     "2000 device chunks": "busgate/gw1/dev/" + "a/" * 2000 + "cmd",
     "2000 bus chunks": "busgate/gw1/bus/" + "a/" * 2000 + "cmd",
+    "2000 base chunks": "busgate/gw1/base/" + "a/" * 2000 + "cmd",
     "2000 wildcard chunks": "busgate/gw1/dev/" + "*/" * 2000 + "cmd",
     "2000 chunks between **": "busgate/" + "**/a/" * 2000 + "cmd",
 }

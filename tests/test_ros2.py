@@ -42,12 +42,18 @@ GRIPPER = {"name": "gripper", "unit": "m", "scale": 5e-6, "min": 0.001, "max": 0
 #: the wheel: a velocity joint, at most 2 turns a second, 8 turns a second².
 WHEEL = {"name": "wheel", "unit": "rad", "scale": TURN / 10_000, "max_velocity": 2 * TURN,
          "max_acceleration": 8 * TURN}
+#: a base's wheels: 10000 pulses a turn, at most 2 turns a second.
+BASE_WHEEL = {"unit": "rad", "scale": TURN / 10_000, "max_velocity": 2 * TURN}
 MESSAGE_TYPES = [
     "builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration", "std_msgs/msg/Header",
     "std_msgs/msg/Bool", "sensor_msgs/msg/JointState", "trajectory_msgs/msg/JointTrajectory",
     "trajectory_msgs/msg/JointTrajectoryPoint", "diagnostic_msgs/msg/DiagnosticArray",
     "diagnostic_msgs/msg/DiagnosticStatus", "diagnostic_msgs/msg/KeyValue",
-    "service_msgs/msg/ServiceEventInfo",
+    "service_msgs/msg/ServiceEventInfo", "geometry_msgs/msg/Twist", "geometry_msgs/msg/Vector3",
+    "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/Pose",
+    "geometry_msgs/msg/Point", "geometry_msgs/msg/Quaternion",
+    "geometry_msgs/msg/TwistWithCovariance", "tf2_msgs/msg/TFMessage",
+    "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform",
 ]
 #: std_srvs/srv/Trigger as ROS 2 defines it (rosbags has no service types).
 TRIGGER_SRV = "---\nbool success\nstring message\n"
@@ -110,7 +116,9 @@ def ros(tmp_path_factory):
     endpoint = f"tcp/127.0.0.1:{port}"
     la_sim = SerialSimulator(la, [InspireLaDevice(1), InspireLaDevice(2)], baudrate=921_600)
     channel = f"test-ros2-{next(_channels)}"
-    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50)],
+    can_sim = CanSimulator(zcan, [Zlac706CanDevice(5, heartbeat_ms=50),
+                                  Zlac706CanDevice(6, heartbeat_ms=20),
+                                  Zlac706CanDevice(7, heartbeat_ms=20)],
                            bus=can.Bus(interface="virtual", channel=channel))
     for simulator in (la_sim, can_sim):
         simulator.start()
@@ -126,7 +134,14 @@ def ros(tmp_path_factory):
             {"name": "can0", "transport": "can", "interface": "virtual", "channel": channel,
              "reply_margin_ms": 50, "devices": [
                  {"name": "drive", "kind": "zlac706", "id": 5, "heartbeat_ms": 50,
-                  "joint": WHEEL}]}],
+                  "joint": WHEEL},
+                 {"name": "wl", "kind": "zlac706", "id": 6, "heartbeat_ms": 20,
+                  "joint": BASE_WHEEL | {"name": "left_wheel"}},
+                 {"name": "wr", "kind": "zlac706", "id": 7, "heartbeat_ms": 20,
+                  "joint": BASE_WHEEL | {"name": "right_wheel", "scale": -TURN / 10_000}}]}],
+        "bases": [{"name": "base", "left": "wl", "right": "wr", "wheel_radius_m": 0.1,
+                   "track_m": 0.4, "max_linear_mps": 1.0, "max_angular_radps": 2.0,
+                   "max_linear_accel": 2.0, "max_angular_accel": 6.0}],
     })
     client = connected(zenoh.open(session_config(mode="peer", connect=[endpoint])))
     message_registry._registry = None
@@ -206,7 +221,8 @@ def wait_for_target(ros, since: int, device_id: int, target: int) -> list[int]:
 
 def test_joint_states_reach_a_ros_subscriber_in_si_with_nan_where_unknown(ros) -> None:
     states = subscribe(ros, "/robot_joint_states", "sensor_msgs/msg/JointState")
-    message = states.wait(lambda m: list(m.name) == ["gripper", "la2", "wheel"])
+    message = states.wait(lambda m: list(m.name) == ["gripper", "la2", "wheel", "left_wheel",
+                                                     "right_wheel"])
     assert math.isnan(message.velocity[0])  # an LA reports no velocity
     position_raw = next(d for d in get(ros["client"], "busgate/gw1/info", "")[0]["buses"][0]
                     ["devices"] if d["name"] == "la1")["state"]["position"]
@@ -347,3 +363,52 @@ def test_the_estop_service_stops_every_bus_and_the_reset_brings_them_back(ros) -
     response = service(ros, f"/{NODE}/reset_estop").call()
     assert response.success is True, response.message
     estopped.wait(lambda m: m.data is False, timeout=3)
+
+
+def test_a_base_drives_from_the_zenoh_api_and_its_odometry_is_published(ros) -> None:
+    client = ros["client"]
+    odometry: list[dict] = []
+    told = client.declare_subscriber(
+        "busgate/gw1/base/base/odom",
+        lambda sample: odometry.append(json.loads(sample.payload.to_bytes())))
+    try:
+        [reply] = get(client, "busgate/gw1/base/base/cmd", '{"op":"enable"}')
+        assert reply["ok"], reply
+        [reply] = get(client, "busgate/gw1/base/base/cmd", '{"op":"reset_odometry"}')
+        since = len(ros["can"].recorder.received())
+        [reply] = get(client, "busgate/gw1/base/base/cmd",
+                      '{"op":"twist","linear":0.3,"duration_s":0.6}')
+        assert reply["ok"] and reply["base"]["target"] == {"linear": 0.3, "angular": 0.0}
+        deadline = time.monotonic() + 10
+        while not odometry or odometry[-1]["x"] < 0.1:
+            assert time.monotonic() < deadline, odometry[-1:]
+            time.sleep(0.05)
+        nodes = {frame.device_id for _, frame in received(ros["can"], since, zcan)
+                 if written_speed(frame)}
+        assert nodes == {6, 7}
+        client.put("busgate/gw1/base/base/twist", '{"linear": "fast"}')  # refused, an event
+        [reply] = get(client, "busgate/gw1/base/ghost/cmd", '{"op":"stop"}')
+        assert reply["error"]["code"] == "unknown_device"
+    finally:
+        told.undeclare()
+        get(client, "busgate/gw1/base/base/cmd", '{"op":"stop"}')
+
+
+def test_cmd_vel_drives_the_base_and_odom_and_tf_follow(ros) -> None:
+    odom = subscribe(ros, "/odom", "nav_msgs/msg/Odometry")
+    tf = subscribe(ros, "/tf", "tf2_msgs/msg/TFMessage")
+    [reply] = get(ros["client"], "busgate/gw1/base/base/cmd", '{"op":"enable"}')
+    assert reply["ok"]
+    start = odom.wait(lambda m: True)
+    twist = publisher(ros, "/cmd_vel", "geometry_msgs/msg/Twist")
+    types = ros["types"]
+    vector = types["geometry_msgs/msg/Vector3"]
+    for _ in range(10):  # a controller's stream: 0.2 rad/s on the spot
+        twist.publish(linear=vector(0.0, 0.0, 0.0), angular=vector(0.0, 0.0, 0.2))
+        time.sleep(0.05)
+    turned = odom.wait(lambda m: m.pose.pose.orientation.z > start.pose.pose.orientation.z
+                       + 0.01)
+    assert turned.header.frame_id == "odom" and turned.child_frame_id == "base_link"
+    assert abs(turned.pose.pose.position.x - start.pose.pose.position.x) < 0.01
+    [transform] = tf.wait(lambda m: True).transforms
+    assert (transform.header.frame_id, transform.child_frame_id) == ("odom", "base_link")

@@ -77,6 +77,8 @@ class ZenohBridge:
         #: Called with every joints message published (the ROS face's joint states); on the
         #: loop's thread.
         self.on_joints: Callable[[dict[str, Any]], None] | None = None
+        #: Called with each base's name and odometry as published (the ROS face's odom).
+        self.on_odometry: Callable[[str, dict[str, Any]], None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
@@ -93,7 +95,7 @@ class ZenohBridge:
             config.bases,
             api,
             lambda event: self.events.append(event),
-            lambda name, odometry: self._put(f"{self.base}/base/{name}/odom", odometry),
+            self._odometry,
         )
         self.joints = JointsFeed(
             config.gateway.name,
@@ -423,6 +425,11 @@ class ZenohBridge:
             publisher.put(data)
             if self.on_published is not None:
                 self.on_published(key, value, data)
+
+    def _odometry(self, name: str, odometry: dict[str, Any]) -> None:
+        self._put(f"{self.base}/base/{name}/odom", odometry)
+        if self.on_odometry is not None:
+            self.on_odometry(name, odometry)
 
     def _put_any(self, key: str, value: dict[str, Any]) -> None:
         """A put on a key with no declared publisher (a trajectory's feedback)."""

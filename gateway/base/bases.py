@@ -161,16 +161,22 @@ class Bases:
     def twist(self, name: str, payload: bytes) -> dict[str, Any] | None:
         """A put on ``…/base/<name>/twist``: ``None`` when taken, else the error reply."""
         try:
-            base = self._base(name)
             target = TwistTarget.model_validate(decode_object(payload))
-            reply = self._drive(
-                base,
-                Twist(target.linear, target.angular),
-                base.config.cmd_timeout_s,
-                target.client,
-                target.require_claim,
-            )
-            return None if reply.get("ok") else reply
+        except REFUSALS as exc:
+            return error_reply(exc)
+        return self.stream(
+            name, Twist(target.linear, target.angular), target.client, target.require_claim
+        )
+
+    def stream(
+        self, name: str, twist: Twist, client: str | None, require_claim: bool = False
+    ) -> dict[str, Any] | None:
+        """One twist of a stream (a put, a ROS ``cmd_vel``), held ``cmd_timeout_s``: ``None``
+        when taken, else the error reply."""
+        try:
+            base = self._base(name)
+            self._drive(base, twist, base.config.cmd_timeout_s, client, require_claim)
+            return None
         except REFUSALS as exc:
             return error_reply(exc)
 

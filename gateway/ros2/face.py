@@ -16,7 +16,8 @@ Rules of this file:
    without a command for ``command_timeout_s`` ramps to 0.
 3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
    under the same client; its refusal is logged and shown in the joints' diagnostics.
-4. The e-stop service stops every bus whatever its request looks like; the reset service
+4. Each base takes ``cmd_vel`` and publishes ``odom`` and ``tf`` (``ros2.bases``).
+   The e-stop service stops every bus whatever its request looks like; the reset service
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
    once a second; ``/diagnostics`` once a second.
 5. Zenoh callbacks hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
@@ -42,6 +43,7 @@ from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef
 from busgate.gateway.ros2.diagnostics import BusHealth, JointHealth, diagnostic_array
 from busgate.gateway.ros2.node import NodeName, Ros2Node
@@ -108,6 +110,11 @@ class Ros2Face:
         node.service(section.estop, TRIGGER, self._estop, always=True)
         node.service(section.reset_estop, TRIGGER, self._reset_estop)
         self.bridge.on_joints = self.publish_joints
+        if self.bridge.bases.bases:
+            topics = BaseTopics(node, section, self.bridge.bases)
+            self.bridge.on_odometry = lambda name, odometry: self._guarded(
+                "publishing odometry", lambda: topics.odometry(name, odometry)
+            )
         log.info(
             "ROS 2 node %s up (domain %d, %s definitions): joint states on %s, commands on %s",
             node.name.resolve(self.node_name),
@@ -118,7 +125,7 @@ class Ros2Face:
         )
 
     def close(self) -> None:
-        self.bridge.on_joints = None
+        self.bridge.on_joints = self.bridge.on_odometry = None
         node, self._node = self._node, None
         if node is not None:
             node.close()
