@@ -18,7 +18,7 @@ from tests.sdk_helpers import patiently
 
 pytestmark = needs_chromium
 
-DEVICES = ["la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"]
+DEVICES = ["la1", "la2", "la3", "servo1", "servo2", "wheel", "wheel_l", "wheel_r", "drive"]
 #: Each device's power badge as the demo starts it (a test that changes one puts it back).
 AS_STARTED = {name: "off" if name in ("wheel", "drive") else "enabled" for name in DEVICES}
 WAIT_MS = 15_000  # a hang guard: conditions are waited for, not timed
@@ -70,7 +70,7 @@ def test_every_bus_and_device_of_the_gateway_appears_online(page) -> None:
     assert badges(page, "la1")[1] == "enabled" and badges(page, "wheel")[1] == "off"
     assert field(page, "la1", "temperature").endswith("°C")
     assert field(page, "la1", "faults") == "none"
-    assert page.locator("#counts").inner_text() == "1 gateways · 7 devices"
+    assert page.locator("#counts").inner_text() == "1 gateways · 9 devices"
 
 
 def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> None:

@@ -21,7 +21,7 @@ from tests.gateway_process import ServingProcess
 from tests.sdk_helpers import patiently
 
 VENDOR = Path(__file__).resolve().parent.parent / "dashboard" / "static" / "vendor"
-DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
+DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "wheel_l", "wheel_r", "drive"}
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,8 @@ from busgate.schemas.families import PROTOCOLS
 from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import TIMEOUT_S, DemoProcess
 
-ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "drive"}
+ALL_DEVICES = {"la1", "la2", "la3", "servo1", "servo2", "wheel", "wheel_l", "wheel_r",
+               "drive"}
 
 
 @pytest.fixture

@@ -73,7 +73,7 @@ class DemoBus:
 _DEMO_DEVICES: dict[str, tuple[str, tuple[tuple[str, int], ...]]] = {
     "inspire_la": ("uart0", (("la1", 1), ("la2", 2), ("la3", 3))),
     "ds_servo": ("uart1", (("servo1", 1), ("servo2", 2))),
-    "zlac706_can": ("can0", (("wheel", 1),)),
+    "zlac706_can": ("can0", (("wheel", 1), ("wheel_l", 2), ("wheel_r", 3))),
     "zlac706_rs232": ("rs232", (("drive", 1),)),
 }
 DEMO_BUSES = tuple(
@@ -97,7 +97,8 @@ _HUB_MOTOR: dict[str, Any] = {
 #: - ``la1``–``la3``: a 10 mm stroke over raw 0–2000, 5 µm a count: 0–0.010 m.
 #: - ``servo1``, ``servo2``: one turn in 4096 counts, centred (raw 2048 is 0 rad): −π to
 #:   π − 2π/4096 rad, streamed or played at most one turn a second (2π rad/s).
-#: - ``wheel``: a small robot's wheel, ``_HUB_MOTOR``.
+#: - ``wheel``: a small robot's wheel, ``_HUB_MOTOR``; ``wheel_l`` and ``wheel_r`` the
+#:   demo base's (``DEMO_BASES``), the right one mirrored.
 #: - ``drive``: a cart's drive, ``_HUB_MOTOR`` that also speeds up and slows down at most at
 #:   10 rad/s² (0 to 15 rad/s in 1.5 s): a step in speed, one-shot or streamed, becomes a ramp
 #:   (the reply to a one-shot speed comes at once, with the speed the ramp starts from).
@@ -109,14 +110,34 @@ DEMO_JOINTS: dict[str, dict[str, Any]] = {
     },
     "wheel": _HUB_MOTOR,
     "drive": {**_HUB_MOTOR, "max_acceleration": 10.0},
+    "wheel_l": _HUB_MOTOR,
+    "wheel_r": {**_HUB_MOTOR, "scale": -_HUB_MOTOR["scale"]},
 }
+#: The demo's base (``[[bases]]``, docs/bases.md): ``wheel_l`` and ``wheel_r`` on ``can0`` as
+#: one differential drive, the right motor mirrored (its joint's negative scale), 6.5-inch
+#: wheels 0.4 m apart.
+DEMO_BASES: list[dict[str, Any]] = [
+    {
+        "name": "base",
+        "left": "wheel_l",
+        "right": "wheel_r",
+        "wheel_radius_m": 0.0825,
+        "track_m": 0.40,
+        "max_linear_mps": 1.0,
+        "max_angular_radps": 2.0,
+        "max_linear_accel": 0.8,
+        "max_angular_accel": 3.0,
+        "cmd_timeout_s": 0.5,
+    }
+]
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
         "demo",
         description="Run the real gateway (named 'demo') on simulated devices: three Inspire LA "
-        "actuators and two DS servos on UART buses, a ZLAC706 on CAN and one on RS232, with "
+        "actuators and two DS servos on UART buses, three ZLAC706 on CAN (two of them a "
+        "differential-drive base) and one on RS232, with "
         "wire timing emulated. Prints how to connect; serves until SIGTERM or Ctrl-C.",
     )
     demo.add_argument(
@@ -279,6 +300,7 @@ def demo_config(
             }
             for bus in DEMO_BUSES
         ],
+        "bases": DEMO_BASES,
     }
     if metrics_listen is not None:
         document["metrics"] = {"listen": metrics_listen}
