@@ -16,7 +16,8 @@ The same as coroutines: ``busgate.client.aio``. The rooms: ``core`` (the zenoh s
 exchange as a future) and ``messages`` (what the exchanges carry); ``base`` (what both faces
 share below their methods); ``surface``, ``devices`` and ``trajectories`` (every method of
 both faces, written once as the steps it waits for: ``steps``), made each face's methods by
-``faces``; ``joints`` (a device as a joint, in SI); ``sync`` and ``aio`` (the faces: their
+``faces``; ``joints`` (a device as a joint, in SI); ``bases`` (a gateway's bases: two wheels
+driven as one); ``sync`` and ``aio`` (the faces: their
 classes and blocks); ``claims`` (renewed in the background), ``feeds`` (telemetry),
 ``errors`` and ``keys``. The zenoh session settings
 are ``busgate.schemas.zenoh_session``'s, shared with the daemon (``zenoh_config`` still names
@@ -36,12 +37,15 @@ from busgate.client.messages import (
     JointReading,
     JointsMessage,
     JointState,
+    Odometry,
 )
 from busgate.client.sync import (
+    Base,
     Bus,
     Claim,
     Client,
     Device,
+    DriveStream,
     Follow,
     Joint,
     JointFollow,
@@ -52,10 +56,12 @@ from busgate.client.sync import (
 __all__ = [
     "Answer",
     "Answers",
+    "Base",
     "Bus",
     "Claim",
     "Client",
     "Device",
+    "DriveStream",
     "FleetDevice",
     "Follow",
     "Joint",
@@ -64,6 +70,7 @@ __all__ = [
     "JointReading",
     "JointState",
     "JointsMessage",
+    "Odometry",
     "Trajectory",
     "aio",
     "connect",

@@ -1,13 +1,14 @@
 """The SDK's asyncio face: the same surface as ``busgate.client`` (``sync.py``), as
 coroutines, async iterators and async context managers.
 
-Its methods are the ones both faces share (``surface.py``, ``devices.py``, ``trajectories.py``),
-each run awaiting (``faces.Awaiting``). zenoh-python has no asyncio API: its callbacks settle
-``concurrent.futures.Future``s on zenoh's threads, and ``asyncio.wrap_future`` hands each
-result to the loop with ``call_soon_threadsafe``; samples reach the loop the same way. Nothing
-here blocks the loop: opening and closing the session, the only blocking zenoh calls, run in a
-worker thread. What is this face's own: its classes, ``connect`` (awaited, or an ``async
-with``), and the ``async with`` blocks of a claim, a follow stream and a trajectory.
+Its methods are the ones both faces share (``surface.py``, ``devices.py``, ``trajectories.py``,
+``bases.py``), each run awaiting (``faces.Awaiting``). zenoh-python has no asyncio API: its
+callbacks settle ``concurrent.futures.Future``s on zenoh's threads, and
+``asyncio.wrap_future`` hands each result to the loop with ``call_soon_threadsafe``; samples
+reach the loop the same way. Nothing here blocks the loop: opening and closing the session,
+the only blocking zenoh calls, run in a worker thread. What is this face's own: its classes,
+``connect`` (awaited, or an ``async with``), and the ``async with`` blocks of a claim, a
+follow stream, a base's drive stream and a trajectory.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import inspect
 from collections.abc import Generator
 from typing import Any, Self
 
+from busgate.client.bases import DriveStreamBase, MobileBase
 from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase, StreamBase
 from busgate.client.faces import Awaiting, init_taking
 from busgate.client.joints import JointBase, JointFollowBase
@@ -51,7 +53,7 @@ class connect:
 
 
 class Claim(Awaiting, ClaimBase):
-    """``async with device.claim(ttl_s)``: as ``busgate.client.Claim``."""
+    """``async with device.claim(ttl_s)`` (or a base's): as ``busgate.client.Claim``."""
 
     async def __aenter__(self) -> Claim:
         return await arun(self._taken())
@@ -105,7 +107,18 @@ class Trajectory(Awaiting, Handle):
         self.close()
 
 
-class Client(Awaiting, ClientBase[Device, Bus, Trajectory, Joint]):
+class DriveStream(_Stream, DriveStreamBase):
+    """``async with base.drive_stream() as d``: ``d.send(linear, angular)`` does not wait (a
+    put); the base is stopped when the block exits."""
+
+
+class Base(Awaiting, MobileBase[Claim, DriveStream]):
+    """One base of one gateway, for asyncio (``busgate.client.Base``'s methods)."""
+
+    _Claim, _DriveStream = Claim, DriveStream
+
+
+class Client(Awaiting, ClientBase[Device, Bus, Trajectory, Joint, Base]):
     """One program's connection to a fleet of gateways, for asyncio."""
 
-    _Device, _Bus, _Trajectory = Device, Bus, Trajectory
+    _Device, _Bus, _Trajectory, _Base = Device, Bus, Trajectory, Base

@@ -39,13 +39,15 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Found:
-    """A device or bus of one gateway: its name, and its kind (device) or protocol (bus); a
-    device's joint as its gateway's ``info`` describes it (``None``: it describes none)."""
+    """A device, bus or base of one gateway: its name, and its kind (device, base) or
+    protocol (bus); a device's joint as its gateway's ``info`` describes it (``None``: it
+    describes none); the room of its keys (``dev``; ``base`` for a base, ``bases.py``)."""
 
     gateway: str
     name: str
     kind: str
     joint: JointInfo | None = None
+    room: str = "dev"
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,8 @@ class Shared:
     def __init__(self, core: Core) -> None:
         self.core = core
         self.timers = Timers()
-        self.leases: dict[tuple[str, str], ClaimLease] = {}
+        #: This client's claims, by the command key they are held on (a device's, a base's).
+        self.leases: dict[str, ClaimLease] = {}
         self._latest: dict[str, Latest] = {}
         self._latest_lock = threading.Lock()
 
@@ -294,18 +297,29 @@ class Shared:
         """A future of the ``Found`` device or bus ``name``."""
         return then(self.find_all([name], what, timeout_s), lambda found: found[0])
 
-    # -- devices -------------------------------------------------------------------------------
+    # -- devices (and bases: ``bases.py``) ---------------------------------------------------
+
+    def command_key(self, found: Found) -> str:
+        """Where a device or a base (``found.room``) takes commands, claims included."""
+        keys = self.core.keys
+        if found.room == "base":
+            return keys.base(found.gateway, found.name, "cmd")
+        return keys.device(found.gateway, found.name, "cmd")
+
+    def lease_of(self, found: Found) -> ClaimLease | None:
+        """This client's claim on the device or base ``found``, held or lost, if it has one."""
+        return self.leases.get(self.command_key(found))
 
     def send(self, device: Found, command: Any, timeout_s: float | None) -> Future:
-        """A device command. While this client has a claim on the device (held or lost), it
+        """A device's command (or a base's). While this client has a claim on it (held or lost), it
         asks the gateway to refuse it unless the claim holds (``require_claim``): a lapsed
         claim is never silently done without, and reads and stops still go through, as the
         gateway's authority decides. Once the SDK knows the claim is lost, the gateway's
         refusal is told as ``ClaimLostError`` with the reason, and nothing is sent while the
         claim's gateway is gone (nothing could reach it)."""
         body = as_body(command)
-        key = self.core.keys.device(device.gateway, device.name, "cmd")
-        lease = self.leases.get((device.gateway, device.name))
+        key = self.command_key(device)
+        lease = self.leases.get(key)
         if lease is None:
             return self.core.command(key, body, timeout_s=timeout_s)
         body.setdefault("require_claim", True)
@@ -315,18 +329,24 @@ class Shared:
         return failed_as(sent, lambda exc: lease.lost_error(exc))
 
     def claim(self, device: Found, ttl_s: float) -> ClaimLease:
-        lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s)
-        self.leases[(device.gateway, device.name)] = lease
+        """Claim the device or base ``found`` (a ``ClaimLease`` to ``take``)."""
+        key = self.command_key(device)
+        lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s, key)
+        self.leases[key] = lease
         return lease
 
     def unclaim(self, lease: ClaimLease) -> Future:
         """Give the claim back: a future of the release, or of ``ClaimLostError`` when the
-        claim was lost meanwhile (nothing to give back, and the block must hear of it)."""
-        if self.leases.get((lease.gateway, lease.device)) is lease:
-            del self.leases[(lease.gateway, lease.device)]
+        claim was lost meanwhile (nothing to give back, and the block must hear of it); of
+        ``None`` when it was given back already (``Base.release``)."""
+        if self.leases.get(lease.key) is lease:
+            del self.leases[lease.key]
+        ended = lease.ended
         released = lease.release()
         if released is not None:
             return released
+        if ended:
+            return settled(None)
         lost: Future = Future()
         try:
             lease.check()
@@ -356,7 +376,7 @@ class Shared:
             self.timers,
             key,
             FOLLOW_MODELS[device.kind] if model is None else model,
-            lambda: self.leases.get((device.gateway, device.name)),
+            lambda: self.lease_of(device),
             device.name,
         )
 

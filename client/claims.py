@@ -82,16 +82,25 @@ class Timers:
 
 
 class ClaimLease:
-    """This client's claim on one device of one gateway."""
+    """This client's claim on one device of one gateway, or on one of its bases: what its
+    command key (``key``, the device's unless given) takes ``claim`` and ``release`` on."""
 
-    def __init__(self, core: Core, timers: Timers, gateway: str, device: str, ttl_s: float):
+    def __init__(
+        self,
+        core: Core,
+        timers: Timers,
+        gateway: str,
+        device: str,
+        ttl_s: float,
+        key: str | None = None,
+    ):
         seconds("ttl_s", ttl_s, MIN_TTL_S, MAX_CLAIM_S)
         self.core = core
         self.timers = timers
         self.gateway = gateway
         self.device = device
         self.ttl_s = ttl_s
-        self.key = core.keys.device(gateway, device, "cmd")
+        self.key = core.keys.device(gateway, device, "cmd") if key is None else key
         #: Why the claim was lost (``None`` while it is held).
         self.lost: str | None = None
         self._held_until = 0.0
@@ -120,8 +129,16 @@ class ClaimLease:
             gateway=self.gateway,
         )
 
+    @property
+    def ended(self) -> bool:
+        """Whether it was given back (``release``): nothing renews it any more."""
+        return self._ended
+
     def release(self) -> Future | None:
-        """Stop renewing and give the claim back (nothing to give when it was lost)."""
+        """Stop renewing and give the claim back (nothing to give when it was lost, or was
+        given back already)."""
+        if self._ended:
+            return None
         self._ended = True
         self._stop_listening()
         if self.lost is not None:

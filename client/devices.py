@@ -168,7 +168,7 @@ class BusBase(Face):
         return (yield from self._sending(scan_command(ids), timeout))["found"]
 
 
-def _settled(
+def last_exchange(
     shared: Shared, future: Future, kind: type[BaseException] | None, what: str
 ) -> Steps[None]:
     """Wait for a block's last exchange; its failure is raised unless the block is already
@@ -181,7 +181,7 @@ def _settled(
 
 
 class ClaimBase(Face):
-    """A claim held by a block (``Device.claim``), of either face."""
+    """A claim held by a block (``Device.claim``, ``Base.claim``), of either face."""
 
     def __init__(self, shared: Shared, found: Found, ttl_s: float) -> None:
         self._shared, self._found, self.ttl_s = shared, found, ttl_s
@@ -209,15 +209,19 @@ class ClaimBase(Face):
         lease, self._lease = self._lease, None
         assert lease is not None
         released = self._shared.unclaim(lease)
-        yield from _settled(self._shared, released, kind, f"release of {lease.device}")
+        yield from last_exchange(self._shared, released, kind, f"release of {lease.device}")
 
 
 class StreamBase(Face):
-    """A follow stream held by a block, of either face: a device's (``FollowBase``) or a
-    joint's (``joints.JointFollowBase``), each with its own ``set``."""
+    """A stream of targets held by a block, of either face: a device's follow stream
+    (``FollowBase``), a joint's (``joints.JointFollowBase``), each with its own ``set``, or a
+    base's twists (``bases.DriveStreamBase``, whose ``send`` puts them)."""
 
     #: What each target is checked against (``None``: the follow target of the device's kind).
     _model: Any = None
+    #: The stream's method that puts a target, and what the stream is called, for the error
+    #: of a target put outside its block.
+    _setter, _called = "set", "follow stream"
 
     def __init__(self, shared: Shared, found: Found) -> None:
         self._shared, self._found = shared, found
@@ -235,7 +239,7 @@ class StreamBase(Face):
 
     def _put(self, target: dict[str, Any]) -> None:
         if self._sender is None:
-            raise RuntimeError(f"set() outside the follow stream's {self._block} block")
+            raise RuntimeError(f"{self._setter}() outside the {self._called}'s {self._block} block")
         self._sender.set(target)
 
     def _ended(self, kind: type[BaseException] | None) -> Steps[None]:
@@ -243,7 +247,9 @@ class StreamBase(Face):
         sender, self._sender = self._sender, None
         assert sender is not None
         ended = self._shared.end_follow(self._found, sender)
-        yield from _settled(self._shared, ended, kind, f"end of the stream of {self._found.name}")
+        yield from last_exchange(
+            self._shared, ended, kind, f"end of the stream of {self._found.name}"
+        )
 
 
 class FollowBase(StreamBase):

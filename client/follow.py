@@ -15,7 +15,7 @@ Rules of this file:
 4. Each target carries the client's next ``seq``, taken as it is put in line, and the
    ``end_follow`` after the last one a higher one: the gateway drops a target numbered below
    the end whichever of zenoh's threads brought it late, and starts a stream at once for one
-   above.
+   above. A base's twist stream (``bases.py``) is numbered the same way against its ``stop``.
 """
 
 from __future__ import annotations
@@ -47,6 +47,8 @@ class FollowSender:
         model: Any,
         lease_of: Any,
         what: str,
+        *,
+        called: str = "follow target",
     ) -> None:
         self._publish = core.publisher(key)
         self._client = core.client_id
@@ -55,6 +57,7 @@ class FollowSender:
         self._model = model
         self._lease_of: Any = lease_of  # () -> ClaimLease | None, looked up at each set
         self._what = what
+        self._called = called  # what a target is called in the error of one that is not one
         self._lock = threading.Lock()
         self._pending: bytes | None = None
         self._armed = False
@@ -69,7 +72,8 @@ class FollowSender:
         try:
             self._model.model_validate(target)
         except ValidationError as exc:
-            message = f"invalid follow target for {self._what}: {describe_validation_error(exc)}"
+            reason = describe_validation_error(exc)
+            message = f"invalid {self._called} for {self._what}: {reason}"
             raise error_for(refusal_code(exc))(message) from None
         claim = {} if lease is None else {"require_claim": True}
         with self._lock:  # numbered in the order they are put (rule 4)

@@ -5,8 +5,8 @@ spells a key; docs/api.md lists the same keys.
 >>> keys = Keys("busgate")
 >>> keys.device("gw1", "la1", "cmd"), keys.bus("*", "uart0", "cmd"), keys.estop("*")
 ('busgate/gw1/dev/la1/cmd', 'busgate/*/bus/uart0/cmd', 'busgate/*/estop')
->>> keys.estop_reset("gw1")
-'busgate/gw1/estop/reset'
+>>> keys.estop_reset("gw1"), keys.base("gw1", "base", "twist")
+('busgate/gw1/estop/reset', 'busgate/gw1/base/base/twist')
 >>> split_name("gw1/la1"), split_name("la1")
 (('gw1', 'la1'), (None, 'la1'))
 """
@@ -43,6 +43,10 @@ class Keys:
     def bus(self, gateway: str, bus: str, leaf: str) -> str:
         """``cmd`` or ``stats`` of a bus."""
         return f"{self.prefix}/{gateway}/bus/{bus}/{leaf}"
+
+    def base(self, gateway: str, base: str, leaf: str) -> str:
+        """``cmd``, ``twist`` or ``odom`` of a base (``[[bases]]``: two wheels as one drive)."""
+        return f"{self.prefix}/{gateway}/base/{base}/{leaf}"
 
     def info(self, gateway: str) -> str:
         return f"{self.prefix}/{gateway}/info"
@@ -90,14 +94,15 @@ def check_name(what: str, name: str) -> str:
     return name
 
 
-def split_name(name: str) -> tuple[str | None, str]:
-    """``"gw1/la1"`` → ``("gw1", "la1")``; a bare ``"la1"`` names no gateway."""
+def split_name(name: str, what: str = "device or bus") -> tuple[str | None, str]:
+    """``"gw1/la1"`` → ``("gw1", "la1")``; a bare ``"la1"`` names no gateway. ``what`` the
+    leaf names, for the error of one that is not a name."""
     if not isinstance(name, str):
         raise CommandError(f"a name is a string, not {type(name).__name__}")
     gateway, _, leaf = name.rpartition("/")
     if not gateway:
-        return None, check_name("device or bus", leaf)
-    return check_name("gateway", gateway), check_name("device or bus", leaf)
+        return None, check_name(what, leaf)
+    return check_name("gateway", gateway), check_name(what, leaf)
 
 
 def check_key(text: str) -> str:

@@ -6,9 +6,10 @@ of seconds, and the JSON every message is sent as.
 The models of what gateways publish are ``busgate.schemas``' (closed: every field the gateway
 publishes is named and typed there, and ``tests/test_schema_export.py`` holds the gateway to
 them), named here for the SDK: a device's joint in its state (``JointState``) and in ``info``
-(``JointInfo``), and a gateway's joints message (``JointsMessage`` of ``JointReading``s). A
-message that does not validate (a field this SDK does not know) is left out with a warning
-naming its gateway, as ``gateways()`` leaves out an ``info`` (``joints_message``).
+(``JointInfo``), a gateway's joints message (``JointsMessage`` of ``JointReading``s) and a
+base's odometry (``Odometry``). A message that does not validate (a field this SDK does not
+know) is left out with a warning naming its gateway, as ``gateways()`` leaves out an ``info``
+(``published``).
 """
 
 from __future__ import annotations
@@ -19,16 +20,20 @@ import logging
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
+
+from pydantic import BaseModel
 
 from busgate.client.errors import NoAnswerError, error_for, raise_for
 from busgate.errors import CommandError
 from busgate.schemas.api import JointInfo as JointInfo
 from busgate.schemas.api import JointReading as JointReading
 from busgate.schemas.api import JointsMessage as JointsMessage
+from busgate.schemas.bases import Odometry as Odometry
 from busgate.schemas.joints import JointState as JointState
 
 log = logging.getLogger(__name__)
+M = TypeVar("M", bound=BaseModel)
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,21 +60,31 @@ class Answer:
 UNPARSED = (ValueError, RecursionError)
 
 
-#: The gateways whose joints messages were told to be unreadable (told once each).
-_unreadable: set[str] = set()
+#: What was told to be unreadable, once each: (what, gateway) (joints messages, a base's
+#: odometry).
+_unreadable: set[tuple[str, str]] = set()
 
 
 def joints_message(payload: bytes, gateway: str) -> JointsMessage | None:
     """A joints message of ``gateway`` as the model; ``None`` when it is not one (a warning
     names the gateway, the first time)."""
+    return published(JointsMessage, payload, "joints messages", gateway)
+
+
+def published(model: type[M], payload: bytes, what: str, gateway: str) -> M | None:
+    """A message of ``gateway`` (``what`` it is, for people) as ``model``; ``None`` when it is
+    not one (a warning names what and the gateway, the first time)."""
     try:
-        return JointsMessage.model_validate_json(payload)
+        return model.model_validate_json(payload)
     except UNPARSED as exc:
-        if gateway not in _unreadable and len(_unreadable) < 256:
-            _unreadable.add(gateway)
+        if (what, gateway) not in _unreadable and len(_unreadable) < 256:
+            _unreadable.add((what, gateway))
             log.warning(
-                "joints messages of gateway %.64r left out: not a JointsMessage (%s)",
+                "%s of gateway %.64r left out: not a%s %s (%s)",
+                what,
                 gateway,
+                "n" if model.__name__[0] in "AEIOU" else "",
+                model.__name__,
                 str(exc).replace("\n", " ")[:200],
             )
         return None

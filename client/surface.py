@@ -2,13 +2,13 @@
 a generator of the steps it waits for (``steps.py``), which the blocking face (``sync.py``)
 runs waiting and the asyncio face (``aio.py``) awaiting (``faces.py`` makes it each face's
 method); the devices, buses, claims and follow streams it hands out are in ``devices.py``,
-trajectories in ``trajectories.py``.
+trajectories in ``trajectories.py``, bases in ``bases.py``.
 
 A face's module only names its classes (``faces.Blocking`` or ``faces.Awaiting``, and the
 classes it hands out) and the ways into and out of a block (``with`` or ``async with``). Here
-``Device``, ``Bus`` and ``Trajectory`` are type variables that each face binds to its own
-classes, so that a type checker knows ``bc.connect(…).device(…)`` for a ``bc.Device`` and
-``await c.device(…)`` of an asyncio client for a ``bc.aio.Device``.
+``Device``, ``Bus``, ``Trajectory``, ``Joint`` and ``Base`` are type variables that each face
+binds to its own classes, so that a type checker knows ``bc.connect(…).device(…)`` for a
+``bc.Device`` and ``await c.device(…)`` of an asyncio client for a ``bc.aio.Device``.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from typing import Any, Generic, TypeVar
 
 from busgate.client import trajectories
 from busgate.client.base import FleetDevice, Found, Shared, raw_payload
+from busgate.client.bases import find_base
 from busgate.client.core import Core
 from busgate.client.devices import DeviceBase
 from busgate.client.errors import NoAnswerError
@@ -35,6 +36,7 @@ Device = TypeVar("Device", bound=DeviceBase[Any, Any, Any])
 Bus = TypeVar("Bus")
 Trajectory = TypeVar("Trajectory")
 Joint = TypeVar("Joint")
+Base = TypeVar("Base")
 
 
 @taking(Core)
@@ -48,12 +50,13 @@ def connecting(*args: Any, **options: Any) -> Steps[Shared]:
     return Shared(core)
 
 
-class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint]):
+class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
     """One program's connection to a fleet of gateways, of either face."""
 
     _Device: Callable[[Shared, Found], Device]
     _Bus: Callable[[Shared, Found], Bus]
     _Trajectory: Callable[[Shared, Watch, dict[str, Any]], Trajectory]
+    _Base: Callable[[Shared, Found, dict[str, Any]], Base]
 
     def __init__(self, shared: Shared) -> None:
         self._shared = shared
@@ -139,6 +142,16 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint]):
         """The bus ``name``: ``"gw/uart0"``, or a bare ``"uart0"`` that one gateway has."""
         found = yield from self._found(name, "bus", timeout, f"finding bus {name}")
         return self._Bus(self._shared, found)
+
+    @waiting
+    def base(self, name: str, *, timeout: float | None = None) -> Steps[Base]:
+        """The base ``name`` (a gateway's ``[[bases]]``: two wheels driven as one): ``"gw/base"``,
+        or a bare ``"base"`` that one gateway has (asked of every gateway: ``info`` lists no
+        bases). ``UnknownDeviceError`` when there is none of that name."""
+        waited = self.timeout if timeout is None else timeout
+        finding = find_base(self._shared, name, waited)
+        found, status = yield Wait(finding, waited, f"finding base {name}")
+        return self._Base(self._shared, found, status)
 
     def on_gateways(self, callback: Callable[[str, bool], None]) -> Callable[[], None]:
         """``callback(gateway, alive)`` as each gateway comes (``True``: first for each one up

@@ -1,16 +1,18 @@
-"""The SDK's blocking face: ``connect`` → ``Client`` → ``Device`` and ``Bus``.
+"""The SDK's blocking face: ``connect`` → ``Client`` → ``Device``, ``Bus`` and ``Base``.
 
-Its methods are the ones both faces share (``surface.py``, ``devices.py``, ``trajectories.py``),
-each run waiting (``faces.Blocking``): it waits for each future with a timeout, and every wait
-names what it waited for when nobody answers. What is this face's own: its classes, and the
-``with`` blocks of a claim, a follow stream, a trajectory and a client. Safe to use from
-several threads at once (the core is; a ``Follow`` belongs to the thread that opened it).
+Its methods are the ones both faces share (``surface.py``, ``devices.py``, ``trajectories.py``,
+``bases.py``), each run waiting (``faces.Blocking``): it waits for each future with a timeout,
+and every wait names what it waited for when nobody answers. What is this face's own: its
+classes, and the ``with`` blocks of a claim, a follow stream, a base's drive stream, a
+trajectory and a client. Safe to use from several threads at once (the core is; a ``Follow``
+or ``DriveStream`` belongs to the thread that opened it).
 """
 
 from __future__ import annotations
 
 from typing import Self
 
+from busgate.client.bases import DriveStreamBase, MobileBase
 from busgate.client.core import DEFAULT_TIMEOUT_S
 from busgate.client.devices import BusBase, ClaimBase, DeviceBase, FollowBase, StreamBase
 from busgate.client.faces import Blocking, opener
@@ -21,10 +23,12 @@ from busgate.client.trajectories import Handle
 
 __all__ = [
     "DEFAULT_TIMEOUT_S",
+    "Base",
     "Bus",
     "Claim",
     "Client",
     "Device",
+    "DriveStream",
     "Follow",
     "Joint",
     "JointFollow",
@@ -34,7 +38,7 @@ __all__ = [
 
 
 class Claim(Blocking, ClaimBase):
-    """A claim held by a ``with`` block (``Device.claim``)."""
+    """A claim held by a ``with`` block (``Device.claim``, ``Base.claim``)."""
 
     def __enter__(self) -> Claim:
         return run(self._taken())
@@ -88,10 +92,21 @@ class Trajectory(Blocking, Handle):
         self.close()
 
 
-class Client(Blocking, ClientBase[Device, Bus, Trajectory, Joint]):
+class DriveStream(_Stream, DriveStreamBase):
+    """A base's twist stream held by a ``with`` block (``Base.drive_stream``): ``send(linear,
+    angular)`` puts a twist; the base is stopped when the block exits."""
+
+
+class Base(Blocking, MobileBase[Claim, DriveStream]):
+    """One base of one gateway: two ZLAC706 wheels driven as one differential drive."""
+
+    _Claim, _DriveStream = Claim, DriveStream
+
+
+class Client(Blocking, ClientBase[Device, Bus, Trajectory, Joint, Base]):
     """One program's connection to a fleet of gateways."""
 
-    _Device, _Bus, _Trajectory = Device, Bus, Trajectory
+    _Device, _Bus, _Trajectory, _Base = Device, Bus, Trajectory, Base
 
     def __enter__(self) -> Client:
         return self

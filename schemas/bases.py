@@ -12,6 +12,8 @@ Rules of this file:
 3. Checked with the rest of the config (``schemas.config``), before any port is opened.
 4. What the base's keys take (below) is validated as every command is: strict, closed,
    finite; a twist beyond the base's limits is not refused but scaled down (``kinematics``).
+5. What a base publishes (``Odometry``, last) is closed as every published message is: a
+   client reads it with this model (``busgate.client``).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from busgate.schemas.base import MAX_CLAIM_S, ClientId, CommandModel
+from busgate.schemas.base import MAX_CLAIM_S, ClientId, CommandModel, FollowSeq, Published
 from busgate.schemas.joints import Joint
 
 #: Names end up in zenoh key expressions (``<p>/<gw>/base/<name>/cmd``).
@@ -108,16 +110,21 @@ class TwistCommand(CommandModel):
 
 
 class TwistTarget(CommandModel):
-    """One target of the base's twist stream (``<p>/<gw>/base/<name>/twist``)."""
+    """One target of the base's twist stream (``<p>/<gw>/base/<name>/twist``). ``seq``, the
+    client's count of what it sends the stream, orders a target against a ``stop`` whichever
+    of zenoh's threads brought each (as a follow stream's against its ``end_follow``)."""
 
     linear: TwistValue = 0.0
     angular: TwistValue = 0.0
+    seq: FollowSeq | None = None
 
 
 class BaseStop(CommandModel):
-    """Ramp to 0 at the deceleration limits now."""
+    """Ramp to 0 at the deceleration limits now; with ``seq``, the client's twists numbered
+    below it are dropped however late they come."""
 
     op: Literal["stop"]
+    seq: FollowSeq | None = None
 
 
 class BaseClaim(CommandModel):
@@ -154,3 +161,22 @@ BaseCommand = Annotated[
     Field(discriminator="op"),
 ]
 BASE_COMMAND_ADAPTER: TypeAdapter[BaseCommand] = TypeAdapter(BaseCommand)
+
+
+# -- what the base publishes -------------------------------------------------------------------
+
+
+class Odometry(Published):
+    """What ``<p>/<gw>/base/<name>/odom`` carries, whenever both wheels were read again: the
+    pose integrated from the wheels' encoders since the gateway started or the last
+    ``reset_odometry`` (``x``, ``y`` in metres, ``theta`` in radians, counter-clockwise
+    positive), the twist measured over the last step (``linear`` m/s, ``angular`` rad/s), and
+    ``ts``, the wall-clock time of the readings it was taken at (as telemetry's ``ts``)."""
+
+    base: BaseName
+    ts: float
+    x: float
+    y: float
+    theta: float
+    linear: float
+    angular: float

@@ -237,3 +237,75 @@ def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
     assert world.base({"op": "reset_odometry"})["ok"]
     time.sleep(0.1)
     assert abs(world.odometry[-1]["x"]) < 0.002
+
+
+def test_a_claim_holder_powers_its_base_and_a_twist_sent_before_its_stop_is_dropped(world):
+    assert world.base({"op": "claim", "client": "nav", "ttl_s": 30})["ok"]
+    try:
+        assert world.base({"op": "enable", "client": "nav"})["ok"]  # the wheels are nav's
+        refused = world.base({"op": "enable", "client": "teleop"})
+        assert refused["error"]["code"] == "claimed"  # (a disable, a stop, never is)
+        told = len(world.events)
+        twist = json.dumps({"linear": 0.3, "client": "nav", "seq": 7}).encode()
+        assert world.bases.twist("base", twist) is None
+        assert world.base({"op": "stop", "client": "nav", "seq": 9})["ok"]
+        assert any(e.type == "stopped" for e in list(world.events)[told:])
+        world.wait_rest()
+        assert not any(e.type == "stream_stale" for e in list(world.events)[told:])
+        late = json.dumps({"linear": 0.3, "client": "nav", "seq": 8}).encode()
+        assert world.bases.twist("base", late) is None  # sent before the stop: dropped
+        assert world.bases.bases["base"].playing_since is None
+        newer = json.dumps({"linear": 0.1, "client": "nav", "seq": 10}).encode()
+        assert world.bases.twist("base", newer) is None
+        assert world.bases.bases["base"].playing_since is not None
+        assert world.base({"op": "stop", "client": "nav"})["ok"]
+        world.wait_rest()
+    finally:
+        assert world.base({"op": "release", "client": "nav"})["ok"]
+
+
+def _drive_until(world: World, linear: float, angular: float, reached) -> None:
+    """Hold ``linear``/``angular`` until ``reached(odometry)``, then stop and wait for rest."""
+    deadline = time.monotonic() + 30
+    while not (world.odometry and reached(world.odometry[-1])):
+        assert time.monotonic() < deadline, "the base never got there"
+        world.base({"op": "twist", "linear": linear, "angular": angular, "duration_s": 0.3})
+        time.sleep(0.02)
+    world.base({"op": "stop"})
+    world.wait_rest()
+
+
+def _side(world: World, metres: float) -> None:
+    start = world.odometry[-1]
+
+    def along(o: dict) -> float:
+        return math.hypot(o["x"] - start["x"], o["y"] - start["y"])
+
+    _drive_until(world, 0.4, 0.0, lambda o: along(o) >= metres - 0.08)  # brakes in 4 cm
+    _drive_until(world, 0.05, 0.0, lambda o: along(o) >= metres - 0.0006)
+
+
+def _turn(world: World, radians: float) -> None:
+    start = world.odometry[-1]["theta"]
+
+    def turned(o: dict) -> float:
+        return math.remainder(o["theta"] - start, math.tau)
+
+    _drive_until(world, 0.0, 1.0, lambda o: turned(o) >= radians - 0.2)
+    _drive_until(world, 0.0, 0.1, lambda o: turned(o) >= radians - 0.0008)
+
+
+@pytest.mark.slow
+def test_a_square_of_one_metre_sides_returns_to_its_start(world) -> None:
+    """Driven by the odometry, as a client would: the simulated wheels follow their speeds
+    with their ramps, and the pose integrated from their encoders comes back to the start
+    within 2 cm and 2°."""
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "reset_odometry"})["ok"]
+    time.sleep(0.2)
+    for _ in range(4):
+        _side(world, 1.0)
+        _turn(world, math.pi / 2)
+    end = world.odometry[-1]
+    assert math.hypot(end["x"], end["y"]) < 0.02, end
+    assert abs(math.remainder(end["theta"], math.tau)) < math.radians(2), end

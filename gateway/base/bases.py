@@ -12,8 +12,10 @@ Rules of this file:
    event naming the wheel and why. An e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
-   (``stream_stale``, ``stopped``); once at rest with nothing holding it (both wheels have sent
-   0 rpm: ``drive`` rule 3), its play ends and the wheels keep 0 rpm.
+   (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
+   ``stop`` has its twists sent before the stop dropped, whichever thread brought them
+   late. Once at rest with nothing holding it (both wheels have sent 0 rpm: ``drive`` rule
+   3), its play ends and the wheels keep 0 rpm.
 5. Odometry comes from the wheels' readings (their joints' measured positions), published on
    ``…/odom`` whenever both have been read past the last step. The two wheels are read at
    different moments (each its own heartbeat): the step is taken at the earlier of their
@@ -27,6 +29,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
@@ -94,6 +97,9 @@ class LiveBase:
     drive: Drive
     odometry: Odometry
     client: str | None = None  # whose twist drives it (the deadman's)
+    #: (client, seq) of the last ``stop``: that client's twists numbered below it were sent
+    #: before it (rule 4)
+    stopped_by: tuple[str | None, int | None] | None = None
     playing_since: float | None = None  # bus clock
     stale_told: bool = False
     odometry_ts: float | None = None
@@ -150,7 +156,7 @@ class Bases:
                 twist = Twist(request.linear, request.angular)
                 return _done(self._drive(base, twist, hold, request.client, request.require_claim))
             if isinstance(request, BasePower):
-                return self._power(base, request.op)
+                return self._power(base, request)
             return _done(self._other(base, request))
         except REFUSALS as exc:
             return _done(error_reply(exc))
@@ -165,16 +171,28 @@ class Bases:
         except REFUSALS as exc:
             return error_reply(exc)
         return self.stream(
-            name, Twist(target.linear, target.angular), target.client, target.require_claim
+            name,
+            Twist(target.linear, target.angular),
+            target.client,
+            target.require_claim,
+            target.seq,
         )
 
     def stream(
-        self, name: str, twist: Twist, client: str | None, require_claim: bool = False
+        self,
+        name: str,
+        twist: Twist,
+        client: str | None,
+        require_claim: bool = False,
+        seq: int | None = None,
     ) -> dict[str, Any] | None:
         """One twist of a stream (a put, a ROS ``cmd_vel``), held ``cmd_timeout_s``: ``None``
-        when taken, else the error reply."""
+        when taken (or dropped: sent before its client's ``stop``, rule 4), else the error
+        reply."""
         try:
             base = self._base(name)
+            if _sent_before_stop(base.stopped_by, client, seq):
+                return None
             self._drive(base, twist, base.config.cmd_timeout_s, client, require_claim)
             return None
         except REFUSALS as exc:
@@ -205,6 +223,10 @@ class Bases:
     def _other(self, base: LiveBase, request: Any) -> dict[str, Any]:
         if isinstance(request, BaseStop):
             base.drive.stop()
+            base.stopped_by = (request.client, request.seq)
+            if base.playing_since is not None:
+                base.stale_told = True  # stopped, not stale
+                self._event(base, "stopped", client=request.client, reason="stop")
         elif isinstance(request, BaseClaim):
             self._claim(base, request.client, request.ttl_s)
         elif isinstance(request, BaseRelease):
@@ -233,11 +255,17 @@ class Bases:
             raise
         self._event(base, "claimed", client=client, ttl_s=ttl_s)
 
-    def _power(self, base: LiveBase, op: str) -> Future:
-        """Both power stages: velocity mode then enable, or disable (and stop the twist)."""
-        if op == "disable":
+    def _power(self, base: LiveBase, request: BasePower) -> Future:
+        """Both power stages: velocity mode then enable, or disable (and stop the twist), as
+        the requester (its client id and ``require_claim``: a base's claim is its wheels')."""
+        if request.op == "disable":
             base.drive.stop()
-        payloads = [VELOCITY_MODE, b'{"op":"enable"}'] if op == "enable" else [b'{"op":"disable"}']
+        who = request.model_dump(include={"client", "require_claim"}, exclude_none=True)
+        ops = [{"op": "set_mode", "mode": "velocity"}, {"op": "enable"}]
+        payloads = [
+            json.dumps({**op, **who}).encode()
+            for op in (ops if request.op == "enable" else [{"op": "disable"}])
+        ]
         replies = [
             self.api.command(wheel.name, payload) for payload in payloads for wheel in base.wheels
         ]
@@ -349,6 +377,15 @@ class Bases:
 
     def _event(self, base: LiveBase, type_: str, **fields: Any) -> None:
         self.on_event(DeviceEvent(base.config.name, type_, {"base": base.config.name, **fields}))
+
+
+def _sent_before_stop(
+    stopped_by: tuple[str | None, int | None] | None, client: str | None, seq: int | None
+) -> bool:
+    """A numbered twist of the client whose numbered ``stop`` came after it (rule 4)."""
+    if stopped_by is None or seq is None or stopped_by[1] is None:
+        return False
+    return stopped_by[0] == client and seq < stopped_by[1]
 
 
 def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:
