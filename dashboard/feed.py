@@ -1,6 +1,7 @@
 """The dashboard's one view of the zenoh network: a ``busgate.client.aio`` client's
-subscriptions (every gateway's device states, bus statistics and events, and the gateways'
-liveliness) poured into a ``Fleet``, and each gateway's ``info`` asked for as it comes.
+subscriptions (every gateway's device states, bases' odometry, bus statistics and events, and
+the gateways' liveliness) poured into a ``Fleet``, and each gateway's ``info`` asked for as it
+comes. Bases are found by their odometry, which ``info`` does not list.
 
 However many browsers watch, the gateways see one client: this one, so that many browsers
 cost the gateways nothing more.
@@ -36,6 +37,7 @@ class Feed:
         self._asking: set[asyncio.Task] = set()
         self._ends: list[Callable[[], None]] = [
             client.subscribe(self._keys.device("*", "*", "state"), self._on_state),
+            client.subscribe(self._keys.base("*", "*", "odom"), self._on_odometry),
             client.subscribe(self._keys.bus("*", "*", "stats"), self._on_stats),
             client.subscribe(self._keys.events("*"), self._on_event),
             client.on_gateways(self._on_gateway),
@@ -55,6 +57,10 @@ class Feed:
     def _on_state(self, key: str, body: Any) -> None:
         gateway, _, device, _ = self._chunks(key)
         self._fleet.state(gateway, device, body)
+
+    def _on_odometry(self, key: str, body: Any) -> None:
+        gateway, _, base, _ = self._chunks(key)
+        self._fleet.odometry(gateway, base, body)
 
     def _on_stats(self, key: str, body: Any) -> None:
         gateway, _, bus, _ = self._chunks(key)

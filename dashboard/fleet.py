@@ -1,6 +1,7 @@
 """What the dashboard knows of the fleet: every gateway up, its buses and devices, each
-device's latest state and the last minute of what its plots show, the events; and, since the
-browsers were last told, what changed (``drain``).
+device's latest state and the last minute of what its plots show, each base's latest odometry
+and its recent track, the events; and, since the browsers were last told, what changed
+(``drain``).
 
 Rules of this file:
 
@@ -21,6 +22,14 @@ Rules of this file:
    without a ``joint`` (a gateway of an earlier release) is plotted raw, as the family's
    joint declaration reads it (``busgate.schemas.joints``), so no family's field is named
    here; a joint that is malformed leaves its values ``None``, never the page broken.
+6. A base is known by its odometry alone (``info`` does not list bases): it appears with its
+   first message that is an ``Odometry`` (``busgate.schemas.bases``) naming the base its key
+   names, at most ``MAX_BASES`` a gateway. Its track is its recent ``(x, y)``: a point kept
+   once the base is ``TRACK_STEP_M`` from the last one kept, at most ``TRACK_POINTS``. When the
+   pose jumps (farther than its measured speed takes it: its odometry was reset, its gateway
+   restarted), the track starts again from there, and the browsers start theirs again. The
+   twist told as measured is the odometry's own (the gateway measures it over 0.1 s at
+   least: ``busgate.gateway.base.kinematics`` rule 4).
 """
 
 from __future__ import annotations
@@ -33,6 +42,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pydantic import ValidationError
+
+from busgate.schemas.bases import Odometry
 from busgate.schemas.joints import declaration_of, type_told
 
 HISTORY_S = 60.0
@@ -45,6 +57,15 @@ MAX_DEVICES = 512
 PLOTTED = ("joint", "joint_target", "current_ma")
 #: The longest joint name and unit told to a browser.
 MAX_NAME, MAX_UNIT = 64, 16
+MAX_BASES = 64
+#: A base's track (rule 6): at most ``TRACK_POINTS`` points, each ``TRACK_STEP_M`` from the
+#: one before (600 cm-steps at the finest: a base at rest adds none).
+TRACK_POINTS = 600
+TRACK_STEP_M = 0.01
+#: Between two odometry messages, a pose that moved farther than twice what the base's
+#: measured speed (the greater of the two messages') takes it in the time between them, and
+#: ``JUMP_M`` more, jumped rather than moved (rule 6).
+JUMP_M = 0.05
 
 
 def number(value: Any) -> float | None:
@@ -172,14 +193,73 @@ class Device:
             self.samples.popleft()
 
 
+class Base:
+    """One base: its latest odometry and its track, ``[ts, x, y]`` points (rule 6)."""
+
+    def __init__(self) -> None:
+        self.odometry: dict[str, Any] | None = None
+        self.track: deque[list[float]] = deque(maxlen=TRACK_POINTS)
+        self.pending: list[list[float]] = []  # points the browsers have not had
+        self.restarted = False  # since the last drain: the browsers start their track again
+        self.measured: dict[str, float | None] = {"linear": None, "angular": None}
+        self._last: _Pose | None = None  # the last message's
+
+    def take(self, odometry: dict[str, Any]) -> None:
+        self.odometry = odometry
+        ts, x, y, linear, angular = (
+            number(odometry.get(name)) for name in ("ts", "x", "y", "linear", "angular")
+        )
+        self.measured = {"linear": linear, "angular": angular}
+        if ts is None or x is None or y is None:
+            return
+        pose = _Pose(ts, x, y, math.inf if linear is None else abs(linear))
+        if self._last is not None and _jumped(self._last, pose):
+            self.track.clear()
+            self.pending = []
+            self.restarted = True
+        self._last = pose
+        if self.track and math.dist(self.track[-1][1:], (x, y)) < TRACK_STEP_M:
+            return
+        point = [ts, x, y]
+        self.track.append(point)
+        self.pending.append(point)
+        del self.pending[:-TRACK_POINTS]
+
+
+@dataclass(frozen=True, slots=True)
+class _Pose:
+    ts: float
+    x: float
+    y: float
+    speed: float  # |linear| as measured; ``inf`` when unknown: never taken for a jump
+
+
+def _jumped(before: _Pose, after: _Pose) -> bool:
+    """The pose went from ``before`` to ``after`` farther than the base drove (``JUMP_M``)."""
+    distance = math.dist((before.x, before.y), (after.x, after.y))
+    reach = 2 * max(before.speed, after.speed) * max(after.ts - before.ts, 0.0)
+    return distance > JUMP_M + reach
+
+
+def odometry_of(base: str, body: Any) -> dict[str, Any] | None:
+    """``body`` as the dashboard keeps it when it is an ``Odometry`` of ``base`` (non-finite
+    numbers made ``None``); else ``None``."""
+    try:
+        odometry = Odometry.model_validate(body)
+    except ValidationError:
+        return None
+    return clean(odometry.model_dump()) if odometry.base == base else None
+
+
 class Gateway:
-    """One gateway up: its version, buses (with their last statistics) and devices."""
+    """One gateway up: its version, buses (with their last statistics), devices and bases."""
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.version: str | None = None
         self.buses: dict[str, dict[str, Any]] = {}
         self.devices: dict[str, Device] = {}
+        self.bases: dict[str, Base] = {}
 
     def view(self) -> dict[str, Any]:
         """The gateway as the page lists it (without device states)."""
@@ -208,6 +288,7 @@ class Fleet:
         self._changed_gateways: set[str] = set()
         self._gone: set[str] = set()
         self._changed_states: set[tuple[str, str]] = set()
+        self._changed_bases: set[tuple[str, str]] = set()
         self._new_events: list[dict[str, Any]] = []
 
     # -- what comes in (zenoh's threads) ---------------------------------------------------------
@@ -232,6 +313,7 @@ class Fleet:
                 return
             self._changed_gateways.discard(name)
             self._changed_states = {k for k in self._changed_states if k[0] != name}
+            self._changed_bases = {k for k in self._changed_bases if k[0] != name}
             self._gone.add(name)
 
     def info(self, name: str, info: Any) -> None:
@@ -278,6 +360,23 @@ class Fleet:
             device.take(state)
             self._changed_states.add((gateway.name, name))
 
+    def odometry(self, gateway: str, base: str, body: Any) -> None:
+        """A base's odometry (rule 6): the base appears with its first."""
+        odometry = odometry_of(base, body)
+        if odometry is None:
+            return
+        with self._lock:
+            found = self._gateways.get(gateway)
+            if found is None:
+                return
+            kept = found.bases.get(base)
+            if kept is None:
+                if len(found.bases) >= MAX_BASES:
+                    return
+                kept = found.bases[base] = Base()
+            kept.take(odometry)
+            self._changed_bases.add((gateway, base))
+
     def stats(self, gateway: str, bus: str, stats: Any) -> None:
         """A bus's statistics, with its frames per second since the previous ones."""
         if not isinstance(stats, dict):
@@ -317,6 +416,11 @@ class Fleet:
                     for g in self._gateways.values()
                     for name, device in g.devices.items()
                 ],
+                "bases": [
+                    _base_view(g.name, name, base, list(base.track), restart=True)
+                    for g in self._gateways.values()
+                    for name, base in g.bases.items()
+                ],
                 "events": list(self._events),
             }
 
@@ -324,7 +428,11 @@ class Fleet:
         """What changed since the last drain (``None``: nothing did)."""
         with self._lock:
             if not (
-                self._changed_gateways or self._gone or self._changed_states or self._new_events
+                self._changed_gateways
+                or self._gone
+                or self._changed_states
+                or self._changed_bases
+                or self._new_events
             ):
                 return None
             devices = []
@@ -332,14 +440,21 @@ class Fleet:
                 device = self._gateways[gateway_name].devices[name]
                 devices.append(_device_view(gateway_name, name, device, device.pending))
                 device.pending = []
+            bases = []
+            for gateway_name, name in sorted(self._changed_bases):
+                base = self._gateways[gateway_name].bases[name]
+                bases.append(_base_view(gateway_name, name, base, base.pending, base.restarted))
+                base.pending, base.restarted = [], False
             delta = {
                 "now": self._clock(),
                 "gateways": [self._gateways[g].view() for g in sorted(self._changed_gateways)],
                 "gone": sorted(self._gone),
                 "devices": devices,
+                "bases": bases,
                 "events": self._new_events,
             }
             self._changed_gateways, self._gone, self._changed_states = set(), set(), set()
+            self._changed_bases = set()
             self._new_events = []
             return delta
 
@@ -356,6 +471,22 @@ def _device_view(
         "state": device.state,
         "joint": None if view is None else view.told(),
         "samples": samples,
+    }
+
+
+def _base_view(
+    gateway: str, name: str, base: Base, track: list[list[float]], restart: bool
+) -> dict[str, Any]:
+    """A base as a browser gets it: its latest odometry, its twist as measured (rule 6), and
+    its track's points (those since the last drain; all of them with ``restart``, which says
+    to drop what it has)."""
+    return {
+        "gateway": gateway,
+        "base": name,
+        "odometry": base.odometry,
+        "measured": base.measured,
+        "track": track,
+        "restart": restart,
     }
 
 

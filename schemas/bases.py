@@ -166,12 +166,19 @@ BASE_COMMAND_ADAPTER: TypeAdapter[BaseCommand] = TypeAdapter(BaseCommand)
 # -- what the base publishes -------------------------------------------------------------------
 
 
+class CommandedTwist(Published):
+    linear: float
+    angular: float
+
+
 class Odometry(Published):
     """What ``<p>/<gw>/base/<name>/odom`` carries, whenever both wheels were read again: the
     pose integrated from the wheels' encoders since the gateway started or the last
     ``reset_odometry`` (``x``, ``y`` in metres, ``theta`` in radians, counter-clockwise
     positive), the twist measured over the last step (``linear`` m/s, ``angular`` rad/s), and
-    ``ts``, the wall-clock time of the readings it was taken at (as telemetry's ``ts``)."""
+    ``ts``, the wall-clock time of the readings it was taken at (as telemetry's ``ts``); and
+    ``commanded``, the twist the wheels were last sent (``linear``, ``angular``: beside the
+    measured one, what a dashboard shows)."""
 
     base: BaseName
     ts: float
@@ -180,3 +187,4 @@ class Odometry(Published):
     theta: float
     linear: float
     angular: float
+    commanded: CommandedTwist

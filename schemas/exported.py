@@ -16,7 +16,7 @@ from typing import Any
 
 from pydantic import TypeAdapter
 
-from busgate.schemas import api, events, recording, trajectory
+from busgate.schemas import api, bases, events, recording, trajectory
 from busgate.schemas.config import Config
 
 DRAFT = "https://json-schema.org/draft/2020-12/schema"
@@ -69,6 +69,23 @@ SCHEMAS: dict[str, tuple[str, str, Any]] = {
         "busgate joints",
         "What <prefix>/<gw>/joints carries: every joint of the gateway in SI units.",
         api.JointsMessage,
+    ),
+    "odometry.json": (
+        "busgate base odometry",
+        "What <prefix>/<gw>/base/<name>/odom carries: the base's pose from its wheels' "
+        "encoders, its measured and commanded twist.",
+        bases.Odometry,
+    ),
+    "base_command.json": (
+        "busgate base command",
+        "What <prefix>/<gw>/base/<name>/cmd takes: twist, stop, claim, release, enable, "
+        "disable, reset_odometry, status.",
+        bases.BASE_COMMAND_ADAPTER,
+    ),
+    "twist.json": (
+        "busgate base twist",
+        "What <prefix>/<gw>/base/<name>/twist takes: the latest twist of a stream.",
+        bases.TwistTarget,
     ),
     "event.json": (
         "busgate event",

@@ -109,3 +109,20 @@ def test_odometry_of_a_square_drive_returns_to_the_start() -> None:
     odometry.reset()
     assert not odometry.take(left, right, at + 1)  # the new start
     assert odometry.pose.x == 0
+
+
+def test_the_measured_twist_spans_a_window_not_one_step_between_two_heartbeats() -> None:
+    """Steps a few ms apart with all the wheel's counts in one of them (as heartbeats of two
+    wheels interleave): the twist is the travel over at least 0.1 s, steady."""
+    odometry, left, right, at = Odometry(GEOMETRY), 0.0, 0.0, 0.0
+    odometry.take(left, right, at)
+    speeds = []
+    for step in range(100):  # 0.5 m/s straight, counted in alternate 2 ms and 18 ms steps
+        at += 0.002 if step % 2 else 0.018
+        if not step % 2:
+            left = right = left + 0.5 * 0.02 / 0.0825
+        odometry.take(left, right, at)
+        speeds.append(odometry.twist.linear)
+    assert all(s == pytest.approx(0.5, rel=0.15) for s in speeds[20:]), speeds[20:]
+    odometry.reset()
+    assert odometry.twist == Twist()

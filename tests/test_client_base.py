@@ -283,9 +283,11 @@ def test_a_bare_base_name_several_gateways_have_is_ambiguous() -> None:
 
 def test_an_odometry_message_that_is_not_one_is_left_out_with_a_warning(caplog) -> None:
     base = bc.Base(None, Found("gwx", "base", "diff_drive", room="base"), {})  # type: ignore[arg-type]
-    good = b'{"base":"base","ts":1.5,"x":1,"y":0.0,"theta":0.0,"linear":0.0,"angular":0.0}'
-    assert base._message(good) == bc.Odometry(base="base", ts=1.5, x=1.0, y=0.0, theta=0.0,
-                                              linear=0.0, angular=0.0)
+    good = (b'{"base":"base","ts":1.5,"x":1,"y":0.0,"theta":0.0,"linear":0.0,"angular":0.0,'
+            b'"commanded":{"linear":0.1,"angular":0.0}}')
+    assert base._message(good) == bc.Odometry(
+        base="base", ts=1.5, x=1.0, y=0.0, theta=0.0, linear=0.0, angular=0.0,
+        commanded={"linear": 0.1, "angular": 0.0})
     with caplog.at_level(logging.WARNING):
         assert base._message(good.replace(b'"x":1', b'"x":"far"')) is None
         assert base._message(b"not json") is None

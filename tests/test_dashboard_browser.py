@@ -1,7 +1,8 @@
 """The dashboard in a real browser (``tests.browser``: Debian's Chromium under Playwright),
 served by ``busgate demo``: every device appears with its state, values and plots move while
-a client moves a device, events are logged, and the buttons e-stop, reset the e-stop (once
-the operator confirms) and re-enable."""
+a client moves a device, events are logged, the buttons e-stop, reset the e-stop (once the
+operator confirms) and re-enable, and the demo's base shows its twist and its track while a
+client drives it."""
 
 from __future__ import annotations
 
@@ -70,7 +71,8 @@ def test_every_bus_and_device_of_the_gateway_appears_online(page) -> None:
     assert badges(page, "la1")[1] == "enabled" and badges(page, "wheel")[1] == "off"
     assert field(page, "la1", "temperature").endswith("°C")
     assert field(page, "la1", "faults") == "none"
-    assert page.locator("#counts").inner_text() == "1 gateways · 9 devices"
+    until(page, "() => document.querySelector('#counts').textContent == "
+          "'1 gateways · 9 devices · 1 bases'")  # the base: as soon as its odometry comes
 
 
 def test_values_and_the_plot_follow_a_device_a_client_moves(page, client) -> None:
@@ -203,3 +205,41 @@ def test_each_device_shows_its_joint_with_its_unit_beside_its_raw_values(page, c
     wheel = client.joint("wheel")
     until(page, "([unit]) => document.querySelector('article[data-device=\"demo/wheel\"] "
           "dd[data-field=joint]').textContent.endsWith(` ${unit}/s`)", wheel.unit)
+
+
+BASE = "() => window.busgateDashboard.base('demo/base')"
+
+
+def base_field(page, label: str) -> str:
+    return page.locator(f'article[data-base="demo/base"] dd[data-field="{label}"]').inner_text()
+
+
+def until_base_field(page, label: str, condition: str) -> None:
+    """Until ``condition`` holds of the text ``t`` of the demo's base's field ``label``."""
+    until(page, "([label]) => { const t = document.querySelector("
+          "`article[data-base=\"demo/base\"] dd[data-field=\"${label}\"]`).textContent; "
+          f"return {condition}; }}", label)
+
+
+def test_the_base_a_client_drives_shows_its_twist_pose_and_track(page, client) -> None:
+    """Commanded and measured twist, the pose, and the track drawn as the base goes."""
+    base = client.base("demo/base")
+    patiently(base.enable)
+    until(page, f"() => ({BASE})()?.draws > 0")
+    before = page.evaluate(BASE)
+    patiently(base.drive, 0.3, 0.5, 10.0)  # held while the page is watched, then stopped
+    try:
+        until_base_field(page, "commanded linear", "t == '0.300 m/s'")
+        assert base_field(page, "commanded angular") == "0.500 rad/s"
+        until_base_field(page, "measured linear", "parseFloat(t) > 0.1")  # the wheels' own
+        until(page, f"([count]) => ({BASE})().track.length >= count + 10", len(before["track"]))
+        after = page.evaluate(BASE)
+        assert after["draws"] > before["draws"]
+        assert [p[0] for p in after["track"]] == sorted(p[0] for p in after["track"])
+        for label, unit in [("measured angular", " rad/s"), ("x", " m"), ("y", " m"),
+                            ("theta", "°"), ("age", " s")]:
+            assert base_field(page, label).endswith(unit), label
+        canvas = page.locator('article[data-base="demo/base"] canvas.track').bounding_box()
+        assert canvas["width"] == canvas["height"]
+    finally:
+        patiently(base.stop)

@@ -12,9 +12,12 @@ import pytest
 from busgate.dashboard.fleet import (
     EVENTS_KEPT,
     HISTORY_S,
+    MAX_BASES,
     MAX_DEVICES,
     MAX_GATEWAYS,
     SAMPLE_EVERY_S,
+    TRACK_POINTS,
+    TRACK_STEP_M,
     Fleet,
 )
 
@@ -259,3 +262,110 @@ def test_a_malformed_joint_in_a_state_is_shown_as_nothing_known(values) -> None:
         assert told["name"] is None or len(told["name"]) <= 64
         assert len(told["value_unit"]) <= 16
     json.dumps(fleet.snapshot(), allow_nan=False)
+
+
+# -- bases -------------------------------------------------------------------------------------
+
+def odometry(ts: float, x: float = 0.0, y: float = 0.0, theta: float = 0.0, **fields) -> dict:
+    return {"base": "base", "ts": ts, "x": x, "y": y, "theta": theta, "linear": 0.25,
+            "angular": -0.5, "commanded": {"linear": 0.3, "angular": -0.5}, **fields}
+
+
+def test_a_base_appears_with_its_first_odometry_and_goes_with_its_gateway() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.drain()
+    assert fleet.snapshot()["bases"] == []  # info lists none: its odometry tells
+    fleet.odometry("gw1", "base", odometry(1.0, x=0.5, y=0.25, theta=1.0))
+    [base] = fleet.drain()["bases"]
+    assert base == {"gateway": "gw1", "base": "base", "restart": False,
+                    "odometry": odometry(1.0, x=0.5, y=0.25, theta=1.0),
+                    "measured": {"linear": 0.25, "angular": -0.5},  # its own, at first
+                    "track": [[1.0, 0.5, 0.25]]}
+    fleet.odometry("gw1", "base", odometry(1.1, x=0.5 + TRACK_STEP_M / 2, y=0.25))
+    [base] = fleet.drain()["bases"]  # told, not tracked: it moved under a step
+    assert base["odometry"]["x"] == 0.5 + TRACK_STEP_M / 2 and base["track"] == []
+    fleet.odometry("gw1", "base", odometry(1.2, x=0.52, y=0.25))
+    assert fleet.drain()["bases"][0]["track"] == [[1.2, 0.52, 0.25]]
+    assert fleet.drain() is None
+    [base] = fleet.snapshot()["bases"]  # a new browser: all of it, to start its track from
+    assert base["track"] == [[1.0, 0.5, 0.25], [1.2, 0.52, 0.25]] and base["restart"]
+    fleet.odometry("gw1", "base", odometry(1.3, x=0.53, y=0.25))
+    fleet.gateway_gone("gw1")
+    assert fleet.drain()["bases"] == [] and fleet.snapshot()["bases"] == []
+    fleet.odometry("gw1", "base", odometry(1.4))  # late, after the token went: not brought back
+    assert fleet.drain() is None
+
+
+def test_a_track_stays_bounded_and_a_base_at_rest_adds_nothing_to_it() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    for n in range(3 * TRACK_POINTS):  # 2 cm every 100 ms, round a circle of 1 m radius
+        angle = n * 0.02
+        fleet.odometry("gw1", "base", odometry(n * 0.1, x=math.sin(angle), y=1 - math.cos(angle),
+                                               theta=angle))
+    [told] = fleet.drain()["bases"]
+    assert len(told["track"]) == TRACK_POINTS  # what the browsers had not had: bounded too
+    track = fleet.snapshot()["bases"][0]["track"]
+    assert len(track) == TRACK_POINTS
+    assert track[-1][0] == pytest.approx((3 * TRACK_POINTS - 1) * 0.1)
+    assert [p[0] for p in track] == sorted(p[0] for p in track)
+    last = track[-1]
+    for n in range(100):  # at rest, the odometry still told
+        fleet.odometry("gw1", "base", odometry(1000.0 + n * 0.1, x=last[1], y=last[2]))
+    assert fleet.snapshot()["bases"][0]["track"] == track
+    assert fleet.drain()["bases"][0]["odometry"]["ts"] == pytest.approx(1009.9)
+
+
+def test_a_pose_that_jumps_starts_the_track_again() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    for n in range(20):  # 0.25 m/s, as measured
+        fleet.odometry("gw1", "base", odometry(n * 0.1, x=n * 0.025))
+    fleet.drain()
+    fleet.odometry("gw1", "base", odometry(2.0, x=0.5))
+    fleet.odometry("gw1", "base", odometry(2.1))  # reset_odometry: back at 0 in 100 ms
+    fleet.odometry("gw1", "base", odometry(2.2, x=0.025))
+    [base] = fleet.drain()["bases"]
+    assert base["restart"] and base["track"] == [[2.1, 0.0, 0.0], [2.2, 0.025, 0.0]]
+    assert fleet.snapshot()["bases"][0]["track"] == base["track"]
+    fleet.odometry("gw1", "base", odometry(12.2, x=2.5))  # 10 s later: a slow publisher
+    fleet.odometry("gw1", "base", odometry(12.3, x=9.0, linear=math.nan))  # speed unknown
+    [base] = fleet.drain()["bases"]
+    assert not base["restart"] and base["track"] == [[12.2, 2.5, 0.0], [12.3, 9.0, 0.0]]
+
+
+def test_the_measured_twist_is_the_odometrys_own() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.odometry("gw1", "base", odometry(1.0, x=0.1, linear=0.3, angular=-0.2))
+    assert fleet.drain()["bases"][0]["measured"] == {"linear": 0.3, "angular": -0.2}
+
+
+@pytest.mark.parametrize("body", [
+    None, [], "x", 3, {}, odometry(1.0, x="1"), {**odometry(1.0), "ts": True},
+    odometry(1.0, commanded={"linear": 0.3}), odometry(1.0, extra=1),
+    odometry(1.0, base="other"), odometry(1.0, base="<b>"),
+    {k: v for k, v in odometry(1.0).items() if k != "commanded"},
+], ids=["none", "list", "text", "number", "empty", "x text", "ts bool", "half commanded",
+        "extra", "another base", "not a name", "no commanded"])
+def test_what_is_not_an_odometry_of_the_base_its_key_names_is_dropped(body) -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.drain()
+    fleet.odometry("gw1", "base", body)
+    assert fleet.drain() is None and fleet.snapshot()["bases"] == []
+
+
+def test_a_non_finite_pose_is_told_as_unknown_and_not_tracked_and_bases_are_bounded() -> None:
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.odometry("gw1", "base", odometry(1.0, x=math.nan, theta=math.inf))
+    [base] = fleet.drain()["bases"]
+    assert base["odometry"]["x"] is None and base["odometry"]["theta"] is None
+    assert base["track"] == []
+    json.dumps(fleet.snapshot(), allow_nan=False)
+    for n in range(MAX_BASES + 5):
+        name = f"b{n}"
+        fleet.odometry("gw1", name, odometry(1.0, base=name))
+    assert len(fleet.snapshot()["bases"]) == MAX_BASES

@@ -106,6 +106,16 @@ def test_a_browser_gets_a_snapshot_of_every_device_then_what_changes(dashboard) 
     assert any(body["devices"] or body["gateways"] for _, body in rest)
 
 
+def test_a_browser_is_told_the_demos_base_by_its_odometry(dashboard) -> None:
+    """``info`` lists no base: the dashboard finds the demo's by its odometry (every 100 ms)."""
+    told = [base for _, body in events(dashboard, 5) for base in body["bases"]]
+    assert told and {(b["gateway"], b["base"]) for b in told} == {("demo", "base")}
+    odometry = told[-1]["odometry"]
+    assert set(odometry) == {"base", "ts", "x", "y", "theta", "linear", "angular", "commanded"}
+    assert set(odometry["commanded"]) == set(told[-1]["measured"]) == {"linear", "angular"}
+    assert all(len(point) == 3 for base in told for point in base["track"])  # [ts, x, y]
+
+
 def test_a_page_on_another_site_that_rebinds_its_name_gets_nothing(dashboard) -> None:
     for path in ("/", "/events"):
         assert request(dashboard, "GET", path, headers={"Host": "evil.example"})[0] == 400

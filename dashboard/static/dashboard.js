@@ -2,7 +2,10 @@
 // as Server-Sent Events) drawn as a card per gateway and per device, with a minute of its
 // joint's value and target (in SI: a position, or a velocity joint's velocity) and current in
 // uPlot charts, redrawn RENDER_EVERY_MS. The joint's values come from the server (view.joint,
-// made by dashboard/fleet.py), the raw values from the device's state.
+// made by dashboard/fleet.py), the raw values from the device's state. Each base (two wheels
+// as one drive) has a card of its own: its commanded and measured twist and its pose, from its
+// latest odometry, and its recent track drawn on a square canvas, the pose marked with its
+// heading.
 //
 // Rules of this file:
 // 1. Text from the network goes into the page as text (textContent, never innerHTML).
@@ -11,8 +14,8 @@
 // 3. The only requests are the e-stops, a gateway's reset of its e-stop (once the operator
 //    confirms it) and the enables, POSTed as JSON to /api/...
 // 4. Drawing is the page's cost: a chart is redrawn only while its card is on screen (and the
-//    tab is shown), and only when a sample came or its minute slid by a pixel; its data is
-//    kept up to date whether drawn or not.
+//    tab is shown), and only when a sample came or its minute slid by a pixel; a base's track
+//    only when an odometry came. Their data is kept up to date whether drawn or not.
 "use strict";
 
 const HISTORY_S = 60;
@@ -33,9 +36,25 @@ const VALUES = [  // [label, how to read it off a state and its joint's view, as
   ["faults", (s) => (faultsOf(s).length ? faultsOf(s).join(", ") : "none")],
   ["age", null],
 ];
+const BASE_VALUES = [  // [label, how to read it off a base's odometry and measured twist, as text]
+  ["commanded linear", (o) => fixed(o.commanded?.linear, 3, "m/s")],
+  ["commanded angular", (o) => fixed(o.commanded?.angular, 3, "rad/s")],
+  ["measured linear", (o, m) => fixed(m?.linear, 3, "m/s")],  // the gateway's, over 0.1 s
+  ["measured angular", (o, m) => fixed(m?.angular, 3, "rad/s")],
+  ["x", (o) => fixed(o.x, 3, "m")],
+  ["y", (o) => fixed(o.y, 3, "m")],
+  ["theta", (o) => fixed(typeof o.theta === "number" ? (o.theta * 180) / Math.PI : null, 1, "°")],
+  ["age", null],
+];
+const TRACK_POINTS = 600;      // as many as dashboard/fleet.py keeps
+const TRACK_PX = 200;          // the track's plot: a square, in CSS pixels
+const TRACK_MIN_SPAN_M = 1;    // the least it spans: a base at rest is not zoomed into its noise
+const GRID_STEPS_M = [0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000];
+const GRID_LINES = 8;          // at most, each way
 
 const gateways = new Map();  // name → {element, buses: tbody, devices: container}
 const devices = new Map();   // "gw/dev" → {element, fields, state, t, position, target, current, charts}
+const bases = new Map();     // "gw/base" → {element, fields, canvas, odometry, track: [[ts, x, y]]}
 let clockOffset = 0;         // server's now − Date.now()/1000
 let renders = 0;
 const renderMs = [];         // how long the last renders took (the benchmark reads them)
@@ -56,6 +75,12 @@ function shown(value, unit) {
     return unit ? `${text} ${unit}` : text;
   }
   return String(value);
+}
+
+function fixed(value, digits, unit) {  // `digits` decimals, never "-0.000"; "—" for no number
+  if (typeof value !== "number") return "—";
+  const text = (Number(value.toFixed(digits)) || 0).toFixed(digits);
+  return unit === "°" ? `${text}°` : `${text} ${unit}`;
 }
 
 function si(value, unit) {  // an SI value: four significant digits (0.0051 m, 1.571 rad/s)
@@ -80,7 +105,8 @@ function gatewayCard(name) {
   element.querySelector(".estop-gateway").addEventListener("click", () => estop(name));
   element.querySelector(".reset-estop").addEventListener("click", () => resetEstop(name));
   $("gateways").append(element);
-  gateway = {element, buses: element.querySelector("tbody"), devices: element.querySelector(".devices")};
+  gateway = {element, buses: element.querySelector("tbody"), devices: element.querySelector(".devices"),
+             bases: element.querySelector(".bases")};
   gateways.set(name, gateway);
   return gateway;
 }
@@ -122,6 +148,12 @@ function forgetGateway(name) {
       devices.delete(key);
     }
   }
+  for (const key of [...bases.keys()]) {
+    if (key.startsWith(`${name}/`)) {
+      onScreen.unobserve(bases.get(key).element);
+      bases.delete(key);
+    }
+  }
   gateway.element.remove();
   gateways.delete(name);
 }
@@ -136,21 +168,11 @@ function deviceCard(gatewayName, name) {
   element.dataset.device = key;
   element.querySelector(".device-name").textContent = name;
   element.querySelector(".enable").addEventListener("click", () => enable(key));
-  const list = element.querySelector(".values");
-  const fields = {};
-  for (const [label] of VALUES) {
-    const term = document.createElement("dt");
-    term.textContent = label;
-    const value = document.createElement("dd");
-    value.dataset.field = label;
-    value.textContent = "—";
-    list.append(term, value);
-    fields[label] = value;
-  }
+  const fields = valueList(element.querySelector(".values"), VALUES);
   gatewayCard(gatewayName).devices.append(element);
   device = {element, name, fields, state: null, joint: null, t: [], position: [], target: [],
             current: [], charts: [], visible: false, dirty: true, drawnAt: -Infinity};
-  element.busgateDevice = device;
+  element.busgateCard = device;
   onScreen.observe(element);
   device.charts = [
     chart(element.querySelector(".position-chart"), [["joint", "#2563eb"], ["target", "#f59e0b", [4, 3]]]),
@@ -160,13 +182,27 @@ function deviceCard(gatewayName, name) {
   return device;
 }
 
+function valueList(list, labels) {  // a <dt> and <dd> per label: the <dd>s by label
+  const fields = {};
+  for (const [label] of labels) {
+    const term = document.createElement("dt");
+    term.textContent = label;
+    const value = document.createElement("dd");
+    value.dataset.field = label;
+    value.textContent = "—";
+    list.append(term, value);
+    fields[label] = value;
+  }
+  return fields;
+}
+
 // Only the cards on screen have their charts redrawn (rule 4): a page of 50 devices costs
 // what the dozen in view do.
 const onScreen = new IntersectionObserver((entries) => {
   for (const entry of entries) {
-    const device = entry.target.busgateDevice;
-    device.visible = entry.isIntersecting;
-    device.dirty ||= device.visible;
+    const card = entry.target.busgateCard;
+    card.visible = entry.isIntersecting;
+    card.dirty ||= card.visible;
   }
 });
 
@@ -202,6 +238,124 @@ function showDevice(view) {
   setBadge(device.element.querySelector(".power-badge"), power);
 }
 
+// -- bases ---------------------------------------------------------------------------------
+
+function baseCard(gatewayName, name) {
+  const key = `${gatewayName}/${name}`;
+  let base = bases.get(key);
+  if (base) return base;
+  const element = fromTemplate("base-template");
+  element.dataset.base = key;
+  element.querySelector(".base-name").textContent = name;
+  const canvas = element.querySelector("canvas.track");
+  const ratio = window.devicePixelRatio || 1;
+  canvas.width = canvas.height = Math.round(TRACK_PX * ratio);
+  canvas.setAttribute("aria-label", `odometry track of base ${name}`);
+  const fields = valueList(element.querySelector(".values"), BASE_VALUES);
+  gatewayCard(gatewayName).bases.append(element);
+  base = {element, name, fields, canvas, ratio, grid: element.querySelector(".grid"), odometry: null,
+          measured: null, track: [], visible: false, dirty: true, draws: 0};
+  element.busgateCard = base;
+  onScreen.observe(element);
+  bases.set(key, base);
+  return base;
+}
+
+function showBase(view) {
+  const base = baseCard(view.gateway, view.base);
+  if (view.restart) base.track = [];  // its odometry was reset, or a browser's first message
+  for (const point of view.track) {
+    const last = base.track[base.track.length - 1];
+    if (last && point[0] <= last[0]) continue;  // had already (a snapshot, then its drain)
+    base.track.push(point);
+  }
+  if (base.track.length > TRACK_POINTS) base.track.splice(0, base.track.length - TRACK_POINTS);
+  if (view.odometry) base.odometry = view.odometry;
+  if (view.measured) base.measured = view.measured;
+  base.dirty = true;
+  const odometry = base.odometry;
+  if (!odometry) return;
+  for (const [label, read] of BASE_VALUES) {
+    if (read) setText(base.fields[label], read(odometry, base.measured));
+  }
+}
+
+// The track in a square, x to the right and y up (one scale for both), on a grid of a round
+// step; the pose a triangle pointing along its heading (theta, counter-clockwise from x).
+function drawTrack(base) {
+  const context = base.canvas.getContext("2d");
+  context.setTransform(base.ratio, 0, 0, base.ratio, 0, 0);
+  context.clearRect(0, 0, TRACK_PX, TRACK_PX);
+  const odometry = base.odometry || {};
+  const pose = typeof odometry.x === "number" && typeof odometry.y === "number" ? [odometry.x, odometry.y] : null;
+  const points = base.track.map(([, x, y]) => [x, y]);
+  if (pose) points.push(pose);
+  const xs = points.map((p) => p[0]);
+  const ys = points.map((p) => p[1]);
+  const [minX, maxX, minY, maxY] = points.length
+    ? [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)] : [0, 0, 0, 0];
+  const span = 1.2 * Math.max(maxX - minX, maxY - minY, TRACK_MIN_SPAN_M);
+  const [cx, cy] = [(minX + maxX) / 2, (minY + maxY) / 2];
+  const scale = TRACK_PX / span;
+  const px = (x) => TRACK_PX / 2 + (x - cx) * scale;
+  const py = (y) => TRACK_PX / 2 - (y - cy) * scale;
+  const step = GRID_STEPS_M.find((s) => span / s <= GRID_LINES) ?? GRID_STEPS_M[GRID_STEPS_M.length - 1];
+  context.lineWidth = 1;
+  context.strokeStyle = "#eef0f3";
+  context.beginPath();
+  for (let i = Math.ceil((cx - span / 2) / step); i * step <= cx + span / 2; i++) {
+    const at = Math.round(px(i * step)) + 0.5;
+    context.moveTo(at, 0);
+    context.lineTo(at, TRACK_PX);
+  }
+  for (let i = Math.ceil((cy - span / 2) / step); i * step <= cy + span / 2; i++) {
+    const at = Math.round(py(i * step)) + 0.5;
+    context.moveTo(0, at);
+    context.lineTo(TRACK_PX, at);
+  }
+  context.stroke();
+  context.strokeStyle = "#c5cad3";  // the axes, through the odometry's origin
+  context.beginPath();
+  context.moveTo(Math.round(px(0)) + 0.5, 0);
+  context.lineTo(Math.round(px(0)) + 0.5, TRACK_PX);
+  context.moveTo(0, Math.round(py(0)) + 0.5);
+  context.lineTo(TRACK_PX, Math.round(py(0)) + 0.5);
+  context.stroke();
+  context.fillStyle = "#6b7280";
+  context.font = "10px system-ui, sans-serif";
+  if (py(0) > 12 && py(0) < TRACK_PX - 2) context.fillText("x", TRACK_PX - 9, py(0) - 3);
+  if (px(0) > 2 && px(0) < TRACK_PX - 12) context.fillText("y", px(0) + 3, 10);
+  if (points.length > 1) {
+    context.strokeStyle = "#2563eb";
+    context.lineWidth = 1.5;
+    context.lineJoin = "round";
+    context.beginPath();
+    for (const [i, [x, y]] of points.entries()) context[i ? "lineTo" : "moveTo"](px(x), py(y));
+    context.stroke();
+  }
+  if (pose) {
+    context.fillStyle = "#dc2626";
+    context.save();
+    context.translate(px(pose[0]), py(pose[1]));
+    context.beginPath();
+    if (typeof odometry.theta === "number") {
+      context.rotate(-odometry.theta);  // the canvas's y is down: counter-clockwise on screen
+      context.moveTo(10, 0);
+      context.lineTo(-6, 6);
+      context.lineTo(-3, 0);
+      context.lineTo(-6, -6);
+      context.closePath();
+    } else {
+      context.arc(0, 0, 4, 0, 2 * Math.PI);
+    }
+    context.fill();
+    context.restore();
+  }
+  setText(base.grid, `(grid ${step} m)`);
+  base.dirty = false;
+  base.draws++;
+}
+
 function setBadge(badge, value) {
   if (badge.dataset.value === value) return;
   badge.textContent = value;
@@ -230,6 +384,14 @@ function render() {
     if (renders % AGE_EVERY_RENDERS === 0 && state && typeof state.ts === "number") {
       const age = (state.last_reply_age_s ?? 0) + Math.max(0, end - state.ts);
       setText(device.fields.age, shown(age, "s"));
+    }
+  }
+  for (const base of bases.values()) {
+    if (!base.visible || document.hidden) continue;
+    if (base.dirty) drawTrack(base);
+    const odometry = base.odometry;
+    if (renders % AGE_EVERY_RENDERS === 0 && odometry && typeof odometry.ts === "number") {
+      setText(base.fields.age, shown(Math.max(0, end - odometry.ts), "s"));
     }
   }
   renders++;
@@ -310,9 +472,11 @@ function apply(message, fresh) {
   // One malformed view (a hostile or broken gateway's) is left out, never the rest.
   for (const view of message.gateways) guarded(showGateway, view);
   for (const view of message.devices) guarded(showDevice, view);
+  for (const view of message.bases || []) guarded(showBase, view);
   for (const entry of message.events) guarded(showEvent, entry);
   $("empty").hidden = gateways.size > 0;
-  $("counts").textContent = `${gateways.size} gateways · ${devices.size} devices`;
+  const counted = [`${gateways.size} gateways`, `${devices.size} devices`, ...(bases.size ? [`${bases.size} bases`] : [])];
+  setText($("counts"), counted.join(" · "));
 }
 
 let leftOut = 0;  // views that could not be shown (the tests read it)
@@ -368,6 +532,7 @@ function resetEstop(gateway) {
 $("estop-fleet").addEventListener("click", () => estop(null));
 window.busgateDashboard = {  // for the browser tests and the benchmark
   series: (key) => { const d = devices.get(key); return d && {t: d.t, position: d.position, target: d.target, current: d.current}; },
+  base: (key) => { const b = bases.get(key); return b && {odometry: b.odometry, measured: b.measured, track: b.track, draws: b.draws}; },
   renders: () => renders,
   renderMs: () => [...renderMs],
   leftOut: () => leftOut,

@@ -353,6 +353,7 @@ class Bases:
                     "theta": pose.theta,
                     "linear": twist.linear,
                     "angular": twist.angular,
+                    "commanded": _twist(base.drive.sent),
                 },
             )
 

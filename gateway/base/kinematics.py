@@ -14,14 +14,20 @@ Rules of this file:
    each, one factor for both: from rest to a twist the curvature holds all the way, and a
    stop decelerates both together.
 4. Odometry integrates the wheels' measured positions (encoder pulses, through their joints),
-   never commanded speeds, at the midpoint heading of each step.
+   never commanded speeds, at the midpoint heading of each step. Its twist is measured over
+   the last ``TWIST_WINDOW_S`` at least: steps between two wheels' heartbeats are a few ms,
+   and a count over one of them is noise.
 5. Pure: no clock, no thread; times are given.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
+
+#: The shortest span odometry measures its twist over (rule 4).
+TWIST_WINDOW_S = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,10 +105,13 @@ class Odometry:
     pose: Pose = Pose()
     twist: Twist = Twist()
     _last: tuple[float, float, float] | None = None  # (left rad, right rad, time s)
+    #: (time s, distance m, turn rad) since the start, over the last window and one before
+    _travel: deque[tuple[float, float, float]] = field(default_factory=deque)
 
     def reset(self) -> None:
         """Back to the origin; the wheels' next reading is the new start."""
         self.pose, self.twist, self._last = Pose(), Twist(), None
+        self._travel.clear()
 
     def take(self, left_rad: float, right_rad: float, at_s: float) -> bool:
         """The wheels' positions read at ``at_s``; ``True`` when the pose moved on."""
@@ -122,5 +131,19 @@ class Odometry:
             self.pose.y + distance * math.sin(heading),
             math.remainder(self.pose.theta + turn, math.tau),
         )
-        self.twist = Twist(distance / dt, turn / dt)
+        self.twist = self._measured(last[2], at_s, distance, turn)
         return True
+
+    def _measured(self, from_s: float, at_s: float, distance: float, turn: float) -> Twist:
+        """The twist over the last ``TWIST_WINDOW_S`` or more (rule 4), this step's
+        ``distance`` and ``turn`` taken from ``from_s`` to ``at_s``."""
+        travel = self._travel
+        if not travel:
+            travel.append((from_s, 0.0, 0.0))
+        _, total, turned = travel[-1]
+        travel.append((at_s, total + distance, turned + turn))
+        while len(travel) > 2 and at_s - travel[1][0] >= TWIST_WINDOW_S:
+            travel.popleft()
+        since, start, start_turn = travel[0]
+        span = at_s - since
+        return Twist((total + distance - start) / span, (turned + turn - start_turn) / span)

@@ -37,7 +37,7 @@ LIBRARY = "busgate"
 #: The metadata record naming the prefix the file's keys were recorded under (rule 4).
 PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
-REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints"})
+REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints", "odom"})
 
 
 def schema_name(key: str, prefix: str, body: Any) -> str | None:
@@ -59,6 +59,8 @@ def schema_name(key: str, prefix: str, body: Any) -> str | None:
         return "recorded_command.json"
     if len(chunks) == 2 and chunks[1] == "joints":
         return "joints.json"
+    if len(chunks) == 4 and chunks[1] == "base" and chunks[3] == "odom":
+        return "odometry.json"
     return None
 
 
