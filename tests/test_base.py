@@ -220,8 +220,13 @@ def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
     assert world.base({"op": "reset_odometry"})["ok"]
     time.sleep(0.1)
     told, before = len(world.odometry), pulses()
+    since = len(world.sim.recorder.received())
     assert world.base({"op": "twist", "linear": 0.5, "duration_s": 1.0})["ok"]
     world.wait_rest()
+    # a constant twist keeps each drive refreshed: a write at least every keep-alive period
+    for node in (1, 2):
+        times = [t for t, n, _ in world.speeds(since) if n == node]
+        assert max(b - a for a, b in pairwise(times)) < 0.4, times
     time.sleep(0.2)
     last, after = world.odometry[-1], pulses()
     assert len(world.odometry) > told + 20  # at the heartbeats' rate
