@@ -317,6 +317,7 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
     connect = "" if endpoint == DEFAULT_ENDPOINT else f" --connect {shlex.quote(endpoint)}"
     how = "joined the router at" if config.zenoh.connect else "is serving on"
     lines = [f"busgate demo: gateway {config.gateway.name!r} {how} {endpoint}"]
+    width = max(len(", ".join(d.name for d in bus.devices)) for bus in config.buses)
     for bus in config.buses:
         link = links[bus.name]
         where = (
@@ -325,7 +326,7 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
             else f"virtual CAN {link['channel']} at {link['bitrate']} bit/s"
         )
         names = ", ".join(device.name for device in bus.devices)
-        lines.append(f"  {bus.name:<6} {bus.protocol:<14} {names:<15} {where}")
+        lines.append(f"  {bus.name:<6} {bus.protocol:<14} {names:<{width}} {where}")
     first, program = config.buses[0].devices[0].name, _program()
     lines += [
         "From another terminal, move an actuator and watch every device:",
