@@ -277,3 +277,25 @@ def test_an_estop_goes_ahead_of_a_follow_tick_that_is_due():
     planner.push_estop(Job("*", deque([silent_request()])))
     slot = planner.decide(0.0)
     assert slot.priority is Priority.ESTOP
+
+
+def test_a_tick_built_and_put_off_does_not_move_its_streams_limiter_on() -> None:
+    """A stream's step is per tick on the wire: built twice (the first put off), the second
+    frame carries the first's target, not two steps' worth (``tickers`` rule 6)."""
+    from busgate.gateway.drivers.inspire_la import InspireLaDriver
+    from busgate.schemas.inspire_la import JOINT
+    from busgate.schemas.joints import Joint, JointTable
+
+    driver = InspireLaDriver("la1", 1)
+    table = JointTable.model_validate({"unit": "m", "scale": 5e-6, "max_velocity": 0.01})
+    driver.joint = Joint.of("la1", JOINT, table)  # 40 counts a 20 ms tick
+    ticker = FollowTicker(InspireLaDriver, 0.020, BusCounters(0.0), on_stale=lambda d: None)
+    ticker.update(driver, 2000, 0.0)
+    stream = ticker.streams["la1"]
+    stream.limiter.value = 0  # commanded at 0
+    first = ticker.build(0.0)
+    again = ticker.build(0.001)  # the first was never sent
+    assert again.wire == first.wire
+    ticker.sent(0.001)
+    assert ticker.build(0.021).wire != first.wire
+    assert stream.limiter.value == pytest.approx(80)  # two ticks on the wire, 40 counts each

@@ -16,6 +16,9 @@ Rules of this file:
    max_acceleration, a ROS command's position or speed) never goes stale: it ends, through
    ``on_reached``, with the tick that sends its target (held within the limits: a target
    beyond one ends on the limit), and the device keeps it.
+6. A stream's limiter steps once per tick that goes on the wire: a tick built and then put
+   off (the line taken by a command, an e-stop) is built again from where the last one sent
+   left it, so no step on the wire is ever larger than the limits allow.
 """
 
 from __future__ import annotations
@@ -43,11 +46,18 @@ class FollowStream:
     limiter: StreamLimiter
     told_limited: bool = False
     ends_on_target: bool = False  # a ramp (rule 5)
+    #: The limiter before the last tick built, while that tick is not sent (rule 6).
+    unsent: tuple[float | None, float] | None = None
 
     def next_target(self) -> float:
-        """The latest target, held within the joint's limits (rule 4)."""
+        """The latest target, held within the joint's limits (rule 4), a step from the last
+        tick sent (rule 6)."""
+        limiter = self.limiter
+        if self.unsent is not None:  # the tick built last was put off: step from before it
+            limiter.value, limiter.rate = self.unsent
+        self.unsent = (limiter.value, limiter.rate)
         wanted = self.latest[0]
-        target, limit = self.limiter.step(wanted)
+        target, limit = limiter.step(wanted)
         if limit is not None and not self.told_limited:
             self.told_limited = True
             joint = self.driver.joint
@@ -147,6 +157,8 @@ class FollowTicker:
         return self.driver_class.follow_request(targets)
 
     def sent(self, start: float) -> None:
+        for stream in self.streams.values():
+            stream.unsent = None  # its step is on the wire (rule 6)
         if self._continuing and self._last_start is not None:
             self.counters.follow_interval(start - self._last_start, self.period_s)
         self._continuing = True
