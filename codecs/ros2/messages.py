@@ -31,7 +31,7 @@ from busgate.codecs.errors import CdrError, EncodeError
 from busgate.codecs.ros2.cdr import PRIMITIVE_SIZES, CdrReader, CdrWriter
 from busgate.codecs.ros2.definitions import Collection, FieldType, Struct, struct
 
-__all__ = ["MessageType", "decode", "encode", "message_type"]
+__all__ = ["MessageType", "decode", "encode", "message_type", "seconds_of", "time_of"]
 
 #: The smallest wire size of a string: its uint32 length (Fast-CDR reads a length of 0 as "").
 _STRING_MIN_BYTES = 4
@@ -65,6 +65,26 @@ def encode(name: str, value: Mapping[str, object]) -> bytes:
     writer = CdrWriter()
     _codec(name).write(writer, value, "")
     return writer.data()
+
+
+def time_of(seconds: float) -> dict[str, int]:
+    """A ``builtin_interfaces/Time`` (or ``Duration``) of ``seconds``.
+
+    >>> time_of(1.25)
+    {'sec': 1, 'nanosec': 250000000}
+    """
+    nanoseconds = int(seconds * 1e9)
+    return {"sec": nanoseconds // 1_000_000_000, "nanosec": nanoseconds % 1_000_000_000}
+
+
+def seconds_of(time: Mapping[str, Any]) -> float:
+    """The seconds of a decoded ``builtin_interfaces/Time`` or ``Duration`` (``time_of``'s
+    inverse).
+
+    >>> seconds_of({"sec": 1, "nanosec": 250000000})
+    1.25
+    """
+    return time.get("sec", 0) + time.get("nanosec", 0) / 1e9
 
 
 def decode(name: str, data: bytes | bytearray | memoryview) -> dict[str, Any] | None:

@@ -32,6 +32,7 @@ from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
 from busgate.gateway.trajectory.playing import Trajectories
@@ -244,12 +245,7 @@ class ZenohBridge:
             self.on_command(key, payload, refused)
 
     def _on_info(self, query: zenoh.Query) -> None:
-        def info() -> Future:
-            answer: Future = Future()
-            answer.set_result(self.api.info())
-            return answer
-
-        self._answer(query, info, f"{self.base}/info")
+        self._answer(query, lambda: settled(self.api.info()), f"{self.base}/info")
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
         payload = _payload(query)

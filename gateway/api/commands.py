@@ -49,6 +49,7 @@ from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.api import (
     DEVICE_COMMAND_ADAPTERS,
@@ -90,10 +91,10 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
         try:
             return handler(self, *args)
         except REFUSALS as exc:
-            return _finished(error_reply(exc))
+            return settled(error_reply(exc))
         except Exception as exc:
             log.exception("%s%r failed", handler.__name__, args[:1])
-            return _finished(error_reply(exc))
+            return settled(error_reply(exc))
 
     return wrapper
 
@@ -137,7 +138,7 @@ class GatewayApi:
         gateway_op = self._GATEWAY_OPS.get(op) if isinstance(op, str) else None
         if gateway_op is not None:
             reply = gateway_op(self, runner, device, fields)
-            return reply if isinstance(reply, Future) else _finished(reply)
+            return reply if isinstance(reply, Future) else settled(reply)
         adapter = DEVICE_COMMAND_ADAPTERS[driver.kind]
         command = command_from_object(adapter, fields, driver.kind)
         in_si = isinstance(command, JointCommand)
@@ -202,12 +203,7 @@ class GatewayApi:
             with self._fence:
                 if self._sent_before_the_end(device, client, seq):
                     return None
-                if runner.plays.playing(device):
-                    raise RefusedError(
-                        "busy",
-                        f"{device} is playing a trajectory: cancel it first (a follow stream and "
-                        "a trajectory would fight over its target)",
-                    )
+                _refuse_while_playing(runner, device, "a follow stream")
                 runner.authority.judge(
                     device, Effect.MOTION, client, require_claim=fields.get("require_claim") is True
                 )
@@ -234,10 +230,7 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             target = _follow_target(driver, fields)
-            if runner.plays.playing(device):
-                raise RefusedError(
-                    "busy", f"{device} is playing a trajectory: a target would fight over it"
-                )
+            _refuse_while_playing(runner, device, "a target kept")
             if not runner.owner.is_open:
                 raise BusUnavailableError(f"bus {runner.name} is down: {device} cannot move")
             authority = runner.authority
@@ -407,14 +400,18 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
     return raw
 
 
+def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
+    """``busy`` while ``device`` plays a trajectory: ``what`` would fight it over its target."""
+    if runner.plays.playing(device):
+        raise RefusedError(
+            "busy",
+            f"{device} is playing a trajectory: cancel it first ({what} and a trajectory would "
+            "fight over its target)",
+        )
+
+
 def _client_field(client: str | None) -> dict[str, str]:
     return {"client": client} if client else {}
-
-
-def _finished(reply: dict[str, Any]) -> Future:
-    future: Future = Future()
-    future.set_result(reply)
-    return future
 
 
 def _mapped(submitted: Future) -> Future:

@@ -33,7 +33,7 @@ import json
 import logging
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from busgate.errors import RefusedError
@@ -41,6 +41,7 @@ from busgate.gateway.base.drive import Drive
 from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.bases import (
     BASE_COMMAND_ADAPTER,
@@ -102,8 +103,6 @@ class LiveBase:
     stopped_by: tuple[str | None, int | None] | None = None
     playing_since: float | None = None  # bus clock
     stale_told: bool = False
-    odometry_ts: float | None = None
-    events: list[DeviceEvent] = field(default_factory=list)
 
     @property
     def names(self) -> tuple[str, str]:
@@ -154,15 +153,17 @@ class Bases:
             if isinstance(request, TwistCommand):
                 hold = request.duration_s or base.config.cmd_timeout_s
                 twist = Twist(request.linear, request.angular)
-                return _done(self._drive(base, twist, hold, request.client, request.require_claim))
+                return settled(
+                    self._drive(base, twist, hold, request.client, request.require_claim)
+                )
             if isinstance(request, BasePower):
                 return self._power(base, request)
-            return _done(self._other(base, request))
+            return settled(self._other(base, request))
         except REFUSALS as exc:
-            return _done(error_reply(exc))
+            return settled(error_reply(exc))
         except Exception as exc:
             log.exception("base %s: command failed", name)
-            return _done(error_reply(exc))
+            return settled(error_reply(exc))
 
     def twist(self, name: str, payload: bytes) -> dict[str, Any] | None:
         """A put on ``…/base/<name>/twist``: ``None`` when taken, else the error reply."""
@@ -402,9 +403,3 @@ def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:
 
 def _twist(twist: Twist) -> dict[str, float]:
     return {"linear": twist.linear, "angular": twist.angular}
-
-
-def _done(reply: dict[str, Any]) -> Future:
-    future: Future = Future()
-    future.set_result(reply)
-    return future

@@ -41,14 +41,12 @@ class Drive:
         self._start = 0.0  # the play's start, bus clock
         self._sent: tuple[float, Twist] = (0.0, Twist())  # slot time since start, twist
         self._rest_slots = 0  # slots in a row sampled at rest (rule 3)
-        self.commanded_at: float | None = None
 
     def command(self, twist: Twist, now: float, hold_s: float) -> Twist:
         """A new target twist from ``now`` for ``hold_s``; the twist that will be driven."""
         target = self.geometry.saturated(twist)
         with self._lock:
             self._target, self._until = target, now + hold_s
-            self.commanded_at = now
         return target
 
     def stop(self) -> None:
@@ -102,8 +100,3 @@ class Drive:
         """Bus clock: when the target stops holding (rule 1)."""
         with self._lock:
             return self._until
-
-    @property
-    def target(self) -> Twist:
-        with self._lock:
-            return self._target

@@ -23,6 +23,7 @@ import math
 from typing import Any
 
 from busgate.codecs.ros2 import rmw_zenoh
+from busgate.codecs.ros2.messages import time_of
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.base.kinematics import Twist
 from busgate.gateway.ros2.node import Ros2Node, Ros2Publisher
@@ -77,11 +78,7 @@ class BaseTopics:
         if out is None:
             return
         odom, tf, odom_frame, base_frame = out
-        seconds = int(odometry["ts"] * 1e9)
-        header = {
-            "stamp": {"sec": seconds // 1_000_000_000, "nanosec": seconds % 1_000_000_000},
-            "frame_id": odom_frame,
-        }
+        header = {"stamp": time_of(odometry["ts"]), "frame_id": odom_frame}
         position = {"x": odometry["x"], "y": odometry["y"], "z": 0.0}
         theta = odometry["theta"]
         rotation = {"x": 0.0, "y": 0.0, "z": math.sin(theta / 2), "w": math.cos(theta / 2)}

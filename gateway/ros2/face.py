@@ -39,6 +39,7 @@ from dataclasses import asdict
 from typing import Any
 
 from busgate.codecs.ros2 import rmw_zenoh
+from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
@@ -170,7 +171,7 @@ class Ros2Face:
         read = [entry["ts"] for entry in entries if entry["ts"] is not None]
         self._states.publish(
             {
-                "header": {"stamp": _stamp(max(read) if read else joints["ts"]), "frame_id": ""},
+                "header": {"stamp": time_of(max(read) if read else joints["ts"]), "frame_id": ""},
                 "name": [entry["name"] for entry in entries],
                 "position": [_number(entry["position"]) for entry in entries],
                 "velocity": [_number(entry["velocity"]) for entry in entries],
@@ -203,7 +204,7 @@ class Ros2Face:
             buses.append(BusHealth(name, runner.owner.is_open, stats, new_errors))
         with self._commands_lock:  # zenoh's threads add to it
             unknown = set(self.commands.unknown)
-        return diagnostic_array(self.node_name, _stamp(time.time()), joints, buses, unknown)
+        return diagnostic_array(self.node_name, time_of(time.time()), joints, buses, unknown)
 
     # -- in (zenoh's threads: hand over only) -----------------------------------------------
 
@@ -305,12 +306,6 @@ def _when_all(futures: list[Future], done_message: str) -> Future:
     for future in futures:
         future.add_done_callback(one_done)
     return answer
-
-
-def _stamp(seconds: float) -> dict[str, int]:
-    """A ``builtin_interfaces/Time`` of Unix ``seconds``."""
-    nanoseconds = int(seconds * 1e9)
-    return {"sec": nanoseconds // 1_000_000_000, "nanosec": nanoseconds % 1_000_000_000}
 
 
 def _number(value: float | None) -> float:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from busgate.codecs.ros2.messages import seconds_of
 from busgate.errors import RefusedError
 from busgate.gateway.ros2.commands import JointRef
 
@@ -65,7 +66,7 @@ def trajectory_command(
     if "accelerations" in fields:
         command["interpolation"] = "quintic"
     stamp = (message.get("header") or {}).get("stamp") or {}
-    start = stamp.get("sec", 0) + stamp.get("nanosec", 0) / 1e9
+    start = seconds_of(stamp)
     if start > now + START_LEAD_S:
         command["start_at"] = start
     return command
@@ -73,7 +74,7 @@ def trajectory_command(
 
 def _point(point: dict[str, Any], fields: list[str]) -> dict[str, Any]:
     duration = point.get("time_from_start") or {}
-    t_s = duration.get("sec", 0) + duration.get("nanosec", 0) / 1e9
+    t_s = seconds_of(duration)
     return {"t_s": t_s, "positions": list(point.get("positions") or [])} | {
         name: list(point[name]) for name in fields
     }

@@ -89,6 +89,13 @@ def fail(job: Job, error: BusgateError) -> None:
         settle(job.future, error=error)
 
 
+def settled(result: Any) -> Future:
+    """A future that already has ``result``: an answer that needed no bus."""
+    future: Future = Future()
+    future.set_result(result)
+    return future
+
+
 def settle(future: Future, *, result: Any = None, error: BaseException | None = None) -> None:
     """Give ``future`` its outcome, unless it has one already or was cancelled (rule 1)."""
     with contextlib.suppress(InvalidStateError):

@@ -26,6 +26,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from busgate.errors import BusyError, RefusedError
+from busgate.gateway.scheduler.outcomes import settled
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import REFUSALS, error_reply
 
@@ -63,7 +64,7 @@ class Lane:
             if not full:
                 self._waiting += 1
         if full:
-            return _answered(error_reply(BusyError(f"{self.limit} {self.name}s are waiting")))
+            return settled(error_reply(BusyError(f"{self.limit} {self.name}s are waiting")))
         return self._worker.submit(self._run, work, time.monotonic())
 
     def close(self) -> None:
@@ -119,9 +120,3 @@ def _is_control(payload: bytes) -> bool:
     except RefusedError:
         return False
     return isinstance(op, str) and op in CONTROL_OPS
-
-
-def _answered(reply: Reply) -> Future[Reply]:
-    future: Future[Reply] = Future()
-    future.set_result(reply)
-    return future
