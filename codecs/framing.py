@@ -6,7 +6,8 @@ Rules of this file (and of every decoder built on it):
    normal on a serial line, so they become events: ``Discarded`` for bytes that are not part
    of any frame, ``ChecksumMismatch`` for a well-delimited frame whose checksum fails.
 2. ``feed()`` only buffers; ``next_event()`` returns one event or ``NEED_DATA``; ``events()``
-   drains. Nothing is decoded behind the caller's back.
+   drains. Nothing is decoded behind the caller's back. A message decoder's ``decode()`` does
+   both at once for one whole message, returning its one event (the queue left untouched).
 3. Linear time: the scan position only moves forward; header search runs in C (``find``) and a
    run of garbage is reported as one ``Discarded`` event, not one per byte.
 4. Bounded memory: once ``NEED_DATA`` is returned, what is kept is a possible frame prefix,
@@ -240,6 +241,11 @@ class MessageDecoder(Generic[Message, Event]):
         """Yield every event the queued messages make, then stop."""
         while not isinstance(event := self.next_event(), NeedData):
             yield event
+
+    def decode(self, message: Message) -> Event | Discarded:
+        """The event ``message`` makes, decoded now (the queue is neither used nor touched):
+        what ``feed`` then ``next_event`` give on an empty queue, without their bookkeeping."""
+        return self._decode(message)
 
     def _decode(self, message: Message) -> Event | Discarded:
         raise NotImplementedError

@@ -85,6 +85,7 @@ class ZenohBridge:
         self._keep: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
+        self._state_keys: dict[str, str] = {}  # each device's state key, written once
         self.trajectories = Trajectories(
             api, self.base, self._put_any, lambda event: self.events.append(event)
         )
@@ -388,10 +389,16 @@ class ZenohBridge:
     def publish_states(self) -> None:
         """Every state the bus threads made since the last round, in order: a round that
         comes late publishes a backlog, it does not skip what a device reported."""
-        while self.states:
-            device, state = self.states.popleft()
-            self._put(f"{self.base}/dev/{device}/state", state)
-            self._track_liveliness(device, bool(state.get("online")))
+        states, keys, tokens = self.states, self._state_keys, self._device_tokens
+        while states:
+            device, state = states.popleft()
+            key = keys.get(device)
+            if key is None:
+                key = keys[device] = f"{self.base}/dev/{device}/state"
+            self._put(key, state)
+            online = bool(state.get("online"))
+            if online is not (device in tokens):  # its token comes or goes
+                self._track_liveliness(device, online)
             self.joints.take(device, state)
             self.bases.take_state(device, state)
         joints = self.joints.due(time.monotonic(), time.time())

@@ -164,13 +164,14 @@ class CanBusOwner(BusOwner):
         reply, even when this thread was held up past the deadline); ``None`` if incomplete.
         A deadline that has passed is that one look: what came unasked, taken while idle."""
         answer: list[object] = []
+        recv, unsolicited = bus.recv, self.on_unsolicited  # once: this loop runs per frame
         while True:
             remaining = deadline - now()
             waiting = remaining > 0
             if not waiting and not self._input_waiting():
                 return None
             try:
-                message = bus.recv(timeout=remaining if waiting else 0)
+                message = recv(timeout=remaining if waiting else 0)
             except (can.CanError, OSError) as exc:
                 self._fail(exc)
             except ValueError:  # a garbled line from an ASCII (slcan) adapter: one frame lost
@@ -180,13 +181,18 @@ class CanBusOwner(BusOwner):
                 if waiting or self._fd is not None:
                     continue  # the wait ended (then one look more), or a line that was no frame
                 return None
-            for event in self._decode(message):
-                if expected is not None and expected.matches(event):
-                    answer.append(event)
-                else:
-                    self.on_unsolicited(event, now())
-            if expected is not None and len(answer) >= expected.frames:
-                return tuple(answer)
+            event = self._decode(message)
+            if event is None:
+                continue
+            if expected is None:
+                unsolicited(event, now())
+                continue
+            if expected.matches(event):
+                answer.append(event)
+                if len(answer) >= expected.frames:
+                    return tuple(answer)
+            else:
+                unsolicited(event, now())
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when it has no descriptor)."""
@@ -198,27 +204,27 @@ class CanBusOwner(BusOwner):
             return True  # let recv report what is wrong with the adapter
         return bool(readable)
 
-    def _decode(self, message: can.Message) -> list[object]:
+    def _decode(self, message: can.Message) -> object | None:
+        """The event ``message`` makes (a CAN frame makes one), ``None`` when it makes none
+        (an error frame, a frame no reply can be, bytes the codec discarded: counted)."""
+        counters = self.counters
         if message.is_error_frame:
             if message.arbitration_id & CAN_ERR_BUSOFF:
                 self._fail(can.CanOperationError("controller is bus-off"))
-            return []
-        self.counters.frames_in += 1
-        self.counters.bytes_in += len(message.data)
+            return None
+        counters.frames_in += 1
+        counters.bytes_in += len(message.data)
         if message.is_extended_id or message.is_remote_frame:
-            self.counters.discarded_bytes += len(message.data)
-            return []
+            counters.discarded_bytes += len(message.data)
+            return None
         data = bytes(message.data)
         if self.tap is not None:
             self.tap((now(), RX, data, message.arbitration_id))
-        self._decoder.feed(CanFrame(message.arbitration_id, data))
-        events = []
-        for event in self._decoder.events():
-            if isinstance(event, Discarded):
-                self.counters.discarded_bytes += len(event.data)
-            else:
-                events.append(event)
-        return events
+        event = self._decoder.decode(CanFrame(message.arbitration_id, data))
+        if isinstance(event, Discarded):
+            counters.discarded_bytes += len(event.data)
+            return None
+        return event
 
     def _fail(self, exc: BaseException) -> None:
         self.close()

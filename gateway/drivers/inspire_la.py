@@ -95,6 +95,11 @@ class InspireLaDriver(Driver):
         #: Raw values read or confirmed; the manual's defaults until then.
         self.table = {name: codec.REGISTERS.default(name) for name in _TRACKED.values()}
         self._planned: dict[str, int] = {}
+        # What ``telemetry`` says of the status, the faults and the table, made when they
+        # change rather than at every state (a state is taken after every exchange).
+        self._measured: dict[str, Any] = dict.fromkeys(_STATUS_FIELDS)
+        self._fault_names: tuple[str, ...] = ()
+        self._limits = self._limits_of_table()
 
     # -- planning ---------------------------------------------------------------------------
 
@@ -278,12 +283,14 @@ class InspireLaDriver(Driver):
 
     def _take_status(self, status: codec.StatusReply) -> dict[str, Any]:
         self.status = status
+        self._measured = {key: getattr(status, field) for key, field in _STATUS_FIELDS.items()}
         if status.faults != self.faults:
             raised, cleared = status.faults & ~self.faults, self.faults & ~status.faults
             self.faults = status.faults
+            self._fault_names = tuple(flag_names(status.faults))
             self.emit(
                 "fault",
-                faults=flag_names(status.faults),
+                faults=list(self._fault_names),
                 raised=flag_names(raised),
                 cleared=flag_names(cleared),
             )
@@ -318,22 +325,20 @@ class InspireLaDriver(Driver):
     def _remember(self, values: dict[str, int]) -> None:
         for name in self.table.keys() & values.keys():
             self.table[name] = values[name]
+            self._limits = self._limits_of_table()
             if self._planned.get(name) == values[name]:
                 del self._planned[name]
 
-    def telemetry(self, now: float) -> dict[str, Any]:
-        status = self.status
-        measured = {
-            key: None if status is None else getattr(status, field)
-            for key, field in _STATUS_FIELDS.items()
-        }
-        limits = {
+    def _limits_of_table(self) -> dict[str, Any]:
+        return {
             key: codec.REGISTERS[name].in_unit(self.table[name]) for key, name in _TRACKED.items()
         }
+
+    def telemetry(self, now: float) -> dict[str, Any]:
         return {
-            **measured,
-            "faults": flag_names(self.faults),
+            **self._measured,
+            "faults": list(self._fault_names),
             "power": self.power.value,
             "enabled": self.power is PowerStage.ON,  # paused and estopped are not driving
-            **limits,
+            **self._limits,
         }

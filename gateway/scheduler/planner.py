@@ -234,11 +234,17 @@ class BusPlanner:
         return best, chosen
 
     def _candidates(self) -> list[Job]:
-        polls = sorted(self._polls.values(), key=lambda job: job.next_poll_due)
-        return [*self._commands, *polls, *list(self._scans)[:1]]
+        candidates = [*self._commands]
+        if self._polls:
+            candidates += sorted(self._polls.values(), key=_poll_due)
+        if self._scans:
+            candidates.append(self._scans[0])  # the scan lane: its first job only
+        return candidates
 
     def _expire(self, now: float) -> None:
         for queue in (self._commands, self._scans):
+            if not queue:
+                continue
             for job in [job for job in queue if job.expired(now)]:
                 queue.remove(job)
                 self._expired.append(job)
@@ -272,3 +278,8 @@ class BusPlanner:
                 return
         if self._polls.get(job.device) is job:
             del self._polls[job.device]
+
+
+def _poll_due(job: Job) -> float:
+    """Waiting polls go out earliest first."""
+    return job.next_poll_due

@@ -109,7 +109,8 @@ class Telemetry:
 
 
 def _differs(state: dict[str, Any], published: dict[str, Any] | None) -> bool:
-    """``state`` tells more than ``published`` did: anything but its age changed (rule 2)."""
-    if published is None:
+    """``state`` tells more than ``published`` did: anything but its age changed (rule 2).
+    A new reading (its ``ts``) settles it at once; else every field is compared."""
+    if published is None or state["ts"] != published["ts"]:
         return True
     return {**state, "last_reply_age_s": None} != {**published, "last_reply_age_s": None}
