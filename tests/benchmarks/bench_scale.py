@@ -1,10 +1,12 @@
-"""How many serial buses one host drives while every timing rule holds, and at what CPU.
+"""How many serial buses one host drives while every timing rule holds, and at what CPU; and
+how long an e-stop takes to reach every bus, beside a bare loop's.
 
 Not a test (pytest does not collect it). Everything on this machine, on 127.0.0.1 with
 multicast scouting off: the simulators, the daemon (``busgate run``) and the bare loops as
 child processes, the streaming client here; every process ended by its PID.
 
     .venv/bin/python tests/benchmarks/bench_scale.py [--buses 1,2,4,6,8] [--daemons 2] [--runs 2]
+        [--workers 1,auto] [--estop 50]
 
 For each N: N simulated UARTs of 3 Inspire LA actuators at 921600 baud (``busgate sim``,
 each recording its wire). First the gateway: one daemon drives all N buses (``--daemons K``:
@@ -13,6 +15,11 @@ and polled at 20 Hz, a client here putting a new target to every device
 at 50 Hz over zenoh. Then, on the same simulators for the same time, the yardstick: N bare
 sleep-then-spin loops in one process (one thread each, ``busgate bench --baseline``'s loop)
 writing each bus's follow frame every 10 ms with targets a thread there updates at 50 Hz.
+
+``--workers LIST`` (comma-separated, each ``auto`` or a count): the gateway part of each step
+runs once per value, with ``[gateway] workers`` set to it in every daemon's config (without
+the option the key is not written); each row names its value (``unset`` without the option).
+The bare loops run once per N, whatever the list.
 
 Host side, as each writer timed its own writes: the follow intervals under the period (the
 gateway's stats keep only the shortest, so for it "0" or "some") and the shortest interval
@@ -23,9 +30,37 @@ intervals under the period and the gaps under the 1 ms minimum. The simulators w
 ``select`` rather than busy-poll (N spinning simulators would take the two cores from what
 is measured), so a device-side time is late by their wake-up, some 0.1 ms and more under
 load, the bare loops' as much as the gateway's: a frame read late looks longer, and the gap
-after it shorter, than on a wire. CPU: utime + stime from /proc, % of one core; the daemon's
-split into its bus threads, its other Python threads and zenoh's, and the simulators'
-together.
+after it shorter, than on a wire. CPU: utime + stime from /proc, % of one core; the gateway's
+is its daemons' and all their descendants' (workers), listed from /proc at the end of the
+window; the daemon's split into its bus threads, its other Python threads and the rest
+(zenoh's), and the simulators' together.
+
+``--estop COUNT`` (default 0: none): after each gateway's measured window, a second phase on
+the same daemons, simulators and traffic (the streams, polls and the client's 50 Hz targets
+go on): COUNT e-stops, each after a uniformly random 150–400 ms (so they land anywhere in the
+bus schedule), each a put on ``busgate/*/estop``, followed after 100 ms by a put on each
+gateway's ``estop/reset`` (every device enabled again, holding still; the client's next
+target starts its stream again) and a 150 ms pause for the streams to be running again. Its
+latency on a bus: the start on that bus's wire (the simulator's record) of the first e-stop
+frame (single control 0x23, ``InspireLaDriver.safe_stop``) after the put, less the put's
+time; per e-stop, the worst bus. The yardstick, once per N after the bare loops: N threads in
+one child process carrying the gateway's traffic (each bus a follow frame every 10 ms on its
+grid and every device's status poll at 20 Hz, each poll an exchange: written, its reply
+read, then the 1 ms gap; a poll only where it ends before the next follow frame is due, as
+the gateway's planner has it) and the same e-stops at random moments, which the child
+triggers itself, noting each signal's time: each thread finishes the exchange in flight,
+waits the 1 ms gap and writes the gateway's e-stop frame to each device (each an exchange);
+a reset 100 ms later enables each device (the gateway also sends a move to where it is) and
+the follow frames start again. Its latency: the first e-stop frame's start on the wire less
+the signal's time. The same clock on every side: ``time.perf_counter``, CLOCK_MONOTONIC on
+Linux (the records', the bench's and the daemon's). Printed for both: p50, p99 and max of the
+worst-bus latency, the gateway's added latency (its p50 and p99 less the bare loops'), how
+many e-stops found every bus streaming (a follow frame in the 30 ms before), how many resets
+reached every bus (an enable frame on each before the next e-stop), how many e-stops missed
+a bus (no e-stop frame on it before the next), and the status polls per second per bus over
+the phase, all from the records.
+
+A summary table closes the run: one row per step and writer.
 """
 
 from __future__ import annotations
@@ -33,20 +68,28 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
+import os
+import random
+import select
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
+import serial
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
-from busgate.gateway.bus.clock import now, tune_interpreter
-from busgate.gateway.bus.request import Request
+from busgate.codecs import inspire_la as la
+from busgate.gateway.bus.clock import WakeUpLead, now, tighten_timer_slack, tune_interpreter
+from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import (
     bare_follow_loop,
     cpu_s,
@@ -54,6 +97,7 @@ from busgate.gateway.cli.bench import (
     interval_figures,
 )
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.scheduler.planner import HOST_SLACK_S
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.families import PROTOCOLS
@@ -68,6 +112,17 @@ WARM_UP_S = 3.0
 MIN_GAP_S = PROTOCOLS["inspire_la"].timing.default_gap_s
 SIM_ARGUMENTS = ("--ids", ",".join(map(str, IDS)), "--baudrate", str(BAUD), "--busy-poll-ms", "0")
 
+#: The e-stop phase: the random wait before each e-stop, the reset after it, and the pause
+#: after the reset for the streams to run again (the reset's frames, then the client's next
+#: target, within 20 ms).
+ESTOP_DELAY_S = (0.150, 0.400)
+ESTOP_HOLD_S = 0.100
+ESTOP_RESUME_S = 0.150
+#: A bus counts as streaming at an e-stop with a follow frame this soon before it.
+STREAMING_S = 3 * PERIOD_S
+#: The gateway's warning lines of each e-stop and reset, left out of its log as shown.
+EXPECTED_LOG = ("e-stop of every bus", "e-stop reset of every bus")
+
 
 def drivers_of(bus: int) -> list[InspireLaDriver]:
     return [InspireLaDriver(f"bus{bus}-{i}", i) for i in IDS]
@@ -79,15 +134,59 @@ def target(t_s: float, bus: int, index: int) -> dict:
     return InspireLaDriver.follow_sample(t_s, bus * len(IDS) + index)
 
 
+def control_hex(code: la.ControlCode) -> str:
+    """A single control frame's instruction and code, as they sit in a record's ``wire``
+    (after the header, the length and the id): ``040023`` for the e-stop."""
+    return f"0400{code:02x}"
+
+
 # -- the gateway ---------------------------------------------------------------------------
 
 
+class ScaleDaemon(Daemon):
+    """``busgate run`` as ``Daemon`` starts it, but with ``[gateway] workers`` when given, and
+    its log (each e-stop and reset logs a warning) kept in a file, shown when it stops."""
+
+    def __init__(
+        self, scratch: Path, endpoint: str, buses: str, name: str, workers: str | None
+    ) -> None:
+        config = scratch / f"{name}.toml"
+        setting = "" if workers is None else f"workers = {toml_workers(workers)}\n"
+        config.write_text(
+            f'[gateway]\nname = "{name}"\n{setting}[zenoh]\nlisten = ["{endpoint}"]\n{buses}'
+        )
+        self.name = name
+        self.log = scratch / f"{name}-{workers}.log"
+        with self.log.open("w") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(config),
+                 "--log-level", "warning"],
+                stderr=log,
+            )  # fmt: skip
+
+    def stop(self) -> None:
+        super().stop()
+        for text in self.log.read_text().splitlines():
+            if not any(expected in text for expected in EXPECTED_LOG):
+                print(f"  [{self.name}] {text}", file=sys.stderr)
+
+
+def toml_workers(workers: str) -> str:
+    return '"auto"' if workers == "auto" else workers
+
+
 def gateway_step(
-    scratch: Path, ports: list[str], seconds: float, sims: list[SimProcess], daemons: int
+    scratch: Path,
+    ports: list[str],
+    seconds: float,
+    sims: list[SimProcess],
+    daemons: int,
+    workers: str | None,
+    estops: int,
 ) -> dict:
     """The N buses, split over ``daemons`` daemons (``bench0``, ``bench1`` …), under a
-    streaming client: the window, the daemons' CPU by thread, their stats (host side), and
-    the simulators' CPU."""
+    streaming client: the window, the daemons' CPU (their workers' included) by thread, their
+    stats (host side), and the simulators' CPU; then, with ``estops``, the e-stop phase."""
 
     def sims_cpu_s() -> float:
         return sum(cpu_s(f"/proc/{sim.process.pid}/stat") for sim in sims)
@@ -95,8 +194,9 @@ def gateway_step(
     gateways = [f"bench{k}" for k in range(daemons)]
     owner = {f"bus{n}": gateways[n * daemons // len(ports)] for n in range(len(ports))}
     endpoints = [free_endpoint() for _ in gateways]
-    started_daemons: list[Daemon] = []
+    started_daemons: list[ScaleDaemon] = []
     stats: dict[str, dict] = {}
+    phase: dict = {}
     try:
         for gateway, endpoint in zip(gateways, endpoints, strict=True):
             config = "".join(
@@ -112,7 +212,7 @@ def gateway_step(
                 for n, bus in enumerate(owner)
                 if owner[bus] == gateway
             )
-            started_daemons.append(Daemon(scratch, endpoint, config, name=gateway))
+            started_daemons.append(ScaleDaemon(scratch, endpoint, config, gateway, workers))
         with zenoh.open(session_config(connect=endpoints)) as session:
             for gateway in gateways:
                 wait_ready(session, gateway=gateway)
@@ -134,17 +234,22 @@ def gateway_step(
             streamer.start()
             try:
                 time.sleep(WARM_UP_S)
-                pids = [daemon.process.pid for daemon in started_daemons]
+                roots = [daemon.process.pid for daemon in started_daemons]
                 before, started = dict(stats), now()
-                cpu_before = sum(daemon.cpu_s() for daemon in started_daemons)
-                sims_before, threads_before = sims_cpu_s(), threads_cpu_s(pids)
+                processes_before, threads_before = tree_cpu_s(roots)
+                sims_before = sims_cpu_s()
                 time.sleep(seconds)
-                cpu = sum(daemon.cpu_s() for daemon in started_daemons) - cpu_before
+                # Listed at the end of the window, while every worker still runs: a worker
+                # that ended (restarted) in the window loses the time it had counted since its
+                # start (its successor counts from its own start); its parent counts a reaped
+                # child's time only in cutime/cstime, which this leaves out.
+                processes, threads = tree_cpu_s(roots)
                 ended = now()
                 sims_cpu = sims_cpu_s() - sims_before
-                threads = threads_cpu_s(pids)
                 time.sleep(1.5)  # one more stats sample, covering the window
                 after = dict(stats)
+                if estops:
+                    phase = estop_phase(session, gateways, estops)
             finally:
                 stop.set()
                 streamer.join()
@@ -154,6 +259,7 @@ def gateway_step(
     buses = list(after.values())
     elapsed = ended - started
     return {
+        "workers": label(workers),
         "window": (started, ended),
         "host_min_ms": 1000 * min(bus["follow_error_min_s"] for bus in buses),
         # The stats keep the shortest interval, not a count: none is under when it is not.
@@ -163,23 +269,86 @@ def gateway_step(
         "host_gap_ms": 1000 * min(bus["smallest_gap_s"] for bus in buses),
         "timeouts": sum(bus["timeouts"] for bus in buses)
         - sum(bus["timeouts"] for bus in before.values()),
-        "cpu_percent": 100 * cpu / elapsed,
+        "processes": len(processes),
+        "cpu_percent": 100 * used_since(processes, processes_before) / elapsed,
         "threads_cpu_percent": {
-            role: 100 * (used - threads_before.get(role, 0.0)) / elapsed
-            for role, used in threads.items()
+            role: 100 * used / elapsed for role, used in by_role(threads, threads_before).items()
         },
         "simulators_cpu_percent": 100 * sims_cpu / elapsed,
+        "estop_phase": phase,
     }
 
 
-def threads_cpu_s(pids: list[int]) -> dict[str, float]:
-    """CPU seconds of the daemons' threads by role: their bus threads (named ``bus-<bus>``),
-    their other Python threads (the event loop's: publishing), and zenoh's own (Rust)."""
+def estop_phase(session: zenoh.Session, gateways: list[str], count: int) -> dict:
+    """``count`` e-stops of every gateway at random moments, each reset: when each was put
+    (``signals``, as the bare loops' are named), when each reset was (``resets``), and the
+    phase's window."""
+    chance = random.Random()
+    puts: list[float] = []
+    resets: list[float] = []
+    started = now()
+    for _ in range(count):
+        time.sleep(chance.uniform(*ESTOP_DELAY_S))
+        puts.append(now())
+        session.put("busgate/*/estop", b"")
+        time.sleep(ESTOP_HOLD_S)
+        resets.append(now())
+        for gateway in gateways:
+            session.put(f"busgate/{gateway}/estop/reset", b"")
+        time.sleep(ESTOP_RESUME_S)
+    return {"signals": puts, "resets": resets, "window": (started, now())}
+
+
+def descendants(root: int) -> list[int]:
+    """``root`` and every process under it, from /proc (each thread's ``children``)."""
+    found: list[int] = []
+    todo = [root]
+    while todo:
+        pid = todo.pop()
+        found.append(pid)
+        with contextlib.suppress(OSError):  # gone meanwhile
+            for task in Path(f"/proc/{pid}/task").iterdir():
+                with contextlib.suppress(OSError):
+                    todo += map(int, (task / "children").read_text().split())
+    return found
+
+
+def tree_cpu_s(
+    roots: list[int],
+) -> tuple[dict[int, float], dict[tuple[int, int], tuple[str, float]]]:
+    """CPU seconds of the processes under ``roots`` (themselves included) by PID, and of
+    each of their threads by (PID, TID) with its role: the bus threads (named ``bus-<bus>``),
+    the other Python threads (the event loop's: publishing), and the rest (zenoh's, Rust)."""
+    processes: dict[int, float] = {}
+    threads: dict[tuple[int, int], tuple[str, float]] = {}
+    for pid in (pid for root in roots for pid in descendants(root)):
+        processes[pid] = cpu_s(f"/proc/{pid}/stat")
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{pid}/task").iterdir():
+                with contextlib.suppress(OSError):
+                    name = (task / "comm").read_text().strip()
+                    role = (
+                        "bus" if name.startswith("bus-") else "python" if name == "python" else
+                        "zenoh"
+                    )  # fmt: skip
+                    threads[pid, int(task.name)] = (role, cpu_s(str(task / "stat")))
+    return processes, threads
+
+
+def used_since(after: dict, before: dict) -> float:
+    """CPU seconds used between two ``tree_cpu_s`` counts, summed over what ran at the end
+    (one that started since counts from its start); NaN (gone while read) counts 0."""
+    used = (value - before.get(key, 0.0) for key, value in after.items())
+    return sum(value for value in used if not math.isnan(value))
+
+
+def by_role(after: dict, before: dict) -> dict[str, float]:
+    """The threads' CPU seconds between two ``tree_cpu_s`` counts, by role."""
     used: dict[str, float] = {}
-    for task in (task for pid in pids for task in Path(f"/proc/{pid}/task").iterdir()):
-        name = (task / "comm").read_text().strip()
-        role = "bus" if name.startswith("bus-") else "python" if name == "python" else "zenoh"
-        used[role] = used.get(role, 0.0) + cpu_s(str(task / "stat"))
+    for key, (role, value) in after.items():
+        spent = value - before.get(key, (role, 0.0))[1]
+        if not math.isnan(spent):
+            used[role] = used.get(role, 0.0) + spent
     return used
 
 
@@ -213,25 +382,35 @@ def bare_step(ports: list[str], seconds: float) -> dict:
     return json.loads(child.stdout)
 
 
+class BareTargets:
+    """Each bare bus's drivers and their latest follow targets, which ``feed`` updates at
+    ``TARGET_HZ`` (as the gateway's client puts them) until ``stop`` is set."""
+
+    def __init__(self, buses: int, started: float) -> None:
+        self.drivers = [drivers_of(n) for n in range(buses)]
+        self.started = started
+        self.latest = {
+            (n, index): driver.follow_target(target(0.0, n, index))
+            for n, bus in enumerate(self.drivers)
+            for index, driver in enumerate(bus)
+        }
+
+    def feed(self, stop: threading.Event) -> None:
+        while not stop.wait(1 / TARGET_HZ):
+            t = now() - self.started
+            for n, bus in enumerate(self.drivers):
+                for index, driver in enumerate(bus):
+                    self.latest[n, index] = driver.follow_target(target(t, n, index))
+
+
 def bare_loops(ports: list[str], seconds: float) -> dict:
     tune_interpreter()  # as the daemon does
-    drivers = [drivers_of(n) for n in range(len(ports))]
-    latest = {
-        (n, index): driver.follow_target(target(0.0, n, index))
-        for n, bus in enumerate(drivers)
-        for index, driver in enumerate(bus)
-    }
     started = now() + 0.2
+    targets = BareTargets(len(ports), started)
+    drivers, latest = targets.drivers, targets.latest
     end = started + seconds
     stop = threading.Event()
     figures: list[dict] = []
-
-    def feed() -> None:
-        while not stop.wait(1 / TARGET_HZ):
-            t = now() - started
-            for n, bus in enumerate(drivers):
-                for index, driver in enumerate(bus):
-                    latest[n, index] = driver.follow_target(target(t, n, index))
 
     def loop(n: int) -> None:
         bus = drivers[n]
@@ -246,7 +425,7 @@ def bare_loops(ports: list[str], seconds: float) -> dict:
         figures.append(interval_figures(starts, PERIOD_S))
 
     threads = [threading.Thread(target=loop, args=(n,)) for n in range(len(ports))]
-    feeder = threading.Thread(target=feed)
+    feeder = threading.Thread(target=targets.feed, args=(stop,))
     cpu_before = time.process_time()
     for thread in [*threads, feeder]:
         thread.start()
@@ -262,6 +441,197 @@ def bare_loops(ports: list[str], seconds: float) -> dict:
         "host_p50_ms": statistics.median(f["follow_error_p50_ms"] for f in figures),
         "host_p99_ms": max(f["follow_error_p99_ms"] for f in figures),
         "cpu_percent": 100 * (time.process_time() - cpu_before) / (ended - started),
+    }
+
+
+# -- the e-stop yardstick (a child process: ``--bare-estop``) -------------------------------
+
+#: Each bus thread's wake-up lateness, learnt as ``sleep_until`` learns it (per thread).
+LEAD = WakeUpLead()
+TIMING = LinkTiming(
+    protocol="inspire_la",
+    protocol_timing=PROTOCOLS["inspire_la"].timing,
+    can=False,
+    rate=BAUD,
+    margin_s=0.002,  # a bus's default reply margin
+    gap_s=MIN_GAP_S,
+)
+#: A wake-up that never comes: a wait the e-stop does not cut short (the gap before its frames).
+NEVER = threading.Event()
+
+
+def bare_estop_step(ports: list[str], count: int) -> dict:
+    """The e-stop yardstick in a child process of its own: its e-stop signals' and resets'
+    times, its window, polls and timeouts, CPU."""
+    child = subprocess.run(
+        [sys.executable, __file__, "--bare-estop", ",".join(ports), "--estop", str(count)],
+        stdout=subprocess.PIPE,
+        text=True,
+        check=True,
+        cwd=Path(__file__).parent,
+    )
+    return json.loads(child.stdout)
+
+
+def wait_until(deadline: float, wake: threading.Event) -> None:
+    """``sleep_until`` that returns as soon as ``wake`` is set: sleep (on ``wake``) until the
+    learnt lead before ``deadline``, then spin."""
+    lead = LEAD.lead_s
+    remaining = deadline - now()
+    if remaining > lead:
+        if wake.wait(remaining - lead):
+            return
+        LEAD.learn(now() - (deadline - lead))
+    while now() < deadline and not wake.is_set():
+        pass
+
+
+def exchange(fd: int, request: Request) -> tuple[float, bool]:
+    """Write ``request``, then read until its reply (or its timeout, as the gateway's): when
+    the line went idle (the reply read, or the frame's last byte gone), and whether it was
+    answered. Anything left on the line before is read and dropped."""
+    while select.select([fd], [], [], 0)[0] and os.read(fd, 4096):
+        pass
+    os.write(fd, request.wire)
+    start = now()
+    expected = request.expected
+    if expected is None:
+        return start + TIMING.wire_time(request.wire), True
+    deadline = start + TIMING.worst_case(request)
+    decoder = la.ReplyDecoder()
+    while select.select([fd], [], [], max(0.0, deadline - now()))[0]:
+        decoder.feed(os.read(fd, 4096))
+        if any(expected.matches(event) for event in list(decoder.events())):
+            return now(), True
+    return now(), False
+
+
+def bare_estop_loops(ports: list[str], count: int) -> dict:
+    """N bus threads with the gateway's traffic, and ``count`` e-stops (each reset) at random
+    moments, signalled by this thread to each bus thread."""
+    tune_interpreter()  # as the daemon does
+    started = now() + 0.2
+    targets = BareTargets(len(ports), started)
+    drivers, latest = targets.drivers, targets.latest
+    wakes = [threading.Event() for _ in ports]
+    pending: list[deque[str]] = [deque() for _ in ports]
+    done = threading.Event()
+    totals = {"polls": 0, "timeouts": 0, "follow_frames": 0}
+    totals_lock = threading.Lock()
+
+    def control(code: la.ControlCode) -> list[Request]:
+        return [Request.of(la, la.ControlCommand(i, code), idempotent=True) for i in IDS]
+
+    def loop(n: int) -> None:
+        bus, wake = drivers[n], wakes[n]
+        polls = [request for driver in bus for request in driver.poll()]
+        stops, enables = control(la.ControlCode.ESTOP), control(la.ControlCode.ENABLE)
+        poll_period = 1 / POLL_HZ
+        poll_due = [started + (k + 0.5) * poll_period / len(polls) for k in range(len(polls))]
+        next_follow, streaming, line_free = started, True, -math.inf
+        counts = {"polls": 0, "timeouts": 0, "follow_frames": 0}
+        tighten_timer_slack()
+
+        def run(requests: list[Request]) -> float:
+            """Each of ``requests`` an exchange, each after the gap: when the line is idle."""
+            idle = line_free
+            for request in requests:
+                wait_until(idle + MIN_GAP_S, NEVER)
+                idle, answered = exchange(fd, request)
+                counts["timeouts"] += not answered
+            return idle
+
+        with serial.Serial(ports[n], BAUD, timeout=0, write_timeout=0.5) as handle:
+            fd = handle.fileno()
+            time.sleep(max(0.0, started - now()))
+            while not done.is_set():
+                if wake.is_set():
+                    wake.clear()
+                    while pending[n]:  # the exchange in flight has ended: the gap, the frames
+                        if pending[n].popleft() == "estop":
+                            line_free, streaming = run(stops), False
+                        else:  # the reset: enabled again, a new stream starts now
+                            line_free, streaming = run(enables), True
+                            next_follow = now()
+                    continue
+                moment = now()
+                ready = line_free + MIN_GAP_S
+                follow_due = next_follow if streaming else math.inf
+                poll = min(range(len(polls)), key=poll_due.__getitem__)
+                if moment >= ready and follow_due <= moment:
+                    request = InspireLaDriver.follow_request(
+                        [(driver, latest[n, index]) for index, driver in enumerate(bus)]
+                    )
+                    line_free, _ = exchange(fd, request)
+                    next_follow += PERIOD_S  # on its grid, as the bare follow loop
+                    counts["follow_frames"] += 1
+                    continue
+                fits = moment + TIMING.worst_case(polls[poll]) + HOST_SLACK_S <= follow_due
+                if moment >= ready and poll_due[poll] <= moment and fits:
+                    line_free, answered = exchange(fd, polls[poll])
+                    counts["polls"] += 1
+                    counts["timeouts"] += not answered
+                    late = moment - poll_due[poll] > poll_period  # skipped, as the planner's
+                    poll_due[poll] = moment if late else poll_due[poll] + poll_period
+                    continue
+                if poll_due[poll] > moment:
+                    wake_at = min(poll_due[poll], follow_due)
+                elif fits:
+                    wake_at = ready  # due, and it fits: after the gap
+                else:
+                    wake_at = follow_due  # after the follow frame it would delay
+                wait_until(max(ready, wake_at), wake)
+        with totals_lock:
+            for name, value in counts.items():
+                totals[name] += value
+
+    failures: list[BaseException] = []
+
+    def guarded(n: int) -> None:
+        try:
+            loop(n)
+        except BaseException as exc:
+            failures.append(exc)
+            raise
+
+    threads = [threading.Thread(target=guarded, args=(n,)) for n in range(len(ports))]
+    feeder = threading.Thread(target=targets.feed, args=(done,))
+    cpu_before = time.process_time()
+    for thread in [*threads, feeder]:
+        thread.start()
+    time.sleep(max(0.0, started + 0.5 - now()))  # the loops under way
+    chance = random.Random()
+    signals: list[float] = []
+    resets: list[float] = []
+    phase_start = now()
+
+    def tell(what: str) -> None:
+        for n in range(len(ports)):
+            pending[n].append(what)
+            wakes[n].set()
+
+    for _ in range(count):
+        time.sleep(chance.uniform(*ESTOP_DELAY_S))
+        signals.append(now())
+        tell("estop")
+        time.sleep(ESTOP_HOLD_S)
+        resets.append(now())
+        tell("reset")
+        time.sleep(ESTOP_RESUME_S)
+    phase_end = now()
+    done.set()
+    for wake in wakes:
+        wake.set()
+    for thread in [*threads, feeder]:
+        thread.join()
+    if failures:
+        raise RuntimeError(f"{len(failures)} bare e-stop loop(s) failed") from failures[0]
+    return {
+        "signals": signals,
+        "resets": resets,
+        "window": (phase_start, phase_end),
+        "cpu_percent": 100 * (time.process_time() - cpu_before) / (now() - started),
+        **totals,
     }
 
 
@@ -292,7 +662,63 @@ def wire_figures(records: list[Path], window: tuple[float, float]) -> dict:
     }
 
 
-def step(buses: int, seconds: float, daemons: int) -> dict:
+def estop_figures(records: list[Path], phase: dict) -> dict:
+    """An e-stop phase's figures from the records: the worst bus's latency per e-stop (its
+    signal → the first e-stop frame's start on that bus's wire, before the next signal), and
+    the checks: e-stops that found every bus streaming, resets that reached every bus, and
+    e-stops that missed a bus; the status polls per second per bus."""
+    signals, resets = phase["signals"], phase["resets"]
+    start, end = phase["window"]
+    follow = follow_frame_names(drivers_of(0))
+    stop, enable, status = (
+        control_hex(code)
+        for code in (la.ControlCode.ESTOP, la.ControlCode.ENABLE, la.ControlCode.STATUS)
+    )
+    buses = []
+    for path in records:
+        frames = [r for r in load_records(path) if r.direction == "rx" and start <= r.start <= end]
+        control = [(r.start, r.wire[8:14]) for r in frames if r.frame == "ControlCommand"]
+        buses.append(
+            {
+                "stops": [t for t, code in control if code == stop],
+                "enables": [t for t, code in control if code == enable],
+                "polls": sum(1 for _, code in control if code == status),
+                "follows": [r.start for r in frames if r.frame in follow],
+            }
+        )
+    worst: list[float] = []
+    missed = streaming = reset = 0
+    for i, signal in enumerate(signals):
+        until = signals[i + 1] if i + 1 < len(signals) else end
+        firsts = [min((t for t in bus["stops"] if signal <= t < until), default=None)
+                  for bus in buses]  # fmt: skip
+        streaming += all(
+            any(signal - STREAMING_S <= t < signal for t in bus["follows"]) for bus in buses
+        )
+        reset += all(any(resets[i] <= t < until for t in bus["enables"]) for bus in buses)
+        if None in firsts:
+            missed += 1
+        else:
+            worst.append(max(t for t in firsts if t is not None) - signal)
+    worst.sort()
+    return {
+        "estops": len(signals),
+        "latencies_ms": [round(1000 * value, 3) for value in worst],
+        "p50_ms": ms(percentile(worst, 0.5)),
+        "p99_ms": ms(percentile(worst, 0.99)),
+        "max_ms": ms(worst[-1] if worst else None),
+        "missed": missed,
+        "streaming": streaming,
+        "reset": reset,
+        "polls_per_s": sum(bus["polls"] for bus in buses) / len(buses) / (end - start),
+    }
+
+
+def ms(seconds: float | None) -> float | None:
+    return None if seconds is None else 1000 * seconds
+
+
+def step(buses: int, seconds: float, daemons: int, workers: list[str | None], estops: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as folder:
         scratch = Path(folder)
         records = [scratch / f"wire{n}.jsonl" for n in range(buses)]
@@ -304,12 +730,27 @@ def step(buses: int, seconds: float, daemons: int) -> dict:
                 for record in records
             ]
             ports = [sim.port for sim in sims]
-            gateway = gateway_step(scratch, ports, seconds, sims, min(daemons, buses))
+            gateways = [
+                gateway_step(scratch, ports, seconds, sims, min(daemons, buses), value, estops)
+                for value in workers
+            ]
             bare = bare_step(ports, seconds)
-        return {
-            "gateway": gateway | wire_figures(records, gateway["window"]),
-            "bare": bare | wire_figures(records, bare["window"]),
-        }
+            bare_estop = bare_estop_step(ports, estops) if estops else {}
+        # The simulators have stopped: their records are complete.
+        for gateway in gateways:
+            gateway |= wire_figures(records, gateway["window"])
+            if estops:
+                gateway["estop"] = estop_figures(records, gateway["estop_phase"])
+        bare |= wire_figures(records, bare["window"])
+        if estops:
+            bare["estop"] = estop_figures(records, bare_estop) | {
+                "cpu_percent": bare_estop["cpu_percent"],
+                "timeouts": bare_estop["timeouts"],
+            }
+        return {"gateways": gateways, "bare": bare}
+
+
+# -- the output ----------------------------------------------------------------------------
 
 
 def line(name: str, figures: dict) -> str:
@@ -332,7 +773,97 @@ def line(name: str, figures: dict) -> str:
     if threads:
         split = ", ".join(f"{role} {value:.1f}" for role, value in sorted(threads.items()))
         text += f" ({split}; the simulators {figures['simulators_cpu_percent']:.0f} %)"
+    if "processes" in figures:
+        text += f", {figures['processes']} process(es)"
     return text
+
+
+def number(value: float | None, sign: bool = False) -> str:
+    if value is None:
+        return "—"
+    return f"{value:+.3f}" if sign else f"{value:.3f}"
+
+
+def table(headers: list[str], rows: list[list[str]]) -> str:
+    """Columns as wide as their widest cell, the first left-aligned, the rest right."""
+    widths = [max(len(row[i]) for row in [headers, *rows]) for i in range(len(headers))]
+
+    def cells(row: list[str]) -> str:
+        first, *rest = row
+        return "  ".join(
+            [
+                first.ljust(widths[0]),
+                *(cell.rjust(w) for cell, w in zip(rest, widths[1:], strict=True)),
+            ]
+        )
+
+    return "\n".join(["    " + cells(headers), *("    " + cells(row) for row in rows)])
+
+
+def estop_table(figures: dict) -> str:
+    """The e-stop phase of one step: each writer's worst-bus latency, and the checks."""
+    bare = figures["bare"]["estop"]
+    rows = []
+    for gateway in figures["gateways"]:
+        mine = gateway["estop"]
+        added = [
+            None if mine[q] is None or bare[q] is None else mine[q] - bare[q]
+            for q in ("p50_ms", "p99_ms")
+        ]
+        rows.append(estop_row(f"gateway, workers {gateway['workers']}", mine, added))
+    rows.append(estop_row("bare", bare, [None, None]))
+    headers = ["writer", "e-stops", "p50", "p99", "max", "added p50", "added p99",
+               "streaming", "reset", "missed", "polls/s/bus"]  # fmt: skip
+    return (
+        "  e-stop → its frame on every bus (the worst bus per e-stop; device side, ms):\n"
+        + table(headers, rows)
+    )
+
+
+def estop_row(name: str, figures: dict, added: list[float | None]) -> list[str]:
+    count = figures["estops"]
+    return [
+        name,
+        str(count),
+        number(figures["p50_ms"]),
+        number(figures["p99_ms"]),
+        number(figures["max_ms"]),
+        number(added[0], sign=True),
+        number(added[1], sign=True),
+        f"{figures['streaming']}/{count}",
+        f"{figures['reset']}/{count}",
+        str(figures["missed"]),
+        f"{figures['polls_per_s']:.1f}",
+    ]
+
+
+def summary(rows: list[dict]) -> str:
+    """One row per step and writer: the workers value, CPU, follow error p99 (host, device),
+    and the e-stop figures."""
+    headers = ["run", "buses", "daemons", "workers", "writer", "CPU %", "host p99",
+               "device p99", "e-stop p50", "p99", "max", "added p50", "added p99"]  # fmt: skip
+    cells = []
+    for row in rows:
+        estop = row["figures"].get("estop") or {}
+        added = row.get("added", [None, None])
+        cells.append(
+            [
+                str(row["run"]),
+                str(row["buses"]),
+                str(row["daemons"]),
+                row["workers"],
+                row["writer"],
+                f"{row['figures']['cpu_percent']:.1f}",
+                number(row["figures"]["host_p99_ms"]),
+                number(row["figures"]["device_p99_ms"]),
+                number(estop.get("p50_ms")),
+                number(estop.get("p99_ms")),
+                number(estop.get("max_ms")),
+                number(added[0], sign=True),
+                number(added[1], sign=True),
+            ]
+        )
+    return "summary (ms; CPU % of one core, the e-stop phase left out):\n" + table(headers, cells)
 
 
 #: How a refusal names what ``positive`` takes.
@@ -359,6 +890,32 @@ def bus_counts(text: str) -> list[int]:
     return [positive(int)(part) for part in text.split(",")]
 
 
+def workers_values(text: str) -> list[str]:
+    """``--workers``: each ``auto`` or a whole number above 0, comma-separated."""
+    values = []
+    for part in text.split(","):
+        try:
+            values.append("auto" if part.strip() == "auto" else str(positive(int)(part)))
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"{part!r}: auto or a whole number above 0") from None
+    return values
+
+
+def count(text: str) -> int:
+    """``--estop``: a whole number, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number, 0 or more")
+    return value
+
+
+def label(workers: str | None) -> str:
+    return "unset" if workers is None else workers
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
@@ -369,21 +926,65 @@ def main() -> None:
     parser.add_argument(
         "--daemons", type=positive(int), default=1, help="split the buses over this many daemons"
     )
+    parser.add_argument(
+        "--workers",
+        type=workers_values,
+        metavar="LIST",
+        help="the gateway's [gateway] workers, each value in turn, e.g. 1,auto (default: not set)",
+    )
+    parser.add_argument(
+        "--estop",
+        type=count,
+        default=0,
+        metavar="COUNT",
+        help="e-stops per step, beside a bare loop's (default 0)",
+    )
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
+    parser.add_argument("--bare-estop", help=argparse.SUPPRESS)  # the e-stop child: its ports
     args = parser.parse_args()
     if args.bare:
         print(json.dumps(bare_loops(args.bare.split(","), args.seconds)))
         return
+    if args.bare_estop:
+        print(json.dumps(bare_estop_loops(args.bare_estop.split(","), args.estop)))
+        return
+    workers: list[str | None] = args.workers or [None]
+    rows: list[dict] = []
     for run in range(1, args.runs + 1):
         for buses in args.buses:
-            figures = step(buses, args.seconds, args.daemons)
+            figures = step(buses, args.seconds, args.daemons, workers, args.estop)
             daemons = min(args.daemons, buses)
             print(
                 f"run {run}, {buses} bus(es) of {len(IDS)} LA, {daemons} daemon(s), "
                 f"{args.seconds:g} s:"
             )
-            print(line("gateway", figures["gateway"]))
-            print(line("bare", figures["bare"]), flush=True)
+            where = {"run": run, "buses": buses, "daemons": daemons}
+            bare_estop = figures["bare"].get("estop")
+            for gateway in figures["gateways"]:
+                print(f"  gateway, workers {gateway['workers']}:")
+                print(line("gateway", gateway))
+                added = [None, None]
+                if bare_estop:
+                    added = [
+                        None if gateway["estop"][q] is None or bare_estop[q] is None
+                        else gateway["estop"][q] - bare_estop[q]
+                        for q in ("p50_ms", "p99_ms")
+                    ]  # fmt: skip
+                rows.append(
+                    where
+                    | {"workers": gateway["workers"], "writer": "gateway", "figures": gateway}
+                    | {"added": added}
+                )
+            print(line("bare", figures["bare"]))
+            rows.append(where | {"workers": "—", "writer": "bare", "figures": figures["bare"]})
+            if args.estop:
+                print(estop_table(figures))
+                print(
+                    f"  the bare e-stop loops: CPU {bare_estop['cpu_percent']:.1f} %, "
+                    f"{bare_estop['timeouts']} timeouts"
+                )
+            sys.stdout.flush()
+    print(summary(rows), flush=True)
 
 
 if __name__ == "__main__":
