@@ -43,9 +43,16 @@ class Section(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
+#: ``[gateway] workers``: at most this many processes run the buses (``gateway.workers``).
+MAX_WORKERS = 64
+
+
 class GatewaySection(Section):
     name: Name
     prefix: KeyPrefix = "busgate"
+    #: The processes the buses are split across (docs/workers.md): ``"auto"``, one per core,
+    #: at most one per bus; or a count (``1``: every bus in the gateway's own process).
+    workers: Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)] = "auto"
 
 
 class ZenohSection(Section):

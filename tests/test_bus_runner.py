@@ -9,6 +9,7 @@ time is waited for, with a generous deadline, and then its outcome is asserted.
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from concurrent.futures import Future
 
@@ -220,6 +221,35 @@ def test_estop_goes_ahead_and_stops_every_device(wait_for, simulator) -> None:
         refused = runner.submit("la1", runner.drivers["la1"].parse('{"op":"move","position":5}'))
         with pytest.raises(Exception, match="enable"):
             refused.result(10)
+    finally:
+        runner.stop()
+
+
+def test_a_target_or_play_judged_before_an_estop_and_landing_after_it_moves_nothing(
+    wait_for, simulator
+) -> None:
+    """A follow target, a ramp or a trajectory judged while the device could move, handed
+    over behind an e-stop (or, with bus workers, before the gateway's process heard of it),
+    starts nothing: the bus goes on, a stream's refusal is an event, a play's is its refusal."""
+    events = []
+    runner = build_bus(bus(simulator.port, follow_period_ms=10), on_event=events.append).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        target = runner.drivers["la1"].follow_target({"position": 1200})
+        estop = runner.estop()
+        runner.follow("la1", target)  # behind the e-stop in the inbox
+        runner.ramp("la2", runner.drivers["la2"].follow_target({"position": 900}))
+        runner.play({"la2": lambda t_s: {"position": 900}}, now() + 0.05)
+        estop.result(10)
+        mark = len(simulator.recorder.received())
+        wait_for(lambda: runner.plays.refusal("la2") is not None)
+        time.sleep(0.1)
+        ticks = [r for r in simulator.recorder.received()[mark:]
+                 if r.frame in ("FollowCommand", "GroupFollowCommand")]
+        assert ticks == []
+        refused = [e.fields["code"] for e in events if e.type == "command_refused"]
+        assert refused == ["estopped", "estopped"]
+        assert runner.statistics().reconnects == 0 and runner.owner.is_open
     finally:
         runner.stop()
 

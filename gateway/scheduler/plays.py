@@ -18,7 +18,8 @@ Rules of this file:
    device is commanded until something newer is known of it (a trajectory that follows
    starts there).
 5. A device whose trajectory was ended here, not by its player (its ticker left it out for
-   good: it could not take its target; or every device was taken out: ``end_all``), keeps
+   good: it could not take its target; every device was taken out: ``end_all``; or it was
+   e-stopped when the play reached its bus, after the play was checked), keeps
    why in ``refusal``, with the start of the trajectory it was playing, until it starts
    another one: that trajectory is over (``busgate.gateway.trajectory.playing`` aborts it,
    even when the device has been enabled again since).
@@ -102,6 +103,9 @@ class Plays:
             driver = self.drivers[name]
             self._leave(name)
             self._refusals.pop(name, None)
+            if driver.estopped:  # e-stopped since the play was checked: it does not start
+                self._refusals[name] = (start, ESTOPPED)
+                continue
             self.streams.drop(name, "trajectory")
             ticker = self._ticker_for(driver, start)
             ticker.add(driver, sample)

@@ -124,8 +124,13 @@ class BusWork:
         self, device: str, target: Any, moment: float, *, ends_on_target: bool = False
     ) -> None:
         driver = self.drivers.get(device)
-        if driver is not None and self.owner.is_open:
-            self.streams.start(driver, target, moment, ends_on_target=ends_on_target)
+        if driver is None or not self.owner.is_open:
+            return
+        if driver.estopped:  # e-stopped since its target was judged: no motion (authority 4)
+            refusal = driver.estopped_error()
+            driver.emit("command_refused", code=refusal.code, message=str(refusal))
+            return
+        self.streams.start(driver, target, moment, ends_on_target=ends_on_target)
 
     @staticmethod
     def _speed_ramp(driver: Driver, command: Any) -> dict[str, Any] | None:

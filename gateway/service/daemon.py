@@ -42,6 +42,7 @@ from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
+from busgate.gateway.service.workers import WorkerProcess, movable, split, worker_count
 from busgate.schemas.config import Config, load_config
 
 if TYPE_CHECKING:
@@ -100,6 +101,12 @@ async def serve(
         )
         for bus in config.buses
     }
+    workers = _workers(config, runners)
+    local = dict(runners)
+    for worker in workers:  # a bus in a worker: its runner here is the worker's
+        for name, remote in worker.runners.items():
+            runners[name] = remote  # type: ignore[assignment]
+            del local[name]
     api = GatewayApi(config.gateway.name, runners, on_event=events.append)
     bridge = zenoh_side.ZenohBridge(config, api, runners, events, states)
     ros2 = _ros2_face(config, api, bridge)
@@ -113,8 +120,13 @@ async def serve(
         if config.metrics is not None:  # before the buses too: a refusal leaves them unopened
             metrics = _start_metrics(runners, bridge, config.metrics.listen)
         _log_budgets(config)
-        for runner in runners.values():
+        for runner in local.values():
             runner.start()
+        if workers:
+            log.info("bus workers: %s", "; ".join(f"{w.index}: {w.buses}" for w in workers))
+        for worker in workers:
+            worker.start()
+        await asyncio.to_thread(lambda: [worker.wait_first_word() for worker in workers])
         gc.freeze()  # what start-up made lives for good: keep it out of every collection
         up = await _buses_up(runners, expected_up)
         log.info("gateway %s serving %s, %d up", config.gateway.name, _buses(len(runners)), up)
@@ -133,7 +145,7 @@ async def serve(
         notifier.stopping(f"gateway {config.gateway.name} stopping")
         if metrics is not None:
             metrics.stop()
-        await asyncio.to_thread(_stop_buses, runners)
+        await asyncio.to_thread(_stop_buses, local, workers)
         bridge.publish_events()
         if recorder is not None:  # after the buses: their last frames are in it
             await asyncio.to_thread(recorder.flush)
@@ -274,11 +286,24 @@ async def _ready_when_open(
         )
 
 
-def _stop_buses(runners: dict[str, BusRunner]) -> None:
+def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProcess]:
+    """The bus workers ``[gateway] workers`` asks for (none: every bus here), each given the
+    buses ``split`` chose, whose runners here become their shadows (``service.workers``)."""
+    count = worker_count(config.gateway.workers, len(movable(config)))
+    if not count:
+        return []
+    groups = split(config, count)
+    return [
+        WorkerProcess(index, config, [runners[name] for name in group])
+        for index, group in enumerate(groups)
+    ]
+
+
+def _stop_buses(runners: dict[str, BusRunner], workers: list[WorkerProcess]) -> None:
     """Stop every bus at once: streams, safe state, close."""
     threads = [
         threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,)) for runner in runners.values()
-    ]
+    ] + [threading.Thread(target=worker.stop) for worker in workers]
     for thread in threads:
         thread.start()
     for thread in threads:

@@ -53,6 +53,35 @@ def stream_of(driver: Driver, values: ValuesField) -> Stream:
     return Stream(follow, declaration.target, declaration.position, speed=False)
 
 
+@dataclass(frozen=True, slots=True)
+class PathSampler:
+    """What a device's bus ticks for its trajectory: the follow payload of its path at each
+    moment from the start. Plain values, so that a bus in a worker process is sent a copy
+    (docs/workers.md)."""
+
+    path: Path
+    follow: str
+    speed: bool
+    #: The whole counts a position is sent within (its joint's ``raw_limits``).
+    limits: tuple[int, int]
+
+    def __call__(self, t_s: float) -> dict[str, Any]:
+        return self.payload(self.path.at(t_s))
+
+    def sent(self, value: float) -> float:
+        """What goes on the wire for the path's ``value``: a speed as it is, a position the
+        nearest whole count inside the joint's limits (``Joint.raw_limits``: the path is
+        within the limits, ``checks``, so this only rounds, as ``Joint.target_raw`` does)."""
+        if self.speed:
+            return value
+        low, high = self.limits
+        return min(max(sent(value), low), high)
+
+    def payload(self, value: float) -> dict[str, Any]:
+        """The follow payload that sends the path's ``value``."""
+        return {self.follow: self.sent(value)}
+
+
 class Gateway(Protocol):
     """What a trajectory needs of its gateway (``busgate.gateway.api.commands.GatewayApi``):
     its name and its devices, each with the runner of its bus."""
@@ -78,9 +107,12 @@ class Member:
     claimed: bool  # its client held the device's claim when it started
     #: The whole counts a position is sent within (its joint's ``raw_limits``).
     limits: tuple[int, int] = field(init=False)
+    #: What its bus ticks.
+    sampler: PathSampler = field(init=False)
 
     def __post_init__(self) -> None:
         self.limits = self.driver.joint.raw_limits
+        self.sampler = PathSampler(self.path, self.stream.follow, self.stream.speed, self.limits)
 
     @property
     def speed(self) -> bool:
@@ -88,25 +120,18 @@ class Member:
         return self.stream.speed
 
     def sample(self, t_s: float) -> dict[str, Any]:
-        """The follow payload of the path at ``t_s`` (the sampler its bus ticks)."""
-        return self.payload(self.path.at(t_s))
+        """The follow payload of the path at ``t_s``."""
+        return self.sampler(t_s)
 
     def value(self, t_s: float) -> float:
         """What a tick at ``t_s`` sends."""
-        return self.sent(self.path.at(t_s))
+        return self.sampler.sent(self.path.at(t_s))
 
     def sent(self, value: float) -> float:
-        """What goes on the wire for the path's ``value``: a speed as it is, a position the
-        nearest whole count inside the joint's limits (``Joint.raw_limits``: the path is
-        within the limits, ``checks``, so this only rounds, as ``Joint.target_raw`` does)."""
-        if self.stream.speed:
-            return value
-        low, high = self.limits
-        return min(max(sent(value), low), high)
+        return self.sampler.sent(value)
 
     def payload(self, value: float) -> dict[str, Any]:
-        """The follow payload that sends the path's ``value``."""
-        return {self.stream.follow: self.sent(value)}
+        return self.sampler.payload(value)
 
     def takes(self, value: float) -> bool:
         """Whether the device takes the path's ``value`` as its target."""

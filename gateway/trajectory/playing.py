@@ -97,7 +97,7 @@ class Trajectories:
                     self._end(other, "replaced", keep=frozenset(taken))
             self._running[request.id] = running
         for runner in {m.runner for m in members}:
-            runner.play({m.name: m.sample for m in members if m.runner is runner}, start_bus)
+            runner.play({m.name: m.sampler for m in members if m.runner is runner}, start_bus)
         self._event(running, "trajectory_started", start_at=start_at, end_at=running.end_at)
         return ok_reply(
             trajectory={

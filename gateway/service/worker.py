@@ -1,0 +1,187 @@
+"""A bus worker: a process of its own running some of a gateway's buses (docs/workers.md).
+
+``python -m busgate.gateway.service.worker FD LEVEL``, started by the daemon (never forked
+from it: zenoh's threads do not survive ``fork()``), talks over the inherited socket ``FD``
+(``worker_link``) and logs at the daemon's ``LEVEL``. Its first message is the validated
+config, the names of its buses, the claims standing on them and the buses to e-stop at once;
+it builds the buses exactly as the daemon builds its own (``assembly.build_bus``) and runs
+them. Rules of this file:
+
+1. The daemon's calls are carried out on the runner by the name the link allows
+   (``worker_link.CALLS``, ``CLAIM_OPS``), in the order they came; a call's future answers it.
+2. States, events and (with a flight recorder) frames go to the outbox as the bus threads make
+   them; every ``MIRROR_S`` each bus's ``PlaysView`` and device ids, when they changed, and
+   every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open and its
+   statistics (``workers`` rule 1 reads them).
+3. When the socket closes (the daemon went), ``stop`` comes or SIGTERM, the buses stop in
+   order (streams, safe state, close) and the process ends. SIGINT is the daemon's to act on:
+   a Ctrl-C in a terminal reaches the whole process group.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+from concurrent.futures import Future
+from functools import partial
+from typing import Any, NoReturn
+
+from busgate.gateway.bus.clock import tune_interpreter
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service import worker_link as link
+from busgate.gateway.service.assembly import build_bus
+from busgate.schemas.config import Config
+
+log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
+
+STOP_TIMEOUT_S = 0.8
+#: How often each bus's trajectories and device ids are looked at, and sent when changed.
+MIRROR_S = 0.01
+PR_SET_PDEATHSIG = 1
+
+
+class Worker:
+    """The buses of one worker, and what carries the daemon's calls to them."""
+
+    def __init__(self, sock: socket.socket, config: Config, buses: list[str]) -> None:
+        self.sock = sock
+        self.outbox = link.Outbox(sock, "worker-send")
+        self.runners: dict[str, BusRunner] = {
+            bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
+            for bus in config.buses
+            if bus.name in buses
+        }
+        if config.recorder is not None:  # the daemon's flight recorder keeps every frame
+            for name, runner in self.runners.items():
+                runner.owner.tap = partial(self._frame, name)
+
+    def run(self, claims: dict[str, list[tuple]], estopped: list[str]) -> None:
+        for name, standing in claims.items():
+            for claim in standing:
+                self.runners[name].authority.claims.claim(*claim)
+        self.outbox.start()
+        for runner in self.runners.values():
+            runner.start()
+        for name in estopped:  # e-stopped before this worker: e-stopped still
+            self.runners[name].estop()
+        done = threading.Event()
+        mirror = threading.Thread(target=self._mirror, args=(done,), name="worker-mirror")
+        mirror.start()
+        try:
+            while (message := link.receive(self.sock)) is not None and message[0] != "stop":
+                self._carry_out(message)
+        finally:
+            done.set()
+            mirror.join()
+            self._stop_buses()
+            self.outbox.close()
+
+    def _carry_out(self, message: tuple) -> None:
+        kind = message[0]
+        if kind == "call" and message[3] in link.CALLS and message[2] in self.runners:
+            _, call_id, bus, method, args, kwargs = message
+            try:
+                result = getattr(self.runners[bus], method)(*args, **kwargs)
+            except Exception as exc:  # a bug: told, and the worker goes on
+                log.exception("bus %s: %s failed", bus, method)
+                result = Future()
+                result.set_exception(exc)
+            if call_id is not None and isinstance(result, Future):
+                result.add_done_callback(partial(self._answer, call_id))
+        elif kind == "claims" and message[2] in link.CLAIM_OPS and message[1] in self.runners:
+            _, bus, op, args = message
+            try:
+                getattr(self.runners[bus].authority.claims, op)(*args)
+            except Exception as exc:  # judged first by the daemon: a lapse in between
+                log.info("bus %s: claims %s refused here: %s", bus, op, exc)
+        else:
+            log.error("worker: refused a message it does not know: %r", message[:1])
+
+    def _answer(self, call_id: int, future: Future) -> None:
+        exc = future.exception()
+        if exc is None:
+            self.outbox.put(("result", call_id, True, future.result()))
+        else:
+            self.outbox.put(("result", call_id, False, link.portable(exc)))
+
+    def _state(self, bus: str, device: str, state: dict[str, Any]) -> None:
+        self.outbox.put(("states", [(bus, device, state)]))
+
+    def _event(self, event: DeviceEvent) -> None:
+        self.outbox.put(("events", [event]))
+
+    def _frame(self, bus: str, frame: tuple) -> None:
+        self.outbox.put(("frames", [(bus, frame)]))
+
+    def _mirror(self, done: threading.Event) -> None:
+        """Rule 2: trajectories and ids when they change, the beat every ``BEAT_S``."""
+        sent: dict[str, tuple[Any, dict[str, int]]] = {}
+        beats = round(link.BEAT_S / MIRROR_S)
+        for turn in range(sys.maxsize):
+            for name, runner in self.runners.items():
+                view = runner.plays.view
+                ids = {device: driver.device_id for device, driver in runner.drivers.items()}
+                last = sent.get(name)
+                if last is None or last[0] is not view or last[1] != ids:
+                    sent[name] = (view, ids)
+                    self.outbox.put(("plays", name, view, ids))
+            if turn % beats == 0:
+                self.outbox.put(("beat", self._beat()))
+            if done.wait(MIRROR_S):
+                return
+
+    def _beat(self) -> dict[str, tuple]:
+        return {
+            name: (runner.keeping_schedule(), runner.owner.is_open, runner.statistics())
+            for name, runner in self.runners.items()
+        }
+
+    def _stop_buses(self) -> None:
+        threads = [
+            threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,))
+            for runner in self.runners.values()
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+
+
+def _die_with_the_daemon() -> None:
+    """SIGTERM to this worker when the thread of the daemon that started it ends, however it
+    ends (``PR_SET_PDEATHSIG``; refused in a sandbox without ``prctl``: then the socket
+    closing stops it). Set here, after ``exec``, not in a ``preexec_fn`` (which may deadlock
+    a child forked from a process with threads)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def _stop_on_sigterm(signum: int, frame: Any) -> NoReturn:
+    raise SystemExit(0)
+
+
+def main() -> int:
+    level = sys.argv[2] if len(sys.argv) > 2 else "INFO"  # the daemon's
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _stop_on_sigterm)
+    _die_with_the_daemon()
+    sock = socket.socket(fileno=int(sys.argv[1]))
+    first = link.receive(sock)
+    if first is None or first[0] != "start":
+        return 2
+    _, config, buses, claims, estopped = first
+    tune_interpreter()
+    log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
+    Worker(sock, config, buses).run(claims, estopped)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

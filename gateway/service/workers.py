@@ -1,0 +1,474 @@
+"""Bus workers, seen from the gateway's process (docs/workers.md): which buses go where, each
+worker's process and its supervisor, and ``WorkerRunner``, a bus in a worker with the
+``BusRunner`` surface the API, trajectories and the ROS face use.
+
+Rules of this file:
+
+1. A ``WorkerRunner`` answers reads from the gateway's own copy of its bus (the *shadow*: the
+   same ``build_bus``, never started, its port never opened), kept as the worker last said:
+   each device's state (and from it ``online`` and ``estopped``), its id, the trajectories'
+   ``PlaysView``, the bus's statistics and whether it is open. Every call that moves or sets
+   anything goes to the worker, in the order it was made.
+2. Claims are taken and released here, in the one table per bus the API judges by, and each
+   change goes to the worker before any later call (its bus thread judges by the same); a new
+   worker is given the table as it stands, and e-stops the buses whose devices were e-stopped.
+3. A worker that ends, or hangs (silent for ``STALL_S``: it is killed), is reported once:
+   every call waiting on it is answered ``bus_unavailable``, each of its devices goes offline
+   with an event saying why, and the worker is started again after ``RESTART_S``, with
+   nothing to resume: no stream, no play, no ramp; a client commands again.
+4. A worker is started and read by one supervising thread for the daemon's whole life: a
+   child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future
+from functools import cache
+from typing import Any, ClassVar
+
+from busgate.errors import BusUnavailableError
+from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.stats import BusStats
+from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.scheduler.authority import ClaimTable
+from busgate.gateway.scheduler.runner import STALL_S, BusRunner
+from busgate.gateway.service import worker as worker_process
+from busgate.gateway.service import worker_link as link
+from busgate.gateway.service.budget import bus_budget
+from busgate.schemas.config import Config
+
+log = logging.getLogger(__name__)
+
+#: A worker that ended is started again after this long.
+RESTART_S = 0.5
+#: How long a new worker is given to say its first word before start-up goes on without it.
+FIRST_WORD_S = 5.0
+#: How long a worker just started may take to say its first word (an interpreter's start on a
+#: slow computer with a cold cache) before it is taken for hung.
+SLOW_START_S = 20.0
+#: How long a stopping worker is given to stop its buses before it is killed.
+STOP_S = 2.0
+
+
+def worker_count(setting: str | int, buses: int) -> int:
+    """How many workers ``[gateway] workers`` makes of ``buses`` buses a worker may run:
+    ``"auto"`` is one per core this process may run on, at most one per bus; one (or a
+    single bus) is none: the buses run in the gateway's own process."""
+    cores = len(os.sched_getaffinity(0)) if setting == "auto" else int(setting)
+    count = min(cores, buses)
+    return count if count > 1 else 0
+
+
+def movable(config: Config) -> list[str]:
+    """The buses a worker may run: not one on python-can's ``virtual`` interface (it exists
+    within one process: the simulators' and the tests'), nor a base's (both wheels' ticks
+    sample the base's live twist, in the gateway's process)."""
+    wheels = {name for base in config.bases for name in (base.left, base.right)}
+    return [
+        bus.name
+        for bus in config.buses
+        if getattr(bus, "interface", None) != "virtual"
+        and not wheels & {device.name for device in bus.devices}
+    ]
+
+
+def split(config: Config, count: int) -> list[list[str]]:
+    """The buses of each of ``count`` workers: the busiest first onto the least loaded, by
+    what the config's traffic takes of each bus's wire (its budget)."""
+    names = set(movable(config))
+    load = {bus.name: bus_budget(bus).wire_share for bus in config.buses if bus.name in names}
+    workers: list[list[str]] = [[] for _ in range(count)]
+    loads = [0.0] * count
+    for name in sorted(load, key=lambda n: -load[n]):
+        least = loads.index(min(loads))
+        workers[least].append(name)
+        loads[least] += load[name]
+    return [sorted(w) for w in workers if w]
+
+
+class ForwardedClaims(ClaimTable):
+    """A bus's claim table, each change also sent to its worker (rule 2)."""
+
+    def __init__(self, send: Callable[[tuple], None], bus: str) -> None:
+        super().__init__()
+        self._send = send
+        self._bus = bus
+
+    def claim(self, device: str, client: str, ttl_s: float, now: float) -> None:
+        super().claim(device, client, ttl_s, now)
+        self._send(("claims", self._bus, "claim", (device, client, ttl_s, now)))
+
+    def hold(self, device: str, client: str, ttl_s: float, now: float) -> bool:
+        new = super().hold(device, client, ttl_s, now)
+        self._send(("claims", self._bus, "hold", (device, client, ttl_s, now)))
+        return new
+
+    def release(self, device: str, client: str, now: float) -> None:
+        super().release(device, client, now)
+        self._send(("claims", self._bus, "release", (device, client, now)))
+
+    def drop_client(self, client: str) -> list[str]:
+        dropped = super().drop_client(client)
+        self._send(("claims", self._bus, "drop_client", (client,)))
+        return dropped
+
+    def standing(self, moment: float) -> list[tuple[str, str, float, float]]:
+        """The claims that hold at ``moment``, as ``claim`` takes them (for a new worker)."""
+        with self._lock:
+            return [
+                (device, held.client, held.until - moment, moment)
+                for device, held in self._holders.items()
+                if held.until > moment
+            ]
+
+
+@cache
+def mirrored(driver_class: type[Driver]) -> type[Driver]:
+    """``driver_class`` as a shadow's driver: ``estopped`` is what its worker last said
+    (rule 1); everything else is the family's own."""
+
+    def estopped(self: Any) -> bool:
+        return bool(getattr(self, "said_estopped", False))
+
+    name = f"Mirrored{driver_class.__name__}"
+    return type(name, (driver_class,), {"estopped": property(estopped)})
+
+
+class WorkerProcess:
+    """One worker: its process, its supervisor, the calls waiting for an answer."""
+
+    def __init__(self, index: int, config: Config, shadows: list[BusRunner]) -> None:
+        self.index = index
+        self.config = config
+        self.runners = {shadow.name: WorkerRunner(shadow, self) for shadow in shadows}
+        self.on_event = shadows[0].telemetry.on_event  # every bus's: the daemon's events
+        self.beat: dict[str, tuple[bool, bool, BusStats]] = {}
+        self.last_word = now()
+        self.process: subprocess.Popen | None = None
+        self.outbox: link.Outbox | None = None
+        self._spoken = False  # the running worker said a word since it was started
+        self._pending: dict[int, Future] = {}
+        self._ids = itertools.count()
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._first_word = threading.Event()
+
+    @property
+    def buses(self) -> str:
+        return ", ".join(self.runners)
+
+    # -- life (rule 4) ------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the supervisor, which starts the worker."""
+        threading.Thread(target=self._supervise, name=f"worker{self.index}", daemon=True).start()
+
+    def wait_first_word(self, timeout: float = FIRST_WORD_S) -> bool:
+        """Whether the worker said its first word (its buses built, their threads started)
+        within ``timeout``."""
+        return self._first_word.wait(timeout)
+
+    def stop(self) -> None:
+        """Stop the worker's buses in order (streams, safe state, close), then the worker."""
+        self._stopping.set()
+        outbox, process = self.outbox, self.process
+        if outbox is not None:
+            outbox.put(("stop",))
+        if process is not None:
+            try:
+                process.wait(STOP_S)
+            except subprocess.TimeoutExpired:
+                log.warning("worker %d did not stop in %.0f s: killed", self.index, STOP_S)
+                process.kill()
+                process.wait()
+        if outbox is not None:
+            outbox.close()
+
+    def keeping_schedule(self) -> bool:
+        """The worker is running, is not taken for hung (``_silent_too_long``) and says each
+        of its bus threads keeps its schedule (systemd's watchdog is pinged only while every
+        worker does)."""
+        process = self.process
+        return (
+            process is not None
+            and process.poll() is None
+            and not self._silent_too_long()
+            and all(beat[0] for beat in self.beat.values())
+        )
+
+    def _silent_too_long(self) -> bool:
+        """Silent for ``STALL_S`` since its last word (``SLOW_START_S`` before its first)."""
+        return now() - self.last_word > (STALL_S if self._spoken else SLOW_START_S)
+
+    def _supervise(self) -> None:
+        while not self._stopping.is_set():
+            process, sock = self._spawn()
+            self._read(sock)
+            self._ended(process)
+            if self._stopping.wait(RESTART_S):
+                return
+            log.info("worker %d: starting it again", self.index)
+
+    def _spawn(self) -> tuple[subprocess.Popen, socket.socket]:
+        ours, theirs = link.pair()
+        process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                worker_process.__name__,
+                str(theirs.fileno()),
+                logging.getLevelName(logging.getLogger().getEffectiveLevel()),
+            ],
+            pass_fds=[theirs.fileno()],
+        )
+        theirs.close()
+        outbox = link.Outbox(ours, f"worker{self.index}-send")
+        moment = now()
+        outbox.put(
+            (
+                "start",
+                self.config,
+                list(self.runners),
+                {name: r.claims.standing(moment) for name, r in self.runners.items()},
+                [name for name, r in self.runners.items() if r.any_estopped()],
+            )
+        )
+        self.process, self.outbox, self.last_word = process, outbox.start(), moment
+        self._spoken = False
+        if self._stopping.is_set():  # stopped while it was starting
+            outbox.put(("stop",))
+        return process, ours
+
+    # -- calls ----------------------------------------------------------------------------------
+
+    def call(self, bus: str, method: str, *args: Any) -> Future:
+        """``method`` of ``bus``'s runner in the worker; its future, settled by the answer."""
+        future: Future = Future()
+        with self._lock:  # registered before its answer can be read
+            outbox = self.outbox
+            if outbox is None:
+                future.set_exception(BusUnavailableError(f"bus {bus}: its worker is down"))
+                return future
+            call_id = next(self._ids)
+            outbox.put_now(("call", call_id, bus, method, args, {}))  # refused here, if so
+            self._pending[call_id] = future
+        return future
+
+    def tell(self, bus: str, method: str, *args: Any, **kwargs: Any) -> None:
+        """``method`` of ``bus``'s runner in the worker, with no answer."""
+        self.send(("call", None, bus, method, args, kwargs))
+
+    def send(self, message: tuple) -> None:
+        """``message`` to the worker (dropped while there is none: a new one is told what
+        stands, rule 2)."""
+        outbox = self.outbox
+        if outbox is not None:
+            outbox.put_now(message)
+
+    # -- the worker's words -------------------------------------------------------------------
+
+    def _read(self, sock: socket.socket) -> None:
+        sock.settimeout(link.BEAT_S)
+        while True:
+            try:
+                message = link.receive(sock)
+            except TimeoutError:
+                self._check_silence()
+                continue
+            if message is None:
+                break
+            self.last_word, self._spoken = now(), True
+            handle = self._HANDLERS.get(message[0])
+            if handle is None:
+                log.error("worker %d said what no worker says: %r", self.index, message[:1])
+                continue
+            handle(self, *message[1:])
+        sock.close()
+
+    def _check_silence(self) -> None:
+        """A worker silent for ``STALL_S`` hangs (it says a word every ``BEAT_S``): it is
+        killed, and ends as any worker ends (rule 3)."""
+        silent_s, process = now() - self.last_word, self.process
+        if self._silent_too_long() and process is not None and process.poll() is None:
+            log.error(
+                "worker %d (buses %s) silent for %.1f s: killed", self.index, self.buses, silent_s
+            )
+            process.kill()
+
+    def _on_result(self, call_id: int, ok: bool, value: Any) -> None:
+        self._settle(call_id, ok, value)
+
+    def _on_states(self, states: list[tuple[str, str, dict[str, Any]]]) -> None:
+        for bus, device, state in states:
+            self.runners[bus].took_state(device, state)
+
+    def _on_events(self, events: list[DeviceEvent]) -> None:
+        for event in events:
+            self.on_event(event)
+
+    def _on_frames(self, frames: list[tuple[str, tuple]]) -> None:
+        for bus, frame in frames:
+            tap = self.runners[bus].tap
+            if tap is not None:
+                tap(frame)
+
+    def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
+        self.runners[bus].took_plays(view, ids)
+
+    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats]]) -> None:
+        self.beat = beat
+        self._first_word.set()
+
+    _HANDLERS: ClassVar[dict[str, Callable[..., None]]] = {
+        "result": _on_result,
+        "states": _on_states,
+        "events": _on_events,
+        "frames": _on_frames,
+        "plays": _on_plays,
+        "beat": _on_beat,
+    }
+
+    def _settle(self, call_id: int, ok: bool, value: Any) -> None:
+        with self._lock:
+            future = self._pending.pop(call_id, None)
+        if future is None or future.done():
+            return
+        if ok:
+            future.set_result(value)
+        else:
+            future.set_exception(link.rebuilt(*value))
+
+    def _ended(self, process: subprocess.Popen) -> None:
+        """Rule 3: the worker is gone; answer what waited on it, take its devices offline."""
+        with self._lock:
+            outbox, self.outbox = self.outbox, None
+            waiting, self._pending = self._pending, {}
+        if outbox is not None:
+            outbox.close()
+        code = process.wait()
+        self._first_word.set()  # start-up goes on: its buses are down
+        self.beat = {}
+        if self._stopping.is_set():
+            return
+        how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+        log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
+        gone = BusUnavailableError(f"the worker of its bus ended ({how})")
+        for future in waiting.values():
+            if not future.done():
+                future.set_exception(gone)
+        for runner in self.runners.values():
+            runner.worker_ended(f"its worker ended ({how})")
+
+
+class WorkerRunner:
+    """A bus run by a worker, with the ``BusRunner`` surface the gateway uses (rule 1)."""
+
+    def __init__(self, shadow: BusRunner, worker: WorkerProcess) -> None:
+        self.worker = worker
+        self.name = shadow.name
+        self.timing = shadow.timing
+        self.devices = shadow.devices
+        self.drivers = shadow.drivers
+        for driver in self.drivers.values():
+            driver.__class__ = mirrored(type(driver))
+        self.telemetry = shadow.telemetry
+        self.plays = shadow.plays
+        self.authority = shadow.authority
+        self.claims = ForwardedClaims(worker.send, shadow.name)
+        self.authority.claims = self.claims
+        self.counters = shadow.counters
+        #: The flight recorder's tap of this bus's frames (the daemon sets it, as an owner's).
+        self.tap: Callable[[tuple], None] | None = None
+
+    @property
+    def owner(self) -> WorkerRunner:
+        """What the gateway asks of a bus's owner: ``is_open`` and ``tap``."""
+        return self
+
+    @property
+    def is_open(self) -> bool:
+        beat = self.worker.beat.get(self.name)
+        return beat is not None and beat[1]
+
+    @property
+    def states(self) -> dict[str, dict[str, Any]]:
+        return self.telemetry.states
+
+    @property
+    def alive(self) -> bool:
+        process = self.worker.process
+        return process is not None and process.poll() is None
+
+    def keeping_schedule(self, stall_s: float = STALL_S) -> bool:
+        return self.worker.keeping_schedule()
+
+    def statistics(self) -> BusStats:
+        beat = self.worker.beat.get(self.name)
+        return beat[2] if beat is not None else self.counters.snapshot(now())
+
+    def any_estopped(self) -> bool:
+        return any(driver.estopped for driver in self.drivers.values())
+
+    # -- what the worker said (rule 1) ----------------------------------------------------------
+
+    def took_state(self, device: str, state: dict[str, Any]) -> None:
+        driver = self.drivers[device]
+        driver.online = bool(state.get("online"))
+        driver.said_estopped = bool(state.get("estopped"))  # type: ignore[attr-defined]
+        self.telemetry.states[device] = state
+        self.telemetry.on_state(device, state)
+
+    def took_plays(self, view: Any, ids: dict[str, int]) -> None:
+        self.plays.view = view
+        for device, device_id in ids.items():
+            self.drivers[device].device_id = device_id
+
+    def worker_ended(self, why: str) -> None:
+        """Rule 3: each device offline, with its event, its last state marked so."""
+        self.plays.view = type(self.plays.view)()
+        for name, driver in self.drivers.items():
+            driver.went_offline(why)
+            for event in driver.drain_events():
+                self.telemetry.on_event(event)
+            last = self.telemetry.states.get(name)
+            if last is not None:
+                state = {**last, "online": False, "stale": True}
+                self.telemetry.states[name] = state
+                self.telemetry.on_state(name, state)
+
+    # -- calls: each carried out by the worker --------------------------------------------------
+
+    def submit(self, device: str, command: Any, client: str | None = None) -> Future:
+        return self.worker.call(self.name, "submit", device, command, client)
+
+    def scan(self, requests: list, start_by: float) -> Future:
+        return self.worker.call(self.name, "scan", requests, start_by)
+
+    def estop(self) -> Future:
+        return self.worker.call(self.name, "estop")
+
+    def reset_estop(self, device: str | None = None) -> Future:
+        return self.worker.call(self.name, "reset_estop", device)
+
+    def stop_stream(self, device: str, reason: str) -> None:
+        self.worker.tell(self.name, "stop_stream", device, reason)
+
+    def follow(self, device: str, target: Any) -> None:
+        self.worker.tell(self.name, "follow", device, target)
+
+    def ramp(self, device: str, target: Any) -> None:
+        self.worker.tell(self.name, "ramp", device, target)
+
+    def play(self, samplers: dict, start: float) -> None:
+        self.worker.tell(self.name, "play", samplers, start)
+
+    def stop_playing(self, device: str, *, speed: bool) -> None:
+        self.worker.tell(self.name, "stop_playing", device, speed=speed)

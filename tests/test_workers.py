@@ -1,0 +1,213 @@
+"""Bus workers with real processes: ``busgate run`` with ``[gateway] workers = 2`` on four
+Inspire LA buses (one actuator each, simulated on ptys in this process, recording what they
+received), so that each worker runs two buses; clients through the SDK.
+
+What the simulators received is the evidence for what reached the wire: an e-stop frame on
+every bus of every worker, a trajectory's ticks on two workers' buses on one grid, nothing
+sent after a killed worker came back until a client commanded again. How closely the ticks of
+a slot meet (1 ms at p99) is a figure of ``tests/benchmarks/bench_scale.py``, not of a test on
+this shared host: here they meet within a generous bound."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+import busgate.client as bc
+from busgate.codecs import inspire_la as la
+from busgate.gateway.sim.inspire_la import InspireLaDevice
+from busgate.gateway.sim.serial_server import SerialSimulator
+from tests.conftest import unused_loopback_port, wait_until
+from tests.gateway_process import GatewayProcess, bus_table, write_config
+from tests.wire_frames import received, tick_targets
+
+BUSES = ("uart0", "uart1", "uart2", "uart3")
+DEVICES = {bus: f"la{n}" for n, bus in enumerate(BUSES)}
+#: Ticks of one slot on two workers' buses meet within this (the contract's 1 ms at p99 is
+#: the benchmark's; this host runs four simulators, a gateway and its two workers on 2 cores).
+SLOT_MEETS_S = 0.008
+
+
+@dataclass
+class Served:
+    gateway: GatewayProcess
+    endpoint: str
+    simulators: dict[str, SerialSimulator]
+    workers: dict[str, int]  # bus → the pid of the worker running it
+
+    def worker_of(self, bus: str) -> int:
+        return self.workers[bus]
+
+    def marks(self) -> dict[str, int]:
+        return {bus: len(sim.recorder.received()) for bus, sim in self.simulators.items()}
+
+    def frames(self, bus: str, since: int) -> list:
+        return list(received(self.simulators[bus], since, la))
+
+
+def worker_pids(gateway: GatewayProcess) -> dict[str, int]:
+    """Each bus's worker, from the workers' own start lines (``worker PID: buses A, B``)."""
+    found: dict[str, int] = {}
+    while len(found) < len(BUSES):
+        line = gateway.wait_for("service.worker: worker ")
+        pid, buses = re.search(r"worker (\d+): buses (.*)", line).groups()
+        found.update({bus: int(pid) for bus in buses.split(", ")})
+    return found
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory) -> Iterator[Served]:
+    simulators = {
+        bus: SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start() for bus in BUSES
+    }
+    endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
+    tables = [
+        bus_table(bus, sim.port, 921_600, {DEVICES[bus]: ("inspire_la", 1)}, reply_margin_ms=5)
+        for bus, sim in simulators.items()
+    ]
+    config = write_config(tmp_path_factory.mktemp("gw") / "gw.toml", endpoint, *tables)
+    config.write_text(config.read_text().replace('name = "gw1"\n', 'name = "gw1"\nworkers = 2\n'))
+    gateway = GatewayProcess(config)
+    try:
+        workers = worker_pids(gateway)
+        gateway.wait_for("serving 4 buses, 4 up")
+        yield Served(gateway, endpoint, simulators, workers)
+    finally:
+        gateway.stop()
+        for simulator in simulators.values():
+            simulator.stop()
+
+
+@pytest.fixture
+def client(served: Served) -> Iterator[bc.Client]:
+    with bc.connect(served.endpoint, client_id=f"t{time.monotonic_ns()}") as c:
+        yield c
+
+
+def test_two_workers_run_two_buses_each_and_every_device_answers(served: Served, client) -> None:
+    assert len(set(served.workers.values())) == 2
+    assert sorted(served.workers.values()).count(served.workers["uart0"]) == 2
+    for pid in served.workers.values():
+        assert "busgate.gateway.service.worker" in Path(f"/proc/{pid}/cmdline").read_text()
+        assert int(Path(f"/proc/{pid}/stat").read_text().split()[3]) == served.gateway.process.pid
+    for device in DEVICES.values():
+        assert client.device(device).state()["online"] is True
+
+
+def test_claims_give_one_answer_per_device_across_workers(served: Served, client) -> None:
+    a, b = (served.worker_of(bus) for bus in ("uart0", "uart1"))
+    one, other = ("uart0", "uart1") if a != b else ("uart0", "uart2")
+    mine = [DEVICES[one], DEVICES[other]]  # one device in each worker
+    with bc.connect(served.endpoint, client_id="intruder") as intruder:
+        with client.device(mine[0]).claim(), client.device(mine[1]).claim():
+            marks = served.marks()
+            for name in mine:
+                with pytest.raises(bc.ClaimedError):
+                    intruder.device(name).move(700)
+            for name in mine:
+                assert client.device(name).move(600)["ok"]
+        time.sleep(0.1)
+        for bus in (one, other):
+            moves = [f for _, f in served.frames(bus, marks[bus]) if isinstance(f, la.MoveCommand)]
+            assert [m.position_raw for m in moves] == [600]  # the holder's, never the other's
+        for name in mine:  # released: the other client may move them now
+            assert intruder.device(name).move(650)["ok"]
+
+
+def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> None:
+    marks = served.marks()
+    client.estop("gw1")
+    for device in DEVICES.values():
+        wait_until(lambda d=device: client.device(d).state()["estopped"] is True, timeout=5)
+    for bus in BUSES:
+        stops = [
+            f
+            for _, f in served.frames(bus, marks[bus])
+            if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
+        ]
+        assert stops, f"no e-stop frame reached {bus}"
+    with pytest.raises(bc.error_for("estopped")):
+        client.device(DEVICES["uart3"]).move(500)
+    client.reset_estop("gw1")
+    for device in DEVICES.values():
+        wait_until(lambda d=device: client.device(d).state()["estopped"] is False, timeout=5)
+
+
+def test_a_trajectory_across_two_workers_ticks_on_one_grid(served: Served, client) -> None:
+    one = "uart0"
+    other = next(bus for bus in BUSES if served.worker_of(bus) != served.worker_of(one))
+    names = [DEVICES[one], DEVICES[other]]
+    marks = served.marks()
+    points = [{"t_s": 0.4, "positions": [300, 1700]}, {"t_s": 0.8, "positions": [900, 1100]}]
+    result = client.play(names, points, goal_tolerance=[200, 200]).wait()
+    assert result["result"] == "succeeded", result
+    ticks = {}
+    for bus in (one, other):
+        ticks[bus] = [
+            record.start
+            for record, frame in served.frames(bus, marks[bus])
+            if tick_targets(frame) is not None
+        ]
+        assert len(ticks[bus]) >= 20  # 0.8 s at 20 ms
+    # Pair each tick of one bus with the other's nearest: on one grid they meet within a
+    # slot's skew, never a period apart (a tick a bus skipped has no partner and is left out).
+    skews = [min(abs(t - u) for u in ticks[other]) for t in ticks[one]]
+    met = [s for s in skews if s < 0.01]
+    assert len(met) >= 0.8 * len(skews)
+    assert sorted(met)[len(met) // 2] < SLOT_MEETS_S
+
+
+def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Served, client) -> None:
+    bus = "uart2"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    with client.device(device).follow() as stream:
+        for k in range(10):  # a stream running when its worker is killed
+            stream.set(position=800 + 20 * k)
+            time.sleep(0.02)
+        os.kill(victim, signal.SIGKILL)
+        wait_until(lambda: client.device(device).state()["online"] is False, timeout=5)
+    line = served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+    assert bus in line
+    restarted = served.gateway.wait_for("service.worker: worker ")
+    new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
+    assert new_pid != victim
+    served.workers.update(
+        dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
+    )
+    wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+    mark = served.marks()[bus]
+    time.sleep(0.5)
+    moving = [
+        f
+        for _, f in served.frames(bus, mark)
+        if tick_targets(f) is not None or isinstance(f, la.MoveCommand)
+    ]
+    assert moving == []  # nothing it was doing resumed by itself
+    assert client.device(device).move(1000)["ok"]  # commanded again, it moves
+
+
+def test_a_hung_worker_is_killed_and_started_again(served: Served, client) -> None:
+    bus = "uart1"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    os.kill(victim, signal.SIGSTOP)  # alive, and silent: as a worker stuck for good
+    try:
+        assert bus in served.gateway.wait_for("silent for")
+        served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+    finally:
+        if Path(f"/proc/{victim}").exists():
+            os.kill(victim, signal.SIGCONT)
+    restarted = served.gateway.wait_for("service.worker: worker ")
+    new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
+    served.workers.update(
+        dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
+    )
+    wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
