@@ -74,8 +74,12 @@ class Worker:
         mirror = threading.Thread(target=self._mirror, args=(done,), name="worker-mirror")
         mirror.start()
         try:
-            while (message := link.receive(self.sock)) is not None and message[0] != "stop":
-                self._carry_out(message)
+            while (received := link.receive(self.sock)) is not None:
+                messages = link.unbatched(received)
+                for message in messages:
+                    if message[0] == "stop":
+                        return
+                    self._carry_out(message)
         finally:
             done.set()
             mirror.join()
@@ -106,9 +110,9 @@ class Worker:
     def _answer(self, call_id: int, future: Future) -> None:
         exc = future.exception()
         if exc is None:
-            self.outbox.put(("result", call_id, True, future.result()))
+            self.outbox.put(("result", call_id, True, future.result()), urgent=True)
         else:
-            self.outbox.put(("result", call_id, False, link.portable(exc)))
+            self.outbox.put(("result", call_id, False, link.portable(exc)), urgent=True)
 
     def _state(self, bus: str, device: str, state: dict[str, Any]) -> None:
         self.outbox.put(("states", [(bus, device, state)]))

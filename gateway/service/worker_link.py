@@ -5,8 +5,8 @@ merged), each message a pickled tuple whose first item names it. Rules of this f
 
 1. Each end acts only on the messages it knows by name (the daemon: ``start``, ``call``,
    ``claims``, ``stop``; a worker: ``result``, ``states``, ``events``, ``frames``,
-   ``plays``, ``beat``) and logs any other: a worker is a child of the daemon, but what it
-   is sent is still checked.
+   ``plays``, ``beat``; either: a ``batch`` of them, in order) and logs any other: a worker
+   is a child of the daemon, but what it is sent is still checked.
 2. An exception crosses as its class's name, code, message and attributes, and is built
    again on the other side (busgate's errors take keyword attributes that pickle does not
    give back): ``portable`` and ``rebuilt``.
@@ -47,8 +47,10 @@ CALLS = frozenset(
 )
 #: What a worker may be asked to do to a bus's claims: ``ClaimTable``'s methods.
 CLAIM_OPS = frozenset({"claim", "hold", "release", "drop_client"})
-#: Most states or events in one message (well under ``MAX_MESSAGE``).
-BATCH_MAX = 512
+#: Most messages in one batch (well under ``MAX_MESSAGE``).
+BATCH_MAX = 256
+#: How long the first message of a batch waits for more, unless one is urgent.
+GATHER_S = 0.002
 #: How often a worker says how its bus threads are doing.
 BEAT_S = 0.1
 
@@ -77,6 +79,11 @@ def pair() -> tuple[socket.socket, socket.socket]:
     return socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
 
 
+def unbatched(message: tuple) -> list[tuple]:
+    """The messages ``message`` carries: those of a ``batch`` in order, or itself."""
+    return message[1] if message[0] == "batch" else [message]
+
+
 def receive(sock: socket.socket) -> tuple | None:
     """The next message, or ``None`` once the other end has gone (``TimeoutError`` when the
     socket has a timeout and nothing came within it)."""
@@ -90,10 +97,11 @@ def receive(sock: socket.socket) -> tuple | None:
 
 
 class Outbox:
-    """Messages for the socket, sent in order by a thread of their own (rule 3); messages of
-    the same batchable kind waiting together go as one."""
+    """Messages for the socket, sent in order by a thread of their own (rule 3). What waits
+    together goes as one ``batch``: the first message wakes the sender, which lets more
+    gather for ``GATHER_S`` unless one is urgent (an answer, a call), so that a worker's states
+    cost one wake-up, one pickling and one send per batch rather than each."""
 
-    BATCHED = frozenset({"states", "events", "frames"})
     #: Messages waiting at most: a peer that stopped reading loses the oldest, never the
     #: memory of the process that writes.
     BACKLOG = 65_536
@@ -102,6 +110,9 @@ class Outbox:
         self._sock = sock
         self._queue: deque[tuple] = deque(maxlen=self.BACKLOG)
         self._ready = threading.Event()
+        self._urgent = threading.Event()
+        self._lock = threading.Lock()  # the queue's head and what is being sent
+        self._sending = False
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
@@ -109,19 +120,35 @@ class Outbox:
         self._thread.start()
         return self
 
-    def put(self, message: tuple) -> None:
+    def put(self, message: tuple, *, urgent: bool = False) -> None:
         """``message`` out, pickled by the sender thread (for a bus thread: rule 3)."""
         self._queue.append(message)
+        if urgent:
+            self._urgent.set()
         self._ready.set()
 
     def put_now(self, message: tuple) -> None:
-        """``message`` out, pickled here first: what cannot cross is refused to its caller
-        (``pickle.PicklingError``, ``TypeError``), not lost on the way."""
-        self._queue.append((_PICKLED, pickle.dumps(message, pickle.HIGHEST_PROTOCOL)))
+        """``message`` out at once, pickled here first: what cannot cross is refused to its
+        caller (``pickle.PicklingError``, ``TypeError``), not lost on the way. Sent from the
+        caller's thread when nothing is ahead of it and the socket takes it without waiting
+        (an e-stop goes with no thread in between), else queued for the sender."""
+        data = pickle.dumps(message, pickle.HIGHEST_PROTOCOL)
+        with self._lock:
+            if not self._queue and not self._sending:
+                try:
+                    self._sock.send(data, socket.MSG_DONTWAIT)
+                    return
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    return  # the peer has gone: its supervisor reports it
+            self._queue.append((_PICKLED, data))
+        self._urgent.set()
         self._ready.set()
 
     def close(self) -> None:
         self._closed = True
+        self._urgent.set()
         self._ready.set()
         self._thread.join(1.0)
 
@@ -129,20 +156,31 @@ class Outbox:
         while True:
             self._ready.wait()
             self._ready.clear()
-            while self._queue:
-                if not self._send(self._coalesced()):
+            self._urgent.wait(GATHER_S)
+            self._urgent.clear()
+            while True:
+                with self._lock:
+                    if not self._queue:
+                        break
+                    message, self._sending = self._next(), True
+                sent = self._send(message)
+                with self._lock:
+                    self._sending = False
+                if not sent:
                     return
             if self._closed:
                 return
 
-    def _coalesced(self) -> tuple:
+    def _next(self) -> tuple:
+        """The next message to send: one pickled already, or what waits, as one ``batch``
+        when more than one."""
         first = self._queue.popleft()
-        if first[0] not in self.BATCHED:  # one message, or one already pickled
+        if first[0] is _PICKLED or not self._queue or self._queue[0][0] is _PICKLED:
             return first
-        items = list(first[1])
-        while self._queue and self._queue[0][0] == first[0] and len(items) < BATCH_MAX:
-            items.extend(self._queue.popleft()[1])
-        return (first[0], items)
+        batch = [first]
+        while self._queue and self._queue[0][0] is not _PICKLED and len(batch) < BATCH_MAX:
+            batch.append(self._queue.popleft())
+        return ("batch", batch)
 
     def _send(self, message: tuple) -> bool:
         """``False`` once the peer has gone; a message that cannot be pickled is logged and

@@ -181,7 +181,7 @@ class WorkerProcess:
         self._stopping.set()
         outbox, process = self.outbox, self.process
         if outbox is not None:
-            outbox.put(("stop",))
+            outbox.put(("stop",), urgent=True)
         if process is not None:
             try:
                 process.wait(STOP_S)
@@ -286,11 +286,12 @@ class WorkerProcess:
             if message is None:
                 break
             self.last_word, self._spoken = now(), True
-            handle = self._HANDLERS.get(message[0])
-            if handle is None:
-                log.error("worker %d said what no worker says: %r", self.index, message[:1])
-                continue
-            handle(self, *message[1:])
+            for said in link.unbatched(message):
+                handle = self._HANDLERS.get(said[0])
+                if handle is None:
+                    log.error("worker %d said what no worker says: %r", self.index, said[:1])
+                    continue
+                handle(self, *said[1:])
         sock.close()
 
     def _check_silence(self) -> None:
