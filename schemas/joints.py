@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -200,6 +200,17 @@ class Joint:
     declaration: JointDeclaration
     #: A table configured it (else: raw units, the device's range).
     configured: bool
+    #: Raw position units per second in one unit of the family's speed (rule 1), and the
+    #: telemetry field of the joint's commanded value: from the fields above, once.
+    _raw_per_speed: float = field(init=False, repr=False, compare=False)
+    _target_field: str = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        per_speed = 1.0  # a speed in raw units per second
+        if self.declaration.speed_rpm is not None and self.raw_per_turn is not None:
+            per_speed = self.raw_per_turn / 60.0  # a speed in rpm
+        object.__setattr__(self, "_raw_per_speed", per_speed)
+        object.__setattr__(self, "_target_field", self.declaration.raw_fields(self.type)[1])
 
     @classmethod
     def of(cls, device: str, declaration: JointDeclaration, table: JointTable | None) -> Joint:
@@ -284,16 +295,11 @@ class Joint:
     def velocity_si(self, speed: float) -> float:
         """SI velocity of a speed in the family's unit (rpm when it declares one, else raw
         units per second)."""
-        return self.scale * speed * self._raw_per_s(1.0)
+        return self.scale * speed * self._raw_per_speed
 
     def speed_of(self, velocity: float) -> float:
         """The family's speed for the SI ``velocity`` (inverse of ``velocity_si``)."""
-        return velocity / (self.scale * self._raw_per_s(1.0))
-
-    def _raw_per_s(self, speed: float) -> float:
-        if self.declaration.speed_rpm is not None and self.raw_per_turn is not None:
-            return speed * self.raw_per_turn / 60.0
-        return speed
+        return velocity / (self.scale * self._raw_per_speed)
 
     def check_velocity(self, speed: float) -> None:
         """Refuse a speed (the family's unit) past ``max_velocity``."""
@@ -385,7 +391,7 @@ class Joint:
         position = telemetry.get(declaration.position)
         speed = telemetry.get(declaration.speed_rpm) if declaration.speed_rpm else None
         effort = telemetry.get(declaration.effort) if declaration.effort else None
-        target = telemetry.get(declaration.raw_fields(self.type)[1])
+        target = telemetry.get(self._target_field)
         to_si = self.velocity_si if self.type == "velocity" else self.position_si
         return {
             "name": self.name,

@@ -61,6 +61,24 @@ def _rpm(raw: int | None) -> float | None:
     return None if raw is None else common.rpm_from_speed_raw(raw)
 
 
+def settings_telemetry(settings: Settings) -> dict[str, Any]:
+    """What the telemetry says of the settings the device acknowledged, in named units."""
+    relative = settings.relative
+    return {
+        "mode": settings.mode,
+        "enabled": settings.enabled,
+        "position_mode": None if relative is None else ("relative" if relative else "absolute"),
+        "target": settings.target_position,
+        "target_speed_rpm": _rpm(settings.speed_raw),
+        "target_current_a": None
+        if settings.torque_raw is None
+        else float(settings.torque_raw / common.TORQUE_RAW_PER_A),
+        "position_ramp": ramp_ms(settings.position_ramp),
+        "velocity_ramp": ramp_ms(settings.speed_ramp),
+        "max_speed_rpm": _rpm(settings.max_speed_raw),
+    }
+
+
 _STOP = schema.Velocity(op="velocity", rpm=0.0)
 _RELEASE = schema.Disable(op="disable")
 _ENABLE = schema.Enable(op="enable")
@@ -89,6 +107,9 @@ class Zlac706Driver(Driver):
         self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
         self.speed_sent_raw: int | None = None  # the last speed written (``_note_speed``)
+        #: The settings ``telemetry`` last told of, and what it said of them: said again only
+        #: when they change (every heartbeat makes a state; settings seldom change).
+        self._told: tuple[Settings | None, dict[str, Any]] = (None, {})
 
     # -- planning -------------------------------------------------------------------------------
 
@@ -215,8 +236,9 @@ class Zlac706Driver(Driver):
 
     def keepalive(self, now: float) -> tuple[float, Request] | None:
         settings = self.machine.settings
-        turning = self.commanded_speed_raw or settings.speed_raw  # a stop not yet acknowledged
-        if settings.mode is Mode.VELOCITY and settings.enabled and turning:
+        if settings.mode is not Mode.VELOCITY or not settings.enabled:
+            return None  # asked before every decision of the bus thread: the cheap test first
+        if self.commanded_speed_raw or settings.speed_raw:  # a stop not yet acknowledged turns
             return self.keepalive_period_s, self.keepalive_request()
         return None
 
@@ -302,23 +324,15 @@ class Zlac706Driver(Driver):
         return True
 
     def telemetry(self, now: float) -> dict[str, Any]:
-        settings = self.machine.settings
-        relative = settings.relative
+        machine = self.machine
+        settings = machine.settings
+        if self._told[0] is not settings:  # settings are frozen: a change is a new one
+            self._told = (settings, settings_telemetry(settings))
         return {
-            "mode": settings.mode,
-            "enabled": settings.enabled,
-            "position_mode": None if relative is None else ("relative" if relative else "absolute"),
-            "target": settings.target_position,
-            "target_speed_rpm": _rpm(settings.speed_raw),
-            "target_current_a": None
-            if settings.torque_raw is None
-            else float(settings.torque_raw / common.TORQUE_RAW_PER_A),
-            "position_ramp": ramp_ms(settings.position_ramp),
-            "velocity_ramp": ramp_ms(settings.speed_ramp),
-            "max_speed_rpm": _rpm(settings.max_speed_raw),
+            **self._told[1],
             "measured": self.has_measurements(),
             **self.measured,
-            "faults": fault_names(self.machine.alarms),
+            "faults": fault_names(machine.alarms),
         }
 
     def missed(self, now: float) -> None:
