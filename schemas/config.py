@@ -20,7 +20,14 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
 
 from busgate.errors import ConfigError
 from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
@@ -47,12 +54,24 @@ class Section(BaseModel):
 MAX_WORKERS = 64
 
 
+def _workers_value(value: object) -> object:
+    """``[gateway] workers`` refused in one line, whatever is wrong with it."""
+    if value == "auto" or (type(value) is int and 1 <= value <= MAX_WORKERS):
+        return value
+    raise ValueError(
+        f'"auto" or a whole number of processes from 1 to {MAX_WORKERS}, not {value!r}'
+    )
+
+
 class GatewaySection(Section):
     name: Name
     prefix: KeyPrefix = "busgate"
     #: The processes the buses are split across (docs/workers.md): ``"auto"``, one per core,
     #: at most one per bus; or a count (``1``: every bus in the gateway's own process).
-    workers: Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)] = "auto"
+    workers: Annotated[
+        Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)],
+        BeforeValidator(_workers_value),
+    ] = "auto"
 
 
 class ZenohSection(Section):

@@ -92,6 +92,19 @@ def test_a_recorder_setting_out_of_bounds_is_refused_naming_it(change, path) -> 
     assert error.path == path
 
 
+def test_bus_workers_are_auto_unless_set_and_anything_else_is_refused_in_one_line() -> None:
+    assert parse_config(BASE).gateway.workers == "auto"
+    for count in (1, 64):
+        config = parse_config({**BASE, "gateway": {"name": "gw1", "workers": count}})
+        assert config.gateway.workers == count
+    for bad in (0, 65, -1, 2.0, "AUTO", "2", True, None, []):
+        error = refused(lambda d, b=bad: d["gateway"].update(workers=b))
+        assert error.path == "gateway.workers"
+        assert str(error) == (
+            f'gateway.workers: "auto" or a whole number of processes from 1 to 64, not {bad!r}'
+        )
+
+
 def test_follow_period_outside_10_to_50_ms_is_refused_with_its_key_path() -> None:
     for period in (9.9, 50.1):
         error = refused(lambda d, p=period: d["buses"][0]["devices"][0].update(follow_period_ms=p))
