@@ -189,6 +189,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="serve Prometheus metrics here (default: off)",
     )
     demo.add_argument(
+        "--workers",
+        default="auto",
+        type=_workers,
+        metavar="auto|N",
+        help="bus workers: the processes the demo's serial buses are split across (default "
+        "auto: one per core; 1: every bus in the demo's own process)",
+    )
+    demo.add_argument(
         "--ros2",
         action="store_true",
         help="be a ROS 2 node too (rmw_zenoh's wire format, domain 0): joint states on "
@@ -215,9 +223,15 @@ def run_demo(args: argparse.Namespace) -> int:
             metrics_listen=args.metrics_listen,
             incidents=None if args.incidents is None else os.path.abspath(args.incidents),
             ros2=args.ros2,
+            workers=args.workers,
         )
         asyncio.run(_serve_announcing(config, links, dashboard))
     return 0
+
+
+def _workers(text: str) -> str | int:
+    """``--workers``: a whole number as one, anything else as given (the config judges it)."""
+    return int(text) if text.isdecimal() else text
 
 
 def _record_dir(path: str) -> Path:
@@ -273,15 +287,16 @@ def demo_config(
     metrics_listen: str | None = None,
     incidents: str | None = None,
     ros2: bool = False,
+    workers: str | int = "auto",
 ) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
     With ``connect``, it joins a router there as a zenoh client instead of listening; with
     ``incidents`` (an absolute path), its flight recorder writes there; with ``ros2``, it is a
-    ROS 2 node too (``[ros2]`` with its defaults). Raises
+    ROS 2 node too (``[ros2]`` with its defaults); ``workers`` is ``[gateway] workers``. Raises
     ``ConfigError`` (naming the key) for a bad name, endpoint or metrics address."""
     zenoh = {"mode": "client", "connect": [connect]} if connect else {"listen": [listen]}
     document: dict[str, Any] = {
-        "gateway": {"name": name},
+        "gateway": {"name": name, "workers": workers},
         "zenoh": {"mode": "peer", **zenoh},
         "buses": [
             {
