@@ -22,6 +22,7 @@ import pytest
 
 import busgate.client as bc
 from busgate.codecs import inspire_la as la
+from busgate.gateway.service import worker_link as link
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.conftest import unused_loopback_port, wait_until
@@ -147,7 +148,7 @@ def test_a_trajectory_across_two_workers_ticks_on_one_grid(served: Served, clien
     marks = served.marks()
     points = [{"t_s": 0.4, "positions": [300, 1700]}, {"t_s": 0.8, "positions": [900, 1100]}]
     result = client.play(names, points, goal_tolerance=[200, 200]).wait()
-    assert result["result"] == "succeeded", result
+    assert result["result"] == "succeeded", (result.get("reason"), result.get("errors"))
     ticks = {}
     for bus in (one, other):
         ticks[bus] = [
@@ -211,3 +212,41 @@ def test_a_hung_worker_is_killed_and_started_again(served: Served, client) -> No
         dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
     )
     wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+
+
+# -- the link itself: no process ----------------------------------------------------------------
+
+
+def test_a_refusal_crosses_as_the_same_class_code_and_message() -> None:
+    from busgate.errors import DeviceTimeoutError, RefusedError
+
+    refusal = link.rebuilt(*link.portable(RefusedError("claimed", "la1 is claimed by 'a'")))
+    assert isinstance(refusal, RefusedError)
+    assert (refusal.code, str(refusal)) == ("claimed", "la1 is claimed by 'a'")
+    timeout = link.rebuilt(*link.portable(DeviceTimeoutError("no reply", device="la1")))
+    assert isinstance(timeout, DeviceTimeoutError) and timeout.device == "la1"
+    unknown = link.rebuilt(*link.portable(KeyError("x")))
+    assert unknown.code == "internal"
+
+
+def test_what_waits_crosses_in_order_and_one_too_large_is_dropped_not_the_link() -> None:
+    ours, theirs = link.pair()
+    theirs.settimeout(2)
+    outbox = link.Outbox(ours, "test-send").start()
+    try:
+        for n in range(100):
+            outbox.put(("states", [("uart0", "la1", {"n": n})]))
+        outbox.put(("states", [("uart0", "la1", {"huge": "x" * (link.MAX_MESSAGE + 1)})]))
+        outbox.put(("result", 7, True, {"ok": True}), urgent=True)
+        received = []
+        while not received or received[-1][0] != "result":
+            received += link.unbatched(link.receive(theirs))
+        states = [m[1][0][2] for m in received if m[0] == "states"]
+        assert [s["n"] for s in states if "n" in s] == list(range(100))
+        assert received[-1] == ("result", 7, True, {"ok": True})
+        outbox.put_now(("call", 1, "uart0", "estop", (), {}))  # nothing waits: sent at once
+        assert link.unbatched(link.receive(theirs)) == [("call", 1, "uart0", "estop", (), {})]
+    finally:
+        outbox.close()
+        ours.close()
+        theirs.close()

@@ -3,15 +3,17 @@
 One Unix socket pair per worker (``SOCK_SEQPACKET``: one message per send, never split or
 merged), each message a pickled tuple whose first item names it. Rules of this file:
 
-1. Each end acts only on the messages it knows by name (the daemon: ``start``, ``call``,
-   ``claims``, ``stop``; a worker: ``result``, ``states``, ``events``, ``frames``,
+1. Each end acts only on the messages it knows by name (a worker: ``start``, ``call``,
+   ``claims``, ``stop``; the daemon: ``result``, ``states``, ``events``, ``frames``,
    ``plays``, ``beat``; either: a ``batch`` of them, in order) and logs any other: a worker
    is a child of the daemon, but what it is sent is still checked.
 2. An exception crosses as its class's name, code, message and attributes, and is built
    again on the other side (busgate's errors take keyword attributes that pickle does not
    give back): ``portable`` and ``rebuilt``.
 3. A send never blocks a bus thread: the socket is written by one sender thread per end,
-   from an outbox (``Outbox``).
+   from an outbox (``Outbox``), or by a caller of ``put_now`` when nothing waits and the
+   socket takes it at once. A message too large for the socket is logged and dropped; the
+   link goes on.
 """
 
 from __future__ import annotations
@@ -47,8 +49,8 @@ CALLS = frozenset(
 )
 #: What a worker may be asked to do to a bus's claims: ``ClaimTable``'s methods.
 CLAIM_OPS = frozenset({"claim", "hold", "release", "drop_client"})
-#: Most messages in one batch (well under ``MAX_MESSAGE``).
-BATCH_MAX = 256
+#: Most messages in one batch: a batch of states stays well under ``MAX_MESSAGE``.
+BATCH_MAX = 64
 #: How long the first message of a batch waits for more, unless one is urgent.
 GATHER_S = 0.002
 #: How often a worker says how its bus threads are doing.
@@ -75,8 +77,12 @@ def rebuilt(name: str, code: str, message: str, attributes: dict[str, Any]) -> B
 
 
 def pair() -> tuple[socket.socket, socket.socket]:
-    """The two ends: the daemon's, and the one the worker inherits."""
-    return socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    """The two ends: the daemon's, and the one the worker inherits, each with room for a
+    message of ``MAX_MESSAGE`` (a datagram larger than the send buffer is refused)."""
+    ends = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    for end in ends:
+        end.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, MAX_MESSAGE)
+    return ends
 
 
 def unbatched(message: tuple) -> list[tuple]:
@@ -93,7 +99,13 @@ def receive(sock: socket.socket) -> tuple | None:
         raise
     except OSError:
         return None
-    return pickle.loads(data) if data else None
+    if not data:
+        return None
+    try:
+        return pickle.loads(data)
+    except Exception:  # a bug on the other side: this message is lost, not the link
+        log.exception("a message of %d bytes could not be read: dropped", len(data))
+        return ("batch", [])
 
 
 class Outbox:
@@ -183,15 +195,24 @@ class Outbox:
         return ("batch", batch)
 
     def _send(self, message: tuple) -> bool:
-        """``False`` once the peer has gone; a message that cannot be pickled is logged and
-        dropped (a bug: the sender goes on with the next)."""
+        """``False`` once the peer has gone; a message that cannot be pickled or is too large
+        is logged and dropped (a bug: the sender goes on), the rest of its batch sent."""
         try:
             data = message[1] if message[0] is _PICKLED else pickle.dumps(message, -1)
         except (pickle.PicklingError, TypeError, AttributeError):
+            if message[0] == "batch":  # one by one: only what cannot cross is lost
+                return all(self._send(item) for item in message[1])
             log.exception("a %r message cannot cross to the other process", message[0])
+            return True
+        if len(data) > MAX_MESSAGE:
+            if message[0] == "batch":  # one by one: only what is too large is lost
+                return all(self._send(item) for item in message[1])
+            log.error(
+                "a %r message of %d bytes is too large to cross: dropped", message[0], len(data)
+            )
             return True
         try:
             self._sock.send(data)
         except OSError:
-            return False
+            return False  # the peer has gone
         return True
