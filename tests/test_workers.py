@@ -31,9 +31,12 @@ from tests.wire_frames import received, tick_targets
 
 BUSES = ("uart0", "uart1", "uart2", "uart3")
 DEVICES = {bus: f"la{n}" for n, bus in enumerate(BUSES)}
-#: Ticks of one slot on two workers' buses meet within this (the contract's 1 ms at p99 is
-#: the benchmark's; this host runs four simulators, a gateway and its two workers on 2 cores).
-SLOT_MEETS_S = 0.008
+#: The follow period of every device (the default).
+PERIOD_S = 0.02
+#: Ticks of one slot on two workers' buses meet within this at the median (the contract's
+#: 1 ms at p99 is the benchmark's; this host runs four simulators, a gateway and its two
+#: workers on 2 cores, and skips a late slot now and then).
+SLOT_MEETS_S = 0.003
 
 
 @dataclass
@@ -157,12 +160,13 @@ def test_a_trajectory_across_two_workers_ticks_on_one_grid(served: Served, clien
             if tick_targets(frame) is not None
         ]
         assert len(ticks[bus]) >= 20  # 0.8 s at 20 ms
-    # Pair each tick of one bus with the other's nearest: on one grid they meet within a
-    # slot's skew, never a period apart (a tick a bus skipped has no partner and is left out).
+    # Pair each tick of one bus with the other's nearest within half a period (a slot one bus
+    # skipped, late under load, leaves its tick unpaired): on one grid the pairs meet within
+    # a tick's lateness; grids apart by a fraction of a period would not.
     skews = [min(abs(t - u) for u in ticks[other]) for t in ticks[one]]
-    met = [s for s in skews if s < 0.01]
-    assert len(met) >= 0.8 * len(skews)
-    assert sorted(met)[len(met) // 2] < SLOT_MEETS_S
+    met = sorted(s for s in skews if s < PERIOD_S / 2)
+    assert len(met) >= 10, skews
+    assert met[len(met) // 2] < SLOT_MEETS_S, met
 
 
 def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Served, client) -> None:
