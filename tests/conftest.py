@@ -175,10 +175,7 @@ def module_demo():
     after it; a test that e-stops or claims leaves its devices enabled and unclaimed."""
     from tests.gateway_process import DemoProcess
 
-    # One process: the module's tests, its simulators and their clients share two cores
-    # (bus workers are tested on their own, tests/test_workers.py, and by test_demo's demo).
-    demo = DemoProcess(f"tcp/127.0.0.1:{unused_loopback_port()}", "--dashboard-listen",
-                       "127.0.0.1:0", "--workers", "1")
+    demo = DemoProcess(f"tcp/127.0.0.1:{unused_loopback_port()}")
     try:
         yield demo
     finally:

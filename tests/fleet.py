@@ -160,9 +160,9 @@ class Fleet:
     def start_gateway(self, name: str) -> None:
         gateway = self.gateways[name]
         gateway.tails.clear()  # its records are written anew
-        gateway.process = DemoProcess(  # one process each: three gateways on two cores
+        gateway.process = DemoProcess(
             gateway.connect, "--connect", gateway.connect, "--name", name, "--no-dashboard",
-            "--record", str(gateway.records), "--workers", "1", within=gateway.within)
+            "--record", str(gateway.records), within=gateway.within)
 
     def kill_gateway(self, name: str) -> None:
         """As a crash or a power cut: SIGKILL, nothing said on the way out."""

@@ -92,8 +92,10 @@ def test_a_recorder_setting_out_of_bounds_is_refused_naming_it(change, path) -> 
     assert error.path == path
 
 
-def test_bus_workers_are_auto_unless_set_and_anything_else_is_refused_in_one_line() -> None:
-    assert parse_config(BASE).gateway.workers == "auto"
+def test_buses_run_in_one_process_unless_workers_are_set_and_a_bad_value_is_refused() -> None:
+    assert parse_config(BASE).gateway.workers == 1
+    auto = parse_config({**BASE, "gateway": {"name": "gw1", "workers": "auto"}})
+    assert auto.gateway.workers == "auto"
     for count in (1, 64):
         config = parse_config({**BASE, "gateway": {"name": "gw1", "workers": count}})
         assert config.gateway.workers == count

@@ -190,11 +190,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     demo.add_argument(
         "--workers",
-        default="auto",
+        default=1,
         type=_workers,
         metavar="auto|N",
-        help="bus workers: the processes the demo's serial buses are split across (default "
-        "auto: one per core; 1: every bus in the demo's own process)",
+        help="bus workers: the processes the demo's serial buses are split across (default 1: "
+        "every bus in the demo's own process; auto: one per core)",
     )
     demo.add_argument(
         "--ros2",
@@ -287,7 +287,7 @@ def demo_config(
     metrics_listen: str | None = None,
     incidents: str | None = None,
     ros2: bool = False,
-    workers: str | int = "auto",
+    workers: str | int = 1,
 ) -> Config:
     """The demo gateway's config, validated; ``links`` holds each bus's port or channel keys.
     With ``connect``, it joins a router there as a zenoh client instead of listening; with
