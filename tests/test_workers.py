@@ -199,23 +199,41 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
     assert client.device(device).move(1000)["ok"]  # commanded again, it moves
 
 
-def test_a_hung_worker_is_killed_and_started_again(served: Served, client) -> None:
+def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
+    served: Served, client
+) -> None:
     bus = "uart1"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
-    os.kill(victim, signal.SIGSTOP)  # alive, and silent: as a worker stuck for good
-    try:
-        assert bus in served.gateway.wait_for("silent for")
-        served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
-    finally:
-        if Path(f"/proc/{victim}").exists():
-            os.kill(victim, signal.SIGCONT)
-    restarted = served.gateway.wait_for("service.worker: worker ")
-    new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
-    served.workers.update(
-        dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
-    )
-    wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+    # Renewed only every 10 s: what the new worker knows of the claim is what it was handed.
+    with (
+        client.device(device).claim(ttl_s=30),
+        bc.connect(served.endpoint, client_id="late") as late,
+    ):
+        os.kill(victim, signal.SIGSTOP)  # alive, and silent: as a worker stuck for good
+        try:
+            assert bus in served.gateway.wait_for("silent for")
+            served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+        finally:
+            if Path(f"/proc/{victim}").exists():
+                os.kill(victim, signal.SIGCONT)
+        restarted = served.gateway.wait_for("service.worker: worker ")
+        new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
+        served.workers.update(
+            dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
+        )
+        wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+        marks = served.marks()
+        with pytest.raises(bc.ClaimedError):  # judged by the new worker's bus thread
+            late.device(device).move(700)
+        assert client.device(device).move(600)["ok"]
+        time.sleep(0.1)
+        moves = [
+            f.position_raw
+            for _, f in served.frames(bus, marks[bus])
+            if isinstance(f, la.MoveCommand)
+        ]
+        assert moves == [600]
 
 
 # -- the link itself: no process ----------------------------------------------------------------
@@ -239,13 +257,13 @@ def test_what_waits_crosses_in_order_and_one_too_large_is_dropped_not_the_link()
     outbox = link.Outbox(ours, "test-send").start()
     try:
         for n in range(100):
-            outbox.put(("states", [("uart0", "la1", {"n": n})]))
-        outbox.put(("states", [("uart0", "la1", {"huge": "x" * (link.MAX_MESSAGE + 1)})]))
+            outbox.put(("state", "uart0", "la1", {"n": n}))
+        outbox.put(("state", "uart0", "la1", {"huge": "x" * (link.MAX_MESSAGE + 1)}))
         outbox.put(("result", 7, True, {"ok": True}), urgent=True)
         received = []
         while not received or received[-1][0] != "result":
             received += link.unbatched(link.receive(theirs))
-        states = [m[1][0][2] for m in received if m[0] == "states"]
+        states = [m[3] for m in received if m[0] == "state"]
         assert [s["n"] for s in states if "n" in s] == list(range(100))
         assert received[-1] == ("result", 7, True, {"ok": True})
         outbox.put_now(("call", 1, "uart0", "estop", (), {}))  # nothing waits: sent at once

@@ -1,14 +1,17 @@
-"""From a bus's configuration to a running bus: drivers, timing, owner, runner.
+"""From a bus's configuration to a running bus: drivers, timing, owner, runner; and the
+buses stopped together.
 
-One function builds a bus wherever one is needed (``busgate bench``, the daemon), so a bus in
-a benchmark is the same machine as a bus in production. The devices come first: a CAN owner
-is made with where the frames nobody asked for go (their drivers), and the runner with the
-same devices, so nothing is wired after it was made.
+One function builds a bus wherever one is needed (``busgate bench``, the daemon, a bus
+worker), so a bus in a benchmark is the same machine as a bus in production. The devices come
+first: a CAN owner is made with where the frames nobody asked for go (their drivers), and the
+runner with the same devices, so nothing is wired after it was made. ``stop_together`` stops
+them (and a daemon's workers) all at once, as the daemon and a worker do on their way out.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
@@ -62,3 +65,17 @@ def build_bus(
         realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
+
+
+#: How long a bus is given to stop (streams, safe state, close) when it is stopped.
+STOP_TIMEOUT_S = 0.8
+
+
+def stop_together(stops: Iterable[Callable[[], None]]) -> None:
+    """Call every stop at once, each on a thread of its own (one bus's safe-state frames never
+    wait for another's), and return when all have returned."""
+    threads = [threading.Thread(target=stop) for stop in stops]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()

@@ -28,6 +28,7 @@ import signal
 import threading
 import time
 from collections import deque
+from functools import partial
 from typing import TYPE_CHECKING
 
 from busgate.errors import BusgateError, BusUnavailableError
@@ -38,7 +39,7 @@ from busgate.gateway.bus.port_access import LOCKED, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.assembly import STOP_TIMEOUT_S, build_bus, stop_together
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
@@ -51,7 +52,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("busgate")
 
-STOP_TIMEOUT_S = 0.8
 BUS_OPEN_POLL_S = 0.01
 #: Who holds an address a gateway was told to listen on, most of the time.
 IN_USE_HINT = "another busgate demo or run?"
@@ -145,7 +145,8 @@ async def serve(
         notifier.stopping(f"gateway {config.gateway.name} stopping")
         if metrics is not None:
             metrics.stop()
-        await asyncio.to_thread(_stop_buses, local, workers)
+        stops = [partial(r.stop, STOP_TIMEOUT_S) for r in local.values()]
+        await asyncio.to_thread(stop_together, [*stops, *(w.stop for w in workers)])
         bridge.publish_events()
         if recorder is not None:  # after the buses: their last frames are in it
             await asyncio.to_thread(recorder.flush)
@@ -289,25 +290,15 @@ async def _ready_when_open(
 def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProcess]:
     """The bus workers ``[gateway] workers`` asks for (none: every bus here), each given the
     buses ``split`` chose, whose runners here become their shadows (``service.workers``)."""
-    count = worker_count(config.gateway.workers, len(movable(config)))
+    names = movable(config)
+    count = worker_count(config.gateway.workers, len(names))
     if not count:
         return []
-    groups = split(config, count)
+    groups = split(config, names, count)
     return [
         WorkerProcess(index, config, [runners[name] for name in group])
         for index, group in enumerate(groups)
     ]
-
-
-def _stop_buses(runners: dict[str, BusRunner], workers: list[WorkerProcess]) -> None:
-    """Stop every bus at once: streams, safe state, close."""
-    threads = [
-        threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,)) for runner in runners.values()
-    ] + [threading.Thread(target=worker.stop) for worker in workers]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
 
 
 def stop_on_signals(loop: asyncio.AbstractEventLoop) -> asyncio.Event:

@@ -3,7 +3,8 @@
 ``python -m busgate.gateway.service.worker FD LEVEL``, started by the daemon (never forked
 from it: zenoh's threads do not survive ``fork()``), talks over the inherited socket ``FD``
 (``worker_link``) and logs at the daemon's ``LEVEL``. Its first message is the validated
-config, the names of its buses, the claims standing on them and the buses to e-stop at once;
+config, the names of its buses and the buses to e-stop at once (the claims standing on them
+follow as ordinary ``claims`` messages);
 it builds the buses exactly as the daemon builds its own (``assembly.build_bus``) and runs
 them. Rules of this file:
 
@@ -35,12 +36,11 @@ from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service import worker_link as link
-from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.assembly import STOP_TIMEOUT_S, build_bus, stop_together
 from busgate.schemas.config import Config
 
 log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
 
-STOP_TIMEOUT_S = 0.8
 #: How often each bus's trajectories and device ids are looked at, and sent when changed.
 MIRROR_S = 0.01
 PR_SET_PDEATHSIG = 1
@@ -61,10 +61,7 @@ class Worker:
             for name, runner in self.runners.items():
                 runner.owner.tap = partial(self._frame, name)
 
-    def run(self, claims: dict[str, list[tuple]], estopped: list[str]) -> None:
-        for name, standing in claims.items():
-            for claim in standing:
-                self.runners[name].authority.claims.claim(*claim)
+    def run(self, estopped: list[str]) -> None:
         self.outbox.start()
         for runner in self.runners.values():
             runner.start()
@@ -83,7 +80,7 @@ class Worker:
         finally:
             done.set()
             mirror.join()
-            self._stop_buses()
+            stop_together(partial(r.stop, STOP_TIMEOUT_S) for r in self.runners.values())
             self.outbox.close()
 
     def _carry_out(self, message: tuple) -> None:
@@ -115,13 +112,13 @@ class Worker:
             self.outbox.put(("result", call_id, False, link.portable(exc)), urgent=True)
 
     def _state(self, bus: str, device: str, state: dict[str, Any]) -> None:
-        self.outbox.put(("states", [(bus, device, state)]))
+        self.outbox.put(("state", bus, device, state))
 
     def _event(self, event: DeviceEvent) -> None:
-        self.outbox.put(("events", [event]))
+        self.outbox.put(("event", event))
 
     def _frame(self, bus: str, frame: tuple) -> None:
-        self.outbox.put(("frames", [(bus, frame)]))
+        self.outbox.put(("frame", bus, frame))
 
     def _mirror(self, done: threading.Event) -> None:
         """Rule 2: trajectories and ids when they change, the beat every ``BEAT_S``."""
@@ -145,16 +142,6 @@ class Worker:
             name: (runner.keeping_schedule(), runner.owner.is_open, runner.statistics())
             for name, runner in self.runners.items()
         }
-
-    def _stop_buses(self) -> None:
-        threads = [
-            threading.Thread(target=runner.stop, args=(STOP_TIMEOUT_S,))
-            for runner in self.runners.values()
-        ]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
 
 
 def _die_with_the_daemon() -> None:
@@ -180,10 +167,10 @@ def main() -> int:
     first = link.receive(sock)
     if first is None or first[0] != "start":
         return 2
-    _, config, buses, claims, estopped = first
+    _, config, buses, estopped = first
     tune_interpreter()
     log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
-    Worker(sock, config, buses).run(claims, estopped)
+    Worker(sock, config, buses).run(estopped)
     return 0
 
 

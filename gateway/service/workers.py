@@ -80,10 +80,9 @@ def movable(config: Config) -> list[str]:
     ]
 
 
-def split(config: Config, count: int) -> list[list[str]]:
-    """The buses of each of ``count`` workers: the busiest first onto the least loaded, by
-    what the config's traffic takes of each bus's wire (its budget)."""
-    names = set(movable(config))
+def split(config: Config, names: list[str], count: int) -> list[list[str]]:
+    """The buses ``names`` (``movable``) in ``count`` workers: the busiest first onto the least
+    loaded, by what the config's traffic takes of each bus's wire (its budget)."""
     load = {bus.name: bus_budget(bus).wire_share for bus in config.buses if bus.name in names}
     workers: list[list[str]] = [[] for _ in range(count)]
     loads = [0.0] * count
@@ -231,18 +230,17 @@ class WorkerProcess:
         )
         theirs.close()
         outbox = link.Outbox(ours, f"worker{self.index}-send")
-        moment = now()
-        outbox.put(
-            (
-                "start",
-                self.config,
-                list(self.runners),
-                {name: r.claims.standing(moment) for name, r in self.runners.items()},
-                [name for name, r in self.runners.items() if r.any_estopped()],
-            )
-        )
-        self.process, self.outbox, self.last_word = process, outbox.start(), moment
+        estopped = [name for name, r in self.runners.items() if r.any_estopped()]
+        outbox.put(("start", self.config, list(self.runners), estopped))
+        with self._lock:
+            self.process, self.outbox, self.last_word = process, outbox.start(), now()
         self._spoken = False
+        # The claims that stand, taken once the outbox is the worker's: a claim changed
+        # meanwhile is sent twice (in order, so the later word wins), never lost.
+        moment = now()
+        for name, runner in self.runners.items():
+            for claim in runner.claims.standing(moment):
+                outbox.put_now(("claims", name, "claim", claim))
         if self._stopping.is_set():  # stopped while it was starting
             outbox.put(("stop",))
         return process, ours
@@ -304,39 +302,6 @@ class WorkerProcess:
             )
             process.kill()
 
-    def _on_result(self, call_id: int, ok: bool, value: Any) -> None:
-        self._settle(call_id, ok, value)
-
-    def _on_states(self, states: list[tuple[str, str, dict[str, Any]]]) -> None:
-        for bus, device, state in states:
-            self.runners[bus].took_state(device, state)
-
-    def _on_events(self, events: list[DeviceEvent]) -> None:
-        for event in events:
-            self.on_event(event)
-
-    def _on_frames(self, frames: list[tuple[str, tuple]]) -> None:
-        for bus, frame in frames:
-            tap = self.runners[bus].tap
-            if tap is not None:
-                tap(frame)
-
-    def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
-        self.runners[bus].took_plays(view, ids)
-
-    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats]]) -> None:
-        self.beat = beat
-        self._first_word.set()
-
-    _HANDLERS: ClassVar[dict[str, Callable[..., None]]] = {
-        "result": _on_result,
-        "states": _on_states,
-        "events": _on_events,
-        "frames": _on_frames,
-        "plays": _on_plays,
-        "beat": _on_beat,
-    }
-
     def _settle(self, call_id: int, ok: bool, value: Any) -> None:
         with self._lock:
             future = self._pending.pop(call_id, None)
@@ -346,6 +311,33 @@ class WorkerProcess:
             future.set_result(value)
         else:
             future.set_exception(link.rebuilt(*value))
+
+    def _on_state(self, bus: str, device: str, state: dict[str, Any]) -> None:
+        self.runners[bus].took_state(device, state)
+
+    def _on_event(self, event: DeviceEvent) -> None:
+        self.on_event(event)
+
+    def _on_frame(self, bus: str, frame: tuple) -> None:
+        tap = self.runners[bus].tap
+        if tap is not None:
+            tap(frame)
+
+    def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
+        self.runners[bus].took_plays(view, ids)
+
+    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats]]) -> None:
+        self.beat = beat
+        self._first_word.set()
+
+    _HANDLERS: ClassVar[dict[str, Callable[..., None]]] = {
+        "result": _settle,
+        "state": _on_state,
+        "event": _on_event,
+        "frame": _on_frame,
+        "plays": _on_plays,
+        "beat": _on_beat,
+    }
 
     def _ended(self, process: subprocess.Popen) -> None:
         """Rule 3: the worker is gone; answer what waited on it, take its devices offline."""

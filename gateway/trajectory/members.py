@@ -105,14 +105,14 @@ class Member:
     path_tolerance: float | None  # raw units, as the path
     goal_tolerance: float | None
     claimed: bool  # its client held the device's claim when it started
-    #: The whole counts a position is sent within (its joint's ``raw_limits``).
-    limits: tuple[int, int] = field(init=False)
     #: What its bus ticks.
     sampler: PathSampler = field(init=False)
 
     def __post_init__(self) -> None:
-        self.limits = self.driver.joint.raw_limits
-        self.sampler = PathSampler(self.path, self.stream.follow, self.stream.speed, self.limits)
+        joint = self.driver.joint
+        self.sampler = PathSampler(
+            self.path, self.stream.follow, self.stream.speed, joint.raw_limits
+        )
 
     @property
     def speed(self) -> bool:
@@ -126,9 +126,6 @@ class Member:
     def value(self, t_s: float) -> float:
         """What a tick at ``t_s`` sends."""
         return self.sampler.sent(self.path.at(t_s))
-
-    def sent(self, value: float) -> float:
-        return self.sampler.sent(value)
 
     def payload(self, value: float) -> dict[str, Any]:
         return self.sampler.payload(value)

@@ -32,6 +32,7 @@ import time
 
 import orjson
 import zenoh
+from bench_zenoh import free_endpoint, ms
 
 from busgate.schemas.zenoh_session import session_config
 
@@ -56,11 +57,6 @@ TARGET = {"position": 1234}
 def cpu_s() -> float:
     times = os.times()
     return times.user + times.system
-
-
-def percentile_ms(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))] * 1000, 3)
 
 
 # -- the child: the worker's side ---------------------------------------------------------------
@@ -206,16 +202,10 @@ def row(way: str, direction: str, sent: int, latencies: list[float], cpu: float)
         "direction": direction,
         "sent": sent,
         "arrived": len(latencies),
-        "p50_ms": percentile_ms(latencies, 0.5) if latencies else None,
-        "p99_ms": percentile_ms(latencies, 0.99) if latencies else None,
+        "p50_ms": ms(latencies, 0.5) if latencies else None,
+        "p99_ms": ms(latencies, 0.99) if latencies else None,
         "cpu_us_per_message": round(cpu / max(1, len(latencies)) * 1e6, 1),
     }
-
-
-def free_endpoint() -> str:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{probe.getsockname()[1]}"
 
 
 def main() -> int:

@@ -151,19 +151,11 @@ class ScaleDaemon(Daemon):
     def __init__(
         self, scratch: Path, endpoint: str, buses: str, name: str, workers: str | None
     ) -> None:
-        config = scratch / f"{name}.toml"
         setting = "" if workers is None else f"workers = {toml_workers(workers)}\n"
-        config.write_text(
-            f'[gateway]\nname = "{name}"\n{setting}[zenoh]\nlisten = ["{endpoint}"]\n{buses}'
-        )
         self.name = name
         self.log = scratch / f"{name}-{workers}.log"
         with self.log.open("w") as log:
-            self.process = subprocess.Popen(
-                [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(config),
-                 "--log-level", "warning"],
-                stderr=log,
-            )  # fmt: skip
+            super().__init__(scratch, endpoint, buses, name, gateway=setting, stderr=log)
 
     def stop(self) -> None:
         super().stop()

@@ -57,14 +57,17 @@ def ms(values: list[float], q: float) -> float:
 
 
 class Daemon:
-    """``busgate run`` on a config written from ``buses`` (TOML text)."""
+    """``busgate run`` on a config written from ``buses`` (TOML text), with ``gateway``'s
+    lines in its ``[gateway]`` table besides its name; its log to ``stderr`` (default: ours)."""
 
-    def __init__(self, scratch: Path, endpoint: str, buses: str, name: str = "bench") -> None:
+    def __init__(self, scratch: Path, endpoint: str, buses: str, name: str = "bench",
+                 gateway: str = "", stderr=None) -> None:
         config = scratch / f"{name}.toml"
-        config.write_text(f'[gateway]\nname = "{name}"\n[zenoh]\nlisten = ["{endpoint}"]\n{buses}')
+        config.write_text(f'[gateway]\nname = "{name}"\n{gateway}[zenoh]\nlisten = ["{endpoint}"]\n'
+                          f"{buses}")
         self.process = subprocess.Popen(
             [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(config),
-             "--log-level", "warning"])
+             "--log-level", "warning"], stderr=stderr)
 
     def cpu_s(self) -> float:
         return cpu_s(f"/proc/{self.process.pid}/stat")
