@@ -60,11 +60,14 @@ class GatewayProcess:
                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                                         text=True, **options)
         self.lines: list[str] = []
+        #: Every line logged so far, read or not by ``wait_for`` (to show when a test fails).
+        self.logged: list[str] = []
         self._incoming: queue.Queue[str] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self) -> None:
         for line in self.process.stderr:
+            self.logged.append(line.rstrip("\n"))
             self._incoming.put(line.rstrip("\n"))
         self._incoming.put("")  # end of output
 

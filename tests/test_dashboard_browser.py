@@ -11,6 +11,7 @@ import time
 
 import pytest
 import zenoh
+from playwright.sync_api import TimeoutError as PlaywrightTimeoutError
 
 import busgate.client as bc
 from busgate.schemas.zenoh_session import session_config
@@ -126,9 +127,15 @@ def test_the_gateway_estop_button_stops_every_device_and_enable_brings_each_back
 
 
 def until_powers(page, want: dict[str, str]) -> None:
-    """Until the power badge of each device ``want`` names shows what it says."""
-    until(page, "([want]) => Object.entries(want).every(([name, value]) => document.querySelector("
-          "`article[data-device=\"demo/${name}\"] .power-badge`)?.dataset.value === value)", want)
+    """Until the power badge of each device ``want`` names shows what it says; a failure
+    says what the badges showed instead."""
+    try:
+        until(page, "([want]) => Object.entries(want).every(([name, value]) => "
+              "document.querySelector(`article[data-device=\"demo/${name}\"] .power-badge`)"
+              "?.dataset.value === value)", want)
+    except PlaywrightTimeoutError:
+        shown = {name: badges(page, name)[1] for name in want}
+        raise AssertionError(f"power badges: {shown}, not {want}") from None
 
 
 def test_the_reset_button_asks_first_and_puts_every_device_back_as_it_was(page) -> None:

@@ -11,8 +11,10 @@ this shared host: here they meet within a generous bound."""
 from __future__ import annotations
 
 import os
+import pickle
 import re
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -23,8 +25,11 @@ import pytest
 import busgate.client as bc
 from busgate.codecs import inspire_la as la
 from busgate.gateway.service import worker_link as link
+from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.workers import WorkerProcess
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.config import parse_config
 from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.wire_frames import received, tick_targets
@@ -93,6 +98,7 @@ def served(tmp_path_factory) -> Iterator[Served]:
 def client(served: Served) -> Iterator[bc.Client]:
     with bc.connect(served.endpoint, client_id=f"t{time.monotonic_ns()}") as c:
         yield c
+    print("\n".join(served.gateway.logged[-80:]))  # shown when the test failed
 
 
 def test_two_workers_run_two_buses_each_and_every_device_answers(served: Served, client) -> None:
@@ -173,12 +179,19 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
     bus = "uart2"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
+    # Online, and watched from now on: the offline state is published once, when the worker
+    # is found gone, and a client that first asks after it gets the next one (online again).
+    assert client.device(device).state()["online"] is True
     with client.device(device).follow() as stream:
         for k in range(10):  # a stream running when its worker is killed
             stream.set(position=800 + 20 * k)
             time.sleep(0.02)
         os.kill(victim, signal.SIGKILL)
-        wait_until(lambda: client.device(device).state()["online"] is False, timeout=5)
+        wait_until(
+            lambda: client.device(device).state()["online"] is False,
+            timeout=5,
+            what=f"{device} offline after its worker was killed",
+        )
     line = served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
     assert bus in line
     restarted = served.gateway.wait_for("service.worker: worker ")
@@ -187,7 +200,11 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
     served.workers.update(
         dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
     )
-    wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+    wait_until(
+        lambda: client.device(device).state()["online"] is True,
+        timeout=10,
+        what=f"{device} online again on its new worker",
+    )
     mark = served.marks()[bus]
     time.sleep(0.5)
     moving = [
@@ -222,7 +239,11 @@ def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
         served.workers.update(
             dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
         )
-        wait_until(lambda: client.device(device).state()["online"] is True, timeout=10)
+        wait_until(
+            lambda: client.device(device).state()["online"] is True,
+            timeout=10,
+            what=f"{device} online again on its new worker",
+        )
         marks = served.marks()
         with pytest.raises(bc.ClaimedError):  # judged by the new worker's bus thread
             late.device(device).move(700)
@@ -272,3 +293,31 @@ def test_what_waits_crosses_in_order_and_one_too_large_is_dropped_not_the_link()
         outbox.close()
         ours.close()
         theirs.close()
+
+
+def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(caplog) -> None:
+    config = parse_config(
+        {
+            "gateway": {"name": "gw1", "workers": 2},
+            "buses": [
+                {
+                    "name": "uart0",
+                    "transport": "serial",
+                    "port": "/dev/null",  # never opened: the shadow is never started
+                    "baudrate": 921_600,
+                    "devices": [{"name": "la0", "kind": "inspire_la", "id": 1}],
+                }
+            ],
+        }
+    )
+    worker = WorkerProcess(0, config, [build_bus(config.buses[0])])
+    ours, theirs = link.pair()
+    reading = threading.Thread(target=worker._read, args=(ours,))
+    reading.start()
+    theirs.send(pickle.dumps(("state", "no-such-bus", "la0", {"online": True})))
+    theirs.send(pickle.dumps(("state", "uart0", "la0", {"online": True, "ts": 1.0})))
+    theirs.close()  # the worker gone: reading ends, as after the words before it
+    reading.join(5)
+    assert not reading.is_alive()
+    assert worker.runners["uart0"].states["la0"] == {"online": True, "ts": 1.0}
+    assert "its 'state' could not be taken" in caplog.text

@@ -17,7 +17,8 @@ Rules of this file:
    with an event saying why, and the worker is started again after ``RESTART_S``, with
    nothing to resume: no stream, no play, no ramp; a client commands again.
 4. A worker is started and read by one supervising thread for the daemon's whole life: a
-   child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it.
+   child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it. A word of
+   the worker's that cannot be taken (a bug) is logged and dropped; the thread goes on.
 """
 
 from __future__ import annotations
@@ -289,7 +290,10 @@ class WorkerProcess:
                 if handle is None:
                     log.error("worker %d said what no worker says: %r", self.index, said[:1])
                     continue
-                handle(self, *said[1:])
+                try:
+                    handle(self, *said[1:])
+                except Exception:  # a bug: this word is lost, not the worker's supervision
+                    log.exception("worker %d: its %r could not be taken", self.index, said[0])
         sock.close()
 
     def _check_silence(self) -> None:
