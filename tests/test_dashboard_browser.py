@@ -22,7 +22,9 @@ pytestmark = needs_chromium
 
 DEVICES = ["la1", "la2", "la3", "servo1", "servo2", "wheel", "wheel_l", "wheel_r", "drive"]
 #: Each device's power badge as the demo starts it (a test that changes one puts it back).
-AS_STARTED = {name: "off" if name in ("wheel", "drive") else "enabled" for name in DEVICES}
+#: The devices the demo starts disabled: the CAN wheel, the RS232 drive, the base's wheels.
+STARTED_OFF = ("wheel", "drive", "wheel_l", "wheel_r")
+AS_STARTED = {name: "off" if name in STARTED_OFF else "enabled" for name in DEVICES}
 WAIT_MS = 15_000  # a hang guard: conditions are waited for, not timed
 
 
@@ -122,19 +124,23 @@ def test_the_gateway_estop_button_stops_every_device_and_enable_brings_each_back
         until(page, "([key]) => document.querySelector(`article[data-device=\"${key}\"] "
               ".power-badge`).dataset.value !== 'e-stopped'", f"demo/{name}")
     assert badges(page, "la1")[1] == "enabled" and badges(page, "servo1")[1] == "enabled"
-    patiently(client.device("wheel").send, {"op": "disable"})  # as the demo starts them
-    patiently(client.device("drive").send, {"op": "disable"})
+    for name in STARTED_OFF:  # as the demo starts them
+        patiently(client.device(name).send, {"op": "disable"})
+
+
+#: Each named device's power badge, as the page shows it now (``null``: no badge).
+POWERS = ("(names) => Object.fromEntries(names.map((name) => [name, document.querySelector("
+          "`article[data-device=\"demo/${name}\"] .power-badge`)?.dataset.value ?? null]))")
 
 
 def until_powers(page, want: dict[str, str]) -> None:
     """Until the power badge of each device ``want`` names shows what it says; a failure
     says what the badges showed instead."""
     try:
-        until(page, "([want]) => Object.entries(want).every(([name, value]) => "
-              "document.querySelector(`article[data-device=\"demo/${name}\"] .power-badge`)"
-              "?.dataset.value === value)", want)
+        until(page, f"([want]) => Object.entries(({POWERS})(Object.keys(want)))"
+              ".every(([name, value]) => value === want[name])", want)
     except PlaywrightTimeoutError:
-        shown = {name: badges(page, name)[1] for name in want}
+        shown = page.evaluate(POWERS, list(want))
         raise AssertionError(f"power badges: {shown}, not {want}") from None
 
 
