@@ -1,15 +1,18 @@
 """``busgate run --config FILE``: the daemon.
 
 It loads and checks the config (refusing it with the same messages as ``check-config``),
-opens the zenoh session, starts one bus runner per bus and serves until SIGTERM or SIGINT.
+opens the zenoh session, starts one bus runner per bus (with ``[gateway] workers``, the buses
+that move run in worker processes: ``service.workers``) and serves until SIGTERM or SIGINT.
 It refuses to start, in one line and with exit status 2, when a port is locked by another
 process (retrying would not win it) or zenoh or the metrics endpoint cannot listen where told
 (the address is in use: another gateway or demo), before any bus is opened; a port that does
 not exist yet only delays its bus, which retries.
 Under systemd (Type=notify) it says READY once every bus is open, pings the watchdog only
-while every bus thread keeps its schedule, and says STOPPING on the way out.
+while every bus thread keeps its schedule (and every worker is alive and talking), and says
+STOPPING on the way out.
 Then it stops in order, within about a second: the streams and the devices (each bus puts its
-devices in their safe state and closes, all buses at once), and the zenoh session last.
+devices in their safe state and closes, all buses at once; a worker that has not ended after
+``STOP_S`` is killed), and the zenoh session last.
 With ``[recorder]`` in the config the flight recorder keeps the last seconds of everything and
 writes an incident file on an e-stop, a fault, a bus down or SIGUSR1 (``recording.flight``);
 without, SIGUSR1 only says so in the log (it never ends the daemon). With ``[ros2]`` the

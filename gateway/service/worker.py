@@ -49,9 +49,9 @@ PR_SET_PDEATHSIG = 1
 class Worker:
     """The buses of one worker, and what carries the daemon's calls to them."""
 
-    def __init__(self, sock: socket.socket, config: Config, buses: list[str]) -> None:
-        self.sock = sock
-        self.outbox = link.Outbox(sock, "worker-send")
+    def __init__(self, reader: link.Reader, config: Config, buses: list[str]) -> None:
+        self.reader = reader
+        self.outbox = link.Outbox(reader.sock, "worker-send")
         self.runners: dict[str, BusRunner] = {
             bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
             for bus in config.buses
@@ -71,7 +71,7 @@ class Worker:
         mirror = threading.Thread(target=self._mirror, args=(done,), name="worker-mirror")
         mirror.start()
         try:
-            while (received := link.receive(self.sock)) is not None:
+            while (received := self.reader.receive()) is not None:
                 messages = link.unbatched(received)
                 for message in messages:
                     if message[0] == "stop":
@@ -163,14 +163,14 @@ def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
     _die_with_the_daemon()
-    sock = socket.socket(fileno=int(sys.argv[1]))
-    first = link.receive(sock)
+    reader = link.Reader(socket.socket(fileno=int(sys.argv[1])))
+    first = reader.receive()
     if first is None or first[0] != "start":
         return 2
     _, config, buses, estopped = first
     tune_interpreter()
     log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
-    Worker(sock, config, buses).run(estopped)
+    Worker(reader, config, buses).run(estopped)
     return 0
 
 

@@ -1,6 +1,6 @@
 """What crosses between the gateway's process and a bus worker (docs/workers.md).
 
-One Unix socket pair per worker (``SOCK_SEQPACKET``: one message per send, never split or
+One Unix socket pair per worker (``SOCK_SEQPACKET``: one datagram per send, never split or
 merged), each message a pickled tuple whose first item names it. Rules of this file:
 
 1. Each end acts only on the messages it knows by name (a worker: ``start``, ``call``,
@@ -12,8 +12,11 @@ merged), each message a pickled tuple whose first item names it. Rules of this f
    give back): ``portable`` and ``rebuilt``.
 3. A send never blocks a bus thread: the socket is written by one sender thread per end,
    from an outbox (``Outbox``), or by a caller of ``put_now`` when nothing waits and the
-   socket takes it at once. A message too large for the socket is logged and dropped; the
-   link goes on.
+   socket takes it at once.
+4. A message larger than ``PART`` crosses in parts of ``PART`` bytes, in order, joined by the
+   ``Reader`` of the other end: a kernel's send buffer (by default some 416 KiB of datagram
+   at most) never decides what can cross. One larger than ``MAX_MESSAGE`` is a bug: the
+   sender logs and drops it (``put_now`` refuses it to its caller); the link goes on.
 """
 
 from __future__ import annotations
@@ -31,8 +34,14 @@ log = logging.getLogger(__name__)
 
 #: A message ``Outbox.put_now`` pickled already (the first item of what it queues).
 _PICKLED = "pickled"
-#: The largest message either end sends: a batch of states, or a scan's result.
-MAX_MESSAGE = 1 << 20
+#: The largest message either end sends (a config, a trajectory's samplers, a scan's result).
+MAX_MESSAGE = 16 << 20
+#: The most of a message one datagram carries (rule 4), well under any send buffer.
+PART = 1 << 16
+#: What a datagram starts with: a whole message, a part with more to come, the last part.
+_WHOLE, _MORE, _LAST = b"=", b"+", b"."
+#: The send buffer each end asks for (the kernel may give less): room for a few parts.
+SEND_BUFFER = 1 << 20
 #: What a worker may be asked to do to a runner: the runner's methods of the same name.
 CALLS = frozenset(
     {
@@ -49,7 +58,7 @@ CALLS = frozenset(
 )
 #: What a worker may be asked to do to a bus's claims: ``ClaimTable``'s methods.
 CLAIM_OPS = frozenset({"claim", "hold", "release", "drop_client"})
-#: Most messages in one batch: a batch of states stays well under ``MAX_MESSAGE``.
+#: Most messages in one batch (a batch of states: some 30 KiB).
 BATCH_MAX = 64
 #: How long the first message of a batch waits for more, unless one is urgent.
 GATHER_S = 0.002
@@ -77,11 +86,10 @@ def rebuilt(name: str, code: str, message: str, attributes: dict[str, Any]) -> B
 
 
 def pair() -> tuple[socket.socket, socket.socket]:
-    """The two ends: the daemon's, and the one the worker inherits, each with room for a
-    message of ``MAX_MESSAGE`` (a datagram larger than the send buffer is refused)."""
+    """The two ends: the daemon's, and the one the worker inherits."""
     ends = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     for end in ends:
-        end.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, MAX_MESSAGE)
+        end.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
     return ends
 
 
@@ -90,22 +98,60 @@ def unbatched(message: tuple) -> list[tuple]:
     return message[1] if message[0] == "batch" else [message]
 
 
-def receive(sock: socket.socket) -> tuple | None:
-    """The next message, or ``None`` once the other end has gone (``TimeoutError`` when the
-    socket has a timeout and nothing came within it)."""
-    try:
-        data = sock.recv(MAX_MESSAGE)
-    except TimeoutError:
-        raise
-    except OSError:
-        return None
-    if not data:
-        return None
-    try:
-        return pickle.loads(data)
-    except Exception:  # a bug on the other side: this message is lost, not the link
-        log.exception("a message of %d bytes could not be read: dropped", len(data))
-        return ("batch", [])
+def write(sock: socket.socket, data: bytes, flags: int = 0) -> None:
+    """``data`` (a pickled message) on ``sock``: one datagram, or its parts (rule 4; only a
+    blocking send may send parts, lest a message be left half sent)."""
+    if len(data) <= PART:
+        sock.sendmsg([_WHOLE, data], [], flags)
+        return
+    whole = memoryview(data)
+    for start in range(0, len(data), PART):
+        end = start + PART
+        sock.sendmsg([_MORE if end < len(data) else _LAST, whole[start:end]])
+
+
+class Reader:
+    """The messages that come on one socket, a message's parts joined (rule 4)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self._parts: list[bytes] = []
+        self._size = 0
+
+    def receive(self) -> tuple | None:
+        """The next message, or ``None`` once the other end has gone (``TimeoutError`` when
+        the socket has a timeout and nothing came within it; parts read so far are kept)."""
+        while True:
+            try:
+                data = self.sock.recv(PART + 1)
+            except TimeoutError:
+                raise
+            except OSError:
+                return None
+            if not data:
+                return None
+            tag, body = data[:1], memoryview(data)[1:]
+            if tag in (_MORE, _LAST):
+                self._parts.append(bytes(body))
+                self._size += len(body)
+                if tag == _MORE:
+                    if self._size > MAX_MESSAGE:  # a bug on the other side: this one is lost
+                        log.error("a message over %d bytes came: dropped", MAX_MESSAGE)
+                        self._parts, self._size = [], 0
+                    continue
+                body = memoryview(b"".join(self._parts))
+                self._parts, self._size = [], 0
+            elif tag != _WHOLE:  # a bug on the other side: lost, not the link
+                log.error("a datagram that is no message nor part of one: dropped")
+                continue
+            elif self._parts:  # a bug on the other side: the parts are lost, not this one
+                log.error("a message cut short after %d parts: dropped", len(self._parts))
+                self._parts, self._size = [], 0
+            try:
+                return pickle.loads(body)
+            except Exception:  # a bug on the other side: this message is lost, not the link
+                log.exception("a message of %d bytes could not be read: dropped", len(body))
+                return ("batch", [])
 
 
 class Outbox:
@@ -141,14 +187,17 @@ class Outbox:
 
     def put_now(self, message: tuple) -> None:
         """``message`` out at once, pickled here first: what cannot cross is refused to its
-        caller (``pickle.PicklingError``, ``TypeError``), not lost on the way. Sent from the
-        caller's thread when nothing is ahead of it and the socket takes it without waiting
-        (an e-stop goes with no thread in between), else queued for the sender."""
+        caller (``pickle.PicklingError``, ``TypeError``, ``ValueError`` when larger than
+        ``MAX_MESSAGE``), not lost on the way. Sent from the caller's thread when nothing is
+        ahead of it, it is one datagram and the socket takes it without waiting (an e-stop
+        goes with no thread in between), else queued for the sender."""
         data = pickle.dumps(message, pickle.HIGHEST_PROTOCOL)
+        if len(data) > MAX_MESSAGE:
+            raise ValueError(f"a {message[0]!r} message of {len(data)} bytes is too large to cross")
         with self._lock:
-            if not self._queue and not self._sending:
+            if not self._queue and not self._sending and len(data) <= PART:
                 try:
-                    self._sock.send(data, socket.MSG_DONTWAIT)
+                    write(self._sock, data, socket.MSG_DONTWAIT)
                     return
                 except BlockingIOError:
                     pass
@@ -212,7 +261,7 @@ class Outbox:
             )
             return True
         try:
-            self._sock.send(data)
+            write(self._sock, data)
         except OSError:
             return False  # the peer has gone
         return True

@@ -12,10 +12,11 @@ Rules of this file:
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped.
-3. A worker that ends, or hangs (silent for ``STALL_S``: it is killed), is reported once:
-   every call waiting on it is answered ``bus_unavailable``, each of its devices goes offline
-   with an event saying why, and the worker is started again after ``RESTART_S``, with
-   nothing to resume: no stream, no play, no ramp; a client commands again.
+3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
+   word: it is killed), is reported once: every call waiting on it is answered
+   ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
+   worker is started again after ``RESTART_S``, with nothing to resume: no stream, no play,
+   no ramp; a client commands again.
 4. A worker is started and read by one supervising thread for the daemon's whole life: a
    child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it. A word of
    the worker's that cannot be taken (a bug) is logged and dropped; the thread goes on.
@@ -276,9 +277,10 @@ class WorkerProcess:
 
     def _read(self, sock: socket.socket) -> None:
         sock.settimeout(link.BEAT_S)
+        reader = link.Reader(sock)
         while True:
             try:
-                message = link.receive(sock)
+                message = reader.receive()
             except TimeoutError:
                 self._check_silence()
                 continue
