@@ -61,6 +61,23 @@ class Served:
     def frames(self, bus: str, since: int) -> list:
         return list(received(self.simulators[bus], since, la))
 
+    def estops(self, bus: str, since: int) -> list:
+        """The e-stop frames ``bus``'s actuator received after its ``since``-th frame."""
+        return [
+            f
+            for _, f in self.frames(bus, since)
+            if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
+        ]
+
+    def started_again(self, victim: int) -> int:
+        """The worker started in ``victim``'s place (from its start line), now running
+        ``victim``'s buses."""
+        line = self.gateway.wait_for("service.worker: worker ")
+        new_pid = int(re.search(r"worker (\d+):", line).group(1))
+        assert new_pid != victim
+        self.workers.update({b: new_pid for b, pid in self.workers.items() if pid == victim})
+        return new_pid
+
 
 def worker_pids(gateway: GatewayProcess) -> dict[str, int]:
     """Each bus's worker, from the workers' own start lines (``worker PID: buses A, B``)."""
@@ -138,12 +155,7 @@ def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> N
     for device in DEVICES.values():
         wait_until(lambda d=device: client.device(d).state()["estopped"] is True, timeout=5)
     for bus in BUSES:
-        stops = [
-            f
-            for _, f in served.frames(bus, marks[bus])
-            if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
-        ]
-        assert stops, f"no e-stop frame reached {bus}"
+        assert served.estops(bus, marks[bus]), f"no e-stop frame reached {bus}"
     with pytest.raises(bc.error_for("estopped")):
         client.device(DEVICES["uart3"]).move(500)
     client.reset_estop("gw1")
@@ -195,12 +207,7 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
         )
     line = served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
     assert bus in line
-    restarted = served.gateway.wait_for("service.worker: worker ")
-    new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
-    assert new_pid != victim
-    served.workers.update(
-        dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
-    )
+    served.started_again(victim)
     wait_until(
         lambda: client.device(device).state()["online"] is True,
         timeout=10,
@@ -215,6 +222,36 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
     ]
     assert moving == []  # nothing it was doing resumed by itself
     assert client.device(device).move(1000)["ok"]  # commanded again, it moves
+
+
+def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
+    served: Served, client
+) -> None:
+    bus = "uart3"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    assert client.device(device).state()["online"] is True  # watched from now on
+    client.estop("gw1")
+    wait_until(lambda: client.device(device).state()["estopped"] is True, what="e-stopped")
+    mark = served.marks()[bus]
+    os.kill(victim, signal.SIGKILL)
+    served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+    served.started_again(victim)
+    # The gateway holds it e-stopped: the new worker e-stops it again, first of all it does.
+    wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
+    wait_until(
+        lambda: client.device(device).state()["online"] is True,
+        timeout=10,
+        what=f"{device} online again on its new worker",
+    )
+    assert client.device(device).state()["estopped"] is True
+    with pytest.raises(bc.error_for("estopped")):  # judged by the new worker's bus thread
+        client.device(device).move(500)
+    client.reset_estop("gw1")
+    for other in DEVICES.values():
+        wait_until(
+            lambda d=other: client.device(d).state()["estopped"] is False, what=f"{other} reset"
+        )
 
 
 def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
@@ -235,11 +272,7 @@ def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
         finally:
             if Path(f"/proc/{victim}").exists():
                 os.kill(victim, signal.SIGCONT)
-        restarted = served.gateway.wait_for("service.worker: worker ")
-        new_pid = int(re.search(r"worker (\d+):", restarted).group(1))
-        served.workers.update(
-            dict.fromkeys([b for b, pid in served.workers.items() if pid == victim], new_pid)
-        )
+        served.started_again(victim)
         wait_until(
             lambda: client.device(device).state()["online"] is True,
             timeout=10,

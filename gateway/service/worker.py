@@ -63,10 +63,10 @@ class Worker:
 
     def run(self, estopped: list[str]) -> None:
         self.outbox.start()
+        for name in estopped:  # e-stopped before this worker: e-stopped from its first turn
+            self.runners[name].estop()
         for runner in self.runners.values():
             runner.start()
-        for name in estopped:  # e-stopped before this worker: e-stopped still
-            self.runners[name].estop()
         done = threading.Event()
         mirror = threading.Thread(target=self._mirror, args=(done,), name="worker-mirror")
         mirror.start()
