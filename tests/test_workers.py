@@ -10,6 +10,7 @@ this shared host: here they meet within a generous bound."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
 import re
@@ -354,7 +355,9 @@ def test_a_message_larger_than_the_kernel_lets_one_datagram_be_crosses_in_parts(
         theirs.close()
 
 
-def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(caplog) -> None:
+@pytest.fixture
+def lone_worker() -> WorkerProcess:
+    """A worker's supervisor with no process: one LA bus, its shadow never started."""
     config = parse_config(
         {
             "gateway": {"name": "gw1", "workers": 2},
@@ -369,7 +372,13 @@ def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(caplog)
             ],
         }
     )
-    worker = WorkerProcess(0, config, [build_bus(config.buses[0])])
+    return WorkerProcess(0, config, [build_bus(config.buses[0])])
+
+
+def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(
+    lone_worker: WorkerProcess, caplog
+) -> None:
+    worker = lone_worker
     ours, theirs = link.pair()
     reading = threading.Thread(target=worker._read, args=(ours,))
     reading.start()
@@ -380,3 +389,30 @@ def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(caplog)
     assert not reading.is_alive()
     assert worker.runners["uart0"].states["la0"] == {"online": True, "ts": 1.0}
     assert "its 'state' could not be taken" in caplog.text
+
+
+def test_a_call_the_socket_cannot_take_at_once_waits_its_turn_while_the_supervisor_reads(
+    lone_worker: WorkerProcess,
+) -> None:
+    ours, theirs = link.pair()
+    reading = threading.Thread(target=lone_worker._read, args=(ours,))
+    reading.start()
+    outbox = link.Outbox(ours, "test-send").start()
+    try:
+        time.sleep(0.05)  # the supervisor is waiting for the worker's words
+        # A worker slow to read: the socket to it is full (TimeoutError: on a socket given a
+        # timeout, as the supervisor's once was, whose sends then failed after it).
+        with contextlib.suppress(BlockingIOError, TimeoutError):
+            while True:
+                ours.send(b"=" + b"x" * 60_000, socket.MSG_DONTWAIT)
+        estop = ("call", 1, "uart0", "estop", (), {})
+        outbox.put_now(estop)  # cannot go at once: queued, not lost
+        reader = link.Reader(theirs)
+        received = []
+        while estop not in received:
+            received += link.unbatched(reader.receive(5.0))  # the rest is junk: dropped
+    finally:
+        outbox.close()
+        theirs.close()
+        reading.join(5)
+        ours.close()

@@ -12,7 +12,8 @@ merged), each message a pickled tuple whose first item names it. Rules of this f
    give back): ``portable`` and ``rebuilt``.
 3. A send never blocks a bus thread: the socket is written by one sender thread per end,
    from an outbox (``Outbox``), or by a caller of ``put_now`` when nothing waits and the
-   socket takes it at once.
+   socket takes it at once. The socket never has a timeout: the sender waits for room as
+   long as the peer lives, and what the socket cannot take at once is queued, never lost.
 4. A message larger than ``PART`` crosses in parts of ``PART`` bytes, in order, joined by the
    ``Reader`` of the other end: a kernel's send buffer (by default some 416 KiB of datagram
    at most) never decides what can cross. One larger than ``MAX_MESSAGE`` is a bug: the
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import pickle
+import select
 import socket
 import threading
 from collections import deque
@@ -117,15 +119,18 @@ class Reader:
         self.sock = sock
         self._parts: list[bytes] = []
         self._size = 0
+        self._incoming = select.poll()
+        self._incoming.register(sock, select.POLLIN)
 
-    def receive(self) -> tuple | None:
-        """The next message, or ``None`` once the other end has gone (``TimeoutError`` when
-        the socket has a timeout and nothing came within it; parts read so far are kept)."""
+    def receive(self, timeout_s: float | None = None) -> tuple | None:
+        """The next message, or ``None`` once the other end has gone; ``TimeoutError`` when
+        nothing came for ``timeout_s`` (parts read so far are kept). The wait is a ``poll``:
+        a socket timeout would make the same socket's sends wait and fail too (rule 3)."""
         while True:
+            if timeout_s is not None and not self._incoming.poll(timeout_s * 1000):
+                raise TimeoutError(f"nothing came for {timeout_s} s")
             try:
                 data = self.sock.recv(PART + 1)
-            except TimeoutError:
-                raise
             except OSError:
                 return None
             if not data:

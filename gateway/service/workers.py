@@ -276,11 +276,10 @@ class WorkerProcess:
     # -- the worker's words -------------------------------------------------------------------
 
     def _read(self, sock: socket.socket) -> None:
-        sock.settimeout(link.BEAT_S)
         reader = link.Reader(sock)
         while True:
             try:
-                message = reader.receive()
+                message = reader.receive(link.BEAT_S)
             except TimeoutError:
                 self._check_silence()
                 continue
