@@ -416,3 +416,42 @@ def test_a_call_the_socket_cannot_take_at_once_waits_its_turn_while_the_supervis
         theirs.close()
         reading.join(5)
         ours.close()
+
+
+def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
+    simulators = [
+        SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start() for _ in range(2)
+    ]
+    tables = [
+        bus_table(f"uart{n}", sim.port, 921_600, {f"la{n}": ("inspire_la", 1)})
+        for n, sim in enumerate(simulators)
+    ]
+    endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
+    config = write_config(tmp_path / "gw.toml", endpoint, *tables)
+    config.write_text(config.read_text().replace('name = "gw1"\n', 'name = "gw1"\nworkers = 2\n'))
+    gateway = GatewayProcess(config)
+    try:
+        workers = [
+            int(re.search(r"worker (\d+):", gateway.wait_for("service.worker: worker ")).group(1))
+            for _ in simulators
+        ]
+        gateway.wait_for("serving 2 buses, 2 up")
+        gateway.process.kill()  # no orderly stop: SIGKILL, as an OOM killer would
+        gateway.process.wait()
+        wait_until(
+            lambda: all(_ended(pid) for pid in workers),
+            timeout=10,
+            what="the workers ended with their daemon",
+        )
+    finally:
+        gateway.stop()
+        for simulator in simulators:
+            simulator.stop()
+
+
+def _ended(pid: int) -> bool:
+    """``pid`` has exited (reaped, or a zombie whose new parent has not reaped it yet)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
+    except FileNotFoundError:
+        return True
