@@ -70,6 +70,11 @@ class Served:
             if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
         ]
 
+    def kill(self, worker: int) -> None:
+        """SIGKILL to ``worker``, returning once the gateway has found it gone."""
+        os.kill(worker, signal.SIGKILL)
+        self.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+
     def started_again(self, victim: int) -> int:
         """The worker started in ``victim``'s place (from its start line), now running
         ``victim``'s buses."""
@@ -111,6 +116,15 @@ def served(tmp_path_factory) -> Iterator[Served]:
         gateway.stop()
         for simulator in simulators.values():
             simulator.stop()
+
+
+def reset_every_device(client: bc.Client) -> None:
+    """The gateway's e-stop reset, and every device seen out of it (as the next test wants)."""
+    client.reset_estop("gw1")
+    for device in DEVICES.values():
+        wait_until(
+            lambda d=device: client.device(d).state()["estopped"] is False, what=f"{device} reset"
+        )
 
 
 @pytest.fixture
@@ -159,9 +173,7 @@ def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> N
         assert served.estops(bus, marks[bus]), f"no e-stop frame reached {bus}"
     with pytest.raises(bc.error_for("estopped")):
         client.device(DEVICES["uart3"]).move(500)
-    client.reset_estop("gw1")
-    for device in DEVICES.values():
-        wait_until(lambda d=device: client.device(d).state()["estopped"] is False, timeout=5)
+    reset_every_device(client)
 
 
 def test_a_trajectory_across_two_workers_ticks_on_one_grid(served: Served, client) -> None:
@@ -235,8 +247,7 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     client.estop("gw1")
     wait_until(lambda: client.device(device).state()["estopped"] is True, what="e-stopped")
     mark = served.marks()[bus]
-    os.kill(victim, signal.SIGKILL)
-    served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
+    served.kill(victim)
     served.started_again(victim)
     # The gateway holds it e-stopped: the new worker e-stops it again, first of all it does.
     wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
@@ -248,11 +259,26 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     assert client.device(device).state()["estopped"] is True
     with pytest.raises(bc.error_for("estopped")):  # judged by the new worker's bus thread
         client.device(device).move(500)
-    client.reset_estop("gw1")
-    for other in DEVICES.values():
-        wait_until(
-            lambda d=other: client.device(d).state()["estopped"] is False, what=f"{other} reset"
-        )
+    reset_every_device(client)
+
+
+def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Served, client) -> None:
+    bus = "uart0"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    assert client.device(device).state()["online"] is True  # watched from now on
+    assert client.device(device).state()["estopped"] is False
+    mark = served.marks()[bus]
+    served.kill(victim)
+    client.estop("gw1")  # within the half second before the next worker starts
+    served.started_again(victim)
+    wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
+    wait_until(
+        lambda: client.device(device).state()["estopped"] is True,
+        timeout=10,
+        what=f"{device} e-stopped on its new worker",
+    )
+    reset_every_device(client)
 
 
 def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
@@ -436,6 +462,7 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
             for _ in simulators
         ]
         gateway.wait_for("serving 2 buses, 2 up")
+        marks = [len(sim.recorder.received()) for sim in simulators]
         gateway.process.kill()  # no orderly stop: SIGKILL, as an OOM killer would
         gateway.process.wait()
         wait_until(
@@ -443,6 +470,13 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
             timeout=10,
             what="the workers ended with their daemon",
         )
+        for sim, mark in zip(simulators, marks, strict=True):  # each bus stopped in order
+            stops = [
+                f
+                for _, f in received(sim, mark, la)
+                if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
+            ]
+            assert stops, "a worker ended without its devices' safe stop"
     finally:
         gateway.stop()
         for simulator in simulators:
@@ -455,3 +489,24 @@ def _ended(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
     except FileNotFoundError:
         return True
+
+
+class _Unpicklable:
+    def __reduce__(self):
+        raise ValueError("this value does not pickle")
+
+
+def test_a_value_that_cannot_be_pickled_is_lost_never_the_sender() -> None:
+    ours, theirs = link.pair()
+    reader = link.Reader(theirs)
+    outbox = link.Outbox(ours, "test-send").start()
+    try:
+        outbox.put(("state", "uart0", "la1", {"odd": _Unpicklable()}), urgent=True)
+        estop = ("call", 1, "uart0", "estop", (), {})
+        time.sleep(0.05)  # the sender has met it
+        outbox.put_now(estop)
+        assert link.unbatched(reader.receive(5.0)) == [estop]
+    finally:
+        outbox.close()
+        ours.close()
+        theirs.close()

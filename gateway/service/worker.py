@@ -15,12 +15,18 @@ them. Rules of this file:
    every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open and its
    statistics (``workers`` rule 1 reads them).
 3. When the socket closes (the daemon went), ``stop`` comes or SIGTERM, the buses stop in
-   order (streams, safe state, close) and the process ends. SIGINT is the daemon's to act on:
-   a Ctrl-C in a terminal reaches the whole process group.
+   order (streams, safe state, close) and the process ends. SIGTERM only closes the socket's
+   reading side, so that the stop is the same whatever the main thread was doing when it
+   came; once stopping, a SIGTERM more (the daemon's death signal right after its socket
+   closed) is ignored. SIGINT is the daemon's to act on: a Ctrl-C in a terminal reaches the
+   whole process group.
+4. A message that cannot be carried out, and a mirror turn that fails, are bugs: logged, and
+   the worker goes on.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
@@ -62,26 +68,37 @@ class Worker:
                 runner.owner.tap = partial(self._frame, name)
 
     def run(self, estopped: list[str]) -> None:
-        self.outbox.start()
-        for name in estopped:  # e-stopped before this worker: e-stopped from its first turn
-            self.runners[name].estop()
-        for runner in self.runners.values():
-            runner.start()
+        """Run the buses until ``stop``, the socket's end or SIGTERM (rule 3)."""
+        signal.signal(signal.SIGTERM, self._stop_reading)
         done = threading.Event()
         mirror = threading.Thread(target=self._mirror, args=(done,), name="worker-mirror")
-        mirror.start()
         try:
+            self.outbox.start()
+            for name in estopped:  # e-stopped before this worker: e-stopped from its first turn
+                self.runners[name].estop()
+            for runner in self.runners.values():
+                runner.start()
+            mirror.start()
             while (received := self.reader.receive()) is not None:
-                messages = link.unbatched(received)
-                for message in messages:
-                    if message[0] == "stop":
-                        return
-                    self._carry_out(message)
+                for message in link.unbatched(received):
+                    try:
+                        if message[0] == "stop":
+                            return
+                        self._carry_out(message)
+                    except Exception:  # rule 4
+                        log.exception("worker: a message could not be carried out")
         finally:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # stopping already (rule 3)
             done.set()
-            mirror.join()
+            if mirror.ident is not None:
+                mirror.join()
             stop_together(partial(r.stop, STOP_TIMEOUT_S) for r in self.runners.values())
             self.outbox.close()
+
+    def _stop_reading(self, signum: int, frame: Any) -> None:
+        """SIGTERM: the read loop ends as when the daemon's socket closes (rule 3)."""
+        with contextlib.suppress(OSError):
+            self.reader.sock.shutdown(socket.SHUT_RD)
 
     def _carry_out(self, message: tuple) -> None:
         kind = message[0]
@@ -125,15 +142,18 @@ class Worker:
         sent: dict[str, tuple[Any, dict[str, int]]] = {}
         beats = round(link.BEAT_S / MIRROR_S)
         for turn in range(sys.maxsize):
-            for name, runner in self.runners.items():
-                view = runner.plays.view
-                ids = {device: driver.device_id for device, driver in runner.drivers.items()}
-                last = sent.get(name)
-                if last is None or last[0] is not view or last[1] != ids:
-                    sent[name] = (view, ids)
-                    self.outbox.put(("plays", name, view, ids))
-            if turn % beats == 0:
-                self.outbox.put(("beat", self._beat()))
+            try:
+                for name, runner in self.runners.items():
+                    view = runner.plays.view
+                    ids = {device: d.device_id for device, d in runner.drivers.items()}
+                    last = sent.get(name)
+                    if last is None or last[0] is not view or last[1] != ids:
+                        sent[name] = (view, ids)
+                        self.outbox.put(("plays", name, view, ids))
+                if turn % beats == 0:
+                    self.outbox.put(("beat", self._beat()))
+            except Exception:  # rule 4
+                log.exception("worker: a mirror turn failed")
             if done.wait(MIRROR_S):
                 return
 

@@ -229,7 +229,11 @@ class Outbox:
                     if not self._queue:
                         break
                     message, self._sending = self._next(), True
-                sent = self._send(message)
+                try:
+                    sent = self._send(message)
+                except Exception:  # a bug: this message is lost, never the sender (rule 3)
+                    log.exception("a %r message could not be sent", message[0])
+                    sent = True
                 with self._lock:
                     self._sending = False
                 if not sent:
@@ -253,7 +257,7 @@ class Outbox:
         is logged and dropped (a bug: the sender goes on), the rest of its batch sent."""
         try:
             data = message[1] if message[0] is _PICKLED else pickle.dumps(message, -1)
-        except (pickle.PicklingError, TypeError, AttributeError):
+        except Exception:  # what a value's pickling may raise: its own bug, not the link's
             if message[0] == "batch":  # one by one: only what cannot cross is lost
                 return all(self._send(item) for item in message[1])
             log.exception("a %r message cannot cross to the other process", message[0])

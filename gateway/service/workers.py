@@ -24,6 +24,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import os
@@ -32,7 +33,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from functools import cache
 from typing import Any, ClassVar
 
@@ -96,39 +97,46 @@ def split(config: Config, names: list[str], count: int) -> list[list[str]]:
 
 
 class ForwardedClaims(ClaimTable):
-    """A bus's claim table, each change also sent to its worker (rule 2)."""
+    """A bus's claim table, each change also sent to its worker (rule 2): a change and its
+    word go together (``_in_order``), so the worker's table goes through the same changes in
+    the same order, whichever threads make them."""
 
     def __init__(self, send: Callable[[tuple], None], bus: str) -> None:
         super().__init__()
         self._send = send
         self._bus = bus
+        self._in_order = threading.Lock()
 
     def claim(self, device: str, client: str, ttl_s: float, now: float) -> None:
-        super().claim(device, client, ttl_s, now)
-        self._send(("claims", self._bus, "claim", (device, client, ttl_s, now)))
+        with self._in_order:
+            super().claim(device, client, ttl_s, now)
+            self._send(("claims", self._bus, "claim", (device, client, ttl_s, now)))
 
     def hold(self, device: str, client: str, ttl_s: float, now: float) -> bool:
-        new = super().hold(device, client, ttl_s, now)
-        self._send(("claims", self._bus, "hold", (device, client, ttl_s, now)))
+        with self._in_order:
+            new = super().hold(device, client, ttl_s, now)
+            self._send(("claims", self._bus, "hold", (device, client, ttl_s, now)))
         return new
 
     def release(self, device: str, client: str, now: float) -> None:
-        super().release(device, client, now)
-        self._send(("claims", self._bus, "release", (device, client, now)))
+        with self._in_order:
+            super().release(device, client, now)
+            self._send(("claims", self._bus, "release", (device, client, now)))
 
     def drop_client(self, client: str) -> list[str]:
-        dropped = super().drop_client(client)
-        self._send(("claims", self._bus, "drop_client", (client,)))
+        with self._in_order:
+            dropped = super().drop_client(client)
+            self._send(("claims", self._bus, "drop_client", (client,)))
         return dropped
 
-    def standing(self, moment: float) -> list[tuple[str, str, float, float]]:
-        """The claims that hold at ``moment``, as ``claim`` takes them (for a new worker)."""
-        with self._lock:
-            return [
-                (device, held.client, held.until - moment, moment)
-                for device, held in self._holders.items()
-                if held.until > moment
-            ]
+    def hand_over(self, outbox: link.Outbox, moment: float) -> None:
+        """The claims that hold at ``moment`` to a new worker's ``outbox``, as ``claim``
+        takes them; no change comes between (it follows, in order)."""
+        with self._in_order, self._lock:
+            for device, held in self._holders.items():
+                if held.until > moment:
+                    claim = (device, held.client, held.until - moment, moment)
+                    outbox.put_now(("claims", self._bus, "claim", claim))
 
 
 @cache
@@ -157,6 +165,8 @@ class WorkerProcess:
         self.outbox: link.Outbox | None = None
         self._spoken = False  # the running worker said a word since it was started
         self._pending: dict[int, Future] = {}
+        #: Buses e-stopped while no worker ran: the next one e-stops them as it starts.
+        self._estops_due: set[str] = set()
         self._ids = itertools.count()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -211,9 +221,12 @@ class WorkerProcess:
 
     def _supervise(self) -> None:
         while not self._stopping.is_set():
-            process, sock = self._spawn()
-            self._read(sock)
-            self._ended(process)
+            try:
+                process, sock = self._spawn()
+                self._read(sock)
+                self._ended(process)
+            except Exception:  # a bug, or no process to be had (EMFILE): try again
+                log.exception("worker %d: its supervisor failed", self.index)
             if self._stopping.wait(RESTART_S):
                 return
             log.info("worker %d: starting it again", self.index)
@@ -232,17 +245,18 @@ class WorkerProcess:
         )
         theirs.close()
         outbox = link.Outbox(ours, f"worker{self.index}-send")
-        estopped = [name for name, r in self.runners.items() if r.any_estopped()]
-        outbox.put(("start", self.config, list(self.runners), estopped))
-        with self._lock:
+        with self._lock:  # an e-stop comes before (in the start) or after (a call), never lost
+            estopped = {name for name, r in self.runners.items() if r.any_estopped()}
+            estopped |= self._estops_due
+            self._estops_due = set()
+            outbox.put(("start", self.config, list(self.runners), sorted(estopped)))
             self.process, self.outbox, self.last_word = process, outbox.start(), now()
         self._spoken = False
-        # The claims that stand, taken once the outbox is the worker's: a claim changed
-        # meanwhile is sent twice (in order, so the later word wins), never lost.
+        # The claims that stand, once the outbox is the worker's: a change made meanwhile
+        # comes after them, in order (``ForwardedClaims.hand_over``).
         moment = now()
-        for name, runner in self.runners.items():
-            for claim in runner.claims.standing(moment):
-                outbox.put_now(("claims", name, "claim", claim))
+        for runner in self.runners.values():
+            runner.claims.hand_over(outbox, moment)
         if self._stopping.is_set():  # stopped while it was starting
             outbox.put(("stop",))
         return process, ours
@@ -255,6 +269,8 @@ class WorkerProcess:
         with self._lock:  # registered before its answer can be read
             outbox = self.outbox
             if outbox is None:
+                if method == "estop":  # kept: the next worker e-stops the bus as it starts
+                    self._estops_due.add(bus)
                 future.set_exception(BusUnavailableError(f"bus {bus}: its worker is down"))
                 return future
             call_id = next(self._ids)
@@ -310,12 +326,13 @@ class WorkerProcess:
     def _settle(self, call_id: int, ok: bool, value: Any) -> None:
         with self._lock:
             future = self._pending.pop(call_id, None)
-        if future is None or future.done():
+        if future is None:
             return
-        if ok:
-            future.set_result(value)
-        else:
-            future.set_exception(link.rebuilt(*value))
+        with contextlib.suppress(InvalidStateError):  # its caller gave up on it meanwhile
+            if ok:
+                future.set_result(value)
+            else:
+                future.set_exception(link.rebuilt(*value))
 
     def _on_state(self, bus: str, device: str, state: dict[str, Any]) -> None:
         self.runners[bus].took_state(device, state)
@@ -354,14 +371,14 @@ class WorkerProcess:
         code = process.wait()
         self._first_word.set()  # start-up goes on: its buses are down
         self.beat = {}
-        if self._stopping.is_set():
-            return
         how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
-        log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         gone = BusUnavailableError(f"the worker of its bus ended ({how})")
         for future in waiting.values():
-            if not future.done():
+            with contextlib.suppress(InvalidStateError):  # its caller gave up on it meanwhile
                 future.set_exception(gone)
+        if self._stopping.is_set():
+            return
+        log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             runner.worker_ended(f"its worker ended ({how})")
 
