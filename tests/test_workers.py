@@ -28,7 +28,12 @@ import busgate.client as bc
 from busgate.codecs import inspire_la as la
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import build_bus
-from busgate.gateway.service.workers import WorkerProcess
+from busgate.gateway.service.workers import (
+    RESTART_MAX_S,
+    RESTART_S,
+    WorkerProcess,
+    restart_delay,
+)
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import parse_config
@@ -510,3 +515,13 @@ def test_a_value_that_cannot_be_pickled_is_lost_never_the_sender() -> None:
         outbox.close()
         ours.close()
         theirs.close()
+
+
+def test_a_worker_that_keeps_ending_before_its_first_word_waits_longer_each_time() -> None:
+    waits, wait_s = [], 0.0
+    for _ in range(10):
+        wait_s = restart_delay(wait_s, spoke=False)
+        waits.append(wait_s)
+    assert waits[:4] == [RESTART_S, 2 * RESTART_S, 4 * RESTART_S, 8 * RESTART_S]
+    assert waits[-1] == RESTART_MAX_S
+    assert restart_delay(RESTART_MAX_S, spoke=True) == RESTART_S  # one that ran: at once again

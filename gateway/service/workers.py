@@ -15,8 +15,9 @@ Rules of this file:
 3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
    word: it is killed), is reported once: every call waiting on it is answered
    ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
-   worker is started again after ``RESTART_S``, with nothing to resume: no stream, no play,
-   no ramp; a client commands again.
+   worker is started again after ``RESTART_S`` (longer each time, up to ``RESTART_MAX_S``,
+   while it ends before its first word), with nothing to resume: no stream, no play, no ramp;
+   a client commands again.
 4. A worker is started and read by one supervising thread for the daemon's whole life: a
    child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it. A word of
    the worker's that cannot be taken (a bug) is logged and dropped; the thread goes on.
@@ -52,6 +53,9 @@ log = logging.getLogger(__name__)
 
 #: A worker that ended is started again after this long.
 RESTART_S = 0.5
+#: The longest wait before starting again a worker that keeps ending before its first word
+#: (each such end doubles the wait: a worker that cannot start does not spin a core).
+RESTART_MAX_S = 30.0
 #: How long a new worker is given to say its first word before start-up goes on without it.
 FIRST_WORD_S = 5.0
 #: How long a worker just started may take to say its first word (an interpreter's start on a
@@ -59,6 +63,15 @@ FIRST_WORD_S = 5.0
 SLOW_START_S = 20.0
 #: How long a stopping worker is given to stop its buses before it is killed.
 STOP_S = 2.0
+
+
+def restart_delay(previous_s: float, *, spoke: bool) -> float:
+    """How long to wait before starting a worker again: ``RESTART_S`` after one that spoke,
+    twice the wait before after one that ended before its first word (up to
+    ``RESTART_MAX_S``)."""
+    if spoke or previous_s <= 0.0:
+        return RESTART_S
+    return min(2 * previous_s, RESTART_MAX_S)
 
 
 def worker_count(setting: str | int, buses: int) -> int:
@@ -220,6 +233,7 @@ class WorkerProcess:
         return now() - self.last_word > (STALL_S if self._spoken else SLOW_START_S)
 
     def _supervise(self) -> None:
+        delay_s = 0.0
         while not self._stopping.is_set():
             try:
                 process, sock = self._spawn()
@@ -227,7 +241,14 @@ class WorkerProcess:
                 self._ended(process)
             except Exception:  # a bug, or no process to be had (EMFILE): try again
                 log.exception("worker %d: its supervisor failed", self.index)
-            if self._stopping.wait(RESTART_S):
+            delay_s = restart_delay(delay_s, spoke=self._spoken)
+            if delay_s > RESTART_S:
+                log.warning(
+                    "worker %d ended before its first word: started again in %.0f s",
+                    self.index,
+                    delay_s,
+                )
+            if self._stopping.wait(delay_s):
                 return
             log.info("worker %d: starting it again", self.index)
 
