@@ -525,3 +525,29 @@ def test_a_worker_that_keeps_ending_before_its_first_word_waits_longer_each_time
     assert waits[:4] == [RESTART_S, 2 * RESTART_S, 4 * RESTART_S, 8 * RESTART_S]
     assert waits[-1] == RESTART_MAX_S
     assert restart_delay(RESTART_MAX_S, spoke=True) == RESTART_S  # one that ran: at once again
+
+
+def test_messages_a_full_outbox_loses_are_counted_and_logged(caplog) -> None:
+    class SmallOutbox(link.Outbox):
+        BACKLOG = 8
+
+    ours, theirs = link.pair()
+    reader = link.Reader(theirs)
+    with contextlib.suppress(BlockingIOError):
+        while True:  # a peer that stopped reading: the socket to it is full
+            ours.send(b"=" + pickle.dumps(("batch", [])), socket.MSG_DONTWAIT)
+    outbox = SmallOutbox(ours, "test-send").start()
+    try:
+        outbox.put(("state", "uart0", "la1", {"n": -1}), urgent=True)
+        wait_until(lambda: not outbox._queue, what="the sender holding it, waiting for room")
+        for n in range(20):  # 8 wait; the 12 oldest are lost
+            outbox.put(("state", "uart0", "la1", {"n": n}))
+        states = []
+        while len(states) < 9:
+            states += [m[3]["n"] for m in link.unbatched(reader.receive(5.0)) if m[0] == "state"]
+        assert states == [-1, *range(12, 20)]
+        wait_until(lambda: "12 messages lost" in caplog.text, what="the loss logged")
+    finally:
+        outbox.close()
+        ours.close()
+        theirs.close()

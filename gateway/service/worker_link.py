@@ -165,8 +165,8 @@ class Outbox:
     gather for ``GATHER_S`` unless one is urgent (an answer, a call), so that a worker's states
     cost one wake-up, one pickling and one send per batch rather than each."""
 
-    #: Messages waiting at most: a peer that stopped reading loses the oldest, never the
-    #: memory of the process that writes.
+    #: Messages waiting at most: a peer that stopped reading loses the oldest (counted, and
+    #: logged once the sender moves again), never the memory of the process that writes.
     BACKLOG = 65_536
 
     def __init__(self, sock: socket.socket, name: str) -> None:
@@ -177,6 +177,7 @@ class Outbox:
         self._lock = threading.Lock()  # the queue's head and what is being sent
         self._sending = False
         self._closed = False
+        self._dropped = 0  # the oldest messages the full queue lost since the last log
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
 
     def start(self) -> Outbox:
@@ -185,6 +186,8 @@ class Outbox:
 
     def put(self, message: tuple, *, urgent: bool = False) -> None:
         """``message`` out, pickled by the sender thread (for a bus thread: rule 3)."""
+        if len(self._queue) == self.BACKLOG:
+            self._dropped += 1
         self._queue.append(message)
         if urgent:
             self._urgent.set()
@@ -208,6 +211,8 @@ class Outbox:
                     pass
                 except OSError:
                     return  # the peer has gone: its supervisor reports it
+            if len(self._queue) == self.BACKLOG:
+                self._dropped += 1
             self._queue.append((_PICKLED, data))
         self._urgent.set()
         self._ready.set()
@@ -238,6 +243,9 @@ class Outbox:
                     self._sending = False
                 if not sent:
                     return
+                if self._dropped:
+                    dropped, self._dropped = self._dropped, 0
+                    log.error("%d messages lost: the other process did not read them", dropped)
             if self._closed:
                 return
 
