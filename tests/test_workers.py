@@ -123,13 +123,22 @@ def served(tmp_path_factory) -> Iterator[Served]:
             simulator.stop()
 
 
+def until_state(
+    client: bc.Client, device: str, field: str, value: bool, timeout: float = 5.0
+) -> None:
+    """Until ``device``'s state says ``value`` in ``field`` (``online``, ``estopped``)."""
+    wait_until(
+        lambda: client.device(device).state()[field] is value,
+        timeout=timeout,
+        what=f"{device} with {field} {value}",
+    )
+
+
 def reset_every_device(client: bc.Client) -> None:
     """The gateway's e-stop reset, and every device seen out of it (as the next test wants)."""
     client.reset_estop("gw1")
     for device in DEVICES.values():
-        wait_until(
-            lambda d=device: client.device(d).state()["estopped"] is False, what=f"{device} reset"
-        )
+        until_state(client, device, "estopped", False)
 
 
 @pytest.fixture
@@ -173,7 +182,7 @@ def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> N
     marks = served.marks()
     client.estop("gw1")
     for device in DEVICES.values():
-        wait_until(lambda d=device: client.device(d).state()["estopped"] is True, timeout=5)
+        until_state(client, device, "estopped", True)
     for bus in BUSES:
         assert served.estops(bus, marks[bus]), f"no e-stop frame reached {bus}"
     with pytest.raises(bc.error_for("estopped")):
@@ -218,19 +227,11 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
             stream.set(position=800 + 20 * k)
             time.sleep(0.02)
         os.kill(victim, signal.SIGKILL)
-        wait_until(
-            lambda: client.device(device).state()["online"] is False,
-            timeout=5,
-            what=f"{device} offline after its worker was killed",
-        )
+        until_state(client, device, "online", False)  # its worker killed
     line = served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
     assert bus in line
     served.started_again(victim)
-    wait_until(
-        lambda: client.device(device).state()["online"] is True,
-        timeout=10,
-        what=f"{device} online again on its new worker",
-    )
+    until_state(client, device, "online", True, timeout=10)  # on its new worker
     mark = served.marks()[bus]
     time.sleep(0.5)
     moving = [
@@ -250,17 +251,13 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     victim = served.worker_of(bus)
     assert client.device(device).state()["online"] is True  # watched from now on
     client.estop("gw1")
-    wait_until(lambda: client.device(device).state()["estopped"] is True, what="e-stopped")
+    until_state(client, device, "estopped", True)
     mark = served.marks()[bus]
     served.kill(victim)
     served.started_again(victim)
     # The gateway holds it e-stopped: the new worker e-stops it again, first of all it does.
     wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
-    wait_until(
-        lambda: client.device(device).state()["online"] is True,
-        timeout=10,
-        what=f"{device} online again on its new worker",
-    )
+    until_state(client, device, "online", True, timeout=10)  # on its new worker
     assert client.device(device).state()["estopped"] is True
     with pytest.raises(bc.error_for("estopped")):  # judged by the new worker's bus thread
         client.device(device).move(500)
@@ -278,11 +275,7 @@ def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Serv
     client.estop("gw1")  # within the half second before the next worker starts
     served.started_again(victim)
     wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
-    wait_until(
-        lambda: client.device(device).state()["estopped"] is True,
-        timeout=10,
-        what=f"{device} e-stopped on its new worker",
-    )
+    until_state(client, device, "estopped", True, timeout=10)  # by its new worker
     reset_every_device(client)
 
 
@@ -305,11 +298,7 @@ def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
             if Path(f"/proc/{victim}").exists():
                 os.kill(victim, signal.SIGCONT)
         served.started_again(victim)
-        wait_until(
-            lambda: client.device(device).state()["online"] is True,
-            timeout=10,
-            what=f"{device} online again on its new worker",
-        )
+        until_state(client, device, "online", True, timeout=10)  # on its new worker
         marks = served.marks()
         with pytest.raises(bc.ClaimedError):  # judged by the new worker's bus thread
             late.device(device).move(700)

@@ -186,9 +186,7 @@ class Outbox:
 
     def put(self, message: tuple, *, urgent: bool = False) -> None:
         """``message`` out, pickled by the sender thread (for a bus thread: rule 3)."""
-        if len(self._queue) == self.BACKLOG:
-            self._dropped += 1
-        self._queue.append(message)
+        self._queue_up(message)
         if urgent:
             self._urgent.set()
         self._ready.set()
@@ -211,11 +209,15 @@ class Outbox:
                     pass
                 except OSError:
                     return  # the peer has gone: its supervisor reports it
-            if len(self._queue) == self.BACKLOG:
-                self._dropped += 1
-            self._queue.append((_PICKLED, data))
+            self._queue_up((_PICKLED, data))
         self._urgent.set()
         self._ready.set()
+
+    def _queue_up(self, item: tuple) -> None:
+        """``item`` at the queue's end; a full queue loses its oldest, counted (``BACKLOG``)."""
+        if len(self._queue) == self.BACKLOG:
+            self._dropped += 1
+        self._queue.append(item)
 
     def close(self) -> None:
         self._closed = True

@@ -142,14 +142,14 @@ class ForwardedClaims(ClaimTable):
             self._send(("claims", self._bus, "drop_client", (client,)))
         return dropped
 
-    def hand_over(self, outbox: link.Outbox, moment: float) -> None:
-        """The claims that hold at ``moment`` to a new worker's ``outbox``, as ``claim``
-        takes them; no change comes between (it follows, in order)."""
+    def hand_over(self, moment: float) -> None:
+        """The claims that hold at ``moment`` to a new worker, as ``claim`` takes them; no
+        change comes between (it follows, in order)."""
         with self._in_order, self._lock:
             for device, held in self._holders.items():
                 if held.until > moment:
                     claim = (device, held.client, held.until - moment, moment)
-                    outbox.put_now(("claims", self._bus, "claim", claim))
+                    self._send(("claims", self._bus, "claim", claim))
 
 
 @cache
@@ -277,7 +277,7 @@ class WorkerProcess:
         # comes after them, in order (``ForwardedClaims.hand_over``).
         moment = now()
         for runner in self.runners.values():
-            runner.claims.hand_over(outbox, moment)
+            runner.claims.hand_over(moment)
         if self._stopping.is_set():  # stopped while it was starting
             outbox.put(("stop",))
         return process, ours
