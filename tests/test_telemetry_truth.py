@@ -13,7 +13,7 @@ import time
 import zenoh
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.drivers.inspire_la import InspireLaDriver, PowerStage
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.telemetry import STALE_PERIODS, Telemetry
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -58,6 +58,34 @@ def test_news_that_changed_nothing_publishes_nothing():
         telemetry.publish(moment)
     assert len(states) == 1
     assert telemetry.states["la1"] is states[0][1], "the last state published is kept"
+
+
+def test_news_that_changed_a_value_without_a_reading_publishes_it_with_the_same_ts():
+    la1, devices, telemetry, states = read_la()
+    la1.power = PowerStage.PAUSED  # a pause's frame has no reply: nothing was read
+    devices.touched(la1)
+    telemetry.publish(10.03)
+    la1.power = PowerStage.ESTOPPED  # an e-stop, flag and power
+    devices.touched(la1)
+    telemetry.publish(10.05)
+    assert [(s["power"], s["enabled"], s["estopped"]) for _, s in states] == [
+        ("on", True, False), ("paused", False, False), ("estopped", False, True)]
+    assert len({s["ts"] for _, s in states}) == 1, "one reading"
+
+
+def test_a_device_never_read_is_published_again_only_when_its_state_changes():
+    la1 = InspireLaDriver("la1", 1)  # streamed, never polled: nothing is ever read
+    devices = BusDevices([la1])
+    telemetry, _, states = telemetry_of(devices, {})
+    telemetry.publish(1.0)
+    for moment in (1.01, 1.02):  # its follow ticks
+        devices.touched(la1)
+        telemetry.publish(moment)
+    assert len(states) == 1, "a state stamped when taken is not a new reading"
+    la1.power = PowerStage.ESTOPPED
+    devices.touched(la1)
+    telemetry.publish(1.03)
+    assert [s["estopped"] for _, s in states] == [False, True]
 
 
 def test_a_new_reply_publishes_with_a_new_ts():

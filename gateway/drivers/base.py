@@ -351,7 +351,9 @@ class Driver(abc.ABC):
     def telemetry(self, now: float) -> dict[str, Any]:
         """The device's values in named units (``position``, ``faults`` …) and whether its
         power stage drives the motor (``enabled``, ``None`` when not known), without the
-        envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds."""
+        envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds. A new dict
+        at each call, its values never changed afterwards: the bus's telemetry keeps the one
+        it published, to tell whether the next differs."""
 
     # -- liveness ---------------------------------------------------------------------------
 
@@ -405,10 +407,12 @@ class Driver(abc.ABC):
         events, self._events = self._events, []
         return events
 
-    def state(self, now: float) -> dict[str, Any]:
-        """The telemetry with its envelope; the bus's telemetry stamps it (``ts``: when it was
-        read) and marks it ``stale``."""
-        telemetry = self.telemetry(now)
+    def state(self, now: float, telemetry: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The telemetry (``telemetry``: its ``telemetry(now)``, when the caller has it) with
+        its envelope; the bus's telemetry stamps it (``ts``: when it was read) and marks it
+        ``stale``."""
+        if telemetry is None:
+            telemetry = self.telemetry(now)
         return {
             "device": self.name,
             "kind": self.kind,
