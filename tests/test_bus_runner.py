@@ -152,6 +152,47 @@ def test_a_poll_decided_before_its_moment_starts_as_decided_unless_its_wait_was_
         assert slot.priority is Priority.POLL and at is None  # at its moment already
 
 
+LEAD_S = 50e-6
+
+
+@pytest.mark.parametrize(
+    ("woken", "goes_on"),
+    [("reached", True), ("cut_short_before_its_last_stretch", False),
+     ("cut_short_in_its_last_stretch", True)],
+)  # fmt: skip
+def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cuts_it_short(
+        monkeypatch, simulator, woken, goes_on) -> None:
+    """This thread plays the bus thread, on a fake clock, with a learnt lead of 50 us. A
+    precise wait asks the owner to idle until the lead before its deadline (one wait: the
+    rest is the caller's spin) and learns how late it woke; new work cuts it short before the
+    last ``UNINTERRUPTED_S``, not in it."""
+    runner = build_bus(bus(simulator.port))  # not started
+    clock = [100.0]
+    deadline = 100.005
+    monkeypatch.setattr(runner_module, "now", lambda: clock[0])
+    monkeypatch.setattr(runner_module, "wake_lead", lambda: LEAD_S)
+    learnt: list[float] = []
+    monkeypatch.setattr(runner_module, "woke_for", learnt.append)
+    asked: list[float] = []
+
+    def idle_until(until: float, pause: object) -> bool:
+        asked.append(until)
+        clock[0] = {"reached": until + 20e-6,
+                    "cut_short_before_its_last_stretch": deadline - 0.0015,
+                    "cut_short_in_its_last_stretch": deadline - 0.0005}[woken]  # fmt: skip
+        return woken == "reached"
+
+    monkeypatch.setattr(runner.owner, "idle_until", idle_until)
+    assert runner._wait_until(deadline) is goes_on
+    assert asked == [pytest.approx(deadline - LEAD_S)]
+    assert learnt == ([pytest.approx(deadline - LEAD_S)] if woken == "reached" else [])
+    clock[0], learnt[:] = deadline - LEAD_S / 2, []  # within its lead already: no wait to learn
+    runner._wait_until(deadline)
+    assert learnt == []
+    assert runner._wait_until(deadline + 0.003, precise=False) is (woken == "reached")
+    assert asked[-1] == pytest.approx(deadline + 0.003), "a wait that is not precise: no lead"
+
+
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
     wait_for, simulator
 ) -> None:

@@ -55,6 +55,19 @@ class WakeUpLead(threading.local):
 _lead = WakeUpLead()
 
 
+def wake_lead() -> float:
+    """How long before a precise deadline the calling thread asks to be woken (its learnt
+    lead): a wait of its own (one new work may cut short) ends there, and ``sleep_until``
+    spins the rest."""
+    return _lead.lead_s
+
+
+def woke_for(asked: float) -> None:
+    """The calling thread, whose wait was to end at ``asked`` (its lead before a deadline),
+    is awake: its lead learns how late."""
+    _lead.learn(now() - asked)
+
+
 def sleep_until(deadline: float, *, spin_s: float | None = None) -> float:
     """Return at ``deadline`` (a ``perf_counter`` time) or just after; return the time then.
     The sleep ends the thread's learnt lead before it (``spin_s``: that lead instead, not
@@ -64,7 +77,7 @@ def sleep_until(deadline: float, *, spin_s: float | None = None) -> float:
     if remaining > lead:
         time.sleep(remaining - lead)
         if spin_s is None:
-            _lead.learn(now() - (deadline - lead))
+            woke_for(deadline - lead)
     while (current := now()) < deadline:
         pass
     return current

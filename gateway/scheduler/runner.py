@@ -6,12 +6,15 @@ Rules of this file:
    event loop) only call ``submit`` / ``estop`` / ``follow`` / ``stop``, which hand work over
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
    a frame.
-2. Waiting is to an absolute deadline: sleep most of the way, spin the last fraction of a
-   millisecond (``clock.sleep_until``), waking early only when new work arrives or a frame
-   nobody asked for brought news (the owner's idle work: ``BusOwner.idle_until``). What starts
+2. Waiting is to an absolute deadline: one wait (the owner's idle work,
+   ``BusOwner.idle_until``) until the thread's learnt wake-up lead before it, then a spin
+   (``clock.sleep_until``), waking early only when new work arrives or a frame nobody asked
+   for brought news; new work no longer cuts the last ``UNINTERRUPTED_S`` short. What starts
    at the deadline is decided (and its frame encoded) just before, so at the deadline only
    the write is left; a wait cut short decides again. A new target of a running follow
-   stream is stored where the next tick reads it, without waking the thread.
+   stream is stored where the next tick reads it, without waking the thread. Each wait
+   costs the thread some 30 µs of CPU in the kernel (docs/performance.md), so an exchange
+   waits as few times as its timing allows: once to its prepare point, once to its moment.
 3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
    streams, marks the devices offline and reconnects with backoff (``link``); the devices are
    re-initialised once it is back.
@@ -42,6 +45,8 @@ from busgate.gateway.bus.clock import (
     now,
     sleep_until,
     tighten_timer_slack,
+    wake_lead,
+    woke_for,
 )
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
@@ -67,11 +72,8 @@ log = logging.getLogger(__name__)
 IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
 PREPARE_S = 0.003
-#: The last stretch of a precise wait is spun: new work no longer cuts it short.
+#: The last stretch of a precise wait: new work no longer cuts it short.
 UNINTERRUPTED_S = 0.001
-#: The last stretch before a deadline is waited out by the bus owner, right before its
-#: write, so that nothing runs between the deadline and the frame.
-FINAL_WAIT_S = 0.001
 #: A bus thread whose loop has not turned for this long is stuck: it turns at least every
 #: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
 STALL_S = 2 * BACKOFF_MAX_S
@@ -272,15 +274,16 @@ class BusRunner:
             return
         prepared = self.planner.decide(decision)
         if not isinstance(prepared, Slot):
-            self._wait_until(decision)  # nothing starts then: decided again at that moment
+            if self._wait_until(decision):  # nothing starts then: decided again at that moment
+                self._arrive(decision)
         elif prepared.priority is Priority.FOLLOW:
-            # Only a follow tick is worth an uninterruptible last wait (its frame goes at its
-            # moment to the µs).
-            if self._wait_until(decision - FINAL_WAIT_S, precise=False):
+            # A follow tick goes whatever came in its last stretch (its frame goes at its
+            # moment to the µs): the owner spins to it, right before its write.
+            if self._wait_until(decision):
                 self._execute(prepared, at=decision)
-        elif self._wait_until(decision):
-            # Anything else waits where new work (an e-stop) still wakes it, and then is
-            # decided again; else it starts as prepared, nothing left to do after the gap.
+        elif self._wait_until(decision) and self._arrive(decision):
+            # Anything else is decided again when new work (an e-stop) came while it waited,
+            # even in the last stretch; else it starts as prepared, nothing left after the gap.
             self._execute(prepared)
 
     def _answer_expired(self) -> None:
@@ -300,20 +303,28 @@ class BusRunner:
             self._link_lost(exc, slot)
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
-        """Wait for ``deadline`` (the last ``UNINTERRUPTED_S`` spun, when ``precise``), doing
-        the owner's idle work meanwhile; ``False`` when cut short (rule 2, or a lost link)."""
+        """Wait for ``deadline``, doing the owner's idle work meanwhile; ``False`` when cut
+        short (rule 2, or a lost link). ``precise``: the wait ends the thread's wake-up lead
+        before ``deadline``, its lateness learnt, the rest left to a ``sleep_until`` (the
+        caller's ``_arrive``, or the owner's before its write), and new work in its last
+        ``UNINTERRUPTED_S`` does not cut it short."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
-        idle_until = deadline - UNINTERRUPTED_S if precise else deadline
+        asked = deadline - wake_lead() if precise else deadline
+        waited = now() < asked
         try:
-            reached = self.owner.idle_until(idle_until, self._pause)
+            reached = self.owner.idle_until(asked, self._pause)
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
-        if not reached:
-            return False
-        if precise:
-            sleep_until(deadline)
+        if reached and precise and waited:
+            woke_for(asked)
+        return reached or (precise and now() >= deadline - UNINTERRUPTED_S)
+
+    def _arrive(self, deadline: float) -> bool:
+        """Spin (or sleep, after a wait cut short in its last stretch) to ``deadline``; whether
+        no new work came meanwhile."""
+        sleep_until(deadline)
         return not self._wake.is_set()
 
     def _pause(self, seconds: float) -> bool:
