@@ -158,14 +158,14 @@ LEAD_S = 50e-6
 @pytest.mark.parametrize(
     ("woken", "goes_on"),
     [("reached", True), ("cut_short_before_its_last_stretch", False),
-     ("cut_short_in_its_last_stretch", True)],
+     ("cut_short_in_its_last_stretch", True), ("an_estop_in_its_last_stretch", False)],
 )  # fmt: skip
 def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cuts_it_short(
         monkeypatch, simulator, woken, goes_on) -> None:
     """This thread plays the bus thread, on a fake clock, with a learnt lead of 50 us. A
     precise wait asks the owner to idle until the lead before its deadline (one wait: the
     rest is the caller's spin) and learns how late it woke; new work cuts it short before the
-    last ``UNINTERRUPTED_S``, not in it."""
+    last ``UNINTERRUPTED_S``, not in it, but for an e-stop, which cuts it short there too."""
     runner = build_bus(bus(simulator.port))  # not started
     clock = [100.0]
     deadline = 100.005
@@ -179,7 +179,10 @@ def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cu
         asked.append(until)
         clock[0] = {"reached": until + 20e-6,
                     "cut_short_before_its_last_stretch": deadline - 0.0015,
-                    "cut_short_in_its_last_stretch": deadline - 0.0005}[woken]  # fmt: skip
+                    "cut_short_in_its_last_stretch": deadline - 0.0005,
+                    "an_estop_in_its_last_stretch": deadline - 0.0005}[woken]  # fmt: skip
+        if woken == "an_estop_in_its_last_stretch":
+            runner.estop()
         return woken == "reached"
 
     monkeypatch.setattr(runner.owner, "idle_until", idle_until)
@@ -187,6 +190,7 @@ def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cu
     assert asked == [pytest.approx(deadline - LEAD_S)]
     assert learnt == ([pytest.approx(deadline - LEAD_S)] if woken == "reached" else [])
     clock[0], learnt[:] = deadline - LEAD_S / 2, []  # within its lead already: no wait to learn
+    runner._drain_inbox()  # the e-stop planned
     runner._wait_until(deadline)
     assert learnt == []
     assert runner._wait_until(deadline + 0.003, precise=False) is (woken == "reached")

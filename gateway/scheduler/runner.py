@@ -9,9 +9,11 @@ Rules of this file:
 2. Waiting is to an absolute deadline: one wait (the owner's idle work,
    ``BusOwner.idle_until``) until the thread's learnt wake-up lead before it, then a spin
    (``clock.sleep_until``), waking early only when new work arrives or a frame nobody asked
-   for brought news; new work no longer cuts the last ``UNINTERRUPTED_S`` short. What starts
-   at the deadline is decided (and its frame encoded) just before, so at the deadline only
-   the write is left; a wait cut short decides again. A new target of a running follow
+   for brought news; new work no longer cuts the last ``UNINTERRUPTED_S`` short, but an
+   e-stop does (the frame it would wait for is not sent: the e-stop's go a gap after the
+   line's last exchange, not a gap after that frame). What starts at the deadline is
+   decided (and its frame encoded) just before, so at the deadline only the write is left;
+   a wait cut short decides again. A new target of a running follow
    stream is stored where the next tick reads it, without waking the thread. Each wait
    costs the thread some 30 µs of CPU in the kernel (docs/performance.md), so an exchange
    waits as few times as its timing allows: once to its prepare point, once to its moment.
@@ -132,6 +134,8 @@ class BusRunner:
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
         self._wake = threading.Event()
+        #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
+        self._estop_due = False
         self._stop = threading.Event()
         self._reconnect = Reconnect(name)
         self.last_turn = now()
@@ -188,7 +192,7 @@ class BusRunner:
 
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
-        return self._hand_over(self._work.plan_estop)
+        return self._hand_over(self._work.plan_estop, estop=True)
 
     def reset_estop(self, device: str | None = None) -> Future:
         """``device`` (``None``: every device of the bus) out of the gateway's e-stop, each
@@ -234,9 +238,11 @@ class BusRunner:
             self._thread.join(timeout)
         self.owner.close()
 
-    def _hand_over(self, action: Callable[[Future], None]) -> Future:
+    def _hand_over(self, action: Callable[[Future], None], *, estop: bool = False) -> Future:
         future: Future = Future()
         self._inbox.append(lambda: action(future))
+        if estop:
+            self._estop_due = True  # after the append: the flag never outlives what it says
         self._wake.set()
         return future
 
@@ -277,8 +283,8 @@ class BusRunner:
             if self._wait_until(decision):  # nothing starts then: decided again at that moment
                 self._arrive(decision)
         elif prepared.priority is Priority.FOLLOW:
-            # A follow tick goes whatever came in its last stretch (its frame goes at its
-            # moment to the µs): the owner spins to it, right before its write.
+            # A follow tick goes whatever but an e-stop came in its last stretch (its frame
+            # goes at its moment to the µs): the owner spins to it, right before its write.
             if self._wait_until(decision):
                 self._execute(prepared, at=decision)
         elif self._wait_until(decision) and self._arrive(decision):
@@ -293,6 +299,7 @@ class BusRunner:
 
     def _drain_inbox(self) -> None:
         self._wake.clear()
+        self._estop_due = False
         while self._inbox:
             self._inbox.popleft()()
 
@@ -307,7 +314,7 @@ class BusRunner:
         short (rule 2, or a lost link). ``precise``: the wait ends the thread's wake-up lead
         before ``deadline``, its lateness learnt, the rest left to a ``sleep_until`` (the
         caller's ``_arrive``, or the owner's before its write), and new work in its last
-        ``UNINTERRUPTED_S`` does not cut it short."""
+        ``UNINTERRUPTED_S`` does not cut it short unless it is an e-stop."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
         asked = deadline - wake_lead() if precise else deadline
@@ -319,7 +326,8 @@ class BusRunner:
             return False
         if reached and precise and waited:
             woke_for(asked)
-        return reached or (precise and now() >= deadline - UNINTERRUPTED_S)
+        last_stretch = precise and now() >= deadline - UNINTERRUPTED_S
+        return reached or (last_stretch and not self._estop_due)
 
     def _arrive(self, deadline: float) -> bool:
         """Spin (or sleep, after a wait cut short in its last stretch) to ``deadline``; whether
