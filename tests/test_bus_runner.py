@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 
 import pytest
@@ -155,18 +156,26 @@ def test_a_poll_decided_before_its_moment_starts_as_decided_unless_its_wait_was_
 LEAD_S = 50e-6
 
 
+@pytest.mark.parametrize("line", ["uart", "can"])
 @pytest.mark.parametrize(
     ("woken", "goes_on"),
     [("reached", True), ("cut_short_before_its_last_stretch", False),
-     ("cut_short_in_its_last_stretch", True), ("an_estop_in_its_last_stretch", False)],
+     ("cut_short_in_its_last_stretch", True), ("an_estop_in_its_last_stretch", False),
+     ("an_estop_as_it_ends", False)],
 )  # fmt: skip
-def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cuts_it_short(
-        monkeypatch, simulator, woken, goes_on) -> None:
+def test_a_precise_wait_ends_early_and_only_early_work_or_an_estop_cuts_it_short(
+        monkeypatch, simulator, line, woken, goes_on) -> None:
     """This thread plays the bus thread, on a fake clock, with a learnt lead of 50 us. A
-    precise wait asks the owner to idle until the lead before its deadline (one wait: the
-    rest is the caller's spin) and learns how late it woke; new work cuts it short before the
-    last ``UNINTERRUPTED_S``, not in it, but for an e-stop, which cuts it short there too."""
+    precise wait asks the owner to idle until the lead before its deadline on a line with no
+    idle work (one wait: the rest is the caller's spin), learning how late it woke; on a line
+    with frames to take in (CAN), until ``UNINTERRUPTED_S`` before it, learning nothing. New
+    work cuts it short before the last ``UNINTERRUPTED_S``, not in it, but for an e-stop,
+    which cuts it short there too, and stops it from going on even once it has ended."""
     runner = build_bus(bus(simulator.port))  # not started
+    runner.devices.take_news()  # nothing to publish: a pause sleeps
+    if line == "can":
+        monkeypatch.setattr(runner.owner, "idle_batch_s", 0.008)
+    ends_at = {"uart": LEAD_S, "can": runner_module.UNINTERRUPTED_S}[line]
     clock = [100.0]
     deadline = 100.005
     monkeypatch.setattr(runner_module, "now", lambda: clock[0])
@@ -174,27 +183,31 @@ def test_a_precise_wait_ends_its_lead_before_the_deadline_and_only_early_work_cu
     learnt: list[float] = []
     monkeypatch.setattr(runner_module, "woke_for", learnt.append)
     asked: list[float] = []
+    reached = woken in ("reached", "an_estop_as_it_ends")
 
-    def idle_until(until: float, pause: object) -> bool:
+    def idle_until(until: float, pause: Callable[[float], bool]) -> bool:
         asked.append(until)
-        clock[0] = {"reached": until + 20e-6,
-                    "cut_short_before_its_last_stretch": deadline - 0.0015,
-                    "cut_short_in_its_last_stretch": deadline - 0.0005,
-                    "an_estop_in_its_last_stretch": deadline - 0.0005}[woken]  # fmt: skip
-        if woken == "an_estop_in_its_last_stretch":
+        if clock[0] < until:
+            pause(0.0)
+        clock[0] = until + 20e-6 if reached else {
+            "cut_short_before_its_last_stretch": deadline - 0.0015,
+            "cut_short_in_its_last_stretch": deadline - 0.0005,
+            "an_estop_in_its_last_stretch": deadline - 0.0005}[woken]  # fmt: skip
+        if woken.startswith("an_estop"):
             runner.estop()
-        return woken == "reached"
+        return reached
 
     monkeypatch.setattr(runner.owner, "idle_until", idle_until)
     assert runner._wait_until(deadline) is goes_on
-    assert asked == [pytest.approx(deadline - LEAD_S)]
-    assert learnt == ([pytest.approx(deadline - LEAD_S)] if woken == "reached" else [])
-    clock[0], learnt[:] = deadline - LEAD_S / 2, []  # within its lead already: no wait to learn
+    assert asked == [pytest.approx(deadline - ends_at)]
+    slept_to_the_lead = line == "uart" and reached
+    assert learnt == ([pytest.approx(deadline - LEAD_S)] if slept_to_the_lead else [])
     runner._drain_inbox()  # the e-stop planned
+    clock[0], learnt[:] = deadline - ends_at / 2, []  # past where it ends already: no sleep
     runner._wait_until(deadline)
-    assert learnt == []
+    assert learnt == [], "a wait that did not sleep has nothing to learn"
     assert runner._wait_until(deadline + 0.003, precise=False) is (woken == "reached")
-    assert asked[-1] == pytest.approx(deadline + 0.003), "a wait that is not precise: no lead"
+    assert asked[-1] == pytest.approx(deadline + 0.003), "a wait that is not precise: to its end"
 
 
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(

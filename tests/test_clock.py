@@ -114,6 +114,20 @@ def test_a_deadline_already_past_or_within_the_lead_is_spun_without_sleeping(fak
     assert fake_time.sleeps == []
 
 
+def test_a_sleep_shorter_than_the_shortest_worth_taking_is_spun(fake):
+    """After a wait that ended at its lead and taught it (``woke_for``), the lead is a little
+    shorter and what is left a little longer: a sleep of that difference would wake a
+    wake-up's lateness past the deadline, so it is spun."""
+    fake_time = fake(late_s=40e-6)
+    lead = clock._lead.lead_s
+    deadline = fake_time.t + lead + clock.MIN_SLEEP_S * 0.9
+    assert sleep_until(deadline) >= deadline
+    assert fake_time.sleeps == []
+    deadline = fake_time.t + lead + clock.MIN_SLEEP_S * 2
+    sleep_until(deadline)
+    assert len(fake_time.sleeps) == 1
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl is Linux's")
 def test_a_thread_named_shows_under_that_name_to_the_os() -> None:
     names = []

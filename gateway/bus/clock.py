@@ -31,6 +31,10 @@ log = logging.getLogger(__name__)
 SPIN_S = 0.00025
 #: The weight of each new wake-up in the learnt lead.
 LEARNING_RATE = 0.1
+#: The shortest sleep worth its syscall: shorter, it is spun. A wake-up is later than this
+#: here, and it is the most a lead just learnt can leave beyond itself after a wait that
+#: ended at the lead before it (``woke_for``, then ``sleep_until``).
+MIN_SLEEP_S = LEARNING_RATE * SPIN_S
 SWITCH_INTERVAL_S = 0.0002
 _PR_SET_NAME = 15
 _PR_SET_TIMERSLACK = 29
@@ -71,10 +75,12 @@ def woke_for(asked: float) -> None:
 def sleep_until(deadline: float, *, spin_s: float | None = None) -> float:
     """Return at ``deadline`` (a ``perf_counter`` time) or just after; return the time then.
     The sleep ends the thread's learnt lead before it (``spin_s``: that lead instead, not
-    learnt from; 0 never spins), the rest is spun."""
+    learnt from; 0 never spins), the rest is spun; a sleep shorter than ``MIN_SLEEP_S`` is
+    spun too (but for ``spin_s=0``)."""
     lead = _lead.lead_s if spin_s is None else spin_s
+    shortest_sleep = 0.0 if spin_s == 0 else MIN_SLEEP_S
     remaining = deadline - now()
-    if remaining > lead:
+    if remaining - lead > shortest_sleep:
         time.sleep(remaining - lead)
         if spin_s is None:
             woke_for(deadline - lead)

@@ -7,16 +7,19 @@ Rules of this file:
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
    a frame.
 2. Waiting is to an absolute deadline: one wait (the owner's idle work,
-   ``BusOwner.idle_until``) until the thread's learnt wake-up lead before it, then a spin
-   (``clock.sleep_until``), waking early only when new work arrives or a frame nobody asked
-   for brought news; new work no longer cuts the last ``UNINTERRUPTED_S`` short, but an
-   e-stop does (the frame it would wait for is not sent: the e-stop's go a gap after the
-   line's last exchange, not a gap after that frame). What starts at the deadline is
-   decided (and its frame encoded) just before, so at the deadline only the write is left;
-   a wait cut short decides again. A new target of a running follow
-   stream is stored where the next tick reads it, without waking the thread. Each wait
-   costs the thread some 30 µs of CPU in the kernel (docs/performance.md), so an exchange
-   waits as few times as its timing allows: once to its prepare point, once to its moment.
+   ``BusOwner.idle_until``), woken early only when new work arrives or a frame nobody asked
+   for brought news, then ``clock.sleep_until`` for the rest. On a line with no idle work
+   (UART) the wait ends the thread's learnt wake-up lead before the deadline and the rest is
+   a spin; on one with frames to take in (CAN) it ends ``UNINTERRUPTED_S`` before, and the
+   rest is a sleep and a spin (taking in the frames that came during the wait would eat a
+   lead of some 50 µs). New work in the last ``UNINTERRUPTED_S`` does not cut the wait short
+   (a follow tick goes; anything else is decided again at its moment), but an e-stop does:
+   the frame it would wait for is not sent, and the e-stop's go a gap after the line's last
+   exchange, not a gap after that frame. What starts at the deadline is decided (and its
+   frame encoded) just before, so at the deadline only the write is left; a wait cut short
+   decides again. A new target of a running follow stream is stored where the next tick
+   reads it, without waking the thread. Each wait costs the thread some 30 µs of CPU in the
+   kernel (docs/performance.md), so an exchange waits as few times as its timing allows.
 3. A lost link closes the port, fails what was queued with ``bus_unavailable``, stops the
    streams, marks the devices offline and reconnects with backoff (``link``); the devices are
    re-initialised once it is back.
@@ -31,6 +34,7 @@ Rules of this file:
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -74,7 +78,8 @@ log = logging.getLogger(__name__)
 IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
 PREPARE_S = 0.003
-#: The last stretch of a precise wait: new work no longer cuts it short.
+#: The last stretch of a precise wait: new work but an e-stop no longer cuts it short (and
+#: a wait on a line with idle work ends where it starts).
 UNINTERRUPTED_S = 0.001
 #: A bus thread whose loop has not turned for this long is stuck: it turns at least every
 #: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
@@ -136,6 +141,8 @@ class BusRunner:
         self._wake = threading.Event()
         #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
         self._estop_due = False
+        #: The wait under way has slept (only such a wait teaches the wake-up lead).
+        self._paused = False
         self._stop = threading.Event()
         self._reconnect = Reconnect(name)
         self.last_turn = now()
@@ -241,8 +248,8 @@ class BusRunner:
     def _hand_over(self, action: Callable[[Future], None], *, estop: bool = False) -> Future:
         future: Future = Future()
         self._inbox.append(lambda: action(future))
-        if estop:
-            self._estop_due = True  # after the append: the flag never outlives what it says
+        if estop:  # after the append: when the flag is seen, its e-stop is in the inbox (it
+            self._estop_due = True  # may outlive it by a drain: one wait decided again)
         self._wake.set()
         return future
 
@@ -283,13 +290,13 @@ class BusRunner:
             if self._wait_until(decision):  # nothing starts then: decided again at that moment
                 self._arrive(decision)
         elif prepared.priority is Priority.FOLLOW:
-            # A follow tick goes whatever but an e-stop came in its last stretch (its frame
-            # goes at its moment to the µs): the owner spins to it, right before its write.
+            # A follow tick goes unless its wait was cut short or an e-stop is due (its frame
+            # goes at its moment to the µs): the owner waits the rest, right before its write.
             if self._wait_until(decision):
                 self._execute(prepared, at=decision)
         elif self._wait_until(decision) and self._arrive(decision):
-            # Anything else is decided again when new work (an e-stop) came while it waited,
-            # even in the last stretch; else it starts as prepared, nothing left after the gap.
+            # Anything else is decided again when any new work came while it waited, even in
+            # the last stretch; else it starts as prepared, nothing left after the gap.
             self._execute(prepared)
 
     def _answer_expired(self) -> None:
@@ -311,34 +318,42 @@ class BusRunner:
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
         """Wait for ``deadline``, doing the owner's idle work meanwhile; ``False`` when cut
-        short (rule 2, or a lost link). ``precise``: the wait ends the thread's wake-up lead
-        before ``deadline``, its lateness learnt, the rest left to a ``sleep_until`` (the
-        caller's ``_arrive``, or the owner's before its write), and new work in its last
-        ``UNINTERRUPTED_S`` does not cut it short unless it is an e-stop."""
+        short (rule 2, or a lost link), or when an e-stop is due. ``precise``: new work in
+        the wait's last ``UNINTERRUPTED_S`` does not cut it short unless it is an e-stop, and
+        the wait ends early, the rest left to a ``sleep_until`` (the caller's ``_arrive``, or
+        the owner's before its write): the thread's wake-up lead early (its lateness learnt)
+        on a line with no idle work; ``UNINTERRUPTED_S`` early on one with frames to take in
+        (CAN), whose last look at them would otherwise eat the lead."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
-        asked = deadline - wake_lead() if precise else deadline
-        waited = now() < asked
+        learning = precise and math.isinf(self.owner.idle_batch_s)
+        end = deadline
+        if precise:
+            end -= wake_lead() if learning else UNINTERRUPTED_S
+        self._paused = False
         try:
-            reached = self.owner.idle_until(asked, self._pause)
+            reached = self.owner.idle_until(end, self._pause)
         except BusIOError as exc:
             self._link_lost(exc, None)
             return False
-        if reached and precise and waited:
-            woke_for(asked)
+        if reached and learning and self._paused:  # only a wait that slept has news of the lead
+            woke_for(end)
         last_stretch = precise and now() >= deadline - UNINTERRUPTED_S
-        return reached or (last_stretch and not self._estop_due)
+        return (reached or last_stretch) and not self._estop_due
 
     def _arrive(self, deadline: float) -> bool:
-        """Spin (or sleep, after a wait cut short in its last stretch) to ``deadline``; whether
-        no new work came meanwhile."""
+        """Wait the rest of a precise wait (``sleep_until``) to ``deadline``; whether no new
+        work came meanwhile."""
         sleep_until(deadline)
         return not self._wake.is_set()
 
     def _pause(self, seconds: float) -> bool:
         """The owner's pause while idle: cut short by new work, and by news (a heartbeat the
         owner took in) so that it is published now."""
-        return self.devices.has_news or self._wake.wait(seconds)
+        if self.devices.has_news:
+            return True
+        self._paused = True
+        return self._wake.wait(seconds)
 
     def _publish(self) -> None:
         for name in self.telemetry.publish(now()):  # its targets are stale: a fresh command

@@ -17,7 +17,8 @@ Rules of this file:
    publishes its state with them. The state is built only once it is known to differ: it
    is judged by what it is made of (``Told``), a reading's time, three flags and the
    driver's telemetry, not by building it and comparing two copies (a follow tick marks
-   each device it carried, a hundred times a second).
+   each device it carried, a hundred times a second). A device never read is judged without
+   its ``ts`` on purpose: stamped when taken, it would make every look a new state.
 """
 
 from __future__ import annotations
