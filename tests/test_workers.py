@@ -16,6 +16,7 @@ import pickle
 import re
 import signal
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -31,6 +32,7 @@ from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.workers import (
     RESTART_MAX_S,
     RESTART_S,
+    STOP_S,
     WorkerProcess,
     restart_delay,
 )
@@ -436,6 +438,32 @@ def test_a_call_the_socket_cannot_take_at_once_waits_its_turn_while_the_supervis
         theirs.close()
         reading.join(5)
         ours.close()
+
+
+def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_returns(
+    lone_worker: WorkerProcess, monkeypatch
+) -> None:
+    """The gateway stops while a worker is being started (its process there, not yet the
+    supervisor's to stop): ``stop`` returns only once that worker has ended, so that no
+    worker outlives its gateway, holding its ports."""
+    started: list[subprocess.Popen] = []
+    stopping: list[threading.Thread] = []
+    popen = subprocess.Popen
+
+    def popen_then_stop(*args, **kwargs) -> subprocess.Popen:
+        process = popen(*args, **kwargs)
+        started.append(process)
+        stopping.append(threading.Thread(target=lone_worker.stop))
+        stopping[0].start()
+        assert lone_worker._stopping.wait(5)  # the stop has begun, this worker not yet known
+        return process
+
+    monkeypatch.setattr(subprocess, "Popen", popen_then_stop)
+    lone_worker.start()
+    wait_until(lambda: stopping, 10, "the worker started")
+    stopping[0].join(3 * STOP_S)
+    assert not stopping[0].is_alive()
+    assert started[0].poll() is not None, "stop returned with the worker it was starting alive"
 
 
 def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:

@@ -184,6 +184,9 @@ class WorkerProcess:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._first_word = threading.Event()
+        self._supervisor = threading.Thread(
+            target=self._supervise, name=f"worker{index}", daemon=True
+        )
 
     @property
     def buses(self) -> str:
@@ -193,7 +196,7 @@ class WorkerProcess:
 
     def start(self) -> None:
         """Start the supervisor, which starts the worker."""
-        threading.Thread(target=self._supervise, name=f"worker{self.index}", daemon=True).start()
+        self._supervisor.start()
 
     def wait_first_word(self, timeout: float = FIRST_WORD_S) -> bool:
         """Whether the worker said its first word (its buses built, their threads started)
@@ -201,20 +204,22 @@ class WorkerProcess:
         return self._first_word.wait(timeout)
 
     def stop(self) -> None:
-        """Stop the worker's buses in order (streams, safe state, close), then the worker."""
+        """Stop the worker's buses in order (streams, safe state, close), then the worker:
+        returns once no worker runs, even one its supervisor was starting meanwhile (told to
+        stop by ``_spawn``), after ``STOP_S`` by killing it."""
         self._stopping.set()
-        outbox, process = self.outbox, self.process
+        with self._lock:
+            outbox = self.outbox
         if outbox is not None:
             outbox.put(("stop",), urgent=True)
-        if process is not None:
-            try:
-                process.wait(STOP_S)
-            except subprocess.TimeoutExpired:
-                log.warning("worker %d did not stop in %.0f s: killed", self.index, STOP_S)
-                process.kill()
-                process.wait()
-        if outbox is not None:
-            outbox.close()
+        if self._supervisor.ident is None:  # never started
+            return
+        self._supervisor.join(STOP_S)  # it ends once its worker has ended
+        process = self.process
+        if process is not None and process.poll() is None:
+            log.warning("worker %d did not stop in %.0f s: killed", self.index, STOP_S)
+            process.kill()
+            self._supervisor.join(STOP_S)
 
     def keeping_schedule(self) -> bool:
         """The worker is running, is not taken for hung (``_silent_too_long``) and says each
