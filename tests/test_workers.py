@@ -20,6 +20,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,7 @@ import busgate.client as bc
 from busgate.codecs import inspire_la as la
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.worker import Worker
 from busgate.gateway.service.workers import (
     RESTART_MAX_S,
     RESTART_S,
@@ -437,6 +439,61 @@ def test_a_call_the_socket_cannot_take_at_once_waits_its_turn_while_the_supervis
         outbox.close()
         theirs.close()
         reading.join(5)
+        ours.close()
+
+
+def test_a_call_cancelled_in_the_gateway_is_withdrawn_from_its_worker(
+    lone_worker: WorkerProcess,
+) -> None:
+    """The bridge cancels a call it answered without waiting (no answer in time): the worker
+    is told, and the gateway keeps nothing of it."""
+    ours, theirs = link.pair()
+    lone_worker.outbox = link.Outbox(ours, "test-send").start()
+    try:
+        future = lone_worker.call("uart0", "submit", "la0", "a command", None)
+        assert future.cancel()
+        reader = link.Reader(theirs)
+        received: list[tuple] = []
+        while ("withdraw", 0) not in received:
+            received += link.unbatched(reader.receive(5.0))
+        assert received[0][:4] == ("call", 0, "uart0", "submit")
+        assert lone_worker._pending == {}
+    finally:
+        lone_worker.outbox.close()
+        theirs.close()
+        ours.close()
+
+
+def test_a_withdrawn_call_is_cancelled_in_the_worker_and_never_answered(
+    lone_worker: WorkerProcess, monkeypatch
+) -> None:
+    """In the worker (built here, its bus thread not started, so the job waits in its inbox):
+    a withdrawal cancels the call's future before the job starts, so it is never sent
+    (``runner`` rule 5), and nothing is answered for it."""
+    ours, theirs = link.pair()
+    worker = Worker(link.Reader(theirs), lone_worker.config, ["uart0"])
+    said: list[tuple] = []
+    monkeypatch.setattr(worker.outbox, "put", lambda message, urgent=False: said.append(message))
+    runner = worker.runners["uart0"]
+    submitted: list[Future] = []
+    submit = runner.submit
+
+    def recorded(*args: object) -> Future:
+        submitted.append(submit(*args))
+        return submitted[-1]
+
+    monkeypatch.setattr(runner, "submit", recorded)
+    command = runner.drivers["la0"].parse('{"op":"status"}')
+    try:
+        worker._carry_out(("call", 3, "uart0", "submit", ("la0", command, None), {}))
+        worker._carry_out(("withdraw", 3))
+        worker._carry_out(("withdraw", 99))  # answered already, or never made: nothing to do
+        runner._drain_inbox()  # the bus thread's turn: the job is planned, never to start
+        assert submitted[0].cancelled()
+        assert not [m for m in said if m[0] == "result"]
+        assert worker._calls == {}
+    finally:
+        theirs.close()
         ours.close()
 
 

@@ -9,7 +9,9 @@ it builds the buses exactly as the daemon builds its own (``assembly.build_bus``
 them. Rules of this file:
 
 1. The daemon's calls are carried out on the runner by the name the link allows
-   (``worker_link.CALLS``, ``CLAIM_OPS``), in the order they came; a call's future answers it.
+   (``worker_link.CALLS``, ``CLAIM_OPS``), in the order they came; a call's future answers it,
+   and a call withdrawn (``withdraw``: cancelled in the daemon) cancels its future here, so
+   that a job that has not started never does.
 2. States, events and (with a flight recorder) frames go to the outbox as the bus threads make
    them; every ``MIRROR_S`` each bus's ``PlaysView`` and device ids, when they changed, and
    every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open and its
@@ -58,6 +60,8 @@ class Worker:
     def __init__(self, reader: link.Reader, config: Config, buses: list[str]) -> None:
         self.reader = reader
         self.outbox = link.Outbox(reader.sock, "worker-send")
+        #: The daemon's calls not yet answered, by id (rule 1: a withdrawal cancels one).
+        self._calls: dict[int, Future] = {}
         self.runners: dict[str, BusRunner] = {
             bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
             for bus in config.buses
@@ -111,7 +115,12 @@ class Worker:
                 result = Future()
                 result.set_exception(exc)
             if call_id is not None and isinstance(result, Future):
+                self._calls[call_id] = result
                 result.add_done_callback(partial(self._answer, call_id))
+        elif kind == "withdraw":
+            withdrawn = self._calls.get(message[1])
+            if withdrawn is not None:
+                withdrawn.cancel()
         elif kind == "claims" and message[2] in link.CLAIM_OPS and message[1] in self.runners:
             _, bus, op, args = message
             try:
@@ -122,6 +131,9 @@ class Worker:
             log.error("worker: refused a message it does not know: %r", message[:1])
 
     def _answer(self, call_id: int, future: Future) -> None:
+        self._calls.pop(call_id, None)
+        if future.cancelled():  # withdrawn: the daemon answered its caller already
+            return
         exc = future.exception()
         if exc is None:
             self.outbox.put(("result", call_id, True, future.result()), urgent=True)

@@ -4,7 +4,7 @@ One Unix socket pair per worker (``SOCK_SEQPACKET``: one datagram per send, neve
 merged), each message a pickled tuple whose first item names it. Rules of this file:
 
 1. Each end acts only on the messages it knows by name (a worker: ``start``, ``call``,
-   ``claims``, ``stop``; the daemon: ``result``, ``state``, ``event``, ``frame``,
+   ``withdraw``, ``claims``, ``stop``; the daemon: ``result``, ``state``, ``event``, ``frame``,
    ``plays``, ``beat``; either: a ``batch`` of them, in order) and logs any other: a worker
    is a child of the daemon, but what it is sent is still checked.
 2. An exception crosses as its class's name, code, message and attributes, and is built

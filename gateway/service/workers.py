@@ -35,7 +35,7 @@ import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
-from functools import cache
+from functools import cache, partial
 from typing import Any, ClassVar
 
 from busgate.errors import BusUnavailableError
@@ -302,7 +302,17 @@ class WorkerProcess:
             call_id = next(self._ids)
             outbox.put_now(("call", call_id, bus, method, args, {}))  # refused here, if so
             self._pending[call_id] = future
+        future.add_done_callback(partial(self._withdraw_if_cancelled, call_id))
         return future
+
+    def _withdraw_if_cancelled(self, call_id: int, future: Future) -> None:
+        """A call cancelled here (its client was answered without it) is withdrawn in the
+        worker too: a job that has not started there never will (``runner`` rule 5)."""
+        if not future.cancelled():
+            return
+        with self._lock:
+            self._pending.pop(call_id, None)
+        self.send(("withdraw", call_id))
 
     def tell(self, bus: str, method: str, *args: Any, **kwargs: Any) -> None:
         """``method`` of ``bus``'s runner in the worker, with no answer."""
