@@ -258,9 +258,11 @@ class GatewayApi:
         return now() - when < END_FENCE_S
 
     def estop(self, sender: str | None = None) -> list[Future]:
-        """Stop every device of the gateway, ahead of everything; never refused."""
+        """Stop every device of the gateway, ahead of everything (its log line too); never
+        refused."""
+        stopped = [runner.estop() for runner in self.runners.values()]
         log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
-        return [runner.estop() for runner in self.runners.values()]
+        return stopped
 
     def reset_estop(self, sender: str | None = None) -> list[Future]:
         """Every device of the gateway out of its e-stop, holding still
