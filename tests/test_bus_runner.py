@@ -59,10 +59,18 @@ def owner_for(port: str, margin_s: float = 0.05) -> SerialBusOwner:
 def bus(port: str, reply_margin_ms: float = 20.0, **device) -> SerialBus:
     """la1 and la2 polled at 50 Hz. The reply margin has room for the simulator, which shares
     this process and a loaded machine's cores, unless a test needs the default's."""
-    devices = [{"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 50, **device},
-               {"name": "la2", "kind": "inspire_la", "id": 2, "poll_hz": 50}]
-    return SerialBus(name="uart0", transport="serial", port=port, baudrate=BAUD,
-                     reply_margin_ms=reply_margin_ms, devices=devices)
+    devices = [
+        {"name": "la1", "kind": "inspire_la", "id": 1, "poll_hz": 50, **device},
+        {"name": "la2", "kind": "inspire_la", "id": 2, "poll_hz": 50},
+    ]
+    return SerialBus(
+        name="uart0",
+        transport="serial",
+        port=port,
+        baudrate=BAUD,
+        reply_margin_ms=reply_margin_ms,
+        devices=devices,
+    )
 
 
 def test_owner_exchange_and_timeout_is_not_a_lost_link(simulator) -> None:
@@ -125,7 +133,8 @@ def test_runner_carries_out_commands_and_polls(wait_for, simulator) -> None:
 
 @pytest.mark.parametrize("cut_short", [False, True])
 def test_a_poll_decided_before_its_moment_starts_as_decided_unless_its_wait_was_cut_short(
-        monkeypatch, simulator, cut_short) -> None:
+    monkeypatch, simulator, cut_short
+) -> None:
     """This thread plays the bus thread, on a clock that stands still. A poll due within
     ``PREPARE_S`` is decided then; when its wait reaches the moment it goes as decided (no
     second decision after the gap); when new work (an e-stop) cut the wait short, nothing is
@@ -156,26 +165,32 @@ def test_a_poll_decided_before_its_moment_starts_as_decided_unless_its_wait_was_
 LEAD_S = 50e-6
 
 
-@pytest.mark.parametrize("line", ["uart", "can"])
 @pytest.mark.parametrize(
-    ("woken", "goes_on"),
-    [("reached", True), ("cut_short_before_its_last_stretch", False),
-     ("cut_short_in_its_last_stretch", True), ("an_estop_in_its_last_stretch", False),
-     ("an_estop_as_it_ends", False)],
+    ("line", "woken", "goes_on", "learns"),
+    [("uart", "reached", True, True),
+     ("uart", "cut_short_before_its_last_stretch", False, False),
+     ("uart", "cut_short_in_its_last_stretch", True, True),
+     ("uart", "an_estop_in_its_last_stretch", False, False),
+     ("uart", "an_estop_as_it_ends", False, True),
+     ("can", "reached", True, True),
+     ("can", "cut_short_before_its_last_stretch", False, False),
+     ("can", "an_estop_as_it_ends", False, False)],
 )  # fmt: skip
-def test_a_precise_wait_ends_early_and_only_early_work_or_an_estop_cuts_it_short(
-        monkeypatch, simulator, line, woken, goes_on) -> None:
-    """This thread plays the bus thread, on a fake clock, with a learnt lead of 50 us. A
-    precise wait asks the owner to idle until the lead before its deadline on a line with no
-    idle work (one wait: the rest is the caller's spin), learning how late it woke; on a line
-    with frames to take in (CAN), until ``UNINTERRUPTED_S`` before it, learning nothing. New
-    work cuts it short before the last ``UNINTERRUPTED_S``, not in it, but for an e-stop,
-    which cuts it short there too, and stops it from going on even once it has ended."""
+def test_a_precise_wait_ends_at_its_lead_and_only_early_work_or_an_estop_cuts_it_short(
+    monkeypatch, simulator, line, woken, goes_on, learns
+) -> None:
+    """This thread plays the bus thread, on a fake clock, with a learnt lead of 50 us. On a
+    UART line the owner idles until the lead before the deadline (one wait: the rest is the
+    caller's spin); on a line with frames to take in (CAN), until ``UNINTERRUPTED_S`` before
+    it, and a wait only an e-stop cuts short (a real one, some 0.95 ms) goes on to the lead.
+    Either learns how late it woke from the wait that slept to the lead. New work cuts the wait
+    short before its last ``UNINTERRUPTED_S``, not in it (the wait goes on to the lead); an
+    e-stop cuts it short there too, and stops it from going on even once it has ended."""
     runner = build_bus(bus(simulator.port))  # not started
     runner.devices.take_news()  # nothing to publish: a pause sleeps
     if line == "can":
         monkeypatch.setattr(runner.owner, "idle_batch_s", 0.008)
-    ends_at = {"uart": LEAD_S, "can": runner_module.UNINTERRUPTED_S}[line]
+    idles_to = {"uart": LEAD_S, "can": runner_module.UNINTERRUPTED_S}[line]
     clock = [100.0]
     deadline = 100.005
     monkeypatch.setattr(runner_module, "now", lambda: clock[0])
@@ -199,15 +214,31 @@ def test_a_precise_wait_ends_early_and_only_early_work_or_an_estop_cuts_it_short
 
     monkeypatch.setattr(runner.owner, "idle_until", idle_until)
     assert runner._wait_until(deadline) is goes_on
-    assert asked == [pytest.approx(deadline - ends_at)]
-    slept_to_the_lead = line == "uart" and reached
-    assert learnt == ([pytest.approx(deadline - LEAD_S)] if slept_to_the_lead else [])
-    runner._drain_inbox()  # the e-stop planned
-    clock[0], learnt[:] = deadline - ends_at / 2, []  # past where it ends already: no sleep
-    runner._wait_until(deadline)
-    assert learnt == [], "a wait that did not sleep has nothing to learn"
-    assert runner._wait_until(deadline + 0.003, precise=False) is (woken == "reached")
-    assert asked[-1] == pytest.approx(deadline + 0.003), "a wait that is not precise: to its end"
+    assert asked == [pytest.approx(deadline - idles_to)]
+    assert learnt == ([pytest.approx(deadline - LEAD_S)] if learns else [])
+
+
+def test_a_wait_that_did_not_sleep_learns_nothing_and_one_not_precise_has_no_lead(
+    monkeypatch, simulator
+) -> None:
+    runner = build_bus(bus(simulator.port))  # not started
+    runner.devices.take_news()
+    clock = [100.0]
+    monkeypatch.setattr(runner_module, "now", lambda: clock[0])
+    monkeypatch.setattr(runner_module, "wake_lead", lambda: LEAD_S)
+    learnt: list[float] = []
+    monkeypatch.setattr(runner_module, "woke_for", learnt.append)
+    asked: list[float] = []
+    monkeypatch.setattr(
+        runner.owner, "idle_until", lambda until, pause: asked.append(until) or True
+    )
+    clock[0] = 100.005 - LEAD_S / 2  # past the lead already: nothing to sleep
+    assert runner._wait_until(100.005) is True
+    assert learnt == []
+    assert runner._wait_until(100.008, precise=False) is True
+    assert asked[-1] == pytest.approx(100.008)
+    runner.estop()
+    assert runner._wait_until(100.008, precise=False) is False, "an e-stop is due"
 
 
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
@@ -302,8 +333,11 @@ def test_a_target_or_play_judged_before_an_estop_and_landing_after_it_moves_noth
         mark = len(simulator.recorder.received())
         wait_for(lambda: runner.plays.refusal("la2") is not None)
         time.sleep(0.1)
-        ticks = [r for r in simulator.recorder.received()[mark:]
-                 if r.frame in ("FollowCommand", "GroupFollowCommand")]
+        ticks = [
+            r
+            for r in simulator.recorder.received()[mark:]
+            if r.frame in ("FollowCommand", "GroupFollowCommand")
+        ]
         assert ticks == []
         refused = [e.fields["code"] for e in events if e.type == "command_refused"]
         assert refused == ["estopped", "estopped"]

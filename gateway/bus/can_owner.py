@@ -107,7 +107,8 @@ class CanBusOwner(BusOwner):
         if at is None:
             self.idle_until(now())
         else:  # the adapter's receive timeout is coarse: take in frames, then wait precisely
-            self.idle_until(at - PRECISE_WAIT_S)
+            if at - now() > PRECISE_WAIT_S:  # not later: a look at the frames takes time
+                self.idle_until(at - PRECISE_WAIT_S)
             sleep_until(at)
         start = now()
         assert isinstance(request.wire, CanFrame)  # a CAN codec's frames

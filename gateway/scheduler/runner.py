@@ -6,14 +6,14 @@ Rules of this file:
    event loop) only call ``submit`` / ``estop`` / ``follow`` / ``stop``, which hand work over
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
    a frame.
-2. Waiting is to an absolute deadline: one wait (the owner's idle work,
-   ``BusOwner.idle_until``), woken early only when new work arrives or a frame nobody asked
-   for brought news, then ``clock.sleep_until`` for the rest. On a line with no idle work
-   (UART) the wait ends the thread's learnt wake-up lead before the deadline and the rest is
-   a spin; on one with frames to take in (CAN) it ends ``UNINTERRUPTED_S`` before, and the
-   rest is a sleep and a spin (taking in the frames that came during the wait would eat a
-   lead of some 50 µs). New work in the last ``UNINTERRUPTED_S`` does not cut the wait short
-   (a follow tick goes; anything else is decided again at its moment), but an e-stop does:
+2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
+   early when new work arrives or a frame nobody asked for brought news, then a spin
+   (``clock.sleep_until``) from the thread's learnt wake-up lead before the deadline. A UART
+   line idles to the lead: one wait. A line with frames to take in (CAN) idles to
+   ``UNINTERRUPTED_S`` before it (a look at the frames that came meanwhile, taken at the
+   lead, would eat it), then waits to the lead in a wait only an e-stop cuts short. New work
+   in the last ``UNINTERRUPTED_S`` does not cut the wait short (a follow tick goes; anything
+   else is decided again at its moment), but an e-stop does, on either line:
    the frame it would wait for is not sent, and the e-stop's go a gap after the line's last
    exchange, not a gap after that frame. What starts at the deadline is decided (and its
    frame encoded) just before, so at the deadline only the write is left; a wait cut short
@@ -46,6 +46,7 @@ from busgate.errors import (
     BusUnavailableError,
 )
 from busgate.gateway.bus.clock import (
+    MIN_SLEEP_S,
     ask_realtime,
     name_thread,
     now,
@@ -78,8 +79,7 @@ log = logging.getLogger(__name__)
 IDLE_SLICE_S = 0.05
 #: How long before a deadline the exchange that starts then is prepared.
 PREPARE_S = 0.003
-#: The last stretch of a precise wait: new work but an e-stop no longer cuts it short (and
-#: a wait on a line with idle work ends where it starts).
+#: The last stretch of a precise wait: only an e-stop cuts it short.
 UNINTERRUPTED_S = 0.001
 #: A bus thread whose loop has not turned for this long is stuck: it turns at least every
 #: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
@@ -140,7 +140,7 @@ class BusRunner:
         self._inbox: deque[Callable[[], None]] = deque()
         self._wake = threading.Event()
         #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
-        self._estop_due = False
+        self._estop_due = threading.Event()
         #: The wait under way has slept (only such a wait teaches the wake-up lead).
         self._paused = False
         self._stop = threading.Event()
@@ -249,7 +249,7 @@ class BusRunner:
         future: Future = Future()
         self._inbox.append(lambda: action(future))
         if estop:  # after the append: when the flag is seen, its e-stop is in the inbox (it
-            self._estop_due = True  # may outlive it by a drain: one wait decided again)
+            self._estop_due.set()  # may outlive it by a drain: one wait decided again)
         self._wake.set()
         return future
 
@@ -306,7 +306,7 @@ class BusRunner:
 
     def _drain_inbox(self) -> None:
         self._wake.clear()
-        self._estop_due = False
+        self._estop_due.clear()
         while self._inbox:
             self._inbox.popleft()()
 
@@ -318,28 +318,44 @@ class BusRunner:
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
         """Wait for ``deadline``, doing the owner's idle work meanwhile; ``False`` when cut
-        short (rule 2, or a lost link), or when an e-stop is due. ``precise``: new work in
-        the wait's last ``UNINTERRUPTED_S`` does not cut it short unless it is an e-stop, and
-        the wait ends early, the rest left to a ``sleep_until`` (the caller's ``_arrive``, or
-        the owner's before its write): the thread's wake-up lead early (its lateness learnt)
-        on a line with no idle work; ``UNINTERRUPTED_S`` early on one with frames to take in
-        (CAN), whose last look at them would otherwise eat the lead."""
+        short (rule 2, or a lost link), or when an e-stop is due. ``precise``: the wait ends
+        the thread's wake-up lead before ``deadline`` (its lateness learnt), the rest left to
+        a spin (``sleep_until``: the caller's ``_arrive``, or the owner's before its write),
+        and its last ``UNINTERRUPTED_S`` is cut short only by an e-stop."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
-        learning = precise and math.isinf(self.owner.idle_batch_s)
-        end = deadline
-        if precise:
-            end -= wake_lead() if learning else UNINTERRUPTED_S
+        if not precise:
+            return bool(self._idle_until(deadline)) and not self._estop_due.is_set()
+        lead_end = deadline - wake_lead()
+        last_stretch = deadline - UNINTERRUPTED_S
+        # A line with frames to take in (CAN) idles only to its last stretch: a look at the
+        # frames that came meanwhile, taken at the lead, would eat it (some 50 µs).
+        takes_frames = not math.isinf(self.owner.idle_batch_s)
+        reached = self._idle_until(last_stretch if takes_frames else lead_end)
+        if reached is None or (not reached and now() < last_stretch):
+            return False
+        if reached and not takes_frames and self._paused:  # only a wait that slept knows
+            woke_for(lead_end)
+        return self._through_last_stretch(lead_end)
+
+    def _idle_until(self, end: float) -> bool | None:
+        """The owner's idle work until ``end``: whether it got there (``False``: new work or
+        news cut it short; ``None``: the link was lost)."""
         self._paused = False
         try:
-            reached = self.owner.idle_until(end, self._pause)
+            return self.owner.idle_until(end, self._pause)
         except BusIOError as exc:
             self._link_lost(exc, None)
-            return False
-        if reached and learning and self._paused:  # only a wait that slept has news of the lead
-            woke_for(end)
-        last_stretch = precise and now() >= deadline - UNINTERRUPTED_S
-        return (reached or last_stretch) and not self._estop_due
+            return None
+
+    def _through_last_stretch(self, lead_end: float) -> bool:
+        """The rest of a precise wait, up to ``lead_end``, that only an e-stop cuts short:
+        whether no e-stop is due at its end."""
+        if lead_end - now() > MIN_SLEEP_S:
+            if self._estop_due.wait(lead_end - now()):
+                return False
+            woke_for(lead_end)
+        return not self._estop_due.is_set()
 
     def _arrive(self, deadline: float) -> bool:
         """Wait the rest of a precise wait (``sleep_until``) to ``deadline``; whether no new

@@ -214,12 +214,17 @@ class WorkerProcess:
             outbox.put(("stop",), urgent=True)
         if self._supervisor.ident is None:  # never started
             return
+        given_up_at = now() + STOP_S
         self._supervisor.join(STOP_S)  # it ends once its worker has ended
         process = self.process
-        if process is not None and process.poll() is None:
-            log.warning("worker %d did not stop in %.0f s: killed", self.index, STOP_S)
-            process.kill()
-            self._supervisor.join(STOP_S)
+        if process is not None:
+            try:  # a wait, not ``poll``: that says "running" while the supervisor waits too
+                process.wait(max(given_up_at - now(), 0.1))
+            except subprocess.TimeoutExpired:
+                log.warning("worker %d did not stop in %.0f s: killed", self.index, STOP_S)
+                process.kill()
+                process.wait()
+        self._supervisor.join(STOP_S)
 
     def keeping_schedule(self) -> bool:
         """The worker is running, is not taken for hung (``_silent_too_long``) and says each
