@@ -272,11 +272,13 @@ def test_a_claim_holder_powers_its_base_and_a_twist_sent_before_its_stop_is_drop
 
 
 def _drive_until(world: World, linear: float, angular: float, reached) -> None:
-    """Hold ``linear``/``angular`` until ``reached(odometry)``, then stop and wait for rest."""
+    """Hold ``linear``/``angular`` until ``reached(odometry)``, then stop and wait for rest.
+    Each twist holds 0.1 s: a host that stalls this loop (a CI host did, for a few hundred
+    ms) lets the base run on that long at most before it ramps down."""
     deadline = time.monotonic() + 30
     while not (world.odometry and reached(world.odometry[-1])):
         assert time.monotonic() < deadline, "the base never got there"
-        world.base({"op": "twist", "linear": linear, "angular": angular, "duration_s": 0.3})
+        world.base({"op": "twist", "linear": linear, "angular": angular, "duration_s": 0.1})
         time.sleep(0.02)
     world.base({"op": "stop"})
     world.wait_rest()
@@ -288,8 +290,11 @@ def _side(world: World, metres: float) -> None:
     def along(o: dict) -> float:
         return math.hypot(o["x"] - start["x"], o["y"] - start["y"])
 
-    _drive_until(world, 0.4, 0.0, lambda o: along(o) >= metres - 0.08)  # brakes in 4 cm
-    _drive_until(world, 0.05, 0.0, lambda o: along(o) >= metres - 0.0006)
+    # Each phase stops short of the side by more than it runs on when the loop stalls (0.1 s
+    # at its speed, then its braking), so the last, slowest one decides where the base ends.
+    _drive_until(world, 0.4, 0.0, lambda o: along(o) >= metres - 0.15)
+    _drive_until(world, 0.1, 0.0, lambda o: along(o) >= metres - 0.02)
+    _drive_until(world, 0.02, 0.0, lambda o: along(o) >= metres - 0.0006)
 
 
 def _turn(world: World, radians: float) -> None:
@@ -298,8 +303,9 @@ def _turn(world: World, radians: float) -> None:
     def turned(o: dict) -> float:
         return math.remainder(o["theta"] - start, math.tau)
 
-    _drive_until(world, 0.0, 1.0, lambda o: turned(o) >= radians - 0.2)
-    _drive_until(world, 0.0, 0.1, lambda o: turned(o) >= radians - 0.0008)
+    _drive_until(world, 0.0, 1.0, lambda o: turned(o) >= radians - 0.35)  # as ``_side``
+    _drive_until(world, 0.0, 0.3, lambda o: turned(o) >= radians - 0.05)
+    _drive_until(world, 0.0, 0.05, lambda o: turned(o) >= radians - 0.0008)
 
 
 @pytest.mark.slow
