@@ -351,8 +351,9 @@ class BusRunner:
     def _through_last_stretch(self, lead_end: float) -> bool:
         """The rest of a precise wait, up to ``lead_end``, that only an e-stop cuts short:
         whether no e-stop is due at its end."""
-        if lead_end - now() > MIN_SLEEP_S:
-            if self._estop_due.wait(lead_end - now()):
+        left = lead_end - now()
+        if left > MIN_SLEEP_S:  # shorter, not worth a wait (as ``sleep_until`` judges)
+            if self._estop_due.wait(left):
                 return False
             woke_for(lead_end)
         return not self._estop_due.is_set()
