@@ -241,6 +241,46 @@ def test_a_wait_that_did_not_sleep_learns_nothing_and_one_not_precise_has_no_lea
     assert runner._wait_until(100.008, precise=False) is False, "an e-stop is due"
 
 
+@pytest.mark.parametrize(
+    ("news", "publish_takes", "cut_short", "waits"),
+    [
+        (None, 0.0, False, 0.008),  # nothing to tell: the whole pause
+        ("state", 0.003, False, 0.005),  # told in the pause, which goes on for what is left
+        ("state", 0.009, False, None),  # telling took the pause: back to look, no wait
+        ("event", 0.003, True, None),  # what is planned may change: decided again
+    ],
+)
+def test_an_idle_pause_tells_a_devices_news_and_goes_on_unless_it_was_an_event(
+    monkeypatch, simulator, news, publish_takes, cut_short, waits
+) -> None:
+    """A heartbeat bus takes news in every batch: told in the pause, it does not turn the
+    loop (and decide) for each batch; an event (a device came or went) does."""
+    runner = build_bus(bus(simulator.port))  # not started
+    runner.devices.take_news()
+    clock = [100.0]
+    monkeypatch.setattr(runner_module, "now", lambda: clock[0])
+    states: list[str] = []
+    monkeypatch.setattr(runner.telemetry, "on_state", lambda device, state: states.append(device))
+    publish = runner.telemetry.publish
+
+    def slow_publish(moment: float) -> list[str]:
+        clock[0] += publish_takes
+        return publish(moment)
+
+    monkeypatch.setattr(runner.telemetry, "publish", slow_publish)
+    waited: list[float] = []
+    monkeypatch.setattr(runner._wake, "wait", lambda seconds: waited.append(seconds) or False)
+    driver = runner.drivers["la1"]
+    if news is not None:
+        runner.devices.touched(driver)
+    if news == "event":
+        driver.emit("offline", reason="test")
+    assert runner._pause(0.008) is cut_short
+    assert states == ([] if news is None else ["la1"]), "the news is told either way"
+    assert not runner.devices.has_news
+    assert waited == ([] if waits is None else [pytest.approx(waits)])
+
+
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(
     wait_for, simulator
 ) -> None:

@@ -7,7 +7,8 @@ Rules of this file:
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
    a frame.
 2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
-   early when new work arrives or a frame nobody asked for brought news, then a spin
+   early when new work arrives or a frame nobody asked for brought events (news without events,
+   a heartbeat's values, is published in the pause and the wait goes on), then a spin
    (``clock.sleep_until``) from the thread's learnt wake-up lead before the deadline. A UART
    line idles to the lead: one wait. A line with frames to take in (CAN) idles to
    ``UNINTERRUPTED_S`` before it (a look at the frames that came meanwhile, taken at the
@@ -340,7 +341,7 @@ class BusRunner:
 
     def _idle_until(self, end: float) -> bool | None:
         """The owner's idle work until ``end``: whether it got there (``False``: new work or
-        news cut it short; ``None``: the link was lost)."""
+        events cut it short; ``None``: the link was lost)."""
         self._paused = False
         try:
             return self.owner.idle_until(end, self._pause)
@@ -365,17 +366,27 @@ class BusRunner:
         return not self._wake.is_set()
 
     def _pause(self, seconds: float) -> bool:
-        """The owner's pause while idle: cut short by new work, and by news (a heartbeat the
-        owner took in) so that it is published now."""
+        """The owner's pause while idle: cut short by new work. News (heartbeats the owner
+        took in) is published first; when it brought events (a device came, went, rebooted:
+        what is planned may change) the pause is cut short, to decide again, else it goes on
+        for what is left of ``seconds`` (a heartbeat bus would otherwise turn its loop, and
+        decide, for every batch of heartbeats)."""
         if self.devices.has_news:
-            return True
+            start = now()
+            if self._publish():
+                return True
+            seconds -= now() - start
+            if seconds <= 0:
+                return False
         self._paused = True
         return self._wake.wait(seconds)
 
-    def _publish(self) -> None:
+    def _publish(self) -> bool:
+        """The devices' events and new states out; whether there were events."""
         for name in self.telemetry.publish(now()):  # its targets are stale: a fresh command
             self.streams.end(name, "device rebooted")  # moves it again
         self.counters.skipped_polls = self.planner.skipped_polls
+        return self.telemetry.had_events
 
     def _state_of(self, device: str) -> dict[str, Any] | None:
         driver = self.drivers.get(device)

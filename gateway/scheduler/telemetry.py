@@ -65,6 +65,8 @@ class Telemetry:
         self._read_at: dict[str, tuple[float, float]] = {}
         #: What each device's last published state was made of (rule 2).
         self._told: dict[str, Told] = {}
+        #: The last ``publish`` sent events.
+        self.had_events = False
 
     def publish(self, moment: float) -> list[str]:
         """Events out, and a fresh state for each device with events, or with news that
@@ -72,9 +74,12 @@ class Telemetry:
         stale) come back."""
         news = self.devices.take_news()
         rebooted = []
+        self.had_events = False
         for name, driver in self.devices.drivers.items():
             driver.check_heartbeat(moment)
             events = driver.drain_events()
+            if events:
+                self.had_events = True
             for event in events:
                 self._log(event)
                 self.on_event(event)
