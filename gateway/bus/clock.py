@@ -11,8 +11,8 @@ GIL, while the wake-ups here are late by some 50 µs. Deadlines are absolute
 
 Two process settings matter as much: a timing thread asks for a 1 ns timer slack
 (``tighten_timer_slack``), and the interpreter's GIL switch interval is cut from 5 ms to
-0.5 ms (``tune_interpreter``), so a bus thread waiting for the GIL behind another Python
-thread waits half a millisecond at most, not five.
+0.2 ms (``tune_interpreter``), so a bus thread waiting for the GIL behind another Python
+thread has it handed over after 0.2 ms, not 5.
 """
 
 from __future__ import annotations
