@@ -241,26 +241,14 @@ def test_a_wait_that_did_not_sleep_learns_nothing_and_one_not_precise_has_no_lea
     assert runner._wait_until(100.008, precise=False) is False, "an e-stop is due"
 
 
-@pytest.mark.parametrize(
-    ("news", "publish_takes", "cut_short", "waits"),
-    [
-        (None, 0.0, False, 0.008),  # nothing to tell: the whole pause
-        ("state", 0.003, False, 0.005),  # told in the pause, which goes on for what is left
-        ("state", 0.009, False, None),  # telling took the pause: back to look, no wait
-        ("event", 0.003, True, None),  # what is planned may change: decided again
-    ],
-)
-def test_an_idle_pause_tells_a_devices_news_and_goes_on_unless_it_was_an_event(
-    monkeypatch, simulator, news, publish_takes, cut_short, waits
-) -> None:
-    """A heartbeat bus takes news in every batch: told in the pause, it does not turn the
-    loop (and decide) for each batch; an event (a device came or went) does."""
-    runner = build_bus(bus(simulator.port))  # not started
+def telling_runner(monkeypatch, port: str, clock: list[float], publish_takes: float):
+    """A runner (not started) on a fake clock whose publishing takes ``publish_takes``; the
+    devices it told a state of, and the pauses it waited (each wait as ``woken`` says)."""
+    runner = build_bus(bus(port))
     runner.devices.take_news()
-    clock = [100.0]
     monkeypatch.setattr(runner_module, "now", lambda: clock[0])
-    states: list[str] = []
-    monkeypatch.setattr(runner.telemetry, "on_state", lambda device, state: states.append(device))
+    told: list[str] = []
+    monkeypatch.setattr(runner.telemetry, "on_state", lambda device, state: told.append(device))
     publish = runner.telemetry.publish
 
     def slow_publish(moment: float) -> list[str]:
@@ -268,17 +256,67 @@ def test_an_idle_pause_tells_a_devices_news_and_goes_on_unless_it_was_an_event(
         return publish(moment)
 
     monkeypatch.setattr(runner.telemetry, "publish", slow_publish)
+    return runner, told
+
+
+@pytest.mark.parametrize(
+    ("news", "publish_takes", "woken", "cut_short", "waits"),
+    [
+        (None, 0.0, False, False, 0.008),  # nothing to tell: the whole pause
+        ("state", 0.003, False, False, 0.005),  # told in the pause, which goes on for the rest
+        ("state", 0.003, True, True, 0.005),  # new work cut the rest short
+        ("state", 0.009, False, False, None),  # telling took the pause: back to look, no wait
+        ("state", 0.009, True, True, None),  # ... and new work came meanwhile
+        ("event", 0.003, False, True, None),  # what is planned may change: decided again
+    ],
+)
+def test_an_idle_pause_tells_a_devices_news_and_goes_on_unless_it_was_an_event(
+    monkeypatch, simulator, news, publish_takes, woken, cut_short, waits
+) -> None:
+    """A heartbeat bus takes news in every batch: told in the pause, it does not turn the
+    loop (and decide) for each batch; an event (a device came or went) does."""
+    runner, told = telling_runner(monkeypatch, simulator.port, [100.0], publish_takes)
     waited: list[float] = []
-    monkeypatch.setattr(runner._wake, "wait", lambda seconds: waited.append(seconds) or False)
+    monkeypatch.setattr(runner._wake, "wait", lambda seconds: waited.append(seconds) or woken)
+    if woken:
+        runner._wake.set()
     driver = runner.drivers["la1"]
     if news is not None:
         runner.devices.touched(driver)
     if news == "event":
         driver.emit("offline", reason="test")
     assert runner._pause(0.008) is cut_short
-    assert states == ([] if news is None else ["la1"]), "the news is told either way"
+    assert told == ([] if news is None else ["la1"]), "the news is told either way"
     assert not runner.devices.has_news
     assert waited == ([] if waits is None else [pytest.approx(waits)])
+    if news == "event":  # the next batch, with news and no event, goes on again
+        runner.devices.touched(driver)
+        assert runner._pause(0.008) is False and len(waited) == 1
+
+
+@pytest.mark.parametrize("publish_takes", [0.0005, 0.0025])
+def test_events_told_while_idling_decide_again_even_once_in_the_last_stretch(
+    monkeypatch, simulator, publish_takes
+) -> None:
+    """A CAN-like line idles to ``UNINTERRUPTED_S`` before a prepared tick; a batch there
+    that brought an event (a rebooted device: its tick is stale) makes the runner decide
+    again, even when telling it ran past the last stretch's start."""
+    clock = [100.0]
+    runner, _ = telling_runner(monkeypatch, simulator.port, clock, publish_takes)
+    monkeypatch.setattr(runner.owner, "idle_batch_s", 0.008)
+    deadline = 100.003
+    monkeypatch.setattr(runner_module, "wake_lead", lambda: LEAD_S)
+    monkeypatch.setattr(runner_module, "woke_for", lambda asked: None)
+
+    def idle_until(until: float, pause: Callable[[float], bool]) -> bool:
+        clock[0] = until - 0.002  # a batch taken in 2 ms before the last stretch
+        runner.devices.touched(runner.drivers["la1"])
+        runner.drivers["la1"].emit("rebooted", evidence="test", restoring=0)
+        return not pause(0.002)
+
+    monkeypatch.setattr(runner.owner, "idle_until", idle_until)
+    assert runner._wait_until(deadline) is False
+    assert clock[0] >= deadline - runner_module.UNINTERRUPTED_S or publish_takes < 0.002
 
 
 def test_a_command_to_a_silent_device_fails_without_stopping_its_neighbour(

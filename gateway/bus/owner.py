@@ -33,7 +33,8 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 
-#: ``pause(seconds)``: wait that long; true when the wait was cut short (new work for the bus).
+#: ``pause(seconds)``: wait that long; true when the wait was cut short (new work for the bus,
+#: or news that brought events: the runner's pause publishes what the owner took in).
 Pause = Callable[[float], bool]
 #: Directions of a tapped frame (rule 4): written by the gateway, or read by it.
 TX, RX = "tx", "rx"

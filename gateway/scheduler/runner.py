@@ -144,6 +144,8 @@ class BusRunner:
         self._estop_due = threading.Event()
         #: The wait under way has slept (only such a wait teaches the wake-up lead).
         self._paused = False
+        #: Events were published during the wait under way: it ends, to decide again.
+        self._evented = False
         self._stop = threading.Event()
         self._reconnect = Reconnect(name)
         self.last_turn = now()
@@ -319,10 +321,13 @@ class BusRunner:
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
         """Wait for ``deadline``, doing the owner's idle work meanwhile; ``False`` when cut
-        short (rule 2, or a lost link), or when an e-stop is due. ``precise``: the wait ends
-        the thread's wake-up lead before ``deadline`` (its lateness learnt), the rest left to
-        a spin (``sleep_until``: the caller's ``_arrive``, or the owner's before its write),
-        and its last ``UNINTERRUPTED_S`` is cut short only by an e-stop."""
+        short (rule 2, or a lost link), when an e-stop is due, or when the idle work published
+        events (a device came, went, rebooted: decided again even when publishing them ran
+        into the last stretch, for a tick prepared for a rebooted device is stale).
+        ``precise``: the wait ends the thread's wake-up lead before ``deadline`` (its lateness
+        learnt), the rest left to a spin (``sleep_until``: the caller's ``_arrive``, or the
+        owner's before its write), and its last ``UNINTERRUPTED_S`` is cut short only by an
+        e-stop."""
         if deadline - now() > IDLE_SLICE_S:
             deadline = now() + IDLE_SLICE_S
         if not precise:
@@ -333,8 +338,8 @@ class BusRunner:
         # frames that came meanwhile, taken at the lead, would eat it (some 50 µs).
         takes_frames = not math.isinf(self.owner.idle_batch_s)
         reached = self._idle_until(last_stretch if takes_frames else lead_end)
-        if reached is None or (not reached and now() < last_stretch):
-            return False
+        if reached is None or self._evented or (not reached and now() < last_stretch):
+            return False  # events decide again even late: a rebooted device's tick is stale
         if reached and not takes_frames and self._paused:  # only a wait that slept knows
             woke_for(lead_end)
         return self._through_last_stretch(lead_end)
@@ -342,7 +347,7 @@ class BusRunner:
     def _idle_until(self, end: float) -> bool | None:
         """The owner's idle work until ``end``: whether it got there (``False``: new work or
         events cut it short; ``None``: the link was lost)."""
-        self._paused = False
+        self._paused = self._evented = False
         try:
             return self.owner.idle_until(end, self._pause)
         except BusIOError as exc:
@@ -374,10 +379,11 @@ class BusRunner:
         if self.devices.has_news:
             start = now()
             if self._publish():
+                self._evented = True
                 return True
             seconds -= now() - start
             if seconds <= 0:
-                return False
+                return self._wake.is_set()
         self._paused = True
         return self._wake.wait(seconds)
 
