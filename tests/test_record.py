@@ -232,6 +232,16 @@ def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message) -> None:
     assert done.returncode == 2, done
     assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "Traceback" not in done.stderr
+    assert not (tmp_path / "x.mcap").exists(), "a recording that did not start leaves no file"
+
+
+def test_a_recording_with_no_session_leaves_no_file_and_may_be_run_again(tmp_path) -> None:
+    path = tmp_path / "take1.mcap"
+    for _ in range(2):  # the second is not refused for a file the first left
+        done = run_busgate("record", "-o", str(path), "--seconds", "1",
+                           "--connect", "tcp/127.0.0.1:1")
+        assert done.returncode == 2 and "cannot open a zenoh session" in done.stderr, done
+        assert not path.exists()
 
 
 def test_seconds_ends_a_recording_with_a_complete_file(module_demo, tmp_path) -> None:

@@ -17,6 +17,8 @@ Rules of this file:
    a file naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
    token, asked for with a bounded get) is refused before anything is published, unless
    ``--onto-live``: recorded states would go out on that gateway's own keys.
+6. A recording that cannot start (no session) leaves no file behind: the operator fixes the
+   endpoint and runs the same command again (rule 3 would refuse an empty file left there).
 """
 
 from __future__ import annotations
@@ -97,13 +99,20 @@ def run_record(args: argparse.Namespace) -> int:
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise CommandError(f"--seconds is a positive number, not {args.seconds}")
     keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]
+    output = Path(args.output)
     try:
-        stream = Path(args.output).open("xb")  # noqa: SIM115 - rule 3; closed by the with below
+        stream = output.open("xb")  # rule 3; closed by the with below
     except FileExistsError:
         raise CommandError(f"{args.output} exists: a recording is never overwritten") from None
     except OSError as exc:
         raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
-    with stream, open_client(args, "record") as client:
+    try:
+        client = open_client(args, "record")
+    except BaseException:  # no session: the empty file made above goes (rule 6)
+        stream.close()
+        output.unlink(missing_ok=True)
+        raise
+    with stream, client:
         recording = Recording(stream, args.prefix)
         ends = [client.subscribe_raw(key, recording.take) for key in keys]
         until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
