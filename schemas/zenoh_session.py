@@ -9,7 +9,10 @@ never load zenoh.
 
 Rules: a full zenoh config file (ACL, TLS, auth …) is the base and busgate's settings are laid
 over it. ``mode`` and multicast scouting are always set (multicast off unless asked for: a
-service talks to the endpoints it is given, never to whoever answers on the LAN). ``listen``
+service talks to the endpoints it is given, never to whoever answers on the LAN), and so is
+shared memory, off: busgate's messages are small, and with it on a session maps the segment
+(16 MB) of every peer on the host that sends it a large payload, and keeps it (a few local
+clients grew a gateway by hundreds of MB, payloads it refused included). ``listen``
 and ``connect`` are set when given, so endpoints written in the file survive an empty list;
 with neither ``listen`` nor a file, a session listens nowhere (zenoh's default would be every
 interface, with no authentication): it reaches others only through ``connect``. A client's
@@ -51,6 +54,7 @@ def session_config(
     config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
+    config.insert_json5("transport/shared_memory/enabled", "false")
     if listen or not config_file:  # zenoh's own default listens on every interface
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:

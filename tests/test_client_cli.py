@@ -475,10 +475,12 @@ def test_info_seeds_rows_for_devices_not_heard_from_yet():
 def test_session_config_lays_busgate_settings_over_a_zenoh_file(tmp_path):
     zenoh_file = tmp_path / "zenoh.json5"
     zenoh_file.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7001"] }, scouting: '
-                          '{ multicast: { enabled: true } }, queries_default_timeout: 1234 }')
+                          '{ multicast: { enabled: true } }, queries_default_timeout: 1234, '
+                          'transport: { shared_memory: { enabled: true } } }')
     config = session_config(mode="client", connect=["tcp/127.0.0.1:7002"], config_file=zenoh_file)
     assert json.loads(config.get_json("mode")) == "client"
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("transport/shared_memory/enabled")) is False
     assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7002"]
     assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7001"]  # kept
     assert json.loads(config.get_json("queries_default_timeout")) == 1234

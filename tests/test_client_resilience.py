@@ -12,12 +12,15 @@ the same client's commands and telemetry worked again.
 from __future__ import annotations
 
 import itertools
+import json
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
+import zenoh
 
 import busgate.client as bc
 from tests.gateway_process import DemoProcess
@@ -271,3 +274,23 @@ def test_a_client_turned_away_raises_connect_error(secured_daemon, way) -> None:
     assert isinstance(refused.value, bc.BusgateError) and isinstance(refused.value,
                                                                       ConnectionError)
     assert f"127.0.0.1:{secured_daemon.port}" in str(refused.value)
+
+
+def test_a_local_clients_shared_memory_is_never_mapped_into_the_gateway(module_demo) -> None:
+    """A client of zenoh's defaults on the gateway's host sends a large payload through a
+    shared-memory segment of its own (16 MB), which a gateway with shared memory on maps and
+    keeps: a few local sessions grew a demo by hundreds of MB. busgate's sessions have it off,
+    so the payload comes over the socket (refused as too large, as ever) and nothing is mapped."""
+    config = zenoh.Config()  # shared memory on, as zenoh has it by default
+    config.insert_json5("mode", json.dumps("client"))
+    config.insert_json5("connect/endpoints", json.dumps([module_demo.endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    assert json.loads(config.get_json("transport/shared_memory/enabled")) is True
+    with zenoh.open(config) as session:
+        for _ in range(3):
+            replies = list(session.get("busgate/demo/dev/la1/cmd", payload=b" " * 200_000,
+                                       timeout=5))
+            assert [json.loads(r.ok.payload.to_bytes())["error"]["code"] for r in replies] == [
+                "too_large"]
+    maps = Path(f"/proc/{module_demo.process.pid}/maps").read_text().splitlines()
+    assert [line for line in maps if "/dev/shm/" in line] == []

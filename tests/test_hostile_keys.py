@@ -106,3 +106,30 @@ def test_a_put_on_every_key_logs_no_traceback_and_no_reset_rides_along(
     assert enable not in [r.wire for r in simulator.recorder.received()[before:]]
     problems = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
     assert problems == [] and "Traceback" not in capfd.readouterr().err
+
+
+PLAY = ('{"op":"play","id":"wild","devices":["la1"],'
+        '"points":[{"t_s":0,"positions":[300]},{"t_s":0.5,"positions":[800]}]}')
+
+
+@pytest.mark.parametrize(("way", "key", "payload"), [
+    ("get", "**", PLAY),  # reaches the trajectory key, and info: no play
+    ("get", "busgate/*/trajectory", PLAY),  # names no gateway: every one would play
+    ("put", "busgate/gw1/dev/la1/**", MOVE),  # reaches cmd and follow alike
+    ("put", "busgate/gw1/dev/la1/*", '{"position":1000}'),
+    ("get", "busgate/gw1/dev/la1/*", MOVE),
+], ids=["get **", "get */trajectory", "put la1/**", "put la1/* follow", "get la1/*"])
+def test_a_wildcard_leaf_or_gateway_carries_no_command(setup, way, key, payload) -> None:
+    """A command acts only on a key that names its leaf (``cmd``, ``follow``), and a
+    trajectory only on its gateway's own key: nothing moves, no traceback."""
+    client, simulator = setup
+    before = len(simulator.recorder.received())
+    if way == "get":
+        replies = get(client, key, payload, timeout=1.0)
+        assert not [r for r in replies if "trajectory" in r or "state" in r], replies
+    else:
+        client.put(key, payload)
+    [status] = get(client, "busgate/gw1/dev/la1/cmd", '{"op":"status"}')
+    assert status["ok"], "the gateway serves on"
+    frames = {r.frame for r in simulator.recorder.received()[before:]}
+    assert frames <= {"ControlCommand", "ReadCommand"}, "only the status and the polls"

@@ -207,11 +207,13 @@ class ZenohBridge:
         reply_key, payload = f"{self.base}/bus/{bus}/cmd", _payload(query)
         self._answer(query, lambda: self.api.bus_command(bus, payload), reply_key, payload)
 
-    def _named(self, key: str, room: str) -> str | None:
+    def _named(self, key: str, room: str, leaf: str) -> str | None:
         """The name in a key of the shape ``<base>/<room>/<name>/<leaf>``; ``None`` for a key
-        of another shape (``**`` matches every key: it names no device)."""
+        of another shape (``**`` matches every key: it names no device) or another leaf (a
+        wildcard leaf, ``<base>/dev/la1/*``, names no command: it would reach cmd and follow
+        alike)."""
         chunks = key.split("/")
-        if len(chunks) != self.base.count("/") + 4 or chunks[-3] != room:
+        if len(chunks) != self.base.count("/") + 4 or chunks[-3] != room or chunks[-1] != leaf:
             return None
         return chunks[-2]
 
@@ -220,7 +222,7 @@ class ZenohBridge:
         nothing of this gateway (``busgate/*/dev/la9/cmd`` sent to a fleet, or ``**``): it is
         left to the gateways that have it, dropped without a reply."""
         key = str(query.key_expr)
-        name = self._named(key, room)
+        name = self._named(key, room, "cmd")
         if name is not None and (name in known or "*" not in key):
             return name
         query.drop()
@@ -235,7 +237,7 @@ class ZenohBridge:
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        name = self._named(key, "base")
+        name = self._named(key, "base", "twist")
         if name is None:
             log.debug("twist on %s names no base: dropped", key)
             return
@@ -249,13 +251,18 @@ class ZenohBridge:
         self._answer(query, lambda: settled(self.api.info()), f"{self.base}/info")
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
+        """Only on this gateway's own key: a get on ``**`` or ``busgate/*/trajectory`` names
+        no gateway, and a play it carried would move every gateway with those device names."""
+        if str(query.key_expr) != f"{self.base}/trajectory":
+            query.drop()
+            return
         payload = _payload(query)
         submit = self.submit_trajectory
         self._answer(query, lambda: submit(payload), f"{self.base}/trajectory", payload)
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        device = self._named(key, "dev")
+        device = self._named(key, "dev", "cmd")
         if device is None:
             log.debug("put on %s names no device: dropped", key)
             return
@@ -264,7 +271,7 @@ class ZenohBridge:
 
     def _on_follow(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        device = self._named(key, "dev")
+        device = self._named(key, "dev", "follow")
         if device is None:
             log.debug("follow target on %s names no device: dropped", key)
             return
