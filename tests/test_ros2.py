@@ -24,6 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -264,6 +265,36 @@ def test_a_position_command_ramps_within_the_limits_and_is_held(ros) -> None:
     commands.publish(**joint_state(ros, ["gripper"], position=[0.5]))  # past max
     targets = wait_for_target(ros, since, 1, 1600)  # 8 mm: clamped to the limit
     assert max(targets) == 1600
+
+
+@pytest.mark.parametrize("wildcard", ["0/robot_joint_commands/**", "*/robot_joint_commands/*/*"])
+def test_a_command_put_on_a_wildcard_key_moves_nothing(ros, wildcard) -> None:
+    """rmw_zenoh's publishers put on their topic's exact key. A well-formed JointState put on
+    a wildcard key (any peer's) reaches the gateway's subscription too, and must move nothing:
+    only the exact key commands (as only a device's own ``cmd`` leaf does on the zenoh API)."""
+    key = rmw_zenoh.data_key(0, "/robot_joint_commands", "sensor_msgs/msg/JointState", "jazzy")
+
+    def gripper_at(position: float) -> bytes:
+        return messages.encode("sensor_msgs/msg/JointState", {
+            "header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": ""},
+            "name": ["gripper"], "position": [position], "velocity": [], "effort": []})
+
+    since = len(ros["la"].recorder.received())
+    ros["client"].put(key, gripper_at(0.003))
+    wait_for_target(ros, since, 1, 600)  # the exact key commands
+    since = len(ros["la"].recorder.received())
+    ros["client"].put(wildcard, gripper_at(0.007))
+    time.sleep(0.5)  # a stream toward 1400 would have ticked 25 times
+    assert la_targets(ros, since, 1) == []
+
+
+def test_a_service_asked_on_a_wildcard_key_is_not_answered(ros) -> None:
+    """The reset's request on its exact key without rmw_zenoh's attachment gets an error reply;
+    on a wildcard key it is dropped before that: nothing is done and nothing answers."""
+    exact = rmw_zenoh.data_key(0, f"/{NODE}/reset_estop", "std_srvs/srv/Trigger", "jazzy")
+    [refused] = list(ros["client"].get(exact, payload=b"", timeout=2))
+    assert refused.err is not None
+    assert list(ros["client"].get(f"0/{NODE}/reset_estop/**", payload=b"", timeout=1)) == []
 
 
 def test_a_command_for_a_joint_another_client_holds_moves_nothing(ros) -> None:

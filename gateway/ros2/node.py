@@ -10,7 +10,10 @@ Rules of this file:
 2. What comes off the network never raises: a payload that is not the type's CDR is dropped
    (and counted, with a debug line), a request without its attachment or CDR is answered with
    an error reply and nothing is done, but for the e-stop's (``always=True``): an e-stop is
-   carried out whatever its request looks like.
+   carried out whatever its request looks like. Data is taken only on its entity's exact
+   key, as rmw_zenoh's publishers and clients send it: a put or get on a wildcard key
+   (``0/robot_joint_commands/**``, any peer's) reaches our subscriptions and queryables too,
+   and is dropped (the e-stop's excepted, as a put on ``**`` stops on the zenoh API).
 3. Zenoh's callbacks hand over: a subscription's handler and a service's handler are given
    decoded messages on zenoh's thread and must only hand work on (``bridge`` rule 1); a
    service's reply is sent when the handler's future is done, whichever thread that is.
@@ -104,6 +107,9 @@ class Ros2Node:
         key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
 
         def received(sample: zenoh.Sample) -> None:
+            if str(sample.key_expr) != key:
+                self._drop(f"{topic}: a sample on {sample.key_expr}, not the topic's key")
+                return
             message = messages.decode(type_name, sample.payload.to_bytes())
             if message is None:
                 self._drop(f"{topic}: a sample that is not {type_name} CDR")
@@ -127,6 +133,10 @@ class Ros2Node:
             sent = rmw_zenoh.read_attachment(
                 query.attachment.to_bytes() if query.attachment is not None else None
             )
+            if str(query.key_expr) != key and not always:
+                self._drop(f"{name}: a request on {query.key_expr}, not the service's key")
+                query.drop()
+                return
             if (request is None or sent is None) and not always:
                 self._drop(f"{name}: a request without its attachment or not {request_type}")
                 query.reply_err(f"not a {type_name} request with rmw_zenoh's attachment")
