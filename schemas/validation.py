@@ -61,9 +61,12 @@ def _command(validate: Callable[[Any], Any], value: Any, family: str) -> Any:
 
 def describe_command_error(exc: ValidationError, family: str) -> str:
     """``unknown op `mvoe` for inspire_la (did you mean `move`?)`` when the command's op is
-    none of the family's (every op it has when none is close); else ``invalid command: ``
-    and every problem (``describe_validation_error``)."""
+    none of the family's (every op it has when none is close), ``missing `op` …`` when it has
+    none; else ``invalid command: `` and every problem (``describe_validation_error``)."""
     errors = exc.errors(include_url=False)
+    if len(errors) == 1 and errors[0]["type"] == "union_tag_not_found" and not errors[0]["loc"]:
+        field = errors[0]["ctx"]["discriminator"].strip("'")
+        return f"missing `{field}`: every {family} command names its {field}"
     if len(errors) == 1 and errors[0]["type"] == "union_tag_invalid" and not errors[0]["loc"]:
         op, expected = errors[0]["ctx"]["tag"], errors[0]["ctx"]["expected_tags"]
         shown = _one_line(op, SHOWN_OP_CHARS)

@@ -243,6 +243,7 @@ def test_cli_encode_defaults_to_id_1(capsys):
         (['{"op":"write","index":3,"data":"00"}'], "address 3 is reserved"),
         (["{not json"], "invalid command"),
         (['{"op":"mvoe"}'], "error: unknown op `mvoe` for inspire_la (did you mean `move`?)\n"),
+        (['{"position":1500}'], "error: missing `op`: every inspire_la command names its op\n"),
     ],
 )
 def test_cli_encode_refusals_are_one_line(capsys, argv, message):

@@ -212,6 +212,11 @@ HUGE = b'{"op":"' + b"x" * MAX_PAYLOAD + b'"}'
             "double quotes: line 1 column 2 (char 1)",
         ),
         (b"[1]", "bad_command", "a command is a JSON object"),
+        (
+            b'{"position": ' + b"9" * 5000 + b"}",  # past the interpreter's own limit
+            "not_json",
+            "payload is not JSON: an integer of 5000 digits is past any number a command takes",
+        ),
     ],
 )
 def test_a_payload_refused_before_it_is_a_command_says_why(payload, code, message):

@@ -125,7 +125,7 @@ def start_at_of(start_at: float | None) -> float:
     if start_at < moment + MIN_LEAD_S:
         raise RefusedError(
             "out_of_range",
-            f"start_at {start_at:.3f} is {moment - start_at:+.3f} s from now: at least "
+            f"start_at {start_at:.3f} is {start_at - moment:+.3f} s from now: at least "
             f"{MIN_LEAD_S * 1000:.0f} ms ahead, for every bus to meet it",
         )
     if start_at > moment + MAX_AHEAD_S:
