@@ -37,6 +37,8 @@ RANGE_ERRORS = frozenset(
 
 #: How much of an unknown op a refusal repeats (a peer may send 64 KiB of one).
 SHOWN_OP_CHARS = 40
+#: How much of a name a refusal repeats (a key may carry 60,000 characters of one).
+SHOWN_NAME_CHARS = 64
 #: A quoted tag in pydantic's ``expected_tags`` (``'move', 'follow'``).
 _QUOTED_TAG = re.compile(r"'([^']*)'")
 
@@ -69,8 +71,8 @@ def describe_command_error(exc: ValidationError, family: str) -> str:
         return f"missing `{field}`: every {family} command names its {field}"
     if len(errors) == 1 and errors[0]["type"] == "union_tag_invalid" and not errors[0]["loc"]:
         op, expected = errors[0]["ctx"]["tag"], errors[0]["ctx"]["expected_tags"]
-        shown = _one_line(op, SHOWN_OP_CHARS)
-        return f"unknown op `{shown}` for {family}{suggestion(op, _QUOTED_TAG.findall(expected))}"
+        named = shown(op, SHOWN_OP_CHARS)
+        return f"unknown op `{named}` for {family}{suggestion(op, _QUOTED_TAG.findall(expected))}"
     return f"invalid command: {describe_validation_error(exc)}"
 
 
@@ -113,7 +115,8 @@ def refusal_code(exc: ValidationError) -> str:
     return "out_of_range" if in_range else "bad_command"
 
 
-def _one_line(text: str, most: int) -> str:
-    """``text`` with its control characters escaped, cut to ``most`` characters (``…``)."""
+def shown(text: str, most: int = SHOWN_NAME_CHARS) -> str:
+    """``text`` as a refusal repeats it: its control characters escaped, cut to ``most``
+    characters (``…``)."""
     escaped = text.encode("unicode_escape").decode("ascii")
     return escaped if len(escaped) <= most else escaped[:most] + "…"

@@ -64,6 +64,7 @@ def test_a_key_naming_nothing_gets_its_error_code(setup, key, code) -> None:
     before = len(simulator.recorder.received())
     [reply] = get(client, key, MOVE, timeout=1.0)
     assert reply["error"]["code"] == code
+    assert len(reply["error"]["message"]) < 200, "the name is cut, not echoed whole"
     assert_serves_on_and_nothing_moved(client, simulator, before)
 
 

@@ -64,7 +64,7 @@ from busgate.schemas.api import (
 )
 from busgate.schemas.payload import MAX_PAYLOAD, decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
-from busgate.schemas.validation import command_from_object
+from busgate.schemas.validation import command_from_object, shown
 
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
@@ -276,7 +276,7 @@ class GatewayApi:
         """``group_move`` or ``scan`` on one bus."""
         runner = self.runners.get(bus)
         if runner is None:
-            raise RefusedError("unknown_bus", f"no bus {bus!r} on gateway {self.name}")
+            raise RefusedError("unknown_bus", f"no bus '{shown(bus)}' on gateway {self.name}")
         fields = decode_object(payload)
         op = fields.get("op")
         handler = self._BUS_OPS.get(op) if isinstance(op, str) else None
@@ -288,7 +288,9 @@ class GatewayApi:
         request = BusGroupMove.model_validate(fields)
         for target in request.targets:
             if target.device not in runner.drivers:
-                raise RefusedError("unknown_device", f"no device {target.device!r} on this bus")
+                raise RefusedError(
+                    "unknown_device", f"no device '{shown(target.device)}' on this bus"
+                )
         first, command = group_command(runner, request)  # the kind's schema checks targets
         return _mapped(runner.submit(first, command, request.client))
 
@@ -366,7 +368,7 @@ class GatewayApi:
         try:
             return self.devices[device]
         except KeyError:
-            message = f"no device {device!r} on gateway {self.name}"
+            message = f"no device '{shown(device)}' on gateway {self.name}"
             raise RefusedError("unknown_device", message) from None
 
     def _event(self, device: str, type_: str, **fields: Any) -> None:

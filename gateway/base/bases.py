@@ -57,6 +57,7 @@ from busgate.schemas.bases import (
 )
 from busgate.schemas.payload import decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
+from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
 
@@ -363,7 +364,9 @@ class Bases:
     def _base(self, name: str) -> LiveBase:
         base = self.bases.get(name)
         if base is None:
-            raise RefusedError("unknown_device", f"no base {name!r} on gateway {self.api.name}")
+            raise RefusedError(
+                "unknown_device", f"no base '{shown(name)}' on gateway {self.api.name}"
+            )
         return base
 
     def _status(self, base: LiveBase) -> dict[str, Any]:

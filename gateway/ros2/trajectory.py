@@ -24,6 +24,7 @@ from typing import Any
 from busgate.codecs.ros2.messages import seconds_of
 from busgate.errors import RefusedError
 from busgate.gateway.ros2.commands import JointRef
+from busgate.schemas.validation import shown
 
 #: The id of the trajectory ROS plays (rule 3).
 ROS_TRAJECTORY_ID = "ros2"
@@ -44,7 +45,7 @@ def trajectory_command(
     for name in names:
         joint = joints.get(name)
         if joint is None:
-            raise RefusedError("unknown_device", f"no joint {name!r} on this gateway")
+            raise RefusedError("unknown_device", f"no joint '{shown(name)}' on this gateway")
         if joint.type != "position":
             raise RefusedError(
                 "bad_command",

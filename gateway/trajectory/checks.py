@@ -43,6 +43,7 @@ from busgate.gateway.trajectory.interpolation import path_of
 from busgate.gateway.trajectory.members import Gateway, Member, Stream, stream_of
 from busgate.schemas.joints import ON_THE_LIMIT, Joint
 from busgate.schemas.trajectory import TrajectoryPlay
+from busgate.schemas.validation import shown
 
 #: With no ``start_at``: how far ahead the trajectory starts (every bus takes it in by then).
 LEAD_S = 0.1
@@ -86,7 +87,7 @@ def device_of(gateway: Gateway, name: str) -> tuple[BusRunner, Driver]:
     if found is None:
         raise RefusedError(
             "unknown_device",
-            f"no device {name!r} on gateway {gateway.name}: a trajectory plays the "
+            f"no device '{shown(name)}' on gateway {gateway.name}: a trajectory plays the "
             "devices of one gateway",
         )
     return found
