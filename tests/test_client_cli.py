@@ -226,6 +226,17 @@ def test_nobody_answering_exits_2_naming_the_selector_and_no_wait_it_did_not_do(
     assert err.strip() == "busgate send: nobody answered on busgate/gwtest/dev/la9/cmd"
 
 
+@pytest.mark.parametrize("key", ["busgate/gwtest/estop", "busgate/gwtest/estop/reset",
+                                 "busgate/gwtest/dev/la1/follow"])
+def test_a_get_on_a_key_that_takes_puts_says_nothing_was_done(stand_in, capsys, key):
+    """A tired operator's e-stop without --put: the line says the key takes puts, so that
+    "nobody answered" is not read as "the gateway is down" (nor as "stopped")."""
+    assert main(["send", key, "{}", "--connect", stand_in.endpoint]) == 2
+    _, err = capsys.readouterr()
+    assert err.strip() == (f"busgate send: nobody answered on {key}: {key} takes puts, not gets:"
+                           " nothing was done (send --put)")
+
+
 def test_a_device_no_gateway_has_is_unknown_device_naming_the_gateways(gateway, capsys):
     # A real gateway leaves a fleet-wide command for a device it lacks unanswered; its info
     # reply tells it is there.

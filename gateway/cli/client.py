@@ -163,9 +163,14 @@ def _from_gateways_that_have_it(answers: list[bc.Answer]) -> list[bc.Answer]:
     return known or answers
 
 
+#: The last chunk of the API's keys that take puts only (docs/api.md): a get finds nobody.
+PUT_ONLY_LEAVES = frozenset({"estop", "reset", "follow", "twist"})
+
+
 def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: float | None) -> int:
     """Nothing came back on ``key``: no gateway has ``device`` (those that answered are named;
-    exit 1), or nobody answered (in the ``waited`` seconds, when zenoh did wait; exit 2)."""
+    exit 1), or nobody answered (in the ``waited`` seconds, when zenoh did wait; exit 2): on a
+    key that takes puts only (an e-stop, say), the line says so, since nothing was done."""
     if gateways and not any(device in devices for devices in gateways.values()):
         print(
             f"busgate send: unknown_device: no device {device!r} on the gateways that "
@@ -174,7 +179,9 @@ def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: f
         )
         return ERROR_REPLY
     within = "" if waited is None else f" within {waited:g} s"
-    print(f"busgate send: nobody answered on {key}{within}", file=sys.stderr)
+    puts_only = key.rsplit("/", 1)[-1] in PUT_ONLY_LEAVES
+    hint = f": {key} takes puts, not gets: nothing was done (send --put)" if puts_only else ""
+    print(f"busgate send: nobody answered on {key}{within}{hint}", file=sys.stderr)
     return NO_ANSWER
 
 
