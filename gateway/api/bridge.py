@@ -12,6 +12,11 @@ Rules of this file:
    is never carried out, and it is answered ``internal``.
 3. Telemetry publishers use congestion control DROP: a slow subscriber never stalls a bus.
 4. The session is closed last, after the buses have put their devices in a safe state.
+5. A command is taken only on a key that names it: its leaf as declared (``cmd``,
+   ``follow``, ``twist``: a wildcard leaf reaches several handlers at once), the trajectory
+   and the e-stop's reset on this gateway's own key. Only the gateway's name may be a
+   wildcard (a fleet's command: each gateway with the device answers). A query that names
+   nothing here is dropped unanswered (rule 2's one exception), left to those it names.
 """
 
 from __future__ import annotations
