@@ -42,7 +42,7 @@ def _integer(text: str) -> int:
         return int(text)
     except ValueError:  # past the interpreter's 4300 digits: its message names sys's knobs
         raise ValueError(
-            f"an integer of {len(text)} digits is past any number a command takes"
+            f"an integer of {len(text.lstrip('-'))} digits is past any number a command takes"
         ) from None
 
 

@@ -11,6 +11,7 @@ client with ``ZError`` before anything is sent.
 
 from __future__ import annotations
 
+import json
 import logging
 
 import pytest
@@ -134,3 +135,20 @@ def test_a_wildcard_leaf_or_gateway_carries_no_command(setup, way, key, payload)
     assert status["ok"], "the gateway serves on"
     frames = {r.frame for r in simulator.recorder.received()[before:]}
     assert frames <= {"ControlCommand", "ReadCommand"}, "only the status and the polls"
+
+
+def test_a_refused_put_on_a_long_name_tells_the_name_cut(setup, wait_for) -> None:
+    """A put on a 30,000-character device is refused as an event on ``events``: the event's
+    ``device`` is cut as a refusal's message cuts it, not echoed whole to every subscriber."""
+    client, _ = setup
+    heard: list[dict] = []
+    events = client.declare_subscriber(
+        "busgate/gw1/events", lambda sample: heard.append(json.loads(sample.payload.to_bytes())))
+    try:
+        client.put("busgate/gw1/dev/" + "x" * 30_000 + "/cmd", MOVE)
+        wait_for(lambda: any(e.get("type") == "command_refused" for e in heard))
+    finally:
+        events.undeclare()
+    [refused] = [e for e in heard if e.get("type") == "command_refused"]
+    assert refused["code"] == "unknown_device"
+    assert len(refused["device"]) <= 65 and len(refused["message"]) < 200

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import time
 
@@ -253,3 +254,26 @@ def test_seconds_ends_a_recording_with_a_complete_file(module_demo, tmp_path) ->
         summary = make_reader(stream).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
     assert {c.topic for c in summary.channels.values()} == {"busgate/demo/dev/la1/state"}
+
+
+def test_a_recording_stopped_while_its_session_opens_leaves_no_file(tmp_path) -> None:
+    """A listener that never speaks zenoh holds the session's opening; SIGTERM then (a
+    systemd stop, ``timeout``) ends it in one line, and no file is left for rule 3 to refuse."""
+    path = tmp_path / "held.mcap"
+    with socket.socket() as mute:
+        mute.bind(("127.0.0.1", 0))
+        mute.listen()
+        endpoint = f"tcp/127.0.0.1:{mute.getsockname()[1]}"
+        recorder = subprocess.Popen([*BUSGATE, "record", "-o", str(path), "--connect", endpoint],
+                                    stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + TIMEOUT_S
+        while not path.exists():  # the file is made first, then the session opens
+            assert time.monotonic() < deadline and recorder.poll() is None
+            time.sleep(0.05)
+        time.sleep(0.5)
+        recorder.send_signal(signal.SIGTERM)
+        _, stderr = recorder.communicate(timeout=TIMEOUT_S)
+    assert recorder.returncode == 2, stderr
+    assert stderr.strip().splitlines()[-1].endswith("stopped before a session opened: nothing "
+                                                    "recorded"), stderr
+    assert not path.exists()

@@ -9,7 +9,7 @@ import math
 import pytest
 
 from busgate.errors import RefusedError
-from busgate.gateway.ros2.commands import Commands, JointRef
+from busgate.gateway.ros2.commands import UNKNOWN_KEPT, Commands, JointRef
 from busgate.gateway.ros2.diagnostics import (
     ERROR,
     OK,
@@ -69,6 +69,18 @@ def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
     assert first.unknown == ["elbow"] and [t.joint for t in first.targets] == [GRIPPER]
     again = taken.take({"name": ["elbow"], "position": [1.0]}, 0.1)
     assert again.unknown == again.targets == again.problems == []
+
+
+def test_unknown_names_are_kept_cut_and_no_more_than_unknown_kept() -> None:
+    """A peer may name any number of joints, of any length: the log and /diagnostics keep at
+    most ``UNKNOWN_KEPT`` of them, each cut as a refusal repeats a name."""
+    taken = commands()
+    names = [f"{n}:" + "x" * 10_000 for n in range(100)] + ["gripper"]
+    first = taken.take({"name": names, "position": [1.0] * 100 + [0.002]}, 0.0)
+    assert len(first.unknown) == UNKNOWN_KEPT < 100
+    assert all(len(name) <= 65 and name.endswith("…") for name in first.unknown)
+    assert taken.unknown == set(first.unknown)
+    assert [t.joint for t in first.targets] == [GRIPPER], "the known joint is taken all the same"
 
 
 def test_a_silent_velocity_joint_is_due_a_stop_once_and_a_position_joint_never() -> None:

@@ -46,6 +46,7 @@ from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
+from busgate.schemas.validation import shown
 from busgate.schemas.zenoh_session import session_config
 
 log = logging.getLogger(__name__)
@@ -248,7 +249,7 @@ class ZenohBridge:
             return
         refused = self.bases.twist(name, payload)
         if refused is not None:
-            self.events.append(DeviceEvent(name, "command_refused", refused["error"]))
+            self.events.append(DeviceEvent(shown(name), "command_refused", refused["error"]))
         if self.on_command is not None:
             self.on_command(key, payload, refused)
 
@@ -388,7 +389,7 @@ class ZenohBridge:
     ) -> None:
         """A put's outcome (``None``: a follow target taken): a refusal is an event."""
         if reply is not None and not reply.get("ok"):
-            self.events.append(DeviceEvent(device, "command_refused", reply["error"]))
+            self.events.append(DeviceEvent(shown(device), "command_refused", reply["error"]))
         if self.on_command is not None:
             self.on_command(key, payload, reply)
 

@@ -17,8 +17,9 @@ Rules of this file:
    a file naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
    token, asked for with a bounded get) is refused before anything is published, unless
    ``--onto-live``: recorded states would go out on that gateway's own keys.
-6. A recording that cannot start (no session) leaves no file behind: the operator fixes the
-   endpoint and runs the same command again (rule 3 would refuse an empty file left there).
+6. A recording that cannot start (no session, or SIGTERM or Ctrl-C while the session opens)
+   leaves no file behind: the operator fixes the endpoint and runs the same command again
+   (rule 3 would refuse an empty file left there).
 """
 
 from __future__ import annotations
@@ -106,12 +107,17 @@ def run_record(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.output} exists: a recording is never overwritten") from None
     except OSError as exc:
         raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # as Ctrl-C, here
     try:
         client = open_client(args, "record")
-    except BaseException:  # no session: the empty file made above goes (rule 6)
+    except BaseException as exc:  # no session: the empty file made above goes (rule 6)
         stream.close()
         output.unlink(missing_ok=True)
+        if isinstance(exc, KeyboardInterrupt):
+            raise CommandError("stopped before a session opened: nothing recorded") from None
         raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     with stream, client:
         recording = Recording(stream, args.prefix)
         ends = [client.subscribe_raw(key, recording.take) for key in keys]

@@ -10,7 +10,7 @@ Rules of this file:
 2. It listens only where it is told: ``--listen`` is required (no default that opens a port
    nobody asked for) and replaces the file's listen endpoints. Multicast scouting is off
    (``session_config``): busgate's sessions meet at explicit endpoints, never whoever
-   answers on the LAN.
+   answers on the LAN. So is zenoh's shared memory, whatever the file says (``session_config``).
 3. Every refusal comes before anything serves and is one line with exit status 2 (a
    ``CommandError``): a malformed endpoint, a config file missing, not a file or malformed,
    an endpoint zenoh cannot listen on (in use, a bad port or host). zenoh's reason is kept,
@@ -64,7 +64,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="FILE",
         help="a zenoh config file (.json5, .json, .yaml or .toml: TLS, passwords, access "
-        "control …) laid underneath; its mode is set to router and multicast scouting off",
+        "control …) laid underneath; its mode is set to router, multicast scouting and shared "
+        "memory off",
     )
     router.set_defaults(handler=run_router)
 

@@ -11,7 +11,8 @@ Rules of this file:
    A list of any other length cannot say which value is whose: it moves nothing and is told
    (``Taken.problems``). A NaN or infinite value is no command for that joint.
 2. A name no joint has is reported once (``unknown`` of the first message that names it),
-   then ignored.
+   then ignored; at most ``UNKNOWN_KEPT`` of them are kept (a peer may send any number, of
+   any length), each as a refusal repeats it (``shown``).
 3. A position joint's command is kept: it goes to its target and stays (silence is never a
    stop: ros2_control sends nothing while its command is unchanged). A velocity joint whose
    last command is older than ``timeout_s`` is due a stop (``expired``), once per silence.
@@ -24,6 +25,11 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
+
+from busgate.schemas.validation import shown
+
+#: The unknown joint names kept for the log and /diagnostics (rule 2).
+UNKNOWN_KEPT = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,9 +83,9 @@ class Commands:
             joint = self.joints.get(name)
             if joint is not None:
                 known.append(joint)
-            elif name not in self.unknown:
-                self.unknown.add(name)
-                taken.unknown.append(name)
+            elif len(self.unknown) < UNKNOWN_KEPT and (named := shown(name)) not in self.unknown:
+                self.unknown.add(named)
+                taken.unknown.append(named)
         for interface in ("position", "velocity"):  # a joint type is its list's name
             values = message.get(interface) or []
             if not values:

@@ -83,7 +83,7 @@ class Ros2Node:
         self.session = session
         self.name = name
         self.zid = str(session.zid())
-        self.dropped = 0  # samples and requests that were not their type's CDR (rule 2)
+        self.dropped = 0  # samples and requests dropped: not their type's CDR, or on a wildcard
         self._entity_ids = itertools.count(1)
         self._keep: list[Any] = []
         self._node = rmw_zenoh.Node(name.domain_id, self.zid, 0, name.name, name.namespace)
