@@ -247,11 +247,7 @@ class ZenohBridge:
         if name is None:
             log.debug("twist on %s names no base: dropped", key)
             return
-        refused = self.bases.twist(name, payload)
-        if refused is not None:
-            self.events.append(DeviceEvent(shown(name), "command_refused", refused["error"]))
-        if self.on_command is not None:
-            self.on_command(key, payload, refused)
+        self._report_put(name, key, payload, self.bases.twist(name, payload))
 
     def _on_info(self, query: zenoh.Query) -> None:
         self._answer(query, lambda: settled(self.api.info()), f"{self.base}/info")

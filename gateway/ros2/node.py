@@ -128,15 +128,15 @@ class Ros2Node:
         gid = rmw_zenoh.new_gid()
 
         def asked(query: zenoh.Query) -> None:
+            if str(query.key_expr) != key and not always:
+                self._drop(f"{name}: a request on {query.key_expr}, not the service's key")
+                query.drop()
+                return
             raw = query.payload.to_bytes() if query.payload is not None else b""
             request = messages.decode(request_type, raw)
             sent = rmw_zenoh.read_attachment(
                 query.attachment.to_bytes() if query.attachment is not None else None
             )
-            if str(query.key_expr) != key and not always:
-                self._drop(f"{name}: a request on {query.key_expr}, not the service's key")
-                query.drop()
-                return
             if (request is None or sent is None) and not always:
                 self._drop(f"{name}: a request without its attachment or not {request_type}")
                 query.reply_err(f"not a {type_name} request with rmw_zenoh's attachment")
