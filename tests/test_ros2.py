@@ -402,6 +402,9 @@ def test_a_base_drives_from_the_zenoh_api_and_its_odometry_is_published(ros) -> 
     told = client.declare_subscriber(
         "busgate/gw1/base/base/odom",
         lambda sample: odometry.append(json.loads(sample.payload.to_bytes())))
+    events: list[dict] = []
+    heard = client.declare_subscriber(
+        "busgate/gw1/events", lambda sample: events.append(json.loads(sample.payload.to_bytes())))
     try:
         [reply] = get(client, "busgate/gw1/base/base/cmd", '{"op":"enable"}')
         assert reply["ok"], reply
@@ -420,7 +423,13 @@ def test_a_base_drives_from_the_zenoh_api_and_its_odometry_is_published(ros) -> 
         client.put("busgate/gw1/base/base/twist", '{"linear": "fast"}')  # refused, an event
         [reply] = get(client, "busgate/gw1/base/ghost/cmd", '{"op":"stop"}')
         assert reply["error"]["code"] == "unknown_device"
+        deadline = time.monotonic() + 5
+        while not (refused := [e for e in events if e.get("type") == "command_refused"]):
+            assert time.monotonic() < deadline, events
+            time.sleep(0.05)
+        assert (refused[0]["device"], refused[0]["code"]) == ("base", "bad_command")
     finally:
+        heard.undeclare()
         told.undeclare()
         get(client, "busgate/gw1/base/base/cmd", '{"op":"stop"}')
 
