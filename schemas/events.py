@@ -146,6 +146,11 @@ class CommandRefusedEvent(Event):
     type: Literal["command_refused"]
     code: ErrorCode
     message: str
+    suppressed: int | None = Field(
+        default=None,
+        description="How many refused puts of this device were not told before this one: at "
+        "most one is told every 0.1 s a device, the rest counted here.",
+    )
 
 
 class LimitedEvent(Event):

@@ -163,6 +163,29 @@ def test_follow_puts_stream_at_the_period_and_a_bad_one_is_an_event(wait_for, se
     subscriber.undeclare()
 
 
+def test_a_flood_of_refused_puts_is_told_a_few_times_and_counted_whole(wait_for, setup) -> None:
+    """300 refused follow puts as fast as a client sends them: a handful of events (one a
+    device every 0.1 s), whose ``suppressed`` counts make up the rest: none lost."""
+    client, _ = setup
+    events: list[dict] = []
+    subscriber = client.declare_subscriber(
+        "busgate/gw1/dev/la2/event", lambda s: events.append(json.loads(s.payload.to_bytes())))
+    started = time.monotonic()
+    for _ in range(300):
+        client.put("busgate/gw1/dev/la2/follow", '{"position": 99999}',
+                   congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def accounted() -> int:
+        refused = [e for e in events if e["type"] == "command_refused"]
+        return len(refused) + sum(e.get("suppressed", 0) for e in refused)
+
+    wait_for(lambda: accounted() == 300)
+    told = [e for e in events if e["type"] == "command_refused"]
+    assert 2 <= len(told) <= (time.monotonic() - started) / 0.1 + 2
+    assert {e["code"] for e in told} == {"out_of_range"}
+    subscriber.undeclare()
+
+
 def test_end_follow_stops_a_stream_without_it_going_stale(wait_for, setup) -> None:
     """alice streams to la1, which she claimed: bob's end_follow is refused ``claimed`` and
     the stream goes on; hers ends it with ``stream_stopped`` and its reason, and a second

@@ -35,6 +35,7 @@ import zenoh
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.joints import JointsFeed
+from busgate.gateway.api.refusals import RefusalReports
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.outcomes import settled
@@ -46,7 +47,6 @@ from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
-from busgate.schemas.validation import shown
 from busgate.schemas.zenoh_session import session_config
 
 log = logging.getLogger(__name__)
@@ -92,6 +92,8 @@ class ZenohBridge:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
+        #: A refused put's event, at most one a device every 0.1 s, the rest counted.
+        self.refusals = RefusalReports(api.devices, lambda event: self.events.append(event))
         self.trajectories = Trajectories(
             api, self.base, self._put_any, lambda event: self.events.append(event)
         )
@@ -191,6 +193,7 @@ class ZenohBridge:
             self.publish_states()
             self.trajectories.tick()
             self.bases.tick()
+            self.refusals.flush()
             self.publish_events()
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
@@ -385,7 +388,7 @@ class ZenohBridge:
     ) -> None:
         """A put's outcome (``None``: a follow target taken): a refusal is an event."""
         if reply is not None and not reply.get("ok"):
-            self.events.append(DeviceEvent(shown(device), "command_refused", reply["error"]))
+            self.refusals.refused(device, reply["error"])
         if self.on_command is not None:
             self.on_command(key, payload, reply)
 

@@ -1,0 +1,91 @@
+"""A refused put is told as a ``command_refused`` event at most once a device every 0.1 s; the
+ones withheld are counted in the next told (``suppressed``), and the last of a burst is told
+once its interval has passed: a fake clock, no zenoh."""
+
+from __future__ import annotations
+
+from busgate.gateway.api.refusals import RefusalReports
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.schemas.events import EVENT_ADAPTER
+from tests.test_schema_export import assert_valid, event_body
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def error(n: int) -> dict:
+    return {"code": "bad_command", "message": f"refusal {n}"}
+
+
+def reports(clock: Clock) -> tuple[RefusalReports, list[DeviceEvent]]:
+    told: list[DeviceEvent] = []
+    return RefusalReports({"la1", "la2"}, told.append, clock=clock), told
+
+
+def told_as(told: list[DeviceEvent]) -> list[tuple[str, str, int | None]]:
+    return [(e.device, e.fields["message"], e.fields.get("suppressed")) for e in told]
+
+
+def test_a_burst_is_told_first_and_last_with_what_was_withheld_between() -> None:
+    clock = Clock()
+    refusals, told = reports(clock)
+    for n in range(50):  # 50 bad puts in 49 ms
+        refusals.refused("la1", error(n))
+        clock.now += 0.001
+    refusals.flush()  # the interval has not passed: the last waits
+    assert told_as(told) == [("la1", "refusal 0", None)]
+    clock.now = 0.1
+    refusals.flush()
+    refusals.flush()  # told once
+    assert told_as(told) == [("la1", "refusal 0", None), ("la1", "refusal 49", 48)]
+    assert len(told) + sum(e.fields.get("suppressed", 0) for e in told) == 50  # none lost
+
+
+def test_a_refusal_after_the_interval_is_told_at_once_counting_the_withheld() -> None:
+    clock = Clock()
+    refusals, told = reports(clock)
+    refusals.refused("la1", error(1))
+    refusals.refused("la1", error(2))
+    refusals.refused("la1", error(3))
+    clock.now += 0.1
+    refusals.refused("la1", error(4))  # told now: 2 and 3 were withheld
+    refusals.flush()
+    assert told_as(told) == [("la1", "refusal 1", None), ("la1", "refusal 4", 2)]
+    clock.now += 0.05
+    refusals.refused("la1", error(5))  # 0.05 s after the last told: withheld
+    assert len(told) == 2
+
+
+def test_each_device_has_its_own_interval_and_unknown_names_share_one() -> None:
+    clock = Clock()
+    refusals, told = reports(clock)
+    refusals.refused("la1", error(1))
+    refusals.refused("la2", error(2))
+    refusals.refused("nope", error(3))
+    refusals.refused("x" * 30_000, error(4))  # another unknown name: the shared slot's turn
+    for n in range(1000):
+        refusals.refused(f"ghost{n}", error(5))
+    assert [e.device for e in told] == ["la1", "la2", "nope"]
+    assert len(refusals._slots) == 3  # la1, la2, and every unknown name in one
+    clock.now += 0.1
+    refusals.flush()
+    assert told_as(told)[-1] == ("ghost999", "refusal 5", 1000)
+
+
+def test_the_events_match_the_event_schema() -> None:
+    clock = Clock()
+    refusals, told = reports(clock)
+    refusals.refused("la1", error(1))
+    refusals.refused("la1", error(2))
+    refusals.refused("la1", error(3))
+    clock.now += 0.2
+    refusals.flush()
+    assert [e.fields.get("suppressed") for e in told] == [None, 1]
+    for event in told:
+        assert_valid("event.json", event_body(event))
+        EVENT_ADAPTER.validate_python(event_body(event))
