@@ -325,6 +325,24 @@ def test_put_is_fire_and_forget(stand_in, capsys):
     assert stand_in.commands == []  # no query reached the queryable
 
 
+@pytest.mark.parametrize(("command", "why"), [
+    ("{op:stop}", "Expecting property name enclosed in double quotes"),
+    ("[" * 100_000, "nested too deep"),
+])
+def test_a_put_that_is_not_json_is_refused_here_and_nothing_is_sent(stand_in, capsys, command,
+                                                                    why):
+    status = main(["send", "la1", command, "--put", "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert err.startswith(f"busgate send: the command is not JSON ({why}")
+    assert err.endswith("): nothing was sent\n")
+    assert main(["send", "la1", "", "--put", "--connect", stand_in.endpoint]) == 0  # as an e-stop
+    deadline = time.monotonic() + 2
+    while not stand_in.puts and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert stand_in.puts == [("busgate/*/dev/la1/cmd", b"")]  # the empty one went, not the other
+
+
 def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     status = main(["send", "la1", "{}", "--connect", f"tcp/127.0.0.1:{free_port()}"])
     out, err = capsys.readouterr()

@@ -3,13 +3,14 @@
 comes back as it came).
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
-``cmd`` key, the payload as given (the gateway judges it). The device is named as the SDK
-names it: ``la1`` on whichever gateway has it, ``gw1/la1`` on gateway ``gw1`` (which answers
-``unknown_device`` itself when it lacks the device); any other target with a ``/`` is the key
-expression. Exit status 0 when every reply has ``"ok": true``, 1 when any reply is an error
-or, for a bare device name, when gateways answer (their ``info``) but none has the device
+``cmd`` key, the payload as given (the gateway judges it; a put's, which gets no reply, must
+be JSON or empty, or nothing is sent). The device is named as the SDK names it: ``la1`` on
+whichever gateway has it, ``gw1/la1`` on gateway ``gw1`` (which answers ``unknown_device``
+itself when it lacks the device); any other target with a ``/`` is the key expression. Exit
+status 0 when every reply has ``"ok": true``, 1 when any reply is an error or, for a bare
+device name, when gateways answer (their ``info``) but none has the device
 (``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks
-unanswered), 2 when nobody answered (or no session opened).
+unanswered), 2 when nobody answered (or no session opened, or a put's command is not JSON).
 
 watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
 each (``watch_table.py``), and redraws a table at most ``REDRAW_HZ`` times a second. Rules:
@@ -54,7 +55,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers), "
         "<gateway>/<device> means <prefix>/<gateway>/dev/<device>/cmd; any other argument "
         "with a '/' is used as the key expression as given. Exit status: 0 all replies ok, 1 "
-        "an error reply or no gateway has the device (unknown_device), 2 nobody answered.",
+        "an error reply or no gateway has the device (unknown_device), 2 nobody answered (or, "
+        "with --put, a command that is not JSON: nothing is sent).",
     )
     send.add_argument(
         "target",
@@ -131,6 +133,8 @@ def command_key(prefix: str, target: str) -> str:
 def run_send(args: argparse.Namespace) -> int:
     key = check_key(command_key(args.prefix, args.target))
     payload = args.command.encode()
+    if args.put and not _put_judged(payload):
+        return NO_ANSWER
     with open_client(args, "send") as client:
         if args.put:
             client.put(key, payload)
@@ -154,6 +158,22 @@ def run_send(args: argparse.Namespace) -> int:
             print(f"busgate send: {error.get('code')}: {error.get('message')}", file=sys.stderr)
             status = ERROR_REPLY
     return status
+
+
+def _put_judged(payload: bytes) -> bool:
+    """Whether a put may go: a put gets no reply, so a command that is not JSON (a tired
+    operator's quotes lost to the shell) is refused here, where someone reads the refusal,
+    rather than by the gateway as an event nobody watching ``send`` sees. An empty payload
+    goes: an e-stop needs none."""
+    if not payload.strip():
+        return True
+    try:
+        json.loads(payload)
+    except (ValueError, RecursionError) as exc:
+        why = "nested too deep" if isinstance(exc, RecursionError) else str(exc)
+        print(f"busgate send: the command is not JSON ({why}): nothing was sent", file=sys.stderr)
+        return False
+    return True
 
 
 def _from_gateways_that_have_it(answers: list[bc.Answer]) -> list[bc.Answer]:
