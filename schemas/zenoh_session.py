@@ -24,7 +24,10 @@ from __future__ import annotations
 
 import errno
 import json
+import os
 import re
+import socket
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -47,7 +50,8 @@ def session_config(
 ) -> zenoh.Config:
     """A zenoh config: ``config_file`` (if any) underneath, the given settings on top.
 
-    Raises ``ValueError`` for an unknown mode; zenoh itself rejects a malformed file or endpoint.
+    Raises ``ValueError`` for an unknown mode or a Unix socket endpoint it would take from
+    someone (``check_unix_listeners``); zenoh itself rejects a malformed file or endpoint.
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
@@ -67,7 +71,71 @@ def session_config(
         config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
     if ca is not None:
         config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
+    check_unix_listeners(_listen_endpoints(config))
     return config
+
+
+def _listen_endpoints(config: zenoh.Config) -> list[str]:
+    """The endpoints ``config`` listens on: a list, or (zenoh's default) a list per mode."""
+    endpoints = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(endpoints, dict):
+        return [e for per_mode in endpoints.values() for e in per_mode]
+    return list(endpoints)
+
+
+def check_unix_listeners(endpoints: Sequence[str]) -> None:
+    """Refuse (``ValueError``) a ``unixsock-stream`` endpoint that zenoh would take from
+    someone: zenoh deletes whatever is at a listener's path before it binds there, and its
+    lock file beside it (``<path>.lock``) when it closes, so a file there is lost
+    (``unixsock-stream//etc/passwd`` under root removed it), and another process's socket is
+    taken over. A path that is not a socket is refused, and so is a socket something answers
+    on, or a lock that is not zenoh's (an empty file); a socket nobody answers on and its
+    empty lock, left by a process that ended, are taken.
+    """
+    for endpoint in endpoints:
+        if not endpoint.startswith("unixsock-stream/"):
+            continue
+        path = re.split(r"[?#]", endpoint.removeprefix("unixsock-stream/"), maxsplit=1)[0]
+        _check_lock_file(endpoint, f"{path}.lock")
+        try:
+            if not stat.S_ISSOCK(os.lstat(path).st_mode):
+                raise ValueError(
+                    f"cannot listen on {endpoint}: {path} exists and is not a socket (zenoh "
+                    f"would delete it to listen there): name a path of its own"
+                )
+            if _answered(path):
+                raise ValueError(f"cannot listen on {endpoint}: a process listens on {path}")
+        except FileNotFoundError:
+            continue
+        except OSError as exc:  # not ours to look at, or a socket that neither takes nor refuses
+            why = exc.strerror or "no answer within 1 s"
+            raise ValueError(f"cannot listen on {endpoint}: {path}: {why}") from exc
+
+
+def _check_lock_file(endpoint: str, lock: str) -> None:
+    try:
+        found = os.lstat(lock)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ValueError(f"cannot listen on {endpoint}: {lock}: {exc.strerror}") from exc
+    if not stat.S_ISREG(found.st_mode) or found.st_size:
+        raise ValueError(
+            f"cannot listen on {endpoint}: {lock} is not zenoh's lock (zenoh would delete it "
+            f"when it stops listening there): name a path of its own"
+        )
+
+
+def _answered(path: str) -> bool:
+    """Whether something accepts a connection on the Unix socket at ``path`` (``False``: it
+    is refused, nobody listens there)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1.0)
+        try:
+            probe.connect(path)
+        except ConnectionRefusedError:
+            return False
+    return True
 
 
 _RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")

@@ -4,6 +4,7 @@ over zenoh's, with safe defaults."""
 from __future__ import annotations
 
 import json
+import socket
 
 import pytest
 
@@ -34,6 +35,35 @@ def test_a_files_endpoints_survive_an_empty_listen(tmp_path) -> None:
     file.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7450"] } }')
     config = session_config(mode="peer", config_file=file)
     assert setting(config, "listen/endpoints") == ["tcp/127.0.0.1:7450"]
+
+
+def test_a_unix_socket_is_never_taken_from_a_file_or_a_process(tmp_path) -> None:
+    """zenoh deletes what is at a listener's path, and its ``.lock`` beside it when it stops:
+    a file, a socket something listens on, and a lock that is not zenoh's are refused, left
+    as they were; a socket left behind by a process that ended is taken."""
+    keep = tmp_path / "keep.conf"
+    keep.write_text("precious")
+    with pytest.raises(ValueError, match=r"keep\.conf exists and is not a socket"):
+        session_config(mode="router", listen=[f"unixsock-stream/{keep}"])
+    file = tmp_path / "zenoh.json5"  # the same from a config file's endpoints
+    file.write_text(json.dumps({"listen": {"endpoints": [f"unixsock-stream/{keep}#x=1"]}}))
+    with pytest.raises(ValueError, match=r"keep\.conf exists and is not a socket"):
+        session_config(mode="peer", config_file=file)
+    assert keep.read_text() == "precious"
+
+    path = tmp_path / "gw.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listening:
+        listening.bind(str(path))
+        listening.listen()
+        with pytest.raises(ValueError, match="a process listens on"):
+            session_config(mode="router", listen=[f"unixsock-stream/{path}"])
+    # closed: a socket nobody listens on, as a killed process leaves it, with zenoh's lock
+    (tmp_path / "gw.sock.lock").touch()
+    config = session_config(mode="router", listen=[f"unixsock-stream/{path}"])
+    assert setting(config, "listen/endpoints") == [f"unixsock-stream/{path}"]
+    (tmp_path / "gw.sock.lock").write_text("not zenoh's")
+    with pytest.raises(ValueError, match=r"gw\.sock\.lock is not zenoh.s lock"):
+        session_config(mode="router", listen=[f"unixsock-stream/{path}"])
 
 
 def test_an_unknown_mode_is_refused() -> None:

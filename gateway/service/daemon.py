@@ -237,6 +237,9 @@ def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
     except zenoh.ZError as exc:
         bridge.close()
         raise ConnectError(session_refusal(exc, IN_USE_HINT)) from exc
+    except ValueError as exc:  # a Unix socket's path zenoh would take from someone
+        bridge.close()
+        raise ConnectError(str(exc)) from exc
 
 
 def _start_metrics(runners: dict[str, BusRunner], bridge: ZenohBridge, listen: str) -> Metrics:
