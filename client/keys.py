@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import zenoh
 
 from busgate.errors import CommandError
-from busgate.schemas.base import CLIENT_ID_PATTERN
+from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_PATTERN
 from busgate.schemas.zenoh_session import zenoh_reason
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
@@ -35,6 +35,15 @@ class Keys:
     """Every key of the API under one prefix."""
 
     prefix: str = "busgate"
+
+    def __post_init__(self) -> None:
+        """A prefix is a gateway's ``[gateway] prefix``: a wildcard in it (``*``) would
+        address keys of other prefixes than meant, and names nothing to take apart."""
+        if not isinstance(self.prefix, str) or not re.fullmatch(KEY_PREFIX_PATTERN, self.prefix):
+            raise CommandError(
+                f"not a key prefix: {str(self.prefix)[:80]!r} (one to eight names of 1-64 of "
+                f"A-Z a-z 0-9 _ -, joined by /, as a gateway's [gateway] prefix)"
+            )
 
     def device(self, gateway: str, device: str, leaf: str) -> str:
         """``cmd``, ``follow``, ``state`` or ``event`` of a device."""
@@ -84,6 +93,28 @@ class Keys:
     def gateway_of(self, key: str) -> str:
         """The gateway chunk of a key under this prefix."""
         return key[len(self.prefix) + 1 :].split("/", 1)[0]
+
+    def names_in(self, key: str, room: str, leaf: str) -> tuple[str, str] | None:
+        """``(gateway, name)`` of a key ``<prefix>/<gateway>/<room>/<name>/<leaf>`` whose
+        gateway and name are names; ``None`` for a key of any other shape, or with a wildcard
+        where a name goes (a put on ``busgate/**/state`` reaches every subscriber of states).
+
+        >>> keys = Keys("busgate")
+        >>> keys.names_in("busgate/gw1/dev/la1/state", "dev", "state")
+        ('gw1', 'la1')
+        >>> keys.names_in("busgate/**/state", "dev", "state"), keys.names_in(
+        ...     "busgate/*/dev/la1/state", "dev", "state")
+        (None, None)
+        """
+        if not key.startswith(f"{self.prefix}/"):
+            return None
+        chunks = key[len(self.prefix) + 1 :].split("/")
+        if len(chunks) != 4 or chunks[1] != room or chunks[3] != leaf:
+            return None
+        gateway, name = chunks[0], chunks[2]
+        if _NAME.fullmatch(gateway) is None or _NAME.fullmatch(name) is None:
+            return None
+        return gateway, name
 
 
 def check_name(what: str, name: str) -> str:

@@ -51,23 +51,27 @@ class Feed:
 
     # -- zenoh's threads -------------------------------------------------------------------------
 
-    def _chunks(self, key: str) -> list[str]:
-        return key[len(self._keys.prefix) + 1 :].split("/")
+    # A sample's key may be a wildcard's (a put on ``busgate/**/state`` reaches these
+    # subscriptions too): one that names no gateway and device, bus or base is dropped.
 
     def _on_state(self, key: str, body: Any) -> None:
-        gateway, _, device, _ = self._chunks(key)
-        self._fleet.state(gateway, device, body)
+        names = self._keys.names_in(key, "dev", "state")
+        if names is not None:
+            self._fleet.state(*names, body)
 
     def _on_odometry(self, key: str, body: Any) -> None:
-        gateway, _, base, _ = self._chunks(key)
-        self._fleet.odometry(gateway, base, body)
+        names = self._keys.names_in(key, "base", "odom")
+        if names is not None:
+            self._fleet.odometry(*names, body)
 
     def _on_stats(self, key: str, body: Any) -> None:
-        gateway, _, bus, _ = self._chunks(key)
-        self._fleet.stats(gateway, bus, body)
+        names = self._keys.names_in(key, "bus", "stats")
+        if names is not None:
+            self._fleet.stats(*names, body)
 
     def _on_event(self, key: str, body: Any) -> None:
-        self._fleet.event(self._chunks(key)[0], body)
+        if key == self._keys.events(gateway := self._keys.gateway_of(key)):
+            self._fleet.event(gateway, body)
 
     def _on_gateway(self, gateway: str, alive: bool) -> None:
         if not alive:

@@ -16,6 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field
 #: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
 CLIENT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
+#: The prefix of every key (``[gateway] prefix``): one to eight such names joined by ``/``,
+#: no wildcard.
+KEY_PREFIX_PATTERN = r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$"
 
 
 def client_named(value: object) -> str | None:

@@ -30,6 +30,7 @@ from pydantic import (
 )
 
 from busgate.errors import ConfigError
+from busgate.schemas.base import KEY_PREFIX_PATTERN
 from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.joints import Joint, JointTable, table_problems
@@ -38,7 +39,7 @@ from busgate.schemas.validation import closest, suggestion
 
 #: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
 Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
-KeyPrefix = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$")]
+KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
 Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 
 FOLLOW_PERIOD_MS = (10.0, 50.0)  # the actuators' follow mode: a fixed period of 10–50 ms

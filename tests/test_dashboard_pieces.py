@@ -12,6 +12,7 @@ import socket
 
 import pytest
 
+from busgate.dashboard.feed import Feed
 from busgate.dashboard.fleet import Fleet
 from busgate.dashboard.hub import BACKLOG, Hub
 from busgate.dashboard.server import Listen
@@ -88,6 +89,40 @@ def fleet_with_a_device() -> Fleet:
     return fleet
 
 
+class SubscribedClient:
+    """What ``Feed`` subscribes with, without zenoh: each key's callback, to call by hand."""
+
+    def __init__(self) -> None:
+        self.callbacks: dict[str, object] = {}
+
+    def subscribe(self, key: str, callback: object) -> object:
+        self.callbacks[key] = callback
+        return lambda: None
+
+    def on_gateways(self, callback: object) -> object:
+        return lambda: None
+
+
+def test_a_sample_on_a_wildcard_key_is_dropped_and_a_named_one_taken() -> None:
+    """A put on ``busgate/**/state`` reaches every subscriber of states: the feed drops it
+    (it raised on each before, logged with a traceback), and takes what names a device."""
+    async def run() -> dict:
+        fleet, client = fleet_with_a_device(), SubscribedClient()
+        Feed(client, fleet, "busgate").close()  # its subscriptions, called by hand below
+        on = client.callbacks
+        for key in ("busgate/**/state", "busgate/*/dev/*/state", "busgate/gw1/dev/**",
+                    "busgate/gw1/dev/la1/**", "busgate/**"):
+            on["busgate/*/dev/*/state"](key, {"ts": 1, "position": 666})
+        on["busgate/*/bus/*/stats"]("busgate/**/stats", {"uptime_s": 1})
+        on["busgate/*/base/*/odom"]("busgate/demo/**/odom", {"base": "b"})
+        on["busgate/*/events"]("busgate/**/events", {"type": "estop"})
+        assert "position" not in str(fleet.snapshot())
+        on["busgate/*/dev/*/state"]("busgate/gw1/dev/la1/state", {"ts": 2, "position": 777})
+        return fleet.snapshot()
+
+    assert "777" in str(asyncio.run(run()))
+
+
 def test_a_browser_gets_a_snapshot_then_each_change_once() -> None:
     async def run() -> list[bytes]:
         fleet = fleet_with_a_device()
@@ -143,6 +178,7 @@ def test_a_browser_that_falls_behind_is_let_go_and_the_others_are_not() -> None:
     ("dashboard", ["--connect", "nonsense"], "error: cannot open a zenoh session to nonsense"),
     ("dashboard", ["--allow-host", "robot.example:8080"], "error: a name to answer to is a"),
     ("demo", ["--dashboard-allow-host", "*"], "error: a name to answer to is a"),
+    ("dashboard", ["--prefix", "*"], "error: not a key prefix: '*'"),
 ])
 def test_busgate_dashboard_and_demo_refuse_in_one_line(command, args, message) -> None:
     done = run_busgate(command, *args)

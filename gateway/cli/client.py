@@ -241,7 +241,7 @@ def run_watch(args: argparse.Namespace) -> int:
     table = WatchTable()
     seconds = args.seconds if args.seconds is not None else (1.5 if args.once else None)
     with open_client(args, "watch") as client:
-        _subscribe(client, table, selector, state_key, stats_key)  # until the close
+        _subscribe(client, table, Keys(args.prefix), selector, state_key, stats_key)
         gateway = state_key.split("/")[-4]
         for name, info in client.gateways(1.0).items():
             if gateway in ("*", name):
@@ -260,17 +260,23 @@ def run_watch(args: argparse.Namespace) -> int:
 
 
 def _subscribe(
-    client: bc.Client, table: WatchTable, selector: str, state_key: str, stats_key: str
+    client: bc.Client, table: WatchTable, keys: Keys, selector: str, state_key: str, stats_key: str
 ) -> None:
-    def handler(update: Callable[[str, Any, float], None]) -> Callable[[str, Any], None]:
+    """Each state and statistics into ``table``; a sample whose key names no gateway and
+    device or bus (a put on ``busgate/**/state`` reaches these subscriptions too) is dropped."""
+
+    def handler(
+        update: Callable[[str, Any, float], None], room: str, leaf: str
+    ) -> Callable[[str, Any], None]:
         def on_sample(key: str, body: Any) -> None:
-            if body is not None and intersects(selector, key):
+            named = keys.names_in(key, room, leaf) is not None
+            if body is not None and named and intersects(selector, key):
                 update(key, body, time.monotonic())
 
         return on_sample
 
-    client.subscribe(state_key, handler(table.update_state))
-    client.subscribe(stats_key, handler(table.update_stats))
+    client.subscribe(state_key, handler(table.update_state, "dev", "state"))
+    client.subscribe(stats_key, handler(table.update_stats, "bus", "stats"))
 
 
 @contextmanager

@@ -229,7 +229,7 @@ def _print_info(path: Path) -> int:
 def run_replay(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
         raise CommandError(f"--speed is above 0 and at most {MAX_SPEED:g}, not {args.speed}")
-    check_key(args.prefix)
+    Keys(args.prefix)  # a gateway's prefix, no wildcard: refused before any file or session
     path = Path(args.file)
     _summary(path)  # a file that is no complete recording is refused before any session
     recorded_prefix = _recorded_prefix(path)
