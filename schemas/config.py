@@ -154,12 +154,19 @@ class SerialBus(BusBase):
         return self.min_gap_ms / 1000
 
 
+#: ``can.Bus`` arguments a CAN bus sets from its own keys, never from ``options`` (python-can
+#: calls ``bustype`` what is now ``interface``): option key → the bus's key.
+OWN_CAN_KEYS = {"interface": "interface", "bustype": "interface", "channel": "channel",
+                "bitrate": "bitrate"}  # fmt: skip
+
+
 class CanBus(BusBase):
     transport: Literal["can"]
     interface: Annotated[str, Field(min_length=1)]
     channel: Annotated[str, Field(min_length=1)]
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
-    #: Further keyword arguments for ``can.Bus`` (e.g. ``tty_baudrate`` for slcan).
+    #: Further keyword arguments for ``can.Bus`` (e.g. ``tty_baudrate`` for slcan), none of
+    #: ``OWN_CAN_KEYS``.
     options: dict[str, str | int | float | bool] = {}
 
     @property
@@ -305,6 +312,12 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
             declaration = FAMILIES[device.kind].schema.JOINT
             for key, problem in table_problems(declaration, device.joint):
                 raise ValueError(f"{path}.devices[{index}].joint.{key}: {problem}")
+    if isinstance(bus, CanBus):
+        for key in sorted(bus.options.keys() & OWN_CAN_KEYS.keys()):
+            raise ValueError(
+                f"{path}.options.{key}: set by the bus's own {OWN_CAN_KEYS[key]} key, not in "
+                f"options (they pass on to python-can what its interface takes besides)"
+            )
     if isinstance(bus, SerialBus) and bus.gap_s < protocol.timing.min_gap_s:
         minimum = protocol.timing.min_gap_s * 1000
         raise ValueError(f"{path}.min_gap_ms: {protocol.name} needs at least {minimum:g} ms")

@@ -20,7 +20,7 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
-from busgate.errors import BusIOError, DeviceTimeoutError
+from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
@@ -45,6 +45,16 @@ def can_owner(interface: str, channel: str) -> CanBusOwner:
 
 def speed_write(rpm_raw: int = 0) -> Request:
     return Request.of(zcan, zcan.Write(1, zcan.CanRegister.TARGET_SPEED, rpm_raw))
+
+
+def test_an_option_python_can_refuses_leaves_the_bus_unavailable_not_a_bug() -> None:
+    """Every exception of python-can's open is the owner's to classify (its rule 2): a
+    keyword the interface cannot take raises TypeError there."""
+    owner = CanBusOwner("virtual", f"edges-options-{next(_channels)}", {"channel": "y"}, zcan,
+                        CAN_TIMING, BusCounters(now()), on_unsolicited=lambda event, when: None)
+    with pytest.raises(BusUnavailableError, match="cannot open CAN virtual:edges-options-"):
+        owner.open()
+    assert not owner.is_open
 
 
 def test_a_bus_off_error_frame_closes_the_link(wait_for) -> None:

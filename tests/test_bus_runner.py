@@ -9,6 +9,7 @@ time is waited for, with a generous deadline, and then its outcome is asserted.
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections import deque
 from collections.abc import Callable
@@ -509,3 +510,23 @@ def test_a_bug_in_a_driver_does_not_leave_the_bus_without_its_thread(wait_for, s
         assert runner.alive and runner.statistics().reconnects == 1
     finally:
         runner.stop()
+
+
+def test_an_unexpected_error_closes_the_bus_for_a_pause_never_a_spin(monkeypatch, simulator):
+    """A bug in the bus thread (here: an open that raises what no owner should) is logged and
+    the bus opened again ``UNEXPECTED_PAUSE_S`` later: a config python-can refused with a
+    TypeError made 35,000 tracebacks in 5 s at a full core before the pause."""
+    runner = build_bus(bus(simulator.port))
+    attempts: list[float] = []
+
+    def open_with_a_bug() -> None:
+        attempts.append(now())
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(runner.owner, "open", open_with_a_bug)
+    monkeypatch.setattr(runner_module, "UNEXPECTED_PAUSE_S", 0.2)
+    runner.start()
+    time.sleep(0.5)
+    runner.stop(5.0)
+    assert 1 <= len(attempts) <= 4
+    assert all(b - a >= 0.2 for a, b in itertools.pairwise(attempts))

@@ -221,3 +221,15 @@ def test_unreadable_and_malformed_files(tmp_path) -> None:
 def test_the_example_configs_in_deploy_are_valid(name) -> None:
     config = load_config(ROOT / "deploy" / "config" / f"{name}.toml")
     assert config.buses and all(bus.devices for bus in config.buses)
+
+
+@pytest.mark.parametrize("key", ["channel", "bitrate", "interface", "bustype"])
+def test_can_options_never_set_what_the_bus_sets_itself(key) -> None:
+    """``options`` pass on to python-can besides the bus's own keys: a second ``channel``
+    there made python-can raise at every open."""
+    bus = {"name": "can0", "transport": "can", "interface": "virtual", "channel": "x",
+           "options": {key: "y", "receive_own_messages": False},
+           "devices": [{"name": "w1", "kind": "zlac706", "id": 1}]}
+    with pytest.raises(ConfigError) as refused_:
+        parse_config({"gateway": {"name": "gw1"}, "buses": [bus]})
+    assert str(refused_.value).startswith(f"buses[0].options.{key}: set by the bus's own")

@@ -89,7 +89,8 @@ class CanBusOwner(BusOwner):
                 bitrate=self.timing.rate,
                 **self.options,
             )
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
+        except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+            # TypeError: an option the interface's class does not take
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
         try:
             self._fd = self._bus.fileno()

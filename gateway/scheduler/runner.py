@@ -87,6 +87,9 @@ UNINTERRUPTED_S = 0.001
 STALL_S = 2 * BACKOFF_MAX_S
 #: A command not started this long after it was handed over is dropped, answered ``busy``.
 COMMAND_START_S = 2.0
+#: How long the bus stays closed after an unexpected error (a bug) before it is opened again:
+#: one that recurs at every turn costs a traceback a second, never a core.
+UNEXPECTED_PAUSE_S = 1.0
 
 
 class BusRunner:
@@ -273,8 +276,13 @@ class BusRunner:
                     self._step()
                     self._publish()
                 except Exception as exc:  # a bug must not leave the bus without its thread
-                    log.exception("bus %s: unexpected error; reopening the bus", self.name)
+                    log.exception(
+                        "bus %s: unexpected error; reopening the bus in %g s",
+                        self.name,
+                        UNEXPECTED_PAUSE_S,
+                    )
                     self._link_lost(BusIOError(f"unexpected {type(exc).__name__}: {exc}"), None)
+                    self._stop.wait(UNEXPECTED_PAUSE_S)
         finally:
             self._shut_down()
 
