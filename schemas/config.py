@@ -16,11 +16,13 @@ port.
 from __future__ import annotations
 
 import os
+import stat
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -42,6 +44,8 @@ Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
 KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
 Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 
+#: The largest config file read: a robot's config is a few KiB.
+MAX_CONFIG_BYTES = 1024 * 1024
 FOLLOW_PERIOD_MS = (10.0, 50.0)  # the actuators' follow mode: a fixed period of 10–50 ms
 #: An unknown key's refusal lists the keys of its table when there are at most this many.
 LISTED_KEYS = 6
@@ -84,8 +88,15 @@ class ZenohSection(Section):
     config_file: str | None = None
 
 
+def _port_in_range(listen: str) -> str:
+    """``HOST:PORT`` whose port a socket can bind."""
+    if int(listen.rpartition(":")[2]) > 65535:
+        raise ValueError(f"the port of {listen} is over 65535")
+    return listen
+
+
 class MetricsSection(Section):
-    listen: Annotated[str, Field(pattern=r"^[^:\s]+:\d{1,5}$")]
+    listen: Annotated[str, Field(pattern=r"^[^:\s]+:\d{1,5}$"), AfterValidator(_port_in_range)]
 
 
 class RecorderSection(Section):
@@ -137,7 +148,7 @@ class BusBase(Section):
 
 class SerialBus(BusBase):
     transport: Literal["serial"]
-    port: Annotated[str, Field(min_length=1)]
+    port: Annotated[str, Field(min_length=1, pattern=r"^[^\x00]+$")]
     baudrate: Annotated[int, Field(ge=1200, le=4_000_000)]
     #: Idle line between exchanges; default per protocol, never below the protocol's minimum.
     min_gap_ms: Annotated[float, Field(ge=0, le=100)] | None = None
@@ -393,14 +404,36 @@ def _tables_in(annotation: Any) -> list[type[BaseModel]]:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML config file."""
     try:
-        data = tomllib.loads(Path(path).read_bytes().decode("utf-8"))
+        data = tomllib.loads(_config_bytes(path).decode("utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror}", path="") from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(_not_utf8(path, exc), path="") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{path} is not valid TOML: nested too deeply", path="") from exc
     return parse_config(data)
+
+
+def _config_bytes(path: str | Path) -> bytes:
+    """The file's bytes: a regular file of at most ``MAX_CONFIG_BYTES`` (``/dev/zero`` would
+    be read without end, a named pipe waited on for ever)."""
+    with open(path, "rb", opener=_opener_no_wait) as file:
+        found = os.fstat(file.fileno())
+        if not stat.S_ISREG(found.st_mode):
+            raise ConfigError(f"{path} is not a regular file: a config is a TOML file", path="")
+        data = file.read(MAX_CONFIG_BYTES + 1)
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(
+            f"{path} is over {MAX_CONFIG_BYTES // 1024 // 1024} MiB: not a config", path=""
+        )
+    return data
+
+
+def _opener_no_wait(path: str, flags: int) -> int:
+    """Open without waiting for a writer, should ``path`` be a named pipe."""
+    return os.open(path, flags | os.O_NONBLOCK)
 
 
 def _not_utf8(path: str | Path, exc: UnicodeDecodeError) -> str:

@@ -50,11 +50,15 @@ def session_config(
 ) -> zenoh.Config:
     """A zenoh config: ``config_file`` (if any) underneath, the given settings on top.
 
-    Raises ``ValueError`` for an unknown mode or a Unix socket endpoint it would take from
-    someone (``check_unix_listeners``); zenoh itself rejects a malformed file or endpoint.
+    Raises ``ValueError`` for an unknown mode, a ``config_file`` that is no file, or a Unix
+    socket endpoint it would take from someone (``check_unix_listeners``); zenoh itself
+    rejects a malformed file or endpoint.
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
+    if config_file and not Path(config_file).is_file():  # zenoh would say only "os error 2"
+        why = "not a file" if Path(config_file).exists() else "no such file"
+        raise ValueError(f"the zenoh config file {config_file}: {why}")
     config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))

@@ -5,6 +5,7 @@ bus is reported with what to change; the budget's figures match wire times worke
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -82,6 +83,51 @@ def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys)
     assert main(["check-config", str(path)]) == 0
     out = capsys.readouterr().out
     assert f"warning: buses[0].port: {tmp_path / 'usb-nothing'} does not exist" in out
+
+
+def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
+                                                                        capsys) -> None:
+    """/dev/zero was read without end (2.7 GB), a named pipe waited on for ever, a 3000-deep
+    array raised RecursionError."""
+    fifo = tmp_path / "pipe.toml"
+    os.mkfifo(fifo)
+    deep = tmp_path / "deep.toml"
+    deep.write_text("x = " + "[" * 3000 + "]" * 3000)
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * 1024 * 1024)
+    for path in ("/dev/zero", fifo, deep, big, tmp_path):
+        assert main(["check-config", str(path)]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "error: /dev/zero is not a regular file: a config is a TOML file",
+        f"error: {fifo} is not a regular file: a config is a TOML file",
+        f"error: {deep} is not valid TOML: nested too deeply",
+        f"error: {big} is over 1 MiB: not a config",
+        f"error: cannot read {tmp_path}: Is a directory",
+    ]
+
+
+@pytest.mark.parametrize(("port", "what"), [
+    ("a-file", "a regular file"), (".", "a directory"), ("loop", "a loop of symbolic links")])
+def test_a_port_that_is_no_device_file_is_a_warning_and_run_refuses_it(tmp_path, capsys, port,
+                                                                       what) -> None:
+    (tmp_path / "a-file").write_text("")
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    path = write(tmp_path, [la(1)], port=str(tmp_path / port))
+    assert main(["check-config", str(path)]) == 0
+    assert (f"warning: buses[0].port: {tmp_path / port} is {what}: a serial port is a device "
+            "file") in capsys.readouterr().out
+    assert main(["run", "--config", str(path)]) == 2
+    assert capsys.readouterr().err.startswith(f"busgate run: error: bus uart0: {tmp_path / port}"
+                                              f" is {what}")
+
+
+def test_a_zenoh_config_file_missing_here_is_a_warning(tmp_path, capsys) -> None:
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace(
+        "[[buses]]", f'[zenoh]\nconfig_file = "{tmp_path / "no.json5"}"\n[[buses]]', 1))
+    assert main(["check-config", str(path)]) == 0
+    assert (f"warning: zenoh.config_file: {tmp_path / 'no.json5'} is no file here; busgate run "
+            "refuses to start so") in capsys.readouterr().out
 
 
 def test_a_recorder_folder_this_user_cannot_write_is_a_warning(tmp_path, capsys) -> None:

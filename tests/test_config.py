@@ -233,3 +233,10 @@ def test_can_options_never_set_what_the_bus_sets_itself(key) -> None:
     with pytest.raises(ConfigError) as refused_:
         parse_config({"gateway": {"name": "gw1"}, "buses": [bus]})
     assert str(refused_.value).startswith(f"buses[0].options.{key}: set by the bus's own")
+
+
+def test_a_metrics_port_over_65535_and_a_port_with_a_nul_are_refused_naming_the_key() -> None:
+    error = refused(lambda d: d.update(metrics={"listen": "127.0.0.1:99999"}))
+    assert error.path == "metrics.listen" and "over 65535" in str(error)
+    error = refused(lambda d: d["buses"][0].update(port="/dev/tty\x00x"))
+    assert error.path == "buses[0].port"

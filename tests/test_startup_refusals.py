@@ -5,6 +5,7 @@ listening socket for an endpoint in use, file modes for a port this user may not
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import os
@@ -108,11 +109,15 @@ def held_address() -> Iterator[str]:
 
 
 @pytest.fixture
-def existing_port(tmp_path) -> str:
-    """A port that exists, so that nothing is said of it: what is refused comes first."""
-    port = tmp_path / "ttyUSB0"
-    port.touch()
-    return str(port)
+def existing_port() -> Iterator[str]:
+    """A port that exists (a pty nobody serves), so that nothing is said of it: what is
+    refused comes first."""
+    controller, port = os.openpty()
+    try:
+        yield os.ttyname(port)
+    finally:
+        os.close(port)
+        os.close(controller)
 
 
 def test_a_zenoh_endpoint_in_use_is_refused_in_one_line(held_address, existing_port,
@@ -189,9 +194,12 @@ def _without_root_file_access() -> None:
 
 def test_a_port_this_user_may_not_open_is_reported_with_what_to_do(endpoint) -> None:
     as_someone_else = {"preexec_fn": _without_root_file_access} if os.geteuid() == 0 else {}
-    with tempfile.TemporaryDirectory() as folder:
-        port = Path(folder) / "ttyUSB0"
-        port.touch(mode=0o000)
+    controller, follower = os.openpty()
+    port = os.ttyname(follower)  # a device file, as a port is, that nobody may open
+    os.chmod(port, 0o000)
+    with tempfile.TemporaryDirectory() as folder, contextlib.ExitStack() as fds:
+        fds.callback(os.close, controller)
+        fds.callback(os.close, follower)
         config = write_config(Path(folder) / "gw.toml", endpoint,
                               serial_bus("uart0", str(port), "la1"))
         check = run_busgate("check-config", str(config), **as_someone_else)

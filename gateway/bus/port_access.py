@@ -2,9 +2,10 @@
 
 Why a module of its own: ``busgate run`` at start-up (it refuses a port another process holds
 rather than retrying forever), ``busgate check-config`` and the serial owner's runtime
-messages must tell the same story about the same three troubles — the port is missing (the
-adapter is unplugged), another process holds it, or this user may not open it — so it is
-written once, here.
+messages must tell the same story about the same troubles — the port is missing (the
+adapter is unplugged), another process holds it, this user may not open it, or the path is no
+device file at all (a regular file, a directory, a loop of links: it never will be a port) —
+so it is written once, here.
 
 Rules of this file: nothing here opens a port (opening a tty raises its modem lines, which
 ``check-config`` must not do). Presence and access come from the file system (``os.access``
@@ -28,7 +29,9 @@ UDEV_RULES = "deploy/udev/99-busgate.rules"
 PROC_LOCKS = Path("/proc/locks")
 SERIAL_GROUP = "dialout"
 
-MISSING, LOCKED, DENIED = "missing", "locked", "permission_denied"
+MISSING, LOCKED, DENIED, NOT_A_DEVICE = "missing", "locked", "permission_denied", "not_a_device"
+#: What a path that can never be a port is told to be instead.
+_NO_PORT = "a serial port is a device file (/dev/ttyUSB0, /dev/serial/by-id/…); give its path"
 _MISSING_ERRNOS = {errno.ENOENT, errno.ENODEV, errno.ENXIO}
 _DENIED_ERRNOS = {errno.EACCES, errno.EPERM}
 _LOCKED_ERRNOS = {errno.EAGAIN, errno.EBUSY}  # flock refused (EWOULDBLOCK); TIOCEXCL (EBUSY)
@@ -36,8 +39,8 @@ _LOCKED_ERRNOS = {errno.EAGAIN, errno.EBUSY}  # flock refused (EWOULDBLOCK); TIO
 
 @dataclass(frozen=True, slots=True)
 class PortProblem:
-    """Why a port cannot be opened now: ``kind`` (``MISSING``, ``LOCKED`` or ``DENIED``) and
-    one line naming the port, what is wrong and what to do."""
+    """Why a port cannot be opened now: ``kind`` (``MISSING``, ``LOCKED``, ``DENIED`` or
+    ``NOT_A_DEVICE``) and one line naming the port, what is wrong and what to do."""
 
     kind: str
     message: str
@@ -51,8 +54,14 @@ def port_problem(port: str) -> PortProblem | None:
     >>> port_problem("/nonexistent/ttyUSB9").kind
     'missing'
     """
-    if not os.path.exists(port):
+    try:
+        mode = os.stat(port).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return PortProblem(NOT_A_DEVICE, f"{port} is a loop of symbolic links: {_NO_PORT}")
         return PortProblem(MISSING, missing(port))
+    if not stat.S_ISCHR(mode):
+        return PortProblem(NOT_A_DEVICE, f"{port} is {_file_kind(mode)}: {_NO_PORT}")
     holder = lock_holder(port)
     if holder is not None:
         return PortProblem(LOCKED, locked(port, holder))
@@ -82,6 +91,17 @@ def describe_open_error(port: str, exc: BaseException) -> str:
         return locked(port, lock_holder(port))
     reason = (cause.strerror or str(cause)) if cause is not None else str(exc)
     return f"cannot open {port}: {reason}"
+
+
+def _file_kind(mode: int) -> str:
+    """What a path that is no device file is, for a refusal."""
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "a regular file" if stat.S_ISREG(mode) else "not a character device"
 
 
 def missing(name: str) -> str:

@@ -80,7 +80,7 @@ def run_router(args: argparse.Namespace) -> int:
         config = session_config(mode="router", listen=listen, config_file=args.config)
     except zenoh.ZError as exc:  # checked above: only what a race or zenoh itself adds
         raise CommandError(f"cannot build the zenoh config: {_clean(zenoh_reason(exc))}") from exc
-    except ValueError as exc:  # a Unix socket's path zenoh would take from someone
+    except ValueError as exc:  # no zenoh config file, a Unix socket zenoh would take over
         raise CommandError(str(exc)) from exc
     zenoh.try_init_log_from_env()
     stop = threading.Event()

@@ -38,7 +38,7 @@ from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import tune_interpreter
-from busgate.gateway.bus.port_access import LOCKED, port_problem
+from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
@@ -209,15 +209,15 @@ def _incident_on_sigusr1(loop: asyncio.AbstractEventLoop, recorder: FlightRecord
 
 
 def _check_ports(config: Config) -> set[str]:
-    """The buses whose device files look openable now. A file another process holds is
-    refused (``BusUnavailableError``); one that is missing or not ours to open is logged with
-    what to do, and its bus retries."""
+    """The buses whose device files look openable now. A file another process holds, or a
+    path that is no device file, is refused (``BusUnavailableError``); one that is missing or
+    not ours to open is logged with what to do, and its bus retries."""
     expected_up = set()
     for bus in config.buses:
         problem = port_problem(bus.device_key[1]) if bus.device_key is not None else None
         if problem is None:
             expected_up.add(bus.name)
-        elif problem.kind == LOCKED:
+        elif problem.kind in (LOCKED, NOT_A_DEVICE):  # retrying would not change it
             raise BusUnavailableError(f"bus {bus.name}: {problem.message}")
         else:
             log.warning("bus %s: %s", bus.name, problem.message)
@@ -237,7 +237,7 @@ def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
     except zenoh.ZError as exc:
         bridge.close()
         raise ConnectError(session_refusal(exc, IN_USE_HINT)) from exc
-    except ValueError as exc:  # a Unix socket's path zenoh would take from someone
+    except ValueError as exc:  # no zenoh config file, a Unix socket zenoh would take over
         bridge.close()
         raise ConnectError(str(exc)) from exc
 
