@@ -20,6 +20,8 @@ Rules of this file:
    "message"}}`` with a 4xx status for a refused request, 404 ``unknown_gateway`` when no
    gateway of the name is up (an e-stop was put all the same), and 502 when the gateway
    refused or did not answer; ``failure`` says which, for every route.
+5. At most ``MAX_STREAMS`` event streams are open at once: the rest of the server's
+   connections stay for pages and actions, whoever holds streams open without reading them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,9 @@ from busgate.dashboard.hub import Hub
 from busgate.errors import BusgateError
 
 STATIC = Path(__file__).resolve().parent / "static"
+#: Live event streams at once (one a browser's page): past them a stream gets a 503, so that
+#: held streams never take the connections a page, and its e-stop, need (rule 5).
+MAX_STREAMS = 48
 MAX_BODY = 1024
 #: ``HOST[:PORT]`` as a ``Host`` header or an origin carries it: a DNS name (253 characters at
 #: most) or an IPv4 address, or an IPv6 address in brackets.
@@ -169,6 +174,8 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
     async def events(request: Request) -> Response:
+        if hub.browsers >= MAX_STREAMS:
+            return refusal(503, "busy", f"{MAX_STREAMS} live views are open: close one")
         return StreamingResponse(
             hub.stream(),
             media_type="text/event-stream",

@@ -17,7 +17,10 @@ Rules of this file:
    ``REQUEST_TIMEOUT_S`` of the connection's opening or of the previous reply, or its
    connection is closed; an idle connection is closed after as long; a request that finds
    ``MAX_CONNECTIONS`` open, its own included, gets a 503; no more than ``MAX_HEAD_BYTES`` of
-   an unfinished head is kept.
+   an unfinished head is kept. One client address holds at most ``MAX_PER_CLIENT`` of the
+   connections (past them a connection is closed as it opens), so one host holding
+   connections open, slowly or idly, leaves the rest to the others and their e-stops; and
+   uvicorn's warning of each request refused at the limit is logged once a minute at most.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ipaddress
+import logging
 import re
 import socket
 from collections.abc import Callable, Iterable, Iterator
@@ -54,6 +58,11 @@ GRACE_S = 2  # how long a stop waits for requests under way
 REQUEST_TIMEOUT_S = 5
 #: Open connections (an event stream holds one per browser) at which a request gets a 503.
 MAX_CONNECTIONS = 100
+#: Connections one client address may hold (a browser opens six at most, and a stream per
+#: page); rule 2.
+MAX_PER_CLIENT = 32
+#: How often uvicorn's "Exceeded concurrency limit." may be logged (rule 2).
+LIMIT_WARNING_EVERY_S = 60.0
 #: The most of a request line and headers kept while they have not ended (h11's
 #: ``max_incomplete_event_size``, its default said here); past it, a 400.
 MAX_HEAD_BYTES = 16 * 1024
@@ -161,6 +170,30 @@ class ClientActions:
         raise AssertionError("unreachable")
 
 
+def _client_host(connection: object) -> str | None:
+    """The address a connection (one of uvicorn's protocols) comes from."""
+    client = getattr(connection, "client", None)
+    return client[0] if client else None
+
+
+class _NowAndThen(logging.Filter):
+    """Lets uvicorn's warning of a request refused at the connection limit through once every
+    ``LIMIT_WARNING_EVERY_S`` (each such request logged it: a flood of them flooded the
+    log)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._next = 0.0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.getMessage() != "Exceeded concurrency limit.":
+            return True
+        if record.created < self._next:
+            return False
+        self._next = record.created + LIMIT_WARNING_EVERY_S
+        return True
+
+
 class _EmbeddedServer(uvicorn.Server):
     @contextlib.contextmanager
     def capture_signals(self) -> Iterator[None]:
@@ -172,12 +205,19 @@ class _DeadlineProtocol(H11Protocol):
     a reply is sent and stops at the first byte after it, so a client that sends half a
     request line, or a head and part of a body, would be kept for ever. Here a timer of
     ``timeout_keep_alive`` starts with the connection and again with each reply, and when it
-    fires while the request is not in whole, the connection is closed."""
+    fires while the request is not in whole, the connection is closed. A connection past its
+    address's ``MAX_PER_CLIENT`` is closed as it opens."""
 
     _deadline: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        host = _client_host(self)
+        if host is not None and sum(_client_host(c) == host for c in self.connections) > (
+            MAX_PER_CLIENT
+        ):
+            transport.close()
+            return
         self._start_deadline()
 
     def on_response_complete(self) -> None:
@@ -229,6 +269,8 @@ async def serve_dashboard(
         limit_concurrency=MAX_CONNECTIONS,
         h11_max_incomplete_event_size=MAX_HEAD_BYTES,
     )
+    limit_warnings = _NowAndThen()
+    logging.getLogger("uvicorn.error").addFilter(limit_warnings)
     server = _EmbeddedServer(config)
     bound = listen.bind()  # here, so that a port in use is an error, not uvicorn's exit
     pushing = asyncio.create_task(hub.run())
@@ -250,3 +292,4 @@ async def serve_dashboard(
         pushing.cancel()
         feed.close()
         bound.close()
+        logging.getLogger("uvicorn.error").removeFilter(limit_warnings)

@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import http.client
 import json
+import logging
 import queue
+import select
 import socket
 import threading
 import time
@@ -19,6 +22,7 @@ from urllib.parse import SplitResult, urlsplit
 
 import pytest
 
+from busgate.dashboard import app as app_module
 from busgate.dashboard import server
 from busgate.dashboard.server import Listen, serve_dashboard
 from tests.test_dashboard_http import request
@@ -208,3 +212,61 @@ def test_a_request_that_finds_too_many_connections_open_gets_a_503(monkeypatch) 
             connection.close()
         time.sleep(0.1)  # the server sees them go
         assert request(where, "GET", "/")[0] == 200
+
+
+def from_address(where: SplitResult, source: str, method: str, path: str,
+                 body: bytes | None = None) -> tuple[int, bytes]:
+    """A request from ``source`` (another loopback address: another client host)."""
+    connection = http.client.HTTPConnection(where.hostname, where.port, timeout=10,
+                                            source_address=(source, 0))
+    try:
+        connection.request(method, path, body=body,
+                           headers={"Content-Type": "application/json"} if body else {})
+        response = connection.getresponse()
+        return response.status, response.read()
+    finally:
+        connection.close()
+
+
+def test_one_host_holding_connections_leaves_the_others_their_page_and_e_stop() -> None:
+    """A host that holds 99 connections open (idle, or each a live view it never reads)
+    kept every other client out, the e-stop included, with a 503: it now holds at most
+    ``MAX_PER_CLIENT``, each past them closed as it opens, and the others are served."""
+    with served(Listen("127.0.0.1", 0)) as (where, client), contextlib.ExitStack() as held:
+        sockets = [held.enter_context(socket.create_connection((where.hostname, where.port)))
+                   for _ in range(server.MAX_PER_CLIENT + 10)]
+        time.sleep(0.5)  # well within the request deadline (5 s): only the cap closes any
+        readable, _, _ = select.select(sockets, [], [], 0)
+        assert len(readable) == 10 and all(s.recv(1) == b"" for s in readable)  # closed
+        assert from_address(where, "127.0.0.2", "GET", "/")[0] == 200
+        status, reply = from_address(where, "127.0.0.2", "POST", "/api/estop",
+                                     b'{"gateway": "demo"}')
+        assert (status, json.loads(reply)) == (200, {"ok": True, "estop": "demo"})
+        assert client.asked == [("estop", "demo")]
+
+
+def test_live_views_past_the_most_get_a_503_and_actions_still_go(monkeypatch) -> None:
+    monkeypatch.setattr(app_module, "MAX_STREAMS", 2)
+    with served(Listen("127.0.0.1", 0)) as (where, client), contextlib.ExitStack() as held:
+        for _ in range(2):
+            stream = http.client.HTTPConnection(where.hostname, where.port, timeout=10)
+            held.callback(stream.close)
+            stream.request("GET", "/events")
+            assert stream.getresponse().status == 200
+        status, reply = from_address(where, "127.0.0.3", "GET", "/events")
+        assert (status, json.loads(reply)["error"]["code"]) == (503, "busy")
+        status, _ = from_address(where, "127.0.0.3", "POST", "/api/estop", b'{"gateway": "gw"}')
+        assert status == 200 and client.asked == [("estop", "gw")]
+
+
+def test_the_warning_of_a_request_at_the_limit_is_logged_once_a_minute() -> None:
+    now_and_then = server._NowAndThen()
+
+    def record(message: str, created: float) -> logging.LogRecord:
+        made = logging.LogRecord("uvicorn.error", logging.WARNING, "", 0, message, None, None)
+        made.created = created
+        return made
+
+    told = [now_and_then.filter(record("Exceeded concurrency limit.", t)) for t in (0, 1, 59, 61)]
+    assert told == [True, False, False, True]
+    assert now_and_then.filter(record("something else", 62))
