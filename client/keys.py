@@ -120,8 +120,12 @@ class Keys:
 def check_name(what: str, name: str) -> str:
     """``name`` when it is one chunk of a key as the config allows names; else ``CommandError``
     (a ``*`` or ``/`` in a device name would address others than meant)."""
-    if not isinstance(name, str) or not _NAME.fullmatch(name):
-        raise CommandError(f"not a {what} name: {str(name)[:80]!r} (1-64 of A-Z a-z 0-9 _ -)")
+    if not isinstance(name, str):
+        raise CommandError(
+            f"not a {what} name: {str(name)[:80]} is a {type(name).__name__}, not a string"
+        )
+    if not _NAME.fullmatch(name):
+        raise CommandError(f"not a {what} name: {name[:80]!r} (1-64 of A-Z a-z 0-9 _ -)")
     return name
 
 

@@ -56,6 +56,8 @@ class Wait(Step):
         try:
             return self.future.result(self.timeout_s + WAIT_MARGIN_S)
         except TimeoutError:
+            if self.future.done():  # its own error (a NoAnswerError is a TimeoutError too)
+                raise
             self.future.cancel()
             raise self._no_answer() from None
 
@@ -64,6 +66,8 @@ class Wait(Step):
         try:
             return await asyncio.wait_for(came, self.timeout_s + WAIT_MARGIN_S)
         except TimeoutError:
+            if came.done() and not came.cancelled():  # its own error, as in ``wait``
+                raise
             raise self._no_answer() from None
 
     def _no_answer(self) -> NoAnswerError:

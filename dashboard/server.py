@@ -20,7 +20,8 @@ Rules of this file:
    an unfinished head is kept. One client address holds at most ``MAX_PER_CLIENT`` of the
    connections (past them a connection is closed as it opens), so one host holding
    connections open, slowly or idly, leaves the rest to the others and their e-stops; and
-   uvicorn's warning of each request refused at the limit is logged once a minute at most.
+   uvicorn's warnings a request makes (refused at the limit, an upgrade it does not serve)
+   are logged once a minute at most.
 """
 
 from __future__ import annotations
@@ -61,8 +62,14 @@ MAX_CONNECTIONS = 100
 #: Connections one client address may hold (a browser opens six at most, and a stream per
 #: page); rule 2.
 MAX_PER_CLIENT = 32
-#: How often uvicorn's "Exceeded concurrency limit." may be logged (rule 2).
+#: How often each of uvicorn's warnings a client's request makes may be logged (rule 2).
 LIMIT_WARNING_EVERY_S = 60.0
+#: Those warnings, as they begin.
+SAID_PER_REQUEST = (
+    "Exceeded concurrency limit.",
+    "Unsupported upgrade request.",
+    "No supported WebSocket library detected.",
+)
 #: The most of a request line and headers kept while they have not ended (h11's
 #: ``max_incomplete_event_size``, its default said here); past it, a 400.
 MAX_HEAD_BYTES = 16 * 1024
@@ -177,20 +184,22 @@ def _client_host(connection: object) -> str | None:
 
 
 class _NowAndThen(logging.Filter):
-    """Lets uvicorn's warning of a request refused at the connection limit through once every
-    ``LIMIT_WARNING_EVERY_S`` (each such request logged it: a flood of them flooded the
-    log)."""
+    """Lets each of uvicorn's warnings that a client's request can make (``SAID_PER_REQUEST``)
+    through once every ``LIMIT_WARNING_EVERY_S``: it logged one for each request refused at
+    the connection limit, two for each websocket upgrade, so a client could flood the log."""
 
     def __init__(self) -> None:
         super().__init__()
-        self._next = 0.0
+        self._next: dict[str, float] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.getMessage() != "Exceeded concurrency limit.":
+        message = record.getMessage()
+        said = next((m for m in SAID_PER_REQUEST if message.startswith(m)), None)
+        if said is None:
             return True
-        if record.created < self._next:
+        if record.created < self._next.get(said, 0.0):
             return False
-        self._next = record.created + LIMIT_WARNING_EVERY_S
+        self._next[said] = record.created + LIMIT_WARNING_EVERY_S
         return True
 
 

@@ -4,16 +4,20 @@ and keys, finding a device among gateways' info replies, payloads, and the claim
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
+from concurrent.futures import Future
 
 import pytest
 
 import busgate.client as bc
+from busgate.client import steps
 from busgate.client.base import as_body, locate, raw_payload, reenable_command
 from busgate.client.claims import Timers
-from busgate.client.errors import raise_for
-from busgate.client.keys import check_key, split_name
+from busgate.client.errors import NoAnswerError, raise_for
+from busgate.client.keys import check_key, check_name, split_name
+from busgate.client.steps import Wait
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
 from busgate.schemas.api import ERROR_CODES
@@ -135,3 +139,25 @@ def test_timers_call_in_time_order_on_their_own_thread_and_stop_on_close() -> No
     timers.at(time.monotonic(), lambda: called.append(("after close", "")))
     time.sleep(0.05)
     assert len(called) == 2
+
+
+def test_a_wait_raises_what_its_future_raised_not_a_timeout_of_its_own(monkeypatch) -> None:
+    """A ``NoAnswerError`` is a ``TimeoutError`` too: the one a lookup raised at once ("no
+    gateway answered on busgate/ghost/info") was told as the wait's own timeout ("finding
+    ghost/la1: no answer within 5 s", in 1.6 ms), sync and asyncio alike."""
+    failed: Future = Future()
+    failed.set_exception(NoAnswerError("no gateway answered on busgate/ghost/info"))
+    with pytest.raises(NoAnswerError, match="no gateway answered on busgate/ghost/info"):
+        Wait(failed, 5.0, "finding ghost/la1").wait()
+    with pytest.raises(NoAnswerError, match="no gateway answered on busgate/ghost/info"):
+        asyncio.run(Wait(failed, 5.0, "finding ghost/la1").awaited())
+    monkeypatch.setattr(steps, "WAIT_MARGIN_S", 0.0)
+    with pytest.raises(NoAnswerError, match=r"finding ghost/la1: no answer within 0\.01 s"):
+        Wait(Future(), 0.01, "finding ghost/la1").wait()  # nothing came
+
+
+def test_a_name_that_is_not_a_string_is_said_to_be_none() -> None:
+    """``{"gateway": 123}`` was refused as "not a gateway name: '123'", a name that looks
+    valid."""
+    with pytest.raises(CommandError, match="not a gateway name: 123 is a int, not a string"):
+        check_name("gateway", 123)

@@ -270,3 +270,17 @@ def test_the_warning_of_a_request_at_the_limit_is_logged_once_a_minute() -> None
     told = [now_and_then.filter(record("Exceeded concurrency limit.", t)) for t in (0, 1, 59, 61)]
     assert told == [True, False, False, True]
     assert now_and_then.filter(record("something else", 62))
+
+
+def test_a_websocket_upgrade_is_a_plain_request_warned_of_once(caplog) -> None:
+    """uvicorn warned twice of each upgrade it does not serve (install a websocket
+    library): now once a minute, whatever a client sends."""
+    with served(Listen("127.0.0.1", 0)) as (where, _):
+        for _ in range(5):
+            status, _, _ = request(where, "GET", "/", headers={
+                "Host": f"127.0.0.1:{where.port}", "Connection": "Upgrade",
+                "Upgrade": "websocket", "Sec-WebSocket-Version": "13",
+                "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ=="})
+            assert status == 200
+    warned = [r.getMessage()[:30] for r in caplog.records if r.name == "uvicorn.error"]
+    assert warned == ["Unsupported upgrade request.", "No supported WebSocket library"]

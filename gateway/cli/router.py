@@ -74,6 +74,8 @@ def run_router(args: argparse.Namespace) -> int:
     listen: list[str] = args.listen
     for endpoint in listen:
         _check_endpoint(endpoint)
+        if listen.count(endpoint) > 1:  # zenoh would say it is in use: by itself
+            raise CommandError(f"--listen {endpoint} is given twice")
     if args.config is not None:
         _check_config_file(Path(args.config))
     try:
