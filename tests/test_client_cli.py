@@ -519,3 +519,14 @@ def test_session_config_lays_busgate_settings_over_a_zenoh_file(tmp_path):
     assert json.loads(config.get_json("queries_default_timeout")) == 1234
     with pytest.raises(ValueError, match="mode"):
         session_config(mode="gateway")
+
+
+@pytest.mark.parametrize("seconds", ["1e309", "1e300", "nan", "0", "-1"])
+def test_watch_and_send_take_seconds_a_timer_can_be_set_for(seconds, capsys):
+    """1e309 and 1e300 passed, then a timer could not be set (an OverflowError traceback)."""
+    for command in (["watch", "--once", "--seconds", seconds], ["send", "la1", "{}", "--timeout",
+                                                                  seconds]):
+        with pytest.raises(SystemExit) as exited:
+            main(command)
+        assert exited.value.code == 2
+        assert "a number of seconds above 0 and at most 31536000" in capsys.readouterr().err

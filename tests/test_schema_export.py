@@ -197,14 +197,33 @@ def test_check_names_the_stale_files_and_writing_fixes_them(tmp_path, capsys):
     assert main(["schema", "--out", str(out), "--check"]) == 0
     (out / "info.json").write_text("{}\n")
     (out / "config.json").unlink()
-    (out / "old.json").write_text("{}\n")
+    (out / "package.json").write_text('{"mine": 1}\n')  # not ours: never named, never removed
     capsys.readouterr()
     assert main(["schema", "--out", str(out), "--check"]) == 1
     err = capsys.readouterr().err
-    assert all(name in err for name in ("info.json", "config.json", "old.json"))
-    assert "telemetry.zlac706.json" not in err
+    assert all(name in err for name in ("info.json", "config.json"))
+    assert "telemetry.zlac706.json" not in err and "package.json" not in err
     assert main(["schema", "--out", str(out)]) == 0
-    assert schema_cli.stale_files(out) == [] and not (out / "old.json").exists()
+    assert schema_cli.stale_files(out) == []
+    assert (out / "package.json").read_text() == '{"mine": 1}\n'
+
+
+def test_a_schema_no_longer_generated_is_named_and_removed_in_the_repository_only(
+        tmp_path, monkeypatch):
+    out = tmp_path / "json"
+    monkeypatch.setattr(schema_cli, "DEFAULT_OUT", out.resolve())
+    assert main(["schema", "--out", str(out)]) == 0
+    (out / "old.json").write_text("{}\n")
+    assert schema_cli.stale_files(out) == ["old.json"]
+    assert main(["schema", "--out", str(out)]) == 0
+    assert not (out / "old.json").exists()
+
+
+def test_an_out_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    (tmp_path / "a-file").write_text("")
+    assert main(["schema", "--out", str(tmp_path / "a-file")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"busgate schema: error: --out {tmp_path / 'a-file'}: File exists")
 
 
 # --- telemetry: states built by the drivers from decoded replies --------------------------------

@@ -102,10 +102,16 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     watch.set_defaults(handler=run_watch)
 
 
+#: The longest wait either command takes (a year): past it a timer cannot be set.
+MAX_SECONDS = 365 * 86400
+
+
 def _positive(text: str) -> float:
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, not {text}")
+    if not 0 < value <= MAX_SECONDS:
+        raise argparse.ArgumentTypeError(
+            f"must be a number of seconds above 0 and at most {MAX_SECONDS}, not {text}"
+        )
     return value
 
 

@@ -3,7 +3,9 @@ written to ``schemas/json/``.
 
 Rules: the files are generated, never edited by hand, and compare as text, so that
 ``--check`` (and the test suite) finds one that is out of date. ``--check`` writes nothing;
-it exits 1 naming every file that is missing, different, or no longer generated.
+it exits 1 naming every file that is missing, different, or no longer generated. A file no
+longer generated is removed from the repository's folder only: another ``--out`` may hold
+JSON files of its owner's (a project's ``package.json``), which are left as they are.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from busgate.errors import CommandError
 from busgate.schemas import api
 from busgate.schemas.exported import SCHEMAS, generated
 
@@ -20,7 +23,8 @@ DEFAULT_OUT = Path(api.__file__).resolve().parent / "json"
 
 
 def stale_files(out: Path) -> list[str]:
-    """Names of the files in ``out`` that are missing, differ, or are no longer generated."""
+    """Names of the files in ``out`` that are missing, differ, or (in the repository's folder
+    alone) are no longer generated."""
     texts = generated()
     present = {path.name for path in out.glob("*.json")} if out.is_dir() else set()
     stale = [
@@ -28,15 +32,16 @@ def stale_files(out: Path) -> list[str]:
         for name, text in texts.items()
         if name not in present or (out / name).read_text(encoding="utf-8") != text
     ]
-    return sorted(stale + sorted(present - texts.keys()))
+    gone = present - texts.keys() if out.resolve() == DEFAULT_OUT else set()
+    return sorted(stale + sorted(gone))
 
 
 def write_all(out: Path) -> list[str]:
-    """Write every schema to ``out`` and remove the ones no longer generated; return what
-    changed."""
+    """Write every schema to ``out`` and remove the ones no longer generated (``stale_files``:
+    in the repository's folder alone); return what changed."""
+    texts = generated()
     changed = stale_files(out)
     out.mkdir(parents=True, exist_ok=True)
-    texts = generated()
     for name in changed:
         path = out / name
         if name in texts:
@@ -55,7 +60,10 @@ def _run(args: argparse.Namespace) -> int:
         if stale:
             print("regenerate with: busgate schema", file=sys.stderr)
         return 1 if stale else 0
-    changed = write_all(out)
+    try:
+        changed = write_all(out)
+    except OSError as exc:
+        raise CommandError(f"--out {out}: {exc.strerror or exc}") from exc
     print(
         f"{len(SCHEMAS)} schemas in {out}; {len(changed)} changed"
         + (f": {', '.join(changed)}" if changed else "")
