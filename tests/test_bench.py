@@ -10,6 +10,9 @@ import json
 import subprocess
 import sys
 
+import pytest
+
+from busgate.gateway.cli import bench as bench_module
 from busgate.gateway.cli import build_parser, main
 
 #: What the device side reports, whatever its values.
@@ -73,3 +76,61 @@ def test_kind_is_the_protocol_option_under_its_earlier_name(capsys) -> None:
         "zlac706_can")
     assert main(["bench", "--kind", "inspire_la", "--ids", ","]) == 2
     assert capsys.readouterr().err == "busgate bench: error: --ids names no device\n"
+
+
+@pytest.fixture
+def nothing_opens(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refusal comes before the simulator starts or a bus is built."""
+
+    def opened(*_: object) -> None:
+        raise AssertionError("the bench opened something before refusing")
+
+    monkeypatch.setattr(bench_module, "SimProcess", opened)
+    monkeypatch.setattr(bench_module, "build_bus", opened)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "refusal"),
+    [
+        (["--protocol", "inspire_la", "--ids", "1,2,3", "--min-gap-ms", "0", "--poll-hz", "200"],
+         "buses[0].min_gap_ms: inspire_la needs at least 1 ms"),
+        (["--protocol", "inspire_la", "--ids", "1,1"],
+         "buses[0].devices[1].id: id 1 is used twice on the bus"),
+        (["--protocol", "zlac706_rs232", "--ids", "1,2"],
+         "buses[0].devices: zlac706_rs232 frames carry no device id, so a port drives one "
+         "device, not several"),
+        (["--protocol", "inspire_la", "--port", "/dev/pts/nonexistent", "--ids", "999"],
+         "buses[0].devices[0].id: 999 is outside 1–254"),
+        (["--protocol", "inspire_la", "--port", "/dev/pts/nonexistent", "--ids", "255"],
+         "buses[0].devices[0].id: 255 is outside 1–254"),
+        # Refused by the bench, not by the simulator it would start (that told it twice).
+        (["--protocol", "inspire_la", "--ids", "0"], "buses[0].devices[0].id: 0 is outside 1–254"),
+    ],
+)  # fmt: skip
+def test_bench_runs_only_a_bus_a_config_would_accept(
+    capsys: pytest.CaptureFixture[str], nothing_opens: None, arguments: list[str], refusal: str
+) -> None:
+    """The bench's bus is refused as a config file's would be, in the config's words."""
+    assert main(["bench", "--seconds", "1", *arguments]) == 2
+    assert capsys.readouterr().err == f"busgate bench: error: {refusal}\n"
+
+
+@pytest.mark.parametrize(
+    ("arguments", "refusal"),
+    [
+        (["--ids", "1,x"], "argument --ids: not a list of ids: '1,x'"),
+        *((["--seconds", seconds, "--follow-period-ms", period],
+           f"argument --seconds: must be a number of seconds above 0 and at most 31536000, "
+           f"not {seconds}")
+          for seconds in ("-1", "0", "nan", "inf") for period in ("0", "10")),
+    ],
+)  # fmt: skip
+def test_bench_refuses_a_bad_option_value_as_it_parses(
+    capsys: pytest.CaptureFixture[str], nothing_opens: None, arguments: list[str], refusal: str
+) -> None:
+    """As ``busgate sim`` refuses its ``--ids``; a measurement takes some time, and a finite
+    one (a year at most)."""
+    with pytest.raises(SystemExit) as exited:
+        main(["bench", "--protocol", "inspire_la", *arguments])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == f"busgate bench: error: {refusal}"

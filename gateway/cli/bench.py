@@ -30,21 +30,21 @@ from pathlib import Path
 from typing import Any
 
 import serial
-from pydantic import ValidationError
 
 from busgate.errors import BusUnavailableError, CommandError
 from busgate.gateway.bus.clock import now, sleep_until, tighten_timer_slack, tune_interpreter
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import percentile
+from busgate.gateway.cli.arguments import seconds
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import driver_class, make_driver
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.sim.cli import _id_list
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
-from busgate.schemas.config import CanBus, SerialBus
+from busgate.schemas.config import CanBus, SerialBus, parse_config
 from busgate.schemas.families import PROTOCOLS
-from busgate.schemas.validation import describe_validation_error
 
 ONLINE_TIMEOUT_S = 5.0
 #: The polling baseline's wait for a reply before it counts a timeout and goes on.
@@ -65,7 +65,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help=f"wire protocol: {', '.join(sorted(PROTOCOLS))}",
     )
     bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
-    bench.add_argument("--ids", default="1", help="device ids, e.g. 1,2,3 (default 1)")
+    bench.add_argument(
+        "--ids", type=_id_list, default="1", help="device ids, e.g. 1,2,3 (default 1)"
+    )
     bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
     bench.add_argument(
         "--follow-period-ms",
@@ -74,7 +76,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="follow period, 10–50 ms; 0 streams nothing (default 10)",
     )
     bench.add_argument("--poll-hz", type=float, default=20.0, help="polls per device per second")
-    bench.add_argument("--seconds", type=float, default=6.0, help="how long to measure")
+    bench.add_argument("--seconds", type=seconds, default=6.0, help="how long to measure")
     bench.add_argument("--min-gap-ms", type=float, help="UART gap (default: per protocol)")
     bench.add_argument(
         "--reply-margin-ms",
@@ -91,17 +93,19 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    ids = [int(part) for part in args.ids.split(",") if part.strip()]
+    ids = args.ids
     if not ids:
         raise CommandError("--ids names no device")
     protocol = PROTOCOLS[args.protocol]
-    baudrate = args.baudrate or protocol.timing.default_rate
+    baudrate = protocol.timing.default_rate if args.baudrate is None else args.baudrate
+    # Refused before anything opens; the simulator's port is not known yet, a stand-in is.
+    bus_config(args, ids, args.port or "simulator", baudrate)
     tune_interpreter()
     with tempfile.TemporaryDirectory() as scratch, contextlib.ExitStack() as simulator:
         port, record = args.port, None
         if port is None:
             record = Path(scratch) / "wire.jsonl"
-            sim_args = ["--ids", args.ids, "--record", str(record)]
+            sim_args = ["--ids", ",".join(map(str, ids)), "--record", str(record)]
             if not protocol.can:
                 sim_args += ["--baudrate", str(baudrate)]
             port = simulator.enter_context(SimProcess(args.protocol, sim_args)).port
@@ -116,25 +120,28 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def bus_config(args: argparse.Namespace, ids: list[int], port: str, baudrate: int):
-    """The bus the benchmark runs, checked like a config file's (bad values are refused, the
-    devices named ``devices.<n>`` as a file's are)."""
+def bus_config(
+    args: argparse.Namespace, ids: list[int], port: str, baudrate: int
+) -> SerialBus | CanBus:
+    """The bus the benchmark runs: the only bus of a whole config, so that it passes every
+    check a config file's bus does (the protocol's gap minimum, its ids, one device per port
+    …) and is refused in the config's words (``buses[0].min_gap_ms: …``)."""
     protocol = PROTOCOLS[args.protocol]
     kind, period = protocol.kind, args.follow_period_ms or 20.0
+    # Named by place, as a file's devices[n]: a repeated id is refused as such, not its name.
     devices: list[Any] = [
-        {"name": f"dev{i}", "kind": kind, "id": i, "poll_hz": args.poll_hz,
+        {"name": f"dev{n}", "kind": kind, "id": i, "poll_hz": args.poll_hz,
          "follow_period_ms": period}
-        for i in ids
+        for n, i in enumerate(ids)
     ]  # fmt: skip
     common = {"name": "bench", "devices": devices, "reply_margin_ms": args.reply_margin_ms}
-    try:
-        if protocol.can:
-            return CanBus(transport="can", interface="slcan", channel=port,
-                          options={"sleep_after_open": 0}, **common)  # fmt: skip
-        return SerialBus(transport="serial", port=port, baudrate=baudrate,
-                         min_gap_ms=args.min_gap_ms, **common)  # fmt: skip
-    except ValidationError as exc:
-        raise CommandError(f"bench: {describe_validation_error(exc)}") from exc
+    if protocol.can:
+        bus = {"transport": "can", "interface": "slcan", "channel": port,
+               "options": {"sleep_after_open": 0}, **common}  # fmt: skip
+    else:
+        bus = {"transport": "serial", "port": port, "baudrate": baudrate,
+               "min_gap_ms": args.min_gap_ms, **common}  # fmt: skip
+    return parse_config({"gateway": {"name": "bench"}, "buses": [bus]}).buses[0]
 
 
 def measure(
@@ -208,7 +215,7 @@ def wait_online(runner: BusRunner) -> None:
     deadline = now() + ONLINE_TIMEOUT_S
     while not all(d.online for d in runner.drivers.values()):
         if now() > deadline:
-            offline = [n for n, d in runner.drivers.items() if not d.online]
+            offline = [f"id {d.device_id}" for d in runner.drivers.values() if not d.online]
             raise BusUnavailableError(f"devices did not answer: {', '.join(offline)}")
         time.sleep(0.01)
 

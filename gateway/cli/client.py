@@ -37,6 +37,7 @@ from typing import Any, TextIO
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key, intersects, split_name
 from busgate.errors import CommandError
+from busgate.gateway.cli.arguments import seconds
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
@@ -64,7 +65,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     send.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
     send.add_argument(
-        "--timeout", type=_positive, default=2.0, help="seconds to wait for replies (default 2)"
+        "--timeout", type=seconds, default=2.0, help="seconds to wait for replies (default 2)"
     )
     send.add_argument("--pretty", action="store_true", help="indent the printed replies")
     send.add_argument(
@@ -94,25 +95,12 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     watch.add_argument(
         "--seconds",
-        type=_positive,
+        type=seconds,
         default=None,
         help="how long to listen (default 1.5 with --once, else until Ctrl-C)",
     )
     add_session_options(watch)
     watch.set_defaults(handler=run_watch)
-
-
-#: The longest wait either command takes (a year): past it a timer cannot be set.
-MAX_SECONDS = 365 * 86400
-
-
-def _positive(text: str) -> float:
-    value = float(text)
-    if not 0 < value <= MAX_SECONDS:
-        raise argparse.ArgumentTypeError(
-            f"must be a number of seconds above 0 and at most {MAX_SECONDS}, not {text}"
-        )
-    return value
 
 
 # -- send -----------------------------------------------------------------------------------

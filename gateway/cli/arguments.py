@@ -1,0 +1,20 @@
+"""Argument types the command line's commands share (``argparse`` ``type=``), in a module that
+imports nothing heavy: ``busgate bench`` must not load zenoh to parse ``--seconds``."""
+
+from __future__ import annotations
+
+import argparse
+
+#: The longest wait a command takes (a year): past it a timer cannot be set, and no
+#: measurement or watch runs longer.
+MAX_SECONDS = 365 * 86400
+
+
+def seconds(text: str) -> float:
+    """A number of seconds above 0 and at most ``MAX_SECONDS`` (NaN and infinity refused)."""
+    value = float(text)
+    if not 0 < value <= MAX_SECONDS:
+        raise argparse.ArgumentTypeError(
+            f"must be a number of seconds above 0 and at most {MAX_SECONDS}, not {text}"
+        )
+    return value
