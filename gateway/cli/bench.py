@@ -40,7 +40,7 @@ from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import driver_class, make_driver
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
-from busgate.gateway.sim.cli import _id_list
+from busgate.gateway.sim.cli import id_list
 from busgate.gateway.sim.process import SimProcess
 from busgate.gateway.sim.wire_analysis import analyse, load_records
 from busgate.schemas.config import CanBus, SerialBus, parse_config
@@ -66,7 +66,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     bench.add_argument("--port", help="serial port or slcan tty (default: built-in simulator)")
     bench.add_argument(
-        "--ids", type=_id_list, default="1", help="device ids, e.g. 1,2,3 (default 1)"
+        "--ids", type=id_list, default="1", help="device ids, e.g. 1,2,3 (default 1)"
     )
     bench.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
     bench.add_argument(

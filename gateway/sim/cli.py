@@ -2,15 +2,30 @@
 
 The first line of output is ``PORT <path>``, the path a host opens (the ``--link`` symlink
 when given). SIGUSR1 unplugs the adapter, or plugs it back in; SIGUSR2 reboots every device.
+
+Rules of this file:
+
+1. Every argument is checked before anything is made: each number by its parser type (one
+   line naming the option and its range), ids and ``--fault`` by the device models. Only then
+   is the pty made with its ``--link``, and then the ``--record`` file opened.
+2. A ``--record`` file is written from the start each run (the benchmarks write theirs again
+   on each step), but only once everything else has been taken: a refused command leaves an
+   existing record as it was. A path there that is no regular file is refused.
+3. ``--link`` replaces only a symlink, one an earlier simulator left (``PtyLink``); a file or
+   directory there is refused. When the record cannot be opened, the link is taken away
+   again: a refused command leaves nothing behind.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import math
+import os
 import signal
 import threading
 import uuid
+from collections.abc import Callable
 
 from busgate.errors import CommandError
 from busgate.gateway.bus.clock import now
@@ -20,6 +35,12 @@ from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.families import PROTOCOLS
 
+#: The longest time an option sets: a day, more than any simulated wait needs, and short
+#: enough that a timer can be set for it (``time.sleep`` overflows long before infinity).
+MAX_MS = 86_400_000
+#: Classic CAN's fastest bitrate (SLCAN's S8).
+MAX_CAN_BITRATE = 1_000_000
+
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim = subparsers.add_parser(
@@ -28,31 +49,33 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "adapter) and print 'PORT <path>' first. SIGUSR1 unplugs/replugs, SIGUSR2 reboots.",
     )
     sim.add_argument("protocol", choices=sorted(PROTOCOLS))
-    sim.add_argument("--ids", type=_id_list, default=[1], help="device ids, e.g. 1,2,3 (default 1)")
-    sim.add_argument("--baudrate", type=int, help="serial baud rate (default: per protocol)")
+    sim.add_argument("--ids", type=id_list, default=[1], help="device ids, e.g. 1,2,3 (default 1)")
+    sim.add_argument("--baudrate", type=_baudrate, help="serial baud rate (default: per protocol)")
     sim.add_argument("--interface", choices=("slcan",), default="slcan", help="CAN adapter")
-    sim.add_argument("--bitrate", type=int, default=500_000, help="CAN bitrate (default 500000)")
-    sim.add_argument("--heartbeat-ms", type=int, help="ZLAC706 CAN heartbeat interval, 0 = none")
-    sim.add_argument("--stroke-s", type=float, help="Inspire LA: seconds for a full stroke")
-    sim.add_argument("--link", help="keep a symlink here pointing at the current pty")
     sim.add_argument(
-        "--record", type=argparse.FileType("w"), help="write every frame to FILE (JSON lines)"
+        "--bitrate", type=_bitrate, default=500_000, help="CAN bitrate (default 500000)"
     )
+    sim.add_argument(
+        "--heartbeat-ms", type=_heartbeat_ms, help="ZLAC706 CAN heartbeat interval, 0 = none"
+    )
+    sim.add_argument("--stroke-s", type=_stroke_s, help="Inspire LA: seconds for a full stroke")
+    sim.add_argument("--link", help="keep a symlink here pointing at the current pty")
+    sim.add_argument("--record", metavar="FILE", help="write every frame to FILE (JSON lines)")
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
     sim.add_argument(
         "--busy-poll-ms",
-        type=float,
+        type=_ms,
         default=5.0,
         help="poll the port without sleeping for this long after each frame, for exact "
         "arrival times (default 5; 0 sleeps in select)",
     )
     faults = sim.add_argument_group("fault injection")
-    faults.add_argument("--drop-rate", type=float, default=0.0, help="share of replies dropped")
-    faults.add_argument("--late-rate", type=float, default=0.0, help="share of replies sent late")
-    faults.add_argument("--late-ms", type=float, default=100.0, help="how late (default 100 ms)")
-    faults.add_argument("--bad-checksum-rate", type=float, default=0.0, help="share corrupted")
-    faults.add_argument("--garbage-rate", type=float, default=0.0, help="share preceded by noise")
-    faults.add_argument("--silent-ids", type=_id_list, default=[], help="ids that never answer")
+    faults.add_argument("--drop-rate", type=_share, default=0.0, help="share of replies dropped")
+    faults.add_argument("--late-rate", type=_share, default=0.0, help="share of replies sent late")
+    faults.add_argument("--late-ms", type=_ms, default=100.0, help="how late (default 100 ms)")
+    faults.add_argument("--bad-checksum-rate", type=_share, default=0.0, help="share corrupted")
+    faults.add_argument("--garbage-rate", type=_share, default=0.0, help="share preceded by noise")
+    faults.add_argument("--silent-ids", type=id_list, default=[], help="ids that never answer")
     faults.add_argument(
         "--fault",
         action="append",
@@ -63,11 +86,38 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim.set_defaults(handler=run_sim)
 
 
-def _id_list(text: str) -> list[int]:
+def id_list(text: str) -> list[int]:
+    """``--ids`` of ``busgate sim`` and ``busgate bench``: ids joined by commas."""
     try:
         return [int(part) for part in text.split(",") if part.strip()]
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"not a list of ids: {text!r}") from exc
+
+
+def _in_range(
+    parse: Callable[[str], float], low: float, high: float, allowed: str
+) -> Callable[[str], float]:
+    """An argparse type: ``parse`` the text and refuse what is not within [low, high] (NaN is
+    not), saying the ``allowed`` values; argparse names the option."""
+
+    def check(text: str) -> float:
+        try:
+            value = parse(text)
+        except ValueError:
+            value = math.nan
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be {allowed}, not {text!r}")
+        return value
+
+    return check
+
+
+_baudrate = _in_range(int, 1, math.inf, "a whole number of baud above 0")
+_bitrate = _in_range(int, 1, MAX_CAN_BITRATE, f"a whole number of bit/s, 1 to {MAX_CAN_BITRATE}")
+_heartbeat_ms = _in_range(int, 0, MAX_MS, f"a whole number of ms, 0 (none) to {MAX_MS}")
+_stroke_s = _in_range(float, 0.001, MAX_MS / 1000, f"seconds, 0.001 to {MAX_MS // 1000}")
+_ms = _in_range(float, 0, MAX_MS, f"ms, 0 to {MAX_MS}")
+_share = _in_range(float, 0, 1, "a share, 0 to 1")
 
 
 def run_sim(args: argparse.Namespace) -> int:
@@ -77,20 +127,32 @@ def run_sim(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.protocol} simulator: {exc}") from exc
     for spec in args.fault:
         _raise_fault(devices, spec)
-    try:
-        faults = FaultInjector(_fault_config(args), seed=args.seed)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from exc
-    recorder = Recorder(args.record)
-    server = _make_server(args, devices, faults, recorder)
-    print(f"PORT {server.port}", flush=True)
-    stop = threading.Event()
-    _install_signals(server, devices, stop)
+    faults = FaultInjector(_fault_config(args), seed=args.seed)
     with contextlib.ExitStack() as stack:
+        try:
+            link = PtyLink(args.link)
+        except OSError as exc:  # rule 3: a file or directory there, or no such folder
+            raise CommandError(f"--link {args.link}: {exc.strerror}") from None
+        stack.callback(link.close)  # closed again by the server's stop: twice is once
+        record_file = stack.enter_context(_open_record(args.record)) if args.record else None
+        server = _make_server(args, devices, faults, Recorder(record_file), link)
+        print(f"PORT {server.port}", flush=True)
+        stop = threading.Event()
+        _install_signals(server, devices, stop)
         stack.callback(server.stop)
         server.start()
         stop.wait()
     return 0
+
+
+def _open_record(path: str):
+    """``path`` opened for writing from the start (rule 2); closed by the caller."""
+    if os.path.lexists(path) and not os.path.isfile(path):
+        raise CommandError(f"--record {path}: not a regular file")
+    try:
+        return open(path, "w")
+    except OSError as exc:
+        raise CommandError(f"cannot write --record {path}: {exc.strerror}") from None
 
 
 def _model_options(args: argparse.Namespace) -> dict[str, object]:
@@ -120,10 +182,10 @@ def _raise_fault(devices: list, spec: str) -> None:
         raise CommandError(f"--fault {spec}: {exc}") from exc
 
 
-def _make_server(args, devices, faults, recorder):
+def _make_server(args, devices, faults, recorder, link):
     protocol = PROTOCOLS[args.protocol]
     if protocol.can:
-        return _SlcanServer(protocol.codec, devices, args.bitrate, args.link, faults, recorder)
+        return _SlcanServer(protocol.codec, devices, args.bitrate, link, faults, recorder)
     from busgate.gateway.sim.serial_server import SerialSimulator
 
     baudrate = args.baudrate or protocol.timing.default_rate
@@ -131,7 +193,7 @@ def _make_server(args, devices, faults, recorder):
         protocol.codec,
         devices,
         baudrate=baudrate,
-        link=PtyLink(args.link),
+        link=link,
         faults=faults,
         recorder=recorder,
         seed=args.seed,
@@ -149,7 +211,7 @@ class _SlcanServer:
         from busgate.gateway.sim.slcan import SlcanAdapter
 
         channel = f"busgate-sim-{uuid.uuid4().hex}"
-        self.adapter = SlcanAdapter(channel, link=PtyLink(link))
+        self.adapter = SlcanAdapter(channel, link=link)
         self.devices = devices
         self.simulator = CanSimulator(
             codec,

@@ -3,7 +3,10 @@
 The simulator keeps both ends open, so the pty lives while no host has it open, and works on
 the master end. ``unplug()`` closes both ends (the host's reads fail as on a real unplug) and
 removes the ``link`` symlink; ``plug()`` makes a new pty and points the symlink at it, the way
-/dev/serial/by-id follows a USB adapter that comes back under a new /dev/ttyUSBn.
+/dev/serial/by-id follows a USB adapter that comes back under a new /dev/ttyUSBn. Only a
+symlink at ``link`` (one an earlier simulator left) is replaced or removed: a file or directory
+there is refused with ``FileExistsError``, and a link that cannot be made leaves no pty open
+and no staging symlink behind.
 
 Only the thread that serves the pty may open or close it (closing a descriptor another thread
 is waiting on is a race), so other threads ask with ``want(plugged)`` and the serving thread
@@ -13,6 +16,7 @@ carries the wish out in ``sync()``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import threading
 import tty
@@ -41,17 +45,21 @@ class PtyLink:
         master, slave = os.openpty()
         tty.setraw(slave)
         os.set_blocking(master, False)
-        self._master, self._slave, self.path = master, slave, os.ttyname(slave)
+        path = os.ttyname(slave)
         if self.link:
-            staging = f"{self.link}.{os.getpid()}.tmp"
-            os.symlink(self.path, staging)
-            os.replace(staging, self.link)
+            try:
+                _point_symlink(self.link, path)
+            except OSError:
+                os.close(master)
+                os.close(slave)
+                raise
+        self._master, self._slave, self.path = master, slave, path
 
     def unplug(self) -> None:
         """Close the pty: the host's port fails, and the symlink goes away."""
         if not self.plugged:
             return
-        if self.link:
+        if self.link and os.path.islink(self.link):
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(self.link)
         for fd in (self._master, self._slave):
@@ -92,3 +100,16 @@ class PtyLink:
             while sent < len(data):
                 sent += os.write(self._master, data[sent:])
         return sent
+
+
+def _point_symlink(link: str, target: str) -> None:
+    """Make ``link`` a symlink to ``target`` in one rename, so a host never finds it missing."""
+    if os.path.lexists(link) and not os.path.islink(link):
+        raise FileExistsError(errno.EEXIST, "exists and is not a symlink, so it is kept", link)
+    staging = f"{link}.{os.getpid()}.tmp"
+    os.symlink(target, staging)
+    try:
+        os.replace(staging, link)
+    except OSError:
+        os.unlink(staging)
+        raise
