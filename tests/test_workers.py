@@ -28,6 +28,7 @@ import pytest
 
 import busgate.client as bc
 from busgate.codecs import inspire_la as la
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.worker import Worker
@@ -380,6 +381,18 @@ def test_a_message_larger_than_the_kernel_lets_one_datagram_be_crosses_in_parts(
 
 
 @pytest.fixture
+def lone_worker_config():
+    """A ZLAC706 bus a worker may run, its port never opened."""
+    return parse_config({
+        "gateway": {"name": "gw1", "workers": 2},
+        "buses": [
+            {"name": "rs232", "transport": "serial", "port": "/dev/null", "baudrate": 115_200,
+             "devices": [{"name": "drive", "kind": "zlac706", "id": 1}]},
+        ],
+    })
+
+
+@pytest.fixture
 def lone_worker() -> WorkerProcess:
     """A worker's supervisor with no process: one LA bus, its shadow never started."""
     config = parse_config(
@@ -625,3 +638,30 @@ def test_messages_a_full_outbox_loses_are_counted_and_logged(caplog) -> None:
         outbox.close()
         ours.close()
         theirs.close()
+
+
+def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_config) -> None:
+    """A ZLAC706 on a worker's bus: the gateway judges a follow target by its shadow's driver,
+    which never hears the device. It takes the mode from the worker's states, and from a
+    command's answer before its caller sees it; before, every speed target (0 included) was
+    refused "its mode is not known"."""
+    worker = WorkerProcess(0, lone_worker_config, [build_bus(lone_worker_config.buses[0])])
+    runner = worker.runners["rs232"]
+    api = GatewayApi("gw1", {"rs232": runner})  # type: ignore[dict-item]
+    runner.took_state("drive", {"online": True, "estopped": False})
+    refused = api.follow("drive", b'{"rpm": 0}')
+    assert refused is not None and "its mode is not known" in refused["error"]["message"]
+
+    answers: list[Future] = []
+    worker.call = lambda *call: answers.append(Future()) or answers[-1]  # type: ignore[method-assign]
+    answered = runner.submit("drive", "set_mode velocity, as the worker's driver planned it")
+    answers[0].set_result({"ok": True, "state": {"mode": "velocity", "enabled": True}})
+    assert answered.result(0)["ok"]
+    worker.send = lambda *told: None  # type: ignore[method-assign]
+    runner.follow = lambda device, target: answers.append(target)  # type: ignore[method-assign]
+    assert api.follow("drive", b'{"rpm": 0}') is None
+    assert answers[-1] == 0.0
+
+    runner.took_state("drive", {"online": True, "estopped": False, "mode": "position"})
+    refused = api.follow("drive", b'{"rpm": 30}')
+    assert refused is not None and "the motor is in position mode" in refused["error"]["message"]

@@ -373,6 +373,11 @@ class Driver(abc.ABC):
         if self.online and self.misses >= OFFLINE_AFTER:
             self.went_offline("no reply")
 
+    def mirror(self, state: dict[str, Any]) -> None:  # noqa: B027 - optional hook
+        """A shadow's driver (a bus in a worker, docs/workers.md) takes from a state its
+        worker's driver made what the gateway judges a target by; by default nothing: the
+        family judges a target by its joint and limits alone."""
+
     def check_heartbeat(self, now: float) -> None:  # noqa: B027 - optional hook
         """Called by the runner before each publication: a device that reports unasked
         (heartbeats) goes offline here once they stop; by default there are none."""

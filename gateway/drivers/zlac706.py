@@ -255,6 +255,16 @@ class Zlac706Driver(Driver):
     def keepalive_request(self) -> Request:
         """What refreshes the device: the speed write (CAN), the monitor request (RS232)."""
 
+    def mirror(self, state: dict[str, Any]) -> None:
+        """The mode and the power stage its worker's driver knows: a speed target is judged
+        by them (velocity mode only)."""
+        mode = state.get("mode")
+        self.machine.settings = replace(
+            self.machine.settings,
+            mode=None if mode is None else Mode(mode),
+            enabled=state.get("enabled"),
+        )
+
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706
         streams speeds)."""

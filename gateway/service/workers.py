@@ -479,6 +479,7 @@ class WorkerRunner:
         driver = self.drivers[device]
         driver.online = bool(state.get("online"))
         driver.said_estopped = bool(state.get("estopped"))  # type: ignore[attr-defined]
+        driver.mirror(state)
         self.telemetry.states[device] = state
         self.telemetry.on_state(device, state)
 
@@ -503,7 +504,18 @@ class WorkerRunner:
     # -- calls: each carried out by the worker --------------------------------------------------
 
     def submit(self, device: str, command: Any, client: str | None = None) -> Future:
-        return self.worker.call(self.name, "submit", device, command, client)
+        """The worker's answer, whose state the shadow's driver takes first (``mirror``): a
+        client told ``set_mode`` is done may stream at once, before the state's own message
+        has crossed."""
+        answer = self.worker.call(self.name, "submit", device, command, client)
+        answer.add_done_callback(partial(self._mirror_reply, device))
+        return answer
+
+    def _mirror_reply(self, device: str, answer: Future) -> None:
+        reply = None if answer.cancelled() or answer.exception() else answer.result()
+        state = reply.get("state") if isinstance(reply, dict) else None
+        if isinstance(state, dict):
+            self.drivers[device].mirror(state)
 
     def scan(self, requests: list, start_by: float) -> Future:
         return self.worker.call(self.name, "scan", requests, start_by)
