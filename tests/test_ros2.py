@@ -288,6 +288,28 @@ def test_a_command_put_on_a_wildcard_key_moves_nothing(ros, wildcard) -> None:
     assert la_targets(ros, since, 1) == []
 
 
+def test_a_command_over_64_kib_is_dropped_before_it_is_decoded(ros) -> None:
+    """A peer's 16 MB JointState was decoded whole, and each of its names ramped in turn."""
+    key = rmw_zenoh.data_key(0, "/robot_joint_commands", "sensor_msgs/msg/JointState", "jazzy")
+
+    def gripper_among_others(position: float, others: int) -> bytes:
+        names = ["gripper", *(f"other{n:094d}" for n in range(others))]
+        return messages.encode("sensor_msgs/msg/JointState", {
+            "header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": ""},
+            "name": names, "position": [position] + [math.nan] * others, "velocity": [],
+            "effort": []})
+
+    under, over = gripper_among_others(0.002, 500), gripper_among_others(0.006, 700)
+    assert len(under) < 64 * 1024 < len(over)
+    since = len(ros["la"].recorder.received())
+    ros["client"].put(key, under)
+    wait_for_target(ros, since, 1, 400)
+    since = len(ros["la"].recorder.received())
+    ros["client"].put(key, over)
+    time.sleep(0.5)  # a stream toward 1200 would have ticked 25 times
+    assert la_targets(ros, since, 1) == []
+
+
 def test_a_service_asked_on_a_wildcard_key_is_not_answered(ros) -> None:
     """The reset's request on its exact key without rmw_zenoh's attachment gets an error reply;
     on a wildcard key it is dropped before that: nothing is done and nothing answers."""

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from busgate.errors import RefusedError
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.ros2.commands import UNKNOWN_KEPT, Commands, JointRef
 from busgate.gateway.ros2.diagnostics import (
     ERROR,
@@ -19,7 +20,10 @@ from busgate.gateway.ros2.diagnostics import (
     JointHealth,
     diagnostic_array,
 )
+from busgate.gateway.ros2.face import Ros2Face
 from busgate.gateway.ros2.trajectory import ROS_TRAJECTORY_ID, trajectory_command
+from busgate.gateway.service.assembly import build_bus
+from busgate.schemas.config import parse_config
 
 GRIPPER = JointRef("gripper", "la1", "position")
 WHEEL = JointRef("wheel", "drive", "velocity")
@@ -174,3 +178,58 @@ def test_a_bus_is_an_error_when_down_and_a_warning_when_it_erred() -> None:
                                [BusHealth("can0", True, stats, 0)])["status"]
     assert {kv["key"]: kv["value"] for kv in up["values"]} == {
         "up": "true", "utilisation": "0.25", "timeouts": "3"}
+
+
+def test_a_joint_named_again_and_again_is_one_target_its_last_value() -> None:
+    """A message naming the gripper 100,000 times made 100,000 ramps, one after another on
+    zenoh's thread (an e-stop waited behind them for seconds)."""
+    taken = commands().take({"name": ["gripper"] * 100_000,
+                             "position": [0.001] * 99_999 + [0.002]}, NOW)
+    assert [(t.joint.name, t.value) for t in taken.targets] == [("gripper", 0.002)]
+
+
+class HandingOnBridge:
+    """What the face asks of the bridge here: a hand-over to the loop (kept, run by hand) and
+    an e-stop (nothing to stop: no bus runs)."""
+
+    def __init__(self) -> None:
+        self.soon: list = []
+
+    def call_soon(self, function, *args) -> None:
+        self.soon.append((function, args))
+
+    def estop(self, client, key) -> list:
+        return []
+
+    def run_soon(self) -> None:
+        soon, self.soon = self.soon, []
+        for function, args in soon:
+            function(*args)
+
+
+def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(monkeypatch):
+    """Commands are handed to the loop, each joint's latest alone; the e-stop drops what is
+    due, so that nothing sent before it moves a joint after the reset (a flood held such a
+    command back until 7 s after the reset, which then moved the joint)."""
+    gripper = {"name": "la1", "kind": "inspire_la", "id": 1,
+               "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}
+    config = parse_config({
+        "gateway": {"name": "gw1"}, "ros2": {},
+        "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null",
+                   "baudrate": 921_600, "devices": [gripper]}],
+    })
+    api = GatewayApi("gw1", {"uart0": build_bus(config.buses[0])})
+    bridge = HandingOnBridge()
+    face = Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+    ramps: list = []
+    monkeypatch.setattr(api, "ramp_to", lambda device, fields, *_: ramps.append((device, fields)))
+    for position in (0.001, 0.002, 0.003):  # three messages before the loop's turn
+        face._command({"name": ["gripper"], "position": [position]})
+    assert len(bridge.soon) == 1  # one hand-over for them all
+    face._estop({})
+    bridge.run_soon()
+    assert ramps == []
+    face._command({"name": ["gripper"], "position": [0.004]})
+    face._command({"name": ["gripper"], "position": [0.005]})
+    bridge.run_soon()
+    assert ramps == [("la1", {"joint": 0.005})]

@@ -315,7 +315,7 @@ class ZenohBridge:
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
-            self._call_soon(self._client_left, str(sample.key_expr).split("/")[-1])
+            self.call_soon(self._client_left, str(sample.key_expr).split("/")[-1])
 
     def _client_left(self, client: str) -> None:
         """The loop's thread: the client's trajectories end ``client gone`` first, in the same
@@ -359,7 +359,7 @@ class ZenohBridge:
             result = handle()
         except Exception as exc:  # the API answers everything; this is the last net
             log.exception("query on %s failed", key)
-            self._call_soon(send, error_reply(exc))
+            self.call_soon(send, error_reply(exc))
             return
 
         def too_late() -> None:
@@ -378,7 +378,7 @@ class ZenohBridge:
 
         def done(finished: Future) -> None:
             if not finished.cancelled():
-                self._call_soon(send, finished.result())
+                self.call_soon(send, finished.result())
 
         result.add_done_callback(done)
         loop.call_soon_threadsafe(arm_guard)
@@ -392,7 +392,8 @@ class ZenohBridge:
         if self.on_command is not None:
             self.on_command(key, payload, reply)
 
-    def _call_soon(self, function, *args: Any) -> None:
+    def call_soon(self, function, *args: Any) -> None:
+        """``function(*args)`` on the loop's thread, from any thread (rule 1's hand-over)."""
         if self._loop is not None and not self._loop.is_closed():
             self._loop.call_soon_threadsafe(function, *args)
 

@@ -27,6 +27,7 @@ from busgate.codecs.ros2.messages import time_of
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.base.kinematics import Twist
 from busgate.gateway.ros2.node import Ros2Node, Ros2Publisher
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.ros2 import Ros2Section
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ class BaseTopics:
                 TWIST,
                 rmw_zenoh.DEFAULT,
                 functools.partial(self._cmd_vel, name),
+                MAX_PAYLOAD,
             )
             self._out[name] = (
                 node.publisher(section.topic_of("odom", name, count), ODOMETRY, rmw_zenoh.DEFAULT),

@@ -9,7 +9,8 @@ Rules of this file:
    long as the named joints of its interface gives them their values in order: ros2_control's
    topic-based system writes a joint's command only into the list of its command interface.
    A list of any other length cannot say which value is whose: it moves nothing and is told
-   (``Taken.problems``). A NaN or infinite value is no command for that joint.
+   (``Taken.problems``). A NaN or infinite value is no command for that joint; a joint named
+   twice takes its last value, one target a joint.
 2. A name no joint has is reported once (``unknown`` of the first message that names it),
    then ignored; at most ``UNKNOWN_KEPT`` of them are kept (a peer may send any number, of
    any length), each as a refusal repeats it (``shown``).
@@ -111,6 +112,8 @@ class Commands:
                     taken.targets.append(Target(joint, float(value)))
                     if interface == "velocity":
                         self._moving[joint.name] = now
+        # A name given twice: its last value (one target a joint, however long the message).
+        taken.targets = list({target.joint.name: target for target in taken.targets}.values())
         return taken
 
     def expired(self, now: float) -> list[JointRef]:

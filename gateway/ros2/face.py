@@ -21,6 +21,11 @@ Rules of this file:
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
    once a second; ``/diagnostics`` once a second.
 5. Zenoh callbacks hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
+   A command message is taken apart on zenoh's thread and its targets handed to the loop,
+   each joint's latest alone (``_due``): a flood of commands costs zenoh's thread little, so
+   an e-stop behind it waits for none of them, and the e-stop drops what is due, so that
+   nothing sent before it moves a joint after the reset. Nothing of a name no joint has is
+   kept beyond ``Commands``' few, nor logged but cut (``shown``).
 6. The face never ends the gateway: a failure of its periodic work or of a publication (a
    bug) is logged once, with its traceback, and the gateway serves on.
 """
@@ -45,13 +50,16 @@ from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
-from busgate.gateway.ros2.commands import Commands, JointRef
+from busgate.gateway.ros2.commands import Commands, JointRef, Target
 from busgate.gateway.ros2.diagnostics import BusHealth, JointHealth, diagnostic_array
 from busgate.gateway.ros2.node import NodeName, Ros2Node
 from busgate.gateway.ros2.trajectory import trajectory_command
 from busgate.schemas.encoding import message_json
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.replies import error_reply
 from busgate.schemas.ros2 import Ros2Section
+from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
+from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +95,8 @@ class Ros2Face:
         self._claim_ttl_s = max(CLAIM_TTL_S, 2 * section.command_timeout_s)
         self._commands_lock = threading.Lock()
         self._refusals: dict[str, str] = {}  # joint → its last refused command (rule 2)
+        self._due: dict[str, Target] = {}  # joint → its latest command not handed on (rule 5)
+        self._handing_on = False  # the loop is due to hand on ``_due``
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
         self._node: Ros2Node | None = None
         self._estopped: bool | None = None
@@ -104,9 +114,15 @@ class Ros2Face:
         self._states = node.publisher(section.joint_states, JOINT_STATE, rmw_zenoh.SENSOR_DATA)
         self._diagnostics = node.publisher(section.diagnostics, DIAGNOSTIC_ARRAY, rmw_zenoh.DEFAULT)
         self._estop_state = node.publisher(section.estopped, BOOL, rmw_zenoh.DEFAULT)
-        node.subscription(section.joint_commands, JOINT_STATE, rmw_zenoh.COMMANDS, self._command)
         node.subscription(
-            section.joint_trajectory, JOINT_TRAJECTORY, rmw_zenoh.DEFAULT, self._trajectory
+            section.joint_commands, JOINT_STATE, rmw_zenoh.COMMANDS, self._command, MAX_PAYLOAD
+        )
+        node.subscription(
+            section.joint_trajectory,
+            JOINT_TRAJECTORY,
+            rmw_zenoh.DEFAULT,
+            self._trajectory,
+            MAX_TRAJECTORY_PAYLOAD,
         )
         node.service(section.estop, TRIGGER, self._estop, always=True)
         node.service(section.reset_estop, TRIGGER, self._reset_estop)
@@ -211,11 +227,21 @@ class Ros2Face:
     def _command(self, message: dict[str, Any]) -> None:
         with self._commands_lock:
             taken = self.commands.take(message, time.monotonic())
+            self._due.update((target.joint.name, target) for target in taken.targets)
+            hand_on = bool(self._due) and not self._handing_on
+            self._handing_on |= hand_on
+        if hand_on:
+            self.bridge.call_soon(self._hand_on)
         for name in taken.unknown:
             log.warning("ros2: a command names no joint of this gateway: %r (ignored)", name)
         for problem in taken.problems:
             self._refused(message.get("name") or [], problem)
-        for target in taken.targets:
+
+    def _hand_on(self) -> None:
+        """The loop's thread: each joint's latest command, to its device (rule 5)."""
+        with self._commands_lock:
+            due, self._due, self._handing_on = self._due, {}, False
+        for target in due.values():
             self._ramp(target.joint, target.follow_fields)
 
     def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
@@ -245,15 +271,20 @@ class Ros2Face:
             self._refused(names, f"trajectory: {reply['error']['message']}")
 
     def _refused(self, joints: Iterable[str], message: str) -> None:
+        """Told once per joint of this gateway (a name no joint has is ``Commands``' to
+        tell, rule 5)."""
         for name in joints:
+            if name not in self.joints:
+                continue
             if self._refusals.get(name) != message:
-                log.warning("ros2: command for joint %s refused: %s", name, message)
+                log.warning("ros2: command for joint %s refused: %s", name, shown(message))
             self._refusals[name] = message
 
     def _estop(self, request: dict[str, Any]) -> Future:
         key = f"ros2 {self._resolve(self.section.estop)}"
         stopped = self.bridge.estop(self.section.client, key)
         with self._commands_lock:
+            self._due.clear()  # rule 5: sent before the stop, never carried out after it
             self.commands.forget(self.joints)
         return _when_all(stopped, "every bus stopped")
 

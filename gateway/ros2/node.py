@@ -103,14 +103,21 @@ class Ros2Node:
         type_name: str,
         qos: Qos,
         handler: Callable[[dict[str, Any]], None],
+        max_bytes: int,
     ) -> None:
+        """Each ``type_name`` message on ``topic``'s own key, of at most ``max_bytes``, decoded
+        for ``handler``; anything else dropped (counted) before it is decoded."""
         key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
 
         def received(sample: zenoh.Sample) -> None:
             if str(sample.key_expr) != key:
                 self._drop(f"{topic}: a sample on {sample.key_expr}, not the topic's key")
                 return
-            message = messages.decode(type_name, sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
+            if len(payload) > max_bytes:
+                self._drop(f"{topic}: a sample of {len(payload)} bytes, over {max_bytes}")
+                return
+            message = messages.decode(type_name, payload)
             if message is None:
                 self._drop(f"{topic}: a sample that is not {type_name} CDR")
                 return
