@@ -4,14 +4,21 @@ Schema, every message published while it recorded, times in order), SIGINT endin
 complete file, every refusal one line with exit status 2, and replay publishing the
 telemetry again, in order and never early, and nothing on a command or e-stop key: under
 ``replay`` unless told otherwise, never outside the prefix it is given, and not under the
-demo's own prefix while the demo is live there, unless ``--onto-live``."""
+demo's own prefix (or under its keys) while the demo is live there, unless ``--onto-live``;
+a disk refusing a write ending a recording in one line, and a hostile file (huge chunks,
+messages or gaps, keys zenoh refuses) replayed within bounds, Ctrl-C stopping it cleanly."""
 
 from __future__ import annotations
 
+import errno
+import io
 import json
+import os
 import signal
 import socket
+import struct
 import subprocess
+import threading
 import time
 
 import pytest
@@ -19,6 +26,8 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 import busgate.client as bc
+from busgate.gateway.cli import record as record_command
+from busgate.gateway.recording import mcap_log
 from busgate.gateway.recording.mcap_log import McapLog
 from busgate.schemas.exported import generated
 from tests.gateway_process import BUSGATE, TIMEOUT_S, run_busgate
@@ -141,7 +150,7 @@ def test_replay_where_no_gateway_is_live_publishes_telemetry_in_order_never_earl
     assert done.returncode == 0, done
     first, *_, last = done.stderr.splitlines()
     assert first == f"busgate replay: replaying {path} under replayed/**"
-    assert last.endswith("; 2 on command or e-stop keys and 0 outside busgate/** left out")
+    assert last.endswith(" s; 2 on command or e-stop keys left out")
     ours = [(payload, at) for key, payload, at in heard if key == "replayed/rec-test/dev/x/state"]
     assert [payload for payload, _ in ours] == sent
     assert not [key for key, _, _ in heard if key.endswith(("/cmd", "/estop", "/follow"))]
@@ -196,7 +205,7 @@ def test_replay_leaves_out_a_key_outside_the_recorded_prefix(tmp_path, module_de
     assert done.returncode == 0, done
     assert [(key, payload) for key, payload, _ in heard] == [
         ("replay/gw9/dev/la1/state", b'{"n": 1}')]
-    assert done.stderr.splitlines()[-1].endswith("and 1 outside rec/** left out")
+    assert done.stderr.splitlines()[-1].endswith(" s; 1 outside rec/** left out")
 
 
 def write_foreign(path) -> None:
@@ -215,19 +224,24 @@ def write_foreign(path) -> None:
     (["record", "-o", "{tmp}/x.mcap", "--seconds", "nan"], "--seconds is a positive number"),
     (["record", "-o", "{tmp}/x.mcap", "a//b"], "a//b"),
     (["record", "-o", "{tmp}/exists.mcap"], "exists: a recording is never overwritten"),
+    (["record", "-o", ""], "error: -o: an empty file name"),
     (["record", "-o", "{tmp}/no/such/dir/x.mcap"], "cannot write"),
     (["record", "--info", "{tmp}/none.mcap"], "cannot read"),
     (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),
     (["replay", "{tmp}/none.mcap"], "cannot read"),
     (["replay", "{tmp}/exists.mcap"], "is not a complete MCAP file"),  # before any session
     (["replay", "{tmp}/exists.mcap", "--prefix", "a*b"], "a*b"),
-    (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is above 0"),
-    (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is above 0"),
+    (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is from 0.01 to 1000"),
+    (["replay", "{tmp}/exists.mcap", "--speed", "1e-300"], "--speed is from 0.01 to 1000"),
+    (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is from 0.01 to 1000"),
     (["replay", "{tmp}/foreign.mcap"], "names no prefix its keys were recorded under"),
+    (["replay", "{tmp}/huge.mcap"], "huge.mcap holds a chunk of 65 MiB: replay reads at most "
+                                   "64 MiB at once"),
 ])
-def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message) -> None:
+def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message, huge_chunk) -> None:
     (tmp_path / "exists.mcap").write_bytes(b"not an mcap file")
     write_foreign(tmp_path / "foreign.mcap")
+    (tmp_path / "huge.mcap").write_bytes(huge_chunk)
     done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),
                        "--connect", "tcp/127.0.0.1:1")
     assert done.returncode == 2, done
@@ -277,3 +291,151 @@ def test_a_recording_stopped_while_its_session_opens_leaves_no_file(tmp_path) ->
     assert stderr.strip().splitlines()[-1].endswith("stopped before a session opened: nothing "
                                                     "recorded"), stderr
     assert not path.exists()
+
+
+# -- a disk that refuses a write ----------------------------------------------------------------
+
+
+def test_a_disk_refusing_a_write_ends_the_recording_in_one_line(module_demo, client,
+                                                                tmp_path) -> None:
+    """A file size limit (``RLIMIT_FSIZE``: the write fails with EFBIG, as a full disk's with
+    ENOSPC): the writer's first chunk fails while samples still come, the recording ends by
+    itself, the file kept as far as written, and the command fails in one line."""
+    path = tmp_path / "full.mcap"
+    recorder = subprocess.Popen(["prlimit", "--fsize=4096", *BUSGATE, "record", "--connect",
+                                 module_demo.endpoint, "-o", str(path)],
+                                stderr=subprocess.PIPE, text=True)
+    try:
+        wait_recording(recorder)
+        for _ in range(40):  # 2.4 MB that zstd cannot shrink: the 1 MiB chunk is written
+            client.put("busgate/rec-test/dev/big/state", os.urandom(60_000))
+        _, stderr = recorder.communicate(timeout=TIMEOUT_S)  # no signal: it ends by itself
+    finally:
+        recorder.kill()
+    assert recorder.returncode == 2, stderr
+    lines = stderr.replace("\r", "\n").strip().splitlines()
+    assert lines[-1] == f"busgate record: error: cannot write {path}: File too large", stderr
+    assert "Traceback" not in stderr
+    assert path.stat().st_size == 4096
+
+
+class FullDisk(io.RawIOBase):
+    """A file on a full disk: every write refused (the writer asks where it is: at 0)."""
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return 0
+
+    def write(self, data) -> int:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_under_a_flood_never_holds_the_recordings_end(monkeypatch) -> None:
+    """The writer failed and the queue filled behind it: ``close`` still returns at once."""
+    monkeypatch.setattr(record_command, "QUEUE_MAX", 4)
+    recording = record_command.Recording(io.BufferedWriter(FullDisk()), "busgate")
+    deadline = time.monotonic() + TIMEOUT_S
+    while recording.failure is None:  # until the writer's first chunk (1 MiB) is refused
+        assert time.monotonic() < deadline
+        recording.take("busgate/gw/dev/x/state", os.urandom(64 * 1024), 0)
+        time.sleep(0.001)
+    for n in range(2000):  # then a flood: the queue fills
+        recording.take("busgate/gw/dev/x/state", b"{}", n)
+    recording.run_until_stopped(TIMEOUT_S)  # the failed write stopped it, not the seconds
+    closing = threading.Thread(target=recording.close, daemon=True)
+    closing.start()
+    closing.join(TIMEOUT_S)
+    assert not closing.is_alive()
+    assert recording.failure is not None and recording.failure.errno == errno.ENOSPC
+
+
+# -- a hostile file -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def huge_chunk() -> bytes:
+    """A recording whose one chunk holds 65 MiB of zeros: a few KiB of zstd."""
+    stream = io.BytesIO()
+    log = McapLog(stream, "rec")
+    log.add("rec/gw9/dev/la1/state", bytes(65 * 2**20), 1)
+    log.finish()
+    return stream.getvalue()
+
+
+def test_a_chunk_that_holds_more_than_it_claims_is_not_decompressed_past_its_claim(
+        huge_chunk) -> None:
+    """The chunk and its index made to claim 100 bytes: replay's check before any session
+    passes it, and reading stops past those 100 bytes, not at 65 MiB."""
+    with io.BytesIO(huge_chunk) as stream:
+        claimed = make_reader(stream).get_summary().chunk_indexes[0].uncompressed_size
+    size = struct.pack("<Q", claimed)
+    assert huge_chunk.count(size) == 2  # the chunk's header and its index
+    lying = io.BytesIO(huge_chunk.replace(size, struct.pack("<Q", 100)))
+    assert mcap_log.summary(lying)["largest_chunk"] == 100
+    with pytest.raises(ValueError, match="not the 100 bytes it names"):
+        list(mcap_log.messages(lying))
+
+
+def test_replay_leaves_out_what_no_gateway_sends_and_cuts_long_gaps(tmp_path, module_demo,
+                                                                     client) -> None:
+    """A message above the gateway's 64 KiB, keys zenoh refuses (each named once), and
+    years between messages: the rest goes, at once at --speed 1000, and the last line
+    counts what was left out and cut."""
+    path = tmp_path / "hostile.mcap"
+    with path.open("wb") as stream:
+        log = McapLog(stream, "rec")
+        log.add("rec/gw9/dev/la1/state", b'{"n": 1}', 1)
+        log.add("rec/gw9/dev/la1/state", b"0" * (64 * 1024 + 1), 2)
+        log.add("rec/$*/dev/la1/state", b'{"n": 0}', 3)
+        log.add("rec/a//state", b'{"n": 0}', 4)
+        log.add("rec/a//state", b'{"n": 0}', 5)
+        log.add("rec/gw9/dev/la1/state", b'{"n": 2}', 10**18)
+        log.add("rec/gw9/dev/la1/state", b'{"n": 3}', 2**63)
+        log.finish()
+    done, heard = replayed(client, "*/gw9/**", path, module_demo, "--speed", "1000")
+    assert done.returncode == 0, done
+    assert [payload for _, payload, _ in heard] == [b'{"n": 1}', b'{"n": 2}', b'{"n": 3}']
+    _, refused1, refused2, last = done.stderr.splitlines()
+    assert "'replay/$*/dev/la1/state'" in refused1 and "'replay/a//state'" in refused2
+    assert refused1.startswith("busgate replay: left out: not a key expression: ")
+    assert last.startswith("busgate replay: 3 messages in 0.")
+    assert last.endswith(" s; 1 larger than 64 KiB, 3 on keys zenoh refuses left out; 2 gaps "
+                         "over 60 s cut to 60 s"), last
+
+
+def test_ctrl_c_stops_a_replay_between_two_messages(tmp_path, module_demo) -> None:
+    path = tmp_path / "slow.mcap"
+    with path.open("wb") as stream:
+        log = McapLog(stream, "rec")
+        for n in range(3):
+            log.add("rec/gw9/dev/la1/state", b"{}", n * 50 * 10**9)
+        log.finish()
+    replay = subprocess.Popen([*BUSGATE, "replay", str(path), "--connect", module_demo.endpoint],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert replay.stderr.readline().startswith("busgate replay: replaying ")
+        time.sleep(0.3)
+        replay.send_signal(signal.SIGINT)
+        _, stderr = replay.communicate(timeout=TIMEOUT_S)
+    finally:
+        replay.kill()
+    assert replay.returncode == 0, stderr
+    assert stderr.splitlines() == [stderr.splitlines()[0]]
+    assert stderr.startswith("busgate replay: 1 messages in 0.")
+    assert stderr.rstrip().endswith(" s; stopped before the file's end")
+
+
+def test_replay_under_a_live_gateways_keys_is_refused(recorded, module_demo, client) -> None:
+    path, _, _ = recorded
+    done, heard = replayed(client, "busgate/**", path, module_demo, "--prefix", "busgate/demo/x")
+    assert done.returncode == 2, done
+    assert done.stderr.splitlines() == [
+        "busgate replay: error: --prefix busgate/demo/x is live (gateway demo under busgate): a "
+        "replay there writes into its telemetry; use another --prefix (default replay) or add "
+        "--onto-live"]
+    assert not [key for key, _, _ in heard if key.startswith("busgate/demo/x")]

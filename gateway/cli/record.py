@@ -8,18 +8,26 @@ Rules of this file:
    one writer thread. When the queue is full (a disk slower than the fleet) the sample is
    dropped and counted; the progress line and the last line say how many.
 2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
-   queue is written out, and the file gets its summary and index (a complete MCAP file).
+   queue is written out, and the file gets its summary and index (a complete MCAP file). A
+   write the disk refuses (full) ends it the same way, the file ended as far as the disk
+   lets it, and the command fails in one line naming the file and why.
 3. An existing file is never overwritten: a recording is evidence.
 4. Replay publishes only telemetry (``mcap_log.REPLAYED_LEAVES``): never a command, a follow
    target or an e-stop, whatever the file holds.
 5. Replay publishes only under ``--prefix`` (default ``replay``, no live gateway's), a key
    under it in place of the recorded prefix: a key outside the recorded prefix is left out,
    a file naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
-   token, asked for with a bounded get) is refused before anything is published, unless
-   ``--onto-live``: recorded states would go out on that gateway's own keys.
+   token, asked for with a bounded get), or one under a live gateway's keys (``busgate/demo``
+   while gateway ``demo`` is live under ``busgate``), is refused before anything is
+   published, unless ``--onto-live``: recorded states would go out on that gateway's own keys.
 6. A recording that cannot start (no session, or SIGTERM or Ctrl-C while the session opens)
    leaves no file behind: the operator fixes the endpoint and runs the same command again
    (rule 3 would refuse an empty file left there).
+7. A file is a peer's word, replayed within bounds whatever it holds: a message larger than
+   the gateway takes (``MAX_PAYLOAD``) or on a key zenoh refuses is left out and counted, a
+   gap between messages longer than ``MAX_GAP_S`` of recorded time is cut to it, and a file
+   is read holding at most ``mcap_log.MAX_CHUNK`` of it at once (a file claiming more is
+   refused before any session). SIGINT or SIGTERM stops a replay between two messages.
 """
 
 from __future__ import annotations
@@ -31,6 +39,9 @@ import signal
 import sys
 import threading
 import time
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -39,10 +50,15 @@ from busgate.client.keys import Keys, check_key
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.recording import mcap_log
+from busgate.schemas.payload import MAX_PAYLOAD
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
+MIN_SPEED = 0.01
 MAX_SPEED = 1000.0
+#: The longest wait between two replayed messages, in recorded time (rule 7): a recording of
+#: the fleet holds none longer, a crafted one may name years.
+MAX_GAP_S = 60.0
 #: Where a replay publishes unless told otherwise: a prefix no live gateway uses (rule 5).
 REPLAY_PREFIX = "replay"
 #: How long replay waits for the live gateways' liveliness tokens (a router answers at once).
@@ -97,6 +113,8 @@ def run_record(args: argparse.Namespace) -> int:
         return _print_info(Path(args.info))
     if args.output is None:
         raise CommandError("name the file to write: -o FILE.mcap (or --info FILE.mcap)")
+    if not args.output:  # Path("") is the current directory
+        raise CommandError("-o: an empty file name")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise CommandError(f"--seconds is a positive number, not {args.seconds}")
     keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]
@@ -118,7 +136,7 @@ def run_record(args: argparse.Namespace) -> int:
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
-    with stream, client:
+    with client:
         recording = Recording(stream, args.prefix)
         ends = [client.subscribe_raw(key, recording.take) for key in keys]
         until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
@@ -133,17 +151,23 @@ def run_record(args: argparse.Namespace) -> int:
             for end in ends:
                 end()
             recording.close()
+    if recording.failure is not None:
+        raise CommandError(f"cannot write {args.output}: {recording.failure.strerror}")
     return 0
 
 
 class Recording:
-    """Samples in (``take``, zenoh's threads), the file written on one thread (rule 1)."""
+    """Samples in (``take``, zenoh's threads), the file written on one thread (rule 1) and
+    closed by ``close``; ``failure``: the write the disk refused (rule 2)."""
 
     def __init__(self, stream: IO[bytes], prefix: str) -> None:
+        self._stream = stream
         self._log = mcap_log.McapLog(stream, prefix)
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
+        self._stop = threading.Event()
         self.dropped = 0
         self.elapsed_s = 0.0
+        self.failure: OSError | None = None
         self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
         self._writer.start()
 
@@ -154,23 +178,23 @@ class Recording:
             self.dropped += 1
 
     def _write(self) -> None:
+        # Past a failure the queue is still emptied, up to close's None: a put never waits.
         while (item := self._queue.get()) is not None:
-            self._log.add(*item)
+            if self.failure is None:
+                try:
+                    self._log.add(*item)
+                except OSError as exc:
+                    self.failure = exc
+                    self._stop.set()
 
     def run_until_stopped(self, seconds: float | None) -> None:
-        """Show progress until a signal or ``seconds`` (rule 2)."""
-        stop = threading.Event()
-        stopping = (signal.SIGINT, signal.SIGTERM)
-        previous = {number: signal.signal(number, lambda *_: stop.set()) for number in stopping}
+        """Show progress until a signal, ``seconds`` or a failed write (rule 2)."""
         started = time.monotonic()
         deadline = math.inf if seconds is None else started + seconds
-        try:
-            while not stop.is_set() and time.monotonic() < deadline:
-                stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
+        with _stopped_by_signals(self._stop):
+            while not self._stop.is_set() and time.monotonic() < deadline:
+                self._stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
                 self._progress(time.monotonic() - started, end="\r")
-        finally:
-            for number, handler in previous.items():
-                signal.signal(number, handler)
         self.elapsed_s = time.monotonic() - started
 
     def _progress(self, elapsed: float, end: str) -> None:
@@ -185,16 +209,33 @@ class Recording:
         )
 
     def close(self) -> None:
-        """Write what is queued, then the summary and index."""
+        """Write what is queued, then the summary and index, and close the file."""
         self._queue.put(None)
         self._writer.join()
-        self._log.finish()
+        try:
+            with self._stream:  # its close writes what it buffers: a full disk refuses that too
+                if self.failure is None:
+                    self._log.finish()
+        except OSError as exc:
+            self.failure = self.failure or exc
         self._progress(self.elapsed_s, end="\n")
         if self.dropped:
             print(
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
                 file=sys.stderr,
             )
+
+
+@contextmanager
+def _stopped_by_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT and SIGTERM set ``stop`` while the block runs, instead of raising."""
+    stopping = (signal.SIGINT, signal.SIGTERM)
+    previous = {number: signal.signal(number, lambda *_: stop.set()) for number in stopping}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def _summary(path: Path) -> dict[str, Any]:
@@ -227,27 +268,42 @@ def _print_info(path: Path) -> int:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    if not (math.isfinite(args.speed) and 0 < args.speed <= MAX_SPEED):
-        raise CommandError(f"--speed is above 0 and at most {MAX_SPEED:g}, not {args.speed}")
+    if not (math.isfinite(args.speed) and MIN_SPEED <= args.speed <= MAX_SPEED):
+        raise CommandError(f"--speed is from {MIN_SPEED:g} to {MAX_SPEED:g}, not {args.speed}")
     Keys(args.prefix)  # a gateway's prefix, no wildcard: refused before any file or session
     path = Path(args.file)
-    _summary(path)  # a file that is no complete recording is refused before any session
+    largest = _summary(path)["largest_chunk"]  # a file that is no complete recording is
+    if largest > mcap_log.MAX_CHUNK:  # refused before any session, as one too large (rule 7)
+        raise CommandError(
+            f"{path} holds a chunk of {largest / 2**20:.0f} MiB: replay reads at most "
+            f"{mcap_log.MAX_CHUNK // 2**20} MiB at once"
+        )
     recorded_prefix = _recorded_prefix(path)
-    with path.open("rb") as stream, open_client(args, "replay") as client:
-        _refuse_live_prefix(client, args)
-        print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
-        started = time.monotonic()
-        try:
-            sent, skipped, outside = _publish(client, stream, recorded_prefix, args, started)
-        except BusgateError:
-            raise  # the session's own refusal, as it is
-        except Exception as exc:  # a chunk the reader cannot read, past the summary
-            raise CommandError(f"{path} could not be read to its end: {exc}") from None
-    print(
-        f"busgate replay: {sent} messages in {time.monotonic() - started:.1f} s; {skipped} "
-        f"on command or e-stop keys and {outside} outside {recorded_prefix}/** left out",
-        file=sys.stderr,
-    )
+    stop = threading.Event()
+    try:
+        with path.open("rb") as stream, open_client(args, "replay") as client:
+            _refuse_live_prefix(client, args)
+            print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
+            started = time.monotonic()
+            try:
+                with _stopped_by_signals(stop):
+                    sent, left_out, cuts = _publish(
+                        client, stream, recorded_prefix, args, started, stop
+                    )
+            except BusgateError:
+                raise  # the session's own refusal, as it is
+            except Exception as exc:  # a chunk the reader cannot read, past the summary
+                raise CommandError(f"{path} could not be read to its end: {exc}") from None
+    except KeyboardInterrupt:  # before its signals are taken (rule 7): nothing was published
+        raise CommandError("stopped before anything was published") from None
+    said = [f"{sent} messages in {time.monotonic() - started:.1f} s"]
+    if left_out:
+        said.append(", ".join(f"{count} {why}" for why, count in left_out.items()) + " left out")
+    if cuts:
+        said.append(f"{cuts} gaps over {MAX_GAP_S:g} s cut to {MAX_GAP_S:g} s")
+    if stop.is_set():
+        said.append("stopped before the file's end")
+    print(f"busgate replay: {'; '.join(said)}", file=sys.stderr)
     return 0
 
 
@@ -262,8 +318,9 @@ def _recorded_prefix(path: Path) -> str:
 
 
 def _refuse_live_prefix(client: bc.Client, args: argparse.Namespace) -> None:
-    """``CommandError`` when a gateway is live under ``--prefix`` and ``--onto-live`` is not
-    given (rule 5): asked before anything is published."""
+    """``CommandError`` when a gateway is live under ``--prefix``, or ``--prefix`` is under a
+    live gateway's keys, and ``--onto-live`` is not given (rule 5): asked before anything is
+    published."""
     if args.onto_live:
         return
     live = _live_gateways(client, args.prefix)
@@ -279,7 +336,8 @@ def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
     """The gateways up under ``prefix`` (the client's session was opened with it), judged as
     the SDK judges whether a named gateway is up (``Shared.to_gateway``): the liveliness tokens
     its subscriber has seen, and whatever answers ``info`` within ``LIVE_WAIT_S`` (right after
-    a session opens, zenoh may not have told it every token yet)."""
+    a session opens, zenoh may not have told it every token yet); and those whose keys hold
+    ``prefix``, ``demo under busgate`` for ``busgate/demo/x``: whatever answers their ``info``."""
     keys = Keys(prefix)
     live: set[str] = set()
     stop = client.on_gateways(lambda gateway, alive: live.add(gateway) if alive else None)
@@ -288,6 +346,10 @@ def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
     finally:
         stop()
     live.update(keys.gateway_of(answer.key) for answer in answers)
+    names = prefix.split("/")
+    for above, gateway in ((Keys("/".join(names[:n])), names[n]) for n in range(1, len(names))):
+        if client.query(above.info(gateway), timeout=LIVE_WAIT_S):
+            live.add(f"{gateway} under {above.prefix}")
     return sorted(live)
 
 
@@ -297,22 +359,46 @@ def _publish(
     recorded_prefix: str,
     args: argparse.Namespace,
     started: float,
-) -> tuple[int, int, int]:
-    """Publish the file's telemetry at its pace under ``--prefix``: (messages sent, left out
-    on command or e-stop keys, left out outside the recorded prefix)."""
-    sent = skipped = outside = 0
-    first: int | None = None
+    stop: threading.Event,
+) -> tuple[int, Counter[str], int]:
+    """Publish the file's telemetry at its pace under ``--prefix``, until its end or ``stop``:
+    (messages sent, messages left out by why, gaps cut) (rules 4, 5, 7)."""
+    sent = cuts = 0
+    left_out: Counter[str] = Counter()
+    routes: dict[str, tuple[str, str | None]] = {}  # each topic's, found once
+    first = last = cut_ns = 0
     for message in mcap_log.messages(stream):
-        leaf = message.topic.rsplit("/", 1)[-1]
-        if leaf not in mcap_log.REPLAYED_LEAVES:  # rule 4
-            skipped += 1
+        if message.topic not in routes:
+            routes[message.topic] = _route(message.topic, recorded_prefix, args.prefix)
+        key, why = routes[message.topic]
+        if why is None and len(message.data) > MAX_PAYLOAD:
+            why = f"larger than {MAX_PAYLOAD // 1024} KiB"
+        if why is not None:
+            left_out[why] += 1
             continue
-        if not message.topic.startswith(recorded_prefix + "/"):  # rule 5
-            outside += 1
-            continue
-        first = message.log_time_ns if first is None else first
-        due = started + (message.log_time_ns - first) / 1e9 / args.speed
-        time.sleep(max(0.0, due - time.monotonic()))
-        client.put(args.prefix + message.topic[len(recorded_prefix) :], message.data)
+        if not sent:
+            first = last = message.log_time_ns
+        if message.log_time_ns - last > MAX_GAP_S * 1e9:
+            cut_ns += message.log_time_ns - last - int(MAX_GAP_S * 1e9)
+            cuts += 1
+        last = max(last, message.log_time_ns)
+        due = started + (message.log_time_ns - first - cut_ns) / 1e9 / args.speed
+        if stop.wait(max(0.0, due - time.monotonic())):
+            break
+        client.put(key, message.data)
         sent += 1
-    return sent, skipped, outside
+    return sent, left_out, cuts
+
+
+def _route(topic: str, recorded_prefix: str, prefix: str) -> tuple[str, str | None]:
+    """The key a recorded ``topic`` is published on under ``prefix``, or why it is left out
+    (rules 4, 5, 7): a topic zenoh refuses is named, once."""
+    if topic.rsplit("/", 1)[-1] not in mcap_log.REPLAYED_LEAVES:  # rule 4
+        return "", "on command or e-stop keys"
+    if not topic.startswith(recorded_prefix + "/"):  # rule 5
+        return "", f"outside {recorded_prefix}/**"
+    try:
+        return check_key(prefix + topic[len(recorded_prefix) :]), None
+    except CommandError as exc:
+        print(f"busgate replay: left out: {exc}", file=sys.stderr)
+        return "", "on keys zenoh refuses"

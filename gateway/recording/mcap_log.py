@@ -17,10 +17,15 @@ Rules of this file:
 4. A file names the prefix its keys were recorded under (the metadata record
    ``PREFIX_METADATA``, written as the file opens), so that replay can put them under
    another (``recorded_prefix``).
+5. Reading a file back holds at most ``MAX_CHUNK`` bytes of it at once, whatever it claims:
+   a record, or a chunk's records once decompressed, is read one at a time, in the order the
+   file holds them (the order they were written), and a larger one ends the reading. A file
+   is a peer's word: 32 KiB of zstd may claim, and hold, a gigabyte.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections import Counter
@@ -28,7 +33,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, Any
 
+import lz4.frame  # type: ignore[import-untyped]
+import zstandard
 from mcap.reader import make_reader
+from mcap.records import Channel, Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
 from busgate.schemas.exported import SCHEMAS, generated
@@ -38,6 +47,8 @@ LIBRARY = "busgate"
 PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
 REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints", "odom"})
+#: The most a reader holds of a file at once (rule 5): the writer's chunks are 1 MiB.
+MAX_CHUNK = 64 * 1024 * 1024
 
 
 def schema_name(key: str, prefix: str, body: Any) -> str | None:
@@ -138,10 +149,40 @@ class Recorded:
 
 
 def messages(stream: IO[bytes]) -> Iterator[Recorded]:
-    """Every message of an MCAP file, in log-time order."""
+    """Every message of an MCAP file, in the order the file holds them; ``ValueError`` (or the
+    ``mcap`` reader's own) at a record or chunk larger than ``MAX_CHUNK`` (rule 5)."""
     stream.seek(0)
-    for _, channel, message in make_reader(stream).iter_messages(log_time_order=True):
-        yield Recorded(channel.topic, message.data, message.log_time)
+    topics: dict[int, str] = {}
+    records = StreamReader(stream, emit_chunks=True, record_size_limit=MAX_CHUNK).records
+    for record in records:
+        for inner in (
+            breakup_chunk(_decompressed(record)) if isinstance(record, Chunk) else [record]
+        ):
+            if isinstance(inner, Channel):
+                topics[inner.id] = inner.topic
+            elif isinstance(inner, Message):
+                if inner.channel_id not in topics:
+                    raise ValueError(f"a message on channel {inner.channel_id}, named by no record")
+                yield Recorded(topics[inner.channel_id], inner.data, inner.log_time)
+
+
+def _decompressed(chunk: Chunk) -> Chunk:
+    """``chunk`` with its records uncompressed, no more of them read than it claims, at most
+    ``MAX_CHUNK`` (rule 5): the library would decompress whatever size its zstd frame names."""
+    size = chunk.uncompressed_size
+    if size > MAX_CHUNK:  # refused on its word, before decompressing
+        raise ValueError(f"a chunk of {size} bytes (at most {MAX_CHUNK})")
+    if chunk.compression == "zstd":
+        data = zstandard.ZstdDecompressor().stream_reader(chunk.data).read(size + 1)
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"a chunk compressed with {chunk.compression!r}")
+    if len(data) != size:
+        raise ValueError(f"a chunk whose records are not the {size} bytes it names")
+    return dataclasses.replace(chunk, compression="", data=data)
 
 
 def recorded_prefix(stream: IO[bytes]) -> str | None:
@@ -156,8 +197,8 @@ def recorded_prefix(stream: IO[bytes]) -> str | None:
 
 
 def summary(stream: IO[bytes]) -> dict[str, Any]:
-    """What a file holds: each channel's topic, schema and message count, and the time span
-    (ns) of its messages."""
+    """What a file holds: each channel's topic, schema and message count, the time span (ns) of
+    its messages, and its largest chunk's size uncompressed, as the file claims it (rule 5)."""
     found = make_reader(stream).get_summary()
     if found is None or found.statistics is None:
         raise ValueError("the file has no summary (it was not finished)")
@@ -178,4 +219,5 @@ def summary(stream: IO[bytes]) -> dict[str, Any]:
         "start_ns": statistics.message_start_time,
         "end_ns": statistics.message_end_time,
         "channels": channels,
+        "largest_chunk": max((chunk.uncompressed_size for chunk in found.chunk_indexes), default=0),
     }
