@@ -94,6 +94,19 @@ class Keys:
         """The gateway chunk of a key under this prefix."""
         return key[len(self.prefix) + 1 :].split("/", 1)[0]
 
+    def gateway_in(self, key: str, leaf: str) -> str | None:
+        """The gateway of a key ``<prefix>/<gateway>/<leaf>`` when it is a name; ``None`` for
+        a key of any other shape, or with a wildcard for the gateway.
+
+        >>> Keys().gateway_in("busgate/gw1/events", "events"), Keys().gateway_in(
+        ...     "busgate/**/events", "events")
+        ('gw1', None)
+        """
+        gateway, slash, found = key.removeprefix(f"{self.prefix}/").partition("/")
+        if not (key.startswith(f"{self.prefix}/") and slash and found == leaf):
+            return None
+        return gateway if _NAME.fullmatch(gateway) else None
+
     def names_in(self, key: str, room: str, leaf: str) -> tuple[str, str] | None:
         """``(gateway, name)`` of a key ``<prefix>/<gateway>/<room>/<name>/<leaf>`` whose
         gateway and name are names; ``None`` for a key of any other shape, or with a wildcard

@@ -56,8 +56,8 @@ class Wait(Step):
         try:
             return self.future.result(self.timeout_s + WAIT_MARGIN_S)
         except TimeoutError:
-            if self.future.done():  # its own error (a NoAnswerError is a TimeoutError too)
-                raise
+            if self.future.done():  # its own (a NoAnswerError is a TimeoutError too), or it
+                return self.future.result(0)  # came just as the wait ended
             self.future.cancel()
             raise self._no_answer() from None
 
@@ -66,8 +66,8 @@ class Wait(Step):
         try:
             return await asyncio.wait_for(came, self.timeout_s + WAIT_MARGIN_S)
         except TimeoutError:
-            if came.done() and not came.cancelled():  # its own error, as in ``wait``
-                raise
+            if came.done() and not came.cancelled():  # its own error, or late: as in ``wait``
+                return came.result()
             raise self._no_answer() from None
 
     def _no_answer(self) -> NoAnswerError:

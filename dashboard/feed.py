@@ -70,7 +70,8 @@ class Feed:
             self._fleet.stats(*names, body)
 
     def _on_event(self, key: str, body: Any) -> None:
-        if key == self._keys.events(gateway := self._keys.gateway_of(key)):
+        gateway = self._keys.gateway_in(key, "events")
+        if gateway is not None:
             self._fleet.event(gateway, body)
 
     def _on_gateway(self, gateway: str, alive: bool) -> None:

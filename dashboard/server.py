@@ -59,9 +59,9 @@ GRACE_S = 2  # how long a stop waits for requests under way
 REQUEST_TIMEOUT_S = 5
 #: Open connections (an event stream holds one per browser) at which a request gets a 503.
 MAX_CONNECTIONS = 100
-#: Connections one client address may hold (a browser opens six at most, and a stream per
-#: page); rule 2.
-MAX_PER_CLIENT = 32
+#: Connections one client address may hold (rule 2): most of ``MAX_CONNECTIONS``, since
+#: behind a reverse proxy every browser comes from the proxy's one address, yet never all.
+MAX_PER_CLIENT = 64
 #: How often each of uvicorn's warnings a client's request makes may be logged (rule 2).
 LIMIT_WARNING_EVERY_S = 60.0
 #: Those warnings, as they begin.
@@ -278,10 +278,10 @@ async def serve_dashboard(
         limit_concurrency=MAX_CONNECTIONS,
         h11_max_incomplete_event_size=MAX_HEAD_BYTES,
     )
-    limit_warnings = _NowAndThen()
-    logging.getLogger("uvicorn.error").addFilter(limit_warnings)
     server = _EmbeddedServer(config)
     bound = listen.bind()  # here, so that a port in use is an error, not uvicorn's exit
+    limit_warnings = _NowAndThen()
+    logging.getLogger("uvicorn.error").addFilter(limit_warnings)
     pushing = asyncio.create_task(hub.run())
     serving = asyncio.create_task(server.serve(sockets=[bound]))
     try:

@@ -16,7 +16,6 @@ port.
 from __future__ import annotations
 
 import os
-import stat
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
@@ -417,12 +416,11 @@ def load_config(path: str | Path) -> Config:
 
 
 def _config_bytes(path: str | Path) -> bytes:
-    """The file's bytes: a regular file of at most ``MAX_CONFIG_BYTES`` (``/dev/zero`` would
-    be read without end, a named pipe waited on for ever)."""
+    """The file's bytes, at most ``MAX_CONFIG_BYTES`` of them (``/dev/zero`` would be read
+    without end). A pipe is read as a file is (``--config <(envsubst < gw.toml)``); a named
+    pipe nobody writes to reads as empty, never waited on for ever."""
     with open(path, "rb", opener=_opener_no_wait) as file:
-        found = os.fstat(file.fileno())
-        if not stat.S_ISREG(found.st_mode):
-            raise ConfigError(f"{path} is not a regular file: a config is a TOML file", path="")
+        os.set_blocking(file.fileno(), True)  # opened: now wait for what a writer sends
         data = file.read(MAX_CONFIG_BYTES + 1)
     if len(data) > MAX_CONFIG_BYTES:
         raise ConfigError(

@@ -75,15 +75,16 @@ def session_config(
         config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
     if ca is not None:
         config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
-    check_unix_listeners(_listen_endpoints(config))
+    check_unix_listeners(_listen_endpoints(config, mode))
     return config
 
 
-def _listen_endpoints(config: zenoh.Config) -> list[str]:
-    """The endpoints ``config`` listens on: a list, or (zenoh's default) a list per mode."""
+def _listen_endpoints(config: zenoh.Config, mode: str) -> list[str]:
+    """The endpoints ``config`` listens on in ``mode``: a list, or (as zenoh's default, and
+    a file a router shares with its clients) a list per mode, of which only its own."""
     endpoints = json.loads(config.get_json("listen/endpoints"))
     if isinstance(endpoints, dict):
-        return [e for per_mode in endpoints.values() for e in per_mode]
+        return list(endpoints.get(mode) or [])
     return list(endpoints)
 
 

@@ -6,6 +6,7 @@ bus is reported with what to change; the budget's figures match wire times worke
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ import pytest
 from busgate.gateway.cli import main
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, SerialBus, load_config
+from tests.gateway_process import BUSGATE
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy" / "config"
 EXAMPLES = sorted(DEPLOY.glob("*.toml"))
@@ -87,8 +89,8 @@ def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys)
 
 def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
                                                                         capsys) -> None:
-    """/dev/zero was read without end (2.7 GB), a named pipe waited on for ever, a 3000-deep
-    array raised RecursionError."""
+    """/dev/zero was read without end (2.7 GB), a named pipe nobody writes to waited on for
+    ever, a 3000-deep array raised RecursionError."""
     fifo = tmp_path / "pipe.toml"
     os.mkfifo(fifo)
     deep = tmp_path / "deep.toml"
@@ -98,12 +100,26 @@ def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
     for path in ("/dev/zero", fifo, deep, big, tmp_path):
         assert main(["check-config", str(path)]) == 1
     assert capsys.readouterr().err.splitlines() == [
-        "error: /dev/zero is not a regular file: a config is a TOML file",
-        f"error: {fifo} is not a regular file: a config is a TOML file",
+        "error: /dev/zero is over 1 MiB: not a config",
+        "error: gateway: Field required",  # the pipe read as empty
+        "error: buses: Field required",
         f"error: {deep} is not valid TOML: nested too deeply",
         f"error: {big} is over 1 MiB: not a config",
         f"error: cannot read {tmp_path}: Is a directory",
     ]
+
+
+def test_a_config_through_a_pipe_is_read_as_a_file(tmp_path, capsys) -> None:
+    """``busgate run --config <(envsubst < gw.toml)``: the shell hands a pipe's path."""
+    source = write(tmp_path, [la(1)])
+    reading, writing = os.pipe()
+    os.write(writing, source.read_bytes())
+    os.close(writing)
+    try:
+        assert main(["check-config", f"/dev/fd/{reading}"]) == 0
+    finally:
+        os.close(reading)
+    assert capsys.readouterr().out.startswith(f"/dev/fd/{reading}: valid; gateway gw,")
 
 
 @pytest.mark.parametrize(("port", "what"), [
@@ -223,3 +239,15 @@ def test_can_heartbeats_count_against_the_bus() -> None:
     # Heartbeats are the telemetry: an online node is never polled, so nothing is reserved
     # for polls (its offline probes are not the steady state).
     assert budget.polling.frames == 0 and budget.longest_poll_s == 0
+
+
+def test_a_reader_that_leaves_early_ends_it_quietly(tmp_path) -> None:
+    """``busgate check-config robot.toml | head -1``: the rest of its lines find no reader;
+    it ends, status 1, without a BrokenPipeError traceback on stderr."""
+    config = write(tmp_path, [la(1), la(2), la(3)])
+    reading, writing = os.pipe()
+    os.close(reading)  # the reader is gone before the first line
+    with os.fdopen(writing, "w") as nobody:
+        done = subprocess.run([*BUSGATE, "check-config", str(config)], stdout=nobody,
+                              stderr=subprocess.PIPE, text=True, timeout=60, check=False)
+    assert (done.returncode, done.stderr) == (1, "")

@@ -115,12 +115,16 @@ def test_a_sample_on_a_wildcard_key_is_dropped_and_a_named_one_taken() -> None:
             on["busgate/*/dev/*/state"](key, {"ts": 1, "position": 666})
         on["busgate/*/bus/*/stats"]("busgate/**/stats", {"uptime_s": 1})
         on["busgate/*/base/*/odom"]("busgate/demo/**/odom", {"base": "b"})
-        on["busgate/*/events"]("busgate/**/events", {"type": "estop"})
-        assert "position" not in str(fleet.snapshot())
+        fleet.gateway_up("**")  # as a token on a wildcard key would make one, were it kept
+        for key in ("busgate/**/events", "busgate/*/events", "busgate/gw1/x/events"):
+            on["busgate/*/events"](key, {"type": "estop", "n": 1})
+        assert "position" not in str(fleet.snapshot()) and "estop" not in str(fleet.snapshot())
         on["busgate/*/dev/*/state"]("busgate/gw1/dev/la1/state", {"ts": 2, "position": 777})
+        on["busgate/*/events"]("busgate/gw1/events", {"type": "estop", "n": 2})
         return fleet.snapshot()
 
-    assert "777" in str(asyncio.run(run()))
+    snapshot = str(asyncio.run(run()))
+    assert "777" in snapshot and "'n': 2" in snapshot and "'n': 1" not in snapshot
 
 
 def test_a_browser_gets_a_snapshot_then_each_change_once() -> None:

@@ -14,6 +14,7 @@ import errno
 import io
 import json
 import os
+import re
 import signal
 import socket
 import struct
@@ -403,7 +404,7 @@ def test_replay_leaves_out_what_no_gateway_sends_and_cuts_long_gaps(tmp_path, mo
     _, refused1, refused2, last = done.stderr.splitlines()
     assert "'replay/$*/dev/la1/state'" in refused1 and "'replay/a//state'" in refused2
     assert refused1.startswith("busgate replay: left out: not a key expression: ")
-    assert last.startswith("busgate replay: 3 messages in 0.")
+    assert re.match(r"busgate replay: 3 messages in \d+\.\d s; ", last), last
     assert last.endswith(" s; 1 larger than 64 KiB, 3 on keys zenoh refuses left out; 2 gaps "
                          "over 60 s cut to 60 s"), last
 
@@ -426,8 +427,10 @@ def test_ctrl_c_stops_a_replay_between_two_messages(tmp_path, module_demo) -> No
         replay.kill()
     assert replay.returncode == 0, stderr
     assert stderr.splitlines() == [stderr.splitlines()[0]]
-    assert stderr.startswith("busgate replay: 1 messages in 0.")
-    assert stderr.rstrip().endswith(" s; stopped before the file's end")
+    # The first message is due at once and the next 50 s later: one went, or none yet on a
+    # loaded host, never the rest.
+    assert re.fullmatch(r"busgate replay: [01] messages in \d+\.\d s; stopped before the "
+                        r"file's end", stderr.rstrip()), stderr
 
 
 def test_replay_under_a_live_gateways_keys_is_refused(recorded, module_demo, client) -> None:

@@ -89,3 +89,14 @@ def test_the_events_match_the_event_schema() -> None:
     for event in told:
         assert_valid("event.json", event_body(event))
         EVENT_ADAPTER.validate_python(event_body(event))
+
+
+def test_at_the_stop_every_withheld_refusal_is_told() -> None:
+    clock = Clock()
+    refusals, told = reports(clock)
+    for n in range(3):
+        refusals.refused("la1", error(n))
+    refusals.flush()
+    assert len(told) == 1
+    refusals.flush(every=True)  # the gateway stops: no round comes after this one
+    assert told_as(told)[-1] == ("la1", "refusal 2", 1)

@@ -77,10 +77,21 @@ def test_an_existing_record_is_written_again_once_everything_is_taken(tmp_path) 
     assert record.read_text() == ""
 
 
-def test_a_record_that_is_no_regular_file_is_refused(tmp_path, capsys) -> None:
+def test_a_record_that_is_a_directory_is_refused(tmp_path, capsys) -> None:
     (tmp_path / "adir").mkdir()
     line = refusal(capsys, "inspire_la", "--record", str(tmp_path / "adir"))
-    assert line == f"busgate sim: error: --record {tmp_path / 'adir'}: not a regular file"
+    assert line == f"busgate sim: error: cannot write --record {tmp_path / 'adir'}: Is a directory"
+
+
+def test_a_link_to_someone_elses_file_or_adapter_is_kept(tmp_path, capsys) -> None:
+    """A symlink is replaced only when a simulator made it (to a pty, or dangling): a udev
+    link to a real adapter (/dev/serial/by-id/...) or to a file is not the simulator's."""
+    (tmp_path / "notes").write_text("mine\n")
+    (tmp_path / "by-id-link").symlink_to(tmp_path / "notes")
+    line = refusal(capsys, "inspire_la", "--link", str(tmp_path / "by-id-link"))
+    assert line.endswith("by-id-link: exists and is not a simulator's link to a pty, so it is "
+                         "kept")
+    assert os.readlink(tmp_path / "by-id-link") == str(tmp_path / "notes")
 
 
 def test_a_record_in_a_missing_folder_is_refused_in_one_line(tmp_path, capsys) -> None:
@@ -98,14 +109,15 @@ def test_a_file_at_the_link_is_kept_and_the_command_refused(tmp_path, capsys) ->
     record = tmp_path / "wire.jsonl"
     record.write_text(OLD_RECORD)
     line = refusal(capsys, "inspire_la", "--link", str(kept), "--record", str(record))
-    assert line == f"busgate sim: error: --link {kept}: exists and is not a symlink, so it is kept"
+    assert line == (f"busgate sim: error: --link {kept}: exists and is not a simulator's link "
+                    "to a pty, so it is kept")
     assert listing(tmp_path) == {"k2.txt": "someone's notes\n", "wire.jsonl": OLD_RECORD}
 
 
 def test_a_directory_at_the_link_is_refused_leaving_nothing_behind(tmp_path, capsys) -> None:
     (tmp_path / "adir").mkdir()
     line = refusal(capsys, "inspire_la", "--link", str(tmp_path / "adir"))
-    assert line.endswith("adir: exists and is not a symlink, so it is kept")
+    assert line.endswith("adir: exists and is not a simulator's link to a pty, so it is kept")
     assert listing(tmp_path) == {"adir": "dir"}
     assert listing(tmp_path / "adir") == {}
 

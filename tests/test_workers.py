@@ -662,6 +662,8 @@ def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_
     assert api.follow("drive", b'{"rpm": 0}') is None
     assert answers[-1] == 0.0
 
+    runner.took_state("drive", {"online": False, "estopped": False})  # says no mode: kept
+    assert api.follow("drive", b'{"rpm": 0}') is None
     runner.took_state("drive", {"online": True, "estopped": False, "mode": "position"})
     refused = api.follow("drive", b'{"rpm": 30}')
     assert refused is not None and "the motor is in position mode" in refused["error"]["message"]

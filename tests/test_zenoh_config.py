@@ -66,6 +66,21 @@ def test_a_unix_socket_is_never_taken_from_a_file_or_a_process(tmp_path) -> None
         session_config(mode="router", listen=[f"unixsock-stream/{path}"])
 
 
+def test_only_the_sessions_own_modes_endpoints_are_checked(tmp_path) -> None:
+    """A config file a router shares with its clients (TLS, passwords) lists its endpoints by
+    mode: a client does not listen on the router's socket, so it is not refused for it."""
+    path = tmp_path / "router.sock"
+    file = tmp_path / "shared.json5"
+    file.write_text(json.dumps({"listen": {"endpoints": {
+        "router": [f"unixsock-stream/{path}"], "peer": [], "client": []}}}))
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as router:
+        router.bind(str(path))
+        router.listen()
+        session_config(mode="client", config_file=file)  # taken
+        with pytest.raises(ValueError, match="a process listens on"):
+            session_config(mode="router", config_file=file)
+
+
 def test_an_unknown_mode_is_refused() -> None:
     with pytest.raises(ValueError, match="mode"):
         session_config(mode="bridge")

@@ -78,14 +78,15 @@ class RefusalReports:
             slot.withheld += 1
             slot.latest = (shown(device), error)
 
-    def flush(self) -> None:
-        """Tell each withheld refusal whose device's interval has passed (rule 1)."""
+    def flush(self, *, every: bool = False) -> None:
+        """Tell each withheld refusal whose device's interval has passed (rule 1); with
+        ``every``, each one withheld (the gateway stops: nothing waits for a next round)."""
         if not self._pending:
             return
         moment = self._clock()
         with self._lock:
             for slot in self._slots.values():
-                if slot.latest is not None and moment - slot.told_at >= self._every_s:
+                if slot.latest is not None and (every or moment - slot.told_at >= self._every_s):
                     device, error = slot.latest
                     slot.withheld -= 1  # the one told is not suppressed
                     self._told(slot, device, error, moment)

@@ -3,7 +3,8 @@
 Rules of this file: it checks without touching hardware. Whatever ``busgate run`` would refuse
 (``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
 exit status 1. What only this host or the load decides — a port that does not exist here, is
-locked by another process or that this user may not read and write, a bus whose streams cannot
+locked by another process, is no device file (``busgate run`` refuses those two) or that this
+user may not read and write, a bus whose streams cannot
 all fit, a flight recorder's folder this user cannot write, a zenoh config file missing — is a
 warning: printed with the budget, exit status 0.
 """
@@ -85,9 +86,9 @@ def _overview(config: Config) -> str:
 
 def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
     """What this host would stand in the way of the bus's port or CAN interface: missing (the
-    gateway would start and retry until it appears), locked by another process (``busgate
-    run`` would refuse to start), or not readable and writable by this user — run it as the
-    service user to check that user's access."""
+    gateway would start and retry until it appears), locked by another process or no device
+    file (``busgate run`` would refuse to start), or not readable and writable by this user —
+    run it as the service user to check that user's access."""
     if bus.device_key is not None:
         key, port = bus.device_key
         problem = port_problem(port)

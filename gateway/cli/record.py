@@ -40,8 +40,6 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
 
@@ -49,6 +47,7 @@ import busgate.client as bc
 from busgate.client.keys import Keys, check_key
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
+from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log
 from busgate.schemas.payload import MAX_PAYLOAD
 
@@ -120,7 +119,7 @@ def run_record(args: argparse.Namespace) -> int:
     keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]
     output = Path(args.output)
     try:
-        stream = output.open("xb")  # rule 3; closed by the with below
+        stream = output.open("xb")  # rule 3; closed by Recording.close (or below, at once)
     except FileExistsError:
         raise CommandError(f"{args.output} exists: a recording is never overwritten") from None
     except OSError as exc:
@@ -137,22 +136,29 @@ def run_record(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     with client:
-        recording = Recording(stream, args.prefix)
-        ends = [client.subscribe_raw(key, recording.take) for key in keys]
-        until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
-        print(
-            f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
-            file=sys.stderr,
-            flush=True,
-        )
         try:
+            recording = Recording(stream, args.prefix)  # writes the file's header
+        except OSError as exc:
+            stream.close()
+            raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+        ends: list = []
+        try:
+            for key in keys:
+                ends.append(client.subscribe_raw(key, recording.take))
+            until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
+            print(
+                f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
+                file=sys.stderr,
+                flush=True,
+            )
             recording.run_until_stopped(args.seconds)
         finally:
             for end in ends:
                 end()
             recording.close()
     if recording.failure is not None:
-        raise CommandError(f"cannot write {args.output}: {recording.failure.strerror}")
+        why = getattr(recording.failure, "strerror", None) or recording.failure
+        raise CommandError(f"cannot write {args.output}: {why}")
     return 0
 
 
@@ -167,7 +173,7 @@ class Recording:
         self._stop = threading.Event()
         self.dropped = 0
         self.elapsed_s = 0.0
-        self.failure: OSError | None = None
+        self.failure: Exception | None = None
         self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
         self._writer.start()
 
@@ -183,7 +189,7 @@ class Recording:
             if self.failure is None:
                 try:
                     self._log.add(*item)
-                except OSError as exc:
+                except Exception as exc:  # the disk's refusal, or a bug: the thread lives on
                     self.failure = exc
                     self._stop.set()
 
@@ -191,7 +197,7 @@ class Recording:
         """Show progress until a signal, ``seconds`` or a failed write (rule 2)."""
         started = time.monotonic()
         deadline = math.inf if seconds is None else started + seconds
-        with _stopped_by_signals(self._stop):
+        with stopped_by_signals(self._stop):
             while not self._stop.is_set() and time.monotonic() < deadline:
                 self._stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
                 self._progress(time.monotonic() - started, end="\r")
@@ -224,18 +230,6 @@ class Recording:
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
                 file=sys.stderr,
             )
-
-
-@contextmanager
-def _stopped_by_signals(stop: threading.Event) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` while the block runs, instead of raising."""
-    stopping = (signal.SIGINT, signal.SIGTERM)
-    previous = {number: signal.signal(number, lambda *_: stop.set()) for number in stopping}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
 
 
 def _summary(path: Path) -> dict[str, Any]:
@@ -281,21 +275,20 @@ def run_replay(args: argparse.Namespace) -> int:
     recorded_prefix = _recorded_prefix(path)
     stop = threading.Event()
     try:
-        with path.open("rb") as stream, open_client(args, "replay") as client:
-            _refuse_live_prefix(client, args)
-            print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
-            started = time.monotonic()
-            try:
-                with _stopped_by_signals(stop):
-                    sent, left_out, cuts = _publish(
-                        client, stream, recorded_prefix, args, started, stop
-                    )
-            except BusgateError:
-                raise  # the session's own refusal, as it is
-            except Exception as exc:  # a chunk the reader cannot read, past the summary
-                raise CommandError(f"{path} could not be read to its end: {exc}") from None
-    except KeyboardInterrupt:  # before its signals are taken (rule 7): nothing was published
+        client = open_client(args, "replay")
+    except KeyboardInterrupt:  # while the session opens: nothing was published (rule 7)
         raise CommandError("stopped before anything was published") from None
+    # From here a signal stops the replay between two messages, its session closed in order.
+    with path.open("rb") as stream, stopped_by_signals(stop), client:
+        _refuse_live_prefix(client, args)
+        print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
+        started = time.monotonic()
+        try:
+            sent, left_out, cuts = _publish(client, stream, recorded_prefix, args, started, stop)
+        except BusgateError:
+            raise  # the session's own refusal, as it is
+        except Exception as exc:  # a chunk the reader cannot read, past the summary
+            raise CommandError(f"{path} could not be read to its end: {exc}") from None
     said = [f"{sent} messages in {time.monotonic() - started:.1f} s"]
     if left_out:
         said.append(", ".join(f"{count} {why}" for why, count in left_out.items()) + " left out")

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import signal
 import threading
 from importlib import metadata
 from pathlib import Path
@@ -35,10 +34,10 @@ from pathlib import Path
 import zenoh
 
 from busgate.errors import CommandError
+from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.schemas.zenoh_session import session_config, session_refusal, zenoh_reason
 
 IN_USE_HINT = "another busgate router, zenohd or gateway?"
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -86,10 +85,7 @@ def run_router(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     zenoh.try_init_log_from_env()
     stop = threading.Event()
-    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
-    for signum in STOP_SIGNALS:
-        signal.signal(signum, lambda _signum, _frame: stop.set())
-    try:
+    with stopped_by_signals(stop):
         try:
             session = zenoh.open(config)
         except zenoh.ZError as exc:
@@ -108,9 +104,6 @@ def run_router(args: argparse.Namespace) -> int:
             stop.wait()
         finally:
             session.close()
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
     return 0
 
 

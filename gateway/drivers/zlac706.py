@@ -258,12 +258,13 @@ class Zlac706Driver(Driver):
     def mirror(self, state: dict[str, Any]) -> None:
         """The mode and the power stage its worker's driver knows: a speed target is judged
         by them (velocity mode only)."""
-        mode = state.get("mode")
-        self.machine.settings = replace(
-            self.machine.settings,
-            mode=None if mode is None else Mode(mode),
-            enabled=state.get("enabled"),
-        )
+        told: dict[str, Any] = {}
+        if state.get("mode") in tuple(Mode):
+            told["mode"] = Mode(state["mode"])
+        if isinstance(state.get("enabled"), bool):
+            told["enabled"] = state["enabled"]
+        if told:  # a state that says neither (offline, not yet read) leaves them as they were
+            self.machine.settings = replace(self.machine.settings, **told)
 
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706

@@ -17,10 +17,11 @@ Rules of this file:
 4. A file names the prefix its keys were recorded under (the metadata record
    ``PREFIX_METADATA``, written as the file opens), so that replay can put them under
    another (``recorded_prefix``).
-5. Reading a file back holds at most ``MAX_CHUNK`` bytes of it at once, whatever it claims:
-   a record, or a chunk's records once decompressed, is read one at a time, in the order the
-   file holds them (the order they were written), and a larger one ends the reading. A file
-   is a peer's word: 32 KiB of zstd may claim, and hold, a gigabyte.
+5. Reading a file back holds one record of it at a time, of at most ``MAX_CHUNK`` bytes
+   whatever it claims: a chunk (with its records, decompressed no further than it claims,
+   and split: some three times ``MAX_CHUNK`` at worst), or a record outside chunks, in the
+   order the file holds them (the order they were written); a larger one ends the reading.
+   A file is a peer's word: 32 KiB of zstd may claim, and hold, a gigabyte.
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ Rules of this file:
    is the pty made with its ``--link``, and then the ``--record`` file opened.
 2. A ``--record`` file is written from the start each run (the benchmarks write theirs again
    on each step), but only once everything else has been taken: a refused command leaves an
-   existing record as it was. A path there that is no regular file is refused.
+   existing record as it was. ``-`` is standard output, after the ``PORT`` line; a pipe or a
+   device is written as a file is, a directory refused.
 3. ``--link`` replaces only a symlink, one an earlier simulator left (``PtyLink``); a file or
    directory there is refused. When the record cannot be opened, the link is taken away
    again: a refused command leaves nothing behind.
@@ -21,11 +22,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
 import signal
+import sys
 import threading
 import uuid
 from collections.abc import Callable
+from typing import IO
 
 from busgate.errors import CommandError
 from busgate.gateway.bus.clock import now
@@ -60,7 +62,9 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     sim.add_argument("--stroke-s", type=_stroke_s, help="Inspire LA: seconds for a full stroke")
     sim.add_argument("--link", help="keep a symlink here pointing at the current pty")
-    sim.add_argument("--record", metavar="FILE", help="write every frame to FILE (JSON lines)")
+    sim.add_argument(
+        "--record", metavar="FILE", help="write every frame to FILE (JSON lines; - for stdout)"
+    )
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
     sim.add_argument(
         "--busy-poll-ms",
@@ -145,10 +149,11 @@ def run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
-def _open_record(path: str):
-    """``path`` opened for writing from the start (rule 2); closed by the caller."""
-    if os.path.lexists(path) and not os.path.isfile(path):
-        raise CommandError(f"--record {path}: not a regular file")
+def _open_record(path: str) -> contextlib.AbstractContextManager[IO[str]]:
+    """``path`` opened for writing from the start (rule 2), ``-`` standard output (left open);
+    closed by the caller."""
+    if path == "-":
+        return contextlib.nullcontext(sys.stdout)
     try:
         return open(path, "w")
     except OSError as exc:

@@ -4,8 +4,9 @@ The simulator keeps both ends open, so the pty lives while no host has it open, 
 the master end. ``unplug()`` closes both ends (the host's reads fail as on a real unplug) and
 removes the ``link`` symlink; ``plug()`` makes a new pty and points the symlink at it, the way
 /dev/serial/by-id follows a USB adapter that comes back under a new /dev/ttyUSBn. Only a
-symlink at ``link`` (one an earlier simulator left) is replaced or removed: a file or directory
-there is refused with ``FileExistsError``, and a link that cannot be made leaves no pty open
+simulator's symlink at ``link`` (to a pty, or left dangling by one that ended) is replaced, and
+only its own is removed: a file, a directory or any other link there (a udev link to a real
+adapter) is refused with ``FileExistsError``, and a link that cannot be made leaves no pty open
 and no staging symlink behind.
 
 Only the thread that serves the pty may open or close it (closing a descriptor another thread
@@ -59,8 +60,8 @@ class PtyLink:
         """Close the pty: the host's port fails, and the symlink goes away."""
         if not self.plugged:
             return
-        if self.link and os.path.islink(self.link):
-            with contextlib.suppress(FileNotFoundError):
+        if self.link and os.path.islink(self.link) and os.readlink(self.link) == self.path:
+            with contextlib.suppress(FileNotFoundError):  # ours: a link made since is kept
                 os.unlink(self.link)
         for fd in (self._master, self._slave):
             os.close(fd)
@@ -103,9 +104,12 @@ class PtyLink:
 
 
 def _point_symlink(link: str, target: str) -> None:
-    """Make ``link`` a symlink to ``target`` in one rename, so a host never finds it missing."""
-    if os.path.lexists(link) and not os.path.islink(link):
-        raise FileExistsError(errno.EEXIST, "exists and is not a symlink, so it is kept", link)
+    """Make ``link`` a symlink to ``target`` in one rename, so a host never finds it missing;
+    a link there is replaced only when it is a simulator's (``_ours``)."""
+    if os.path.lexists(link) and not _ours(link):
+        raise FileExistsError(
+            errno.EEXIST, "exists and is not a simulator's link to a pty, so it is kept", link
+        )
     staging = f"{link}.{os.getpid()}.tmp"
     os.symlink(target, staging)
     try:
@@ -113,3 +117,12 @@ def _point_symlink(link: str, target: str) -> None:
     except OSError:
         os.unlink(staging)
         raise
+
+
+def _ours(link: str) -> bool:
+    """Whether ``link`` is a symlink a simulator made: to a pty, or to nothing any more (one
+    that ended); never a udev link to a real adapter, nor a link to anyone's file."""
+    if not os.path.islink(link):
+        return False
+    target = os.readlink(link)
+    return target.startswith("/dev/pts/") or not os.path.exists(link)
