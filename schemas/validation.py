@@ -115,6 +115,27 @@ def refusal_code(exc: ValidationError) -> str:
     return "out_of_range" if in_range else "bad_command"
 
 
+#: What a terminal takes for an order rather than text: C0 and C1 controls (an escape starts
+#: with one), and the marks that reorder or hide what follows them; and the same but for the
+#: line ends of text laid out in lines.
+_MARKS = "\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069"
+_NOT_TEXT = re.compile(f"[\x00-\x1f{_MARKS}]")
+_NOT_TEXT_IN_LINES = re.compile(f"[\x00-\x09\x0b-\x1f{_MARKS}]")
+
+
+def printable(text: str, most: int | None = None, *, lines: bool = False) -> str:
+    r"""``text`` as a terminal may show it, whoever wrote it: each control or reordering mark
+    as its ``\uXXXX`` (a JSON escape too), line ends too unless ``lines``, the rest as it
+    is; cut to ``most`` characters (``…``) when given.
+
+    >>> printable("ok \x1b[2J\u202eok"), printable("1–254 é", 5), printable("a\nb", lines=True)
+    ('ok \\u001b[2J\\u202eok', '1–254…', 'a\nb')
+    """
+    cut = text if most is None or len(text) <= most else text[:most] + "…"
+    pattern = _NOT_TEXT_IN_LINES if lines else _NOT_TEXT
+    return pattern.sub(lambda found: f"\\u{ord(found.group()):04x}", cut)
+
+
 def shown(text: str, most: int = SHOWN_NAME_CHARS) -> str:
     """``text`` as a refusal repeats it: its control characters escaped, cut to ``most``
     characters (``…``)."""

@@ -530,3 +530,50 @@ def test_watch_and_send_take_seconds_a_timer_can_be_set_for(seconds, capsys):
             main(command)
         assert exited.value.code == 2
         assert "a number of seconds above 0 and at most 31536000" in capsys.readouterr().err
+
+
+@pytest.fixture
+def hostile_peer(free_port) -> Iterator[tuple[str, zenoh.Session]]:
+    """A peer that says what it likes: a state whose values carry a terminal's escapes (and a
+    number where a list goes), and an error reply whose code and message do too."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    escapes = "\x1b[2J\x1b]0;pwned\x07\u202e\n"
+    session = zenoh.open(session_config(mode="peer", listen=[endpoint]))
+
+    def answer(query: zenoh.Query) -> None:
+        body = {"ok": False, "error": {"code": f"bad{escapes}", "message": escapes * 1000}}
+        query.reply(query.key_expr, json.dumps(body))
+
+    held = session.declare_queryable("busgate/gwx/dev/bad/cmd", answer)
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.05):
+            session.put("busgate/gwx/dev/bad/state", json.dumps(
+                {"kind": escapes, "online": True, "faults": 5, "temperature_c": escapes,
+                 "joint": {"name": escapes, "unit": escapes, "position": 1e308}}))
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        yield endpoint, session
+    finally:
+        stop.set()
+        publisher.join(5)
+        held.undeclare()
+        session.close()
+
+
+def test_what_a_peer_sends_is_printed_without_its_escapes(hostile_peer, capsys):
+    """A gateway's values and errors are printed, and could clear the operator's screen,
+    retitle the terminal or forge lines: every control character is shown escaped."""
+    endpoint, _ = hostile_peer
+    assert main(["watch", "--once", "--seconds", "0.8", "--connect", endpoint]) == 0
+    assert main(["send", "gwx/bad", '{"op":"status"}', "--connect", endpoint]) == 1
+    out, err = capsys.readouterr()
+    for text in (out, err):
+        assert not set(text) & {"\x1b", "\x07", "\u202e"}, text[:300]
+    assert "\\u001b[2J" in out
+    assert [line for line in out.splitlines() if line.startswith("bad ")]  # one row, one line
+    [line] = err.splitlines()
+    assert line.startswith("busgate send: bad\\u001b[2J") and line.endswith("…")  # cut

@@ -57,6 +57,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
     "busgate.schemas.telemetry",
+    "busgate.schemas.validation",
     "busgate.schemas.zenoh_session",
 ]
 

@@ -41,6 +41,7 @@ from busgate.gateway.cli.arguments import seconds
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
+from busgate.schemas.validation import printable
 
 REDRAW_HZ = 5
 NO_ANSWER, ERROR_REPLY = 2, 1
@@ -145,11 +146,13 @@ def run_send(args: argparse.Namespace) -> int:
         waited = args.timeout if answers.timed_out else None
         return _no_reply(args.target, key, gateways, waited=waited)
     status = 0
-    for answer in outcomes:
-        print(json.dumps(answer.body, indent=2 if args.pretty else None, ensure_ascii=False))
+    for answer in outcomes:  # printable: a reply is a peer's text, escapes and all
+        body = json.dumps(answer.body, indent=2 if args.pretty else None, ensure_ascii=False)
+        print(printable(body, lines=True))
         if not answer.ok:
-            error = answer.error
-            print(f"busgate send: {error.get('code')}: {error.get('message')}", file=sys.stderr)
+            code, message = (str(answer.error.get(part)) for part in ("code", "message"))
+            print(f"busgate send: {printable(code, 64)}: {printable(message, 500)}",
+                  file=sys.stderr)  # fmt: skip
             status = ERROR_REPLY
     return status
 

@@ -6,7 +6,9 @@ Kept apart from ``client.py`` so that it knows no zenoh: zenoh's callback thread
 parsed JSON bodies (``update_state``, ``update_stats``, ``seed``) and the main thread reads it
 (``render``, ``changed_lines``). Rules of this file: a callback only stores under the one
 lock (a slow callback would stall every other one); the main thread takes a snapshot under it
-and formats outside it.
+and formats outside it; every cell is printed as a terminal may show it (``printable``: what
+a gateway sends may carry a terminal's escapes), and a state of a shape no release sends
+makes a row that says so (``(unreadable)``), never the end of the watch.
 
 Each device shows its joint in SI (``JOINT``: a position joint's position in its unit, a
 velocity joint's velocity in its unit per second, from the state's ``joint``) beside its raw
@@ -23,6 +25,11 @@ from collections.abc import Callable
 from typing import Any
 
 from busgate.schemas.joints import JointType, declaration_of, type_told
+from busgate.schemas.validation import printable
+
+#: The most of a value a cell shows (``printable``): a gateway may send a name or a value of
+#: any length.
+MOST_IN_A_CELL = 48
 
 DEVICE_COLUMNS = (
     "device",
@@ -117,12 +124,12 @@ class WatchTable:
             for (gateway, name), row in rows:
                 if row.received is not None and row.received > row.reported:
                     row.reported = row.received
-                    values = cells(name, row, now)
+                    values = _cells((gateway, name), row, cells, now, several=False)
                     lines.append(
                         " ".join(
                             [f"gateway={gateway}"]
                             + [
-                                f"{column}={value.replace(' ', '')}"
+                                f"{column}={printable(value, MOST_IN_A_CELL).replace(' ', '')}"
                                 for column, value in zip(columns, values, strict=True)
                             ]
                         )
@@ -182,7 +189,7 @@ def _device_cells(name: str, row: _Row, now: float) -> list[str]:
         _motion(state, _joint_type(state)),
         _text(state.get("temperature_c")),
         _text(state.get("current_ma")),
-        ",".join(map(str, state.get("faults") or [])) or "-",
+        _faults(state.get("faults")),
         _reading_age(row, now),
     ]
 
@@ -273,6 +280,10 @@ def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
     ]
 
 
+def _faults(faults: Any) -> str:
+    return ",".join(map(str, faults)) or "-" if isinstance(faults, list) else _text(faults)
+
+
 def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
     return [c.upper() for c in ("gateway",) * several + columns]
 
@@ -280,12 +291,22 @@ def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
 def _cells(
     key: tuple[str, str], row: _Row, cells: Callable, now: float, several: bool
 ) -> list[str]:
-    return ([key[0]] if several else []) + cells(key[1], row, now)
+    """A row's cells; a state of a shape no release sends (a number where a list goes) makes
+    a row that says so, never the end of the watch."""
+    try:
+        made = cells(key[1], row, now)
+    except (TypeError, ValueError, AttributeError, ArithmeticError):
+        count = len(DEVICE_COLUMNS if cells is _device_cells else BUS_COLUMNS)
+        made = [key[1], "(unreadable)", *["-"] * (count - 2)]
+    return ([key[0]] if several else []) + made
 
 
 def _columns(header: list[str], rows: list[list[str]], nothing: str) -> list[str]:
+    """The rows in columns, each cell as a terminal may show it (``printable``): what a
+    gateway sends is printed, and a name or value could carry a terminal's escapes."""
     if not rows:
         return [nothing]
+    rows = [[printable(cell, MOST_IN_A_CELL) for cell in line] for line in rows]
     widths = [max(len(cell) for cell in column) for column in zip(header, *rows, strict=True)]
     return [
         "  ".join(cell.ljust(width) for cell, width in zip(line, widths, strict=True)).rstrip()
