@@ -27,8 +27,8 @@ from busgate.client.errors import (
 )
 from busgate.client.feeds import Latest
 from busgate.client.follow import FollowSender
-from busgate.client.keys import Keys, check_name, split_name
-from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, then
+from busgate.client.keys import Keys, check_name, is_name, split_name
+from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, published, then
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
@@ -68,11 +68,16 @@ class FleetDevice:
 
 def gateway_infos(answers: list[Answer]) -> dict[str, dict[str, Any]]:
     """Each gateway's ``info`` among ``answers``, by name, as it came: what finding a device
-    and knowing a gateway is up need (its names), however the rest of the reply reads."""
+    and knowing a gateway is up need (its names), however the rest of the reply reads. An
+    answer whose ``gateway`` is no gateway's name (``*`` would address every gateway's
+    devices), or not the name it answered under, is left out."""
     return {
-        str(answer.body.get("gateway")): answer.body
+        answer.body["gateway"]: answer.body
         for answer in answers
-        if answer.ok and isinstance(answer.body, dict)
+        if answer.ok
+        and isinstance(answer.body, dict)
+        and is_name(gateway := answer.body.get("gateway"))
+        and answer.key.split("/")[-2:] == [gateway, "info"]
     }
 
 
@@ -149,20 +154,41 @@ def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -
 
 def _named(gateway: str, info: dict[str, Any], what: str, leaf: str) -> list[Found]:
     """What ``info`` lists under ``leaf``: the buses of that name, or the devices of that
-    name or whose joint has it."""
-    buses = info.get("buses", [])
+    name or whose joint has it. Entries that are not of the shape a gateway sends (a bus that
+    is no object, a device named with a wildcard) are passed over, as is a device of a kind
+    this SDK does not know, with a warning (a newer gateway's: it could not be driven)."""
+    buses = [bus for bus in _listed(info, "buses") if is_name(bus.get("name"))]
     if what == "bus":
         return [
             Found(gateway, leaf, str(bus.get("protocol")))
             for bus in buses
             if bus.get("name") == leaf
         ]
-    return [
-        Found(gateway, str(device.get("name")), str(device.get("kind")), joint_info(device))
+    devices = [
+        device
         for bus in buses
-        for device in bus.get("devices", [])
-        if leaf in (device.get("name"), _joint_name(device))
+        for device in _listed(bus, "devices")
+        if is_name(device.get("name")) and leaf in (device.get("name"), _joint_name(device))
     ]
+    for device in devices:
+        if device.get("kind") not in FAMILIES:
+            log.warning(
+                "device %s/%s left out: its kind %.40r is one this SDK does not know",
+                gateway,
+                device["name"],
+                device.get("kind"),
+            )
+    return [
+        Found(gateway, device["name"], device["kind"], joint_info(device))
+        for device in devices
+        if device.get("kind") in FAMILIES
+    ]
+
+
+def _listed(entry: dict[str, Any], field: str) -> list[dict[str, Any]]:
+    """The objects listed under ``field`` of a reply's ``entry`` (none when it lists none)."""
+    listed = entry.get(field)
+    return [item for item in listed if isinstance(item, dict)] if isinstance(listed, list) else []
 
 
 def _joint_name(device: dict[str, Any]) -> Any:
@@ -355,8 +381,9 @@ class Shared:
         return lost
 
     def telemetry(self, device: Found, payload: bytes) -> Any:
-        """A state message as the telemetry model of the device's kind."""
-        return TELEMETRY_MODELS[device.kind].model_validate_json(payload)
+        """A state message as the telemetry model of the device's kind; ``None`` when it is
+        not one (a warning names the gateway, the first time: ``published``)."""
+        return published(TELEMETRY_MODELS[device.kind], payload, "states", device.gateway)
 
     def latest(self, key: str, gateway: str) -> Latest:
         """The latest message on ``key``, one of ``gateway``'s, subscribed at the first ask

@@ -14,7 +14,7 @@ from typing import Any, Generic, Self, TypeVar
 
 from busgate.client.base import Found, Shared, as_body, reenable_command, scan_command
 from busgate.client.claims import ClaimLease
-from busgate.client.errors import NoAnswerError
+from busgate.client.errors import NoAnswerError, error_for
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
@@ -99,7 +99,12 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
             payload = yield Next(latest.next(), timeout)
         if payload is None:
             raise NoAnswerError(f"no state of {self._where()} within {timeout:g} s")
-        return self._shared.telemetry(self._found, payload)
+        state = self._shared.telemetry(self._found, payload)
+        if state is None:
+            raise error_for("internal")(
+                f"the state of {self._where()} is not one a {self._found.kind} sends"
+            )
+        return state
 
     @feeding
     def states(self, timeout: float = 5.0) -> Items[Any]:
@@ -112,7 +117,9 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
                 payload = yield Next(inbox.next(), left)
                 if payload is None:
                     return
-                yield self._shared.telemetry(self._found, payload)
+                state = self._shared.telemetry(self._found, payload)
+                if state is not None:  # one that is not a state: left out, told once
+                    yield state
 
     def claim(self, ttl_s: float = 2.0) -> Claim:
         """Exclusive motion control while the ``with`` block runs: claimed on entry,
@@ -165,7 +172,12 @@ class BusBase(Face):
     ) -> Steps[list[Any]]:
         """Which ids answer on the bus (all of the protocol's when ``ids`` is None), and as
         what."""
-        return (yield from self._sending(scan_command(ids), timeout))["found"]
+        found = (yield from self._sending(scan_command(ids), timeout)).get("found")
+        if not isinstance(found, list):
+            raise error_for("internal")(
+                f"the scan of bus {self.gateway}/{self.name} answered no list of ids"
+            )
+        return found
 
 
 def last_exchange(

@@ -130,6 +130,11 @@ class Keys:
         return gateway, name
 
 
+def is_name(name: object) -> bool:
+    """Whether ``name`` is one chunk of a key as the config allows names (``check_name``)."""
+    return isinstance(name, str) and _NAME.fullmatch(name) is not None
+
+
 def check_name(what: str, name: str) -> str:
     """``name`` when it is one chunk of a key as the config allows names; else ``CommandError``
     (a ``*`` or ``/`` in a device name would address others than meant)."""

@@ -13,10 +13,19 @@ import pytest
 
 import busgate.client as bc
 from busgate.client import steps
-from busgate.client.base import as_body, locate, raw_payload, reenable_command
+from busgate.client.base import (
+    Found,
+    Shared,
+    as_body,
+    gateway_infos,
+    locate,
+    raw_payload,
+    reenable_command,
+)
 from busgate.client.claims import Timers
 from busgate.client.errors import NoAnswerError, raise_for
 from busgate.client.keys import check_key, check_name, split_name
+from busgate.client.messages import Answer
 from busgate.client.steps import Wait
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
@@ -161,3 +170,37 @@ def test_a_name_that_is_not_a_string_is_said_to_be_none() -> None:
     valid."""
     with pytest.raises(CommandError, match="not a gateway name: 123 is a int, not a string"):
         check_name("gateway", 123)
+
+
+def test_a_peer_whose_info_is_malformed_never_breaks_finding_the_others() -> None:
+    """The lookup walks each gateway's info as it came (a newer gateway's may say more): a
+    bus that is no object, a device list that is a string, a device named with a wildcard or
+    of a kind this SDK does not know are passed over; an answer naming no gateway (``*``) or
+    another than it answered as is left out. Before: AttributeError, a Device of kind
+    'nonexistent' that failed later with KeyError, and a Device on gateway '*'."""
+    good = _info("gw1", ("la1", "inspire_la"))
+    answers = [Answer(f"busgate/{gw}/info", body, True) for gw, body in (
+        ("evil", {"gateway": "evil", "buses": "not a list"}),
+        ("evil2", {"gateway": "evil2", "buses": [5, {"name": "uart0", "devices": "x"}]}),
+        ("evil3", _info("evil3", ("la1", "nonexistent"), ("*", "inspire_la"))),
+        ("star", _info("*", ("la1", "inspire_la"))),  # claims every gateway's name
+        ("liar", _info("gw1", ("la2", "inspire_la"))),  # answers as another
+        ("gw1", good),
+    )]
+    infos = gateway_infos(answers)
+    assert sorted(infos) == ["evil", "evil2", "evil3", "gw1"] and infos["gw1"] is good
+    found = locate(infos, "la1", "device", "busgate/*/info")
+    assert (found.gateway, found.name, found.kind) == ("gw1", "la1", "inspire_la")
+    with pytest.raises(bc.UnknownDeviceError):
+        locate(infos, "evil3/la1", "device", "k")
+    with pytest.raises(bc.UnknownDeviceError):
+        locate(infos, "la2", "device", "k")
+
+
+def test_a_state_that_is_not_one_is_left_out_not_raised_as_pydantics(caplog) -> None:
+    """``states()`` ended at the first malformed message with a raw ValidationError (no
+    BusgateError); now such a message reads as none, and the gateway is named once."""
+    found = Found("gwbad", "la1", "inspire_la")
+    for payload in (b'{"position": "far"}', b"[" * 5000, b"not json"):
+        assert Shared.telemetry(None, found, payload) is None  # type: ignore[arg-type]
+    assert caplog.text.count("states of gateway 'gwbad' left out") == 1

@@ -442,3 +442,21 @@ def test_replay_under_a_live_gateways_keys_is_refused(recorded, module_demo, cli
         "replay there writes into its telemetry; use another --prefix (default replay) or add "
         "--onto-live"]
     assert not [key for key, _, _ in heard if key.startswith("busgate/demo/x")]
+
+
+def test_keys_past_what_a_file_can_name_are_left_out_and_the_file_stays_readable(
+        monkeypatch, tmp_path) -> None:
+    """A channel's id is 16 bits: the 65,536th key killed the writer (struct.error) and left
+    a file no reader could read. Here the most is 3."""
+    monkeypatch.setattr(mcap_log, "MAX_CHANNELS", 3)
+    path = tmp_path / "keys.mcap"
+    with path.open("wb") as stream:
+        log = McapLog(stream, "busgate")
+        for n in range(5):
+            log.add(f"busgate/gw{n}/dev/la1/state", b"{}", n)
+        log.add("busgate/gw0/dev/la1/state", b"{}", 9)  # a key it has: taken
+        log.finish()
+    assert log.past_channels == 2
+    with path.open("rb") as stream:
+        kept = [message.topic for message in mcap_log.messages(stream)]
+    assert kept == [f"busgate/gw{n}/dev/la1/state" for n in (0, 1, 2, 0)]

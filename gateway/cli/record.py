@@ -225,6 +225,12 @@ class Recording:
         except OSError as exc:
             self.failure = self.failure or exc
         self._progress(self.elapsed_s, end="\n")
+        if self._log.past_channels:
+            print(
+                f"busgate record: {self._log.past_channels} messages left out: on keys past "
+                f"the {mcap_log.MAX_CHANNELS} a file can name",
+                file=sys.stderr,
+            )
         if self.dropped:
             print(
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",

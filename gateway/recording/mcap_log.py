@@ -22,6 +22,9 @@ Rules of this file:
    and split: some three times ``MAX_CHUNK`` at worst), or a record outside chunks, in the
    order the file holds them (the order they were written); a larger one ends the reading.
    A file is a peer's word: 32 KiB of zstd may claim, and hold, a gigabyte.
+6. A file holds at most ``MAX_CHANNELS`` keys (a channel's id is 16 bits): a message on a
+   key past them is left out and counted (``past_channels``), so that the file stays one a
+   reader can read, whatever keys the network sends.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ LIBRARY = "busgate"
 PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
 REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints", "odom"})
+#: The most keys a file holds: an MCAP channel's id is 16 bits (past it, a message on a new
+#: key is left out and counted; the file would be unreadable).
+MAX_CHANNELS = 65_535
 #: The most a reader holds of a file at once (rule 5): the writer's chunks are 1 MiB.
 MAX_CHUNK = 64 * 1024 * 1024
 
@@ -98,6 +104,8 @@ class McapLog:
         self._channels: dict[str, int] = {}
         self.messages = 0
         self.bytes = 0
+        #: Messages left out: on a key past the file's ``MAX_CHANNELS`` keys.
+        self.past_channels = 0
 
     def add(self, key: str, payload: bytes, log_time_ns: int, *, body: Any = None) -> None:
         """One message; ``body`` is ``payload`` parsed, when the caller has it already."""
@@ -108,6 +116,9 @@ class McapLog:
                 body = None
         channel = self._channels.get(key)
         if channel is None:
+            if len(self._channels) >= MAX_CHANNELS:  # a peer on ever new keys: the file holds
+                self.past_channels += 1  # what its ids can name, and stays readable
+                return
             channel = self._channels[key] = self._writer.register_channel(
                 topic=key, message_encoding="json", schema_id=self._schema(key, body)
             )
