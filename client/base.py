@@ -6,6 +6,7 @@ follow payloads, and the claims a client holds. Everything here returns values o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import threading
@@ -32,6 +33,7 @@ from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, publishe
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.telemetry import TelemetryEnvelope
 
 log = logging.getLogger(__name__)
@@ -427,13 +429,15 @@ class Shared:
 
     def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
         """``callback(key, body)`` for each sample on ``key`` (zenoh's thread: it may not
-        block); ``body`` is the sample's JSON, or ``None`` when it is not JSON."""
+        block); ``body`` is the sample's JSON, or ``None`` when it is not JSON or is larger
+        than any message a gateway publishes (``MAX_PAYLOAD``: a peer's 2 MB events, kept
+        by the dashboard, took it past a gigabyte)."""
 
         def sink(sample_key: str, payload: bytes) -> None:
-            try:
-                body = json.loads(payload)
-            except UNPARSED:
-                body = None
+            body = None
+            if len(payload) <= MAX_PAYLOAD:
+                with contextlib.suppress(*UNPARSED):
+                    body = json.loads(payload)
             callback(sample_key, body)
 
         return self.core.subscribe(key, sink)

@@ -552,6 +552,8 @@ def hostile_peer(free_port) -> Iterator[tuple[str, zenoh.Session]]:
             session.put("busgate/gwx/dev/bad/state", json.dumps(
                 {"kind": escapes, "online": True, "faults": 5, "temperature_c": escapes,
                  "joint": {"name": escapes, "unit": escapes, "position": 1e308}}))
+            session.put("busgate/gwx/dev/huge/state", json.dumps(  # over 64 KiB: left out
+                {"kind": "inspire_la", "online": True, "faults": ["x" * 70_000]}))
 
     publisher = threading.Thread(target=publish, daemon=True)
     publisher.start()
@@ -575,5 +577,6 @@ def test_what_a_peer_sends_is_printed_without_its_escapes(hostile_peer, capsys):
         assert not set(text) & {"\x1b", "\x07", "\u202e"}, text[:300]
     assert "\\u001b[2J" in out
     assert [line for line in out.splitlines() if line.startswith("bad ")]  # one row, one line
+    assert not [line for line in out.splitlines() if line.startswith("huge ")]
     [line] = err.splitlines()
     assert line.startswith("busgate send: bad\\u001b[2J") and line.endswith("…")  # cut

@@ -460,3 +460,16 @@ def test_keys_past_what_a_file_can_name_are_left_out_and_the_file_stays_readable
     with path.open("rb") as stream:
         kept = [message.topic for message in mcap_log.messages(stream)]
     assert kept == [f"busgate/gw{n}/dev/la1/state" for n in (0, 1, 2, 0)]
+
+
+def test_a_sample_larger_than_any_gateway_publishes_is_left_out_and_counted(
+        tmp_path, capsys) -> None:
+    with (tmp_path / "big.mcap").open("wb") as stream:
+        recording = record_command.Recording(stream, "busgate")
+        recording.take("busgate/evil/events", b"x" * (64 * 1024 + 1), 1)
+        recording.take("busgate/demo/events", b"{}", 2)
+        recording.close()
+    assert recording.too_large == 1
+    assert "busgate record: 1 messages left out: larger than 64 KiB" in capsys.readouterr().err
+    with (tmp_path / "big.mcap").open("rb") as stream:
+        assert [m.topic for m in mcap_log.messages(stream)] == ["busgate/demo/events"]

@@ -6,7 +6,9 @@ Rules of this file:
 
 1. Recording never blocks zenoh's threads: a sample is put in a bounded queue and written by
    one writer thread. When the queue is full (a disk slower than the fleet) the sample is
-   dropped and counted; the progress line and the last line say how many.
+   dropped and counted; the progress line and the last line say how many. A sample larger
+   than any a gateway publishes (``MAX_PAYLOAD``) is left out and counted: a queue of them
+   would be memory without end.
 2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
    queue is written out, and the file gets its summary and index (a complete MCAP file). A
    write the disk refuses (full) ends it the same way, the file ended as far as the disk
@@ -172,12 +174,16 @@ class Recording:
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self._stop = threading.Event()
         self.dropped = 0
+        self.too_large = 0  # messages over MAX_PAYLOAD, left out
         self.elapsed_s = 0.0
         self.failure: Exception | None = None
         self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
         self._writer.start()
 
     def take(self, key: str, payload: bytes, ns: int) -> None:
+        if len(payload) > MAX_PAYLOAD:  # no gateway publishes one: a queue of them is memory
+            self.too_large += 1  # without end
+            return
         try:
             self._queue.put_nowait((key, payload, ns))
         except queue.Full:
@@ -225,12 +231,12 @@ class Recording:
         except OSError as exc:
             self.failure = self.failure or exc
         self._progress(self.elapsed_s, end="\n")
-        if self._log.past_channels:
-            print(
-                f"busgate record: {self._log.past_channels} messages left out: on keys past "
-                f"the {mcap_log.MAX_CHANNELS} a file can name",
-                file=sys.stderr,
-            )
+        for count, why in (
+            (self._log.past_channels, f"on keys past the {mcap_log.MAX_CHANNELS} a file names"),
+            (self.too_large, f"larger than {MAX_PAYLOAD // 1024} KiB, which no gateway sends"),
+        ):
+            if count:
+                print(f"busgate record: {count} messages left out: {why}", file=sys.stderr)
         if self.dropped:
             print(
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
