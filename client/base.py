@@ -172,19 +172,18 @@ def _named(gateway: str, info: dict[str, Any], what: str, leaf: str) -> list[Fou
         for device in _listed(bus, "devices")
         if is_name(device.get("name")) and leaf in (device.get("name"), _joint_name(device))
     ]
+    found = []
     for device in devices:
-        if device.get("kind") not in FAMILIES:
+        if device.get("kind") in FAMILIES:
+            found.append(Found(gateway, device["name"], device["kind"], joint_info(device)))
+        else:
             log.warning(
                 "device %s/%s left out: its kind %.40r is one this SDK does not know",
                 gateway,
                 device["name"],
                 device.get("kind"),
             )
-    return [
-        Found(gateway, device["name"], device["kind"], joint_info(device))
-        for device in devices
-        if device.get("kind") in FAMILIES
-    ]
+    return found
 
 
 def _listed(entry: dict[str, Any], field: str) -> list[dict[str, Any]]:

@@ -105,7 +105,7 @@ class Keys:
         gateway, slash, found = key.removeprefix(f"{self.prefix}/").partition("/")
         if not (key.startswith(f"{self.prefix}/") and slash and found == leaf):
             return None
-        return gateway if _NAME.fullmatch(gateway) else None
+        return gateway if is_name(gateway) else None
 
     def names_in(self, key: str, room: str, leaf: str) -> tuple[str, str] | None:
         """``(gateway, name)`` of a key ``<prefix>/<gateway>/<room>/<name>/<leaf>`` whose
@@ -125,9 +125,7 @@ class Keys:
         if len(chunks) != 4 or chunks[1] != room or chunks[3] != leaf:
             return None
         gateway, name = chunks[0], chunks[2]
-        if _NAME.fullmatch(gateway) is None or _NAME.fullmatch(name) is None:
-            return None
-        return gateway, name
+        return (gateway, name) if is_name(gateway) and is_name(name) else None
 
 
 def is_name(name: object) -> bool:
@@ -142,7 +140,7 @@ def check_name(what: str, name: str) -> str:
         raise CommandError(
             f"not a {what} name: {str(name)[:80]} is a {type(name).__name__}, not a string"
         )
-    if not _NAME.fullmatch(name):
+    if not is_name(name):
         raise CommandError(f"not a {what} name: {name[:80]!r} (1-64 of A-Z a-z 0-9 _ -)")
     return name
 

@@ -56,9 +56,8 @@ def session_config(
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
-    if config_file and not Path(config_file).is_file():  # zenoh would say only "os error 2"
-        why = "not a file" if Path(config_file).exists() else "no such file"
-        raise ValueError(f"the zenoh config file {config_file}: {why}")
+    if config_file and (problem := config_file_problem(config_file)):
+        raise ValueError(f"the zenoh config file {config_file}: {problem}")  # not "os error 2"
     config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
@@ -77,6 +76,15 @@ def session_config(
         config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
     check_unix_listeners(_listen_endpoints(config, mode))
     return config
+
+
+def config_file_problem(config_file: str | Path) -> str | None:
+    """Why ``config_file`` cannot be read as a zenoh config here (``no such file``, ``not a
+    file``); ``None`` when it is a file."""
+    path = Path(config_file)
+    if path.is_file():
+        return None
+    return "not a file" if path.exists() else "no such file"
 
 
 def _listen_endpoints(config: zenoh.Config, mode: str) -> list[str]:

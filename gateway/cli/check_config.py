@@ -4,9 +4,9 @@ Rules of this file: it checks without touching hardware. Whatever ``busgate run`
 (``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
 exit status 1. What only this host or the load decides — a port that does not exist here, is
 locked by another process, is no device file (``busgate run`` refuses those two) or that this
-user may not read and write, a bus whose streams cannot
-all fit, a flight recorder's folder this user cannot write, a zenoh config file missing — is a
-warning: printed with the budget, exit status 0.
+user may not read and write, a bus whose streams cannot all fit, a flight recorder's folder
+this user cannot write, a zenoh config file missing — is a warning: printed with the budget,
+exit status 0.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def check_config(args: argparse.Namespace) -> int:
             "the service user to check its access; the systemd unit makes the default dir)"
         )
     zenoh_file = config.zenoh.config_file
-    if zenoh_file is not None and not Path(zenoh_file).is_file():
+    if zenoh_file is not None and not Path(zenoh_file).is_file():  # no zenoh loaded here
         print(
             f"warning: zenoh.config_file: {zenoh_file} is no file here; busgate run refuses "
             "to start so"

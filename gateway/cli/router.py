@@ -35,7 +35,12 @@ import zenoh
 
 from busgate.errors import CommandError
 from busgate.gateway.cli.stopping import stopped_by_signals
-from busgate.schemas.zenoh_session import session_config, session_refusal, zenoh_reason
+from busgate.schemas.zenoh_session import (
+    config_file_problem,
+    session_config,
+    session_refusal,
+    zenoh_reason,
+)
 
 IN_USE_HINT = "another busgate router, zenohd or gateway?"
 
@@ -118,10 +123,9 @@ def _check_endpoint(endpoint: str) -> None:
 
 def _check_config_file(path: Path) -> None:
     """Refuse a ``--config`` that is missing, not a file, unreadable or not a zenoh config."""
-    if not path.exists():
-        raise CommandError(f"--config {path}: no such file")
-    if not path.is_file():
-        raise CommandError(f"--config {path}: not a file")
+    problem = config_file_problem(path)
+    if problem is not None:
+        raise CommandError(f"--config {path}: {problem}")
     try:
         zenoh.Config.from_file(str(path))
     except zenoh.ZError as exc:

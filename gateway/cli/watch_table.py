@@ -281,7 +281,7 @@ def _bus_cells(name: str, row: _Row, now: float) -> list[str]:
 
 
 def _faults(faults: Any) -> str:
-    return ",".join(map(str, faults)) or "-" if isinstance(faults, list) else _text(faults)
+    return (",".join(map(str, faults)) or "-") if isinstance(faults, list) else _text(faults)
 
 
 def _headers(columns: tuple[str, ...], several: bool) -> list[str]:
