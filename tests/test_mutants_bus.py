@@ -662,6 +662,18 @@ def test_one_look_at_an_idle_adapter_takes_every_frame_past_its_other_lines(slca
     assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)]
 
 
+def test_one_look_takes_every_frame_one_read_brought_in(slcan):
+    """Two frames that came in one chunk are read in by one read: the second waits in the
+    adapter's buffer, not on its descriptor, and the same look takes it."""
+    owner, master, heard = slcan
+    finished(lambda: owner.idle_until(0.0))  # whatever the open left
+    frames = [f"t0018{bytes.fromhex(HEARTBEAT[4:-2]).hex()}{n:02x}\r".encode() for n in (7, 9)]
+    adapter_says(owner, master, b"".join(frames))
+    finished(lambda: owner.idle_until(0.0))  # a deadline long past: one look, no wait
+    heartbeats = [zcan.HeartbeatPosition(1, 7), zcan.HeartbeatPosition(1, 9)]
+    assert [event for event, _ in heard] == heartbeats
+
+
 def test_a_look_at_a_quiet_adapter_returns(slcan):
     owner, _, heard = slcan
     for _ in range(3):

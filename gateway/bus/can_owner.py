@@ -14,10 +14,13 @@ Rules of this file:
 3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
    ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle
    (every ``idle_batch_s``). Taking what has already arrived never waits: where the adapter
-   has a file descriptor (socketcan, slcan) it is asked first, since python-can's slcan
-   blocks a ``recv(timeout=0)`` for its serial timeout (1 ms) when nothing is there, which
-   would make a timed send late.
+   has a file descriptor (socketcan, slcan) it is asked first (and an SLCAN adapter's lines
+   read in already), since python-can's slcan blocks a ``recv(timeout=0)`` for its serial
+   timeout (1 ms) when nothing is there, which would make a timed send late.
 4. Only this module converts between ``CanFrame`` and ``can.Message``.
+5. An SLCAN adapter is python-can's ``slcan`` interface with its reads replaced
+   (``slcan.SlcanBus``: a chunk a read, not a byte), made as ``can.Bus`` makes python-can's
+   (the same arguments, python-can's configuration read the same way).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
+from busgate.gateway.bus.slcan import SlcanBus
 from busgate.gateway.bus.stats import BusCounters
 
 #: How long a full transmit queue may hold a request back before it counts as failed.
@@ -83,12 +87,7 @@ class CanBusOwner(BusOwner):
 
     def open(self) -> None:
         try:
-            self._bus = can.Bus(
-                interface=self.interface,
-                channel=self.channel,
-                bitrate=self.timing.rate,
-                **self.options,
-            )
+            self._bus = self._make_bus()
         except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
             # TypeError: an option the interface's class does not take
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
@@ -96,6 +95,20 @@ class CanBusOwner(BusOwner):
             self._fd = self._bus.fileno()
         except (NotImplementedError, can.CanError):
             self._fd = None  # e.g. the virtual bus: its recv(timeout=0) does not wait
+
+    def _make_bus(self) -> can.BusABC:
+        arguments = {
+            "interface": self.interface,
+            "channel": self.channel,
+            "bitrate": self.timing.rate,
+            **self.options,
+        }
+        if self.interface != "slcan":
+            return can.Bus(**arguments)
+        # What can.Bus does, with our class for python-can's (rule 5).
+        arguments = can.util.load_config(config=arguments)
+        del arguments["interface"]
+        return SlcanBus(**arguments)
 
     def close(self) -> None:
         bus, self._bus, self._fd = self._bus, None, None
@@ -198,7 +211,7 @@ class CanBusOwner(BusOwner):
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when it has no descriptor)."""
-        if self._fd is None:
+        if self._fd is None or (isinstance(self._bus, SlcanBus) and self._bus.has_line):
             return True
         try:
             readable, _, _ = select.select([self._fd], [], [], 0)

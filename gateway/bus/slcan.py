@@ -1,0 +1,72 @@
+"""python-can's ``slcan`` interface, reading what the adapter sent in one call, not a byte a call.
+
+python-can 4.6 reads an SLCAN adapter one byte per call (a ``select`` and a ``read`` each): a
+frame is a line of some 22 characters, so 22 round trips into the kernel. Five ZLAC706
+heartbeating every 10 ms make 1,000 frames a second on a bus; four such buses took one core of
+this machine whole and fell behind (the gateway published a fifth of the heartbeats).
+Upstream's fix (hardbyte/python-can#2028) is not in a release yet; this subclass is ours until it
+is, and the test that reads a stream of lines through it and through python-can's own keeps the
+two telling the same frames.
+
+Rules of this file:
+
+1. Only ``_read`` (one line of the adapter, through its terminator) is replaced: opening,
+   sending, closing and the parsing of a line into a ``can.Message`` stay python-can's.
+2. A read takes everything the adapter has sent so far; the lines it holds beyond the one it
+   returns are handed out by the next reads, before the adapter is asked again. ``has_line``
+   tells the owner that one is there (its descriptor no longer does).
+3. A line is taken out before it is read: one that is no ASCII, or runs past any frame's length
+   without a terminator, raises ``ValueError`` once (the owner counts one frame lost) and the
+   next line reads as it should. A failing port is python-can's ``CanOperationError``, as its
+   own reads raise.
+"""
+
+from __future__ import annotations
+
+from can.exceptions import error_check
+from can.interfaces.slcan import slcanBus
+
+from busgate.gateway.bus.clock import now
+
+#: The line ends: CR after a frame or an acknowledgement, BEL after a refused command.
+_TERMINATORS = (b"\r", b"\a")
+#: Longer than any line an adapter sends (a CAN FD frame with an extended identifier: 1 + 8 +
+#: 1 + 128 characters and its terminator); what runs past it unterminated is garbage.
+MAX_LINE = 160
+
+
+class SlcanBus(slcanBus):
+    """An SLCAN adapter, as python-can's ``slcan`` interface, read a chunk at a time."""
+
+    @property
+    def has_line(self) -> bool:
+        """Whether a whole line of the adapter is already read in, waiting to be taken."""
+        return any(self._buffer.find(end) >= 0 for end in _TERMINATORS)
+
+    def _read(self, timeout: float | None) -> str | None:
+        """The adapter's next line (its terminator included), waiting ``timeout`` seconds at
+        most for it (``None``: as long as it takes); ``None`` when none came."""
+        deadline = None if timeout is None else now() + timeout
+        port = self.serialPortOrig
+        while (line := self._take_line()) is None:
+            with error_check("Could not read from serial device"):
+                waiting = port.in_waiting
+                if not waiting and deadline is not None and now() >= deadline:
+                    return None
+                # With nothing there, the port's own timeout (1 ms) bounds the wait for a byte.
+                self._buffer += port.read(waiting or 1)
+        return line
+
+    def _take_line(self) -> str | None:
+        """The first whole line read in, taken out of the buffer (rule 3)."""
+        buffer = self._buffer
+        ends = [at for at in (buffer.find(end) for end in _TERMINATORS) if at >= 0]
+        if not ends:
+            if len(buffer) > MAX_LINE:
+                del buffer[:]
+                raise ValueError(f"an SLCAN line of more than {MAX_LINE} characters")
+            return None
+        end = min(ends) + 1
+        line = bytes(buffer[:end])
+        del buffer[:end]
+        return line.decode("ascii")  # a UnicodeDecodeError is a ValueError: one line lost
