@@ -79,15 +79,22 @@ def gateway_infos(answers: list[Answer]) -> dict[str, dict[str, Any]]:
         if answer.ok
         and isinstance(answer.body, dict)
         and is_name(gateway := answer.body.get("gateway"))
-        and answer.key.split("/")[-2:] == [gateway, "info"]
+        and answered_as(answer, gateway)
     }
+
+
+def answered_as(answer: Answer, gateway: object) -> bool:
+    """Whether ``answer`` came on ``gateway``'s own ``info`` key (a peer answering on its own
+    key may not speak for another gateway)."""
+    return answer.key.split("/")[-2:] == [gateway, "info"]
 
 
 def info_models(answers: list[Answer], keys: Keys) -> dict[str, InfoReply]:
     """Each gateway's ``info`` among ``answers`` as an ``InfoReply``, by name, in order. A
-    reply that is not one (an error, not JSON, a field or device kind this SDK does not know)
-    leaves its sender out, with a warning naming it: one bad peer never fails the fleet's
-    answer. Validated as the JSON it came as (an enum's value is its text there)."""
+    reply that is not one (an error, even one whose body is an info; not JSON; a field or
+    device kind this SDK does not know; one naming another gateway than its key) leaves its
+    sender out, with a warning naming it: one bad peer never fails the fleet's answer.
+    Validated as the JSON it came as (an enum's value is its text there)."""
     infos: dict[str, InfoReply] = {}
     for answer in answers:
         try:
@@ -97,6 +104,18 @@ def info_models(answers: list[Answer], keys: Keys) -> dict[str, InfoReply]:
                 "gateway %.64r left out: its info reply is not an InfoReply (%s)",
                 keys.gateway_of(answer.key),
                 _first_error(exc),
+            )
+            continue
+        if not answer.ok:  # zenoh's error reply (which names no key): its body an info
+            log.warning(
+                "gateway %.64r left out: its info reply came as an error reply", info.gateway
+            )
+            continue
+        if not answered_as(answer, info.gateway):
+            log.warning(
+                "gateway %.64r left out: its info reply names gateway %.64r",
+                keys.gateway_of(answer.key),
+                info.gateway,
             )
             continue
         infos[info.gateway] = info

@@ -5,11 +5,11 @@ same operations, ``surface.py``), so both do exactly the same on the wire.
 
 Rules of this file:
 
-1. Callbacks only hand over. A reply is parsed and stored and a finished query settles its
-   future on zenoh's own thread, where one slow callback would stall every other one of the
-   session. A sample goes to its sinks (which may not block) on its subscription's thread
-   (rule 5): a slow one holds up that subscription, and the whole session once its queue in
-   zenoh is full.
+1. Callbacks only hand over. A reply is parsed (none past ``MAX_REPLY``) and stored and a
+   finished query settles its future on zenoh's own thread, where one slow callback would
+   stall every other one of the session. A sample goes to its sinks (which may not block) on
+   its subscription's thread (rule 5): a slow one holds up that subscription, and the whole
+   session once its queue in zenoh is full.
 2. Every command carries the client's id; the client's liveliness token
    (``<prefix>/clients/<id>``) is held from ``open`` to ``close``, so that a gateway drops
    the client's claims and streams when it goes (its lease, about 1 s by default).
@@ -70,6 +70,12 @@ log = logging.getLogger(__name__)
 
 #: The payload of zenoh's own error reply when a queryable did not answer in time.
 ZENOH_TIMEOUT = b"Timeout"
+#: The largest reply read, in bytes (``answer_of``): past it a reply is no gateway's, and
+#: parsing it on zenoh's thread (rule 1) took a peer's 80 MB info to 1.3 GB and past the
+#: query's timeout. A gateway's largest reply is the ``info`` of the largest config its
+#: validation takes: 28.0 MiB, measured for 30,293 ZLAC706 on 278 CAN buses (1 MiB of config:
+#: ``MAX_CONFIG_BYTES``), each with its fullest state and every fault, as the bridge encodes it.
+MAX_REPLY = 32 * 1024 * 1024
 
 #: How long a client waits for an answer unless told otherwise (``connect``'s ``timeout``).
 DEFAULT_TIMEOUT_S = 5.0
@@ -80,19 +86,24 @@ CHANNEL: zenoh.handlers.DefaultHandler[Any] = zenoh.handlers.DefaultHandler()
 
 
 def answer_of(reply: zenoh.Reply) -> Answer | None:
-    """A zenoh reply as an ``Answer``; ``None`` for zenoh's own timeout reply."""
+    """A zenoh reply as an ``Answer``; ``None`` for zenoh's own timeout reply. A payload past
+    ``MAX_REPLY`` is left unread: an answer that is not ok, saying its size."""
     sample, error = reply.ok, reply.err
-    if sample is None and error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT:
-        return None
     answer = sample if sample is not None else error
     assert answer is not None  # a zenoh reply carries a sample or an error
+    key = str(getattr(answer, "key_expr", ""))
+    if (size := len(answer.payload)) > MAX_REPLY:
+        unread = f"a reply of {size} bytes, more than any gateway answers ({MAX_REPLY}): unread"
+        return Answer(key, unread, False)
     raw = answer.payload.to_bytes()
+    if sample is None and raw == ZENOH_TIMEOUT:
+        return None
     try:
         body = json.loads(raw)
     except UNPARSED:
-        return Answer(str(getattr(answer, "key_expr", "")), raw.decode(errors="replace"), False)
+        return Answer(key, raw.decode(errors="replace"), False)
     ok = sample is not None and isinstance(body, dict) and body.get("ok") is True
-    return Answer(str(getattr(answer, "key_expr", "")), body, ok)
+    return Answer(key, body, ok)
 
 
 class Core:

@@ -8,8 +8,8 @@ publishes is named and typed there, and ``tests/test_schema_export.py`` holds th
 them), named here for the SDK: a device's joint in its state (``JointState``) and in ``info``
 (``JointInfo``), a gateway's joints message (``JointsMessage`` of ``JointReading``s) and a
 base's odometry (``Odometry``). A message that does not validate (a field this SDK does not
-know) is left out with a warning naming its gateway, as ``gateways()`` leaves out an ``info``
-(``published``).
+know, a joint's NaN) is left out with a warning naming its gateway, as ``gateways()`` leaves
+out an ``info`` (``published``); so is a joints message naming another gateway than its key.
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ M = TypeVar("M", bound=BaseModel)
 
 @dataclass(frozen=True, slots=True)
 class Answer:
-    """One reply to a query: the key it came on, its JSON (text when it is not JSON), and
-    whether it is an ok reply."""
+    """One reply to a query: the key it came on, its JSON (text when it is not JSON, or when
+    it was too large to read: what it was), and whether it is an ok reply."""
 
     key: str
     body: Any
@@ -60,15 +60,21 @@ class Answer:
 UNPARSED = (ValueError, RecursionError)
 
 
-#: What was told to be unreadable, once each: (what, gateway) (joints messages, a base's
+#: What was told to be left out, once each: (what, gateway) (joints messages, a base's
 #: odometry).
-_unreadable: set[tuple[str, str]] = set()
+_told: set[tuple[str, str]] = set()
 
 
 def joints_message(payload: bytes, gateway: str) -> JointsMessage | None:
-    """A joints message of ``gateway`` as the model; ``None`` when it is not one (a warning
-    names the gateway, the first time)."""
-    return published(JointsMessage, payload, "joints messages", gateway)
+    """A joints message of ``gateway`` as the model; ``None`` when it is not one, or names
+    another gateway than the one whose key it came on (a peer's, which would pass its joints
+    off as that gateway's; a warning names the gateway, the first time)."""
+    what = "joints messages"
+    message = published(JointsMessage, payload, what, gateway)
+    if message is None or message.gateway == gateway:
+        return message
+    _left_out(what, gateway, f"it names gateway {message.gateway!r}")
+    return None
 
 
 def published(model: type[M], payload: bytes, what: str, gateway: str) -> M | None:
@@ -77,17 +83,17 @@ def published(model: type[M], payload: bytes, what: str, gateway: str) -> M | No
     try:
         return model.model_validate_json(payload)
     except UNPARSED as exc:
-        if (what, gateway) not in _unreadable and len(_unreadable) < 256:
-            _unreadable.add((what, gateway))
-            log.warning(
-                "%s of gateway %.64r left out: not a%s %s (%s)",
-                what,
-                gateway,
-                "n" if model.__name__[0] in "AEIOU" else "",
-                model.__name__,
-                str(exc).replace("\n", " ")[:200],
-            )
+        article = "an" if model.__name__[0] in "AEIOU" else "a"
+        why = str(exc).replace("\n", " ")[:200]
+        _left_out(what, gateway, f"not {article} {model.__name__} ({why})")
         return None
+
+
+def _left_out(what: str, gateway: str, why: str) -> None:
+    """Warn that ``what`` of ``gateway`` is left out, and ``why``: the first time only."""
+    if (what, gateway) not in _told and len(_told) < 256:
+        _told.add((what, gateway))
+        log.warning("%s of gateway %.64r left out: %s", what, gateway, why)
 
 
 class Answers(list[Answer]):

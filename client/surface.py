@@ -208,8 +208,9 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         self, key: str, payload: Any = None, *, timeout: float | None = None
     ) -> Steps[Answers]:
         """Every answer to a get on the key expression ``key``, as it came (nothing added to
-        the payload, no error raised for an error reply): bytes or text as given, a dict as
-        JSON. ``.timed_out`` says zenoh stopped waiting for a queryable."""
+        the payload, no error raised for an error reply; one past ``MAX_REPLY`` unread:
+        ``core.answer_of``): bytes or text as given, a dict as JSON. ``.timed_out`` says zenoh
+        stopped waiting for a queryable."""
         waited = self.timeout if timeout is None else timeout
         return (yield Wait(self._shared.query(key, payload, waited), waited, f"query on {key}"))
 

@@ -24,6 +24,7 @@ from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
 
 from busgate.schemas.base import (
+    FINITE,
     MAX_CLAIM_S,
     ClientId,
     CommandModel,
@@ -35,7 +36,7 @@ from busgate.schemas.base import (
 )
 from busgate.schemas.config import Name
 from busgate.schemas.families import FAMILIES, PROTOCOLS
-from busgate.schemas.joints import MAX_SI, JointType
+from busgate.schemas.joints import MAX_SI, JointType, Unit
 from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
 
 #: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
@@ -265,9 +266,11 @@ class JointInfo(ReadByKey):
     """A device's joint: its name, type, unit, calibration (``si = offset + scale × raw``)
     and limits, in SI (``null``: none)."""
 
+    model_config = FINITE
+
     name: Name
     type: JointType
-    unit: str = Field(description='"m", "rad", or "raw" for a device without a joint table.')
+    unit: Unit = Field(description='"m", "rad", or "raw" for a device without a joint table.')
     scale: float = Field(description="SI per raw unit.")
     offset: float = Field(description="SI value at raw 0.")
     min: float
@@ -275,7 +278,7 @@ class JointInfo(ReadByKey):
     max_velocity: float | None = Field(description="Unit per second.")
     max_acceleration: float | None = Field(description="Unit per second².")
     max_effort: float | None = Field(description="In effort_unit.")
-    effort_unit: str | None = Field(description="The unit of the joint's effort.")
+    effort_unit: Unit | None = Field(description="The unit of the joint's effort.")
     raw_per_turn: float | None = Field(description="Raw position units in one turn.")
     configured: bool = Field(description="A joint table configured it (else raw units).")
 
@@ -311,10 +314,12 @@ class InfoReply(ReadByKey):
 class JointReading(ReadByKey):
     """One joint in the joints message: its values in SI and how fresh they are."""
 
+    model_config = FINITE
+
     name: Name
     device: Name
     type: JointType
-    unit: str
+    unit: Unit
     position: float | None
     velocity: float | None
     effort: float | None
@@ -327,6 +332,8 @@ class JointReading(ReadByKey):
 class JointsMessage(ReadByKey):
     """Every joint of a gateway in one message, published when any joint was read again,
     at most at its fastest poll rate."""
+
+    model_config = FINITE
 
     gateway: Name
     ts: float = Field(description="When it was published, Unix seconds.")

@@ -1,5 +1,5 @@
-"""What every command model shares (strict parsing, the client field, hex data), and the two
-bases of what the gateway publishes.
+"""What every command model shares (strict parsing, the client field, hex data), the names
+of things, and the two bases of what the gateway publishes.
 
 Rules: a command is refused, never coerced. Unknown fields, strings for numbers, floats for
 integers, NaN and infinities are validation errors, so a malformed command cannot reach a wire.
@@ -16,6 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field
 #: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
 CLIENT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
+#: A gateway's, bus's, device's or joint's name: names end up in zenoh key expressions, so
+#: they are one safe chunk, as a client id is.
+Name = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
 #: The prefix of every key (``[gateway] prefix``): one to eight such names joined by ``/``,
 #: no wildcard.
 KEY_PREFIX_PATTERN = r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$"
@@ -63,6 +66,12 @@ class Published(BaseModel):
     """Base of what the gateway publishes and clients only read: closed, no coercion."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+#: What a published model whose numbers are never NaN or infinite adds to its base's config
+#: (``model_config = FINITE``): the gateway computes them finite and its encoder would write
+#: a non-finite one ``null`` (``schemas.encoding``), so one in a message is a peer's, refused.
+FINITE = ConfigDict(allow_inf_nan=False)
 
 
 class ReadByKey(Published):

@@ -23,11 +23,18 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from busgate.schemas.base import MAX_CLAIM_S, ClientId, CommandModel, FollowSeq, Published
+from busgate.schemas.base import (
+    MAX_CLAIM_S,
+    ClientId,
+    CommandModel,
+    FollowSeq,
+    Name,
+    Published,
+)
 from busgate.schemas.joints import Joint
 
-#: Names end up in zenoh key expressions (``<p>/<gw>/base/<name>/cmd``).
-BaseName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
+#: A base's name, as every name (``<p>/<gw>/base/<name>/cmd``).
+BaseName = Name
 Positive = Annotated[float, Field(gt=0, le=1e6)]
 #: The longest a twist without a new one may drive the base (``cmd_timeout_s``) and the
 #: longest ``duration_s`` a twist may ask.

@@ -31,15 +31,13 @@ from pydantic import (
 )
 
 from busgate.errors import ConfigError
-from busgate.schemas.base import KEY_PREFIX_PATTERN
+from busgate.schemas.base import KEY_PREFIX_PATTERN, Name
 from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.joints import Joint, JointTable, table_problems
 from busgate.schemas.ros2 import Ros2Section
 from busgate.schemas.validation import closest, suggestion
 
-#: Names end up in zenoh key expressions, so they are restricted to one safe chunk.
-Name = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")]
 KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
 Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 

@@ -30,7 +30,7 @@ from typing import Annotated, Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field
 
 from busgate.errors import RefusedError
-from busgate.schemas.base import Published
+from busgate.schemas.base import FINITE, Name, Published
 from busgate.schemas.families import FAMILIES
 
 JointType = Literal["position", "velocity"]
@@ -44,6 +44,9 @@ MAX_SI = 1e9
 MIN_SCALE = 1e-12
 #: How far past a limit a value still counts as on it (floating-point noise, relative).
 ON_THE_LIMIT = 1e-9
+#: A unit as a joint is published with: ``m``, ``rad`` or ``raw``, an effort's ``N`` or
+#: ``A``; bounded, with room for units to come, so that a peer's is never megabytes.
+Unit = Annotated[str, Field(max_length=16)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,7 +120,7 @@ class JointTable(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
-    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")] | None = None
+    name: Name | None = None
     type: JointType | None = None
     unit: Literal["m", "rad"]
     scale: Annotated[float, Field(ge=-MAX_SI, le=MAX_SI)]
@@ -134,9 +137,11 @@ class JointState(Published):
     """A joint's values in SI, from the same reading as the rest of its device's state
     (``null`` where the family cannot know)."""
 
-    name: str = Field(description="The joint's name (its table's, else the device's).")
+    model_config = FINITE
+
+    name: Name = Field(description="The joint's name (its table's, else the device's).")
     type: JointType = Field(description="A position joint, or a velocity joint.")
-    unit: str = Field(description='Position unit: "m", "rad", or "raw" without a table.')
+    unit: Unit = Field(description='Position unit: "m", "rad", or "raw" without a table.')
     position: float | None = Field(description="Position, in unit.")
     velocity: float | None = Field(description="Velocity, in unit per second.")
     effort: float | None = Field(description="Effort, in the joint's effort unit (info).")

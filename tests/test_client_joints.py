@@ -16,10 +16,12 @@ import asyncio
 import inspect
 import json
 import logging
+import math
 import threading
 import time
 
 import pytest
+from pydantic import ValidationError
 
 import busgate.client as bc
 from busgate.client.base import Found, locate
@@ -206,6 +208,33 @@ def test_a_joints_message_that_is_not_one_is_skipped_by_the_latest_and_the_feed(
     assert "joints messages of gateway 'junkgw' left out" in caplog.text
 
 
+def test_a_joints_message_naming_another_gateway_is_left_out_by_the_latest_and_the_feed(
+        gwj, connect, caplog) -> None:
+    """A peer publishing on one gateway's joints key a message that names another (here
+    ``gwj``'s joints passed off as ``posedgw``'s) was handed out as that gateway's: only a
+    message naming the gateway asked is taken, the rest left out with a warning."""
+    client = connect(gwj)
+    own = {"gateway": "posedgw", "ts": 1.0, "joints": []}
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.03):
+            client.put("busgate/posedgw/joints", {**own, "gateway": "gwj"})
+            client.put("busgate/posedgw/joints", own)
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="busgate.client.messages"):
+            latest = [client.joints("posedgw", max_age=0.0) for _ in range(3)]
+            fed = list(client.joints_feed("posedgw", timeout=0.3))
+    finally:
+        stop.set()
+        publisher.join()
+    assert fed and all(m.gateway == "posedgw" for m in latest + fed)
+    assert "joints messages of gateway 'posedgw' left out: it names gateway 'gwj'" in caplog.text
+
+
 # -- a velocity joint (the demo's wheel) ----------------------------------------------------
 
 
@@ -291,6 +320,47 @@ def _info(*devices: dict) -> dict:
 DESCRIBED = {"name": "lift", "type": "position", "unit": "m", "scale": SCALE, "offset": 0.0,
              "min": LOW, "max": HIGH, "max_velocity": None, "max_acceleration": None,
              "max_effort": None, "effort_unit": "N", "raw_per_turn": None, "configured": True}
+
+
+#: A joint's state and its entry in the joints message, as a gateway publishes them.
+STATE = {"name": "lift", "type": "position", "unit": "m", "position": 0.01, "velocity": None,
+         "effort": None, "target": 0.012}
+READING = {"name": "lift", "device": "la1", "type": "position", "unit": "m", "position": 0.01,
+           "velocity": None, "effort": None, "ts": 1.0, "stale": False}
+#: Each joint model and a message of it; its numbers are those whose value is a float or null.
+JOINT_MODELS = [(bc.JointInfo, DESCRIBED), (bc.JointState, STATE), (bc.JointReading, READING)]
+
+
+@pytest.mark.parametrize("number", [math.nan, math.inf, -math.inf], ids=["nan", "inf", "-inf"])
+def test_a_joint_number_that_is_not_finite_is_refused(number: float) -> None:
+    """A gateway never publishes NaN or an infinity in a joint (its values are computed
+    finite, and its encoder would write one null): a peer's passed as a limit, a calibration
+    or a position. Refused in ``info``'s joint, a state's and the joints message."""
+    for model, valid in JOINT_MODELS:
+        model.model_validate_json(json.dumps(valid))
+        for field in [field for field, value in valid.items() if value is None or
+                      type(value) is float]:
+            with pytest.raises(ValidationError, match="finite number"):
+                model.model_validate_json(json.dumps({**valid, field: number}))
+    message = {"gateway": "gw8", "ts": 1.0, "joints": [READING]}
+    for refused in ({**message, "ts": number}, {**message, "joints": [{**READING, "ts": number}]}):
+        assert joints_message(json.dumps(refused).encode(), "gw8") is None
+
+
+def test_a_joints_units_and_names_are_bounded() -> None:
+    """A unit is a few letters (``m``, ``rad``, ``raw``; ``N``, ``A`` of an effort) and a
+    joint's name one chunk of a key, as a device's: a peer's megabyte of either is refused,
+    not kept for as long as the joint is."""
+    texts = [(model, valid, field) for model, valid in JOINT_MODELS
+             for field in ("unit", "effort_unit") if field in valid]
+    for model, valid, field in texts:
+        model.model_validate_json(json.dumps({**valid, field: "u" * 16}))
+        for text in ("u" * 17, "u" * 2**20):
+            with pytest.raises(ValidationError, match="at most 16 characters"):
+                model.model_validate_json(json.dumps({**valid, field: text}))
+    for name in ("x" * 65, "lift\n", ""):
+        with pytest.raises(ValidationError, match="should match pattern"):
+            bc.JointState.model_validate_json(json.dumps({**STATE, "name": name}))
 
 
 def test_a_device_is_found_by_its_joints_name_and_an_unreadable_joint_is_left_out(

@@ -24,6 +24,7 @@ import pytest
 import zenoh
 
 import busgate.client as bc
+from busgate.client.core import MAX_REPLY
 from busgate.codecs import inspire_la as la
 from busgate.gateway import installed_version
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -210,6 +211,83 @@ def test_a_gateway_whose_info_does_not_validate_is_left_out_with_a_warning_namin
         for name in junk_gateways for _ in range(2)]
     for line in said:
         assert why[line.split("'")[1]] in line, line
+
+
+def info_body(gateway: str, version: str = "9") -> str:
+    """A gateway's ``info`` reply without buses, as JSON."""
+    return json.dumps({"ok": True, "gateway": gateway, "version": version, "buses": []})
+
+
+@pytest.fixture
+def posing_peer(free_port):
+    """A bare zenoh peer on an endpoint of its own, posing as gateway ``fine`` (its info a
+    gateway's) and as any gateway ``pose(gateway, body, error=False)`` adds, whose ``info`` is
+    answered ``body`` (as zenoh's error reply when ``error``): its endpoint, and ``pose``."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(session_config(mode="peer", listen=[endpoint]))
+
+    def pose(gateway: str, body: str, *, error: bool = False) -> None:
+        def answer(query: zenoh.Query) -> None:
+            if error:
+                query.reply_err(body)
+            else:
+                query.reply(f"busgate/{gateway}/info", body)
+
+        held.append(session.declare_queryable(f"busgate/{gateway}/info", answer))
+
+    held: list = []
+    pose("fine", info_body("fine"))
+    try:
+        yield endpoint, pose
+    finally:
+        held.clear()
+        session.close()
+
+
+def test_an_info_that_came_as_an_error_reply_is_no_gateway(posing_peer, caplog, wait_for) -> None:
+    """Only an ok reply counts: zenoh's error reply whose body reads as an info made
+    ``err-info`` one of ``gateways()``."""
+    endpoint, pose = posing_peer
+    pose("err-info", info_body("err-info"), error=True)
+    with bc.connect(endpoint, client_id=the_client_id("err-info")) as client:
+        wait_for(lambda: len(client.query("busgate/*/info", timeout=1.0)) == 2, timeout=DEADLINE_S)
+        with caplog.at_level(logging.WARNING, logger="busgate.client"):
+            infos = client.gateways(timeout=DEADLINE_S)
+    assert list(infos) == ["fine"]
+    assert "gateway 'err-info' left out: its info reply came as an error reply" in caplog.text
+
+
+def test_an_info_naming_another_gateway_than_its_key_is_no_gateway(
+    posing_peer, caplog, wait_for
+) -> None:
+    """A peer answering on its own key spoke for another gateway: ``gateways()`` listed
+    ``fine`` with the peer's info in place of fine's own."""
+    endpoint, pose = posing_peer
+    pose("poser", info_body("fine", version="forged"))
+    with bc.connect(endpoint, client_id=the_client_id("poser")) as client:
+        wait_for(lambda: len(client.query("busgate/*/info", timeout=1.0)) == 2, timeout=DEADLINE_S)
+        with caplog.at_level(logging.WARNING, logger="busgate.client"):
+            infos = client.gateways(timeout=DEADLINE_S)
+    assert list(infos) == ["fine"] and infos["fine"].version == "9"
+    assert "gateway 'poser' left out: its info reply names gateway 'fine'" in caplog.text
+
+
+def test_a_reply_past_max_reply_is_left_unread_and_never_ok(posing_peer, caplog, wait_for) -> None:
+    """A peer's 80 MB info was parsed on zenoh's thread (1.3 GB, the query's timeout overrun)
+    and counted as a gateway: a reply past ``MAX_REPLY``, here an ok info one byte past it, is
+    an answer that is not ok, saying its size, and no gateway."""
+    endpoint, pose = posing_peer
+    padding = MAX_REPLY + 1 - len(info_body("huge-info", ""))
+    pose("huge-info", info_body("huge-info", "9" * padding))
+    with bc.connect(endpoint, client_id=the_client_id("huge-info")) as client:
+        wait_for(lambda: client.query("busgate/fine/info", timeout=1.0), timeout=DEADLINE_S)
+        [answer] = client.query("busgate/huge-info/info", timeout=DEADLINE_S)
+        with caplog.at_level(logging.WARNING, logger="busgate.client"):
+            infos = client.gateways(timeout=DEADLINE_S)
+    assert not answer.ok and answer.body == (
+        f"a reply of {MAX_REPLY + 1} bytes, more than any gateway answers ({MAX_REPLY}): unread")
+    assert list(infos) == ["fine"]
+    assert "gateway 'huge-info' left out" in caplog.text
 
 
 def test_devices_lists_every_device_of_the_fleet_by_gateway_then_name(client, gw2) -> None:
