@@ -97,12 +97,9 @@ class CanBusOwner(BusOwner):
             self._fd = None  # e.g. the virtual bus: its recv(timeout=0) does not wait
 
     def _make_bus(self) -> can.BusABC:
-        arguments = {
-            "interface": self.interface,
-            "channel": self.channel,
-            "bitrate": self.timing.rate,
-            **self.options,
-        }
+        arguments = dict(  # an option naming one of these again: TypeError, as can.Bus raises
+            interface=self.interface, channel=self.channel, bitrate=self.timing.rate, **self.options
+        )
         if self.interface != "slcan":
             return can.Bus(**arguments)
         # What can.Bus does, with our class for python-can's (rule 5).
