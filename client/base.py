@@ -29,7 +29,7 @@ from busgate.client.errors import (
 from busgate.client.feeds import Latest
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, check_name, is_name, split_name
-from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, published, then
+from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, published_naming, then
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
@@ -401,9 +401,11 @@ class Shared:
         return lost
 
     def telemetry(self, device: Found, payload: bytes) -> Any:
-        """A state message as the telemetry model of the device's kind; ``None`` when it is
-        not one (a warning names the gateway, the first time: ``published``)."""
-        return published(TELEMETRY_MODELS[device.kind], payload, "states", device.gateway)
+        """A state message of ``device`` as the telemetry model of its kind; ``None`` when it
+        is not one, or names another device (a warning names the gateway, the first time:
+        ``published_naming``)."""
+        model = TELEMETRY_MODELS[device.kind]
+        return published_naming(model, payload, "states", device.gateway, "device", device.name)
 
     def latest(self, key: str, gateway: str) -> Latest:
         """The latest message on ``key``, one of ``gateway``'s, subscribed at the first ask

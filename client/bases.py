@@ -21,8 +21,8 @@ Rules of this file:
    them and waits for the reply: the gateway takes puts and queries on different threads,
    and drops a twist numbered below its client's stop whenever it comes.
 5. Odometry (``…/odom``) is read as ``Odometry`` (``schemas.bases``): the latest
-   (``feeds.Latest``, as a device's state) or each as it comes; a message that is not one
-   is left out with a warning, as a joints message is.
+   (``feeds.Latest``, as a device's state) or each as it comes; a message that is not one,
+   or names another base, is left out with a warning, as a joints message is.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, split_name
-from busgate.client.messages import Answers, Odometry, dumps, first_ok, published, then
+from busgate.client.messages import Answers, Odometry, dumps, first_ok, published_naming, then
 from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.schemas.bases import TwistTarget
 
@@ -209,8 +209,10 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
         return self._shared.core.keys.base(self.gateway, self.name, "odom")
 
     def _message(self, payload: bytes | None) -> Odometry | None:
+        if payload is None:
+            return None
         what = f"odometry messages of base {self.name!r}"
-        return None if payload is None else published(Odometry, payload, what, self.gateway)
+        return published_naming(Odometry, payload, what, self.gateway, "base", self.name)
 
     @waiting
     def odometry(self, timeout: float = 2.0, *, max_age: float = 1.0) -> Steps[Odometry]:

@@ -100,9 +100,9 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
         if payload is None:
             raise NoAnswerError(f"no state of {self._where()} within {timeout:g} s")
         state = self._shared.telemetry(self._found, payload)
-        if state is None:
+        if state is None:  # left out: the warning says why
             raise error_for("internal")(
-                f"the state of {self._where()} is not one a {self._found.kind} sends"
+                f"the state on the key of {self._where()} is not one its {self._found.kind} sends"
             )
         return state
 

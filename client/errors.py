@@ -8,7 +8,8 @@ Rules of this file:
 2. Every stable code of ``{"ok": false, "error": {"code": …}}`` (``schemas.api.ERROR_CODES``)
    has its own subclass of ``GatewayError``, made from that list, so a code added to the API
    has its class without an edit here; ``error_for(code)`` finds it. Each carries ``.code``
-   and ``.message``; ``ClaimedError`` also the ``.holder`` its message names.
+   and ``.message`` (cut to the longest a gateway sends, ``MAX_MESSAGE``: a peer's may be
+   megabytes); ``ClaimedError`` also the ``.holder`` its message names.
 3. What fails before a gateway could answer has its own classes: ``ConnectError`` (no zenoh
    session), ``NoAnswerError`` (nobody answered in time), ``AmbiguousError`` (a bare name that
    several gateways have). ``ClaimLostError`` is both: the SDK raises it when it knows a claim
@@ -24,7 +25,8 @@ import re
 from typing import Any
 
 from busgate.errors import BusgateError
-from busgate.schemas.api import ERROR_CODES
+from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
+from busgate.schemas.validation import cut
 
 
 class GatewayError(BusgateError):
@@ -108,7 +110,7 @@ def raise_for(error: Any, *, gateway: str | None = None) -> None:
         raise GatewayError("the gateway's reply is not ok and carries no error", gateway=gateway)
     code, message = str(error.get("code", "internal")), str(error.get("message", ""))
     cls = error_for(code)
-    exc = cls(message, gateway=gateway)
+    exc = cls(cut(message, MAX_MESSAGE - 1), gateway=gateway)
     if cls is GatewayError:
         exc.code = code  # an unknown code is still told as it came
     raise exc

@@ -2,15 +2,14 @@
 says of it afterwards (feedback, then one result), for both faces of the SDK.
 
 Rules: the feedback key is subscribed before ``play`` is sent, so a result that comes at once
-is not missed; the zenoh callback only stores a message and wakes the readers (their sinks
-may not block); a trajectory's devices are found by name like any device, and must all be on
-one gateway.
+is not missed, as any sample's JSON (``base.Shared.subscribe``: none past ``MAX_PAYLOAD``);
+the zenoh callback only stores a message and wakes the readers (their sinks may not block); a
+trajectory's devices are found by name like any device, and must all be on one gateway.
 """
 
 from __future__ import annotations
 
 import itertools
-import json
 import os
 import threading
 import time
@@ -21,7 +20,7 @@ from typing import Any
 from busgate.client.base import Shared
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox
-from busgate.client.messages import UNPARSED, then
+from busgate.client.messages import then
 from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.errors import CommandError
 
@@ -81,7 +80,7 @@ class Watch:
         self._sinks: list[Callable[[dict[str, Any]], object]] = []
         self.result: dict[str, Any] | None = None
         self.finished: Future = Future()
-        self._end = shared.core.subscribe(
+        self._end = shared.subscribe(
             shared.core.keys.feedback(gateway, trajectory_id), self._on_message
         )
 
@@ -101,12 +100,8 @@ class Watch:
     def close(self) -> None:
         self._end()
 
-    def _on_message(self, key: str, payload: bytes) -> None:
-        try:
-            message = json.loads(payload)
-        except UNPARSED:
-            return
-        if not isinstance(message, dict):
+    def _on_message(self, key: str, message: Any) -> None:
+        if not isinstance(message, dict):  # not JSON, or past what a gateway publishes
             return
         with self._lock:
             sinks = list(self._sinks)

@@ -204,9 +204,17 @@ TELEMETRY_ADAPTER: TypeAdapter[Any] = TypeAdapter(Telemetry)
 # --- replies: every cmd queryable -----------------------------------------------------------------
 
 
+#: The longest message of an error reply: room to spare for the gateway's, which
+#: ``replies.error_reply`` cuts to it (naming every problem of a 59 KB command made one of
+#: 263 KB, of a trajectory megabytes), and never a peer's megabytes.
+MAX_MESSAGE = 4096
+
+
 class ErrorDetail(Published):
     code: ErrorCode = Field(description="Stable, machine-readable reason.")
-    message: str = Field(description="Human-readable text; may change between versions.")
+    message: str = Field(
+        max_length=MAX_MESSAGE, description="Human-readable text; may change between versions."
+    )
 
 
 class ErrorReply(Published):
@@ -299,12 +307,17 @@ class BusInfo(ReadByKey):
     devices: list[DeviceInfo]
 
 
+#: The longest version an ``info`` reply carries: a release's (``0.1.0``) or a build's
+#: (``0.1.1.dev12+g3f4a5b6.d20260315``) with room to spare, never a peer's megabytes.
+MAX_VERSION = 128
+
+
 class InfoReply(ReadByKey):
     """The gateway, its version, its buses and each bus's devices."""
 
     ok: Literal[True]
     gateway: Name
-    version: str
+    version: str = Field(max_length=MAX_VERSION)
     buses: list[BusInfo]
 
 

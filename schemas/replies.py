@@ -20,7 +20,8 @@ from typing import Any
 from pydantic import ValidationError
 
 from busgate.errors import BusgateError, CommandError
-from busgate.schemas.validation import describe_validation_error, refusal_code
+from busgate.schemas.api import MAX_MESSAGE
+from busgate.schemas.validation import cut, describe_validation_error, refusal_code
 
 #: What a client's request may be refused with (rules 1 and 2), as opposed to a bug.
 REFUSALS = (BusgateError, ValidationError)
@@ -35,12 +36,16 @@ def error_code(exc: BaseException) -> str:
 
 
 def error_reply(exc: BaseException) -> dict[str, Any]:
-    """The error envelope for ``exc``: its code, and a message for people."""
+    """The error envelope for ``exc``: its code, and a message for people, cut to the
+    longest a reply carries (``MAX_MESSAGE``: every problem of a long command is more)."""
     if isinstance(exc, ValidationError):
         message = f"invalid command: {describe_validation_error(exc)}"
     else:
         message = str(exc) or type(exc).__name__
-    return {"ok": False, "error": {"code": error_code(exc), "message": message}}
+    return {
+        "ok": False,
+        "error": {"code": error_code(exc), "message": cut(message, MAX_MESSAGE - 1)},
+    }
 
 
 def _schema_refusal(exc: BaseException) -> ValidationError | None:

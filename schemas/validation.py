@@ -131,13 +131,21 @@ def printable(text: str, most: int | None = None, *, lines: bool = False) -> str
     >>> printable("ok \x1b[2J\u202eok"), printable("1–254 é", 5), printable("a\nb", lines=True)
     ('ok \\u001b[2J\\u202eok', '1–254…', 'a\nb')
     """
-    cut = text if most is None or len(text) <= most else text[:most] + "…"
     pattern = _NOT_TEXT_IN_LINES if lines else _NOT_TEXT
-    return pattern.sub(lambda found: f"\\u{ord(found.group()):04x}", cut)
+    kept = text if most is None else cut(text, most)
+    return pattern.sub(lambda found: f"\\u{ord(found.group()):04x}", kept)
 
 
 def shown(text: str, most: int = SHOWN_NAME_CHARS) -> str:
     """``text`` as a refusal repeats it: its control characters escaped, cut to ``most``
     characters (``…``)."""
-    escaped = text.encode("unicode_escape").decode("ascii")
-    return escaped if len(escaped) <= most else escaped[:most] + "…"
+    return cut(text.encode("unicode_escape").decode("ascii"), most)
+
+
+def cut(text: str, most: int) -> str:
+    """``text``, or its first ``most`` characters and ``…`` when it is longer.
+
+    >>> cut("abcdef", 3), cut("ok", 3)
+    ('abc…', 'ok')
+    """
+    return text if len(text) <= most else text[:most] + "…"

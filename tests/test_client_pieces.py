@@ -29,7 +29,7 @@ from busgate.client.messages import Answer
 from busgate.client.steps import Wait
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
-from busgate.schemas.api import ERROR_CODES
+from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
 from busgate.schemas.families import FAMILIES
 
 
@@ -56,6 +56,17 @@ def test_a_code_this_version_does_not_know_is_still_told_as_it_came() -> None:
     assert type(raised.value) is bc.GatewayError and raised.value.code == "from_the_future"
     with pytest.raises(bc.GatewayError, match="no error"):
         raise_for("not an object")
+
+
+def test_an_error_message_is_cut_to_the_longest_a_gateway_sends() -> None:
+    """A peer's error reply of megabytes became an exception whose message a traceback or a
+    log printed whole: past ``MAX_MESSAGE`` it is cut (``…``), its code and class kept."""
+    with pytest.raises(bc.BusyError) as raised:
+        raise_for({"code": "busy", "message": "x" * 2**20})
+    assert raised.value.message == "x" * (MAX_MESSAGE - 1) + "…"
+    with pytest.raises(bc.BusyError) as raised:
+        raise_for({"code": "busy", "message": "x" * (MAX_MESSAGE - 1)})
+    assert raised.value.message == "x" * (MAX_MESSAGE - 1)
 
 
 def test_client_side_failures_are_busgate_errors_too() -> None:

@@ -15,22 +15,35 @@ a loaded machine with everything else).
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 import logging
 import math
+import threading
 import time
 
 import pytest
 import zenoh
 
 import busgate.client as bc
+from busgate.client.base import Found
 from busgate.client.core import MAX_REPLY
+from busgate.client.trajectories import Watch
 from busgate.codecs import inspire_la as la
 from busgate.gateway import installed_version
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from busgate.schemas.api import ERROR_CODES, TELEMETRY_MODELS, BusInfo, DeviceInfo, InfoReply
+from busgate.schemas.api import (
+    ERROR_CODES,
+    MAX_VERSION,
+    TELEMETRY_MODELS,
+    BusInfo,
+    DeviceInfo,
+    InfoReply,
+)
 from busgate.schemas.inspire_la import Move
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import GatewayProcess, serial_bus
 from tests.sdk_helpers import (
@@ -41,6 +54,7 @@ from tests.sdk_helpers import (
     patiently,
     the_client_id,
 )
+from tests.test_schema_export import inspire_la_state
 
 POSITIONS = fresh_positions(101)
 #: A hang guard for conditions waited for, not a speed requirement.
@@ -288,6 +302,161 @@ def test_a_reply_past_max_reply_is_left_unread_and_never_ok(posing_peer, caplog,
         f"a reply of {MAX_REPLY + 1} bytes, more than any gateway answers ({MAX_REPLY}): unread")
     assert list(infos) == ["fine"]
     assert "gateway 'huge-info' left out" in caplog.text
+
+
+# -- what a peer publishes on a gateway's keys -------------------------------------------------
+
+
+def la_state(device: str, **fields) -> dict:
+    """A state an Inspire LA's driver publishes (``test_schema_export``'s), as ``device``'s."""
+    return {**inspire_la_state(), "device": device, **fields}
+
+
+def odometry(base: str) -> dict:
+    return {"base": base, "ts": time.time(), "x": 1.0, "y": 0.0, "theta": 0.0, "linear": 0.0,
+            "angular": 0.0, "commanded": {"linear": 0.0, "angular": 0.0}}
+
+
+def padded(body: dict) -> bytes:
+    """``body`` as JSON, padded with spaces to one byte past ``MAX_PAYLOAD``: a message that
+    validates, but larger than any a gateway publishes."""
+    text = json.dumps(body).encode()
+    return text + b" " * (MAX_PAYLOAD + 1 - len(text))
+
+
+_posed = itertools.count(1)
+
+
+@pytest.fixture
+def posed_client(posing_peer, request, wait_for):
+    """A client of ``posing_peer``, which poses as gateway ``pose-<n>`` (a name of the
+    test's own: the SDK warns once per gateway) with Inspire LAs ``la1`` and ``la2``; its
+    name, the client, and ``putting``: what puts ``(key, payload)`` pairs every 20 ms while
+    its ``with`` block runs (another peer's puts, as the SDK sees them)."""
+    endpoint, pose = posing_peer
+    gateway = f"pose-{next(_posed)}"
+    devices = [{"name": name, "kind": "inspire_la", "id": i, "state": None}
+               for i, name in enumerate(("la1", "la2"), 1)]
+    pose(gateway, json.dumps({"ok": True, "gateway": gateway, "version": "9", "buses": [
+        {"name": "uart0", "protocol": "inspire_la", "devices": devices}]}))
+    with bc.connect(endpoint, client_id=the_client_id(request.node.name)) as client:
+        wait_for(lambda: len(client.query("busgate/*/info", timeout=1.0)) == 2,
+                 timeout=DEADLINE_S)
+
+        @contextlib.contextmanager
+        def putting(*puts: tuple[str, bytes | dict]):
+            stop = threading.Event()
+
+            def put() -> None:
+                while not stop.wait(0.02):
+                    for key, payload in puts:
+                        client.put(key, payload)
+
+            putter = threading.Thread(target=put, daemon=True)
+            putter.start()
+            try:
+                yield
+            finally:
+                stop.set()
+                putter.join()
+
+        yield gateway, client, putting
+
+
+def test_a_state_past_max_payload_is_left_out_unparsed(posed_client, caplog) -> None:
+    """A peer's 100 MB sample on a device's state key was parsed, and handed out as the
+    device's state: a state past the 64 KiB a gateway publishes at most (``MAX_PAYLOAD``,
+    here a valid one padded one byte past it) is no state, left out with a warning, as a
+    malformed one is; ``state()`` raises as for that one."""
+    gateway, client, putting = posed_client
+    la1 = client.device(f"{gateway}/la1")
+    key = f"busgate/{gateway}/dev/la1/state"
+    with caplog.at_level(logging.WARNING, logger="busgate.client"):
+        with pytest.raises(bc.NoAnswerError):
+            la1.state(timeout=0.01)  # its latest is kept from now on
+        client.put(key, padded(la_state("la1", position=6)))
+        with pytest.raises(bc.InternalError, match=f"the state on the key of {gateway}/la1"):
+            la1.state(max_age=DEADLINE_S, timeout=DEADLINE_S)
+        with putting((key, padded(la_state("la1", position=6))), (key, la_state("la1"))):
+            fed = list(la1.states(timeout=0.2))
+    assert fed and {state.position for state in fed} == {990}
+    assert (f"states of gateway {gateway!r} left out: {MAX_PAYLOAD + 1} bytes, more than any "
+            "gateway publishes") in caplog.text
+
+
+def test_joints_odometry_and_trajectory_results_past_max_payload_are_left_out(
+        posed_client, caplog) -> None:
+    """As a state (above): a joints message, a base's odometry and a trajectory's result past
+    ``MAX_PAYLOAD`` are no message; the feeds take only those a gateway could send."""
+    gateway, client, putting = posed_client
+    base = bc.Base(client._shared, Found(gateway, "base", "diff_drive", room="base"), {})
+    joints_key, odom_key = f"busgate/{gateway}/joints", f"busgate/{gateway}/base/base/odom"
+    joints = {"gateway": gateway, "ts": 1.0, "joints": []}
+    with caplog.at_level(logging.WARNING, logger="busgate.client"), putting(
+            (joints_key, padded({**joints, "ts": 6.0})), (joints_key, joints),
+            (odom_key, padded({**odometry("base"), "x": 6.0})), (odom_key, odometry("base"))):
+        taken = [client.joints(gateway, max_age=0.0).ts for _ in range(3)]
+        fed = [m.ts for m in client.joints_feed(gateway, timeout=0.15)]
+        taken_odometry = [base.odometry(max_age=0.0).x for _ in range(3)]
+        fed_odometry = [o.x for o in base.odometry_feed(timeout=0.15)]
+    assert fed and fed_odometry and set(taken + fed) == set(taken_odometry + fed_odometry) == {1.0}
+    for what in ("joints messages", "odometry messages of base 'base'"):
+        assert f"{what} of gateway {gateway!r} left out: {MAX_PAYLOAD + 1} bytes" in caplog.text
+    watch = Watch(client._shared, gateway, "t1")
+    try:
+        feedback = f"busgate/{gateway}/trajectory/t1/feedback"
+        client.put(feedback, padded({"id": "t1", "result": "aborted", "errors": {}}))
+        client.put(feedback, {"id": "t1", "result": "succeeded", "errors": {}})
+        assert watch.finished.result(timeout=DEADLINE_S)["result"] == "succeeded"
+    finally:
+        watch.close()
+
+
+def test_a_state_or_odometry_naming_another_device_or_base_is_left_out(
+        posed_client, caplog) -> None:
+    """A peer publishing on ``la1``'s state key a state naming ``la2`` had it handed out as
+    la1's (``state()``, ``states()``, ``joint.state()``), and an odometry naming another base
+    as the base's: only a message naming the device or base whose key it came on is taken,
+    the rest left out with a warning, as a joints message naming another gateway is."""
+    gateway, client, putting = posed_client
+    la1 = client.device(f"{gateway}/la1")
+    base = bc.Base(client._shared, Found(gateway, "base", "diff_drive", room="base"), {})
+    key, odom_key = f"busgate/{gateway}/dev/la1/state", f"busgate/{gateway}/base/base/odom"
+    with caplog.at_level(logging.WARNING, logger="busgate.client"):
+        with pytest.raises(bc.NoAnswerError):
+            la1.state(timeout=0.01)  # its latest is kept from now on
+        client.put(key, la_state("la2"))
+        with pytest.raises(bc.InternalError, match=f"the state on the key of {gateway}/la1"):
+            la1.state(max_age=DEADLINE_S, timeout=DEADLINE_S)
+        with pytest.raises(bc.InternalError):
+            la1.joint.state(max_age=DEADLINE_S, timeout=DEADLINE_S)
+        with putting((key, la_state("la2")), (key, la_state("la1")),
+                     (odom_key, odometry("other")), (odom_key, odometry("base"))):
+            fed = list(la1.states(timeout=0.15))
+            odometries = [base.odometry(max_age=0.0) for _ in range(3)]
+            odometries += list(base.odometry_feed(timeout=0.15))
+    assert fed and {state.device for state in fed} == {"la1"}
+    assert {odometry.base for odometry in odometries} == {"base"}
+    assert f"states of gateway {gateway!r} left out: it names device 'la2', not 'la1'" in (
+        caplog.text)
+    assert (f"odometry messages of base 'base' of gateway {gateway!r} left out: it names base "
+            "'other', not 'base'") in caplog.text
+
+
+def test_an_info_whose_version_is_past_max_version_is_no_gateway(
+        posing_peer, caplog, wait_for) -> None:
+    """A version is a release's or a build's, a few dozen characters: a peer's megabyte of one
+    was kept as a gateway's version. One past ``MAX_VERSION`` leaves its gateway out."""
+    endpoint, pose = posing_peer
+    pose("longest", info_body("longest", "9" * MAX_VERSION))
+    pose("longer", info_body("longer", "9" * (MAX_VERSION + 1)))
+    with bc.connect(endpoint, client_id=the_client_id("long-version")) as client:
+        wait_for(lambda: len(client.query("busgate/*/info", timeout=1.0)) == 3, timeout=DEADLINE_S)
+        with caplog.at_level(logging.WARNING, logger="busgate.client"):
+            infos = client.gateways(timeout=DEADLINE_S)
+    assert list(infos) == ["fine", "longest"]
+    assert (f"gateway 'longer' left out: its info reply is not an InfoReply (version: String "
+            f"should have at most {MAX_VERSION} characters)") in caplog.text
 
 
 def test_devices_lists_every_device_of_the_fleet_by_gateway_then_name(client, gw2) -> None:

@@ -22,6 +22,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from pydantic import ValidationError
 
 from busgate.codecs import ds_servo as ds
 from busgate.codecs import inspire_la as la
@@ -29,6 +30,7 @@ from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
 from busgate.errors import RefusedError
+from busgate.gateway.api import commands
 from busgate.gateway.api.commands import GatewayApi, ok_reply
 from busgate.gateway.api.group import scan_requests, scan_result
 from busgate.gateway.bus.stats import BusCounters, BusStats
@@ -45,6 +47,7 @@ from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.schemas import api, exported, trajectory
 from busgate.schemas.config import Config
 from busgate.schemas.events import EVENT_ADAPTER
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.replies import error_reply
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -380,10 +383,39 @@ def test_an_unknown_error_code_is_refused():
     assert_invalid("reply.json", answer | {"error": {"code": "oops", "message": "boom"}})
 
 
+def test_an_error_message_is_cut_to_what_a_client_takes():
+    """A 59 KB command of 6,000 unknown fields was refused with a message of 263 KB (every
+    problem named): a message is cut to ``MAX_MESSAGE`` (``…``), which the reply schema holds
+    every peer to."""
+    gw, _, _ = gateway()
+    extra = {f"x{i}": 1 for i in range(6000)}
+    payload = json.dumps({"op": "move", "position": 1, **extra}, separators=(",", ":")).encode()
+    answer = reply(gw.command("arm", payload))
+    message = answer["error"]["message"]
+    assert len(payload) < MAX_PAYLOAD and answer["error"]["code"] == "bad_command"
+    assert len(message) == api.MAX_MESSAGE and message.endswith("x97: Extr…")
+    assert_valid("reply.json", answer)
+    api.REPLY_ADAPTER.validate_python(answer)
+    longer = {"ok": False, "error": {"code": "busy", "message": "x" * (api.MAX_MESSAGE + 1)}}
+    assert_invalid("reply.json", longer)
+    with pytest.raises(ValidationError, match=f"at most {api.MAX_MESSAGE} characters"):
+        api.REPLY_ADAPTER.validate_python(longer)
+
+
 def test_info_matches_the_info_schema():
     gw, _, _ = gateway()
     info = gw.info()
     assert [d["state"] is None for d in info["buses"][0]["devices"]] == [False, True]
+    assert_valid("info.json", info)
+    api.InfoReply.model_validate(info)
+
+
+def test_a_version_past_what_a_client_takes_is_cut(monkeypatch):
+    """A build's version is a few dozen characters; one past ``MAX_VERSION`` would make every
+    client leave the gateway out: its info carries it cut (``…``)."""
+    monkeypatch.setattr(commands, "installed_version", lambda: "1.0.0+" + "g" * 200)
+    info = gateway()[0].info()
+    assert info["version"] == ("1.0.0+" + "g" * 200)[: api.MAX_VERSION - 1] + "…"
     assert_valid("info.json", info)
     api.InfoReply.model_validate(info)
 

@@ -53,6 +53,7 @@ from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.api import (
     DEVICE_COMMAND_ADAPTERS,
+    MAX_VERSION,
     BusGroupMove,
     BusScan,
     Claim,
@@ -64,7 +65,7 @@ from busgate.schemas.api import (
 )
 from busgate.schemas.payload import MAX_PAYLOAD, decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
-from busgate.schemas.validation import command_from_object, shown
+from busgate.schemas.validation import command_from_object, cut, shown
 
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
@@ -342,9 +343,10 @@ class GatewayApi:
     # -- information ------------------------------------------------------------------------
 
     def info(self) -> dict[str, Any]:
+        """The ``info`` reply (a version past what a client takes is cut: ``MAX_VERSION``)."""
         return ok_reply(
             gateway=self.name,
-            version=installed_version(),
+            version=cut(installed_version(), MAX_VERSION - 1),
             buses=[
                 {
                     "name": name,
