@@ -33,7 +33,7 @@ from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, publishe
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
-from busgate.schemas.payload import MAX_PAYLOAD
+from busgate.schemas.payload import largest_published
 from busgate.schemas.telemetry import TelemetryEnvelope
 
 log = logging.getLogger(__name__)
@@ -450,12 +450,11 @@ class Shared:
     def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
         """``callback(key, body)`` for each sample on ``key`` (zenoh's thread: it may not
         block); ``body`` is the sample's JSON, or ``None`` when it is not JSON or is larger
-        than any message a gateway publishes (``MAX_PAYLOAD``: a peer's 2 MB events, kept
-        by the dashboard, took it past a gigabyte)."""
+        than any message a gateway publishes on that key (``largest_published``)."""
 
         def sink(sample_key: str, payload: bytes) -> None:
             body = None
-            if len(payload) <= MAX_PAYLOAD:
+            if len(payload) <= largest_published(sample_key):
                 with contextlib.suppress(*UNPARSED):
                     body = json.loads(payload)
             callback(sample_key, body)

@@ -64,6 +64,7 @@ from busgate.client.messages import (
     then,
 )
 from busgate.errors import CommandError
+from busgate.schemas.payload import MAX_WHOLE_GATEWAY
 from busgate.schemas.zenoh_session import session_config, zenoh_reason
 
 log = logging.getLogger(__name__)
@@ -72,10 +73,8 @@ log = logging.getLogger(__name__)
 ZENOH_TIMEOUT = b"Timeout"
 #: The largest reply read, in bytes (``answer_of``): past it a reply is no gateway's, and
 #: parsing it on zenoh's thread (rule 1) took a peer's 80 MB info to 1.3 GB and past the
-#: query's timeout. A gateway's largest reply is the ``info`` of the largest config its
-#: validation takes: 28.0 MiB, measured for 30,293 ZLAC706 on 278 CAN buses (1 MiB of config:
-#: ``MAX_CONFIG_BYTES``), each with its fullest state and every fault, as the bridge encodes it.
-MAX_REPLY = 32 * 1024 * 1024
+#: query's timeout. A gateway's largest reply is its ``info`` (``MAX_WHOLE_GATEWAY``).
+MAX_REPLY = MAX_WHOLE_GATEWAY
 
 #: How long a client waits for an answer unless told otherwise (``connect``'s ``timeout``).
 DEFAULT_TIMEOUT_S = 5.0

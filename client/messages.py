@@ -8,7 +8,7 @@ publishes is named and typed there, and ``tests/test_schema_export.py`` holds th
 them), named here for the SDK: a device's joint in its state (``JointState``) and in ``info``
 (``JointInfo``), a gateway's joints message (``JointsMessage`` of ``JointReading``s) and a
 base's odometry (``Odometry``). A message that does not validate (a field this SDK does not
-know, a joint's NaN) or is larger than any a gateway publishes (``MAX_PAYLOAD``: never parsed)
+know, a joint's NaN) or is larger than any a gateway publishes (never parsed)
 is left out with a warning naming its gateway, as ``gateways()`` leaves out an ``info``
 (``published``); so is one naming another gateway, device or base than the key it came on
 (``published_naming``).
@@ -33,7 +33,7 @@ from busgate.schemas.api import JointReading as JointReading
 from busgate.schemas.api import JointsMessage as JointsMessage
 from busgate.schemas.bases import Odometry as Odometry
 from busgate.schemas.joints import JointState as JointState
-from busgate.schemas.payload import MAX_PAYLOAD
+from busgate.schemas.payload import MAX_PAYLOAD, MAX_WHOLE_GATEWAY
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=BaseModel)
@@ -70,28 +70,40 @@ _told: set[tuple[str, str]] = set()
 
 def joints_message(payload: bytes, gateway: str) -> JointsMessage | None:
     """A joints message of ``gateway`` as the model; ``None`` when it is not one, or names
-    another gateway (``published_naming``)."""
-    return published_naming(JointsMessage, payload, "joints messages", gateway, "gateway", gateway)
+    another gateway (``published_naming``). It is about every joint of the gateway: as large
+    as ``MAX_WHOLE_GATEWAY``."""
+    return published_naming(
+        JointsMessage, payload, "joints messages", gateway, "gateway", gateway, MAX_WHOLE_GATEWAY
+    )
 
 
 def published_naming(
-    model: type[M], payload: bytes, what: str, gateway: str, field: str, name: str
+    model: type[M],
+    payload: bytes,
+    what: str,
+    gateway: str,
+    field: str,
+    name: str,
+    most: int = MAX_PAYLOAD,
 ) -> M | None:
     """``published``, and ``None`` when the message's ``field`` names another than ``name``,
     the gateway, device or base whose key it came on (a peer's, which would pass its message
     off as theirs; a warning names the gateway, the first time)."""
-    message = published(model, payload, what, gateway)
+    message = published(model, payload, what, gateway, most)
     if message is None or getattr(message, field) == name:
         return message
     _left_out(what, gateway, f"it names {field} {getattr(message, field)!r}, not {name!r}")
     return None
 
 
-def published(model: type[M], payload: bytes, what: str, gateway: str) -> M | None:
+def published(
+    model: type[M], payload: bytes, what: str, gateway: str, most: int = MAX_PAYLOAD
+) -> M | None:
     """A message of ``gateway`` (``what`` it is, for people) as ``model``; ``None`` when it is
-    not one, or is larger than any message a gateway publishes, unparsed (a peer's 100 MB on a
-    state key; a warning names what and the gateway, the first time)."""
-    if len(payload) > MAX_PAYLOAD:
+    not one, or is larger than any such message a gateway publishes (``most``: a state's, an
+    odometry's, ``MAX_PAYLOAD``), unparsed (a peer's 100 MB on a state key; a warning names
+    what and the gateway, the first time)."""
+    if len(payload) > most:
         _left_out(what, gateway, f"{len(payload)} bytes, more than any gateway publishes")
         return None
     try:

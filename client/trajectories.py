@@ -2,7 +2,8 @@
 says of it afterwards (feedback, then one result), for both faces of the SDK.
 
 Rules: the feedback key is subscribed before ``play`` is sent, so a result that comes at once
-is not missed, as any sample's JSON (``base.Shared.subscribe``: none past ``MAX_PAYLOAD``);
+is not missed, as any sample's JSON (``base.Shared.subscribe``: none past what a gateway
+publishes there);
 the zenoh callback only stores a message and wakes the readers (their sinks may not block); a
 trajectory's devices are found by name like any device, and must all be on one gateway.
 """

@@ -20,8 +20,28 @@ from typing import Any
 from busgate.errors import RefusedError
 
 #: The largest payload a key takes, in bytes (the trajectory key takes more:
-#: ``schemas.trajectory.MAX_TRAJECTORY_PAYLOAD``).
+#: ``schemas.trajectory.MAX_TRAJECTORY_PAYLOAD``); and far more than any message a gateway
+#: publishes about one thing (a device's state or event, a bus's statistics, a base's odometry).
 MAX_PAYLOAD = 64 * 1024
+#: The largest message a gateway sends about all its devices at once: its ``info`` reply, which
+#: says the most of each device (its fullest state, its joint): 28.0 MiB, measured for the
+#: most devices its config's 1 MiB can name (30,293 ZLAC706 on 278 CAN buses, every fault set),
+#: as the gateway encodes it. The joints message and a trajectory's feedback (some 170 bytes a
+#: device) are bounded by it too: past 64 KiB from some 390 devices on.
+MAX_WHOLE_GATEWAY = 32 * 1024 * 1024
+#: The last chunk of the keys a gateway publishes its whole-gateway messages on.
+WHOLE_GATEWAY_LEAVES = frozenset({"joints", "feedback"})
+
+
+def largest_published(key: str) -> int:
+    """The largest message a gateway publishes on ``key``: what a subscriber reads at most
+    (past it, a peer's: a 2 MB event kept by the dashboard took it past a gigabyte).
+
+    >>> largest_published("busgate/gw1/dev/la1/state"), largest_published("busgate/gw1/joints")
+    (65536, 33554432)
+    """
+    whole = key.rpartition("/")[2] in WHOLE_GATEWAY_LEAVES
+    return MAX_WHOLE_GATEWAY if whole else MAX_PAYLOAD
 
 
 def ok_reply(**fields: Any) -> dict[str, Any]:

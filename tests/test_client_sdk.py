@@ -29,6 +29,7 @@ import zenoh
 import busgate.client as bc
 from busgate.client.base import Found
 from busgate.client.core import MAX_REPLY
+from busgate.client.messages import joints_message
 from busgate.client.trajectories import Watch
 from busgate.codecs import inspire_la as la
 from busgate.gateway import installed_version
@@ -43,7 +44,7 @@ from busgate.schemas.api import (
     InfoReply,
 )
 from busgate.schemas.inspire_la import Move
-from busgate.schemas.payload import MAX_PAYLOAD
+from busgate.schemas.payload import MAX_PAYLOAD, MAX_WHOLE_GATEWAY
 from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import GatewayProcess, serial_bus
 from tests.sdk_helpers import (
@@ -317,11 +318,11 @@ def odometry(base: str) -> dict:
             "angular": 0.0, "commanded": {"linear": 0.0, "angular": 0.0}}
 
 
-def padded(body: dict) -> bytes:
-    """``body`` as JSON, padded with spaces to one byte past ``MAX_PAYLOAD``: a message that
-    validates, but larger than any a gateway publishes."""
+def padded(body: dict, most: int = MAX_PAYLOAD) -> bytes:
+    """``body`` as JSON, padded with spaces to one byte past ``most``: a message that
+    validates, but larger than any a gateway publishes (of one device, by default)."""
     text = json.dumps(body).encode()
-    return text + b" " * (MAX_PAYLOAD + 1 - len(text))
+    return text + b" " * (most + 1 - len(text))
 
 
 _posed = itertools.count(1)
@@ -384,29 +385,37 @@ def test_a_state_past_max_payload_is_left_out_unparsed(posed_client, caplog) -> 
             "gateway publishes") in caplog.text
 
 
-def test_joints_odometry_and_trajectory_results_past_max_payload_are_left_out(
-        posed_client, caplog) -> None:
-    """As a state (above): a joints message, a base's odometry and a trajectory's result past
-    ``MAX_PAYLOAD`` are no message; the feeds take only those a gateway could send."""
+def test_an_odometry_past_max_payload_is_left_out(posed_client, caplog) -> None:
+    """As a state (above): a base's odometry past ``MAX_PAYLOAD`` is no message; the feeds
+    take only those a gateway could send."""
     gateway, client, putting = posed_client
     base = bc.Base(client._shared, Found(gateway, "base", "diff_drive", room="base"), {})
-    joints_key, odom_key = f"busgate/{gateway}/joints", f"busgate/{gateway}/base/base/odom"
-    joints = {"gateway": gateway, "ts": 1.0, "joints": []}
+    odom_key = f"busgate/{gateway}/base/base/odom"
     with caplog.at_level(logging.WARNING, logger="busgate.client"), putting(
-            (joints_key, padded({**joints, "ts": 6.0})), (joints_key, joints),
             (odom_key, padded({**odometry("base"), "x": 6.0})), (odom_key, odometry("base"))):
-        taken = [client.joints(gateway, max_age=0.0).ts for _ in range(3)]
-        fed = [m.ts for m in client.joints_feed(gateway, timeout=0.15)]
-        taken_odometry = [base.odometry(max_age=0.0).x for _ in range(3)]
-        fed_odometry = [o.x for o in base.odometry_feed(timeout=0.15)]
-    assert fed and fed_odometry and set(taken + fed) == set(taken_odometry + fed_odometry) == {1.0}
-    for what in ("joints messages", "odometry messages of base 'base'"):
-        assert f"{what} of gateway {gateway!r} left out: {MAX_PAYLOAD + 1} bytes" in caplog.text
+        taken = [base.odometry(max_age=0.0).x for _ in range(3)]
+        fed = [o.x for o in base.odometry_feed(timeout=0.15)]
+    assert fed and set(taken + fed) == {1.0}
+    what = "odometry messages of base 'base'"
+    assert f"{what} of gateway {gateway!r} left out: {MAX_PAYLOAD + 1} bytes" in caplog.text
+
+
+def test_a_whole_gateways_message_is_read_to_max_whole_gateway(posed_client, caplog) -> None:
+    """A joints message and a trajectory's feedback are about every device of a gateway: past
+    ``MAX_PAYLOAD`` from some 390 joints on, and still a gateway's (they were left out); past
+    ``MAX_WHOLE_GATEWAY``, a peer's."""
+    gateway, client, _ = posed_client
+    joints = {"gateway": gateway, "ts": 1.0, "joints": []}
+    assert joints_message(padded(joints), gateway) == bc.JointsMessage.model_validate(joints)
+    with caplog.at_level(logging.WARNING, logger="busgate.client"):
+        assert joints_message(padded(joints, MAX_WHOLE_GATEWAY), gateway) is None
+    assert f"left out: {MAX_WHOLE_GATEWAY + 1} bytes" in caplog.text
     watch = Watch(client._shared, gateway, "t1")
     try:
         feedback = f"busgate/{gateway}/trajectory/t1/feedback"
-        client.put(feedback, padded({"id": "t1", "result": "aborted", "errors": {}}))
-        client.put(feedback, {"id": "t1", "result": "succeeded", "errors": {}})
+        aborted = {"id": "t1", "result": "aborted", "errors": {}}
+        client.put(feedback, padded(aborted, MAX_WHOLE_GATEWAY))
+        client.put(feedback, padded({**aborted, "result": "succeeded"}))
         assert watch.finished.result(timeout=DEADLINE_S)["result"] == "succeeded"
     finally:
         watch.close()

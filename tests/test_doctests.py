@@ -56,6 +56,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.scheduler.trajectory_ticks",
     "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
+    "busgate.schemas.payload",
     "busgate.schemas.telemetry",
     "busgate.schemas.validation",
     "busgate.schemas.zenoh_session",

@@ -31,6 +31,7 @@ from busgate.gateway.cli import record as record_command
 from busgate.gateway.recording import mcap_log
 from busgate.gateway.recording.mcap_log import McapLog
 from busgate.schemas.exported import generated
+from busgate.schemas.payload import MAX_WHOLE_GATEWAY
 from tests.gateway_process import BUSGATE, TIMEOUT_S, run_busgate
 
 TEST_KEY = "busgate/rec-test/dev/x/state"
@@ -408,7 +409,8 @@ def test_replay_leaves_out_what_no_gateway_sends_and_cuts_long_gaps(tmp_path, mo
     assert "'replay/$*/dev/la1/state'" in refused1 and "'replay/a//state'" in refused2
     assert refused1.startswith("busgate replay: left out: not a key expression: ")
     assert re.match(r"busgate replay: 3 messages in \d+\.\d s; ", last), last
-    assert last.endswith(" s; 1 larger than 64 KiB, 3 on keys zenoh refuses left out; 2 gaps "
+    assert last.endswith(" s; 1 larger than any a gateway sends on its key, 3 on keys zenoh "
+                         "refuses left out; 2 gaps "
                          "over 60 s cut to 60 s"), last
 
 
@@ -471,8 +473,12 @@ def test_a_sample_larger_than_any_gateway_publishes_is_left_out_and_counted(
         recording = record_command.Recording(stream, "busgate")
         recording.take("busgate/evil/events", b"x" * (64 * 1024 + 1), 1)
         recording.take("busgate/demo/events", b"{}", 2)
+        recording.take("busgate/demo/joints", b"x" * (64 * 1024 + 1), 3)  # 400 joints
+        recording.take("busgate/evil/joints", b"x" * (MAX_WHOLE_GATEWAY + 1), 4)
         recording.close()
-    assert recording.too_large == 1
-    assert "busgate record: 1 messages left out: larger than 64 KiB" in capsys.readouterr().err
+    assert recording.too_large == 2
+    err = capsys.readouterr().err
+    assert "busgate record: 2 messages left out: larger than any a gateway sends on its key" in err
     with (tmp_path / "big.mcap").open("rb") as stream:
-        assert [m.topic for m in mcap_log.messages(stream)] == ["busgate/demo/events"]
+        topics = [m.topic for m in mcap_log.messages(stream)]
+    assert topics == ["busgate/demo/events", "busgate/demo/joints"]

@@ -7,8 +7,8 @@ Rules of this file:
 1. Recording never blocks zenoh's threads: a sample is put in a bounded queue and written by
    one writer thread. When the queue is full (a disk slower than the fleet) the sample is
    dropped and counted; the progress line and the last line say how many. A sample larger
-   than any a gateway publishes (``MAX_PAYLOAD``) is left out and counted: a queue of them
-   would be memory without end.
+   than any a gateway publishes on its key (``payload.largest_published``) is left out and
+   counted: a queue of them would be memory without end.
 2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
    queue is written out, and the file gets its summary and index (a complete MCAP file). A
    write the disk refuses (full) ends it the same way, the file ended as far as the disk
@@ -26,7 +26,8 @@ Rules of this file:
    leaves no file behind: the operator fixes the endpoint and runs the same command again
    (rule 3 would refuse an empty file left there).
 7. A file is a peer's word, replayed within bounds whatever it holds: a message larger than
-   the gateway takes (``MAX_PAYLOAD``) or on a key zenoh refuses is left out and counted, a
+   a gateway publishes on its key (``largest_published``) or on a key zenoh refuses is left
+   out and counted, a
    gap between messages longer than ``MAX_GAP_S`` of recorded time is cut to it, and a file
    is read holding at most ``mcap_log.MAX_CHUNK`` of it at once (a file claiming more is
    refused before any session). SIGINT or SIGTERM stops a replay between two messages.
@@ -51,7 +52,7 @@ from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log
-from busgate.schemas.payload import MAX_PAYLOAD
+from busgate.schemas.payload import largest_published
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
@@ -174,14 +175,14 @@ class Recording:
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self._stop = threading.Event()
         self.dropped = 0
-        self.too_large = 0  # messages over MAX_PAYLOAD, left out
+        self.too_large = 0  # messages larger than a gateway publishes on their key, left out
         self.elapsed_s = 0.0
         self.failure: Exception | None = None
         self._writer = threading.Thread(target=self._write, name="busgate-record", daemon=True)
         self._writer.start()
 
     def take(self, key: str, payload: bytes, ns: int) -> None:
-        if len(payload) > MAX_PAYLOAD:  # no gateway publishes one: a queue of them is memory
+        if len(payload) > largest_published(key):  # no gateway's: a queue of them is memory
             self.too_large += 1  # without end
             return
         try:
@@ -233,7 +234,7 @@ class Recording:
         self._progress(self.elapsed_s, end="\n")
         for count, why in (
             (self._log.past_channels, f"on keys past the {mcap_log.MAX_CHANNELS} a file names"),
-            (self.too_large, f"larger than {MAX_PAYLOAD // 1024} KiB, which no gateway sends"),
+            (self.too_large, "larger than any a gateway sends on its key"),
         ):
             if count:
                 print(f"busgate record: {count} messages left out: {why}", file=sys.stderr)
@@ -376,8 +377,8 @@ def _publish(
         if message.topic not in routes:
             routes[message.topic] = _route(message.topic, recorded_prefix, args.prefix)
         key, why = routes[message.topic]
-        if why is None and len(message.data) > MAX_PAYLOAD:
-            why = f"larger than {MAX_PAYLOAD // 1024} KiB"
+        if why is None and len(message.data) > largest_published(key):
+            why = "larger than any a gateway sends on its key"
         if why is not None:
             left_out[why] += 1
             continue
