@@ -8,12 +8,14 @@ Rules: the zenoh callback only stores the payload and its arrival time and settl
 of its readers (whose callbacks may not block); parsing into the kind's model happens in the
 reader's thread or task. A gateway going away clears what ``Latest`` holds: the last message of
 a gateway that is gone is not handed out as its latest. A reader that gave up (its
-future cancelled, as at a timeout) takes nothing from those that still wait.
+future cancelled, as at a timeout) takes nothing from those that still wait. A reader that
+falls behind loses the oldest of what waits for it, past ``MAX_WAITING``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 from collections import deque
@@ -24,6 +26,10 @@ from typing import Any, Generic, TypeVar
 from busgate.client.core import Core
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
+#: The most items an ``Inbox`` holds for its reader: ten seconds of a device's states at
+#: 100 Hz.
+MAX_WAITING = 1000
 
 
 class Stream:
@@ -45,20 +51,34 @@ class Stream:
 
 class Inbox(Generic[T]):
     """Items put on zenoh's threads, taken one at a time by one reader: ``next`` is a future
-    of the next one (done at once when one waits), ``put`` settles it."""
+    of the next one (done at once when one waits), ``put`` settles it. A reader more than
+    ``MAX_WAITING`` items behind loses the oldest (a warning says so, once): a feed's newest
+    messages are what a late reader wants, and what waits is memory."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._items: deque[T] = deque()
+        self._items: deque[T] = deque(maxlen=MAX_WAITING)
         self._taker: Future | None = None
+        #: The items dropped unread, the oldest first, a reader being ``MAX_WAITING`` behind.
+        self.dropped = 0
 
     def put(self, item: T) -> None:
         with self._lock:
             taker, self._taker = self._taker, None
             if taker is None or not taker.set_running_or_notify_cancel():
+                if len(self._items) == MAX_WAITING:
+                    self._fell_behind()
                 self._items.append(item)  # nobody waits, or the reader gave up: the next's
                 return
         taker.set_result(item)
+
+    def _fell_behind(self) -> None:
+        if not self.dropped:
+            log.warning(
+                "a feed's reader is %d messages behind: the oldest are dropped unread",
+                MAX_WAITING,
+            )
+        self.dropped += 1
 
     def next(self) -> Future:
         taken: Future = Future()

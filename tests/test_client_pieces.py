@@ -5,6 +5,7 @@ and keys, finding a device among gateways' info replies, payloads, and the claim
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 from concurrent.futures import Future
@@ -24,6 +25,7 @@ from busgate.client.base import (
 )
 from busgate.client.claims import Timers
 from busgate.client.errors import NoAnswerError, raise_for
+from busgate.client.feeds import MAX_WAITING, Inbox
 from busgate.client.keys import check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
@@ -215,3 +217,20 @@ def test_a_state_that_is_not_one_is_left_out_not_raised_as_pydantics(caplog) -> 
     for payload in (b'{"position": "far"}', b"[" * 5000, b"not json"):
         assert Shared.telemetry(None, found, payload) is None  # type: ignore[arg-type]
     assert caplog.text.count("states of gateway 'gwbad' left out") == 1
+
+
+def test_a_reader_far_behind_loses_the_oldest_and_is_told_once(caplog) -> None:
+    """A feed's items waited without end for a reader that had fallen behind (memory, as
+    long as the feed ran): past ``MAX_WAITING`` the oldest go, and a warning says so once."""
+    inbox: Inbox[int] = Inbox()
+    with caplog.at_level(logging.WARNING, logger="busgate.client.feeds"):
+        for n in range(MAX_WAITING + 5):
+            inbox.put(n)
+    assert inbox.dropped == 5
+    assert caplog.text.count("the oldest are dropped unread") == 1
+    taken = [inbox.next().result(timeout=0) for _ in range(MAX_WAITING)]
+    assert taken == list(range(5, MAX_WAITING + 5))
+    waiting = inbox.next()
+    assert not waiting.done()
+    inbox.put(-1)
+    assert waiting.result(timeout=0) == -1
