@@ -41,7 +41,7 @@ class SlcanBus(slcanBus):
     @property
     def has_line(self) -> bool:
         """Whether a whole line of the adapter is already read in, waiting to be taken."""
-        return any(self._buffer.find(end) >= 0 for end in _TERMINATORS)
+        return self._line_end() >= 0
 
     def _read(self, timeout: float | None) -> str | None:
         """The adapter's next line (its terminator included), waiting ``timeout`` seconds at
@@ -57,16 +57,20 @@ class SlcanBus(slcanBus):
                 self._buffer += port.read(waiting or 1)
         return line
 
+    def _line_end(self) -> int:
+        """Where the first whole line read in ends (its terminator), -1 when none is in."""
+        ends = [at for at in (self._buffer.find(end) for end in _TERMINATORS) if at >= 0]
+        return min(ends, default=-1)
+
     def _take_line(self) -> str | None:
         """The first whole line read in, taken out of the buffer (rule 3)."""
         buffer = self._buffer
-        ends = [at for at in (buffer.find(end) for end in _TERMINATORS) if at >= 0]
-        if not ends:
+        end = self._line_end() + 1
+        if not end:
             if len(buffer) > MAX_LINE:
                 del buffer[:]
                 raise ValueError(f"an SLCAN line of more than {MAX_LINE} characters")
             return None
-        end = min(ends) + 1
         line = bytes(buffer[:end])
         del buffer[:end]
         return line.decode("ascii")  # a UnicodeDecodeError is a ValueError: one line lost

@@ -61,6 +61,8 @@ MAX_SPEED = 1000.0
 #: The longest wait between two replayed messages, in recorded time (rule 7): a recording of
 #: the fleet holds none longer, a crafted one may name years.
 MAX_GAP_S = 60.0
+#: Why a recorded or replayed message is left out past ``largest_published`` of its key.
+TOO_LARGE = "larger than any a gateway sends on its key"
 #: Where a replay publishes unless told otherwise: a prefix no live gateway uses (rule 5).
 REPLAY_PREFIX = "replay"
 #: How long replay waits for the live gateways' liveliness tokens (a router answers at once).
@@ -234,7 +236,7 @@ class Recording:
         self._progress(self.elapsed_s, end="\n")
         for count, why in (
             (self._log.past_channels, f"on keys past the {mcap_log.MAX_CHANNELS} a file names"),
-            (self.too_large, "larger than any a gateway sends on its key"),
+            (self.too_large, TOO_LARGE),
         ):
             if count:
                 print(f"busgate record: {count} messages left out: {why}", file=sys.stderr)
@@ -378,7 +380,7 @@ def _publish(
             routes[message.topic] = _route(message.topic, recorded_prefix, args.prefix)
         key, why = routes[message.topic]
         if why is None and len(message.data) > largest_published(key):
-            why = "larger than any a gateway sends on its key"
+            why = TOO_LARGE
         if why is not None:
             left_out[why] += 1
             continue
