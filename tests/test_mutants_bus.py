@@ -480,6 +480,38 @@ def scripted(monkeypatch, channel, node):
         steps.clear()
 
 
+class DescriptorBus(ScriptedBus):
+    """The scripted bus with a descriptor that never says a frame is there (a pipe nobody
+    writes, ``PIPE``), whatever the virtual bus behind it holds."""
+
+    PIPE: ClassVar[list[int]] = []
+
+    def fileno(self) -> int:
+        return self.PIPE[0]
+
+
+@pytest.mark.parametrize(("interface", "taken"), [("socketcan", True), ("serial", False)])
+def test_a_look_asks_the_descriptor_first_only_where_a_look_could_wait(
+    monkeypatch, channel, node, interface, taken
+):
+    """SocketCAN's ``recv(timeout=0)`` never waits: a look reads, with no ``select`` a frame
+    before it. A serial adapter's can wait out its serial timeout: its descriptor is asked
+    first, and one that says nothing is there is believed."""
+    read_end, write_end = os.pipe()
+    monkeypatch.setattr(DescriptorBus, "PIPE", [read_end])
+    monkeypatch.setitem(can.interfaces.BACKENDS, interface, (__name__, "DescriptorBus"))
+    heard: list = []
+    owner = open_can(interface, channel, heard=heard)
+    try:
+        node.send(HEARTBEAT)  # queued at once behind the descriptor
+        finished(lambda: owner.idle_until(0.0))  # a deadline long past: one look, no wait
+        assert [event for event, _ in heard] == ([zcan.HeartbeatPosition(1, 7)] if taken else [])
+    finally:
+        owner.close()
+        os.close(read_end)
+        os.close(write_end)
+
+
 def full_queue(message: str = "No buffer space available", code: int | None = errno.ENOBUFS):
     return can.CanOperationError(message, error_code=code)
 

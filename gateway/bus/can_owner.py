@@ -13,10 +13,12 @@ Rules of this file:
    the bus is closed and ``BusIOError`` raised so the runner reconnects.
 3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
    ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle
-   (every ``idle_batch_s``). Taking what has already arrived never waits: where the adapter
-   has a file descriptor (socketcan, slcan) it is asked first (and an SLCAN adapter's lines
-   read in already), since python-can's slcan blocks a ``recv(timeout=0)`` for its serial
-   timeout (1 ms) when nothing is there, which would make a timed send late.
+   (every ``idle_batch_s``). Taking what has already arrived never waits: a look is a
+   ``recv(timeout=0)`` where that never waits (SocketCAN, our SLCAN reads, a bus with no
+   descriptor such as ``virtual``); any other adapter with a descriptor is asked through it
+   first, since a serial one (python-can's own slcan, ``serial``, ``seeedstudio`` …) blocks a
+   ``recv(timeout=0)`` for its serial timeout when nothing is there, which would make a timed
+   send late (asking SocketCAN's descriptor first would cost a ``select`` a frame).
 4. Only this module converts between ``CanFrame`` and ``can.Message``.
 5. An SLCAN adapter is python-can's ``slcan`` interface with its reads replaced
    (``slcan.SlcanBus``: a chunk a read, not a byte), made as ``can.Bus`` makes python-can's
@@ -50,6 +52,9 @@ TX_BACKPRESSURE_S = 0.05
 PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
 CAN_ERR_BUSOFF = 0x40
+#: The interfaces with a descriptor whose ``recv(timeout=0)`` never waits (rule 3; slcan is
+#: ours, ``SlcanBus``).
+LOOK_NEVER_WAITS = frozenset({"socketcan", "slcan"})
 
 
 class CanBusOwner(BusOwner):
@@ -78,6 +83,7 @@ class CanBusOwner(BusOwner):
         self.counters = counters
         self.on_unsolicited = on_unsolicited
         self._bus: can.BusABC | None = None
+        #: The descriptor asked before each look (rule 3); ``None``: a look never waits.
         self._fd: int | None = None
         self._decoder = codec.ReplyDecoder()
 
@@ -91,6 +97,8 @@ class CanBusOwner(BusOwner):
         except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
             # TypeError: an option the interface's class does not take
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
+        if self.interface in LOOK_NEVER_WAITS:
+            return
         try:
             self._fd = self._bus.fileno()
         except (NotImplementedError, can.CanError):
@@ -190,7 +198,7 @@ class CanBusOwner(BusOwner):
                 self.counters.discarded_bytes += 1
                 continue
             if message is None:
-                if waiting or self._fd is not None:
+                if waiting or self._fd is not None or self._has_line():
                     continue  # the wait ended (then one look more), or a line that was no frame
                 return None
             event = self._decode(message)
@@ -207,14 +215,19 @@ class CanBusOwner(BusOwner):
                 unsolicited(event, now())
 
     def _input_waiting(self) -> bool:
-        """Whether the adapter may have a frame for us (always, when it has no descriptor)."""
-        if self._fd is None or (isinstance(self._bus, SlcanBus) and self._bus.has_line):
+        """Whether the adapter may have a frame for us (always, when a look never waits)."""
+        if self._fd is None:
             return True
         try:
             readable, _, _ = select.select([self._fd], [], [], 0)
         except (OSError, ValueError):
             return True  # let recv report what is wrong with the adapter
         return bool(readable)
+
+    def _has_line(self) -> bool:
+        """Whether an SLCAN adapter's lines read in hold another (one that was no frame, an
+        acknowledgement, came first and made its look find nothing)."""
+        return isinstance(self._bus, SlcanBus) and self._bus.has_line
 
     def _decode(self, message: can.Message) -> object | None:
         """The event ``message`` makes (a CAN frame makes one), ``None`` when it makes none

@@ -11,8 +11,12 @@ the client here. Clocks are comparable across processes (perf_counter is CLOCK_M
    the same run; each get on a line idle for 3 ms (one sooner waits for the 1 ms gap).
 2. An e-stop put → the e-stop frame on every bus, while every bus streams and polls (3 LA
    actuators at 921600 baud, 2 DS servos at 1 Mbaud, each polled at 50 Hz): p99.
-3. 20 devices with 100 Hz telemetry (ZLAC706 heartbeats every 10 ms, four virtual CAN buses
-   of five, the daemon in this process): the daemon's CPU, from /proc, simulators excluded.
+3. 20 devices with 100 Hz telemetry (ZLAC706 heartbeats every 10 ms, four CAN buses of five,
+   the daemon in this process): the daemon's CPU. Twice: with the simulators in this process
+   on python-can's ``virtual`` bus (their threads' CPU subtracted, their turns on the
+   interpreter not), and with each bus's simulator in a process of its own behind
+   ``unix_can.py`` (SocketCAN's frames over a Unix socket, standing in for SocketCAN, which
+   this host lacks).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import time
 from pathlib import Path
 
 import can
+import unix_can
 import zenoh
 
 from busgate.codecs import inspire_la as la
@@ -225,25 +230,82 @@ def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
     channels = [f"bench-telemetry-{os.getpid()}-{i}" for i in range(4)]
     sims = [CanSimulator(zlac706_can, [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)],
                          bus=can.Bus(interface="virtual", channel=ch)).start() for ch in channels]
-    endpoint = free_endpoint()
-    config = parse_config({
-        "gateway": {"name": "bench"}, "zenoh": {"listen": [endpoint]},
-        "buses": [{"name": f"can{i}", "transport": "can", "interface": "virtual", "channel": ch,
+    try:
+        return _daemon_cpu(_heartbeat_config("virtual", channels), seconds,
+                           [sim._thread.native_id for sim in sims])
+    finally:
+        for sim in sims:
+            sim.stop()
+
+
+#: Five heartbeating ZLAC706 on a bus of ``unix_can`` (a simulator's process).
+APART_SIMULATOR = """
+import sys
+sys.path[:0] = [sys.argv[2]]
+from unix_can import UnixCanBus, listening
+from busgate.codecs import zlac706_can
+from busgate.gateway.sim.can_server import CanSimulator
+from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+with listening(sys.argv[1]) as server:
+    print("listening", flush=True)
+    bus = UnixCanBus(sys.argv[1], accepted=server.accept()[0])
+devices = [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)]
+simulator = CanSimulator(zlac706_can, devices, bus=bus).start()
+sys.stdin.read()  # until the benchmark closes it
+simulator.stop()
+"""
+
+
+def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
+    """``telemetry_cpu`` with each bus's five ZLAC706 in a process of their own, behind a
+    ``unix_can`` bus (SocketCAN's frames over a Unix socket: this host has no ``vcan``), so
+    that the daemon's CPU is this process's and nothing of the simulators is in it."""
+    unix_can.register()
+    channels = [f"{os.getpid()}-{i}" for i in range(4)]
+    here = str(Path(__file__).parent)
+    # The daemon leaves first, and each simulator's thread ends on its closed bus: quietly.
+    sims = [subprocess.Popen([sys.executable, "-c", APART_SIMULATOR, ch, here],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL, text=True)
+            for ch in channels]
+    try:
+        for sim in sims:
+            sim.stdout.readline()  # listening
+        return _daemon_cpu(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+    finally:
+        for sim in sims:
+            sim.stdin.close()
+            try:
+                sim.wait(10)
+            except subprocess.TimeoutExpired:
+                sim.kill()
+
+
+def _heartbeat_config(interface: str, channels: list[str]):
+    return parse_config({
+        "gateway": {"name": "bench"}, "zenoh": {"listen": [free_endpoint()]},
+        "buses": [{"name": f"can{i}", "transport": "can", "interface": interface, "channel": ch,
                    "devices": [{"name": f"w{i}-{n}", "kind": "zlac706", "id": n,
                                 "heartbeat_ms": 10} for n in range(1, 6)]}
                   for i, ch in enumerate(channels)],
     })
+
+
+def _daemon_cpu(config, seconds: float, sim_ids: list[int]) -> tuple[float, float]:
+    """The daemon on ``config`` in this process, a subscriber counting its states in a child
+    for ``seconds``: the daemon's CPU (this process's but for the threads ``sim_ids``) in % of
+    a core, and the states a second the subscriber took."""
     loop, stop, ready = asyncio.new_event_loop(), asyncio.Event(), threading.Event()
     daemon = threading.Thread(target=loop.run_until_complete,
                               args=(serve(config, ready=ready, stop=stop),))
     daemon.start()
     ready.wait(20)
     time.sleep(1.0)
+    endpoint = config.zenoh.listen[0]
     subscriber = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint, str(seconds)],
                                   stdout=subprocess.PIPE, text=True)
     try:
         subscriber.stdout.readline()
-        sim_ids = [sim._thread.native_id for sim in sims]
         cpu, sim_cpu = time.process_time(), sum(map(thread_cpu_s, sim_ids))
         started = time.monotonic()
         received = int(subscriber.stdout.readline())
@@ -254,8 +316,6 @@ def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
         subscriber.wait(10)
         loop.call_soon_threadsafe(stop.set)
         daemon.join(10)
-        for sim in sims:
-            sim.stop()
 
 
 def main() -> int:
@@ -270,9 +330,11 @@ def main() -> int:
         for name, values in estop_latency(scratch).items():
             print(f"e-stop put → e-stop frame on {name}: p50 {ms(values, .5)} ms, "
                   f"p99 {ms(values, .99)} ms ({len(values)} e-stops)")
-        cpu, rate = telemetry_cpu()
-        print(f"20 devices, heartbeats every 10 ms: {rate:.0f} state messages/s published, "
-              f"daemon CPU {cpu:.1f} % of one core")
+        for where, measure in (("in the daemon's process", telemetry_cpu),
+                               ("in processes of their own", telemetry_cpu_apart)):
+            cpu, rate = measure()
+            print(f"20 devices {where}, heartbeats every 10 ms: {rate:.0f} state messages/s "
+                  f"published, daemon CPU {cpu:.1f} % of one core")
     return 0
 
 
