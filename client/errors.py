@@ -9,7 +9,8 @@ Rules of this file:
    has its own subclass of ``GatewayError``, made from that list, so a code added to the API
    has its class without an edit here; ``error_for(code)`` finds it. Each carries ``.code``
    and ``.message`` (cut to the longest a gateway sends, ``MAX_MESSAGE``: a peer's may be
-   megabytes); ``ClaimedError`` also the ``.holder`` its message names.
+   megabytes); ``ClaimedError`` also the ``.holder`` its message names. A code this version
+   does not know is told as it came, cut to ``MAX_CODE``.
 3. What fails before a gateway could answer has its own classes: ``ConnectError`` (no zenoh
    session), ``NoAnswerError`` (nobody answered in time), ``AmbiguousError`` (a bare name that
    several gateways have). ``ClaimLostError`` is both: the SDK raises it when it knows a claim
@@ -104,6 +105,10 @@ def error_for(code: str) -> type[GatewayError]:
     return ERROR_CLASSES.get(code, GatewayError)
 
 
+#: The longest unknown code told as it came (every code of the API is under 20 characters).
+MAX_CODE = 64
+
+
 def raise_for(error: Any, *, gateway: str | None = None) -> None:
     """Raise the error an ``{"ok": false}`` reply's ``error`` object describes."""
     if not isinstance(error, dict):
@@ -112,7 +117,7 @@ def raise_for(error: Any, *, gateway: str | None = None) -> None:
     cls = error_for(code)
     exc = cls(cut(message, MAX_MESSAGE - 1), gateway=gateway)
     if cls is GatewayError:
-        exc.code = code  # an unknown code is still told as it came
+        exc.code = cut(code, MAX_CODE - 1)  # an unknown code is still told as it came
     raise exc
 
 

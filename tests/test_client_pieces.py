@@ -24,7 +24,7 @@ from busgate.client.base import (
     reenable_command,
 )
 from busgate.client.claims import Timers
-from busgate.client.errors import NoAnswerError, raise_for
+from busgate.client.errors import MAX_CODE, NoAnswerError, raise_for
 from busgate.client.feeds import MAX_WAITING, Inbox
 from busgate.client.keys import check_key, check_name, split_name
 from busgate.client.messages import Answer
@@ -58,6 +58,9 @@ def test_a_code_this_version_does_not_know_is_still_told_as_it_came() -> None:
     assert type(raised.value) is bc.GatewayError and raised.value.code == "from_the_future"
     with pytest.raises(bc.GatewayError, match="no error"):
         raise_for("not an object")
+    with pytest.raises(bc.GatewayError) as raised:  # a peer's megabyte of code: cut
+        raise_for({"code": "x" * 2**20, "message": "new"})
+    assert raised.value.code == "x" * (MAX_CODE - 1) + "…"
 
 
 def test_an_error_message_is_cut_to_the_longest_a_gateway_sends() -> None:
