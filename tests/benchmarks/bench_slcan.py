@@ -98,7 +98,14 @@ def gateway_on_four(seconds: float, scratch: Path) -> tuple[float, float]:
             process.wait(10)
 
 
+def stopped(signum: int, frame: object) -> None:
+    """SIGTERM (``timeout``, a test's kill) ends the run as Ctrl-C does: each ``finally``
+    stops the simulators and the daemon it started, which would otherwise run on."""
+    raise SystemExit(f"stopped by signal {signum}")
+
+
 def main() -> int:
+    signal.signal(signal.SIGTERM, stopped)
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 5.0
     rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
     sim, port = simulator()
