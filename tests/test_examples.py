@@ -3,7 +3,7 @@
 manual's other blocks: tests/test_docs.py).
 
 One demo serves the module (starting one costs seconds); the programs run one after another,
-each leaving the devices movable (the e-stop example enables them again).
+each leaving the devices movable (the e-stop example resets them).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -74,9 +75,16 @@ def test_group_move(demo_endpoint) -> None:
 
 
 def test_estop_and_recovery(demo_endpoint) -> None:
+    """The example leaves no device of the demo e-stopped: a newcomer's demo had seven of
+    nine stopped after it, with nothing telling how to undo it."""
     out = run(EXAMPLES / "estop_and_recovery.py", demo_endpoint)
     assert "refused: la1 is e-stopped" in out
-    assert "la1 moves again: True" in out
+    assert "la1 moves again: True" in out and "demo reset" in out
+    with bc.connect(demo_endpoint, client_id="examples-check") as c:
+        deadline = time.monotonic() + 5.0
+        while (stopped := [d.name for d in c.devices() if d.state and d.state.estopped]):
+            assert time.monotonic() < deadline, f"still e-stopped: {stopped}"
+            time.sleep(0.1)
 
 
 def test_asyncio_follow(demo_endpoint) -> None:

@@ -1,8 +1,9 @@
-"""E-stop a gateway, see motion refused, then recover each device.
+"""E-stop a gateway, see motion refused, then recover the devices.
 
 A gateway e-stop stops every device at once and latches: motion is refused (``estopped``)
-until each device gets its re-enable command (``Device.enable``). ``c.estop()`` with no
-gateway stops the whole fleet.
+until a device gets its re-enable command (``Device.enable``), or a reset brings it back to
+the power state it had, holding still (``Device.reset_estop``; ``c.reset_estop(gateway)``
+for every device of the gateway). ``c.estop()`` with no gateway stops the whole fleet.
 
     python docs/examples/estop_and_recovery.py [ENDPOINT]
 """
@@ -26,3 +27,5 @@ with bc.connect(endpoint, client_id="example-estop") as c:
     for device in (la1, servo):
         device.enable()  # the kind's own re-enable command
     print("la1 moves again:", la1.move(800)["ok"])
+    c.reset_estop("demo")  # the demo's other devices too, each holding still
+    print("demo reset")
