@@ -16,6 +16,7 @@ import zenoh
 
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.errors import ConfigError
+from busgate.gateway.cli import demo as demo_cli
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
 from busgate.schemas.zenoh_session import session_config
@@ -121,3 +122,18 @@ def test_a_dashboard_port_in_use_stops_the_demo_saying_what_else_to_do(free_port
     assert done.stderr.splitlines()[-1] == (
         f"busgate demo: error: the dashboard cannot listen on 127.0.0.1:{port}: Address already "
         "in use (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard serves none)")
+
+
+def test_the_hints_name_the_busgate_started_by_its_absolute_path(monkeypatch, tmp_path) -> None:
+    """``.venv/bin/busgate demo`` (the README's) prints hints that work in a second terminal,
+    which opens in another directory; a ``busgate`` that PATH finds is named plainly."""
+    program = tmp_path / ".venv" / "bin" / "busgate"
+    program.parent.mkdir(parents=True)
+    program.write_text("#!/bin/sh\n")
+    program.chmod(0o755)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [".venv/bin/busgate", "demo"])
+    monkeypatch.setenv("PATH", str(tmp_path / "elsewhere"))
+    assert demo_cli._program() == str(program)
+    monkeypatch.setenv("PATH", str(program.parent))
+    assert demo_cli._program() == "busgate"

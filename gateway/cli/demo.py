@@ -372,14 +372,15 @@ def _endpoint(config: Config) -> str:
 
 
 def _program() -> str:
-    """``busgate`` as the user started it (``.venv/bin/busgate`` in the README), so the hints
-    work from another terminal in the same directory; plain ``busgate`` when that is what
-    PATH finds, or when started some other way (``python -m``)."""
+    """``busgate`` as the user started it, by its absolute path (``.venv/bin/busgate`` in the
+    README: a second terminal opens in another directory), so the hints work wherever they
+    are pasted; plain ``busgate`` when that is what PATH finds, or when started some other
+    way (``python -m``)."""
     started = Path(sys.argv[0])
     on_path = shutil.which("busgate")
     if started.name != "busgate" or (on_path and Path(on_path).resolve() == started.resolve()):
         return "busgate"
-    return shlex.quote(sys.argv[0])
+    return shlex.quote(str(started.absolute()))
 
 
 async def _serve_announcing(
