@@ -280,6 +280,21 @@ def test_a_lapsed_claim_is_logged_with_its_device_and_client(caplog):
     assert [r.getMessage() for r in caplog.records] == ["device la1: claim of alice lapsed"]
 
 
+def test_a_claim_renewed_by_its_holder_is_not_logged_as_new(caplog):
+    """The SDK renews a claim every half of its TTL: a journal line a second for each device
+    a client holds, where a new holder (a lapsed claim taken again too) is what is news."""
+    claims = ClaimTable()
+    with caplog.at_level("INFO", logger="busgate.gateway.scheduler.authority"):
+        claims.claim("la1", "alice", 2.0, now=100.0)
+        claims.claim("la1", "alice", 2.0, now=101.0)  # renewed
+        claims.claim("la1", "alice", 2.0, now=104.0)  # lapsed at 103: claimed again
+    assert [r.getMessage() for r in caplog.records] == [
+        "device la1 claimed by alice for 2.0 s",
+        "device la1: claim of alice lapsed",
+        "device la1 claimed by alice for 2.0 s",
+    ]
+
+
 # -- replies made from the bus's outcome ------------------------------------------------------
 
 

@@ -44,7 +44,8 @@ class Holder:
 
 class ClaimTable:
     """Who holds which device, until when. Thread-safe: zenoh threads and the bus thread use
-    it. Every change is logged, for the journal."""
+    it. Every change is logged, for the journal; a holder's renewal (the SDK renews a claim
+    every half of its TTL) only at debug level."""
 
     def __init__(self) -> None:
         self._holders: dict[str, Holder] = {}
@@ -53,8 +54,13 @@ class ClaimTable:
     def claim(self, device: str, client: str, ttl_s: float, now: float) -> None:
         with self._lock:
             self._check(device, client, now)
+            held = self._holders.get(device)
+            renewed = held is not None and held.client == client and held.until > now
             self._holders[device] = Holder(client, now + ttl_s)
-        log.info("device %s claimed by %s for %.1f s", device, client, ttl_s)
+        if renewed:
+            log.debug("device %s: the claim of %s renewed for %.1f s", device, client, ttl_s)
+        else:
+            log.info("device %s claimed by %s for %.1f s", device, client, ttl_s)
 
     def hold(self, device: str, client: str, ttl_s: float, now: float) -> bool:
         """``claim`` for a client that renews with every command it sends (the ROS face): only
