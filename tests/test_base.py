@@ -138,7 +138,7 @@ def test_a_twist_to_a_base_whose_wheels_are_off_is_refused_naming_enable(world) 
     assert world.wheel("wl", {"op": "disable"})["ok"]
     reply = world.base({"op": "twist", "linear": 0.2})
     assert reply["error"]["code"] == "bad_command"
-    assert 'send {"op": "enable"} to the base first' in reply["error"]["message"]
+    assert 'send {"op":"enable"} to the base first' in reply["error"]["message"]
     assert world.base({"op": "enable"})["ok"]
     state = {name: world.api.devices[name][1].telemetry(0.0) for name in ("wl", "wr")}
     assert all(s["enabled"] and s["mode"] == "velocity" for s in state.values())

@@ -151,7 +151,9 @@ def test_after_a_gateway_estop_every_kind_waits_for_its_reenable_op(gateway):
     ]:
         refused = ask(api, device, motion)
         assert code(refused) == "estopped", device
-        assert json.dumps(reenable) in refused["error"]["message"]
+        message = refused["error"]["message"]
+        assert 'send {"op":"reset_estop"} to reset it' in message, message
+        assert json.dumps(reenable, separators=(",", ":")) in message
         accepted(api, device, reenable)
         accepted(api, device, motion)
     accepted(api, "wheel", {"op": "velocity", "rpm": 0})  # a stop is never refused

@@ -210,7 +210,7 @@ class Bases:
                 raise RefusedError(
                     "bad_command",
                     f"base {base.config.name}: wheel {wheel.name} is not on in velocity mode: "
-                    'send {"op": "enable"} to the base first',
+                    'send {"op":"enable"} to the base first',
                 )
         moment = now()
         target = base.drive.command(twist, moment, hold_s)

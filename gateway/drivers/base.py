@@ -157,7 +157,7 @@ class Driver(abc.ABC):
     def reenable_op(self) -> str:
         """The command that lets the device move again after an e-stop, as the refusals name
         it: the kind's ``REENABLE_COMMAND`` (its schema module)."""
-        return json.dumps(self.schema.REENABLE_COMMAND)
+        return json.dumps(self.schema.REENABLE_COMMAND, separators=(",", ":"))
 
     @property
     def commands(self) -> TypeAdapter[Any]:
