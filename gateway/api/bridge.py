@@ -34,6 +34,7 @@ import zenoh
 
 from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.refusals import RefusalReports
 from busgate.gateway.base.bases import Bases
@@ -52,7 +53,10 @@ from busgate.schemas.zenoh_session import session_config
 log = logging.getLogger(__name__)
 
 REPLY_TIMEOUT_S = 10.0
+#: The publishing round's period while there is work (``_round_due``).
 PUBLISH_EVERY_S = 0.005
+#: The longest wait of a loop with no work: its doorbell cuts it short (``doorbell``).
+IDLE_WAIT_S = 0.1
 STATS_EVERY_S = 1.0
 
 
@@ -66,6 +70,7 @@ class ZenohBridge:
         runners: dict[str, BusRunner],
         events: deque[DeviceEvent],
         states: deque[tuple[str, dict[str, Any]]],
+        doorbell: Doorbell | None = None,
     ) -> None:
         self.config = config
         self.api = api
@@ -73,6 +78,9 @@ class ZenohBridge:
         self.base = f"{config.gateway.prefix}/{config.gateway.name}"
         self.events = events  # filled by the bus threads and the API, drained here
         self.states = states  # every new device state, filled by the bus threads, drained here
+        #: Rung by what fills ``events`` and ``states`` (``doorbell.Mailbox``): a loop with no
+        #: work waits for it.
+        self.doorbell = doorbell or Doorbell()
         #: Called with each command's time from query to reply (the metrics' histogram).
         self.on_latency: Callable[[float], None] = lambda seconds: None
         #: Called with every message published: key, body, and the bytes sent (the flight
@@ -186,10 +194,11 @@ class ZenohBridge:
             session.close()
 
     async def publish_forever(self, stop: asyncio.Event) -> None:
-        """Telemetry and events as they come (in rounds of ``PUBLISH_EVERY_S``), bus
-        statistics once a second."""
+        """Telemetry and events as they come (in rounds of ``PUBLISH_EVERY_S`` while there is
+        work, else as soon as a state or an event comes), bus statistics once a second."""
         next_stats = 0.0
         while not stop.is_set():
+            published = bool(self.states or self.events)
             self.publish_states()
             self.trajectories.tick()
             self.bases.tick()
@@ -198,7 +207,21 @@ class ZenohBridge:
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
                 self.publish_stats()
-            await asyncio.sleep(PUBLISH_EVERY_S)  # cheaper than a wait_for task every round
+            if published or self._round_due():
+                await asyncio.sleep(PUBLISH_EVERY_S)  # cheaper than a wait_for task every round
+            else:
+                joints_in = self.joints.due_in(time.monotonic())
+                idle_s = IDLE_WAIT_S if joints_in is None else min(IDLE_WAIT_S, joints_in)
+                await self.doorbell.wait(idle_s, self._has_news)
+
+    def _round_due(self) -> bool:
+        """Whether the next round has work whatever comes: a trajectory's feedback, a base's
+        drive, a refusal held back for its device's interval. (A joints message held back
+        for its own is due at a moment the wait is given.)"""
+        return self.trajectories.running or self.bases.driving or self.refusals.withheld
+
+    def _has_news(self) -> bool:
+        return bool(self.states or self.events)
 
     # -- zenoh callbacks (zenoh's threads: hand over only) ----------------------------------
 

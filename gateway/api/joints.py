@@ -52,6 +52,15 @@ class JointsFeed:
             self._read_again = True
         self._latest[device] = state
 
+    def due_in(self, moment: float) -> float | None:
+        """How long from ``moment`` until the next message may go out (0: now); ``None``
+        while no joint was read again since the last."""
+        if not self._read_again:
+            return None
+        if self._last_sent is None:
+            return 0.0
+        return max(0.0, self._last_sent + self.min_interval_s - moment)
+
     def due(self, moment: float, wall_time: float) -> dict[str, Any] | None:
         """The message to publish now (``moment`` on a monotonic clock), or ``None``."""
         if not self._read_again:

@@ -78,6 +78,11 @@ class RefusalReports:
             slot.withheld += 1
             slot.latest = (shown(device), error)
 
+    @property
+    def withheld(self) -> bool:
+        """Whether a refusal waits for its device's interval to pass (for a later ``flush``)."""
+        return bool(self._pending)
+
     def flush(self, *, every: bool = False) -> None:
         """Tell each withheld refusal whose device's interval has passed (rule 1); with
         ``every``, each one withheld (the gateway stops: nothing waits for a next round)."""

@@ -291,6 +291,11 @@ class Bases:
 
     # -- the loop's thread ----------------------------------------------------------------------
 
+    @property
+    def driving(self) -> bool:
+        """Whether a base plays its wheels' speeds (``tick`` has work every round)."""
+        return any(base.playing_since is not None for base in self.bases.values())
+
     def tick(self) -> None:
         """Plays that ended, a wheel that left, a twist that timed out (rules 3 and 4)."""
         moment = now()

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.doorbell import Doorbell, Mailbox
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
@@ -94,8 +95,9 @@ async def serve(
     loop = asyncio.get_running_loop()
     stop = stop or stop_on_signals(loop)
     notifier = Notifier()
-    events: deque[DeviceEvent] = deque(maxlen=EVENT_BACKLOG)
-    states: deque[tuple[str, dict]] = deque(maxlen=STATE_BACKLOG)
+    doorbell = Doorbell()  # what fills these wakes the publishing loop
+    events: deque[DeviceEvent] = Mailbox(doorbell.ring, maxlen=EVENT_BACKLOG)
+    states: deque[tuple[str, dict]] = Mailbox(doorbell.ring, maxlen=STATE_BACKLOG)
     runners = {
         bus.name: build_bus(
             bus,
@@ -111,7 +113,7 @@ async def serve(
             runners[name] = remote  # type: ignore[assignment]
             del local[name]
     api = GatewayApi(config.gateway.name, runners, on_event=events.append)
-    bridge = zenoh_side.ZenohBridge(config, api, runners, events, states)
+    bridge = zenoh_side.ZenohBridge(config, api, runners, events, states, doorbell)
     ros2 = _ros2_face(config, api, bridge)
     recorder = _flight_recorder(config, runners, bridge)  # a folder it cannot write: refused
     _incident_on_sigusr1(loop, recorder)

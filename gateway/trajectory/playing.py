@@ -118,6 +118,11 @@ class Trajectories:
 
     # -- watching (the loop's thread: rules 3 and 4) ---------------------------------------------
 
+    @property
+    def running(self) -> bool:
+        """Whether a trajectory runs (``tick`` has work every round)."""
+        return bool(self._running)
+
     def tick(self) -> None:
         """Feedback, aborts and results of every running trajectory, at this moment."""
         moment = time.time()
