@@ -109,6 +109,13 @@ class Latest:
             return None
         return latest[1]
 
+    def newer_than(self, payload: bytes) -> bytes | None:
+        """The latest payload if one came after ``payload`` (a payload taken from here: it
+        is the one kept until another replaces it), else ``None``. A reader that found one
+        payload no message reads it, so none that came while it looked waits for the next."""
+        latest = self._latest
+        return None if latest is None or latest[1] is payload else latest[1]
+
     def next(self) -> Future:
         """A future of the next payload; cancelling it (a wait that timed out) withdraws it."""
         came: Future = Future()

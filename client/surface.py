@@ -114,7 +114,8 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         message = None if payload is None else joints_message(payload, gateway)
         deadline = time.monotonic() + timeout
         while message is None and (left := deadline - time.monotonic()) > 0:
-            payload = yield Next(latest.next(), left)
+            newer = None if payload is None else latest.newer_than(payload)
+            payload = newer if newer is not None else (yield Next(latest.next(), left))
             message = None if payload is None else joints_message(payload, gateway)
         if message is None:
             raise NoAnswerError(f"no joints message of {gateway} within {timeout:g} s")

@@ -25,7 +25,7 @@ from busgate.client.base import (
 )
 from busgate.client.claims import Timers
 from busgate.client.errors import MAX_CODE, NoAnswerError, raise_for
-from busgate.client.feeds import MAX_WAITING, Inbox
+from busgate.client.feeds import MAX_WAITING, Inbox, Latest
 from busgate.client.keys import check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
@@ -237,3 +237,29 @@ def test_a_reader_far_behind_loses_the_oldest_and_is_told_once(caplog) -> None:
     assert not waiting.done()
     inbox.put(-1)
     assert waiting.result(timeout=0) == -1
+
+
+class _Core:
+    """What ``Latest`` asks of a client's core: its subscription, kept here to be fed."""
+
+    def subscribe(self, key, on_message):
+        self.feed = on_message
+
+    def on_gateway_gone(self, callback):
+        self.gone = callback
+
+
+def test_a_latest_payload_newer_than_one_taken_is_found_without_waiting() -> None:
+    """``Client.joints`` found a junk message and then waited for the next one: a good one
+    that came while it looked was passed over, and a peer's junk sent just before each good
+    message hid every one of them (a test saw no joints message within 2 s on a busy host)."""
+    core = _Core()
+    latest = Latest(core, "busgate/gw/joints", "gw")
+    waited = latest.next()
+    core.feed("busgate/gw/joints", b"junk")
+    junk = waited.result(0)
+    assert latest.newer_than(junk) is None  # nothing came after it
+    core.feed("busgate/gw/joints", b'{"good": 1}')
+    assert latest.newer_than(junk) == b'{"good": 1}'
+    core.gone("gw")
+    assert latest.newer_than(junk) is None  # the gateway went: nothing is its latest

@@ -130,7 +130,7 @@ def test_motion_to_an_estopped_actuator_is_refused_on_every_path(gateway):
     }
     for path, reply in paths.items():
         assert code(reply) == "estopped", path
-        assert '{"op": "enable"}' in reply["error"]["message"], path
+        assert '{"op":"enable"}' in reply["error"]["message"], path
     settled(api, "la2")
     moves = frames(la_sim, "MoveCommand", "WriteCommand", "GroupMoveCommand", "FollowCommand")
     assert moves == []
