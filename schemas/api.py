@@ -360,6 +360,8 @@ class BusStatistics(Published):
     """``busgate.gateway.bus.stats.BusStats`` with ``ts`` and ``bus``, once a second. Counters
     are totals since the bus started; times are seconds."""
 
+    model_config = FINITE
+
     ts: float = Field(description="Wall-clock time of the snapshot, Unix seconds.")
     bus: Name
     up: bool = Field(

@@ -13,7 +13,7 @@ from typing import Annotated, Any, Literal, TypeAlias
 
 from pydantic import Field
 
-from busgate.schemas.base import ReadByKey
+from busgate.schemas.base import FINITE, ReadByKey
 from busgate.schemas.config import Name
 from busgate.schemas.families import kinds
 from busgate.schemas.joints import JointState
@@ -41,6 +41,8 @@ def fault_literal(flags: Iterable[enum.Flag]) -> Any:
 class TelemetryEnvelope(ReadByKey):
     """The fields every device's state carries, whatever its kind. ``None`` in a value: not
     known yet (never read, or not reported by this device's protocol)."""
+
+    model_config = FINITE
 
     ts: float = Field(
         description="When the values were read: the wall-clock time (Unix seconds) of the "

@@ -464,6 +464,25 @@ def test_bus_stats_match_the_bus_stats_schema_and_name_every_counter():
         {f.name for f in fields(BusStats)} | {"ts", "bus", "up"})
 
 
+@pytest.mark.parametrize("number", [math.nan, math.inf, -math.inf], ids=["nan", "inf", "-inf"])
+def test_a_state_or_a_bus_statistic_that_is_not_finite_is_refused(number: float) -> None:
+    """A gateway never publishes NaN or an infinity (its encoder would write one null): a
+    peer's, in a state's values or a bus's statistics, is refused by the models a client reads
+    them with, as in a joint."""
+    counters = BusCounters(started=0.0)
+    counters.gap(0.0011)
+    stats = {"ts": time.time(), "bus": "uart0", "up": True, **asdict(counters.snapshot(2.0))}
+    published = [(api.TELEMETRY_MODELS[state["kind"]], state)
+                 for state in (inspire_la_state(), rs232_state(), can_state(heartbeats=True))]
+    for model, valid in [*published, (api.BusStatistics, stats)]:
+        model.model_validate(valid)
+        floats = [name for name, value in valid.items() if type(value) is float]
+        assert floats, model
+        for name in floats:
+            with pytest.raises(ValidationError, match="finite number"):
+                model.model_validate_json(json.dumps({**valid, name: number}))
+
+
 @pytest.mark.parametrize("path", sorted((ROOT / "deploy" / "config").glob("*.toml")),
                          ids=lambda p: p.name)
 def test_the_example_configs_match_the_config_schema(path):
