@@ -198,7 +198,7 @@ class ZenohBridge:
         work, else as soon as a state or an event comes), bus statistics once a second."""
         next_stats = 0.0
         while not stop.is_set():
-            published = bool(self.states or self.events)
+            published = self._has_news()
             self.publish_states()
             self.trajectories.tick()
             self.bases.tick()

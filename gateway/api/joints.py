@@ -59,13 +59,11 @@ class JointsFeed:
             return None
         if self._last_sent is None:
             return 0.0
-        return max(0.0, self._last_sent + self.min_interval_s - moment)
+        return max(0.0, self.min_interval_s - (moment - self._last_sent))
 
     def due(self, moment: float, wall_time: float) -> dict[str, Any] | None:
         """The message to publish now (``moment`` on a monotonic clock), or ``None``."""
-        if not self._read_again:
-            return None
-        if self._last_sent is not None and moment - self._last_sent < self.min_interval_s:
+        if self.due_in(moment) != 0.0:  # nothing read again, or too soon after the last
             return None
         self._read_again = False
         self._last_sent = moment
