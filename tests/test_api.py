@@ -20,6 +20,7 @@ from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers import inspire_la as inspire_la_driver
 from busgate.gateway.drivers import inspire_la_frames as la_frames
+from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.tickers import FRESH_PERIODS, MIN_FRESH_S
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -221,6 +222,19 @@ def test_estop_reaches_every_bus_ahead_of_everything(gateway):
     la_frames = {r.wire for r in simulator.recorder.received()}
     assert la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex() in la_frames
     assert la.encode(la.ControlCommand(2, la.ControlCode.ESTOP)).hex() in la_frames
+    assert "005#00fa00100000000f" in {r.wire for r in can_sim.recorder.received()}
+
+
+def test_an_estop_returns_once_its_first_frame_went_on_every_bus(gateway, monkeypatch):
+    """Its caller (a zenoh thread, then its log line) leaves the interpreter to the bus
+    threads until each has had its e-stop's first exchange (runner rule 1); the bound on that
+    wait, some milliseconds, is made long here so that a loaded host cannot reach it."""
+    api, simulator, can_sim, *_ = gateway
+    monkeypatch.setattr(runner_module, "ESTOP_SENT_S", 30.0)
+    api.estop()
+    la_frames = {r.wire for r in simulator.recorder.received()}
+    la_stops = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex() for i in (1, 2)}
+    assert la_frames & la_stops
     assert "005#00fa00100000000f" in {r.wire for r in can_sim.recorder.received()}
 
 

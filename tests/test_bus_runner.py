@@ -393,6 +393,24 @@ def test_estop_goes_ahead_and_stops_every_device(wait_for, simulator) -> None:
         runner.stop()
 
 
+def test_letting_estops_go_waits_for_each_bus_within_one_bound_in_all(monkeypatch) -> None:
+    """Rule 1: whoever handed e-stops over waits for each bus's first exchange, but never
+    longer than ``ESTOP_SENT_S`` in all, however many buses are slow to say so."""
+    clock = [100.0]
+    monkeypatch.setattr(runner_module, "now", lambda: clock[0])
+    given: list[float] = []
+
+    class Slow:
+        def estop_sent(self, timeout: float) -> bool:
+            given.append(timeout)
+            clock[0] += 0.003  # this bus took 3 ms
+            return False
+
+    runner_module.let_estops_go([Slow(), Slow(), Slow()])
+    bound = runner_module.ESTOP_SENT_S
+    assert given == pytest.approx([bound, bound - 0.003, 0.0])
+
+
 def test_a_target_or_play_judged_before_an_estop_and_landing_after_it_moves_nothing(
     wait_for, simulator
 ) -> None:

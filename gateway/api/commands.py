@@ -31,7 +31,10 @@ every rule of the API is tested without a network. Rules of this file:
    taken as sent before it. A target and an end taken at once on two of zenoh's threads are
    handed to the bus in the order they passed the fence (one lock over the check and the
    hand-over), so a target checked before the end can never start its stream after it.
-4. Nothing here blocks: commands go to the bus runners and come back as futures.
+4. Nothing here blocks: commands go to the bus runners and come back as futures. One wait,
+   bounded: an e-stop, handed to every bus, waits for its first exchange on each bus of this
+   process (``runner.let_estops_go``) before its log line, so that the bus threads have the
+   interpreter first, not the caller's bookkeeping.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.outcomes import settled
-from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.schemas.api import (
     DEVICE_COMMAND_ADAPTERS,
     MAX_VERSION,
@@ -262,6 +265,7 @@ class GatewayApi:
         """Stop every device of the gateway, ahead of everything (its log line too); never
         refused."""
         stopped = [runner.estop() for runner in self.runners.values()]
+        let_estops_go(self.runners.values())  # rule 4: they have the interpreter first
         log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
         return stopped
 

