@@ -132,7 +132,8 @@ class BusBase(Section):
     #: After a timeout, how long requests that expect a reply wait, so that a late reply is
     #: flushed as stale rather than taken for the next request's answer.
     late_reply_holdoff_ms: Annotated[float, Field(ge=0, le=1000)] = 10.0
-    #: SCHED_FIFO priority for the bus thread, when the process is allowed to use it.
+    #: SCHED_FIFO priority for the bus thread, when the process is allowed to use it; every
+    #: other thread of the gateway's processes then runs at the highest priority a bus asks.
     realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
 
     @property

@@ -17,6 +17,7 @@ import re
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -181,6 +182,10 @@ def test_claims_give_one_answer_per_device_across_workers(served: Served, client
             assert [m.position_raw for m in moves] == [600]  # the holder's, never the other's
         for name in mine:  # released: the other client may move them now
             assert intruder.device(name).move(650)["ok"]
+    time.sleep(0.3)  # a worker's line would come with the daemon's
+    for name in mine:  # told once, by the daemon: a worker's table is a mirror
+        said = [line for line in served.gateway.logged if f"device {name} claimed by" in line]
+        assert len(said) == 1, said
 
 
 def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> None:
@@ -536,12 +541,24 @@ def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_ret
     assert started[0].poll() is not None, "stop returned with the worker it was starting alive"
 
 
-def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
+@contextlib.contextmanager
+def two_workers(
+    tmp_path: Path, options: dict[str, dict] | None = None
+) -> Iterator[tuple[GatewayProcess, list[SerialSimulator], list[int]]]:
+    """``busgate run`` with ``workers = 2`` over two simulated LA buses, ``uart0`` and
+    ``uart1`` (``options``: each bus's further settings), serving: the gateway, the
+    simulators and the workers' pids; all stopped at the end."""
     simulators = [
         SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start() for _ in range(2)
     ]
     tables = [
-        bus_table(f"uart{n}", sim.port, 921_600, {f"la{n}": ("inspire_la", 1)})
+        bus_table(
+            f"uart{n}",
+            sim.port,
+            921_600,
+            {f"la{n}": ("inspire_la", 1)},
+            **(options or {}).get(f"uart{n}", {}),
+        )
         for n, sim in enumerate(simulators)
     ]
     endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
@@ -554,6 +571,15 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
             for _ in simulators
         ]
         gateway.wait_for("serving 2 buses, 2 up")
+        yield gateway, simulators, workers
+    finally:
+        gateway.stop()
+        for simulator in simulators:
+            simulator.stop()
+
+
+def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
+    with two_workers(tmp_path) as (gateway, simulators, workers):
         marks = [len(sim.recorder.received()) for sim in simulators]
         gateway.process.kill()  # no orderly stop: SIGKILL, as an OOM killer would
         gateway.process.wait()
@@ -569,10 +595,45 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
                 if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
             ]
             assert stops, "a worker ended without its devices' safe stop"
-    finally:
-        gateway.stop()
-        for simulator in simulators:
-            simulator.stop()
+
+
+def _may_run_realtime() -> bool:
+    """Whether a process started here may ask for SCHED_FIFO (root, or ``RLIMIT_RTPRIO``)."""
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+
+
+def _scheduling(pid: int) -> dict[str, tuple[int, int]]:
+    """Each thread of ``pid``, by its name and id: its policy and priority."""
+    found = {}
+    for task in os.listdir(f"/proc/{pid}/task"):
+        name = Path(f"/proc/{pid}/task/{task}/comm").read_text().strip()
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            found[f"{name} {task}"] = (
+                os.sched_getscheduler(int(task)),
+                os.sched_getparam(int(task)).sched_priority,
+            )
+    return found
+
+
+@pytest.mark.skipif(not _may_run_realtime(), reason="SCHED_FIFO is not allowed here")
+def test_with_realtime_buses_every_thread_of_the_daemon_and_its_workers_runs_sched_fifo(
+    tmp_path,
+) -> None:
+    """The e-stop reaches a bus thread through the daemon's threads (zenoh's, the API's) and
+    its worker's reader; each bus thread at its own priority, every other thread at the
+    highest asked."""
+    priorities = {"uart0": 20, "uart1": 30}
+    options = {bus: {"realtime_priority": p} for bus, p in priorities.items()}
+    with two_workers(tmp_path, options) as (gateway, _, workers):
+        threads = {}
+        for pid in [gateway.process.pid, *workers]:
+            threads |= _scheduling(pid)
+        assert sum(name.startswith("bus-uart") for name in threads) == 2
+        assert any(name.startswith("net-") for name in threads)  # zenoh's, in the daemon
+        for name, scheduling in threads.items():
+            bus = name.split()[0].removeprefix("bus-")
+            assert scheduling == (os.SCHED_FIFO, priorities.get(bus, 30)), name
 
 
 def _ended(pid: int) -> bool:

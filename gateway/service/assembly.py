@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from busgate.gateway.bus.can_owner import CanBusOwner
-from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.clock import ask_realtime, now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
@@ -23,7 +23,7 @@ from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.drivers.families import check_family, link_timing, make_driver
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.schemas.config import CanBus, SerialBus
+from busgate.schemas.config import CanBus, Config, SerialBus
 from busgate.schemas.families import FAMILIES, PROTOCOLS
 
 
@@ -65,6 +65,18 @@ def build_bus(
         realtime_priority=bus.realtime_priority,
         late_reply_holdoff_s=bus.late_reply_holdoff_ms / 1000,
     )
+
+
+def realtime_process(config: Config, who: str) -> bool:
+    """When a bus of ``config`` asks for SCHED_FIFO (``realtime_priority``), the calling
+    thread asks for the highest priority asked, before it starts any other: every thread
+    the process starts afterwards inherits it (zenoh's, the publishing loop's, a worker's
+    reader), and each bus thread then asks its own. Not the bus threads alone: an e-stop
+    reaches them through those threads, and any of them may hold the interpreter a bus thread
+    waits for; at normal priority, each would wait behind every other process of the host
+    for a core. Whether it was asked and granted."""
+    priorities = [bus.realtime_priority for bus in config.buses if bus.realtime_priority]
+    return bool(priorities) and ask_realtime(max(priorities), who)
 
 
 #: How long a bus is given to stop (streams, safe state, close) when it is stopped.

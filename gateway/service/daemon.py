@@ -43,7 +43,12 @@ from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
-from busgate.gateway.service.assembly import STOP_TIMEOUT_S, build_bus, stop_together
+from busgate.gateway.service.assembly import (
+    STOP_TIMEOUT_S,
+    build_bus,
+    realtime_process,
+    stop_together,
+)
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
@@ -92,6 +97,7 @@ async def serve(
 
     expected_up = _check_ports(config)
     tune_interpreter()
+    realtime_process(config, "gateway")  # before zenoh's threads and the buses' start
     loop = asyncio.get_running_loop()
     stop = stop or stop_on_signals(loop)
     notifier = Notifier()

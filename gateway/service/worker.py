@@ -24,6 +24,8 @@ them. Rules of this file:
    whole process group.
 4. A message that cannot be carried out, and a mirror turn that fails, are bugs: logged, and
    the worker goes on.
+5. When a bus of the gateway asks for SCHED_FIFO, every thread of the worker runs under it
+   (``assembly.realtime_process``), as the daemon's do.
 """
 
 from __future__ import annotations
@@ -42,9 +44,15 @@ from typing import Any, NoReturn
 
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.scheduler import authority
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service import worker_link as link
-from busgate.gateway.service.assembly import STOP_TIMEOUT_S, build_bus, stop_together
+from busgate.gateway.service.assembly import (
+    STOP_TIMEOUT_S,
+    build_bus,
+    realtime_process,
+    stop_together,
+)
 from busgate.schemas.config import Config
 
 log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
@@ -201,6 +209,9 @@ def main() -> int:
         return 2
     _, config, buses, estopped = first
     tune_interpreter()
+    realtime_process(config, f"worker {os.getpid()}")
+    # Its claim tables mirror the daemon's, which logs every change: one line each, not two.
+    logging.getLogger(authority.__name__).setLevel(logging.ERROR)
     log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
     Worker(reader, config, buses).run(estopped)
     return 0
