@@ -6,7 +6,7 @@ multicast scouting off: the simulators, the daemon (``busgate run``) and the bar
 child processes, the streaming client here; every process ended by its PID.
 
     .venv/bin/python tests/benchmarks/bench_scale.py [--buses 1,2,4,6,8] [--daemons 2] [--runs 2]
-        [--workers 1,auto] [--estop 50]
+        [--workers 1,auto] [--estop 50] [--realtime 50]
 
 For each N: N simulated UARTs of 3 Inspire LA actuators at 921600 baud (``busgate sim``,
 each recording its wire). First the gateway: one daemon drives all N buses (``--daemons K``:
@@ -36,6 +36,14 @@ is its daemons' and all their descendants' (workers), listed from /proc at the e
 window; the daemon's split into its bus threads, its other Python threads and the rest
 (zenoh's), and the simulators' together.
 
+``--realtime PRIORITY`` (1–98; default: none): ``realtime_priority`` on every bus, as a
+robot's config has it (``deploy/config/robot.toml``): every thread of the gateway's processes
+under SCHED_FIFO at that priority; every thread of the bare loops and of the e-stop yardstick
+too, so that both sides are measured alike; and the simulators one priority above, as
+devices that no host thread delays. It needs the privilege (root, or ``RLIMIT_RTPRIO``):
+without it the gateway warns and runs at normal priority, and the bare loops stop with the
+kernel's refusal.
+
 ``--estop COUNT`` (default 0: none): after each gateway's measured window, a second phase on
 the same daemons, simulators and traffic (the streams, polls and the client's 50 Hz targets
 go on): COUNT e-stops, each after a uniformly random 150–400 ms (so they land anywhere in the
@@ -60,6 +68,11 @@ many e-stops found every bus streaming (a follow frame in the 30 ms before), how
 reached every bus (an enable frame on each before the next e-stop), how many e-stops missed
 a bus (no e-stop frame on it before the next), and the status polls per second per bus over
 the phase, all from the records.
+
+Then, once per N, the CPU yardstick: the e-stop yardstick's loops for the same seconds with
+no e-stop, carrying the gateway's traffic (the follow frames, the 20 Hz polls as exchanges,
+the gap), where the bare loops above write follow frames only. The summary divides each
+gateway's CPU by theirs (``× bare, polls``).
 
 A summary table closes the run: one row per step and writer.
 """
@@ -88,7 +101,13 @@ import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
 
 from busgate.codecs import inspire_la as la
-from busgate.gateway.bus.clock import WakeUpLead, now, tighten_timer_slack, tune_interpreter
+from busgate.gateway.bus.clock import (
+    WakeUpLead,
+    ask_realtime,
+    now,
+    tighten_timer_slack,
+    tune_interpreter,
+)
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import percentile
 from busgate.gateway.cli.bench import (
@@ -123,6 +142,8 @@ ESTOP_RESUME_S = 0.150
 STREAMING_S = 3 * PERIOD_S
 #: The gateway's warning lines of each e-stop and reset, left out of its log as shown.
 EXPECTED_LOG = ("e-stop of every bus", "e-stop reset of every bus")
+#: ``--realtime``: the SCHED_FIFO priority of every bus thread, the gateway's and the bare ones.
+REALTIME: int | None = None
 
 
 def drivers_of(bus: int) -> list[InspireLaDriver]:
@@ -164,6 +185,34 @@ class ScaleDaemon(Daemon):
                 print(f"  [{self.name}] {text}", file=sys.stderr)
 
 
+def realtime_field() -> str:
+    return "" if REALTIME is None else f"realtime_priority = {REALTIME}\n"
+
+
+def realtime_thread(who: str) -> None:
+    """The calling bare thread under SCHED_FIFO at ``REALTIME``, as the gateway's bus threads."""
+    if REALTIME is not None and not ask_realtime(REALTIME, who):
+        raise SystemExit(f"{who}: SCHED_FIFO {REALTIME} refused")
+
+
+def realtime_label() -> str:
+    return "" if REALTIME is None else f", bus threads SCHED_FIFO {REALTIME}"
+
+
+def realtime_device(pid: int) -> None:
+    """Under ``--realtime``, every thread of a simulator at one priority above the bus
+    threads: it stands for a device, whose replies and wire record no gateway thread (nor a
+    bare loop's) ever delays."""
+    if REALTIME is None:
+        return
+    for task in os.listdir(f"/proc/{pid}/task"):
+        os.sched_setscheduler(int(task), os.SCHED_FIFO, os.sched_param(REALTIME + 1))
+
+
+def realtime_arguments() -> list[str]:
+    return [] if REALTIME is None else ["--realtime", str(REALTIME)]
+
+
 def toml_workers(workers: str) -> str:
     return '"auto"' if workers == "auto" else workers
 
@@ -201,6 +250,7 @@ def gateway_step(
                     BAUD,
                     poll_hz=POLL_HZ,
                     follow_period_ms=round(PERIOD_S * 1000),
+                    bus_fields=realtime_field(),
                 )
                 for n, bus in enumerate(owner)
                 if owner[bus] == gateway
@@ -366,7 +416,15 @@ def stream(session: zenoh.Session, devices: dict[str, tuple[int, int]], stop) ->
 def bare_step(ports: list[str], seconds: float) -> dict:
     """N bare loops in a child process of their own: its window, host-side figures, CPU."""
     child = subprocess.run(
-        [sys.executable, __file__, "--bare", ",".join(ports), "--seconds", str(seconds)],
+        [
+            sys.executable,
+            __file__,
+            "--bare",
+            ",".join(ports),
+            "--seconds",
+            str(seconds),
+            *realtime_arguments(),
+        ],
         capture_output=True,
         text=True,
         check=True,
@@ -407,6 +465,7 @@ def bare_loops(ports: list[str], seconds: float) -> dict:
 
     def loop(n: int) -> None:
         bus = drivers[n]
+        realtime_thread(f"bare loop {n}")
 
         def request_of() -> Request:
             return InspireLaDriver.follow_request(
@@ -453,11 +512,21 @@ TIMING = LinkTiming(
 NEVER = threading.Event()
 
 
-def bare_estop_step(ports: list[str], count: int) -> dict:
+def bare_estop_step(ports: list[str], count: int, seconds: float = 0.0) -> dict:
     """The e-stop yardstick in a child process of its own: its e-stop signals' and resets'
-    times, its window, polls and timeouts, CPU."""
+    times, its window, polls and timeouts, CPU; with no e-stop, its loops for ``seconds``
+    (the same traffic as the gateway's, for its CPU)."""
     child = subprocess.run(
-        [sys.executable, __file__, "--bare-estop", ",".join(ports), "--estop", str(count)],
+        [
+            sys.executable,
+            __file__,
+            "--bare-estop",
+            ",".join(ports),
+            "--estop",
+            str(count),
+            *(["--seconds", str(seconds)] if seconds else []),
+            *realtime_arguments(),
+        ],
         stdout=subprocess.PIPE,
         text=True,
         check=True,
@@ -499,9 +568,10 @@ def exchange(fd: int, request: Request) -> tuple[float, bool]:
     return now(), False
 
 
-def bare_estop_loops(ports: list[str], count: int) -> dict:
+def bare_estop_loops(ports: list[str], count: int, seconds: float) -> dict:
     """N bus threads with the gateway's traffic, and ``count`` e-stops (each reset) at random
-    moments, signalled by this thread to each bus thread."""
+    moments, signalled by this thread to each bus thread; with none, ``seconds`` of the
+    traffic alone. CPU over the phase."""
     tune_interpreter()  # as the daemon does
     started = now() + 0.2
     targets = BareTargets(len(ports), started)
@@ -524,6 +594,7 @@ def bare_estop_loops(ports: list[str], count: int) -> dict:
         next_follow, streaming, line_free = started, True, -math.inf
         counts = {"polls": 0, "timeouts": 0, "follow_frames": 0}
         tighten_timer_slack()
+        realtime_thread(f"bare e-stop loop {n}")
 
         def run(requests: list[Request]) -> float:
             """Each of ``requests`` an exchange, each after the gap: when the line is idle."""
@@ -589,14 +660,15 @@ def bare_estop_loops(ports: list[str], count: int) -> dict:
 
     threads = [threading.Thread(target=guarded, args=(n,)) for n in range(len(ports))]
     feeder = threading.Thread(target=targets.feed, args=(done,))
-    cpu_before = time.process_time()
     for thread in [*threads, feeder]:
         thread.start()
     time.sleep(max(0.0, started + 0.5 - now()))  # the loops under way
     chance = random.Random()
     signals: list[float] = []
     resets: list[float] = []
-    phase_start = now()
+    phase_start, cpu_before = now(), time.process_time()
+    if not count:
+        time.sleep(seconds)
 
     def tell(what: str) -> None:
         for n in range(len(ports)):
@@ -611,7 +683,7 @@ def bare_estop_loops(ports: list[str], count: int) -> dict:
         resets.append(now())
         tell("reset")
         time.sleep(ESTOP_RESUME_S)
-    phase_end = now()
+    phase_end, cpu_after = now(), time.process_time()
     done.set()
     for wake in wakes:
         wake.set()
@@ -623,7 +695,7 @@ def bare_estop_loops(ports: list[str], count: int) -> dict:
         "signals": signals,
         "resets": resets,
         "window": (phase_start, phase_end),
-        "cpu_percent": 100 * (time.process_time() - cpu_before) / (now() - started),
+        "cpu_percent": 100 * (cpu_after - cpu_before) / (phase_end - phase_start),
         **totals,
     }
 
@@ -723,11 +795,14 @@ def step(buses: int, seconds: float, daemons: int, workers: list[str | None], es
                 for record in records
             ]
             ports = [sim.port for sim in sims]
+            for sim in sims:
+                realtime_device(sim.process.pid)
             gateways = [
                 gateway_step(scratch, ports, seconds, sims, min(daemons, buses), value, estops)
                 for value in workers
             ]
             bare = bare_step(ports, seconds)
+            traffic = bare_estop_step(ports, 0, seconds)
             bare_estop = bare_estop_step(ports, estops) if estops else {}
         # The simulators have stopped: their records are complete.
         for gateway in gateways:
@@ -740,7 +815,7 @@ def step(buses: int, seconds: float, daemons: int, workers: list[str | None], es
                 "cpu_percent": bare_estop["cpu_percent"],
                 "timeouts": bare_estop["timeouts"],
             }
-        return {"gateways": gateways, "bare": bare}
+        return {"gateways": gateways, "bare": bare, "traffic": traffic}
 
 
 # -- the output ----------------------------------------------------------------------------
@@ -833,8 +908,9 @@ def estop_row(name: str, figures: dict, added: list[float | None]) -> list[str]:
 def summary(rows: list[dict]) -> str:
     """One row per step and writer: the workers value, CPU, follow error p99 (host, device),
     and the e-stop figures."""
-    headers = ["run", "buses", "daemons", "workers", "writer", "CPU %", "host p99",
-               "device p99", "e-stop p50", "p99", "max", "added p50", "added p99"]  # fmt: skip
+    headers = ["run", "buses", "daemons", "workers", "writer", "CPU %", "× bare, polls",
+               "host p99", "device p99", "e-stop p50", "p99", "max", "added p50",
+               "added p99"]  # fmt: skip
     cells = []
     for row in rows:
         estop = row["figures"].get("estop") or {}
@@ -847,8 +923,9 @@ def summary(rows: list[dict]) -> str:
                 row["workers"],
                 row["writer"],
                 f"{row['figures']['cpu_percent']:.1f}",
-                number(row["figures"]["host_p99_ms"]),
-                number(row["figures"]["device_p99_ms"]),
+                "—" if "times_bare" not in row else f"{row['times_bare']:.2f}",
+                number(row["figures"].get("host_p99_ms")),
+                number(row["figures"].get("device_p99_ms")),
                 number(estop.get("p50_ms")),
                 number(estop.get("p99_ms")),
                 number(estop.get("max_ms")),
@@ -905,6 +982,14 @@ def count(text: str) -> int:
     return value
 
 
+def priority(text: str) -> int:
+    """``--realtime``: a SCHED_FIFO priority, 1 to 98."""
+    value = int(text)
+    if not 1 <= value <= 98:  # the simulators run one above
+        raise argparse.ArgumentTypeError(f"a SCHED_FIFO priority here is 1 to 98, not {value}")
+    return value
+
+
 def label(workers: str | None) -> str:
     return "unset" if workers is None else workers
 
@@ -932,14 +1017,22 @@ def main() -> None:
         metavar="COUNT",
         help="e-stops per step, beside a bare loop's (default 0)",
     )
+    parser.add_argument(
+        "--realtime",
+        type=priority,
+        metavar="PRIORITY",
+        help="every bus thread, the gateway's and the bare loops', under SCHED_FIFO (1-98)",
+    )
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
     parser.add_argument("--bare-estop", help=argparse.SUPPRESS)  # the e-stop child: its ports
     args = parser.parse_args()
+    global REALTIME
+    REALTIME = args.realtime
     if args.bare:
         print(json.dumps(bare_loops(args.bare.split(","), args.seconds)))
         return
     if args.bare_estop:
-        print(json.dumps(bare_estop_loops(args.bare_estop.split(","), args.estop)))
+        print(json.dumps(bare_estop_loops(args.bare_estop.split(","), args.estop, args.seconds)))
         return
     workers: list[str | None] = args.workers or [None]
     rows: list[dict] = []
@@ -949,7 +1042,7 @@ def main() -> None:
             daemons = min(args.daemons, buses)
             print(
                 f"run {run}, {buses} bus(es) of {len(IDS)} LA, {daemons} daemon(s), "
-                f"{args.seconds:g} s:"
+                f"{args.seconds:g} s{realtime_label()}:"
             )
             where = {"run": run, "buses": buses, "daemons": daemons}
             bare_estop = figures["bare"].get("estop")
@@ -970,6 +1063,18 @@ def main() -> None:
                 )
             print(line("bare", figures["bare"]))
             rows.append(where | {"workers": "—", "writer": "bare", "figures": figures["bare"]})
+            traffic = figures["traffic"]
+            print(
+                f"  bare, the same traffic (the e-stop yardstick's loops, no e-stop): CPU "
+                f"{traffic['cpu_percent']:.1f} %, {traffic['timeouts']} timeouts"
+            )
+            rows.append(
+                where
+                | {"workers": "—", "writer": "bare, polls"}
+                | {"figures": {"cpu_percent": traffic["cpu_percent"]}}
+            )
+            for row in rows[-len(figures["gateways"]) - 2 : -2]:
+                row["times_bare"] = row["figures"]["cpu_percent"] / traffic["cpu_percent"]
             if args.estop:
                 print(estop_table(figures))
                 print(
