@@ -11,6 +11,8 @@ import asyncio
 import gc
 import json
 import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -20,7 +22,7 @@ from mcap.reader import make_reader
 
 from busgate.errors import BusgateError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.recording import flight
+from busgate.gateway.recording import flight, incident_file
 from busgate.gateway.recording.flight import FlightRecorder, Trigger, folder_problem, trigger_of
 from busgate.gateway.recording.ring import CHUNK, Ring
 from busgate.schemas.config import RecorderSection
@@ -232,6 +234,39 @@ def test_an_incident_file_holds_every_channel_with_its_schema_in_order(tmp_path)
     assert times == sorted(times)  # written in time order
     assert metadata["incident"]["triggers"] == "e-stop from teleop"
     assert metadata["incident"]["gateway"] == "gw"
+
+
+def test_the_writer_started_by_a_real_time_daemon_runs_at_normal_priority(tmp_path) -> None:
+    """Rule 3 of ``incident_file``: started from a ``SCHED_FIFO`` thread (a daemon whose
+    buses ask for real-time priority), it leaves that priority before it reads a thing."""
+    launch = (
+        "import os, sys; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10)); "
+        "os.execv(sys.executable, [sys.executable, '-m', sys.argv[1], sys.argv[2]])"
+    )
+    try:
+        os.sched_getscheduler(0)
+    except AttributeError:
+        pytest.skip("no scheduling policies here")
+    writer = subprocess.Popen(
+        [sys.executable, "-c", launch, flight.WRITER, str(tmp_path / "out.mcap")],
+        stdin=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    def scheduling() -> tuple[int, int]:
+        return os.sched_getscheduler(writer.pid), os.getpriority(os.PRIO_PROCESS, writer.pid)
+
+    try:
+        deadline = time.monotonic() + 10  # until it has niced itself, which comes last
+        while time.monotonic() < deadline and writer.poll() is None:
+            if scheduling()[1] >= incident_file.NICENESS:
+                break
+            time.sleep(0.01)
+        if writer.poll() is not None and b"Operation not permitted" in writer.stderr.read():
+            pytest.skip("SCHED_FIFO is not allowed here")
+        assert scheduling() == (os.SCHED_OTHER, incident_file.NICENESS)
+    finally:
+        writer.stdin.close()  # no snapshot: it ends, saying so
+        writer.wait(10)
 
 
 def test_frames_and_commands_read_back_as_they_were(tmp_path) -> None:

@@ -17,6 +17,9 @@ Rules of this file:
    times in ``perf_counter`` seconds; those before the header's ``start`` are left out.
 2. Exit status 0 once the file is finished (summary and index written); otherwise 1, with
    one line on stderr saying why. The daemon renames the file into place, or removes it.
+3. It runs at normal priority, niced (``NICENESS``), whatever it inherited: a daemon whose
+   buses ask for real-time priority starts it from a ``SCHED_FIFO`` thread, and a real-time
+   writer would take a core from the bus threads for as long as it writes.
 """
 
 from __future__ import annotations
@@ -153,6 +156,8 @@ def write(snapshot: Snapshot, out: IO[bytes]) -> int:
 
 
 def main(argv: list[str]) -> int:
+    with contextlib.suppress(OSError, AttributeError):  # rule 3 (Linux's scheduler calls)
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(OSError):
         os.nice(NICENESS)
     try:
