@@ -18,6 +18,10 @@ Rules of this file:
    are the device's own range, so the joint vocabulary works on every device.
 4. A refusal is ``out_of_range`` and names the joint, the limit and the value, in the joint's
    unit; nothing here sends anything.
+5. What clients read (``Joint.state``) is rounded to ``PUBLISHED_DIGITS`` significant digits,
+   the most a double keeps through a decimal: without the float noise of ``offset + scale ×
+   raw`` in the last digits (1500 × 5e-6 m computes as 0.007500000000000001; it is published
+   0.0075), and with every count a double can tell apart.
 """
 
 from __future__ import annotations
@@ -44,9 +48,19 @@ MAX_SI = 1e9
 MIN_SCALE = 1e-12
 #: How far past a limit a value still counts as on it (floating-point noise, relative).
 ON_THE_LIMIT = 1e-9
+#: Significant digits of a joint's published values (rule 5).
+PUBLISHED_DIGITS = 15
 #: A unit as a joint is published with: ``m``, ``rad`` or ``raw``, an effort's ``N`` or
 #: ``A``; bounded, with room for units to come, so that a peer's is never megabytes.
 Unit = Annotated[str, Field(max_length=16)]
+
+
+def published(value: float) -> float:
+    """``value`` to ``PUBLISHED_DIGITS`` significant digits (rule 5); 0 and a value that is
+    not finite as they are."""
+    if value == 0 or not math.isfinite(value):
+        return value
+    return round(value, PUBLISHED_DIGITS - 1 - math.floor(math.log10(abs(value))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -402,12 +416,12 @@ class Joint:
             "name": self.name,
             "type": self.type,
             "unit": self.unit,
-            "position": None if position is None else self.position_si(position),
-            "velocity": None if speed is None else self.velocity_si(speed),
+            "position": None if position is None else published(self.position_si(position)),
+            "velocity": None if speed is None else published(self.velocity_si(speed)),
             "effort": None
             if effort is None
-            else math.copysign(1.0, self.scale) * effort * declaration.effort_per_raw,
-            "target": None if target is None else to_si(target),
+            else published(math.copysign(1.0, self.scale) * effort * declaration.effort_per_raw),
+            "target": None if target is None else published(to_si(target)),
         }
 
     def describe(self) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from busgate.gateway.recording.mcap_log import REPLAYED_LEAVES, schema_name
 from busgate.gateway.scheduler.limiter import StreamLimiter
 from busgate.schemas import ds_servo, inspire_la, zlac706
 from busgate.schemas.config import parse_config
-from busgate.schemas.joints import Joint, JointTable
+from busgate.schemas.joints import Joint, JointTable, published
 
 TURN = 2 * math.pi
 
@@ -44,6 +44,22 @@ scales = st.floats(min_value=1e-7, max_value=10).flatmap(
 def test_a_raw_position_comes_back_from_si(scale, offset, raw):
     joint = la_joint(scale=scale, offset=offset)
     assert joint.target_raw(joint.position_si(raw)) == raw
+
+
+@given(scale=scales, offset=st.floats(-10, 10), raw=st.integers(0, 2000))
+def test_a_published_position_still_names_its_count(scale, offset, raw):
+    """Rule 5: the published value loses float noise, never a count."""
+    joint = la_joint(scale=scale, offset=offset)
+    assert joint.target_raw(joint.state({"position": raw})["position"]) == raw
+
+
+def test_a_published_value_has_no_float_noise_in_its_last_digits():
+    """The demo's ``la1`` at 1500 was answered 0.007500000000000001 m (rule 5)."""
+    state = la_joint().state({"position": 1500, "target": 1500, "force_g": 300})
+    assert (state["position"], state["target"]) == (0.0075, 0.0075)
+    assert published(0.1 + 0.2) == 0.3 and published(-3.0000000000000004) == -3.0
+    assert published(math.pi) == 3.14159265358979  # 15 significant digits
+    assert published(0.0) == 0.0 and math.isnan(published(math.nan))
 
 
 @given(scale=scales, offset=st.floats(-1, 1), fraction=st.floats(0, 1))
