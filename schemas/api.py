@@ -300,6 +300,15 @@ class DeviceInfo(ReadByKey):
     )
     state: Telemetry | None = Field(description="The last state published; null before the first.")
 
+    @model_validator(mode="after")
+    def _its_own_state(self) -> DeviceInfo:
+        """A state naming another device or kind than its entry is no gateway's (a device's
+        state key takes none either: ``client.messages.published_naming``)."""
+        state = self.state
+        if state is not None and (state.device, state.kind) != (self.name, self.kind):
+            raise ValueError(f"the state of {self.name} ({self.kind}) names {state.device}")
+        return self
+
 
 class BusInfo(ReadByKey):
     name: Name

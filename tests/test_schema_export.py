@@ -410,6 +410,17 @@ def test_info_matches_the_info_schema():
     api.InfoReply.model_validate(info)
 
 
+def test_an_info_whose_state_names_another_device_is_refused():
+    """A client took the state listed under ``la1`` as ``la1``'s whatever device it named; a
+    gateway lists each device with its own."""
+    gw, _, _ = gateway()
+    info = gw.info()
+    entry = info["buses"][0]["devices"][0]
+    entry["state"]["device"] = "la2"
+    with pytest.raises(ValidationError, match=f"the state of {entry['name']} .* names la2"):
+        api.InfoReply.model_validate(info)
+
+
 def test_a_version_past_what_a_client_takes_is_cut(monkeypatch):
     """A build's version is a few dozen characters; one past ``MAX_VERSION`` would make every
     client leave the gateway out: its info carries it cut (``…``)."""
