@@ -65,32 +65,14 @@ class Daemon:
     """``busgate run`` on a config written from ``buses`` (TOML text), with ``gateway``'s
     lines in its ``[gateway]`` table besides its name; its log to ``stderr`` (default: ours)."""
 
-    def __init__(
-        self,
-        scratch: Path,
-        endpoint: str,
-        buses: str,
-        name: str = "bench",
-        gateway: str = "",
-        stderr=None,
-    ) -> None:
+    def __init__(self, scratch: Path, endpoint: str, buses: str, name: str = "bench",
+                 gateway: str = "", stderr=None) -> None:
         config = scratch / f"{name}.toml"
-        config.write_text(
-            f'[gateway]\nname = "{name}"\n{gateway}[zenoh]\nlisten = ["{endpoint}"]\n{buses}'
-        )
+        config.write_text(f'[gateway]\nname = "{name}"\n{gateway}[zenoh]\nlisten = ["{endpoint}"]\n'
+                          f"{buses}")
         self.process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "busgate.gateway.cli",
-                "run",
-                "--config",
-                str(config),
-                "--log-level",
-                "warning",
-            ],
-            stderr=stderr,
-        )
+            [sys.executable, "-m", "busgate.gateway.cli", "run", "--config", str(config),
+             "--log-level", "warning"], stderr=stderr)
 
     def cpu_s(self) -> float:
         return cpu_s(f"/proc/{self.process.pid}/stat")
@@ -100,9 +82,8 @@ class Daemon:
         self.process.wait(10)
 
 
-def serial_bus(
-    name: str, port: str, kind: str, ids: list[int], baud: int, bus_fields: str = "", **extra
-) -> str:
+def serial_bus(name: str, port: str, kind: str, ids: list[int], baud: int,
+               bus_fields: str = "", **extra) -> str:
     """A serial bus's TOML: ``bus_fields`` (lines) on the bus, ``extra`` on each device."""
     text = f'[[buses]]\nname = "{name}"\ntransport = "serial"\nport = "{port}"\nbaudrate = {baud}\n'
     text += bus_fields
@@ -158,9 +139,8 @@ def command_to_wire(scratch: Path, samples: int = 1000) -> list[float]:
     record = scratch / "la.jsonl"
     with SimProcess("inspire_la", ["--ids", "1", "--record", str(record)]) as sim:
         endpoint = free_endpoint()
-        daemon = Daemon(
-            scratch, endpoint, serial_bus("uart0", sim.port, "inspire_la", [1], 921600, poll_hz=1)
-        )
+        daemon = Daemon(scratch, endpoint, serial_bus("uart0", sim.port, "inspire_la", [1],
+                                                     921600, poll_hz=1))
         client = zenoh.open(session_config(connect=[endpoint]))
         try:
             wait_ready(client)
@@ -188,17 +168,12 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
     # The simulators sleep in select (no busy polling): two spinning simulators would take
     # both of this machine's cores from the gateway being measured.
     quiet = ["--busy-poll-ms", "0"]
-    with (
-        SimProcess("inspire_la", ["--ids", "1,2,3", "--record", str(records[0]), *quiet]) as s1,
-        SimProcess(
-            "ds_servo",
-            ["--ids", "1,2", "--record", str(records[1]), "--baudrate", "1000000", *quiet],
-        ) as s2,
-    ):
+    with (SimProcess("inspire_la", ["--ids", "1,2,3", "--record", str(records[0]), *quiet]) as s1,
+          SimProcess("ds_servo", ["--ids", "1,2", "--record", str(records[1]),
+                                  "--baudrate", "1000000", *quiet]) as s2):
         endpoint = free_endpoint()
-        buses = serial_bus("la", s1.port, "inspire_la", [1, 2, 3], 921600, poll_hz=50) + serial_bus(
-            "ds", s2.port, "ds_servo", [1, 2], 1_000_000, poll_hz=50
-        )
+        buses = (serial_bus("la", s1.port, "inspire_la", [1, 2, 3], 921600, poll_hz=50)
+                 + serial_bus("ds", s2.port, "ds_servo", [1, 2], 1_000_000, poll_hz=50))
         daemon = Daemon(scratch, endpoint, buses)
         client = zenoh.open(session_config(connect=[endpoint]))
         puts: list[float] = []
@@ -209,10 +184,8 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
                     list(client.get(f"busgate/bench/dev/la-{i}/cmd", payload='{"op":"enable"}'))
                 for _ in range(10):
                     for i in (1, 2, 3):
-                        client.put(
-                            f"busgate/bench/dev/la-{i}/follow",
-                            json.dumps({"position": 500 + round_}),
-                        )
+                        client.put(f"busgate/bench/dev/la-{i}/follow",
+                                   json.dumps({"position": 500 + round_}))
                     time.sleep(0.005)
                 puts.append(now())
                 client.put("busgate/*/estop", b"")
@@ -224,15 +197,12 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
         "la": lambda r: r.frame == "ControlCommand" and r.wire[8:14] == "040023",
         "ds": lambda r: r.frame == "Write" and r.wire[10:14] == "2800",
     }
-    stops = {
-        name: sorted(r.arrived or r.start for r in load_records(path) if is_stop[name](r))
-        for name, path in zip(is_stop, records, strict=True)
-    }
+    stops = {name: sorted(r.arrived or r.start for r in load_records(path) if is_stop[name](r))
+             for name, path in zip(is_stop, records, strict=True)}
     latencies: dict[str, list[float]] = {"every bus": [], **{name: [] for name in stops}}
     for put in puts:
-        first = {
-            name: min((t for t in times if t >= put), default=None) for name, times in stops.items()
-        }
+        first = {name: min((t for t in times if t >= put), default=None)
+                 for name, times in stops.items()}
         if None not in first.values():
             for name, arrival in first.items():
                 latencies[name].append(arrival - put)
@@ -261,18 +231,11 @@ def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
     process (python-can's virtual bus does not cross processes) and the subscriber in a child.
     The daemon's CPU is this process's minus the simulator threads'."""
     channels = [f"bench-telemetry-{os.getpid()}-{i}" for i in range(4)]
-    sims = [
-        CanSimulator(
-            zlac706_can,
-            [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)],
-            bus=can.Bus(interface="virtual", channel=ch),
-        ).start()
-        for ch in channels
-    ]
+    sims = [CanSimulator(zlac706_can, [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)],
+                         bus=can.Bus(interface="virtual", channel=ch)).start() for ch in channels]
     try:
-        return _daemon_cpu(
-            _heartbeat_config("virtual", channels), seconds, [sim._thread.native_id for sim in sims]
-        )
+        return _daemon_cpu(_heartbeat_config("virtual", channels), seconds,
+                           [sim._thread.native_id for sim in sims])
     finally:
         for sim in sims:
             sim.stop()
@@ -304,16 +267,10 @@ def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
     channels = [f"{os.getpid()}-{i}" for i in range(4)]
     here = str(Path(__file__).parent)
     # The daemon leaves first, and each simulator's thread ends on its closed bus: quietly.
-    sims = [
-        subprocess.Popen(
-            [sys.executable, "-c", APART_SIMULATOR, ch, here],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        for ch in channels
-    ]
+    sims = [subprocess.Popen([sys.executable, "-c", APART_SIMULATOR, ch, here],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL, text=True)
+            for ch in channels]
     try:
         for sim in sims:
             sim.stdout.readline()  # listening
@@ -328,25 +285,13 @@ def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
 
 
 def _heartbeat_config(interface: str, channels: list[str]):
-    return parse_config(
-        {
-            "gateway": {"name": "bench"},
-            "zenoh": {"listen": [free_endpoint()]},
-            "buses": [
-                {
-                    "name": f"can{i}",
-                    "transport": "can",
-                    "interface": interface,
-                    "channel": ch,
-                    "devices": [
-                        {"name": f"w{i}-{n}", "kind": "zlac706", "id": n, "heartbeat_ms": 10}
-                        for n in range(1, 6)
-                    ],
-                }
-                for i, ch in enumerate(channels)
-            ],
-        }
-    )
+    return parse_config({
+        "gateway": {"name": "bench"}, "zenoh": {"listen": [free_endpoint()]},
+        "buses": [{"name": f"can{i}", "transport": "can", "interface": interface, "channel": ch,
+                   "devices": [{"name": f"w{i}-{n}", "kind": "zlac706", "id": n,
+                                "heartbeat_ms": 10} for n in range(1, 6)]}
+                  for i, ch in enumerate(channels)],
+    })
 
 
 def _daemon_cpu(config, seconds: float, sim_ids: list[int]) -> tuple[float, float]:
@@ -354,18 +299,14 @@ def _daemon_cpu(config, seconds: float, sim_ids: list[int]) -> tuple[float, floa
     for ``seconds``: the daemon's CPU (this process's but for the threads ``sim_ids``) in % of
     a core, and the states a second the subscriber took."""
     loop, stop, ready = asyncio.new_event_loop(), asyncio.Event(), threading.Event()
-    daemon = threading.Thread(
-        target=loop.run_until_complete, args=(serve(config, ready=ready, stop=stop),)
-    )
+    daemon = threading.Thread(target=loop.run_until_complete,
+                              args=(serve(config, ready=ready, stop=stop),))
     daemon.start()
     ready.wait(20)
     time.sleep(1.0)
     endpoint = config.zenoh.listen[0]
-    subscriber = subprocess.Popen(
-        [sys.executable, "-c", SUBSCRIBER, endpoint, str(seconds)],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    subscriber = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, endpoint, str(seconds)],
+                                  stdout=subprocess.PIPE, text=True)
     try:
         subscriber.stdout.readline()
         cpu, sim_cpu = time.process_time(), sum(map(thread_cpu_s, sim_ids))
@@ -384,29 +325,19 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as scratch_dir:
         scratch = Path(scratch_dir)
         hop = bare_hop()
-        print(
-            f"bare zenoh put → subscriber hop: p50 {ms(hop, 0.5)} ms, p99 {ms(hop, 0.99)} ms "
-            f"({len(hop)} samples)"
-        )
+        print(f"bare zenoh put → subscriber hop: p50 {ms(hop, .5)} ms, p99 {ms(hop, .99)} ms "
+              f"({len(hop)} samples)")
         wire = command_to_wire(scratch)
-        print(
-            f"client get → frame on the wire: p50 {ms(wire, 0.5)} ms, p99 {ms(wire, 0.99)} ms "
-            f"({len(wire)} samples); gateway adds {ms(wire, 0.5) - ms(hop, 0.5):.3f} ms at p50"
-        )
+        print(f"client get → frame on the wire: p50 {ms(wire, .5)} ms, p99 {ms(wire, .99)} ms "
+              f"({len(wire)} samples); gateway adds {ms(wire, .5) - ms(hop, .5):.3f} ms at p50")
         for name, values in estop_latency(scratch).items():
-            print(
-                f"e-stop put → e-stop frame on {name}: p50 {ms(values, 0.5)} ms, "
-                f"p99 {ms(values, 0.99)} ms ({len(values)} e-stops)"
-            )
-        for where, measure in (
-            ("in the daemon's process", telemetry_cpu),
-            ("in processes of their own", telemetry_cpu_apart),
-        ):
+            print(f"e-stop put → e-stop frame on {name}: p50 {ms(values, .5)} ms, "
+                  f"p99 {ms(values, .99)} ms ({len(values)} e-stops)")
+        for where, measure in (("in the daemon's process", telemetry_cpu),
+                               ("in processes of their own", telemetry_cpu_apart)):
             cpu, rate = measure()
-            print(
-                f"20 devices {where}, heartbeats every 10 ms: {rate:.0f} state messages/s "
-                f"published, daemon CPU {cpu:.1f} % of one core"
-            )
+            print(f"20 devices {where}, heartbeats every 10 ms: {rate:.0f} state messages/s "
+                  f"published, daemon CPU {cpu:.1f} % of one core")
     return 0
 
 
