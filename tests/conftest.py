@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 
@@ -149,6 +151,12 @@ def unused_loopback_port() -> int:
 def free_port() -> Callable[[], int]:
     """``free_port()``: see ``unused_loopback_port``."""
     return unused_loopback_port
+
+
+def may_run_realtime() -> bool:
+    """Whether a process started here may ask for SCHED_FIFO (root, or ``RLIMIT_RTPRIO``)."""
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
 
 
 #: How a test says it was skipped for want of a tool (systemd-analyze, openssl …).

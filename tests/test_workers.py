@@ -17,7 +17,6 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -43,7 +42,7 @@ from busgate.gateway.service.workers import (
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import parse_config
-from tests.conftest import unused_loopback_port, wait_until
+from tests.conftest import may_run_realtime, unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.wire_frames import received, tick_targets
 
@@ -597,12 +596,6 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
             assert stops, "a worker ended without its devices' safe stop"
 
 
-def _may_run_realtime() -> bool:
-    """Whether a process started here may ask for SCHED_FIFO (root, or ``RLIMIT_RTPRIO``)."""
-    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
-    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
-
-
 def _scheduling(pid: int) -> dict[str, tuple[int, int]]:
     """Each thread of ``pid``, by its name and id: its policy and priority."""
     found = {}
@@ -616,7 +609,7 @@ def _scheduling(pid: int) -> dict[str, tuple[int, int]]:
     return found
 
 
-@pytest.mark.skipif(not _may_run_realtime(), reason="SCHED_FIFO is not allowed here")
+@pytest.mark.skipif(not may_run_realtime(), reason="SCHED_FIFO is not allowed here")
 def test_with_realtime_buses_every_thread_of_the_daemon_and_its_workers_runs_sched_fifo(
     tmp_path,
 ) -> None:
