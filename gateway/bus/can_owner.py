@@ -19,10 +19,16 @@ Rules of this file:
    first, since a serial one (python-can's own slcan, ``serial``, ``seeedstudio`` …) blocks a
    ``recv(timeout=0)`` for its serial timeout when nothing is there, which would make a timed
    send late (asking SocketCAN's descriptor first would cost a ``select`` a frame).
-4. Only this module converts between ``CanFrame`` and ``can.Message``.
+4. Only this module converts between ``CanFrame`` and ``can.Message``, or SocketCAN's bytes.
 5. An SLCAN adapter is python-can's ``slcan`` interface with its reads replaced
    (``slcan.SlcanBus``: a chunk a read, not a byte), made as ``can.Bus`` makes python-can's
    (the same arguments, python-can's configuration read the same way).
+6. On SocketCAN, frames are read from python-can's socket here, one ``recv`` a frame and no
+   ``can.Message``: python-can's ``recv`` asks ``select`` first and builds a message with its
+   timestamp (``recvmsg``), a third of a heartbeat frame's cost, none of which the owner uses.
+   The socket is python-can's, opened and set up by it (filters, error frames, FD), and it
+   still sends. Every frame, however read, is one ``(identifier, data)``: the identifier with
+   SocketCAN's flags (extended, remote, error), the data as the frame carries it.
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ from __future__ import annotations
 import contextlib
 import errno
 import select
+import socket
+import struct
 import time
 from collections.abc import Callable, Mapping
 from types import ModuleType
@@ -52,6 +60,13 @@ TX_BACKPRESSURE_S = 0.05
 PRECISE_WAIT_S = 0.001
 #: The error-frame flag (in the identifier of an error frame) that says the controller is bus-off.
 CAN_ERR_BUSOFF = 0x40
+#: SocketCAN's flags in a frame's identifier (linux/can.h): extended, remote, error frame.
+CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
+#: SocketCAN's frame header (``struct can_frame`` and ``canfd_frame``): the identifier with its
+#: flags, the data's length, three bytes more; the data follows.
+SOCKETCAN_HEADER = struct.Struct("=IB3x")
+#: The largest frame a SocketCAN socket gives (a CAN FD frame).
+CANFD_MTU = 72
 #: The interfaces with a descriptor whose ``recv(timeout=0)`` never waits (rule 3; slcan is
 #: ours, ``SlcanBus``).
 LOOK_NEVER_WAITS = frozenset({"socketcan", "slcan"})
@@ -85,6 +100,8 @@ class CanBusOwner(BusOwner):
         self._bus: can.BusABC | None = None
         #: The descriptor asked before each look (rule 3); ``None``: a look never waits.
         self._fd: int | None = None
+        #: SocketCAN's socket, read here (rule 6); ``None``: frames come through python-can.
+        self._socket: socket.socket | None = None
         self._decoder = codec.ReplyDecoder()
 
     @property
@@ -98,6 +115,8 @@ class CanBusOwner(BusOwner):
             # TypeError: an option the interface's class does not take
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
         if self.interface in LOOK_NEVER_WAITS:
+            if self.interface == "socketcan":
+                self._socket = _socket_of(self._bus)
             return
         try:
             self._fd = self._bus.fileno()
@@ -116,7 +135,7 @@ class CanBusOwner(BusOwner):
         return SlcanBus(**arguments)
 
     def close(self) -> None:
-        bus, self._bus, self._fd = self._bus, None, None
+        bus, self._bus, self._fd, self._socket = self._bus, None, None, None
         if bus is not None:
             with contextlib.suppress(can.CanError, OSError):  # the adapter may be gone already
                 bus.shutdown()
@@ -184,24 +203,26 @@ class CanBusOwner(BusOwner):
         reply, even when this thread was held up past the deadline); ``None`` if incomplete.
         A deadline that has passed is that one look: what came unasked, taken while idle."""
         answer: list[object] = []
-        recv, unsolicited = bus.recv, self.on_unsolicited  # once: this loop runs per frame
+        # once: this loop runs per frame
+        take = self._take_from_socket if self._socket is not None else self._take_from(bus)
+        unsolicited = self.on_unsolicited
         while True:
             remaining = deadline - now()
             waiting = remaining > 0
             if not waiting and not self._input_waiting():
                 return None
             try:
-                message = recv(timeout=remaining if waiting else 0)
+                frame = take(remaining if waiting else 0)
             except (can.CanError, OSError) as exc:
                 self._fail(exc)
             except ValueError:  # a garbled line from an ASCII (slcan) adapter: one frame lost
                 self.counters.discarded_bytes += 1
                 continue
-            if message is None:
+            if frame is None:
                 if waiting or self._fd is not None or self._has_line():
                     continue  # the wait ended (then one look more), or a line that was no frame
                 return None
-            event = self._decode(message)
+            event = self._decode(*frame)
             if event is None:
                 continue
             if expected is None:
@@ -213,6 +234,42 @@ class CanBusOwner(BusOwner):
                     return tuple(answer)
             else:
                 unsolicited(event, now())
+
+    @staticmethod
+    def _take_from(bus: can.BusABC) -> Callable[[float], tuple[int, bytes] | None]:
+        """Frames through python-can's ``recv``, each as SocketCAN's ``(identifier, data)``."""
+
+        def take(timeout: float) -> tuple[int, bytes] | None:
+            message = bus.recv(timeout=timeout)
+            if message is None:
+                return None
+            can_id = message.arbitration_id
+            if message.is_extended_id:
+                can_id |= CAN_EFF_FLAG
+            if message.is_remote_frame:
+                can_id |= CAN_RTR_FLAG
+            if message.is_error_frame:
+                can_id |= CAN_ERR_FLAG
+            return can_id, bytes(message.data)
+
+        return take
+
+    def _take_from_socket(self, timeout: float) -> tuple[int, bytes] | None:
+        """The next frame on SocketCAN's socket, waiting up to ``timeout`` (rule 6)."""
+        sock = self._socket
+        assert sock is not None  # only while open
+        if timeout > 0 and not select.select([sock], [], [], timeout)[0]:
+            return None
+        try:
+            frame = sock.recv(CANFD_MTU, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return None
+        if not frame:  # SocketCAN never gives an empty frame: the socket's far end is gone
+            raise can.CanOperationError("the interface's socket was closed")
+        can_id, length = SOCKETCAN_HEADER.unpack_from(frame)
+        if can_id & CAN_RTR_FLAG:  # its length asks for data; it carries none
+            return can_id, b""
+        return can_id, frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when a look never waits)."""
@@ -229,23 +286,22 @@ class CanBusOwner(BusOwner):
         acknowledgement, came first and made its look find nothing)."""
         return isinstance(self._bus, SlcanBus) and self._bus.has_line
 
-    def _decode(self, message: can.Message) -> object | None:
-        """The event ``message`` makes (a CAN frame makes one), ``None`` when it makes none
-        (an error frame, a frame no reply can be, bytes the codec discarded: counted)."""
+    def _decode(self, can_id: int, data: bytes) -> object | None:
+        """The event a frame makes (a CAN frame makes one), ``None`` when it makes none (an
+        error frame, a frame no reply can be, bytes the codec discarded: counted)."""
         counters = self.counters
-        if message.is_error_frame:
-            if message.arbitration_id & CAN_ERR_BUSOFF:
+        if can_id & CAN_ERR_FLAG:
+            if can_id & CAN_ERR_BUSOFF:
                 self._fail(can.CanOperationError("controller is bus-off"))
             return None
         counters.frames_in += 1
-        counters.bytes_in += len(message.data)
-        if message.is_extended_id or message.is_remote_frame:
-            counters.discarded_bytes += len(message.data)
+        counters.bytes_in += len(data)
+        if can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG) or len(data) > 8:  # extended, remote, FD
+            counters.discarded_bytes += len(data)
             return None
-        data = bytes(message.data)
         if self.tap is not None:
-            self.tap((now(), RX, data, message.arbitration_id))
-        event = self._decoder.decode(CanFrame(message.arbitration_id, data))
+            self.tap((now(), RX, data, can_id))
+        event = self._decoder.decode(CanFrame(can_id, data))
         if isinstance(event, Discarded):
             counters.discarded_bytes += len(event.data)
             return None
@@ -254,6 +310,12 @@ class CanBusOwner(BusOwner):
     def _fail(self, exc: BaseException) -> None:
         self.close()
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
+
+
+def _socket_of(bus: can.BusABC) -> socket.socket | None:
+    """The socket of python-can's SocketCAN bus; ``None`` for a class without one."""
+    sock = getattr(bus, "socket", None)
+    return sock if isinstance(sock, socket.socket) else None
 
 
 def _is_backpressure(exc: can.CanError) -> bool:

@@ -1,0 +1,127 @@
+"""The CAN owner on SocketCAN reads python-can's socket itself (``can_owner`` rule 6): every
+frame as the kernel lays it out, classified as python-can's messages are.
+
+This host has no SocketCAN (no ``vcan`` module), so ``interface = "socketcan"`` is given the
+benchmarks' stand-in, ``unix_can.UnixCanBus``: python-can's bus over a Unix socket whose
+datagrams are frames in SocketCAN's layout. The far end is that socket's other end, where the
+test writes frames byte by byte as the kernel would give them (a CAN FD frame, a remote
+frame's length with no data) and reads what the owner sent."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import struct
+import threading
+
+import can
+import pytest
+
+from busgate.codecs import zlac706_can as zcan
+from busgate.codecs.can_frame import CanFrame
+from busgate.errors import BusIOError
+from busgate.gateway.bus.can_owner import (
+    CAN_EFF_FLAG,
+    CAN_ERR_BUSOFF,
+    CAN_ERR_FLAG,
+    CAN_RTR_FLAG,
+    CANFD_MTU,
+)
+from tests.benchmarks import unix_can
+from tests.test_mutants_bus import (
+    ACK,
+    HEARTBEAT,
+    finished,
+    open_can,
+    speed_write,
+    wait_heard,
+)
+
+_channels = itertools.count()
+
+
+def frame(can_id: int, data: bytes = b"", *, length: int | None = None, fd: bool = False):
+    """A frame as a SocketCAN socket gives it: ``struct can_frame`` or ``canfd_frame``."""
+    size = 64 if fd else 8
+    return struct.pack(f"=IB3x{size}s", can_id, len(data) if length is None else length, data)
+
+
+def sent_as_socketcan(text: str) -> bytes:
+    parsed = CanFrame.parse(text)
+    return frame(parsed.arbitration_id, parsed.data)
+
+
+@pytest.fixture
+def socketcan(monkeypatch):
+    """An owner on ``interface = "socketcan"`` (the stand-in), what it heard, and the far
+    end's socket. python-can's ``recv`` fails the test if the owner reads through it."""
+    monkeypatch.setitem(can.interfaces.BACKENDS, unix_can.INTERFACE,
+                        (unix_can.__name__, unix_can.UnixCanBus.__name__))
+
+    def not_through_python_can(*_: object, **__: object):
+        raise AssertionError("the owner read SocketCAN through python-can's recv")
+
+    monkeypatch.setattr(unix_can.UnixCanBus, "recv", not_through_python_can)
+    heard: list = []
+    channel = f"owner-{os.getpid()}-{next(_channels)}"
+    with unix_can.listening(channel) as server:
+        owner = open_can(unix_can.INTERFACE, channel, heard=heard)
+        far, _ = server.accept()
+    try:
+        yield owner, heard, far
+    finally:
+        owner.close()
+        far.close()
+
+
+def test_frames_are_read_and_classified_from_socketcans_own_bytes(socketcan):
+    owner, heard, far = socketcan
+    data = CanFrame.parse(HEARTBEAT).data
+    for raw in (
+        frame(1 | CAN_EFF_FLAG, data),  # a heartbeat's bytes under a 29-bit identifier
+        frame(1 | CAN_RTR_FLAG, length=8),  # a remote frame: a length, no data
+        frame(1, data[:7]),  # too short for any reply
+        frame(1, bytes(12), fd=True),  # a CAN FD frame: no classic frame carries 12 bytes
+        frame(CAN_ERR_FLAG | 0x04, bytes(8)),  # an error frame: a controller problem
+        sent_as_socketcan(HEARTBEAT),
+    ):
+        far.send(raw)
+    finished(lambda: wait_heard(owner, heard, 1))
+    assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)]
+    counters = owner.counters
+    assert (counters.frames_in, counters.bytes_in) == (5, 8 + 0 + 7 + 12 + 8)
+    assert counters.discarded_bytes == 8 + 0 + 7 + 12
+    assert owner.is_open
+
+    far.send(frame(CAN_ERR_FLAG | CAN_ERR_BUSOFF, bytes(8)))
+    with pytest.raises(BusIOError, match="controller is bus-off"):
+        finished(lambda: wait_heard(owner, heard, 2))
+    assert not owner.is_open
+
+
+def test_a_reply_awaited_on_the_socket_ends_the_exchange(socketcan):
+    owner, heard, far = socketcan
+    request = speed_write()
+    sent: list[bytes] = []
+
+    def node() -> None:  # node 1: a heartbeat, then its answer
+        sent.append(far.recv(CANFD_MTU))
+        far.send(sent_as_socketcan(HEARTBEAT))
+        far.send(sent_as_socketcan(ACK))
+
+    answering = threading.Thread(target=node, daemon=True)
+    answering.start()
+    exchange = finished(lambda: owner.exchange(request))
+    answering.join(5)
+    assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)]
+    can_id, length, data = struct.unpack("=IB3x8s", sent[0])
+    assert (can_id, data[:length]) == (1, request.wire.data)  # standard, no flags
+
+
+def test_a_socket_whose_far_end_is_gone_is_a_lost_link(socketcan):
+    owner, heard, far = socketcan
+    far.close()
+    with pytest.raises(BusIOError, match="socket was closed"):
+        finished(lambda: wait_heard(owner, heard, 1))
+    assert not owner.is_open
