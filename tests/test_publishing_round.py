@@ -1,6 +1,7 @@
-"""The publishing loop's rounds: every ``PUBLISH_EVERY_S`` while there is work, else a wait
-that the next state or event cuts short (``gateway/api/doorbell.py``). No timing is judged
-here: the rounds are counted, and each wait is recorded by what ends it."""
+"""The publishing loop's rounds: every ``TELEMETRY_EVERY_S`` while states come (or the joints
+message's interval, when shorter), every ``PUBLISH_EVERY_S`` while the round has timed work of
+its own, else a wait that the next state or event cuts short (``gateway/api/doorbell.py``).
+No timing is judged here: the rounds are counted, and each wait is recorded by what ends it."""
 
 from __future__ import annotations
 
@@ -11,7 +12,12 @@ from collections import deque
 import pytest
 
 from busgate.gateway.api import bridge as bridge_module
-from busgate.gateway.api.bridge import IDLE_WAIT_S, PUBLISH_EVERY_S, ZenohBridge
+from busgate.gateway.api.bridge import (
+    IDLE_WAIT_S,
+    PUBLISH_EVERY_S,
+    TELEMETRY_EVERY_S,
+    ZenohBridge,
+)
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.doorbell import Doorbell, Mailbox
 from busgate.gateway.api.joints import JointsFeed
@@ -71,8 +77,10 @@ class Rounds:
     """``publish_forever`` on a bridge with no session, each of its waits recorded: a
     round's sleep (``PUBLISH_EVERY_S``) or the doorbell's wait, with its timeout."""
 
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        config = parse_config(CONFIG)
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, poll_hz: float = 20) -> None:
+        (bus,) = CONFIG["buses"]
+        device = {**bus["devices"][0], "poll_hz": poll_hz}
+        config = parse_config({**CONFIG, "buses": [{**bus, "devices": [device]}]})
         runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started
         self.doorbell = Doorbell()
         self.states: deque = Mailbox(self.doorbell.ring, maxlen=100)
@@ -116,14 +124,23 @@ def test_a_loop_with_nothing_to_do_waits_for_news_and_rounds_while_states_come(m
     waits = rounds.run()
     assert waits[:3] == [
         ("idle", IDLE_WAIT_S),  # nothing to do: a wait, which a state cut short
-        ("round", PUBLISH_EVERY_S),  # it was published: a round, in which another came
-        ("round", PUBLISH_EVERY_S),  # published too; the joints message held back for it
+        ("round", TELEMETRY_EVERY_S),  # it was published: a round, in which another came
+        ("round", TELEMETRY_EVERY_S),  # published too; the joints message held back for it
     ]
     kind, timeout = waits[3]  # nothing came: a wait, to when the joints message is due
     assert kind == "idle" and 0 < timeout <= 1 / 20 and len(waits) == 4
 
 
-def test_a_running_trajectory_keeps_the_rounds_going(monkeypatch):
+def test_a_running_trajectory_keeps_the_rounds_going_at_the_quicker_period(monkeypatch):
     rounds = Rounds(monkeypatch)
     monkeypatch.setattr(type(rounds.bridge.trajectories), "running", property(lambda _: True))
-    assert [kind for kind, _ in rounds.run()] == ["round"]
+    rounds.script = [lambda: rounds.states.append(("la1", {"device": "la1", "ts": 1.0}))]
+    assert rounds.run() == [("round", PUBLISH_EVERY_S)] * 2  # states coming too
+
+
+def test_telemetry_rounds_come_as_often_as_the_joints_message_may(monkeypatch):
+    """A device polled every 4 ms: its joints message may go every 4 ms, so the rounds that
+    carry states come that often, not every ``TELEMETRY_EVERY_S``."""
+    rounds = Rounds(monkeypatch, poll_hz=250)
+    rounds.script = [lambda: rounds.states.append(("la1", {"device": "la1", "ts": 1.0}))]
+    assert rounds.run()[1] == ("round", 1 / 250)

@@ -53,8 +53,15 @@ from busgate.schemas.zenoh_session import session_config
 log = logging.getLogger(__name__)
 
 REPLY_TIMEOUT_S = 10.0
-#: The publishing round's period while there is work (``_round_due``).
+#: The publishing round's period while it has timed work of its own (``_round_due``): a
+#: trajectory's verdicts, a base's wheels, a refusal held back.
 PUBLISH_EVERY_S = 0.005
+#: The round's period while only telemetry and events come, unless the joints message is due
+#: more often (a device polled faster): each round is a wake-up of this loop and of zenoh's
+#: sending thread, and at 5 ms they cost 20 heartbeating devices some 3 points of a core more
+#: than at 10 ms (docs/performance.md). A state carries the time it was read; it reaches
+#: clients up to a round later.
+TELEMETRY_EVERY_S = 0.01
 #: The longest wait of a loop with no work: its doorbell cuts it short (``doorbell``).
 IDLE_WAIT_S = 0.1
 STATS_EVERY_S = 1.0
@@ -120,6 +127,7 @@ class ZenohBridge:
             (driver for _, driver in api.devices.values()),
             min_interval_s=1 / fastest_poll_hz,
         )
+        self.telemetry_every_s = min(TELEMETRY_EVERY_S, self.joints.min_interval_s)
 
     # -- lifetime ---------------------------------------------------------------------------
 
@@ -194,8 +202,9 @@ class ZenohBridge:
             session.close()
 
     async def publish_forever(self, stop: asyncio.Event) -> None:
-        """Telemetry and events as they come (in rounds of ``PUBLISH_EVERY_S`` while there is
-        work, else as soon as a state or an event comes), bus statistics once a second."""
+        """Telemetry and events as they come (in rounds of ``telemetry_every_s`` while they
+        come, of ``PUBLISH_EVERY_S`` while the round has timed work, else as soon as a state
+        or an event comes), bus statistics once a second."""
         next_stats = 0.0
         while not stop.is_set():
             published = self._has_news()
@@ -207,8 +216,11 @@ class ZenohBridge:
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
                 self.publish_stats()
-            if published or self._round_due():
-                await asyncio.sleep(PUBLISH_EVERY_S)  # cheaper than a wait_for task every round
+            # a sleep is cheaper than a wait_for task every round
+            if self._round_due():
+                await asyncio.sleep(PUBLISH_EVERY_S)
+            elif published:
+                await asyncio.sleep(self.telemetry_every_s)
             else:
                 joints_in = self.joints.due_in(time.monotonic())
                 idle_s = IDLE_WAIT_S if joints_in is None else min(IDLE_WAIT_S, joints_in)

@@ -1,10 +1,11 @@
 """What wakes the publishing loop when it waits with nothing to do.
 
-The loop publishes in rounds (``bridge.PUBLISH_EVERY_S``) while there is work: a round that
-published something, a trajectory running, a base driving, a refusal or a joints message
-held back for its interval. With none of those it waits for the next state or event rather
-than waking every round for nothing: on this project's host an asyncio loop that sleeps 5 ms
-at a time takes some 2 % of a core doing nothing.
+The loop publishes in rounds while there is work: a round that published something (rounds
+of ``bridge.TELEMETRY_EVERY_S``), a trajectory running, a base driving, a refusal held back
+for its interval (``bridge.PUBLISH_EVERY_S``), a joints message held back for its interval.
+With none of those it waits for the next state or event rather than waking every round for
+nothing: on this project's host an asyncio loop that sleeps 5 ms at a time takes some 2 % of
+a core doing nothing.
 
 Rules of this file:
 
