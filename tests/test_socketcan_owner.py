@@ -9,6 +9,7 @@ frame's length with no data) and reads what the owner sent."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import struct
@@ -51,27 +52,35 @@ def sent_as_socketcan(text: str) -> bytes:
     return frame(parsed.arbitration_id, parsed.data)
 
 
-@pytest.fixture
-def socketcan(monkeypatch):
-    """An owner on ``interface = "socketcan"`` (the stand-in), what it heard, and the far
-    end's socket. python-can's ``recv`` fails the test if the owner reads through it."""
+@contextlib.contextmanager
+def socketcan_owner(monkeypatch, **options: object):
+    """An owner on ``interface = "socketcan"`` (the stand-in) with ``options``, what it heard,
+    and the far end's socket."""
     monkeypatch.setitem(can.interfaces.BACKENDS, unix_can.INTERFACE,
                         (unix_can.__name__, unix_can.UnixCanBus.__name__))
-
-    def not_through_python_can(*_: object, **__: object):
-        raise AssertionError("the owner read SocketCAN through python-can's recv")
-
-    monkeypatch.setattr(unix_can.UnixCanBus, "recv", not_through_python_can)
     heard: list = []
     channel = f"owner-{os.getpid()}-{next(_channels)}"
     with unix_can.listening(channel) as server:
-        owner = open_can(unix_can.INTERFACE, channel, heard=heard)
+        owner = open_can(unix_can.INTERFACE, channel, heard=heard, **options)
         far, _ = server.accept()
     try:
         yield owner, heard, far
     finally:
         owner.close()
         far.close()
+
+
+@pytest.fixture
+def socketcan(monkeypatch):
+    """``socketcan_owner``; python-can's ``recv`` fails the test if the owner reads through
+    it."""
+
+    def not_through_python_can(*_: object, **__: object):
+        raise AssertionError("the owner read SocketCAN through python-can's recv")
+
+    monkeypatch.setattr(unix_can.UnixCanBus, "recv", not_through_python_can)
+    with socketcan_owner(monkeypatch) as owner_heard_far:
+        yield owner_heard_far
 
 
 def test_frames_are_read_and_classified_from_socketcans_own_bytes(socketcan):
@@ -125,3 +134,15 @@ def test_a_socket_whose_far_end_is_gone_is_a_lost_link(socketcan):
     with pytest.raises(BusIOError, match="socket was closed"):
         finished(lambda: wait_heard(owner, heard, 1))
     assert not owner.is_open
+
+
+def test_a_bus_given_filters_is_read_through_python_can_which_applies_them(monkeypatch):
+    """python-can filters in software where the kernel does not (here: the stand-in has no
+    kernel filters), so a filtered bus is not read from its socket."""
+    only_node_2 = [{"can_id": 2, "can_mask": 0x7FF}]
+    with socketcan_owner(monkeypatch, can_filters=only_node_2) as (owner, heard, far):
+        data = CanFrame.parse(HEARTBEAT).data
+        far.send(frame(1, data))  # node 1: filtered out
+        far.send(frame(2, data))
+        finished(lambda: wait_heard(owner, heard, 1))
+        assert [event for event, _ in heard] == [zcan.HeartbeatPosition(2, 7)]

@@ -26,9 +26,10 @@ Rules of this file:
 6. On SocketCAN, frames are read from python-can's socket here, one ``recv`` a frame and no
    ``can.Message``: python-can's ``recv`` asks ``select`` first and builds a message with its
    timestamp (``recvmsg``), a third of a heartbeat frame's cost, none of which the owner uses.
-   The socket is python-can's, opened and set up by it (filters, error frames, FD), and it
-   still sends. Every frame, however read, is one ``(identifier, data)``: the identifier with
-   SocketCAN's flags (extended, remote, error), the data as the frame carries it.
+   The socket is python-can's, opened and set up by it (error frames, FD), and it still
+   sends; a bus given ``can_filters`` is read through python-can, which applies them. Every
+   frame, however read, is one ``(identifier, data)``: the identifier with SocketCAN's flags
+   (extended, remote, error), the data as the frame carries it.
 """
 
 from __future__ import annotations
@@ -313,9 +314,10 @@ class CanBusOwner(BusOwner):
 
 
 def _socket_of(bus: can.BusABC) -> socket.socket | None:
-    """The socket of python-can's SocketCAN bus; ``None`` for a class without one."""
+    """The socket of python-can's SocketCAN bus; ``None`` for a class without one, and for a
+    bus given ``can_filters`` (python-can filters in software where the kernel refuses)."""
     sock = getattr(bus, "socket", None)
-    return sock if isinstance(sock, socket.socket) else None
+    return sock if isinstance(sock, socket.socket) and not bus.filters else None
 
 
 def _is_backpressure(exc: can.CanError) -> bool:
