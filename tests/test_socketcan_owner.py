@@ -90,6 +90,7 @@ def test_frames_are_read_and_classified_from_socketcans_own_bytes(socketcan):
         frame(1 | CAN_EFF_FLAG, data),  # a heartbeat's bytes under a 29-bit identifier
         frame(1 | CAN_RTR_FLAG, length=8),  # a remote frame: a length, no data
         frame(1, data[:7]),  # too short for any reply
+        frame(0x801, data),  # no flag, yet past 11 bits: no standard identifier
         frame(1, bytes(12), fd=True),  # a CAN FD frame: no classic frame carries 12 bytes
         frame(CAN_ERR_FLAG | 0x04, bytes(8)),  # an error frame: a controller problem
         sent_as_socketcan(HEARTBEAT),
@@ -98,8 +99,8 @@ def test_frames_are_read_and_classified_from_socketcans_own_bytes(socketcan):
     finished(lambda: wait_heard(owner, heard, 1))
     assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)]
     counters = owner.counters
-    assert (counters.frames_in, counters.bytes_in) == (5, 8 + 0 + 7 + 12 + 8)
-    assert counters.discarded_bytes == 8 + 0 + 7 + 12
+    assert (counters.frames_in, counters.bytes_in) == (6, 8 + 0 + 7 + 8 + 12 + 8)
+    assert counters.discarded_bytes == 8 + 0 + 7 + 8 + 12
     assert owner.is_open
 
     far.send(frame(CAN_ERR_FLAG | CAN_ERR_BUSOFF, bytes(8)))

@@ -46,7 +46,7 @@ from typing import Any, ClassVar
 
 import can
 
-from busgate.codecs.can_frame import CanFrame
+from busgate.codecs.can_frame import MAX_STANDARD_ID, CanFrame
 from busgate.codecs.framing import Discarded
 from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
@@ -297,7 +297,8 @@ class CanBusOwner(BusOwner):
             return None
         counters.frames_in += 1
         counters.bytes_in += len(data)
-        if can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG) or len(data) > 8:  # extended, remote, FD
+        # extended or remote (a flag above the identifier's bits), or FD: no reply is one
+        if can_id > MAX_STANDARD_ID or len(data) > 8:
             counters.discarded_bytes += len(data)
             return None
         if self.tap is not None:
