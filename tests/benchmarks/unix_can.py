@@ -1,4 +1,5 @@
-"""CAN frames between processes on a host without SocketCAN, for benchmarks only.
+"""CAN frames between processes on a host without SocketCAN, for benchmarks (and for
+``tests/test_socketcan_owner.py``, which writes SocketCAN's bytes to its far end).
 
 This virtual machine has no ``vcan`` module, and python-can's ``virtual`` bus does not cross
 processes, so a benchmark of heartbeats either ran its simulators in the daemon's process
