@@ -41,6 +41,7 @@ import socket
 import struct
 import time
 from collections.abc import Callable, Mapping
+from functools import partial
 from types import ModuleType
 from typing import Any, ClassVar
 
@@ -68,6 +69,9 @@ CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 SOCKETCAN_HEADER = struct.Struct("=IB3x")
 #: The largest frame a SocketCAN socket gives (a CAN FD frame).
 CANFD_MTU = 72
+#: Takes the next frame, waiting up to its argument (s): ``(identifier with SocketCAN's flags,
+#: data)``, or ``None`` when none came (``frames_of``).
+TakeFrame = Callable[[float], tuple[int, bytes] | None]
 #: The interfaces with a descriptor whose ``recv(timeout=0)`` never waits (rule 3; slcan is
 #: ours, ``SlcanBus``).
 LOOK_NEVER_WAITS = frozenset({"socketcan", "slcan"})
@@ -101,8 +105,8 @@ class CanBusOwner(BusOwner):
         self._bus: can.BusABC | None = None
         #: The descriptor asked before each look (rule 3); ``None``: a look never waits.
         self._fd: int | None = None
-        #: SocketCAN's socket, read here (rule 6); ``None``: frames come through python-can.
-        self._socket: socket.socket | None = None
+        #: How frames are taken while open (``frames_of``; rule 6).
+        self._take: TakeFrame | None = None
         self._decoder = codec.ReplyDecoder()
 
     @property
@@ -115,9 +119,8 @@ class CanBusOwner(BusOwner):
         except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
             # TypeError: an option the interface's class does not take
             raise BusUnavailableError(f"cannot open CAN {self.port}: {exc}") from exc
+        self._take = frames_of(self.interface, self._bus)
         if self.interface in LOOK_NEVER_WAITS:
-            if self.interface == "socketcan":
-                self._socket = _socket_of(self._bus)
             return
         try:
             self._fd = self._bus.fileno()
@@ -136,7 +139,7 @@ class CanBusOwner(BusOwner):
         return SlcanBus(**arguments)
 
     def close(self) -> None:
-        bus, self._bus, self._fd, self._socket = self._bus, None, None, None
+        bus, self._bus, self._fd, self._take = self._bus, None, None, None
         if bus is not None:
             with contextlib.suppress(can.CanError, OSError):  # the adapter may be gone already
                 bus.shutdown()
@@ -157,7 +160,7 @@ class CanBusOwner(BusOwner):
         end = start + wire_time
         if request.expected is not None:
             _, latest = self.timing.reply_window(request)
-            answer = self._receive_until(bus, start + wire_time + latest, request.expected)
+            answer = self._receive_until(start + wire_time + latest, request.expected)
             if answer is None:
                 self.counters.timeouts += 1
                 source = request.expected.source_id
@@ -168,7 +171,8 @@ class CanBusOwner(BusOwner):
         return Exchange(request, start, end, answer or ())
 
     def take_unsolicited(self) -> None:
-        self._receive_until(self._require_open(), now(), None)  # a deadline now: one look
+        self._require_open()
+        self._receive_until(now(), None)  # a deadline now: one look
 
     def _require_open(self) -> can.BusABC:
         if self._bus is None:
@@ -198,15 +202,14 @@ class CanBusOwner(BusOwner):
         self.counters.frames_out += 1
         self.counters.bytes_out += len(wire.data)
 
-    def _receive_until(self, bus, deadline: float, expected) -> tuple[object, ...] | None:
+    def _receive_until(self, deadline: float, expected) -> tuple[object, ...] | None:
         """Receive until ``expected`` is complete or ``deadline``, then take what is already
         there without waiting (as the serial owner does: a reply that came in time is the
         reply, even when this thread was held up past the deadline); ``None`` if incomplete.
         A deadline that has passed is that one look: what came unasked, taken while idle."""
         answer: list[object] = []
-        # once: this loop runs per frame
-        take = self._take_from_socket if self._socket is not None else self._take_from(bus)
-        unsolicited = self.on_unsolicited
+        take, unsolicited = self._take, self.on_unsolicited  # once: this loop runs per frame
+        assert take is not None  # only while open
         while True:
             remaining = deadline - now()
             waiting = remaining > 0
@@ -235,42 +238,6 @@ class CanBusOwner(BusOwner):
                     return tuple(answer)
             else:
                 unsolicited(event, now())
-
-    @staticmethod
-    def _take_from(bus: can.BusABC) -> Callable[[float], tuple[int, bytes] | None]:
-        """Frames through python-can's ``recv``, each as SocketCAN's ``(identifier, data)``."""
-
-        def take(timeout: float) -> tuple[int, bytes] | None:
-            message = bus.recv(timeout=timeout)
-            if message is None:
-                return None
-            can_id = message.arbitration_id
-            if message.is_extended_id:
-                can_id |= CAN_EFF_FLAG
-            if message.is_remote_frame:
-                can_id |= CAN_RTR_FLAG
-            if message.is_error_frame:
-                can_id |= CAN_ERR_FLAG
-            return can_id, bytes(message.data)
-
-        return take
-
-    def _take_from_socket(self, timeout: float) -> tuple[int, bytes] | None:
-        """The next frame on SocketCAN's socket, waiting up to ``timeout`` (rule 6)."""
-        sock = self._socket
-        assert sock is not None  # only while open
-        if timeout > 0 and not select.select([sock], [], [], timeout)[0]:
-            return None
-        try:
-            frame = sock.recv(CANFD_MTU, socket.MSG_DONTWAIT)
-        except BlockingIOError:
-            return None
-        if not frame:  # SocketCAN never gives an empty frame: the socket's far end is gone
-            raise can.CanOperationError("the interface's socket was closed")
-        can_id, length = SOCKETCAN_HEADER.unpack_from(frame)
-        if can_id & CAN_RTR_FLAG:  # its length asks for data; it carries none
-            return can_id, b""
-        return can_id, frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when a look never waits)."""
@@ -314,11 +281,46 @@ class CanBusOwner(BusOwner):
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
 
 
-def _socket_of(bus: can.BusABC) -> socket.socket | None:
-    """The socket of python-can's SocketCAN bus; ``None`` for a class without one, and for a
-    bus given ``can_filters`` (python-can filters in software where the kernel refuses)."""
+def frames_of(interface: str, bus: can.BusABC) -> TakeFrame:
+    """How frames are taken from ``bus``, each as SocketCAN's ``(identifier, data)`` (rule
+    6): read from python-can's SocketCAN socket, unless the bus's class has none or it was
+    given ``can_filters`` (python-can filters in software where the kernel refuses them);
+    else through python-can's ``recv``."""
     sock = getattr(bus, "socket", None)
-    return sock if isinstance(sock, socket.socket) and not bus.filters else None
+    if interface == "socketcan" and isinstance(sock, socket.socket) and not bus.filters:
+        return partial(_take_from_socket, sock)
+    return partial(_take_from_bus, bus)
+
+
+def _take_from_socket(sock: socket.socket, timeout: float) -> tuple[int, bytes] | None:
+    """The next frame on SocketCAN's socket, waiting up to ``timeout``."""
+    if timeout > 0 and not select.select([sock], [], [], timeout)[0]:
+        return None
+    try:
+        frame = sock.recv(CANFD_MTU, socket.MSG_DONTWAIT)
+    except BlockingIOError:
+        return None
+    if not frame:  # SocketCAN never gives an empty frame: the socket's far end is gone
+        raise can.CanOperationError("the interface's socket was closed")
+    can_id, length = SOCKETCAN_HEADER.unpack_from(frame)
+    if can_id & CAN_RTR_FLAG:  # its length asks for data; it carries none
+        return can_id, b""
+    return can_id, frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
+
+
+def _take_from_bus(bus: can.BusABC, timeout: float) -> tuple[int, bytes] | None:
+    """The next frame through python-can's ``recv``, waiting up to ``timeout``."""
+    message = bus.recv(timeout=timeout)
+    if message is None:
+        return None
+    can_id = message.arbitration_id
+    if message.is_extended_id:
+        can_id |= CAN_EFF_FLAG
+    if message.is_remote_frame:
+        can_id |= CAN_RTR_FLAG
+    if message.is_error_frame:
+        can_id |= CAN_ERR_FLAG
+    return can_id, bytes(message.data)
 
 
 def _is_backpressure(exc: can.CanError) -> bool:
