@@ -514,6 +514,37 @@ def test_a_withdrawn_call_is_cancelled_in_the_worker_and_never_answered(
         ours.close()
 
 
+def test_a_worker_lets_its_estops_go_once_every_bus_has_one(monkeypatch) -> None:
+    """The gateway e-stops every bus, one message each: the worker's reader waits for the
+    first exchanges only once each of its buses has been handed its e-stop (a wait after
+    the first would leave the second's e-stop in the socket), then reads on (``worker``
+    rule 6). Built here, its bus threads not started (their ports never opened): the e-stops
+    wait in their inboxes."""
+    config = parse_config({
+        "gateway": {"name": "gw1", "workers": 2},
+        "buses": [
+            {"name": name, "transport": "serial", "port": f"/dev/busgate-{name}",
+             "baudrate": 921_600, "devices": [{"name": f"la{n}", "kind": "inspire_la", "id": 1}]}
+            for n, name in enumerate(("uart0", "uart1"))
+        ],
+    })  # fmt: skip
+    ours, theirs = link.pair()
+    worker = Worker(link.Reader(theirs), config, ["uart0", "uart1"])
+    waited: list[str] = []
+    for name, runner in worker.runners.items():
+        monkeypatch.setattr(runner, "estop_sent", lambda timeout, name=name: waited.append(name))
+    try:
+        worker._carry_out(("call", 1, "uart0", "estop", (), {}))
+        assert waited == []
+        worker._carry_out(("call", 2, "uart1", "estop", (), {}))
+        assert sorted(waited) == ["uart0", "uart1"]
+        worker._carry_out(("call", 3, "uart0", "estop", (), {}))  # the next e-stop's first
+        assert len(waited) == 2
+    finally:
+        theirs.close()
+        ours.close()
+
+
 def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_returns(
     lone_worker: WorkerProcess, monkeypatch
 ) -> None:

@@ -26,6 +26,10 @@ them. Rules of this file:
    the worker goes on.
 5. When a bus of the gateway asks for SCHED_FIFO, every thread of the worker runs under it
    (``assembly.realtime_process``), as the daemon's do.
+6. The gateway e-stops every bus at once, one message each. Once every bus of the worker has
+   been handed its e-stop, the reader waits for their first exchanges before it reads on
+   (``runner.let_estops_go``, ``runner`` rule 1), so that the bus threads have the interpreter
+   first; a wait after each would leave the next buses' e-stops in the socket meanwhile.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from typing import Any, NoReturn
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler import authority
-from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import (
     STOP_TIMEOUT_S,
@@ -70,6 +74,8 @@ class Worker:
         self.outbox = link.Outbox(reader.sock, "worker-send")
         #: The daemon's calls not yet answered, by id (rule 1: a withdrawal cancels one).
         self._calls: dict[int, Future] = {}
+        #: The buses handed an e-stop since the reader last let them go (rule 6).
+        self._estops_handed: set[str] = set()
         self.runners: dict[str, BusRunner] = {
             bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
             for bus in config.buses
@@ -125,6 +131,8 @@ class Worker:
             if call_id is not None and isinstance(result, Future):
                 self._calls[call_id] = result
                 result.add_done_callback(partial(self._answer, call_id))
+            if method == "estop":
+                self._handed_estop(bus)
         elif kind == "withdraw":
             withdrawn = self._calls.get(message[1])
             if withdrawn is not None:
@@ -137,6 +145,13 @@ class Worker:
                 log.info("bus %s: claims %s refused here: %s", bus, op, exc)
         else:
             log.error("worker: refused a message it does not know: %r", message[:1])
+
+    def _handed_estop(self, bus: str) -> None:
+        """Rule 6: once every bus has its e-stop, wait for their first exchanges."""
+        self._estops_handed.add(bus)
+        if self._estops_handed == self.runners.keys():
+            self._estops_handed.clear()
+            let_estops_go(self.runners.values())
 
     def _answer(self, call_id: int, future: Future) -> None:
         self._calls.pop(call_id, None)
