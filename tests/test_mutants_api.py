@@ -12,7 +12,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections import deque
 from concurrent.futures import Future
+from types import SimpleNamespace
 
 import pytest
 from pydantic import BaseModel, Field, ValidationError
@@ -20,6 +22,7 @@ from pydantic import BaseModel, Field, ValidationError
 from busgate.codecs import inspire_la as la
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api import commands
+from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import (
     MAX_PAYLOAD,
     SCAN_MAX_S,
@@ -39,6 +42,8 @@ from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.authority import Authority, ClaimTable
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service.assembly import build_bus
+from busgate.schemas.config import parse_config
 from busgate.schemas.replies import error_code
 from tests import test_api
 from tests.stand_in_driver import StandInDriver
@@ -261,6 +266,37 @@ def test_an_estop_without_a_sender_is_logged_without_one(caplog):
     with caplog.at_level("WARNING"):
         assert GatewayApi("gw", {}).estop() == []
     assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus"]
+
+
+def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monkeypatch):
+    """The payload only names the sender (for the log line and the event): a large one, up
+    to 64 KiB of JSON to parse, would otherwise hold the e-stop up by milliseconds."""
+    config = parse_config({
+        "gateway": {"name": "gw"},
+        "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null", "baudrate": 921_600,
+                   "devices": [{"name": "la1", "kind": "inspire_la", "id": 1}]}],
+    })  # fmt: skip
+    runner = build_bus(config.buses[0])  # never started: its e-stop waits in its inbox
+    events: deque[DeviceEvent] = deque()
+    bridge = ZenohBridge(config, GatewayApi("gw", {"uart0": runner}), {"uart0": runner},
+                         events, deque())  # fmt: skip
+    order: list[str] = []
+    handed = runner.estop
+    monkeypatch.setattr(runner, "estop", lambda: order.append("handed") or handed())
+
+    class Payload:
+        def to_bytes(self) -> bytes:
+            order.append("read")
+            return b'{"client": "teleop"}'
+
+    sample = SimpleNamespace(payload=Payload(), key_expr="busgate/gw/estop")
+    with caplog.at_level("WARNING"):
+        bridge._on_estop(sample)
+    assert order == ["handed", "read"]
+    assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus from teleop"]
+    assert [(e.type, e.fields) for e in events] == [
+        ("estop", {"key": "busgate/gw/estop", "client": "teleop"})
+    ]
 
 
 # -- the authority's refusals and its log ----------------------------------------------------

@@ -4,8 +4,9 @@ Rules of this file:
 
 1. Zenoh callbacks run on zenoh's threads and only hand work over: a command is validated and
    handed to its bus runner (non-blocking), a follow target is stored, an e-stop is queued
-   ahead of everything. Replies, publications and liveliness changes happen on the asyncio
-   loop's thread, never on a bus thread or inside a zenoh callback.
+   ahead of everything (before its payload, which only names its sender, is read). Replies,
+   publications and liveliness changes happen on the asyncio loop's thread, never on a bus
+   thread or inside a zenoh callback.
 2. Every query gets exactly one reply, then is dropped. The buses answer every command in
    bounded time (a deadline to start, a bounded duration once started); should one not have
    finished in ``REPLY_TIMEOUT_S`` all the same (a bug), its future is cancelled, so that it
@@ -33,7 +34,7 @@ from typing import Any
 import zenoh
 
 from busgate.errors import RefusedError
-from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.commands import GatewayApi, log_estop
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.refusals import RefusalReports
@@ -319,15 +320,20 @@ class ZenohBridge:
         self._report_put(device, key, payload, refused)
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
+        stopped = self.api.stop_every_bus()  # first: the payload only names its sender
         payload = sample.payload.to_bytes()
-        self.estop(_sender(payload), str(sample.key_expr))
+        self._told_estop(stopped, _sender(payload), str(sample.key_expr))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
 
     def estop(self, sender: str | None, key: str) -> list[Future]:
         """Every device of the gateway stopped, ahead of everything, told as an ``estop``
         event naming where it came from (``key``); any thread."""
-        stopped = self.api.estop(sender)
+        return self._told_estop(self.api.stop_every_bus(), sender, key)
+
+    def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
+        """The e-stop's log line and ``estop`` event, once every bus has it."""
+        log_estop(sender)
         fields = {"key": key} | ({"client": sender} if sender else {})
         self.events.append(DeviceEvent("*", "estop", fields))
         return stopped

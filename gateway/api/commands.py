@@ -103,6 +103,11 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     return wrapper
 
 
+def log_estop(sender: str | None) -> None:
+    """The e-stop's log line, naming the client that sent it when known."""
+    log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
+
+
 class GatewayApi:
     """Every device and bus of the gateway, as clients see them."""
 
@@ -264,9 +269,15 @@ class GatewayApi:
     def estop(self, sender: str | None = None) -> list[Future]:
         """Stop every device of the gateway, ahead of everything (its log line too); never
         refused."""
+        stopped = self.stop_every_bus()
+        log_estop(sender)
+        return stopped
+
+    def stop_every_bus(self) -> list[Future]:
+        """The e-stop without its log line (``log_estop``): every bus's handed over, and let
+        go (rule 4: they have the interpreter first)."""
         stopped = [runner.estop() for runner in self.runners.values()]
-        let_estops_go(self.runners.values())  # rule 4: they have the interpreter first
-        log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
+        let_estops_go(self.runners.values())
         return stopped
 
     def reset_estop(self, sender: str | None = None) -> list[Future]:
