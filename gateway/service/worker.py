@@ -30,12 +30,17 @@ them. Rules of this file:
    been handed its e-stop, the reader waits for their first exchanges before it reads on
    (``runner.let_estops_go``, ``runner`` rule 1), so that the bus threads have the interpreter
    first; a wait after each would leave the next buses' e-stops in the socket meanwhile.
+7. What start-up made (the modules, the config, the buses) lives as long as the worker and is
+   frozen out of the garbage collector once the buses run (``gc.freeze``), as the daemon's
+   is: a full collection walking it holds the interpreter, every bus thread of the worker
+   with it, for milliseconds.
 """
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import gc
 import logging
 import os
 import signal
@@ -97,6 +102,7 @@ class Worker:
             for runner in self.runners.values():
                 runner.start()
             mirror.start()
+            gc.freeze()  # rule 7
             while (received := self.reader.receive()) is not None:
                 for message in link.unbatched(received):
                     try:
