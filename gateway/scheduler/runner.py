@@ -58,6 +58,7 @@ from busgate.gateway.bus.clock import (
     wake_lead,
     woke_for,
 )
+from busgate.gateway.bus.flag import Flag
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
@@ -156,11 +157,11 @@ class BusRunner:
         )
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
-        self._wake = threading.Event()
+        self._wake = Flag()
         #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
-        self._estop_due = threading.Event()
+        self._estop_due = Flag()
         #: The last e-stop handed over has had its first exchange (``estop_sent``).
-        self._estop_sent = threading.Event()
+        self._estop_sent = Flag()
         #: The wait under way has slept (only such a wait teaches the wake-up lead).
         self._paused = False
         #: Events were published during the wait under way: it ends, to decide again.

@@ -31,6 +31,7 @@ from collections import deque
 from typing import Any
 
 import busgate.errors as errors_module
+from busgate.gateway.bus.flag import Flag
 
 log = logging.getLogger(__name__)
 
@@ -172,8 +173,8 @@ class Outbox:
     def __init__(self, sock: socket.socket, name: str) -> None:
         self._sock = sock
         self._queue: deque[tuple] = deque(maxlen=self.BACKLOG)
-        self._ready = threading.Event()
-        self._urgent = threading.Event()
+        self._ready = Flag()
+        self._urgent = Flag()
         self._lock = threading.Lock()  # the queue's head and what is being sent
         self._sending = False
         self._closed = False
