@@ -12,8 +12,10 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import socket
 import struct
 import threading
+import time
 
 import can
 import pytest
@@ -22,12 +24,17 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.can_frame import CanFrame
 from busgate.errors import BusIOError
 from busgate.gateway.bus.can_owner import (
+    ARRIVAL_AGE_MAX_S,
     CAN_EFF_FLAG,
     CAN_ERR_BUSOFF,
     CAN_ERR_FLAG,
     CAN_RTR_FLAG,
     CANFD_MTU,
+    SO_TIMESTAMPNS,
+    TIMESPEC,
+    _arrival,
 )
+from busgate.gateway.bus.clock import now
 from tests.benchmarks import unix_can
 from tests.test_mutants_bus import (
     ACK,
@@ -127,6 +134,34 @@ def test_a_reply_awaited_on_the_socket_ends_the_exchange(socketcan):
     assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)]
     can_id, length, data = struct.unpack("=IB3x8s", sent[0])
     assert (can_id, data[:length]) == (1, request.wire.data)  # standard, no flags
+
+
+def test_a_frame_nobody_asked_for_is_dated_by_its_arrival_not_by_the_look(socketcan):
+    owner, heard, far = socketcan
+    before = now()
+    far.send(sent_as_socketcan(HEARTBEAT))
+    time.sleep(0.1)  # the look comes later, as an idle look comes up to idle_batch_s later
+    looked = now()
+    owner.take_unsolicited()
+    [(event, arrival)] = heard
+    assert event == zcan.HeartbeatPosition(1, 7)
+    assert before - 0.001 <= arrival < looked - 0.05
+
+
+def receive_time(wall_s: float, level: int = socket.SOL_SOCKET, kind: int = SO_TIMESTAMPNS):
+    """``recvmsg``'s ancillary data carrying a frame's receive time ``wall_s``."""
+    seconds = int(wall_s)
+    return [(level, kind, TIMESPEC.pack(seconds, int((wall_s - seconds) * 1e9)))]
+
+
+def test_a_receive_time_that_cannot_be_right_leaves_the_frame_dated_when_taken():
+    assert now() - 0.21 < _arrival(receive_time(time.time() - 0.2)) < now() - 0.19
+    assert _arrival([]) is None  # the socket was not asked for receive times
+    assert _arrival(receive_time(time.time(), kind=SO_TIMESTAMPNS + 1)) is None
+    assert _arrival(receive_time(time.time(), level=socket.SOL_SOCKET + 1)) is None
+    assert _arrival([(socket.SOL_SOCKET, SO_TIMESTAMPNS, b"\0" * 4)]) is None  # cut short
+    assert _arrival(receive_time(time.time() + 0.5)) is None  # the wall clock was set back
+    assert _arrival(receive_time(time.time() - ARRIVAL_AGE_MAX_S - 0.5)) is None  # or on
 
 
 def test_a_socket_whose_far_end_is_gone_is_a_lost_link(socketcan):

@@ -12,8 +12,8 @@ Rules of this file:
    stays full the request fails like a timeout. A lost adapter or bus-off is a link failure:
    the bus is closed and ``BusIOError`` raised so the runner reconnects.
 3. Frames nobody asked for (heartbeats, alarm reports) are decoded and handed to
-   ``on_unsolicited`` with their arrival time, both while waiting for a reply and while idle
-   (every ``idle_batch_s``). Taking what has already arrived never waits: a look is a
+   ``on_unsolicited`` with their arrival time (rule 7), both while waiting for a reply and
+   while idle (every ``idle_batch_s``). Taking what has already arrived never waits: a look is a
    ``recv(timeout=0)`` where that never waits (SocketCAN, our SLCAN reads, a bus with no
    descriptor such as ``virtual``); any other adapter with a descriptor is asked through it
    first, since a serial one (python-can's own slcan, ``serial``, ``seeedstudio`` …) blocks a
@@ -23,13 +23,20 @@ Rules of this file:
 5. An SLCAN adapter is python-can's ``slcan`` interface with its reads replaced
    (``slcan.SlcanBus``: a chunk a read, not a byte), made as ``can.Bus`` makes python-can's
    (the same arguments, python-can's configuration read the same way).
-6. On SocketCAN, frames are read from python-can's socket here, one ``recv`` a frame and no
-   ``can.Message``: python-can's ``recv`` asks ``select`` first and builds a message with its
-   timestamp (``recvmsg``), a third of a heartbeat frame's cost, none of which the owner uses.
-   The socket is python-can's, opened and set up by it (error frames, FD), and it still
-   sends; a bus given ``can_filters`` is read through python-can, which applies them. Every
-   frame, however read, is one ``(identifier, data)``: the identifier with SocketCAN's flags
-   (extended, remote, error), the data as the frame carries it.
+6. On SocketCAN, frames are read from python-can's socket here, one ``recvmsg`` a frame and
+   no ``can.Message``: python-can's ``recv`` asks ``select`` first and builds a message, a
+   third of a heartbeat frame's cost, none of which the owner uses. The socket is
+   python-can's, opened and set up by it (error frames, FD, the kernel's receive time), and it
+   still sends; a bus given ``can_filters`` is read through python-can, which applies them.
+   Every frame, however read, is one ``(identifier, data, arrival)``: the identifier with
+   SocketCAN's flags (extended, remote, error), the data as the frame carries it.
+7. A frame is dated by its arrival: on SocketCAN, the kernel's receive time that python-can
+   asks for (``SO_TIMESTAMPNS``, the wall clock) brought to the bus clock; else, or when that
+   time cannot be right (none, ahead of now, or older than ``ARRIVAL_AGE_MAX_S``: the wall
+   clock was set meanwhile), the moment it is taken. A look while idle comes every
+   ``idle_batch_s``: dated by the look, a heartbeat's state would carry a time up to that much
+   after the heartbeat, and two states' times, which clients take apart for a velocity, would
+   jitter by as much.
 """
 
 from __future__ import annotations
@@ -69,9 +76,19 @@ CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 SOCKETCAN_HEADER = struct.Struct("=IB3x")
 #: The largest frame a SocketCAN socket gives (a CAN FD frame).
 CANFD_MTU = 72
-#: Takes the next frame, waiting up to its argument (s): ``(identifier with SocketCAN's flags,
-#: data)``, or ``None`` when none came (``frames_of``).
-TakeFrame = Callable[[float], tuple[int, bytes] | None]
+#: The socket option python-can's SocketCAN bus sets for each frame's receive time
+#: (asm-generic/socket.h), and that time as it comes: a ``struct timespec`` of the wall clock.
+SO_TIMESTAMPNS = 35
+TIMESPEC = struct.Struct("@ll")
+RECEIVE_TIME_SPACE = socket.CMSG_SPACE(TIMESPEC.size)
+#: A frame's receive time older than this when it is taken is not believed (rule 7): frames do
+#: not wait that long in the socket while the bus thread runs, so the wall clock was set.
+ARRIVAL_AGE_MAX_S = 1.0
+#: A frame taken: its identifier with SocketCAN's flags, its data, and its arrival on the bus
+#: clock (``None``: dated when taken; rule 7).
+TakenFrame = tuple[int, bytes, float | None]
+#: Takes the next frame, waiting up to its argument (s); ``None`` when none came (``frames_of``).
+TakeFrame = Callable[[float], TakenFrame | None]
 #: The interfaces with a descriptor whose ``recv(timeout=0)`` never waits (rule 3; slcan is
 #: ours, ``SlcanBus``).
 LOOK_NEVER_WAITS = frozenset({"socketcan", "slcan"})
@@ -226,18 +243,16 @@ class CanBusOwner(BusOwner):
                 if waiting or self._fd is not None or self._has_line():
                     continue  # the wait ended (then one look more), or a line that was no frame
                 return None
-            event = self._decode(*frame)
+            can_id, data, arrival = frame
+            event = self._decode(can_id, data)
             if event is None:
                 continue
-            if expected is None:
-                unsolicited(event, now())
-                continue
-            if expected.matches(event):
+            if expected is not None and expected.matches(event):
                 answer.append(event)
                 if len(answer) >= expected.frames:
                     return tuple(answer)
             else:
-                unsolicited(event, now())
+                unsolicited(event, now() if arrival is None else arrival)
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when a look never waits)."""
@@ -292,24 +307,38 @@ def frames_of(interface: str, bus: can.BusABC) -> TakeFrame:
     return partial(_take_from_bus, bus)
 
 
-def _take_from_socket(sock: socket.socket, timeout: float) -> tuple[int, bytes] | None:
-    """The next frame on SocketCAN's socket, waiting up to ``timeout``."""
+def _take_from_socket(sock: socket.socket, timeout: float) -> TakenFrame | None:
+    """The next frame on SocketCAN's socket, waiting up to ``timeout``, with its arrival."""
     if timeout > 0 and not select.select([sock], [], [], timeout)[0]:
         return None
     try:
-        frame = sock.recv(CANFD_MTU, socket.MSG_DONTWAIT)
+        frame, receive_time, _, _ = sock.recvmsg(CANFD_MTU, RECEIVE_TIME_SPACE, socket.MSG_DONTWAIT)
     except BlockingIOError:
         return None
     if not frame:  # SocketCAN never gives an empty frame: the socket's far end is gone
         raise can.CanOperationError("the interface's socket was closed")
     can_id, length = SOCKETCAN_HEADER.unpack_from(frame)
     if can_id & CAN_RTR_FLAG:  # its length asks for data; it carries none
-        return can_id, b""
-    return can_id, frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
+        return can_id, b"", _arrival(receive_time)
+    data = frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
+    return can_id, data, _arrival(receive_time)
 
 
-def _take_from_bus(bus: can.BusABC, timeout: float) -> tuple[int, bytes] | None:
-    """The next frame through python-can's ``recv``, waiting up to ``timeout``."""
+def _arrival(receive_time: list[tuple[int, int, bytes]]) -> float | None:
+    """The kernel's receive time of a frame (``recvmsg``'s ancillary data) on the bus clock;
+    ``None`` when there is none or it cannot be right (rule 7)."""
+    for level, kind, timespec in receive_time:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(timespec) >= TIMESPEC.size:
+            seconds, nanoseconds = TIMESPEC.unpack_from(timespec)
+            age = time.time() - seconds - nanoseconds * 1e-9
+            if 0.0 <= age <= ARRIVAL_AGE_MAX_S:
+                return now() - age
+    return None
+
+
+def _take_from_bus(bus: can.BusABC, timeout: float) -> TakenFrame | None:
+    """The next frame through python-can's ``recv``, waiting up to ``timeout``, dated when
+    taken (``Message.timestamp``'s clock is the interface's own)."""
     message = bus.recv(timeout=timeout)
     if message is None:
         return None
@@ -320,7 +349,7 @@ def _take_from_bus(bus: can.BusABC, timeout: float) -> tuple[int, bytes] | None:
         can_id |= CAN_RTR_FLAG
     if message.is_error_frame:
         can_id |= CAN_ERR_FLAG
-    return can_id, bytes(message.data)
+    return can_id, bytes(message.data), None
 
 
 def _is_backpressure(exc: can.CanError) -> bool:

@@ -17,11 +17,14 @@ the client here. Clocks are comparable across processes (perf_counter is CLOCK_M
    interpreter not), and with each bus's simulator in a process of its own behind
    ``unix_can.py`` (SocketCAN's frames over a Unix socket, standing in for SocketCAN, which
    this host lacks).
+4. The same 20 devices apart: how far each state's ``ts`` is from its device's state before
+   (``heartbeat_steps_apart``), where the heartbeats come every 10 ms.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -31,6 +34,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -211,17 +215,19 @@ def estop_latency(scratch: Path, rounds: int = 100) -> dict[str, list[float]]:
 
 
 SUBSCRIBER = """
-import sys, time, zenoh
+import json, sys, time, zenoh
 from busgate.schemas.zenoh_session import session_config
-from busgate.schemas.config import parse_config
 session = zenoh.open(session_config(connect=[sys.argv[1]]))
-count = [0]
-subscriber = session.declare_subscriber("busgate/bench/dev/*/state",
-                                        lambda s: count.__setitem__(0, count[0] + 1))
+times = {}  # each device's states' ts, in the order they came
+def take(sample):
+    state = json.loads(sample.payload.to_bytes())
+    times.setdefault(str(sample.key_expr), []).append(state["ts"])
+subscriber = session.declare_subscriber("busgate/bench/dev/*/state", take)
 print("ready", flush=True)
 time.sleep(float(sys.argv[2]))
-print(count[0], flush=True)
 subscriber.undeclare()
+print(sum(map(len, times.values())), flush=True)
+print(json.dumps([b - a for ts in times.values() for a, b in zip(ts, ts[1:])]), flush=True)
 session.close()
 """
 
@@ -234,8 +240,9 @@ def telemetry_cpu(seconds: float = 10.0) -> tuple[float, float]:
     sims = [CanSimulator(zlac706_can, [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)],
                          bus=can.Bus(interface="virtual", channel=ch)).start() for ch in channels]
     try:
-        return _daemon_cpu(_heartbeat_config("virtual", channels), seconds,
-                           [sim._thread.native_id for sim in sims])
+        cpu, rate, _ = _daemon_run(_heartbeat_config("virtual", channels), seconds,
+                                   [sim._thread.native_id for sim in sims])
+        return cpu, rate
     finally:
         for sim in sims:
             sim.stop()
@@ -263,6 +270,25 @@ def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
     """``telemetry_cpu`` with each bus's five ZLAC706 in a process of their own, behind a
     ``unix_can`` bus (SocketCAN's frames over a Unix socket: this host has no ``vcan``), so
     that the daemon's CPU is this process's and nothing of the simulators is in it."""
+    with _apart_simulators() as channels:
+        cpu, rate, _ = _daemon_run(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+    return cpu, rate
+
+
+def heartbeat_steps_apart(seconds: float = 10.0) -> dict[str, float]:
+    """``telemetry_cpu_apart``'s states, each device's apart in time: how far each state's
+    ``ts`` is from the one before of its device (the heartbeats come every 10 ms), in ms at
+    p1, p50 and p99, and the share within 1 ms of 10 ms."""
+    with _apart_simulators() as channels:
+        _, _, steps = _daemon_run(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+    near = sum(abs(step - 0.010) <= 0.001 for step in steps) / len(steps)
+    return {"p1": ms(steps, .01), "p50": ms(steps, .5), "p99": ms(steps, .99),
+            "within 1 ms of 10 ms": round(near, 3), "steps": len(steps)}
+
+
+@contextlib.contextmanager
+def _apart_simulators() -> Iterator[list[str]]:
+    """Four buses' channels, each with five ZLAC706 simulated in a process of their own."""
     unix_can.register()
     channels = [f"{os.getpid()}-{i}" for i in range(4)]
     here = str(Path(__file__).parent)
@@ -274,7 +300,7 @@ def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
     try:
         for sim in sims:
             sim.stdout.readline()  # listening
-        return _daemon_cpu(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+        yield channels
     finally:
         for sim in sims:
             sim.stdin.close()
@@ -294,10 +320,11 @@ def _heartbeat_config(interface: str, channels: list[str]):
     })
 
 
-def _daemon_cpu(config, seconds: float, sim_ids: list[int]) -> tuple[float, float]:
-    """The daemon on ``config`` in this process, a subscriber counting its states in a child
+def _daemon_run(config, seconds: float, sim_ids: list[int]) -> tuple[float, float, list[float]]:
+    """The daemon on ``config`` in this process, a subscriber taking its states in a child
     for ``seconds``: the daemon's CPU (this process's but for the threads ``sim_ids``) in % of
-    a core, and the states a second the subscriber took."""
+    a core, the states a second the subscriber took, and each state's ``ts`` less the one
+    before of its device (s)."""
     loop, stop, ready = asyncio.new_event_loop(), asyncio.Event(), threading.Event()
     daemon = threading.Thread(target=loop.run_until_complete,
                               args=(serve(config, ready=ready, stop=stop),))
@@ -314,7 +341,8 @@ def _daemon_cpu(config, seconds: float, sim_ids: list[int]) -> tuple[float, floa
         received = int(subscriber.stdout.readline())
         elapsed = time.monotonic() - started
         daemon_cpu = (time.process_time() - cpu) - (sum(map(thread_cpu_s, sim_ids)) - sim_cpu)
-        return 100 * daemon_cpu / elapsed, received / seconds
+        steps = json.loads(subscriber.stdout.readline())
+        return 100 * daemon_cpu / elapsed, received / seconds, steps
     finally:
         subscriber.wait(10)
         loop.call_soon_threadsafe(stop.set)
@@ -338,6 +366,7 @@ def main() -> int:
             cpu, rate = measure()
             print(f"20 devices {where}, heartbeats every 10 ms: {rate:.0f} state messages/s "
                   f"published, daemon CPU {cpu:.1f} % of one core")
+        print(f"a device's states apart in time (ts, ms): {heartbeat_steps_apart()}")
     return 0
 
 

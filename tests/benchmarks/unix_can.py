@@ -22,6 +22,7 @@ import struct
 import time
 
 import can
+from can.interfaces.socketcan.constants import SO_TIMESTAMPNS
 
 #: The interface whose class this bus stands in for (``register``).
 INTERFACE = "socketcan"
@@ -47,6 +48,8 @@ class UnixCanBus(can.BusABC):
             except OSError as exc:
                 self.socket.close()
                 raise can.CanInitializationError(f"no bus at {channel}: {exc}") from exc
+        # As python-can's SocketCAN bus does: the kernel dates each frame it receives.
+        self.socket.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.channel_info = f"unix {channel}"
         super().__init__(channel=channel, **kwargs)
 
