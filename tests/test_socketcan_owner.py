@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import select
 import socket
 import struct
 import threading
@@ -23,6 +24,7 @@ import pytest
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.can_frame import CanFrame
 from busgate.errors import BusIOError
+from busgate.gateway.bus import can_owner
 from busgate.gateway.bus.can_owner import (
     ARRIVAL_AGE_MAX_S,
     CAN_EFF_FLAG,
@@ -146,6 +148,40 @@ def test_a_frame_nobody_asked_for_is_dated_by_its_arrival_not_by_the_look(socket
     [(event, arrival)] = heard
     assert event == zcan.HeartbeatPosition(1, 7)
     assert before - 0.001 <= arrival < looked - 0.05
+
+
+def test_an_exchange_ends_when_its_reply_came_not_when_its_thread_took_it(
+    socketcan, monkeypatch
+):
+    owner, _, far = socketcan
+    replied: list[float] = []
+
+    def node() -> None:  # node 1 answers at once; the owner's thread wakes 50 ms late
+        far.recv(CANFD_MTU)
+        far.send(sent_as_socketcan(ACK))
+        replied.append(now())
+
+    class LateSelect:
+        @staticmethod
+        def select(*args):
+            ready = select.select(*args)
+            time.sleep(0.05)
+            return ready
+
+    monkeypatch.setattr(can_owner, "select", LateSelect)
+    answering = threading.Thread(target=node, daemon=True)
+    answering.start()
+    exchange = finished(lambda: owner.exchange(speed_write()))
+    answering.join(5)
+    assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    assert exchange.start < exchange.end < replied[0] + 0.02
+
+
+def test_no_frame_is_dated_before_the_frame_before_it(socketcan):
+    owner, _, _ = socketcan
+    first = owner._date(None)  # dated when taken
+    assert owner._date(first - 0.5) == first  # a receive time before it: dated with it
+    assert owner._date(first + 0.001) == first + 0.001
 
 
 def receive_time(wall_s: float, level: int = socket.SOL_SOCKET, kind: int = SO_TIMESTAMPNS):

@@ -33,16 +33,19 @@ Rules of this file:
 7. A frame is dated by its arrival: on SocketCAN, the kernel's receive time that python-can
    asks for (``SO_TIMESTAMPNS``, the wall clock) brought to the bus clock; else, or when that
    time cannot be right (none, ahead of now, or older than ``ARRIVAL_AGE_MAX_S``: the wall
-   clock was set meanwhile), the moment it is taken. A look while idle comes every
+   clock was set meanwhile), the moment it is taken; and never before the frame before it,
+   so that a device's times only go forward. A look while idle comes every
    ``idle_batch_s``: dated by the look, a heartbeat's state would carry a time up to that much
    after the heartbeat, and two states' times, which clients take apart for a velocity, would
-   jitter by as much.
+   jitter by as much. An exchange ends when its reply's last frame is dated: a heartbeat
+   taken after the reply came after it, and is dated so.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import math
 import select
 import socket
 import struct
@@ -125,6 +128,8 @@ class CanBusOwner(BusOwner):
         #: How frames are taken while open (``frames_of``; rule 6).
         self._take: TakeFrame | None = None
         self._decoder = codec.ReplyDecoder()
+        #: The time given to the last frame dated (rule 7): none is dated before it.
+        self._dated = -math.inf
 
     @property
     def is_open(self) -> bool:
@@ -184,7 +189,9 @@ class CanBusOwner(BusOwner):
                 raise DeviceTimeoutError(
                     f"no reply from node {source} on {self.port}", device_id=source
                 )
-            end = now()
+            # When the reply's last frame came (rule 7); one that came before the request
+            # went was a late answer to an earlier one, taken as this one's.
+            end = max(self._dated, start)
         return Exchange(request, start, end, answer or ())
 
     def take_unsolicited(self) -> None:
@@ -247,12 +254,21 @@ class CanBusOwner(BusOwner):
             event = self._decode(can_id, data)
             if event is None:
                 continue
+            when = self._date(arrival)
             if expected is not None and expected.matches(event):
                 answer.append(event)
                 if len(answer) >= expected.frames:
                     return tuple(answer)
             else:
-                unsolicited(event, now() if arrival is None else arrival)
+                unsolicited(event, when)
+
+    def _date(self, arrival: float | None) -> float:
+        """A frame's time (rule 7): its arrival, else now, and never before the frame before."""
+        dated = now() if arrival is None else arrival
+        if dated < self._dated:
+            dated = self._dated
+        self._dated = dated
+        return dated
 
     def _input_waiting(self) -> bool:
         """Whether the adapter may have a frame for us (always, when a look never waits)."""
