@@ -140,6 +140,8 @@ def test_a_reply_awaited_on_the_socket_ends_the_exchange(socketcan):
 
 def test_a_frame_nobody_asked_for_is_dated_by_its_arrival_not_by_the_look(socketcan):
     owner, heard, far = socketcan
+    tapped: list[tuple] = []
+    owner.tap = tapped.append  # as the flight recorder takes every frame
     before = now()
     far.send(sent_as_socketcan(HEARTBEAT))
     time.sleep(0.1)  # the look comes later, as an idle look comes up to idle_batch_s later
@@ -148,6 +150,7 @@ def test_a_frame_nobody_asked_for_is_dated_by_its_arrival_not_by_the_look(socket
     [(event, arrival)] = heard
     assert event == zcan.HeartbeatPosition(1, 7)
     assert before - 0.001 <= arrival < looked - 0.05
+    assert tapped == [(arrival, "rx", CanFrame.parse(HEARTBEAT).data, 1)]
 
 
 def test_an_exchange_ends_when_its_reply_came_not_when_its_thread_took_it(

@@ -251,10 +251,10 @@ class CanBusOwner(BusOwner):
                     continue  # the wait ended (then one look more), or a line that was no frame
                 return None
             can_id, data, arrival = frame
-            event = self._decode(can_id, data)
+            when = self._date(arrival)
+            event = self._decode(can_id, data, when)
             if event is None:
                 continue
-            when = self._date(arrival)
             if expected is not None and expected.matches(event):
                 answer.append(event)
                 if len(answer) >= expected.frames:
@@ -285,9 +285,10 @@ class CanBusOwner(BusOwner):
         acknowledgement, came first and made its look find nothing)."""
         return isinstance(self._bus, SlcanBus) and self._bus.has_line
 
-    def _decode(self, can_id: int, data: bytes) -> object | None:
-        """The event a frame makes (a CAN frame makes one), ``None`` when it makes none (an
-        error frame, a frame no reply can be, bytes the codec discarded: counted)."""
+    def _decode(self, can_id: int, data: bytes, when: float) -> object | None:
+        """The event a frame that came ``when`` makes (a CAN frame makes one), ``None`` when it
+        makes none (an error frame, a frame no reply can be, bytes the codec discarded:
+        counted)."""
         counters = self.counters
         if can_id & CAN_ERR_FLAG:
             if can_id & CAN_ERR_BUSOFF:
@@ -300,7 +301,7 @@ class CanBusOwner(BusOwner):
             counters.discarded_bytes += len(data)
             return None
         if self.tap is not None:
-            self.tap((now(), RX, data, can_id))
+            self.tap((when, RX, data, can_id))
         event = self._decoder.decode(CanFrame(can_id, data))
         if isinstance(event, Discarded):
             counters.discarded_bytes += len(event.data)
