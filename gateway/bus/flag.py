@@ -32,9 +32,12 @@ class Flag:
         self._lock.acquire()  # lowered
 
     def set(self) -> None:
+        lock = self._lock
+        if not lock.locked():  # raised already: the usual case of a busy bus, and no raise
+            return
         try:  # noqa: SIM105 (contextlib.suppress would cost a context manager a raise)
-            self._lock.release()
-        except RuntimeError:  # raised already
+            lock.release()
+        except RuntimeError:  # raised by another thread meanwhile
             pass
 
     def clear(self) -> None:
