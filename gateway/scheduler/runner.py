@@ -4,10 +4,11 @@ Rules of this file:
 
 1. The bus thread owns the planner, the drivers and the bus owner. Other threads (zenoh's, the
    event loop) only call ``submit`` / ``estop`` / ``follow`` / ``stop``, which hand work over
-   through a lock-free inbox and a wake-up event and return at once: nothing they do can delay
-   a frame. A caller that hands e-stops over and has Python of its own to run next (a log
-   line, more messages) first waits, at most ``ESTOP_SENT_S``, for each e-stop's first
-   exchange (``let_estops_go``): waiting, it leaves the bus threads the interpreter.
+   through a lock-free inbox and a wake-up flag (``flag.Flag``) and return at once: nothing
+   they do can delay a frame. A caller that hands e-stops over and has Python of its own to
+   run next (a log line, more messages) first waits, at most ``ESTOP_SENT_S``, for each
+   e-stop's first exchange (``let_estops_go``): waiting, it leaves the bus threads the
+   interpreter.
 2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
    early when new work arrives or a frame nobody asked for brought events (news without events,
    a heartbeat's values, is published in the pause and the wait goes on), then a spin
