@@ -565,6 +565,40 @@ def test_a_worker_freezes_what_its_start_up_made_out_of_the_garbage_collector(
         ours.close()
 
 
+def test_a_workers_mirror_sends_a_new_trajectory_view_or_id_when_told_not_at_its_beat(
+    lone_worker: WorkerProcess, monkeypatch
+) -> None:
+    """``worker`` rule 2: the mirror wakes when a bus thread publishes a new trajectory view
+    or a call is answered, not only for its beat (a minute away here), and a stop wakes it."""
+    monkeypatch.setattr(link, "BEAT_S", 60.0)
+    ours, theirs = link.pair()
+    worker = Worker(link.Reader(theirs), lone_worker.config, ["uart0"])
+    sent: list[tuple] = []
+    monkeypatch.setattr(worker.outbox, "put", lambda message, urgent=False: sent.append(message))
+    runner, done = worker.runners["uart0"], threading.Event()
+    mirror = threading.Thread(target=worker._mirror, args=(done,), daemon=True)
+    mirror.start()
+    try:
+        wait_until(lambda: [m[0] for m in sent] == ["plays", "beat"], 5, "the first turn")
+        runner.plays._publish()  # the bus thread's new snapshot, as after a tick
+        wait_until(lambda: len(sent) == 3, 5, "the new view sent")
+        assert sent[2][:3] == ("plays", "uart0", runner.plays.view)
+        runner.drivers["la0"].device_id = 7  # a command gave it a new id, and was answered
+        answered: Future = Future()
+        answered.set_result({})
+        worker._answer(0, answered)
+        wait_until(lambda: len(sent) == 5, 5, "the answer and the new id sent")
+        assert sent[3][:2] == ("result", 0)
+        assert sent[4][:2] == ("plays", "uart0") and sent[4][3] == {"la0": 7}
+    finally:
+        done.set()
+        worker._mirror_due.set()  # as the worker's run does when it stops
+        mirror.join(5)
+        theirs.close()
+        ours.close()
+    assert not mirror.is_alive()
+
+
 def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_returns(
     lone_worker: WorkerProcess, monkeypatch
 ) -> None:

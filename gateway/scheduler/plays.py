@@ -5,7 +5,8 @@ Rules of this file:
 
 1. Bus thread only. Other threads (the API, the feedback, the next play) read ``playing``,
    ``commanded``, ``held`` and ``refusal`` from a ``PlaysView``, a snapshot the bus thread
-   publishes whole (one assignment) after every change, never from its live tables.
+   publishes whole (one assignment) after every change, never from its live tables; then it
+   calls ``on_view`` (a bus worker's mirror is woken by it: it sends each new view across).
 2. A device plays one trajectory at a time: a new one takes it from its old one (and from its
    follow stream, ended quietly: the trajectory goes on from where the stream was) from the
    next tick on.
@@ -28,7 +29,7 @@ Rules of this file:
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -77,8 +78,9 @@ class Plays:
         #: Device → (the start of the trajectory it was playing, why it was ended) (rule 5).
         self._refusals: dict[str, tuple[float, str]] = {}
         self._held: dict[str, tuple[float, Any]] = {}  # device → its last tick (rule 4)
-        #: The snapshot other threads read (rule 1).
+        #: The snapshot other threads read (rule 1), and what is told of each new one.
         self.view = PlaysView()
+        self.on_view: Callable[[], None] = _nothing
 
     def playing(self, device: str) -> bool:
         """Any thread: ``device`` is in a trajectory (its ticks carry it)."""
@@ -162,6 +164,7 @@ class Plays:
         self.view = PlaysView(
             commanded, dict(self._held), dict(self._refusals), frozenset(self._tickers)
         )
+        self.on_view()
 
     def _leave(self, device: str) -> None:
         ticker = self._tickers.pop(device, None)
@@ -210,3 +213,7 @@ def _ramp_to_zero(field: str, from_s: float, speed: float) -> Sampler:
         return {field: speed * max(0.0, 1 - (t_s - from_s) / RAMP_S)}
 
     return sample
+
+
+def _nothing() -> None:
+    """``on_view`` while nobody asked to be told (a bus in the gateway's own process)."""

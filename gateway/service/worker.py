@@ -13,9 +13,11 @@ them. Rules of this file:
    and a call withdrawn (``withdraw``: cancelled in the daemon) cancels its future here, so
    that a job that has not started never does.
 2. States, events and (with a flight recorder) frames go to the outbox as the bus threads make
-   them; every ``MIRROR_S`` each bus's ``PlaysView`` and device ids, when they changed, and
-   every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open and its
-   statistics (``workers`` rule 1 reads them).
+   them; each bus's ``PlaysView`` and device ids when they changed (looked at when a bus
+   thread published a new view or a call was answered, a ``MIRROR_S`` apart at most often),
+   and every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open
+   and its statistics (``workers`` rule 1 reads them). With no trajectory playing, the
+   mirror thread wakes only for the beat.
 3. When the socket closes (the daemon went), ``stop`` comes or SIGTERM, the buses stop in
    order (streams, safe state, close) and the process ends. SIGTERM only closes the socket's
    reading side, so that the stop is the same whatever the main thread was doing when it
@@ -51,7 +53,8 @@ from concurrent.futures import Future
 from functools import partial
 from typing import Any, NoReturn
 
-from busgate.gateway.bus.clock import tune_interpreter
+from busgate.gateway.bus.clock import now, tune_interpreter
+from busgate.gateway.bus.flag import Flag
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler import authority
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
@@ -66,7 +69,7 @@ from busgate.schemas.config import Config
 
 log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
 
-#: How often each bus's trajectories and device ids are looked at, and sent when changed.
+#: How often at most each bus's trajectories and device ids are looked at (rule 2).
 MIRROR_S = 0.01
 PR_SET_PDEATHSIG = 1
 
@@ -81,11 +84,15 @@ class Worker:
         self._calls: dict[int, Future] = {}
         #: The buses handed an e-stop since the reader last let them go (rule 6).
         self._estops_handed: set[str] = set()
+        #: Something the mirror sends may have changed: a new trajectory view, an answer (rule 2).
+        self._mirror_due = Flag()
         self.runners: dict[str, BusRunner] = {
             bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
             for bus in config.buses
             if bus.name in buses
         }
+        for runner in self.runners.values():
+            runner.plays.on_view = self._mirror_due.set
         if config.recorder is not None:  # the daemon's flight recorder keeps every frame
             for name, runner in self.runners.items():
                 runner.owner.tap = partial(self._frame, name)
@@ -114,6 +121,7 @@ class Worker:
         finally:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # stopping already (rule 3)
             done.set()
+            self._mirror_due.set()
             if mirror.ident is not None:
                 mirror.join()
             stop_together(partial(r.stop, STOP_TIMEOUT_S) for r in self.runners.values())
@@ -161,13 +169,13 @@ class Worker:
 
     def _answer(self, call_id: int, future: Future) -> None:
         self._calls.pop(call_id, None)
-        if future.cancelled():  # withdrawn: the daemon answered its caller already
-            return
-        exc = future.exception()
-        if exc is None:
-            self.outbox.put(("result", call_id, True, future.result()), urgent=True)
-        else:
-            self.outbox.put(("result", call_id, False, link.portable(exc)), urgent=True)
+        if not future.cancelled():  # withdrawn: the daemon answered its caller already
+            exc = future.exception()
+            if exc is None:
+                self.outbox.put(("result", call_id, True, future.result()), urgent=True)
+            else:
+                self.outbox.put(("result", call_id, False, link.portable(exc)), urgent=True)
+        self._mirror_due.set()  # a command may have changed a device's id (rule 2)
 
     def _state(self, bus: str, device: str, state: dict[str, Any]) -> None:
         self.outbox.put(("state", bus, device, state))
@@ -181,8 +189,10 @@ class Worker:
     def _mirror(self, done: threading.Event) -> None:
         """Rule 2: trajectories and ids when they change, the beat every ``BEAT_S``."""
         sent: dict[str, tuple[Any, dict[str, int]]] = {}
-        beats = round(link.BEAT_S / MIRROR_S)
-        for turn in range(sys.maxsize):
+        next_beat = last_turn = now()
+        while not done.is_set():
+            self._mirror_due.clear()  # before the look: what changes after it wakes the next
+            last_turn = now()
             try:
                 for name, runner in self.runners.items():
                     view = runner.plays.view
@@ -191,12 +201,15 @@ class Worker:
                     if last is None or last[0] is not view or last[1] != ids:
                         sent[name] = (view, ids)
                         self.outbox.put(("plays", name, view, ids))
-                if turn % beats == 0:
+                if last_turn >= next_beat:
+                    next_beat = last_turn + link.BEAT_S
                     self.outbox.put(("beat", self._beat()))
             except Exception:  # rule 4
                 log.exception("worker: a mirror turn failed")
-            if done.wait(MIRROR_S):
-                return
+            # Until something changed or the beat is due (stopping raises the flag too); a
+            # change a MIRROR_S after the last turn at the soonest.
+            if self._mirror_due.wait(next_beat - now()):
+                done.wait(last_turn + MIRROR_S - now())
 
     def _beat(self) -> dict[str, tuple]:
         return {
