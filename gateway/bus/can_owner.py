@@ -56,6 +56,7 @@ from types import ModuleType
 from typing import Any, ClassVar
 
 import can
+from can.interfaces.socketcan.constants import SO_TIMESTAMPNS
 
 from busgate.codecs.can_frame import MAX_STANDARD_ID, CanFrame
 from busgate.codecs.framing import Discarded
@@ -79,9 +80,8 @@ CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 SOCKETCAN_HEADER = struct.Struct("=IB3x")
 #: The largest frame a SocketCAN socket gives (a CAN FD frame).
 CANFD_MTU = 72
-#: The socket option python-can's SocketCAN bus sets for each frame's receive time
-#: (asm-generic/socket.h), and that time as it comes: a ``struct timespec`` of the wall clock.
-SO_TIMESTAMPNS = 35
+#: Each frame's receive time, as python-can's SocketCAN bus asks for it (``SO_TIMESTAMPNS``):
+#: a ``struct timespec`` of the wall clock.
 TIMESPEC = struct.Struct("@ll")
 RECEIVE_TIME_SPACE = socket.CMSG_SPACE(TIMESPEC.size)
 #: A frame's receive time older than this when it is taken is not believed (rule 7): frames do
@@ -336,8 +336,9 @@ def _take_from_socket(sock: socket.socket, timeout: float) -> TakenFrame | None:
         raise can.CanOperationError("the interface's socket was closed")
     can_id, length = SOCKETCAN_HEADER.unpack_from(frame)
     if can_id & CAN_RTR_FLAG:  # its length asks for data; it carries none
-        return can_id, b"", _arrival(receive_time)
-    data = frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
+        data = b""
+    else:
+        data = frame[SOCKETCAN_HEADER.size : SOCKETCAN_HEADER.size + length]
     return can_id, data, _arrival(receive_time)
 
 

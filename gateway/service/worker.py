@@ -189,7 +189,7 @@ class Worker:
     def _mirror(self, done: threading.Event) -> None:
         """Rule 2: trajectories and ids when they change, the beat every ``BEAT_S``."""
         sent: dict[str, tuple[Any, dict[str, int]]] = {}
-        next_beat = last_turn = now()
+        next_beat = now()
         while not done.is_set():
             self._mirror_due.clear()  # before the look: what changes after it wakes the next
             last_turn = now()
