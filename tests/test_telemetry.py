@@ -1,8 +1,9 @@
 """What the bus thread publishes of its devices (gateway/scheduler/devices.py, telemetry.py),
 with real drivers on a fake clock: frames nobody asked for go to the driver of the device
-they name and make news; a published state is stamped with wall time in one place and marked
-stale after three poll periods; a device's heartbeats are checked before each publication;
-events go out, a reboot is handed back so that its stream ends."""
+they name and make news (a heartbeat once whole); a published state is stamped with wall
+time in one place and marked stale after three poll periods; a device's heartbeats are
+checked before each publication; events go out, a reboot is handed back so that its stream
+ends."""
 
 from __future__ import annotations
 
@@ -31,15 +32,25 @@ def telemetry_of(devices: BusDevices, poll_periods: dict[str, float]):
     return telemetry, events, states
 
 
-def test_a_frame_nobody_asked_for_goes_to_the_device_it_names_and_is_news():
+def test_a_frame_nobody_asked_for_goes_to_the_device_it_names_news_once_its_heartbeat_is_whole():
     left, right = Zlac706CanDriver("left", 1), Zlac706CanDriver("right", 2)
     devices = BusDevices([left, right])
     assert devices.take_news() == {"left", "right"}, "every device's first state is news"
     devices.unsolicited(heartbeat(2, "00fe00200001e1e2"), 1.0)  # manual: position 123362
     devices.unsolicited(heartbeat(9, "00fe00200001e1e2"), 1.0)  # a node of no device: nobody's
-    assert devices.has_news and devices.take_news() == {"right"}
     assert (left.measured["position"], right.measured["position"]) == (None, 123362)
+    assert not devices.has_news, "half a heartbeat: its current and speed are still to come"
+    devices.unsolicited(heartbeat(2, "00fe0021001e043f"), 1.0)  # manual: 0.30 A, 398 rpm
+    assert devices.has_news and devices.take_news() == {"right"}
     assert not devices.has_news and devices.take_news() == set()
+    devices.unsolicited(heartbeat(2, "00fe0021001e043f"), 1.01)  # its other half came first
+    devices.unsolicited(heartbeat(2, "00fe00200001e1e3"), 1.01)
+    assert devices.take_news() == {"right"}
+    devices.unsolicited(heartbeat(2, "00fe00200001e1e4"), 1.02)  # its other half lost:
+    devices.unsolicited(heartbeat(2, "00fe00200001e1e5"), 1.03)  # the next one's is news
+    assert devices.take_news() == {"right"} and right.measured["position"] == 123365
+    devices.unsolicited(heartbeat(2, "00ff00eb08080808"), 1.04)  # manual: an alarm report
+    assert devices.take_news() == {"right"}, "an alarm report is news at once"
 
 
 def test_a_reply_comes_from_the_device_with_its_id_now_or_a_point_to_point_lines_one():

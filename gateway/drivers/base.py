@@ -343,9 +343,11 @@ class Driver(abc.ABC):
         a device that answered has been marked ``heard`` already). Return what the command's
         answer should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
 
-    def unsolicited(self, event: object, now: float) -> None:  # noqa: B027 - optional hook
-        """A frame from this device nobody asked for (heartbeat, alarm report); only CAN
-        devices send any, so the default ignores it."""
+    def unsolicited(self, event: object, now: float) -> bool:
+        """A frame from this device nobody asked for (heartbeat, alarm report), taken in;
+        whether the device's state is news with it. Only CAN devices send any, so the
+        default ignores it."""
+        return False
 
     @abc.abstractmethod
     def telemetry(self, now: float) -> dict[str, Any]:

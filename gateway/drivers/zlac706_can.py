@@ -18,7 +18,13 @@ with RS232 (``zlac706_state``). What is CAN's own:
    without one; an acknowledged write alone then proves the node answers but not that it
    reports. With none expected, the node is online while it acknowledges writes, and the
    telemetry says that measured values are unavailable (``"measured": false``).
-3. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); when the mode
+3. A heartbeat is two frames, position and then current and speed, and the device's state is
+   news once both have come (``unsolicited``): a look at the bus taken between them would
+   otherwise publish one heartbeat's position with the one before's speed, and a state a
+   fraction of a millisecond later with no move, which a client taking positions apart for
+   a velocity reads as a stop. A half that comes again before its other (a frame lost, or a
+   device that sends one) is news at once; an alarm report is news at once.
+4. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); when the mode
    is not known yet, it releases the motor (control word ``0F``): a gateway that does not know
    what the motor is doing stops it rather than guesses (but not once a client enabled it).
 """
@@ -151,6 +157,8 @@ class Zlac706CanDriver(Zlac706Driver):
         super().__init__(name, device_id, **options)
         self.heartbeat_s = heartbeat_ms / 1000
         self.last_heartbeat: float | None = None
+        #: The heartbeat's halves taken since it was last news (rule 3).
+        self._halves: set[type] = set()
 
     def poll(self) -> list[Request]:
         return []  # no read command: heartbeats only
@@ -170,7 +178,7 @@ class Zlac706CanDriver(Zlac706Driver):
         )
 
     def init(self) -> list[Request]:
-        """Rule 3. The runner repeats ``init`` at the poll rate while the node is offline (with
+        """Rule 4. The runner repeats ``init`` at the poll rate while the node is offline (with
         heartbeats expected, until the first one), so it never releases a motor that a client
         enabled since: with the mode unknown and the motor enabled, nothing is sent."""
         settings = self.machine.settings
@@ -200,13 +208,28 @@ class Zlac706CanDriver(Zlac706Driver):
             return {"rejected": f"node {self.device_id} has no register {answer.register:#04x}"}
         return {}
 
-    def unsolicited(self, event: object, now: float) -> None:
-        handler = _UNSOLICITED.get(type(event))
+    def unsolicited(self, event: object, now: float) -> bool:
+        kind = type(event)
+        handler = _UNSOLICITED.get(kind)
         if handler is None:
-            return  # a late echo: its write already counted as failed
+            return False  # a late echo: its write already counted as failed
         self.last_heartbeat = now
         Driver.heard(self, now)
         handler(self, event)
+        return self._news_with(kind)
+
+    def _news_with(self, kind: type) -> bool:
+        """Whether the state is news with a frame of ``kind`` taken (rule 3)."""
+        if kind not in HEARTBEAT_HALVES:
+            return True
+        if kind in self._halves:  # its other half was lost
+            self._halves = {kind}
+            return True
+        self._halves.add(kind)
+        if len(self._halves) < len(HEARTBEAT_HALVES):
+            return False
+        self._halves = set()
+        return True
 
     def heard(self, now: float) -> None:
         if not self.heartbeat_s:
@@ -238,6 +261,9 @@ class Zlac706CanDriver(Zlac706Driver):
     def _take_alarm_report(self, event: codec.AlarmReport) -> None:
         self.take_alarms(event.alarms)
 
+
+#: The frames of one heartbeat (rule 3).
+HEARTBEAT_HALVES = frozenset({codec.HeartbeatPosition, codec.HeartbeatCurrentSpeed})
 
 _UNSOLICITED: dict[type, Callable[[Zlac706CanDriver, Any], None]] = {
     codec.HeartbeatPosition: Zlac706CanDriver._take_position,

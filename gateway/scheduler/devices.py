@@ -31,12 +31,13 @@ class BusDevices:
 
     def unsolicited(self, event: object, when: float) -> None:
         """A frame nobody asked for (a heartbeat, an alarm report): to the driver of the
-        device it names; that device has news."""
+        device it names; that device has news when its driver says so (a heartbeat's first
+        frame waits for its second)."""
         device_id = getattr(event, "device_id", None)  # a frame naming no device is nobody's
         for driver in self.drivers.values():
             if driver.device_id == device_id:
-                driver.unsolicited(event, when)
-                self.touched(driver)
+                if driver.unsolicited(event, when):
+                    self.touched(driver)
                 return
 
     def touched(self, driver: Driver) -> None:
