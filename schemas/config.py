@@ -68,13 +68,13 @@ def _workers_value(value: object) -> object:
 class GatewaySection(Section):
     name: Name
     prefix: KeyPrefix = "busgate"
-    #: The processes the buses are split across (docs/workers.md): a count (``1``, the
-    #: default: every bus in the gateway's own process), or ``"auto"``, one per core, at most
-    #: one per bus. One until workers cost no more than they save on a small host.
+    #: The processes the buses are split across (docs/workers.md): ``"auto"`` (the default),
+    #: one per core, at most one per bus; or a count (``1``: every bus in the gateway's own
+    #: process).
     workers: Annotated[
         Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)],
         BeforeValidator(_workers_value),
-    ] = 1
+    ] = "auto"
 
 
 class ZenohSection(Section):

@@ -43,11 +43,12 @@ def bus_table(name: str, port: str, baudrate: int, devices: dict[str, tuple[str,
 
 
 def write_config(path: Path, endpoint: str, *buses: str, name: str = "gw1",
-                 metrics: str | None = None) -> Path:
+                 metrics: str | None = None, workers: int | None = None) -> Path:
     """A gateway config listening on ``endpoint`` only (and serving metrics on ``metrics``),
-    with ``buses`` (``serial_bus``)."""
+    with ``buses`` (``serial_bus``), in ``workers`` processes (by default, one per core)."""
     metrics_table = "" if metrics is None else f'[metrics]\nlisten = "{metrics}"\n'
-    path.write_text(f'[gateway]\nname = "{name}"\n[zenoh]\nlisten = ["{endpoint}"]\n'
+    workers_line = "" if workers is None else f"workers = {workers}\n"
+    path.write_text(f'[gateway]\nname = "{name}"\n{workers_line}[zenoh]\nlisten = ["{endpoint}"]\n'
                     + metrics_table + "".join(buses))
     return path
 

@@ -92,8 +92,8 @@ def test_a_recorder_setting_out_of_bounds_is_refused_naming_it(change, path) -> 
     assert error.path == path
 
 
-def test_buses_run_in_one_process_unless_workers_are_set_and_a_bad_value_is_refused() -> None:
-    assert parse_config(BASE).gateway.workers == 1
+def test_buses_are_split_across_a_worker_per_core_unless_told_and_a_bad_value_is_refused() -> None:
+    assert parse_config(BASE).gateway.workers == "auto"
     auto = parse_config({**BASE, "gateway": {"name": "gw1", "workers": "auto"}})
     assert auto.gateway.workers == "auto"
     for count in (1, 64):

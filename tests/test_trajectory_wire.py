@@ -848,8 +848,9 @@ def served(tmp_path_factory) -> Iterator[Served]:
              bus_table("uart1", ds_sim.port, 1_000_000,
                        {name: ("ds_servo", i) for name, i in DS_IDS.items()},
                        reply_margin_ms=MARGIN_MS))
+    # One process: the wire's timing of one gateway (across workers: test_workers.py).
     gateway = GatewayProcess(write_config(tmp_path_factory.mktemp("gw") / "gw.toml", endpoint,
-                                          *buses))
+                                          *buses, workers=1))
     client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
     try:
         gateway.wait_for("serving")
