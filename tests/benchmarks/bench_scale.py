@@ -18,7 +18,7 @@ writing each bus's follow frame every 10 ms with targets a thread there updates 
 
 ``--workers LIST`` (comma-separated, each ``auto`` or a count): the gateway part of each step
 runs once per value, with ``[gateway] workers`` set to it in every daemon's config (without
-the option the key is not written: the gateway's default, ``1``); each row names its value
+the option the key is not written: the gateway's default, ``auto``); each row names its value
 (``unset`` without the option).
 The bare loops run once per N, whatever the list.
 

@@ -67,10 +67,12 @@ def ms(values: list[float], q: float) -> float:
 
 class Daemon:
     """``busgate run`` on a config written from ``buses`` (TOML text), with ``gateway``'s
-    lines in its ``[gateway]`` table besides its name; its log to ``stderr`` (default: ours)."""
+    lines in its ``[gateway]`` table besides its name (by default every bus in the daemon's
+    process, ``workers = 1``, as this directory's figures were measured); its log to
+    ``stderr`` (default: ours)."""
 
     def __init__(self, scratch: Path, endpoint: str, buses: str, name: str = "bench",
-                 gateway: str = "", stderr=None) -> None:
+                 gateway: str = "workers = 1\n", stderr=None) -> None:
         config = scratch / f"{name}.toml"
         config.write_text(f'[gateway]\nname = "{name}"\n{gateway}[zenoh]\nlisten = ["{endpoint}"]\n'
                           f"{buses}")
@@ -311,8 +313,10 @@ def _apart_simulators() -> Iterator[list[str]]:
 
 
 def _heartbeat_config(interface: str, channels: list[str]):
+    """Every bus in the daemon's process (``workers = 1``): its CPU is this process's, and the
+    stand-in for SocketCAN is registered here only."""
     return parse_config({
-        "gateway": {"name": "bench"}, "zenoh": {"listen": [free_endpoint()]},
+        "gateway": {"name": "bench", "workers": 1}, "zenoh": {"listen": [free_endpoint()]},
         "buses": [{"name": f"can{i}", "transport": "can", "interface": interface, "channel": ch,
                    "devices": [{"name": f"w{i}-{n}", "kind": "zlac706", "id": n,
                                 "heartbeat_ms": 10} for n in range(1, 6)]}
