@@ -1,6 +1,7 @@
 """``busgate check-config``: every example config passes with a budget line per bus; a broken
 one names its key path and exits 1; a port missing here is only a warning; an oversubscribed
-bus is reported with what to change; the budget's figures match wire times worked out by hand.
+bus is reported with what to change; the budget's figures match wire times worked out by hand;
+it says where each bus would run (bus workers).
 """
 
 from __future__ import annotations
@@ -170,6 +171,26 @@ def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> No
     )
     assert main(["check-config", str(path)]) == 0
     assert "warning: buses[0].channel: nosuchcan9 does not exist" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("workers, line", [
+    ("1", "bus workers on this host: none, every bus in the gateway's process"),
+    ("2", "bus workers on this host: 0: uart0; 1: uart1, uart2; in the gateway's process: can0"),
+])
+def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, line) -> None:
+    serial = "".join(
+        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
+        f'baudrate = {BAUD}\n' + "".join(f"[[buses.devices]]\n{la(i)}\n" for i in ids)
+        for n, ids in enumerate([(1, 2, 3), (4,), (5,)])  # the busiest has a worker to itself
+    )
+    path = tmp_path / "gateway.toml"
+    path.write_text(
+        f'[gateway]\nname = "gw"\nworkers = {workers}\n{serial}'
+        '[[buses]]\nname = "can0"\ntransport = "can"\ninterface = "virtual"\nchannel = "c"\n'
+        '[[buses.devices]]\nname = "wheel"\nkind = "zlac706"\nid = 1\n'  # stays: one process
+    )
+    assert main(["check-config", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == line
 
 
 def test_an_oversubscribed_bus_is_reported_with_what_to_change(tmp_path, capsys) -> None:

@@ -19,6 +19,7 @@ from busgate.errors import ConfigError
 from busgate.gateway.bus.port_access import missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
+from busgate.gateway.service.workers import placement
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
 
@@ -41,6 +42,7 @@ def check_config(args: argparse.Namespace) -> int:
             print(f"error: {line}", file=sys.stderr)
         return 1
     print(f"{args.file}: valid; {_overview(config)}")
+    print(_workers(config))
     if config.recorder is not None and (problem := folder_problem(Path(config.recorder.dir))):
         print(
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
@@ -81,6 +83,19 @@ def _overview(config: Config) -> str:
     return (
         f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
         f"{metrics}, {recorder}"
+    )
+
+
+def _workers(config: Config) -> str:
+    """Where ``busgate run`` would run each bus on this host (``[gateway] workers``)."""
+    groups = placement(config)
+    if not groups:
+        return "bus workers on this host: none, every bus in the gateway's process"
+    split = "; ".join(f"{index}: {', '.join(group)}" for index, group in enumerate(groups))
+    placed = {name for group in groups for name in group}
+    stay = [bus.name for bus in config.buses if bus.name not in placed]
+    return f"bus workers on this host: {split}" + (
+        f"; in the gateway's process: {', '.join(stay)}" if stay else ""
     )
 
 

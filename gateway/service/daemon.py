@@ -52,7 +52,7 @@ from busgate.gateway.service.assembly import (
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
-from busgate.gateway.service.workers import WorkerProcess, movable, split, worker_count
+from busgate.gateway.service.workers import WorkerProcess, placement
 from busgate.schemas.config import Config, load_config
 
 if TYPE_CHECKING:
@@ -304,15 +304,10 @@ async def _ready_when_open(
 
 def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProcess]:
     """The bus workers ``[gateway] workers`` asks for (none: every bus here), each given the
-    buses ``split`` chose, whose runners here become their shadows (``service.workers``)."""
-    names = movable(config)
-    count = worker_count(config.gateway.workers, len(names))
-    if not count:
-        return []
-    groups = split(config, names, count)
+    buses ``placement`` chose, whose runners here become their shadows (``service.workers``)."""
     return [
         WorkerProcess(index, config, [runners[name] for name in group])
-        for index, group in enumerate(groups)
+        for index, group in enumerate(placement(config))
     ]
 
 

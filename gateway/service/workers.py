@@ -96,6 +96,14 @@ def movable(config: Config) -> list[str]:
     ]
 
 
+def placement(config: Config) -> list[list[str]]:
+    """The buses of each worker ``[gateway] workers`` makes of ``config`` on this host, in
+    order; none: every bus runs in the gateway's own process."""
+    names = movable(config)
+    count = worker_count(config.gateway.workers, len(names))
+    return split(config, names, count) if count else []
+
+
 def split(config: Config, names: list[str], count: int) -> list[list[str]]:
     """The buses ``names`` (``movable``) in ``count`` workers: the busiest first onto the least
     loaded, by what the config's traffic takes of each bus's wire (its budget)."""
