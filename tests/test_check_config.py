@@ -193,6 +193,29 @@ def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, li
     assert capsys.readouterr().out.splitlines()[1] == line
 
 
+def test_a_bus_with_a_bases_wheel_stays_in_the_gateways_process(tmp_path, capsys) -> None:
+    wheels = "".join(
+        f'[[buses.devices]]\nname = "wheel_{side}"\nkind = "zlac706"\nid = {i}\n'
+        f'[buses.devices.joint]\nunit = "rad"\nscale = {sign}6.283185307179586e-4\n'
+        for i, (side, sign) in enumerate((("l", ""), ("r", "-")), start=1)
+    )
+    path = tmp_path / "gateway.toml"
+    path.write_text(
+        '[gateway]\nname = "gw"\nworkers = 4\n'
+        + "".join(f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
+                  f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2))
+        + '[[buses]]\nname = "can0"\ntransport = "can"\ninterface = "socketcan"\nchannel = "can0"\n'
+        + wheels
+        + '[[bases]]\nname = "base"\nkind = "diff_drive"\nleft = "wheel_l"\nright = "wheel_r"\n'
+        'wheel_radius_m = 0.0825\ntrack_m = 0.4\nmax_linear_mps = 1.0\nmax_angular_radps = 2.0\n'
+        'max_linear_accel = 0.8\nmax_angular_accel = 3.0\n'
+    )
+    assert main(["check-config", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == (
+        "bus workers on this host: 0: uart0; 1: uart1; in the gateway's process: can0"
+    ), "four asked for, two buses a worker may run: two workers"
+
+
 def test_an_oversubscribed_bus_is_reported_with_what_to_change(tmp_path, capsys) -> None:
     path = write(tmp_path, [la(i, poll_hz=100) for i in range(1, 16)])
     assert main(["check-config", str(path)]) == 0  # a warning: it runs, with stale telemetry
