@@ -18,7 +18,8 @@ the client here. Clocks are comparable across processes (perf_counter is CLOCK_M
    ``unix_can.py`` (SocketCAN's frames over a Unix socket, standing in for SocketCAN, which
    this host lacks).
 4. The same 20 devices apart: how far each state's ``ts`` is from its device's state before
-   (``heartbeat_steps_apart``), where the heartbeats come every 10 ms.
+   (``heartbeat_steps_apart``), where the heartbeats come every 10 ms, and how old each state
+   is when a subscriber takes it.
 """
 
 from __future__ import annotations
@@ -221,8 +222,10 @@ import json, sys, time, zenoh
 from busgate.schemas.zenoh_session import session_config
 session = zenoh.open(session_config(connect=[sys.argv[1]]))
 times = {}  # each device's states' ts, in the order they came
+ages = []  # each state's age when it came: the wall clock less its ts
 def take(sample):
     state = json.loads(sample.payload.to_bytes())
+    ages.append(time.time() - state["ts"])
     times.setdefault(str(sample.key_expr), []).append(state["ts"])
 subscriber = session.declare_subscriber("busgate/bench/dev/*/state", take)
 print("ready", flush=True)
@@ -230,6 +233,7 @@ time.sleep(float(sys.argv[2]))
 subscriber.undeclare()
 print(sum(map(len, times.values())), flush=True)
 print(json.dumps([b - a for ts in times.values() for a, b in zip(ts, ts[1:])]), flush=True)
+print(json.dumps(ages), flush=True)
 session.close()
 """
 
@@ -280,12 +284,16 @@ def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
 def heartbeat_steps_apart(seconds: float = 10.0) -> dict[str, float]:
     """``telemetry_cpu_apart``'s states, each device's apart in time: how far each state's
     ``ts`` is from the one before of its device (the heartbeats come every 10 ms), in ms at
-    p1, p50 and p99, and the share within 1 ms of 10 ms."""
+    p1, p50 and p99, and the share within 1 ms of 10 ms; and how old a state is when the
+    subscriber takes it (its ``ts``, the heartbeat's arrival, to the subscriber's clock), in
+    ms at p50 and p99."""
     with _apart_simulators() as channels:
-        _, _, steps = _daemon_run(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+        _, _, (steps, ages) = _daemon_run(
+            _heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
     near = sum(abs(step - 0.010) <= 0.001 for step in steps) / len(steps)
     return {"p1": ms(steps, .01), "p50": ms(steps, .5), "p99": ms(steps, .99),
-            "within 1 ms of 10 ms": round(near, 3), "steps": len(steps)}
+            "within 1 ms of 10 ms": round(near, 3), "steps": len(steps),
+            "age p50": ms(ages, .5), "age p99": ms(ages, .99)}
 
 
 @contextlib.contextmanager
@@ -324,7 +332,8 @@ def _heartbeat_config(interface: str, channels: list[str]):
     })
 
 
-def _daemon_run(config, seconds: float, sim_ids: list[int]) -> tuple[float, float, list[float]]:
+def _daemon_run(config, seconds: float,
+                sim_ids: list[int]) -> tuple[float, float, tuple[list[float], list[float]]]:
     """The daemon on ``config`` in this process, a subscriber taking its states in a child
     for ``seconds``: the daemon's CPU (this process's but for the threads ``sim_ids``) in % of
     a core, the states a second the subscriber took, and each state's ``ts`` less the one
@@ -346,7 +355,8 @@ def _daemon_run(config, seconds: float, sim_ids: list[int]) -> tuple[float, floa
         elapsed = time.monotonic() - started
         daemon_cpu = (time.process_time() - cpu) - (sum(map(thread_cpu_s, sim_ids)) - sim_cpu)
         steps = json.loads(subscriber.stdout.readline())
-        return 100 * daemon_cpu / elapsed, received / seconds, steps
+        ages = json.loads(subscriber.stdout.readline())
+        return 100 * daemon_cpu / elapsed, received / seconds, (steps, ages)
     finally:
         subscriber.wait(10)
         loop.call_soon_threadsafe(stop.set)
