@@ -53,6 +53,31 @@ def test_a_frame_nobody_asked_for_goes_to_the_device_it_names_news_once_its_hear
     assert devices.take_news() == {"right"}, "an alarm report is news at once"
 
 
+def test_two_heartbeats_of_one_device_taken_in_one_look_make_two_states_in_order():
+    wheel, other = Zlac706CanDriver("wheel", 1, heartbeat_ms=10), Zlac706CanDriver("other", 2)
+    devices = BusDevices([wheel, other])
+    telemetry, events, states = telemetry_of(devices, {})
+    telemetry.publish(0.0)  # the first states
+    del states[:]
+    for position, when in ((100, 1.00), (200, 1.01)):  # one look takes both heartbeats
+        devices.unsolicited(heartbeat(1, f"00fe0020{position:08x}"), when)
+        devices.unsolicited(heartbeat(1, "00fe0021001e043f"), when)
+    assert [(d, s["position"]) for d, s in states] == [("wheel", 100)], "before 200 came in"
+    assert telemetry.publish(1.02) == []
+    assert [(d, s["position"]) for d, s in states] == [("wheel", 100), ("wheel", 200)]
+    assert [e.type for e in events] == ["online"], "its events with the look's publication"
+    # A look takes one heartbeat whole and the next one's first half: the first's state at
+    # once, the next's only once it is whole (not its position with the speed before).
+    devices.unsolicited(heartbeat(1, "00fe0020000000c8"), 1.03)
+    devices.unsolicited(heartbeat(1, "00fe0021001e043f"), 1.03)
+    devices.unsolicited(heartbeat(1, "00fe00200000012c"), 1.04)
+    telemetry.publish(1.045)
+    assert [s["position"] for _, s in states[2:]] == [200]
+    devices.unsolicited(heartbeat(1, "00fe0021001e043f"), 1.04)
+    telemetry.publish(1.05)
+    assert [s["position"] for _, s in states[2:]] == [200, 300]
+
+
 def test_a_reply_comes_from_the_device_with_its_id_now_or_a_point_to_point_lines_one():
     la1, la2 = InspireLaDriver("la1", 1), InspireLaDriver("la2", 2)
     devices = BusDevices([la1, la2])

@@ -343,6 +343,12 @@ class Driver(abc.ABC):
         a device that answered has been marked ``heard`` already). Return what the command's
         answer should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
 
+    def begins_reading(self, event: object) -> bool:
+        """Whether ``event``, a frame nobody asked for, is the first of a new reading (a
+        heartbeat's first frame): the reading before it is then published first. None by
+        default."""
+        return False
+
     def unsolicited(self, event: object, now: float) -> bool:
         """A frame from this device nobody asked for (heartbeat, alarm report), taken in;
         whether the device's state is news with it. Only CAN devices send any, so the

@@ -23,7 +23,9 @@ with RS232 (``zlac706_state``). What is CAN's own:
    otherwise publish one heartbeat's position with the one before's speed, and a state a
    fraction of a millisecond later with no move, which a client taking positions apart for
    a velocity reads as a stop. A half that comes again before its other (a frame lost, or a
-   device that sends one) is news at once; an alarm report is news at once.
+   device that sends one) is news at once; an alarm report is news at once. A heartbeat's
+   first frame begins a new reading (``begins_reading``): one look that takes two heartbeats
+   publishes the first's state before the second's frames are taken in.
 4. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); when the mode
    is not known yet, it releases the motor (control word ``0F``): a gateway that does not know
    what the motor is doing stops it rather than guesses (but not once a client enabled it).
@@ -217,6 +219,9 @@ class Zlac706CanDriver(Zlac706Driver):
         Driver.heard(self, now)
         handler(self, event)
         return self._news_with(kind)
+
+    def begins_reading(self, event: object) -> bool:
+        return type(event) in HEARTBEAT_HALVES and not self._halves
 
     def _news_with(self, kind: type) -> bool:
         """Whether the state is news with a frame of ``kind`` taken (rule 3)."""

@@ -2,13 +2,15 @@
 or a frame nobody asked for comes from, and which devices have news for their clients.
 
 It is made before the bus owner, so that the owner is made with where frames nobody asked
-for (heartbeats) go: straight to their device's driver, from the owner that read them, with
-nothing wired after the fact. Bus thread only.
+for (heartbeats) go: straight to their device's driver, from the owner that read them. The
+bus's telemetry, made after it, takes the one hook it has (``before_next_reading``): a look
+at the bus may take two readings of one device (two heartbeats), and the first one's state
+must be made before the second overwrites it. Bus thread only.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from busgate.codecs.framing import ExpectedReply
 from busgate.gateway.drivers.base import Driver
@@ -20,6 +22,9 @@ class BusDevices:
     def __init__(self, drivers: Iterable[Driver]) -> None:
         self.drivers = {driver.name: driver for driver in drivers}
         self._news: set[str] = set(self.drivers)  # every device's first state is news
+        #: Called with a device whose news is not yet published when its next reading
+        #: begins, before that reading's first frame is taken in (the telemetry publishes it).
+        self.before_next_reading: Callable[[Driver], None] = _nothing
 
     def answering(self, expected: ExpectedReply) -> Driver | None:
         """The device a reply ``expected`` comes from: the one with its id now (an id changes
@@ -36,6 +41,8 @@ class BusDevices:
         device_id = getattr(event, "device_id", None)  # a frame naming no device is nobody's
         for driver in self.drivers.values():
             if driver.device_id == device_id:
+                if driver.name in self._news and driver.begins_reading(event):
+                    self.before_next_reading(driver)
                 if driver.unsolicited(event, when):
                     self.touched(driver)
                 return
@@ -43,6 +50,10 @@ class BusDevices:
     def touched(self, driver: Driver) -> None:
         """Something happened to ``driver``'s device: its state is news."""
         self._news.add(driver.name)
+
+    def told(self, driver: Driver) -> None:
+        """``driver``'s news is published (ahead of the others')."""
+        self._news.discard(driver.name)
 
     @property
     def has_news(self) -> bool:
@@ -52,3 +63,7 @@ class BusDevices:
         """The devices with news since the last call."""
         news, self._news = self._news, set()
         return news
+
+
+def _nothing(_driver: Driver) -> None:
+    pass

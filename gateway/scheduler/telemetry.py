@@ -19,6 +19,9 @@ Rules of this file:
    driver's telemetry, not by building it and comparing two copies (a follow tick marks
    each device it carried, a hundred times a second). A device never read is judged without
    its ``ts`` on purpose: stamped when taken, it would make every look a new state.
+3. Every reading is published: when a look at the bus takes a device's next reading (a second
+   heartbeat) before its state was published, that state is made first
+   (``BusDevices.before_next_reading``).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver
 from busgate.gateway.scheduler.devices import BusDevices
 
@@ -67,6 +71,13 @@ class Telemetry:
         self._told: dict[str, Told] = {}
         #: The last ``publish`` sent events.
         self.had_events = False
+        devices.before_next_reading = self._publish_reading
+
+    def _publish_reading(self, driver: Driver) -> None:
+        """``driver``'s state now, ahead of the others', before its next reading overwrites it
+        (rule 3); its events go with the next ``publish``."""
+        self.devices.told(driver)
+        self._state_out(driver, now(), changed_only=True)
 
     def publish(self, moment: float) -> list[str]:
         """Events out, and a fresh state for each device with events, or with news that
@@ -86,13 +97,18 @@ class Telemetry:
                 if event.type == "rebooted":
                     rebooted.append(name)
             if events or name in news:
-                told = self._made_of(driver, moment)
-                if events or told != self._told.get(name):
-                    self._told[name] = told
-                    state = self._built(driver, moment, told)
-                    self.states[name] = state
-                    self.on_state(name, state)
+                self._state_out(driver, moment, changed_only=not events)
         return rebooted
+
+    def _state_out(self, driver: Driver, moment: float, *, changed_only: bool) -> None:
+        """``driver``'s state at ``moment`` handed on, unless ``changed_only`` and it is made of
+        what the last one was (rule 2)."""
+        told = self._made_of(driver, moment)
+        if changed_only and told == self._told.get(driver.name):
+            return
+        self._told[driver.name] = told
+        state = self.states[driver.name] = self._built(driver, moment, told)
+        self.on_state(driver.name, state)
 
     def state(self, driver: Driver, moment: float) -> dict[str, Any]:
         """The driver's state at ``moment`` (bus clock), stamped with when it was read (rule
