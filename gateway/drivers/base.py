@@ -345,8 +345,8 @@ class Driver(abc.ABC):
 
     def begins_reading(self, event: object) -> bool:
         """Whether ``event``, a frame nobody asked for, is the first of a new reading (a
-        heartbeat's first frame): the reading before it is then published first. None by
-        default."""
+        heartbeat's first frame): the reading before it is then published first. By default
+        none is."""
         return False
 
     def unsolicited(self, event: object, now: float) -> bool:
