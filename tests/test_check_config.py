@@ -193,6 +193,18 @@ def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, li
     assert capsys.readouterr().out.splitlines()[1] == line
 
 
+def test_by_default_the_buses_go_to_a_worker_per_core(tmp_path, capsys) -> None:
+    path = tmp_path / "gateway.toml"
+    path.write_text('[gateway]\nname = "gw"\n' + "".join(
+        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
+        f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2)))
+    assert main(["check-config", str(path)]) == 0
+    cores = len(os.sched_getaffinity(0))
+    assert capsys.readouterr().out.splitlines()[1] == (
+        "bus workers on this host: 0: uart0; 1: uart1" if cores > 1
+        else "bus workers on this host: none, every bus in the gateway's process")
+
+
 def test_a_bus_with_a_bases_wheel_stays_in_the_gateways_process(tmp_path, capsys) -> None:
     wheels = "".join(
         f'[[buses.devices]]\nname = "wheel_{side}"\nkind = "zlac706"\nid = {i}\n'
