@@ -28,7 +28,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
-import os
 import socket
 import subprocess
 import sys
@@ -47,6 +46,7 @@ from busgate.gateway.scheduler.runner import STALL_S, BusRunner
 from busgate.gateway.service import worker as worker_process
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.budget import bus_budget
+from busgate.gateway.service.cores import usable_cores
 from busgate.schemas.config import Config
 
 log = logging.getLogger(__name__)
@@ -76,9 +76,9 @@ def restart_delay(previous_s: float, *, spoke: bool) -> float:
 
 def worker_count(setting: str | int, buses: int) -> int:
     """How many workers ``[gateway] workers`` makes of ``buses`` buses a worker may run:
-    ``"auto"`` is one per core this process may run on, at most one per bus; one (or a
-    single bus) is none: the buses run in the gateway's own process."""
-    cores = len(os.sched_getaffinity(0)) if setting == "auto" else int(setting)
+    ``"auto"`` is one per core this process may use (``cores``), at most one per bus; one
+    (or a single bus) is none: the buses run in the gateway's own process."""
+    cores = usable_cores() if setting == "auto" else int(setting)
     count = min(cores, buses)
     return count if count > 1 else 0
 
