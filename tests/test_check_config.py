@@ -174,8 +174,8 @@ def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> No
 
 
 @pytest.mark.parametrize("workers, line", [
-    ("1", "bus workers on this host: none, every bus in the gateway's process"),
-    ("2", "bus workers on this host: 0: uart0; 1: uart1, uart2; in the gateway's process: can0"),
+    ("1", "workers on this host: none, every bus in the gateway's process"),
+    ("2", "workers on this host: 0: uart0; 1: uart1, uart2; in the gateway's process: can0"),
 ])
 def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, line) -> None:
     serial = "".join(
@@ -201,8 +201,8 @@ def test_by_default_the_buses_go_to_a_worker_per_core(tmp_path, capsys) -> None:
     assert main(["check-config", str(path)]) == 0
     cores = len(os.sched_getaffinity(0))
     assert capsys.readouterr().out.splitlines()[1] == (
-        "bus workers on this host: 0: uart0; 1: uart1" if cores > 1
-        else "bus workers on this host: none, every bus in the gateway's process")
+        "workers on this host: 0: uart0; 1: uart1" if cores > 1
+        else "workers on this host: none, every bus in the gateway's process")
 
 
 def test_a_bus_with_a_bases_wheel_stays_in_the_gateways_process(tmp_path, capsys) -> None:
@@ -224,7 +224,7 @@ def test_a_bus_with_a_bases_wheel_stays_in_the_gateways_process(tmp_path, capsys
     )
     assert main(["check-config", str(path)]) == 0
     assert capsys.readouterr().out.splitlines()[1] == (
-        "bus workers on this host: 0: uart0; 1: uart1; in the gateway's process: can0"
+        "workers on this host: 0: uart0; 1: uart1; in the gateway's process: can0"
     ), "four asked for, two buses a worker may run: two workers"
 
 

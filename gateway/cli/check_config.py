@@ -90,11 +90,11 @@ def _workers(config: Config) -> str:
     """Where ``busgate run`` would run each bus on this host (``[gateway] workers``)."""
     groups = placement(config)
     if not groups:
-        return "bus workers on this host: none, every bus in the gateway's process"
+        return "workers on this host: none, every bus in the gateway's process"
     split = "; ".join(f"{index}: {', '.join(group)}" for index, group in enumerate(groups))
     placed = {name for group in groups for name in group}
     stay = [bus.name for bus in config.buses if bus.name not in placed]
-    return f"bus workers on this host: {split}" + (
+    return f"workers on this host: {split}" + (
         f"; in the gateway's process: {', '.join(stay)}" if stay else ""
     )
 
