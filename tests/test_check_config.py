@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from busgate.gateway.cli import check_config as check_config_module
 from busgate.gateway.cli import main
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, SerialBus, load_config
@@ -191,6 +192,20 @@ def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, li
     )
     assert main(["check-config", str(path)]) == 0
     assert capsys.readouterr().out.splitlines()[1] == line
+
+
+def test_more_workers_than_the_cores_this_host_gives_are_a_warning(tmp_path, capsys,
+                                                                  monkeypatch) -> None:
+    path = tmp_path / "gateway.toml"
+    path.write_text('[gateway]\nname = "gw"\nworkers = 2\n' + "".join(
+        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
+        f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2)))
+    for cores, warned in ((2, False), (1, True)):
+        monkeypatch.setattr(check_config_module, "usable_cores", lambda c=cores: c)
+        assert main(["check-config", str(path)]) == 0
+        warning = ('warning: gateway.workers: 2 workers on this host\'s 1 core(s) take turns on '
+                   'them; "auto" makes one a core')
+        assert (warning in capsys.readouterr().out.splitlines()) is warned
 
 
 def test_by_default_the_buses_go_to_a_worker_per_core(tmp_path, capsys) -> None:

@@ -5,8 +5,8 @@ Rules of this file: it checks without touching hardware. Whatever ``busgate run`
 exit status 1. What only this host or the load decides — a port that does not exist here, is
 locked by another process, is no device file (``busgate run`` refuses those two) or that this
 user may not read and write, a bus whose streams cannot all fit, a flight recorder's folder
-this user cannot write, a zenoh config file missing — is a warning: printed with the budget,
-exit status 0.
+this user cannot write, a zenoh config file missing, more bus workers than the cores this host
+gives the gateway — is a warning: printed with the budget, exit status 0.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from busgate.errors import ConfigError
 from busgate.gateway.bus.port_access import missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
+from busgate.gateway.service.cores import usable_cores
 from busgate.gateway.service.workers import placement
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
 
@@ -42,7 +43,13 @@ def check_config(args: argparse.Namespace) -> int:
             print(f"error: {line}", file=sys.stderr)
         return 1
     print(f"{args.file}: valid; {_overview(config)}")
-    print(_workers(config))
+    groups = placement(config)
+    print(_workers(config, groups))
+    if len(groups) > (cores := usable_cores()):
+        print(
+            f"warning: gateway.workers: {len(groups)} workers on this host's {cores} core(s) "
+            'take turns on them; "auto" makes one a core'
+        )
     if config.recorder is not None and (problem := folder_problem(Path(config.recorder.dir))):
         print(
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
@@ -86,9 +93,9 @@ def _overview(config: Config) -> str:
     )
 
 
-def _workers(config: Config) -> str:
-    """Where ``busgate run`` would run each bus on this host (``[gateway] workers``)."""
-    groups = placement(config)
+def _workers(config: Config, groups: list[list[str]]) -> str:
+    """Where ``busgate run`` would run each bus on this host: in the workers ``groups``
+    (``placement``), or in the gateway's process."""
     if not groups:
         return "workers on this host: none, every bus in the gateway's process"
     split = "; ".join(f"{index}: {', '.join(group)}" for index, group in enumerate(groups))
