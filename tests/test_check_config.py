@@ -33,6 +33,16 @@ def write(tmp_path: Path, devices: list[str], *, port: str = "/dev/null", baud: 
     return path
 
 
+def la_buses(tmp_path: Path, *ids: tuple[int, ...]) -> str:
+    """``[[buses]]`` tables of serial buses ``uart0``, ``uart1`` … on ports missing here, each
+    with the LA actuators of its ``ids``."""
+    return "".join(
+        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
+        f'baudrate = {BAUD}\n' + "".join(f"[[buses.devices]]\n{la(i)}\n" for i in bus_ids)
+        for n, bus_ids in enumerate(ids)
+    )
+
+
 def la(device_id: int, **fields: object) -> str:
     pairs = {"name": f'"la{device_id}"', "kind": '"inspire_la"', "id": device_id, **fields}
     return "\n".join(f"{key} = {value}" for key, value in pairs.items())
@@ -179,11 +189,7 @@ def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> No
     ("2", "workers on this host: 0: uart0; 1: uart1, uart2; in the gateway's process: can0"),
 ])
 def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, line) -> None:
-    serial = "".join(
-        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
-        f'baudrate = {BAUD}\n' + "".join(f"[[buses.devices]]\n{la(i)}\n" for i in ids)
-        for n, ids in enumerate([(1, 2, 3), (4,), (5,)])  # the busiest has a worker to itself
-    )
+    serial = la_buses(tmp_path, (1, 2, 3), (4,), (5,))  # the busiest has a worker to itself
     path = tmp_path / "gateway.toml"
     path.write_text(
         f'[gateway]\nname = "gw"\nworkers = {workers}\n{serial}'
@@ -197,9 +203,7 @@ def test_it_says_which_buses_each_worker_would_run(tmp_path, capsys, workers, li
 def test_more_workers_than_the_cores_this_host_gives_are_a_warning(tmp_path, capsys,
                                                                   monkeypatch) -> None:
     path = tmp_path / "gateway.toml"
-    path.write_text('[gateway]\nname = "gw"\nworkers = 2\n' + "".join(
-        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
-        f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2)))
+    path.write_text('[gateway]\nname = "gw"\nworkers = 2\n' + la_buses(tmp_path, (1,), (2,)))
     for cores, warned in ((2, False), (1, True)):
         monkeypatch.setattr(check_config_module, "usable_cores", lambda c=cores: c)
         assert main(["check-config", str(path)]) == 0
@@ -210,9 +214,7 @@ def test_more_workers_than_the_cores_this_host_gives_are_a_warning(tmp_path, cap
 
 def test_by_default_the_buses_go_to_a_worker_per_core(tmp_path, capsys) -> None:
     path = tmp_path / "gateway.toml"
-    path.write_text('[gateway]\nname = "gw"\n' + "".join(
-        f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
-        f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2)))
+    path.write_text('[gateway]\nname = "gw"\n' + la_buses(tmp_path, (1,), (2,)))
     assert main(["check-config", str(path)]) == 0
     cores = len(os.sched_getaffinity(0))
     assert capsys.readouterr().out.splitlines()[1] == (
@@ -229,8 +231,7 @@ def test_a_bus_with_a_bases_wheel_stays_in_the_gateways_process(tmp_path, capsys
     path = tmp_path / "gateway.toml"
     path.write_text(
         '[gateway]\nname = "gw"\nworkers = 4\n'
-        + "".join(f'[[buses]]\nname = "uart{n}"\ntransport = "serial"\nport = "{tmp_path}/tty{n}"\n'
-                  f'baudrate = {BAUD}\n[[buses.devices]]\n{la(n + 1)}\n' for n in range(2))
+        + la_buses(tmp_path, (1,), (2,))
         + '[[buses]]\nname = "can0"\ntransport = "can"\ninterface = "socketcan"\nchannel = "can0"\n'
         + wheels
         + '[[bases]]\nname = "base"\nkind = "diff_drive"\nleft = "wheel_l"\nright = "wheel_r"\n'
