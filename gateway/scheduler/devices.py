@@ -51,7 +51,7 @@ class BusDevices:
         """Something happened to ``driver``'s device: its state is news."""
         self._news.add(driver.name)
 
-    def told(self, driver: Driver) -> None:
+    def published(self, driver: Driver) -> None:
         """``driver``'s news is published (ahead of the others')."""
         self._news.discard(driver.name)
 

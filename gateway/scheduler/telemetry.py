@@ -76,7 +76,7 @@ class Telemetry:
     def _publish_reading(self, driver: Driver) -> None:
         """``driver``'s state now, ahead of the others', before its next reading overwrites it
         (rule 3); its events go with the next ``publish``."""
-        self.devices.told(driver)
+        self.devices.published(driver)
         self._state_out(driver, now(), changed_only=True)
 
     def publish(self, moment: float) -> list[str]:
