@@ -463,6 +463,57 @@ def test_an_estop_latches_every_device_before_it_ends_their_plays(wait_for, simu
         runner.stop()
 
 
+def test_an_estops_first_frame_goes_before_the_streams_it_ends(wait_for, simulator) -> None:
+    """What an e-stop ends (streams, plays, waiting commands: events and answers) is ended
+    once its first frame is out, not before: that Python would hold the frame back, and with
+    several buses on one interpreter, every bus's frame (``work.plan_estop``)."""
+    events = []
+    runner = build_bus(bus(simulator.port, follow_period_ms=10), on_event=events.append).start()
+    order: list[str] = []
+    estops = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)) for i in (1, 2)}
+    runner.owner.tap = lambda frame: order.append("e-stop frame") if frame[2] in estops else None
+    end_all = runner.streams.end_all
+    runner.streams.end_all = lambda why: (order.append(f"streams ended: {why}"), end_all(why))
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        runner.follow("la1", runner.drivers["la1"].follow_target({"position": 1200}))
+        wait_for(lambda: any(r.frame == "FollowCommand" for r in simulator.recorder.received()))
+        runner.estop().result(10)
+        assert order[:2] == ["e-stop frame", "streams ended: estop"]
+        assert [e.fields["reason"] for e in events if e.type == "stream_stopped"] == ["estop"]
+    finally:
+        runner.stop()
+
+
+def test_an_estop_answers_the_commands_it_took_out_once_its_frame_is_out(simulator) -> None:
+    """The commands waiting when an e-stop comes are taken out at once and answered
+    ``estopped`` after its first exchange (``end_estopped``), or when the bus is lost or
+    stops before it; a reset handed over behind the e-stop is not one of them."""
+    runner = build_bus(bus(simulator.port))  # not started: the test is the bus thread
+    runner.owner.open()
+    work = runner._work
+    try:
+        waiting, reset = Future(), Future()
+        work.queue_job(Job("la1", deque([status(1)]), future=waiting))
+        work.plan_estop(Future())
+        work.plan_reset(None, now() + 10, reset)
+        assert not waiting.done()
+        work.end_estopped()
+        assert waiting.exception(0).code == "estopped"
+        assert not reset.done() and runner.planner.queued == 1
+        work.end_estopped()  # once
+        assert not reset.done()
+
+        waiting = Future()
+        work.queue_job(Job("la2", deque([status(2)]), future=waiting))
+        work.plan_estop(Future())
+        work.end_everything("shutdown", "shutdown", BusUnavailableError("bus uart0 is stopping"))
+        assert waiting.exception(0).code == "estopped"
+        assert reset.exception(0).code == "estopped"  # it was waiting when this e-stop came
+    finally:
+        runner.owner.close()
+
+
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()

@@ -21,6 +21,7 @@ Rules of the driver (below ``frames_for``):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, ClassVar, Final
@@ -34,6 +35,13 @@ from busgate.schemas.telemetry import flag_names
 
 _TORQUE = codec.REGISTERS["torque_enable"].address
 _SERVO_ID = codec.REGISTERS["servo_id"].address
+
+
+@functools.cache  # one an id (1-250)
+def _torque_off(device_id: int) -> Request:
+    """Torque off for ``device_id``, as an e-stop sends it: built once, as the driver is made
+    or its id changes, as the Inspire LA's e-stop is (``inspire_la._estop_request``)."""
+    return Request.of(codec, codec.Write(device_id, _TORQUE, b"\x00"), idempotent=True)
 
 
 def _move(command: schema.Move, device_id: int) -> codec.Frame:
@@ -201,6 +209,7 @@ class DsServoDriver(Driver):
 
     def __init__(self, name: str, device_id: int, **options: Any) -> None:
         super().__init__(name, device_id, **options)
+        _torque_off(device_id)  # ready before its first e-stop
         self.measured: dict[str, int | None] = dict.fromkeys(_MEASURED.values())
         self.target: int | None = None
         self.pending_target: int | None = None  # a REG WRITE waiting for ACTION
@@ -245,7 +254,7 @@ class DsServoDriver(Driver):
         a load it was holding against gravity is no longer held."""
         self.note_estop()
         self.estop_latched = True
-        return [Request.of(codec, codec.Write(self.device_id, _TORQUE, b"\x00"), idempotent=True)]
+        return [_torque_off(self.device_id)]
 
     def driving(self) -> bool:
         return self.torque_on is True
@@ -336,6 +345,7 @@ class DsServoDriver(Driver):
         if new_id != self.device_id:
             self.emit("id_changed", old_id=self.device_id, new_id=new_id, reason=reason)
             self.device_id = new_id
+            _torque_off(new_id)  # ready before its first e-stop
 
     def _applied_read(self, frame: codec.Read, answer: codec.StatusReply) -> dict[str, Any]:
         values = codec.values_from(frame.address, answer.data)

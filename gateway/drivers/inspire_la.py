@@ -21,6 +21,7 @@ Rules of ``InspireLaDriver``:
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, cast
@@ -79,6 +80,15 @@ def _request(frame: object, *, idempotent: bool) -> Request:
     return Request.of(codec, frame, idempotent=idempotent)
 
 
+@functools.cache  # one an id (1-254)
+def _estop_request(device_id: int) -> Request:
+    """The e-stop (single control 0x23) of ``device_id``, built once, as the driver is made or
+    its id changes, not when an e-stop comes: an e-stop's first frame waits for what its bus
+    thread runs before it, and code not run for a while runs several times slower than in a
+    loop (docs/performance.md, "An e-stop's frame first")."""
+    return _request(codec.ControlCommand(device_id, codec.ControlCode.ESTOP), idempotent=True)
+
+
 class InspireLaDriver(Driver):
     """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
 
@@ -89,6 +99,7 @@ class InspireLaDriver(Driver):
 
     def __init__(self, name: str, device_id: int, **options: Any) -> None:
         super().__init__(name, device_id, **options)
+        _estop_request(device_id)  # ready before its first e-stop
         self.power = PowerStage.ON  # the actuator works from power-up (manual 3.5.4)
         self.status: codec.StatusReply | None = None
         self.faults = codec.Fault(0)
@@ -155,14 +166,14 @@ class InspireLaDriver(Driver):
 
     def restore(self) -> list[Request]:
         """After a reboot the power stage is on again: an e-stop is sent again first."""
-        estop = [self._estop()] if self.power is PowerStage.ESTOPPED else []
+        estop = [_estop_request(self.device_id)] if self.power is PowerStage.ESTOPPED else []
         return estop + super().restore()
 
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""
         self.note_estop()
         self.power = PowerStage.ESTOPPED
-        return [self._estop()]
+        return [_estop_request(self.device_id)]
 
     def driving(self) -> bool:
         return self.power is PowerStage.ON
@@ -179,11 +190,6 @@ class InspireLaDriver(Driver):
 
     def stay_off(self) -> None:
         self.power = PowerStage.PAUSED  # off, and a new target switches it on
-
-    def _estop(self) -> Request:
-        return _request(
-            codec.ControlCommand(self.device_id, codec.ControlCode.ESTOP), idempotent=True
-        )
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""
@@ -321,6 +327,7 @@ class InspireLaDriver(Driver):
         if values.get(codec.ID, self.device_id) != self.device_id:
             self.emit("id_changed", old_id=self.device_id, new_id=values[codec.ID])
             self.device_id = values[codec.ID]
+            _estop_request(self.device_id)  # ready before its first e-stop
 
     def _remember(self, values: dict[str, int]) -> None:
         for name in self.table.keys() & values.keys():

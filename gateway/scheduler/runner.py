@@ -8,7 +8,8 @@ Rules of this file:
    they do can delay a frame. A caller that hands e-stops over and has Python of its own to
    run next (a log line, more messages) first waits, at most ``ESTOP_SENT_S``, for each
    e-stop's first exchange (``let_estops_go``): waiting, it leaves the bus threads the
-   interpreter.
+   interpreter. The bus thread, for its part, writes an e-stop's first frame before it
+   publishes news or ends what the e-stop ends (``work`` rules).
 2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
    early when new work arrives or a frame nobody asked for brought events (news without events,
    a heartbeat's values, is published in the pause and the wait goes on), then a spin
@@ -299,7 +300,8 @@ class BusRunner:
                         continue
                     self._drain_inbox()
                     self._step()
-                    self._publish()
+                    if not self._estop_due.is_set():  # else its first frame before the news
+                        self._publish()
                 except Exception as exc:  # a bug must not leave the bus without its thread
                     log.exception(
                         "bus %s: unexpected error; reopening the bus in %g s",
@@ -343,6 +345,7 @@ class BusRunner:
     def _take_estop(self, future: Future) -> None:
         self._work.plan_estop(future)
         if not self.owner.is_open:  # no exchange to wait for
+            self._work.end_estopped()
             self._estop_sent.set()
 
     def _drain_inbox(self) -> None:
@@ -357,6 +360,7 @@ class BusRunner:
         except BusIOError as exc:
             self._link_lost(exc, slot)
         if slot.priority is Priority.ESTOP:
+            self._work.end_estopped()
             self._estop_sent.set()
 
     def _wait_until(self, deadline: float, *, precise: bool = True) -> bool:

@@ -4,7 +4,11 @@ ended at once (an e-stop, a bus lost, the shutdown).
 
 Rules of this file: bus thread only (the runner calls it from its inbox and its loop); each
 outcome goes to the job's future (``outcomes``), a refusal as the refusal, a driver's bug as
-``internal`` with its traceback logged, and the bus goes on.
+``internal`` with its traceback logged, and the bus goes on. An e-stop does before its first
+frame only what that frame needs (every driver latched, the waiting commands taken out); the
+rest of what it ends, with the events and answers that tell it, comes after the frame
+(``end_estopped``): the bus threads sharing an interpreter take turns on that Python, so
+every bus's frame would wait for each one's (docs/performance.md, "An e-stop's frame first").
 """
 
 from __future__ import annotations
@@ -52,6 +56,9 @@ class BusWork:
         self.streams = streams
         self.plays = plays
         self.state_of = state_of
+        #: An e-stop's ends are still to come (``end_estopped``), with the commands it took out.
+        self._estop_ending = False
+        self._estop_dropped: list[Job] = []
 
     def plan_scan(self, requests: list[Request], start_by: float, future: Future) -> None:
         probes = Job("*", deque(requests), keep_going=True, outcomes=[], scan=True)
@@ -95,16 +102,34 @@ class BusWork:
             outcomes.fail(job, BusyError(f"bus {self.name}: command queue full; nothing was sent"))
 
     def plan_estop(self, future: Future) -> None:
+        """The e-stop ahead of everything, with only what must come before its first frame:
+        each driver latched (nothing it is asked next moves it), the waiting commands taken
+        out. What else it ends is ended once that frame is out (``end_estopped``)."""
         # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
         # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
         requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
-        cancelled = RefusedError("estopped", "an e-stop cancelled it before it was carried out")
-        self.end_everything("estop", ESTOP, cancelled)
+        self._estop_dropped.extend(self.planner.drop_commands())
+        self._estop_ending = True
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
+
+    def end_estopped(self) -> None:
+        """What an e-stop planned (``plan_estop``) ends: every stream and trajectory, and the
+        commands it took out answered ``estopped``; once, when its first exchange is over or
+        anything else ends everything first."""
+        if not self._estop_ending:
+            return
+        self._estop_ending = False
+        dropped, self._estop_dropped = self._estop_dropped, []
+        self.streams.end_all("estop")
+        self.plays.end_all(ESTOP)
+        cancelled = RefusedError("estopped", "an e-stop cancelled it before it was carried out")
+        for job in dropped:
+            outcomes.fail(job, cancelled)
 
     def end_everything(self, streams_why: str, plays_why: str, jobs_error: BusgateError) -> None:
         """Every stream and trajectory ended, every command waiting failed with
-        ``jobs_error``: an e-stop, a bus lost, the shutdown."""
+        ``jobs_error``: a bus lost, the shutdown (an e-stop's own ends first, as its)."""
+        self.end_estopped()
         self.streams.end_all(streams_why)
         self.plays.end_all(plays_why)
         for job in self.planner.drop_commands():
