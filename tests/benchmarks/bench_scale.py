@@ -1008,7 +1008,8 @@ def main() -> None:
         "--workers",
         type=workers_values,
         metavar="LIST",
-        help="the gateway's [gateway] workers, each value in turn, e.g. 1,auto (default: not set)",
+        help="the gateway's [gateway] workers, each value in turn, e.g. 1,auto (default: not "
+        "written, so the gateway's own default, auto)",
     )
     parser.add_argument(
         "--estop",
