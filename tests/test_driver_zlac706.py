@@ -236,6 +236,18 @@ def test_can_keepalive_repeats_the_last_speed_written_even_when_its_ack_is_late(
     assert wire([d.keepalive(2.5)[1]]) == wire([faster])
 
 
+def test_a_stale_streams_stop_is_what_the_keepalive_repeats_until_its_ack() -> None:
+    """The 0 rpm a stale stream (or an e-stop) sends is built with the driver, yet counts as
+    the last speed written when it goes: while its ack is late, the keep-alive repeats the
+    stop, never the speed before it."""
+    d = velocity_driver(can_driver())
+    run(d, plan(d, '{"op":"enable"}'))
+    stop = d.stale_stream()
+    assert wire(stop) == ["001#00fa001100000000"] and stop == d.stale_stream()
+    d.missed(1.0)  # its ack never came in time
+    assert wire([d.keepalive(1.5)[1]]) == wire(stop)
+
+
 def test_safe_stop_zeroes_the_speed_then_releases() -> None:
     d = velocity_driver(can_driver())
     run(d, plan(d, '{"op":"enable"}'))

@@ -107,6 +107,12 @@ class Zlac706Driver(Driver):
         self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
         self.speed_sent_raw: int | None = None  # the last speed written (``_note_speed``)
+        # The safe stop's requests (0 rpm, the release), built with the driver rather than
+        # when an e-stop comes: its first frames wait for what their bus thread runs before
+        # them (docs/performance.md, "An e-stop's frame first"). Speed and enable writes may
+        # be repeated whatever the settings, so nothing they depend on changes meanwhile.
+        self._zero_speed = self._built(_STOP)
+        self._release = self._built(_RELEASE)
         #: The settings ``telemetry`` last told of, and what it said of them: said again only
         #: when they change (every heartbeat makes a state; settings seldom change).
         self._told: tuple[Settings | None, dict[str, Any]] = (None, {})
@@ -193,13 +199,27 @@ class Zlac706Driver(Driver):
         if role is Role.SPEED:
             self.speed_sent_raw = value
 
+    def _built(self, command: Any) -> tuple[Request, ...]:
+        """``command``'s requests, nothing noted yet (``_noted``)."""
+        settings = self.machine.settings
+        return tuple(
+            Request.of(
+                self.codec,
+                frame,
+                idempotent=is_idempotent(self._role(frame, settings)[0], settings),
+            )
+            for frame in self.frames(command, self.device_id)
+        )
+
+    def _noted(self, requests: tuple[Request, ...]) -> list[Request]:
+        """``requests`` (``_built``) as they go out: a speed among them noted (``_note_speed``)."""
+        for request in requests:
+            self._note_speed(request.frame)
+        return list(requests)
+
     def _unchecked(self, command: Any) -> list[Request]:
         """Requests the gateway itself sends (safe stop, init): no order rules apply."""
-        settings = self.machine.settings
-        return [
-            self._request(frame, self._role(frame, settings)[0], settings)
-            for frame in self.frames(command, self.device_id)
-        ]
+        return self._noted(self._built(command))
 
     def _role(self, frame: object, settings: Settings) -> tuple[Role | None, Any]:
         register = getattr(frame, "register", None)
@@ -215,7 +235,7 @@ class Zlac706Driver(Driver):
         self.note_estop()
         self.estop_latched = True
         self.machine.forget_pending()
-        return [*self.stale_stream(), *self._unchecked(_RELEASE)]
+        return [*self.stale_stream(), *self._noted(self._release)]
 
     def driving(self) -> bool:
         return self.machine.settings.enabled is True
@@ -231,7 +251,7 @@ class Zlac706Driver(Driver):
     def stale_stream(self) -> list[Request]:
         """0 rpm: a client that stopped streaming speeds must not leave the wheel turning."""
         if self.machine.settings.mode in (Mode.VELOCITY, None):
-            return self._unchecked(_STOP)
+            return self._noted(self._zero_speed)
         return []
 
     def keepalive(self, now: float) -> tuple[float, Request] | None:

@@ -1,11 +1,16 @@
 """An e-stop's path through the bus threads: from its hand-over to its first frame's write.
 
-Not a test (pytest does not collect it). ``--buses`` buses of three Inspire LA each (921600
-baud, every device streaming at 10 ms), each on a ``busgate sim`` of its own process, run in
-this one process as the gateway runs them (``build_bus``). ``--estops`` times, at a random
-moment, every bus is handed an e-stop as the gateway hands them (``runner.estop`` each, then
-``let_estops_go``), and each bus's first e-stop frame is timed from its owner's frame hook;
-then the e-stop is reset and the streams start again. Printed, in µs at p50 / p90:
+Not a test (pytest does not collect it). ``--buses`` buses, each on a ``busgate sim`` of its
+own process, run in this one process as the gateway runs them (``build_bus``):
+
+- ``--family inspire_la`` (the default): three Inspire LA a bus at 921600 baud, every device
+  streaming at 10 ms (the streams start again after each e-stop's reset);
+- ``--family zlac706_can``: a base's two ZLAC706 a bus, behind the simulator's SLCAN
+  adapter, heartbeating every 10 ms.
+
+``--estops`` times, at a random moment, every bus is handed an e-stop as the gateway hands
+them (``runner.estop`` each, then ``let_estops_go``), each bus's first e-stop frame is timed
+from its owner's frame hook, and the e-stop is reset. Printed, in µs at p50 / p90:
 
 - the worst bus of each e-stop, from the first hand-over to its first frame's write (wall);
 - per bus, the bus thread's CPU from its wake (the flag it waited on raised) to that write.
@@ -13,7 +18,7 @@ then the e-stop is reset and the streams start again. Printed, in µs at p50 / p
 With one bus, the second is the Python an e-stop's frame waits for; with several, their bus
 threads take turns on this one interpreter, so the first figure grows with their sum.
 
-    .venv/bin/python tests/benchmarks/bench_estop_path.py [--buses 1] [--estops 80]
+    .venv/bin/python tests/benchmarks/bench_estop_path.py [--family F] [--buses 1] [--estops 80]
 
 Run with another checkout's interpreter (``OTHER/.venv/bin/python tests/benchmarks/...``) it
 times that checkout's code: turn about, the two meet the same load.
@@ -29,30 +34,45 @@ import sys
 import time
 from pathlib import Path
 
-from busgate.codecs import inspire_la as la
 from busgate.gateway.bus.clock import now
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.gateway.service.assembly import build_bus
-from busgate.schemas.config import SerialBus
+from busgate.schemas.config import CanBus, SerialBus
 
-IDS = (1, 2, 3)
-#: The e-stop frames (single control 0x23) of the devices: the frames timed.
-ESTOP_FRAMES = frozenset(la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)) for i in IDS)
+#: Per family: the simulator's arguments, and a bus of ``name`` on the simulator's port.
+FAMILIES = {
+    "inspire_la": (
+        ["inspire_la", "--ids", "1,2,3"],
+        lambda name, port: SerialBus(
+            name=name, transport="serial", port=port, baudrate=921_600,
+            devices=[{"name": f"{name}-la{i}", "kind": "inspire_la", "id": i,
+                      "follow_period_ms": 10} for i in (1, 2, 3)]),
+    ),
+    "zlac706_can": (
+        ["zlac706_can", "--ids", "1,2", "--interface", "slcan", "--heartbeat-ms", "10"],
+        lambda name, port: CanBus(
+            name=name, transport="can", interface="slcan", channel=port,
+            devices=[{"name": f"{name}-wheel{i}", "kind": "zlac706", "id": i,
+                      "heartbeat_ms": 10} for i in (1, 2)]),
+    ),
+}  # fmt: skip
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--family", choices=sorted(FAMILIES), default="inspire_la")
     parser.add_argument("--buses", type=int, default=1)
     parser.add_argument("--estops", type=int, default=80)
     args = parser.parse_args()
+    sim_arguments, bus_of = FAMILIES[args.family]
     busgate = shutil.which("busgate", path=str(Path(sys.executable).parent))
-    sims = [subprocess.Popen([busgate, "sim", "inspire_la", "--ids", "1,2,3"],
-                             stdout=subprocess.PIPE, text=True) for _ in range(args.buses)]
+    sims = [subprocess.Popen([busgate, "sim", *sim_arguments], stdout=subprocess.PIPE, text=True)
+            for _ in range(args.buses)]
     runners: list[BusRunner] = []
     try:
         for index, sim in enumerate(sims):
             port = sim.stdout.readline().split()[1]
-            runners.append(build_bus(_bus(f"uart{index}", port)).start())
+            runners.append(build_bus(bus_of(f"bus{index}", port)).start())
         time.sleep(1.5)  # every device online
         worst, cpu = _estops(runners, args.estops)
     finally:
@@ -61,18 +81,11 @@ def main() -> int:
         for sim in sims:
             sim.terminate()
             sim.wait()
-    print(f"{args.buses} bus(es), {args.estops} e-stops: hand-over → the worst bus's first "
-          f"e-stop frame p50 {_us(worst, .5)} / p90 {_us(worst, .9)} µs; a bus thread's CPU "
-          f"from its wake to that frame p50 {_us(cpu, .5)} / p90 {_us(cpu, .9)} µs "
+    print(f"{args.buses} {args.family} bus(es), {args.estops} e-stops: hand-over → the worst "
+          f"bus's first e-stop frame p50 {_us(worst, .5)} / p90 {_us(worst, .9)} µs; a bus "
+          f"thread's CPU from its wake to that frame p50 {_us(cpu, .5)} / p90 {_us(cpu, .9)} µs "
           f"({len(cpu)} woken from a wait)")
     return 0
-
-
-def _bus(name: str, port: str) -> SerialBus:
-    devices = [{"name": f"{name}-la{i}", "kind": "inspire_la", "id": i, "follow_period_ms": 10}
-               for i in IDS]
-    return SerialBus(name=name, transport="serial", port=port, baudrate=921_600,
-                     devices=devices)
 
 
 def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[float]]:
@@ -85,8 +98,9 @@ def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[flo
     worst, cpu = [], []
     for turn in range(count):
         for runner in runners:
-            for device in runner.drivers:
-                runner.follow(device, 1000 + 100 * (turn % 5))
+            for name, driver in runner.drivers.items():
+                if driver.follow_preparation == ():  # streams from the start (Inspire LA)
+                    runner.follow(name, 1000 + 100 * (turn % 5))
         time.sleep(random.uniform(0.1, 0.15))
         for bus_marks in marks.values():
             bus_marks.clear()
@@ -105,8 +119,18 @@ def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[flo
 
 
 def _mark_frames(runner: BusRunner, marks: dict) -> None:
+    """The write of the bus's first e-stop frame: any of a device's safe-stop frames (those of
+    a fresh driver, which knows nothing of the device's mode), as its owner's frame hook
+    gives it (a UART's bytes, a CAN frame's data and identifier)."""
+    firsts = set()
+    for driver in runner.drivers.values():
+        for request in type(driver)(driver.name, driver.device_id).safe_stop():
+            wire = request.wire
+            firsts.add(wire if isinstance(wire, bytes) else (wire.data, wire.arbitration_id))
+
     def tap(frame: tuple) -> None:
-        if frame[2] in ESTOP_FRAMES and "armed" in marks and "write" not in marks:
+        sent = frame[2] if frame[3] is None else (bytes(frame[2]), frame[3])
+        if sent in firsts and "armed" in marks and "write" not in marks:
             marks["write"] = (time.thread_time(), now())
 
     runner.owner.tap = tap
