@@ -203,9 +203,15 @@ def test_the_estop_stops_the_base_and_a_twist_after_it_is_refused(world) -> None
     assert world.base({"op": "enable"})["ok"]
     assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
     time.sleep(0.2)
+    since = len(world.sim.recorder.received())
     for stopped in world.api.estop("test"):
         stopped.result(5)
     world.wait_rest()
+    # Both wheels at 0 rpm before either is released: the base stops together.
+    zero, release = "00fa001100000000", "00fa00100000000f"
+    stop_frames = [f"00{i}#{data}" for data in (zero, release) for i in (1, 2)]
+    sent = [r.wire for r in world.sim.recorder.received()[since:] if r.wire in stop_frames]
+    assert sent == stop_frames
     assert any(e.type == "base_stopped" for e in world.events)
     refused = world.base({"op": "twist", "linear": 0.3})
     assert refused["error"]["code"] == "estopped"

@@ -76,7 +76,7 @@ from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.scheduler.trajectory_ticks import Sampler
-from busgate.gateway.scheduler.work import BusWork
+from busgate.gateway.scheduler.work import BusWork, safe_stops
 from busgate.schemas.events import BUS_DOWN_REASON
 
 log = logging.getLogger(__name__)
@@ -476,6 +476,6 @@ class BusRunner:
         stopping = BusUnavailableError(f"bus {self.name} is stopping")
         self._work.end_everything("shutdown", "shutdown", stopping)
         if self.owner.is_open:
-            self._execution.last_words([r for d in self.drivers.values() for r in d.safe_stop()])
+            self._execution.last_words(safe_stops(self.drivers.values()))
         self._drain_inbox()
         self._publish()

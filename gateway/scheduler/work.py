@@ -13,9 +13,10 @@ every bus's frame would wait for each one's (docs/performance.md, "An e-stop's f
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from typing import Any
 
@@ -32,6 +33,14 @@ from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
 
 log = logging.getLogger(__name__)
+
+
+def safe_stops(drivers: Iterable[Driver]) -> list[Request]:
+    """Every driver's safe stop (each latched), taken in rounds: every device's first request
+    (a ZLAC706's 0 rpm) before any device's second (its release), so that the wheels of a
+    base stop together rather than one after the other's two exchanges."""
+    rounds = itertools.zip_longest(*(driver.safe_stop() for driver in drivers))
+    return [request for round_ in rounds for request in round_ if request is not None]
 
 
 class BusWork:
@@ -107,7 +116,7 @@ class BusWork:
         out. What else it ends is ended once that frame is out (``end_estopped``)."""
         # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
         # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
-        requests = [r for driver in self.drivers.values() for r in driver.safe_stop()]
+        requests = safe_stops(self.drivers.values())
         self._estop_dropped.extend(self.planner.drop_commands())
         self._estop_ending = True
         self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))

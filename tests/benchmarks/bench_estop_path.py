@@ -12,7 +12,8 @@ own process, run in this one process as the gateway runs them (``build_bus``):
 them (``runner.estop`` each, then ``let_estops_go``), each bus's first e-stop frame is timed
 from its owner's frame hook, and the e-stop is reset. Printed, in µs at p50 / p90:
 
-- the worst bus of each e-stop, from the first hand-over to its first frame's write (wall);
+- the worst bus of each e-stop, from the first hand-over to its first frame's write (wall),
+  and to the write that gave every device of the bus its first (a base's second wheel);
 - per bus, the bus thread's CPU from its wake (the flag it waited on raised) to that write.
 
 With one bus, the second is the Python an e-stop's frame waits for; with several, their bus
@@ -74,7 +75,7 @@ def main() -> int:
             port = sim.stdout.readline().split()[1]
             runners.append(build_bus(bus_of(f"bus{index}", port)).start())
         time.sleep(1.5)  # every device online
-        worst, cpu = _estops(runners, args.estops)
+        worst, every, cpu = _estops(runners, args.estops)
     finally:
         for runner in runners:
             runner.stop()
@@ -82,20 +83,22 @@ def main() -> int:
             sim.terminate()
             sim.wait()
     print(f"{args.buses} {args.family} bus(es), {args.estops} e-stops: hand-over → the worst "
-          f"bus's first e-stop frame p50 {_us(worst, .5)} / p90 {_us(worst, .9)} µs; a bus "
-          f"thread's CPU from its wake to that frame p50 {_us(cpu, .5)} / p90 {_us(cpu, .9)} µs "
+          f"bus's first e-stop frame p50 {_us(worst, .5)} / p90 {_us(worst, .9)} µs, → every "
+          f"device's first p50 {_us(every, .5)} / p90 {_us(every, .9)} µs; a bus thread's CPU "
+          f"from its wake to its first frame p50 {_us(cpu, .5)} / p90 {_us(cpu, .9)} µs "
           f"({len(cpu)} woken from a wait)")
     return 0
 
 
-def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[float]]:
-    """Each e-stop's worst bus (s, wall), and each bus's CPU from its wake to its frame."""
+def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[float], list[float]]:
+    """Each e-stop's worst bus (s, wall) to its first frame and to every device's, and each
+    bus's CPU from its wake to its first frame."""
     marks: dict[str, dict[str, tuple[float, float]]] = {r.name: {} for r in runners}
     for runner in runners:
         _mark_frames(runner, marks[runner.name])
         for flag in (runner._estop_due, runner._wake):  # what a bus thread waits on
             _mark_wakes(flag, marks[runner.name])
-    worst, cpu = [], []
+    worst, every, cpu = [], [], []
     for turn in range(count):
         for runner in runners:
             for name, driver in runner.drivers.items():
@@ -111,27 +114,36 @@ def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[flo
         for estop in estops:
             estop.result(2)
         worst.append(max(m["write"][1] for m in marks.values()) - handed)
+        every.append(max(m["every"][1] for m in marks.values()) - handed)
         cpu += [m["write"][0] - m["woke"][0] for m in marks.values() if "woke" in m]
         for reset in [runner.reset_estop() for runner in runners]:
             reset.result(2)
         time.sleep(0.05)
-    return worst, cpu
+    return worst, every, cpu
 
 
 def _mark_frames(runner: BusRunner, marks: dict) -> None:
-    """The write of the bus's first e-stop frame: any of a device's safe-stop frames (those of
-    a fresh driver, which knows nothing of the device's mode), as its owner's frame hook
-    gives it (a UART's bytes, a CAN frame's data and identifier)."""
-    firsts = set()
-    for driver in runner.drivers.values():
-        for request in type(driver)(driver.name, driver.device_id).safe_stop():
+    """The write of the bus's first e-stop frame (``write``), and of the frame that made every
+    device of the bus have one (``every``): any of a device's safe-stop frames (those of a
+    fresh driver, which knows nothing of the device's mode), as its owner's frame hook gives
+    it (a UART's bytes, a CAN frame's data and identifier)."""
+    device_of = {}
+    for name, driver in runner.drivers.items():
+        for request in type(driver)(name, driver.device_id).safe_stop():
             wire = request.wire
-            firsts.add(wire if isinstance(wire, bytes) else (wire.data, wire.arbitration_id))
+            device_of[wire if isinstance(wire, bytes) else (wire.data, wire.arbitration_id)] = name
+    stopped: set[str] = set()
 
     def tap(frame: tuple) -> None:
-        sent = frame[2] if frame[3] is None else (bytes(frame[2]), frame[3])
-        if sent in firsts and "armed" in marks and "write" not in marks:
+        device = device_of.get(frame[2] if frame[3] is None else (bytes(frame[2]), frame[3]))
+        if device is None or "armed" not in marks:
+            return
+        if "write" not in marks:
             marks["write"] = (time.thread_time(), now())
+            stopped.clear()
+        stopped.add(device)
+        if len(stopped) == len(runner.drivers) and "every" not in marks:
+            marks["every"] = (time.thread_time(), now())
 
     runner.owner.tap = tap
 
