@@ -14,10 +14,11 @@ from its owner's frame hook, and the e-stop is reset. Printed, in µs at p50 / p
 
 - the worst bus of each e-stop, from the first hand-over to its first frame's write (wall),
   and to the write that gave every device of the bus its first (a base's second wheel);
-- per bus, the bus thread's CPU from its wake (the flag it waited on raised) to that write.
+- per bus, the bus thread's CPU from its wake (the flag it waited on raised) to its first
+  frame's write.
 
-With one bus, the second is the Python an e-stop's frame waits for; with several, their bus
-threads take turns on this one interpreter, so the first figure grows with their sum.
+With one bus, the CPU figure is the Python an e-stop's first frame waits for; with several,
+their bus threads take turns on this one interpreter, so the wall figures grow with their sum.
 
     .venv/bin/python tests/benchmarks/bench_estop_path.py [--family F] [--buses 1] [--estops 80]
 
