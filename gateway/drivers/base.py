@@ -234,13 +234,6 @@ class Driver(abc.ABC):
         """The requests that put the device in its safe state (e-stop, shutdown); each
         driver's calls ``note_estop`` first."""
 
-    @classmethod
-    def broadcast_stop(cls) -> Request | None:
-        """One frame, to the family's broadcast id, that stops every device of the bus at
-        once and that none answers, sent ahead of each device's own safe stop
-        (``work.safe_stops``); ``None`` where the family has none."""
-        return None
-
     def note_estop(self) -> None:
         """Before a safe stop: whether the device is driving now, unless an e-stop already
         latched (a second one must not forget what the first stopped)."""

@@ -44,10 +44,6 @@ def _torque_off(device_id: int) -> Request:
     return Request.of(codec, codec.Write(device_id, _TORQUE, b"\x00"), idempotent=True)
 
 
-#: Torque off to id 254 (``DsServoDriver.broadcast_stop``), built with the module.
-_BROADCAST_TORQUE_OFF = _torque_off(codec.BROADCAST_ID)
-
-
 def _move(command: schema.Move, device_id: int) -> codec.Frame:
     if command.deferred:
         return codec.RegWrite(device_id, command.position, command.time_ms)
@@ -259,12 +255,6 @@ class DsServoDriver(Driver):
         self.note_estop()
         self.estop_latched = True
         return [_torque_off(self.device_id)]
-
-    @classmethod
-    def broadcast_stop(cls) -> Request:
-        """Torque off to id 254: the manual's broadcast id reaches every servo of the bus,
-        and none replies to it."""
-        return _BROADCAST_TORQUE_OFF
 
     def driving(self) -> bool:
         return self.torque_on is True

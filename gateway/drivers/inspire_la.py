@@ -89,10 +89,6 @@ def _estop_request(device_id: int) -> Request:
     return _request(codec.ControlCommand(device_id, codec.ControlCode.ESTOP), idempotent=True)
 
 
-#: The e-stop to id 255 (``InspireLaDriver.broadcast_stop``), built with the module.
-_BROADCAST_ESTOP = _estop_request(codec.BROADCAST_ID)
-
-
 class InspireLaDriver(Driver):
     """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
 
@@ -178,12 +174,6 @@ class InspireLaDriver(Driver):
         self.note_estop()
         self.power = PowerStage.ESTOPPED
         return [_estop_request(self.device_id)]
-
-    @classmethod
-    def broadcast_stop(cls) -> Request:
-        """The e-stop to id 255: every actuator takes a frame to 255, none replies (the
-        manual's frame format, on the id byte)."""
-        return _BROADCAST_ESTOP
 
     def driving(self) -> bool:
         return self.power is PowerStage.ON

@@ -38,15 +38,9 @@ log = logging.getLogger(__name__)
 def safe_stops(drivers: Iterable[Driver]) -> list[Request]:
     """Every driver's safe stop (each latched), taken in rounds: every device's first request
     (a ZLAC706's 0 rpm) before any device's second (its release), so that the wheels of a
-    base stop together rather than one after the other's two exchanges. With more than one
-    device of a family that has a broadcast stop (Inspire LA, DS servo), that frame goes
-    first: every device of the bus stops at once, then each is stopped, and heard, by its own."""
-    drivers = list(drivers)
+    base stop together rather than one after the other's two exchanges."""
     rounds = itertools.zip_longest(*(driver.safe_stop() for driver in drivers))
-    requests = [request for round_ in rounds for request in round_ if request is not None]
-    families = {type(driver) for driver in drivers}
-    broadcast = families.pop().broadcast_stop() if len(drivers) > 1 and len(families) == 1 else None
-    return requests if broadcast is None else [broadcast, *requests]
+    return [request for round_ in rounds for request in round_ if request is not None]
 
 
 class BusWork:

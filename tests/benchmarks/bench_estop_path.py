@@ -126,29 +126,23 @@ def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[flo
 def _mark_frames(runner: BusRunner, marks: dict) -> None:
     """The write of the bus's first e-stop frame (``write``), and of the frame that made every
     device of the bus have one (``every``): any of a device's safe-stop frames (those of a
-    fresh driver, which knows nothing of the device's mode), or the family's broadcast stop
-    (every device's), as its owner's frame hook gives it (a UART's bytes, a CAN frame's data
-    and identifier)."""
-    def key(wire):
-        return wire if isinstance(wire, bytes) else (wire.data, wire.arbitration_id)
-
-    devices_of = {}
+    fresh driver, which knows nothing of the device's mode), as its owner's frame hook gives
+    it (a UART's bytes, a CAN frame's data and identifier)."""
+    device_of = {}
     for name, driver in runner.drivers.items():
         for request in type(driver)(name, driver.device_id).safe_stop():
-            devices_of[key(request.wire)] = {name}
-        broadcast = getattr(driver, "broadcast_stop", lambda: None)()  # a checkout before it
-        if broadcast is not None:
-            devices_of[key(broadcast.wire)] = set(runner.drivers)
+            wire = request.wire
+            device_of[wire if isinstance(wire, bytes) else (wire.data, wire.arbitration_id)] = name
     stopped: set[str] = set()
 
     def tap(frame: tuple) -> None:
-        devices = devices_of.get(frame[2] if frame[3] is None else (bytes(frame[2]), frame[3]))
-        if devices is None or "armed" not in marks:
+        device = device_of.get(frame[2] if frame[3] is None else (bytes(frame[2]), frame[3]))
+        if device is None or "armed" not in marks:
             return
         if "write" not in marks:
             marks["write"] = (time.thread_time(), now())
             stopped.clear()
-        stopped.update(devices)
+        stopped.add(device)
         if len(stopped) == len(runner.drivers) and "every" not in marks:
             marks["every"] = (time.thread_time(), now())
 
