@@ -36,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench_scale import positive  # a sibling script's argparse type: its folder is on the path
+
 from busgate.gateway.bus.clock import now
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.gateway.service.assembly import build_bus
@@ -63,8 +65,8 @@ FAMILIES = {
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--family", choices=sorted(FAMILIES), default="inspire_la")
-    parser.add_argument("--buses", type=int, default=1)
-    parser.add_argument("--estops", type=int, default=80)
+    parser.add_argument("--buses", type=positive(int), default=1)
+    parser.add_argument("--estops", type=positive(int), default=80)
     args = parser.parse_args()
     sim_arguments, bus_of = FAMILIES[args.family]
     busgate = shutil.which("busgate", path=str(Path(sys.executable).parent))
