@@ -514,6 +514,31 @@ def test_an_estop_answers_the_commands_it_took_out_once_its_frame_is_out(simulat
         runner.owner.close()
 
 
+def test_estops_put_again_and_again_send_each_frame_at_most_twice_and_answer_each(
+    simulator,
+) -> None:
+    """A flood of e-stops (a stuck button, a hostile client) queues no more than the one on
+    the line and one waiting: the wire carries each device's e-stop once for the first and
+    once for all that came while it was on the line, and every one of them is answered."""
+    runner = build_bus(bus(simulator.port))  # not started: the test is the bus thread
+    runner.owner.open()
+    try:
+        handed = [runner.estop() for _ in range(50)]
+        runner._drain_inbox()
+        runner._step()  # la1's e-stop: the first job is on the line
+        handed += [runner.estop() for _ in range(50)]
+        runner._drain_inbox()
+        deadline = now() + 10
+        while not all(future.done() for future in handed) and now() < deadline:
+            runner._step()
+        assert [future.exception(0) for future in handed] == [None] * 100
+        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
+        estops = [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires]
+        assert estops == [1, 2, 1, 2]
+    finally:
+        runner.owner.close()
+
+
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()

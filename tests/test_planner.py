@@ -205,6 +205,28 @@ def test_an_estop_goes_on_to_the_next_device_when_one_is_silent():
     assert run(planner, slot, WORST + GAP, WORST) is estop
 
 
+def test_an_estop_joins_the_one_waiting_not_started_and_queues_behind_one_on_the_line():
+    """Rule 4: e-stops put again and again wait at most one behind the one on the line; the
+    one waiting sends the latest one's frames, never another copy of them."""
+    planner = BusPlanner(TIMING)
+    first = Job("*", deque([status_request(1), status_request(2)]), keep_going=True)
+    assert planner.push_estop(first) is first
+    assert planner.push_estop(Job("*", deque([status_request(3)]))) is first
+    assert list(first.requests) == [status_request(3)]
+    first.requests = deque([status_request(1), status_request(2)])
+    t = 0.0
+    run(planner, planner.decide(t), t, WORST)  # the first job started: new ones wait behind
+    second = Job("*", deque([status_request(4)]))
+    assert planner.push_estop(second) is second
+    for device_id in range(5, 105):
+        assert planner.push_estop(Job("*", deque([status_request(device_id)]))) is second
+    sent = []
+    while isinstance(slot := planner.decide(t := t + WORST + GAP), Slot):
+        sent.append(slot.request)
+        run(planner, slot, t, WORST)
+    assert sent == [status_request(2), status_request(104)]
+
+
 def test_a_short_poll_may_use_the_room_before_a_tick_a_long_command_cannot():
     planner = BusPlanner(TIMING)
     ticker_at(planner, now=0.0)

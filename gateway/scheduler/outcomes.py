@@ -89,6 +89,16 @@ def fail(job: Job, error: BusgateError) -> None:
         settle(job.future, error=error)
 
 
+def pass_on(source: Future, future: Future) -> None:
+    """``future`` gets ``source``'s outcome once it has one (an e-stop that joined another)."""
+
+    def passed(done: Future) -> None:
+        error = done.exception()
+        settle(future, result=None if error is not None else done.result(), error=error)
+
+    source.add_done_callback(passed)
+
+
 def settled(result: Any) -> Future:
     """A future that already has ``result``: an answer that needed no bus."""
     future: Future = Future()

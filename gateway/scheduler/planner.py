@@ -12,7 +12,8 @@ The rules it enforces:
    a burst (tickers schedule the next tick a full period after the one actually sent).
 4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
    never queued — a device has at most one poll waiting, and each period a poll misses (the
-   host stalled, or the bus has no room for it) is skipped and counted.
+   host stalled, or the bus has no room for it) is skipped and counted; an e-stop is never
+   refused, but one that comes while another waits, not started, joins it (``push_estop``).
 5. After a timeout, no exchange that expects a reply starts before ``hold_replies_until``:
    a reply that comes late is then flushed as stale instead of being taken for the answer to
    the next request (frames without a reply, such as follow ticks, may still go).
@@ -143,10 +144,18 @@ class BusPlanner:
         self.tickers: list[Ticker] = []
         self.pollers: Sequence[Poller] = []
 
-    def push_estop(self, job: Job) -> None:
-        """E-stop jobs are never refused and go ahead of everything."""
+    def push_estop(self, job: Job) -> Job:
+        """Queue an e-stop ahead of everything, never refused; the job that will send its
+        frames. One still waiting, not started, takes ``job``'s frames (the latest, for the
+        same latched devices) in place of its own and is returned: e-stops put again and
+        again wait at most one behind the one on the line (rule 4)."""
         job.priority = Priority.ESTOP
+        waiting = self._estops[-1] if self._estops else None
+        if waiting is not None and not waiting.started:
+            waiting.requests = job.requests
+            return waiting
         self._estops.append(job)
+        return job
 
     def push_command(self, job: Job) -> bool:
         """Queue a command (or a scan, in its lane); ``False`` (and nothing queued) when the

@@ -119,7 +119,13 @@ class BusWork:
         requests = safe_stops(self.drivers.values())
         self._estop_dropped.extend(self.planner.drop_commands())
         self._estop_ending = True
-        self.planner.push_estop(Job("*", deque(requests), keep_going=True, future=future))
+        # The job's own future, which no caller holds, so none can cancel it (``outcomes``
+        # rule 2): each e-stop that joins the job waiting (``push_estop``) gets its outcome.
+        carrier = self.planner.push_estop(
+            Job("*", deque(requests), keep_going=True, future=Future())
+        )
+        assert carrier.future is not None
+        outcomes.pass_on(carrier.future, future)
 
     def end_estopped(self) -> None:
         """What an e-stop planned (``plan_estop``) ends: every stream and trajectory, and the
