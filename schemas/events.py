@@ -108,8 +108,17 @@ class StoppedEvent(Event):
 
 
 class EstopEvent(Event):
+    """An e-stop was put (``device`` is ``"*"``): at most one told every 0.1 s, the rest
+    counted in the next one's ``suppressed``."""
+
     type: Literal["estop"]
     key: str = Field(description="The key expression the e-stop was put on.")
+    client: ClientId | None = None
+    suppressed: int | None = Field(
+        default=None,
+        description="How many e-stops were not told before this one: at most one is told "
+        "every 0.1 s, the rest counted here.",
+    )
 
 
 class EstopResetEvent(Event):

@@ -33,6 +33,7 @@ from busgate.gateway.api.commands import (
     error_reply,
 )
 from busgate.gateway.api.group import scan_requests
+from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import LinkTiming
 from busgate.gateway.bus.serial_owner import SerialBusOwner
@@ -268,18 +269,24 @@ def test_an_estop_without_a_sender_is_logged_without_one(caplog):
     assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus"]
 
 
-def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monkeypatch):
-    """The payload only names the sender (for the log line and the event): a large one, up
-    to 64 KiB of JSON to parse, would otherwise hold the e-stop up by milliseconds."""
+def estop_bridge() -> tuple[ZenohBridge, BusRunner, deque[DeviceEvent]]:
+    """A bridge with no session over one bus never started: its e-stops wait in its inbox."""
     config = parse_config({
         "gateway": {"name": "gw"},
         "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null", "baudrate": 921_600,
                    "devices": [{"name": "la1", "kind": "inspire_la", "id": 1}]}],
     })  # fmt: skip
-    runner = build_bus(config.buses[0])  # never started: its e-stop waits in its inbox
+    runner = build_bus(config.buses[0])
     events: deque[DeviceEvent] = deque()
     bridge = ZenohBridge(config, GatewayApi("gw", {"uart0": runner}), {"uart0": runner},
                          events, deque())  # fmt: skip
+    return bridge, runner, events
+
+
+def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monkeypatch):
+    """The payload only names the sender (for the log line and the event): a large one, up
+    to 64 KiB of JSON to parse, would otherwise hold the e-stop up by milliseconds."""
+    bridge, runner, events = estop_bridge()
     order: list[str] = []
     handed = runner.estop
     monkeypatch.setattr(runner, "estop", lambda: order.append("handed") or handed())
@@ -465,3 +472,25 @@ def test_a_scan_whose_room_on_the_bus_has_passed_is_answered_busy(gateway, monke
     accepted(api, "la1", {"op": "status"})
     probes = [r for r in simulator.recorder.received()[before:] if r.frame == "ControlCommand"]
     assert len(probes) == 1, "only the status asked after the scan"
+
+
+def test_estops_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_second(caplog):
+    """A client putting e-stops in a loop: every put is handed to every bus, but one log
+    line and one event are told every 0.1 s, the rest counted: the journal keeps the other
+    lines, the events key the other events."""
+    bridge, runner, events = estop_bridge()
+    # The bridge's own reports and their teller, on a clock that stands still: the ten puts
+    # come within 0.1 s however slow the host.
+    bridge.put_reports = PutReports(bridge.api.devices, bridge._tell_put, clock=lambda: 0.0)
+    payload = SimpleNamespace(to_bytes=lambda: b'{"client": "teleop"}')
+    sample = SimpleNamespace(payload=payload, key_expr="busgate/gw/estop")
+    with caplog.at_level("WARNING"):
+        for _ in range(10):
+            bridge._on_estop(sample)
+        bridge.put_reports.flush(every=True)  # the gateway stops: the withheld are told
+    assert len(runner._inbox) == 10
+    assert [r.getMessage() for r in caplog.records] == [
+        "e-stop of every bus from teleop",
+        "e-stop of every bus from teleop (8 more since the last told)",
+    ]
+    assert [e.fields.get("suppressed") for e in events] == [None, 8]

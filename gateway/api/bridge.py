@@ -37,7 +37,7 @@ from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi, log_estop
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
-from busgate.gateway.api.refusals import RefusalReports
+from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.outcomes import settled
@@ -108,8 +108,9 @@ class ZenohBridge:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
-        #: A refused put's event, at most one a device every 0.1 s, the rest counted.
-        self.refusals = RefusalReports(api.devices, lambda event: self.events.append(event))
+        #: A refused put's event, at most one a device every 0.1 s, and an e-stop's, at most
+        #: one every 0.1 s: the rest counted (``put_reports``).
+        self.put_reports = PutReports(api.devices, self._tell_put)
         self.trajectories = Trajectories(
             api, self.base, self._put_any, lambda event: self.events.append(event)
         )
@@ -212,7 +213,7 @@ class ZenohBridge:
             self.publish_states()
             self.trajectories.tick()
             self.bases.tick()
-            self.refusals.flush()
+            self.put_reports.flush()
             self.publish_events()
             if time.monotonic() >= next_stats:
                 next_stats = time.monotonic() + STATS_EVERY_S
@@ -231,7 +232,7 @@ class ZenohBridge:
         """Whether the next round has work whatever comes: a trajectory's feedback, a base's
         drive, a refusal held back for its device's interval. (A joints message held back
         for its own is due at a moment the wait is given.)"""
-        return self.trajectories.running or self.bases.driving or self.refusals.withheld
+        return self.trajectories.running or self.bases.driving or self.put_reports.withheld
 
     def _has_news(self) -> bool:
         return bool(self.states or self.events)
@@ -332,11 +333,16 @@ class ZenohBridge:
         return self._told_estop(self.api.stop_every_bus(), sender, key)
 
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
-        """The e-stop's log line and ``estop`` event, once every bus has it."""
-        log_estop(sender)
-        fields = {"key": key} | ({"client": sender} if sender else {})
-        self.events.append(DeviceEvent("*", "estop", fields))
+        """The e-stop's log line and ``estop`` event, once every bus has it (at most one every
+        0.1 s, ``put_reports``)."""
+        self.put_reports.estop(key, sender)
         return stopped
+
+    def _tell_put(self, event: DeviceEvent) -> None:
+        """A refused put's or an e-stop's event, told (an e-stop's with its log line)."""
+        if event.type == "estop":
+            log_estop(event.fields.get("client"), event.fields.get("suppressed", 0))
+        self.events.append(event)
 
     def submit_trajectory(self, payload: bytes) -> Future:
         """A trajectory command (``<base>/trajectory``'s payload) in its lane: the reply's
@@ -429,7 +435,7 @@ class ZenohBridge:
     ) -> None:
         """A put's outcome (``None``: a follow target taken): a refusal is an event."""
         if reply is not None and not reply.get("ok"):
-            self.refusals.refused(device, reply["error"])
+            self.put_reports.refused(device, reply["error"])
         if self.on_command is not None:
             self.on_command(key, payload, reply)
 

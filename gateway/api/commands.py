@@ -103,9 +103,11 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     return wrapper
 
 
-def log_estop(sender: str | None) -> None:
-    """The e-stop's log line, naming the client that sent it when known."""
-    log.warning("e-stop of every bus%s", f" from {sender}" if sender else "")
+def log_estop(sender: str | None, suppressed: int = 0) -> None:
+    """The e-stop's log line, naming the client that sent it when known, and how many
+    e-stops came since the last line without one of their own (``put_reports``)."""
+    since = f" ({suppressed} more since the last told)" if suppressed else ""
+    log.warning("e-stop of every bus%s%s", f" from {sender}" if sender else "", since)
 
 
 class GatewayApi:

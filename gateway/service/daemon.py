@@ -158,7 +158,7 @@ async def serve(
             metrics.stop()
         stops = [partial(r.stop, STOP_TIMEOUT_S) for r in local.values()]
         await asyncio.to_thread(stop_together, [*stops, *(w.stop for w in workers)])
-        bridge.refusals.flush(every=True)
+        bridge.put_reports.flush(every=True)
         bridge.publish_events()
         if recorder is not None:  # after the buses: their last frames are in it
             await asyncio.to_thread(recorder.flush)

@@ -1,10 +1,11 @@
-"""A refused put is told as a ``command_refused`` event at most once a device every 0.1 s; the
-ones withheld are counted in the next told (``suppressed``), and the last of a burst is told
-once its interval has passed: a fake clock, no zenoh."""
+"""A refused put is told as a ``command_refused`` event at most once a device every 0.1 s, an
+e-stop as an ``estop`` event at most once every 0.1 s; the ones withheld are counted in the
+next told (``suppressed``), and the last of a burst is told once its interval has passed: a
+fake clock, no zenoh."""
 
 from __future__ import annotations
 
-from busgate.gateway.api.refusals import RefusalReports
+from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.schemas.events import EVENT_ADAPTER
 from tests.test_schema_export import assert_valid, event_body
@@ -22,9 +23,9 @@ def error(n: int) -> dict:
     return {"code": "bad_command", "message": f"refusal {n}"}
 
 
-def reports(clock: Clock) -> tuple[RefusalReports, list[DeviceEvent]]:
+def reports(clock: Clock) -> tuple[PutReports, list[DeviceEvent]]:
     told: list[DeviceEvent] = []
-    return RefusalReports({"la1", "la2"}, told.append, clock=clock), told
+    return PutReports({"la1", "la2"}, told.append, clock=clock), told
 
 
 def told_as(told: list[DeviceEvent]) -> list[tuple[str, str, int | None]]:
@@ -100,3 +101,27 @@ def test_at_the_stop_every_withheld_refusal_is_told() -> None:
     assert len(told) == 1
     refusals.flush(every=True)  # the gateway stops: no round comes after this one
     assert told_as(told)[-1] == ("la1", "refusal 2", 1)
+
+
+def test_estops_in_a_loop_are_told_first_and_last_in_a_slot_of_their_own() -> None:
+    """A client putting e-stops in a loop makes one event (and log line) every 0.1 s, not one
+    a put, whoever names itself; a device's refusals meanwhile keep their own interval."""
+    clock = Clock()
+    reports_, told = reports(clock)
+    for n in range(100):  # 100 e-stops in 0.1 s, under ever new names
+        clock.now = n / 1000
+        reports_.estop("busgate/gw/estop", f"panel{n}")
+        if n == 1:
+            reports_.refused("la1", error(1))
+    reports_.flush()
+    assert [(e.type, e.fields.get("client")) for e in told] == [
+        ("estop", "panel0"),
+        ("command_refused", None),
+    ]
+    clock.now = 0.1
+    reports_.flush()
+    assert told[-1].fields == {"key": "busgate/gw/estop", "client": "panel99", "suppressed": 98}
+    assert len(reports_._slots) == 2
+    for event in told:
+        assert_valid("event.json", event_body(event))
+        EVENT_ADAPTER.validate_python(event_body(event))

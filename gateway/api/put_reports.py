@@ -1,0 +1,122 @@
+"""How a put that gets no reply is told: a refused put as a ``command_refused`` event, at most
+one a device every ``TOLD_EVERY_S``; an e-stop as an ``estop`` event and a log line, at most
+one every ``TOLD_EVERY_S``.
+
+A put gets no reply, so its refusal is an event, published on two keys to every subscriber of
+events (dashboards, recorders, other clients). A client streaming targets at 100 Hz to an
+e-stopped device, or flooding bad puts, would otherwise make an event of every put and bury
+the events that matter under them; a client putting e-stops in a loop (a button held, a
+teleoperation program that sends one each turn) would do the same, with a log line each that
+the journal's rate limit would answer by dropping the service's other lines.
+
+Rules of this file:
+
+1. Nothing is lost: a put is either told, or withheld and counted in the ``suppressed``
+   field of the next one told in its slot (a device's refusals, or the e-stops) since the
+   last told one. The last withheld one is told by ``flush`` once its slot's interval has
+   passed, so a burst's end is told, however the burst ended.
+2. Memory is bounded whatever the names: a device the gateway does not have counts under one
+   shared slot, its event naming the device as the put did (cut, ``shown``); every e-stop,
+   whoever sent it, under one other.
+3. Any thread may report (zenoh's, a bus thread's future callback); ``flush`` runs on the
+   publishing loop's thread. One lock guards the slots.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from typing import Any
+
+from busgate.gateway.drivers.base import DeviceEvent
+from busgate.schemas.validation import shown
+
+#: The shortest time between two puts told in one slot.
+TOLD_EVERY_S = 0.1
+#: The slot of every device name the gateway does not have (rule 2): no device has this name,
+#: a configured name being a single key chunk.
+UNKNOWN = "/"
+#: The slot of the e-stops (rule 2), which no device name can be either.
+ESTOPS = "*"
+
+
+@dataclass(slots=True)
+class _Slot:
+    told_at: float = float("-inf")
+    withheld: int = 0  # puts not told, the latest (``latest``) included
+    latest: DeviceEvent | None = None  # the latest withheld put's event
+
+
+class PutReports:
+    """The events of refused puts and e-stops, at most one a slot per interval (the rules
+    above); ``tell`` gets each event told."""
+
+    def __init__(
+        self,
+        devices: Collection[str],
+        tell: Callable[[DeviceEvent], None],
+        *,
+        every_s: float = TOLD_EVERY_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._devices = devices
+        self._tell = tell
+        self._every_s = every_s
+        self._clock = clock
+        self._slots: dict[str, _Slot] = {}
+        self._pending = 0  # slots with a withheld put: ``flush`` looks only when some are
+        self._lock = threading.Lock()
+
+    def refused(self, device: str, error: dict[str, Any]) -> None:
+        """A put naming ``device`` was refused with ``error`` (``code``, ``message``)."""
+        slot = device if device in self._devices else UNKNOWN
+        self._report(slot, DeviceEvent(shown(device), "command_refused", error))
+
+    def estop(self, key: str, sender: str | None) -> None:
+        """An e-stop was put on ``key`` by ``sender`` (when it named itself)."""
+        fields = {"key": key} | ({"client": sender} if sender else {})
+        self._report(ESTOPS, DeviceEvent("*", "estop", fields))
+
+    @property
+    def withheld(self) -> bool:
+        """Whether a put waits for its slot's interval to pass (for a later ``flush``)."""
+        return bool(self._pending)
+
+    def flush(self, *, every: bool = False) -> None:
+        """Tell each withheld put whose slot's interval has passed (rule 1); with ``every``,
+        each one withheld (the gateway stops: nothing waits for a next round)."""
+        if not self._pending:
+            return
+        moment = self._clock()
+        with self._lock:
+            for slot in self._slots.values():
+                if slot.latest is not None and (every or moment - slot.told_at >= self._every_s):
+                    event = slot.latest
+                    slot.withheld -= 1  # the one told is not suppressed
+                    self._told(slot, event, moment)
+
+    def _report(self, name: str, event: DeviceEvent) -> None:
+        moment = self._clock()
+        with self._lock:
+            slot = self._slots.get(name)
+            if slot is None:
+                slot = self._slots[name] = _Slot()
+            if moment - slot.told_at >= self._every_s:
+                self._told(slot, event, moment)
+                return
+            if slot.latest is None:
+                self._pending += 1
+            slot.withheld += 1
+            slot.latest = event
+
+    def _told(self, slot: _Slot, event: DeviceEvent, moment: float) -> None:
+        """Under the lock: ``event`` told now, with the count of those withheld before it."""
+        if slot.withheld:
+            fields = event.fields | {"suppressed": slot.withheld}
+            event = DeviceEvent(event.device, event.type, fields)
+        if slot.latest is not None:
+            self._pending -= 1
+        slot.told_at, slot.withheld, slot.latest = moment, 0, None
+        self._tell(event)
