@@ -539,6 +539,23 @@ def test_estops_put_again_and_again_send_each_frame_at_most_twice_and_answer_eac
         runner.owner.close()
 
 
+def test_an_estop_handed_over_while_anothers_frames_go_is_not_waited_for(simulator) -> None:
+    """Rule 1: the caller waits for an e-stop's first exchange, unless another e-stop's frames
+    are going already (a client putting e-stops in a loop holds its zenoh link no longer)."""
+    runner = build_bus(bus(simulator.port))  # not started: the test is the bus thread
+    runner.owner.open()
+    try:
+        runner.estop()
+        assert not runner.estop_sent(0)  # handed over: its first exchange is awaited
+        runner._drain_inbox()
+        runner._step()  # la1's e-stop: the job is on the line
+        assert runner.estop_sent(0)
+        runner.estop()
+        assert runner.estop_sent(0)  # la2's e-stop still to go: nothing to wait for
+    finally:
+        runner.owner.close()
+
+
 def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> None:
     runner = build_bus(bus(simulator.port))  # not started: nothing drains the queue
     first, second, third = Future(), Future(), Future()

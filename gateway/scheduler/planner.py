@@ -187,6 +187,11 @@ class BusPlanner:
     def queued(self) -> int:
         return len(self._commands)
 
+    @property
+    def stopping(self) -> bool:
+        """Whether an e-stop is on the line or waits for it (any thread may ask)."""
+        return bool(self._estops)
+
     def decide(self, now: float) -> Slot | float:
         """The exchange to start at ``now``, or the time to ask again."""
         ready = self.line_free + self.gap_s

@@ -8,8 +8,11 @@ Rules of this file:
    they do can delay a frame. A caller that hands e-stops over and has Python of its own to
    run next (a log line, more messages) first waits, at most ``ESTOP_SENT_S``, for each
    e-stop's first exchange (``let_estops_go``): waiting, it leaves the bus threads the
-   interpreter. The bus thread, for its part, writes an e-stop's first frame before it
-   publishes news or ends what the e-stop ends (``work`` rules).
+   interpreter. An e-stop handed over while another's frames are going is not waited for:
+   its devices are being stopped already, and a client putting e-stops in a loop must not
+   hold its zenoh link for an exchange a put. The bus thread, for its part, writes an
+   e-stop's first frame before it publishes news or ends what the e-stop ends (``work``
+   rules).
 2. Waiting is to an absolute deadline: the owner's idle work (``BusOwner.idle_until``), woken
    early when new work arrives or a frame nobody asked for brought events (news without events,
    a heartbeat's values, is published in the pause and the wait goes on), then a spin
@@ -224,7 +227,8 @@ class BusRunner:
 
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
-        self._estop_sent.clear()
+        if not self.planner.stopping:  # else its frames are going already (rule 1)
+            self._estop_sent.clear()
         return self._hand_over(self._take_estop, estop=True)
 
     def estop_sent(self, timeout: float) -> bool:
