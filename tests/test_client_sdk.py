@@ -908,6 +908,41 @@ def test_an_estop_of_one_gateway_stops_its_devices_until_enable(client, gw2, wai
         enable_every_device(client, "gw2")
 
 
+@pytest.mark.slow
+def test_estops_put_in_a_loop_all_go_told_ten_a_second_and_a_reset_behind_them_holds(
+    demo, client, wait_for
+) -> None:
+    """A client putting e-stops in a loop, one a millisecond for four seconds (a button held, a
+    program sending one each turn): every put is carried out as it comes, where each took an
+    exchange of every bus and four seconds of them took twelve more to drain; they are told an
+    event every 0.1 s with the rest counted; a command on the same session is answered, and
+    the reset put after them is the last word (nothing e-stopped after it)."""
+    told: list[dict] = []
+    with zenoh.open(session_config(mode="client", connect=[demo.endpoint])) as session:
+        session.declare_subscriber(
+            "busgate/demo/events", lambda sample: told.append(json.loads(sample.payload.to_bytes()))
+        )
+        la1 = client.device("demo/la1")
+        patiently(la1.enable)
+        puts, end = 0, time.monotonic() + 4.0
+        while time.monotonic() < end:
+            session.put("busgate/demo/estop", b'{"client": "stuck-button"}')
+            puts += 1
+            time.sleep(0.001)
+        estops = lambda: [e for e in told if e["type"] == "estop"]  # noqa: E731
+        wait_for(lambda: sum(1 + e.get("suppressed", 0) for e in estops()) == puts,
+                 timeout=DEADLINE_S)  # fmt: skip
+        assert all(e.get("client") == "stuck-button" for e in estops())
+        assert len(estops()) <= 1 + 10 * 5  # four seconds of puts, and the last told after
+        status = list(session.get("busgate/demo/dev/la1/cmd", payload=b'{"op":"status"}',
+                                  timeout=DEADLINE_S))  # fmt: skip
+        assert json.loads(status[0].ok.payload.to_bytes())["state"]["estopped"] is True
+        session.put("busgate/demo/estop/reset", b'{"client": "stuck-button"}')
+        wait_for(lambda: la1.state(max_age=0.0).estopped is False, timeout=DEADLINE_S)
+        assert patiently(la1.move, next(POSITIONS))["ok"] is True
+    enable_every_device(client)
+
+
 def test_an_estop_of_the_fleet_stops_every_gateway(client, gw2, wait_for) -> None:
     devices = [client.device(name) for name in ("demo/la1", "demo/servo2", "gw2/la1")]
     for device in devices:
