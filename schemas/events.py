@@ -123,10 +123,16 @@ class EstopEvent(Event):
 
 class EstopResetEvent(Event):
     """The gateway's e-stop was reset: on one device (``device`` names it) or on every one
-    (``device`` is ``"*"``, from ``<prefix>/<gw>/estop/reset``)."""
+    (``device`` is ``"*"``, from ``<prefix>/<gw>/estop/reset``: at most one of those told
+    every 0.1 s, the rest counted in the next one's ``suppressed``)."""
 
     type: Literal["estop_reset"]
     client: ClientId | None = None
+    suppressed: int | None = Field(
+        default=None,
+        description="How many resets of every device were not told before this one: at most "
+        "one is told every 0.1 s, the rest counted here.",
+    )
 
 
 class TrajectoryStartedEvent(Event):

@@ -494,3 +494,24 @@ def test_estops_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
         "e-stop of every bus from teleop (8 more since the last told)",
     ]
     assert [e.fields.get("suppressed") for e in events] == [None, 8]
+
+
+def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_second(caplog):
+    """As e-stops are: every reset put is handed to every bus, one log line and one event
+    every 0.1 s; a put on another gateway's or a wildcard reset key does nothing."""
+    bridge, runner, events = estop_bridge()
+    bridge.put_reports = PutReports(bridge.api.devices, bridge._tell_put, clock=lambda: 0.0)
+    payload = SimpleNamespace(to_bytes=lambda: b'{"client": "panel"}')
+    with caplog.at_level("WARNING"):
+        for key in ["busgate/gw/estop/reset"] * 5 + ["busgate/*/estop/reset", "busgate/gw/**"]:
+            bridge._on_estop_reset(SimpleNamespace(payload=payload, key_expr=key))
+        bridge.put_reports.flush(every=True)
+    assert len(runner._inbox) == 5
+    assert [r.getMessage() for r in caplog.records] == [
+        "e-stop reset of every bus from panel",
+        "e-stop reset of every bus from panel (3 more since the last told)",
+    ]
+    assert [(e.type, e.fields) for e in events] == [
+        ("estop_reset", {"client": "panel"}),
+        ("estop_reset", {"client": "panel", "suppressed": 3}),
+    ]

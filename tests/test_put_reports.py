@@ -105,7 +105,8 @@ def test_at_the_stop_every_withheld_refusal_is_told() -> None:
 
 def test_estops_in_a_loop_are_told_first_and_last_in_a_slot_of_their_own() -> None:
     """A client putting e-stops in a loop makes one event (and log line) every 0.1 s, not one
-    a put, whoever names itself; a device's refusals meanwhile keep their own interval."""
+    a put, whoever names itself; a device's refusals and the resets meanwhile keep their own
+    interval."""
     clock = Clock()
     reports_, told = reports(clock)
     for n in range(100):  # 100 e-stops in 0.1 s, under ever new names
@@ -118,10 +119,12 @@ def test_estops_in_a_loop_are_told_first_and_last_in_a_slot_of_their_own() -> No
         ("estop", "panel0"),
         ("command_refused", None),
     ]
+    reports_.estop_reset("panel")  # its own slot: told at once
+    assert (told[-1].type, told[-1].fields) == ("estop_reset", {"client": "panel"})
     clock.now = 0.1
     reports_.flush()
     assert told[-1].fields == {"key": "busgate/gw/estop", "client": "panel99", "suppressed": 98}
-    assert len(reports_._slots) == 2
+    assert len(reports_._slots) == 3
     for event in told:
         assert_valid("event.json", event_body(event))
         EVENT_ADAPTER.validate_python(event_body(event))

@@ -34,7 +34,7 @@ from typing import Any
 import zenoh
 
 from busgate.errors import RefusedError
-from busgate.gateway.api.commands import GatewayApi, log_estop
+from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
@@ -339,9 +339,10 @@ class ZenohBridge:
         return stopped
 
     def _tell_put(self, event: DeviceEvent) -> None:
-        """A refused put's or an e-stop's event, told (an e-stop's with its log line)."""
-        if event.type == "estop":
-            log_estop(event.fields.get("client"), event.fields.get("suppressed", 0))
+        """A refused put's, an e-stop's or a reset's event, told (the last two with their log
+        line)."""
+        if event.type in TOLD_LINES:
+            log_told(event.type, event.fields.get("client"), event.fields.get("suppressed", 0))
         self.events.append(event)
 
     def submit_trajectory(self, payload: bytes) -> Future:
@@ -356,7 +357,8 @@ class ZenohBridge:
         if key != f"{self.base}/estop/reset":
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
-        self.api.reset_estop(_sender(payload))
+        self.api.reset_every_bus()
+        self.put_reports.estop_reset(_sender(payload))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
 

@@ -103,11 +103,16 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     return wrapper
 
 
-def log_estop(sender: str | None, suppressed: int = 0) -> None:
-    """The e-stop's log line, naming the client that sent it when known, and how many
-    e-stops came since the last line without one of their own (``put_reports``)."""
+#: The log line of an e-stop and of an e-stop reset of the whole gateway, by event type.
+TOLD_LINES = {"estop": "e-stop of every bus", "estop_reset": "e-stop reset of every bus"}
+
+
+def log_told(event_type: str, sender: str | None, suppressed: int = 0) -> None:
+    """The log line of an e-stop or a reset of the whole gateway (``TOLD_LINES``), naming the
+    client that sent it when known, and how many came since the last line without one of
+    their own (``put_reports``)."""
     since = f" ({suppressed} more since the last told)" if suppressed else ""
-    log.warning("e-stop of every bus%s%s", f" from {sender}" if sender else "", since)
+    log.warning("%s%s%s", TOLD_LINES[event_type], f" from {sender}" if sender else "", since)
 
 
 class GatewayApi:
@@ -272,11 +277,11 @@ class GatewayApi:
         """Stop every device of the gateway, ahead of everything (its log line too); never
         refused."""
         stopped = self.stop_every_bus()
-        log_estop(sender)
+        log_told("estop", sender)
         return stopped
 
     def stop_every_bus(self) -> list[Future]:
-        """The e-stop without its log line (``log_estop``): every bus's handed over, and let
+        """The e-stop without its log line (``log_told``): every bus's handed over, and let
         go (rule 4: they have the interpreter first)."""
         stopped = [runner.estop() for runner in self.runners.values()]
         let_estops_go(self.runners.values())
@@ -284,9 +289,13 @@ class GatewayApi:
 
     def reset_estop(self, sender: str | None = None) -> list[Future]:
         """Every device of the gateway out of its e-stop, holding still
-        (``Driver.reset_estop``)."""
-        log.warning("e-stop reset of every bus%s", f" from {sender}" if sender else "")
+        (``Driver.reset_estop``), told by a log line and an ``estop_reset`` event."""
+        log_told("estop_reset", sender)
         self._event("*", "estop_reset", **_client_field(sender))
+        return self.reset_every_bus()
+
+    def reset_every_bus(self) -> list[Future]:
+        """The reset without its log line and event (``reset_estop``)."""
         return [runner.reset_estop() for runner in self.runners.values()]
 
     @answered

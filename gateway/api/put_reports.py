@@ -1,6 +1,6 @@
 """How a put that gets no reply is told: a refused put as a ``command_refused`` event, at most
-one a device every ``TOLD_EVERY_S``; an e-stop as an ``estop`` event and a log line, at most
-one every ``TOLD_EVERY_S``.
+one a device every ``TOLD_EVERY_S``; an e-stop and an e-stop reset as an ``estop`` or
+``estop_reset`` event and a log line, at most one of each every ``TOLD_EVERY_S``.
 
 A put gets no reply, so its refusal is an event, published on two keys to every subscriber of
 events (dashboards, recorders, other clients). A client streaming targets at 100 Hz to an
@@ -17,7 +17,7 @@ Rules of this file:
    passed, so a burst's end is told, however the burst ended.
 2. Memory is bounded whatever the names: a device the gateway does not have counts under one
    shared slot, its event naming the device as the put did (cut, ``shown``); every e-stop,
-   whoever sent it, under one other.
+   whoever sent it, under one other, and every reset under a third.
 3. Any thread may report (zenoh's, a bus thread's future callback); ``flush`` runs on the
    publishing loop's thread. One lock guards the slots.
 """
@@ -38,8 +38,8 @@ TOLD_EVERY_S = 0.1
 #: The slot of every device name the gateway does not have (rule 2): no device has this name,
 #: a configured name being a single key chunk.
 UNKNOWN = "/"
-#: The slot of the e-stops (rule 2), which no device name can be either.
-ESTOPS = "*"
+#: The slots of the e-stops and of their resets (rule 2), which no device name can be either.
+ESTOPS, RESETS = "*", "*/reset"
 
 
 @dataclass(slots=True)
@@ -78,6 +78,10 @@ class PutReports:
         """An e-stop was put on ``key`` by ``sender`` (when it named itself)."""
         fields = {"key": key} | ({"client": sender} if sender else {})
         self._report(ESTOPS, DeviceEvent("*", "estop", fields))
+
+    def estop_reset(self, sender: str | None) -> None:
+        """Every device's e-stop was reset by a put of ``sender`` (when it named itself)."""
+        self._report(RESETS, DeviceEvent("*", "estop_reset", {"client": sender} if sender else {}))
 
     @property
     def withheld(self) -> bool:
