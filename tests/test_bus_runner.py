@@ -539,6 +539,28 @@ def test_estops_put_again_and_again_send_each_frame_at_most_twice_and_answer_eac
         runner.owner.close()
 
 
+def test_estops_while_the_bus_is_down_are_answered_at_once_and_sent_once_it_is_back(
+    simulator,
+) -> None:
+    """Nothing holds an e-stop's caller (nor memory, however many come) while its bus is
+    down: each is answered ``bus_unavailable`` at once, the devices latched, and one e-stop
+    goes to them once the bus is back, ahead of everything."""
+    runner = build_bus(bus(simulator.port))  # not started, not open: the test is the bus thread
+    try:
+        handed = [runner.estop() for _ in range(20)]
+        runner._drain_inbox()
+        assert {future.exception(0).code for future in handed} == {"bus_unavailable"}
+        assert all(driver.estopped for driver in runner.drivers.values())
+        assert runner._ensure_open()
+        deadline = now() + 10
+        while runner.planner.stopping and now() < deadline:
+            runner._step()
+        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
+        assert [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires] == [1, 2]
+    finally:
+        runner.owner.close()
+
+
 def test_an_estop_handed_over_while_anothers_frames_go_is_not_waited_for(simulator) -> None:
     """Rule 1: the caller waits for an e-stop's first exchange, unless another e-stop's frames
     are going already (a client putting e-stops in a loop holds its zenoh link no longer)."""

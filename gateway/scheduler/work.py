@@ -125,7 +125,11 @@ class BusWork:
             Job("*", deque(requests), keep_going=True, future=Future())
         )
         assert carrier.future is not None
-        outcomes.pass_on(carrier.future, future)
+        if self.owner.is_open:
+            outcomes.pass_on(carrier.future, future)
+        else:  # answered now, not held (with what joins it) for as long as the bus is down
+            down = f"bus {self.name} is down: the e-stop goes to its devices once it is back"
+            outcomes.settle(future, error=BusUnavailableError(down))
 
     def end_estopped(self) -> None:
         """What an e-stop planned (``plan_estop``) ends: every stream and trajectory, and the
