@@ -108,8 +108,8 @@ class ZenohBridge:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
-        #: A refused put's event, at most one a device every 0.1 s, and an e-stop's, at most
-        #: one every 0.1 s: the rest counted (``put_reports``).
+        #: A refused put's event, at most one a device every 0.1 s, an e-stop's and a reset's,
+        #: at most one of each every 0.1 s: the rest counted (``put_reports``).
         self.put_reports = PutReports(api.devices, self._tell_put)
         self.trajectories = Trajectories(
             api, self.base, self._put_any, lambda event: self.events.append(event)
@@ -230,8 +230,8 @@ class ZenohBridge:
 
     def _round_due(self) -> bool:
         """Whether the next round has work whatever comes: a trajectory's feedback, a base's
-        drive, a refusal held back for its device's interval. (A joints message held back
-        for its own is due at a moment the wait is given.)"""
+        drive, a refusal, e-stop or reset held back for its interval. (A joints message held
+        back for its own is due at a moment the wait is given.)"""
         return self.trajectories.running or self.bases.driving or self.put_reports.withheld
 
     def _has_news(self) -> bool:

@@ -12,8 +12,8 @@ the journal's rate limit would answer by dropping the service's other lines.
 Rules of this file:
 
 1. Nothing is lost: a put is either told, or withheld and counted in the ``suppressed``
-   field of the next one told in its slot (a device's refusals, or the e-stops) since the
-   last told one. The last withheld one is told by ``flush`` once its slot's interval has
+   field of the next one told in its slot (a device's refusals, the e-stops, the resets)
+   since the last told one. The last withheld one is told by ``flush`` once its slot's interval has
    passed, so a burst's end is told, however the burst ended.
 2. Memory is bounded whatever the names: a device the gateway does not have counts under one
    shared slot, its event naming the device as the put did (cut, ``shown``); every e-stop,
@@ -50,8 +50,8 @@ class _Slot:
 
 
 class PutReports:
-    """The events of refused puts and e-stops, at most one a slot per interval (the rules
-    above); ``tell`` gets each event told."""
+    """The events of refused puts, e-stops and their resets, at most one a slot per interval
+    (the rules above); ``tell`` gets each event told."""
 
     def __init__(
         self,
