@@ -561,6 +561,31 @@ def test_estops_while_the_bus_is_down_are_answered_at_once_and_sent_once_it_is_b
         runner.owner.close()
 
 
+def test_an_estop_whose_first_frame_lost_the_link_is_answered_and_sent_once_it_is_back(
+    simulator,
+) -> None:
+    """The link lost under an e-stop's first exchange: its callers are answered
+    ``bus_unavailable``, and the e-stop goes to the devices once the bus is back (a device
+    may never have had it), as one handed over while the bus was down does."""
+    runner = build_bus(bus(simulator.port))  # not started: the test is the bus thread
+    runner.owner.open()
+    try:
+        handed = runner.estop()
+        runner._drain_inbox()
+        slot = runner.planner.decide(now() + 1)
+        assert slot.priority is Priority.ESTOP
+        runner._link_lost(BusIOError("unplugged"), slot)  # as ``_execute`` on a failed write
+        assert handed.exception(0).code == "bus_unavailable"
+        assert runner._ensure_open()
+        deadline = now() + 10
+        while runner.planner.stopping and now() < deadline:
+            runner._step()
+        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
+        assert [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires] == [1, 2]
+    finally:
+        runner.owner.close()
+
+
 def test_an_estop_handed_over_while_anothers_frames_go_is_not_waited_for(simulator) -> None:
     """Rule 1: the caller waits for an e-stop's first exchange, unless another e-stop's frames
     are going already (a client putting e-stops in a loop holds its zenoh link no longer)."""

@@ -469,6 +469,8 @@ class BusRunner:
         log.warning("bus %s lost: %s", self.name, exc)
         if slot is not None and isinstance(slot.source, Job):
             outcomes.fail(slot.source, BusUnavailableError(str(exc)))
+            if slot.priority is Priority.ESTOP:  # answered; its frames go once the bus is back
+                slot.source.future = Future()
         down = BusUnavailableError(f"bus {self.name} went down")
         self._work.end_everything("bus down", "the bus lost", down)
         for driver in self.drivers.values():
