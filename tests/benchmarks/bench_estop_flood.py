@@ -25,6 +25,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.*
@@ -78,8 +79,8 @@ def main() -> None:
                 if counted() >= puts or since > DRAIN_S:
                     break
                 time.sleep(0.5)
-            estops = [e for e in told if e["type"] == "estop"]
-            print(f"estop events: {len(estops)}; other events: {len(told) - len(estops)}")
+            kinds = Counter(f"{e['type']} {e['device']}" for e in told if e["type"] != "estop")
+            print(f"estop events: {len(told) - kinds.total()}; other events: {dict(kinds)}")
             asked = time.monotonic()
             replies = list(session.get("busgate/demo/dev/la1/cmd", payload=b'{"op":"status"}',
                                        timeout=30))  # fmt: skip
