@@ -6,7 +6,7 @@ multicast scouting off: the simulators, the daemon (``busgate run``) and the bar
 child processes, the streaming client here; every process ended by its PID.
 
     .venv/bin/python tests/benchmarks/bench_scale.py [--buses 1,2,4,6,8] [--daemons 2] [--runs 2]
-        [--workers 1,auto] [--estop 50] [--realtime 50]
+        [--workers 1,auto] [--estop 50] [--estop-hop] [--realtime 50]
 
 For each N: N simulated UARTs of 3 Inspire LA actuators at 921600 baud (``busgate sim``,
 each recording its wire). First the gateway: one daemon drives all N buses (``--daemons K``:
@@ -43,6 +43,12 @@ too, so that both sides are measured alike; and the simulators one priority abov
 devices that no host thread delays. It needs the privilege (root, or ``RLIMIT_RTPRIO``):
 without it the gateway warns and runs at normal priority, and the bare loops stop with the
 kernel's refusal.
+
+``--estop-hop`` (with ``--estop``): also the first hop of each e-stop, its put to the start
+of the gateway's e-stop callback (zenoh carrying the put over loopback, and the gateway's
+interpreter taken by zenoh's thread), which no busgate code comes before: a probe on the
+daemons' ``PYTHONPATH`` (``estop_hop/sitecustomize.py``) notes when each callback began. Per
+e-stop the slowest daemon's; p50, p99 and max under the e-stop table.
 
 ``--estop COUNT`` (default 0: none): after each gateway's measured window, a second phase on
 the same daemons, simulators and traffic (the streams, polls and the client's 50 Hz targets
@@ -144,6 +150,10 @@ STREAMING_S = 3 * PERIOD_S
 EXPECTED_LOG = ("e-stop of every bus", "e-stop reset of every bus")
 #: ``--realtime``: the SCHED_FIFO priority of every bus thread, the gateway's and the bare ones.
 REALTIME: int | None = None
+#: ``--estop-hop``: the daemons started with the probe that notes each e-stop callback's start.
+ESTOP_HOP = False
+#: The probe's folder, put first on the daemons' ``PYTHONPATH`` under ``--estop-hop``.
+HOP_PROBE = Path(__file__).resolve().parent / "estop_hop"
 
 
 def drivers_of(bus: int) -> list[InspireLaDriver]:
@@ -209,6 +219,51 @@ def realtime_device(pid: int) -> None:
         os.sched_setscheduler(int(task), os.SCHED_FIFO, os.sched_param(REALTIME + 1))
 
 
+@contextlib.contextmanager
+def hop_probe(notes: Path):
+    """Under ``--estop-hop``, the environment a daemon started within is given: the probe
+    first on its ``PYTHONPATH``, noting in ``notes``; yields ``notes`` (``None`` without)."""
+    if not ESTOP_HOP:
+        yield None
+        return
+    before = dict(os.environ)
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        [str(HOP_PROBE), *filter(None, [before.get("PYTHONPATH")])]
+    )
+    os.environ["BUSGATE_ESTOP_HOP"] = str(notes)
+    try:
+        yield notes
+    finally:
+        os.environ.clear()
+        os.environ.update(before)
+
+
+def noted_times(notes: Path) -> list[float]:
+    """The callback starts the probe noted (none: the file was never written)."""
+    return sorted(float(line) for line in notes.read_text().split()) if notes.exists() else []
+
+
+def hop_figures(phase: dict) -> dict | None:
+    """Per e-stop, the slowest daemon's put → callback start; p50, p99, max (ms)."""
+    if not phase.get("hops"):
+        return None
+    signals = phase["signals"]
+    worst = []
+    for i, signal in enumerate(signals):
+        until = signals[i + 1] if i + 1 < len(signals) else math.inf
+        firsts = [min((t for t in times if signal <= t < until), default=None)
+                  for times in phase["hops"]]  # fmt: skip
+        if None not in firsts:
+            worst.append(max(t for t in firsts if t is not None) - signal)
+    worst.sort()
+    return {
+        "count": len(worst),
+        "p50_ms": ms(percentile(worst, 0.5)),
+        "p99_ms": ms(percentile(worst, 0.99)),
+        "max_ms": ms(worst[-1] if worst else None),
+    }
+
+
 def realtime_arguments() -> list[str]:
     return [] if REALTIME is None else ["--realtime", str(REALTIME)]
 
@@ -237,6 +292,7 @@ def gateway_step(
     owner = {f"bus{n}": gateways[n * daemons // len(ports)] for n in range(len(ports))}
     endpoints = [free_endpoint() for _ in gateways]
     started_daemons: list[ScaleDaemon] = []
+    hop_notes: list[Path | None] = []
     stats: dict[str, dict] = {}
     phase: dict = {}
     try:
@@ -255,7 +311,9 @@ def gateway_step(
                 for n, bus in enumerate(owner)
                 if owner[bus] == gateway
             )
-            started_daemons.append(ScaleDaemon(scratch, endpoint, config, gateway, workers))
+            with hop_probe(scratch / f"{gateway}-{label(workers)}-hops.txt") as notes:
+                started_daemons.append(ScaleDaemon(scratch, endpoint, config, gateway, workers))
+                hop_notes.append(notes)
         with zenoh.open(session_config(connect=endpoints)) as session:
             for gateway in gateways:
                 wait_ready(session, gateway=gateway)
@@ -293,6 +351,8 @@ def gateway_step(
                 after = dict(stats)
                 if estops:
                     phase = estop_phase(session, gateways, estops)
+                    time.sleep(0.1)  # the last callback noted
+                    phase["hops"] = [noted_times(notes) for notes in hop_notes if notes]
             finally:
                 stop.set()
                 streamer.join()
@@ -809,6 +869,7 @@ def step(buses: int, seconds: float, daemons: int, workers: list[str | None], es
             gateway |= wire_figures(records, gateway["window"])
             if estops:
                 gateway["estop"] = estop_figures(records, gateway["estop_phase"])
+                gateway["estop_hop"] = hop_figures(gateway["estop_phase"])
         bare |= wire_figures(records, bare["window"])
         if estops:
             bare["estop"] = estop_figures(records, bare_estop) | {
@@ -882,9 +943,17 @@ def estop_table(figures: dict) -> str:
     rows.append(estop_row("bare", bare, [None, None]))
     headers = ["writer", "e-stops", "p50", "p99", "max", "added p50", "added p99",
                "streaming", "reset", "missed", "polls/s/bus"]  # fmt: skip
+    hops = [
+        f"\n  gateway, workers {gateway['workers']}: put → the gateway's e-stop callback (zenoh's "
+        f"hop, the slowest daemon per e-stop, ms): p50 {number(hop['p50_ms'])}, p99 "
+        f"{number(hop['p99_ms'])}, max {number(hop['max_ms'])} ({hop['count']} e-stops)"
+        for gateway in figures["gateways"]
+        if (hop := gateway.get("estop_hop"))
+    ]
     return (
         "  e-stop → its frame on every bus (the worst bus per e-stop; device side, ms):\n"
         + table(headers, rows)
+        + "".join(hops)
     )
 
 
@@ -1019,6 +1088,11 @@ def main() -> None:
         help="e-stops per step, beside a bare loop's (default 0)",
     )
     parser.add_argument(
+        "--estop-hop",
+        action="store_true",
+        help="with --estop: also time each put to the start of the gateway's e-stop callback",
+    )
+    parser.add_argument(
         "--realtime",
         type=priority,
         metavar="PRIORITY",
@@ -1027,8 +1101,9 @@ def main() -> None:
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
     parser.add_argument("--bare-estop", help=argparse.SUPPRESS)  # the e-stop child: its ports
     args = parser.parse_args()
-    global REALTIME
+    global REALTIME, ESTOP_HOP
     REALTIME = args.realtime
+    ESTOP_HOP = args.estop_hop
     if args.bare:
         print(json.dumps(bare_loops(args.bare.split(","), args.seconds)))
         return
