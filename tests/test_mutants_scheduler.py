@@ -8,14 +8,19 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import pytest
+
 from busgate.codecs.framing import ExpectedReply
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.scheduler.limiter import StreamLimiter
 from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
 from busgate.gateway.scheduler.streams import FollowStreams
-from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
+from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker, KeepaliveTicker, commanded
+from busgate.schemas import inspire_la, zlac706
+from busgate.schemas.joints import Joint, JointTable
 from tests.stand_in_driver import StandInDriver
 
 GAP = 0.001
@@ -404,3 +409,97 @@ def test_the_stop_after_a_stream_ended_is_a_command_for_its_device():
     streams.end("la1", "client left")
     slot = planner.decide(0.0)
     assert slot.source.device == "la1" and slot.request.frame == ("stop", "la1")
+
+
+# -- where a stream starts from, and its limits told (tickers rules 4 and 6) ------------------
+
+
+class Reading(Follower):
+    """A follower of a family's joint whose telemetry, asked at a moment, is what the test set
+    for that moment (a moment not set is a test's mistake: ``KeyError``)."""
+
+    def __init__(self, joint: Joint, readings: dict[float, dict]) -> None:
+        super().__init__(joint.name, 1, joint=joint, follow_period_s=0.01)
+        self.readings = readings
+
+    def telemetry(self, now: float) -> dict:
+        return dict(self.readings[now])
+
+
+def la_joint(**limits) -> Joint:
+    return Joint.of("la1", inspire_la.JOINT, JointTable(unit="m", scale=5e-6, **limits))
+
+
+def wheel_joint(**limits) -> Joint:
+    table = JointTable(unit="rad", scale=2 * math.pi / 10_000, type="velocity", **limits)
+    return Joint.of("wheel", zlac706.JOINT, table)
+
+
+def test_a_position_stream_starts_from_the_target_else_the_position_read_at_its_moment():
+    assert commanded(Reading(la_joint(), {5.0: {"target": 1200, "position": 900}}), 5.0) == 1200
+    assert commanded(Reading(la_joint(), {5.0: {"position": 900}}), 5.0) == 900
+    assert commanded(Reading(la_joint(), {5.0: {"target": 0, "position": 900}}), 5.0) == 0
+
+
+def test_a_speed_stream_starts_from_the_commanded_speed_else_standing_still():
+    assert commanded(Reading(wheel_joint(), {5.0: {"target_speed_rpm": -300,
+                                                   "speed_rpm": 10}}), 5.0) == -300  # fmt: skip
+    assert commanded(Reading(wheel_joint(), {5.0: {"speed_rpm": 10}}), 5.0) == 0.0
+
+
+def limited_events(driver: Driver) -> list[dict]:
+    return [event.fields for event in driver.drain_events() if event.type == "limited"]
+
+
+def test_a_target_held_at_a_position_limit_is_told_once_in_si_naming_joint_and_limit():
+    driver = Reading(la_joint(offset=0.001, max=0.006), {0.0: {"target": 0}})
+    stream = FollowStream(driver, (1500, 0.0), StreamLimiter(driver.joint, 0.01, 0))
+    assert stream.next_target() == 1000  # 0.006 m
+    assert stream.next_target() == 1000
+    assert limited_events(driver) == [  # a position: the offset counts
+        {"joint": "la1", "limit": "max", "value": pytest.approx(0.0085)}
+    ]
+
+
+def test_a_speed_held_at_its_max_velocity_is_told_in_rad_per_s():
+    driver = Reading(wheel_joint(max_velocity=1.0), {0.0: {}})
+    stream = FollowStream(driver, (600, 0.0), StreamLimiter(driver.joint, 0.01, 0.0))
+    assert stream.next_target() < 600
+    velocity = driver.joint.velocity_si(600)
+    assert limited_events(driver) == [
+        {"joint": "wheel", "limit": "max_velocity", "value": pytest.approx(velocity)}
+    ]
+
+
+def test_a_ramp_steps_from_where_its_device_was_commanded_never_goes_stale_and_ends_on_it():
+    """Rule 5: 10 mm/s at 10 ms is 20 counts a tick, from the target read when it started;
+    ticks half a second later still carry it; the tick that sends the target ends it."""
+    driver = Reading(la_joint(max_velocity=0.01), {0.0: {"target": 900, "position": 0}})
+    planner, streams = streams_of(driver)
+    streams.start(driver, 1000, 0.0, ends_on_target=True)
+    sent = []
+    for tick in range(5):
+        moment = 0.5 + tick * 0.01
+        slot = planner.decide(moment)
+        sent.append(slot.request.frame[1][0][1])
+        assert slot.source.carried() == [driver]
+        run(planner, slot, moment, 0.0001)
+    assert sent == [920, 940, 960, 980, 1000]
+    assert planner.decide(0.55) == math.inf  # ended: nothing more to tick
+    assert not streams.store_latest("la1", 1000, 0.55)
+    # held by max_velocity, told once; ended on its target, with no stale or stopped stream
+    assert [event.type for event in driver.drain_events()] == ["limited"]
+
+
+def test_a_new_target_for_a_running_stream_steps_on_from_its_last_tick_not_from_telemetry():
+    """A ramp handed to a device already streaming (a ROS command after a stream) keeps the
+    stream's limiter: the next step starts where the last tick left the device, whatever its
+    last reading (900, a poll behind) says."""
+    readings = {0.0: {"target": 900}, 0.025: {"target": 900}}
+    driver = Reading(la_joint(max_velocity=0.01), readings)
+    planner, streams = streams_of(driver)
+    streams.start(driver, 1000, 0.0)
+    for moment in (0.0, 0.01):
+        run(planner, planner.decide(moment), moment, 0.0001)  # 920, 940
+    streams.start(driver, 1100, 0.025, ends_on_target=True)
+    assert planner.decide(0.025).request.frame[1] == (("la1", 960),)

@@ -71,7 +71,8 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         "gateway",
         ["gateway/scheduler/planner.py", "gateway/scheduler/tickers.py",
          "gateway/scheduler/streams.py"],
-        ["tests/test_planner.py", "tests/test_mutants_scheduler.py"],
+        ["tests/test_planner.py", "tests/test_joints.py", "tests/test_trajectory_ticks.py",
+         "tests/test_mutants_scheduler.py"],
     ),
     "bus": (
         "gateway",
