@@ -515,3 +515,61 @@ def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
         ("estop_reset", {"client": "panel"}),
         ("estop_reset", {"client": "panel", "suppressed": 3}),
     ]
+
+
+def test_a_reset_of_every_bus_is_logged_told_and_handed_to_each_bus(caplog):
+    """``GatewayApi.reset_estop`` (the ROS 2 face's service, the API's own): its log line and
+    its event name the sender when there is one, and every bus is handed the reset."""
+    _, runner, _ = estop_bridge()
+    events: list[DeviceEvent] = []
+    api = GatewayApi("gw", {"uart0": runner}, on_event=events.append)
+    with caplog.at_level("WARNING"):
+        handed = api.reset_estop("panel")
+        api.reset_estop()
+    assert len(handed) == 1 and not handed[0].done() and len(runner._inbox) == 2
+    assert [r.getMessage() for r in caplog.records] == [
+        "e-stop reset of every bus from panel",
+        "e-stop reset of every bus",
+    ]
+    assert [(e.device, e.type, e.fields) for e in events] == [
+        ("*", "estop_reset", {"client": "panel"}),
+        ("*", "estop_reset", {}),
+    ]
+
+
+def test_a_devices_reset_is_told_and_handed_over_unless_another_client_holds_it():
+    _, runner, _ = estop_bridge()
+    events: list[DeviceEvent] = []
+    api = GatewayApi("gw", {"uart0": runner}, on_event=events.append)
+    runner.authority.claims.claim("la1", "alice", 10.0, now=runner.authority.clock())
+    refused = api.command("la1", b'{"op": "reset_estop", "client": "bob"}').result(0)
+    assert refused["error"]["code"] == "claimed" and not runner._inbox and not events
+    pending = api.command("la1", b'{"op": "reset_estop", "client": "alice"}')
+    assert not pending.done() and len(runner._inbox) == 1
+    assert [(e.device, e.type, e.fields) for e in events] == [
+        ("la1", "estop_reset", {"client": "alice"})
+    ]
+
+
+def test_a_follow_target_to_a_device_playing_a_trajectory_is_refused_busy_saying_why():
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    runner.plays.start({"la1": lambda t_s: {"position": 900}}, now() + 1.0)  # the bus thread's
+    assert runner.plays.playing("la1")
+    assert api.follow("la1", b'{"position": 100}') == {"ok": False, "error": {
+        "code": "busy",
+        "message": "la1 is playing a trajectory: cancel it first (a follow stream and a "
+                   "trajectory would fight over its target)",
+    }}  # fmt: skip
+    assert not runner._inbox  # nothing handed to the bus
+
+
+def test_a_devices_reset_goes_to_that_device_alone():
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    asked: list[str | None] = []
+    reset = runner.reset_estop
+    runner.reset_estop = lambda device=None: asked.append(device) or reset(device)
+    api.command("la1", b'{"op": "reset_estop"}')
+    api.reset_estop()
+    assert asked == ["la1", None]
