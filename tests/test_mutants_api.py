@@ -78,6 +78,27 @@ def test_a_claim_lapses_at_its_moment_and_anyone_may_release_a_free_device():
     claims.check("la1", "carol", now=112.0)
 
 
+def test_a_hold_renewed_by_each_command_is_logged_once_and_keeps_others_out(caplog):
+    """``ClaimTable.hold`` (the ROS face's claim, renewed with every command): new once,
+    renewed silently, another client refused while it lasts, free at its moment."""
+    claims = ClaimTable()
+    with caplog.at_level("INFO"):
+        assert claims.hold("la1", "ros", 0.5, now=100.0) is True
+        assert claims.hold("la1", "ros", 0.5, now=100.25) is False  # renewed until 100.75
+        with pytest.raises(RefusedError) as refused:
+            claims.hold("la1", "teleop", 0.5, now=100.5)
+        assert refused.value.code == "claimed" and "'ros'" in str(refused.value)
+        assert claims.holder("la1", now=100.5) == "ros"
+        assert claims.holder("la1", now=100.75) is None  # lapsed at its moment
+        assert claims.holder("la2", now=100.0) is None
+        assert claims.hold("la1", "teleop", 0.5, now=100.75) is True
+    assert [r.getMessage() for r in caplog.records] == [
+        "device la1 claimed by ros while its commands flow",
+        "device la1: claim of ros lapsed",
+        "device la1 claimed by teleop while its commands flow",
+    ]
+
+
 class Device(StandInDriver):
     """The least driver the authority needs: a name and an id."""
 
@@ -573,3 +594,20 @@ def test_a_devices_reset_goes_to_that_device_alone():
     api.command("la1", b'{"op": "reset_estop"}')
     api.reset_estop()
     assert asked == ["la1", None]
+
+
+def test_a_kept_target_holds_its_device_for_its_client_and_ramps_it_there(gateway, wait_for):
+    """``GatewayApi.ramp_to`` (the ROS face's commands): the first target claims the device
+    for its client (told once), each renews it, another client is refused while it lasts, and
+    the device gets to the target (a joint without a table here: its values are counts)."""
+    api, _, _, clock, events = gateway
+    assert api.ramp_to("la1", {"joint": 700}, "ros", 0.5) is None
+    assert api.ramp_to("la1", {"joint": 800}, "ros", 0.5) is None
+    assert said(events, "claimed") == [("la1", {"client": "ros", "ttl_s": 0.5})]
+    refused = api.ramp_to("la1", {"joint": 900}, "teleop", 0.5)
+    assert refused["error"]["code"] == "claimed" and "'ros'" in refused["error"]["message"]
+    wait_for(lambda: api.devices["la1"][1].telemetry(now()).get("target") == 800)
+    assert api.ramp_to("la1", {"nope": 1}, "ros", 0.5)["error"]["code"] == "bad_command"
+    clock.offset += 0.5  # the hold lapsed: another client may take over
+    assert api.ramp_to("la1", {"joint": 600}, "teleop", 0.5) is None
+    assert said(events, "claimed")[-1] == ("la1", {"client": "teleop", "ttl_s": 0.5})
