@@ -359,6 +359,18 @@ def test_a_claim_renewed_by_its_holder_is_not_logged_as_new(caplog):
     ]
 
 
+def test_a_claim_renewed_by_its_holder_is_told_at_debug_level_naming_device_client_and_ttl(
+    caplog,
+):
+    claims = ClaimTable()
+    claims.claim("la1", "alice", 2.0, now=100.0)
+    with caplog.at_level("DEBUG", logger="busgate.gateway.scheduler.authority"):
+        claims.claim("la1", "alice", 1.5, now=101.0)
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("DEBUG", "device la1: the claim of alice renewed for 1.5 s")
+    ]
+
+
 # -- replies made from the bus's outcome ------------------------------------------------------
 
 
