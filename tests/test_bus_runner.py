@@ -27,6 +27,7 @@ from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
 from busgate.gateway.scheduler.planner import Job, Priority
+from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
@@ -514,6 +515,19 @@ def test_an_estop_answers_the_commands_it_took_out_once_its_frame_is_out(simulat
         runner.owner.close()
 
 
+def estops_on_the_wire(simulator) -> list[int]:
+    """The id of every Inspire LA e-stop frame the simulator took, in order."""
+    wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
+    return [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires]
+
+
+def step_while_stopping(runner: BusRunner) -> None:
+    """Run the (not started) runner's turns until no e-stop is left to send, 10 s at most."""
+    deadline = now() + 10
+    while runner.planner.stopping and now() < deadline:
+        runner._step()
+
+
 def test_estops_put_again_and_again_send_each_frame_at_most_twice_and_answer_each(
     simulator,
 ) -> None:
@@ -532,9 +546,7 @@ def test_estops_put_again_and_again_send_each_frame_at_most_twice_and_answer_eac
         while not all(future.done() for future in handed) and now() < deadline:
             runner._step()
         assert [future.exception(0) for future in handed] == [None] * 100
-        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
-        estops = [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires]
-        assert estops == [1, 2, 1, 2]
+        assert estops_on_the_wire(simulator) == [1, 2, 1, 2]
     finally:
         runner.owner.close()
 
@@ -552,11 +564,8 @@ def test_estops_while_the_bus_is_down_are_answered_at_once_and_sent_once_it_is_b
         assert {future.exception(0).code for future in handed} == {"bus_unavailable"}
         assert all(driver.estopped for driver in runner.drivers.values())
         assert runner._ensure_open()
-        deadline = now() + 10
-        while runner.planner.stopping and now() < deadline:
-            runner._step()
-        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
-        assert [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires] == [1, 2]
+        step_while_stopping(runner)
+        assert estops_on_the_wire(simulator) == [1, 2]
     finally:
         runner.owner.close()
 
@@ -577,11 +586,8 @@ def test_an_estop_whose_first_frame_lost_the_link_is_answered_and_sent_once_it_i
         runner._link_lost(BusIOError("unplugged"), slot)  # as ``_execute`` on a failed write
         assert handed.exception(0).code == "bus_unavailable"
         assert runner._ensure_open()
-        deadline = now() + 10
-        while runner.planner.stopping and now() < deadline:
-            runner._step()
-        wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}
-        assert [wires[r.wire] for r in simulator.recorder.received() if r.wire in wires] == [1, 2]
+        step_while_stopping(runner)
+        assert estops_on_the_wire(simulator) == [1, 2]
     finally:
         runner.owner.close()
 

@@ -28,6 +28,13 @@ def reports(clock: Clock) -> tuple[PutReports, list[DeviceEvent]]:
     return PutReports({"la1", "la2"}, told.append, clock=clock), told
 
 
+def assert_events_valid(told: list[DeviceEvent]) -> None:
+    """Every event told matches the exported event schema and the pydantic model."""
+    for event in told:
+        assert_valid("event.json", event_body(event))
+        EVENT_ADAPTER.validate_python(event_body(event))
+
+
 def told_as(told: list[DeviceEvent]) -> list[tuple[str, str, int | None]]:
     return [(e.device, e.fields["message"], e.fields.get("suppressed")) for e in told]
 
@@ -87,9 +94,7 @@ def test_the_events_match_the_event_schema() -> None:
     clock.now += 0.2
     refusals.flush()
     assert [e.fields.get("suppressed") for e in told] == [None, 1]
-    for event in told:
-        assert_valid("event.json", event_body(event))
-        EVENT_ADAPTER.validate_python(event_body(event))
+    assert_events_valid(told)
 
 
 def test_at_the_stop_every_withheld_refusal_is_told() -> None:
@@ -125,6 +130,4 @@ def test_estops_in_a_loop_are_told_first_and_last_in_a_slot_of_their_own() -> No
     reports_.flush()
     assert told[-1].fields == {"key": "busgate/gw/estop", "client": "panel99", "suppressed": 98}
     assert len(reports_._slots) == 3
-    for event in told:
-        assert_valid("event.json", event_body(event))
-        EVENT_ADAPTER.validate_python(event_body(event))
+    assert_events_valid(told)

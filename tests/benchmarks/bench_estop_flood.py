@@ -31,19 +31,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.*
 
 import zenoh
+from bench_flight import rss_mib  # a sibling script's: its folder is on the path
 
 from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port
 from tests.gateway_process import DemoProcess
 
 DRAIN_S = 15.0
-
-
-def rss_mib(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def main() -> None:

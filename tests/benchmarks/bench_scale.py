@@ -251,10 +251,9 @@ def hop_figures(phase: dict) -> dict | None:
     worst = []
     for i, signal in enumerate(signals):
         until = signals[i + 1] if i + 1 < len(signals) else math.inf
-        firsts = [min((t for t in times if signal <= t < until), default=None)
-                  for times in phase["hops"]]  # fmt: skip
-        if None not in firsts:
-            worst.append(max(t for t in firsts if t is not None) - signal)
+        latency = slowest_first(signal, until, phase["hops"])
+        if latency is not None:
+            worst.append(latency)
     worst.sort()
     return {
         "count": len(worst),
@@ -815,16 +814,15 @@ def estop_figures(records: list[Path], phase: dict) -> dict:
     missed = streaming = reset = 0
     for i, signal in enumerate(signals):
         until = signals[i + 1] if i + 1 < len(signals) else end
-        firsts = [min((t for t in bus["stops"] if signal <= t < until), default=None)
-                  for bus in buses]  # fmt: skip
+        latency = slowest_first(signal, until, [bus["stops"] for bus in buses])
         streaming += all(
             any(signal - STREAMING_S <= t < signal for t in bus["follows"]) for bus in buses
         )
         reset += all(any(resets[i] <= t < until for t in bus["enables"]) for bus in buses)
-        if None in firsts:
+        if latency is None:
             missed += 1
         else:
-            worst.append(max(t for t in firsts if t is not None) - signal)
+            worst.append(latency)
     worst.sort()
     return {
         "estops": len(signals),
@@ -837,6 +835,13 @@ def estop_figures(records: list[Path], phase: dict) -> dict:
         "reset": reset,
         "polls_per_s": sum(bus["polls"] for bus in buses) / len(buses) / (end - start),
     }
+
+
+def slowest_first(signal: float, until: float, series: list[list[float]]) -> float | None:
+    """From ``signal`` to the last of each series' first time in ``[signal, until)``: the
+    slowest bus's first e-stop frame, or daemon's callback; ``None`` when one has none."""
+    firsts = [min((t for t in times if signal <= t < until), default=None) for times in series]
+    return None if None in firsts else max(t for t in firsts if t is not None) - signal
 
 
 def ms(seconds: float | None) -> float | None:
