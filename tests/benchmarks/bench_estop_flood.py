@@ -31,7 +31,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository: tests.*
 
 import zenoh
-from bench_flight import rss_mib  # a sibling script's: its folder is on the path
+from bench_flight import rss_mib  # sibling scripts': their folder is on the path
+from bench_scale import positive
 
 from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port
@@ -42,8 +43,10 @@ DRAIN_S = 15.0
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--rate", type=float, default=2000.0, help="puts a second at most")
-    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument(
+        "--rate", type=positive(float), default=2000.0, help="puts a second at most"
+    )
+    parser.add_argument("--seconds", type=positive(float), default=2.0)
     args = parser.parse_args()
     demo = DemoProcess(f"tcp/127.0.0.1:{unused_loopback_port()}", "--no-dashboard")
     told: list[dict] = []

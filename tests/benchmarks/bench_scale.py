@@ -1106,6 +1106,8 @@ def main() -> None:
     parser.add_argument("--bare", help=argparse.SUPPRESS)  # the child: its ports
     parser.add_argument("--bare-estop", help=argparse.SUPPRESS)  # the e-stop child: its ports
     args = parser.parse_args()
+    if args.estop_hop and not args.estop:
+        parser.error("--estop-hop times the e-stops of --estop: give a count there too")
     global REALTIME, ESTOP_HOP
     REALTIME = args.realtime
     ESTOP_HOP = args.estop_hop
