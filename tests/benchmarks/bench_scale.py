@@ -48,7 +48,10 @@ kernel's refusal.
 of the gateway's e-stop callback (zenoh carrying the put over loopback, and the gateway's
 interpreter taken by zenoh's thread), which no busgate code comes before: a probe on the
 daemons' ``PYTHONPATH`` (``estop_hop/sitecustomize.py``) notes when each callback began. Per
-e-stop the slowest daemon's; p50, p99 and max under the e-stop table.
+e-stop the slowest daemon's; p50, p99 and max under the e-stop table. Beside it, zenoh's hop
+with no gateway behind it: after each e-stop the bench puts on ``bench/hop``, which a process
+that does nothing else takes (``zenoh_hop_listener.py``, its callback declared as the
+gateway's), timed the same way.
 
 ``--estop COUNT`` (default 0: none): after each gateway's measured window, a second phase on
 the same daemons, simulators and traffic (the streams, polls and the client's 50 Hz targets
@@ -105,6 +108,7 @@ from typing import Any
 import serial
 import zenoh
 from bench_zenoh import Daemon, free_endpoint, serial_bus, wait_ready
+from zenoh_hop_listener import KEY as HOP_KEY
 
 from busgate.codecs import inspire_la as la
 from busgate.gateway.bus.clock import (
@@ -220,6 +224,30 @@ def realtime_device(pid: int) -> None:
 
 
 @contextlib.contextmanager
+def hop_listener(scratch: Path):
+    """Under ``--estop-hop``, the idle listener of ``bench/hop`` in a process of its own:
+    yields ``(its endpoint, the file its notes go to once it ends)``, or ``None`` without."""
+    if not ESTOP_HOP:
+        yield None
+        return
+    endpoint, notes = free_endpoint(), scratch / "floor-hops.txt"
+    listener = subprocess.Popen(
+        [sys.executable, str(Path(__file__).parent / "zenoh_hop_listener.py"), endpoint,
+         str(notes)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        listener.stdout.readline()  # ready
+        yield endpoint, notes
+    finally:
+        listener.stdin.close()
+        try:
+            listener.wait(10)
+        except subprocess.TimeoutExpired:
+            listener.kill()
+
+
+@contextlib.contextmanager
 def hop_probe(notes: Path):
     """Under ``--estop-hop``, the environment a daemon started within is given: the probe
     first on its ``PYTHONPATH``, noting in ``notes``; yields ``notes`` (``None`` without)."""
@@ -243,15 +271,15 @@ def noted_times(notes: Path) -> list[float]:
     return sorted(float(line) for line in notes.read_text().split()) if notes.exists() else []
 
 
-def hop_figures(phase: dict) -> dict | None:
-    """Per e-stop, the slowest daemon's put → callback start; p50, p99, max (ms)."""
-    if not phase.get("hops"):
+def hop_figures(signals: list[float], hops: list[list[float]]) -> dict | None:
+    """Per put in ``signals``, the slowest of ``hops``' callbacks to start after it (each
+    daemon's, or the idle listener's); p50, p99, max (ms)."""
+    if not hops:
         return None
-    signals = phase["signals"]
     worst = []
     for i, signal in enumerate(signals):
         until = signals[i + 1] if i + 1 < len(signals) else math.inf
-        latency = slowest_first(signal, until, phase["hops"])
+        latency = slowest_first(signal, until, hops)
         if latency is not None:
             worst.append(latency)
     worst.sort()
@@ -294,7 +322,9 @@ def gateway_step(
     hop_notes: list[Path | None] = []
     stats: dict[str, dict] = {}
     phase: dict = {}
-    try:
+    with contextlib.ExitStack() as stack:
+        floor = stack.enter_context(hop_listener(scratch))
+        stack.callback(lambda: [daemon.stop() for daemon in started_daemons])
         for gateway, endpoint in zip(gateways, endpoints, strict=True):
             config = "".join(
                 serial_bus(
@@ -313,7 +343,8 @@ def gateway_step(
             with hop_probe(scratch / f"{gateway}-{label(workers)}-hops.txt") as notes:
                 started_daemons.append(ScaleDaemon(scratch, endpoint, config, gateway, workers))
                 hop_notes.append(notes)
-        with zenoh.open(session_config(connect=endpoints)) as session:
+        listeners = [floor[0]] if floor else []
+        with zenoh.open(session_config(connect=endpoints + listeners)) as session:
             for gateway in gateways:
                 wait_ready(session, gateway=gateway)
             session.declare_subscriber(
@@ -349,15 +380,14 @@ def gateway_step(
                 time.sleep(1.5)  # one more stats sample, covering the window
                 after = dict(stats)
                 if estops:
-                    phase = estop_phase(session, gateways, estops)
+                    phase = estop_phase(session, gateways, estops, bool(floor))
                     time.sleep(0.1)  # the last callback noted
                     phase["hops"] = [noted_times(notes) for notes in hop_notes if notes]
             finally:
                 stop.set()
                 streamer.join()
-    finally:
-        for daemon in started_daemons:
-            daemon.stop()
+    if floor:  # the listener wrote its notes as it ended
+        phase["floor"] = [noted_times(floor[1])]
     buses = list(after.values())
     elapsed = ended - started
     return {
@@ -381,24 +411,34 @@ def gateway_step(
     }
 
 
-def estop_phase(session: zenoh.Session, gateways: list[str], count: int) -> dict:
+def estop_phase(session: zenoh.Session, gateways: list[str], count: int, floor: bool) -> dict:
     """``count`` e-stops of every gateway at random moments, each reset: when each was put
     (``signals``, as the bare loops' are named), when each reset was (``resets``), and the
-    phase's window."""
+    phase's window; with ``floor``, a put on the idle listener's key after each e-stop, and
+    when (``floor_signals``)."""
     chance = random.Random()
     puts: list[float] = []
+    floor_puts: list[float] = []
     resets: list[float] = []
     started = now()
     for _ in range(count):
         time.sleep(chance.uniform(*ESTOP_DELAY_S))
         puts.append(now())
         session.put("busgate/*/estop", b"")
+        if floor:
+            floor_puts.append(now())
+            session.put(HOP_KEY, b"")
         time.sleep(ESTOP_HOLD_S)
         resets.append(now())
         for gateway in gateways:
             session.put(f"busgate/{gateway}/estop/reset", b"")
         time.sleep(ESTOP_RESUME_S)
-    return {"signals": puts, "resets": resets, "window": (started, now())}
+    return {
+        "signals": puts,
+        "floor_signals": floor_puts,
+        "resets": resets,
+        "window": (started, now()),
+    }
 
 
 def descendants(root: int) -> list[int]:
@@ -874,7 +914,9 @@ def step(buses: int, seconds: float, daemons: int, workers: list[str | None], es
             gateway |= wire_figures(records, gateway["window"])
             if estops:
                 gateway["estop"] = estop_figures(records, gateway["estop_phase"])
-                gateway["estop_hop"] = hop_figures(gateway["estop_phase"])
+                phase = gateway["estop_phase"]
+                gateway["estop_hop"] = hop_figures(phase["signals"], phase["hops"])
+                gateway["floor_hop"] = hop_figures(phase["floor_signals"], phase.get("floor", []))
         bare |= wire_figures(records, bare["window"])
         if estops:
             bare["estop"] = estop_figures(records, bare_estop) | {
@@ -949,12 +991,18 @@ def estop_table(figures: dict) -> str:
     headers = ["writer", "e-stops", "p50", "p99", "max", "added p50", "added p99",
                "streaming", "reset", "missed", "polls/s/bus"]  # fmt: skip
     hops = [
-        f"\n  gateway, workers {gateway['workers']}: put → the gateway's e-stop callback (zenoh's "
-        f"hop, the slowest daemon per e-stop, ms): p50 {number(hop['p50_ms'])}, p99 "
-        f"{number(hop['p99_ms'])}, max {number(hop['max_ms'])} ({hop['count']} e-stops)"
+        f"\n  gateway, workers {gateway['workers']}: put → {whose} (ms): p50 "
+        f"{number(hop['p50_ms'])}, p99 {number(hop['p99_ms'])}, max {number(hop['max_ms'])} "
+        f"({hop['count']} puts)"
         for gateway in figures["gateways"]
-        if (hop := gateway.get("estop_hop"))
-    ]
+        for whose, hop in [
+            ("the gateway's e-stop callback (zenoh's hop, the slowest daemon per e-stop)",
+             gateway.get("estop_hop")),
+            ("an idle process's callback (zenoh's hop, no gateway behind it)",
+             gateway.get("floor_hop")),
+        ]
+        if hop
+    ]  # fmt: skip
     return (
         "  e-stop → its frame on every bus (the worst bus per e-stop; device side, ms):\n"
         + table(headers, rows)
