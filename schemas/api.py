@@ -83,9 +83,10 @@ class EndFollow(CommandModel):
     not, since ending a stream moves nothing. A follow put after the ``stream_stopped``
     event starts a new stream. ``seq``, the client's count of what it sent this device's
     stream (targets and ends alike), orders the end against the targets: one of the client's
-    targets with a lower ``seq`` was sent before the end and is dropped whenever it arrives,
-    one with a higher ``seq`` starts a new stream at once (without ``seq`` on both, a target
-    within ``END_FENCE_S`` of the end is taken as sent before it)."""
+    targets with a lower ``seq`` was sent before the end and is dropped whenever it arrives
+    (so is one with the end's own ``seq``: numbered alike, it cannot be ordered), one with a
+    higher ``seq`` starts a new stream at once (without ``seq`` on both, a target within
+    ``END_FENCE_S`` of the end is taken as sent before it)."""
 
     op: Literal["end_follow"]
     seq: FollowSeq | None = None

@@ -158,6 +158,28 @@ def test_the_joint_op_moves_in_si_and_answers_with_the_joint(gateway):
     assert both["error"]["code"] == "bad_command"
 
 
+def test_the_joint_op_is_judged_by_the_claims_as_its_kinds_own_command(gateway):
+    """The holder's joint command moves its device; another client's is refused ``claimed``;
+    one sent with ``require_claim`` by a client that holds no claim is refused ``not_claimed``,
+    and neither sends a frame."""
+    api, simulators, _ = gateway
+    simulator = simulators["uart0"]
+    accepted(api, "la1", {"op": "claim", "client": "alice", "ttl_s": 5})
+    try:
+        before = len(simulator.recorder.received())
+        accepted(api, "la1", {"op": "joint", "position": 0.004, "client": "alice"})
+        assert la_targets(simulator, before) == [("MoveCommand", 1, 800)]
+        before = len(simulator.recorder.received())
+        other = ask(api, "la1", {"op": "joint", "position": 0.006, "client": "bob"})
+        assert other["error"]["code"] == "claimed" and "alice" in other["error"]["message"]
+        unheld = ask(api, "la2", {"op": "joint", "position": 0.004, "client": "bob",
+                                  "require_claim": True})  # fmt: skip
+        assert unheld["error"]["code"] == "not_claimed", unheld
+        assert la_targets(simulator, before) == []
+    finally:
+        accepted(api, "la1", {"op": "release", "client": "alice"})
+
+
 def test_info_and_states_carry_the_joint(gateway):
     api, *_ = gateway
     devices = {d["name"]: d for bus in api.info()["buses"] for d in bus["devices"]}

@@ -44,6 +44,7 @@ from busgate.gateway.scheduler.authority import Authority, ClaimTable
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
+from busgate.schemas.api import MAX_VERSION
 from busgate.schemas.config import parse_config
 from busgate.schemas.replies import error_code
 from tests import test_api
@@ -119,6 +120,18 @@ def test_stops_and_reads_pass_another_clients_claim_and_settings_do_not():
         with pytest.raises(RefusedError) as refused:
             authority.check([(frozenset({1}), effect)], "bob")
         assert refused.value.code == "claimed"
+
+
+def test_a_free_device_needs_no_claim_unless_one_is_required_and_says_so():
+    authority = authority_of_two()
+    authority.check([(frozenset({2}), Effect.MOTION)], "bob")  # la2 is free
+    with pytest.raises(RefusedError) as refused:
+        authority.check([(frozenset({2}), Effect.MOTION)], "bob", require_claim=True)
+    assert refused.value.code == "not_claimed"
+    assert str(refused.value) == (
+        "la2 is not claimed by 'bob': its claim lapsed or was never taken; claim it again"
+    )
+    authority.check([(frozenset({1}), Effect.MOTION)], "alice", require_claim=True)
 
 
 def test_every_effect_of_a_request_is_judged_not_only_the_first():
@@ -618,8 +631,85 @@ def test_a_kept_target_holds_its_device_for_its_client_and_ramps_it_there(gatewa
     assert said(events, "claimed") == [("la1", {"client": "ros", "ttl_s": 0.5})]
     refused = api.ramp_to("la1", {"joint": 900}, "teleop", 0.5)
     assert refused["error"]["code"] == "claimed" and "'ros'" in refused["error"]["message"]
+    moved = api.command("la1", b'{"op": "move", "position": 900, "client": "teleop"}')
+    assert moved.result(5)["error"]["code"] == "claimed"  # the hold is on the device itself
     wait_for(lambda: api.devices["la1"][1].telemetry(now()).get("target") == 800)
     assert api.ramp_to("la1", {"nope": 1}, "ros", 0.5)["error"]["code"] == "bad_command"
     clock.offset += 0.5  # the hold lapsed: another client may take over
     assert api.ramp_to("la1", {"joint": 600}, "teleop", 0.5) is None
     assert said(events, "claimed")[-1] == ("la1", {"client": "teleop", "ttl_s": 0.5})
+
+
+def test_a_kept_target_is_refused_saying_why_while_a_trajectory_plays_or_the_bus_is_down():
+    _, runner, _ = estop_bridge()  # never started: its bus is down
+    api = GatewayApi("gw", {"uart0": runner})
+    assert api.ramp_to("la1", {"joint": 700}, "ros", 0.5)["error"] == {
+        "code": "bus_unavailable",
+        "message": "bus uart0 is down: la1 cannot move",
+    }
+    runner.plays.start({"la1": lambda t_s: {"position": 900}}, now() + 1.0)  # the bus thread's
+    assert api.ramp_to("la1", {"joint": 700}, "ros", 0.5)["error"] == {
+        "code": "busy",
+        "message": "la1 is playing a trajectory: cancel it first (a target kept and a "
+        "trajectory would fight over its target)",
+    }
+    assert not runner._inbox and runner.authority.claims.holder("la1", now()) is None
+
+
+def test_a_bug_in_a_kept_target_is_answered_internal_and_logged_with_its_device(
+    gateway, monkeypatch, caplog
+):
+    api, *_ = gateway
+    runner, _ = api.devices["la1"]
+
+    def broken(device: str, target: float) -> None:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(runner, "ramp", broken)
+    with caplog.at_level(logging.ERROR, logger="busgate.gateway.api.commands"):
+        reply = api.ramp_to("la1", {"joint": 700}, "ros", 0.5)
+    assert reply["error"] == {"code": "internal", "message": "a bug"}
+    assert [r.getMessage() for r in caplog.records] == ["ramp on la1 failed"]
+
+
+def test_an_end_and_a_target_numbered_one_without_the_other_are_ordered_by_the_fence():
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    api.command("la1", b'{"op": "end_follow", "client": "carol"}')  # no seq
+    handed = len(runner._inbox)
+    assert api.follow("la1", b'{"position": 700, "client": "carol", "seq": 9}') is None
+    assert len(runner._inbox) == handed  # within the fence: dropped, not a new stream
+
+
+def test_a_target_with_its_ends_own_number_starts_nothing_and_one_above_does():
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    api.command("la1", b'{"op": "end_follow", "client": "carol", "seq": 7}')
+    handed = len(runner._inbox)
+    assert api.follow("la1", b'{"position": 700, "client": "carol", "seq": 7}') is None
+    assert len(runner._inbox) == handed  # numbered alike: cannot be ordered, nothing moves
+    assert api.follow("la1", b'{"position": 700, "client": "carol", "seq": 8}') is None
+    assert len(runner._inbox) == handed + 1
+
+
+def test_the_ends_of_a_client_that_left_order_none_of_its_next_targets():
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    api.command("la1", b'{"op": "end_follow", "client": "carol"}')
+    api.client_left("dave")  # another client: carol's end stands
+    handed = len(runner._inbox)
+    assert api.follow("la1", b'{"position": 700, "client": "carol"}') is None
+    assert len(runner._inbox) == handed  # inside her end's fence: no new stream
+    api.client_left("carol")
+    assert api.follow("la1", b'{"position": 700, "client": "carol"}') is None
+    assert len(runner._inbox) == handed + 1  # her end went with her: a new stream
+
+
+def test_a_version_longer_than_a_client_takes_is_cut_to_the_longest_it_takes(monkeypatch):
+    _, runner, _ = estop_bridge()
+    api = GatewayApi("gw", {"uart0": runner})
+    monkeypatch.setattr(commands, "installed_version", lambda: "1.0+" + "g" * 500)
+    version = api.info()["version"]
+    assert len(version) == MAX_VERSION and version.startswith("1.0+g") and version[-1] == "…"
+    monkeypatch.setattr(commands, "installed_version", lambda: "2" * (MAX_VERSION - 1))
+    assert api.info()["version"] == "2" * (MAX_VERSION - 1)  # one shorter is whole

@@ -26,7 +26,9 @@ every rule of the API is tested without a network. Rules of this file:
    before the end may be taken after it; it must not start a stream that then goes stale.
    The order holds by construction when the client numbers what it sends a stream
    (``seq``, as the SDK does): a target of that client numbered below the end was sent
-   before it and is dropped, whenever it arrives; one above starts a new stream at once.
+   before it and is dropped, whenever it arrives (so is one with the end's own number: a
+   client that numbers twice alike cannot be ordered, and nothing moves); one above starts
+   a new stream at once.
    Without numbers on both, the client's targets within ``END_FENCE_S`` of the end are
    taken as sent before it. A target and an end taken at once on two of zenoh's threads are
    handed to the bus in the order they passed the fence (one lock over the check and the
@@ -270,7 +272,7 @@ class GatewayApi:
             return False
         _, when, end_seq = ended
         if seq is not None and end_seq is not None:
-            return seq < end_seq
+            return seq <= end_seq
         return now() - when < END_FENCE_S
 
     def estop(self, sender: str | None = None) -> list[Future]:
@@ -404,14 +406,15 @@ class GatewayApi:
 
 
 def _kind_command(driver: Driver, command: JointCommand) -> dict[str, Any]:
-    """The device kind's own command for a joint command in SI, with its client fields."""
+    """The device kind's own command for a joint command in SI, with its ``require_claim``
+    (its client goes to the bus beside it, as every command's does: ``command``)."""
     joint = driver.joint
     if command.position is not None:
         fields = joint.move_command(command.position)
     else:
         assert command.velocity is not None  # the model's rule: one of them
         fields = joint.turn_command(command.velocity)
-    return {**fields, **command.model_dump(include={"client", "require_claim"})}
+    return {**fields, **command.model_dump(include={"require_claim"})}
 
 
 def _joint_reply(result: dict[str, Any]) -> dict[str, Any]:
@@ -426,9 +429,9 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
     takes passed its driver's checks (a ZLAC706 streams speeds in velocity mode only)."""
     if "joint" not in fields and "joint_velocity" not in fields:
         return driver.follow_target(fields)
-    request = JointFollow.model_validate(fields)
+    request = JointFollow.model_validate(fields)  # its client and seq too
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
-    driver.follow_target({**payload, **request.model_dump(include={"client", "seq"})})
+    driver.follow_target(payload)
     return raw
 
 

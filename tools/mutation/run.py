@@ -85,7 +85,7 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         "gateway",
         ["gateway/api/commands.py", "schemas/replies.py", "gateway/scheduler/authority.py"],
         ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_error_codes.py",
-         "tests/test_mutants_api.py"],
+         "tests/test_joint_limits.py", "tests/test_mutants_api.py"],
     ),
 }
 
