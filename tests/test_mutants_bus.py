@@ -21,6 +21,7 @@ import contextlib
 import errno
 import fcntl
 import itertools
+import math
 import os
 import select
 import struct
@@ -44,6 +45,7 @@ from busgate.gateway.bus.can_owner import (
     CanBusOwner,
 )
 from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.owner import RX, TX
 from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.serial_owner import QUIET_WAIT_MAX_S, SerialBusOwner
@@ -532,6 +534,29 @@ def test_a_full_transmit_queue_is_waited_out_however_it_is_told(scripted, refusa
     )
     assert node.bus.recv(timeout=5) is not None
     assert owner.is_open and owner.counters.timeouts == 0
+
+
+def test_a_garbled_line_while_a_reply_is_awaited_is_one_frame_lost_not_the_reply(scripted):
+    """An ASCII adapter's line that is no frame (python-can's slcan raises ``ValueError``)
+    costs that frame, counted; the reply after it is still the reply."""
+    owner, node, script, _ = scripted
+    garbled = ValueError("a line that is no frame")
+    ScriptedBus.ON_SEND.append(lambda timeout: script["recv"].append(garbled))  # once it went
+    node.answer(ACK)
+    exchange = finished(lambda: owner.exchange(speed_write()))
+    assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    assert owner.counters.discarded_bytes == 1 and owner.is_open
+
+
+def test_a_frame_no_reply_can_be_while_a_reply_is_awaited_does_not_end_the_wait(scripted):
+    """An extended frame, counted and dropped, comes between the request and its reply."""
+    owner, node, _, _ = scripted
+    extended = can.Message(arbitration_id=1, data=bytes(8), is_extended_id=True)
+    ScriptedBus.ON_SEND.append(lambda timeout: node.bus.send(extended))  # ahead of the reply
+    node.answer(ACK)
+    exchange = finished(lambda: owner.exchange(speed_write()))
+    assert exchange.reply == (zcan.WriteAck(1, zcan.CanRegister.TARGET_SPEED, 0),)
+    assert owner.counters.discarded_bytes == 8
 
 
 @pytest.mark.parametrize(
@@ -1024,7 +1049,9 @@ def test_a_quiet_line_is_written_at_once(device, serial_fake_clock):
     owner = open_serial(device.port)
     try:
         start = serial_fake_clock()
-        assert finished(lambda: owner.exchange(NO_REPLY)).start == start
+        exchange = finished(lambda: owner.exchange(NO_REPLY))
+        assert exchange.start == start
+        assert exchange.last_byte_before == -math.inf  # nothing read yet: no gap to count
     finally:
         owner.close()
 
@@ -1210,3 +1237,59 @@ def test_link_timing_of_a_reply_adds_the_reply_window_to_the_frame():
     latest = timing.reply_max_s + CAN_QUICK.reply_time(request.expected) + 0.01
     assert CAN_QUICK.reply_window(request) == (timing.reply_min_s, latest)
     assert CAN_QUICK.worst_case(request) == CAN_QUICK.wire_time(request.wire) + latest
+
+
+# -- the tap: what the flight recorder is given -------------------------------------------
+
+
+def test_the_tap_is_given_every_frame_written_and_read_on_a_serial_line(device):
+    """Stale input flushed before the request, the request, and its reply, each with its
+    direction and the time it was read or written; CAN's identifier ``None``."""
+    owner = open_serial(device.port, LA_ROOMY)
+    tapped: list[tuple] = []
+    owner.tap = tapped.append
+    reply = la.encode(la_status(1))
+    try:
+        device.write(b"\x13\x37")
+        device.answer(reply)
+        before = now()
+        exchange = finished(lambda: owner.exchange(STATUS_1))
+        assert [(way, data, ident) for _, way, data, ident in tapped] == [
+            (RX, b"\x13\x37", None),
+            (TX, STATUS_1.wire, None),
+            (RX, reply, None),
+        ]
+        assert before <= tapped[0][0] <= tapped[1][0] == exchange.start  # read, then flushed
+        assert exchange.start < tapped[2][0] <= exchange.end
+    finally:
+        owner.close()
+
+
+def test_the_tap_is_given_every_can_frame_but_those_no_reply_can_be(channel, node):
+    """The request, its reply and a heartbeat, with their identifiers; an extended frame and
+    a remote frame are counted as discarded and never tapped (a flight record of frames the
+    gateway cannot read would show them as node 0's)."""
+    heard: list = []
+    owner = open_can("virtual", channel, heard=heard)
+    tapped: list[tuple] = []
+    owner.tap = tapped.append
+    try:
+        node.bus.send(can.Message(arbitration_id=1, data=bytes(8), is_extended_id=True))
+        node.bus.send(
+            can.Message(arbitration_id=1, is_remote_frame=True, dlc=8, is_extended_id=False)
+        )
+        node.send("7FF#00")  # the last standard identifier: a frame, though no node's
+        node.send(HEARTBEAT)
+        finished(lambda: wait_heard(owner, heard, 1))
+        node.answer(ACK)
+        request = speed_write()
+        exchange = finished(lambda: owner.exchange(request))
+        assert [(way, data, ident) for _, way, data, ident in tapped] == [
+            (RX, b"\x00", 0x7FF),
+            (RX, CanFrame.parse(HEARTBEAT).data, 1),
+            (TX, request.wire.data, 1),
+            (RX, CanFrame.parse(ACK).data, 1),
+        ]
+        assert exchange.start <= tapped[2][0] <= tapped[3][0] <= exchange.end
+    finally:
+        owner.close()

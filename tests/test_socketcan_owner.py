@@ -23,7 +23,7 @@ import pytest
 
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.can_frame import CanFrame
-from busgate.errors import BusIOError
+from busgate.errors import BusIOError, DeviceTimeoutError
 from busgate.gateway.bus import can_owner
 from busgate.gateway.bus.can_owner import (
     ARRIVAL_AGE_MAX_S,
@@ -138,6 +138,19 @@ def test_a_reply_awaited_on_the_socket_ends_the_exchange(socketcan):
     assert (can_id, data[:length]) == (1, request.wire.data)  # standard, no flags
 
 
+def test_a_silent_node_times_out_on_the_socket_at_the_end_of_its_window(socketcan):
+    """The wait for a reply is a wait on the socket, bounded by the reply's window: a node
+    that never answers is a timeout, its frame having gone, the link kept."""
+    owner, _, far = socketcan
+    request = speed_write()
+    started = now()
+    with pytest.raises(DeviceTimeoutError, match="no reply from node 1"):
+        finished(lambda: owner.exchange(request))
+    _, latest = owner.timing.reply_window(request)
+    assert now() - started >= latest
+    assert far.recv(CANFD_MTU) and owner.is_open and owner.counters.timeouts == 1
+
+
 def test_a_frame_nobody_asked_for_is_dated_by_its_arrival_not_by_the_look(socketcan):
     owner, heard, far = socketcan
     tapped: list[tuple] = []
@@ -206,7 +219,7 @@ def test_a_receive_time_that_cannot_be_right_leaves_the_frame_dated_when_taken()
 def test_a_socket_whose_far_end_is_gone_is_a_lost_link(socketcan):
     owner, heard, far = socketcan
     far.close()
-    with pytest.raises(BusIOError, match="socket was closed"):
+    with pytest.raises(BusIOError, match=r": the interface's socket was closed$"):
         finished(lambda: wait_heard(owner, heard, 1))
     assert not owner.is_open
 
