@@ -514,6 +514,37 @@ def test_a_look_asks_the_descriptor_first_only_where_a_look_could_wait(
         os.close(write_end)
 
 
+class DrainedBus(DescriptorBus):
+    """The descriptor bus as a serial adapter's is: readable while a frame waits (a byte in
+    ``PIPE`` a frame), each frame's byte read off it by the ``recv`` that takes the frame."""
+
+    def _recv_internal(self, timeout):
+        message, filtered = super()._recv_internal(timeout)
+        if message is not None:
+            os.read(self.PIPE[0], 1)
+        return message, filtered
+
+
+def test_a_look_at_an_adapter_whose_descriptor_says_a_frame_waits_takes_it(
+    monkeypatch, channel, node
+):
+    read_end, write_end = os.pipe()
+    monkeypatch.setattr(DescriptorBus, "PIPE", [read_end])
+    monkeypatch.setitem(can.interfaces.BACKENDS, "serial", (__name__, "DrainedBus"))
+    heard: list = []
+    owner = open_can("serial", channel, heard=heard)
+    try:
+        for _ in range(2):
+            node.send(HEARTBEAT)
+            os.write(write_end, b"x")
+        finished(lambda: owner.idle_until(0.0))  # one look: both taken, then none is there
+        assert [event for event, _ in heard] == [zcan.HeartbeatPosition(1, 7)] * 2
+    finally:
+        owner.close()
+        os.close(read_end)
+        os.close(write_end)
+
+
 def full_queue(message: str = "No buffer space available", code: int | None = errno.ENOBUFS):
     return can.CanOperationError(message, error_code=code)
 
