@@ -219,6 +219,51 @@ def test_the_estop_stops_the_base_and_a_twist_after_it_is_refused(world) -> None
         reset.result(5)
 
 
+def _wheel_2(world: World):
+    return next(d for d in world.sim.devices if d.device_id == 2)
+
+
+def _back_online(world: World) -> None:
+    """Wheel 2 answers and heartbeats again; the base waits until it is back."""
+    world.sim.faults.configure(silent_ids=frozenset())
+    _wheel_2(world).heartbeat_s = 0.020
+    deadline = time.monotonic() + 10
+    while not world.api.devices["wr"][1].online:  # an init write answered, then a heartbeat
+        assert time.monotonic() < deadline, "wr did not come back"
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize("heartbeats", [False, True], ids=["silent", "taking-no-write"])
+def test_a_wheel_that_goes_offline_stops_the_base_at_once(world, heartbeats) -> None:
+    """Rule 3 for a wheel whose node dies (silent: no heartbeat, no answer) or goes on
+    reporting but answers none of its speed writes (heartbeats alone kept it online): both
+    wheels are ramped to 0 long before the twist's 5 s, a ``base_stopped`` event names the
+    wheel, and a twist while it is offline is refused naming it."""
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
+    time.sleep(0.3)
+    events, started = len(world.events), time.monotonic()
+    world.sim.faults.configure(silent_ids=frozenset({2}))
+    if not heartbeats:
+        _wheel_2(world).heartbeat_s = 0
+    try:
+        world.wait_rest()
+        assert time.monotonic() - started < 2.0, "the base drove on with one wheel"
+        news = [(e.device, e.type, e.fields) for e in list(world.events)[events:]]
+        reason = "no reply" if heartbeats else "heartbeat lost"
+        assert ("wr", "offline", {"reason": reason}) in news
+        assert ("base", "base_stopped", {"base": "base", "wheel": "wr",
+                                          "reason": "went offline"}) in news  # fmt: skip
+        time.sleep(0.6)  # the ramp (0.5 s) down
+        left = [rpm for _, node, rpm in world.speeds(0) if node == 1]
+        assert left[-1] == 0
+        refused = world.base({"op": "twist", "linear": 0.3})
+        assert refused["error"]["code"] == "device_timeout"
+        assert refused["error"]["message"] == "base base: wheel wr is offline"
+    finally:
+        _back_online(world)
+
+
 def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
     def pulses() -> tuple[int, int]:
         return tuple(world.api.devices[name][1].telemetry(0.0)["position"]

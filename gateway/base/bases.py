@@ -7,9 +7,10 @@ Rules of this file:
    the base's ``Drive`` from one start, so each slot's speeds come from one twist.
 2. A claim of the base is the claim of both wheels, taken or refused together; a client that
    holds either wheel blocks the base, and a base's claim blocks each wheel.
-3. A base never drives on one wheel: when one wheel leaves the play (its device offline,
-   e-stopped, refused its target), the other is ramped to 0 at once, with a ``base_stopped``
-   event naming the wheel and why. An e-stop takes both out.
+3. A base never drives on one wheel: when one wheel leaves the play (e-stopped, refused its
+   target) or its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2),
+   both are ramped to 0 at once, with a ``base_stopped`` event naming the wheel and why. An
+   e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
@@ -36,7 +37,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from busgate.errors import RefusedError
+from busgate.errors import DeviceTimeoutError, RefusedError
 from busgate.gateway.base.drive import Drive
 from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
 from busgate.gateway.bus.clock import now
@@ -205,6 +206,11 @@ class Bases:
     ) -> dict[str, Any]:
         for wheel in base.wheels:  # rule 1: as any client's motion, both wheels
             wheel.runner.authority.judge(wheel.name, Effect.MOTION, client, require_claim=require)
+            if not wheel.driver.online:  # rule 3: it would stop the base at once
+                raise DeviceTimeoutError(
+                    f"base {base.config.name}: wheel {wheel.name} is offline",
+                    device_id=wheel.driver.device_id,
+                )
             telemetry = wheel.driver.telemetry(now())
             if not telemetry.get("enabled") or telemetry.get("mode") != "velocity":
                 raise RefusedError(
@@ -302,10 +308,11 @@ class Bases:
         for base in self.bases.values():
             if base.playing_since is None:
                 continue
+            taken = moment - base.playing_since > PLAY_TAKEN_S
             gone = [
                 w
                 for w in base.wheels
-                if not w.runner.plays.playing(w.name) and moment - base.playing_since > PLAY_TAKEN_S
+                if not w.driver.online or (taken and not w.runner.plays.playing(w.name))
             ]
             if gone:
                 self._one_wheel_gone(base, gone[0])
@@ -319,11 +326,13 @@ class Bases:
 
     def _one_wheel_gone(self, base: LiveBase, wheel: Wheel) -> None:
         refusal = wheel.runner.plays.refusal(wheel.name)
-        reason = refusal[1] if refusal is not None else "left the base's play"
+        if not wheel.driver.online:  # still in the play: it is ramped down too, if it hears
+            reason = "went offline"
+        else:
+            reason = refusal[1] if refusal is not None else "left the base's play"
         base.drive.stop()
-        for other in base.wheels:
-            if other is not wheel:
-                other.runner.stop_playing(other.name, speed=True)
+        for each in base.wheels:  # one that left the play already: nothing to stop
+            each.runner.stop_playing(each.name, speed=True)
         base.playing_since = None
         self._event(base, "base_stopped", wheel=wheel.name, reason=reason)
 

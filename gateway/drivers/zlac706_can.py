@@ -16,8 +16,12 @@ with RS232 (``zlac706_state``). What is CAN's own:
 2. Liveness: with heartbeats expected (``heartbeat_ms`` > 0) they alone bring the node online,
    and ``check_heartbeat(now)`` (called by the runner) marks it offline after 3 intervals
    without one; an acknowledged write alone then proves the node answers but not that it
-   reports. With none expected, the node is online while it acknowledges writes, and the
-   telemetry says that measured values are unavailable (``"measured": false``).
+   reports. A heartbeat, in turn, proves the node reports but not that it takes writes: it
+   leaves the count of writes gone unanswered as it is, and a node that answered none of
+   ``OFFLINE_AFTER`` writes in a row is offline until one is answered, heartbeats or not (a
+   base's wheel that takes no speed stops its base). With none expected, the node is online
+   while it acknowledges writes, and the telemetry says that measured values are
+   unavailable (``"measured": false``).
 3. A heartbeat is two frames, position and then current and speed, and the device's state is
    news once both have come (``unsolicited``): a look at the bus taken between them would
    otherwise publish one heartbeat's position with the one before's speed, and a state a
@@ -40,7 +44,7 @@ from busgate.codecs import zlac706_can as codec
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import OFFLINE_AFTER, Driver
 from busgate.gateway.drivers.zlac706 import Zlac706Driver
 from busgate.gateway.drivers.zlac706_state import Role, RoleOf, reverse
 from busgate.schemas import zlac706 as schema
@@ -216,7 +220,10 @@ class Zlac706CanDriver(Zlac706Driver):
         if handler is None:
             return False  # a late echo: its write already counted as failed
         self.last_heartbeat = now
-        Driver.heard(self, now)
+        if self.misses < OFFLINE_AFTER:  # rule 2: a heartbeat answers no write
+            unanswered = self.misses
+            Driver.heard(self, now)
+            self.misses = unanswered
         handler(self, event)
         return self._news_with(kind)
 
