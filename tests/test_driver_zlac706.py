@@ -340,6 +340,25 @@ def test_heartbeats_give_measured_values_and_their_loss_marks_offline_once() -> 
     assert d.online and event_types(d) == ["online"]
 
 
+def test_a_node_that_heartbeats_but_answers_no_write_goes_offline_until_it_answers() -> None:
+    """A heartbeat shows the node reports, not that it takes writes (rule 2): it neither
+    clears the count of unanswered writes nor brings back a node that answered none of three
+    in a row; an answered write does, and the next heartbeat brings the node online."""
+    d = can_driver(heartbeat_ms=100)
+    position = can_events("00fe00200001e1e2")[0]
+    d.unsolicited(position, 0.0)
+    assert d.online and event_types(d) == ["online"]
+    for moment in (0.1, 0.2, 0.3):
+        d.missed(moment)
+        d.unsolicited(position, moment + 0.05)
+    assert not d.online and [e.fields for e in d.drain_events()] == [{"reason": "no reply"}]
+    d.unsolicited(position, 0.4)
+    assert not d.online and event_types(d) == []
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'), now=0.5)  # an answered write
+    d.unsolicited(position, 0.6)
+    assert d.online and event_types(d) == ["online"]
+
+
 def test_alarm_reports_become_faults_with_one_event_per_change() -> None:
     d = can_driver(heartbeat_ms=500)
     encoder = can_events("00ff00eb08080808")[0]  # manual: encoder fault
