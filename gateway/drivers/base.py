@@ -366,9 +366,14 @@ class Driver(abc.ABC):
     # -- liveness ---------------------------------------------------------------------------
 
     def heard(self, now: float) -> None:
-        """The device answered: it is online."""
-        self.last_reply = now
+        """The device answered: no request of it is unanswered, and it is online."""
         self.misses = 0
+        self.reported(now)
+
+    def reported(self, now: float) -> None:
+        """The device showed it is there (an answer, or a report it sent unasked): it is
+        online; what it left unanswered stays counted."""
+        self.last_reply = now
         if not self.online:
             # Back after going offline, it may have lost power: its settings go again.
             self.restore_pending = self.was_online

@@ -44,7 +44,7 @@ from busgate.codecs import zlac706_can as codec
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import OFFLINE_AFTER, Driver
+from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706 import Zlac706Driver
 from busgate.gateway.drivers.zlac706_state import Role, RoleOf, reverse
 from busgate.schemas import zlac706 as schema
@@ -221,9 +221,7 @@ class Zlac706CanDriver(Zlac706Driver):
             return False  # a late echo: its write already counted as failed
         self.last_heartbeat = now
         if self.misses < OFFLINE_AFTER:  # rule 2: a heartbeat answers no write
-            unanswered = self.misses
-            Driver.heard(self, now)
-            self.misses = unanswered
+            self.reported(now)
         handler(self, event)
         return self._news_with(kind)
 
