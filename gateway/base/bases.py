@@ -325,11 +325,12 @@ class Bases:
                 self._event(base, "stream_stale", client=base.client)
 
     def _one_wheel_gone(self, base: LiveBase, wheel: Wheel) -> None:
-        refusal = wheel.runner.plays.refusal(wheel.name)
         if not wheel.driver.online:  # still in the play: it is ramped down too, if it hears
             reason = "went offline"
+        elif (refusal := wheel.runner.plays.refusal(wheel.name)) is not None:
+            reason = refusal[1]
         else:
-            reason = refusal[1] if refusal is not None else "left the base's play"
+            reason = "left the base's play"
         base.drive.stop()
         for each in base.wheels:  # one that left the play already: nothing to stop
             each.runner.stop_playing(each.name, speed=True)
