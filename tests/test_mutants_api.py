@@ -317,6 +317,13 @@ def estop_bridge() -> tuple[ZenohBridge, BusRunner, deque[DeviceEvent]]:
     return bridge, runner, events
 
 
+def idle_bus_api() -> tuple[GatewayApi, BusRunner]:
+    """The API over ``estop_bridge``'s bus, never started: what it hands over waits in the
+    bus's inbox."""
+    _, runner, _ = estop_bridge()
+    return GatewayApi("gw", {"uart0": runner}), runner
+
+
 def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monkeypatch):
     """The payload only names the sender (for the log line and the event): a large one, up
     to 64 KiB of JSON to parse, would otherwise hold the e-stop up by milliseconds."""
@@ -598,8 +605,7 @@ def test_a_devices_reset_is_told_and_handed_over_unless_another_client_holds_it(
 
 
 def test_a_follow_target_to_a_device_playing_a_trajectory_is_refused_busy_saying_why():
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()
     runner.plays.start({"la1": lambda t_s: {"position": 900}}, now() + 1.0)  # the bus thread's
     assert runner.plays.playing("la1")
     assert api.follow("la1", b'{"position": 100}') == {"ok": False, "error": {
@@ -611,8 +617,7 @@ def test_a_follow_target_to_a_device_playing_a_trajectory_is_refused_busy_saying
 
 
 def test_a_devices_reset_goes_to_that_device_alone():
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()
     asked: list[str | None] = []
     reset = runner.reset_estop
     runner.reset_estop = lambda device=None: asked.append(device) or reset(device)
@@ -641,8 +646,7 @@ def test_a_kept_target_holds_its_device_for_its_client_and_ramps_it_there(gatewa
 
 
 def test_a_kept_target_is_refused_saying_why_while_a_trajectory_plays_or_the_bus_is_down():
-    _, runner, _ = estop_bridge()  # never started: its bus is down
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()  # never started: its bus is down
     assert api.ramp_to("la1", {"joint": 700}, "ros", 0.5)["error"] == {
         "code": "bus_unavailable",
         "message": "bus uart0 is down: la1 cannot move",
@@ -673,8 +677,7 @@ def test_a_bug_in_a_kept_target_is_answered_internal_and_logged_with_its_device(
 
 
 def test_an_end_and_a_target_numbered_one_without_the_other_are_ordered_by_the_fence():
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()
     api.command("la1", b'{"op": "end_follow", "client": "carol"}')  # no seq
     handed = len(runner._inbox)
     assert api.follow("la1", b'{"position": 700, "client": "carol", "seq": 9}') is None
@@ -682,8 +685,7 @@ def test_an_end_and_a_target_numbered_one_without_the_other_are_ordered_by_the_f
 
 
 def test_a_target_with_its_ends_own_number_starts_nothing_and_one_above_does():
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()
     api.command("la1", b'{"op": "end_follow", "client": "carol", "seq": 7}')
     handed = len(runner._inbox)
     assert api.follow("la1", b'{"position": 700, "client": "carol", "seq": 7}') is None
@@ -693,8 +695,7 @@ def test_a_target_with_its_ends_own_number_starts_nothing_and_one_above_does():
 
 
 def test_the_ends_of_a_client_that_left_order_none_of_its_next_targets():
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, runner = idle_bus_api()
     api.command("la1", b'{"op": "end_follow", "client": "carol"}')
     api.client_left("dave")  # another client: carol's end stands
     handed = len(runner._inbox)
@@ -706,8 +707,7 @@ def test_the_ends_of_a_client_that_left_order_none_of_its_next_targets():
 
 
 def test_a_version_longer_than_a_client_takes_is_cut_to_the_longest_it_takes(monkeypatch):
-    _, runner, _ = estop_bridge()
-    api = GatewayApi("gw", {"uart0": runner})
+    api, _ = idle_bus_api()
     monkeypatch.setattr(commands, "installed_version", lambda: "1.0+" + "g" * 500)
     version = api.info()["version"]
     assert len(version) == MAX_VERSION and version.startswith("1.0+g") and version[-1] == "…"
