@@ -21,6 +21,8 @@ KEY = "bench/hop"
 
 
 def main() -> None:
+    if len(sys.argv) != 3:
+        sys.exit("usage: zenoh_hop_listener.py ENDPOINT NOTES (started by bench_scale.py)")
     endpoint, notes = sys.argv[1:3]
     noted: list[float] = []
     with zenoh.open(session_config(listen=[endpoint])) as session:
