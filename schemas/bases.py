@@ -128,7 +128,8 @@ class TwistTarget(CommandModel):
 
 class BaseStop(CommandModel):
     """Ramp to 0 at the deceleration limits now; with ``seq``, the client's twists numbered
-    below it are dropped however late they come."""
+    at or below it are dropped however late they come (one with the stop's own ``seq``:
+    numbered alike, it cannot be ordered)."""
 
     op: Literal["stop"]
     seq: FollowSeq | None = None

@@ -304,15 +304,19 @@ def test_a_claim_holder_powers_its_base_and_a_twist_sent_before_its_stop_is_drop
         refused = world.base({"op": "enable", "client": "teleop"})
         assert refused["error"]["code"] == "claimed"  # (a disable, a stop, never is)
         told = len(world.events)
-        twist = json.dumps({"linear": 0.3, "client": "nav", "seq": 7}).encode()
+        twist = json.dumps({"linear": 0.3, "angular": 0.6, "client": "nav", "seq": 7}).encode()
         assert world.bases.twist("base", twist) is None
+        time.sleep(0.1)  # on its way, the curvature asked for all along (``kinematics`` rule 3)
+        sent = world.bases.bases["base"].drive.sent
+        assert sent.linear > 0 and sent.angular == pytest.approx(2 * sent.linear)
         assert world.base({"op": "stop", "client": "nav", "seq": 9})["ok"]
         assert any(e.type == "stopped" for e in list(world.events)[told:])
         world.wait_rest()
         assert not any(e.type == "stream_stale" for e in list(world.events)[told:])
-        late = json.dumps({"linear": 0.3, "client": "nav", "seq": 8}).encode()
-        assert world.bases.twist("base", late) is None  # sent before the stop: dropped
-        assert world.bases.bases["base"].playing_since is None
+        for seq in (8, 9):  # sent before the stop, or numbered as it: dropped
+            late = json.dumps({"linear": 0.3, "client": "nav", "seq": seq}).encode()
+            assert world.bases.twist("base", late) is None
+            assert world.bases.bases["base"].playing_since is None
         newer = json.dumps({"linear": 0.1, "client": "nav", "seq": 10}).encode()
         assert world.bases.twist("base", newer) is None
         assert world.bases.bases["base"].playing_since is not None

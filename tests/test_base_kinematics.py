@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from busgate.gateway.base.drive import Drive
@@ -28,6 +28,7 @@ def test_a_twist_and_its_wheels_give_each_other_back(linear, angular) -> None:
 
 
 @given(speeds, speeds)
+@example(0.5, -1.0)  # within every limit: as it is
 def test_saturation_keeps_the_curvature_and_every_limit(linear, angular) -> None:
     held = GEOMETRY.saturated(Twist(linear, angular))
     assert abs(held.linear) <= 1.0 + 1e-9 and abs(held.angular) <= 2.0 + 1e-9
@@ -126,3 +127,68 @@ def test_the_measured_twist_spans_a_window_not_one_step_between_two_heartbeats()
     assert all(s == pytest.approx(0.5, rel=0.15) for s in speeds[20:]), speeds[20:]
     odometry.reset()
     assert odometry.twist == Twist()
+
+
+def test_odometry_of_an_arc_stays_on_its_circle_and_measures_its_twist() -> None:
+    """A quarter of a circle of 1 m, counter-clockwise at 0.5 m/s, read in 2° steps: each
+    step taken at its midpoint heading lands on the circle, and the measured twist is the
+    arc's own."""
+    odometry, radius = Odometry(GEOMETRY), 1.0
+    odometry.take(0.0, 0.0, 0.0)
+    step_rad, steps = math.radians(2), 45
+    track, wheel = GEOMETRY.track_m, GEOMETRY.wheel_radius_m
+    left_step = step_rad * (radius - track / 2) / wheel
+    right_step = step_rad * (radius + track / 2) / wheel
+    dt = step_rad * radius / 0.5
+    for k in range(1, steps + 1):
+        odometry.take(k * left_step, k * right_step, k * dt)
+    pose = odometry.pose
+    chord = 2 * math.sin(step_rad / 2) / step_rad  # each step's chord for its arc's length
+    assert pose.theta == pytest.approx(math.pi / 2)
+    assert pose.x == pytest.approx(radius / chord, rel=1e-9)
+    assert pose.y == pytest.approx(radius / chord, rel=1e-9)
+    assert odometry.twist.linear == pytest.approx(0.5)
+    assert odometry.twist.angular == pytest.approx(0.5 / radius)
+
+
+def test_the_measured_twist_is_the_travel_over_the_fewest_last_steps_spanning_its_window():
+    odometry = Odometry(GEOMETRY)
+    metre = 1 / GEOMETRY.wheel_radius_m  # a wheel's radians for a metre
+    odometry.take(0.0, 0.0, 0.0)
+    odometry.take(-0.1 * metre, 0.1 * metre, 0.25)  # a first step, on its own: on the spot
+    assert odometry.twist == Twist(0.0, pytest.approx(0.2 / GEOMETRY.track_m / 0.25))
+    # steps of 1/32 s (exact): the window of 0.1 s is the last four
+    at, left = 0.5, 0.0
+    odometry.reset()
+    odometry.take(left, left, at)
+    measured = []
+    for speed in [0.2] * 6 + [0.6] * 4:
+        at, left = at + 1 / 32, left + speed / 32 * metre
+        odometry.take(left, left, at)
+        measured.append(odometry.twist.linear)
+    assert measured[-5:] == pytest.approx([0.2, 0.3, 0.4, 0.5, 0.6])
+    # a window's second step exactly 0.1 s before the last: the window starts there
+    odometry.reset()
+    odometry.take(0.0, 0.0, -0.05)
+    odometry.take(0.05 * metre, 0.05 * metre, 0.0)
+    odometry.take(0.05 * metre + 0.03 * metre, 0.05 * metre + 0.03 * metre, 0.1)
+    assert odometry.twist.linear == pytest.approx(0.3)
+
+
+def test_a_drive_finishes_after_two_slots_at_rest_past_its_hold() -> None:
+    drive = Drive(GEOMETRY, wheel_joint(1e-3), wheel_joint(-1e-3))
+    drive.command(Twist(), now=100.0, hold_s=0.5)  # 0, held until 100.5
+    drive.begin(100.0, Twist())
+    drive.sample(0.02)
+    drive.sample(0.02)  # the other wheel, the same slot: not a slot more
+    assert not drive.finished(101.0)
+    drive.sample(0.04)
+    assert drive.finished(101.0) and not drive.finished(100.5)  # past the hold, not at it
+    drive.command(Twist(0.1, 0.0), now=101.0, hold_s=0.01)
+    drive.begin(101.0, Twist(0.02, 0.0))  # moving: two slots down to 0 at 0.8 m/s²
+    drive.sample(0.02)
+    drive.sample(0.04)
+    assert drive.sent == Twist()
+    assert not drive.finished(102.0)  # one slot at rest since it moved
+    drive.sample(0.06)
+    assert drive.finished(102.0)

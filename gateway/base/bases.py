@@ -14,9 +14,9 @@ Rules of this file:
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
-   ``stop`` has its twists sent before the stop dropped, whichever thread brought them
-   late. Once at rest with nothing holding it (both wheels have sent 0 rpm: ``drive`` rule
-   3), its play ends and the wheels keep 0 rpm.
+   ``stop`` has its twists sent before the stop (numbered at or below it) dropped, whichever
+   thread brought them late. Once at rest with nothing holding it (both wheels have sent 0
+   rpm: ``drive`` rule 3), its play ends and the wheels keep 0 rpm.
 5. Odometry comes from the wheels' readings (their joints' measured positions), published on
    ``…/odom`` whenever both have been read past the last step. The two wheels are read at
    different moments (each its own heartbeat): the step is taken at the earlier of their
@@ -402,10 +402,11 @@ class Bases:
 def _sent_before_stop(
     stopped_by: tuple[str | None, int | None] | None, client: str | None, seq: int | None
 ) -> bool:
-    """A numbered twist of the client whose numbered ``stop`` came after it (rule 4)."""
+    """A numbered twist of the client whose numbered ``stop`` came after it, or has its
+    number: numbered alike, the two cannot be ordered, and the base stays stopped (rule 4)."""
     if stopped_by is None or seq is None or stopped_by[1] is None:
         return False
-    return stopped_by[0] == client and seq < stopped_by[1]
+    return stopped_by[0] == client and seq <= stopped_by[1]
 
 
 def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:

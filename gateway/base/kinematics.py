@@ -76,7 +76,6 @@ class Geometry:
         """The twist ``dt_s`` after ``now`` on its way to ``target`` (rule 3)."""
         d_linear, d_angular = target.linear - now.linear, target.angular - now.angular
         factor = min(
-            1.0,
             _room(d_linear, self.max_linear_accel * dt_s),
             _room(d_angular, self.max_angular_accel * dt_s),
         )

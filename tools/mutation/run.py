@@ -24,6 +24,11 @@ only where they answer late on purpose or with seconds to spare): the runner's t
 (test_bus_runner.py, test_can_runner.py) wait for simulators to answer within a 20-50 ms reply
 margin, which a machine running two mutants at once sometimes misses, and a test that fails
 for that counts a mutant as killed that it never caught.
+The bases keep ``tests/test_base.py`` (without it, 178 of their mutants survive: the twist's
+path, commands, claims), whose one running base (two simulated wheels on the virtual bus,
+built once for the module) misses its timing under two mutants at once in the same way: so
+``tests/test_mutants_base.py`` reaches the rest of the same code over a bus never started, by
+plain calls, and a base mutant counted killed only by test_base.py may have been luck.
 
 Each run starts afresh and prints killed / total per package, with survivors and timeouts;
 ``results.json`` in the package's work folder keeps each mutant's status, and ``cd
@@ -86,6 +91,11 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         ["gateway/api/commands.py", "schemas/replies.py", "gateway/scheduler/authority.py"],
         ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_error_codes.py",
          "tests/test_joint_limits.py", "tests/test_mutants_api.py"],
+    ),
+    "base": (
+        "gateway",
+        ["gateway/base/bases.py", "gateway/base/drive.py", "gateway/base/kinematics.py"],
+        ["tests/test_base.py", "tests/test_base_kinematics.py", "tests/test_mutants_base.py"],
     ),
 }
 
