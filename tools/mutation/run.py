@@ -97,6 +97,16 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         ["gateway/base/bases.py", "gateway/base/drive.py", "gateway/base/kinematics.py"],
         ["tests/test_base.py", "tests/test_base_kinematics.py", "tests/test_mutants_base.py"],
     ),
+    "zlac706": (
+        "gateway",
+        ["gateway/drivers/zlac706.py", "gateway/drivers/zlac706_can.py",
+         "gateway/drivers/zlac706_rs232.py", "gateway/drivers/zlac706_state.py"],
+        ["tests/test_driver_zlac706.py", "tests/test_driver_setpoints.py",
+         "tests/test_zlac706_commands.py", "tests/test_families.py", "tests/test_joints.py",
+         "tests/test_joint_limits.py", "tests/test_safety_rules.py", "tests/test_estop_reset.py",
+         "tests/test_reboots.py", "tests/test_telemetry.py", "tests/test_idle_work.py",
+         "tests/test_mutants_base.py", "tests/test_mutants_zlac706.py"],
+    ),
 }
 
 # mutmut's settings per package, over pyproject.toml's. The bus owners' tests catch a hanging

@@ -1,0 +1,264 @@
+"""The ZLAC706 drivers, by plain calls: what each op's frames do in the authority's eyes (an
+e-stopped wheel is refused motion only), what an order rule says when it refuses, a power-up
+forgetting the power stage, and an answer clearing the count of writes gone unanswered."""
+
+from __future__ import annotations
+
+import pytest
+
+from busgate.codecs import zlac706_can as can_codec
+from busgate.codecs.zlac706_common import AlarmFlags
+from busgate.errors import CommandError
+from busgate.gateway.drivers.base import OFFLINE_AFTER, Effect
+from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
+from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
+from busgate.gateway.drivers.zlac706_state import REBOOT_POSITION_JUMP
+from tests.test_driver_zlac706 import (
+    MANUAL_MONITOR,
+    event_types,
+    plan,
+    rs_events,
+    run,
+)
+
+#: Each op, and what every one of its frames does (both protocols alike).
+EFFECTS = [
+    ('{"op":"velocity","rpm":120}', Effect.MOTION),
+    ('{"op":"velocity","rpm":0}', Effect.STOP),
+    ('{"op":"enable"}', Effect.SETTING),
+    ('{"op":"disable"}', Effect.STOP),
+    ('{"op":"move","position":1000}', Effect.MOTION),  # RS232: both halves
+    ('{"op":"torque","current_a":1.5}', Effect.MOTION),
+    ('{"op":"home"}', Effect.MOTION),  # an origin search runs the motor
+    ('{"op":"set_mode","mode":"velocity"}', Effect.SETTING),
+    ('{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":500}', Effect.SETTING),
+    ('{"op":"set_max_speed","rpm":100}', Effect.SETTING),
+]
+
+
+@pytest.mark.parametrize("driver", [Zlac706CanDriver("w", 1), Zlac706Rs232Driver("w", 1)],
+                         ids=["can", "rs232"])
+@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
+def test_each_ops_frames_do_what_the_authority_judges(driver, text, effect) -> None:
+    frames = driver.frames_of(driver.parse(text))
+    assert frames and [driver.effect(frame) for frame in frames] == [effect] * len(frames)
+
+
+def test_the_monitor_request_only_asks() -> None:
+    driver = Zlac706Rs232Driver("w", 1)
+    (frame,) = driver.frames_of(driver.parse('{"op":"monitor"}'))
+    assert driver.effect(frame) is Effect.READ
+
+
+def refusal(driver, text: str) -> str:
+    with pytest.raises(CommandError) as refused:
+        plan(driver, text)
+    return str(refused.value)
+
+
+def test_an_order_rule_says_what_the_write_needs_and_where_the_motor_is() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    assert refusal(driver, '{"op":"velocity","rpm":10}') == (
+        "a speed target (velocity) needs velocity mode (set_mode velocity first): its mode "
+        "is not known, and the device would ignore it")
+    assert refusal(driver, '{"op":"move","position":10}') == (
+        "a position target (move) needs position mode (set_mode position first): its mode "
+        "is not known, and the device would ignore it")
+    run(driver, plan(driver, '{"op":"set_mode","mode":"torque"}'))
+    assert refusal(driver, '{"op":"move","position":10}') == (
+        "a position target (move) needs position mode (set_mode position first): the motor "
+        "is in torque mode, and the device would ignore it")
+    run(driver, plan(driver, '{"op":"set_mode","mode":"position"}'))
+    assert refusal(driver, '{"op":"move","position":10}') == (
+        "move before enable: in position mode the ZLAC706 silently ignores a target sent "
+        "before the motor is enabled; send enable first")
+    run(driver, plan(driver, '{"op":"enable"}'))
+    assert refusal(driver, '{"op":"set_mode","mode":"velocity"}') == (
+        "set_mode velocity while the motor is enabled: disable first (the mode is chosen "
+        "before enable)")
+
+
+def test_a_power_up_forgets_the_power_stage_and_the_speed_sent() -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
+                 '{"op":"velocity","rpm":100}'):
+        run(driver, plan(driver, text))
+    assert driver.keepalive(0.0) is not None
+    driver.take_position(100_000)
+    driver.take_position(0)  # the counter back at 0 from far away: the drive powered up
+    assert driver.telemetry(0.0)["enabled"] is False
+    assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
+
+
+def test_an_answer_clears_the_writes_gone_unanswered() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    run(driver, plan(driver, '{"op":"set_mode","mode":"velocity"}'), now=1.0)
+    for moment in range(OFFLINE_AFTER - 1):
+        driver.missed(2.0 + moment)
+    driver.heard(5.0)
+    assert driver.last_reply == 5.0 and driver.online
+    driver.missed(6.0)
+    assert driver.online  # one miss, not OFFLINE_AFTER in a row
+
+
+def test_telemetry_tells_each_setting_in_its_unit() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    fresh = driver.telemetry(0.0)
+    assert fresh["faults"] == [] and fresh["measured"] is False  # no heartbeats expected
+    assert fresh["position_mode"] is None
+    assert driver.commanded_speed_raw == 0
+    for text in ('{"op":"set_position_mode","relative":false}', '{"op":"set_mode","mode":"torque"}',
+                 '{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":300}', '{"op":"enable"}',
+                 '{"op":"torque","current_a":1.5}'):
+        run(driver, plan(driver, text))
+    state = driver.telemetry(0.0)
+    assert state["position_mode"] == "absolute"
+    assert state["target_current_a"] == pytest.approx(1.5, abs=0.0032)
+    assert state["velocity_ramp"] == {"accel_ms": 500, "decel_ms": 300}
+    assert Zlac706Rs232Driver("w", 1).telemetry(0.0)["measured"] is True  # its monitor reads
+
+
+def test_a_heartbeat_and_a_monitor_reply_give_the_current_in_ma() -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    driver.unsolicited(can_codec.HeartbeatCurrentSpeed(1, current_raw=2345, speed_raw=0), 1.0)
+    assert driver.telemetry(1.0)["current_ma"] == 23450
+    rs = Zlac706Rs232Driver("w", 1)
+    (request,) = rs.poll()
+    rs.apply(request, rs_events(MANUAL_MONITOR.replace("e20011f3", "e2092914")), 0.0)
+    assert rs.telemetry(0.0)["current_ma"] == 23450
+
+
+def test_a_drive_its_monitor_reports_stopped_is_off_whatever_was_enabled_before() -> None:
+    driver = Zlac706Rs232Driver("w", 1)
+    for text in ('{"op":"set_mode","mode":"position"}', '{"op":"enable"}'):
+        run(driver, plan(driver, text))
+    (request,) = driver.poll()
+    driver.apply(request, rs_events(MANUAL_MONITOR.replace("80000181", "80000080")), 0.0)
+    assert driver.telemetry(0.0)["enabled"] is False
+    assert "before enable" in refusal(driver, '{"op":"move","position":10}')
+
+
+def test_a_disable_is_a_switch_off_and_an_enable_lifts_the_estop_latch() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'):
+        run(driver, plan(driver, text))
+    driver.safe_stop()
+    assert driver.estop_latched is True
+    plan(driver, '{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":500}')
+    assert driver.estop_latched is True and driver.driving_before_estop is True
+    plan(driver, '{"op":"enable"}')
+    assert driver.estop_latched is False
+    plan(driver, '{"op":"disable"}')
+    assert driver.driving_before_estop is False  # a reset that follows leaves it off
+
+
+def test_a_planned_speed_is_the_one_kept_alive_before_its_ack() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'):
+        run(driver, plan(driver, text))
+    (speed,) = plan(driver, '{"op":"velocity","rpm":100}')
+    assert driver.commanded_speed_raw == speed.frame.value != 0
+    assert driver.refreshes_keepalive(speed)
+    (enable,) = plan(driver, '{"op":"enable"}')
+    assert not driver.refreshes_keepalive(enable)
+
+
+def test_the_settings_restored_after_a_reboot_may_be_repeated() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    run(driver, plan(driver, '{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":500}'))
+    (restore,) = driver.restore()
+    assert restore.idempotent
+
+
+def test_a_reboot_is_a_jump_to_zero_of_more_than_the_bound_and_says_from_where() -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    driver.take_position(REBOOT_POSITION_JUMP)
+    driver.take_position(0)
+    assert event_types(driver) == []
+    driver.take_position(-REBOOT_POSITION_JUMP - 1)
+    driver.take_position(0)
+    (event,) = driver.drain_events()
+    assert event.type == "rebooted"
+    far = -REBOOT_POSITION_JUMP - 1
+    assert event.fields["evidence"] == f"position counter back at 0 from {far}"
+
+
+def test_a_late_echo_is_no_news_and_an_alarm_report_begins_no_reading() -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    echo = can_codec.WriteAck(1, can_codec.CanRegister.TARGET_SPEED, 0)
+    assert driver.unsolicited(echo, 1.0) is False
+    assert driver.begins_reading(can_codec.HeartbeatPosition(1, 5))
+    alarm = can_codec.AlarmReport(1, AlarmFlags(0x02))
+    assert not driver.begins_reading(alarm)  # news at once, not the start of a heartbeat
+
+
+def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
+    can_driver, rs = Zlac706CanDriver("w", 1), Zlac706Rs232Driver("w", 1)
+    assert refusal(can_driver, '{"op":"monitor"}') == (
+        "monitor is an RS232 request; on CAN the driver's heartbeat reports position, current "
+        "and speed (enable it with the vendor tool)")
+    assert refusal(can_driver, '{"op":"write","register":250,"value":1}') == (
+        "register 0xfa is not in the ZLAC706 CAN table")
+    assert "is not a writable ZLAC706 RS232 register" in refusal(
+        rs, '{"op":"write","register":250,"value":1}')
+    run(can_driver, plan(can_driver, '{"op":"set_mode","mode":"velocity"}'))
+    with pytest.raises(CommandError) as refused:
+        can_driver.follow_target({"position": 5})
+    assert str(refused.value) == ('a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
+                                  "velocity mode; send positions as move commands")
+
+
+def test_with_heartbeats_an_answer_still_clears_the_writes_gone_unanswered() -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    driver.unsolicited(can_codec.HeartbeatPosition(1, 5), 1.0)  # online by its heartbeat
+    for moment in range(OFFLINE_AFTER - 1):
+        driver.missed(2.0 + moment)
+    driver.heard(5.0)
+    assert driver.last_reply == 5.0
+    for moment in range(OFFLINE_AFTER - 1):
+        driver.missed(6.0 + moment)
+    assert driver.online  # never OFFLINE_AFTER in a row
+
+
+def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    (request,) = plan(driver, '{"op":"write","register":20,"value":7}')
+    reply = driver.apply(request, (can_codec.NoSuchRegister(1, 0x14, 7),), 1.0)
+    assert reply == {"rejected": "node 1 has no register 0x14"}
+    (event,) = driver.drain_events()
+    assert (event.type, event.fields) == ("rejected", {"register": 0x14,
+                                                       "reason": "no such register"})
+
+
+def test_a_shadow_driver_takes_the_mode_and_power_stage_its_worker_reports() -> None:
+    shadow = Zlac706CanDriver("w", 1)
+    with pytest.raises(CommandError, match="its mode is not known"):
+        shadow.follow_target({"rpm": 50})
+    shadow.mirror({"mode": "velocity", "enabled": True})
+    assert shadow.follow_target({"rpm": 50}) == 50.0
+    assert shadow.telemetry(0.0)["enabled"] is True
+    shadow.mirror({"online": False})  # says neither: both left as they were
+    shadow.mirror({"mode": "sideways", "enabled": "yes"})  # neither is one: the same
+    assert (shadow.telemetry(0.0)["mode"], shadow.telemetry(0.0)["enabled"]) == (
+        "velocity", True)
+    shadow.mirror({"enabled": False})
+    assert shadow.telemetry(0.0)["enabled"] is False
+    assert shadow.follow_target({"rpm": 50}) == 50.0  # the mode kept
+    shadow.mirror({"mode": "position"})
+    with pytest.raises(CommandError, match="the motor is in position mode"):
+        shadow.follow_target({"rpm": 50})
+
+
+@pytest.mark.parametrize("node", [1, 3])
+def test_a_scan_probes_a_can_node_with_a_write_it_answers_no_such_register(node) -> None:
+    probe = Zlac706CanDriver.probe(node)
+    assert probe.frame.device_id == node and probe.frame.value == 0
+    answer = can_codec.NoSuchRegister(node, probe.frame.register, 0)
+    assert probe.expected is not None and probe.expected.matches(answer)
+    assert not probe.expected.matches(can_codec.NoSuchRegister(node + 1, probe.frame.register, 0))
+
+
+def test_a_scan_probes_an_rs232_drive_with_its_monitor_request_once() -> None:
+    probe = Zlac706Rs232Driver.probe(1)
+    assert probe.wire.hex() == "800080" and probe.expected.frames == 8
+    assert not probe.idempotent
