@@ -69,6 +69,20 @@ CODEC_TESTS = [
     "tests/test_mutants_codecs.py",
 ]
 
+#: The fast tests, by plain calls or over a bus never started, that reach every family's
+#: driver beside its own tests: families, joints and their limits, the safety rules, the
+#: e-stop's reset, reboots, telemetry, the idle bus's work.
+DRIVER_NEIGHBOURS = [
+    "tests/test_families.py",
+    "tests/test_joints.py",
+    "tests/test_joint_limits.py",
+    "tests/test_safety_rules.py",
+    "tests/test_estop_reset.py",
+    "tests/test_reboots.py",
+    "tests/test_telemetry.py",
+    "tests/test_idle_work.py",
+]
+
 # package: (folder copied under src/busgate, files mutated (globs, relative to ROOT), tests)
 PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
     "codecs": ("codecs", ["codecs/*"], CODEC_TESTS),
@@ -102,10 +116,21 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         ["gateway/drivers/zlac706.py", "gateway/drivers/zlac706_can.py",
          "gateway/drivers/zlac706_rs232.py", "gateway/drivers/zlac706_state.py"],
         ["tests/test_driver_zlac706.py", "tests/test_driver_setpoints.py",
-         "tests/test_zlac706_commands.py", "tests/test_families.py", "tests/test_joints.py",
-         "tests/test_joint_limits.py", "tests/test_safety_rules.py", "tests/test_estop_reset.py",
-         "tests/test_reboots.py", "tests/test_telemetry.py", "tests/test_idle_work.py",
-         "tests/test_mutants_base.py", "tests/test_mutants_zlac706.py"],
+         "tests/test_zlac706_commands.py", *DRIVER_NEIGHBOURS, "tests/test_mutants_base.py",
+         "tests/test_mutants_zlac706.py"],
+    ),
+    "inspire_la": (
+        "gateway",
+        ["gateway/drivers/inspire_la.py", "gateway/drivers/inspire_la_frames.py"],
+        ["tests/test_driver_inspire_la.py", "tests/test_driver_setpoints.py",
+         "tests/test_inspire_la_commands.py", *DRIVER_NEIGHBOURS,
+         "tests/test_mutants_inspire_la.py"],
+    ),
+    "ds_servo": (
+        "gateway",
+        ["gateway/drivers/ds_servo.py"],
+        ["tests/test_driver_ds_servo.py", "tests/test_driver_setpoints.py",
+         "tests/test_ds_servo_commands.py", *DRIVER_NEIGHBOURS, "tests/test_mutants_ds_servo.py"],
     ),
 }
 

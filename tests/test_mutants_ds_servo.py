@@ -1,0 +1,115 @@
+"""The DS servo driver, by plain calls: what each op's frame does in the authority's eyes
+(torque off is a stop, never refused), what a reboot restores and forgets, a reset's new id,
+the polled spans, and what a refusal says."""
+
+from __future__ import annotations
+
+import pytest
+
+from busgate.codecs import ds_servo as ds
+from busgate.errors import CommandError
+from busgate.gateway.drivers.base import Effect
+from busgate.gateway.drivers.ds_servo import DsServoDriver, poll_spans
+from busgate.schemas import inspire_la
+from tests.test_driver_ds_servo import answer, driver, plan
+
+#: Each op, and what its frame does.
+EFFECTS = [
+    ('{"op":"torque","on":false}', Effect.STOP),
+    ('{"op":"torque","on":true}', Effect.SETTING),
+    ('{"op":"write","address":48,"data":"00"}', Effect.SETTING),  # a 0, not the torque's
+    ('{"op":"write","address":42,"data":"0064"}', Effect.MOTION),  # the target
+    ('{"op":"move","position":100}', Effect.MOTION),
+    ('{"op":"goto_preset","n":2}', Effect.MOTION),
+    ('{"op":"ping"}', Effect.READ),
+    ('{"op":"read","address":56,"length":2}', Effect.READ),
+]
+
+
+@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
+def test_each_ops_frame_does_what_the_authority_judges(text, effect) -> None:
+    servo = driver()
+    (frame,) = servo.frames_of(servo.parse(text))
+    assert servo.effect(frame) is effect
+
+
+def test_a_reboot_restores_torque_off_only_while_it_was_switched_off() -> None:
+    servo = driver()
+    [off] = plan(servo, '{"op":"torque","on":false}')
+    answer(servo, off)
+    (restored,) = servo.restore()
+    assert restored.wire == off.wire and restored.idempotent
+    [on] = plan(servo, '{"op":"torque","on":true}')
+    answer(servo, on)
+    assert servo.restore() == []  # torque on is what a servo powers up with
+
+
+def test_a_power_up_forgets_the_target_and_has_torque_on() -> None:
+    servo = driver()
+    assert servo.telemetry(0.0)["torque_on"] is None  # not read yet
+    for text in ('{"op":"torque","on":false}', '{"op":"move","position":100}'):
+        [request] = plan(servo, text)
+        answer(servo, request)
+    servo.forget_on_reboot()
+    state = servo.telemetry(0.0)
+    assert (state["target"], state["pending_target"], state["torque_on"]) == (None, None, True)
+
+
+def test_a_reset_puts_the_servo_at_the_factory_id_saying_why() -> None:
+    servo = driver(7)
+    [reset] = plan(servo, '{"op":"reset"}')
+    answer(servo, reset)
+    (event,) = [e for e in servo.drain_events() if e.type == "id_changed"]
+    assert event.fields == {"old_id": 7, "new_id": 1, "reason": "reset"}
+    assert servo.device_id == 1 and servo.telemetry(0.0)["torque_on"] is None
+
+
+def test_a_sync_write_carries_one_to_its_limit_of_servos() -> None:
+    one = DsServoDriver.follow_request([(driver(3), 1500)])
+    assert isinstance(one.frame, ds.SyncWrite) and [t.device_id for t in one.frame.targets] == [3]
+    with pytest.raises(CommandError) as refused:
+        DsServoDriver.follow_request([])
+    assert str(refused.value) == (
+        f"a SYNC WRITE carries 1 to {DsServoDriver.follow_group_limit} servos, not 0")
+
+
+def test_an_op_of_another_family_is_refused_naming_it() -> None:
+    with pytest.raises(CommandError) as refused:
+        driver().frames_of(inspire_la.Pause(op="pause"))
+    assert str(refused.value) == "ds_servo has no command Pause"
+
+
+def test_a_poll_reads_across_reserved_addresses_but_not_write_only_ones() -> None:
+    # speed (58-59) and temperature (63): the go-to-preset addresses (60-62) lie between
+    assert poll_spans(["speed", "temperature"]) == ((58, 2), (63, 1))
+    # torque_enable (40) and target_position (42-43): the reserved 41 is read across
+    assert poll_spans(["target_position", "torque_enable"]) == ((40, 4),)
+    assert poll_spans(["temperature"]) == ((63, 1),)
+
+
+def test_a_goto_preset_leaves_the_target_unknown_and_another_write_keeps_it() -> None:
+    servo = driver()
+    for text in ('{"op":"move","position":100}', '{"op":"write","address":48,"data":"00"}'):
+        [request] = plan(servo, text)
+        answer(servo, request)
+    assert servo.telemetry(0.0)["target"] == 100
+    [goto] = plan(servo, '{"op":"goto_preset","n":2}')
+    answer(servo, goto)
+    assert servo.telemetry(0.0)["target"] is None  # the preset's position is on the servo
+
+
+def test_torque_on_after_an_estop_says_estopped_false_in_the_state() -> None:
+    servo = driver()
+    servo.safe_stop()
+    assert servo.state(0.0)["estopped"] is True
+    plan(servo, '{"op":"torque","on":true}')
+    assert servo.state(0.0)["estopped"] is False
+
+
+def test_a_servos_part_of_a_group_move_and_its_scan_probe() -> None:
+    servo = driver(4)
+    assert servo.group_entry(2000, None) == {"id": 4, "position": 2000, "time_ms": 0}
+    assert servo.group_entry(2000, 500) == {"id": 4, "position": 2000, "time_ms": 500}
+    [ping] = plan(servo, '{"op":"ping"}')
+    probe = DsServoDriver.probe(4)
+    assert probe.wire == ping.wire and probe.expected == ping.expected

@@ -1,0 +1,97 @@
+"""The Inspire LA driver, by plain calls: what each op's frames do in the authority's eyes (an
+e-stop and a pause are never refused, a target always needs the claim), what a reboot
+restores, the temperature limits judged against what was read since a limit was confirmed,
+and what a refusal says."""
+
+from __future__ import annotations
+
+import pytest
+
+from busgate.codecs import inspire_la as la
+from busgate.errors import CommandError
+from busgate.gateway.drivers.base import Effect
+from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from tests.test_driver_inspire_la import answer, decoded, driver, plan, status
+
+#: Each op, and what its frame does.
+EFFECTS = [
+    ('{"op":"move","position":1000}', Effect.MOTION),
+    ('{"op":"follow","position":1000,"reply":false}', Effect.MOTION),
+    ('{"op":"group_move","targets":[{"id":1,"position":1300}]}', Effect.MOTION),
+    ('{"op":"group_follow","targets":[{"id":1,"position":1300}]}', Effect.MOTION),
+    ('{"op":"write","index":55,"data":"1405"}', Effect.MOTION),  # the target register
+    ('{"op":"write","index":98,"data":"c102"}', Effect.SETTING),
+    ('{"op":"status"}', Effect.READ),
+    ('{"op":"read","index":98,"length":2}', Effect.READ),
+    ('{"op":"estop"}', Effect.STOP),
+    ('{"op":"pause"}', Effect.STOP),
+    ('{"op":"enable"}', Effect.SETTING),  # no motion until a new target (manual 3.5.4)
+    ('{"op":"clear_fault"}', Effect.SETTING),
+    ('{"op":"save"}', Effect.SETTING),
+    ('{"op":"set_overcurrent","current_ma":1000}', Effect.SETTING),
+]
+
+
+@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
+def test_each_ops_frame_does_what_the_authority_judges(text, effect) -> None:
+    actuator = driver()
+    (frame,) = actuator.frames_of(actuator.parse(text))
+    assert actuator.effect(frame) is effect
+
+
+def test_a_reboot_restores_the_estop_only_of_an_estopped_actuator_and_limits_repeatably():
+    actuator = driver()
+    [limit] = plan(actuator, '{"op":"set_overcurrent","current_ma":1000}')
+    answer(actuator, limit, decoded(la.WriteReply(3, 32)))
+    (restored,) = actuator.restore()
+    assert restored.wire == limit.wire and restored.idempotent
+    actuator.safe_stop()
+    estop, again = actuator.restore()
+    assert estop.wire.hex() == "55aa03030400232d" and again.wire == limit.wire
+
+
+def test_a_limit_confirmed_then_read_anew_is_judged_by_what_was_read() -> None:
+    actuator = driver()
+    [overtemp] = plan(actuator, '{"op":"set_overtemp","temp_c":70.5}')
+    answer(actuator, overtemp, decoded(la.WriteReply(3, 98)))
+    [read] = plan(actuator, '{"op":"read","index":98,"length":2}')
+    answer(actuator, read, decoded(la.ReadReply(3, 98, (800).to_bytes(2, "little"))))
+    plan(actuator, '{"op":"set_rewarm","temp_c":74}')  # under 80 °C - 5, as read since
+
+
+def test_a_temperature_refusal_names_the_actuator_the_register_and_its_value() -> None:
+    actuator = driver()
+    [overtemp] = plan(actuator, '{"op":"set_overtemp","temp_c":70}')
+    answer(actuator, overtemp, decoded(la.WriteReply(3, 98)))
+    with pytest.raises(CommandError) as refused:
+        plan(actuator, '{"op":"set_rewarm","temp_c":66}')
+    assert str(refused.value) == ("rod: overtemp_limit 700 is below rewarm_temperature 660 + "
+                                  "50 (limit must be ≥ rewarm + 5 °C)")
+    assert (refused.value.field, refused.value.value) == ("overtemp_limit", 700)
+
+
+def test_what_a_group_or_a_follow_tick_cannot_carry_is_refused_saying_why() -> None:
+    actuator = driver()
+    with pytest.raises(CommandError) as refused:
+        actuator.group_entry(1000, 500)
+    assert str(refused.value) == "Inspire LA group moves have no move time; drop time_ms"
+    actuator.safe_stop()
+    with pytest.raises(CommandError) as refused:
+        InspireLaDriver.follow_request([(actuator, 1000)])
+    assert str(refused.value) == "every actuator of this follow tick is e-stopped: send enable"
+
+
+def test_holding_still_after_a_reset_targets_where_the_status_last_said() -> None:
+    actuator = driver()
+    assert [r.wire.hex() for r in actuator.hold_still()] == ["55aa03030400040e"]  # no status
+    [query] = plan(actuator, '{"op":"status"}')
+    answer(actuator, query, status(position_raw=990))
+    enable, here = actuator.hold_still()
+    assert enable.wire.hex() == "55aa03030400040e" and here.frame.position_raw == 990
+
+
+@pytest.mark.parametrize("device_id", [1, 3])
+def test_a_scan_probes_an_actuator_with_its_status_query(device_id) -> None:
+    probe = InspireLaDriver.probe(device_id)
+    [query] = plan(driver(device_id), '{"op":"status"}')
+    assert probe.wire == query.wire and probe.expected == query.expected
