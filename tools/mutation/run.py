@@ -106,6 +106,15 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
         ["tests/test_api.py", "tests/test_sharing_edges.py", "tests/test_error_codes.py",
          "tests/test_joint_limits.py", "tests/test_mutants_api.py"],
     ),
+    "plays": (
+        "gateway",
+        ["gateway/scheduler/limiter.py", "gateway/scheduler/plays.py",
+         "gateway/scheduler/trajectory_ticks.py"],
+        ["tests/test_trajectory_ticks.py", "tests/test_trajectory_joints.py",
+         "tests/test_joints.py", "tests/test_joint_limits.py", "tests/test_safety_rules.py",
+         "tests/test_mutants_scheduler.py", "tests/test_mutants_base.py",
+         "tests/test_mutants_plays.py"],
+    ),
     "base": (
         "gateway",
         ["gateway/base/bases.py", "gateway/base/drive.py", "gateway/base/kinematics.py"],
