@@ -5,9 +5,13 @@ past a joint's limit by a late turn stops on it."""
 
 from __future__ import annotations
 
+import pytest
+
 from busgate.gateway.scheduler.limiter import StreamLimiter
 from busgate.gateway.scheduler.plays import ESTOPPED
 from busgate.gateway.scheduler.trajectory_ticks import TrajectoryTicker
+from busgate.gateway.service.assembly import build_bus
+from busgate.schemas.config import parse_config
 from tests.test_mutants_base import IdleBase
 from tests.test_mutants_scheduler import la_joint, wheel_joint
 
@@ -70,11 +74,31 @@ def test_a_device_leaves_its_play_holding_or_ramping_down_as_asked() -> None:
     assert zero.device == "wr" and [r.frame.value for r in zero.requests] == [0]
 
 
+def test_a_device_that_joins_a_ticker_after_it_sent_may_leave_before_its_first_tick() -> None:
+    config = parse_config({"gateway": {"name": "gw"}, "buses": [{
+        "name": "uart0", "transport": "serial", "port": "/dev/null", "baudrate": 921600,
+        "devices": [{"name": f"la{n}", "kind": "inspire_la", "id": n} for n in (1, 2)]}]})
+    runner = build_bus(config.buses[0])
+    plays = runner.plays
+    plays.start({"la1": lambda _t: {"position": 900}}, 10.0)
+    (ticker,) = [t for t in runner.planner.tickers if isinstance(t, TrajectoryTicker)]
+    assert ticker.build(10.0) is not None
+    ticker.sent(10.0)
+    plays.start({"la2": lambda _t: {"position": 900}}, 10.0)  # one frame carries both
+    assert [t for t in runner.planner.tickers if isinstance(t, TrajectoryTicker)] == [ticker]
+    plays.stop("la2", speed=False)
+    assert not plays.playing("la2") and plays.held("la2") is None  # it never had a tick
+    plays.stop("la1", speed=False)
+    assert plays.held("la1") == (10.0, 900)
+
+
 def test_a_position_stream_carried_past_a_limit_stops_on_it_and_starts_again_from_rest():
     """Heading down to 0 and braking, the target turns round late: one more tick at the
     deceleration limit would carry it past 0 (the raw range's low end)."""
     limiter = StreamLimiter(la_joint(max_velocity=0.1, max_acceleration=0.25), 0.01, 0)
-    sent = [limiter.step(target)[0] for target in (99, 12, 0, 0, 0, 81)]
+    assert limiter.step(99)[0] == 5  # from rest: one tick's change, to the float's last bit
+    assert limiter.value == pytest.approx(5, abs=1e-9)
+    sent = [5] + [limiter.step(target)[0] for target in (12, 0, 0, 0, 81)]
     assert min(sent) == sent[-1] == 0 and (limiter.value, limiter.rate) == (0, 0.0)
     # from rest at 0.25 m/s²: 5 counts a tick more each tick (5e-6 m a count, 10 ms ticks)
     assert [limiter.step(81)[0] for _ in range(3)] == [5, 15, 30]
