@@ -1,5 +1,5 @@
-"""The DS servo driver, by plain calls: what each op's frame does in the authority's eyes
-(torque off is a stop, never refused), what a reboot restores and forgets, a reset's new id,
+"""The DS servo driver, by plain calls (what each op's frame does in the authority's eyes:
+``tests/test_frame_effects.py``): what a reboot restores and forgets, a reset's new id,
 the polled spans, and what a refusal says."""
 
 from __future__ import annotations
@@ -8,29 +8,9 @@ import pytest
 
 from busgate.codecs import ds_servo as ds
 from busgate.errors import CommandError
-from busgate.gateway.drivers.base import Effect
 from busgate.gateway.drivers.ds_servo import DsServoDriver, poll_spans
 from busgate.schemas import inspire_la
 from tests.test_driver_ds_servo import answer, driver, plan
-
-#: Each op, and what its frame does.
-EFFECTS = [
-    ('{"op":"torque","on":false}', Effect.STOP),
-    ('{"op":"torque","on":true}', Effect.SETTING),
-    ('{"op":"write","address":48,"data":"00"}', Effect.SETTING),  # a 0, not the torque's
-    ('{"op":"write","address":42,"data":"0064"}', Effect.MOTION),  # the target
-    ('{"op":"move","position":100}', Effect.MOTION),
-    ('{"op":"goto_preset","n":2}', Effect.MOTION),
-    ('{"op":"ping"}', Effect.READ),
-    ('{"op":"read","address":56,"length":2}', Effect.READ),
-]
-
-
-@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
-def test_each_ops_frame_does_what_the_authority_judges(text, effect) -> None:
-    servo = driver()
-    (frame,) = servo.frames_of(servo.parse(text))
-    assert servo.effect(frame) is effect
 
 
 def test_a_reboot_restores_torque_off_only_while_it_was_switched_off() -> None:

@@ -1,7 +1,6 @@
-"""The Inspire LA driver, by plain calls: what each op's frames do in the authority's eyes (an
-e-stop and a pause are never refused, a target always needs the claim), what a reboot
-restores, the temperature limits judged against what was read since a limit was confirmed,
-and what a refusal says."""
+"""The Inspire LA driver, by plain calls (what each op's frame does in the authority's eyes:
+``tests/test_frame_effects.py``): what a reboot restores, the temperature limits judged
+against what was read since a limit was confirmed, and what a refusal says."""
 
 from __future__ import annotations
 
@@ -9,34 +8,8 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.errors import CommandError
-from busgate.gateway.drivers.base import Effect
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from tests.test_driver_inspire_la import answer, decoded, driver, plan, status
-
-#: Each op, and what its frame does.
-EFFECTS = [
-    ('{"op":"move","position":1000}', Effect.MOTION),
-    ('{"op":"follow","position":1000,"reply":false}', Effect.MOTION),
-    ('{"op":"group_move","targets":[{"id":1,"position":1300}]}', Effect.MOTION),
-    ('{"op":"group_follow","targets":[{"id":1,"position":1300}]}', Effect.MOTION),
-    ('{"op":"write","index":55,"data":"1405"}', Effect.MOTION),  # the target register
-    ('{"op":"write","index":98,"data":"c102"}', Effect.SETTING),
-    ('{"op":"status"}', Effect.READ),
-    ('{"op":"read","index":98,"length":2}', Effect.READ),
-    ('{"op":"estop"}', Effect.STOP),
-    ('{"op":"pause"}', Effect.STOP),
-    ('{"op":"enable"}', Effect.SETTING),  # no motion until a new target (manual 3.5.4)
-    ('{"op":"clear_fault"}', Effect.SETTING),
-    ('{"op":"save"}', Effect.SETTING),
-    ('{"op":"set_overcurrent","current_ma":1000}', Effect.SETTING),
-]
-
-
-@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
-def test_each_ops_frame_does_what_the_authority_judges(text, effect) -> None:
-    actuator = driver()
-    (frame,) = actuator.frames_of(actuator.parse(text))
-    assert actuator.effect(frame) is effect
 
 
 def test_a_reboot_restores_the_estop_only_of_an_estopped_actuator_and_limits_repeatably():

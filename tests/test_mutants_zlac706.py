@@ -1,5 +1,5 @@
-"""The ZLAC706 drivers, by plain calls: what each op's frames do in the authority's eyes (an
-e-stopped wheel is refused motion only), what an order rule says when it refuses, a power-up
+"""The ZLAC706 drivers, by plain calls (what each op's frames do in the authority's eyes:
+``tests/test_frame_effects.py``): what an order rule says when it refuses, a power-up
 forgetting the power stage, and an answer clearing the count of writes gone unanswered."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs.zlac706_common import AlarmFlags
 from busgate.errors import CommandError
-from busgate.gateway.drivers.base import OFFLINE_AFTER, Effect
+from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.drivers.zlac706_state import REBOOT_POSITION_JUMP
@@ -20,34 +20,6 @@ from tests.test_driver_zlac706 import (
     rs_events,
     run,
 )
-
-#: Each op, and what every one of its frames does (both protocols alike).
-EFFECTS = [
-    ('{"op":"velocity","rpm":120}', Effect.MOTION),
-    ('{"op":"velocity","rpm":0}', Effect.STOP),
-    ('{"op":"enable"}', Effect.SETTING),
-    ('{"op":"disable"}', Effect.STOP),
-    ('{"op":"move","position":1000}', Effect.MOTION),  # RS232: both halves
-    ('{"op":"torque","current_a":1.5}', Effect.MOTION),
-    ('{"op":"home"}', Effect.MOTION),  # an origin search runs the motor
-    ('{"op":"set_mode","mode":"velocity"}', Effect.SETTING),
-    ('{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":500}', Effect.SETTING),
-    ('{"op":"set_max_speed","rpm":100}', Effect.SETTING),
-]
-
-
-@pytest.mark.parametrize("driver", [Zlac706CanDriver("w", 1), Zlac706Rs232Driver("w", 1)],
-                         ids=["can", "rs232"])
-@pytest.mark.parametrize(("text", "effect"), EFFECTS, ids=[t for t, _ in EFFECTS])
-def test_each_ops_frames_do_what_the_authority_judges(driver, text, effect) -> None:
-    frames = driver.frames_of(driver.parse(text))
-    assert frames and [driver.effect(frame) for frame in frames] == [effect] * len(frames)
-
-
-def test_the_monitor_request_only_asks() -> None:
-    driver = Zlac706Rs232Driver("w", 1)
-    (frame,) = driver.frames_of(driver.parse('{"op":"monitor"}'))
-    assert driver.effect(frame) is Effect.READ
 
 
 def refusal(driver, text: str) -> str:
@@ -90,15 +62,20 @@ def test_a_power_up_forgets_the_power_stage_and_the_speed_sent() -> None:
     assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
 
 
-def test_an_answer_clears_the_writes_gone_unanswered() -> None:
-    driver = Zlac706CanDriver("w", 1)
+@pytest.mark.parametrize("heartbeats", [False, True], ids=["acks-only", "heartbeats"])
+def test_an_answer_clears_the_writes_gone_unanswered(heartbeats) -> None:
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10) if heartbeats else Zlac706CanDriver("w", 1)
     run(driver, plan(driver, '{"op":"set_mode","mode":"velocity"}'), now=1.0)
+    if heartbeats:  # they alone bring it online (rule 2)
+        driver.unsolicited(can_codec.HeartbeatPosition(1, 5), 1.0)
+    assert driver.online
     for moment in range(OFFLINE_AFTER - 1):
         driver.missed(2.0 + moment)
     driver.heard(5.0)
     assert driver.last_reply == 5.0 and driver.online
-    driver.missed(6.0)
-    assert driver.online  # one miss, not OFFLINE_AFTER in a row
+    for moment in range(OFFLINE_AFTER - 1):
+        driver.missed(6.0 + moment)
+    assert driver.online  # never OFFLINE_AFTER in a row
 
 
 def test_telemetry_tells_each_setting_in_its_unit() -> None:
@@ -206,18 +183,6 @@ def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
         can_driver.follow_target({"position": 5})
     assert str(refused.value) == ('a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
                                   "velocity mode; send positions as move commands")
-
-
-def test_with_heartbeats_an_answer_still_clears_the_writes_gone_unanswered() -> None:
-    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
-    driver.unsolicited(can_codec.HeartbeatPosition(1, 5), 1.0)  # online by its heartbeat
-    for moment in range(OFFLINE_AFTER - 1):
-        driver.missed(2.0 + moment)
-    driver.heard(5.0)
-    assert driver.last_reply == 5.0
-    for moment in range(OFFLINE_AFTER - 1):
-        driver.missed(6.0 + moment)
-    assert driver.online  # never OFFLINE_AFTER in a row
 
 
 def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> None:

@@ -70,9 +70,10 @@ CODEC_TESTS = [
 ]
 
 #: The fast tests, by plain calls or over a bus never started, that reach every family's
-#: driver beside its own tests: families, joints and their limits, the safety rules, the
-#: e-stop's reset, reboots, telemetry, the idle bus's work.
+#: driver beside its own tests: what each op's frames do, families, joints and their limits,
+#: the safety rules, the e-stop's reset, reboots, telemetry, the idle bus's work.
 DRIVER_NEIGHBOURS = [
+    "tests/test_frame_effects.py",
     "tests/test_families.py",
     "tests/test_joints.py",
     "tests/test_joint_limits.py",
