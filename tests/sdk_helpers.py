@@ -10,6 +10,7 @@ what any subscriber on the gateway's events key sees.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import os
@@ -89,6 +90,10 @@ class EventWatch:
 #: loaded machine's cores with the gateway and the tests, and one late reply is a
 #: ``device_timeout`` (the gateway tells it rightly), which is not what these tests are about.
 TRIES = 3
+#: The pause before a try again: a refusal for a device gone offline after late replies (a
+#: base's wheel: ``bases`` rule 3) comes at once, and the device is back only once its
+#: offline probe is answered, some hundreds of ms later.
+RETRY_PAUSE_S = 0.5
 
 
 def patiently(command: Callable[..., T], *args: Any) -> T:
@@ -100,6 +105,7 @@ def patiently(command: Callable[..., T], *args: Any) -> T:
         except error_for("device_timeout"):
             if attempt == TRIES:
                 raise
+            time.sleep(RETRY_PAUSE_S)
     raise AssertionError("unreachable")
 
 
@@ -111,4 +117,5 @@ async def patiently_async(command: Callable[..., Awaitable[T]], *args: Any) -> T
         except error_for("device_timeout"):
             if attempt == TRIES:
                 raise
+            await asyncio.sleep(RETRY_PAUSE_S)
     raise AssertionError("unreachable")
