@@ -612,8 +612,9 @@ def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_ret
     def popen_then_stop(*args, **kwargs) -> subprocess.Popen:
         process = popen(*args, **kwargs)
         started.append(process)
-        stopping.append(threading.Thread(target=lone_worker.stop))
-        stopping[0].start()
+        stop = threading.Thread(target=lone_worker.stop)
+        stop.start()
+        stopping.append(stop)  # started before it is seen: the test joins what it sees
         assert lone_worker._stopping.wait(5)  # the stop has begun, this worker not yet known
         return process
 
