@@ -256,9 +256,12 @@ async def serve_dashboard(
     *,
     prefix: str = "busgate",
     on_ready: Callable[[str], None] | None = None,
+    bound: socket.socket | None = None,
 ) -> None:
     """Serve the dashboard on ``listen`` until ``stop`` is set; ``on_ready(url)`` once it
-    listens. ``CommandError`` when the address cannot be listened on."""
+    listens. ``CommandError`` when the address cannot be listened on. ``bound``: the
+    socket ``listen.bind()`` gave already (``busgate demo`` binds before its gateway starts,
+    so that a port in use is refused at once), served and closed here."""
     hosts = listen.names()
     fleet = Fleet()
     feed = Feed(client, fleet, prefix)
@@ -279,7 +282,8 @@ async def serve_dashboard(
         h11_max_incomplete_event_size=MAX_HEAD_BYTES,
     )
     server = _EmbeddedServer(config)
-    bound = listen.bind()  # here, so that a port in use is an error, not uvicorn's exit
+    if bound is None:
+        bound = listen.bind()  # here, so that a port in use is an error, not uvicorn's exit
     limit_warnings = _NowAndThen()
     logging.getLogger("uvicorn.error").addFilter(limit_warnings)
     pushing = asyncio.create_task(hub.run())

@@ -44,7 +44,7 @@ MAX_HOLD_S = 10.0
 class BaseConfig(BaseModel):
     """One differential-drive base (the rules above)."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
     name: BaseName
     kind: Literal["diff_drive"] = "diff_drive"

@@ -33,13 +33,14 @@ from pydantic import (
 from busgate.errors import ConfigError
 from busgate.schemas.base import KEY_PREFIX_PATTERN, Name
 from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
+from busgate.schemas.endpoints import Endpoint, ListenEndpoint, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
+from busgate.schemas.files import FileRefused, read_text
 from busgate.schemas.joints import Joint, JointTable, table_problems
 from busgate.schemas.ros2 import Ros2Section
 from busgate.schemas.validation import closest, suggestion
 
 KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
-Endpoint = Annotated[str, Field(pattern=r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")]
 
 #: The largest config file read: a robot's config is a few KiB.
 MAX_CONFIG_BYTES = 1024 * 1024
@@ -49,7 +50,7 @@ LISTED_KEYS = 6
 
 
 class Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 
 #: ``[gateway] workers``: at most this many processes run the buses (``gateway.workers``).
@@ -79,10 +80,22 @@ class GatewaySection(Section):
 
 class ZenohSection(Section):
     mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[Endpoint] = []
+    listen: list[ListenEndpoint] = []
     connect: list[Endpoint] = []
     multicast_scouting: bool = False
     config_file: str | None = None
+
+    @model_validator(mode="after")
+    def _check_endpoints(self) -> ZenohSection:
+        for endpoint in self.listen:
+            if self.listen.count(endpoint) > 1:  # zenoh would find it in use: by itself
+                raise ValueError(f"listen: {endpoint} is given twice")
+        if self.mode == "client" and not self.connect and self.config_file is None:
+            raise ValueError(
+                'connect: a gateway in mode "client" reaches others through a router: name '
+                'its endpoint (connect = ["tcp/192.168.1.2:7447"])'
+            )
+        return self
 
 
 def _port_in_range(listen: str) -> str:
@@ -199,6 +212,8 @@ class Config(Section):
 
     @model_validator(mode="after")
     def _check_buses(self) -> Config:
+        if self.metrics is not None:
+            _require_own_metrics_port(self.metrics.listen, self.zenoh.listen)
         _require_unique("buses", [bus.name for bus in self.buses], "bus name")
         _require_unique("buses", [d.name for bus in self.buses for d in bus.devices], "device name")
         for index, bus in enumerate(self.buses):
@@ -207,6 +222,15 @@ class Config(Section):
         _require_own_device_files(self.buses)
         _check_bases(self.bases, self.buses)
         return self
+
+
+def _require_own_metrics_port(metrics: str, zenoh_listen: list[str]) -> None:
+    """The metrics endpoint and a zenoh listener cannot share a port: the second to bind
+    would find it in use, by the gateway itself."""
+    host, _, port = metrics.rpartition(":")
+    for endpoint in zenoh_listen:
+        if takes_tcp_port(endpoint, host, int(port)):
+            raise ValueError(f"metrics.listen: {metrics} is the zenoh listener {endpoint}'s port")
 
 
 def _require_unique(path: str, names: list[str], what: str) -> None:
@@ -402,45 +426,18 @@ def _tables_in(annotation: Any) -> list[type[BaseModel]]:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML config file."""
     try:
-        data = tomllib.loads(_config_bytes(path).decode("utf-8"))
-    except OSError as exc:
-        raise ConfigError(f"cannot read {path}: {exc.strerror}", path="") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(_not_utf8(path, exc), path="") from exc
+        text = read_text(path, MAX_CONFIG_BYTES, "a config")
+    except FileRefused as exc:
+        raise ConfigError(str(exc), path="") from exc
+    if not text.strip():
+        raise ConfigError(f"{path} is empty: a config names its gateway and buses", path="")
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
     except RecursionError as exc:
         raise ConfigError(f"{path} is not valid TOML: nested too deeply", path="") from exc
     return parse_config(data)
-
-
-def _config_bytes(path: str | Path) -> bytes:
-    """The file's bytes, at most ``MAX_CONFIG_BYTES`` of them (``/dev/zero`` would be read
-    without end). A pipe is read as a file is (``--config <(envsubst < gw.toml)``); a named
-    pipe nobody writes to reads as empty, never waited on for ever."""
-    with open(path, "rb", opener=_opener_no_wait) as file:
-        os.set_blocking(file.fileno(), True)  # opened: now wait for what a writer sends
-        data = file.read(MAX_CONFIG_BYTES + 1)
-    if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError(
-            f"{path} is over {MAX_CONFIG_BYTES // 1024 // 1024} MiB: not a config", path=""
-        )
-    return data
-
-
-def _opener_no_wait(path: str, flags: int) -> int:
-    """Open without waiting for a writer, should ``path`` be a named pipe."""
-    return os.open(path, flags | os.O_NONBLOCK)
-
-
-def _not_utf8(path: str | Path, exc: UnicodeDecodeError) -> str:
-    """Where a file that should be UTF-8 (as TOML is) stops being so."""
-    line = exc.object.count(b"\n", 0, exc.start) + 1
-    byte = exc.object[exc.start]
-    return (
-        f"{path} is not UTF-8 text (line {line} has the byte 0x{byte:02x}); TOML files are "
-        f"UTF-8: save it as UTF-8"
-    )
 
 
 def _key_path(loc: tuple[int | str, ...]) -> str:

@@ -33,7 +33,14 @@ from pathlib import Path
 
 import zenoh
 
+from busgate.schemas.endpoints import port_problem
+
 MODES = ("peer", "client", "router")
+#: The largest zenoh config file or CA certificate taken: each is a few KiB, and zenoh reads
+#: whatever it is given whole (``/dev/zero`` without end).
+MAX_FILE_BYTES = 1024 * 1024
+#: The protocols whose links are TLS's (a CA certificate is theirs).
+TLS_PROTOCOLS = ("tls/", "quic/")
 
 
 def session_config(
@@ -56,8 +63,14 @@ def session_config(
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
-    if config_file and (problem := config_file_problem(config_file)):
-        raise ValueError(f"the zenoh config file {config_file}: {problem}")  # not "os error 2"
+    if config_file and (refusal := config_file_refusal(config_file)):
+        raise ValueError(f"the zenoh config file {config_file}: {refusal}")  # not "os error 2"
+    for endpoints, listening in ((listen, True), (connect, False)):
+        for endpoint in endpoints:
+            if problem := endpoint_problem(endpoint, listening=listening):
+                raise ValueError(f"zenoh endpoint {endpoint!r}: {problem}")
+            if listening and list(listen).count(endpoint) > 1:  # else "in use", by itself
+                raise ValueError(f"zenoh endpoint {endpoint!r} is given twice")
     config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
@@ -73,24 +86,66 @@ def session_config(
         credentials = {"user": username or "", "password": password or ""}
         config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
     if ca is not None:
+        if problem := file_problem(ca, "a CA certificate"):
+            raise ValueError(f"the CA certificate {ca}: {problem}")
         config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
-    check_unix_listeners(_listen_endpoints(config, mode))
+        _check_tls_endpoints(config, mode)
+    check_unix_listeners(_endpoints(config, "listen", mode))
     return config
 
 
-def config_file_problem(config_file: str | Path) -> str | None:
-    """Why ``config_file`` cannot be read as a zenoh config here (``no such file``, ``not a
-    file``); ``None`` when it is a file."""
-    path = Path(config_file)
-    if path.is_file():
-        return None
-    return "not a file" if path.exists() else "no such file"
+def endpoint_problem(endpoint: str, *, listening: bool = False) -> str | None:
+    """What is wrong with ``endpoint`` (its port: ``endpoints``; else what zenoh says when
+    it parses it), ``None`` when nothing is."""
+    if problem := port_problem(endpoint, listening=listening):
+        return problem
+    try:
+        zenoh.Config().insert_json5("connect/endpoints", json.dumps([endpoint]))
+    except zenoh.ZError as exc:
+        return clean(zenoh_reason(exc))
+    return None
 
 
-def _listen_endpoints(config: zenoh.Config, mode: str) -> list[str]:
-    """The endpoints ``config`` listens on in ``mode``: a list, or (as zenoh's default, and
-    a file a router shares with its clients) a list per mode, of which only its own."""
-    endpoints = json.loads(config.get_json("listen/endpoints"))
+def file_problem(path: str | Path, what: str) -> str | None:
+    """Why ``path`` cannot be read as ``what`` here (``no such file``, ``not a file``, over
+    ``MAX_FILE_BYTES``: zenoh would read whatever it is whole); ``None`` when it can."""
+    path = Path(path)
+    if not path.is_file():
+        return "not a file" if path.exists() else "no such file"
+    if path.stat().st_size > MAX_FILE_BYTES:
+        return f"over {MAX_FILE_BYTES // 1024 // 1024} MiB: not {what}"
+    return None
+
+
+def config_file_refusal(config_file: str | Path) -> str | None:
+    """Why ``config_file`` is no zenoh config (``file_problem``, or where zenoh's parser
+    stopped and why); ``None`` when it is one."""
+    if problem := file_problem(config_file, "a zenoh config"):
+        return problem
+    try:
+        zenoh.Config.from_file(str(config_file))
+    except zenoh.ZError as exc:
+        return config_file_reason(exc)
+    return None
+
+
+def _check_tls_endpoints(config: zenoh.Config, mode: str) -> None:
+    """A CA certificate is for TLS (``tls/``, ``quic/``): refused when no endpoint of the
+    session is one, where the link would be in the clear while its user thinks otherwise."""
+    endpoints = [*_endpoints(config, "listen", mode), *_endpoints(config, "connect", mode)]
+    if not any(str(endpoint).startswith(TLS_PROTOCOLS) for endpoint in endpoints):
+        where = ", ".join(map(str, endpoints)) or "none"
+        raise ValueError(
+            f"a CA certificate is for tls/ and quic/ endpoints; this session's are {where}: "
+            f"in the clear"
+        )
+
+
+def _endpoints(config: zenoh.Config, kind: str, mode: str) -> list[str]:
+    """The endpoints ``config`` listens on or connects to (``kind``) in ``mode``: a list,
+    or (as zenoh's default, and a file a router shares with its clients) a list per mode, of
+    which only its own."""
+    endpoints = json.loads(config.get_json(f"{kind}/endpoints"))
     if isinstance(endpoints, dict):
         return list(endpoints.get(mode) or [])
     return list(endpoints)
@@ -182,3 +237,41 @@ def session_refusal(exc: BaseException, in_use_hint: str) -> str:
     if listener is not None and f"(os error {errno.EADDRINUSE})" in reason:
         return f"zenoh cannot listen on {listener.group(1)}: it is in use ({in_use_hint})"
     return f"cannot open the zenoh session: {reason}"
+
+
+_PARSER_POSITION = re.compile(r"^\s*--> (?P<line>\d+):(?P<column>\d+)")
+_PARSER_EXPECTED = re.compile(r"^\s*= (?P<msg>.+)$", re.M)
+#: The Rust debug prints zenoh wraps a config file's refusal in (serde_json/json5, YAML, TOML).
+_DEBUG_PRINTS = (
+    re.compile(
+        r'msg: "(?P<msg>.*?)",\s*location: Some\(Location \{ line: (?P<line>\d+), '
+        r"column: (?P<column>\d+) \}\)"
+    ),
+    re.compile(r'Error\("(?P<msg>.*)", line: (?P<line>\d+), column: (?P<column>\d+)\)'),
+    re.compile(r'message: "(?P<msg>.*?)", input: '),
+)
+
+
+def config_file_reason(exc: BaseException) -> str:
+    """zenoh's reason for refusing a config file, on one line: where in the file when zenoh
+    says (its json5 parser draws a caret diagram over several lines, serde a Rust debug
+    print), and what is wrong there (tests/test_router.py has each form, from zenoh itself)."""
+    text = str(exc)
+    position, expected = _PARSER_POSITION.match(text), _PARSER_EXPECTED.search(text)
+    if position is not None and expected is not None:  # json5's parser: a caret diagram
+        reason = zenoh_reason(Exception(expected.group("msg")))
+        return f"line {position['line']}, column {position['column']}: {reason}"
+    reason = zenoh_reason(exc)
+    for debug_print in _DEBUG_PRINTS:
+        found = debug_print.search(reason)
+        if found is not None:
+            where = found.groupdict().get("line")
+            at = f"line {where}, column {found['column']}: " if where is not None else ""
+            return at + found["msg"]
+    return reason
+
+
+def clean(reason: str) -> str:
+    """``reason`` without the Rust debug print around its message, when it has one."""
+    found = re.search(r'msg: "(.*?)"(?:,\s*location|\s*\})', reason)
+    return found.group(1) if found is not None else reason

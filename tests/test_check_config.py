@@ -113,8 +113,7 @@ def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
         assert main(["check-config", str(path)]) == 1
     assert capsys.readouterr().err.splitlines() == [
         "error: /dev/zero is over 1 MiB: not a config",
-        "error: gateway: Field required",  # the pipe read as empty
-        "error: buses: Field required",
+        f"error: {fifo} is empty: a config names its gateway and buses",  # read as empty
         f"error: {deep} is not valid TOML: nested too deeply",
         f"error: {big} is over 1 MiB: not a config",
         f"error: cannot read {tmp_path}: Is a directory",
@@ -135,7 +134,8 @@ def test_a_config_through_a_pipe_is_read_as_a_file(tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize(("port", "what"), [
-    ("a-file", "a regular file"), (".", "a directory"), ("loop", "a loop of symbolic links")])
+    ("a-file", "a regular file"), (".", "a directory"), ("loop", "a loop of symbolic links"),
+    ("/dev/null", "a mem device, no tty")])  # a device file, but no serial port: run retried
 def test_a_port_that_is_no_device_file_is_a_warning_and_run_refuses_it(tmp_path, capsys, port,
                                                                        what) -> None:
     (tmp_path / "a-file").write_text("")
@@ -149,13 +149,62 @@ def test_a_port_that_is_no_device_file_is_a_warning_and_run_refuses_it(tmp_path,
                                               f" is {what}")
 
 
-def test_a_zenoh_config_file_missing_here_is_a_warning(tmp_path, capsys) -> None:
+def test_a_can_interface_python_can_does_not_have_is_a_warning_and_run_refuses_it(
+        tmp_path, capsys) -> None:
+    """``busgate run`` retried it for ever, every 0.1–2 s, as if an adapter might appear."""
+    path = tmp_path / "gateway.toml"
+    path.write_text('[gateway]\nname = "gw"\n[[buses]]\nname = "can0"\ntransport = "can"\n'
+                    'interface = "nosuch"\nchannel = "can0"\n[[buses.devices]]\n'
+                    'name = "wheel"\nkind = "zlac706"\nid = 1\n')
+    assert main(["check-config", str(path)]) == 0
+    refusal = "python-can has no interface 'nosuch' on this host (it has "
+    assert f"warning: buses[0].interface: {refusal}" in capsys.readouterr().out
+    assert main(["run", "--config", str(path)]) == 2
+    assert capsys.readouterr().err.startswith(f"busgate run: error: bus can0: {refusal}")
+
+
+@pytest.mark.parametrize(("content", "warned"), [
+    (None, "no such file"),
+    ("{ listen: ", "line 1, column 11: expected array, boolean, null, number, object, or string"),
+    ("{}", None),
+], ids=["missing", "malformed", "fine"])
+def test_a_zenoh_config_file_missing_here_or_malformed_is_a_warning(tmp_path, capsys, content,
+                                                                    warned) -> None:
+    """``busgate run`` refuses both at start, which check-config said nothing of."""
+    zenoh_file = tmp_path / "zenoh.json5"
+    if content is not None:
+        zenoh_file.write_text(content)
     path = write(tmp_path, [la(1)])
     path.write_text(path.read_text().replace(
-        "[[buses]]", f'[zenoh]\nconfig_file = "{tmp_path / "no.json5"}"\n[[buses]]', 1))
+        "[[buses]]", f'[zenoh]\nconfig_file = "{zenoh_file}"\n[[buses]]', 1))
     assert main(["check-config", str(path)]) == 0
-    assert (f"warning: zenoh.config_file: {tmp_path / 'no.json5'} is no file here; busgate run "
-            "refuses to start so") in capsys.readouterr().out
+    out = capsys.readouterr().out
+    expected = (f"warning: zenoh.config_file: {zenoh_file}: {warned}" if warned else None)
+    assert [line for line in out.splitlines() if "zenoh.config_file" in line] == (
+        [f"{expected}; busgate run refuses to start so"] if warned else [])
+
+
+@pytest.mark.parametrize(("listen", "config_file", "warned"), [
+    ("tcp/0.0.0.0:7447", False, True),
+    ("tcp/192.168.1.5:7447", False, True),
+    ("tcp/127.0.0.1:7447", False, False),
+    ("tcp/[::1]:7447", False, False),
+    ("tcp/0.0.0.0:7447", True, False),  # the operator's own file: TLS, passwords, ACL
+])
+def test_a_listener_other_hosts_reach_with_nothing_to_keep_them_out_is_a_warning(
+        tmp_path, capsys, listen, config_file, warned) -> None:
+    zenoh_file = tmp_path / "zenoh.json5"
+    zenoh_file.write_text("{}")
+    path = write(tmp_path, [la(1)])
+    table = f'[zenoh]\nlisten = ["{listen}"]\n' + (
+        f'config_file = "{zenoh_file}"\n' if config_file else "")
+    path.write_text(path.read_text().replace("[[buses]]", table + "[[buses]]", 1))
+    assert main(["check-config", str(path)]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "zenoh.listen" in line]
+    assert lines == ([f"warning: zenoh.listen[0]: {listen} can be reached from other hosts, and "
+                      "no zenoh.config_file gives it TLS, passwords or access control: whoever "
+                      "reaches it moves every device "
+                      "(docs/running.md#threat-model-who-can-move-what)"] if warned else [])
 
 
 def test_a_recorder_folder_this_user_cannot_write_is_a_warning(tmp_path, capsys) -> None:

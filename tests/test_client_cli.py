@@ -355,6 +355,24 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+def test_a_password_file_that_cannot_be_one_is_one_line_and_exit_2(tmp_path, free_port,
+                                                                   capsys):
+    """``/dev/zero`` was read without end (5.5 GB in 4 s), a byte that is no UTF-8 raised a
+    UnicodeDecodeError traceback."""
+    binary, big = tmp_path / "binary", tmp_path / "big"
+    binary.write_bytes(b"pw\xff\n")
+    big.write_text("x" * 4097)
+    for path, reason in (("/dev/zero", "/dev/zero is over 4 KiB: not a password file"),
+                         (binary, f"{binary} is not UTF-8 text (line 1 has the byte 0xff): save "
+                                  "it as UTF-8"),
+                         (big, f"{big} is over 4 KiB: not a password file"),
+                         (tmp_path, f"cannot read {tmp_path}: Is a directory")):
+        status = main(["send", "la1", "{}", "--user", "operator", "--password-file", str(path),
+                       "--connect", f"tcp/127.0.0.1:{free_port()}"])
+        _, err = capsys.readouterr()
+        assert (status, err) == (2, f"busgate send: error: --password-file: {reason}\n")
+
+
 @pytest.mark.parametrize(("command", "message"), [
     (["send", "busgate/gw1//cmd", "{}"], "not a key expression: 'busgate/gw1//cmd' (Invalid"),
     (["send", "busgate/gw1/dev/" + "x" * 70_000 + "/cmd", "{}"], "a key expression of 70020"),

@@ -98,6 +98,51 @@ def test_an_endpoint_zenoh_cannot_use_is_a_connect_error() -> None:
         bc.connect("nonsense", client_id="ok")
 
 
+@pytest.mark.parametrize(("endpoint", "reason"), [
+    ("tcp/127.0.0.1:70000", "zenoh endpoint 'tcp/127.0.0.1:70000': port '70000' is no port: "
+                            "from 1 to 65535"),
+    ("tcp/127.0.0.1:0", "zenoh endpoint 'tcp/127.0.0.1:0': port '0' is no port: from 1 to 65535"),
+    ("tcp/", "zenoh endpoint 'tcp/': it names no port: write host:port (tcp/127.0.0.1:7447)"),
+    ("hello", "zenoh endpoint 'hello': Endpoints must be of the form <protocol>/<address>"),
+])
+def test_an_endpoint_that_cannot_be_is_refused_in_words_not_a_rust_debug_print(endpoint,
+                                                                               reason) -> None:
+    """A port over 65535 was taken, to fail as "unable to connect"; ``tcp/`` was refused
+    with zenoh's ``Json5Err(Message { msg: … location: Some(Location {…}) })``."""
+    with pytest.raises(bc.ConnectError) as refused:
+        bc.connect(endpoint, client_id="ok")
+    assert str(refused.value).startswith(f"cannot open a zenoh session to {endpoint}: {reason}")
+    assert "Json5Err" not in str(refused.value) and "Location" not in str(refused.value)
+
+
+def test_a_ca_certificate_that_cannot_be_one_or_has_no_tls_link_is_refused(tmp_path) -> None:
+    """zenoh read ``--ca /dev/zero`` without end (1.9 GB in 3 s), and took a CA with a plain
+    tcp/ endpoint, which then went in the clear while its user thought it was TLS."""
+    big, ca = tmp_path / "big.pem", tmp_path / "ca.pem"
+    big.write_bytes(b"x" * (1024 * 1024 + 1))
+    ca.write_text("-----BEGIN CERTIFICATE-----\n")
+    for path, reason in (
+        ("/dev/zero", "the CA certificate /dev/zero: not a file"),
+        (tmp_path / "none.pem", f"the CA certificate {tmp_path / 'none.pem'}: no such file"),
+        (big, f"the CA certificate {big}: over 1 MiB: not a CA certificate"),
+        (ca, "a CA certificate is for tls/ and quic/ endpoints; this session's are "
+             "tcp/127.0.0.1:9: in the clear"),
+    ):
+        with pytest.raises(bc.ConnectError) as refused:
+            bc.connect("tcp/127.0.0.1:9", client_id="ok", ca=path)
+        assert str(refused.value) == f"cannot open a zenoh session to tcp/127.0.0.1:9: {reason}"
+
+
+def test_a_zenoh_config_file_zenoh_cannot_parse_is_refused_saying_where(tmp_path) -> None:
+    zenoh_file = tmp_path / "bad.json5"
+    zenoh_file.write_text("{ not json5")
+    with pytest.raises(bc.ConnectError) as refused:
+        bc.connect("tcp/127.0.0.1:9", client_id="ok", config_file=zenoh_file)
+    assert str(refused.value).startswith(
+        f"cannot open a zenoh session to tcp/127.0.0.1:9: the zenoh config file {zenoh_file}: "
+        "line 1, column 1: expected array, boolean, null, number, object, or string")
+
+
 def test_a_key_zenoh_refuses_is_one_line() -> None:
     with pytest.raises(CommandError, match="not a key expression: 'busgate//x'"):
         check_key("busgate//x")

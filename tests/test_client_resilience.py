@@ -261,7 +261,7 @@ TURNED_AWAY = {
     "wrong password": ("operator", "guess", {}),
     "unknown user": ("intruder", "op-secret", {}),
     "no credentials": (None, None, {}),
-    "plain tcp": ("operator", ACCOUNTS["operator"], {"scheme": "tcp"}),
+    "plain tcp": ("operator", ACCOUNTS["operator"], {"scheme": "tcp", "ca": False}),
     "no CA": ("operator", ACCOUNTS["operator"], {"ca": False}),
 }
 

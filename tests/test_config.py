@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import codecs
 import copy
 from pathlib import Path
 
@@ -113,6 +114,18 @@ def test_follow_period_outside_10_to_50_ms_is_refused_with_its_key_path() -> Non
         assert error.path == "buses[0].devices[0].follow_period_ms"
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf")])
+def test_a_number_that_is_no_number_is_refused_as_one(value) -> None:
+    """NaN was refused for the bound it failed ("less than or equal to 1000")."""
+    for change, path in (
+        (lambda d: d["buses"][0]["devices"][0].update(poll_hz=value),
+         "buses[0].devices[0].poll_hz"),
+        (lambda d: d["buses"][0].update(min_gap_ms=value), "buses[0].min_gap_ms"),
+        (lambda d: d.update(recorder={"seconds": value}), "recorder.seconds"),
+    ):
+        assert str(refused(change)) == f"{path}: Input should be a finite number"
+
+
 def test_gap_below_the_protocol_minimum_is_refused() -> None:
     error = refused(lambda d: d["buses"][0].update(min_gap_ms=0.5))
     assert error.path == "buses[0].min_gap_ms" and "at least 1 ms" in str(error)
@@ -180,6 +193,46 @@ def _misspell(table: dict, key: str, typo: str) -> None:
     table[typo] = table.pop(key)
 
 
+@pytest.mark.parametrize(("zenoh", "metrics", "message"), [
+    ({"listen": ["tcp/127.0.0.1:70000"]}, None,
+     "zenoh.listen[0]: port '70000' is no port: from 1 to 65535"),
+    ({"connect": ["tcp/127.0.0.1:0"]}, None, "zenoh.connect[0]: port '0' is no port: from 1 to "
+                                             "65535"),
+    ({"listen": ["tcp/127.0.0.1:0"]}, None, "zenoh.listen[0]: port 0 is one zenoh picks and tells "
+                                            "nobody: name the port clients connect to"),
+    ({"listen": ["tcp/"]}, None, "zenoh.listen[0]: it names no port: write host:port "
+                                 "(tcp/127.0.0.1:7447)"),
+    ({"listen": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7447"]}, None,
+     "zenoh: listen: tcp/127.0.0.1:7447 is given twice"),
+    ({"mode": "client"}, None, 'zenoh: connect: a gateway in mode "client" reaches others '
+                               'through a router: name its endpoint (connect = '
+                               '["tcp/192.168.1.2:7447"])'),
+    ({"listen": ["tcp/127.0.0.1:9108"]}, "127.0.0.1:9108",
+     "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/127.0.0.1:9108's port"),
+    ({"listen": ["tcp/0.0.0.0:9108"]}, "127.0.0.1:9108",
+     "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/0.0.0.0:9108's port"),
+], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port", "listen twice",
+        "client with no router", "metrics on zenoh's port", "zenoh on every address"])
+def test_a_zenoh_setting_that_could_never_open_is_refused_before_anything_opens(
+        zenoh, metrics, message) -> None:
+    """Each passed check-config and failed at run, where zenoh's refusal named nothing."""
+    error = refused(lambda d: d.update(zenoh=zenoh, **({"metrics": {"listen": metrics}}
+                                                        if metrics else {})))
+    assert str(error) == message
+
+
+def test_zenoh_settings_that_can_open_are_taken() -> None:
+    for zenoh, metrics in (
+        ({"listen": ["tcp/127.0.0.1:7447", "udp/127.0.0.1:9108"]}, "127.0.0.1:9108"),
+        ({"listen": ["tcp/127.0.0.1:7447"]}, "127.0.0.2:7447"),
+        ({"mode": "client", "connect": ["tcp/[::1]:7447?prio=1"]}, None),
+        ({"mode": "client", "config_file": "/etc/busgate/zenoh.json5"}, None),
+        ({"listen": ["unixsock-stream//run/busgate/gw.sock"]}, None),
+    ):
+        data = {**BASE, "zenoh": zenoh, **({"metrics": {"listen": metrics}} if metrics else {})}
+        assert parse_config(data).zenoh.listen == zenoh.get("listen", [])
+
+
 @pytest.mark.parametrize(("change", "message"), [
     (lambda d: _misspell(d["buses"][0], "baudrate", "baudrat"),
      "buses[0]: unknown key `baudrat` (did you mean `baudrate`?)"),
@@ -212,8 +265,22 @@ def test_unreadable_and_malformed_files(tmp_path) -> None:
     latin1.write_bytes('[gateway]\nname = "gw1"\n# Grüße\n'.encode("latin-1"))
     with pytest.raises(ConfigError) as caught:
         load_config(latin1)
-    assert str(caught.value) == (f"{latin1} is not UTF-8 text (line 3 has the byte 0xfc); TOML "
-                                 "files are UTF-8: save it as UTF-8")
+    assert str(caught.value) == (f"{latin1} is not UTF-8 text (line 3 has the byte 0xfc): save "
+                                 "it as UTF-8")
+    for blank in ("", "\n  \n"):
+        empty = tmp_path / "empty.toml"
+        empty.write_text(blank)
+        with pytest.raises(ConfigError) as caught:
+            load_config(empty)
+        assert str(caught.value) == f"{empty} is empty: a config names its gateway and buses"
+
+
+def test_a_config_saved_with_a_byte_order_mark_is_read(tmp_path) -> None:
+    """Some Windows editors write one first; TOML's parser took it for a statement."""
+    plain, marked = tmp_path / "plain.toml", tmp_path / "marked.toml"
+    plain.write_text(EXAMPLE)
+    marked.write_bytes(codecs.BOM_UTF8 + EXAMPLE.encode())
+    assert load_config(marked) == load_config(plain)
 
 
 @pytest.mark.parametrize("name", ["inspire_la", "ds_servo", "zlac706_can", "zlac706_rs232",

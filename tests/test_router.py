@@ -177,7 +177,10 @@ REFUSALS: dict[str, tuple[Callable[[Path, int], list[str]], str]] = {
                            "--listen 'nonsense': Endpoints must be of the form"),
     "endpoint with no address": (lambda d, p: ["--listen", "tcp/"], "--listen 'tcp/'"),
     "port out of range": (lambda d, p: ["--listen", "tcp/127.0.0.1:99999"],
-                          "cannot listen on tcp/127.0.0.1:99999: invalid port value"),
+                          "--listen 'tcp/127.0.0.1:99999': port '99999' is no port: from 1 to "
+                          "65535"),
+    "port 0": (lambda d, p: ["--listen", "tcp/127.0.0.1:0"],
+               "--listen 'tcp/127.0.0.1:0': port 0 is one zenoh picks and tells nobody"),
     "unknown protocol": (lambda d, p: ["--listen", "nosuch/127.0.0.1:7447"],
                          "cannot listen on nosuch/127.0.0.1:7447"),
     "port in use": (lambda d, p: ["--listen", f"tcp/127.0.0.1:{p}"],
@@ -209,10 +212,11 @@ REFUSALS: dict[str, tuple[Callable[[Path, int], list[str]], str]] = {
     "config not text": (lambda d, p: ["--listen", loopback(), "--config",
                                       _file(d, "binary.json5", b"\xff\xfe\x00{")],
                         "binary.json5: stream did not contain valid UTF-8"),
-    "tls with no key in the config": (lambda d, p: ["--listen", "tls/127.0.0.1:0", "--config",
-                                                    _file(d, "tls.json5", "{}")],
-                                      "cannot listen on tls/127.0.0.1:0: Cannot create a new "
-                                      "TLS listener on 127.0.0.1:0. Missing TLS private key"),
+    "tls with no key in the config": (lambda d, p: ["--listen", f"tls/127.0.0.1:{p}",
+                                                    "--config", _file(d, "tls.json5", "{}")],
+                                      "cannot listen on tls/127.0.0.1:{port}: Cannot create a "
+                                      "new TLS listener on 127.0.0.1:{port}. Missing TLS "
+                                      "private key"),
     "config empty": (lambda d, p: ["--listen", loopback(), "--config",
                                    _file(d, "empty.json5", "")], "empty.json5: Empty config"),
     "endpoint given twice": (lambda d, p: ["--listen", "tcp/127.0.0.1:7", "--listen",

@@ -313,6 +313,15 @@ class CanBusOwner(BusOwner):
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
 
 
+def unknown_interface(interface: str) -> str | None:
+    """Why a bus on ``interface`` could never open here (python-can knows no such interface:
+    neither its own nor a plugin installed on this host), ``None`` when it knows it."""
+    if interface in can.interfaces.VALID_INTERFACES:
+        return None
+    known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
+    return f"python-can has no interface {interface!r} on this host (it has {known})"
+
+
 def frames_of(interface: str, bus: can.BusABC) -> TakeFrame:
     """How frames are taken from ``bus``, each as SocketCAN's ``(identifier, data)`` (rule
     6): read from python-can's SocketCAN socket, unless the bus's class has none or it was

@@ -55,13 +55,16 @@ def port_problem(port: str) -> PortProblem | None:
     'missing'
     """
     try:
-        mode = os.stat(port).st_mode
+        found = os.stat(port)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
             return PortProblem(NOT_A_DEVICE, f"{port} is a loop of symbolic links: {_NO_PORT}")
         return PortProblem(MISSING, missing(port))
-    if not stat.S_ISCHR(mode):
-        return PortProblem(NOT_A_DEVICE, f"{port} is {_file_kind(mode)}: {_NO_PORT}")
+    if not stat.S_ISCHR(found.st_mode):
+        return PortProblem(NOT_A_DEVICE, f"{port} is {_file_kind(found.st_mode)}: {_NO_PORT}")
+    kind = _device_class(found.st_rdev)
+    if kind not in (None, "tty"):
+        return PortProblem(NOT_A_DEVICE, f"{port} is a {kind} device, no tty: {_NO_PORT}")
     holder = lock_holder(port)
     if holder is not None:
         return PortProblem(LOCKED, locked(port, holder))
@@ -91,6 +94,17 @@ def describe_open_error(port: str, exc: BaseException) -> str:
         return locked(port, lock_holder(port))
     reason = (cause.strerror or str(cause)) if cause is not None else str(exc)
     return f"cannot open {port}: {reason}"
+
+
+def _device_class(device: int) -> str | None:
+    """The kernel's class of the character device ``device`` (``tty`` for every serial port
+    and terminal, ``mem`` for ``/dev/null`` …), ``None`` where sysfs does not say (a
+    pseudo-terminal has no entry there, nor has a container without /sys)."""
+    entry = Path("/sys/dev/char") / f"{os.major(device)}:{os.minor(device)}" / "subsystem"
+    try:
+        return Path(os.readlink(entry)).name
+    except OSError:
+        return None
 
 
 def _file_kind(mode: int) -> str:

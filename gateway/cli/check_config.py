@@ -3,10 +3,12 @@
 Rules of this file: it checks without touching hardware. Whatever ``busgate run`` would refuse
 (``load_config`` raises ``ConfigError``, one key path per line) is an error: printed on stderr,
 exit status 1. What only this host or the load decides — a port that does not exist here, is
-locked by another process, is no device file (``busgate run`` refuses those two) or that this
-user may not read and write, a bus whose streams cannot all fit, a flight recorder's folder
-this user cannot write, a zenoh config file missing, more bus workers than the cores this host
-gives the gateway — is a warning: printed with the budget, exit status 0.
+locked by another process, is no serial port, or a CAN interface python-can does not have here
+(``busgate run`` refuses those three), a port this user may not read and write, a bus whose
+streams cannot all fit, a flight recorder's folder this user cannot write, a zenoh config file
+missing or that zenoh cannot parse, a listener other hosts reach with no zenoh config file to
+keep them out, more bus workers than the cores this host gives the gateway — is a warning:
+printed with the budget, exit status 0.
 """
 
 from __future__ import annotations
@@ -16,12 +18,14 @@ import sys
 from pathlib import Path
 
 from busgate.errors import ConfigError
+from busgate.gateway.bus.can_owner import unknown_interface
 from busgate.gateway.bus.port_access import missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.cores import usable_cores
 from busgate.gateway.service.workers import placement
 from busgate.schemas.config import CanBus, Config, SerialBus, load_config
+from busgate.schemas.endpoints import exposure_warnings
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -55,12 +59,8 @@ def check_config(args: argparse.Namespace) -> int:
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
             "the service user to check its access; the systemd unit makes the default dir)"
         )
-    zenoh_file = config.zenoh.config_file
-    if zenoh_file is not None and not Path(zenoh_file).is_file():  # no zenoh loaded here
-        print(
-            f"warning: zenoh.config_file: {zenoh_file} is no file here; busgate run refuses "
-            "to start so"
-        )
+    for problem in zenoh_warnings(config):
+        print(f"warning: {problem}")
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)
         print(budget.summary())
@@ -77,6 +77,21 @@ def check_config(args: argparse.Namespace) -> int:
         for problem in problems:
             print(f"warning: {problem}")
     return 0
+
+
+def zenoh_warnings(config: Config) -> list[str]:
+    """A zenoh config file this host has not, or that is none (``busgate run`` refuses to
+    start so), and each listener other hosts can reach with nothing but a file of the
+    operator's own (TLS, passwords, access control) to keep them from moving the devices."""
+    zenoh_file, warnings = config.zenoh.config_file, []
+    if zenoh_file is not None:
+        from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
+
+        if refusal := config_file_refusal(zenoh_file):
+            warnings.append(
+                f"zenoh.config_file: {zenoh_file}: {refusal}; busgate run refuses to start so"
+            )
+    return warnings + exposure_warnings(config.zenoh.listen, zenoh_file)
 
 
 def _overview(config: Config) -> str:
@@ -111,6 +126,8 @@ def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
     gateway would start and retry until it appears), locked by another process or no device
     file (``busgate run`` would refuse to start), or not readable and writable by this user —
     run it as the service user to check that user's access."""
+    if isinstance(bus, CanBus) and (unknown := unknown_interface(bus.interface)):
+        return [f"{path}.interface: {unknown}"]
     if bus.device_key is not None:
         key, port = bus.device_key
         problem = port_problem(port)

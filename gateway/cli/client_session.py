@@ -12,15 +12,17 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 from typing import Any
 
 import busgate.client as bc
 from busgate.errors import CommandError
+from busgate.schemas.files import FileRefused, read_text
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_PREFIX = "busgate"
 PASSWORD_VARIABLE = "BUSGATE_PASSWORD"
+#: The longest password file read: a password is a line (``/dev/zero`` would be read for ever).
+MAX_PASSWORD_FILE_BYTES = 4096
 
 
 def add_session_options(parser: argparse.ArgumentParser) -> None:
@@ -83,6 +85,6 @@ def _password(args: argparse.Namespace) -> str | None:
     if args.password_file is None:
         return os.environ.get(PASSWORD_VARIABLE) if args.user is not None else None
     try:
-        return Path(args.password_file).read_text().strip()
-    except OSError as exc:
-        raise CommandError(f"cannot read the password file: {exc.strerror}") from exc
+        return read_text(args.password_file, MAX_PASSWORD_FILE_BYTES, "a password file").strip()
+    except FileRefused as exc:
+        raise CommandError(f"--password-file: {exc}") from exc

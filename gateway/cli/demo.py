@@ -28,6 +28,7 @@ import math
 import os
 import shlex
 import shutil
+import socket
 import sys
 import threading
 import uuid
@@ -213,6 +214,11 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     logging.basicConfig(level="INFO", format="%(levelname)s %(name)s: %(message)s")
     with contextlib.ExitStack() as simulators:
+        # Bound before anything starts: a port in use is refused at once, not after the
+        # gateway came up (held until the dashboard serves it).
+        bound = None if dashboard is None else _bound(dashboard)
+        if bound is not None:
+            simulators.callback(bound.close)
         records = None if args.record is None else _record_dir(args.record)
         links = {bus.name: _start_simulator(bus, simulators, records) for bus in DEMO_BUSES}
         config = demo_config(
@@ -225,8 +231,19 @@ def run_demo(args: argparse.Namespace) -> int:
             ros2=args.ros2,
             workers=args.workers,
         )
-        asyncio.run(_serve_announcing(config, links, dashboard))
+        asyncio.run(_serve_announcing(config, links, dashboard, bound))
     return 0
+
+
+def _bound(dashboard: Listen) -> socket.socket:
+    """The dashboard's socket (``Listen.bind``), its refusal saying what else to do."""
+    try:
+        return dashboard.bind()
+    except CommandError as exc:  # where else it could go, for a new user
+        raise CommandError(
+            f"{exc} (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard "
+            "serves none)"
+        ) from None
 
 
 def _workers(text: str) -> str | int:
@@ -384,7 +401,10 @@ def _program() -> str:
 
 
 async def _serve_announcing(
-    config: Config, links: dict[str, dict[str, Any]], dashboard: Listen | None
+    config: Config,
+    links: dict[str, dict[str, Any]],
+    dashboard: Listen | None,
+    bound: socket.socket | None,
 ) -> None:
     """``serve`` (and the dashboard) until SIGTERM/SIGINT, printing the hints once both serve.
     A dashboard that cannot listen stops the gateway too, and its error is raised."""
@@ -400,18 +420,12 @@ async def _serve_announcing(
     showing: asyncio.Task | None = None
     if dashboard is not None:
         shown: asyncio.Future[str] = asyncio.get_running_loop().create_future()
-        showing = asyncio.create_task(_dashboard(config, dashboard, stop, shown.set_result))
+        showing = asyncio.create_task(_dashboard(config, dashboard, stop, shown.set_result, bound))
         await asyncio.wait({shown, showing}, return_when=asyncio.FIRST_COMPLETED)
         if not shown.done():
             stop.set()
             await serving
-            try:
-                await showing
-            except CommandError as exc:  # where else it could go, for a new user
-                raise CommandError(
-                    f"{exc} (--dashboard-listen 127.0.0.1:0 takes any free port, "
-                    "--no-dashboard serves none)"
-                ) from None
+            await showing  # its error
         url = shown.result()
     print(_hints(config, links, url), flush=True)
     await serving
@@ -420,10 +434,14 @@ async def _serve_announcing(
 
 
 async def _dashboard(
-    config: Config, listen: Listen, stop: asyncio.Event, on_ready: Callable[[str], None]
+    config: Config,
+    listen: Listen,
+    stop: asyncio.Event,
+    on_ready: Callable[[str], None],
+    bound: socket.socket | None,
 ) -> None:
     client = await aio.connect(_endpoint(config), client_id=f"busgate-demo-{os.getpid()}")
     try:
-        await serve_dashboard(client, listen, stop, on_ready=on_ready)
+        await serve_dashboard(client, listen, stop, on_ready=on_ready, bound=bound)
     finally:
         await client.close()

@@ -25,18 +25,17 @@ Rules of this file:
 from __future__ import annotations
 
 import argparse
-import json
-import re
 import threading
 from importlib import metadata
-from pathlib import Path
 
 import zenoh
 
 from busgate.errors import CommandError
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.schemas.zenoh_session import (
-    config_file_problem,
+    clean,
+    config_file_refusal,
+    endpoint_problem,
     session_config,
     session_refusal,
     zenoh_reason,
@@ -77,16 +76,17 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 def run_router(args: argparse.Namespace) -> int:
     listen: list[str] = args.listen
     for endpoint in listen:
-        _check_endpoint(endpoint)
+        if problem := endpoint_problem(endpoint, listening=True):
+            raise CommandError(f"--listen {endpoint!r}: {problem}")
         if listen.count(endpoint) > 1:  # zenoh would say it is in use: by itself
             raise CommandError(f"--listen {endpoint} is given twice")
-    if args.config is not None:
-        _check_config_file(Path(args.config))
+    if args.config is not None and (refusal := config_file_refusal(args.config)):
+        raise CommandError(f"--config {args.config}: {refusal}")
     try:
         config = session_config(mode="router", listen=listen, config_file=args.config)
     except zenoh.ZError as exc:  # checked above: only what a race or zenoh itself adds
-        raise CommandError(f"cannot build the zenoh config: {_clean(zenoh_reason(exc))}") from exc
-    except ValueError as exc:  # no zenoh config file, a Unix socket zenoh would take over
+        raise CommandError(f"cannot build the zenoh config: {clean(zenoh_reason(exc))}") from exc
+    except ValueError as exc:  # a Unix socket zenoh would take over
         raise CommandError(str(exc)) from exc
     zenoh.try_init_log_from_env()
     stop = threading.Event()
@@ -97,7 +97,7 @@ def run_router(args: argparse.Namespace) -> int:
             refusal = session_refusal(exc, IN_USE_HINT)
             if refusal.startswith("cannot open the zenoh session: "):  # not an endpoint in use
                 where = ", ".join(listen)
-                refusal = f"zenoh cannot listen on {where}: {_clean(zenoh_reason(exc))}"
+                refusal = f"zenoh cannot listen on {where}: {clean(zenoh_reason(exc))}"
             raise CommandError(refusal) from exc
         try:
             version = metadata.version("eclipse-zenoh")
@@ -110,61 +110,3 @@ def run_router(args: argparse.Namespace) -> int:
         finally:
             session.close()
     return 0
-
-
-def _check_endpoint(endpoint: str) -> None:
-    """Refuse an endpoint zenoh cannot parse, naming it (what parses but cannot be listened
-    on, a bad port or host, is zenoh.open's to refuse)."""
-    try:
-        zenoh.Config().insert_json5("listen/endpoints", json.dumps([endpoint]))
-    except zenoh.ZError as exc:
-        raise CommandError(f"--listen {endpoint!r}: {_clean(zenoh_reason(exc))}") from exc
-
-
-def _check_config_file(path: Path) -> None:
-    """Refuse a ``--config`` that is missing, not a file, unreadable or not a zenoh config."""
-    problem = config_file_problem(path)
-    if problem is not None:
-        raise CommandError(f"--config {path}: {problem}")
-    try:
-        zenoh.Config.from_file(str(path))
-    except zenoh.ZError as exc:
-        raise CommandError(f"--config {path}: {_config_file_reason(exc)}") from exc
-
-
-_PARSER_POSITION = re.compile(r"^\s*--> (?P<line>\d+):(?P<column>\d+)")
-_PARSER_EXPECTED = re.compile(r"^\s*= (?P<msg>.+)$", re.M)
-#: The Rust debug prints zenoh wraps a config file's refusal in (serde_json/json5, YAML, TOML).
-_DEBUG_PRINTS = (
-    re.compile(
-        r'msg: "(?P<msg>.*?)",\s*location: Some\(Location \{ line: (?P<line>\d+), '
-        r"column: (?P<column>\d+) \}\)"
-    ),
-    re.compile(r'Error\("(?P<msg>.*)", line: (?P<line>\d+), column: (?P<column>\d+)\)'),
-    re.compile(r'message: "(?P<msg>.*?)", input: '),
-)
-
-
-def _config_file_reason(exc: BaseException) -> str:
-    """zenoh's reason for refusing a config file, on one line: where in the file when zenoh
-    says (its json5 parser draws a caret diagram over several lines, serde a Rust debug
-    print), and what is wrong there (tests/test_router.py has each form, from zenoh itself)."""
-    text = str(exc)
-    position, expected = _PARSER_POSITION.match(text), _PARSER_EXPECTED.search(text)
-    if position is not None and expected is not None:  # json5's parser: a caret diagram
-        reason = zenoh_reason(Exception(expected.group("msg")))
-        return f"line {position['line']}, column {position['column']}: {reason}"
-    reason = zenoh_reason(exc)
-    for debug_print in _DEBUG_PRINTS:
-        found = debug_print.search(reason)
-        if found is not None:
-            where = found.groupdict().get("line")
-            at = f"line {where}, column {found['column']}: " if where is not None else ""
-            return at + found["msg"]
-    return reason
-
-
-def _clean(reason: str) -> str:
-    """``reason`` without the Rust debug print around its message, when it has one."""
-    found = re.search(r'msg: "(.*?)"(?:,\s*location|\s*\})', reason)
-    return found.group(1) if found is not None else reason

@@ -38,6 +38,7 @@ from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.doorbell import Doorbell, Mailbox
+from busgate.gateway.bus.can_owner import unknown_interface
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
@@ -53,7 +54,8 @@ from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
 from busgate.gateway.service.workers import WorkerProcess, placement
-from busgate.schemas.config import Config, load_config
+from busgate.schemas.config import CanBus, Config, load_config
+from busgate.schemas.endpoints import exposure_warnings
 
 if TYPE_CHECKING:
     from busgate.gateway.api.bridge import ZenohBridge
@@ -218,11 +220,14 @@ def _incident_on_sigusr1(loop: asyncio.AbstractEventLoop, recorder: FlightRecord
 
 
 def _check_ports(config: Config) -> set[str]:
-    """The buses whose device files look openable now. A file another process holds, or a
-    path that is no device file, is refused (``BusUnavailableError``); one that is missing or
-    not ours to open is logged with what to do, and its bus retries."""
+    """The buses whose device files look openable now. A file another process holds, a path
+    that is no serial port, or a CAN interface python-can does not have, is refused
+    (``BusUnavailableError``); a port missing or not ours to open is logged with what to do,
+    and its bus retries."""
     expected_up = set()
     for bus in config.buses:
+        if isinstance(bus, CanBus) and (unknown := unknown_interface(bus.interface)):
+            raise BusUnavailableError(f"bus {bus.name}: {unknown}")  # retrying would not help
         problem = port_problem(bus.device_key[1]) if bus.device_key is not None else None
         if problem is None:
             expected_up.add(bus.name)
@@ -280,7 +285,10 @@ def _buses(count: int) -> str:
 
 def _log_budgets(config: Config) -> None:
     """What each bus's configured traffic takes of it (``busgate check-config`` prints the
-    same), and a warning for a bus that cannot carry it."""
+    same), and a warning for a bus that cannot carry it, and for a listener any host can
+    reach with nothing to keep it from moving the devices."""
+    for warning in exposure_warnings(config.zenoh.listen, config.zenoh.config_file):
+        log.warning("%s", warning)
     for bus in config.buses:
         budget = bus_budget(bus)
         log.info("%s", budget.summary())

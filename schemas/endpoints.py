@@ -1,0 +1,129 @@
+"""zenoh endpoints as busgate takes them (``tcp/127.0.0.1:7447``): what their port may be,
+and whether one listens beyond this host. zenoh parses an endpoint only when a session
+opens, and takes a port of 70000 then, to fail later as "unable to connect"; the config is
+validated offline, without zenoh (``busgate check-config``), so the port is checked here, for
+the config and for every session (``zenoh_session``) alike.
+
+Rules of this file:
+
+1. An endpoint of a network protocol (``tcp``, ``udp``, ``tls``, ``quic``, ``ws``) ends with
+   ``host:port`` (then, maybe, zenoh's ``?`` metadata or ``#`` configuration), its port a
+   number from 1 to 65535. Port 0 is refused to a listener too: zenoh would pick a port
+   and tell nobody, so no client could be told where to connect.
+2. A ``unixsock-stream`` endpoint has a path, no port; it is reachable from this host only.
+3. A listener is reachable from this host only when its host is a loopback address
+   (``127.0.0.0/8``, ``::1``) or ``localhost``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from collections.abc import Callable
+from typing import Annotated
+
+from pydantic import AfterValidator, Field
+
+#: The protocols whose endpoints end with ``host:port`` (rule 1).
+NETWORK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+#: Every protocol an endpoint may have: those, and a Unix socket's (rule 2).
+PROTOCOLS = (*NETWORK_PROTOCOLS, "unixsock-stream")
+PATTERN = rf"^({'|'.join(PROTOCOLS)})/\S*$"
+#: Those over TCP: a listener on one takes a TCP port.
+TCP_PROTOCOLS = ("tcp", "tls", "ws")
+#: The hosts a listener binds to take a port on every address.
+WILDCARD_HOSTS = {"0.0.0.0", "::"}
+_ADDRESS = re.compile(
+    rf"^(?P<protocol>{'|'.join(NETWORK_PROTOCOLS)})/(?P<host>.*):(?P<port>[^:]*)$"
+)
+PORTS = (1, 65535)
+
+
+def port_problem(endpoint: str, *, listening: bool = False) -> str | None:
+    """What is wrong with the port of ``endpoint`` (rule 1), ``None`` when nothing is (or it
+    is of no protocol of ``NETWORK_PROTOCOLS``: zenoh judges those)."""
+    address = _address(endpoint)
+    if address is None:
+        if endpoint.startswith(tuple(f"{name}/" for name in NETWORK_PROTOCOLS)):
+            return "it names no port: write host:port (tcp/127.0.0.1:7447)"
+        return None
+    port = address["port"]
+    number = int(port) if port.isascii() and port.isdigit() else None
+    if listening and number == 0:
+        return "port 0 is one zenoh picks and tells nobody: name the port clients connect to"
+    if number is None or not PORTS[0] <= number <= PORTS[1]:
+        return f"port {port!r} is no port: from {PORTS[0]} to {PORTS[1]}"
+    return None
+
+
+def beyond_this_host(endpoint: str) -> bool:
+    """Whether a listener on ``endpoint`` can be reached from other hosts (rule 3)."""
+    address = _address(endpoint)
+    if address is None:
+        return False  # a Unix socket (rule 2)
+    host = address["host"].strip("[]")
+    if host == "localhost":
+        return False
+    try:
+        return not ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return True  # a host name: whatever it resolves to
+
+
+def exposure_warnings(listen: list[str], config_file: str | None) -> list[str]:
+    """Each listener of a gateway's config (``zenoh.listen``) that other hosts can reach
+    with no zenoh config file to give it TLS, passwords or access control (a file of the
+    operator's own is trusted to)."""
+    if config_file is not None:
+        return []
+    return [
+        f"zenoh.listen[{index}]: {endpoint} can be reached from other hosts, and no "
+        "zenoh.config_file gives it TLS, passwords or access control: whoever reaches it "
+        "moves every device (docs/running.md#threat-model-who-can-move-what)"
+        for index, endpoint in enumerate(listen)
+        if beyond_this_host(endpoint)
+    ]
+
+
+def takes_tcp_port(endpoint: str, host: str, port: int) -> bool:
+    """Whether a listener on ``endpoint`` would take the TCP port ``host:port`` (its own, or
+    every address's, or ``host`` is every address)."""
+    address = _address(endpoint)
+    if address is None or address["protocol"] not in TCP_PROTOCOLS:
+        return False
+    if address["port"] != str(port):
+        return False
+    hosts = {host.strip("[]"), address["host"].strip("[]")}
+    return len(hosts) == 1 or bool(hosts & WILDCARD_HOSTS)
+
+
+def _address(endpoint: str) -> re.Match[str] | None:
+    """``endpoint``'s protocol, host and port, without zenoh's metadata and configuration."""
+    return _ADDRESS.match(re.split(r"[?#]", endpoint, maxsplit=1)[0])
+
+
+def _refusing(*, listening: bool) -> Callable[[str], str]:
+    """A validator that refuses an endpoint of a protocol busgate does not know, or whose
+    port is wrong (rule 1)."""
+
+    def check(endpoint: str) -> str:
+        if not re.match(PATTERN, endpoint):
+            raise ValueError(
+                f"an endpoint is protocol/address, its protocol one of {', '.join(PROTOCOLS)} "
+                "(tcp/127.0.0.1:7447)"
+            )
+        problem = port_problem(endpoint, listening=listening)
+        if problem is not None:
+            raise ValueError(problem)
+        return endpoint
+
+    return check
+
+
+#: The published JSON schema keeps the pattern (an editor checks what it can); the check
+#: itself is the validator's, with a refusal in words.
+_IN_SCHEMA = Field(json_schema_extra={"pattern": PATTERN})
+#: An endpoint in a config: its protocol one busgate knows, its port a port (rule 1).
+Endpoint = Annotated[str, _IN_SCHEMA, AfterValidator(_refusing(listening=False))]
+#: An endpoint a config listens on: its port named (rule 1).
+ListenEndpoint = Annotated[str, _IN_SCHEMA, AfterValidator(_refusing(listening=True))]

@@ -1,0 +1,60 @@
+"""The small text files an operator names — a config, a password — read whole before use.
+
+A wrong name is easy to give (``/dev/zero``, a directory, a named pipe, a binary file) and
+must be a one-line refusal, never a read without end, a wait for ever or a traceback; the
+gateway's config (``schemas.config``) and the command line's password file
+(``cli.client_session``) are read here, so that both refuse the same things the same way.
+
+Rules of this file:
+
+1. A file is read to its limit and one byte more: a longer one is refused, whatever it is.
+2. A named pipe is opened without waiting for a writer, then read as a file is (``--config
+   <(envsubst < gw.toml)``): one nobody writes to reads as empty.
+3. Text is UTF-8, after the byte-order mark some editors write first, if any; where it stops
+   being UTF-8 is named (its line and byte).
+4. Every refusal is a ``FileRefused`` whose message names the file.
+"""
+
+from __future__ import annotations
+
+import codecs
+import os
+from pathlib import Path
+
+
+class FileRefused(ValueError):
+    """A file that cannot be what it was named as (rule 4)."""
+
+
+def read_text(path: str | Path, limit: int, what: str) -> str:
+    """The UTF-8 text of ``path``, at most ``limit`` bytes of it (rules 1–3); ``what`` the
+    file should be, for a refusal (``a config``: "… is over 1 MiB: not a config")."""
+    try:
+        with open(path, "rb", opener=_opener_no_wait) as file:
+            os.set_blocking(file.fileno(), True)  # opened: now wait for what a writer sends
+            data = file.read(limit + 1)
+    except OSError as exc:
+        raise FileRefused(f"cannot read {path}: {exc.strerror}") from exc
+    if len(data) > limit:
+        raise FileRefused(f"{path} is over {_size(limit)}: not {what}")
+    try:
+        return data.removeprefix(codecs.BOM_UTF8).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = exc.object.count(b"\n", 0, exc.start) + 1
+        raise FileRefused(
+            f"{path} is not UTF-8 text (line {line} has the byte "
+            f"0x{exc.object[exc.start]:02x}): save it as UTF-8"
+        ) from exc
+
+
+def _opener_no_wait(path: str, flags: int) -> int:
+    """Open without waiting for a writer, should ``path`` be a named pipe (rule 2)."""
+    return os.open(path, flags | os.O_NONBLOCK)
+
+
+def _size(limit: int) -> str:
+    """``1048576`` → ``1 MiB``, ``4096`` → ``4 KiB``."""
+    for unit, size in (("MiB", 1024 * 1024), ("KiB", 1024)):
+        if limit >= size:
+            return f"{limit / size:g} {unit}"
+    return f"{limit} bytes"
