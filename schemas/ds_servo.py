@@ -119,7 +119,8 @@ class Torque(CommandModel):
 
 
 class SetId(CommandModel):
-    """Give the servo a new id (takes effect at once, kept across power cycles)."""
+    """Give the servo a new id (takes effect at once, kept across power cycles); an id
+    another device of the bus has is refused (``out_of_range``)."""
 
     op: Literal["set_id"]
     new_id: Annotated[int, _register_range("servo_id")]
@@ -140,7 +141,9 @@ class StorePreset(CommandModel):
 
 
 class Reset(CommandModel):
-    """Restore the factory settings."""
+    """Restore the factory settings, the id (1) and torque on included: refused
+    (``out_of_range``) while another servo of the bus has id 1, and (``estopped``) while the
+    gateway holds this one e-stopped."""
 
     op: Literal["reset"]
 

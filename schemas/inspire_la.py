@@ -128,7 +128,8 @@ class Write(CommandModel):
 
 
 class SetId(CommandModel):
-    """Give the actuator a new id: in use at once, kept over power-off only after ``save``."""
+    """Give the actuator a new id: in use at once, kept over power-off only after ``save``;
+    an id another device of the bus has is refused (``out_of_range``)."""
 
     op: Literal["set_id"]
     new_id: Annotated[int, _register_range(codec.ID)]

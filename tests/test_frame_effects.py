@@ -50,6 +50,8 @@ DS_SERVO = [
     ('{"op":"goto_preset","n":2}', Effect.MOTION),
     ('{"op":"ping"}', Effect.READ),
     ('{"op":"read","address":56,"length":2}', Effect.READ),
+    ('{"op":"reset"}', Effect.MOTION),  # factory settings switch torque on: the shaft is driven
+    ('{"op":"set_id","new_id":3}', Effect.SETTING),
 ]
 CASES = [
     *((Zlac706CanDriver, text, effect) for text, effect in ZLAC706),

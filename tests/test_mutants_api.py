@@ -132,6 +132,11 @@ def test_a_free_device_needs_no_claim_unless_one_is_required_and_says_so():
         "la2 is not claimed by 'bob': its claim lapsed or was never taken; claim it again"
     )
     authority.check([(frozenset({1}), Effect.MOTION)], "alice", require_claim=True)
+    with pytest.raises(RefusedError) as refused:  # no client: nobody's claim (not "None's")
+        authority.check([(frozenset({2}), Effect.MOTION)], None, require_claim=True)
+    assert (refused.value.code, str(refused.value)) == (
+        "not_claimed", 'la2: the command asks for its client\'s claim and names no client: send '
+        '"client" with it')
 
 
 def test_every_effect_of_a_request_is_judged_not_only_the_first():

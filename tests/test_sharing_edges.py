@@ -289,6 +289,10 @@ def test_require_claim_refuses_what_needs_a_claim_the_client_does_not_hold(gatew
     assert code(ask_bus(api, "uart0", {"op": "group_move", **needing,
                                        "targets": [{"device": "la2", "position": 1603}]})) == \
         "not_claimed"
+    # The gateway's own ops that need the claim (ending a stream, an e-stop's reset) too:
+    # they took no notice of require_claim.
+    assert code(ask(api, "la2", {"op": "end_follow", **needing})) == "not_claimed"
+    assert code(ask(api, "la2", {"op": "reset_estop", **needing})) == "not_claimed"
     assert accepted(api, "la2", {"op": "status", **needing})  # a read
     assert accepted(api, "la2", {"op": "pause", **needing})  # a stop
     accepted(api, "la2", {"op": "claim", "client": "B"})  # another holds it: that is said
@@ -302,6 +306,47 @@ def test_require_claim_refuses_what_needs_a_claim_the_client_does_not_hold(gatew
     sent = {p for p in range(1601, 1606) if any(p.to_bytes(2, "little").hex() in r.wire
                                                for r in moves)}
     assert sent == {1605}  # only what the held claim allowed reached the wire
+
+
+def test_an_id_another_device_of_the_bus_has_is_refused_and_nothing_goes_out(gateway):
+    """A ``set_id``, a raw write of the id and a DS servo's factory reset (its factory id is
+    1) to an id another device of the bus had were carried out: both devices then took every
+    frame sent to it, so a move to one moved the other, whoever held its claim."""
+    api, la_sim, ds_sim = gateway
+    for device, command, clash in [
+        ("la1", {"op": "set_id", "new_id": 2}, "la1 would take id 2, la2's on bus uart0"),
+        ("la3", {"op": "write", "index": 2, "data": "01"}, "la3 would take id 1, la1's"),
+        ("arm1", {"op": "set_id", "new_id": 2}, "arm1 would take id 2, arm2's on bus uart1"),
+        ("arm2", {"op": "write", "address": 5, "data": "01"}, "arm2 would take id 1, arm1's"),
+        ("arm2", {"op": "reset"}, "arm2 would take id 1, arm1's"),
+    ]:
+        refused = ask(api, device, command)
+        assert code(refused) == "out_of_range", (device, refused)
+        assert refused["error"]["message"].startswith(clash), refused
+    refused = ask(api, "arm1", {"op": "set_id", "new_id": 1})  # its own: no clash, no change
+    assert refused["error"]["message"] == "servo arm1 already has id 1"
+    assert frames(la_sim, "WriteCommand") == [] and frames(ds_sim, "Write", "Reset") == []
+    ids = {name: driver.device_id for name, (_, driver) in api.devices.items()}
+    assert ids == {"la1": 1, "la2": 2, "la3": 3, "arm1": 1, "arm2": 2, "wheel": 5}
+
+
+def test_a_ds_servo_switched_on_by_a_raw_write_is_out_of_its_estop_and_a_reset_is_refused(
+        gateway):
+    """A raw write of the torque switch is the torque op's frame: it let an e-stopped servo
+    drive its shaft while the gateway still said it was e-stopped. Now it counts as the op
+    does (as the ZLAC706's raw control word does), and a factory reset, which switches torque
+    on, is refused while e-stopped as a move is."""
+    api, _, ds_sim = gateway
+    for stopped in api.estop():
+        stopped.result(5)
+    assert code(ask(api, "arm2", {"op": "reset"})) == "estopped"
+    assert frames(ds_sim, "Reset") == []
+    _, servo = api.devices["arm2"]
+    assert servo.estopped
+    accepted(api, "arm2", {"op": "write", "address": 40, "data": "01"})
+    assert not servo.estopped
+    accepted(api, "arm2", {"op": "move", "position": 1000})
+    accepted(api, "arm2", {"op": "write", "address": 40, "data": "00"})  # torque off: a stop
 
 
 @pytest.mark.parametrize(("bus", "command", "expected"), [

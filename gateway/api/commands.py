@@ -185,7 +185,9 @@ class GatewayApi:
         """The stream ends on the bus thread (``stream_stopped``, then ``stale_stream``)."""
         request = EndFollow.model_validate(fields)
         # Ending a stream moves nothing: the claim alone, never refused for an e-stop.
-        runner.authority.judge(device, Effect.SETTING, request.client)
+        runner.authority.judge(
+            device, Effect.SETTING, request.client, require_claim=request.require_claim
+        )
         with self._fence:
             self._stream_clients.pop(device, None)
             self._ended[device] = (request.client, now(), request.seq)
@@ -196,7 +198,9 @@ class GatewayApi:
         """Out of the e-stop on the bus thread (``Driver.reset_estop``); the claim alone is
         judged: the reset moves nothing."""
         request = ResetEstop.model_validate(fields)
-        runner.authority.judge(device, Effect.SETTING, request.client)
+        runner.authority.judge(
+            device, Effect.SETTING, request.client, require_claim=request.require_claim
+        )
         self._event(device, "estop_reset", **_client_field(request.client))
         return _mapped(runner.reset_estop(device))
 

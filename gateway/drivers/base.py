@@ -62,6 +62,14 @@ class Setpoint(NamedTuple):
     value: float | None
 
 
+class IdChange(NamedTuple):
+    """A frame gives the device it addresses at ``device_id`` (the broadcast id: every device
+    it reaches) the id ``new_id``: a ``set_id``, a raw write of the id, a factory reset."""
+
+    device_id: int
+    new_id: int
+
+
 @dataclass(frozen=True, slots=True)
 class DeviceEvent:
     """Something about a device that clients should hear: ``type`` plus fields."""
@@ -208,6 +216,12 @@ class Driver(abc.ABC):
         authority judges these against each device's joint before anything is planned; a
         frame that sets none of them (a read, a setting) adds none. Any thread may ask: the
         driver's state is only read (a relative target is judged from the position known)."""
+        return []
+
+    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
+        """The ids ``frames`` (one command's) give the devices they address; the authority
+        refuses one another device of the bus has. By default none: a family whose frames
+        never change an id."""
         return []
 
     def effects_of(self, frames: Sequence[object]) -> list[tuple[Addressed, Effect]]:

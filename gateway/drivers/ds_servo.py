@@ -2,11 +2,11 @@
 and the servo's status replies become its state (``DsServoDriver``).
 
 Every op is one frame (``frames_for``, also used by the CLI); each frame says what it does
-(``frame_effect``) and the position targets it sets (``frame_setpoints``). ``action`` and
-``group_move`` always go to the broadcast id, whatever ``device_id`` says: they are bus-level
-ops, one frame for every servo on the bus; the other ops go to ``device_id`` and the codec
-refuses the ones the manual forbids to broadcast (ping, read, deferred move) when it encodes
-them.
+(``frame_effect``), the position targets it sets (``frame_setpoints``) and the id it gives
+(``frame_id_changes``). ``action`` and ``group_move`` always go to the broadcast id, whatever
+``device_id`` says: they are bus-level ops, one frame for every servo on the bus; the other
+ops go to ``device_id`` and the codec refuses the ones the manual forbids to broadcast (ping,
+read, deferred move) when it encodes them.
 
 Rules of the driver (below ``frames_for``):
 
@@ -29,7 +29,7 @@ from typing import Any, ClassVar, Final
 from busgate.codecs import ds_servo as codec
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect, Setpoint
+from busgate.gateway.drivers.base import Driver, Effect, IdChange, Setpoint
 from busgate.schemas import ds_servo as schema
 from busgate.schemas.telemetry import flag_names
 
@@ -102,7 +102,9 @@ _FRAME_EFFECTS: dict[type, Effect] = {
     codec.RegWrite: Effect.MOTION,  # a stored move: the next ACTION starts it
     codec.Action: Effect.MOTION,
     codec.SyncWrite: Effect.MOTION,
-    codec.Reset: Effect.SETTING,
+    # Factory settings switch torque on (its factory value): the servo drives its shaft
+    # again, so an e-stopped one refuses it as it refuses a move.
+    codec.Reset: Effect.MOTION,
 }
 
 
@@ -116,6 +118,25 @@ def frame_effect(frame: codec.Frame) -> Effect:
     if _writes_motion(frame):
         return Effect.MOTION
     return Effect.SETTING
+
+
+def frame_id_changes(frame: codec.Frame) -> list[IdChange]:
+    """The id ``frame`` gives the servo: a write of the id register (``set_id`` is one), or
+    the factory id after a reset (manual 2.3.7: "all data")."""
+    if isinstance(frame, codec.Reset):
+        return [IdChange(frame.device_id, codec.REGISTERS.default("servo_id"))]
+    if isinstance(frame, codec.Write):
+        new_id = codec.values_from(frame.address, frame.data).get("servo_id")
+        if new_id is not None:
+            return [IdChange(frame.device_id, new_id)]
+    return []
+
+
+def _torque_written(frame: object) -> int | None:
+    """The torque switch's value a write sets (``None``: the write does not reach it)."""
+    if isinstance(frame, codec.Write):
+        return codec.values_from(frame.address, frame.data).get("torque_enable")
+    return None
 
 
 def _writes_motion(frame: codec.Write) -> bool:
@@ -229,16 +250,21 @@ class DsServoDriver(Driver):
     def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
         return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
 
+    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
+        return [c for frame in frames for c in frame_id_changes(frame)]  # type: ignore[arg-type]
+
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         if isinstance(command, schema.SetId) and command.new_id == self.device_id:
             # Nothing to change, and a confirmation could not be told from a no-op.
             raise CommandError(f"servo {self.name} already has id {self.device_id}")
         idempotent = type(command) in _IDEMPOTENT
         requests = [Request.of(codec, frame, idempotent=idempotent) for frame in frames]
-        if isinstance(command, schema.Torque):
-            if command.on:
+        # By what the frames write, as the ZLAC706 judges its control word: a raw write of
+        # the torque switch is the torque op's frame, and lets the servo move or not alike.
+        for torque in map(_torque_written, frames):
+            if torque:
                 self.estop_latched = False  # the re-enable op: the servo may move again
-            else:
+            elif torque == 0:
                 self.switched_off()
         return requests
 

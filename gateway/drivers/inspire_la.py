@@ -30,8 +30,13 @@ from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import EncodeError
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect, Setpoint
-from busgate.gateway.drivers.inspire_la_frames import frame_effect, frame_setpoints, frames_for
+from busgate.gateway.drivers.base import Driver, Effect, IdChange, Setpoint
+from busgate.gateway.drivers.inspire_la_frames import (
+    frame_effect,
+    frame_id_changes,
+    frame_setpoints,
+    frames_for,
+)
 from busgate.schemas import inspire_la as schema
 from busgate.schemas.telemetry import flag_names
 
@@ -126,6 +131,9 @@ class InspireLaDriver(Driver):
 
     def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
         return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
+
+    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
+        return [c for frame in frames for c in frame_id_changes(frame)]  # type: ignore[arg-type]
 
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         moves_me = self._moves_me(command)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any, TypeGuard
 
 from busgate.codecs import inspire_la as codec
-from busgate.gateway.drivers.base import Effect, Setpoint
+from busgate.gateway.drivers.base import Effect, IdChange, Setpoint
 from busgate.schemas import inspire_la as schema
 
 #: The force-sensor zero register takes exactly this value ("settable range 1").
@@ -110,6 +110,15 @@ def _writes_target(frame: codec.Frame) -> TypeGuard[codec.WriteCommand]:
     return isinstance(frame, codec.WriteCommand) and codec.TARGET_POSITION in (
         codec.REGISTERS.touched(frame.index, len(frame.data))
     )
+
+
+def frame_id_changes(frame: codec.Frame) -> list[IdChange]:
+    """The id a raw write of the id register (``set_id`` is one) gives the device."""
+    if isinstance(frame, codec.WriteCommand):
+        new_id = codec.register_values(frame.index, frame.data).get(codec.ID)
+        if new_id is not None:
+            return [IdChange(frame.device_id, new_id)]
+    return []
 
 
 def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:

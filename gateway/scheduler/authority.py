@@ -20,6 +20,9 @@ it). Rules of this file:
    efforts its frames set (``Driver.setpoints``), judged by the joint of each device they
    address (``busgate.schemas.joints``). Follow streams are held within the limits instead
    (``gateway.scheduler.limiter``), and trajectory plays are checked whole before they start.
+6. An id given to a device (``Driver.id_changes``: a ``set_id``, a raw write of the id, a
+   factory reset) that another device of the bus has is refused (``out_of_range``): both
+   would take every frame sent to it, and a claim on one would not keep the other still.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from dataclasses import dataclass
 
 from busgate.errors import RefusedError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect, Setpoint
+from busgate.gateway.drivers.base import EVERY, Addressed, Driver, Effect, IdChange, Setpoint
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +99,12 @@ class ClaimTable:
         with self._lock:
             self._check(device, client, now)
             if device not in self._holders:
+                if client is None:  # a claim is a client's: one that names none holds none
+                    raise RefusedError(
+                        "not_claimed",
+                        f"{device}: the command asks for its client's claim and names no "
+                        'client: send "client" with it',
+                    )
                 raise RefusedError(
                     "not_claimed",
                     f"{device} is not claimed by {client!r}: its claim lapsed or was never "
@@ -163,6 +172,22 @@ class Authority:
             driver = by_id.get(setpoint.device_id)
             if driver is not None:  # an id no device has was refused by ``check``
                 driver.joint.check(setpoint.quantity, setpoint.value)
+
+    def check_ids(self, changes: Iterable[IdChange]) -> None:
+        """Refuse (``out_of_range``) an id given to a device that another device of the bus
+        has (rule 6)."""
+        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        for change in changes:
+            holder = by_id.get(change.new_id)
+            if holder is not None and change.new_id != change.device_id:
+                changing = by_id.get(change.device_id)  # ``None``: the broadcast id
+                who = "every device" if changing is None else changing.name
+                raise RefusedError(
+                    "out_of_range",
+                    f"{who} would take id {change.new_id}, {holder.name}'s on bus "
+                    f"{self.bus}: two devices of one id both take every frame sent to it; give "
+                    "it an id no device of the bus has",
+                )
 
     def judge(
         self, device: str, effect: Effect, client: str | None, *, require_claim: bool = False

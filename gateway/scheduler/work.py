@@ -86,6 +86,7 @@ class BusWork:
                 driver.effects_of(frames), client, require_claim=command.require_claim
             )
             self.authority.check_limits(driver.setpoints(frames))
+            self.authority.check_ids(driver.id_changes(frames))
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
                 self.start_stream(device, driver.follow_target(ramp), now(), ends_on_target=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from busgate.errors import FamilyError
+from busgate.errors import CommandError, FamilyError
 from busgate.gateway.drivers.families import SIMULATOR_PARTS, require
 from busgate.gateway.sim.device import SimDevice
 from busgate.gateway.sim.ds_servo import DsServoDevice
@@ -42,6 +42,11 @@ def model_class(protocol: str) -> type:
 
 
 def make_devices(protocol: str, ids: Iterable[int], **options: object) -> list[SimDevice]:
-    """One simulated device per id, all of ``protocol``'s model."""
+    """One simulated device per id, all of ``protocol``'s model; an id given twice is
+    refused (``CommandError``): both devices would answer every frame sent to it."""
+    ids = list(ids)
+    for device_id in ids:
+        if ids.count(device_id) > 1:
+            raise CommandError(f"id {device_id} is given twice: one device an id")
     cls = model_class(protocol)
     return [cls(device_id, **options) for device_id in ids]
