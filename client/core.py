@@ -144,6 +144,12 @@ class Core:
             self.session = zenoh.open(config)
         except (zenoh.ZError, ValueError) as exc:
             reason = zenoh_reason(exc)
+            if username is not None and isinstance(exc, zenoh.ZError):
+                # zenoh turns a refused login away as it does a port nobody listens on
+                reason += (
+                    " (a wrong user name or password, or a gateway that takes none, is refused"
+                    " so too)"
+                )
             raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
         self._lock = threading.Lock()
         self._listeners: list[Callable[[str, bool], None]] = []

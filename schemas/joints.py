@@ -448,8 +448,11 @@ class Joint:
     def _refusal(
         self, what: str, value: float, unit: str, limit_name: str, limit: float
     ) -> RefusedError:
+        shown = f"{value:g}"
+        if shown == f"{limit:g}":  # past it by less than six digits show: all of them
+            shown = repr(value)
         return RefusedError(
             "out_of_range",
-            f"joint {self.name}: {what} {value:g} {unit} is beyond its {limit_name} "
+            f"joint {self.name}: {what} {shown} {unit} is beyond its {limit_name} "
             f"{limit:g} {unit}",
         )

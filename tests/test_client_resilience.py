@@ -274,6 +274,8 @@ def test_a_client_turned_away_raises_connect_error(secured_daemon, way) -> None:
     assert isinstance(refused.value, bc.BusgateError) and isinstance(refused.value,
                                                                       ConnectionError)
     assert f"127.0.0.1:{secured_daemon.port}" in str(refused.value)
+    hint = "(a wrong user name or password, or a gateway that takes none, is refused so too)"
+    assert str(refused.value).endswith(hint) == (account is not None), refused.value
 
 
 def test_a_local_clients_shared_memory_is_never_mapped_into_the_gateway(module_demo) -> None:

@@ -121,6 +121,9 @@ def test_a_refusal_names_the_joint_the_limit_and_the_value():
     assert refused.value.code == "out_of_range"
     with pytest.raises(RefusedError, match="cannot know"):
         joint.check_position(None)  # a limited joint refuses a target it cannot check
+    with pytest.raises(RefusedError) as refused:  # past it by less than six digits show
+        joint.target_raw(0.0080001)
+    assert str(refused.value).endswith("position 0.0080001 m is beyond its max 0.008 m")
 
 
 def test_velocity_and_effort_limits():
