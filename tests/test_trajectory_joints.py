@@ -28,6 +28,7 @@ import pytest
 from busgate.client.trajectories import play_body
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
+from busgate.errors import RefusedError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
@@ -37,7 +38,7 @@ from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
-from busgate.gateway.trajectory.checks import members_of
+from busgate.gateway.trajectory.checks import members_of, start_at_of
 from busgate.gateway.trajectory.interpolation import Knot, paths_of
 from busgate.gateway.trajectory.lanes import answer
 from busgate.gateway.trajectory.playing import Trajectories
@@ -420,3 +421,13 @@ def test_a_velocity_joints_raw_driver_has_no_speed_limit():
     """Without a table the ZLAC706 is a raw joint: speeds only its drive's own range."""
     joint = Zlac706CanDriver("w", 5).joint
     assert joint.unit == "raw" and joint.max_velocity is None and joint.max_acceleration is None
+
+
+def test_a_start_at_far_in_the_past_is_refused_in_a_line_of_words_not_hundreds_of_digits():
+    """``-1e300`` is a float a client may send; it was printed to the millisecond."""
+    with pytest.raises(RefusedError) as refused:
+        start_at_of(-1e300)
+    assert str(refused.value) == ("start_at -1e+300 is -1e+300 s from now: at least 20 ms ahead, "
+                                  "for every bus to meet it")
+    with pytest.raises(RefusedError, match=r"^start_at 5\.000 is -\d+\.\d{3} s from now"):
+        start_at_of(5.0)

@@ -119,6 +119,12 @@ def _start_value(runner: BusRunner, name: str, stream: Stream) -> float:
     return known[0] if known else 0.0
 
 
+def _to_the_ms(seconds: float, sign: str = "") -> str:
+    """``seconds`` to the millisecond, or in powers of ten where that would be hundreds of
+    digits (``-1e300`` is a float a client may send)."""
+    return f"{seconds:{sign}.3f}" if abs(seconds) < 1e15 else f"{seconds:{sign}.6g}"
+
+
 def start_at_of(start_at: float | None) -> float:
     moment = time.time()
     if start_at is None:
@@ -126,8 +132,8 @@ def start_at_of(start_at: float | None) -> float:
     if start_at < moment + MIN_LEAD_S:
         raise RefusedError(
             "out_of_range",
-            f"start_at {start_at:.3f} is {start_at - moment:+.3f} s from now: at least "
-            f"{MIN_LEAD_S * 1000:.0f} ms ahead, for every bus to meet it",
+            f"start_at {_to_the_ms(start_at)} is {_to_the_ms(start_at - moment, '+')} s from "
+            f"now: at least {MIN_LEAD_S * 1000:.0f} ms ahead, for every bus to meet it",
         )
     if start_at > moment + MAX_AHEAD_S:
         raise RefusedError("out_of_range", f"start_at is over {MAX_AHEAD_S:.0f} s ahead")
