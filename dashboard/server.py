@@ -69,6 +69,7 @@ SAID_PER_REQUEST = (
     "Exceeded concurrency limit.",
     "Unsupported upgrade request.",
     "No supported WebSocket library detected.",
+    "Invalid HTTP request received.",  # each malformed request (its 400)
 )
 #: The most of a request line and headers kept while they have not ended (h11's
 #: ``max_incomplete_event_size``, its default said here); past it, a 400.

@@ -277,6 +277,17 @@ def test_the_warning_of_a_request_at_the_limit_is_logged_once_a_minute() -> None
     assert now_and_then.filter(record("something else", 62))
 
 
+def test_malformed_requests_are_each_refused_and_warned_of_once(caplog) -> None:
+    """uvicorn logged a warning for each one: 2,000 lines a second for whoever sends them."""
+    with served(Listen("127.0.0.1", 0)) as (where, _):
+        for _ in range(5):
+            with socket.create_connection((where.hostname, where.port), timeout=10) as raw:
+                raw.sendall(b"NOT HTTP AT ALL\r\n\r\n")
+                assert raw.recv(64).startswith(b"HTTP/1.1 400")
+    warned = [r.getMessage() for r in caplog.records if r.name == "uvicorn.error"]
+    assert warned == ["Invalid HTTP request received."]
+
+
 def test_a_websocket_upgrade_is_a_plain_request_warned_of_once(caplog) -> None:
     """uvicorn warned twice of each upgrade it does not serve (install a websocket
     library): now once a minute, whatever a client sends."""

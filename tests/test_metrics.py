@@ -4,12 +4,17 @@ own parser. The figures move as the bus works; nothing is asserted about how fas
 
 from __future__ import annotations
 
+import select
+import socket
+import threading
+import time
 import urllib.request
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from busgate.codecs import inspire_la as la
+from busgate.gateway.service import scrape_server
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -122,3 +127,28 @@ def test_stop_closes_the_port_and_may_be_repeated(runner) -> None:
     metrics.stop()
     with pytest.raises(OSError):
         urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=2)
+
+
+def test_idle_connections_hold_no_more_than_their_slots_and_are_closed(runner, monkeypatch):
+    """prometheus_client's server gave each connection a thread for as long as it stayed
+    open: 2,000 idle ones held 2,000 threads, and some 980 took every descriptor a gateway
+    under systemd's default limit had. Now a few are served at once, the rest closed when
+    accepted, and an idle one closed after a while, without a word in the log."""
+    monkeypatch.setattr(scrape_server._Handler, "timeout", 2.0)
+    metrics = Metrics({"uart0": runner}, clients=lambda: 0).start("127.0.0.1:0")
+    threads_before = threading.active_count()
+    idle = [socket.create_connection(("127.0.0.1", metrics.port)) for _ in range(40)]
+    try:
+        time.sleep(0.5)  # each accepted: served, or closed at once
+        closed, _, _ = select.select(idle, [], [], 0)
+        assert len(closed) == len(idle) - scrape_server.MAX_SCRAPES
+        assert all(connection.recv(1) == b"" for connection in closed)
+        assert threading.active_count() <= threads_before + scrape_server.MAX_SCRAPES
+        for connection in idle:  # the served ones are closed once idle too
+            connection.settimeout(10)
+            assert connection.recv(1) == b""
+        assert scrape(metrics)[("busgate_zenoh_clients", ())] == 0  # their slots are free again
+    finally:
+        for connection in idle:
+            connection.close()
+        metrics.stop()

@@ -17,13 +17,14 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
-from prometheus_client import CollectorRegistry, Histogram, start_http_server
+from prometheus_client import CollectorRegistry, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusStats
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service import scrape_server
 
 #: Command latency buckets: from a frame on a fast UART to a timed-out command with retries.
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
@@ -153,9 +154,10 @@ class Metrics:
         self._latency.observe(seconds)
 
     def start(self, listen: str = "127.0.0.1:9108") -> Metrics:
-        """Serve ``/metrics`` on ``host:port`` (port 0: any free one, see ``port``)."""
+        """Serve ``/metrics`` on ``host:port`` (port 0: any free one, see ``port``), bounded
+        (``scrape_server``)."""
         host, port = listen.rsplit(":", 1)
-        self._server, self._thread = start_http_server(int(port), addr=host, registry=self.registry)
+        self._server, self._thread = scrape_server.serve(self.registry, host, int(port))
         return self
 
     @property
