@@ -405,6 +405,42 @@ def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros) -> None:
         time.sleep(0.05)
 
 
+def test_trajectory_messages_are_carried_out_in_order_the_newest_of_a_burst_last(ros) -> None:
+    """An empty trajectory right behind a play went to the trajectory key's control lane and
+    found nothing running yet: the play then ran to its end. Of a burst, the fifth and later
+    were refused busy while older ones played."""
+    trajectories = publisher(ros, "/joint_trajectory", "trajectory_msgs/msg/JointTrajectory")
+    types = ros["types"]
+
+    def played(seconds: int):
+        empty = numpy.array([], dtype=numpy.float64)
+        duration = types["builtin_interfaces/msg/Duration"](seconds, 0)
+        point = types["trajectory_msgs/msg/JointTrajectoryPoint"](
+            numpy.array([0.004]), empty, empty, empty, duration)
+        return {"header": header(ros), "joint_names": ["gripper"], "points": [point]}
+
+    def lengths() -> list[int]:  # of the trajectories running, in s
+        running = get(ros["client"], "busgate/gw1/trajectory", '{"op":"status"}')[0]
+        return [round(t["end_at"] - t["start_at"]) for t in running["trajectories"]]
+
+    def comes_to(expected: list[int]) -> None:
+        deadline = time.monotonic() + 10
+        while lengths() != expected:
+            assert time.monotonic() < deadline, lengths()
+            time.sleep(0.05)
+        time.sleep(1.0)  # and stays so: nothing older starts after it
+        assert lengths() == expected
+
+    trajectories.publish(**played(30))
+    trajectories.publish(header=header(ros), joint_names=[], points=[])
+    comes_to([])
+    for seconds in range(30, 38):
+        trajectories.publish(**played(seconds))
+    comes_to([37])
+    trajectories.publish(header=header(ros), joint_names=[], points=[])
+    comes_to([])
+
+
 def test_the_estop_service_stops_every_bus_and_the_reset_brings_them_back(ros) -> None:
     estopped = subscribe(ros, f"/{NODE}/estopped", "std_msgs/msg/Bool")
     estopped.wait(lambda m: m.data is False)

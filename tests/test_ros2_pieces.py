@@ -4,6 +4,7 @@ trajectory as the gateway's command, and the diagnostics' levels."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
@@ -189,16 +190,21 @@ def test_a_joint_named_again_and_again_is_one_target_its_last_value() -> None:
 
 
 class HandingOnBridge:
-    """What the face asks of the bridge here: a hand-over to the loop (kept, run by hand) and
-    an e-stop (nothing to stop: no bus runs)."""
+    """What the face asks of the bridge here: a hand-over to the loop (kept, run by hand), an
+    e-stop and its reset (nothing to stop: no bus runs; the resets' clients kept)."""
 
     def __init__(self) -> None:
         self.soon: list = []
+        self.resets: list = []
 
     def call_soon(self, function, *args) -> None:
         self.soon.append((function, args))
 
     def estop(self, client, key) -> list:
+        return []
+
+    def estop_reset(self, client) -> list:
+        self.resets.append(client)
         return []
 
     def run_soon(self) -> None:
@@ -233,3 +239,26 @@ def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(mon
     face._command({"name": ["gripper"], "position": [0.005]})
     bridge.run_soon()
     assert ramps == [("la1", {"joint": 0.005})]
+
+
+def test_a_joints_refusals_are_logged_once_a_second_however_their_words_change(caplog):
+    """A refusal was logged again whenever its text differed from the last: commands whose
+    position list alternated between two wrong lengths logged 20,000 lines for 10,000."""
+    gripper = {"name": "la1", "kind": "inspire_la", "id": 1,
+               "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}
+    config = parse_config({
+        "gateway": {"name": "gw1"}, "ros2": {},
+        "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null",
+                   "baudrate": 921_600, "devices": [gripper]}],
+    })
+    api = GatewayApi("gw1", {"uart0": build_bus(config.buses[0])})
+    bridge = HandingOnBridge()
+    face = Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        for n in range(100):
+            face._refused(["gripper"], f"refusal {n % 2}")
+        assert [r.getMessage() for r in caplog.records] == [
+            "ros2: command for joint gripper refused: refusal 0"]
+        assert face._refusals["gripper"] == "refusal 1"  # the diagnostics say the latest
+    face._reset_estop({})
+    assert bridge.resets == ["ros2"]  # told through the bridge's reports, as the key's reset

@@ -332,6 +332,13 @@ class ZenohBridge:
         event naming where it came from (``key``); any thread."""
         return self._told_estop(self.api.stop_every_bus(), sender, key)
 
+    def estop_reset(self, sender: str | None) -> list[Future]:
+        """Every device out of its e-stop, told as an ``estop_reset`` event (at most one every
+        0.1 s, as the e-stop's, ``put_reports``); any thread."""
+        reset = self.api.reset_every_bus()
+        self.put_reports.estop_reset(sender)
+        return reset
+
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
         """The e-stop's log line and ``estop`` event, once every bus has it (at most one every
         0.1 s, ``put_reports``)."""
@@ -357,8 +364,7 @@ class ZenohBridge:
         if key != f"{self.base}/estop/reset":
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
-        self.api.reset_every_bus()
-        self.put_reports.estop_reset(_sender(payload))
+        self.estop_reset(_sender(payload))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None)
 

@@ -12,10 +12,14 @@ Rules of this file:
    twice ``command_timeout_s`` when that is longer) and
    ramps to its target within its limits (``GatewayApi.ramp_to``); a refusal (claimed by
    another client, e-stopped, a trajectory playing) moves nothing and is said once in the log
-   and in the diagnostics until a command for that joint is taken again. A velocity joint
+   (once a second at most, whatever its words) and in the diagnostics until a command for that
+   joint is taken again. A velocity joint
    without a command for ``command_timeout_s`` ramps to 0.
 3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
-   under the same client; its refusal is logged and shown in the joints' diagnostics.
+   under the same client; its refusal is logged and shown in the joints' diagnostics. One
+   message is on the key at a time, so they are carried out in the order they came (an
+   empty one right behind a play cancels that play, never a play before it); of those that
+   came while one was on the key only the newest is sent next, as a topic wants.
 4. Each base takes ``cmd_vel`` and publishes ``odom`` and ``tf`` (``ros2.bases``).
    The e-stop service stops every bus whatever its request looks like; the reset service
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
@@ -70,6 +74,8 @@ CLAIM_TTL_S = 2.0
 #: How often the periodic work looks at the time (velocity timeouts, the e-stop state).
 TICK_S = 0.005
 EVERY_SECOND_S = 1.0
+#: A joint's refusals are logged at most this often (rule 2), however their words change.
+REFUSAL_TOLD_EVERY_S = 1.0
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
@@ -95,6 +101,11 @@ class Ros2Face:
         self._claim_ttl_s = max(CLAIM_TTL_S, 2 * section.command_timeout_s)
         self._commands_lock = threading.Lock()
         self._refusals: dict[str, str] = {}  # joint → its last refused command (rule 2)
+        self._refusal_told: dict[str, float] = {}  # joint → when its last refusal was logged
+        #: The trajectory message on the trajectory key, and the newest come since (rule 3).
+        self._trajectory_lock = threading.Lock()
+        self._trajectory_sent = False
+        self._trajectory_next: tuple[list[str], bytes] | None = None
         self._due: dict[str, Target] = {}  # joint → its latest command not handed on (rule 5)
         self._handing_on = False  # the loop is due to hand on ``_due``
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
@@ -254,13 +265,24 @@ class Ros2Face:
         self._refused([joint.name], refused["error"]["message"])
 
     def _trajectory(self, message: dict[str, Any]) -> None:
+        """Rule 3: one message at a time on the trajectory key, the newest of those that
+        came meanwhile next."""
         names = message.get("joint_names") or []
         try:
             command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
             self._refused(names, str(exc))
             return
-        answer = self.bridge.submit_trajectory(message_json(command))
+        payload = message_json(command)
+        with self._trajectory_lock:
+            if self._trajectory_sent:
+                self._trajectory_next = (names, payload)  # the one it replaces: never sent
+                return
+            self._trajectory_sent = True
+        self._send_trajectory(names, payload)
+
+    def _send_trajectory(self, names: list[str], payload: bytes) -> None:
+        answer = self.bridge.submit_trajectory(payload)
         answer.add_done_callback(lambda done: self._trajectory_answered(names, done.result()))
 
     def _trajectory_answered(self, names: list[str], reply: dict[str, Any]) -> None:
@@ -269,15 +291,23 @@ class Ros2Face:
                 self._refusals.pop(name, None)
         else:
             self._refused(names, f"trajectory: {reply['error']['message']}")
+        with self._trajectory_lock:
+            following, self._trajectory_next = self._trajectory_next, None
+            self._trajectory_sent = following is not None
+        if following is not None:
+            self._send_trajectory(*following)
 
     def _refused(self, joints: Iterable[str], message: str) -> None:
         """Told once per joint of this gateway (a name no joint has is ``Commands``' to
         tell, rule 5)."""
+        moment = time.monotonic()
         for name in joints:
             if name not in self.joints:
                 continue
-            if self._refusals.get(name) != message:
+            told = self._refusal_told.get(name, -math.inf)
+            if self._refusals.get(name) != message and moment - told >= REFUSAL_TOLD_EVERY_S:
                 log.warning("ros2: command for joint %s refused: %s", name, shown(message))
+                self._refusal_told[name] = moment
             self._refusals[name] = message
 
     def _estop(self, request: dict[str, Any]) -> Future:
@@ -289,7 +319,7 @@ class Ros2Face:
         return _when_all(stopped, "every bus stopped")
 
     def _reset_estop(self, request: dict[str, Any]) -> Future:
-        return _when_all(self.api.reset_estop(self.section.client), "every bus reset")
+        return _when_all(self.bridge.estop_reset(self.section.client), "every bus reset")
 
     # -- the loop's thread -------------------------------------------------------------------
 
