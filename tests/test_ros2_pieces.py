@@ -213,10 +213,8 @@ class HandingOnBridge:
             function(*args)
 
 
-def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(monkeypatch):
-    """Commands are handed to the loop, each joint's latest alone; the e-stop drops what is
-    due, so that nothing sent before it moves a joint after the reset (a flood held such a
-    command back until 7 s after the reset, which then moved the joint)."""
+def gripper_face() -> tuple[GatewayApi, HandingOnBridge, Ros2Face]:
+    """A face on a gateway of one LA, joint ``gripper``, whose bus is built, never started."""
     gripper = {"name": "la1", "kind": "inspire_la", "id": 1,
                "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}
     config = parse_config({
@@ -226,7 +224,14 @@ def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(mon
     })
     api = GatewayApi("gw1", {"uart0": build_bus(config.buses[0])})
     bridge = HandingOnBridge()
-    face = Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+    return api, bridge, Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+
+
+def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(monkeypatch):
+    """Commands are handed to the loop, each joint's latest alone; the e-stop drops what is
+    due, so that nothing sent before it moves a joint after the reset (a flood held such a
+    command back until 7 s after the reset, which then moved the joint)."""
+    api, bridge, face = gripper_face()
     ramps: list = []
     monkeypatch.setattr(api, "ramp_to", lambda device, fields, *_: ramps.append((device, fields)))
     for position in (0.001, 0.002, 0.003):  # three messages before the loop's turn
@@ -244,16 +249,7 @@ def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(mon
 def test_a_joints_refusals_are_logged_once_a_second_however_their_words_change(caplog):
     """A refusal was logged again whenever its text differed from the last: commands whose
     position list alternated between two wrong lengths logged 20,000 lines for 10,000."""
-    gripper = {"name": "la1", "kind": "inspire_la", "id": 1,
-               "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}
-    config = parse_config({
-        "gateway": {"name": "gw1"}, "ros2": {},
-        "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null",
-                   "baudrate": 921_600, "devices": [gripper]}],
-    })
-    api = GatewayApi("gw1", {"uart0": build_bus(config.buses[0])})
-    bridge = HandingOnBridge()
-    face = Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+    _, bridge, face = gripper_face()
     with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
         for n in range(100):
             face._refused(["gripper"], f"refusal {n % 2}")
