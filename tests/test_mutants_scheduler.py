@@ -491,6 +491,25 @@ def test_a_ramp_steps_from_where_its_device_was_commanded_never_goes_stale_and_e
     assert [event.type for event in driver.drain_events()] == ["limited"]
 
 
+def test_ramps_one_after_another_beyond_a_limit_tell_it_once_until_one_ends_within_it():
+    """A ROS controller sends its command each period: each command beyond a limit was a ramp
+    of its own that ended on the limit and told it again (50 events a second a joint)."""
+    driver = Reading(la_joint(max=0.005), {t / 100: {"target": 1000} for t in range(200)})
+    planner, streams = streams_of(driver)
+
+    def ramp(target: int, moment: float) -> list[str]:
+        streams.start(driver, target, moment, ends_on_target=True)
+        slot = planner.decide(moment)
+        run(planner, slot, moment, 0.0001)
+        assert planner.decide(moment + 0.01) == math.inf  # one tick: it ended on its goal
+        return [event.type for event in driver.drain_events()]
+
+    assert ramp(1500, 0.0) == ["limited"]  # 0.0075 m: held at 0.005
+    assert ramp(1600, 0.1) == [] and ramp(1500, 0.2) == []  # still on it: said already
+    assert ramp(1000, 0.3) == []  # on the limit itself: not held back, and not told
+    assert ramp(1500, 0.4) == ["limited"]  # beyond it again after a ramp within it
+
+
 def test_a_new_target_for_a_running_stream_steps_on_from_its_last_tick_not_from_telemetry():
     """A ramp handed to a device already streaming (a ROS command after a stream) keeps the
     stream's limiter: the next step starts where the last tick left the device, whatever its

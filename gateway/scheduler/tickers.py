@@ -11,7 +11,11 @@ Rules of this file:
    DS servos in one SYNC WRITE); more streams open another ticker.
 4. What a tick sends of a stream is its latest target held within the device's joint limits
    (``limiter``), from where the device was commanded when the stream started; the first
-   tick that holds a target back raises a ``limited`` event, once per stream.
+   tick that holds a target back raises a ``limited`` event, once per stream. A ramp that
+   ended held back (on a limit, where the device stays) hands its telling to the device's
+   next stream, which says nothing again: a ROS controller's command beyond a limit each
+   period is one ramp after another, told once, and told anew only after a ramp that ends
+   unheld.
 5. A ramp (``ends_on_target``: a one-shot speed the gateway brings a velocity joint to at its
    max_acceleration, a ROS command's position or speed) never goes stale: it ends, through
    ``on_reached``, with the tick that sends its target (held within the limits: a target
@@ -45,6 +49,8 @@ class FollowStream:
     latest: tuple[Any, float]
     limiter: StreamLimiter
     told_limited: bool = False
+    #: The last tick built held the target back (rule 4).
+    held: bool = False
     ends_on_target: bool = False  # a ramp (rule 5)
     #: The limiter before the last tick built, while that tick is not sent (rule 6).
     unsent: tuple[float | None, float] | None = None
@@ -58,7 +64,8 @@ class FollowStream:
         self.unsent = (limiter.value, limiter.rate)
         wanted = self.latest[0]
         target, limit = limiter.step(wanted)
-        if limit is not None and not self.told_limited:
+        self.held = limit is not None
+        if self.held and not self.told_limited:
             self.told_limited = True
             joint = self.driver.joint
             value = (
@@ -99,6 +106,8 @@ class FollowTicker:
         self.on_stale = on_stale
         self.on_reached = on_reached
         self.streams: dict[str, FollowStream] = {}
+        #: Devices whose last ramp ended held back and told so (rule 4).
+        self._ended_held: set[str] = set()
         self._due: float | None = None
         self._last_start: float | None = None
         self._continuing = False  # the next tick follows the previous one without a pause
@@ -116,7 +125,11 @@ class FollowTicker:
         stream = self.streams.get(driver.name)
         if stream is None:
             limiter = StreamLimiter(driver.joint, self.period_s, commanded(driver, now))
-            stream = self.streams[driver.name] = FollowStream(driver, (target, now), limiter)
+            told = driver.name in self._ended_held
+            stream = self.streams[driver.name] = FollowStream(
+                driver, (target, now), limiter, told_limited=told
+            )
+            self._ended_held.discard(driver.name)
         else:
             stream.latest = (target, now)
         stream.ends_on_target = ends_on_target
@@ -152,6 +165,8 @@ class FollowTicker:
             targets.append((stream.driver, target))
             if stream.ends_on_target and target == stream.limiter.goal(stream.latest[0]):
                 del self.streams[name]  # this tick sends the ramp's end (rule 5)
+                if stream.held and stream.told_limited:  # rule 4
+                    self._ended_held.add(name)
                 self.on_reached(stream.driver)
         self._carried = [driver for driver, _ in targets]
         return self.driver_class.follow_request(targets)
