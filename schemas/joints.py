@@ -453,6 +453,5 @@ class Joint:
             shown = repr(value)
         return RefusedError(
             "out_of_range",
-            f"joint {self.name}: {what} {shown} {unit} is beyond its {limit_name} "
-            f"{limit:g} {unit}",
+            f"joint {self.name}: {what} {shown} {unit} is beyond its {limit_name} {limit:g} {unit}",
         )
