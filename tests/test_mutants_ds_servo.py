@@ -8,6 +8,7 @@ import pytest
 
 from busgate.codecs import ds_servo as ds
 from busgate.errors import CommandError
+from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.ds_servo import DsServoDriver, poll_spans
 from busgate.schemas import inspire_la
 from tests.test_driver_ds_servo import answer, driver, plan
@@ -93,3 +94,29 @@ def test_a_servos_part_of_a_group_move_and_its_scan_probe() -> None:
     [ping] = plan(servo, '{"op":"ping"}')
     probe = DsServoDriver.probe(4)
     assert probe.wire == ping.wire and probe.expected == ping.expected
+
+
+@pytest.mark.parametrize(("text", "given"), [
+    ('{"op":"set_id","new_id":9}', [IdChange(3, 9)]),
+    ('{"op":"write","address":5,"data":"09"}', [IdChange(3, 9)]),  # the id register, raw
+    ('{"op":"reset"}', [IdChange(3, 1)]),  # factory settings: the factory id
+    ('{"op":"write","address":6,"data":"09"}', []),
+    ('{"op":"move","position":100}', []),
+])
+def test_the_ids_a_servos_frames_give_it(text, given) -> None:
+    """What the authority refuses when another servo of the bus has that id."""
+    servo = driver(3)
+    assert servo.id_changes(servo.frames_of(servo.parse(text))) == given
+
+
+def test_a_raw_write_of_the_torque_switch_lets_an_estopped_servo_move_or_stops_it() -> None:
+    """As the torque op does: the gateway judges the frames, not the op's name."""
+    servo = driver()
+    servo.torque_on = True  # driving when the e-stop comes
+    servo.safe_stop()
+    plan(servo, '{"op":"write","address":48,"data":"01"}')  # another register: no change
+    assert servo.estopped and servo.driving_before_estop
+    plan(servo, '{"op":"write","address":40,"data":"01"}')
+    assert not servo.estopped
+    plan(servo, '{"op":"write","address":40,"data":"00"}')
+    assert not servo.driving_before_estop  # switched off: a reset leaves it off

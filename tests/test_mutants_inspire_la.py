@@ -8,6 +8,7 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.errors import CommandError
+from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from tests.test_driver_inspire_la import answer, decoded, driver, plan, status
 
@@ -68,3 +69,15 @@ def test_a_scan_probes_an_actuator_with_its_status_query(device_id) -> None:
     probe = InspireLaDriver.probe(device_id)
     [query] = plan(driver(device_id), '{"op":"status"}')
     assert probe.wire == query.wire and probe.expected == query.expected
+
+
+@pytest.mark.parametrize(("text", "given"), [
+    ('{"op":"set_id","new_id":9}', [IdChange(3, 9)]),
+    ('{"op":"write","index":2,"data":"09"}', [IdChange(3, 9)]),  # the id register, raw
+    ('{"op":"write","index":32,"data":"e803"}', []),  # the overcurrent limit
+    ('{"op":"move","position":100}', []),
+])
+def test_the_ids_an_actuators_frames_give_it(text, given) -> None:
+    """What the authority refuses when another actuator of the bus has that id."""
+    rod = driver(3)
+    assert rod.id_changes(rod.frames_of(rod.parse(text))) == given
