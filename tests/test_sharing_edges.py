@@ -323,6 +323,9 @@ def test_an_id_another_device_of_the_bus_has_is_refused_and_nothing_goes_out(gat
         refused = ask(api, device, command)
         assert code(refused) == "out_of_range", (device, refused)
         assert refused["error"]["message"].startswith(clash), refused
+    assert refused["error"]["message"] == (
+        "arm2 would take id 1, arm1's on bus uart1: two devices of one id both take every "
+        "frame sent to it; give it an id no device of the bus has")
     refused = ask(api, "arm1", {"op": "set_id", "new_id": 1})  # its own: no clash, no change
     assert refused["error"]["message"] == "servo arm1 already has id 1"
     assert frames(la_sim, "WriteCommand") == [] and frames(ds_sim, "Write", "Reset") == []

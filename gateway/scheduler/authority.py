@@ -180,11 +180,11 @@ class Authority:
         for change in changes:
             holder = by_id.get(change.new_id)
             if holder is not None and change.new_id != change.device_id:
-                changing = by_id.get(change.device_id)  # ``None``: the broadcast id
-                who = "every device" if changing is None else changing.name
+                # A frame that gives an id addresses one device, by an id ``check`` knows.
+                changing = by_id[change.device_id]
                 raise RefusedError(
                     "out_of_range",
-                    f"{who} would take id {change.new_id}, {holder.name}'s on bus "
+                    f"{changing.name} would take id {change.new_id}, {holder.name}'s on bus "
                     f"{self.bus}: two devices of one id both take every frame sent to it; give "
                     "it an id no device of the bus has",
                 )
