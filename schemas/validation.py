@@ -16,7 +16,7 @@ import re
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from pydantic import TypeAdapter, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from busgate.codecs.errors import EncodeError
 from busgate.errors import CommandError
@@ -52,6 +52,15 @@ def command_from_json(adapter: TypeAdapter[Any], text: str | bytes, family: str)
 def command_from_object(adapter: TypeAdapter[Any], fields: Any, family: str) -> Any:
     """``command_from_json`` for a JSON object already parsed."""
     return _command(adapter.validate_python, fields, family)
+
+
+def follow_target_from(model: type[BaseModel], payload: Any) -> Any:
+    """``payload`` (a follow put's object) as ``model``; ``CommandError`` saying ``invalid
+    follow target:`` and every problem when it is not one."""
+    try:
+        return model.model_validate(payload)
+    except ValidationError as exc:
+        raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
 
 
 def _command(validate: Callable[[Any], Any], value: Any, family: str) -> Any:

@@ -278,6 +278,15 @@ def test_a_follow_target_is_refused_while_another_client_holds_the_device(gatewa
     assert frames(la_sim, "FollowCommand", "GroupFollowCommand") == []
 
 
+def test_a_bad_joint_follow_target_says_so_as_a_bad_kind_payload_does(gateway):
+    """A joint's was said to be an "invalid command"."""
+    api, _, _ = gateway
+    for payload in (b'{"joint": "far"}', b'{"position": "far"}'):
+        reply = api.follow("la1", payload)
+        assert code(reply) == "bad_command", reply
+        assert reply["error"]["message"].startswith("invalid follow target: "), reply
+
+
 def test_require_claim_refuses_what_needs_a_claim_the_client_does_not_hold(gateway):
     """A client that claimed sends ``require_claim``: once its claim is gone, what needs the
     claim is refused ``not_claimed`` on every path, and reads and stops still go through."""

@@ -70,7 +70,7 @@ from busgate.schemas.api import (
 )
 from busgate.schemas.payload import MAX_PAYLOAD, decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
-from busgate.schemas.validation import command_from_object, cut, shown
+from busgate.schemas.validation import command_from_object, cut, follow_target_from, shown
 
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
 SCAN_MAX_S = 4.0
@@ -433,7 +433,7 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
     takes passed its driver's checks (a ZLAC706 streams speeds in velocity mode only)."""
     if "joint" not in fields and "joint_velocity" not in fields:
         return driver.follow_target(fields)
-    request = JointFollow.model_validate(fields)  # its client and seq too
+    request = follow_target_from(JointFollow, fields)  # its client and seq too
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
     driver.follow_target(payload)
     return raw

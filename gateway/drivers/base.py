@@ -22,13 +22,13 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar, NamedTuple
 
-from pydantic import TypeAdapter, ValidationError
+from pydantic import TypeAdapter
 
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.schemas.families import PROTOCOLS, WireProtocol
 from busgate.schemas.joints import Joint, JointDeclaration, Quantity
-from busgate.schemas.validation import command_from_json, describe_validation_error
+from busgate.schemas.validation import command_from_json, follow_target_from
 
 #: What a family's driver must define beyond the abstract methods (see ``Driver``).
 FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe", "setpoints")
@@ -301,10 +301,7 @@ class Driver(abc.ABC):
 
     def follow_payload(self, payload: dict[str, Any]) -> Any:
         """``payload`` as the kind's ``FollowTarget`` model (``CommandError`` if it is not one)."""
-        try:
-            return self.schema.FollowTarget.model_validate(payload)
-        except ValidationError as exc:
-            raise CommandError(f"invalid follow target: {describe_validation_error(exc)}") from exc
+        return follow_target_from(self.schema.FollowTarget, payload)
 
     @classmethod
     def follow_request(cls, targets: Sequence[tuple[Driver, float]]) -> Request:
