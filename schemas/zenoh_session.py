@@ -63,15 +63,16 @@ def session_config(
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {', '.join(MODES)}, not {mode!r}")
-    if config_file and (refusal := config_file_refusal(config_file)):
-        raise ValueError(f"the zenoh config file {config_file}: {refusal}")  # not "os error 2"
+    try:
+        config = _parsed(config_file) if config_file else zenoh.Config()
+    except ValueError as exc:  # not "os error 2"
+        raise ValueError(f"the zenoh config file {config_file}: {exc}") from exc
     for endpoints, listening in ((listen, True), (connect, False)):
         for endpoint in endpoints:
             if problem := endpoint_problem(endpoint, listening=listening):
                 raise ValueError(f"zenoh endpoint {endpoint!r}: {problem}")
             if listening and list(listen).count(endpoint) > 1:  # else "in use", by itself
                 raise ValueError(f"zenoh endpoint {endpoint!r} is given twice")
-    config = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     config.insert_json5("transport/shared_memory/enabled", "false")
@@ -118,15 +119,23 @@ def file_problem(path: str | Path, what: str) -> str | None:
 
 
 def config_file_refusal(config_file: str | Path) -> str | None:
-    """Why ``config_file`` is no zenoh config (``file_problem``, or where zenoh's parser
-    stopped and why); ``None`` when it is one."""
-    if problem := file_problem(config_file, "a zenoh config"):
-        return problem
+    """Why ``config_file`` is no zenoh config (``_parsed``); ``None`` when it is one."""
     try:
-        zenoh.Config.from_file(str(config_file))
-    except zenoh.ZError as exc:
-        return config_file_reason(exc)
+        _parsed(config_file)
+    except ValueError as exc:
+        return str(exc)
     return None
+
+
+def _parsed(config_file: str | Path) -> zenoh.Config:
+    """``config_file`` as zenoh reads it; ``ValueError`` saying why it is none
+    (``file_problem``, or where zenoh's parser stopped and why)."""
+    if problem := file_problem(config_file, "a zenoh config"):
+        raise ValueError(problem)
+    try:
+        return zenoh.Config.from_file(str(config_file))
+    except zenoh.ZError as exc:
+        raise ValueError(config_file_reason(exc)) from exc
 
 
 def _check_tls_endpoints(config: zenoh.Config, mode: str) -> None:

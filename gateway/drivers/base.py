@@ -63,8 +63,8 @@ class Setpoint(NamedTuple):
 
 
 class IdChange(NamedTuple):
-    """A frame gives the device it addresses at ``device_id`` (the broadcast id: every device
-    it reaches) the id ``new_id``: a ``set_id``, a raw write of the id, a factory reset."""
+    """A frame gives the device it addresses at ``device_id`` the id ``new_id``: a
+    ``set_id``, a raw write of the id, a factory reset."""
 
     device_id: int
     new_id: int

@@ -13,8 +13,8 @@ Rules of this file:
    ramps to its target within its limits (``GatewayApi.ramp_to``); a refusal (claimed by
    another client, e-stopped, a trajectory playing) moves nothing and is said once in the log
    (once a second at most, whatever its words) and in the diagnostics until a command for that
-   joint is taken again. A velocity joint
-   without a command for ``command_timeout_s`` ramps to 0.
+   joint is taken again. A velocity joint without a command for ``command_timeout_s`` ramps
+   to 0.
 3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
    under the same client; its refusal is logged and shown in the joints' diagnostics. One
    message is on the key at a time, so they are carried out in the order they came (an

@@ -167,7 +167,7 @@ class Authority:
 
     def check_limits(self, setpoints: Iterable[Setpoint]) -> None:
         """Refuse (``out_of_range``) what sets a device beyond its joint's limits (rule 5)."""
-        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        by_id = self._by_id()
         for setpoint in setpoints:
             driver = by_id.get(setpoint.device_id)
             if driver is not None:  # an id no device has was refused by ``check``
@@ -176,7 +176,7 @@ class Authority:
     def check_ids(self, changes: Iterable[IdChange]) -> None:
         """Refuse (``out_of_range``) an id given to a device that another device of the bus
         has (rule 6)."""
-        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        by_id = self._by_id()
         for change in changes:
             holder = by_id.get(change.new_id)
             if holder is not None and change.new_id != change.device_id:
@@ -198,11 +198,14 @@ class Authority:
         driver = self.drivers[device]
         self.check([(frozenset({driver.device_id}), effect)], client, require_claim=require_claim)
 
+    def _by_id(self) -> dict[int, Driver]:
+        """Each device by its id, built at each check: ids change (set_id) on the bus thread."""
+        return {driver.device_id: driver for driver in self.drivers.values()}
+
     def _devices(self, ids: Addressed, effect: Effect) -> list[Driver]:
         if ids is EVERY:
             return list(self.drivers.values())
-        # Built at each check: ids change (set_id) on the bus thread.
-        by_id = {driver.device_id: driver for driver in self.drivers.values()}
+        by_id = self._by_id()
         unknown = sorted(ids - by_id.keys())
         if unknown and effect is not Effect.READ:
             raise RefusedError(
