@@ -119,3 +119,19 @@ def test_a_look_at_a_quiet_adapter_does_not_wait(bus_and_adapter) -> None:
     started = time.monotonic()
     assert bus.recv(timeout=0) is None
     assert time.monotonic() - started < 2.5  # not the port's 5 s: half of it, for a busy host
+
+
+def test_an_adapter_one_bus_holds_is_refused_to_another_naming_the_holder(adapter) -> None:
+    master, path = adapter()
+    bus = SlcanBus(channel=path, bitrate=500_000, sleep_after_open=0)
+    try:
+        drain(master)
+        with pytest.raises(can.CanInitializationError) as refused:
+            SlcanBus(channel=f"{path}@115200", bitrate=500_000, sleep_after_open=0)
+        assert str(refused.value).startswith(f"{path} is locked by another process (pid "
+                                             f"{os.getpid()}: ")
+        assert not select.select([master], [], [], 0.05)[0]  # nothing written to the adapter
+    finally:
+        bus.shutdown()
+    again = SlcanBus(channel=path, bitrate=500_000, sleep_after_open=0)  # let go at shutdown
+    again.shutdown()

@@ -12,6 +12,11 @@ Rules of this file:
 
 1. Only ``_read`` (one line of the adapter, through its terminator) is replaced: opening,
    sending, closing and the parsing of a line into a ``can.Message`` stay python-can's.
+   Around the opening, the adapter's tty is locked as the serial owner locks its ports
+   (``flock``, as pyserial's ``exclusive=True``), before python-can writes a byte to it, and
+   held until ``shutdown``: a second gateway given the same adapter is refused, naming the
+   process that holds it (python-can opens the tty unlocked, so two gateways would each take
+   half of the adapter's lines).
 2. A read takes everything the adapter has sent so far; the lines it holds beyond the one it
    returns are handed out by the next reads, before the adapter is asked again. ``has_line``
    tells the owner that one is there (its descriptor no longer does).
@@ -23,10 +28,14 @@ Rules of this file:
 
 from __future__ import annotations
 
-from can.exceptions import error_check
+import fcntl
+import os
+
+from can.exceptions import CanInitializationError, error_check
 from can.interfaces.slcan import slcanBus
 
 from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.port_access import describe_open_error
 
 #: The line ends: CR after a frame or an acknowledgement, BEL after a refused command.
 _TERMINATORS = (b"\r", b"\a")
@@ -37,6 +46,25 @@ MAX_LINE = 160
 
 class SlcanBus(slcanBus):
     """An SLCAN adapter, as python-can's ``slcan`` interface, read a chunk at a time."""
+
+    def __init__(self, channel: str, *args, **kwargs) -> None:
+        self._lock = _locked(channel)
+        try:
+            super().__init__(channel, *args, **kwargs)
+        except BaseException:
+            self._unlock()
+            raise
+
+    def shutdown(self) -> None:
+        try:
+            super().shutdown()
+        finally:
+            self._unlock()
+
+    def _unlock(self) -> None:
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            os.close(lock)
 
     @property
     def has_line(self) -> bool:
@@ -74,3 +102,23 @@ class SlcanBus(slcanBus):
         line = bytes(buffer[:end])
         del buffer[:end]
         return line.decode("ascii")  # a UnicodeDecodeError is a ValueError: one line lost
+
+
+def _locked(channel: object) -> int | None:
+    """A descriptor of ``channel``'s tty holding its lock (rule 1); ``None`` for a channel
+    that is no file (python-can's ``socket://`` URLs). ``CanInitializationError`` in
+    ``port_access``'s words when it cannot be had (held by another process, missing, not
+    ours to open)."""
+    path = channel.split("@", 1)[0] if isinstance(channel, str) else ""  # "tty@baud"
+    if not path.startswith("/"):
+        return None  # python-can says what is wrong with it
+    try:
+        lock = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise CanInitializationError(describe_open_error(path, exc)) from exc
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(lock)
+        raise CanInitializationError(describe_open_error(path, exc)) from exc
+    return lock
