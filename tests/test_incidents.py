@@ -4,7 +4,8 @@
 An e-stop writes an incident file whose frames are the very bytes the devices saw, in order,
 up to the e-stop and past it (its stop frames); the commands are there with their client and
 reply code, the telemetry with its schemas. SIGUSR1 asks for one, and one still pending at
-SIGTERM is written after the devices' safe state. Without a recorder SIGUSR1 ends nothing.
+SIGTERM is written after the devices' safe state. ``busgate record --timeline`` draws a
+file's frames around its e-stop. Without a recorder SIGUSR1 ends nothing.
 A recorder folder that cannot be written refuses the start in one line."""
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import math
 import signal
 import time
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
@@ -23,6 +25,7 @@ from tests.conftest import unused_loopback_port
 from tests.gateway_process import DemoProcess, run_busgate, serial_bus, write_config
 
 FOLLOW_S = 1.0
+SVG = "{http://www.w3.org/2000/svg}"
 
 
 def incidents(folder: Path) -> list[Path]:
@@ -172,3 +175,22 @@ def test_a_folder_that_cannot_be_written_refuses_the_start(tmp_path, free_port) 
         f"busgate run: error: recorder: cannot write incident files in {tmp_path}/a-file/"
         "incidents: Not a directory (the [recorder] dir of the config)")
     assert "zenoh session up" not in result.stderr  # refused before anything opened
+
+
+def test_its_wire_is_drawn_bus_by_bus_around_the_estop(estopped, tmp_path) -> None:
+    picture = tmp_path / "estop.svg"
+    done = run_busgate("record", "--timeline", str(estopped["first"]), "--span-ms", "200",
+                       "-o", str(picture))
+    assert done.returncode == 0, done.stderr
+    messages, _ = read(estopped["first"])
+    [estop_ns] = [t for topic, _, t, body in messages  # when the e-stop came
+                  if topic == "busgate/demo/commands" and body["key"] == "busgate/*/estop"]
+    end_ns, start_ns = estop_ns + 40e6, estop_ns - 160e6  # a fifth of 200 ms after it
+    root = ET.fromstring(picture.read_text())
+    drawn = {lane.get("data-bus"): lane for lane in root.iter(f"{SVG}g")}
+    assert {"uart0", "uart1", "rs232", "can0"} <= set(drawn)
+    for bus, lane in drawn.items():
+        sent = [t for topic, _, t, body in messages if topic == f"busgate/demo/bus/{bus}/frames"
+                and body["dir"] == "tx" and start_ns <= t <= end_ns]
+        assert len([r for r in lane.iter(f"{SVG}rect") if r.get("class") == "tx"]) == len(sent)
+    assert len([line for line in root.iter(f"{SVG}line") if line.get("class") == "estop"]) == 1

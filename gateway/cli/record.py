@@ -51,7 +51,7 @@ from busgate.client.keys import Keys, check_key
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
-from busgate.gateway.recording import mcap_log
+from busgate.gateway.recording import mcap_log, timeline
 from busgate.schemas.payload import largest_published
 
 QUEUE_MAX = 100_000
@@ -65,6 +65,8 @@ MAX_GAP_S = 60.0
 TOO_LARGE = "larger than any a gateway sends on its key"
 #: Where a replay publishes unless told otherwise: a prefix no live gateway uses (rule 5).
 REPLAY_PREFIX = "replay"
+#: ``--timeline``'s span (ms): by default, and the least and most it draws.
+TIMELINE_SPAN_MS, TIMELINE_SPAN_MS_MIN, TIMELINE_SPAN_MS_MAX = 100.0, 1.0, 60_000.0
 #: How long replay waits for the live gateways' liveliness tokens (a router answers at once).
 LIVE_WAIT_S = 1.0
 
@@ -82,6 +84,24 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     record.add_argument("-o", "--output", metavar="FILE.mcap", help="the file to write")
     record.add_argument("--seconds", type=float, default=None, help="stop after this long")
     record.add_argument("--info", metavar="FILE.mcap", help="print a file's channels and span")
+    record.add_argument(
+        "--timeline",
+        metavar="FILE.mcap",
+        help="draw an incident file's frames, bus by bus, as SVG (to -o FILE.svg, else stdout)",
+    )
+    record.add_argument(
+        "--span-ms",
+        type=float,
+        default=TIMELINE_SPAN_MS,
+        help=f"--timeline: how much to draw (default {TIMELINE_SPAN_MS:g} ms)",
+    )
+    record.add_argument(
+        "--end",
+        type=float,
+        metavar="UNIX_S",
+        help="--timeline: where the drawing ends (default: a fifth of the span after the "
+        "first e-stop, else the last frame)",
+    )
     record.set_defaults(handler=run_record)
     replay = subparsers.add_parser(
         "replay",
@@ -115,6 +135,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 def run_record(args: argparse.Namespace) -> int:
     if args.info is not None:
         return _print_info(Path(args.info))
+    if args.timeline is not None:
+        return _draw_timeline(Path(args.timeline), args)
     if args.output is None:
         raise CommandError("name the file to write: -o FILE.mcap (or --info FILE.mcap)")
     if not args.output:  # Path("") is the current directory
@@ -270,6 +292,49 @@ def _print_info(path: Path) -> int:
         print(
             f"  {channel['messages']:>8}  {channel['topic']}  ({channel['schema'] or 'no schema'})"
         )
+    return 0
+
+
+def _draw_timeline(path: Path, args: argparse.Namespace) -> int:
+    span_ms, end = args.span_ms, args.end
+    if not (math.isfinite(span_ms) and TIMELINE_SPAN_MS_MIN <= span_ms <= TIMELINE_SPAN_MS_MAX):
+        raise CommandError(
+            f"--span-ms is from {TIMELINE_SPAN_MS_MIN:g} to {TIMELINE_SPAN_MS_MAX:g}, not {span_ms}"
+        )
+    if end is not None and not (math.isfinite(end) and end > 0):
+        raise CommandError(f"--end is a Unix time in seconds, not {end}")
+    _summary(path)  # a file that is no complete recording: refused in its words
+    try:
+        with path.open("rb") as stream:
+            window = timeline.window_of(stream, span_ms / 1e3, end)
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+    except Exception as exc:  # the mcap reader's errors have no common base; ours: too many
+        raise CommandError(f"{path}: {exc}") from None
+    if not window.frames:
+        raise CommandError(
+            f"{path} holds no frames in those {span_ms:g} ms (an incident file does)"
+        )
+    picture = timeline.svg(window)
+    if args.output is None:
+        sys.stdout.write(picture)
+    else:
+        try:
+            with open(args.output, "x", encoding="utf-8") as out:  # never over a recording
+                out.write(picture)
+        except FileExistsError:
+            raise CommandError(f"{args.output} exists: give a new file name") from None
+        except OSError as exc:
+            raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+    drawn = sum(map(len, window.frames.values()))
+    left_out = (
+        f"; {window.left_out} frame messages not a recorder's, left out" if window.left_out else ""
+    )
+    print(
+        f"busgate record: {drawn} frames on {', '.join(sorted(window.frames))} drawn, "
+        f"{span_ms:g} ms{left_out}",
+        file=sys.stderr,
+    )
     return 0
 
 
