@@ -301,12 +301,28 @@ def test_a_followed_speed_is_kept_alive_once_acknowledged() -> None:
 def test_can_poll_is_empty_and_init_writes_something_harmless() -> None:
     d = can_driver()
     assert d.poll() == []
-    assert wire(d.init()) == ["001#00fa00100000000f"]  # mode unknown: release
+    # mode unknown: 0 rpm (no speed preset left to start it at an enable), then release
+    assert wire(d.init()) == ["001#00fa001100000000", "001#00fa00100000000f"]
     run(d, plan(d, '{"op":"enable"}'))
     assert d.init() == []  # a client enabled it since: init must not release it again
     run(d, plan(d, '{"op":"disable"}'))
     run(d, plan(d, '{"op":"set_mode","mode":"torque"}'))
     assert wire(d.init()) == ["001#00fa00190000008f"]  # mode known: written again
+
+
+def test_a_disable_leaves_no_speed_preset_for_the_next_enable() -> None:
+    """The manual: a speed preset starts the motor the moment it is enabled. A speed written
+    before a disable must not: the disable writes 0 rpm first (and the keep-alive forgets the
+    speed), while a preset written after it is the client's, and stays."""
+    d = velocity_driver(can_driver(), rpm=50)
+    run(d, plan(d, '{"op":"enable"}'))
+    assert wire(plan(d, '{"op":"disable"}')) == ["001#00fa001100000000", "001#00fa00100000000f"]
+    run(d, plan(d, '{"op":"disable"}'))
+    run(d, plan(d, '{"op":"enable"}'))
+    assert d.keepalive(1.0) is None and d.telemetry(0)["target_speed_rpm"] == 0
+    run(d, plan(d, '{"op":"disable"}'))
+    run(d, plan(d, '{"op":"velocity","rpm":100}'))  # preset after the disable
+    assert wire(plan(d, '{"op":"enable"}')) == ["001#00fa00100000001f"]
 
 
 def test_without_heartbeats_state_carries_the_commanded_and_online_follows_acks() -> None:

@@ -246,8 +246,8 @@ def test_power_is_both_wheels_stages_in_order_as_the_requester(op) -> None:
     drive.command(Twist(0.2, 0.0), now(), 10.0)
     reply = idle.command({"op": op, "client": "nav", "require_claim": True})
     who = {"client": "nav", "require_claim": True}
-    stages = ([{"op": "set_mode", "mode": "velocity"}, {"op": "enable"}] if op == "enable"
-              else [{"op": "disable"}])
+    stages = ([{"op": "set_mode", "mode": "velocity"}, {"op": "velocity", "rpm": 0},
+               {"op": "enable"}] if op == "enable" else [{"op": "disable"}])
     assert idle.gateway.sent == [(wheel, stage | who) for stage in stages
                                  for wheel in ("wl", "wr")]
     assert reply["ok"] and reply["base"]["name"] == "base"

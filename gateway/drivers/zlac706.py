@@ -137,6 +137,10 @@ class Zlac706Driver(Driver):
             if role is not None:
                 check(role, value, outlook)
                 changes.update(outlook.change(role, value))
+            if role is Role.ENABLE and not value:
+                # A speed preset starts the motor the moment it is enabled (the manual): a
+                # disable leaves none behind for whoever enables it next, as a safe stop does.
+                requests.extend(self.stale_stream())
             requests.append(self._request(frame, role, outlook))
         self.machine.planned(changes)
         enabled = changes.get(Role.ENABLE.value)
