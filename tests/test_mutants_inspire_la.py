@@ -24,6 +24,19 @@ def test_a_reboot_restores_the_estop_only_of_an_estopped_actuator_and_limits_rep
     assert estop.wire.hex() == "55aa03030400232d" and again.wire == limit.wire
 
 
+def test_a_write_of_part_of_a_register_is_refused_and_a_target_never_restored() -> None:
+    """One byte of the target (or of a limit) cannot be judged, and once confirmed it held no
+    whole register: it was taken for a limit and written again after every reboot, moving
+    the actuator. It is refused; a whole target is confirmed and never written again."""
+    actuator = driver()
+    for index in (0x37, 0x38, 33):  # the target's two bytes, the over-current's high one
+        with pytest.raises(CommandError, match=r"bytes at \d+: write them both"):
+            plan(actuator, f'{{"op":"write","index":{index},"data":"14"}}')
+    [target] = plan(actuator, '{"op":"write","index":55,"data":"8403"}')
+    answer(actuator, target, decoded(la.WriteReply(3, 55)))
+    assert actuator.restore() == []
+
+
 def test_a_limit_confirmed_then_read_anew_is_judged_by_what_was_read() -> None:
     actuator = driver()
     [overtemp] = plan(actuator, '{"op":"set_overtemp","temp_c":70.5}')

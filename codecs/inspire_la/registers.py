@@ -1,9 +1,11 @@
 """The LA control table (manual section 3.6) as data, and the rules for reading and writing it.
 
 Rule: every range the schemas, the driver and the simulator use is written here once. An
-address that is in no ``Register`` is reserved: it may be read, never written. A write that
-covers a whole register is checked against that register's range; a write of part of a
-register (one byte of a u16) cannot be judged and is let through.
+address that is in no ``Register`` is reserved: it may be read, never written. A write
+covers each register it touches whole, and is checked against that register's range; a write
+of part of a register (one byte of a u16) is refused, since it cannot be judged (a byte of
+the over-current limit would make it 176 mA, under the manual's 300) and the driver could not
+know what the register then holds.
 
 The over-temperature limit and the rewarm temperature bound each other
 (``overtemp >= rewarm + 5 °C``). Their registers hold the absolute bounds that follow from
@@ -88,22 +90,33 @@ def check_span(index: int, length: int) -> None:
 def check_write(index: int, data: bytes) -> None:
     """Raise ``EncodeError`` unless writing ``data`` at ``index`` is allowed.
 
-    Reserved and read-only addresses are refused; every register the write covers whole must
-    get a value in its range.
+    Reserved and read-only addresses are refused, and so is a write of part of a register;
+    every register the write covers must get a value in its range.
 
     >>> check_write(0x37, bytes.fromhex("1405"))  # target 1300, manual 3.5.2
     >>> check_write(0x1A, bytes.fromhex("e803"))
     Traceback (most recent call last):
     ...
     busgate.codecs.errors.EncodeError: current_position (address 26) is read only
+    >>> check_write(0x21, bytes.fromhex("00"))
+    Traceback (most recent call last):
+    ...
+    busgate.codecs.errors.EncodeError: overcurrent_limit is 2 bytes at 32: write them both
     """
     check_span(index, len(data))
+    end = index + len(data)
     for address, register in enumerate(REGISTERS.covering(index, len(data)), start=index):
         if register is None:
             raise EncodeError(f"address {address} is reserved", field="index", value=address)
         if not register.access.writable:
             raise EncodeError(
                 f"{register.name} (address {address}) is read only", field="index", value=address
+            )
+        if register.address < index or register.end > end:
+            raise EncodeError(
+                f"{register.name} is {register.size} bytes at {register.address}: write them both",
+                field="index",
+                value=address,
             )
     values = register_values(index, data)
     for name, raw in values.items():
