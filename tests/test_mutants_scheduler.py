@@ -287,6 +287,29 @@ def test_a_ticker_that_went_idle_restarts_at_once_and_the_pause_is_not_an_interv
     assert abs(stats.follow_error_p50_s) < 1e-9
 
 
+@pytest.mark.parametrize("ending", ["stopped", "reached"])
+def test_a_stream_ended_then_another_is_a_pause_not_an_interval(ending) -> None:
+    """An ``end_follow`` (``stop``) or a ramp's end, then a new stream seconds later: the
+    ticker was idle, so the pause is no follow interval (it was counted as one, 5 s late)."""
+    planner = BusPlanner(TIMING)
+    follow = FollowTicker(Follower, 0.010, BusCounters(0.0), on_stale=lambda driver: None)
+    planner.tickers.append(follow)
+    driver = Follower("la1", 1)
+    follow.update(driver, 5, 0.0, ends_on_target=ending == "reached")
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    if ending == "stopped":
+        run(planner, planner.decide(0.010), 0.010, 0.0001)
+        follow.stop("la1")
+    assert follow.next_due() is None
+    follow.update(driver, 6, 5.0)
+    assert follow.next_due() == 5.0
+    run(planner, planner.decide(5.0), 5.0, 0.0001)
+    run(planner, planner.decide(5.010), 5.010, 0.0001)
+    stats = follow.counters.snapshot(6.0)
+    assert stats.follow_intervals == (2 if ending == "stopped" else 1)
+    assert abs(stats.follow_error_p99_s) < 1e-6, "the pause counted as an interval"
+
+
 # -- keep-alives -----------------------------------------------------------------------------
 
 

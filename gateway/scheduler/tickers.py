@@ -121,8 +121,11 @@ class FollowTicker:
         self, driver: Driver, target: Any, now: float, *, ends_on_target: bool = False
     ) -> FollowStream:
         """A new target for ``driver`` (a ramp's, rule 5, with ``ends_on_target``); a new
-        ticker starts ticking at once."""
+        ticker, or one idle since its streams ended, starts ticking at once (a period after
+        its last tick at the soonest; the pause is no follow interval)."""
         stream = self.streams.get(driver.name)
+        if not self.streams:  # idle (stopped, ended, gone stale): its next tick starts anew
+            self._due = None
         if stream is None:
             limiter = StreamLimiter(driver.joint, self.period_s, commanded(driver, now))
             told = driver.name in self._ended_held
