@@ -264,14 +264,15 @@ class Bases:
         self._event(base, "claimed", client=client, ttl_s=ttl_s)
 
     def _power(self, base: LiveBase, request: BasePower) -> Future:
-        """Both power stages: velocity mode, 0 rpm, then enable, or disable (and stop the twist), as
-        the requester (its client id and ``require_claim``: a base's claim is its wheels')."""
+        """Both power stages: velocity mode, 0 rpm, then enable, or disable (and stop the
+        twist), as the requester (its client id and ``require_claim``: a base's claim is its
+        wheels')."""
         if request.op == "disable":
             base.drive.stop()
         who = request.model_dump(include={"client", "require_claim"}, exclude_none=True)
         # 0 rpm before the enable: a speed preset (a wheel's own velocity op while the base
         # was off) would start the motor the moment it is enabled; a base moves on twists only.
-        ops = [
+        ops: list[dict[str, Any]] = [
             {"op": "set_mode", "mode": "velocity"},
             {"op": "velocity", "rpm": 0},
             {"op": "enable"},
