@@ -76,17 +76,22 @@ class ExpectedReply:
 
     ``wire_bytes`` is the largest size the reply can have on the wire (for CAN: data bytes per
     frame), so a deadline can be computed from wire time; ``frames`` how many frames make the
-    reply; ``kinds`` the event classes that can answer; ``source_id`` who answers.
+    reply; ``kinds`` the event classes that can answer; ``source_id`` who answers; ``echo``
+    the fields (name, value) an answer that echoes its command carries, so that an echo of
+    another command (a late answer to one that timed out) is not taken for this one's.
     """
 
     source_id: int | None  # None: a point-to-point link whose frames carry no id
     wire_bytes: int
     kinds: tuple[type, ...]
     frames: int = 1
+    echo: tuple[tuple[str, object], ...] = ()
 
     def matches(self, event: object) -> bool:
         """True when ``event`` is (part of) the answer to the command this was made for."""
-        return isinstance(event, self.kinds) and getattr(event, "device_id", None) == self.source_id
+        if not isinstance(event, self.kinds) or getattr(event, "device_id", None) != self.source_id:
+            return False
+        return all(getattr(event, name, None) == value for name, value in self.echo)
 
 
 def sum8(data: bytes | bytearray | memoryview) -> int:

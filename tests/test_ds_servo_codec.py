@@ -267,15 +267,20 @@ def test_writes_the_table_allows():
 # --- expected replies ------------------------------------------------------------------------
 
 
+def status(device_id: int, wire_bytes: int) -> ds.ExpectedStatus:
+    return ds.ExpectedStatus(source_id=device_id, wire_bytes=wire_bytes,
+                             kinds=(ds.StatusReply,), data_length=wire_bytes - 6)
+
+
 @pytest.mark.parametrize(
     ("frame", "expected"),
     [
-        (ds.Ping(7), ExpectedReply(7, 6, (ds.StatusReply,))),
-        (ds.Read(1, 0x38, 2), ExpectedReply(1, 8, (ds.StatusReply,))),
-        (ds.Read(2, 0x00, 0x43), ExpectedReply(2, 6 + 0x43, (ds.StatusReply,))),
-        (ds.Write(3, 0x28, b"\x01"), ExpectedReply(3, 6, (ds.StatusReply,))),
-        (ds.RegWrite(1, 2000, 1000), ExpectedReply(1, 6, (ds.StatusReply,))),
-        (ds.Reset(250), ExpectedReply(250, 6, (ds.StatusReply,))),
+        (ds.Ping(7), status(7, 6)),
+        (ds.Read(1, 0x38, 2), status(1, 8)),
+        (ds.Read(2, 0x00, 0x43), status(2, 6 + 0x43)),
+        (ds.Write(3, 0x28, b"\x01"), status(3, 6)),
+        (ds.RegWrite(1, 2000, 1000), status(1, 6)),
+        (ds.Reset(250), status(250, 6)),
         (ds.Write(254, 0x05, b"\x01"), None),
         (ds.Reset(254), None),
         (ds.Action(), None),
@@ -287,10 +292,15 @@ def test_expected_reply(frame, expected):
     assert ds.expected_reply(frame) == expected
 
 
-def test_expected_reply_matches_its_servo_only():
+def test_expected_reply_matches_its_servo_only_with_the_bytes_it_asked_for():
     expected = ds.expected_reply(ds.Read(1, 0x38, 2))
     assert expected.matches(ds.StatusReply(1, ds.ServoStatus(0), b"\x07\xff"))
     assert not expected.matches(ds.StatusReply(2, ds.ServoStatus(0), b"\x07\xff"))
+    # a write's status, come late: no bytes, or too few, answer no READ
+    assert not expected.matches(ds.StatusReply(1, ds.ServoStatus(0)))
+    assert not expected.matches(ds.StatusReply(1, ds.ServoStatus(0), b"\x07"))
+    assert not ds.expected_reply(ds.Write(1, 0x28, b"\x01")).matches(
+        ds.StatusReply(1, ds.ServoStatus(0), b"\x07\xff"))
 
 
 # --- the control table -----------------------------------------------------------------------

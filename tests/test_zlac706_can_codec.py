@@ -145,6 +145,9 @@ def test_expected_reply() -> None:
     assert expected.matches(NoSuchRegister(10, R.TARGET_SPEED, 0x555))
     assert not expected.matches(WriteAck(11, R.TARGET_SPEED, 0x555))
     assert not expected.matches(HeartbeatPosition(10, 0))
+    # the echo of another write (an alarm reset's, come after it timed out) answers no other
+    assert not expected.matches(WriteAck(10, R.ALARM_RESET, 0x7F))
+    assert not expected.matches(WriteAck(10, R.TARGET_SPEED, 0x111))
     assert expected_reply(Write(0, R.TARGET_SPEED, 0x555)) is None
     assert expected_reply(HeartbeatPosition(10, 0)) is None
 

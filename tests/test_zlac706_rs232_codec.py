@@ -153,6 +153,7 @@ def test_expected_reply() -> None:
     ack = expected_reply(Write(R.SPEED, 136))
     assert (ack.wire_bytes, ack.frames, ack.source_id) == (2, 1, None)
     assert ack.matches(Ack(R.SPEED))
+    assert not ack.matches(Ack(R.MODE))  # another write's ack, come late
     monitor = expected_reply(MonitorRequest())
     assert (monitor.wire_bytes, monitor.frames) == (32, 8)
     assert all(monitor.matches(frame) for _, frame in MANUAL_REPLIES[1:])

@@ -7,7 +7,13 @@ incremental decoders for both directions.
 """
 
 from busgate.codecs.ds_servo.decoder import CommandDecoder, ReplyDecoder
-from busgate.codecs.ds_servo.encoder import checksum, encode, expected_reply, move_data
+from busgate.codecs.ds_servo.encoder import (
+    ExpectedStatus,
+    checksum,
+    encode,
+    expected_reply,
+    move_data,
+)
 from busgate.codecs.ds_servo.frames import (
     ADDRESSED,
     BROADCAST_ID,
@@ -62,6 +68,7 @@ __all__ = [
     "Action",
     "Command",
     "CommandDecoder",
+    "ExpectedStatus",
     "Frame",
     "Instruction",
     "Ping",

@@ -11,6 +11,7 @@ Wire format: ``header id len code params… sum`` with ``len = len(params) + 2``
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from busgate.codecs.ds_servo.frames import (
@@ -75,8 +76,26 @@ def encode(frame: Frame) -> bytes:
     return header + body + bytes([checksum(body)])
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ExpectedStatus(ExpectedReply):
+    """A status reply carrying ``data_length`` bytes: a READ's, the bytes read; any other
+    command's, none. The wire does not say which command a status answers, so its length is
+    what tells a late answer to another command (a write's, empty) from a READ's own."""
+
+    data_length: int
+
+    def matches(self, event: object) -> bool:
+        """True when ``event`` is this command's status reply."""
+        return (
+            isinstance(event, self.kinds)
+            and getattr(event, "device_id", None) == self.source_id
+            and len(getattr(event, "data", b"")) == self.data_length
+        )
+
+
 def expected_reply(frame: Frame) -> ExpectedReply | None:
-    """The status reply a command brings, or ``None`` (broadcast, ACTION, SYNC WRITE, a reply).
+    """The status reply a command brings (``ExpectedStatus``), or ``None`` (broadcast, ACTION,
+    SYNC WRITE, a reply).
 
     >>> expected_reply(Read(device_id=1, address=0x38, length=2)).wire_bytes
     8
@@ -90,7 +109,12 @@ def expected_reply(frame: Frame) -> ExpectedReply | None:
     device_id = getattr(frame, "device_id", BROADCAST_ID)
     if data_bytes is None or device_id == BROADCAST_ID:
         return None
-    return ExpectedReply(device_id, FRAME_OVERHEAD + data_bytes, (StatusReply,))
+    return ExpectedStatus(
+        source_id=device_id,
+        wire_bytes=FRAME_OVERHEAD + data_bytes,
+        kinds=(StatusReply,),
+        data_length=data_bytes,
+    )
 
 
 def move_data(position_raw: int, time_ms: int) -> bytes:

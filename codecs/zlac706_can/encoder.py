@@ -118,7 +118,9 @@ _BODIES: dict[type, Callable] = {
 
 
 def expected_reply(frame: object) -> ExpectedReply | None:
-    """What answers ``frame``: a write to a node gets one 8-byte ``FB`` or ``FF`` frame from it.
+    """What answers ``frame``: a write to a node gets one 8-byte ``FB`` or ``FF`` frame from it,
+    echoing its register and value ("the rest of the frame as it came", 8.1.1): the echo of
+    another write, come after its own timed out, answers no other.
 
     A broadcast write gets ``None``: every node answers ``DB`` on the same identifier 0 with
     the same bytes, so the answers merge on the bus and cannot be counted or told apart.
@@ -130,5 +132,6 @@ def expected_reply(frame: object) -> ExpectedReply | None:
     True
     """
     if isinstance(frame, Write) and frame.device_id != BROADCAST_ID:
-        return ExpectedReply(frame.device_id, DATA_LENGTH, (WriteAck, NoSuchRegister))
+        echo = (("register", frame.register), ("value", frame.value))
+        return ExpectedReply(frame.device_id, DATA_LENGTH, (WriteAck, NoSuchRegister), echo=echo)
     return None

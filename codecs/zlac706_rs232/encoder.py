@@ -100,7 +100,8 @@ _ENCODERS: dict[type, Callable[..., bytes]] = {
 
 
 def expected_reply(frame: object) -> ExpectedReply | None:
-    """What answers ``frame``: a write gets the 2-byte ``Ack``, a monitor request eight frames.
+    """What answers ``frame``: a write gets the 2-byte ``Ack`` naming its register (an ack of
+    another write, come late, answers no other), a monitor request eight frames.
 
     The link is point to point and RS232 frames carry no id, so ``source_id`` is ``None``
     (the events have no ``device_id`` either, which is what ``matches`` compares).
@@ -109,7 +110,7 @@ def expected_reply(frame: object) -> ExpectedReply | None:
     (32, 8)
     """
     if isinstance(frame, Write):
-        return ExpectedReply(None, ACK_SIZE, (Ack,))
+        return ExpectedReply(None, ACK_SIZE, (Ack,), echo=(("register", frame.register),))
     if isinstance(frame, MonitorRequest):
         kinds = (*MONITOR_FIELDS, PositionWord)
         return ExpectedReply(None, FRAME_SIZE * MONITOR_FRAMES, kinds, frames=MONITOR_FRAMES)
