@@ -91,3 +91,9 @@ class DeviceTimeoutError(DeviceError, TimeoutError):
     """The device did not answer in time."""
 
     code = "device_timeout"
+
+
+class DeviceRefusedError(DeviceError):
+    """The device answered that it did not do it (a ZLAC706's ``FF``: no such register)."""
+
+    code = "device_refused"

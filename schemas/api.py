@@ -42,8 +42,8 @@ from busgate.schemas.telemetry import DeviceKind, TelemetryEnvelope
 #: The stable error codes of ``{"ok": false, "error": {"code": …}}``; renaming one breaks clients.
 ErrorCode = Literal[
     "not_utf8", "not_json", "too_large", "bad_command", "out_of_range", "unknown_device",
-    "unknown_bus", "claimed", "not_claimed", "estopped", "device_timeout", "bus_unavailable",
-    "busy", "internal",
+    "unknown_bus", "claimed", "not_claimed", "estopped", "device_timeout", "device_refused",
+    "bus_unavailable", "busy", "internal",
 ]  # fmt: skip
 ERROR_CODES: tuple[str, ...] = get_args(ErrorCode)
 

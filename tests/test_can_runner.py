@@ -9,11 +9,13 @@ import can
 import pytest
 
 from busgate.codecs import zlac706_can as zcan
+from busgate.errors import DeviceRefusedError
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.sim import zlac706 as zlac706_sim
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.slcan import SlcanAdapter
@@ -184,3 +186,23 @@ def test_slcan_adapter_unplugged_and_back(wait_for, tmp_path) -> None:
         runner.stop()
         adapter.stop()
         simulator.stop()
+
+
+def test_a_write_the_node_refuses_is_answered_device_refused(
+    wait_for, virtual_channel, monkeypatch
+) -> None:
+    """A node without the register written answers ``FF`` (8.1.1): the command fails with
+    ``device_refused`` naming the register, where it was answered ok."""
+    channel, _ = virtual_channel
+    monkeypatch.delitem(zlac706_sim._CAN_WRITES, zcan.CanRegister(0x14))  # a node without it
+    runner = build_bus(can_bus("virtual", channel)).start()
+    try:
+        wait_for(lambda: runner.drivers["wheel"].online)
+        driver = runner.drivers["wheel"]
+        reply = runner.submit("wheel", driver.parse('{"op":"write","register":20,"value":7}'))
+        with pytest.raises(DeviceRefusedError, match="node 1 has no register 0x14"):
+            reply.result(10)
+        ok = runner.submit("wheel", driver.parse('{"op":"write","register":19,"value":100}'))
+        assert "state" in ok.result(10)  # the next write, which it has, goes as before
+    finally:
+        runner.stop()

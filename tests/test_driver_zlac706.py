@@ -12,7 +12,7 @@ import pytest
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
-from busgate.errors import CommandError
+from busgate.errors import CommandError, DeviceRefusedError
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
@@ -395,8 +395,8 @@ def test_alarm_reports_become_faults_with_one_event_per_change() -> None:
 def test_no_such_register_changes_nothing_and_is_reported() -> None:
     d = can_driver()
     request = plan(d, '{"op":"set_mode","mode":"velocity"}')[0]
-    answer = d.apply(request, can_events("00ff00190000002f"), 0.0)
-    assert "no register 0x19" in answer["rejected"]
+    with pytest.raises(DeviceRefusedError, match="no register 0x19"):
+        d.apply(request, can_events("00ff00190000002f"), 0.0)
     assert d.machine.settings.mode is None and d.machine.expected().mode is None
     assert event_types(d) == ["rejected"]
 

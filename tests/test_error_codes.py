@@ -14,6 +14,7 @@ from busgate.errors import (
     BusUnavailableError,
     BusyError,
     CommandError,
+    DeviceRefusedError,
     DeviceTimeoutError,
     RefusedError,
 )
@@ -77,6 +78,7 @@ def test_the_bus_threads_errors_keep_their_codes_and_a_bug_is_internal():
         "busy": BusyError("queue full"),
         "bus_unavailable": BusUnavailableError("down"),
         "device_timeout": DeviceTimeoutError("silent", device_id=1),
+        "device_refused": DeviceRefusedError("no register 0x14", device_id=1),
         "claimed": RefusedError("claimed", "held by ui-1"),
         "internal": RuntimeError("a driver bug"),
     }

@@ -8,7 +8,7 @@ import pytest
 
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs.zlac706_common import AlarmFlags
-from busgate.errors import CommandError
+from busgate.errors import CommandError, DeviceRefusedError
 from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
@@ -188,8 +188,10 @@ def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
 def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> None:
     driver = Zlac706CanDriver("w", 1)
     (request,) = plan(driver, '{"op":"write","register":20,"value":7}')
-    reply = driver.apply(request, (can_codec.NoSuchRegister(1, 0x14, 7),), 1.0)
-    assert reply == {"rejected": "node 1 has no register 0x14"}
+    with pytest.raises(DeviceRefusedError) as refused:
+        driver.apply(request, (can_codec.NoSuchRegister(1, 0x14, 7),), 1.0)
+    assert str(refused.value) == "node 1 has no register 0x14: the write was not taken"
+    assert (refused.value.code, refused.value.device) == ("device_refused", "w")
     (event,) = driver.drain_events()
     assert (event.type, event.fields) == ("rejected", {"register": 0x14,
                                                        "reason": "no such register"})

@@ -352,7 +352,9 @@ class Driver(abc.ABC):
         """Update the state from ``reply`` to ``request``: the events of the answer, each one
         matched to ``request.expected`` by the bus owner (none for a frame without a reply;
         a device that answered has been marked ``heard`` already). Return what the command's
-        answer should carry besides the state (e.g. ``{"data": "e803"}`` for a read)."""
+        answer should carry besides the state (e.g. ``{"data": "e803"}`` for a read).
+        ``DeviceRefusedError`` when the answer says the device did not do it: the state is
+        left as it was, and the command is answered ``device_refused``."""
 
     def begins_reading(self, event: object) -> bool:
         """Whether ``event``, a frame nobody asked for, is the first of a new reading (a

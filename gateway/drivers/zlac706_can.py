@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_can as codec
 from busgate.codecs import zlac706_common as common
-from busgate.errors import CommandError
+from busgate.errors import CommandError, DeviceRefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706 import Zlac706Driver
@@ -213,7 +213,12 @@ class Zlac706CanDriver(Zlac706Driver):
             # Only a raw write can get here (``frames_for`` checks the table); nothing changed.
             self.machine.forget_pending()
             self.emit("rejected", register=int(answer.register), reason="no such register")
-            return {"rejected": f"node {self.device_id} has no register {answer.register:#04x}"}
+            raise DeviceRefusedError(
+                f"node {self.device_id} has no register {answer.register:#04x}: the write was "
+                "not taken",
+                device=self.name,
+                device_id=self.device_id,
+            )
         return {}
 
     def unsolicited(self, event: object, now: float) -> bool:

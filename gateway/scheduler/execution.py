@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 
-from busgate.errors import BusIOError, DeviceTimeoutError
+from busgate.errors import BusIOError, DeviceRefusedError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Exchange, Request
@@ -127,7 +127,12 @@ class Execution:
                 driver.heard(exchange.end)
                 if driver.refreshes_keepalive(slot.request):
                     self.keepalives[driver.name].sent(exchange.start)
-            result = driver.apply(slot.request, exchange.reply, exchange.end)
+            try:
+                result = driver.apply(slot.request, exchange.reply, exchange.end)
+            except DeviceRefusedError as refused:  # the job's error, once it ends
+                if isinstance(slot.source, Job):
+                    slot.source.error = refused
+                continue
             if isinstance(slot.source, Job) and result:
                 slot.source.replies.append(result)
 
