@@ -10,7 +10,9 @@ from busgate.codecs import ds_servo as ds
 from busgate.errors import CommandError
 from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.ds_servo import DsServoDriver, poll_spans
+from busgate.schemas import ds_servo as ds_schema
 from busgate.schemas import inspire_la
+from busgate.schemas.joints import Joint, JointTable
 from tests.test_driver_ds_servo import answer, driver, plan
 
 
@@ -120,3 +122,19 @@ def test_a_raw_write_of_the_torque_switch_lets_an_estopped_servo_move_or_stops_i
     assert not servo.estopped
     plan(servo, '{"op":"write","address":40,"data":"00"}')
     assert not servo.driving_before_estop  # switched off: a reset leaves it off
+
+
+@pytest.mark.parametrize(("read", "held"), [(2048, None), (4095, None), (1500, 1500)])
+def test_a_reset_holds_only_a_position_within_the_joints_limits(read, held) -> None:
+    """A position read beyond the joint's max (2 rad at 0.001 rad a count: raw 2000) is no
+    target: the servo stays off (torque on would drive it somewhere); within, it is held."""
+    joint = Joint.of("arm", ds_schema.JOINT, JointTable(unit="rad", scale=0.001, max=2.0))
+    servo = DsServoDriver("arm", 1, joint=joint)
+    [request] = plan(servo, '{"op":"read","address":56,"length":2}')
+    answer(servo, request, data=read.to_bytes(2, "big"))
+    requests = servo.hold_still()
+    if held is None:
+        assert requests == [] and not servo.driving()
+    else:
+        move, torque = requests
+        assert move.frame.data[:2] == held.to_bytes(2, "big") and torque.frame.data == b"\x01"

@@ -10,6 +10,8 @@ from busgate.codecs import inspire_la as la
 from busgate.errors import CommandError
 from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.schemas import inspire_la as inspire_la_schema
+from busgate.schemas.joints import Joint, JointTable
 from tests.test_driver_inspire_la import answer, decoded, driver, plan, status
 
 
@@ -75,6 +77,19 @@ def test_holding_still_after_a_reset_targets_where_the_status_last_said() -> Non
     answer(actuator, query, status(position_raw=990))
     enable, here = actuator.hold_still()
     assert enable.wire.hex() == "55aa03030400040e" and here.frame.position_raw == 990
+
+
+@pytest.mark.parametrize("read", [1601, 2000, -32768])
+def test_a_reset_sends_no_target_beyond_the_joints_limits_whatever_was_read(read) -> None:
+    """A position read beyond the joint's max (0.008 m: raw 1600), or none the actuator can
+    have, is no target: enable alone holds it still (manual 3.5.4); within, it is held."""
+    table = JointTable(unit="m", scale=5e-6, max=0.008)
+    actuator = InspireLaDriver("rod", 3, joint=Joint.of("rod", inspire_la_schema.JOINT, table))
+    [query] = plan(actuator, '{"op":"status"}')
+    answer(actuator, query, status(position_raw=read))
+    assert [r.wire.hex() for r in actuator.hold_still()] == ["55aa03030400040e"]
+    answer(actuator, query, status(position_raw=1600))
+    assert actuator.hold_still()[1].frame.position_raw == 1600
 
 
 @pytest.mark.parametrize("device_id", [1, 3])

@@ -282,6 +282,16 @@ class Driver(abc.ABC):
         """The latch cleared, the motor left undriven: a new command may drive it."""
         self.estop_latched = False
 
+    def position_to_hold(self, raw: float | None) -> int | None:
+        """``raw``, the position read last, as the target ``hold_still`` may give: ``None``
+        when none was read, or when it lies beyond the joint's limits (a reading that cannot
+        be right, or a device pushed past them): no target the gateway sends goes there, and
+        none goes to a limit the device is not at either."""
+        if raw is None:
+            return None
+        low, high = self.joint.raw_limits
+        return round(raw) if low <= raw <= high else None
+
     def switched_off(self) -> None:
         """A command switched the motor off: a reset that follows leaves it off."""
         self.driving_before_estop = False

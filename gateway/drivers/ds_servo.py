@@ -287,15 +287,14 @@ class DsServoDriver(Driver):
 
     def hold_still(self) -> list[Request]:
         """The target at the present position first, then torque on: the servo holds where it
-        is instead of going back to the target it had. Its position not known, it stays off
-        (torque on would drive it to an old target)."""
-        here = self.measured["position"]
+        is instead of going back to the target it had. Its position not known, or none the
+        gateway would send (``position_to_hold``), it stays off (torque on would drive it to
+        an old target)."""
+        here = self.position_to_hold(self.measured["position"])
         if here is None:
             self.stay_off()
             return []
-        low, high = codec.REGISTERS["target_position"].limits
-        target = schema.Move(op="move", position=min(max(here, low), high))
-        requests = self.plan(target)
+        requests = self.plan(schema.Move(op="move", position=here))
         return requests + self.plan(schema.Torque(op="torque", on=True))
 
     def follow_target(self, payload: dict[str, Any]) -> int:

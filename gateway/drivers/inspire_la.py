@@ -188,11 +188,11 @@ class InspireLaDriver(Driver):
 
     def hold_still(self) -> list[Request]:
         """Enable (no motion until a new target, manual 3.5.4), and a target at the present
-        position, so that the target it had before the stop is gone for good."""
+        position, so that the target it had before the stop is gone for good; no target
+        where the position read is none the gateway would send (``position_to_hold``)."""
         requests = self.plan(schema.Enable(op="enable"))
-        if self.status is not None:
-            low, high = codec.REGISTERS["target_position"].limits
-            here = min(max(self.status.position_raw, low), high)
+        here = self.position_to_hold(None if self.status is None else self.status.position_raw)
+        if here is not None:
             requests += self.plan(schema.Move(op="move", position=here))
         return requests
 
