@@ -93,9 +93,14 @@ def bus_and_adapter(adapter):
     bus.shutdown()
 
 
-def test_a_line_that_is_no_ascii_is_one_frame_lost(bus_and_adapter) -> None:
+@pytest.mark.parametrize("garbled", [
+    b"t0018\xff\xfe000000000000\r",  # no ASCII
+    b"t1\r", b"T1234567\r", b"r12\r", b"d1239\r",  # too short for what they say they are
+    b"d123f" + b"00" * 4 + b"\r",  # a CAN FD length code past the table's
+])
+def test_a_garbled_line_is_one_frame_lost(bus_and_adapter, garbled) -> None:
     bus, master = bus_and_adapter
-    os.write(master, b"t0018\xff\xfe000000000000\r" + LINES[1])
+    os.write(master, garbled + LINES[1])
     with pytest.raises(ValueError):
         bus.recv(timeout=5)
     assert frames(bus, 1)[0][0] == 1

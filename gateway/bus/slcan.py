@@ -11,7 +11,8 @@ two telling the same frames.
 Rules of this file:
 
 1. Only ``_read`` (one line of the adapter, through its terminator) is replaced: opening,
-   sending, closing and the parsing of a line into a ``can.Message`` stay python-can's.
+   sending, closing and the parsing of a line into a ``can.Message`` stay python-can's (its
+   frame checked against its line: rule 3).
    Around the opening, the adapter's tty is locked as the serial owner locks its ports
    (``flock``, as pyserial's ``exclusive=True``), before python-can writes a byte to it, and
    held until ``shutdown``: a second gateway given the same adapter is refused, naming the
@@ -20,10 +21,11 @@ Rules of this file:
 2. A read takes everything the adapter has sent so far; the lines it holds beyond the one it
    returns are handed out by the next reads, before the adapter is asked again. ``has_line``
    tells the owner that one is there (its descriptor no longer does).
-3. A line is taken out before it is read: one that is no ASCII, or runs past any frame's length
-   without a terminator, raises ``ValueError`` once (the owner counts one frame lost) and the
-   next line reads as it should. A failing port is python-can's ``CanOperationError``, as its
-   own reads raise.
+3. A line is taken out before it is read: one that is no ASCII, runs past any frame's length
+   without a terminator, or is shorter than the frame it names (python-can's parsing indexes
+   past its end, or makes a frame of fewer bytes than its length says), raises ``ValueError``
+   once (the owner counts one frame lost) and the next line reads as it should. A failing
+   port is python-can's ``CanOperationError``, as its own reads raise.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from __future__ import annotations
 import fcntl
 import os
 
+from can import Message
 from can.exceptions import CanInitializationError, error_check
 from can.interfaces.slcan import slcanBus
 
@@ -70,6 +73,18 @@ class SlcanBus(slcanBus):
     def has_line(self) -> bool:
         """Whether a whole line of the adapter is already read in, waiting to be taken."""
         return self._line_end() >= 0
+
+    def _recv_internal(self, timeout: float | None) -> tuple[Message | None, bool]:
+        """python-can's, a line too short for the frame it names refused (rule 3)."""
+        try:
+            message, filtered = super()._recv_internal(timeout)
+        except IndexError as exc:
+            raise ValueError("an SLCAN line shorter than the frame it names") from exc
+        if message is not None and not message.is_remote_frame and len(message.data) != message.dlc:
+            raise ValueError(
+                f"an SLCAN line of {len(message.data)} data bytes for a length of {message.dlc}"
+            )
+        return message, filtered
 
     def _read(self, timeout: float | None) -> str | None:
         """The adapter's next line (its terminator included), waiting ``timeout`` seconds at
