@@ -24,7 +24,7 @@ from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
-from busgate.gateway.bus.serial_owner import SerialBusOwner
+from busgate.gateway.bus.serial_owner import WRITE_TIMEOUT_S, SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -171,6 +171,32 @@ def test_a_write_the_kernel_takes_in_parts_is_finished(wait_for) -> None:
         reader.join(5)
         assert bytes(drained[-len(frame.wire):]) == frame.wire, "the whole frame, in order"
         assert len(drained) == filler + len(frame.wire)
+    finally:
+        owner.close()
+        device.close()
+
+
+def test_a_port_that_takes_no_more_bytes_fails_the_link_waiting_not_spinning() -> None:
+    """A wedged adapter (its far end never reads): the write waits for room, up to its
+    timeout, then the link is lost. pyserial's own write spun a core all that while: here
+    the thread's CPU over the wait is a small share of it."""
+    device = PtyDevice()
+    owner = serial_owner(device.port)
+    try:
+        refused = 0
+        while refused < 10:  # fill the pty until the kernel takes no byte more, for a while
+            try:
+                os.write(owner._serial.fileno(), b"\x00")
+                refused = 0
+            except BlockingIOError:
+                refused += 1
+                time.sleep(0.01)
+        cpu, started = time.thread_time(), now()
+        with pytest.raises(BusIOError, match="write timeout: the port took no more bytes"):
+            owner.exchange(Request.of(la, la.FollowCommand(1, 700, reply=False)))
+        waited = now() - started
+        assert waited >= WRITE_TIMEOUT_S and not owner.is_open
+        assert time.thread_time() - cpu < waited / 4, "it waited for room, it did not spin"
     finally:
         owner.close()
         device.close()

@@ -24,6 +24,7 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.scheduler import link
 from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
 from busgate.gateway.scheduler.planner import Job, Priority
@@ -624,11 +625,14 @@ def test_a_full_queue_answers_busy_and_a_closed_bus_unavailable(simulator) -> No
     assert runner.counters.busy_commands == 1
 
 
-def test_the_link_comes_back_after_a_replug(wait_for, simulator) -> None:
+def test_the_link_comes_back_after_a_replug(wait_for, simulator, monkeypatch) -> None:
     """Replugged once the reconnect backoff is at its longest, the bus is back. The backoff is
     checked on its figures (the waits between attempts to open the port double from 0.1 s
     to ``BACKOFF_MAX_S`` and no further, so "back within 3 s" holds by construction),
-    each shortened to 10 ms; the reconnect itself is waited for, with a generous deadline."""
+    each shortened to 10 ms; the reconnect itself is waited for, with a generous deadline.
+    The bus was up long enough before the unplug (``STABLE_S`` made 0 here): its loss is not
+    one of a link that fails as it opens (``tests/test_reconnect.py``)."""
+    monkeypatch.setattr(link, "STABLE_S", 0.0)
     events = []
     runner = build_bus(bus(simulator.port), on_event=events.append)
     backoffs = []  # what the bus thread would have waited between attempts to open the port

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import os
 import select
+import threading
 import time
+import tty
 
 import can
 import pytest
@@ -140,3 +142,40 @@ def test_an_adapter_one_bus_holds_is_refused_to_another_naming_the_holder(adapte
         bus.shutdown()
     again = SlcanBus(channel=path, bitrate=500_000, sleep_after_open=0)  # let go at shutdown
     again.shutdown()
+
+
+def test_an_adapter_that_takes_no_bytes_fails_the_open_waiting_not_spinning(adapter) -> None:
+    """Its tty full (the adapter stopped reading): python-can's open spun a core in its first
+    write for ever. The write waits for room up to its timeout, then the open fails."""
+    master, path = adapter()
+    filler = os.open(path, os.O_RDWR | os.O_NONBLOCK | os.O_NOCTTY)
+    tty.setraw(filler)  # as pyserial leaves it
+    try:
+        refused = 0
+        while refused < 10:  # until the kernel takes no byte more, for a while
+            try:
+                os.write(filler, b"\0")
+                refused = 0
+            except BlockingIOError:
+                refused += 1
+                time.sleep(0.01)
+        outcome: list = []
+
+        def open_it() -> None:  # in a thread of its own: a spin for ever fails, not hangs
+            cpu, started = time.thread_time(), time.monotonic()
+            try:
+                SlcanBus(channel=path, bitrate=500_000, sleep_after_open=0)
+            except can.CanError as exc:
+                outcome.extend((exc, time.thread_time() - cpu, time.monotonic() - started))
+
+        opening = threading.Thread(target=open_it, daemon=True)
+        opening.start()
+        opening.join(10)
+        assert not opening.is_alive(), "the open still writing after 10 s"
+        refusal, cpu_s, waited_s = outcome
+        assert "the adapter took no bytes for 0.5 s" in str(refusal)
+        assert cpu_s < waited_s / 4, "it waited for room, it did not spin"
+    finally:
+        os.close(filler)
+    drain(master)
+    SlcanBus(channel=path, bitrate=500_000, sleep_after_open=0).shutdown()  # let go: no lock

@@ -36,6 +36,7 @@ from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.bus.tty_write import write_all
 
 WRITE_TIMEOUT_S = 0.5
 #: Longest a write waits for a line that keeps talking (noise) to fall quiet for the gap.
@@ -128,13 +129,11 @@ class SerialBusOwner(BusOwner):
 
     def _write(self, port: serial.Serial, wire: bytes) -> None:
         """One ``write`` syscall for the whole frame in the usual case (pyserial's ``write``
-        adds a ``select`` after it); pyserial finishes a partial write, with its timeout."""
-        try:
-            written = os.write(port.fileno(), wire)
-        except BlockingIOError:
-            written = 0
-        if written < len(wire):
-            port.write(wire[written:])
+        adds a ``select`` after it, and spins while the port takes no bytes)."""
+        if not write_all(port.fileno(), wire, WRITE_TIMEOUT_S):
+            raise serial.SerialTimeoutException(
+                f"write timeout: the port took no more bytes for {WRITE_TIMEOUT_S:g} s"
+            )
 
     def _wait_reply(
         self, port: serial.Serial, expected: ExpectedReply, earliest: float, deadline: float

@@ -10,9 +10,9 @@ two telling the same frames.
 
 Rules of this file:
 
-1. Only ``_read`` (one line of the adapter, through its terminator) is replaced: opening,
-   sending, closing and the parsing of a line into a ``can.Message`` stay python-can's (its
-   frame checked against its line: rule 3).
+1. Only ``_read`` (one line of the adapter, through its terminator) and ``_write`` (rule 4)
+   are replaced: opening, sending, closing and the parsing of a line into a ``can.Message``
+   stay python-can's (its frame checked against its line: rule 3).
    Around the opening, the adapter's tty is locked as the serial owner locks its ports
    (``flock``, as pyserial's ``exclusive=True``), before python-can writes a byte to it, and
    held until ``shutdown``: a second gateway given the same adapter is refused, naming the
@@ -26,6 +26,12 @@ Rules of this file:
    past its end, or makes a frame of fewer bytes than its length says), raises ``ValueError``
    once (the owner counts one frame lost) and the next line reads as it should. A failing
    port is python-can's ``CanOperationError``, as its own reads raise.
+4. A line goes to an adapter's tty by ``tty_write.write_all``, within the send's timeout
+   (``WRITE_TIMEOUT_S`` while opening), and is not waited out (``tcdrain``): python-can's
+   write spun a core, with no timeout while opening, on an adapter that took no more bytes,
+   and its drain could wait for ever. An adapter that takes none is python-can's
+   ``CanOperationError``. A channel that is no file (a ``socket://`` URL) is written by
+   python-can.
 """
 
 from __future__ import annotations
@@ -34,12 +40,16 @@ import fcntl
 import os
 
 from can import Message
-from can.exceptions import CanInitializationError, error_check
+from can.exceptions import CanInitializationError, CanOperationError, error_check
 from can.interfaces.slcan import slcanBus
 
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.port_access import describe_open_error
+from busgate.gateway.bus.tty_write import write_all
 
+#: How long a line written while opening (python-can's commands, no timeout of their own) may
+#: wait for the adapter to take it (rule 4).
+WRITE_TIMEOUT_S = 0.5
 #: The line ends: CR after a frame or an acknowledgement, BEL after a refused command.
 _TERMINATORS = (b"\r", b"\a")
 #: Longer than any line an adapter sends (a CAN FD frame with an extended identifier: 1 + 8 +
@@ -73,6 +83,18 @@ class SlcanBus(slcanBus):
     def has_line(self) -> bool:
         """Whether a whole line of the adapter is already read in, waiting to be taken."""
         return self._line_end() >= 0
+
+    def _write(self, string: str) -> None:
+        """One line to the adapter (rule 4)."""
+        port = self.serialPortOrig
+        if self._lock is None:  # no tty of ours
+            super()._write(string)
+            return
+        timeout = WRITE_TIMEOUT_S if port.write_timeout is None else port.write_timeout
+        if not write_all(port.fileno(), string.encode() + self.LINE_TERMINATOR, timeout):
+            raise CanOperationError(
+                f"Could not write to serial device: the adapter took no bytes for {timeout:g} s"
+            )
 
     def _recv_internal(self, timeout: float | None) -> tuple[Message | None, bool]:
         """python-can's, a line too short for the frame it names refused (rule 3)."""

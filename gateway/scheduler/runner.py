@@ -449,16 +449,25 @@ class BusRunner:
     # -- bus thread: link up and down -------------------------------------------------------
 
     def _ensure_open(self) -> bool:
+        reconnect = self._reconnect
         if self.owner.is_open:
+            if reconnect.quick_losses:
+                reconnect.still_up(now())
             return True
+        held_back = reconnect.retry_at - now()  # lost soon after it opened: not at once
+        if held_back > 0:
+            self._stop.wait(held_back)
+            self._drain_inbox()
+            return False
         try:
             self.owner.open()
         except BusUnavailableError as exc:
-            self._stop.wait(self._reconnect.failed(exc, now()))
+            self._stop.wait(reconnect.failed(exc, now()))
             self._drain_inbox()
             return False
-        log.info("bus %s up on %s", self.name, self.owner.port)
-        if self._reconnect.opened():
+        if not reconnect.quick_losses:  # else one of many: summed up (link rule 3)
+            log.info("bus %s up on %s", self.name, self.owner.port)
+        if reconnect.opened(now()):
             self.counters.reconnects += 1
         self.planner.line_free = now()
         for poller in self.planner.pollers:
@@ -466,7 +475,8 @@ class BusRunner:
         return True
 
     def _link_lost(self, exc: BusIOError, slot: Slot | None) -> None:
-        log.warning("bus %s lost: %s", self.name, exc)
+        if self._reconnect.lost(exc, now()):
+            log.warning("bus %s lost: %s", self.name, exc)
         if slot is not None and isinstance(slot.source, Job):
             outcomes.fail(slot.source, BusUnavailableError(str(exc)))
             if slot.priority is Priority.ESTOP:  # answered; its frames go once the bus is back
