@@ -21,7 +21,7 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
-from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, CanBusOwner
+from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, LOOK_FRAMES_MAX, CanBusOwner
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import WRITE_TIMEOUT_S, SerialBusOwner
@@ -55,6 +55,30 @@ def test_an_option_python_can_refuses_leaves_the_bus_unavailable_not_a_bug() -> 
     with pytest.raises(BusUnavailableError, match="cannot open CAN virtual:edges-options-"):
         owner.open()
     assert not owner.is_open
+
+
+def test_a_look_at_a_flooded_bus_takes_a_bounded_batch() -> None:
+    """Frames past what a bus carries: a look ends after ``LOOK_FRAMES_MAX`` of them (the
+    runner's turn comes, an e-stop's too), and the next look takes the next batch."""
+    channel = f"edges-flood-{next(_channels)}"
+    taken = []
+    owner = CanBusOwner("virtual", channel, {}, zcan, CAN_TIMING, BusCounters(now()),
+                        on_unsolicited=lambda event, when: taken.append(event))
+    owner.open()
+    flood = can.Bus(interface="virtual", channel=channel)
+    try:
+        heartbeat = can.Message(arbitration_id=1, data=bytes.fromhex("00fe002000000001"),
+                                is_extended_id=False)
+        for _ in range(LOOK_FRAMES_MAX * 2 + 10):
+            flood.send(heartbeat)
+        owner.take_unsolicited()
+        assert len(taken) == LOOK_FRAMES_MAX
+        owner.take_unsolicited()
+        owner.take_unsolicited()
+        assert len(taken) == LOOK_FRAMES_MAX * 2 + 10
+    finally:
+        flood.shutdown()
+        owner.close()
 
 
 def test_a_bus_off_error_frame_closes_the_link(wait_for) -> None:
