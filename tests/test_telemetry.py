@@ -7,6 +7,7 @@ ends."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 from busgate.codecs import zlac706_can as zcan
@@ -122,3 +123,25 @@ def test_publishing_checks_heartbeats_sends_events_and_a_state_per_device_with_n
     assert len(states) == 4, "no news, no events: nothing published"
     la1.rebooted("a test")
     assert telemetry.publish(1.7) == ["la1"] and events[-1].type == "rebooted"
+
+
+def test_a_flapping_fault_is_every_event_published_and_a_line_a_second_the_last_one_last(caplog):
+    la1 = InspireLaDriver("la1", 3)
+    telemetry, events, _ = telemetry_of(BusDevices([la1]), {})
+    with caplog.at_level(logging.INFO, logger="busgate.gateway.scheduler.telemetry"):
+        for n in range(20):  # a fault raised and cleared at 50 Hz, for 0.4 s
+            la1.emit("fault", faults=["stall"] if n % 2 == 0 else [])
+            telemetry.publish(n * 0.02)
+        lines = [r.getMessage() for r in caplog.records]
+        assert len(events) == 20 and lines == ["bus can0 device la1: fault (faults=['stall'])"]
+        la1.emit("rebooted")  # another kind: its own line at once
+        telemetry.publish(0.5)
+        assert caplog.records[-1].getMessage() == "bus can0 device la1: rebooted"
+        telemetry.publish(0.99)
+        assert len(caplog.records) == 2, "held back within the second"
+        telemetry.publish(1.0)  # the last held back, once its second is over
+        assert caplog.records[-1].getMessage() == ("bus can0 device la1: fault (faults=[]) "
+            "[18 more fault lines held back before this one]")
+        la1.emit("fault", faults=["stall"])
+        telemetry.publish(2.5)
+        assert caplog.records[-1].getMessage() == "bus can0 device la1: fault (faults=['stall'])"

@@ -22,11 +22,18 @@ Rules of this file:
 3. Every reading is published: when a look at the bus takes a device's next reading (a second
    heartbeat) before its state was published, that state is made first
    (``BusDevices.before_next_reading``).
+4. Every event is published; its log line, at most one a device and type every
+   ``EVENT_LOG_EVERY_S`` (a fault that flaps at the poll rate, a device that reboots again
+   and again, would fill the journal, whose rate limit then drops the service's other
+   lines). A line held back is written once its interval has passed, if no newer one of its
+   kind came, so the log's last word on a device is its last event; a line says how many it
+   held back before it.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -39,6 +46,8 @@ log = logging.getLogger(__name__)
 
 #: Telemetry older than this many poll periods is marked stale.
 STALE_PERIODS = 3
+#: The shortest time between two log lines of one device's events of one type (rule 4).
+EVENT_LOG_EVERY_S = 1.0
 
 #: What a device's state is made of, all but its age (rule 2): the bus-clock time of the
 #: reading (``last_reply``; ``None``: never read), ``online``, ``estopped``, ``stale``, and
@@ -71,6 +80,10 @@ class Telemetry:
         self._told: dict[str, Told] = {}
         #: The last ``publish`` sent events.
         self.had_events = False
+        #: Per (device, event type): when its last line was logged, and the line held back
+        #: since with how many were (rule 4).
+        self._logged_at: dict[tuple[str, str], float] = {}
+        self._held_back: dict[tuple[str, str], tuple[DeviceEvent, int]] = {}
         devices.before_next_reading = self._publish_reading
 
     def _publish_reading(self, driver: Driver) -> None:
@@ -86,13 +99,15 @@ class Telemetry:
         news = self.devices.take_news()
         rebooted = []
         self.had_events = False
+        if self._held_back:
+            self._log_held_back(moment)
         for name, driver in self.devices.drivers.items():
             driver.check_heartbeat(moment)
             events = driver.drain_events()
             if events:
                 self.had_events = True
             for event in events:
-                self._log(event)
+                self._log(event, moment)
                 self.on_event(event)
                 if event.type == "rebooted":
                     rebooted.append(name)
@@ -140,12 +155,32 @@ class Telemetry:
             read = self._read_at[driver.name] = (replied, time.time() - (moment - replied))
         return read[1]
 
-    def _log(self, event: DeviceEvent) -> None:
+    def _log(self, event: DeviceEvent, moment: float) -> None:
+        """``event``'s line, or held back (rule 4)."""
+        kind = (event.device, event.type)
+        _, held = self._held_back.pop(kind, (event, 0))
+        if moment - self._logged_at.get(kind, -math.inf) < EVENT_LOG_EVERY_S:
+            self._held_back[kind] = (event, held + 1)
+        else:
+            self._write_line(kind, event, held, moment)
+
+    def _log_held_back(self, moment: float) -> None:
+        for kind, (event, held) in list(self._held_back.items()):
+            if moment - self._logged_at[kind] >= EVENT_LOG_EVERY_S:
+                del self._held_back[kind]
+                self._write_line(kind, event, held - 1, moment)
+
+    def _write_line(
+        self, kind: tuple[str, str], event: DeviceEvent, held: int, moment: float
+    ) -> None:
+        """``event``'s line, saying how many of its kind were held back before it."""
+        self._logged_at[kind] = moment
         details = " ".join(f"{key}={value}" for key, value in event.fields.items())
         log.info(
-            "bus %s device %s: %s%s",
+            "bus %s device %s: %s%s%s",
             self.bus,
             event.device,
             event.type,
             f" ({details})" if details else "",
+            f" [{held} more {event.type} lines held back before this one]" if held else "",
         )
