@@ -267,9 +267,9 @@ def test_writes_the_table_allows():
 # --- expected replies ------------------------------------------------------------------------
 
 
-def status(device_id: int, wire_bytes: int) -> ds.ExpectedStatus:
+def status(device_id: int, wire_bytes: int, new_id: int | None = None) -> ds.ExpectedStatus:
     return ds.ExpectedStatus(source_id=device_id, wire_bytes=wire_bytes,
-                             kinds=(ds.StatusReply,), data_length=wire_bytes - 6)
+                             kinds=(ds.StatusReply,), data_length=wire_bytes - 6, new_id=new_id)
 
 
 @pytest.mark.parametrize(
@@ -280,7 +280,8 @@ def status(device_id: int, wire_bytes: int) -> ds.ExpectedStatus:
         (ds.Read(2, 0x00, 0x43), status(2, 6 + 0x43)),
         (ds.Write(3, 0x28, b"\x01"), status(3, 6)),
         (ds.RegWrite(1, 2000, 1000), status(1, 6)),
-        (ds.Reset(250), status(250, 6)),
+        (ds.Reset(250), status(250, 6, new_id=1)),  # the factory id
+        (ds.Write(3, 0x05, b"\x07"), status(3, 6, new_id=7)),
         (ds.Write(254, 0x05, b"\x01"), None),
         (ds.Reset(254), None),
         (ds.Action(), None),
@@ -301,6 +302,15 @@ def test_expected_reply_matches_its_servo_only_with_the_bytes_it_asked_for():
     assert not expected.matches(ds.StatusReply(1, ds.ServoStatus(0), b"\x07"))
     assert not ds.expected_reply(ds.Write(1, 0x28, b"\x01")).matches(
         ds.StatusReply(1, ds.ServoStatus(0), b"\x07\xff"))
+
+
+def test_a_new_id_is_answered_from_either_id_the_manual_does_not_say_which():
+    set_id = ds.expected_reply(ds.Write(3, 0x05, b"\x07"))
+    assert set_id.matches(ds.StatusReply(3, ds.ServoStatus(0)))
+    assert set_id.matches(ds.StatusReply(7, ds.ServoStatus(0)))
+    assert not set_id.matches(ds.StatusReply(5, ds.ServoStatus(0)))
+    assert ds.expected_reply(ds.Reset(3)).matches(ds.StatusReply(1, ds.ServoStatus(0)))
+    assert not ds.expected_reply(ds.Ping(3)).matches(ds.StatusReply(1, ds.ServoStatus(0)))
 
 
 # --- the control table -----------------------------------------------------------------------

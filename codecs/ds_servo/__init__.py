@@ -12,6 +12,7 @@ from busgate.codecs.ds_servo.encoder import (
     checksum,
     encode,
     expected_reply,
+    id_given,
     move_data,
 )
 from busgate.codecs.ds_servo.frames import (
@@ -86,6 +87,7 @@ __all__ = [
     "checksum",
     "encode",
     "expected_reply",
+    "id_given",
     "move_data",
     "readings",
     "values_from",

@@ -36,7 +36,7 @@ from busgate.codecs.ds_servo.frames import (
     SyncWrite,
     Write,
 )
-from busgate.codecs.ds_servo.registers import REGISTERS, check_read, check_write
+from busgate.codecs.ds_servo.registers import REGISTERS, check_read, check_write, values_from
 from busgate.codecs.errors import EncodeError
 from busgate.codecs.framing import ExpectedReply
 from busgate.codecs.registers import require_range
@@ -80,15 +80,19 @@ def encode(frame: Frame) -> bytes:
 class ExpectedStatus(ExpectedReply):
     """A status reply carrying ``data_length`` bytes: a READ's, the bytes read; any other
     command's, none. The wire does not say which command a status answers, so its length is
-    what tells a late answer to another command (a write's, empty) from a READ's own."""
+    what tells a late answer to another command (a write's, empty) from a READ's own.
+
+    A write of the id, and a factory reset, give the servo another id at once; the manual
+    does not say which one answers, so ``new_id`` is taken too (as an LA's is)."""
 
     data_length: int
+    new_id: int | None = None
 
     def matches(self, event: object) -> bool:
         """True when ``event`` is this command's status reply."""
         return (
             isinstance(event, self.kinds)
-            and getattr(event, "device_id", None) == self.source_id
+            and getattr(event, "device_id", None) in (self.source_id, self.new_id)
             and len(getattr(event, "data", b"")) == self.data_length
         )
 
@@ -114,7 +118,22 @@ def expected_reply(frame: Frame) -> ExpectedReply | None:
         wire_bytes=FRAME_OVERHEAD + data_bytes,
         kinds=(StatusReply,),
         data_length=data_bytes,
+        new_id=id_given(frame),
     )
+
+
+def id_given(frame: Frame) -> int | None:
+    """The id ``frame`` gives its servo: a write of the id register's, a reset's factory id
+    (manual 2.3.7: "all data"); ``None`` for any other frame.
+
+    >>> id_given(Write(device_id=3, address=0x05, data=b"\\x07")), id_given(Reset(device_id=3))
+    (7, 1)
+    """
+    if isinstance(frame, Reset):
+        return REGISTERS.default("servo_id")
+    if isinstance(frame, Write):
+        return values_from(frame.address, frame.data).get("servo_id")
+    return None
 
 
 def move_data(position_raw: int, time_ms: int) -> bytes:

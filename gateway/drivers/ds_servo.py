@@ -123,13 +123,10 @@ def frame_effect(frame: codec.Frame) -> Effect:
 def frame_id_changes(frame: codec.Frame) -> list[IdChange]:
     """The id ``frame`` gives the servo: a write of the id register (``set_id`` is one), or
     the factory id after a reset (manual 2.3.7: "all data")."""
-    if isinstance(frame, codec.Reset):
-        return [IdChange(frame.device_id, codec.REGISTERS.default("servo_id"))]
-    if isinstance(frame, codec.Write):
-        new_id = codec.values_from(frame.address, frame.data).get("servo_id")
-        if new_id is not None:
-            return [IdChange(frame.device_id, new_id)]
-    return []
+    new_id = codec.id_given(frame)
+    if new_id is None:
+        return []
+    return [IdChange(frame.device_id, new_id)]  # type: ignore[union-attr]  # a Write, a Reset
 
 
 def _torque_written(frame: object) -> int | None:
