@@ -16,7 +16,7 @@ import enum
 from typing import Final
 
 from busgate.codecs.registers import Access, Reading, Register, RegisterMap
-from busgate.codecs.zlac706_can.frames import WriteAck
+from busgate.codecs.zlac706_can.frames import Write, WriteAck
 from busgate.codecs.zlac706_common import (
     GAIN_MAX,
     GAIN_MIN,
@@ -199,10 +199,10 @@ REGISTERS: Final = RegisterMap(
 
 
 def readings(reply: object) -> list[Reading]:
-    """The register and value a reply carries, named and in the register's unit.
+    """The register and value a frame carries, named and in the register's unit.
 
-    The protocol has no read: the frames that carry a register and its value are the echoes
-    of a write (``FB``, ``DB``). "No such register" (``FF``, ``DF``) names none, heartbeats
+    The protocol has no read: the frames that carry a register and its value are a write and
+    its echo (``FB``, ``DB``). "No such register" (``FF``, ``DF``) names none, heartbeats
     and alarm reports carry their values under their own names, and a register outside the
     table stays a number: ``[]``.
 
@@ -212,7 +212,9 @@ def readings(reply: object) -> list[Reading]:
     >>> decoder.feed(CanFrame.parse("00a#00fb001100000555"))  # 8.1.2 step 4: 500 rpm
     >>> readings(next(decoder.events()))
     [Reading(register='target_speed', address=17, raw=1365, value=499.877929688, unit='rpm')]
+    >>> readings(Write(1, CanRegister.TARGET_SPEED, -2730))  # 8.1.2: −1000 rpm, truncated
+    [Reading(register='target_speed', address=17, raw=-2730, value=-999.755859375, unit='rpm')]
     """
-    if not isinstance(reply, WriteAck):
+    if not isinstance(reply, WriteAck | Write):
         return []
     return REGISTERS.reading_at(reply.register, reply.value)

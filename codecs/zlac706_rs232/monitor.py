@@ -20,7 +20,7 @@ from busgate.codecs.zlac706_common import (
     amps_from_current_raw,
     rpm_from_speed_raw,
 )
-from busgate.codecs.zlac706_rs232.frames import MONITOR_FIELDS, PositionWord
+from busgate.codecs.zlac706_rs232.frames import MONITOR_FIELDS, PositionWord, Write
 from busgate.codecs.zlac706_rs232.registers import REGISTERS, MonitorItem, join_position
 
 
@@ -79,7 +79,8 @@ def assemble_monitor(frames: Iterable[object]) -> MonitorReply:
 
 
 def readings(reply: object) -> list[Reading]:
-    """The monitor item a reply frame carries, named and in its unit.
+    """The monitor item a reply frame carries, or the register a write sets, named and in
+    its unit.
 
     Each monitor frame starts with its item's address. An ``Ack`` names the register written
     but carries no value, and names nothing here: ``[]``.
@@ -87,7 +88,9 @@ def readings(reply: object) -> list[Reading]:
     >>> readings(PositionWord(MonitorItem.FEEDBACK_POSITION_LOW, 10000))  # 8.2.2 example
     [Reading(register='feedback_position_low', address=233, raw=10000, value=10000, unit='pulses')]
     """
-    if isinstance(reply, PositionWord):
+    if isinstance(reply, Write):
+        item, raw = reply.register, reply.value
+    elif isinstance(reply, PositionWord):
         item, raw = reply.item, reply.value
     elif type(reply) in MONITOR_FIELDS:
         item, name = MONITOR_FIELDS[type(reply)]

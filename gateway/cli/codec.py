@@ -3,8 +3,9 @@
 encode: JSON command → schema model → driver frames → wire, one frame per line (lowercase
 hex, CAN frames as ``id#data`` like cansend). decode: wire → one JSON object per frame or
 event; exit status 1 when anything failed its checksum, was discarded or was left incomplete.
-A reply that carries registers' values (the codec's ``readings``) also lists them under
-``"registers"``: name, address, raw value, value in the unit the register table states.
+A frame that carries registers' values (the codec's ``readings``: a read's reply, a ZLAC706
+write and its echo) also lists them under ``"registers"``: name, address, raw value, value
+in the unit the register table states.
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ def run_decode(args: argparse.Namespace) -> int:
     for event in events:
         decoded = to_jsonable(event)
         readings = protocol.codec.readings(event)
-        if readings:  # only where a reply names its registers; every other key is kept
+        if readings:  # only where a frame names its registers; every other key is kept
             decoded["registers"] = to_jsonable(readings)
         print(json.dumps(decoded))
     problems = [_describe_problem(e) for e in events if isinstance(e, Discarded | ChecksumMismatch)]
