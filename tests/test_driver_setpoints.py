@@ -48,8 +48,6 @@ def position(device_id: int, value: float | None) -> Setpoint:
             [position(3, 5), position(9, 7)],
         ),
         ('{"op":"write","index":55,"data":"1405"}', [position(3, 1300)]),  # manual 3.5.2
-        ('{"op":"write","index":55,"data":"14"}', [position(3, None)]),  # its low byte alone
-        ('{"op":"write","index":56,"data":"05"}', [position(3, None)]),  # its high byte alone
     ],
 )
 def test_la_targets_are_position_setpoints(text: str, expected: list[Setpoint]) -> None:

@@ -111,7 +111,7 @@ def ramp_of(written: list[float]) -> list[float]:
     ("la1", {"op": "move", "position": 100}, "beyond its min 0.001 m"),
     ("la1", {"op": "follow", "position": 1999}, "beyond its max"),
     ("la1", {"op": "write", "index": 55, "data": "a406"}, "position 0.0085 m"),  # 1700
-    ("la1", {"op": "write", "index": 55, "data": "06"}, "cannot know"),
+    ("la1", {"op": "write", "index": 55, "data": "06"}, "target_position is 2 bytes at 55"),
     ("la1", {"op": "group_move", "targets": [{"id": 2, "position": 5}, {"id": 1, "position": 5}]},
      "joint gripper_left"),
     ("la1", {"op": "joint", "position": 0.0081}, "position 0.0081 m is beyond its max 0.008 m"),

@@ -1151,7 +1151,8 @@ def test_a_line_that_takes_nothing_fails_the_write_after_its_timeout(device):
         fill(owner)
         with pytest.raises(BusIOError) as lost:
             finished(lambda: owner.exchange(NO_REPLY))
-        assert str(lost.value) == f"{device.port}: Write timeout"
+        assert str(lost.value) == (
+            f"{device.port}: write timeout: the port took no more bytes for 0.5 s")
         assert not owner.is_open
     finally:
         owner.close()
