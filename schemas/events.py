@@ -32,11 +32,17 @@ class OnlineEvent(Event):
 
 #: An ``offline`` event's reason when the device's bus went down (its port or interface lost).
 BUS_DOWN_REASON = "bus down"
+#: How an ``offline`` event's reason begins when the worker process running the device's bus
+#: ended (killed, crashed, hung); how it ended follows in brackets.
+WORKER_ENDED_REASON = "its worker ended"
 
 
 class OfflineEvent(Event):
     type: Literal["offline"]
-    reason: str = Field(description=f"Why: no reply, {BUS_DOWN_REASON!r}, heartbeats stopped …")
+    reason: str = Field(
+        description=f"Why: no reply, {BUS_DOWN_REASON!r}, heartbeats stopped, "
+        f"{WORKER_ENDED_REASON!r} (how) …"
+    )
 
 
 class FaultEvent(Event):

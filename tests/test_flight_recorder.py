@@ -26,7 +26,7 @@ from busgate.gateway.recording import flight, incident_file
 from busgate.gateway.recording.flight import FlightRecorder, Trigger, folder_problem, trigger_of
 from busgate.gateway.recording.ring import CHUNK, Ring
 from busgate.schemas.config import RecorderSection
-from busgate.schemas.events import BUS_DOWN_REASON
+from busgate.schemas.events import BUS_DOWN_REASON, WORKER_ENDED_REASON
 from tests.conftest import may_run_realtime
 from tests.test_schema_export import assert_valid, inspire_la_state
 
@@ -135,6 +135,8 @@ BUS_OF = {"la1": "uart0", "wheel": "can0"}
         ({"type": "fault", "device": "la1", "faults": ["overheat"], "raised": ["overheat"],
           "cleared": []}, "fault-la1"),
         ({"type": "offline", "device": "wheel", "reason": BUS_DOWN_REASON}, "bus-down-can0"),
+        ({"type": "offline", "device": "la1", "reason": f"{WORKER_ENDED_REASON} (killed by "
+          "SIGKILL)"}, "worker-ended-uart0"),
     ],
 )
 def test_these_events_trigger_an_incident(event, slug) -> None:

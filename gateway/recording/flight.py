@@ -48,7 +48,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import Tap
 from busgate.gateway.recording.ring import Ring
 from busgate.schemas.config import RecorderSection
-from busgate.schemas.events import BUS_DOWN_REASON
+from busgate.schemas.events import BUS_DOWN_REASON, WORKER_ENDED_REASON
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ class Trigger:
 
 def trigger_of(event: dict[str, Any], bus_of: dict[str, str]) -> Trigger | None:
     """The trigger an event is (an e-stop, a fault raised, a device offline because its bus
-    went down), or ``None``."""
+    went down or its bus's worker ended), or ``None``."""
     kind, device = event.get("type"), str(event.get("device"))
     if kind == "estop":
         sender = event.get("client")
@@ -93,6 +93,9 @@ def trigger_of(event: dict[str, Any], bus_of: dict[str, str]) -> Trigger | None:
     if kind == "offline" and event.get("reason") == BUS_DOWN_REASON:
         bus = bus_of.get(device, device)
         return Trigger(f"bus-down-{bus}", f"bus {bus} down")
+    if kind == "offline" and str(event.get("reason")).startswith(WORKER_ENDED_REASON):
+        bus = bus_of.get(device, device)
+        return Trigger(f"worker-ended-{bus}", f"the worker of bus {bus} ended")
     return None
 
 

@@ -48,6 +48,7 @@ from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.cores import usable_cores
 from busgate.schemas.config import Config
+from busgate.schemas.events import WORKER_ENDED_REASON
 
 log = logging.getLogger(__name__)
 
@@ -429,7 +430,7 @@ class WorkerProcess:
             return
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
-            runner.worker_ended(f"its worker ended ({how})")
+            runner.worker_ended(f"{WORKER_ENDED_REASON} ({how})")
 
 
 class WorkerRunner:
