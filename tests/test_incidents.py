@@ -194,3 +194,6 @@ def test_its_wire_is_drawn_bus_by_bus_around_the_estop(estopped, tmp_path) -> No
                 and body["dir"] == "tx" and start_ns <= t <= end_ns]
         assert len([r for r in lane.iter(f"{SVG}rect") if r.get("class") == "tx"]) == len(sent)
     assert len([line for line in root.iter(f"{SVG}line") if line.get("class") == "estop"]) == 1
+    stops = [t for topic, _, t, body in messages if topic == "busgate/demo/bus/uart0/frames"
+             and body["dir"] == "tx" and body["wire"][8:14] == "040023"]  # an LA's e-stop
+    assert stops and min(stops) >= estop_ns, "the e-stop is dated when it came, before its frames"

@@ -39,6 +39,7 @@ from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.base.bases import Bases
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner
@@ -94,9 +95,12 @@ class ZenohBridge:
         #: Called with every message published: key, body, and the bytes sent (the flight
         #: recorder's ring); on the loop's thread.
         self.on_published: Callable[[str, dict[str, Any], bytes], None] | None = None
-        #: Called with every command (key, payload) and its reply (``None`` for what gets none:
-        #: an e-stop, a follow target taken); on the thread that has the reply.
-        self.on_command: Callable[[str, bytes, dict[str, Any] | None], None] | None = None
+        #: Called with every command (key, payload), its reply (``None`` for what gets none:
+        #: an e-stop, a follow target taken) and when it came (``None``: now; an e-stop's
+        #: frames may go before it is told); on the thread that has the reply.
+        self.on_command: (
+            Callable[[str, bytes, dict[str, Any] | None, float | None], None] | None
+        ) = None
         #: Called with every joints message published (the ROS face's joint states); on the
         #: loop's thread.
         self.on_joints: Callable[[dict[str, Any]], None] | None = None
@@ -321,11 +325,12 @@ class ZenohBridge:
         self._report_put(device, key, payload, refused)
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
+        came = now()  # when it came, for the recorder: its frames may go before it is told
         stopped = self.api.stop_every_bus()  # first: the payload only names its sender
         payload = sample.payload.to_bytes()
         self._told_estop(stopped, _sender(payload), str(sample.key_expr))
         if self.on_command is not None:
-            self.on_command(str(sample.key_expr), payload, None)
+            self.on_command(str(sample.key_expr), payload, None, came)
 
     def estop(self, sender: str | None, key: str) -> list[Future]:
         """Every device of the gateway stopped, ahead of everything, told as an ``estop``
@@ -366,7 +371,7 @@ class ZenohBridge:
             return
         self.estop_reset(_sender(payload))
         if self.on_command is not None:
-            self.on_command(str(sample.key_expr), payload, None)
+            self.on_command(str(sample.key_expr), payload, None, None)
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
@@ -408,7 +413,7 @@ class ZenohBridge:
                 query.drop()
                 self.on_latency(time.perf_counter() - asked)
                 if payload is not None and self.on_command is not None:
-                    self.on_command(key, payload, reply)
+                    self.on_command(key, payload, reply, None)
 
         try:
             result = handle()
@@ -445,7 +450,7 @@ class ZenohBridge:
         if reply is not None and not reply.get("ok"):
             self.put_reports.refused(device, reply["error"])
         if self.on_command is not None:
-            self.on_command(key, payload, reply)
+            self.on_command(key, payload, reply, None)
 
     def call_soon(self, function, *args: Any) -> None:
         """``function(*args)`` on the loop's thread, from any thread (rule 1's hand-over)."""

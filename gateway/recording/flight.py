@@ -167,9 +167,14 @@ class FlightRecorder:
             if trigger is not None:
                 self.trigger(trigger)
 
-    def on_command(self, key: str, payload: bytes, reply: dict[str, Any] | None) -> None:
-        """A command and its reply (``None``: taken, with nothing to answer)."""
-        self.commands.append((now(), sys.intern(key), payload, _code(reply)))
+    def on_command(
+        self, key: str, payload: bytes, reply: dict[str, Any] | None, came: float | None = None
+    ) -> None:
+        """A command and its reply (``None``: taken, with nothing to answer), dated when it
+        came (``None``: now; an e-stop is told after its frames may have gone)."""
+        self.commands.append(
+            (now() if came is None else came, sys.intern(key), payload, _code(reply))
+        )
 
     def trigger(self, trigger: Trigger) -> None:
         """Ask for an incident file (any thread)."""
