@@ -118,6 +118,25 @@ def test_an_unplugged_adapter_raises_bus_io_error(wait_for, simulator) -> None:
     assert not owner.is_open
 
 
+def test_a_group_move_sent_through_one_actuator_switches_on_the_other_it_moves(
+    wait_for, simulator
+) -> None:
+    """Manual 3.5.4: a paused actuator is switched on by a new target, a group's too. Sent
+    through la2's command, the F2 frame moved la1, whose state still said paused."""
+    runner = build_bus(bus(simulator.port)).start()
+    try:
+        wait_for(lambda: all(d.online for d in runner.drivers.values()))
+        la1, la2 = runner.drivers["la1"], runner.drivers["la2"]
+        runner.submit("la1", la1.parse('{"op":"pause"}')).result(10)
+        assert la1.power.value == "paused"
+        group = '{"op":"group_move","targets":[{"id":1,"position":700},{"id":2,"position":800}]}'
+        runner.submit("la2", la2.parse(group)).result(10)
+        assert la1.power.value == "on" and la2.power.value == "on"
+        wait_for(lambda: runner.states["la1"]["target"] == 700)  # it did move la1, as read
+    finally:
+        runner.stop()
+
+
 def test_runner_carries_out_commands_and_polls(wait_for, simulator) -> None:
     runner = build_bus(bus(simulator.port)).start()
     try:

@@ -99,6 +99,24 @@ def test_a_bus_group_move_needs_the_claim_of_every_device_it_moves(gateway, bus,
     assert ask_bus(api, bus, {"op": "group_move", "client": "B", "targets": targets})["ok"]
 
 
+def test_a_group_frame_sent_through_one_device_tells_every_device_it_moves(gateway):
+    """An ACTION starts every servo's stored move, a SYNC WRITE and an LA group move target
+    others than the device whose command sent them: each of those knows it, where only the
+    sender did (arm2's stored move stayed pending for ever; a paused la1, moved, said paused)."""
+    api, _, _ = gateway
+    accepted(api, "arm1", {"op": "move", "position": 1111, "deferred": True})
+    accepted(api, "arm2", {"op": "move", "position": 2222, "deferred": True})
+    accepted(api, "arm1", {"op": "action"})
+    state = accepted(api, "arm2", {"op": "ping"})["state"]
+    assert (state["pending_target"], state["target"]) == (None, 2222)
+    accepted(api, "arm1", {"op": "group_move", "targets": [{"id": 1, "position": 1300},
+                                                           {"id": 2, "position": 3300}]})
+    assert accepted(api, "arm2", {"op": "ping"})["state"]["target"] == 3300
+    accepted(api, "la1", {"op": "pause"})
+    accepted(api, "la3", {"op": "group_move", "targets": [{"id": 1, "position": 900}]})
+    assert accepted(api, "la1", {"op": "status"})["state"]["power"] == "on"
+
+
 def test_a_frame_to_an_id_no_device_is_configured_with_is_refused(gateway):
     api, la_sim, _ = gateway
     refused = ask(api, "la1", {"op": "group_move", "targets": [{"id": 9, "position": 1}]})

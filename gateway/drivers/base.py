@@ -282,6 +282,11 @@ class Driver(abc.ABC):
         """The latch cleared, the motor left undriven: a new command may drive it."""
         self.estop_latched = False
 
+    def moved_by(self, frame: object) -> None:  # noqa: B027 - optional hook
+        """``frame``, sent by another device's command (a group or broadcast frame), went out
+        and moves this device too: what it does to the state nobody's answer will tell. By
+        default nothing (the device's next reading tells)."""
+
     def position_to_hold(self, raw: float | None) -> int | None:
         """``raw``, the position read last, as the target ``hold_still`` may give: ``None``
         when none was read, or when it lies beyond the joint's limits (a reading that cannot

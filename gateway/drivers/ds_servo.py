@@ -411,6 +411,12 @@ class DsServoDriver(Driver):
             if target.device_id == self.device_id:
                 self.target = target.position_raw
 
+    def moved_by(self, frame: object) -> None:
+        """An ACTION starts this servo's stored move, a SYNC WRITE gives it its target, sent
+        through another servo's command as through its own (nobody answers either)."""
+        if isinstance(frame, codec.Action | codec.SyncWrite):
+            _APPLY[type(frame)](self, frame, None)
+
     def _applied_reset(self, frame: codec.Reset, answer: object) -> None:
         """Factory settings for "all data" (manual 2.3.7), the id included: the servo now
         answers at the factory id, and what was commanded is gone."""

@@ -199,6 +199,11 @@ class InspireLaDriver(Driver):
     def stay_off(self) -> None:
         self.power = PowerStage.PAUSED  # off, and a new target switches it on
 
+    def moved_by(self, frame: object) -> None:
+        """A group target switches it on, paused or off (manual 3.5.4), as its own does."""
+        if self.power is not PowerStage.ESTOPPED:  # the authority let no motion reach it
+            self.power = PowerStage.ON
+
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""
         return self.follow_payload(payload).position

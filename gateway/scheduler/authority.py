@@ -165,6 +165,15 @@ class Authority:
                     if driver.estopped:
                         raise driver.estopped_error()
 
+    def moved(self, effects: Iterable[tuple[Addressed, Effect]]) -> list[Driver]:
+        """The devices frames with these effects move (checked by ``check`` before)."""
+        return [
+            driver
+            for ids, effect in effects
+            if effect is Effect.MOTION
+            for driver in self._devices(ids, effect)
+        ]
+
     def check_limits(self, setpoints: Iterable[Setpoint]) -> None:
         """Refuse (``out_of_range``) what sets a device beyond its joint's limits (rule 5)."""
         by_id = self._by_id()

@@ -24,7 +24,7 @@ from busgate.gateway.bus.clock import now, sleep_until
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Exchange, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import EVERY, Driver, Effect
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
@@ -135,6 +135,24 @@ class Execution:
                 continue
             if isinstance(slot.source, Job) and result:
                 slot.source.replies.append(result)
+        if isinstance(slot.source, Job) and slot.source.also_moves:
+            for other in self._also_moved(slot.source, slot.request):
+                self.devices.touched(other)
+                other.moved_by(slot.request.frame)
+
+    def _also_moved(self, job: Job, request: Request) -> list[Driver]:
+        """The other devices ``request``'s frame moves, of those its job's frames move (a
+        group frame sent through one device's command: none of them answers it)."""
+        drivers = self.devices.drivers
+        sender, frame = drivers[job.device], request.frame
+        if sender.effect(frame) is not Effect.MOTION:
+            return []
+        ids = sender.addressed(frame)
+        return [
+            drivers[name]
+            for name in job.also_moves
+            if ids is EVERY or drivers[name].device_id in ids
+        ]
 
     def _unanswered(self, slot: Slot, end: float) -> None:
         driver = self._driver_for(slot)

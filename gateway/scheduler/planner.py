@@ -65,6 +65,9 @@ class Job:
     error: BaseException | None = None
     attempts: int = 0
     keep_going: bool = False
+    #: The other devices its frames move (a group or broadcast frame sent through this one's
+    #: command): each is told once such a frame went (``Driver.moved_by``).
+    also_moves: tuple[str, ...] = ()
     #: When a list, the runner records ``(request, reply events or None)`` per request.
     outcomes: list | None = None
     #: Who waits for the outcome (a client's command, a scan, an e-stop); a poll has no one.

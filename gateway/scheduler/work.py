@@ -82,9 +82,8 @@ class BusWork:
             if driver is None:
                 raise CommandError(f"no device {device!r} on bus {self.name}")
             frames = driver.frames_of(command)  # built once: judged, then planned
-            self.authority.check(
-                driver.effects_of(frames), client, require_claim=command.require_claim
-            )
+            effects = driver.effects_of(frames)
+            self.authority.check(effects, client, require_claim=command.require_claim)
             self.authority.check_limits(driver.setpoints(frames))
             self.authority.check_ids(driver.id_changes(frames))
             ramp = self._speed_ramp(driver, command)
@@ -93,6 +92,7 @@ class BusWork:
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
+            also = {other.name for other in self.authority.moved(effects) if other is not driver}
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
             return
@@ -100,7 +100,9 @@ class BusWork:
             log.exception("bus %s: planning %r for %s failed", self.name, command, device)
             outcomes.settle(future, error=exc)
             return
-        self.queue_job(Job(device, deque(requests), start_by=start_by, future=future))
+        self.queue_job(
+            Job(device, deque(requests), start_by=start_by, future=future, also_moves=tuple(also))
+        )
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
