@@ -13,6 +13,9 @@ thread only. Rules:
    not held: a probe's answer names its id).
 3. A lost link (``BusIOError``) is the caller's: nothing of the slot has been recorded then.
    Only the last words of a bus that stops (``last_words``) are sent whatever fails.
+4. A frame of a device's command that moves other devices (a group frame) is told to each
+   of them once it went (``Driver.moved_by``); the answer, if any, is the sender's alone.
+   A device that answered "not done" (``DeviceRefusedError``) fails its job with it.
 """
 
 from __future__ import annotations
