@@ -145,3 +145,10 @@ def test_more_frames_than_a_picture_draws_are_refused(tmp_path, monkeypatch) -> 
     write_incident(path, [frame(T0 + n * 1e-3, "u", "tx") for n in range(4)])
     with path.open("rb") as stream, pytest.raises(ValueError, match="more than 3 frames in 10 ms"):
         timeline.window_of(stream, 0.010)
+
+
+def test_a_file_that_is_no_recording_is_refused_saying_why(capsys) -> None:
+    assert main(["record", "--timeline", "/dev/null"]) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("busgate record: error: /dev/null is not a complete MCAP file: ")
+    assert not line.endswith(":"), "the reader's error said nothing: its kind is said"

@@ -278,7 +278,8 @@ def _summary(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise CommandError(f"cannot read {path}: {exc.strerror}") from None
     except Exception as exc:  # the mcap reader's errors have no common base
-        raise CommandError(f"{path} is not a complete MCAP file: {exc}") from None
+        why = str(exc) or type(exc).__name__  # some say nothing
+        raise CommandError(f"{path} is not a complete MCAP file: {why}") from None
 
 
 def _print_info(path: Path) -> int:
