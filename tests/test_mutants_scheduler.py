@@ -287,6 +287,19 @@ def test_a_ticker_that_went_idle_restarts_at_once_and_the_pause_is_not_an_interv
     assert abs(stats.follow_error_p50_s) < 1e-9
 
 
+def test_a_stream_begun_right_after_one_ended_waits_a_period_from_the_last_tick() -> None:
+    """``end_follow`` just after a tick, a new stream at once: its first tick is a period
+    after the last one, never sooner (no interval under the period, whatever the streams)."""
+    follow = FollowTicker(Follower, 0.010, BusCounters(0.0), on_stale=lambda driver: None)
+    driver = Follower("la1", 1)
+    follow.update(driver, 5, 0.0)
+    follow.build(0.0)
+    follow.sent(0.0)
+    follow.stop("la1")
+    follow.update(driver, 6, 0.002)
+    assert follow.next_due() == pytest.approx(0.010)
+
+
 @pytest.mark.parametrize("ending", ["stopped", "reached"])
 def test_a_stream_ended_then_another_is_a_pause_not_an_interval(ending) -> None:
     """An ``end_follow`` (``stop``) or a ramp's end, then a new stream seconds later: the

@@ -159,8 +159,7 @@ class FollowTicker:
             if not stream.ends_on_target and now - stream.latest[1] > self.fresh_s:
                 del self.streams[name]
                 self.on_stale(stream.driver)
-        if not self.streams:
-            self._due = None
+        if not self.streams:  # idle: the next ``update`` starts it anew
             return None
         targets: list[tuple[Driver, float]] = []
         for name, stream in list(self.streams.items()):

@@ -97,7 +97,7 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
     "bus": (
         "gateway",
         ["gateway/bus/serial_owner.py", "gateway/bus/can_owner.py", "gateway/bus/request.py",
-         "gateway/bus/owner.py"],
+         "gateway/bus/owner.py", "gateway/bus/tty_write.py"],
         ["tests/test_bus_owner_edges.py", "tests/test_line_edges.py", "tests/test_idle_work.py",
          "tests/test_socketcan_owner.py", "tests/test_mutants_bus.py"],
     ),
