@@ -514,6 +514,26 @@ def test_a_look_asks_the_descriptor_first_only_where_a_look_could_wait(
         os.close(write_end)
 
 
+def test_a_look_at_a_quiet_bus_asks_it_once(channel, node):
+    """A look with nothing there (a bus whose looks never wait: python-can's ``virtual``)
+    ends at the first empty answer, and one that finds frames takes them, then asks once
+    more: it does not ask again up to its bound of frames (``LOOK_FRAMES_MAX``)."""
+    owner = open_can("virtual", channel)
+    asked: list = []
+    take = owner._take
+    owner._take = lambda timeout: asked.append(timeout) or take(timeout)
+    try:
+        finished(owner.take_unsolicited)
+        assert asked == [0]
+        node.send(HEARTBEAT)
+        node.send(HEARTBEAT)
+        asked.clear()
+        finished(owner.take_unsolicited)
+        assert asked == [0, 0, 0]
+    finally:
+        owner.close()
+
+
 class DrainedBus(DescriptorBus):
     """The descriptor bus as a serial adapter's is: readable while a frame waits (a byte in
     ``PIPE`` a frame), each frame's byte read off it by the ``recv`` that takes the frame."""

@@ -38,6 +38,8 @@ from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.bus.tty_write import write_all
 
+#: How long a write may wait for the port to take its bytes (a wedged adapter) before the
+#: link counts as lost.
 WRITE_TIMEOUT_S = 0.5
 #: Longest a write waits for a line that keeps talking (noise) to fall quiet for the gap.
 QUIET_WAIT_MAX_S = 0.05
@@ -71,7 +73,6 @@ class SerialBusOwner(BusOwner):
                 self.port,
                 self.timing.rate,
                 timeout=0,
-                write_timeout=WRITE_TIMEOUT_S,
                 exclusive=True,
             )
         except (serial.SerialException, OSError, ValueError) as exc:
