@@ -138,3 +138,15 @@ def test_a_reset_holds_only_a_position_within_the_joints_limits(read, held) -> N
     else:
         move, torque = requests
         assert move.frame.data[:2] == held.to_bytes(2, "big") and torque.frame.data == b"\x01"
+
+
+def test_an_action_or_sync_write_another_sent_is_its_own_too() -> None:
+    servo = driver(2)
+    [stored] = plan(servo, '{"op":"move","position":2222,"deferred":true}')
+    answer(servo, stored)
+    servo.moved_by(ds.Ping(1))  # no move: nothing
+    assert (servo.pending_target, servo.target) == (2222, None)
+    servo.moved_by(ds.Action())
+    assert (servo.pending_target, servo.target) == (None, 2222)
+    servo.moved_by(ds.SyncWrite((ds.SyncTarget(1, 100, 0), ds.SyncTarget(2, 3300, 0))))
+    assert servo.target == 3300

@@ -109,3 +109,14 @@ def test_the_ids_an_actuators_frames_give_it(text, given) -> None:
     """What the authority refuses when another actuator of the bus has that id."""
     rod = driver(3)
     assert rod.id_changes(rod.frames_of(rod.parse(text))) == given
+
+
+def test_a_group_frame_another_sent_switches_it_on_unless_estopped() -> None:
+    actuator = driver()
+    plan(actuator, '{"op":"pause"}')
+    group = la.GroupMoveCommand((la.Target(3, 900),))
+    actuator.moved_by(group)
+    assert actuator.power.value == "on"
+    actuator.safe_stop()
+    actuator.moved_by(group)  # the authority lets none reach it: nothing said otherwise
+    assert actuator.power.value == "estopped"

@@ -191,7 +191,8 @@ def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> No
     with pytest.raises(DeviceRefusedError) as refused:
         driver.apply(request, (can_codec.NoSuchRegister(1, 0x14, 7),), 1.0)
     assert str(refused.value) == "node 1 has no register 0x14: the write was not taken"
-    assert (refused.value.code, refused.value.device) == ("device_refused", "w")
+    assert (refused.value.code, refused.value.device, refused.value.device_id) == (
+        "device_refused", "w", 1)
     (event,) = driver.drain_events()
     assert (event.type, event.fields) == ("rejected", {"register": 0x14,
                                                        "reason": "no such register"})
