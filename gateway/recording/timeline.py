@@ -12,8 +12,8 @@ Rules of this file:
 1. The file is a peer's word: a frame message that is not the recorder's shape is left out
    and counted, never an exception; at most ``MAX_FRAMES`` frames are drawn (a longer
    window is refused, asking for a shorter one), so no file makes a picture without end.
-2. Pure: frames in, SVG text out. Reading the file is ``window_of``'s, the command line's
-   is ``cli.record``'s.
+2. Drawing is pure (``svg``: a window in, SVG text out); reading the file is
+   ``window_of``'s, the command line ``cli.record``'s.
 3. The figures beside each lane are the host's: the smallest time from a frame received to
    the next one sent (the line's idle gap as the host saw it) and the median time between
    two frames sent.
