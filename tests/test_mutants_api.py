@@ -122,6 +122,14 @@ def test_stops_and_reads_pass_another_clients_claim_and_settings_do_not():
         assert refused.value.code == "claimed"
 
 
+def test_the_devices_a_frame_moves_are_those_its_motion_names():
+    authority = authority_of_two()
+    names = [d.name for d in authority.moved([(frozenset({2}), Effect.MOTION),
+                                              (frozenset({1}), Effect.SETTING)])]
+    assert names == ["la2"]
+    assert [d.name for d in authority.moved([(None, Effect.MOTION)])] == ["la1", "la2"]
+
+
 def test_a_free_device_needs_no_claim_unless_one_is_required_and_says_so():
     authority = authority_of_two()
     authority.check([(frozenset({2}), Effect.MOTION)], "bob")  # la2 is free

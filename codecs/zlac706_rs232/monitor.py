@@ -87,6 +87,8 @@ def readings(reply: object) -> list[Reading]:
 
     >>> readings(PositionWord(MonitorItem.FEEDBACK_POSITION_LOW, 10000))  # 8.2.2 example
     [Reading(register='feedback_position_low', address=233, raw=10000, value=10000, unit='pulses')]
+    >>> readings(Write(0x06, 273))  # 8.2.2: 100 rpm, truncated
+    [Reading(register='speed', address=6, raw=273, value=99.975585938, unit='rpm')]
     """
     if isinstance(reply, Write):
         item, raw = reply.register, reply.value
