@@ -69,6 +69,10 @@ class Reconnect:
                 self._attempts,
                 exc,
             )
+        return self._next_wait()
+
+    def _next_wait(self) -> float:
+        """The wait before the next attempt, the one after it doubled (rule 1)."""
         wait, self._backoff = self._backoff, min(self._backoff * 2, BACKOFF_MAX_S)
         return wait
 
@@ -89,8 +93,7 @@ class Reconnect:
             self.retry_at = -math.inf
             return True
         self.quick_losses += 1
-        self.retry_at = moment + self._backoff
-        self._backoff = min(self._backoff * 2, BACKOFF_MAX_S)
+        self.retry_at = moment + self._next_wait()
         if self.quick_losses == 1:
             self._losses_reported = moment
             return True

@@ -454,15 +454,14 @@ class BusRunner:
             if reconnect.quick_losses:
                 reconnect.still_up(now())
             return True
-        held_back = reconnect.retry_at - now()  # lost soon after it opened: not at once
-        if held_back > 0:
-            self._stop.wait(held_back)
-            self._drain_inbox()
-            return False
-        try:
-            self.owner.open()
-        except BusUnavailableError as exc:
-            self._stop.wait(reconnect.failed(exc, now()))
+        wait = reconnect.retry_at - now()  # lost soon after it opened: not at once
+        if wait <= 0:
+            try:
+                self.owner.open()
+            except BusUnavailableError as exc:
+                wait = reconnect.failed(exc, now())
+        if not self.owner.is_open:
+            self._stop.wait(wait)
             self._drain_inbox()
             return False
         if not reconnect.quick_losses:  # else one of many: summed up (link rule 3)
