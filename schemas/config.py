@@ -221,6 +221,8 @@ class Config(Section):
         _require_distinct_joint_names(self.buses)
         _require_own_device_files(self.buses)
         _check_bases(self.bases, self.buses)
+        if self.ros2 is not None:
+            self.ros2.require_distinct_names(self.gateway.name, [b.name for b in self.bases])
         return self
 
 

@@ -14,6 +14,11 @@ Rules of this file:
 4. A base (``[[bases]]``) takes ``cmd_vel`` and publishes ``odom`` and the ``tf`` transform
    ``odom_frame`` → ``base_frame``. With several bases, each one's relative names are under
    its name (``<base>/cmd_vel``) and its frames prefixed (``<base>/odom``): ``topic_of``.
+5. No two keys of the table come to one name once resolved (``require_distinct_names``, with
+   the gateway's name and its bases): two services on one name would both run on each call
+   (an e-stop call resetting the e-stop too), and a subscription on a publisher's topic would
+   take the gateway's own joint states for commands. The bases' topics of one key may share
+   an absolute name (every base's transforms on ``/tf``).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from busgate.codecs.ros2.rmw_zenoh import (
     name_problem,
     namespace_problem,
     node_name_problem,
+    resolve,
 )
 from busgate.schemas.base import ClientId
 
@@ -46,6 +52,8 @@ TOPIC_DEFAULTS: dict[str, str] = {
     "odom": "odom",
     "tf": "/tf",
 }
+#: The keys of ``TOPIC_DEFAULTS`` that are each base's.
+BASE_TOPICS = ("cmd_vel", "odom", "tf")
 
 
 class Ros2Section(BaseModel):
@@ -93,6 +101,24 @@ class Ros2Section(BaseModel):
         single base."""
         name = getattr(self, key)
         return name if bases == 1 or name.startswith(("/", "~")) else f"{base}/{name}"
+
+    def require_distinct_names(self, gateway: str, bases: list[str]) -> None:
+        """Rule 5: ``ValueError`` naming both keys when two come to one name."""
+        node = self.node_of(gateway)
+        owner: dict[str, str] = {}
+        for key in TOPIC_DEFAULTS:
+            names = (
+                {self.topic_of(key, base, len(bases)) for base in bases}
+                if key in BASE_TOPICS
+                else {getattr(self, key)}
+            )
+            for name in names:
+                full = resolve(name, self.namespace, node)
+                if owner.setdefault(full, key) != key:
+                    raise ValueError(
+                        f"ros2.{key}: {name!r} is {full}, as ros2.{owner[full]} is: each "
+                        "topic and service needs a name of its own"
+                    )
 
     def frame_of(self, key: str, base: str, bases: int) -> str:
         """Base ``base``'s tf frame ``key`` (``odom_frame``, ``base_frame``) (rule 4)."""

@@ -267,12 +267,32 @@ def test_a_position_command_ramps_within_the_limits_and_is_held(ros) -> None:
     assert max(targets) == 1600
 
 
-@pytest.mark.parametrize("wildcard", ["0/robot_joint_commands/**", "*/robot_joint_commands/*/*"])
-def test_a_command_put_on_a_wildcard_key_moves_nothing(ros, wildcard) -> None:
-    """rmw_zenoh's publishers put on their topic's exact key. A well-formed JointState put on
-    a wildcard key (any peer's) reaches the gateway's subscription too, and must move nothing:
-    only the exact key commands (as only a device's own ``cmd`` leaf does on the zenoh API)."""
-    key = rmw_zenoh.data_key(0, "/robot_joint_commands", "sensor_msgs/msg/JointState", "jazzy")
+#: The attachment's source GID of the commands the tests put as a ROS publisher.
+PUBLISHER_GID = rmw_zenoh.new_gid()
+_sequence = itertools.count(1)
+
+
+def rmw_put(ros, key: str, payload: bytes, *, attached: bool = True) -> None:
+    """A put as rmw_zenoh's publishers make it: with its attachment, unless not ``attached``."""
+    attachment = rmw_zenoh.attachment(next(_sequence), time.time_ns(), PUBLISHER_GID)
+    ros["client"].put(key, payload, attachment=attachment if attached else None)
+
+
+COMMANDS_KEY = rmw_zenoh.data_key(
+    0, "/robot_joint_commands", "sensor_msgs/msg/JointState", "jazzy")
+
+
+@pytest.mark.parametrize(("wildcard", "attached"), [
+    ("0/robot_joint_commands/**", True), ("*/robot_joint_commands/*/*", True),
+    (COMMANDS_KEY, False)])
+def test_a_command_put_on_a_wildcard_key_or_unattached_moves_nothing(
+        ros, wildcard, attached) -> None:
+    """rmw_zenoh's publishers put on their topic's exact key, with their attachment. A
+    well-formed JointState put on a wildcard key (any peer's) reaches the gateway's
+    subscription too, and must move nothing: only the exact key commands (as only a device's
+    own ``cmd`` leaf does on the zenoh API). One put without the attachment, which rmw_zenoh's
+    subscriptions drop, moves nothing either: a plain zenoh put is not a ROS command."""
+    key = COMMANDS_KEY
 
     def gripper_at(position: float) -> bytes:
         return messages.encode("sensor_msgs/msg/JointState", {
@@ -280,10 +300,10 @@ def test_a_command_put_on_a_wildcard_key_moves_nothing(ros, wildcard) -> None:
             "name": ["gripper"], "position": [position], "velocity": [], "effort": []})
 
     since = len(ros["la"].recorder.received())
-    ros["client"].put(key, gripper_at(0.003))
+    rmw_put(ros, key, gripper_at(0.003))
     wait_for_target(ros, since, 1, 600)  # the exact key commands
     since = len(ros["la"].recorder.received())
-    ros["client"].put(wildcard, gripper_at(0.007))
+    rmw_put(ros, wildcard, gripper_at(0.007), attached=attached)
     time.sleep(0.5)  # a stream toward 1400 would have ticked 25 times
     assert la_targets(ros, since, 1) == []
 
@@ -302,10 +322,10 @@ def test_a_command_over_64_kib_is_dropped_before_it_is_decoded(ros) -> None:
     under, over = gripper_among_others(0.002, 500), gripper_among_others(0.006, 700)
     assert len(under) < 64 * 1024 < len(over)
     since = len(ros["la"].recorder.received())
-    ros["client"].put(key, under)
+    rmw_put(ros, key, under)
     wait_for_target(ros, since, 1, 400)
     since = len(ros["la"].recorder.received())
-    ros["client"].put(key, over)
+    rmw_put(ros, key, over)
     time.sleep(0.5)  # a stream toward 1200 would have ticked 25 times
     assert la_targets(ros, since, 1) == []
 
@@ -374,7 +394,7 @@ def test_a_silent_velocity_joint_ramps_to_zero_after_the_timeout(ros) -> None:
     assert command(ros, "drive", {"op": "disable"})["ok"]
 
 
-def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros) -> None:
+def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros, caplog) -> None:
     # A trajectory starts from where the joint is: within its limits (a simulator starts at
     # 0), brought there by a ROS command (the face holds the joint for its client a while)
     commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
@@ -403,6 +423,13 @@ def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros) -> None:
     while get(ros["client"], "busgate/gw1/trajectory", '{"op":"status"}')[0]["trajectories"]:
         assert time.monotonic() < deadline, "the empty trajectory did not cancel it"
         time.sleep(0.05)
+    # The controller stops so whether or not anything plays: nothing was refused.
+    caplog.clear()
+    since = len(ros["la"].recorder.received())
+    trajectories.publish(header=header(ros), joint_names=["gripper"], points=[])
+    trajectories.publish(header=header(ros), joint_names=["gripper"], points=[point(0.002, 0.4)])
+    wait_for_target(ros, since, 1, 400)  # the play behind it was sent once it was answered
+    assert not [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
 
 
 def test_trajectory_messages_are_carried_out_in_order_the_newest_of_a_burst_last(ros) -> None:

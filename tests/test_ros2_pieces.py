@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from busgate.errors import RefusedError
+from busgate.errors import ConfigError, RefusedError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.ros2.commands import UNKNOWN_KEPT, Commands, JointRef
 from busgate.gateway.ros2.diagnostics import (
@@ -258,3 +258,48 @@ def test_a_joints_refusals_are_logged_once_a_second_however_their_words_change(c
         assert face._refusals["gripper"] == "refusal 1"  # the diagnostics say the latest
     face._reset_estop({})
     assert bridge.resets == ["ros2"]  # told through the bridge's reports, as the key's reset
+
+
+def ros2_config(ros2: dict, bases: list | None = None):
+    """A gateway ``arm-2`` of four wheels, with ``ros2`` as its ``[ros2]`` and ``bases``."""
+    wheels = [{"name": side, "kind": "zlac706", "id": n,
+               "joint": {"name": f"{side}_joint", "unit": "rad", "scale": 6.28e-4 * sign}}
+              for n, (side, sign) in enumerate(
+                  (("wl", 1), ("wr", -1), ("wl2", 1), ("wr2", -1)), start=1)]
+    return parse_config({
+        "gateway": {"name": "arm-2"}, "ros2": ros2,
+        "buses": [{"name": "can0", "transport": "can", "interface": "virtual",
+                   "channel": "unused", "devices": wheels}],
+        "bases": bases or [],
+    })
+
+
+BASE = {"name": "base", "left": "wl", "right": "wr", "wheel_radius_m": 0.1, "track_m": 0.4,
+        "max_linear_mps": 1.0, "max_angular_radps": 2.0, "max_linear_accel": 2.0,
+        "max_angular_accel": 4.0}
+
+
+@pytest.mark.parametrize(("ros2", "bases", "why"), [
+    ({"namespace": "/robot", "reset_estop": "~/estop"}, [],
+     "ros2.reset_estop: '~/estop' is /robot/busgate_arm_2/estop, as ros2.estop is"),
+    ({"joint_states": "robot_joint_commands"}, [],
+     "ros2.joint_commands: 'robot_joint_commands' is /robot_joint_commands, as "
+     "ros2.joint_states is"),
+    ({"node": "n", "estop": "/n/stop", "reset_estop": "~/stop"}, [],
+     "ros2.reset_estop: '~/stop' is /n/stop, as ros2.estop is"),
+    ({"odom": "/diagnostics"}, [BASE], "ros2.odom: '/diagnostics' is /diagnostics, as "
+     "ros2.diagnostics is"),
+])
+def test_two_names_of_the_table_that_come_to_one_entity_are_refused(ros2, bases, why) -> None:
+    """An e-stop call on a key that is also the reset's ran both, in no set order; a
+    subscription on the joint states' topic took the gateway's own states for commands."""
+    with pytest.raises(ConfigError) as refused:
+        ros2_config(ros2, bases)
+    assert why in str(refused.value)
+
+
+def test_names_of_their_own_and_bases_sharing_an_absolute_tf_are_taken() -> None:
+    two = [BASE, {**BASE, "name": "other", "left": "wl2", "right": "wr2"}]
+    assert ros2_config({}, [BASE]).ros2 is not None
+    assert ros2_config({"namespace": "/robot"}, two).ros2.tf == "/tf"  # both bases' /tf
+    assert ros2_config({"odom": "/diagnostics"}).ros2 is not None  # no base: no odom topic

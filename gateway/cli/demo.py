@@ -377,6 +377,8 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
             f"{resolve(ros2.joint_commands, ros2.namespace, node)}; from a ROS shell:",
             "  export RMW_IMPLEMENTATION=rmw_zenoh_cpp "
             f'ZENOH_CONFIG_OVERRIDE=\'mode="client";connect/endpoints=["{endpoint}"]\'',
+            f"  export ROS_DOMAIN_ID={ros2.domain_id} ZENOH_ROUTER_CHECK_ATTEMPTS=-1",
+            "  ros2 daemon stop",
             f"  ros2 topic echo {states}",
         ]
     lines.append("Ctrl-C stops the demo.")

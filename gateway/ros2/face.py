@@ -16,7 +16,9 @@ Rules of this file:
    joint is taken again. A velocity joint without a command for ``command_timeout_s`` ramps
    to 0.
 3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
-   under the same client; its refusal is logged and shown in the joints' diagnostics. One
+   under the same client; its refusal is logged and shown in the joints' diagnostics (but
+   for an empty one's when nothing plays: the controller's way to stop asks nothing that
+   was refused). One
    message is on the key at a time, so they are carried out in the order they came (an
    empty one right behind a play cancels that play, never a play before it); of those that
    came while one was on the key only the newest is sent next, as a topic wants.
@@ -105,7 +107,7 @@ class Ros2Face:
         #: The trajectory message on the trajectory key, and the newest come since (rule 3).
         self._trajectory_lock = threading.Lock()
         self._trajectory_sent = False
-        self._trajectory_next: tuple[list[str], bytes] | None = None
+        self._trajectory_next: tuple[list[str], bytes, bool] | None = None
         self._due: dict[str, Target] = {}  # joint → its latest command not handed on (rule 5)
         self._handing_on = False  # the loop is due to hand on ``_due``
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
@@ -273,20 +275,22 @@ class Ros2Face:
         except RefusedError as exc:
             self._refused(names, str(exc))
             return
-        payload = message_json(command)
+        sent = (names, message_json(command), command["op"] == "cancel")
         with self._trajectory_lock:
             if self._trajectory_sent:
-                self._trajectory_next = (names, payload)  # the one it replaces: never sent
+                self._trajectory_next = sent  # the one it replaces: never sent
                 return
             self._trajectory_sent = True
-        self._send_trajectory(names, payload)
+        self._send_trajectory(*sent)
 
-    def _send_trajectory(self, names: list[str], payload: bytes) -> None:
+    def _send_trajectory(self, names: list[str], payload: bytes, cancel: bool) -> None:
         answer = self.bridge.submit_trajectory(payload)
-        answer.add_done_callback(lambda done: self._trajectory_answered(names, done.result()))
+        answer.add_done_callback(
+            lambda done: self._trajectory_answered(names, done.result(), cancel)
+        )
 
-    def _trajectory_answered(self, names: list[str], reply: dict[str, Any]) -> None:
-        if reply.get("ok"):
+    def _trajectory_answered(self, names: list[str], reply: dict[str, Any], cancel: bool) -> None:
+        if reply.get("ok") or cancel:  # a cancel is refused only when nothing plays (rule 3)
             for name in names:
                 self._refusals.pop(name, None)
         else:

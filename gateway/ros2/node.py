@@ -7,8 +7,11 @@ Rules of this file:
 1. Every entity declares its liveliness token before it carries data, and every sample,
    request and reply carries rmw_zenoh's attachment (sequence number, source time, GID):
    rmw_zenoh's subscribers drop samples without one.
-2. What comes off the network never raises: a payload that is not the type's CDR is dropped
-   (and counted, with a debug line), a request without its attachment or CDR is answered with
+2. What comes off the network never raises: a sample without rmw_zenoh's attachment (as
+   rmw_zenoh's own subscriptions drop it: a plain zenoh put drives no joint) or whose payload
+   is not the type's CDR is dropped, counted, and said in a warning at most once every
+   ``DROPS_TOLD_EVERY_S`` an entity (a ROS user with a wrong type or a bad serializer learns
+   why nothing moves); a request without its attachment or CDR is answered with
    an error reply and nothing is done, but for the e-stop's (``always=True``): an e-stop is
    carried out whatever its request looks like. Data is taken only on its entity's exact
    key, as rmw_zenoh's publishers and clients send it: a put or get on a wildcard key
@@ -18,7 +21,8 @@ Rules of this file:
    decoded messages on zenoh's thread and must only hand work on (``bridge`` rule 1); a
    service's reply is sent when the handler's future is done, whichever thread that is.
 4. Our publishers drop rather than block (congestion control DROP): a slow ROS subscriber
-   never stalls the gateway.
+   never stalls the gateway. A publisher whose QoS is best effort is best effort on zenoh
+   too, as rmw_zenoh maps it.
 """
 
 from __future__ import annotations
@@ -36,8 +40,12 @@ import zenoh
 
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
+from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
+
+#: How often one entity's drops are said in the log at most (rule 2).
+DROPS_TOLD_EVERY_S = 60.0
 
 #: A service handler: the decoded request in, a future of the response out.
 ServiceHandler = Callable[[dict[str, Any]], "Future[dict[str, Any]]"]
@@ -84,6 +92,7 @@ class Ros2Node:
         self.name = name
         self.zid = str(session.zid())
         self.dropped = 0  # samples and requests dropped: not their type's CDR, or on a wildcard
+        self._drops_told: dict[str, tuple[float, int]] = {}  # entity: when told, held since
         self._entity_ids = itertools.count(1)
         self._keep: list[Any] = []
         self._node = rmw_zenoh.Node(name.domain_id, self.zid, 0, name.name, name.namespace)
@@ -91,8 +100,9 @@ class Ros2Node:
 
     def publisher(self, topic: str, type_name: str, qos: Qos) -> Ros2Publisher:
         key = self._announce(EntityKind.PUBLISHER, topic, type_name, qos)
+        reliability = zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT
         publisher = self.session.declare_publisher(
-            key, congestion_control=zenoh.CongestionControl.DROP
+            key, congestion_control=zenoh.CongestionControl.DROP, reliability=reliability
         )
         self._keep.append(publisher)
         return Ros2Publisher(publisher, type_name, rmw_zenoh.new_gid())
@@ -111,15 +121,19 @@ class Ros2Node:
 
         def received(sample: zenoh.Sample) -> None:
             if str(sample.key_expr) != key:
-                self._drop(f"{topic}: a sample on {sample.key_expr}, not the topic's key")
+                self._drop(topic, f"a sample on {shown(str(sample.key_expr))}, not the topic's key")
+                return
+            attached = sample.attachment
+            if rmw_zenoh.read_attachment(None if attached is None else attached.to_bytes()) is None:
+                self._drop(topic, "a sample without rmw_zenoh's attachment")
                 return
             payload = sample.payload.to_bytes()
             if len(payload) > max_bytes:
-                self._drop(f"{topic}: a sample of {len(payload)} bytes, over {max_bytes}")
+                self._drop(topic, f"a sample of {len(payload)} bytes, over {max_bytes}")
                 return
             message = messages.decode(type_name, payload)
             if message is None:
-                self._drop(f"{topic}: a sample that is not {type_name} CDR")
+                self._drop(topic, f"a sample that is not {type_name} CDR")
                 return
             handler(message)
 
@@ -136,7 +150,8 @@ class Ros2Node:
 
         def asked(query: zenoh.Query) -> None:
             if str(query.key_expr) != key and not always:
-                self._drop(f"{name}: a request on {query.key_expr}, not the service's key")
+                where = shown(str(query.key_expr))
+                self._drop(name, f"a request on {where}, not the service's key")
                 query.drop()
                 return
             raw = query.payload.to_bytes() if query.payload is not None else b""
@@ -145,7 +160,7 @@ class Ros2Node:
                 query.attachment.to_bytes() if query.attachment is not None else None
             )
             if (request is None or sent is None) and not always:
-                self._drop(f"{name}: a request without its attachment or not {request_type}")
+                self._drop(name, f"a request without its attachment or not {request_type}")
                 query.reply_err(f"not a {type_name} request with rmw_zenoh's attachment")
                 query.drop()
                 return
@@ -180,6 +195,15 @@ class Ros2Node:
         self._keep.append(self.session.liveliness().declare_token(token))
         return rmw_zenoh.data_key(self.name.domain_id, full, type_name, distro)
 
-    def _drop(self, what: str) -> None:
+    def _drop(self, entity: str, what: str) -> None:
+        """``what`` came to ``entity`` and was dropped: counted, and told (rule 2)."""
         self.dropped += 1
-        log.debug("ros2: dropped %s", what)
+        moment = time.monotonic()
+        told, held = self._drops_told.get(entity, (-DROPS_TOLD_EVERY_S, 0))
+        if moment - told < DROPS_TOLD_EVERY_S:
+            self._drops_told[entity] = (told, held + 1)
+            log.debug("ros2: %s: dropped %s", entity, what)
+            return
+        self._drops_told[entity] = (moment, 0)
+        also = f" ({held} more dropped since the last such line)" if held else ""
+        log.warning("ros2: %s: dropped %s%s", entity, what, also)
