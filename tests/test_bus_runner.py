@@ -535,6 +535,32 @@ def test_an_estop_answers_the_commands_it_took_out_once_its_frame_is_out(simulat
         runner.owner.close()
 
 
+def test_an_estop_leaves_a_command_that_only_reads_waiting_and_takes_a_move_out(
+    simulator,
+) -> None:
+    """A client's read waiting when an e-stop came was answered ``estopped``, a refusal the
+    API documents for motion only (a stuck e-stop button refused 3 of 20 reads): a command
+    whose frames only read moves nothing, and waits behind the e-stop instead."""
+    runner = build_bus(bus(simulator.port))  # not started: the test is the bus thread
+    runner.owner.open()
+    work, driver = runner._work, runner.drivers["la1"]
+    try:
+        read, move = Future(), Future()
+        for command, future in (('{"op":"status"}', read), ('{"op":"move","position":700}', move)):
+            work.plan_command("la1", driver.parse(command), None, now() + 10, future)
+        work.plan_estop(Future())
+        work.end_estopped()
+        assert move.exception(0).code == "estopped"
+        assert not read.done() and runner.planner.queued == 1
+        step_while_stopping(runner)
+        deadline = now() + 10
+        while not read.done() and now() < deadline:
+            runner._step()
+        assert read.result(0)["state"]["device"] == "la1"
+    finally:
+        runner.owner.close()
+
+
 def estops_on_the_wire(simulator) -> list[int]:
     """The id of every Inspire LA e-stop frame the simulator took, in order."""
     wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}

@@ -78,6 +78,9 @@ class Job:
     start_by: float = math.inf
     #: Its first request has been sent: from then on it runs to its end.
     started: bool = False
+    #: A client's command whose frames only read: an e-stop leaves it waiting (nothing it
+    #: does moves a device), where it takes every other command out.
+    reads_only: bool = False
     #: A scan: its probes wait in the scan lane, each tried once, a silent id costing its
     #: reply window and nothing more.
     scan: bool = False
@@ -169,10 +172,15 @@ class BusPlanner:
         queue.append(job)
         return True
 
-    def drop_commands(self) -> list[Job]:
-        """Take every queued command, scan and poll out (an e-stop or a lost link voids them)."""
-        dropped = [*self._commands, *self._scans, *self._polls.values()]
-        self._commands.clear()
+    def drop_commands(self, *, keep_reads: bool = False) -> list[Job]:
+        """Take every queued command, scan and poll out (an e-stop or a lost link voids them),
+        but with ``keep_reads`` the commands that only read (an e-stop's: they move nothing)."""
+        kept: deque[Job] = deque()
+        dropped: list[Job] = []
+        for job in self._commands:
+            (kept if keep_reads and job.reads_only else dropped).append(job)
+        dropped += [*self._scans, *self._polls.values()]
+        self._commands = kept
         self._scans.clear()
         self._polls.clear()
         return dropped

@@ -25,7 +25,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Effect
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.planner import BusPlanner, Job
@@ -93,6 +93,7 @@ class BusWork:
             else:
                 requests = driver.plan_frames(command, frames)
             also = {other.name for other in self.authority.moved(effects) if other is not driver}
+            reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
             return
@@ -101,7 +102,14 @@ class BusWork:
             outcomes.settle(future, error=exc)
             return
         self.queue_job(
-            Job(device, deque(requests), start_by=start_by, future=future, also_moves=tuple(also))
+            Job(
+                device,
+                deque(requests),
+                start_by=start_by,
+                future=future,
+                also_moves=tuple(also),
+                reads_only=reads_only,
+            )
         )
 
     def queue_job(self, job: Job) -> None:
@@ -120,7 +128,7 @@ class BusWork:
         # Each driver latches its e-stop first: a trajectory's watcher (another thread) that
         # sees its play ended sees the device e-stopped too, and tells it as the e-stop.
         requests = safe_stops(self.drivers.values())
-        self._estop_dropped.extend(self.planner.drop_commands())
+        self._estop_dropped.extend(self.planner.drop_commands(keep_reads=True))
         self._estop_ending = True
         # The job's own future, which no caller holds, so none can cancel it (``outcomes``
         # rule 2): each e-stop that joins the job waiting (``push_estop``) gets its outcome.
