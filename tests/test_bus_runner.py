@@ -27,7 +27,7 @@ from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler import link
 from busgate.gateway.scheduler import runner as runner_module
 from busgate.gateway.scheduler.link import BACKOFF_FIRST_S, BACKOFF_MAX_S
-from busgate.gateway.scheduler.planner import Job, Priority
+from busgate.gateway.scheduler.planner import CLIENT_SHARE, Job, Priority
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -557,6 +557,26 @@ def test_an_estop_leaves_a_command_that_only_reads_waiting_and_takes_a_move_out(
         while not read.done() and now() < deadline:
             runner._step()
         assert read.result(0)["state"]["device"] == "la1"
+    finally:
+        runner.owner.close()
+
+
+def test_a_client_past_its_share_of_the_queue_is_told_busy_and_another_still_gets_in(
+    simulator,
+) -> None:
+    runner = build_bus(bus(simulator.port))  # not started: nothing leaves the queue
+    runner.owner.open()
+    work, driver = runner._work, runner.drivers["la1"]
+    move = driver.parse('{"op":"move","position":700}')
+    try:
+        futures = [Future() for _ in range(CLIENT_SHARE + 1)]
+        for future in futures:
+            work.plan_command("la1", move, "flood", now() + 10, future)
+        refused = futures[-1].exception(0)
+        assert refused.code == "busy" and "client 'flood' has 16 commands waiting" in str(refused)
+        other = Future()
+        work.plan_command("la2", move, "arm-ctl", now() + 10, other)
+        assert not other.done() and runner.planner.queued == CLIENT_SHARE + 1
     finally:
         runner.owner.close()
 

@@ -16,7 +16,14 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.limiter import StreamLimiter
-from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
+from busgate.gateway.scheduler.planner import (
+    COMMAND_QUEUE,
+    MAX_RETRIES,
+    BusPlanner,
+    Job,
+    Priority,
+    Slot,
+)
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker, KeepaliveTicker, commanded
 from busgate.schemas import inspire_la, zlac706
@@ -402,6 +409,20 @@ def test_a_stream_gone_stale_is_reported_and_followed_by_its_stop():
     assert [e.type for e in driver.drain_events()] == ["stream_stale"]
     assert slot.priority is Priority.COMMAND and slot.request.frame == ("stop", "la1")
     assert not streams.store_latest("la1", 6, 0.5)
+
+
+def test_a_stale_streams_stop_is_queued_behind_a_full_queue_of_commands():
+    """A stale stream's 0 rpm went to a full queue (another client's flood) and was lost:
+    the wheel kept its speed."""
+    driver = Follower("la1", 1)
+    planner, streams = streams_of(driver)
+    streams.start(driver, 5, 0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    for n in range(COMMAND_QUEUE):
+        assert planner.push_command(Job("la2", deque([asking(2)]), client=f"client{n}"))
+    planner.decide(0.5)  # the stream goes stale
+    assert [e.type for e in driver.drain_events()] == ["stream_stale"]
+    assert planner.drop_commands()[-1].requests[0].frame == ("stop", "la1")
 
 
 def test_streams_ended_all_at_once_are_reported_only():

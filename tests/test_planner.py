@@ -12,7 +12,14 @@ from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
-from busgate.gateway.scheduler.planner import MAX_RETRIES, BusPlanner, Job, Priority, Slot
+from busgate.gateway.scheduler.planner import (
+    CLIENT_SHARE,
+    MAX_RETRIES,
+    BusPlanner,
+    Job,
+    Priority,
+    Slot,
+)
 from busgate.gateway.scheduler.tickers import FollowTicker
 from tests.stand_in_driver import StandInDriver
 
@@ -171,6 +178,29 @@ def test_command_queue_is_bounded():
     assert not planner.push_command(Job("c", deque([status_request()])))
     assert planner.queued == 2
     assert len(planner.drop_commands()) == 2 and planner.queued == 0
+
+
+def test_one_clients_flood_takes_its_share_of_the_queue_and_leaves_room_for_the_others():
+    """A client putting moves at 2,000 a second kept the queue full: every other client's
+    command on that bus was answered busy."""
+    planner = BusPlanner(TIMING)
+    for _ in range(CLIENT_SHARE):
+        assert planner.push_command(Job("la1", deque([status_request()]), client="flood"))
+    assert not planner.push_command(Job("la1", deque([status_request()]), client="flood"))
+    assert planner.share_taken("flood") and not planner.share_taken("arm-ctl")
+    assert planner.push_command(Job("la2", deque([status_request()]), client="arm-ctl"))
+    assert planner.push_command(Job("la2", deque([status_request()]), client=""))  # anonymous
+    assert planner.push_command(Job("la2", deque([status_request()])))  # the gateway's own
+    assert planner.queued == CLIENT_SHARE + 3
+
+
+def test_a_stop_of_the_gateways_own_is_queued_however_full_the_queue():
+    planner = BusPlanner(TIMING, command_queue=2)
+    for client in ("a", "b"):
+        assert planner.push_command(Job("la1", deque([status_request()]), client=client))
+    planner.push_stop(Job("la2", deque([status_request(2)])))
+    assert planner.queued == 3
+    assert [job.device for job in planner.drop_commands()] == ["la1", "la1", "la2"]
 
 
 def test_idempotent_requests_are_retried_at_most_twice_then_the_job_fails():

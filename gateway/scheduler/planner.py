@@ -10,10 +10,13 @@ The rules it enforces:
    (and at least ``HOST_SLACK_S``, the host's own time to take in a reply) ends before the
    next tick is due; a due tick goes out at once. A late tick is not made up by
    a burst (tickers schedule the next tick a full period after the one actually sent).
-4. Bounded: commands wait in a bounded queue (``push_command`` says no when full); polls are
-   never queued — a device has at most one poll waiting, and each period a poll misses (the
-   host stalled, or the bus has no room for it) is skipped and counted; an e-stop is never
-   refused, but one that comes while another waits, not started, joins it (``push_estop``).
+4. Bounded: commands wait in a bounded queue (``push_command`` says no when full, or when the
+   command's client has ``CLIENT_SHARE`` of it waiting already: one client's flood leaves
+   room for the others'); a stop the gateway makes itself (a stream's 0 rpm) is never refused
+   (``push_stop``), however full the queue. Polls are never queued — a device has at most one
+   poll waiting, and each period a poll misses (the host stalled, or the bus has no room for
+   it) is skipped and counted; an e-stop is never refused, but one that comes while another
+   waits, not started, joins it (``push_estop``).
 5. After a timeout, no exchange that expects a reply starts before ``hold_replies_until``:
    a reply that comes late is then flushed as stale instead of being taken for the answer to
    the next request (frames without a reply, such as follow ticks, may still go).
@@ -41,6 +44,8 @@ MAX_RETRIES = 2
 #: The host's time, after a reply, to interpret it and have the next tick's frame ready.
 HOST_SLACK_S = 0.0008
 COMMAND_QUEUE = 64
+#: How many of a bus's waiting commands may be one client's (rule 4).
+CLIENT_SHARE = COMMAND_QUEUE // 4
 
 
 class Priority(enum.IntEnum):
@@ -78,6 +83,9 @@ class Job:
     start_by: float = math.inf
     #: Its first request has been sent: from then on it runs to its end.
     started: bool = False
+    #: Whose command it is (its ``client``, ``""`` when it named none): ``None`` for the
+    #: gateway's own jobs, which take no client's share (rule 4).
+    client: str | None = None
     #: A client's command whose frames only read: an e-stop leaves it waiting (nothing it
     #: does moves a device), where it takes every other command out.
     reads_only: bool = False
@@ -165,12 +173,23 @@ class BusPlanner:
 
     def push_command(self, job: Job) -> bool:
         """Queue a command (or a scan, in its lane); ``False`` (and nothing queued) when the
-        queue is full."""
+        queue is full or holds its client's share already (rule 4)."""
         queue = self._scans if job.scan else self._commands
-        if len(queue) >= self._command_limit:
+        if len(queue) >= self._command_limit or self.share_taken(job.client):
             return False
         queue.append(job)
         return True
+
+    def push_stop(self, job: Job) -> None:
+        """Queue a stop the gateway makes itself, behind the commands already waiting: never
+        refused (rule 4)."""
+        self._commands.append(job)
+
+    def share_taken(self, client: str | None) -> bool:
+        """Whether ``client`` has its share of the waiting commands (rule 4)."""
+        if client is None:
+            return False
+        return sum(job.client == client for job in self._commands) >= CLIENT_SHARE
 
     def drop_commands(self, *, keep_reads: bool = False) -> list[Job]:
         """Take every queued command, scan and poll out (an e-stop or a lost link voids them),

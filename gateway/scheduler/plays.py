@@ -151,7 +151,7 @@ class Plays:
                 self._leave(name)
                 requests = driver.stale_stream()
                 if requests:
-                    self.planner.push_command(Job(name, deque(requests)))
+                    self.planner.push_stop(Job(name, deque(requests)))
         self._publish()
 
     def _publish(self) -> None:

@@ -103,7 +103,7 @@ class FollowStreams:
         driver.emit(event, **fields)
         requests = driver.stale_stream()
         if requests:
-            self.planner.push_command(Job(driver.name, deque(requests)))
+            self.planner.push_stop(Job(driver.name, deque(requests)))
 
     def _tickers(self) -> list[FollowTicker]:
         return [t for t in self.planner.tickers if isinstance(t, FollowTicker)]

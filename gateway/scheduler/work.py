@@ -28,7 +28,7 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver, Effect
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
-from busgate.gateway.scheduler.planner import BusPlanner, Job
+from busgate.gateway.scheduler.planner import CLIENT_SHARE, BusPlanner, Job
 from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
 
@@ -109,6 +109,7 @@ class BusWork:
                 future=future,
                 also_moves=tuple(also),
                 reads_only=reads_only,
+                client=client or "",
             )
         )
 
@@ -119,7 +120,12 @@ class BusWork:
             outcomes.complete(job, self.state_of)
         elif not self.planner.push_command(job):
             self.counters.busy_commands += 1
-            outcomes.fail(job, BusyError(f"bus {self.name}: command queue full; nothing was sent"))
+            why = (
+                f"client {job.client!r} has {CLIENT_SHARE} commands waiting already"
+                if self.planner.share_taken(job.client)
+                else "command queue full"
+            )
+            outcomes.fail(job, BusyError(f"bus {self.name}: {why}; nothing was sent"))
 
     def plan_estop(self, future: Future) -> None:
         """The e-stop ahead of everything, with only what must come before its first frame:
