@@ -124,10 +124,27 @@ def test_estops_in_a_loop_are_told_first_and_last_in_a_slot_of_their_own() -> No
         ("estop", "panel0"),
         ("command_refused", None),
     ]
-    reports_.estop_reset("panel")  # its own slot: told at once
-    assert (told[-1].type, told[-1].fields) == ("estop_reset", {"client": "panel"})
+    reports_.estop_reset("panel")  # its own slot: told at once, behind the e-stops withheld
+    assert [(e.type, e.fields) for e in told[-2:]] == [
+        ("estop", {"key": "busgate/gw/estop", "client": "panel99", "suppressed": 98}),
+        ("estop_reset", {"client": "panel"}),
+    ]
     clock.now = 0.1
     reports_.flush()
-    assert told[-1].fields == {"key": "busgate/gw/estop", "client": "panel99", "suppressed": 98}
+    assert len(told) == 4  # nothing was left to tell
     assert len(reports_._slots) == 3
     assert_events_valid(told)
+
+
+def test_an_estop_after_a_withheld_reset_is_told_behind_it() -> None:
+    """The journal's order is the puts': a reset withheld in its interval is told before an
+    e-stop that comes after it."""
+    clock = Clock()
+    reports_, told = reports(clock)
+    reports_.estop_reset("panel")
+    clock.now = 0.01
+    reports_.estop_reset("panel")  # withheld
+    clock.now = 0.02
+    reports_.estop("busgate/gw/estop", "panel")
+    assert [e.type for e in told] == ["estop_reset", "estop_reset", "estop"]
+    assert "suppressed" not in told[1].fields  # told itself, not counted in another

@@ -20,6 +20,9 @@ Rules of this file:
    whoever sent it, under one other, and every reset under a third.
 3. Any thread may report (zenoh's, a bus thread's future callback); ``flush`` runs on the
    publishing loop's thread. One lock guards the slots.
+4. E-stops and resets are told in the order they came: an e-stop withheld when a reset comes
+   is told first, whatever its interval, and a reset withheld when an e-stop comes (else the
+   journal of a stuck button let go, then a reset, read as an e-stop after the reset).
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ TOLD_EVERY_S = 0.1
 UNKNOWN = "/"
 #: The slots of the e-stops and of their resets (rule 2), which no device name can be either.
 ESTOPS, RESETS = "*", "*/reset"
+#: Of e-stops and resets, the slot told first when the other's put comes (rule 4).
+_OTHER_OF = {ESTOPS: RESETS, RESETS: ESTOPS}
 
 
 @dataclass(slots=True)
@@ -104,6 +109,11 @@ class PutReports:
     def _report(self, name: str, event: DeviceEvent) -> None:
         moment = self._clock()
         with self._lock:
+            other = _OTHER_OF.get(name)
+            before = self._slots.get(other) if other is not None else None
+            if before is not None and before.latest is not None:  # rule 4
+                latest, before.withheld = before.latest, before.withheld - 1
+                self._told(before, latest, moment)
             slot = self._slots.get(name)
             if slot is None:
                 slot = self._slots[name] = _Slot()
