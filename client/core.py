@@ -72,7 +72,7 @@ from busgate.client.messages import (
 )
 from busgate.errors import CommandError
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
-from busgate.schemas.zenoh_session import session_config, zenoh_reason
+from busgate.schemas.zenoh_session import TLS_PROTOCOLS, session_config, zenoh_reason
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +158,11 @@ class Core:
                 reason += (
                     " (a wrong user name or password, or a gateway that takes none, is refused"
                     " so too)"
+                )
+            elif ca is None and any(e.startswith(TLS_PROTOCOLS) for e in endpoints):
+                reason += (
+                    " (a tls/ endpoint needs the CA that signed the gateway's certificate:"
+                    " ca=, --ca; and an account: username=, password=, --user)"
                 )
             raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
         self._lock = threading.Lock()

@@ -73,6 +73,7 @@ def session_config(
                 raise ValueError(f"zenoh endpoint {endpoint!r}: {problem}")
             if listening and list(listen).count(endpoint) > 1:  # else "in use", by itself
                 raise ValueError(f"zenoh endpoint {endpoint!r} is given twice")
+    _check_protocols(config, [*listen, *connect])
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
     config.insert_json5("transport/shared_memory/enabled", "false")
@@ -125,6 +126,22 @@ def config_file_refusal(config_file: str | Path) -> str | None:
     except ValueError as exc:
         return str(exc)
     return None
+
+
+def _check_protocols(config: zenoh.Config, endpoints: Sequence[str]) -> None:
+    """``ValueError`` for an endpoint of a protocol the config file's links leave out
+    (``transport/link/protocols``: ``["tls"]`` in ``deploy/zenoh/busgate.json5``), which
+    zenoh would refuse only when the session opens, as "Unsupported protocol"."""
+    allowed = json.loads(config.get_json("transport/link/protocols"))
+    if not allowed:
+        return
+    for endpoint in endpoints:
+        if endpoint.partition("/")[0] not in allowed:
+            raise ValueError(
+                f"zenoh endpoint {endpoint!r}: the zenoh config file allows only "
+                f"{', '.join(allowed)} links (transport/link/protocols); give a "
+                f"{allowed[0]}/ endpoint, or leave listen out to listen where the file says"
+            )
 
 
 def _parsed(config_file: str | Path) -> zenoh.Config:

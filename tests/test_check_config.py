@@ -184,6 +184,21 @@ def test_a_zenoh_config_file_missing_here_or_malformed_is_a_warning(tmp_path, ca
         [f"{expected}; busgate run refuses to start so"] if warned else [])
 
 
+def test_a_listener_the_zenoh_files_links_leave_out_is_a_warning(tmp_path, capsys) -> None:
+    """docs/running.md's config with the deploy file: check-config said valid, and run stopped
+    with zenoh's 'Unsupported protocol: tcp'."""
+    deploy = Path(__file__).parents[1] / "deploy" / "zenoh" / "busgate.json5"
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace("[[buses]]", (
+        f'[zenoh]\nlisten = ["tcp/127.0.0.1:7447"]\nconfig_file = "{deploy}"\n[[buses]]'), 1))
+    assert main(["check-config", str(path)]) == 0
+    [line] = [line for line in capsys.readouterr().out.splitlines() if "config_file" in line]
+    assert line == (
+        f"warning: zenoh.config_file: {deploy}: zenoh endpoint 'tcp/127.0.0.1:7447': the zenoh "
+        "config file allows only tls links (transport/link/protocols); give a tls/ endpoint, "
+        "or leave listen out to listen where the file says; busgate run refuses to start so")
+
+
 @pytest.mark.parametrize(("listen", "config_file", "warned"), [
     ("tcp/0.0.0.0:7447", False, True),
     ("tcp/192.168.1.5:7447", False, True),

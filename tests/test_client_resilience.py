@@ -261,6 +261,7 @@ TURNED_AWAY = {
     "wrong password": ("operator", "guess", {}),
     "unknown user": ("intruder", "op-secret", {}),
     "no credentials": (None, None, {}),
+    "no credentials and no CA": (None, None, {"ca": False}),
     "plain tcp": ("operator", ACCOUNTS["operator"], {"scheme": "tcp", "ca": False}),
     "no CA": ("operator", ACCOUNTS["operator"], {"ca": False}),
 }
@@ -276,6 +277,10 @@ def test_a_client_turned_away_raises_connect_error(secured_daemon, way) -> None:
     assert f"127.0.0.1:{secured_daemon.port}" in str(refused.value)
     hint = "(a wrong user name or password, or a gateway that takes none, is refused so too)"
     assert str(refused.value).endswith(hint) == (account is not None), refused.value
+    if account is None and options.get("ca") is False:  # tls/ with nothing: what it takes
+        assert str(refused.value).endswith(
+            "(a tls/ endpoint needs the CA that signed the gateway's certificate: ca=, --ca; "
+            "and an account: username=, password=, --user)"), refused.value
 
 
 def test_a_local_clients_shared_memory_is_never_mapped_into_the_gateway(module_demo) -> None:

@@ -4,6 +4,7 @@ over zenoh's, with safe defaults."""
 from __future__ import annotations
 
 import json
+import re
 import socket
 
 import pytest
@@ -35,6 +36,18 @@ def test_a_files_endpoints_survive_an_empty_listen(tmp_path) -> None:
     file.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:7450"] } }')
     config = session_config(mode="peer", config_file=file)
     assert setting(config, "listen/endpoints") == ["tcp/127.0.0.1:7450"]
+
+
+def test_an_endpoint_of_a_protocol_the_files_links_leave_out_is_refused(tmp_path) -> None:
+    file = tmp_path / "zenoh.json5"
+    file.write_text('{ transport: { link: { protocols: ["tls"] } } }')
+    with pytest.raises(ValueError, match=re.escape(
+            "'tcp/127.0.0.1:7451': the zenoh config file allows only tls links")):
+        session_config(mode="peer", listen=["tcp/127.0.0.1:7451"], config_file=file)
+    with pytest.raises(ValueError, match=re.escape("'tcp/127.0.0.1:7452'")):
+        session_config(mode="client", connect=["tcp/127.0.0.1:7452"], config_file=file)
+    config = session_config(mode="peer", listen=["tls/127.0.0.1:7451"], config_file=file)
+    assert setting(config, "listen/endpoints") == ["tls/127.0.0.1:7451"]
 
 
 def test_a_unix_socket_is_never_taken_from_a_file_or_a_process(tmp_path) -> None:

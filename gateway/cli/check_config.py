@@ -87,11 +87,29 @@ def zenoh_warnings(config: Config) -> list[str]:
     if zenoh_file is not None:
         from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
 
-        if refusal := config_file_refusal(zenoh_file):
+        if refusal := config_file_refusal(zenoh_file) or _endpoints_refusal(config):
             warnings.append(
                 f"zenoh.config_file: {zenoh_file}: {refusal}; busgate run refuses to start so"
             )
     return warnings + exposure_warnings(config.zenoh.listen, zenoh_file)
+
+
+def _endpoints_refusal(config: Config) -> str | None:
+    """Why the zenoh session could not be made of the config file and the endpoints (an
+    endpoint of a protocol the file's links leave out); ``None`` when it can."""
+    from busgate.schemas.zenoh_session import session_config  # loads zenoh: only here
+
+    zenoh_section = config.zenoh
+    try:
+        session_config(
+            mode=zenoh_section.mode,
+            listen=zenoh_section.listen,
+            connect=zenoh_section.connect,
+            config_file=zenoh_section.config_file,
+        )
+    except ValueError as exc:
+        return str(exc)
+    return None
 
 
 def _overview(config: Config) -> str:
