@@ -106,6 +106,19 @@ def test_the_demo_config_is_validated_like_any_config() -> None:
     assert refused.value.path == "metrics.listen"
 
 
+def test_a_demo_joining_a_router_names_its_gateway_in_the_send_it_suggests(monkeypatch) -> None:
+    """A fleet's demos share device names: the hint's bare ``la1`` named every gateway's."""
+    monkeypatch.setattr(demo_cli, "_program", lambda: "busgate")
+    links = {bus.name: {"transport": "can", "interface": "virtual", "channel": bus.name,
+                        "bitrate": 500_000}
+             if PROTOCOLS[bus.protocol].can else
+             {"transport": "serial", "port": f"/dev/{bus.name}", "baudrate": bus.rate}
+             for bus in DEMO_BUSES}
+    config = demo_config(links, listen="", connect="tcp/127.0.0.1:7448", name="gw2")
+    assert ("busgate send gw2/la1 '{\"op\":\"move\",\"position\":1500}' --connect "
+            "tcp/127.0.0.1:7448") in demo_cli._hints(config, links, None)
+
+
 def test_a_dashboard_port_in_use_stops_the_demo_at_once_saying_what_else_to_do(free_port) -> None:
     taken = socket.socket()
     taken.bind(("127.0.0.1", 0))

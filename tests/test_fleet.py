@@ -12,6 +12,7 @@ import time
 import pytest
 
 import busgate.client as bc
+from busgate.gateway.cli import main
 from tests.browser import browser_page, needs_chromium
 from tests.fleet import DEVICES_PER_GATEWAY, Hosts, running_fleet
 from tests.sdk_helpers import patiently
@@ -81,6 +82,21 @@ def test_a_device_moved_through_the_router_moves_on_the_page(page, client) -> No
     joint = la1.joint.info  # the plot is of its joint, in SI
     assert series["position"][-1] == pytest.approx(joint.offset + joint.scale * goal)
     assert len(series["t"]) > 2
+
+
+def test_a_bare_device_name_every_gateway_has_is_refused_and_nothing_moves(
+        fleet, client, capsys) -> None:
+    """``busgate send la1 …`` through the router moved la1 on every gateway, where the SDK
+    refuses the name as ambiguous."""
+    move = '{"op":"move","position":1234}'
+    assert main(["send", "la1", move, "--connect", fleet.router]) == 2
+    assert capsys.readouterr().err == (
+        "busgate send: error: 3 gateways have a device 'la1' (gw1, gw2, gw3): name one, e.g. "
+        "gw1/la1; nothing was sent\n")
+    assert main(["send", "gw3/la1", move, "--connect", fleet.router]) == 0  # named: it goes
+    capsys.readouterr()
+    assert [client.device(f"{g}/la1").state().target == 1234 for g in NAMES] == [
+        False, False, True]
 
 
 def test_an_event_of_one_gateway_appears(page, client) -> None:

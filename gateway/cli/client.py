@@ -6,7 +6,9 @@ send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on
 ``cmd`` key, the payload as given (the gateway judges it; a put's, which gets no reply, must
 be JSON or empty, or nothing is sent). The device is named as the SDK names it: ``la1`` on
 whichever gateway has it, ``gw1/la1`` on gateway ``gw1`` (which answers ``unknown_device``
-itself when it lacks the device); any other target with a ``/`` is the key expression. Exit
+itself when it lacks the device); any other target with a ``/`` is the key expression. A bare
+name that more than one gateway has (their ``info``) is refused with nothing sent, as the
+SDK's ``AmbiguousError``: in a fleet, ``la1`` would move every robot's ``la1``. Exit
 status 0 when every reply has ``"ok": true``, 1 when any reply is an error or, for a bare
 device name, when gateways answer (their ``info``) but none has the device
 (``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks
@@ -130,18 +132,18 @@ def run_send(args: argparse.Namespace) -> int:
     payload = args.command.encode()
     if args.put and not _put_judged(payload):
         return NO_ANSWER
+    bare_name = "/" not in args.target
     with open_client(args, "send") as client:
+        gateways = gateway_devices(client.gateways(args.timeout)) if bare_name else {}
+        if bare_name:
+            key = _one_gateways_key(args, key, gateways)
         if args.put:
             client.put(key, payload)
             return 0
         answers = client.query(key, payload, timeout=args.timeout)
         outcomes = list(answers)
-        bare_name = "/" not in args.target
         if bare_name:
             outcomes = _from_gateways_that_have_it(outcomes)
-        gateways = (
-            gateway_devices(client.gateways(args.timeout)) if bare_name and not outcomes else {}
-        )
     if not outcomes:
         waited = args.timeout if answers.timed_out else None
         return _no_reply(args.target, key, gateways, waited=waited)
@@ -155,6 +157,19 @@ def run_send(args: argparse.Namespace) -> int:
                   file=sys.stderr)  # fmt: skip
             status = ERROR_REPLY
     return status
+
+
+def _one_gateways_key(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]) -> str:
+    """For a bare device name: the key of the one gateway of ``gateways`` (their devices)
+    that has it, ``key`` (every gateway's) when none says it has; ``CommandError`` when
+    several do (nothing is sent)."""
+    holders = sorted(gateway for gateway, names in gateways.items() if args.target in names)
+    if len(holders) > 1:
+        raise CommandError(
+            f"{len(holders)} gateways have a device {args.target!r} ({', '.join(holders)}): "
+            f"name one, e.g. {holders[0]}/{args.target}; nothing was sent"
+        )
+    return command_key(args.prefix, f"{holders[0]}/{args.target}") if holders else key
 
 
 def _put_judged(payload: bytes) -> bool:

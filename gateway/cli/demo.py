@@ -360,6 +360,8 @@ def _hints(config: Config, links: dict[str, dict[str, Any]], dashboard: str | No
         names = ", ".join(device.name for device in bus.devices)
         lines.append(f"  {bus.name:<6} {bus.protocol:<14} {names:<{width}} {where}")
     first, program = config.buses[0].devices[0].name, _program()
+    if config.zenoh.connect:  # a fleet's gateways share device names: name the gateway
+        first = f"{config.gateway.name}/{first}"
     lines += [
         "From another terminal, move an actuator and watch every device:",
         f"  {program} send {first} {shlex.quote(TRY_COMMAND)}{connect}",
