@@ -107,13 +107,17 @@ class Telemetry:
             if events:
                 self.had_events = True
             for event in events:
-                self._log(event, moment)
-                self.on_event(event)
+                self.tell(event, moment)
                 if event.type == "rebooted":
                     rebooted.append(name)
             if events or name in news:
                 self._state_out(driver, moment, changed_only=not events)
         return rebooted
+
+    def tell(self, event: DeviceEvent, moment: float) -> None:
+        """``event`` in the log (rule 4) and handed on."""
+        self._log(event, moment)
+        self.on_event(event)
 
     def _state_out(self, driver: Driver, moment: float, *, changed_only: bool) -> None:
         """``driver``'s state at ``moment`` handed on, unless ``changed_only`` and it is made of

@@ -77,10 +77,17 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
         description="Run the gateway: own the configured buses and serve them over zenoh until "
-        "SIGTERM or SIGINT.",
+        "SIGTERM or SIGINT. Exit status 0 once stopped so, 2 when it refuses to start (an "
+        "invalid config, a port or address in use: one line on stderr per problem).",
     )
     run.add_argument("--config", required=True, help="the gateway's TOML config file")
-    run.add_argument("--log-level", default="info", choices=("debug", "info", "warning"))
+    run.add_argument(
+        "--log-level",
+        default="info",
+        choices=("debug", "info", "warning"),
+        help="the least severe log lines written to stderr (the journal under systemd; "
+        "default info)",
+    )
     run.set_defaults(handler=run_daemon)
 
 

@@ -500,10 +500,11 @@ class WorkerRunner:
     def worker_ended(self, why: str) -> None:
         """Rule 3: each device offline, with its event, its last state marked so."""
         self.plays.view = type(self.plays.view)()
+        moment = now()
         for name, driver in self.drivers.items():
             driver.went_offline(why)
             for event in driver.drain_events():
-                self.telemetry.on_event(event)
+                self.telemetry.tell(event, moment)
             last = self.telemetry.states.get(name)
             if last is not None:
                 state = {**last, "online": False, "stale": True}
