@@ -152,3 +152,46 @@ def test_idle_connections_hold_no_more_than_their_slots_and_are_closed(runner, m
         for connection in idle:
             connection.close()
         metrics.stop()
+
+
+def test_a_head_sent_a_line_at_a_time_is_cut_at_its_deadline_and_its_slot_freed(
+        runner, monkeypatch) -> None:
+    """A line a second is never idle: eight such connections held the metrics from every
+    scraper for as long as they trickled."""
+    monkeypatch.setattr(scrape_server, "IDLE_S", 1.0)
+    metrics = Metrics({"uart0": runner}, clients=lambda: 0).start("127.0.0.1:0")
+    tricklers = [socket.create_connection(("127.0.0.1", metrics.port))
+                 for _ in range(scrape_server.MAX_SCRAPES)]
+    try:
+        for connection in tricklers:
+            connection.sendall(b"GET /metrics HTTP/1.1\r\n")
+        started = time.monotonic()
+        for connection in tricklers:
+            connection.settimeout(10)
+            while True:  # a header line every 0.3 s until the server ends it
+                try:
+                    connection.sendall(b"X-Slow: 1\r\n")
+                except OSError:
+                    break
+                readable, _, _ = select.select([connection], [], [], 0.3)
+                if readable and connection.recv(1) == b"":
+                    break
+                assert time.monotonic() - started < 10, "the trickle was never cut"
+        assert scrape(metrics)[("busgate_zenoh_clients", ())] == 0  # their slots are free
+    finally:
+        for connection in tricklers:
+            connection.close()
+        metrics.stop()
+
+
+def test_only_the_metrics_path_is_served(runner) -> None:
+    metrics = Metrics({"uart0": runner}, clients=lambda: 0).start("127.0.0.1:0")
+    try:
+        for path in ("/", "/../../etc/passwd", "/metricsx"):
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(f"http://127.0.0.1:{metrics.port}{path}", timeout=5)
+            assert refused.value.code == 404
+            assert refused.value.read() == b"no such page: the metrics are at /metrics\n"
+        assert scrape(metrics)[("busgate_zenoh_clients", ())] == 0
+    finally:
+        metrics.stop()
