@@ -202,9 +202,13 @@ def test_a_claim_keeps_others_out_until_release_but_never_stops_an_estop(gateway
     accepted(api, "la1", {"op": "status", "client": "bob"})  # reads are never refused
     accepted(api, "la1", {"op": "move", "position": 100, "client": "alice"})
     assert code(ask(api, "la1", {"op": "release", "client": "bob"})) == "claimed"
-    accepted(api, "la1", {"op": "release", "client": "alice"})
+    assert accepted(api, "la1", {"op": "release", "client": "alice"})["released"] is True
     accepted(api, "la1", {"op": "move", "position": 200, "client": "bob"})
     assert {e.type for e in events} >= {"claimed", "released"}
+    # A release of nothing held is no release: answered so, and told to nobody.
+    told = len(events)
+    assert accepted(api, "la1", {"op": "release", "client": "nobody"})["released"] is False
+    assert len(events) == told
 
 
 def test_a_claim_lapses_after_its_ttl(gateway):

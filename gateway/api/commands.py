@@ -177,9 +177,10 @@ class GatewayApi:
     def _release(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         request = Release.model_validate(fields)
         authority = runner.authority
-        authority.claims.release(device, request.client, authority.clock())
-        self._event(device, "released", client=request.client)
-        return ok_reply(released=True)
+        released = authority.claims.release(device, request.client, authority.clock())
+        if released:  # a release of nothing held tells nobody of anything
+            self._event(device, "released", client=request.client)
+        return ok_reply(released=released)
 
     def _end_follow(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         """The stream ends on the bus thread (``stream_stopped``, then ``stale_stream``)."""

@@ -82,12 +82,16 @@ class ClaimTable:
             held = self._holders.get(device)
             return held.client if held is not None and held.until > now else None
 
-    def release(self, device: str, client: str, now: float) -> None:
+    def release(self, device: str, client: str, now: float) -> bool:
+        """``client``'s claim of ``device`` given back (``claimed`` when another holds it);
+        whether there was one to give back."""
         with self._lock:
             self._check(device, client, now)
             held = self._holders.pop(device, None)
-        if held is not None:
-            log.info("device %s released by %s", device, client)
+        if held is None or held.until <= now:
+            return False
+        log.info("device %s released by %s", device, client)
+        return True
 
     def check(self, device: str, client: str | None, now: float) -> None:
         """``claimed`` unless ``device`` is free or held by ``client``."""

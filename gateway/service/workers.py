@@ -140,10 +140,11 @@ class ForwardedClaims(ClaimTable):
             self._send(("claims", self._bus, "hold", (device, client, ttl_s, now)))
         return new
 
-    def release(self, device: str, client: str, now: float) -> None:
+    def release(self, device: str, client: str, now: float) -> bool:
         with self._in_order:
-            super().release(device, client, now)
+            released = super().release(device, client, now)
             self._send(("claims", self._bus, "release", (device, client, now)))
+        return released
 
     def drop_client(self, client: str) -> list[str]:
         with self._in_order:
