@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from busgate.gateway.sim.recorder import WireRecord
+from busgate.gateway.sim.recorder import Recorder, WireRecord
 from busgate.gateway.sim.wire_analysis import analyse
 
 MS = 0.001
@@ -56,3 +56,20 @@ def test_frames_read_in_one_go_are_unresolved_not_a_short_gap_or_interval() -> N
     assert figures.unresolved == 1
     assert figures.gaps_after_silent_frame_below_minimum == 1  # the first two: read apart
     assert figures.follow_intervals_under_period == 1
+
+
+def test_a_recorder_that_keeps_nothing_writes_every_record_to_its_file(tmp_path) -> None:
+    """The demo's and ``busgate sim``'s recorders kept their last 100,000 records in memory,
+    which nothing read: some 35 MB a simulator, grown over the first hour of a demo."""
+    path = tmp_path / "wire.jsonl"
+    records = [WireRecord("rx", n / 100, n / 100 + 0.001, "00", "Frame", 1) for n in range(5)]
+    with path.open("w") as stream:
+        recorder = Recorder(stream, keep=0)
+        for record in records:
+            recorder.record(record)
+    assert recorder.records == [] and recorder.received() == []
+    assert [WireRecord.from_json(line) for line in path.read_text().splitlines()] == records
+    kept = Recorder(keep=2)
+    for record in records:
+        kept.record(record)
+    assert kept.records == records[-2:]

@@ -266,9 +266,8 @@ def _start_simulator(
     """Start ``bus``'s simulator (stopped when ``stack`` closes), recording its wire in
     ``records``/<bus>.jsonl when given; return the config keys that lead the gateway to it."""
     protocol = PROTOCOLS[bus.protocol]
-    recorder = None
-    if records is not None:
-        recorder = Recorder(stack.enter_context((records / f"{bus.name}.jsonl").open("w")))
+    record = stack.enter_context((records / f"{bus.name}.jsonl").open("w")) if records else None
+    recorder = Recorder(record, keep=0)  # the demo reads none back: its file alone, if any
     options = {"heartbeat_ms": bus.heartbeat_ms} if protocol.can else {}
     devices = make_devices(bus.protocol, [ident for _, ident in bus.devices], **options)
     if protocol.can:

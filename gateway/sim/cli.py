@@ -139,7 +139,7 @@ def run_sim(args: argparse.Namespace) -> int:
             raise CommandError(f"--link {args.link}: {exc.strerror}") from None
         stack.callback(link.close)  # closed again by the server's stop: twice is once
         record_file = stack.enter_context(_open_record(args.record)) if args.record else None
-        server = _make_server(args, devices, faults, Recorder(record_file), link)
+        server = _make_server(args, devices, faults, Recorder(record_file, keep=0), link)
         stop = threading.Event()
         _install_signals(server, devices, stop)  # before PORT: a stop may follow it at once
         print(f"PORT {server.port}", flush=True)

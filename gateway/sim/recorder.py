@@ -53,7 +53,9 @@ class WireRecord:
 
 
 class Recorder:
-    """Keeps records in memory (``records``) and, when given a file, appends JSON lines."""
+    """Keeps the last ``keep`` records in memory (``records``: what tests read) and, when given
+    a file, appends JSON lines. ``keep=0`` keeps none: a demo or a simulator that runs for days
+    reads nothing back, and 100,000 records a simulator held some 35 MB each."""
 
     def __init__(self, stream: IO[str] | None = None, *, keep: int = 100_000) -> None:
         self._stream = stream
@@ -63,9 +65,10 @@ class Recorder:
 
     def record(self, record: WireRecord) -> None:
         with self._lock:
-            self.records.append(record)
-            if len(self.records) > self._keep:
-                del self.records[: len(self.records) - self._keep]
+            if self._keep:
+                self.records.append(record)
+                if len(self.records) > self._keep:
+                    del self.records[: len(self.records) - self._keep]
             if self._stream is not None:
                 self._stream.write(record.to_json() + "\n")
                 self._stream.flush()
