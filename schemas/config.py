@@ -199,6 +199,10 @@ class CanBus(BusBase):
 
 
 Bus = Annotated[SerialBus | CanBus, Field(discriminator="transport")]
+#: The values of each tag key that says which kind of table one is (``transport``).
+_TAGS = {
+    "transport": [get_args(t.model_fields["transport"].annotation)[0] for t in (SerialBus, CanBus)]
+}
 
 
 class Config(Section):
@@ -384,6 +388,9 @@ def _describe(error: Any) -> tuple[str, str]:
         return _unknown_key(error["loc"])
     message = error["msg"].removeprefix("Value error, ")
     path = _key_path(error["loc"])
+    if error["type"] == "union_tag_not_found":  # pydantic's words name no key a user wrote
+        key = error["ctx"]["discriminator"].strip("'")
+        message = f"`{key}` is missing: {' or '.join(_TAGS.get(key, ()))} (which kind of table)"
     if not path:
         return message.split(":", 1)[0], message
     return path, f"{path}: {message}"

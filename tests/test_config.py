@@ -244,6 +244,8 @@ def test_zenoh_settings_that_can_open_are_taken() -> None:
     (lambda d: d.update(recorder={"size": 1}),
      "recorder: unknown key `size` (allowed: `seconds`, `dir`, `max_total_mb`)"),
     (lambda d: d["buses"][0].update(xyz=1), "buses[0]: unknown key `xyz`"),
+    (lambda d: d["buses"][0].pop("transport"),
+     "buses[0]: `transport` is missing: serial or can (which kind of table)"),
     (lambda d: _misspell(d["buses"][0], "port", "xyz"),
      "buses[0].port: Field required\nbuses[0]: unknown key `xyz`"),
 ])
