@@ -245,9 +245,14 @@ def _parse(name: str, text: str) -> Struct:
         type_text, _, rest = line.partition(" ")
         if "=" in rest:
             constant, _, value = rest.partition("=")
-            constants.append(
-                Constant(_type(name, package, type_text).element, constant.strip(), value.strip())
-            )
+            kind = _type(name, package, type_text)
+            if kind.nested or kind.collection is not Collection.SINGLE:
+                raise ValueError(f"{name}: a constant is of a primitive type, not {line!r}")
+            value = value.strip()
+            quoted = len(value) > 1 and value[0] in "'\"" and value[-1] == value[0]
+            if kind.element == "string" and quoted:
+                value = value[1:-1]  # rosidl's quotes are not the value's
+            constants.append(Constant(kind.element, constant.strip(), value))
         else:
             field = rest.split(maxsplit=1)[0] if rest.strip() else ""
             if not _FIELD_NAME.fullmatch(field):

@@ -62,11 +62,13 @@ CODEC_TESTS = [
     "tests/test_inspire_la_codec.py",
     "tests/test_zlac706_can_codec.py",
     "tests/test_zlac706_rs232_codec.py",
+    "tests/test_ros2_codec.py",
     "tests/test_ds_servo_commands.py",
     "tests/test_inspire_la_commands.py",
     "tests/test_zlac706_commands.py",
     "tests/test_doctests.py",
     "tests/test_mutants_codecs.py",
+    "tests/test_mutants_ros2.py",
 ]
 
 #: The fast tests, by plain calls or over a bus never started, that reach every family's
