@@ -194,6 +194,18 @@ def test_one_clients_flood_takes_its_share_of_the_queue_and_leaves_room_for_the_
     assert planner.queued == CLIENT_SHARE + 3
 
 
+def test_an_estops_drop_keeps_the_commands_that_only_read_in_their_order():
+    planner = BusPlanner(TIMING)
+    jobs = [Job(f"la{n}", deque([status_request(n)]), reads_only=n % 2 == 1) for n in range(4)]
+    for job in jobs:
+        assert planner.push_command(job)
+    dropped = planner.drop_commands(keep_reads=True)
+    assert [job.device for job in dropped] == ["la0", "la2"]
+    assert planner.queued == 2
+    assert [job.device for job in planner.drop_commands()] == ["la1", "la3"]  # a lost link's
+    assert planner.queued == 0
+
+
 def test_a_stop_of_the_gateways_own_is_queued_however_full_the_queue():
     planner = BusPlanner(TIMING, command_queue=2)
     for client in ("a", "b"):

@@ -86,9 +86,9 @@ class ClaimTable:
         """``client``'s claim of ``device`` given back (``claimed`` when another holds it);
         whether there was one to give back."""
         with self._lock:
-            self._check(device, client, now)
+            self._check(device, client, now)  # a lapsed claim is gone after it
             held = self._holders.pop(device, None)
-        if held is None or held.until <= now:
+        if held is None:
             return False
         log.info("device %s released by %s", device, client)
         return True
