@@ -122,7 +122,10 @@ class Listen:
         """A TCP socket bound here; ``CommandError`` when the address cannot be had."""
         family = socket.AF_INET6 if ipaddress.ip_address(self.host).version == 6 else socket.AF_INET
         bound = socket.socket(family, socket.SOCK_STREAM)
-        bound.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if self.port:  # a port of the operator's, taken again at once after a restart
+            bound.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        # Port 0 without it: with it, the kernel may give a port another socket with it has
+        # bound and is about to listen on (a CI run's demo found it in use at its listen).
         try:
             bound.bind((self.host, self.port))
         except OSError as exc:

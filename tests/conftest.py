@@ -5,6 +5,7 @@ garbage and after a copy of itself with a bad checksum."""
 from __future__ import annotations
 
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -140,11 +141,26 @@ def next_reply() -> Callable[..., object]:
     return reply_after
 
 
+#: Where ``unused_loopback_port`` looks: below Linux's ephemeral range (32768–60999), which
+#: the kernel gives to every ``bind`` to port 0 (a demo's dashboard at ``127.0.0.1:0``) and
+#: every outgoing connection. A port taken from that range and freed for a zenoh listener to
+#: take later could be handed to one of those meanwhile: a CI run's demo found its dashboard's
+#: port in use at its ``listen``.
+TEST_PORTS = range(20_000, 32_000)
+_port_picks = random.Random(os.getpid())
+
+
 def unused_loopback_port() -> int:
-    """A TCP port on 127.0.0.1 nothing listens on now (for zenoh and metrics endpoints)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A TCP port on 127.0.0.1 nothing is bound to now (for zenoh and metrics endpoints),
+    from ``TEST_PORTS``."""
+    while True:
+        port = _port_picks.choice(TEST_PORTS)
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
 
 
 @pytest.fixture

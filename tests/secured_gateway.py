@@ -25,6 +25,7 @@ from busgate.codecs import inspire_la as la
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.zenoh_session import session_config
+from tests.conftest import unused_loopback_port
 
 ZENOH = Path(__file__).resolve().parent.parent / "deploy" / "zenoh" / "busgate.json5"
 #: The accounts of the daemon's password file: ``operator`` may command, ``viewer`` only read.
@@ -137,14 +138,6 @@ poll_hz = 20
 """
 
 
-def _free_port() -> int:
-    """conftest's ``free_port`` for the module-scoped daemon (that fixture is per test, and
-    conftest is not imported from)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _wait_listening(daemon: subprocess.Popen, port: int) -> None:
     deadline = time.monotonic() + 20
     while True:
@@ -169,7 +162,7 @@ def secured_daemon_serving(tmp_path_factory) -> Iterator[SecuredGateway]:
     (etc / "zenoh-users.txt").write_text("".join(f"{u}:{p}\n" for u, p in ACCOUNTS.items()))
     json5 = etc / "zenoh.json5"
     json5.write_text(ZENOH.read_text().replace("/etc/busgate/", f"{etc}/"))
-    port = _free_port()
+    port = unused_loopback_port()  # conftest's ``free_port`` is per test
     with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
         toml = etc / "busgate.toml"
         toml.write_text(GATEWAY_TOML.format(config_file=json5, endpoint=f"tls/127.0.0.1:{port}",
