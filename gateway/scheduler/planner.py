@@ -44,8 +44,10 @@ MAX_RETRIES = 2
 #: The host's time, after a reply, to interpret it and have the next tick's frame ready.
 HOST_SLACK_S = 0.0008
 COMMAND_QUEUE = 64
-#: How many of a bus's waiting commands may be one client's (rule 4).
-CLIENT_SHARE = COMMAND_QUEUE // 4
+#: How many of a bus's waiting commands may be one client's (rule 4): half, so that a client
+#: reading every device of a full bus at once (an LA bus carries 15, a DS bus more) is not
+#: refused, and a flood leaves the other half to the rest.
+CLIENT_SHARE = COMMAND_QUEUE // 2
 
 
 class Priority(enum.IntEnum):
