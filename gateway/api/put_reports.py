@@ -102,9 +102,7 @@ class PutReports:
         with self._lock:
             for slot in self._slots.values():
                 if slot.latest is not None and (every or moment - slot.told_at >= self._every_s):
-                    event = slot.latest
-                    slot.withheld -= 1  # the one told is not suppressed
-                    self._told(slot, event, moment)
+                    self._told_withheld(slot, moment)
 
     def _report(self, name: str, event: DeviceEvent) -> None:
         moment = self._clock()
@@ -112,8 +110,7 @@ class PutReports:
             other = _OTHER_OF.get(name)
             before = self._slots.get(other) if other is not None else None
             if before is not None and before.latest is not None:  # rule 4
-                latest, before.withheld = before.latest, before.withheld - 1
-                self._told(before, latest, moment)
+                self._told_withheld(before, moment)
             slot = self._slots.get(name)
             if slot is None:
                 slot = self._slots[name] = _Slot()
@@ -124,6 +121,12 @@ class PutReports:
                 self._pending += 1
             slot.withheld += 1
             slot.latest = event
+
+    def _told_withheld(self, slot: _Slot, moment: float) -> None:
+        """Under the lock: ``slot``'s latest withheld put told now."""
+        assert slot.latest is not None
+        slot.withheld -= 1  # the one told is not suppressed
+        self._told(slot, slot.latest, moment)
 
     def _told(self, slot: _Slot, event: DeviceEvent, moment: float) -> None:
         """Under the lock: ``event`` told now, with the count of those withheld before it."""
