@@ -237,7 +237,7 @@ def published(driver: Driver, now: float) -> dict[str, Any]:
     (a device polled at no rate is never stale)."""
     telemetry = Telemetry("uart0", BusDevices([driver]), {}, on_event=lambda event: None,
                           on_state=lambda device, state: None)
-    return telemetry.state(driver, now)
+    return telemetry.reply_state(driver, now)
 
 
 def answered(driver: Driver, request, reply: tuple[object, ...], now: float) -> None:

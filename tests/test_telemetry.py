@@ -96,14 +96,14 @@ def test_a_published_state_is_stamped_with_wall_time_and_stale_after_three_poll_
     la1 = InspireLaDriver("la1", 1)
     telemetry, _, _ = telemetry_of(BusDevices([la1]), {"la1": 0.02})
     before = time.time()
-    state = telemetry.state(la1, 10.0)
+    state = telemetry.reply_state(la1, 10.0)
     assert before <= state["ts"] <= time.time(), "wall time, not the bus thread's clock"
     assert state["stale"] is True, "no reply yet"
     la1.heard(10.0)
-    assert telemetry.state(la1, 10.0 + STALE_PERIODS * 0.02 - 0.001)["stale"] is False
-    assert telemetry.state(la1, 10.0 + STALE_PERIODS * 0.02 + 0.001)["stale"] is True
+    assert telemetry.reply_state(la1, 10.0 + STALE_PERIODS * 0.02 - 0.001)["stale"] is False
+    assert telemetry.reply_state(la1, 10.0 + STALE_PERIODS * 0.02 + 0.001)["stale"] is True
     unpolled, _, _ = telemetry_of(BusDevices([la1]), {})
-    assert unpolled.state(la1, 1e6)["stale"] is False, "a device polled at no rate"
+    assert unpolled.reply_state(la1, 1e6)["stale"] is False, "a device polled at no rate"
 
 
 def test_publishing_checks_heartbeats_sends_events_and_a_state_per_device_with_news():

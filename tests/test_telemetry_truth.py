@@ -46,7 +46,7 @@ def test_ts_is_when_the_values_were_read_in_wall_time_not_when_published():
     la1, _, telemetry, states = read_la()
     [(_, published)] = states
     assert abs(published["ts"] - (time.time() - 0.01)) < CONVERSION_S
-    later = telemetry.state(la1, 10.25)  # a command's reply, with no reading of its own
+    later = telemetry.reply_state(la1, 10.25)  # a command's reply, with no reading of its own
     assert later["ts"] == published["ts"], "one reading, one ts, whenever it is stamped"
     assert later["last_reply_age_s"] == 0.25
 
@@ -71,6 +71,19 @@ def test_news_that_changed_a_value_without_a_reading_publishes_it_with_the_same_
     assert [(s["power"], s["enabled"], s["estopped"]) for _, s in states] == [
         ("on", True, False), ("paused", False, False), ("estopped", False, True)]
     assert len({s["ts"] for _, s in states}) == 1, "one reading"
+
+
+def test_a_replys_state_is_published_before_the_reply_when_it_is_news_and_only_then():
+    la1, devices, telemetry, states = read_la()
+    la1.power = PowerStage.PAUSED  # a command's effect, its reply built before the next publish
+    devices.touched(la1)
+    replied = telemetry.reply_state(la1, 10.02)
+    assert states[-1] == ("la1", replied) and telemetry.states["la1"] is replied, (
+        "the info and the stream show what the reply says before the client holds it")
+    telemetry.publish(10.03)
+    again = telemetry.reply_state(la1, 10.04)  # a read-only command: nothing new
+    assert len(states) == 2 and telemetry.states["la1"] is replied
+    assert same_but_age(again, replied) and again["last_reply_age_s"] > replied["last_reply_age_s"]
 
 
 def test_a_device_never_read_is_published_again_only_when_its_state_changes():

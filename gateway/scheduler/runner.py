@@ -444,7 +444,7 @@ class BusRunner:
 
     def _state_of(self, device: str) -> dict[str, Any] | None:
         driver = self.drivers.get(device)
-        return None if driver is None else self.telemetry.state(driver, now())
+        return None if driver is None else self.telemetry.reply_state(driver, now())
 
     # -- bus thread: link up and down -------------------------------------------------------
 

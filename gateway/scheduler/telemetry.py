@@ -28,6 +28,10 @@ Rules of this file:
    lines). A line held back is written once its interval has passed, if no newer one of its
    kind came, so the log's last word on a device is its last event; a line says how many it
    held back before it.
+5. A command's reply carries its device's state as it is when the command ends, and that
+   state is published first when it differs from the last one (``reply_state``): a client
+   holding the reply finds no older state in the info, and the stream brings none older after
+   it.
 """
 
 from __future__ import annotations
@@ -125,15 +129,23 @@ class Telemetry:
         told = self._made_of(driver, moment)
         if changed_only and told == self._told.get(driver.name):
             return
-        self._told[driver.name] = told
-        state = self.states[driver.name] = self._built(driver, moment, told)
-        self.on_state(driver.name, state)
+        self._handed_on(driver.name, told, self._built(driver, moment, told))
 
-    def state(self, driver: Driver, moment: float) -> dict[str, Any]:
-        """The driver's state at ``moment`` (bus clock), stamped with when it was read (rule
-        1), and marked ``stale`` when its telemetry is more than ``STALE_PERIODS`` poll periods
-        old (an oversubscribed bus, or a device not answering)."""
-        return self._built(driver, moment, self._made_of(driver, moment))
+    def _handed_on(self, device: str, told: Told, state: dict[str, Any]) -> None:
+        self._told[device] = told
+        self.states[device] = state
+        self.on_state(device, state)
+
+    def reply_state(self, driver: Driver, moment: float) -> dict[str, Any]:
+        """``driver``'s state for a command's reply at ``moment`` (bus clock), published first
+        when it differs from the last one published (rule 5): stamped with when it was read
+        (rule 1), and marked ``stale`` when its telemetry is more than ``STALE_PERIODS`` poll
+        periods old (an oversubscribed bus, or a device not answering)."""
+        told = self._made_of(driver, moment)
+        state = self._built(driver, moment, told)
+        if told != self._told.get(driver.name):
+            self._handed_on(driver.name, told, state)
+        return state
 
     def _made_of(self, driver: Driver, moment: float) -> Told:
         replied = driver.last_reply
