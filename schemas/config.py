@@ -36,7 +36,7 @@ from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
 from busgate.schemas.endpoints import Endpoint, ListenEndpoint, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
-from busgate.schemas.joints import Joint, JointTable, table_problems
+from busgate.schemas.joints import Joint, JointTable, table_problems, table_warnings
 from busgate.schemas.ros2 import Ros2Section
 from busgate.schemas.validation import closest, suggestion
 
@@ -360,6 +360,18 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
     if isinstance(bus, SerialBus) and bus.gap_s < protocol.timing.min_gap_s:
         minimum = protocol.timing.min_gap_s * 1000
         raise ValueError(f"{path}.min_gap_ms: {protocol.name} needs at least {minimum:g} ms")
+
+
+def ignored_keys(config: Config) -> list[str]:
+    """A line for each key of the joint tables that is taken but ignored (``table_warnings``),
+    by its path: ``busgate run`` and ``check-config`` warn of them."""
+    return [
+        f"buses[{b}].devices[{d}].joint.{key}: {device.name}: {why}"
+        for b, bus in enumerate(config.buses)
+        for d, device in enumerate(bus.devices)
+        if device.joint is not None
+        for key, why in table_warnings(FAMILIES[device.kind].schema.JOINT, device.joint)
+    ]
 
 
 def parse_config(data: dict[str, Any]) -> Config:

@@ -181,8 +181,6 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
         problems.append(("type", f"must be one of {', '.join(declaration.types)}"))
     if table.min is not None and table.max is not None and table.min >= table.max:
         problems.append(("min", f"{table.min:g} must be below max {table.max:g}"))
-    if table.max_effort is not None and not declaration.effort_limited:
-        problems.append(("max_effort", "this kind has no command whose effort can be bounded"))
     if table.raw_per_turn is not None and declaration.raw_per_turn is None:
         problems.append(("raw_per_turn", "this kind is not a rotary device"))
     if problems:
@@ -195,6 +193,22 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
                 (key, f"{value:g} {table.unit} is outside the device's range {low:g}–{high:g}")
             )
     return problems
+
+
+def table_warnings(declaration: JointDeclaration, table: JointTable) -> list[tuple[str, str]]:
+    """``(key, why it is ignored)`` for each key of ``table`` its family takes but cannot act
+    on: ``max_effort`` where no command sets an effort (``check-config`` and ``busgate run``
+    warn of it; the joint goes without it, so ``info`` shows no limit that is not kept)."""
+    if table.max_effort is not None and not declaration.effort_limited:
+        unit = f" {declaration.effort_unit}" if declaration.effort_unit else ""
+        return [
+            (
+                "max_effort",
+                f"{table.max_effort:g}{unit} is ignored: no command of this kind "
+                "sets an effort, so there is none to bound (docs/joints.md)",
+            )
+        ]
+    return []
 
 
 def _slack(value: float) -> float:
@@ -250,7 +264,7 @@ class Joint:
             ends[1] if table.max is None else table.max,
             table.max_velocity,
             table.max_acceleration,
-            table.max_effort,
+            table.max_effort if declaration.effort_limited else None,
             table.raw_per_turn or declaration.raw_per_turn,
             declaration,
             True,

@@ -99,6 +99,14 @@ def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys)
     assert f"warning: buses[0].port: {tmp_path / 'usb-nothing'} does not exist" in out
 
 
+def test_a_max_effort_no_command_of_the_kind_sets_is_a_warning(tmp_path, capsys) -> None:
+    table = '[buses.devices.joint]\nunit = "m"\nscale = 5.0e-6\nmax_effort = 20.0'
+    path = write(tmp_path, [f"{la(1)}\n{table}"])
+    assert main(["check-config", str(path)]) == 0
+    assert ("warning: buses[0].devices[0].joint.max_effort: la1: 20 N is ignored"
+            in capsys.readouterr().out)
+
+
 def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
                                                                         capsys) -> None:
     """/dev/zero was read without end (2.7 GB), a named pipe nobody writes to waited on for

@@ -18,8 +18,8 @@ from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.recording.mcap_log import REPLAYED_LEAVES, schema_name
 from busgate.gateway.scheduler.limiter import StreamLimiter
 from busgate.schemas import ds_servo, inspire_la, zlac706
-from busgate.schemas.config import parse_config
-from busgate.schemas.joints import Joint, JointTable, published
+from busgate.schemas.config import ignored_keys, parse_config
+from busgate.schemas.joints import Joint, JointTable, published, table_warnings
 
 TURN = 2 * math.pi
 
@@ -159,7 +159,6 @@ def config_with(joint: dict, kind: str = "inspire_la") -> dict:
     ({"unit": "m", "scale": -1e-300}, "joint.scale", "at least 1e-12 in size"),
     ({"unit": "m", "scale": 1e-5, "min": 0.01, "max": 0.005}, "joint.min", "below max"),
     ({"unit": "m", "scale": 1e-5, "max": 0.05}, "joint.max", "outside the device's range 0–0.02"),
-    ({"unit": "m", "scale": 1e-5, "max_effort": 3.0}, "joint.max_effort", "no command"),
     ({"unit": "m", "scale": 1e-5, "type": "velocity"}, "joint.type", "must be one of position"),
     ({"unit": "m", "scale": 1e-5, "raw_per_turn": 10}, "joint.raw_per_turn", "not a rotary"),
     ({"unit": "furlong", "scale": 1e-5}, "joint.unit", "'m' or 'rad'"),
@@ -170,6 +169,20 @@ def test_the_config_refuses_a_joint_table_naming_the_key(joint, path, words):
     with pytest.raises(ConfigError, match=words) as refused:
         parse_config(config_with(joint))
     assert f"devices[0].{path}" in str(refused.value)
+
+
+def test_issue_26s_example_table_is_taken_and_its_max_effort_where_nothing_sets_one_ignored():
+    example = {"name": "gripper_left", "unit": "m", "scale": 5.0e-6, "offset": 0.0, "min": 0.0,
+               "max": 0.010, "max_velocity": 0.02, "max_acceleration": 0.5, "max_effort": 20.0}
+    config = parse_config(config_with(example))
+    assert ignored_keys(config) == [
+        "buses[0].devices[0].joint.max_effort: d1: 20 N is ignored: no command of this kind "
+        "sets an effort, so there is none to bound (docs/joints.md)"]
+    joint = Joint.of("d1", inspire_la.JOINT, config.buses[0].devices[0].joint)
+    assert (joint.max, joint.max_effort) == (0.010, None), "info shows no limit it does not keep"
+    wheel_table = JointTable(unit="rad", scale=1e-3, max_effort=3.0)
+    assert table_warnings(zlac706.JOINT, wheel_table) == [], "a torque command sets one"
+    assert Joint.of("w", zlac706.JOINT, wheel_table).max_effort == 3.0
 
 
 def test_joint_names_are_unique_and_never_another_devices_name():

@@ -7,7 +7,8 @@ locked by another process, is no serial port, or a CAN interface python-can does
 (``busgate run`` refuses those three), a port this user may not read and write, a bus whose
 streams cannot all fit, a flight recorder's folder this user cannot write, a zenoh config file
 missing or that zenoh cannot parse, a listener other hosts reach with no zenoh config file to
-keep them out, more bus workers than the cores this host gives the gateway — is a warning:
+keep them out, more bus workers than the cores this host gives the gateway — is a warning, as
+is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs):
 printed with the budget, exit status 0.
 """
 
@@ -24,7 +25,7 @@ from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.cores import usable_cores
 from busgate.gateway.service.workers import placement
-from busgate.schemas.config import CanBus, Config, SerialBus, load_config
+from busgate.schemas.config import CanBus, Config, SerialBus, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings
 
 
@@ -59,7 +60,7 @@ def check_config(args: argparse.Namespace) -> int:
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
             "the service user to check its access; the systemd unit makes the default dir)"
         )
-    for problem in zenoh_warnings(config):
+    for problem in [*zenoh_warnings(config), *ignored_keys(config)]:
         print(f"warning: {problem}")
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)

@@ -54,7 +54,7 @@ from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
 from busgate.gateway.service.workers import WorkerProcess, placement
-from busgate.schemas.config import CanBus, Config, load_config
+from busgate.schemas.config import CanBus, Config, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings
 
 if TYPE_CHECKING:
@@ -292,9 +292,10 @@ def _buses(count: int) -> str:
 
 def _log_budgets(config: Config) -> None:
     """What each bus's configured traffic takes of it (``busgate check-config`` prints the
-    same), and a warning for a bus that cannot carry it, and for a listener any host can
-    reach with nothing to keep it from moving the devices."""
-    for warning in exposure_warnings(config.zenoh.listen, config.zenoh.config_file):
+    same), and a warning for a bus that cannot carry it, for a listener any host can reach
+    with nothing to keep it from moving the devices, and for a joint table's ignored key."""
+    exposed = exposure_warnings(config.zenoh.listen, config.zenoh.config_file)
+    for warning in exposed + ignored_keys(config):
         log.warning("%s", warning)
     for bus in config.buses:
         budget = bus_budget(bus)
