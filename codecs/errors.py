@@ -1,12 +1,41 @@
 """The codecs' own errors, in busgate's one exception tree (``busgate.errors``).
 
 Rules of this file: only what a codec raises is here; each class joins the tree, and carries
-its stable ``code`` (``busgate.errors`` rule 1).
+its stable ``code`` (``busgate.errors`` rule 1). The classes this module held before the tree
+moved up are still found here by their old names, with a ``DeprecationWarning``
+(``__getattr__``), so that code written against them runs on.
 """
 
 from __future__ import annotations
 
+import warnings
+
+import busgate.errors
 from busgate.errors import BusgateError, CommandError
+
+#: What moved from here to ``busgate.errors`` (``BusgateError`` and ``CommandError`` are still
+#: imported above, for the codecs' own classes).
+_MOVED = frozenset(
+    {
+        "ConfigError",
+        "BusUnavailableError",
+        "BusIOError",
+        "DeviceError",
+        "DeviceTimeoutError",
+        "RefusedError",
+    }
+)
+
+
+def __getattr__(name: str) -> object:
+    if name in _MOVED:
+        warnings.warn(
+            f"busgate.codecs.errors.{name} is busgate.errors.{name}: import it from there",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(busgate.errors, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class CodecError(BusgateError):

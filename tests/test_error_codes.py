@@ -8,6 +8,8 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
+import busgate.codecs.errors as old_home
+import busgate.errors as tree
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.errors import EncodeError
 from busgate.errors import (
@@ -86,3 +88,12 @@ def test_the_bus_threads_errors_keep_their_codes_and_a_bug_is_internal():
     assert error_reply(KeyError())["error"] == {"code": "internal", "message": "KeyError"}
     invalid = error_reply(refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": -1}))
     assert invalid["error"]["message"].startswith("invalid command: move.position")
+
+
+@pytest.mark.parametrize("name", ["ConfigError", "BusUnavailableError", "BusIOError",
+                                  "DeviceError", "DeviceTimeoutError", "RefusedError"])
+def test_a_class_that_moved_up_to_busgate_errors_is_found_by_its_old_name_with_a_warning(name):
+    with pytest.warns(DeprecationWarning, match=f"is busgate.errors.{name}: import it from"):
+        assert getattr(old_home, name) is getattr(tree, name)
+    with pytest.raises(AttributeError, match="no attribute 'Nothing'"):
+        old_home.Nothing  # noqa: B018 - the lookup is the test
