@@ -159,6 +159,11 @@ class TrajectoryEndedEvent(Event):
     client: ClientId | None = None
     result: Literal["succeeded", "canceled", "replaced", "aborted"]
     reason: str | None = Field(default=None, description="Why it was aborted.")
+    errors: dict[str, float | None] = Field(
+        default_factory=dict,
+        description="Each device's final error, raw units (measured minus the path; null: not "
+        "read), as its feedback's result gives it.",
+    )
 
 
 class CommandRefusedEvent(Event):
@@ -185,11 +190,22 @@ class LimitedEvent(Event):
     value: float = Field(description="What the client asked for, in the joint's units.")
 
 
+class BaseStoppedEvent(Event):
+    """A base's wheel left its play (offline, stopped with its bus, refused, or its play
+    ended): both wheels were ramped to 0 at once (a base never drives on one wheel);
+    ``device`` is the base."""
+
+    type: Literal["base_stopped"]
+    base: str = Field(description="The base's name.")
+    wheel: str = Field(description="The wheel that left the play.")
+    reason: str
+
+
 KnownEvent = Annotated[
     OnlineEvent | OfflineEvent | FaultEvent | IdChangedEvent | RejectedEvent | StreamStaleEvent
     | StreamStoppedEvent | RebootedEvent | ClaimedEvent | ReleasedEvent | StoppedEvent
     | EstopEvent | EstopResetEvent | TrajectoryStartedEvent | TrajectoryEndedEvent
-    | CommandRefusedEvent | LimitedEvent,
+    | CommandRefusedEvent | LimitedEvent | BaseStoppedEvent,
     Field(discriminator="type"),
 ]  # fmt: skip
 EVENT_ADAPTER: TypeAdapter[KnownEvent] = TypeAdapter(KnownEvent)

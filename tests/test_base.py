@@ -28,6 +28,7 @@ from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.config import parse_config
+from busgate.schemas.events import EVENT_ADAPTER
 from tests.wire_frames import received, written_speed
 
 TURN = 2 * math.pi
@@ -254,6 +255,8 @@ def test_a_wheel_that_goes_offline_stops_the_base_at_once(world, heartbeats) -> 
         assert ("wr", "offline", {"reason": reason}) in news
         assert ("base", "base_stopped", {"base": "base", "wheel": "wr",
                                           "reason": "went offline"}) in news  # fmt: skip
+        for device, kind, fields in news:  # as event.json describes them
+            EVENT_ADAPTER.validate_python({"ts": 0.0, "device": device, "type": kind, **fields})
         time.sleep(0.6)  # the ramp (0.5 s) down
         left = [rpm for _, node, rpm in world.speeds(0) if node == 1]
         assert left[-1] == 0

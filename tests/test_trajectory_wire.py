@@ -49,6 +49,7 @@ from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Path, paths
 from busgate.gateway.trajectory.lanes import answer
 from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import SerialBus
+from busgate.schemas.events import EVENT_ADAPTER
 from busgate.schemas.trajectory import TrajectoryPlay
 from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port, wait_until
@@ -168,8 +169,17 @@ class Player:
                 if key == f"{BASE}/trajectory/{trajectory}/feedback" and "result" not in body]
 
     def ended(self, trajectory: str) -> list[dict]:
-        return [e.fields for e in self.events
-                if e.type == "trajectory_ended" and e.fields["id"] == trajectory]
+        """Its ``trajectory_ended`` events, each checked to carry the final errors of its
+        result (taken out: the result shows them)."""
+        found = []
+        for event in self.events:
+            if event.type == "trajectory_ended" and event.fields["id"] == trajectory:
+                EVENT_ADAPTER.validate_python(
+                    {"ts": 0.0, "device": event.device, "type": event.type, **event.fields})
+                fields = dict(event.fields)
+                assert fields.pop("errors") == self.result(trajectory)["errors"]
+                found.append(fields)
+        return found
 
 
 @pytest.fixture
@@ -340,6 +350,7 @@ def test_feedback_comes_ten_times_a_second_then_the_result_there_and_as_an_event
                         "end_at": played.start_at + 1.5}]
     assert player.ended(played.id) == [{"id": played.id, "client": "alice",
                                         "result": "succeeded"}]
+    assert set(player.result(played.id)["errors"]) == {"la2", "arm2"}
     assert all(e.device == "*" for e in player.events)
 
 

@@ -191,12 +191,11 @@ class Trajectories:
         for member in running.members:
             if member.name not in keep:
                 member.runner.stop_playing(member.name, speed=member.speed)
-        body = {"ts": time.time(), "id": running.id, "result": result,
-                "errors": running.errors} | ({"reason": reason} if reason else {})  # fmt: skip
-        self.publish(self._feedback_key(running), body)
-        self._event(
-            running, "trajectory_ended", result=result, **({"reason": reason} if reason else {})
+        outcome = {"result": result, "errors": running.errors} | (
+            {"reason": reason} if reason else {}
         )
+        self.publish(self._feedback_key(running), {"ts": time.time(), "id": running.id, **outcome})
+        self._event(running, "trajectory_ended", **outcome)
 
     def _event(self, running: Running, type_: str, **fields: Any) -> None:
         client = {"client": running.client} if running.client else {}
