@@ -301,8 +301,10 @@ def test_a_followed_speed_is_kept_alive_once_acknowledged() -> None:
 def test_can_poll_is_empty_and_init_writes_something_harmless() -> None:
     d = can_driver()
     assert d.poll() == []
-    # mode unknown: 0 rpm (no speed preset left to start it at an enable), then release
-    assert wire(d.init()) == ["001#00fa001100000000", "001#00fa00100000000f"]
+    # mode unknown: 0 rpm and 0 A (no speed or torque preset left to start it at an enable),
+    # then release
+    assert wire(d.init()) == ["001#00fa001100000000", "001#00fa000800000000",
+                              "001#00fa00100000000f"]
     run(d, plan(d, '{"op":"enable"}'))
     assert d.init() == []  # a client enabled it since: init must not release it again
     run(d, plan(d, '{"op":"disable"}'))
@@ -323,6 +325,28 @@ def test_a_disable_leaves_no_speed_preset_for_the_next_enable() -> None:
     run(d, plan(d, '{"op":"disable"}'))
     run(d, plan(d, '{"op":"velocity","rpm":100}'))  # preset after the disable
     assert wire(plan(d, '{"op":"enable"}')) == ["001#00fa00100000001f"]
+
+
+@pytest.mark.parametrize(("driver", "zero_torque", "release"), [
+    (can_driver, "001#00fa000800000000", "001#00fa00100000000f"),
+    (rs_driver, "08000008", "00000000"),
+])
+def test_in_torque_mode_a_stop_or_disable_leaves_no_torque_for_the_next_enable(
+        driver, zero_torque, release) -> None:
+    """The manual (8.1.2 step 6, 8.2.1 note 12): enabled in torque mode, the motor turns at
+    the torque set. An e-stop and a disable write 0 A before the release, so that the reset's
+    enable (or a client's) drives nothing until a new torque is sent."""
+    d = driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"torque"}'))
+    run(d, plan(d, '{"op":"torque","current_a":2.0}'))
+    run(d, plan(d, '{"op":"enable"}'))
+    stop = d.safe_stop()
+    assert wire(stop) == [zero_torque, release]
+    run(d, stop)
+    assert d.telemetry(0)["target_current_a"] == 0.0
+    assert wire(d.reset_estop()) == wire(plan(driver(), '{"op":"enable"}'))
+    run(d, plan(d, '{"op":"torque","current_a":1.5}'))
+    assert wire(plan(d, '{"op":"disable"}')) == [zero_torque, release]
 
 
 def test_without_heartbeats_state_carries_the_commanded_and_online_follows_acks() -> None:

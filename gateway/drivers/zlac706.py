@@ -80,6 +80,7 @@ def settings_telemetry(settings: Settings) -> dict[str, Any]:
 
 
 _STOP = schema.Velocity(op="velocity", rpm=0.0)
+_NO_TORQUE = schema.Torque(op="torque", current_a=0.0)
 _RELEASE = schema.Disable(op="disable")
 _ENABLE = schema.Enable(op="enable")
 
@@ -112,6 +113,7 @@ class Zlac706Driver(Driver):
         # them (docs/performance.md, "An e-stop's frame first"). Speed and enable writes may
         # be repeated whatever the settings, so nothing they depend on changes meanwhile.
         self._zero_speed = self._built(_STOP)
+        self._zero_torque = self._built(_NO_TORQUE)
         self._release = self._built(_RELEASE)
         #: The settings ``telemetry`` last told of, and what it said of them: said again only
         #: when they change (every heartbeat makes a state; settings seldom change).
@@ -138,9 +140,9 @@ class Zlac706Driver(Driver):
                 check(role, value, outlook)
                 changes.update(outlook.change(role, value))
             if role is Role.ENABLE and not value:
-                # A speed preset starts the motor the moment it is enabled (the manual): a
-                # disable leaves none behind for whoever enables it next, as a safe stop does.
-                requests.extend(self.stale_stream())
+                # A preset starts the motor the moment it is enabled (the manual): a disable
+                # leaves none behind for whoever enables it next, as a safe stop does.
+                requests.extend(self.nothing_preset())
             requests.append(self._request(frame, role, outlook))
         self.machine.planned(changes)
         enabled = changes.get(Role.ENABLE.value)
@@ -233,13 +235,22 @@ class Zlac706Driver(Driver):
         return entry.role, entry.value(frame.value, settings)  # type: ignore[attr-defined]
 
     def safe_stop(self) -> list[Request]:
-        """Speed 0 (unless the mode is known not to be velocity), then release the motor.
+        """Nothing preset (``nothing_preset``), then release the motor.
 
         The queue is dropped on an e-stop, so the writes still in flight are forgotten."""
         self.note_estop()
         self.estop_latched = True
         self.machine.forget_pending()
-        return [*self.stale_stream(), *self._noted(self._release)]
+        return [*self.nothing_preset(), *self._noted(self._release)]
+
+    def nothing_preset(self) -> list[Request]:
+        """0 rpm unless the mode is known not to be velocity, 0 A unless it is known not to be
+        torque: what leaves the drive nothing to start the motor with at its next enable (the
+        manual, 8.1.2 and 8.2.1: enabled, a preset speed turns it in velocity mode, a preset
+        torque in torque mode)."""
+        if self.machine.settings.mode in (Mode.TORQUE, None):
+            return [*self.stale_stream(), *self._noted(self._zero_torque)]
+        return self.stale_stream()
 
     def driving(self) -> bool:
         return self.machine.settings.enabled is True

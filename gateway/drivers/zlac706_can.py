@@ -186,15 +186,15 @@ class Zlac706CanDriver(Zlac706Driver):
     def init(self) -> list[Request]:
         """Rule 4. The runner repeats ``init`` at the poll rate while the node is offline (with
         heartbeats expected, until the first one), so it never releases a motor that a client
-        enabled since: with the mode unknown and the motor enabled, nothing is sent; else 0 rpm
-        and a release, so that no speed preset before the gateway came starts the motor at the
-        next enable."""
+        enabled since: with the mode unknown and the motor enabled, nothing is sent; else 0 rpm,
+        0 A and a release, so that no speed or torque preset before the gateway came starts the
+        motor at the next enable."""
         settings = self.machine.settings
         if settings.mode is not None:
             return self._unchecked(schema.SetMode(op="set_mode", mode=settings.mode))
         if settings.enabled:
             return []
-        return [*self.stale_stream(), *self._unchecked(schema.Disable(op="disable"))]
+        return [*self.nothing_preset(), *self._unchecked(schema.Disable(op="disable"))]
 
     def keepalive_request(self) -> Request:
         """The last speed written, again (``commanded_speed_raw``)."""
