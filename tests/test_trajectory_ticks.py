@@ -26,8 +26,10 @@ from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker
 from busgate.gateway.scheduler.trajectory_ticks import (
     GRID_STRETCH,
+    LONGEST_INTERVAL_S,
     ON_TIME_S,
     TrajectoryTicker,
+    grid_of,
     next_slot,
 )
 from busgate.gateway.trajectory.interpolation import Knot, Path, sent
@@ -178,6 +180,51 @@ def test_ticks_stay_on_the_grid_and_no_interval_is_shorter_than_the_period(laten
                 assert slot >= last_start + PERIOD - 1e-9 > slot - GRID
         ticker.sent(start)
         previous = (k, start)
+
+
+@pytest.mark.parametrize("period_s", [0.026, 0.03, 0.045])
+def test_after_a_late_tick_a_long_period_takes_the_next_slot_never_leaving_over_50_ms(period_s):
+    """The manual takes follow targets at most 50 ms apart: where the first slot a full period
+    after a late tick would be further than that (a period over 25 ms skips one), the next
+    tick is the next slot, a period after the late one, and the stretch brings the ticks back
+    onto their slots."""
+    grid = grid_of(period_s)
+    ticker = TrajectoryTicker(InspireLaDriver, period_s, START, BusCounters(0.0))
+    ticker.add(InspireLaDriver("la1", 1), position_of(RAMP_UP))
+    starts, slots = [], []
+    for index in range(40):
+        due = ticker.next_due()
+        slots.append(math.floor((due - START) / grid + 1e-9))
+        start = due + (0.002 if index == 3 else 0.00005)  # one tick 2 ms late
+        assert positions(ticker.build(start)) == {1: sent(RAMP_UP.at(slots[-1] * grid))}
+        ticker.sent(start)
+        starts.append(start)
+    assert slots == list(range(40)), "no slot is skipped"
+    intervals = [b - a for a, b in pairwise(starts)]
+    assert min(intervals) >= period_s and max(intervals) <= LONGEST_INTERVAL_S + 0.002
+    assert intervals[3] == pytest.approx(period_s + 0.00005)
+    assert starts[-1] - (START + 39 * grid) < ON_TIME_S, "back on its slot"
+
+
+def test_a_50_ms_grid_is_not_stretched_past_the_manuals_longest_interval():
+    assert grid_of(0.05) == 0.05 and grid_of(0.0499) == pytest.approx(0.05)
+    assert grid_of(0.02) == pytest.approx(0.0202) and grid_of(0.01) == pytest.approx(0.0101)
+    ticker = TrajectoryTicker(InspireLaDriver, 0.05, START, BusCounters(0.0))
+    ticker.add(InspireLaDriver("la1", 1), position_of(RAMP_UP))
+    starts = []
+    for _ in range(20):
+        start = ticker.next_due() + 0.00005  # each write a little late: carried, not skipped
+        ticker.build(start)
+        ticker.sent(start)
+        starts.append(start)
+    assert all(b - a == pytest.approx(0.05 + 0.00005) for a, b in pairwise(starts))
+
+
+def test_a_late_tick_at_20_ms_still_gives_up_the_next_slot():
+    ticker = la_ticker()
+    ticker.build(START)
+    ticker.sent(START + 0.002)
+    assert ticker.next_due() == pytest.approx(START + 2 * GRID)  # 38.4 ms on: within 50
 
 
 def test_ticks_each_a_little_late_keep_every_slot_and_every_interval_at_the_period():

@@ -6,14 +6,18 @@ Rules of this file:
 1. Tick ``k`` of a trajectory is due at its slot, ``start + k × grid``, for every bus alike
    (so buses that start together stay together), and never before the previous tick's start
    plus the device's period: no interval is ever shorter than the period. The grid's period
-   is the device's stretched by ``GRID_STRETCH``: every write starts a little after it is
+   is the device's stretched by ``GRID_STRETCH`` (within ``LONGEST_INTERVAL_S``: ``grid_of``):
+   every write starts a little after it is
    due (the host's wake-up, the write call), and a grid of exactly the period would carry
    each tick's lateness into the next one's earliest start, so that it grew tick after tick;
    the stretch gives each interval that slack back, and a tick a little late is followed
    by one on its slot again. A tick that started over ``ON_TIME_S`` after its slot (the
    contract's alignment bound: a hiccup, a busy line) has drifted: the next is the first
    slot a full period after it, so the grid is never left and a late tick is not made up by
-   a burst.
+   a burst; unless that slot is more than ``LONGEST_INTERVAL_S`` after the late tick (a
+   period over 25 ms skips one): then the next is the next slot, due a period after the
+   late tick, since the manual's follow mode takes a target at most every 50 ms (the
+   stretch brings the ticks back onto their slots, a hundredth of a period a tick).
 2. What a tick sends is the trajectory sampled at the tick's slot (``sample(k × grid)``, a
    follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
    is), not at the moment the frame happens to leave: the wire carries the interpolant at
@@ -48,6 +52,7 @@ from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
+from busgate.schemas.config import FOLLOW_PERIOD_MS
 
 #: How long after its slot a tick may start and the next still be on the following slot
 #: (rule 1): the 1 ms within which the buses' ticks of one slot are aligned.
@@ -55,6 +60,9 @@ ON_TIME_S = 0.001
 #: The grid's period over the device's (rule 1): 1 % is 100 µs a tick at 10 ms, several times
 #: what a tick usually starts late on this kind of host, so lateness does not pile up.
 GRID_STRETCH = 1.01
+#: The longest interval a drifted tick may leave before the next (rule 1): the longest follow
+#: period the manual allows.
+LONGEST_INTERVAL_S = FOLLOW_PERIOD_MS[1] / 1000
 #: A sampler: seconds from the trajectory's start → the device's follow payload (one key).
 Sampler = Callable[[float], dict[str, Any]]
 
@@ -90,7 +98,7 @@ class TrajectoryTicker:
         self.driver_class = driver_class
         self.period_s = period_s
         #: The grid's period (rule 1): slot ``k`` is at ``start + k × grid_s``.
-        self.grid_s = period_s * GRID_STRETCH
+        self.grid_s = grid_of(period_s)
         self.start = start
         self.counters = counters
         #: Called after each slot, its frame sent or (rule 5) passed without one.
@@ -164,8 +172,10 @@ class TrajectoryTicker:
         self.commanded.update(self._built)  # rule 4: one assignment per device
         if self._on_time(start):  # rules 1 and 6
             self._go_to(self._k + 1)
-        else:  # drifted: the first slot a full period on
-            self._go_to(slot_index(self.start, self.grid_s, start + self.period_s))
+        else:  # drifted: the first slot a full period on, within the longest interval
+            skip_to = slot_index(self.start, self.grid_s, start + self.period_s)
+            within = self._slot(skip_to) - start <= LONGEST_INTERVAL_S
+            self._go_to(skip_to if within else self._k + 1)
         self.on_tick(self)
 
     def _on_time(self, start: float) -> bool:
@@ -189,6 +199,13 @@ class TrajectoryTicker:
 
     def _slot(self, k: int) -> float:
         return self.start + k * self.grid_s
+
+
+def grid_of(period_s: float) -> float:
+    """The grid's period for a device's ``period_s`` (rule 1): stretched by ``GRID_STRETCH``,
+    but never past ``LONGEST_INTERVAL_S`` (a 50 ms period has no stretch: its ticks carry the
+    host's lateness instead, rather than each leave 50.5 ms)."""
+    return min(period_s * GRID_STRETCH, max(period_s, LONGEST_INTERVAL_S))
 
 
 def next_slot(start: float, period_s: float, earliest: float) -> float:
