@@ -582,6 +582,42 @@ def test_a_client_past_its_share_of_the_queue_is_told_busy_and_another_still_get
         runner.owner.close()
 
 
+def test_follow_mode_targets_by_command_keep_the_follow_period_and_leave_a_stream_alone(
+    simulator,
+) -> None:
+    """The manual takes follow-mode targets at a fixed period: a command's follow (or a group
+    follow naming the device) is refused, nothing queued, sooner than the device's follow
+    period after the last one a command sent it, and while a stream follows the device."""
+    runner = build_bus(bus(simulator.port, follow_period_ms=10))  # not started: nothing leaves
+    runner.owner.open()
+    work, la1 = runner._work, runner.drivers["la1"]
+
+    def sent(device: str, text: str) -> Future:
+        future = Future()
+        work.plan_command(device, runner.drivers[device].parse(text), None, now() + 10, future)
+        return future
+
+    follow = '{"op":"follow","position":900}'
+    group = '{"op":"group_follow","targets":[{"id":1,"position":900},{"id":2,"position":900}]}'
+    try:
+        assert not sent("la1", follow).done()
+        refused = sent("la1", follow).exception(0)
+        assert refused.code == "busy" and "once every 10 ms" in str(refused)
+        assert sent("la2", group).exception(0).code == "busy", "la1 is in it"
+        assert runner.planner.queued == 1
+        time.sleep(0.011)
+        assert not sent("la2", group).done()
+        time.sleep(0.021)  # la2's follow period: 20 ms
+        runner.streams.start(la1, la1.follow_target({"position": 1000}), now())
+        refused = sent("la1", follow).exception(0)
+        assert refused.code == "busy" and "follow key" in str(refused)
+        assert not sent("la2", '{"op":"follow","position":800}').done()
+        assert not sent("la1", '{"op":"move","position":800}').done(), "a move is no follow"
+        assert runner.planner.queued == 4
+    finally:
+        runner.owner.close()
+
+
 def estops_on_the_wire(simulator) -> list[int]:
     """The id of every Inspire LA e-stop frame the simulator took, in order."""
     wires = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex(): i for i in (1, 2)}

@@ -224,6 +224,13 @@ class Driver(abc.ABC):
         never change an id."""
         return []
 
+    def follow_mode_ids(self, frames: Sequence[object]) -> frozenset[int]:
+        """The ids of the devices ``frames`` (one command's) send a follow-mode target, which
+        the manual asks at a fixed period (an Inspire LA's follow and group follow): a command
+        that sends one is judged against the device's follow stream and period. By default
+        none: a family with no such mode."""
+        return frozenset()
+
     def effects_of(self, frames: Sequence[object]) -> list[tuple[Addressed, Effect]]:
         """What each of ``frames`` does, and to which ids."""
         return [(self.addressed(frame), self.effect(frame)) for frame in frames]

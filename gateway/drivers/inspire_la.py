@@ -135,6 +135,15 @@ class InspireLaDriver(Driver):
     def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
         return [c for frame in frames for c in frame_id_changes(frame)]  # type: ignore[arg-type]
 
+    def follow_mode_ids(self, frames: Sequence[object]) -> frozenset[int]:
+        ids: set[int] = set()
+        for frame in frames:
+            if isinstance(frame, codec.FollowCommand):
+                ids.add(frame.device_id)
+            elif isinstance(frame, codec.GroupFollowCommand):
+                ids.update(target.device_id for target in frame.targets)
+        return frozenset(ids)
+
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         moves_me = self._moves_me(command)
         if moves_me:

@@ -43,6 +43,10 @@ class FollowStreams:
         stream.latest = (target, moment)
         return True
 
+    def following(self, device: str) -> bool:
+        """Whether ``device`` has a running stream."""
+        return device in self._streams
+
     def start(
         self, driver: Driver, target: Any, moment: float, *, ends_on_target: bool = False
     ) -> None:

@@ -9,12 +9,18 @@ frame only what that frame needs (every driver latched, the waiting commands tak
 rest of what it ends, with the events and answers that tell it, comes after the frame
 (``end_estopped``): the bus threads sharing an interpreter take turns on that Python, so
 every bus's frame would wait for each one's (docs/performance.md, "An e-stop's frame first").
+A command's follow-mode targets (an Inspire LA's ``follow``, ``group_follow``), which the
+manual takes at a fixed period, are refused (``busy``, nothing sent) for a device that a
+follow stream or a trajectory follows (its ticks keep the period: the client puts targets on
+the follow key instead), and for one that a command sent such a target less than its follow
+period before (``_check_follow_mode``).
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
@@ -64,6 +70,8 @@ class BusWork:
         self.planner = planner
         self.streams = streams
         self.plays = plays
+        #: When a command last sent each device a follow-mode target (``_check_follow_mode``).
+        self._follow_sent: dict[str, float] = {}
         self.state_of = state_of
         #: An e-stop's ends are still to come (``end_estopped``), with the commands it took out.
         self._estop_ending = False
@@ -86,12 +94,14 @@ class BusWork:
             self.authority.check(effects, client, require_claim=command.require_claim)
             self.authority.check_limits(driver.setpoints(frames))
             self.authority.check_ids(driver.id_changes(frames))
+            followed = self._check_follow_mode(driver.follow_mode_ids(frames))
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
                 self.start_stream(device, driver.follow_target(ramp), now(), ends_on_target=True)
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
+            self._follow_sent.update(dict.fromkeys(followed, now()))
             also = {other.name for other in self.authority.moved(effects) if other is not driver}
             reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
         except BusgateError as exc:
@@ -112,6 +122,30 @@ class BusWork:
                 client=client or "",
             )
         )
+
+    def _check_follow_mode(self, ids: frozenset[int]) -> list[str]:
+        """Refuse follow-mode targets for the devices of ``ids`` that a stream or a trajectory
+        follows, or that a command sent one less than a follow period ago; the names of the
+        devices they go to, noted once the command is planned."""
+        if not ids:
+            return []
+        moment = now()
+        followed = [d for d in self.drivers.values() if d.device_id in ids]
+        for driver in followed:
+            if self.streams.following(driver.name) or self.plays.playing(driver.name):
+                raise BusyError(
+                    f"{driver.name} is followed by a stream or a trajectory, whose ticks keep "
+                    "the manual's fixed period: put its targets on its follow key; nothing "
+                    "was sent"
+                )
+            since = moment - self._follow_sent.get(driver.name, -math.inf)
+            if since < driver.follow_period_s:
+                raise BusyError(
+                    f"{driver.name} takes a follow-mode target once every "
+                    f"{driver.follow_period_s * 1000:g} ms (its follow period: the manual's "
+                    f"fixed period), and one was sent {since * 1000:.1f} ms ago; nothing was sent"
+                )
+        return [driver.name for driver in followed]
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
