@@ -76,11 +76,13 @@ FINITE = ConfigDict(allow_inf_nan=False)
 
 class ReadByKey(Published):
     """Published data that can also be read as the JSON object it came as: ``info["buses"]``
-    is ``info.buses``, and ``get`` and ``in`` answer as a dict's would. Kept for scripts
-    written against the earlier release, whose ``Client.gateways()`` returned the raw reply;
-    new code reads attributes (a device's state too: ``device["state"]["position"]`` is
+    is ``info.buses``, and ``get``, ``in``, ``keys``, ``values`` and ``items`` answer as a
+    dict's would (so ``dict(info)`` is its fields). Kept for scripts written against the
+    earlier release, whose ``Client.gateways()`` returned the raw reply; new code reads
+    attributes (a device's state too: ``device["state"]["position"]`` is
     ``device.state.position``). Reads only: iterating gives pydantic's ``(field, value)``
-    pairs, ``==`` compares models, and ``model_dump(mode="json")`` gives the object itself."""
+    pairs, ``==`` compares models, and ``model_dump(mode="json")`` gives the object itself
+    (``json.dumps`` takes that, not the model)."""
 
     def __getitem__(self, key: str) -> Any:
         if key in type(self).model_fields:
@@ -95,6 +97,15 @@ class ReadByKey(Published):
 
     def __contains__(self, key: object) -> bool:
         return isinstance(key, str) and key in type(self).model_fields
+
+    def keys(self) -> list[str]:
+        return list(type(self).model_fields)
+
+    def values(self) -> list[Any]:
+        return [getattr(self, key) for key in type(self).model_fields]
+
+    def items(self) -> list[tuple[str, Any]]:
+        return [(key, getattr(self, key)) for key in type(self).model_fields]
 
 
 class OpenPublished(BaseModel):

@@ -171,6 +171,9 @@ def test_gateways_replies_read_by_key_as_the_earlier_release_gave_them(client, g
     assert "version" in info and "state" in device and "nothing" not in info and 1 not in info
     with pytest.raises(KeyError, match="nothing"):
         info["nothing"]
+    assert set(info.keys()) >= {"ok", "gateway", "buses"} and dict(info)["buses"] is info.buses
+    assert dict(info.items()) == dict(zip(info.keys(), info.values(), strict=True))
+    assert json.loads(json.dumps(info.model_dump(mode="json")))["gateway"] == "demo"
 
 
 @pytest.fixture
