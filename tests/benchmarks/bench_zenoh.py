@@ -265,19 +265,22 @@ from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 with listening(sys.argv[1]) as server:
     print("listening", flush=True)
     bus = UnixCanBus(sys.argv[1], accepted=server.accept()[0])
-devices = [Zlac706CanDevice(n, heartbeat_ms=10) for n in range(1, 6)]
+devices = [Zlac706CanDevice(n, heartbeat_ms=int(sys.argv[3])) for n in range(1, 6)]
 simulator = CanSimulator(zlac706_can, devices, bus=bus).start()
 sys.stdin.read()  # until the benchmark closes it
 simulator.stop()
 """
 
 
-def telemetry_cpu_apart(seconds: float = 10.0) -> tuple[float, float]:
+def telemetry_cpu_apart(seconds: float = 10.0, *, buses: int = 4,
+                        heartbeat_ms: int = 10) -> tuple[float, float]:
     """``telemetry_cpu`` with each bus's five ZLAC706 in a process of their own, behind a
     ``unix_can`` bus (SocketCAN's frames over a Unix socket: this host has no ``vcan``), so
-    that the daemon's CPU is this process's and nothing of the simulators is in it."""
-    with _apart_simulators() as channels:
-        cpu, rate, _ = _daemon_run(_heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
+    that the daemon's CPU is this process's and nothing of the simulators is in it. Fewer
+    ``buses`` show what a bus adds; ``heartbeat_ms = 0``, what idle buses cost."""
+    with _apart_simulators(buses, heartbeat_ms) as channels:
+        config = _heartbeat_config(unix_can.INTERFACE, channels, heartbeat_ms)
+        cpu, rate, _ = _daemon_run(config, seconds, [])
     return cpu, rate
 
 
@@ -287,7 +290,7 @@ def heartbeat_steps_apart(seconds: float = 10.0) -> dict[str, float]:
     p1, p50 and p99, and the share within 1 ms of 10 ms; and how old a state is when the
     subscriber takes it (its ``ts``, the heartbeat's arrival, to the subscriber's clock), in
     ms at p50 and p99."""
-    with _apart_simulators() as channels:
+    with _apart_simulators(4, 10) as channels:
         _, _, (steps, ages) = _daemon_run(
             _heartbeat_config(unix_can.INTERFACE, channels), seconds, [])
     near = sum(abs(step - 0.010) <= 0.001 for step in steps) / len(steps)
@@ -297,13 +300,14 @@ def heartbeat_steps_apart(seconds: float = 10.0) -> dict[str, float]:
 
 
 @contextlib.contextmanager
-def _apart_simulators() -> Iterator[list[str]]:
-    """Four buses' channels, each with five ZLAC706 simulated in a process of their own."""
+def _apart_simulators(buses: int, heartbeat_ms: int) -> Iterator[list[str]]:
+    """``buses`` buses' channels, each with five ZLAC706 simulated in a process of their own,
+    heartbeating every ``heartbeat_ms`` (0: never)."""
     unix_can.register()
-    channels = [f"{os.getpid()}-{i}" for i in range(4)]
+    channels = [f"{os.getpid()}-{i}" for i in range(buses)]
     here = str(Path(__file__).parent)
     # The daemon leaves first, and each simulator's thread ends on its closed bus: quietly.
-    sims = [subprocess.Popen([sys.executable, "-c", APART_SIMULATOR, ch, here],
+    sims = [subprocess.Popen([sys.executable, "-c", APART_SIMULATOR, ch, here, str(heartbeat_ms)],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                              stderr=subprocess.DEVNULL, text=True)
             for ch in channels]
@@ -320,15 +324,17 @@ def _apart_simulators() -> Iterator[list[str]]:
                 sim.kill()
 
 
-def _heartbeat_config(interface: str, channels: list[str]):
+def _heartbeat_config(interface: str, channels: list[str], heartbeat_ms: int = 10):
     """Every bus in the daemon's process (``workers = 1``): its CPU is this process's, and the
     stand-in for SocketCAN is registered here only. No stream runs; a 50 ms follow period
-    keeps five wheels' worst case inside the bus, so the daemon warns of nothing."""
+    keeps five wheels' worst case inside the bus, so the daemon warns of nothing. With
+    ``heartbeat_ms`` 0 the wheels are told to expect none."""
+    heartbeat = {"heartbeat_ms": heartbeat_ms} if heartbeat_ms else {}
     return parse_config({
         "gateway": {"name": "bench", "workers": 1}, "zenoh": {"listen": [free_endpoint()]},
         "buses": [{"name": f"can{i}", "transport": "can", "interface": interface, "channel": ch,
                    "devices": [{"name": f"w{i}-{n}", "kind": "zlac706", "id": n,
-                                "heartbeat_ms": 10, "follow_period_ms": 50} for n in range(1, 6)]}
+                                "follow_period_ms": 50, **heartbeat} for n in range(1, 6)]}
                   for i, ch in enumerate(channels)],
     })
 
