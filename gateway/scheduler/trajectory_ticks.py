@@ -6,18 +6,18 @@ Rules of this file:
 1. Tick ``k`` of a trajectory is due at its slot, ``start + k × grid``, for every bus alike
    (so buses that start together stay together), and never before the previous tick's start
    plus the device's period: no interval is ever shorter than the period. The grid's period
-   is the device's stretched by ``GRID_STRETCH`` (within ``LONGEST_INTERVAL_S``: ``grid_of``):
-   every write starts a little after it is
-   due (the host's wake-up, the write call), and a grid of exactly the period would carry
-   each tick's lateness into the next one's earliest start, so that it grew tick after tick;
-   the stretch gives each interval that slack back, and a tick a little late is followed
-   by one on its slot again. A tick that started over ``ON_TIME_S`` after its slot (the
-   contract's alignment bound: a hiccup, a busy line) has drifted: the next is the first
-   slot a full period after it, so the grid is never left and a late tick is not made up by
-   a burst; unless that slot is more than ``LONGEST_INTERVAL_S`` after the late tick (a
-   period over 25 ms skips one): then the next is the next slot, due a period after the
-   late tick, since the manual's follow mode takes a target at most every 50 ms (the
-   stretch brings the ticks back onto their slots, a hundredth of a period a tick).
+   is the device's stretched by ``GRID_STRETCH``, never past ``LONGEST_INTERVAL_S``
+   (``grid_of``): every write starts a little after it is due (the host's wake-up, the
+   write call), and a grid of exactly the period would carry each tick's lateness into the
+   next one's earliest start, so that it grew tick after tick; the stretch gives each
+   interval that slack back, and a tick a little late is followed by one on its slot
+   again. A tick that started over ``ON_TIME_S`` after its slot (the contract's alignment
+   bound: a hiccup, a busy line) has drifted: the next is the first slot a full period
+   after it, so the grid is never left and a late tick is not made up by a burst; unless
+   that slot is more than ``LONGEST_INTERVAL_S`` after the late tick (at periods over some
+   25 ms): then the next is the next slot, due a period after the late tick, since the LA's
+   follow mode takes a target at most every 50 ms; the stretch brings the ticks back onto
+   their slots, a hundredth of a period a tick.
 2. What a tick sends is the trajectory sampled at the tick's slot (``sample(k × grid)``, a
    follow payload such as ``{"position": 1200}``, made the driver's target as a follow put's
    is), not at the moment the frame happens to leave: the wire carries the interpolant at
