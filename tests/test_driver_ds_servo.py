@@ -168,6 +168,25 @@ def test_torque_back_on_after_the_gateway_switched_it_off_is_a_reboot() -> None:
     assert d.restore_pending and [r.frame for r in d.restore()] == [stop.frame]
 
 
+def test_a_resets_torque_on_left_unanswered_and_read_back_on_is_no_reboot() -> None:
+    """The reset's torque-on write may land though its answer is lost: the torque is then not
+    known, and read back on it is as asked, not a reboot whose restore would switch it off
+    again (a reboot seen once over bus workers undid a reset so)."""
+    d = driver(1)
+    for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30), strict=True):
+        answer(d, request, data=data)
+    [stop] = d.safe_stop()
+    answer(d, stop)
+    move, torque_on = d.reset_estop()
+    answer(d, move)
+    d.missed(1.5, torque_on.frame)
+    assert d.telemetry(1.5)["enabled"] is None, "not known until read"
+    for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30, torque=1), strict=True):
+        answer(d, request, data=data)
+    assert "rebooted" not in event_types(d) and not d.restore_pending
+    assert d.telemetry(2.0)["enabled"] is True and d.restore() == []
+
+
 def test_read_answers_data_and_named_values_and_updates_telemetry() -> None:
     d = driver(1)
     [request] = plan(d, '{"op":"read","address":56,"length":2}')

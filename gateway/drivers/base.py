@@ -415,8 +415,9 @@ class Driver(abc.ABC):
             self.online = self.was_online = True
             self.emit("online")
 
-    def missed(self, now: float) -> None:
-        """A request went unanswered; after ``OFFLINE_AFTER`` in a row the device is offline."""
+    def missed(self, now: float, frame: object = None) -> None:
+        """A request (its ``frame``, when known) went unanswered; after ``OFFLINE_AFTER`` in a
+        row the device is offline."""
         self.misses += 1
         if self.online and self.misses >= OFFLINE_AFTER:
             self.went_offline("no reply")

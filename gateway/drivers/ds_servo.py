@@ -369,10 +369,20 @@ class DsServoDriver(Driver):
             self.device_id = new_id
             _torque_off(new_id)  # ready before its first e-stop
 
+    def missed(self, now: float, frame: object = None) -> None:
+        """A torque write unanswered may have landed all the same: the torque is not known
+        until it is read (and a read of it on is then no reboot)."""
+        if isinstance(frame, codec.Write) and frame.address == _TORQUE:
+            self.torque_on = None
+        super().missed(now, frame)
+
     def _applied_read(self, frame: codec.Read, answer: codec.StatusReply) -> dict[str, Any]:
         values = codec.values_from(frame.address, answer.data)
-        if self.torque_on is False and values.get("torque_enable") == 1:
-            self.rebooted("torque on again, its power-up value")
+        if values.get("torque_enable") == 1:
+            if self.torque_on is False:
+                self.rebooted("torque on again, its power-up value")
+            else:  # on as asked, or known again: a switch-off to restore no longer stands
+                self.applied_settings.pop(_TORQUE, None)
         self._take_values(values)
         return {"data": answer.data.hex(), "values": values}
 

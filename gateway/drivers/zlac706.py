@@ -381,7 +381,7 @@ class Zlac706Driver(Driver):
             "faults": fault_names(machine.alarms),
         }
 
-    def missed(self, now: float) -> None:
+    def missed(self, now: float, frame: object = None) -> None:
         # An unanswered write may or may not have landed: stop counting on the queued ones.
         self.machine.forget_pending()
-        super().missed(now)
+        super().missed(now, frame)

@@ -161,7 +161,7 @@ class Execution:
         driver = self._driver_for(slot)
         if driver is not None:
             self.devices.touched(driver)
-            driver.missed(end)
+            driver.missed(end, slot.request.frame)
 
     def _driver_for(self, slot: Slot) -> Driver | None:
         """The device a job's request is for, or (keep-alives, e-stops) the one it addresses."""
