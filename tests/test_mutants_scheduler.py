@@ -372,6 +372,7 @@ def test_streams_of_one_kind_and_period_share_a_ticker_up_to_its_limit():
     streams.start(a, "again", 0.0)  # a running stream is fed on its own ticker
     carried = sorted(sorted(t.streams) for t in planner.tickers if isinstance(t, FollowTicker))
     assert carried == [["la1", "la2"], ["la3"], ["la4"], ["x1"]]
+    assert streams.following("la1") and not streams.following("z1")
 
 
 def test_store_latest_feeds_a_running_stream_only():
