@@ -216,23 +216,6 @@ def test_array_defaults_and_bounded_strings_in_arrays_hash_as_rosbags(
         assert str(raised.value) == f"{field}[0]: longer than its bound of {bound} bytes"
 
 
-@pytest.mark.parametrize(
-    ("text", "message"),
-    [
-        ("float64[x] xs\n", "cannot parse the type 'float64[x]'"),
-        ("wstring w\n", "unknown primitive 'wstring'"),
-        ("wstring W=1\n", "unknown primitive 'wstring'"),
-    ],
-)
-def test_a_definition_error_names_the_type_it_is_in(
-    monkeypatch: pytest.MonkeyPatch, text: str, message: str
-) -> None:
-    monkeypatch.setitem(MESSAGES, "busgate_test/msg/Broken", text)
-    with pytest.raises(ValueError) as raised:
-        struct("busgate_test/msg/Broken")
-    assert str(raised.value) == f"busgate_test/msg/Broken: {message}"
-
-
 # --- zero values, arrays and sequences against rosbags --------------------------------------
 
 #: ROS's zero of each primitive rosbags names (rosidl's default-initialised message).
