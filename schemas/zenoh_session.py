@@ -30,10 +30,14 @@ import socket
 import stat
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
 
 from busgate.schemas.endpoints import port_problem
+
+if TYPE_CHECKING:
+    from busgate.schemas.config import ZenohSection
 
 MODES = ("peer", "client", "router")
 #: The largest zenoh config file or CA certificate taken: each is a few KiB, and zenoh reads
@@ -126,6 +130,18 @@ def config_file_refusal(config_file: str | Path) -> str | None:
     except ValueError as exc:
         return str(exc)
     return None
+
+
+def gateway_session_config(section: ZenohSection) -> zenoh.Config:
+    """The session config of a gateway's ``[zenoh]`` table: the daemon's, and what
+    ``check-config`` checks the endpoints against."""
+    return session_config(
+        mode=section.mode,
+        listen=section.listen,
+        connect=section.connect,
+        multicast_scouting=section.multicast_scouting,
+        config_file=section.config_file,
+    )
 
 
 def _check_protocols(config: zenoh.Config, endpoints: Sequence[str]) -> None:

@@ -50,7 +50,7 @@ from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
-from busgate.schemas.zenoh_session import session_config
+from busgate.schemas.zenoh_session import gateway_session_config
 
 log = logging.getLogger(__name__)
 
@@ -141,15 +141,7 @@ class ZenohBridge:
         """Open the session and declare every key of the API."""
         self._loop = loop
         zenoh_section = self.config.zenoh
-        self._session = session = zenoh.open(
-            session_config(
-                mode=zenoh_section.mode,
-                listen=zenoh_section.listen,
-                connect=zenoh_section.connect,
-                multicast_scouting=zenoh_section.multicast_scouting,
-                config_file=zenoh_section.config_file,
-            )
-        )
+        self._session = session = zenoh.open(gateway_session_config(zenoh_section))
         base, prefix = self.base, self.config.gateway.prefix
         self._keep = [
             session.declare_queryable(f"{base}/dev/*/cmd", self._on_device_query),

@@ -98,16 +98,10 @@ def zenoh_warnings(config: Config) -> list[str]:
 def _endpoints_refusal(config: Config) -> str | None:
     """Why the zenoh session could not be made of the config file and the endpoints (an
     endpoint of a protocol the file's links leave out); ``None`` when it can."""
-    from busgate.schemas.zenoh_session import session_config  # loads zenoh: only here
+    from busgate.schemas.zenoh_session import gateway_session_config  # loads zenoh: only here
 
-    zenoh_section = config.zenoh
     try:
-        session_config(
-            mode=zenoh_section.mode,
-            listen=zenoh_section.listen,
-            connect=zenoh_section.connect,
-            config_file=zenoh_section.config_file,
-        )
+        gateway_session_config(config.zenoh)
     except ValueError as exc:
         return str(exc)
     return None
