@@ -14,7 +14,9 @@ Rules of this file:
    velocity joint turned at a velocity (``set_velocity``). Its follow stream carries what its
    family's stream carries (the family's joint declaration says which, as the gateway reads
    it): positions (``{"joint": x}``: Inspire LA, DS servo) or velocities (``{"joint_velocity":
-   v}``: ZLAC706), chosen once when the stream is opened.
+   v}``), or, where the family's stream carries both (ZLAC706: speeds in velocity mode,
+   positions in position mode), what the joint's type says; chosen once when the stream is
+   opened.
 """
 
 from __future__ import annotations
@@ -29,18 +31,21 @@ from busgate.client.messages import JointInfo, JointState
 from busgate.client.steps import Steps
 from busgate.errors import CommandError
 from busgate.schemas.api import JointFollow as JointTarget
-from busgate.schemas.joints import declaration_of
+from busgate.schemas.joints import JointType, declaration_of
 
 if TYPE_CHECKING:
     from busgate.client.devices import DeviceBase
 
 
-def follow_field(kind: str) -> str | None:
-    """The field of a joint follow target of a device of ``kind``: ``joint`` when its
-    family's stream carries positions, ``joint_velocity`` when it carries speeds; ``None``
-    when it has no stream, or the kind is not one this SDK knows (rule 3)."""
+def follow_field(kind: str, joint_type: JointType | None = None) -> str | None:
+    """The field of a joint follow target of a device of ``kind`` whose joint is of
+    ``joint_type`` (``None``: its family's first): ``joint`` when it follows positions,
+    ``joint_velocity`` when it follows speeds; ``None`` when it has no stream, or the kind is
+    not one this SDK knows (rule 3)."""
     declaration = declaration_of(kind)
-    follows = None if declaration is None else declaration.follows
+    if declaration is None:
+        return None
+    follows = declaration.follows_of(joint_type or declaration.types[0])
     return {"position": "joint", "velocity": "joint_velocity", None: None}[follows]
 
 
@@ -96,7 +101,8 @@ class JointBase(Face, Generic[Device, JointFollow]):
     def follow(self) -> JointFollow:
         """A follow stream of the joint while the ``with`` block runs: ``set(value)`` is its
         new target in SI, a position where its family's stream carries positions (Inspire
-        LA, DS servo), a velocity where it carries speeds (ZLAC706; rule 3); the gateway
+        LA, DS servo), a velocity where it carries speeds, and its type's where it carries
+        either (ZLAC706, by its mode; rule 3); the gateway
         holds each within the joint's limits (an event ``limited`` tells the first it held).
         ``CommandError`` when the gateway described no joint, or the kind has no stream."""
         if self.info is None:
@@ -104,7 +110,7 @@ class JointBase(Face, Generic[Device, JointFollow]):
                 f"gateway {self.device.gateway} describes no joint of {self.device.name}: "
                 "its release has no joints"
             )
-        field = follow_field(self.device.kind)
+        field = follow_field(self.device.kind, self.info.type)
         if field is None:
             raise CommandError(f"{self.device.kind} has no follow stream")
         return self._JointFollow(self.device._shared, self.device._found, field)

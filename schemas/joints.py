@@ -107,7 +107,16 @@ class JointDeclaration:
 
     @property
     def follows(self) -> Literal["position", "velocity"] | None:
-        """What the family's follow stream carries: positions, speeds, or nothing."""
+        """What the family's follow stream carries for a joint of its first type: positions,
+        speeds, or nothing."""
+        return self.follows_of(self.types[0])
+
+    def follows_of(self, joint_type: JointType) -> Literal["position", "velocity"] | None:
+        """What a joint of ``joint_type`` follows (SI targets): positions or speeds as its
+        type says where the family's stream carries both (a ZLAC706's, by its mode), else
+        what the stream carries; ``None``: the family has no stream."""
+        if self.follow_position is not None and self.follow_velocity is not None:
+            return joint_type
         if self.follow_position is not None:
             return "position"
         return "velocity" if self.follow_velocity is not None else None
@@ -386,8 +395,9 @@ class Joint:
 
     @property
     def follows(self) -> Literal["position", "velocity"]:
-        """What the family's follow stream carries: positions, or speeds."""
-        return self.declaration.follows or "velocity"
+        """What the joint's follow targets in SI are: positions, or speeds (its type's, where
+        the family's stream carries both)."""
+        return self.declaration.follows_of(self.type) or "velocity"
 
     def kind_follow(
         self, position: float | None, velocity: float | None

@@ -17,7 +17,7 @@ from __future__ import annotations
 import warnings
 from typing import Annotated, Literal
 
-from pydantic import Field, Strict, TypeAdapter
+from pydantic import Field, Strict, TypeAdapter, model_validator
 
 from busgate.codecs import zlac706_can as can
 from busgate.codecs import zlac706_common as common
@@ -28,6 +28,8 @@ from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 _POSITION = can.REGISTERS["target_position"]
 
 Rpm = Annotated[float, Field(ge=-common.MAX_SPEED_RPM, le=common.MAX_SPEED_RPM)]
+#: A position target in encoder pulses (CAN's i32).
+Position = Annotated[int, Field(ge=_POSITION.minimum, le=_POSITION.maximum)]
 RampMs = Annotated[int, Field(ge=0, le=common.RAMP_MAX_MS, multiple_of=common.RAMP_STEP_MS)]
 
 
@@ -66,7 +68,7 @@ class Move(CommandModel):
     """Position-mode target in pulses (i32); the motor must be enabled first."""
 
     op: Literal["move"]
-    position: Annotated[int, Field(ge=_POSITION.minimum, le=_POSITION.maximum)]
+    position: Position
 
 
 class Velocity(CommandModel):
@@ -178,10 +180,18 @@ REENABLE_COMMAND: dict[str, object] = {"op": "enable"}
 
 
 class FollowTarget(FollowModel):
-    """What ``<prefix>/<gw>/dev/<device>/follow`` takes: a speed (velocity mode), and the
-    sending client and its ``seq`` (the latest speed is sent at the device's follow period)."""
+    """What ``<prefix>/<gw>/dev/<device>/follow`` takes: a speed in velocity mode, or a
+    position target in absolute position mode (CAN: one frame a target), and the sending
+    client and its ``seq`` (the latest target is sent at the device's follow period)."""
 
-    rpm: Rpm
+    rpm: Rpm | None = None
+    position: Position | None = None
+
+    @model_validator(mode="after")
+    def _one_target(self) -> FollowTarget:
+        if (self.rpm is None) == (self.position is None):
+            raise ValueError("a ZLAC706 follow target gives rpm or position, one of them")
+        return self
 
 
 #: The alarm bits that are faults (``AlarmFlags.faults`` leaves out running and external control).
@@ -225,7 +235,8 @@ class Zlac706Telemetry(TelemetryEnvelope):
 TELEMETRY_MODEL = Zlac706Telemetry
 
 #: The hub motor as a joint (``busgate.schemas.joints``): a wheel commanded by speed (velocity
-#: mode; ``type = "position"`` for position mode), its position counted in encoder pulses
+#: mode; ``type = "position"`` for position mode; its follow stream carries what its mode
+#: takes, positions in absolute position mode), its position counted in encoder pulses
 #: (10000 a turn by the manual's note 6: ``raw_per_turn`` in the table when yours differs),
 #: speeds in rpm (exact in rad/s), its output current as its effort, bounded in torque mode.
 JOINT = JointDeclaration(
@@ -237,6 +248,7 @@ JOINT = JointDeclaration(
     speed_rpm="speed_rpm",
     target_speed_rpm="target_speed_rpm",
     turn=("velocity", "rpm"),
+    follow_position="position",
     follow_velocity="rpm",
     raw_per_turn=common.PULSES_PER_TURN,
     effort="current_ma",

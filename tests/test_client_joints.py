@@ -400,9 +400,14 @@ def test_a_joint_no_info_describes_has_its_devices_name_and_no_stream() -> None:
 
 
 def test_a_joint_stream_carries_what_its_familys_stream_carries() -> None:
-    """Positions for an Inspire LA or a DS servo, speeds for a ZLAC706, whatever the type."""
+    """Positions for an Inspire LA or a DS servo whatever the type; for a ZLAC706, whose
+    stream carries speeds in velocity mode and positions in position mode, its type's."""
     assert [follow_field(kind) for kind in ("inspire_la", "ds_servo", "zlac706", "warp")] == [
         "joint", "joint", "joint_velocity", None]
+    assert [follow_field(kind, "velocity") for kind in ("inspire_la", "zlac706", "warp")] == [
+        "joint", "joint_velocity", None]
+    assert [follow_field(kind, "position") for kind in ("ds_servo", "zlac706")] == [
+        "joint", "joint"]
 
 
 def test_a_joints_message_that_is_not_one_is_left_out_with_one_warning(caplog) -> None:

@@ -77,7 +77,7 @@ def test_refusals_are_the_classes_of_their_codes_and_nothing_runs(client) -> Non
         client.play(["la1"], [{"t_s": 0.2, "positions": [10]}], start_at=time.time() - 1)
     with pytest.raises(bc.UnknownDeviceError):
         client.play(["la9"], [{"t_s": 0.2, "positions": [10]}])
-    with pytest.raises(bc.BadCommandError, match="speeds"):
+    with pytest.raises(bc.BadCommandError, match="needs position mode"):
         client.play(["wheel"], [{"t_s": 0.2, "positions": [10]}])
     [status] = client.query("busgate/demo/trajectory", {"op": "status"})
     assert status.body["trajectories"] == []

@@ -277,15 +277,69 @@ def test_follow_takes_speeds_in_velocity_mode_only() -> None:
     with pytest.raises(CommandError, match="velocity mode"):
         d.follow_target({"rpm": 100})
     velocity_driver(d)
-    with pytest.raises(CommandError, match="speeds"):
+    assert d.follows == "velocity"
+    with pytest.raises(CommandError, match="needs position mode"):
         d.follow_target({"position": 100})
     with pytest.raises(CommandError, match="invalid follow target"):
         d.follow_target({"rpm": 1001})
+    with pytest.raises(CommandError, match="rpm or position, one of them"):
+        d.follow_target({"rpm": 100, "position": 100})
     target = d.follow_target({"rpm": 100})
     request = Zlac706CanDriver.follow_request([(d, target)])
     assert wire([request]) == ["001#00fa001100000111"] and request.idempotent
     with pytest.raises(CommandError, match="one device"):
         Zlac706CanDriver.follow_request([(d, target), (can_driver(), target)])
+
+
+def position_driver(driver, *commands: str):
+    for command in ('{"op":"set_mode","mode":"position"}', *commands):
+        run(driver, plan(driver, command))
+    return driver
+
+
+def test_follow_takes_positions_in_absolute_position_mode_once_enabled() -> None:
+    """The manual: in position mode a target is taken once the motor is enabled, and a
+    relative target moves it on by that much (a stream's every tick would)."""
+    d = position_driver(can_driver(), '{"op":"set_position_mode","relative":false}')
+    with pytest.raises(CommandError, match="enable first"):
+        d.follow_target({"position": 5000})
+    plan(d, '{"op":"enable"}')  # queued, not yet acknowledged: judged as it will be
+    assert d.follows == "position"
+    with pytest.raises(CommandError, match="needs velocity mode"):
+        d.follow_target({"rpm": 100})
+    target = d.follow_target({"position": -5000})
+    assert target == -5000
+    request = Zlac706CanDriver.follow_request([(d, target)])
+    assert wire([request]) == ["001#00fa0016ffffec78"] and request.idempotent  # register 16
+    run(d, plan(d, '{"op":"set_position_mode","relative":true}'))
+    assert d.follows == "velocity"  # nothing it could stream: a rpm is refused by its mode
+    with pytest.raises(CommandError, match="the position mode is relative"):
+        d.follow_target({"position": 5000})
+    unknown = position_driver(can_driver(), '{"op":"enable"}')
+    with pytest.raises(CommandError, match="the position mode is not known"):
+        unknown.follow_target({"position": 5000})
+
+
+def test_rs232_follow_streams_no_positions() -> None:
+    """RS232 writes a position in two frames (high half, then low): a tick is one frame."""
+    d = position_driver(rs_driver(), '{"op":"set_position_mode","relative":false}',
+                        '{"op":"enable"}')
+    assert d.follows == "velocity"
+    with pytest.raises(CommandError, match="two frames"):
+        d.follow_target({"position": 5000})
+
+
+def test_a_worker_s_position_mode_is_mirrored() -> None:
+    """The main process judges follow targets by what the worker's driver told: its mode,
+    its position mode and whether it is enabled."""
+    d = can_driver()
+    d.mirror({"mode": "position", "position_mode": "absolute", "enabled": True})
+    assert d.follow_target({"position": 7}) == 7 and d.follows == "position"
+    d.mirror({"position_mode": "relative"})
+    with pytest.raises(CommandError, match="relative"):
+        d.follow_target({"position": 7})
+    d.mirror({"position_mode": None})  # a state that does not say leaves it as it was
+    assert d.follows == "velocity"
 
 
 def test_a_followed_speed_is_kept_alive_once_acknowledged() -> None:

@@ -25,7 +25,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.config import parse_config
-from tests.wire_frames import received, written_speed
+from tests.wire_frames import received, written, written_speed
 
 TURN = 2 * math.pi
 _channels = itertools.count()
@@ -250,3 +250,39 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
     assert written[0] <= 1.2 + 0.4 and written[-1] == pytest.approx(30, abs=0.4)
     assert all(0 <= b - a <= 1.2 + 0.4 for a, b in itertools.pairwise(ramp_of(written))), written
     assert len(written) >= 25
+
+
+def test_a_wheel_in_absolute_position_mode_streams_positions_held_by_its_joint(gateway):
+    """A ZLAC706 in absolute position mode follows positions (its target register, 16): a
+    step becomes a ramp within the joint's max_velocity (200 pulses a 20 ms tick) and
+    max_acceleration (4 pulses a tick more each tick), from where the wheel is; a speed is
+    refused while it follows positions, and nothing writes a speed."""
+    api, simulators, events = gateway
+    for command in ({"op": "disable"}, {"op": "set_mode", "mode": "position"},
+                    {"op": "set_position_mode", "relative": False}, {"op": "enable"}):
+        accepted(api, "wheel", command)
+    can_sim = simulators["can0"]
+    try:
+        here = api.devices["wheel"][1].telemetry(0.0)["position"]
+        before, told = len(can_sim.recorder.received()), len(events)
+        step = json.dumps({"position": here + 3000, "client": "c3"}).encode()
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            assert api.follow("wheel", step) is None
+            time.sleep(0.01)
+        refused = api.follow("wheel", b'{"joint_velocity": 1.0, "client": "c3"}')
+        assert "needs velocity mode" in refused["error"]["message"], refused
+        api.command("wheel", b'{"op": "end_follow", "client": "c3"}').result(10)
+        frames = [frame for _, frame in received(can_sim, before, zcan)]
+    finally:
+        accepted(api, "wheel", {"op": "disable"})
+        accepted(api, "wheel", {"op": "set_mode", "mode": "velocity"})
+    positions = [p for f in frames if (p := written(f, zcan.CanRegister.TARGET_POSITION))
+                 is not None]
+    assert not [f for f in frames if written_speed(f) is not None]
+    moves = [b - a for a, b in itertools.pairwise([here, *positions])]
+    assert len(positions) >= 25 and all(0 <= move <= 200 + 1 for move in moves), positions
+    assert all(abs(b - a) <= 4 + 2 for a, b in itertools.pairwise([0, *moves])), moves
+    assert positions[-1] > here + 1000  # 1 s of ramp at 4 pulses a tick² covers most of it
+    limited = [e.fields["limit"] for e in events[told:] if e.type == "limited"]
+    assert limited == ["max_acceleration"]

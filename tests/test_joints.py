@@ -148,6 +148,19 @@ def test_commands_in_si_become_the_kinds_own():
         wheel(max_velocity=1.0).turn_command(2.0)
 
 
+def test_a_joints_follow_targets_in_si_are_its_types_where_its_family_streams_both():
+    """A ZLAC706 streams speeds (velocity mode) or positions (position mode): its joint's SI
+    follow target is its type's, and the other is refused; an LA streams positions."""
+    assert wheel().follows == "velocity" and wheel(type="position").follows == "position"
+    assert wheel(type="position").kind_follow(TURN, None) == ({"position": 10_000}, 10_000)
+    assert wheel().kind_follow(None, TURN) == ({"rpm": pytest.approx(60.0)}, pytest.approx(60))
+    with pytest.raises(RefusedError, match="follows speeds: send joint_velocity"):
+        wheel().kind_follow(TURN, None)
+    with pytest.raises(RefusedError, match="follows positions: send joint,"):
+        wheel(type="position").kind_follow(None, TURN)
+    assert la_joint(type="position").follows == "position"
+
+
 def config_with(joint: dict, kind: str = "inspire_la") -> dict:
     return {"gateway": {"name": "g"}, "buses": [{
         "name": "b", "transport": "serial", "port": "/dev/null", "baudrate": 921600,

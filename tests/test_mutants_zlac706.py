@@ -178,11 +178,20 @@ def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
         "register 0xfa is not in the ZLAC706 CAN table")
     assert "is not a writable ZLAC706 RS232 register" in refusal(
         rs, '{"op":"write","register":250,"value":1}')
-    run(can_driver, plan(can_driver, '{"op":"set_mode","mode":"velocity"}'))
+    for command in ('{"op":"set_mode","mode":"position"}', '{"op":"enable"}'):
+        run(rs, plan(rs, command))
+        run(can_driver, plan(can_driver, command))
+    with pytest.raises(CommandError) as refused:
+        rs.follow_target({"position": 5})
+    assert str(refused.value) == (
+        "a ZLAC706 on RS232 takes a position in two frames, so its follow stream carries "
+        'speeds only ({"rpm": R}); send positions as move commands')
     with pytest.raises(CommandError) as refused:
         can_driver.follow_target({"position": 5})
-    assert str(refused.value) == ('a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
-                                  "velocity mode; send positions as move commands")
+    assert str(refused.value) == (
+        "a position follow stream needs absolute positions (set_position_mode with relative "
+        "false first): the position mode is not known, and each target of a relative stream "
+        "would move the motor on again")
 
 
 def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> None:

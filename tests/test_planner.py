@@ -12,6 +12,8 @@ from busgate.codecs.timing import uart_time
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
+from busgate.gateway.drivers.zlac706_state import Mode, Settings
 from busgate.gateway.scheduler.planner import (
     CLIENT_SHARE,
     MAX_RETRIES,
@@ -147,6 +149,31 @@ def test_streams_go_stale_and_the_ticker_falls_idle():
     assert ticker.fresh_s == pytest.approx(0.1), "max(3 periods, 100 ms)"
     assert planner.decide(0.2) == float("inf")
     assert stale == [driver] and ticker.next_due() is None
+
+
+def test_a_stream_ends_when_its_device_follows_the_other_kind_and_a_new_one_starts():
+    """A ZLAC706 follows speeds in velocity mode and positions in absolute position mode: a
+    speed stream whose wheel was switched to position mode ends before its next tick (its
+    300 rpm would go out as position 300), and the next target starts a stream of positions
+    from the wheel's position target."""
+    stale = []
+    ticker = FollowTicker(Zlac706CanDriver, 0.010, BusCounters(0.0), on_stale=stale.append)
+    wheel = Zlac706CanDriver("w", 1)
+    wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=True, speed_raw=0)
+    ticker.update(wheel, 300.0, 0.0)
+    assert str(ticker.build(0.0).wire) == "001#00fa001100000333"  # 300 rpm
+    ticker.sent(0.0)
+    wheel.machine.settings = Settings(mode=Mode.POSITION, relative=False, enabled=True,
+                                      target_position=-40)  # fmt: skip
+    assert ticker.build(0.01) is None and stale == [wheel] and not ticker.streams
+    ticker.update(wheel, 300.0, 0.01)
+    assert ticker.streams["w"].limiter.follows == "position"
+    assert str(ticker.build(0.02).wire) == "001#00fa00160000012c"  # position 300
+    ticker.update(wheel, 500.0, 0.021)  # the same kind: the stream goes on
+    wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=True)
+    ticker.update(wheel, 20.0, 0.022)  # another kind: a new stream, from 0 rpm
+    assert ticker.streams["w"].limiter.follows == "velocity"
+    assert ticker.streams["w"].limiter.value == 0.0 and stale == [wheel]
 
 
 def test_coalescing_respects_the_group_limit():

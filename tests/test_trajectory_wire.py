@@ -56,7 +56,7 @@ from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.simulated_buses import SimulatedGateway, simulated_gateway
 from tests.test_zenoh_api import connected, get
-from tests.wire_frames import received, tick_targets, written_speed
+from tests.wire_frames import received, tick_targets, written, written_speed
 
 BASE = "busgate/gw"
 #: Reply margins that leave room, between the ticks of a 20 ms period, for the polls that
@@ -501,6 +501,32 @@ def test_a_speed_trajectory_sends_each_slots_rpm_and_a_cancel_ramps_it_to_zero(w
     finally:
         command(world, "wheel", {"op": "velocity", "rpm": 0})
         command(world, "wheel", {"op": "disable"})
+
+
+def test_a_wheel_in_absolute_position_mode_plays_positions_slot_by_slot(world, player):
+    """A ZLAC706 on CAN in absolute position mode plays positions: each tick writes the
+    path's position at its slot to the target register (16), from the wheel's position,
+    and no speed."""
+    for fields in ({"op": "set_mode", "mode": "position"},
+                   {"op": "set_position_mode", "relative": False}, {"op": "enable"}):
+        command(world, "wheel", fields)
+    try:
+        played = player.play(["wheel"], [{"t_s": 0.2, "positions": [3000]},
+                                         {"t_s": 0.4, "positions": [-1000]}])
+        assert player.finished(played)["result"] == "succeeded"
+        wait_until(lambda: player.ask({"op": "status"})["trajectories"] == [])
+        found = [Tick(record.start, {5: value})
+                 for record, frame in received(world.can_sim, played.marks["can0"], zcan)
+                 if (value := written(frame, zcan.CanRegister.TARGET_POSITION)) is not None]
+        path = played.paths["wheel"]
+        slots = slots_of(found, played.start_bus, lambda k: {5: sent(path.at(k * GRID))})
+        assert slots[0] == 0 and found[-1].values == {5: -1000}
+        assert len(found) >= 0.4 / GRID - 1  # a tick a slot, or nearly (a late one skips)
+        assert_never_early(found, slots, played.start_bus, "wheel")
+        assert speed_ticks(world, played.marks["can0"]) == []
+    finally:
+        command(world, "wheel", {"op": "disable"})
+        command(world, "wheel", {"op": "set_mode", "mode": "velocity"})
 
 
 # -- aborts ------------------------------------------------------------------------------------

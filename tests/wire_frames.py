@@ -39,6 +39,11 @@ def tick_targets(frame: object) -> dict[int, int] | None:
 
 def written_speed(frame: object) -> int | None:
     """The raw speed a ZLAC706 CAN write sets, else ``None``."""
-    if isinstance(frame, zcan.Write) and frame.register == zcan.CanRegister.TARGET_SPEED:
+    return written(frame, zcan.CanRegister.TARGET_SPEED)
+
+
+def written(frame: object, register: zcan.CanRegister) -> int | None:
+    """The value a ZLAC706 CAN write of ``register`` sets, else ``None``."""
+    if isinstance(frame, zcan.Write) and frame.register == register:
         return frame.value
     return None

@@ -431,7 +431,7 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
     """A follow payload's target in the family's units: the kind's own payload validated by
     its driver, or a joint's (``joint``, ``joint_velocity``: SI) as asked, unclamped (the
     stream's limiter holds it within the joint's limits) once the nearest payload the kind
-    takes passed its driver's checks (a ZLAC706 streams speeds in velocity mode only)."""
+    takes passed its driver's checks (a ZLAC706 streams what its mode takes)."""
     if "joint" not in fields and "joint_velocity" not in fields:
         return driver.follow_target(fields)
     request = follow_target_from(JointFollow, fields)  # its client and seq too

@@ -20,7 +20,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, Literal, NamedTuple
 
 from pydantic import TypeAdapter
 
@@ -320,6 +320,13 @@ class Driver(abc.ABC):
         """A follow stream's payload (``{"position": P}``…) validated: the value it sets, in
         the family's units (a raw position, or a speed); ``CommandError`` if bad."""
         raise CommandError(f"{self.kind} has no follow stream")
+
+    @property
+    def follows(self) -> Literal["position", "velocity"]:
+        """What its follow stream's targets are now, raw: positions or speeds (its joint's; a
+        family whose stream carries both may say which by the device's mode). A stream keeps
+        what it began with: one whose device follows the other now ends (``tickers``)."""
+        return self.joint.follows
 
     def follow_payload(self, payload: dict[str, Any]) -> Any:
         """``payload`` as the kind's ``FollowTarget`` model (``CommandError`` if it is not one)."""

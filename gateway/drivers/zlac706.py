@@ -12,7 +12,7 @@ import functools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
@@ -102,6 +102,9 @@ class Zlac706Driver(Driver):
     roles: ClassVar[dict[int, RoleOf]]
     keepalive_period_s: ClassVar[float]
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm")
+    #: Whether a follow tick can carry a position: a position target is one frame (CAN;
+    #: RS232 writes one in two, high half first).
+    streams_positions: ClassVar[bool]
 
     def __init__(self, name: str, device_id: int, **options: Any) -> None:
         super().__init__(name, device_id, **options)
@@ -291,27 +294,50 @@ class Zlac706Driver(Driver):
         """What refreshes the device: the speed write (CAN), the monitor request (RS232)."""
 
     def mirror(self, state: dict[str, Any]) -> None:
-        """The mode and the power stage its worker's driver knows: a speed target is judged
-        by them (velocity mode only)."""
+        """The mode, the position mode and the power stage its worker's driver knows: a
+        follow target is judged by them (speeds in velocity mode, positions in absolute
+        position mode)."""
         told: dict[str, Any] = {}
         if state.get("mode") in tuple(Mode):
             told["mode"] = Mode(state["mode"])
+        if state.get("position_mode") in ("relative", "absolute"):
+            told["relative"] = state["position_mode"] == "relative"
         if isinstance(state.get("enabled"), bool):
             told["enabled"] = state["enabled"]
         if told:  # a state that says neither (offline, not yet read) leaves them as they were
             self.machine.settings = replace(self.machine.settings, **told)
 
+    @property
+    def follows(self) -> Literal["position", "velocity"]:
+        """Positions in absolute position mode where a target is one frame (CAN), else
+        speeds: as the drive will be once the writes queued for it have landed."""
+        outlook = self.machine.expected()
+        if self.streams_positions and outlook.mode is Mode.POSITION and outlook.relative is False:
+            return "position"
+        return "velocity"
+
     def follow_target(self, payload: dict[str, Any]) -> float:
-        """The speed of ``{"rpm": R}`` in velocity mode; positions are refused (a ZLAC706
-        streams speeds)."""
-        if "position" in payload:
+        """The speed of ``{"rpm": R}`` in velocity mode, or the position of ``{"position":
+        P}`` in absolute position mode with the motor enabled (CAN only)."""
+        target = self.follow_payload(payload)
+        outlook = self.machine.expected()
+        if target.position is None:
+            check(Role.SPEED, target.rpm, outlook)
+            return float(target.rpm)
+        if not self.streams_positions:
             raise CommandError(
-                'a ZLAC706 follow stream carries speeds ({"rpm": R}) in '
-                "velocity mode; send positions as move commands"
+                "a ZLAC706 on RS232 takes a position in two frames, so its follow stream "
+                'carries speeds only ({"rpm": R}); send positions as move commands'
             )
-        rpm = self.follow_payload(payload).rpm
-        check(Role.SPEED, rpm, self.machine.expected())
-        return float(rpm)
+        check(Role.POSITION, target.position, outlook)  # position mode, enabled
+        if outlook.relative is not False:
+            now = "not known" if outlook.relative is None else "relative"
+            raise CommandError(
+                "a position follow stream needs absolute positions (set_position_mode with "
+                f"relative false first): the position mode is {now}, and each target of a "
+                "relative stream would move the motor on again"
+            )
+        return float(target.position)
 
     @staticmethod
     def follow_sample(t_s: float, index: int) -> dict[str, Any]:
@@ -319,12 +345,18 @@ class Zlac706Driver(Driver):
 
     @classmethod
     def follow_request(cls, targets: Sequence[tuple[Driver, float]]) -> Request:
-        """The speed write of one device (a ZLAC706 frame addresses one node)."""
+        """The target write of one device (a ZLAC706 frame addresses one node): its position
+        when it follows positions, else its speed."""
         if len(targets) != cls.follow_group_limit:
-            raise CommandError(f"a ZLAC706 speed write carries one device, not {len(targets)}")
-        driver, rpm = targets[0]
-        (frame,) = cls.frames(schema.Velocity(op="velocity", rpm=rpm), driver.device_id)
+            raise CommandError(f"a ZLAC706 target write carries one device, not {len(targets)}")
+        driver, value = targets[0]
         assert isinstance(driver, Zlac706Driver)
+        command: schema.Move | schema.Velocity = (
+            schema.Move(op="move", position=round(value))
+            if driver.follows == "position"
+            else schema.Velocity(op="velocity", rpm=value)
+        )
+        (frame,) = cls.frames(command, driver.device_id)
         driver._note_speed(frame)
         return Request.of(cls.protocol_entry().codec, frame, idempotent=True)
 

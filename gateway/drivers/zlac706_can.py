@@ -158,6 +158,7 @@ class Zlac706CanDriver(Zlac706Driver):
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual's limit is 500 ms; 100 ms of margin for a busy bus and the host.
     keepalive_period_s: ClassVar[float] = 0.4
+    streams_positions: ClassVar[bool] = True
 
     def __init__(self, name: str, device_id: int, *, heartbeat_ms: int = 0, **options: Any) -> None:
         super().__init__(name, device_id, **options)

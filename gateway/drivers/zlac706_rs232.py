@@ -156,6 +156,7 @@ class Zlac706Rs232Driver(Zlac706Driver):
     roles: ClassVar[dict[int, RoleOf]] = ROLES
     #: The manual asks for a monitor at least once a second in speed mode; 0.2 s of margin.
     keepalive_period_s: ClassVar[float] = 0.8
+    streams_positions: ClassVar[bool] = False
     measured_names: ClassVar[tuple[str, ...]] = ("position", "current_ma", "speed_rpm", "voltage_v")
 
     def poll(self) -> list[Request]:

@@ -34,10 +34,17 @@ def _clamp(value: float, low: float, high: float) -> float:
 class StreamLimiter:
     """One follow stream's targets, each tick, within its joint's limits (rules 1 and 2)."""
 
-    def __init__(self, joint: Joint, period_s: float, start: float | None) -> None:
+    def __init__(
+        self,
+        joint: Joint,
+        period_s: float,
+        start: float | None,
+        follows: Literal["position", "velocity"] | None = None,
+    ) -> None:
         self.joint = joint
         self.period_s = period_s
-        self.follows = joint.follows
+        #: What the stream carries (its driver's ``follows``; by default its joint's).
+        self.follows = follows or joint.follows
         scale = abs(joint.scale)
         self.low: float
         self.high: float

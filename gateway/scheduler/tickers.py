@@ -23,6 +23,10 @@ Rules of this file:
 6. A stream's limiter steps once per tick that goes on the wire: a tick built and then put
    off (the line taken by a command, an e-stop) is built again from where the last one sent
    left it, so no step on the wire is ever larger than the limits allow.
+7. A stream carries what its device followed when it began (``Driver.follows``: a ZLAC706's
+   positions or speeds, by its mode). When the device follows the other now (its mode was
+   changed), the stream ends as a stale one does before its next tick, so a speed never goes
+   out as a position; a target that comes for it after the change starts a new stream.
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ class FollowStream:
             joint = self.driver.joint
             value = (
                 joint.position_si(wanted)
-                if joint.follows == "position"
+                if limiter.follows == "position"
                 else joint.velocity_si(wanted)
             )
             self.driver.emit("limited", joint=joint.name, limit=limit, value=value)
@@ -81,7 +85,7 @@ def commanded(driver: Driver, now: float) -> float | None:
     """Where a stream of ``driver`` starts from: its commanded position target (else its
     measured position), or its commanded speed (else 0), in the family's units."""
     declaration, telemetry = driver.joint.declaration, driver.telemetry(now)
-    if driver.joint.follows == "position":
+    if driver.follows == "position":
         target = telemetry.get(declaration.target)
         return target if target is not None else telemetry.get(declaration.position)
     speed = telemetry.get(declaration.target_speed_rpm or "")
@@ -126,8 +130,9 @@ class FollowTicker:
         stream = self.streams.get(driver.name)
         if not self.streams:  # idle (stopped, ended, gone stale): its next tick starts anew
             self._due = None
-        if stream is None:
-            limiter = StreamLimiter(driver.joint, self.period_s, commanded(driver, now))
+        if stream is None or stream.limiter.follows != driver.follows:  # rule 7: a new one
+            start = commanded(driver, now)
+            limiter = StreamLimiter(driver.joint, self.period_s, start, driver.follows)
             told = driver.name in self._ended_held
             stream = self.streams[driver.name] = FollowStream(
                 driver, (target, now), limiter, told_limited=told
@@ -156,7 +161,8 @@ class FollowTicker:
 
     def build(self, now: float) -> Request | None:
         for name, stream in list(self.streams.items()):
-            if not stream.ends_on_target and now - stream.latest[1] > self.fresh_s:
+            stale = not stream.ends_on_target and now - stream.latest[1] > self.fresh_s
+            if stale or stream.limiter.follows != stream.driver.follows:  # rules 2 and 7
                 del self.streams[name]
                 self.on_stale(stream.driver)
         if not self.streams:  # idle: the next ``update`` starts it anew

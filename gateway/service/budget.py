@@ -213,7 +213,8 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
 
 def _follow_target(driver: Driver) -> float:
     """A representative follow target, validated by the driver itself once the commands that
-    make it ready to follow are planned (a ZLAC706 streams speeds in velocity mode only).
+    make it ready to follow are planned (a ZLAC706's make it stream speeds: a position
+    target is a frame of the same size).
     Frame sizes do not depend on the values."""
     for command in driver.follow_preparation:
         driver.plan(driver.parse(command))
