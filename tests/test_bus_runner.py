@@ -586,9 +586,10 @@ def test_follow_mode_targets_by_command_keep_the_follow_period_and_leave_a_strea
     simulator,
 ) -> None:
     """The manual takes follow-mode targets at a fixed period: a command's follow (or a group
-    follow naming the device) is refused, nothing queued, sooner than the device's follow
-    period after the last one a command sent it, and while a stream follows the device."""
-    runner = build_bus(bus(simulator.port, follow_period_ms=10))  # not started: nothing leaves
+    follow naming the device) is refused, nothing queued, while the command carrying the
+    last one a command sent it waits to go out, sooner than the device's follow period after
+    that one went on the wire, and while a stream follows the device."""
+    runner = build_bus(bus(simulator.port, follow_period_ms=10))  # not started: the test runs it
     runner.owner.open()
     work, la1 = runner._work, runner.drivers["la1"]
 
@@ -600,20 +601,27 @@ def test_follow_mode_targets_by_command_keep_the_follow_period_and_leave_a_strea
     follow = '{"op":"follow","position":900}'
     group = '{"op":"group_follow","targets":[{"id":1,"position":900},{"id":2,"position":900}]}'
     try:
-        assert not sent("la1", follow).done()
+        waiting = sent("la1", follow)
         refused = sent("la1", follow).exception(0)
-        assert refused.code == "busy" and "once every 10 ms" in str(refused)
+        assert refused.code == "busy" and "still waits to go out" in str(refused)
+        time.sleep(0.011)  # a period since it was planned: it has not gone yet, though
         assert sent("la2", group).exception(0).code == "busy", "la1 is in it"
         assert runner.planner.queued == 1
+        while not waiting.done():  # the bus thread's turns: the follow goes on the wire
+            runner._step()
+        refused = sent("la1", follow).exception(0)
+        assert refused.code == "busy" and "once every 10 ms" in str(refused)
         time.sleep(0.011)
-        assert not sent("la2", group).done()
+        grouped = sent("la2", group)
+        while not grouped.done():
+            runner._step()
         time.sleep(0.021)  # la2's follow period: 20 ms
         runner.streams.start(la1, la1.follow_target({"position": 1000}), now())
         refused = sent("la1", follow).exception(0)
         assert refused.code == "busy" and "follow key" in str(refused)
         assert not sent("la2", '{"op":"follow","position":800}').done()
         assert not sent("la1", '{"op":"move","position":800}').done(), "a move is no follow"
-        assert runner.planner.queued == 4
+        assert runner.planner.queued == 2
     finally:
         runner.owner.close()
 

@@ -86,6 +86,8 @@ class Execution:
             self.counters.busy_s += end - start
         if not isinstance(source, Job):  # a follow or keep-alive tick: its ticker times the next
             source.sent(start - self._fastest_write(exchange))
+        else:
+            source.sent_at = start
         done = self.planner.finished(slot, end, failed=error is not None)
         if job is not None:
             # A request that is tried again is still at the head of its job; only a failure

@@ -85,6 +85,8 @@ class Job:
     start_by: float = math.inf
     #: Its first request has been sent: from then on it runs to its end.
     started: bool = False
+    #: When (bus clock) its last request went out; ``None`` before its first.
+    sent_at: float | None = None
     #: Whose command it is (its ``client``, ``""`` when it named none): ``None`` for the
     #: gateway's own jobs, which take no client's share (rule 4).
     client: str | None = None

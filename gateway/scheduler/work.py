@@ -13,7 +13,8 @@ A command's follow-mode targets (an Inspire LA's ``follow``, ``group_follow``), 
 manual takes at a fixed period, are refused (``busy``, nothing sent) for a device that a
 follow stream or a trajectory follows (its ticks keep the period: the client puts targets on
 the follow key instead), and for one that a command sent such a target less than its follow
-period before (``_check_follow_mode``).
+period before, or whose command carrying one still waits to go out (``_check_follow_mode``):
+the period is counted from when that target went on the wire, not from when it was planned.
 """
 
 from __future__ import annotations
@@ -70,8 +71,9 @@ class BusWork:
         self.planner = planner
         self.streams = streams
         self.plays = plays
-        #: When a command last sent each device a follow-mode target (``_check_follow_mode``).
-        self._follow_sent: dict[str, float] = {}
+        #: The command that last carried each device a follow-mode target
+        #: (``_check_follow_mode``).
+        self._follow_jobs: dict[str, Job] = {}
         self.state_of = state_of
         #: An e-stop's ends are still to come (``end_estopped``), with the commands it took out.
         self._estop_ending = False
@@ -101,7 +103,6 @@ class BusWork:
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
-            self._follow_sent.update(dict.fromkeys(followed, now()))
             also = {other.name for other in self.authority.moved(effects) if other is not driver}
             reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
         except BusgateError as exc:
@@ -111,22 +112,23 @@ class BusWork:
             log.exception("bus %s: planning %r for %s failed", self.name, command, device)
             outcomes.settle(future, error=exc)
             return
-        self.queue_job(
-            Job(
-                device,
-                deque(requests),
-                start_by=start_by,
-                future=future,
-                also_moves=tuple(also),
-                reads_only=reads_only,
-                client=client or "",
-            )
+        job = Job(
+            device,
+            deque(requests),
+            start_by=start_by,
+            future=future,
+            also_moves=tuple(also),
+            reads_only=reads_only,
+            client=client or "",
         )
+        self._follow_jobs.update(dict.fromkeys(followed, job))
+        self.queue_job(job)
 
     def _check_follow_mode(self, ids: frozenset[int]) -> list[str]:
         """Refuse follow-mode targets for the devices of ``ids`` that a stream or a trajectory
-        follows, or that a command sent one less than a follow period ago; the names of the
-        devices they go to, noted once the command is planned."""
+        follows, that a command sent one less than a follow period ago, or whose command
+        carrying one waits to go out; the names of the devices they go to, noted once the
+        command is planned."""
         if not ids:
             return []
         moment = now()
@@ -138,7 +140,15 @@ class BusWork:
                     "the manual's fixed period: put its targets on its follow key; nothing "
                     "was sent"
                 )
-            since = moment - self._follow_sent.get(driver.name, -math.inf)
+            sent = self._follow_target_sent(driver.name)
+            if sent is None:
+                raise BusyError(
+                    f"{driver.name} takes a follow-mode target once every "
+                    f"{driver.follow_period_s * 1000:g} ms (its follow period: the manual's "
+                    "fixed period), and the command carrying the last one still waits to go "
+                    "out; nothing was sent"
+                )
+            since = moment - sent
             if since < driver.follow_period_s:
                 raise BusyError(
                     f"{driver.name} takes a follow-mode target once every "
@@ -146,6 +156,17 @@ class BusWork:
                     f"fixed period), and one was sent {since * 1000:.1f} ms ago; nothing was sent"
                 )
         return [driver.name for driver in followed]
+
+    def _follow_target_sent(self, device: str) -> float | None:
+        """When the last follow-mode target a command carried ``device`` went out, at the
+        latest (its command's last frame; ``-inf``: none went), ``None`` while that command
+        has frames still to send."""
+        job = self._follow_jobs.get(device)
+        if job is None:
+            return -math.inf
+        if job.requests and not (job.future is not None and job.future.done()):
+            return None
+        return -math.inf if job.sent_at is None else job.sent_at
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
