@@ -382,7 +382,7 @@ def test_follow_stream_goes_out_at_its_period_and_goes_stale(wait_for, simulator
         target = runner.drivers["la1"].follow_target({"position": 1200})
 
         def streamed() -> bool:  # a client sending its target until ten intervals went out
-            runner.follow("la1", target)
+            runner.follow("la1", target, "position")
             return runner.statistics().follow_intervals > 10
 
         wait_for(streamed, timeout=10)
@@ -444,8 +444,8 @@ def test_a_target_or_play_judged_before_an_estop_and_landing_after_it_moves_noth
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
         target = runner.drivers["la1"].follow_target({"position": 1200})
         estop = runner.estop()
-        runner.follow("la1", target)  # behind the e-stop in the inbox
-        runner.ramp("la2", runner.drivers["la2"].follow_target({"position": 900}))
+        runner.follow("la1", target, "position")  # behind the e-stop in the inbox
+        runner.ramp("la2", runner.drivers["la2"].follow_target({"position": 900}), "position")
         runner.play({"la2": lambda t_s: {"position": 900}}, now() + 0.05)
         estop.result(10)
         mark = len(simulator.recorder.received())
@@ -497,7 +497,7 @@ def test_an_estops_first_frame_goes_before_the_streams_it_ends(wait_for, simulat
     runner.streams.end_all = lambda why: (order.append(f"streams ended: {why}"), end_all(why))
     try:
         wait_for(lambda: all(d.online for d in runner.drivers.values()))
-        runner.follow("la1", runner.drivers["la1"].follow_target({"position": 1200}))
+        runner.follow("la1", runner.drivers["la1"].follow_target({"position": 1200}), "position")
         wait_for(lambda: any(r.frame == "FollowCommand" for r in simulator.recorder.received()))
         runner.estop().result(10)
         assert order[:2] == ["e-stop frame", "streams ended: estop"]

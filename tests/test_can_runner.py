@@ -4,6 +4,8 @@ simulated SLCAN adapter on a pty that can be unplugged and plugged back in."""
 from __future__ import annotations
 
 import itertools
+import time
+from concurrent.futures import Future
 
 import can
 import pytest
@@ -11,8 +13,10 @@ import pytest
 from busgate.codecs import zlac706_can as zcan
 from busgate.errors import DeviceRefusedError
 from busgate.gateway.bus.can_owner import CanBusOwner
+from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
+from busgate.gateway.drivers.zlac706_state import Mode, Settings
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim import zlac706 as zlac706_sim
@@ -115,7 +119,7 @@ def test_a_speed_stream_is_the_keep_alive_no_extra_writes_between_ticks(
         follow_ticks = 3 * driver.keepalive_period_s / driver.follow_period_s
 
         def streamed(intervals: float) -> bool:  # a client sending its target meanwhile
-            runner.follow("wheel", target)
+            runner.follow("wheel", target, "velocity")
             return runner.statistics().follow_intervals > intervals
 
         wait_for(lambda: streamed(1), timeout=10)
@@ -206,3 +210,48 @@ def test_a_write_the_node_refuses_is_answered_device_refused(
         assert "state" in ok.result(10)  # the next write, which it has, goes as before
     finally:
         runner.stop()
+
+
+def test_a_target_judged_before_a_mode_change_never_starts_a_stream_of_the_other_kind() -> None:
+    """A speed judged while the wheel was in velocity mode reaches the bus thread after it
+    was switched to position mode: it is dropped, told as a refusal, never sent as a
+    position (nor fed to a running stream of positions)."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}"))  # not started
+    runner.owner.open()
+    wheel = runner.drivers["wheel"]
+    try:
+        wheel.machine.settings = Settings(mode=Mode.POSITION, relative=False, enabled=True)
+        runner.follow("wheel", -900.0, "velocity")
+        runner._drain_inbox()
+        assert not runner.streams.following("wheel")
+        [refused] = [e for e in wheel.drain_events() if e.type == "command_refused"]
+        assert refused.fields == {"code": "bad_command", "message": (
+            "wheel follows positions now (its mode changed since this velocity target was "
+            "judged); nothing was sent")}
+        runner.follow("wheel", 300.0, "position")
+        runner._drain_inbox()
+        assert runner.streams.following("wheel")
+        runner.follow("wheel", -900.0, "velocity")  # not fed to the stream of positions
+        assert runner.streams._streams["wheel"].latest[0] == 300.0
+    finally:
+        runner.owner.close()
+
+
+def test_a_command_that_expired_unsent_leaves_the_drive_judged_as_it_was() -> None:
+    """``set_position_mode`` absolute found no room on the bus and was answered ``busy``,
+    nothing sent: the wheel is still relative, so no position stream may start."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}"))  # not started
+    runner.owner.open()
+    wheel = runner.drivers["wheel"]
+    try:
+        wheel.machine.settings = Settings(mode=Mode.POSITION, relative=True, enabled=True)
+        future: Future = Future()
+        absolute = wheel.parse('{"op":"set_position_mode","relative":false}')
+        runner._work.plan_command("wheel", absolute, None, now() + 0.001, future)
+        assert wheel.follows == "position"  # as it will be, once the write lands
+        time.sleep(0.002)
+        runner.planner.decide(now())
+        runner._answer_expired()
+        assert future.exception(0).code == "busy" and wheel.follows is None
+    finally:
+        runner.owner.close()

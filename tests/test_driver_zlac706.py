@@ -5,6 +5,7 @@ online/offline events once each, keep-alive, follow stream, safe stop and idempo
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import can
 import pytest
@@ -20,7 +21,9 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
-from busgate.gateway.drivers.zlac706_state import Role, Settings
+from busgate.gateway.drivers.zlac706_state import Mode, Role, Settings
+from busgate.gateway.scheduler.devices import tell_unsent
+from busgate.gateway.scheduler.planner import Job
 from busgate.gateway.sim import zlac706 as sim
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -312,7 +315,7 @@ def test_follow_takes_positions_in_absolute_position_mode_once_enabled() -> None
     request = Zlac706CanDriver.follow_request([(d, target)])
     assert wire([request]) == ["001#00fa0016ffffec78"] and request.idempotent  # register 16
     run(d, plan(d, '{"op":"set_position_mode","relative":true}'))
-    assert d.follows == "velocity"  # nothing it could stream: a rpm is refused by its mode
+    assert d.follows is None  # nothing it could stream: a rpm is refused by its mode
     with pytest.raises(CommandError, match="the position mode is relative"):
         d.follow_target({"position": 5000})
     unknown = position_driver(can_driver(), '{"op":"enable"}')
@@ -324,7 +327,7 @@ def test_rs232_follow_streams_no_positions() -> None:
     """RS232 writes a position in two frames (high half, then low): a tick is one frame."""
     d = position_driver(rs_driver(), '{"op":"set_position_mode","relative":false}',
                         '{"op":"enable"}')
-    assert d.follows == "velocity"
+    assert d.follows is None
     with pytest.raises(CommandError, match="two frames"):
         d.follow_target({"position": 5000})
 
@@ -339,7 +342,7 @@ def test_a_worker_s_position_mode_is_mirrored() -> None:
     with pytest.raises(CommandError, match="relative"):
         d.follow_target({"position": 7})
     d.mirror({"position_mode": None})  # a state that does not say leaves it as it was
-    assert d.follows == "velocity"
+    assert d.follows is None
 
 
 def test_a_followed_speed_is_kept_alive_once_acknowledged() -> None:
@@ -619,3 +622,40 @@ def test_can_through_the_bus_owner_and_the_simulator() -> None:
             owner.close()
         d.check_heartbeat(time.perf_counter() + 1.0)
         assert not d.online and event_types(d) == ["offline"]
+
+
+def test_enabled_in_position_mode_the_drive_holds_at_its_new_zero() -> None:
+    """The manual (5.1): enabled in position mode, the drive takes where the shaft is as its
+    zero. A target from before (30000) is not where it stands: a stream starting from it
+    would jump. Nor is a counter back at 0 then a reboot."""
+    d = position_driver(can_driver(heartbeat_ms=10), '{"op":"set_position_mode","relative":false}',
+                        '{"op":"enable"}', '{"op":"move","position":100000}')
+    d.unsolicited(can_events("00fe0020000186a0")[0], 1.0)  # at 100000
+    run(d, plan(d, '{"op":"disable"}'))
+    assert d.telemetry(1.0)["target"] == 100000
+    run(d, plan(d, '{"op":"enable"}'))
+    telemetry = d.telemetry(1.1)
+    assert (telemetry["target"], telemetry["position"]) == (0, 0)
+    d.unsolicited(can_events("00fe002000000000")[0], 1.2)  # the new zero
+    assert "rebooted" not in event_types(d)
+    unknown = position_driver(can_driver())
+    unknown.machine.settings = Settings(mode=Mode.POSITION, target_position=500)  # enabled?
+    run(unknown, plan(unknown, '{"op":"enable"}'))
+    assert unknown.telemetry(0.0)["target"] is None  # it may have been enabled already
+
+
+def test_writes_taken_out_unsent_are_not_counted_on() -> None:
+    """A command taken out before it went (expired, withdrawn, its bus lost) set nothing:
+    judged as if it had landed, a position stream could go to a drive still relative."""
+    d = position_driver(can_driver(), '{"op":"set_position_mode","relative":true}',
+                        '{"op":"enable"}')
+    plan(d, '{"op":"set_position_mode","relative":false}')
+    assert d.follows == "position"
+    tell_unsent(Job("wheel", deque()), {"wheel": d})
+    assert d.follows is None and d.machine.expected().relative is True
+
+
+def test_a_stale_stream_writes_no_speed_after_a_mode_change_queued() -> None:
+    d = velocity_driver(can_driver(), rpm=0)
+    plan(d, '{"op":"set_mode","mode":"position"}')
+    assert d.stale_stream() == []

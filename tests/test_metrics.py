@@ -101,7 +101,7 @@ def test_follow_interval_error_appears_once_a_stream_ran(wait_for, runner, metri
     target = runner.drivers["la1"].follow_target({"position": 1200})
 
     def streamed() -> bool:  # a client sending its target until three intervals went out
-        runner.follow("la1", target)
+        runner.follow("la1", target, "position")
         return runner.statistics().follow_intervals > 2
 
     wait_for(streamed, timeout=10)

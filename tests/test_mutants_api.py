@@ -679,7 +679,7 @@ def test_a_bug_in_a_kept_target_is_answered_internal_and_logged_with_its_device(
     api, *_ = gateway
     runner, _ = api.devices["la1"]
 
-    def broken(device: str, target: float) -> None:
+    def broken(device: str, target: float, follows: str) -> None:
         raise RuntimeError("a bug")
 
     monkeypatch.setattr(runner, "ramp", broken)

@@ -36,8 +36,9 @@ TIMING = link_timing("inspire_la", 921_600, margin_s=0.0, gap_s=GAP)
 
 def asking(device_id: int = 1, *, idempotent: bool = True) -> Request:
     """A request answered by a reply (an LA status query's shape)."""
-    return Request(("status", device_id), b"\x00" * 9, ExpectedReply(device_id, 22, (object,)),
-                   idempotent)
+    return Request(
+        ("status", device_id), b"\x00" * 9, ExpectedReply(device_id, 22, (object,)), idempotent
+    )
 
 
 def silent(tag: object = "broadcast", size: int = 9) -> Request:
@@ -378,9 +379,12 @@ def test_streams_of_one_kind_and_period_share_a_ticker_up_to_its_limit():
 def test_store_latest_feeds_a_running_stream_only():
     driver = Follower("la1", 1)
     planner, streams = streams_of(driver)
-    assert not streams.store_latest("la1", 5, 0.0), "no stream yet: the bus thread starts it"
+    assert not streams.store_latest("la1", 5, 0.0, "position"), (
+        "no stream yet: the bus thread starts it"
+    )
     streams.start(driver, 5, 0.0)
-    assert streams.store_latest("la1", 6, 0.001)
+    assert not streams.store_latest("la1", 7, 0.001, "velocity"), "a speed is no position"
+    assert streams.store_latest("la1", 6, 0.001, "position")
     assert planner.decide(0.001).request.frame == ("follow", (("la1", 6),))
 
 
@@ -391,9 +395,12 @@ def test_a_stream_ended_is_reported_and_followed_by_its_stop():
     streams.start(b, 5, 0.0)
     streams.end("la1", "client left")
     assert [(e.type, e.fields) for e in a.drain_events()] == [
-        ("stream_stopped", {"reason": "client left"})]
+        ("stream_stopped", {"reason": "client left"})
+    ]
     assert b.drain_events() == []
-    assert not streams.store_latest("la1", 6, 0.001) and streams.store_latest("la2", 6, 0.001)
+    assert not streams.store_latest("la1", 6, 0.001, "position") and streams.store_latest(
+        "la2", 6, 0.001, "position"
+    )
     tick = planner.decide(0.001)
     assert tick.request.frame == ("follow", (("la2", 6),)), "la1 left the tick"
     run(planner, tick, 0.001, 0.0001)
@@ -409,7 +416,7 @@ def test_a_stream_gone_stale_is_reported_and_followed_by_its_stop():
     slot = planner.decide(0.5)
     assert [e.type for e in driver.drain_events()] == ["stream_stale"]
     assert slot.priority is Priority.COMMAND and slot.request.frame == ("stop", "la1")
-    assert not streams.store_latest("la1", 6, 0.5)
+    assert not streams.store_latest("la1", 6, 0.5, "position")
 
 
 def test_a_stale_streams_stop_is_queued_behind_a_full_queue_of_commands():
@@ -434,8 +441,9 @@ def test_streams_ended_all_at_once_are_reported_only():
     streams.end_all("estop")
     for driver in (a, b):
         assert [(e.type, e.fields) for e in driver.drain_events()] == [
-            ("stream_stopped", {"reason": "estop"})]
-        assert not streams.store_latest(driver.name, 6, 0.0)
+            ("stream_stopped", {"reason": "estop"})
+        ]
+        assert not streams.store_latest(driver.name, 6, 0.0, "position")
     assert planner.decide(0.0) == math.inf, "no stop is queued, no tick is due"
 
 
@@ -544,7 +552,7 @@ def test_a_ramp_steps_from_where_its_device_was_commanded_never_goes_stale_and_e
         run(planner, slot, moment, 0.0001)
     assert sent == [920, 940, 960, 980, 1000]
     assert planner.decide(0.55) == math.inf  # ended: nothing more to tick
-    assert not streams.store_latest("la1", 1000, 0.55)
+    assert not streams.store_latest("la1", 1000, 0.55, "position")
     # held by max_velocity, told once; ended on its target, with no stale or stopped stream
     assert [event.type for event in driver.drain_events()] == ["limited"]
 

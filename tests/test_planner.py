@@ -173,7 +173,7 @@ def test_a_stream_ends_when_its_device_follows_the_other_kind_and_a_new_one_star
     wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=True)
     ticker.update(wheel, 20.0, 0.022)  # another kind: a new stream, from 0 rpm
     assert ticker.streams["w"].limiter.follows == "velocity"
-    assert ticker.streams["w"].limiter.value == 0.0 and stale == [wheel]
+    assert ticker.streams["w"].limiter.value == 0.0 and stale == [wheel, wheel]
 
 
 def test_coalescing_respects_the_group_limit():

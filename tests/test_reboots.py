@@ -59,7 +59,7 @@ def test_a_zlac706_whose_position_counter_restarts_gets_its_mode_back_and_stays_
             full_speed = driver.follow_target({"rpm": 1000})
 
             def far_out_at_full_speed() -> bool:
-                runner.follow("wheel", full_speed)  # a client streaming speeds
+                runner.follow("wheel", full_speed, "velocity")  # a client streaming speeds
                 return abs(driver.measured["position"] or 0) > 100_000
 
             wait_for(far_out_at_full_speed, timeout=10)

@@ -42,7 +42,7 @@ def test_a_speed_stream_that_goes_stale_is_brought_to_zero_rpm_by_the_runner(wai
         streamed = len(simulator.recorder.received())
         target = driver.follow_target({"rpm": 200})
         at_200 = str(type(driver).follow_request([(driver, target)]).wire)
-        runner.follow("wheel", target)  # and then nothing more
+        runner.follow("wheel", target, "velocity")  # and then nothing more
         wait_for(lambda: any(e.type == "stream_stale" for e in events), timeout=10)
         wait_for(lambda: ZERO_RPM in [r.wire for r in simulator.recorder.received()[streamed:]])
         sent = [r.wire for r in simulator.recorder.received()[streamed:]]

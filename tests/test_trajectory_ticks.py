@@ -392,7 +392,7 @@ def test_a_trajectory_takes_a_device_from_its_follow_stream_without_stopping_it(
     assert [(e.type, e.fields) for e in la1.drain_events()] == [
         ("stream_stopped", {"reason": "trajectory"})]
     assert planner.queued == 0  # no stale-stream requests: the trajectory goes on from there
-    assert not streams.store_latest("la1", 900, START)  # the stream is gone for good
+    assert not streams.store_latest("la1", 900, START, "position")  # the stream is gone for good
 
 
 def test_a_position_device_stopped_holds_its_last_target():

@@ -800,9 +800,9 @@ def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_
     answers[0].set_result({"ok": True, "state": {"mode": "velocity", "enabled": True}})
     assert answered.result(0)["ok"]
     worker.send = lambda *told: None  # type: ignore[method-assign]
-    runner.follow = lambda device, target: answers.append(target)  # type: ignore[method-assign]
+    runner.follow = lambda device, target, follows: answers.append((target, follows))  # type: ignore[method-assign]
     assert api.follow("drive", b'{"rpm": 0}') is None
-    assert answers[-1] == 0.0
+    assert answers[-1] == (0.0, "velocity")  # a speed: only a stream of speeds takes it
 
     runner.took_state("drive", {"online": False, "estopped": False})  # says no mode: kept
     assert api.follow("drive", b'{"rpm": 0}') is None

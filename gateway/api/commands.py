@@ -53,7 +53,7 @@ from busgate.errors import BusUnavailableError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect, Follows
 from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.schemas.api import (
@@ -221,7 +221,7 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             fields = decode_object(payload)
-            target = _follow_target(driver, fields)
+            target, follows = _follow_target(driver, fields)
             client, seq = fields.get("client"), fields.get("seq")
             with self._fence:
                 if self._sent_before_the_end(device, client, seq):
@@ -232,7 +232,7 @@ class GatewayApi:
                 )
                 if client is not None:
                     self._stream_clients[device] = client
-                runner.follow(device, target)
+                runner.follow(device, target, follows)
             return None
         except REFUSALS as exc:
             return error_reply(exc)
@@ -252,7 +252,7 @@ class GatewayApi:
         ``bus_unavailable``, and neither is claimed."""
         try:
             runner, driver = self._device(device)
-            target = _follow_target(driver, fields)
+            target, follows = _follow_target(driver, fields)
             _refuse_while_playing(runner, device, "a target kept")
             if not runner.owner.is_open:
                 raise BusUnavailableError(f"bus {runner.name} is down: {device} cannot move")
@@ -260,7 +260,7 @@ class GatewayApi:
             authority.judge(device, Effect.MOTION, client)  # claimed by another, e-stopped
             if authority.claims.hold(device, client, claim_ttl_s, authority.clock()):
                 self._event(device, "claimed", client=client, ttl_s=claim_ttl_s)
-            runner.ramp(device, target)
+            runner.ramp(device, target, follows)
             return None
         except REFUSALS as exc:
             return error_reply(exc)
@@ -427,17 +427,18 @@ def _joint_reply(result: dict[str, Any]) -> dict[str, Any]:
     return ok_reply(**result, joint=result["state"]["joint"])
 
 
-def _follow_target(driver: Driver, fields: dict[str, Any]) -> float:
-    """A follow payload's target in the family's units: the kind's own payload validated by
-    its driver, or a joint's (``joint``, ``joint_velocity``: SI) as asked, unclamped (the
-    stream's limiter holds it within the joint's limits) once the nearest payload the kind
-    takes passed its driver's checks (a ZLAC706 streams what its mode takes)."""
+def _follow_target(driver: Driver, fields: dict[str, Any]) -> tuple[float, Follows]:
+    """A follow payload's target in the family's units, and whether it is a position or a
+    speed: the kind's own payload validated by its driver, or a joint's (``joint``,
+    ``joint_velocity``: SI) as asked, unclamped (the stream's limiter holds it within the
+    joint's limits) once the nearest payload the kind takes passed its driver's checks (a
+    ZLAC706 streams what its mode takes)."""
     if "joint" not in fields and "joint_velocity" not in fields:
-        return driver.follow_target(fields)
+        return driver.follow_target(fields), driver.follow_carries(fields)
     request = follow_target_from(JointFollow, fields)  # its client and seq too
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
     driver.follow_target(payload)
-    return raw
+    return raw, driver.follow_carries(payload)
 
 
 def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:

@@ -230,11 +230,13 @@ def stream_targets(runner: BusRunner, args: argparse.Namespace) -> None:
 
 def feed_targets(drivers: list, args: argparse.Namespace, deliver, end: float) -> None:
     """A client's stream: a new follow target for every device twice a period, validated
-    the way the gateway validates a client's payload."""
+    the way the gateway validates a client's payload, delivered as ``BusRunner.follow``
+    takes it (the device, the target, what it is)."""
     step = args.follow_period_ms / 2000
     while (moment := now()) < end:
         for index, driver in enumerate(drivers):
-            deliver(driver.name, driver.follow_target(driver.follow_sample(moment, index)))
+            payload = driver.follow_sample(moment, index)
+            deliver(driver.name, driver.follow_target(payload), driver.follow_carries(payload))
         time.sleep(step)
 
 
@@ -247,7 +249,9 @@ def baseline(args: argparse.Namespace, used: list, port: str, baudrate: int) -> 
     latest = {d.name: d.follow_target(d.follow_sample(0.0, 0)) for d in drivers}
     end = now() + args.seconds
     client = threading.Thread(
-        target=feed_targets, args=(drivers, args, latest.__setitem__, end), daemon=True
+        target=feed_targets,
+        args=(drivers, args, lambda name, target, _follows: latest.__setitem__(name, target), end),
+        daemon=True,
     )
     client.start()
     follow_request = driver_class(protocol).follow_request

@@ -17,7 +17,7 @@ from __future__ import annotations
 import abc
 import enum
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar, Literal, NamedTuple
@@ -45,6 +45,9 @@ class Effect(enum.IntEnum):
     SETTING = 2  # changes how the device works: needs the claim
     MOTION = 3  # may move the device: needs the claim, refused while e-stopped
 
+
+#: What a follow stream's targets are, raw: positions or speeds (``Driver.follows``).
+Follows = Literal["position", "velocity"]
 
 #: The devices a frame addresses: a set of ids, or ``EVERY`` device of the bus (broadcast).
 EVERY = None
@@ -322,11 +325,24 @@ class Driver(abc.ABC):
         raise CommandError(f"{self.kind} has no follow stream")
 
     @property
-    def follows(self) -> Literal["position", "velocity"]:
+    def follows(self) -> Follows | None:
         """What its follow stream's targets are now, raw: positions or speeds (its joint's; a
-        family whose stream carries both may say which by the device's mode). A stream keeps
-        what it began with: one whose device follows the other now ends (``tickers``)."""
+        family whose stream carries both may say which by the device's mode, ``None`` in a
+        mode that takes neither). A target is judged with what the device follows then, and
+        goes only to a stream of that (``BusWork.start_stream``); a stream whose device
+        follows something else now ends (``tickers`` rule 7)."""
         return self.joint.follows
+
+    def follow_carries(self, payload: Mapping[str, Any]) -> Follows:
+        """What a follow payload of its kind carries, by its field: a position or a speed
+        (the kind of target its ``follow_target`` judged it as)."""
+        return "position" if self.joint.declaration.follow_position in payload else "velocity"
+
+    def unsent(self) -> None:  # noqa: B027 - optional hook
+        """Frames planned for this device were taken out before they went (their command
+        expired, was withdrawn, or its bus went down): what they would have set is not to
+        be counted on. By default nothing (a driver that plans by what queued writes will
+        set forgets them)."""
 
     def follow_payload(self, payload: dict[str, Any]) -> Any:
         """``payload`` as the kind's ``FollowTarget`` model (``CommandError`` if it is not one)."""

@@ -12,12 +12,12 @@ import functools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Deadman, Driver, Effect, Setpoint
+from busgate.gateway.drivers.base import Deadman, Driver, Effect, Follows, Setpoint
 from busgate.gateway.drivers.zlac706_state import (
     REBOOT_POSITION_JUMP,
     RESTORED,
@@ -267,8 +267,10 @@ class Zlac706Driver(Driver):
         return requests
 
     def stale_stream(self) -> list[Request]:
-        """0 rpm: a client that stopped streaming speeds must not leave the wheel turning."""
-        if self.machine.settings.mode in (Mode.VELOCITY, None):
+        """0 rpm: a client that stopped streaming speeds must not leave the wheel turning
+        (unless the drive will be in another mode when it goes: the mode changes only while
+        the motor is off, and a speed written after it would be ignored)."""
+        if self.machine.expected().mode in (Mode.VELOCITY, None):
             return self._noted(self._zero_speed)
         return []
 
@@ -308,13 +310,20 @@ class Zlac706Driver(Driver):
             self.machine.settings = replace(self.machine.settings, **told)
 
     @property
-    def follows(self) -> Literal["position", "velocity"]:
-        """Positions in absolute position mode where a target is one frame (CAN), else
-        speeds: as the drive will be once the writes queued for it have landed."""
+    def follows(self) -> Follows | None:
+        """Speeds in velocity mode, positions in absolute position mode where a target is
+        one frame (CAN), else nothing: as the drive will be once the writes queued for it
+        have landed."""
         outlook = self.machine.expected()
+        if outlook.mode is Mode.VELOCITY:
+            return "velocity"
         if self.streams_positions and outlook.mode is Mode.POSITION and outlook.relative is False:
             return "position"
-        return "velocity"
+        return None
+
+    def unsent(self) -> None:
+        # What the writes taken out would have set will not be: judge by what landed.
+        self.machine.forget_pending()
 
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode, or the position of ``{"position":
@@ -363,10 +372,20 @@ class Zlac706Driver(Driver):
     # -- interpreting ---------------------------------------------------------------------------
 
     def acknowledged(self, frame: object) -> None:
-        """The device took the write ``frame``: the state follows."""
-        role, value = self._role(frame, self.machine.settings)
+        """The device took the write ``frame``: the state follows. Enabled in position mode,
+        the drive takes where the shaft is as its zero (5.1, the control modes: "以驱动器使能
+        启动时刻为机械 0 点") and holds there: from off, target and position are 0, whatever
+        they were; from not known, the target is not known either."""
+        settings = self.machine.settings
+        role, value = self._role(frame, settings)
         if role is not None:
-            self.machine.acknowledged(self.machine.settings.change(role, value))
+            change = settings.change(role, value)
+            starts = role is Role.ENABLE and value and settings.enabled is not True
+            if starts and settings.mode is Mode.POSITION:
+                change["target_position"] = None if settings.enabled is None else 0
+                if settings.enabled is False:
+                    self.measured["position"] = 0
+            self.machine.acknowledged(change)
         if role in RESTORED:
             self.applied_settings[frame.register] = Request.of(  # type: ignore[attr-defined]
                 self.codec, frame, idempotent=True

@@ -10,10 +10,11 @@ must be made before the second overwrites it. Bus thread only.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 
 from busgate.codecs.framing import ExpectedReply
 from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.planner import Job
 
 
 class BusDevices:
@@ -63,6 +64,15 @@ class BusDevices:
         """The devices with news since the last call."""
         news, self._news = self._news, set()
         return news
+
+
+def tell_unsent(job: Job, drivers: Mapping[str, Driver]) -> None:
+    """``job`` was taken out before all its frames went (it expired, was withdrawn, or its
+    bus went down): each device it was for, or moved, is told (``Driver.unsent``)."""
+    names = {job.device, *job.also_moves}
+    for driver in drivers.values():
+        if "*" in names or driver.name in names:
+            driver.unsent()
 
 
 def _nothing(_driver: Driver) -> None:

@@ -29,7 +29,7 @@ from busgate.gateway.bus.request import Exchange, Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import EVERY, Driver, Effect
 from busgate.gateway.scheduler import outcomes
-from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.devices import BusDevices, tell_unsent
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Slot
 from busgate.gateway.scheduler.tickers import FollowTicker, KeepaliveTicker
 from busgate.gateway.scheduler.trajectory_ticks import TrajectoryTicker
@@ -63,6 +63,7 @@ class Execution:
         job = source if isinstance(source, Job) else None
         if job is not None and not job.started and not outcomes.may_start(job):
             self.planner.discard(job)  # its client was answered without it
+            tell_unsent(job, self.devices.drivers)
             return
         previous_end = self.planner.line_free
         exchange: Exchange | None = None

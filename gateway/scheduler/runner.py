@@ -67,9 +67,9 @@ from busgate.gateway.bus.flag import Flag
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters, BusStats
-from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.drivers.base import DeviceEvent, Follows
 from busgate.gateway.scheduler import outcomes
-from busgate.gateway.scheduler.devices import BusDevices
+from busgate.gateway.scheduler.devices import BusDevices, tell_unsent
 from busgate.gateway.scheduler.execution import Execution
 from busgate.gateway.scheduler.link import BACKOFF_MAX_S, Reconnect
 from busgate.gateway.scheduler.planner import BusPlanner, Job, Priority, Slot
@@ -243,23 +243,25 @@ class BusRunner:
         start_by = now() + COMMAND_START_S
         return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future))
 
-    def follow(self, device: str, target: Any) -> None:
+    def follow(self, device: str, target: Any, follows: Follows) -> None:
         """The latest follow target of ``device`` (validated with its driver's
-        ``follow_target``); streaming starts, or goes on, at the device's period."""
+        ``follow_target`` while it ``follows`` that: a position or a speed); streaming
+        starts, or goes on, at the device's period."""
         moment = now()
-        if self.streams.store_latest(device, target, moment):
+        if self.streams.store_latest(device, target, moment, follows):
             return
-        self._inbox.append(lambda: self._work.start_stream(device, target, moment))
+        self._inbox.append(lambda: self._work.start_stream(device, target, moment, follows))
         self._wake.set()
 
-    def ramp(self, device: str, target: Any) -> None:
-        """Bring ``device`` to ``target`` (a follow target) within its joint's limits, and
-        leave it there (``tickers`` rule 5): a stream that never goes stale and ends on its
-        target. Always through the bus thread, so a target never lands on a ramp that has just
-        ended (a ROS command is sent once and must not be lost)."""
+    def ramp(self, device: str, target: Any, follows: Follows) -> None:
+        """Bring ``device`` to ``target`` (a follow target, judged while it ``follows`` that)
+        within its joint's limits, and leave it there (``tickers`` rule 5): a stream that
+        never goes stale and ends on its target. Always through the bus thread, so a target
+        never lands on a ramp that has just ended (a ROS command is sent once and must not be
+        lost)."""
         moment = now()
         self._inbox.append(
-            lambda: self._work.start_stream(device, target, moment, ends_on_target=True)
+            lambda: self._work.start_stream(device, target, moment, follows, ends_on_target=True)
         )
         self._wake.set()
 
@@ -344,6 +346,7 @@ class BusRunner:
     def _answer_expired(self) -> None:
         for job in self.planner.take_expired():
             self.counters.busy_commands += 1
+            tell_unsent(job, self.drivers)
             outcomes.fail(job, outcomes.expired(job, self.name, COMMAND_START_S))
 
     def _take_estop(self, future: Future) -> None:

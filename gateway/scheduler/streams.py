@@ -18,7 +18,7 @@ from collections import deque
 from typing import Any
 
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Follows
 from busgate.gateway.scheduler.planner import BusPlanner, Job
 from busgate.gateway.scheduler.tickers import FollowStream, FollowTicker
 
@@ -34,11 +34,12 @@ class FollowStreams:
         self.drivers = drivers
         self._streams: dict[str, FollowStream] = {}
 
-    def store_latest(self, device: str, target: Any, moment: float) -> bool:
-        """Any thread: the new target of ``device``'s running stream; ``False`` (nothing
-        stored) when it has none, and the bus thread must ``start`` one."""
+    def store_latest(self, device: str, target: Any, moment: float, follows: Follows) -> bool:
+        """Any thread: the new target of ``device``'s running stream of what the target
+        ``follows``; ``False`` (nothing stored) when it has none, and the bus thread must
+        ``start`` one (or refuse the target: ``BusWork.start_stream``)."""
         stream = self._streams.get(device)
-        if stream is None:
+        if stream is None or stream.limiter.follows != follows:
             return False
         stream.latest = (target, moment)
         return True

@@ -24,9 +24,9 @@ Rules of this file:
    off (the line taken by a command, an e-stop) is built again from where the last one sent
    left it, so no step on the wire is ever larger than the limits allow.
 7. A stream carries what its device followed when it began (``Driver.follows``: a ZLAC706's
-   positions or speeds, by its mode). When the device follows the other now (its mode was
-   changed), the stream ends as a stale one does before its next tick, so a speed never goes
-   out as a position; a target that comes for it after the change starts a new stream.
+   positions or speeds, by its mode). When the device follows something else now (its mode
+   was changed), the stream ends as a stale one does, before its next tick or when a target
+   of the other kind starts a new one, so a speed never goes out as a position.
 """
 
 from __future__ import annotations
@@ -130,7 +130,11 @@ class FollowTicker:
         stream = self.streams.get(driver.name)
         if not self.streams:  # idle (stopped, ended, gone stale): its next tick starts anew
             self._due = None
-        if stream is None or stream.limiter.follows != driver.follows:  # rule 7: a new one
+        if stream is not None and stream.limiter.follows != driver.follows:  # rule 7
+            del self.streams[driver.name]
+            self.on_stale(driver)
+            stream = None
+        if stream is None:
             start = commanded(driver, now)
             limiter = StreamLimiter(driver.joint, self.period_s, start, driver.follows)
             told = driver.name in self._ended_held

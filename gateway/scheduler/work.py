@@ -32,9 +32,10 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver, Effect
+from busgate.gateway.drivers.base import Driver, Effect, Follows
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
+from busgate.gateway.scheduler.devices import tell_unsent
 from busgate.gateway.scheduler.planner import CLIENT_SHARE, BusPlanner, Job
 from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
@@ -99,7 +100,8 @@ class BusWork:
             followed = self._check_follow_mode(driver.follow_mode_ids(frames))
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
-                self.start_stream(device, driver.follow_target(ramp), now(), ends_on_target=True)
+                target, follows = driver.follow_target(ramp), driver.follow_carries(ramp)
+                self.start_stream(device, target, now(), follows, ends_on_target=True)
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
@@ -224,6 +226,7 @@ class BusWork:
         self.streams.end_all(streams_why)
         self.plays.end_all(plays_why)
         for job in self.planner.drop_commands():
+            tell_unsent(job, self.drivers)
             outcomes.fail(job, jobs_error)
 
     def plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
@@ -237,14 +240,31 @@ class BusWork:
         )
 
     def start_stream(
-        self, device: str, target: Any, moment: float, *, ends_on_target: bool = False
+        self,
+        device: str,
+        target: Any,
+        moment: float,
+        follows: Follows,
+        *,
+        ends_on_target: bool = False,
     ) -> None:
+        """A stream of ``target``s that ``follows`` positions or speeds, started or fed; a
+        target judged before its device's mode changed is dropped, told as a refusal (a
+        speed must never go out as a position)."""
         driver = self.drivers.get(device)
         if driver is None or not self.owner.is_open:
             return
         if driver.estopped:  # e-stopped since its target was judged: no motion (authority 4)
             refusal = driver.estopped_error()
             driver.emit("command_refused", code=refusal.code, message=str(refusal))
+            return
+        if driver.follows != follows:
+            now_follows = "nothing" if driver.follows is None else f"{driver.follows}s"
+            message = (
+                f"{device} follows {now_follows} now (its mode changed since this {follows} "
+                "target was judged); nothing was sent"
+            )
+            driver.emit("command_refused", code="bad_command", message=message)
             return
         self.streams.start(driver, target, moment, ends_on_target=ends_on_target)
 

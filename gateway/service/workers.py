@@ -40,7 +40,7 @@ from typing import Any, ClassVar
 from busgate.errors import BusUnavailableError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusStats
-from busgate.gateway.drivers.base import DeviceEvent, Driver
+from busgate.gateway.drivers.base import DeviceEvent, Driver, Follows
 from busgate.gateway.scheduler.authority import ClaimTable
 from busgate.gateway.scheduler.runner import STALL_S, BusRunner
 from busgate.gateway.service import worker as worker_process
@@ -545,11 +545,11 @@ class WorkerRunner:
     def stop_stream(self, device: str, reason: str) -> None:
         self.worker.tell(self.name, "stop_stream", device, reason)
 
-    def follow(self, device: str, target: Any) -> None:
-        self.worker.tell(self.name, "follow", device, target)
+    def follow(self, device: str, target: Any, follows: Follows) -> None:
+        self.worker.tell(self.name, "follow", device, target, follows)
 
-    def ramp(self, device: str, target: Any) -> None:
-        self.worker.tell(self.name, "ramp", device, target)
+    def ramp(self, device: str, target: Any, follows: Follows) -> None:
+        self.worker.tell(self.name, "ramp", device, target, follows)
 
     def play(self, samplers: dict, start: float) -> None:
         self.worker.tell(self.name, "play", samplers, start)

@@ -52,7 +52,7 @@ def stream(runner: BusRunner, stop: threading.Event) -> None:
     rpm = itertools.cycle(range(50, 150))
     while not stop.is_set():
         for name, driver in runner.drivers.items():
-            runner.follow(name, driver.follow_target({"rpm": next(rpm)}))
+            runner.follow(name, driver.follow_target({"rpm": next(rpm)}), "velocity")
         time.sleep(0.01)
 
 

@@ -106,7 +106,7 @@ def _estops(runners: list[BusRunner], count: int) -> tuple[list[float], list[flo
         for runner in runners:
             for name, driver in runner.drivers.items():
                 if driver.follow_preparation == ():  # streams from the start (Inspire LA)
-                    runner.follow(name, 1000 + 100 * (turn % 5))
+                    runner.follow(name, 1000 + 100 * (turn % 5), "position")
         time.sleep(random.uniform(0.1, 0.15))
         for bus_marks in marks.values():
             bus_marks.clear()
