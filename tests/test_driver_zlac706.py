@@ -632,7 +632,9 @@ def test_enabled_in_position_mode_the_drive_holds_at_its_new_zero() -> None:
                         '{"op":"enable"}', '{"op":"move","position":100000}')
     d.unsolicited(can_events("00fe0020000186a0")[0], 1.0)  # at 100000
     run(d, plan(d, '{"op":"disable"}'))
-    assert d.telemetry(1.0)["target"] == 100000
+    run(d, plan(d, '{"op":"set_position_ramp","accel_ms":100,"decel_ms":100}'))  # no enable
+    telemetry = d.telemetry(1.0)
+    assert (telemetry["target"], telemetry["position"]) == (100000, 100000)
     run(d, plan(d, '{"op":"enable"}'))
     telemetry = d.telemetry(1.1)
     assert (telemetry["target"], telemetry["position"]) == (0, 0)
