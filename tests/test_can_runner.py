@@ -17,6 +17,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.zlac706_state import Mode, Settings
+from busgate.gateway.scheduler.planner import CLIENT_SHARE
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim import zlac706 as zlac706_sim
@@ -253,5 +254,29 @@ def test_a_command_that_expired_unsent_leaves_the_drive_judged_as_it_was() -> No
         runner.planner.decide(now())
         runner._answer_expired()
         assert future.exception(0).code == "busy" and wheel.follows is None
+    finally:
+        runner.owner.close()
+
+
+def test_a_command_refused_busy_once_planned_leaves_the_drive_judged_as_it_was() -> None:
+    """A ``disable`` refused ``busy`` (its client's share of the queue taken) set nothing: the
+    motor is still on, so a mode change is still refused (the manual: disable first)."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}"))  # not started
+    runner.owner.open()
+    wheel = runner.drivers["wheel"]
+    try:
+        wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=True, speed_raw=0)
+        stop = wheel.parse('{"op":"velocity","rpm":0}')
+        for _ in range(CLIENT_SHARE):
+            runner._work.plan_command("wheel", stop, "flood", now() + 10, Future())
+        refused: Future = Future()
+        runner._work.plan_command("wheel", wheel.parse('{"op":"disable"}'), "flood",
+                                  now() + 10, refused)
+        assert refused.exception(0).code == "busy"
+        assert wheel.machine.expected().enabled is True
+        mode: Future = Future()
+        runner._work.plan_command("wheel", wheel.parse('{"op":"set_mode","mode":"position"}'),
+                                  "other", now() + 10, mode)
+        assert "disable first" in str(mode.exception(0))
     finally:
         runner.owner.close()

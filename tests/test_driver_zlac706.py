@@ -310,6 +310,9 @@ def test_follow_takes_positions_in_absolute_position_mode_once_enabled() -> None
     assert d.follows == "position"
     with pytest.raises(CommandError, match="needs velocity mode"):
         d.follow_target({"rpm": 100})
+    with pytest.raises(CommandError, match="where the drive holds, which is not known now"):
+        d.follow_target({"position": -5000})  # a stream would start from nowhere known
+    d.unsolicited(can_events("00fe0020000003e8")[0], 0.0)  # a heartbeat: at 1000
     target = d.follow_target({"position": -5000})
     assert target == -5000
     request = Zlac706CanDriver.follow_request([(d, target)])
@@ -334,9 +337,13 @@ def test_rs232_follow_streams_no_positions() -> None:
 
 def test_a_worker_s_position_mode_is_mirrored() -> None:
     """The main process judges follow targets by what the worker's driver told: its mode,
-    its position mode and whether it is enabled."""
+    its position mode, whether it is enabled, and where it holds."""
     d = can_driver()
-    d.mirror({"mode": "position", "position_mode": "absolute", "enabled": True})
+    d.mirror({"mode": "position", "position_mode": "absolute", "enabled": True,
+              "target": None, "position": None})
+    with pytest.raises(CommandError, match="not known now"):
+        d.follow_target({"position": 7})
+    d.mirror({"target": 0, "position": 3})
     assert d.follow_target({"position": 7}) == 7 and d.follows == "position"
     d.mirror({"position_mode": "relative"})
     with pytest.raises(CommandError, match="relative"):
@@ -661,3 +668,33 @@ def test_a_stale_stream_writes_no_speed_after_a_mode_change_queued() -> None:
     d = velocity_driver(can_driver(), rpm=0)
     plan(d, '{"op":"set_mode","mode":"position"}')
     assert d.stale_stream() == []
+
+
+def test_after_a_disable_whose_answer_was_lost_an_enable_leaves_the_zero_unknown() -> None:
+    """The disable may have landed (then the enable moved position mode's zero) or not:
+    neither target nor position is known until the drive reports, and no position stream
+    starts from the old 30000 (it would jump three turns)."""
+    d = position_driver(can_driver(heartbeat_ms=10), '{"op":"set_position_mode","relative":false}',
+                        '{"op":"enable"}', '{"op":"move","position":30000}')
+    d.unsolicited(can_events("00fe002000007530")[0], 1.0)  # at 30000
+    (disable,) = plan(d, '{"op":"disable"}')
+    d.missed(1.1, disable.frame)
+    assert d.machine.settings.enabled is None
+    run(d, plan(d, '{"op":"enable"}'))
+    telemetry = d.telemetry(1.2)
+    assert (telemetry["target"], telemetry["position"]) == (None, None)
+    with pytest.raises(CommandError, match="not known now"):
+        d.follow_target({"position": 30100})
+    d.unsolicited(can_events("00fe002000000000")[0], 1.3)  # it did re-zero
+    assert d.follow_target({"position": 100}) == 100 and "rebooted" not in event_types(d)
+
+
+def test_a_speed_command_taken_out_unsent_is_not_kept_alive() -> None:
+    """The keep-alive repeats the speed last commanded, noted when planned: one that never
+    went (``busy``, nothing sent) must not turn the wheel by the keep-alive's hand."""
+    d = velocity_driver(can_driver(), rpm=0)
+    run(d, plan(d, '{"op":"enable"}'))
+    plan(d, '{"op":"velocity","rpm":500}')
+    assert d.keepalive(0.0) is not None
+    d.unsent()
+    assert d.keepalive(0.0) is None and d.commanded_speed_raw == 0

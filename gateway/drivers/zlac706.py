@@ -296,14 +296,17 @@ class Zlac706Driver(Driver):
         """What refreshes the device: the speed write (CAN), the monitor request (RS232)."""
 
     def mirror(self, state: dict[str, Any]) -> None:
-        """The mode, the position mode and the power stage its worker's driver knows: a
-        follow target is judged by them (speeds in velocity mode, positions in absolute
-        position mode)."""
+        """The mode, the position mode, the power stage, the target and the position its
+        worker's driver knows: a follow target is judged by them (speeds in velocity mode,
+        positions in absolute position mode from a known place)."""
         told: dict[str, Any] = {}
         if state.get("mode") in tuple(Mode):
             told["mode"] = Mode(state["mode"])
         if state.get("position_mode") in ("relative", "absolute"):
             told["relative"] = state["position_mode"] == "relative"
+        if "target" in state:  # where a position stream would start (``follow_target``)
+            told["target_position"] = state["target"]
+            self.measured["position"] = state.get("position")
         if isinstance(state.get("enabled"), bool):
             told["enabled"] = state["enabled"]
         if told:  # a state that says neither (offline, not yet read) leaves them as they were
@@ -322,12 +325,15 @@ class Zlac706Driver(Driver):
         return None
 
     def unsent(self) -> None:
-        # What the writes taken out would have set will not be: judge by what landed.
+        # What the writes taken out would have set will not be: judge by what landed, and
+        # the keep-alive repeats the speed the drive took, not one that never went.
         self.machine.forget_pending()
+        self.speed_sent_raw = None
 
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode, or the position of ``{"position":
-        P}`` in absolute position mode with the motor enabled (CAN only)."""
+        P}`` in absolute position mode with the motor enabled (CAN only), once where it holds
+        is known (a stream starts there: ``tickers.commanded``)."""
         target = self.follow_payload(payload)
         outlook = self.machine.expected()
         if target.position is None:
@@ -345,6 +351,12 @@ class Zlac706Driver(Driver):
                 "a position follow stream needs absolute positions (set_position_mode with "
                 f"relative false first): the position mode is {now}, and each target of a "
                 "relative stream would move the motor on again"
+            )
+        if self.machine.settings.target_position is None and self.measured["position"] is None:
+            raise CommandError(
+                "a position follow stream starts from where the drive holds, which is not "
+                "known now (it was enabled when the gateway did not know it was off, or it "
+                "has not reported its position yet): its next heartbeat tells; nothing was sent"
             )
         return float(target.position)
 
@@ -375,16 +387,16 @@ class Zlac706Driver(Driver):
         """The device took the write ``frame``: the state follows. Enabled in position mode,
         the drive takes where the shaft is as its zero (5.1, the control modes: "以驱动器使能
         启动时刻为机械 0 点") and holds there: from off, target and position are 0, whatever
-        they were; from not known, the target is not known either."""
+        they were; from not known, neither is known until the drive tells its position."""
         settings = self.machine.settings
         role, value = self._role(frame, settings)
         if role is not None:
             change = settings.change(role, value)
             starts = role is Role.ENABLE and value and settings.enabled is not True
             if starts and settings.mode is Mode.POSITION:
-                change["target_position"] = None if settings.enabled is None else 0
-                if settings.enabled is False:
-                    self.measured["position"] = 0
+                zero = 0 if settings.enabled is False else None  # None: the next reading tells
+                change["target_position"] = zero
+                self.measured["position"] = zero
             self.machine.acknowledged(change)
         if role in RESTORED:
             self.applied_settings[frame.register] = Request.of(  # type: ignore[attr-defined]
@@ -433,6 +445,10 @@ class Zlac706Driver(Driver):
         }
 
     def missed(self, now: float, frame: object = None) -> None:
-        # An unanswered write may or may not have landed: stop counting on the queued ones.
+        # An unanswered write may or may not have landed: stop counting on the queued ones,
+        # and the power stage it switched is not known (an enable from there may or may not
+        # move position mode's zero).
         self.machine.forget_pending()
+        if frame is not None and self._role(frame, self.machine.settings)[0] is Role.ENABLE:
+            self.machine.settings = replace(self.machine.settings, enabled=None)
         super().missed(now, frame)

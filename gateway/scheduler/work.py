@@ -172,6 +172,7 @@ class BusWork:
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
+            tell_unsent(job, self.drivers)
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} is down"))
         elif not job.requests:
             outcomes.complete(job, self.state_of)
@@ -182,6 +183,7 @@ class BusWork:
                 if self.planner.share_taken(job.client)
                 else "command queue full"
             )
+            tell_unsent(job, self.drivers)
             outcomes.fail(job, BusyError(f"bus {self.name}: {why}; nothing was sent"))
 
     def plan_estop(self, future: Future) -> None:
