@@ -343,7 +343,9 @@ def test_a_worker_s_position_mode_is_mirrored() -> None:
               "target": None, "position": None})
     with pytest.raises(CommandError, match="not known now"):
         d.follow_target({"position": 7})
-    d.mirror({"target": 0, "position": 3})
+    d.mirror({"target": 0, "position": None})  # it holds at its target
+    assert d.follow_target({"position": 7}) == 7
+    d.mirror({"target": None, "position": 3})  # it is where it was read
     assert d.follow_target({"position": 7}) == 7 and d.follows == "position"
     d.mirror({"position_mode": "relative"})
     with pytest.raises(CommandError, match="relative"):

@@ -192,6 +192,14 @@ def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
         "a position follow stream needs absolute positions (set_position_mode with relative "
         "false first): the position mode is not known, and each target of a relative stream "
         "would move the motor on again")
+    run(can_driver, plan(can_driver, '{"op":"set_position_mode","relative":false}'))
+    can_driver.measured["position"] = None  # enabled when its power stage was not known
+    with pytest.raises(CommandError) as refused:
+        can_driver.follow_target({"position": 5})
+    assert str(refused.value) == (
+        "a position follow stream starts from where the drive holds, which is not known now "
+        "(it was enabled when the gateway did not know it was off, or it has not reported its "
+        "position yet): its next heartbeat tells; nothing was sent")
 
 
 def test_a_node_without_the_register_written_is_told_and_nothing_changes() -> None:
