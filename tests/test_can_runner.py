@@ -280,3 +280,35 @@ def test_a_command_refused_busy_once_planned_leaves_the_drive_judged_as_it_was()
         assert "disable first" in str(mode.exception(0))
     finally:
         runner.owner.close()
+
+
+def test_a_re_enable_or_a_reset_that_never_went_leaves_the_device_e_stopped() -> None:
+    """The re-enable op clears the e-stop's latch when it is planned: refused ``busy`` (its
+    client's share of the queue taken), nothing sent, the wheel is still e-stopped, and
+    motion is refused as before. So with a reset that expired: latched again, and still due
+    to be driven again by the next reset."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}"))  # not started
+    runner.owner.open()
+    wheel = runner.drivers["wheel"]
+    try:
+        wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=False, speed_raw=0)
+        wheel.estop_latched = True
+        stop = wheel.parse('{"op":"velocity","rpm":0}')  # a stop: taken while e-stopped
+        for _ in range(CLIENT_SHARE):
+            runner._work.plan_command("wheel", stop, "flood", now() + 10, Future())
+        refused: Future = Future()
+        runner._work.plan_command("wheel", wheel.parse('{"op":"enable"}'), "flood",
+                                  now() + 10, refused)
+        assert refused.exception(0).code == "busy" and wheel.estopped
+        runner.planner.drop_commands()
+        wheel.driving_before_estop = True
+        reset: Future = Future()
+        runner._work.plan_reset("wheel", now() + 0.001, reset)
+        assert not wheel.estopped and not wheel.driving_before_estop  # as planned
+        time.sleep(0.002)
+        runner.planner.decide(now())
+        runner._answer_expired()
+        assert reset.exception(0).code == "busy"
+        assert wheel.estopped and wheel.driving_before_estop
+    finally:
+        runner.owner.close()

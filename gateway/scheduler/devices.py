@@ -67,12 +67,30 @@ class BusDevices:
 
 
 def tell_unsent(job: Job, drivers: Mapping[str, Driver]) -> None:
-    """``job`` was taken out before all its frames went (it expired, was withdrawn, or its
-    bus went down): each device it was for, or moved, is told (``Driver.unsent``)."""
+    """``job`` was taken out before all its frames went (it expired, was withdrawn, refused
+    ``busy``, or its bus went down): each device it was for, or moved, is told
+    (``Driver.unsent``), and gets back the e-stop its planning changed (a re-enable or a
+    reset that never went leaves the device e-stopped)."""
     names = {job.device, *job.also_moves}
     for driver in drivers.values():
         if "*" in names or driver.name in names:
             driver.unsent()
+        if driver.name in job.estop_before:
+            driver.estop_latched, driver.driving_before_estop = job.estop_before[driver.name]
+
+
+def estop_states(drivers: Iterable[Driver]) -> dict[str, tuple[bool, bool]]:
+    """Each driver's e-stop as a job's planning may change it: latched, and whether it was
+    driving when it latched (``Job.estop_before``)."""
+    return {d.name: (d.estop_latched, d.driving_before_estop) for d in drivers}
+
+
+def estop_changed(
+    before: dict[str, tuple[bool, bool]], drivers: Iterable[Driver]
+) -> dict[str, tuple[bool, bool]]:
+    """The entries of ``before`` (``estop_states``) that the drivers no longer hold."""
+    now = estop_states(drivers)
+    return {name: state for name, state in before.items() if now[name] != state}
 
 
 def _nothing(_driver: Driver) -> None:

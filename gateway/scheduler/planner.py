@@ -87,6 +87,9 @@ class Job:
     started: bool = False
     #: When (bus clock) its last request went out; ``None`` before its first.
     sent_at: float | None = None
+    #: What planning it changed of its devices' e-stop, by device (latched, and driving when
+    #: it latched): put back when it is taken out unsent (``devices.tell_unsent``).
+    estop_before: dict[str, tuple[bool, bool]] = field(default_factory=dict)
     #: Whose command it is (its ``client``, ``""`` when it named none): ``None`` for the
     #: gateway's own jobs, which take no client's share (rule 4).
     client: str | None = None

@@ -35,7 +35,7 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver, Effect, Follows
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
-from busgate.gateway.scheduler.devices import tell_unsent
+from busgate.gateway.scheduler.devices import estop_changed, estop_states, tell_unsent
 from busgate.gateway.scheduler.planner import CLIENT_SHARE, BusPlanner, Job
 from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
@@ -98,6 +98,7 @@ class BusWork:
             self.authority.check_limits(driver.setpoints(frames))
             self.authority.check_ids(driver.id_changes(frames))
             followed = self._check_follow_mode(driver.follow_mode_ids(frames))
+            estop_before = estop_states([driver])
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
                 target, follows = driver.follow_target(ramp), driver.follow_carries(ramp)
@@ -123,6 +124,7 @@ class BusWork:
             reads_only=reads_only,
             client=client or "",
         )
+        job.estop_before = estop_changed(estop_before, [driver])
         self._follow_jobs.update(dict.fromkeys(followed, job))
         self.queue_job(job)
 
@@ -233,13 +235,14 @@ class BusWork:
 
     def plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
         drivers = list(self.drivers.values()) if device is None else [self.drivers[device]]
+        estop_before = estop_states(drivers)
         requests = deque(r for driver in drivers for r in driver.reset_estop())
         # Every device's frames go, whatever one silent device does (as an e-stop's).
-        self.queue_job(
-            Job(
-                device or "*", requests, keep_going=device is None, start_by=start_by, future=future
-            )
+        job = Job(
+            device or "*", requests, keep_going=device is None, start_by=start_by, future=future
         )
+        job.estop_before = estop_changed(estop_before, drivers)
+        self.queue_job(job)
 
     def start_stream(
         self,
