@@ -146,19 +146,16 @@ class BusWork:
                 )
             sent = self._follow_target_sent(driver.name)
             if sent is None:
-                raise BusyError(
-                    f"{driver.name} takes a follow-mode target once every "
-                    f"{driver.follow_period_s * 1000:g} ms (its follow period: the manual's "
-                    "fixed period), and the command carrying the last one still waits to go "
-                    "out; nothing was sent"
-                )
-            since = moment - sent
-            if since < driver.follow_period_s:
-                raise BusyError(
-                    f"{driver.name} takes a follow-mode target once every "
-                    f"{driver.follow_period_s * 1000:g} ms (its follow period: the manual's "
-                    f"fixed period), and one was sent {since * 1000:.1f} ms ago; nothing was sent"
-                )
+                last = "the command carrying the last one still waits to go out"
+            elif moment - sent < driver.follow_period_s:
+                last = f"one was sent {(moment - sent) * 1000:.1f} ms ago"
+            else:
+                continue
+            raise BusyError(
+                f"{driver.name} takes a follow-mode target once every "
+                f"{driver.follow_period_s * 1000:g} ms (its follow period: the manual's "
+                f"fixed period), and {last}; nothing was sent"
+            )
         return [driver.name for driver in followed]
 
     def _follow_target_sent(self, device: str) -> float | None:
