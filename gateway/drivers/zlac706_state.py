@@ -203,8 +203,9 @@ class Zlac706State:
         self._pending: dict[str, Any] = {}
 
     def expected(self) -> Settings:
-        """The settings once every write queued so far has been acknowledged."""
-        return replace(self.settings, **self._pending)
+        """The settings once every write queued so far has been acknowledged (the settings
+        themselves, frozen, while none is queued: asked at every follow tick)."""
+        return replace(self.settings, **self._pending) if self._pending else self.settings
 
     def planned(self, change: dict[str, Any]) -> None:
         self._pending.update(change)
