@@ -20,6 +20,7 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.errors import BusIOError, BusUnavailableError, BusyError, DeviceTimeoutError
 from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.owner import TX
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
@@ -622,6 +623,53 @@ def test_follow_mode_targets_by_command_keep_the_follow_period_and_leave_a_strea
         assert not sent("la2", '{"op":"follow","position":800}').done()
         assert not sent("la1", '{"op":"move","position":800}').done(), "a move is no follow"
         assert runner.planner.queued == 2
+    finally:
+        runner.owner.close()
+
+
+def test_a_device_passed_between_a_command_follow_and_a_stream_keeps_its_follow_period(
+    simulator,
+) -> None:
+    """A stream started right after a command's follow sends its first tick a follow period
+    after that follow went (the bus's own times of the two writes); and once the stream
+    ended, a command's follow sooner than a period after its last tick is refused."""
+    runner = build_bus(bus(simulator.port, follow_period_ms=10))  # not started: the test runs it
+    runner.owner.open()
+    records: list[tuple] = []  # (time, direction, bytes, identifier): the owner's tap
+    runner.owner.tap = records.append
+    work, la1 = runner._work, runner.drivers["la1"]
+
+    def follow_command() -> Future:
+        future = Future()
+        command = la1.parse('{"op":"follow","position":900}')
+        work.plan_command("la1", command, None, now() + 10, future)
+        return future
+
+    def follows_to_la1() -> list[float]:
+        """When each write carrying la1 a follow target went (the tap's time of it)."""
+        times = []
+        for at, direction, wire, _ in records:
+            decoder = la.CommandDecoder()
+            decoder.feed(wire)
+            frame = next(decoder.events()) if direction == TX else None
+            if isinstance(frame, la.GroupFollowCommand):
+                frame = next((t for t in frame.targets if t.device_id == 1), None)
+            if isinstance(frame, la.FollowCommand | la.Target) and frame.device_id == 1:
+                times.append(at)
+        return times
+
+    try:
+        command = follow_command()
+        while not command.done():
+            runner._step()
+        runner.streams.start(la1, la1.follow_target({"position": 1000}), now())
+        while len(follows_to_la1()) < 2:
+            runner._step()
+        command_went, first_tick = follows_to_la1()
+        assert first_tick - command_went >= 0.010
+        runner.streams.end("la1", "the test")
+        refused = follow_command().exception(0)
+        assert refused.code == "busy" and "one was sent" in str(refused)
     finally:
         runner.owner.close()
 

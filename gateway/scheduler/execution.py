@@ -86,9 +86,12 @@ class Execution:
                 self.counters.gap(start - line_busy)
             self.counters.busy_s += end - start
         if not isinstance(source, Job):  # a follow or keep-alive tick: its ticker times the next
-            source.sent(start - self._fastest_write(exchange))
+            counted = start - self._fastest_write(exchange)
+            source.sent(counted)
+            if isinstance(source, FollowTicker | TrajectoryTicker):
+                self.planner.spacing.ticked(source.carried(), source, counted)
         else:
-            source.sent_at = start
+            self.planner.spacing.job_sent(source, start)
         done = self.planner.finished(slot, end, failed=error is not None)
         if job is not None:
             # A request that is tried again is still at the head of its job; only a failure

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from busgate.gateway.bus.request import LinkTiming, Request
+from busgate.gateway.scheduler.spacing import FollowSpacing
 
 MAX_RETRIES = 2
 #: The host's time, after a reply, to interpret it and have the next tick's frame ready.
@@ -85,8 +86,6 @@ class Job:
     start_by: float = math.inf
     #: Its first request has been sent: from then on it runs to its end.
     started: bool = False
-    #: When (bus clock) its last request went out; ``None`` before its first.
-    sent_at: float | None = None
     #: What planning it changed of its devices' e-stop, by device (latched, and driving when
     #: it latched): put back when it is taken out unsent (``devices.tell_unsent``).
     estop_before: dict[str, tuple[bool, bool]] = field(default_factory=dict)
@@ -114,7 +113,8 @@ class Ticker(Protocol):
         """When the next tick is due; ``None`` while there is nothing to stream."""
 
     def build(self, now: float) -> Request | None:
-        """The tick's frame (latest targets), or ``None`` when the streams went stale."""
+        """The tick's frame (latest targets), or ``None`` when the streams went stale or
+        none may go yet (its next tick is due later then)."""
 
     def sent(self, start: float) -> None:
         """The tick's frame started at ``start``: the next one is due a period later."""
@@ -164,6 +164,8 @@ class BusPlanner:
         self._polls: dict[str, Job] = {}
         self.tickers: list[Ticker] = []
         self.pollers: Sequence[Poller] = []
+        #: Each device's last follow target, from whichever ticker or command sent it.
+        self.spacing = FollowSpacing()
 
     def push_estop(self, job: Job) -> Job:
         """Queue an e-stop ahead of everything, never refused; the job that will send its
@@ -241,7 +243,7 @@ class BusPlanner:
             request = ticker.build(now)
             if request is not None:
                 return Slot(request, Priority.FOLLOW, ticker)
-            return self.decide(now)  # the streams went stale; the ticker is idle now
+            return self.decide(now)  # nothing to send now: its next tick is later, or none
         self._start_due_polls(now)
         self._expire(now)
         held = now < self.hold_replies_until

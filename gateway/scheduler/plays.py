@@ -199,7 +199,7 @@ class Plays:
         )
         group = sibling.group if sibling is not None else None  # ``trajectory_ticks`` rule 6
         ticker = TrajectoryTicker(
-            type(driver), period, start, self.counters, self.after_tick, group
+            type(driver), period, start, self.counters, self.after_tick, group, self.planner.spacing
         )
         self.planner.tickers.append(ticker)
         return ticker

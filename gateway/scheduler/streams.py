@@ -65,7 +65,12 @@ class FollowStreams:
         )
         if chosen is None:
             chosen = FollowTicker(
-                type(driver), period, self.counters, self._went_stale, self._reached
+                type(driver),
+                period,
+                self.counters,
+                self._went_stale,
+                self._reached,
+                spacing=self.planner.spacing,
             )
             self.planner.tickers.append(chosen)
         self._streams[driver.name] = chosen.update(

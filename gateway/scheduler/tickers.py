@@ -27,6 +27,11 @@ Rules of this file:
    positions or speeds, by its mode). When the device follows something else now (its mode
    was changed), the stream ends as a stale one does, before its next tick or when a target
    of the other kind starts a new one, so a speed never goes out as a position.
+8. A stream's device is left out of a tick due less than its follow period after another
+   sender's last follow target to it (a command's ``follow``, a trajectory's last tick, a
+   stream on another ticker: ``spacing``), or while a command carrying it one still waits
+   to go out; it is in the first tick after that. A tick that would carry none is put off
+   to when the first of them may go.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.scheduler.limiter import StreamLimiter
+from busgate.gateway.scheduler.spacing import FollowSpacing
 
 MIN_FRESH_S = 0.1
 FRESH_PERIODS = 3
@@ -102,10 +108,12 @@ class FollowTicker:
         counters: BusCounters,
         on_stale: Callable[[Driver], None],
         on_reached: Callable[[Driver], None] = lambda driver: None,
+        spacing: FollowSpacing | None = None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
         self.fresh_s = max(FRESH_PERIODS * period_s, MIN_FRESH_S)
+        self.spacing = spacing or FollowSpacing()  # its bus's (rule 8)
         self.counters = counters
         self.on_stale = on_stale
         self.on_reached = on_reached
@@ -172,7 +180,12 @@ class FollowTicker:
         if not self.streams:  # idle: the next ``update`` starts it anew
             return None
         targets: list[tuple[Driver, float]] = []
+        soonest_held = now + self.period_s  # a command's that waits: looked at again then
         for name, stream in list(self.streams.items()):
+            due = self.spacing.due(name, self.period_s, self)
+            if due > now:  # another sender's target went less than a period ago (rule 8)
+                soonest_held = min(soonest_held, due)
+                continue
             target = stream.next_target()
             targets.append((stream.driver, target))
             if stream.ends_on_target and target == stream.limiter.goal(stream.latest[0]):
@@ -180,6 +193,9 @@ class FollowTicker:
                 if stream.held and stream.told_limited:  # rule 4
                     self._ended_held.add(name)
                 self.on_reached(stream.driver)
+        if not targets:  # every stream held off (rule 8)
+            self._due = soonest_held
+            return None
         self._carried = [driver for driver, _ in targets]
         return self.driver_class.follow_request(targets)
 

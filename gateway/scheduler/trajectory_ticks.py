@@ -39,6 +39,11 @@ Rules of this file:
    share a ``SlotGroup``: the first tick of a slot is judged on time or late by rule 1, and
    the ticks after it in that slot, back to back behind it on the line, are judged with it,
    so that a base's second wheel does not lose every other slot to its first's exchange.
+7. A device is left out of a slot due less than its follow period after another sender's
+   last follow target to it (the stream or the trajectory it came from, a command's
+   ``follow``: ``spacing``), or while a command carrying it one still waits to go out; it
+   stays on the ticker and is in the first slot after that. With no device in it, the slot
+   passes without a frame, as by rule 5.
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ from busgate.errors import CommandError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
+from busgate.gateway.scheduler.spacing import FollowSpacing
 from busgate.schemas.config import FOLLOW_PERIOD_MS
 
 #: How long after its slot a tick may start and the next still be on the following slot
@@ -94,6 +100,7 @@ class TrajectoryTicker:
         counters: BusCounters,
         on_tick: Callable[[TrajectoryTicker], None] = lambda ticker: None,
         group: SlotGroup | None = None,
+        spacing: FollowSpacing | None = None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
@@ -116,6 +123,7 @@ class TrajectoryTicker:
         self._built: dict[str, tuple[float, float]] = {}  # what the frame being sent carries
         self._carried: list[Driver] = []
         self.group = group or SlotGroup()
+        self.spacing = spacing or FollowSpacing()  # its bus's (rule 7)
 
     def has_room(self, driver: Driver) -> bool:
         limit = self.driver_class.follow_group_limit
@@ -146,6 +154,8 @@ class TrajectoryTicker:
         targets: list[tuple[Driver, Any]] = []
         built: dict[str, tuple[float, float]] = {}
         for name, member in list(self.playing.items()):
+            if self.spacing.due(name, self.period_s, self) > now:
+                continue  # another sender's target went less than a period ago (rule 7)
             driver = member.driver
             payload = member.sample(t_s)
             (value,) = payload.values()
@@ -185,8 +195,9 @@ class TrajectoryTicker:
         return group.on_time
 
     def _pass(self, now: float) -> None:
-        """No device could take its target: the slot passes without a frame (rule 5), and the
-        next one is due after ``now`` (the planner asks again at once)."""
+        """No device could take its target (rule 5) or may have it yet (rule 7): the slot
+        passes without a frame, and the next one is due after ``now`` (the planner asks again
+        at once)."""
         self._go_to(max(self._k + 1, slot_index(self.start, self.grid_s, now)))
         self.on_tick(self)
 

@@ -12,16 +12,16 @@ every bus's frame would wait for each one's (docs/performance.md, "An e-stop's f
 A command's follow-mode targets (an Inspire LA's ``follow``, ``group_follow``), which the
 manual takes at a fixed period, are refused (``busy``, nothing sent) for a device that a
 follow stream or a trajectory follows (its ticks keep the period: the client puts targets on
-the follow key instead), and for one that a command sent such a target less than its follow
-period before, or whose command carrying one still waits to go out (``_check_follow_mode``):
-the period is counted from when that target went on the wire, not from when it was planned.
+the follow key instead), and for one sent such a target less than its follow period before
+(by a command, or by the last tick of a stream or a trajectory), or whose command carrying
+one still waits to go out (``_check_follow_mode``): the period is counted from when that
+target went on the wire, not from when it was planned (``spacing``).
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
@@ -72,9 +72,6 @@ class BusWork:
         self.planner = planner
         self.streams = streams
         self.plays = plays
-        #: The command that last carried each device a follow-mode target
-        #: (``_check_follow_mode``).
-        self._follow_jobs: dict[str, Job] = {}
         self.state_of = state_of
         #: An e-stop's ends are still to come (``end_estopped``), with the commands it took out.
         self._estop_ending = False
@@ -125,14 +122,14 @@ class BusWork:
             client=client or "",
         )
         job.estop_before = estop_changed(estop_before, [driver])
-        self._follow_jobs.update(dict.fromkeys(followed, job))
+        self.planner.spacing.commanded(followed, job)
         self.queue_job(job)
 
     def _check_follow_mode(self, ids: frozenset[int]) -> list[str]:
         """Refuse follow-mode targets for the devices of ``ids`` that a stream or a trajectory
-        follows, that a command sent one less than a follow period ago, or whose command
-        carrying one waits to go out; the names of the devices they go to, noted once the
-        command is planned."""
+        follows, that were sent one less than a follow period ago, or whose command carrying
+        one waits to go out; the names of the devices they go to, noted once the command is
+        planned."""
         if not ids:
             return []
         moment = now()
@@ -144,7 +141,7 @@ class BusWork:
                     "the manual's fixed period: put its targets on its follow key; nothing "
                     "was sent"
                 )
-            sent = self._follow_target_sent(driver.name)
+            sent = self.planner.spacing.last(driver.name)
             if sent is None:
                 last = "the command carrying the last one still waits to go out"
             elif moment - sent < driver.follow_period_s:
@@ -157,17 +154,6 @@ class BusWork:
                 f"fixed period), and {last}; nothing was sent"
             )
         return [driver.name for driver in followed]
-
-    def _follow_target_sent(self, device: str) -> float | None:
-        """When the last follow-mode target a command carried ``device`` went out, at the
-        latest (its command's last frame; ``-inf``: none went), ``None`` while that command
-        has frames still to send."""
-        job = self._follow_jobs.get(device)
-        if job is None:
-            return -math.inf
-        if job.requests and not (job.future is not None and job.future.done()):
-            return None
-        return -math.inf if job.sent_at is None else job.sent_at
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
