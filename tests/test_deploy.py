@@ -8,25 +8,33 @@ tests/test_router.py)."""
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import re
 import shutil
 import subprocess
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import zenoh
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.ros2 import messages, rmw_zenoh
+from busgate.gateway.api import bridge as bridge_module
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.cli import build_parser
+from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import RecorderSection
 from tests.secured_gateway import ZENOH
+from tests.test_base import BASE
+from tests.test_base import config_of as base_config_of
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
 UNIT = DEPLOY / "busgate.service"
@@ -223,6 +231,58 @@ def test_the_zenoh_config_loads_in_zenoh() -> None:
     config = json.loads(str(zenoh.Config.from_file(str(ZENOH))))
     assert config["access_control"]["enabled"] is True
     assert config["transport"]["auth"]["usrpwd"]["dictionary_file"].startswith("/etc/busgate/")
+
+
+class DeclaringSession:
+    """A stand-in for the gateway's zenoh session that notes what it is asked to declare, as
+    the access control's message names it (a publisher's messages are puts)."""
+
+    def __init__(self) -> None:
+        self.declared: list[tuple[str, str]] = []
+
+    def _noted(self, message: str) -> Callable[..., SimpleNamespace]:
+        def declare(key: str, *_: object, **__: object) -> SimpleNamespace:
+            self.declared.append((message, str(key)))
+            return SimpleNamespace(undeclare=lambda: None, put=lambda *a, **k: None)
+
+        return declare
+
+    def __getattr__(self, name: str) -> Callable[..., SimpleNamespace]:
+        message = {"declare_subscriber": "declare_subscriber", "declare_publisher": "put",
+                   "declare_queryable": "declare_queryable"}[name]
+        return self._noted(message)
+
+    def liveliness(self) -> SimpleNamespace:
+        return SimpleNamespace(declare_subscriber=self._noted("declare_liveliness_subscriber"),
+                               declare_token=self._noted("liveliness_token"))
+
+
+def test_every_key_the_gateway_declares_is_allowed_out_to_an_operator(monkeypatch) -> None:
+    """What the gateway declares (the subscribers and queryables it serves, its publishers,
+    its liveliness) must be allowed out by the access control, to an operator at least: a
+    key left out is one a secured gateway never hears (a base's twist, the e-stop) or never
+    tells (a base's odometry), with no error anywhere."""
+    acl = json.loads(str(zenoh.Config.from_file(str(ZENOH))))["access_control"]
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    allowed = [rules[r] for p in acl["policies"] if set(p["subjects"]) & {"operator", "anyone"}
+               for r in p["rules"]]
+    session = DeclaringSession()
+    monkeypatch.setattr(bridge_module.zenoh, "open", lambda config: session)
+    config = base_config_of([BASE])
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: nothing opened
+    bridge = bridge_module.ZenohBridge(config, GatewayApi("gw", runners), runners, deque(),
+                                       deque())
+    bridge.open(asyncio.new_event_loop())
+    keys = {key for _, key in session.declared}
+    assert {"busgate/gw/base/*/twist", "busgate/gw/base/base/odom", "busgate/gw/estop/**"} <= keys
+
+    def allows(message: str, key: str) -> bool:
+        return any(message in rule["messages"] and "egress" in (rule.get("flows") or ["egress"])
+                   and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key))
+                           for k in rule["key_exprs"]) for rule in allowed)
+
+    refused = [(message, key) for message, key in session.declared if not allows(message, key)]
+    assert refused == []
 
 
 @pytest.fixture

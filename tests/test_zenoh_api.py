@@ -412,3 +412,66 @@ def test_every_state_a_bus_made_is_published_in_order(free_port, wait_for) -> No
         client.close()
         bridge.close()
         loop.close()
+
+
+def test_estops_and_resets_put_one_after_the_other_reach_the_buses_in_that_order(
+    free_port, wait_for
+) -> None:
+    """Zenoh keeps the order of one session's puts of one priority, and the SDK sends a reset
+    as it sends an e-stop so that an e-stop put after a reset never overtakes it: the gateway
+    hands them to its buses in the order they were put. A put on ``**`` is an e-stop only; a
+    put on a wildcard reset key, or under the e-stop's key, is neither."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
+    handed: list[str] = []
+    bridge.api.stop_every_bus = lambda: handed.append("estop") or []
+    bridge.api.reset_every_bus = lambda: handed.append("reset") or []
+    loop = asyncio.new_event_loop()
+    bridge.open(loop)
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    urgent = {"priority": zenoh.Priority.REAL_TIME, "express": True,  # as the SDK puts them
+              "congestion_control": zenoh.CongestionControl.BLOCK}
+    try:
+        wait_for(lambda: client.put("busgate/gw1/estop", b"{}", **urgent) or handed, timeout=20)
+        client.put("busgate/gw1/estop/reset", b"{}", **urgent)
+        wait_for(lambda: handed[-1:] == ["reset"])
+        handed.clear()
+        for key in ["busgate/gw1/estop/reset", "busgate/gw1/estop"] * 100:
+            client.put(key, b'{"client": "panel"}', **urgent)
+        for key in ["busgate/*/estop/reset", "busgate/gw1/estop/other", "**"]:
+            client.put(key, b"{}", **urgent)
+        wait_for(lambda: len(handed) == 201)
+        assert handed == ["reset", "estop"] * 100 + ["estop"]
+    finally:
+        client.close()
+        bridge.close()
+        loop.close()
+
+
+def test_a_command_sent_on_a_wildcard_reaches_only_info_and_is_told_so(free_port) -> None:
+    """No command key takes a wildcard; info does, so a command sent to ``busgate/gw1/**``
+    (a tired operator's ``busgate send``) is answered by info alone: with a refusal saying
+    why, not with an info that reads as the command's success. A get with no payload still
+    has its info."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
+    loop = asyncio.new_event_loop()
+    bridge.open(loop)
+    threading.Thread(target=loop.run_forever, daemon=True).start()  # the replies' thread
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        deadline = time.monotonic() + 20
+        while not (info := get(client, "busgate/gw1/**", None, 1.0)):
+            assert time.monotonic() < deadline, "the gateway's info never came"
+        assert [reply.get("gateway") for reply in info] == ["gw1"]
+        [refused] = get(client, "busgate/gw1/**", '{"op":"estop"}')
+        assert refused["ok"] is False and refused["error"]["code"] == "bad_command"
+        assert "takes no payload" in refused["error"]["message"]
+    finally:
+        client.close()
+        loop.call_soon_threadsafe(loop.stop)
+        bridge.close()

@@ -33,7 +33,7 @@ from typing import Any
 
 import zenoh
 
-from busgate.errors import RefusedError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.joints import JointsFeed
@@ -85,6 +85,7 @@ class ZenohBridge:
         self.api = api
         self.runners = runners
         self.base = f"{config.gateway.prefix}/{config.gateway.name}"
+        self._estop_key = zenoh.KeyExpr(f"{self.base}/estop")
         self.events = events  # filled by the bus threads and the API, drained here
         self.states = states  # every new device state, filled by the bus threads, drained here
         #: Rung by what fills ``events`` and ``states`` (``doorbell.Mailbox``): a loop with no
@@ -148,8 +149,7 @@ class ZenohBridge:
             session.declare_subscriber(f"{base}/dev/*/cmd", self._on_device_put),
             session.declare_subscriber(f"{base}/dev/*/follow", self._on_follow),
             session.declare_queryable(f"{base}/bus/*/cmd", self._on_bus_query),
-            session.declare_subscriber(f"{base}/estop", self._on_estop),
-            session.declare_subscriber(f"{base}/estop/reset", self._on_estop_reset),
+            session.declare_subscriber(f"{base}/estop/**", self._on_estop_or_reset),
             session.declare_queryable(f"{base}/info", self._on_info),
             session.declare_queryable(f"{base}/trajectory", self._on_trajectory),
             session.declare_queryable(f"{base}/base/*/cmd", self._on_base_query),
@@ -286,7 +286,19 @@ class ZenohBridge:
         self._report_put(name, key, payload, self.bases.twist(name, payload))
 
     def _on_info(self, query: zenoh.Query) -> None:
-        self._answer(query, lambda: settled(self.api.info()), f"{self.base}/info")
+        """The gateway's info; a get that carries a payload (a command sent on ``**`` or
+        ``busgate/<gw>/*``, which reaches only this key: the device keys take no wildcard) is
+        told so, never answered with an info that reads as the command's success."""
+        key = f"{self.base}/info"
+        if _payload(query):
+            refused = CommandError(
+                f"{key} takes no payload: this get ({str(query.key_expr)[:200]}) carried one, "
+                "and no command key takes a wildcard; send a command to one device's or "
+                "bus's cmd key. Nothing was sent"
+            )
+            self._answer(query, lambda: settled(error_reply(refused)), key)
+            return
+        self._answer(query, lambda: settled(self.api.info()), key)
 
     def _on_trajectory(self, query: zenoh.Query) -> None:
         """Only on this gateway's own key: a get on ``**`` or ``busgate/*/trajectory`` names
@@ -315,6 +327,16 @@ class ZenohBridge:
             return
         refused = self.api.follow(device, payload)
         self._report_put(device, key, payload, refused)
+
+    def _on_estop_or_reset(self, sample: zenoh.Sample) -> None:
+        """The e-stop and its reset, on one subscriber: zenoh runs each subscriber's callbacks
+        on a thread of its own, so that two would lose the order of a reset and an e-stop put
+        one after the other (which zenoh keeps on the wire, and the SDK promises). A put whose
+        key reaches the e-stop (``**``, ``busgate/*/estop``) is an e-stop, never a reset."""
+        if sample.key_expr.intersects(self._estop_key):
+            self._on_estop(sample)
+        else:
+            self._on_estop_reset(sample)
 
     def _on_estop(self, sample: zenoh.Sample) -> None:
         came = now()  # when it came, for the recorder: its frames may go before it is told
