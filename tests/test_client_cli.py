@@ -352,6 +352,7 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert status == 2
     assert out == ""
     assert err.startswith("busgate send: error: cannot open a zenoh session to tcp/127.0.0.1:")
+    assert "(is a gateway listening there? `busgate demo` listens on tcp/127.0.0.1:7447" in err
     assert len(err.strip().splitlines()) == 1
 
 

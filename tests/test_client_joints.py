@@ -147,7 +147,13 @@ def test_a_joint_follow_stream_is_held_within_the_limits_and_says_so_once(gwj, c
             for step in range(40):
                 stream.set(0.01 + step * 0.001)  # past max from the ninth on
                 time.sleep(0.02)
-            until(lambda: near(lift.state().position, HIGH))
+
+            def at_the_limit() -> bool:  # the stream kept fresh while the actuator gets there
+                stream.set(0.049)
+                time.sleep(0.02)
+                return near(lift.state().position, HIGH)
+
+            until(at_the_limit)
             assert stream.sent > 0
         until(lambda: events.of("la1", "stream_stopped", since=since))
         limited = events.of("la1", "limited", since=since)

@@ -314,7 +314,9 @@ def _draw_timeline(path: Path, args: argparse.Namespace) -> int:
         raise CommandError(f"{path}: {exc}") from None
     if not window.frames:
         raise CommandError(
-            f"{path} holds no frames in those {span_ms:g} ms (an incident file does)"
+            f"{path} holds no frames in those {span_ms:g} ms (the flight recorder's incident "
+            "files hold the wire's frames; a `busgate record` file holds what zenoh carried, "
+            "no frames)"
         )
     picture = timeline.svg(window)
     if args.output is None:
