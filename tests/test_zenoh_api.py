@@ -475,3 +475,36 @@ def test_a_command_sent_on_a_wildcard_reaches_only_info_and_is_told_so(free_port
         client.close()
         loop.call_soon_threadsafe(loop.stop)
         bridge.close()
+
+
+def test_follow_targets_are_taken_by_their_own_thread_which_a_bug_does_not_end(
+    free_port, wait_for, caplog
+) -> None:
+    """Follow targets wait in zenoh's ring for the ``follow-targets`` thread (bridge rule 6):
+    each is handed to the API in order, a target whose handling raises is logged and the
+    next is taken all the same, and closing the bridge ends the thread."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
+    taken: list[bytes] = []
+
+    def follow(device: str, payload: bytes) -> None:
+        taken.append(payload)
+        if payload == b"bug":
+            raise RuntimeError("a bug")
+
+    bridge.api.follow = follow
+    bridge.open(asyncio.new_event_loop())
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        wait_for(lambda: client.put("busgate/gw1/dev/la1/follow", b"probe") or taken, timeout=20)
+        for payload in (b"1", b"bug", b"2"):  # after every probe: one session's puts in order
+            client.put("busgate/gw1/dev/la1/follow", payload)
+        wait_for(lambda: taken[-1:] == [b"2"])
+        assert taken[-3:] == [b"1", b"bug", b"2"]
+        assert "follow target on busgate/gw1/dev/la1/follow" in caplog.text
+    finally:
+        client.close()
+        bridge.close()
+    assert not bridge._follow_reader.is_alive()
