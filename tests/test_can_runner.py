@@ -17,7 +17,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.zlac706_state import Mode, Settings
-from busgate.gateway.scheduler.planner import CLIENT_SHARE
+from busgate.gateway.scheduler.planner import CLIENT_SHARE, Job, Slot
 from busgate.gateway.scheduler.tickers import KeepaliveTicker
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim import zlac706 as zlac706_sim
@@ -254,6 +254,25 @@ def test_a_command_that_expired_unsent_leaves_the_drive_judged_as_it_was() -> No
         runner.planner.decide(now())
         runner._answer_expired()
         assert future.exception(0).code == "busy" and wheel.follows is None
+    finally:
+        runner.owner.close()
+
+
+def test_a_speed_command_waiting_to_go_is_not_sent_ahead_of_it_by_the_keep_alive() -> None:
+    """The keep-alive repeats the speed that last went: a new speed still waiting in the
+    queue is not written by the keep-alive first (twice on the wire, and by the keep-alive's
+    hand should its command then be taken out unsent), the command's own write goes."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}"))  # not started
+    runner.owner.open()
+    wheel = runner.drivers["wheel"]
+    try:
+        wheel.machine.settings = Settings(mode=Mode.VELOCITY, enabled=True, speed_raw=0)
+        future: Future = Future()
+        runner._work.plan_command("wheel", wheel.parse('{"op":"velocity","rpm":500}'), None,
+                                  now() + 10, future)
+        slot = runner.planner.decide(now())
+        assert isinstance(slot, Slot) and isinstance(slot.source, Job), slot
+        assert slot.request.frame.register == zcan.CanRegister.TARGET_SPEED
     finally:
         runner.owner.close()
 

@@ -71,6 +71,7 @@ def reply_to(request: Request) -> tuple[object, ...]:
 def run(driver, requests: list[Request], now: float = 0.0) -> None:
     """As the runner does: the device answered, then its answer is applied."""
     for request in requests:
+        driver.went(request.frame)
         driver.heard(now)
         driver.apply(request, reply_to(request), now)
 
@@ -230,12 +231,15 @@ def test_can_keepalive_repeats_the_last_speed_written_even_when_its_ack_is_late(
     d = velocity_driver(can_driver())
     run(d, plan(d, '{"op":"enable"}'))
     stop = Zlac706CanDriver.follow_request([(d, 0.0)])
-    d.missed(1.0)  # its ack never came in time
+    d.went(stop.frame)
+    d.missed(1.0, stop.frame)  # its ack never came in time
     assert d.telemetry(0)["target_speed_rpm"] == pytest.approx(500, abs=0.4)  # acknowledged
     assert wire([d.keepalive(1.5)[1]]) == wire([stop]) == ["001#00fa001100000000"]
     run(d, [stop])  # now taken: nothing turns, nothing to keep alive
     assert d.keepalive(2.0) is None
     faster = Zlac706CanDriver.follow_request([(d, 600.0)])  # a tick, its ack lost too
+    d.went(faster.frame)
+    d.missed(2.2, faster.frame)
     assert wire([d.keepalive(2.5)[1]]) == wire([faster])
 
 
@@ -247,7 +251,8 @@ def test_a_stale_streams_stop_is_what_the_keepalive_repeats_until_its_ack() -> N
     run(d, plan(d, '{"op":"enable"}'))
     stop = d.stale_stream()
     assert wire(stop) == ["001#00fa001100000000"] and stop == d.stale_stream()
-    d.missed(1.0)  # its ack never came in time
+    d.went(stop[0].frame)
+    d.missed(1.0, stop[0].frame)  # its ack never came in time
     assert wire([d.keepalive(1.5)[1]]) == wire(stop)
 
 
@@ -692,11 +697,12 @@ def test_after_a_disable_whose_answer_was_lost_an_enable_leaves_the_zero_unknown
 
 
 def test_a_speed_command_taken_out_unsent_is_not_kept_alive() -> None:
-    """The keep-alive repeats the speed last commanded, noted when planned: one that never
-    went (``busy``, nothing sent) must not turn the wheel by the keep-alive's hand."""
+    """The keep-alive repeats the speed last written: one still waiting to go is not sent
+    ahead of its command, and one that never went (``busy``, nothing sent) must not turn the
+    wheel by the keep-alive's hand."""
     d = velocity_driver(can_driver(), rpm=0)
     run(d, plan(d, '{"op":"enable"}'))
     plan(d, '{"op":"velocity","rpm":500}')
-    assert d.keepalive(0.0) is not None
+    assert d.keepalive(0.0) is None
     d.unsent()
     assert d.keepalive(0.0) is None and d.commanded_speed_raw == 0

@@ -129,11 +129,15 @@ def test_a_disable_is_a_switch_off_and_an_enable_lifts_the_estop_latch() -> None
     assert driver.driving_before_estop is False  # a reset that follows leaves it off
 
 
-def test_a_planned_speed_is_the_one_kept_alive_before_its_ack() -> None:
+def test_a_speed_that_went_is_the_one_kept_alive_before_its_ack_and_not_before_it_went() -> None:
+    """A speed still waiting to go is not kept alive (the keep-alive would send it ahead of its
+    command, which may yet be taken out unsent); once it went, it is, before its ack."""
     driver = Zlac706CanDriver("w", 1)
     for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'):
         run(driver, plan(driver, text))
     (speed,) = plan(driver, '{"op":"velocity","rpm":100}')
+    assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
+    driver.went(speed.frame)
     assert driver.commanded_speed_raw == speed.frame.value != 0
     assert driver.refreshes_keepalive(speed)
     (enable,) = plan(driver, '{"op":"enable"}')

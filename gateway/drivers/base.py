@@ -401,6 +401,11 @@ class Driver(abc.ABC):
         ``DeviceRefusedError`` when the answer says the device did not do it: the state is
         left as it was, and the command is answered ``device_refused``."""
 
+    def went(self, frame: object) -> None:  # noqa: B027 - optional hook
+        """``frame``, this device's request or a frame carrying it a target, went on the
+        wire: told before its answer is applied (``apply``) or found missing (``missed``).
+        By default nothing follows from it."""
+
     def begins_reading(self, event: object) -> bool:
         """Whether ``event``, a frame nobody asked for, is the first of a new reading (a
         heartbeat's first frame): the reading before it is then published first. By default

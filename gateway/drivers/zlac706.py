@@ -110,7 +110,7 @@ class Zlac706Driver(Driver):
         super().__init__(name, device_id, **options)
         self.machine = Zlac706State()
         self.measured: dict[str, Any] = dict.fromkeys(self.measured_names)
-        self.speed_sent_raw: int | None = None  # the last speed written (``_note_speed``)
+        self.speed_sent_raw: int | None = None  # the last speed written (``went``)
         # The safe stop's requests (0 rpm, the release), built with the driver rather than
         # when an e-stop comes: its first frames wait for what their bus thread runs before
         # them (docs/performance.md, "An e-stop's frame first"). Speed and enable writes may
@@ -197,19 +197,19 @@ class Zlac706Driver(Driver):
         return "position", here + value if known else None
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
-        self._note_speed(frame)
         return Request.of(self.codec, frame, idempotent=is_idempotent(role, settings))
 
-    def _note_speed(self, frame: object) -> None:
-        """A speed write about to go out: the speed the gateway last commanded, which the
-        keep-alive repeats (not the last one acknowledged: an ack that came too late must not
-        bring back the speed before it, a stop above all)."""
+    def went(self, frame: object) -> None:
+        """A speed write that went on the wire is the speed the gateway last commanded, which
+        the keep-alive repeats: not the last one acknowledged (an ack that came too late must
+        not bring back the speed before it, a stop above all), nor one still waiting to go
+        (the keep-alive would send it ahead of its command, which may yet be taken out)."""
         role, value = self._role(frame, self.machine.settings)
         if role is Role.SPEED:
             self.speed_sent_raw = value
 
     def _built(self, command: Any) -> tuple[Request, ...]:
-        """``command``'s requests, nothing noted yet (``_noted``)."""
+        """``command``'s requests, built once (the safe stop's: ``__init__``)."""
         settings = self.machine.settings
         return tuple(
             Request.of(
@@ -220,15 +220,9 @@ class Zlac706Driver(Driver):
             for frame in self.frames(command, self.device_id)
         )
 
-    def _noted(self, requests: tuple[Request, ...]) -> list[Request]:
-        """``requests`` (``_built``) as they go out: a speed among them noted (``_note_speed``)."""
-        for request in requests:
-            self._note_speed(request.frame)
-        return list(requests)
-
     def _unchecked(self, command: Any) -> list[Request]:
         """Requests the gateway itself sends (safe stop, init): no order rules apply."""
-        return self._noted(self._built(command))
+        return list(self._built(command))
 
     def _role(self, frame: object, settings: Settings) -> tuple[Role | None, Any]:
         register = getattr(frame, "register", None)
@@ -244,7 +238,7 @@ class Zlac706Driver(Driver):
         self.note_estop()
         self.estop_latched = True
         self.machine.forget_pending()
-        return [*self.nothing_preset(), *self._noted(self._release)]
+        return [*self.nothing_preset(), *self._release]
 
     def nothing_preset(self) -> list[Request]:
         """0 rpm unless the mode is known not to be velocity, 0 A unless it is known not to be
@@ -252,7 +246,7 @@ class Zlac706Driver(Driver):
         manual, 8.1.2 and 8.2.1: enabled, a preset speed turns it in velocity mode, a preset
         torque in torque mode)."""
         if self.machine.settings.mode in (Mode.TORQUE, None):
-            return [*self.stale_stream(), *self._noted(self._zero_torque)]
+            return [*self.stale_stream(), *self._zero_torque]
         return self.stale_stream()
 
     def driving(self) -> bool:
@@ -271,7 +265,7 @@ class Zlac706Driver(Driver):
         (unless the drive will be in another mode when it goes: the mode changes only while
         the motor is off, and a speed written after it would be ignored)."""
         if self.machine.expected().mode in (Mode.VELOCITY, None):
-            return self._noted(self._zero_speed)
+            return list(self._zero_speed)
         return []
 
     def keepalive(self, now: float) -> tuple[float, Request] | None:
@@ -325,10 +319,9 @@ class Zlac706Driver(Driver):
         return None
 
     def unsent(self) -> None:
-        # What the writes taken out would have set will not be: judge by what landed, and
-        # the keep-alive repeats the speed the drive took, not one that never went.
+        # What the writes taken out would have set will not be: judge by what landed (the
+        # keep-alive repeats only speeds that went: ``went``).
         self.machine.forget_pending()
-        self.speed_sent_raw = None
 
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode, or the position of ``{"position":
@@ -378,7 +371,6 @@ class Zlac706Driver(Driver):
             else schema.Velocity(op="velocity", rpm=value)
         )
         (frame,) = cls.frames(command, driver.device_id)
-        driver._note_speed(frame)
         return Request.of(cls.protocol_entry().codec, frame, idempotent=True)
 
     # -- interpreting ---------------------------------------------------------------------------

@@ -7,7 +7,8 @@ job's next request), the job (a failure for good, a scan's probe) and the counte
 thread only. Rules:
 
 1. A device that answered is marked heard here, the one place, before its driver applies
-   the answer: the owner has matched the answer to the request already.
+   the answer: the owner has matched the answer to the request already. Every driver a
+   frame was for is told it went (``Driver.went``) before its answer, or its silence.
 2. After a timeout, no exchange that expects a reply starts for ``late_reply_holdoff_s``, so
    that a late reply is flushed rather than taken for the next one's (a scan's probes are
    not held: a probe's answer names its id).
@@ -132,6 +133,7 @@ class Execution:
             drivers = [d for d in [self._driver_for(slot)] if d is not None]
         for driver in drivers:
             self.devices.touched(driver)
+            driver.went(slot.request.frame)
             if exchange.reply:
                 driver.heard(exchange.end)
                 if driver.refreshes_keepalive(slot.request):
@@ -167,6 +169,7 @@ class Execution:
         driver = self._driver_for(slot)
         if driver is not None:
             self.devices.touched(driver)
+            driver.went(slot.request.frame)
             driver.missed(end, slot.request.frame)
 
     def _driver_for(self, slot: Slot) -> Driver | None:
