@@ -109,6 +109,9 @@ class SetMaxSpeed(CommandModel):
 
 
 class ClearAlarm(CommandModel):
+    """Reset the drive's alarm: only while the motor is known to be off (disable first; an
+    alarm reset with the run signal on starts the drive again suddenly, the manual warns)."""
+
     op: Literal["clear_alarm"]
 
 

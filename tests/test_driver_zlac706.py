@@ -18,6 +18,7 @@ from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.drivers.base import Effect
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
@@ -81,7 +82,7 @@ def event_types(driver) -> list[str]:
 
 
 def test_settings_fields_are_the_tracked_roles() -> None:
-    untracked = {Role.ONE_SHOT, Role.SETTING}
+    untracked = {Role.ONE_SHOT, Role.ALARM_RESET, Role.SETTING}
     assert set(Settings.__dataclass_fields__) == {r.value for r in Role if r not in untracked}
 
 
@@ -182,7 +183,6 @@ def test_queued_writes_count_until_one_goes_unanswered() -> None:
         ([], '{"op":"set_velocity_ramp","accel_ms":1000,"decel_ms":1100}', True),
         ([], '{"op":"set_gain","gain":"position_kf","value":1}', True),
         ([], '{"op":"set_rated_current","current_ma":8000}', True),
-        ([], '{"op":"clear_alarm"}', False),
         ([], '{"op":"home"}', False),
         (['{"op":"set_position_mode","relative":false}'], '{"op":"move","position":9}', True),
         (['{"op":"set_position_mode","relative":true}'], '{"op":"move","position":9}', False),
@@ -194,6 +194,22 @@ def test_only_harmless_repeats_are_idempotent(setup, text, idempotent) -> None:
     for step in ['{"op":"set_mode","mode":"position"}', *setup, '{"op":"enable"}']:
         run(d, plan(d, step))
     assert [r.idempotent for r in plan(d, text)] == [idempotent]
+
+
+@pytest.mark.parametrize("make", [can_driver, rs_driver])
+def test_an_alarm_reset_goes_only_to_a_motor_known_to_be_off(make) -> None:
+    """The manual's safety notes: an alarm reset with the run signal on starts the drive
+    again suddenly. Enabled, or not known to be off, it is refused; after a disable (even one
+    still queued) it goes, once, never repeated after a lost answer."""
+    d = make()
+    with pytest.raises(CommandError, match=r"perhaps enabled .* send disable first"):
+        plan(d, '{"op":"clear_alarm"}')
+    run(d, plan(d, '{"op":"enable"}'))
+    with pytest.raises(CommandError, match=r"clear_alarm while the motor is enabled: the manual"):
+        plan(d, '{"op":"clear_alarm"}')
+    plan(d, '{"op":"disable"}')  # queued, not yet acknowledged: the reset goes after it
+    (reset,) = plan(d, '{"op":"clear_alarm"}')
+    assert not reset.idempotent and d.effect(reset.frame) is Effect.MOTION
 
 
 def test_monitor_is_refused_on_can() -> None:

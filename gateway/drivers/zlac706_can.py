@@ -141,7 +141,7 @@ ROLES: dict[int, RoleOf] = {
     Reg.POSITION_RAMP: RoleOf(Role.POSITION_RAMP),
     Reg.SPEED_RAMP: RoleOf(Role.SPEED_RAMP),
     Reg.MAX_SPEED: RoleOf(Role.MAX_SPEED),
-    Reg.ALARM_RESET: RoleOf(Role.ONE_SHOT),
+    Reg.ALARM_RESET: RoleOf(Role.ALARM_RESET),
     Reg.ORIGIN: RoleOf(Role.ONE_SHOT),
 }
 

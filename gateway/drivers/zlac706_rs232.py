@@ -140,7 +140,7 @@ ROLES: dict[int, RoleOf] = {
     Reg.POSITION_RAMP: RoleOf(Role.POSITION_RAMP),
     Reg.SPEED_RAMP: RoleOf(Role.SPEED_RAMP),
     Reg.SPEED_LIMIT: RoleOf(Role.MAX_SPEED),
-    Reg.CLEAR_FAULT: RoleOf(Role.ONE_SHOT),
+    Reg.CLEAR_FAULT: RoleOf(Role.ALARM_RESET),
     Reg.ORIGIN: RoleOf(Role.ONE_SHOT),
 }
 

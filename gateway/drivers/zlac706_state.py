@@ -24,6 +24,10 @@ Rules of this file:
 5. Keep-alive: while the device is enabled in velocity mode with a non-zero speed, the
    driver asks for its protocol's refresh (``keepalive_period_s``), so that a feed-forward
    gain of 1 never locks the shaft by surprise.
+6. An alarm reset is refused unless the motor is known to be off (or will be, once the
+   writes queued for it have landed): the manual's safety notes (运行) allow it only once the
+   run signal is cut, "在运行信号状态下进行报警复位，会导致驱动器突然再启动" (an alarm reset
+   with the run signal on makes the drive start again suddenly).
 """
 
 from __future__ import annotations
@@ -53,11 +57,12 @@ class Role(enum.Enum):
     POSITION_RAMP = "position_ramp"
     SPEED_RAMP = "speed_ramp"
     MAX_SPEED = "max_speed_raw"
-    ONE_SHOT = "one_shot"  # an action (alarm reset, origin search): a repeat does it again
+    ONE_SHOT = "one_shot"  # an action (origin search): a repeat does it again
+    ALARM_RESET = "alarm_reset"  # a one-shot too, and only while the motor is off (rule 6)
     SETTING = "setting"  # an absolute setting the state does not track (gains, rated current)
 
 
-_UNTRACKED = frozenset({Role.ONE_SHOT, Role.SETTING})
+_UNTRACKED = frozenset({Role.ONE_SHOT, Role.ALARM_RESET, Role.SETTING})
 #: Writes that set how the drive works rather than what it does now: written again after a
 #: reboot. Enable and targets are not: only a fresh command moves the motor again.
 RESTORED = frozenset(
@@ -147,22 +152,35 @@ def _mode_rule(settings: Settings, value: Any) -> str | None:
     return None
 
 
+def _alarm_reset_rule(settings: Settings, _value: Any) -> str | None:
+    if settings.enabled is False:
+        return None
+    now = "enabled" if settings.enabled else "perhaps enabled (its power stage is not known)"
+    return (
+        f"clear_alarm while the motor is {now}: the manual warns that an alarm reset with the "
+        "run signal on starts the drive again suddenly; send disable first"
+    )
+
+
 _RULES: dict[Role, Callable[[Settings, Any], str | None]] = {
     Role.MODE: _mode_rule,
     Role.POSITION: _position_rule,
     Role.POSITION_HIGH: _position_rule,
     Role.SPEED: _needs_mode(Mode.VELOCITY, "a speed target (velocity)"),
     Role.TORQUE: _needs_mode(Mode.TORQUE, "a torque target (torque)"),
+    Role.ALARM_RESET: _alarm_reset_rule,
 }
 
 
 #: What a write in each role does; a role not here changes a setting. An origin search (a
-#: one-shot, like alarm reset) runs the motor, so one-shots count as motion.
+#: one-shot) runs the motor, and an alarm reset may start the drive again: both count as
+#: motion.
 _ROLE_EFFECTS: dict[Role, Effect] = {
     Role.POSITION: Effect.MOTION,
     Role.POSITION_HIGH: Effect.MOTION,
     Role.TORQUE: Effect.MOTION,
     Role.ONE_SHOT: Effect.MOTION,
+    Role.ALARM_RESET: Effect.MOTION,
 }
 
 
@@ -187,7 +205,7 @@ def check(role: Role, value: Any, settings: Settings) -> None:
 
 def is_idempotent(role: Role | None, settings: Settings) -> bool:
     """True when repeating the write is harmless (``None``: not a write, e.g. the monitor)."""
-    if role is Role.ONE_SHOT:
+    if role in (Role.ONE_SHOT, Role.ALARM_RESET):
         return False
     if role in (Role.POSITION, Role.POSITION_HIGH):
         return settings.relative is False  # relative, or unknown: a repeat moves again
