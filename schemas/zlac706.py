@@ -109,8 +109,9 @@ class SetMaxSpeed(CommandModel):
 
 
 class ClearAlarm(CommandModel):
-    """Reset the drive's alarm: only while the motor is known to be off (disable first; an
-    alarm reset with the run signal on starts the drive again suddenly, the manual warns)."""
+    """Reset the drive's alarm: only with its run signal (the enable) known to be off, so
+    disable first; an alarm reset with the run signal on starts the drive again suddenly, the
+    manual warns."""
 
     op: Literal["clear_alarm"]
 

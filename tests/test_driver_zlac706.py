@@ -83,7 +83,8 @@ def event_types(driver) -> list[str]:
 
 def test_settings_fields_are_the_tracked_roles() -> None:
     untracked = {Role.ONE_SHOT, Role.ALARM_RESET, Role.SETTING}
-    assert set(Settings.__dataclass_fields__) == {r.value for r in Role if r not in untracked}
+    tracked = {r.value for r in Role if r not in untracked}
+    assert set(Settings.__dataclass_fields__) == tracked | {"run_signal"}  # the enable's too
 
 
 # --- CAN: frames and order -----------------------------------------------------------------------
@@ -197,19 +198,35 @@ def test_only_harmless_repeats_are_idempotent(setup, text, idempotent) -> None:
 
 
 @pytest.mark.parametrize("make", [can_driver, rs_driver])
-def test_an_alarm_reset_goes_only_to_a_motor_known_to_be_off(make) -> None:
+def test_an_alarm_reset_goes_only_with_the_run_signal_cut(make) -> None:
     """The manual's safety notes: an alarm reset with the run signal on starts the drive
-    again suddenly. Enabled, or not known to be off, it is refused; after a disable (even one
-    still queued) it goes, once, never repeated after a lost answer."""
+    again suddenly. With the enable on, or not known to be off, it is refused; after a
+    disable (even one still queued) it goes, once, never repeated after a lost answer, and
+    as a setting: it moves nothing then, so an e-stopped drive may take it."""
     d = make()
-    with pytest.raises(CommandError, match=r"perhaps enabled .* send disable first"):
+    with pytest.raises(CommandError, match=r"perhaps on \(not known\): the manual"):
         plan(d, '{"op":"clear_alarm"}')
     run(d, plan(d, '{"op":"enable"}'))
-    with pytest.raises(CommandError, match=r"clear_alarm while the motor is enabled: the manual"):
+    with pytest.raises(CommandError, match=r"run signal \(its enable\) is on: .* disable first"):
         plan(d, '{"op":"clear_alarm"}')
     plan(d, '{"op":"disable"}')  # queued, not yet acknowledged: the reset goes after it
     (reset,) = plan(d, '{"op":"clear_alarm"}')
-    assert not reset.idempotent and d.effect(reset.frame) is Effect.MOTION
+    assert not reset.idempotent and d.effect(reset.frame) is Effect.SETTING
+
+
+def test_an_rs232_drive_in_alarm_has_stopped_but_its_run_signal_is_still_on() -> None:
+    """A fault stops the motor (the monitor's running bit clears) with the enable still on:
+    the motor reads off, yet an alarm reset would start it again, so it is refused until a
+    disable cuts the signal."""
+    d = rs_driver()
+    run(d, plan(d, '{"op":"enable"}'))
+    (monitor,) = d.poll()
+    d.apply(monitor, rs_events(MANUAL_MONITOR.replace("80000181", "80000080")), 0.0)
+    assert d.telemetry(0.0)["enabled"] is False
+    with pytest.raises(CommandError, match="run signal"):
+        plan(d, '{"op":"clear_alarm"}')
+    run(d, plan(d, '{"op":"disable"}'))
+    assert wire(plan(d, '{"op":"clear_alarm"}'))
 
 
 def test_monitor_is_refused_on_can() -> None:

@@ -404,7 +404,7 @@ class Zlac706Driver(Driver):
     def forget_on_reboot(self) -> None:
         """Power-up: released, every setting at its default until ``restore`` lands."""
         self.machine = Zlac706State()
-        self.machine.settings = Settings(enabled=False)
+        self.machine.settings = Settings(enabled=False, run_signal=False)
         self.speed_sent_raw = None
 
     def take_alarms(self, alarms: common.AlarmFlags) -> None:
@@ -442,5 +442,5 @@ class Zlac706Driver(Driver):
         # move position mode's zero).
         self.machine.forget_pending()
         if frame is not None and self._role(frame, self.machine.settings)[0] is Role.ENABLE:
-            self.machine.settings = replace(self.machine.settings, enabled=None)
+            self.machine.settings = replace(self.machine.settings, enabled=None, run_signal=None)
         super().missed(now, frame)

@@ -192,5 +192,5 @@ class Zlac706Rs232Driver(Zlac706Driver):
             voltage_v=monitor.voltage_v,
         )
         enabled = common.AlarmFlags.RUNNING in monitor.alarms
-        self.machine.acknowledged(self.machine.settings.change(Role.ENABLE, enabled))
+        self.machine.acknowledged({"enabled": enabled})  # the run signal is what was written
         self.take_alarms(monitor.alarms)

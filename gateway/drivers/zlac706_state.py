@@ -24,10 +24,13 @@ Rules of this file:
 5. Keep-alive: while the device is enabled in velocity mode with a non-zero speed, the
    driver asks for its protocol's refresh (``keepalive_period_s``), so that a feed-forward
    gain of 1 never locks the shaft by surprise.
-6. An alarm reset is refused unless the motor is known to be off (or will be, once the
-   writes queued for it have landed): the manual's safety notes (运行) allow it only once the
-   run signal is cut, "在运行信号状态下进行报警复位，会导致驱动器突然再启动" (an alarm reset
-   with the run signal on makes the drive start again suddenly).
+6. An alarm reset is refused unless the run signal is known to be off (the last enable
+   written was a disable, or will be once the writes queued have landed), whatever the
+   motor does: the manual's safety notes (运行) allow it only once the run signal is cut,
+   "在运行信号状态下进行报警复位，会导致驱动器突然再启动" (an alarm reset with the run
+   signal on makes the drive start again suddenly). A drive in alarm has stopped its motor
+   (RS232's running bit clears) with its run signal still on. Cut, the reset moves nothing,
+   so it is a setting, allowed while e-stopped (the e-stop's release cut the signal).
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ class Role(enum.Enum):
     SPEED_RAMP = "speed_ramp"
     MAX_SPEED = "max_speed_raw"
     ONE_SHOT = "one_shot"  # an action (origin search): a repeat does it again
-    ALARM_RESET = "alarm_reset"  # a one-shot too, and only while the motor is off (rule 6)
+    ALARM_RESET = "alarm_reset"  # a one-shot too, only with the run signal cut (rule 6)
     SETTING = "setting"  # an absolute setting the state does not track (gains, rated current)
 
 
@@ -99,9 +102,15 @@ class Settings:
     position_ramp: int | None = None
     speed_ramp: int | None = None
     max_speed_raw: int | None = None
+    #: The enable the gateway last wrote and the drive took: the manual's run signal, by
+    #: which an alarm reset is judged (rule 6). ``enabled`` is whether the motor runs, which
+    #: on RS232 the monitor's running bit tells: a fault clears it while the signal stays on.
+    run_signal: bool | None = None
 
     def change(self, role: Role, value: Any) -> dict[str, Any]:
         """The fields a write of ``value`` in ``role`` sets."""
+        if role is Role.ENABLE:
+            return {"enabled": value, "run_signal": value}
         return {} if role in _UNTRACKED else {role.value: value}
 
 
@@ -153,12 +162,13 @@ def _mode_rule(settings: Settings, value: Any) -> str | None:
 
 
 def _alarm_reset_rule(settings: Settings, _value: Any) -> str | None:
-    if settings.enabled is False:
+    if settings.run_signal is False:
         return None
-    now = "enabled" if settings.enabled else "perhaps enabled (its power stage is not known)"
+    now = "on" if settings.run_signal else "perhaps on (not known)"
     return (
-        f"clear_alarm while the motor is {now}: the manual warns that an alarm reset with the "
-        "run signal on starts the drive again suddenly; send disable first"
+        f"clear_alarm while the drive's run signal (its enable) is {now}: the manual warns "
+        "that an alarm reset with the run signal on starts the drive again suddenly; send "
+        "disable first"
     )
 
 
@@ -172,15 +182,13 @@ _RULES: dict[Role, Callable[[Settings, Any], str | None]] = {
 }
 
 
-#: What a write in each role does; a role not here changes a setting. An origin search (a
-#: one-shot) runs the motor, and an alarm reset may start the drive again: both count as
-#: motion.
+#: What a write in each role does; a role not here changes a setting (an alarm reset too,
+#: sent only with the run signal cut: rule 6). An origin search (a one-shot) runs the motor.
 _ROLE_EFFECTS: dict[Role, Effect] = {
     Role.POSITION: Effect.MOTION,
     Role.POSITION_HIGH: Effect.MOTION,
     Role.TORQUE: Effect.MOTION,
     Role.ONE_SHOT: Effect.MOTION,
-    Role.ALARM_RESET: Effect.MOTION,
 }
 
 
