@@ -233,6 +233,23 @@ def test_the_zenoh_config_loads_in_zenoh() -> None:
     assert config["transport"]["auth"]["usrpwd"]["dictionary_file"].startswith("/etc/busgate/")
 
 
+class Declared:
+    """What the stand-in session declares: a subscriber that never receives, a publisher
+    that sends nothing."""
+
+    def __iter__(self):
+        return iter(())
+
+    def try_recv(self) -> None:
+        return None
+
+    def put(self, *_: object, **__: object) -> None:
+        pass
+
+    def undeclare(self) -> None:
+        pass
+
+
 class DeclaringSession:
     """A stand-in for the gateway's zenoh session that notes what it is asked to declare, as
     the access control's message names it (a publisher's messages are puts)."""
@@ -240,14 +257,14 @@ class DeclaringSession:
     def __init__(self) -> None:
         self.declared: list[tuple[str, str]] = []
 
-    def _noted(self, message: str) -> Callable[..., SimpleNamespace]:
-        def declare(key: str, *_: object, **__: object) -> SimpleNamespace:
+    def _noted(self, message: str) -> Callable[..., Declared]:
+        def declare(key: str, *_: object, **__: object) -> Declared:
             self.declared.append((message, str(key)))
-            return SimpleNamespace(undeclare=lambda: None, put=lambda *a, **k: None)
+            return Declared()
 
         return declare
 
-    def __getattr__(self, name: str) -> Callable[..., SimpleNamespace]:
+    def __getattr__(self, name: str) -> Callable[..., Declared]:
         message = {"declare_subscriber": "declare_subscriber", "declare_publisher": "put",
                    "declare_queryable": "declare_queryable"}[name]
         return self._noted(message)

@@ -508,3 +508,44 @@ def test_follow_targets_are_taken_by_their_own_thread_which_a_bug_does_not_end(
         client.close()
         bridge.close()
     assert not bridge._follow_reader.is_alive()
+
+
+def test_follow_targets_still_waiting_when_an_e_stop_comes_are_dropped(
+    free_port, wait_for
+) -> None:
+    """Targets put before an e-stop, still waiting for the ``follow-targets`` thread when it
+    comes, never reach the API: a reset right after the e-stop would let them start a
+    stream. Targets put after it do."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
+    taken: list[bytes] = []
+    busy, stopped = threading.Event(), threading.Event()
+
+    def follow(device: str, payload: bytes) -> None:
+        taken.append(payload)
+        if payload == b"slow":  # the thread held up while the others wait in the ring
+            busy.set()
+            stopped.wait(10)
+
+    bridge.api.follow = follow
+    bridge.api.stop_every_bus = lambda: []
+    bridge.open(asyncio.new_event_loop())
+    bridge.put_reports.estop = lambda key, sender: stopped.set()  # told after the drop
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        wait_for(lambda: client.put("busgate/gw1/dev/la1/follow", b"probe") or taken, timeout=20)
+        client.put("busgate/gw1/dev/la1/follow", b"slow")
+        busy.wait(10)
+        for payload in (b"1", b"2", b"3"):
+            client.put("busgate/gw1/dev/la1/follow", payload)
+        time.sleep(0.2)  # they are in the ring by now
+        client.put("busgate/gw1/estop", b"{}")
+        client.put("busgate/gw1/dev/la1/follow", b"after")
+        wait_for(lambda: taken[-1:] == [b"after"])
+        assert not {b"1", b"2", b"3"} & set(taken)
+    finally:
+        stopped.set()
+        client.close()
+        bridge.close()

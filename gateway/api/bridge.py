@@ -20,9 +20,12 @@ Rules of this file:
    nothing here is dropped unanswered (rule 2's one exception), left to those it names.
 6. A flood of follow targets never holds up an e-stop. They wait for their thread
    (``follow-targets``) in a ring of ``FOLLOW_BACKLOG`` in zenoh, which drops the oldest
-   when full (a stream keeps the latest target anyway), so that zenoh's receiving threads
-   never wait on Python for them; the e-stop and its reset run on zenoh's receiving thread
-   itself, with no thread of ours to wake. Two clients putting follow targets as fast as
+   when full, so that zenoh's receiving threads never wait on Python for them; the e-stop
+   and its reset run on zenoh's receiving thread itself, with no thread of ours to wake.
+   The targets still waiting when an e-stop comes were put before it: they are dropped, so
+   that none starts a stream after a reset that follows at once. The ring is one for every
+   device: a flood past what the thread takes (tens of thousands a second) drops other
+   devices' targets too, and their streams go stale. Two clients putting follow targets as fast as
    they could held a put e-stop 20-25 ms at the median (65-74 ms at p90) before it reached
    the buses, against 3-4 ms (19-32 ms) this way (docs/performance.md).
 """
@@ -72,9 +75,10 @@ PUBLISH_EVERY_S = 0.005
 #: than at 10 ms (docs/performance.md). A state carries the time it was read; it reaches
 #: clients up to a round later.
 TELEMETRY_EVERY_S = 0.01
-#: Follow targets received and not yet taken (rule 6): a thousand devices' targets at 100 Hz
-#: wait some 2.5 ms at most; past that the oldest are dropped.
-FOLLOW_BACKLOG = 256
+#: Follow targets received and not yet taken (rule 6): a burst of this many is taken whole
+#: (each refused one counted in its ``command_refused`` event), some 80 ms of the thread's
+#: work; past that, under a flood, the oldest are dropped.
+FOLLOW_BACKLOG = 4096
 #: How long closing waits for the ``follow-targets`` thread to take its last target.
 STOP_READER_S = 1.0
 #: The longest wait of a loop with no work: its doorbell cuts it short (``doorbell``).
@@ -123,7 +127,8 @@ class ZenohBridge:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
-        self._follow_reader: threading.Thread | None = None  # rule 6
+        self._follows: zenoh.Subscriber | None = None  # rule 6
+        self._follow_reader: threading.Thread | None = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
@@ -161,6 +166,7 @@ class ZenohBridge:
         follows = session.declare_subscriber(
             f"{base}/dev/*/follow", zenoh.handlers.RingChannel(FOLLOW_BACKLOG)
         )
+        self._follows = follows
         self._follow_reader = threading.Thread(
             target=self._take_follows, args=(follows,), name="follow-targets", daemon=True
         )
@@ -344,6 +350,13 @@ class ZenohBridge:
         result = self.api.command(device, payload)
         result.add_done_callback(lambda done: self._report_put(device, key, payload, done.result()))
 
+    def _drop_waiting_follows(self) -> None:
+        """The follow targets still waiting, put before the e-stop that came: dropped (rule 6)."""
+        follows = self._follows
+        if follows is not None:
+            while follows.try_recv() is not None:
+                pass
+
     def _take_follows(self, follows: zenoh.Subscriber) -> None:
         """The ``follow-targets`` thread (rule 6): each follow target as it comes, until the
         subscriber is undeclared."""
@@ -393,8 +406,9 @@ class ZenohBridge:
         return reset
 
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
-        """The e-stop's log line and ``estop`` event, once every bus has it (at most one every
-        0.1 s, ``put_reports``)."""
+        """Once every bus has the e-stop: the follow targets put before it dropped (rule 6),
+        its log line and ``estop`` event (at most one every 0.1 s, ``put_reports``)."""
+        self._drop_waiting_follows()
         self.put_reports.estop(key, sender)
         return stopped
 
