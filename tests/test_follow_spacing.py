@@ -10,11 +10,12 @@ from concurrent.futures import Future
 
 from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
-from busgate.gateway.scheduler.planner import Job
+from busgate.gateway.scheduler.planner import BusPlanner, Job
 from busgate.gateway.scheduler.spacing import FollowSpacing
+from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import FollowTicker
 from busgate.gateway.scheduler.trajectory_ticks import TrajectoryTicker
-from tests.test_planner import FollowingDriver, silent_request
+from tests.test_planner import TIMING, FollowingDriver, silent_request
 
 PERIOD = 0.010
 
@@ -81,6 +82,23 @@ def test_a_stream_started_right_after_a_command_follow_ticks_a_period_after_it()
     spacing.ticked(ticker.carried(), ticker, 1.004 + PERIOD)
     assert ticker.next_due() == 1.004 + 2 * PERIOD
     assert ticker.build(1.004 + 2 * PERIOD) is not None, "its own ticks: its own period"
+
+
+def test_a_held_stream_leaves_the_streams_after_it_in_the_tick():
+    spacing = FollowSpacing()
+    ticker = stream_ticker(spacing)
+    sent(spacing, command_follow(spacing, "la1"), 1.003)
+    ticker.update(FollowingDriver("la1", 1), 900, 1.004)  # first in the ticker, held
+    ticker.update(FollowingDriver("la2", 2), 900, 1.004)
+    assert ticker.build(1.005) is not None and carried(ticker) == ["la2"]
+
+
+def test_a_buss_streams_keep_its_planners_spacing():
+    planner = BusPlanner(TIMING)
+    driver = FollowingDriver("la1", 1)
+    FollowStreams(planner, BusCounters(0.0), {"la1": driver}).start(driver, 900, 1.0)
+    (ticker,) = planner.tickers
+    assert isinstance(planner.spacing, FollowSpacing) and ticker.spacing is planner.spacing
 
 
 def test_a_stream_joining_a_running_ticker_is_left_out_of_its_ticks_until_its_period():

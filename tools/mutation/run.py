@@ -92,9 +92,9 @@ PACKAGES: dict[str, tuple[str, list[str], list[str]]] = {
     "scheduler": (
         "gateway",
         ["gateway/scheduler/planner.py", "gateway/scheduler/tickers.py",
-         "gateway/scheduler/streams.py"],
+         "gateway/scheduler/streams.py", "gateway/scheduler/spacing.py"],
         ["tests/test_planner.py", "tests/test_joints.py", "tests/test_trajectory_ticks.py",
-         "tests/test_mutants_scheduler.py"],
+         "tests/test_mutants_scheduler.py", "tests/test_follow_spacing.py"],
     ),
     "bus": (
         "gateway",
