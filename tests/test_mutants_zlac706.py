@@ -251,3 +251,29 @@ def test_a_scan_probes_an_rs232_drive_with_its_monitor_request_once() -> None:
     probe = Zlac706Rs232Driver.probe(1)
     assert probe.wire.hex() == "800080" and probe.expected.frames == 8
     assert not probe.idempotent
+
+
+def test_an_alarm_reset_refused_says_why_in_the_manuals_words() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    run(driver, plan(driver, '{"op":"enable"}'))
+    assert refusal(driver, '{"op":"clear_alarm"}') == (
+        "clear_alarm while the drive's run signal (its enable) is on: the manual warns that an "
+        "alarm reset with the run signal on starts the drive again suddenly; send disable first")
+
+
+def test_a_lost_answer_to_a_disable_leaves_the_run_signal_not_known() -> None:
+    driver = Zlac706CanDriver("w", 1)
+    run(driver, plan(driver, '{"op":"enable"}'))
+    (disable,) = [r for r in plan(driver, '{"op":"disable"}') if r.frame.register == 0x10]
+    driver.went(disable.frame)
+    driver.missed(1.0, disable.frame)
+    assert "run signal (its enable) is perhaps on" in refusal(driver, '{"op":"clear_alarm"}')
+
+
+def test_a_drive_that_powered_up_again_has_its_run_signal_cut() -> None:
+    """A power-up leaves the drive released: an alarm reset may go without a disable."""
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
+    run(driver, plan(driver, '{"op":"enable"}'))
+    driver.take_position(100_000)
+    driver.take_position(0)  # the counter back at 0 from far away: the drive powered up
+    assert plan(driver, '{"op":"clear_alarm"}')
