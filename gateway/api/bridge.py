@@ -25,9 +25,10 @@ Rules of this file:
    The targets still waiting when an e-stop comes were put before it: they are dropped, so
    that none starts a stream after a reset that follows at once. The ring is one for every
    device: a flood past what the thread takes (tens of thousands a second) drops other
-   devices' targets too, and their streams go stale. Two clients putting follow targets as fast as
-   they could held a put e-stop 20-25 ms at the median (65-74 ms at p90) before it reached
-   the buses, against 3-4 ms (19-32 ms) this way (docs/performance.md).
+   devices' targets too, and their streams go stale. Two clients putting follow targets as
+   fast as they could held a put e-stop 48-62 ms at the median before it reached the buses,
+   against 10-15 ms this way (docs/performance.md, "An e-stop under a flood of follow
+   targets").
 """
 
 from __future__ import annotations
