@@ -28,6 +28,13 @@ def refusal(driver, text: str) -> str:
     return str(refused.value)
 
 
+def follow_refusal(driver, payload: dict) -> str:
+    """Why ``driver`` refuses the follow target ``payload``."""
+    with pytest.raises(CommandError) as refused:
+        driver.follow_target(payload)
+    return str(refused.value)
+
+
 def test_an_order_rule_says_what_the_write_needs_and_where_the_motor_is() -> None:
     driver = Zlac706CanDriver("w", 1)
     assert refusal(driver, '{"op":"velocity","rpm":10}') == (
@@ -185,22 +192,16 @@ def test_refusals_of_what_a_protocol_cannot_do_say_why() -> None:
     for command in ('{"op":"set_mode","mode":"position"}', '{"op":"enable"}'):
         run(rs, plan(rs, command))
         run(can_driver, plan(can_driver, command))
-    with pytest.raises(CommandError) as refused:
-        rs.follow_target({"position": 5})
-    assert str(refused.value) == (
+    assert follow_refusal(rs, {"position": 5}) == (
         "a ZLAC706 on RS232 takes a position in two frames, so its follow stream carries "
         'speeds only ({"rpm": R}); send positions as move commands')
-    with pytest.raises(CommandError) as refused:
-        can_driver.follow_target({"position": 5})
-    assert str(refused.value) == (
+    assert follow_refusal(can_driver, {"position": 5}) == (
         "a position follow stream needs absolute positions (set_position_mode with relative "
         "false first): the position mode is not known, and each target of a relative stream "
         "would move the motor on again")
     run(can_driver, plan(can_driver, '{"op":"set_position_mode","relative":false}'))
     can_driver.measured["position"] = None  # enabled when its power stage was not known
-    with pytest.raises(CommandError) as refused:
-        can_driver.follow_target({"position": 5})
-    assert str(refused.value) == (
+    assert follow_refusal(can_driver, {"position": 5}) == (
         "a position follow stream starts from where the drive holds, which is not known now "
         "(it was enabled when the gateway did not know it was off, or it has not reported its "
         "position yet): its next heartbeat tells; nothing was sent")
