@@ -212,11 +212,7 @@ class Zlac706Driver(Driver):
         """``command``'s requests, built once (the safe stop's: ``__init__``)."""
         settings = self.machine.settings
         return tuple(
-            Request.of(
-                self.codec,
-                frame,
-                idempotent=is_idempotent(self._role(frame, settings)[0], settings),
-            )
+            self._request(frame, self._role(frame, settings)[0], settings)
             for frame in self.frames(command, self.device_id)
         )
 
