@@ -112,6 +112,7 @@ ZENOH_IMPORTERS = {
     "client/core.py",
     "client/keys.py",
     "gateway/api/bridge.py",
+    "gateway/api/intake.py",
     "gateway/service/daemon.py",
     "gateway/cli/router.py",
     "gateway/ros2/node.py",

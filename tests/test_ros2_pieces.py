@@ -196,11 +196,14 @@ class HandingOnBridge:
     def __init__(self) -> None:
         self.soon: list = []
         self.resets: list = []
+        self.at_estop: list = []
 
     def call_soon(self, function, *args) -> None:
         self.soon.append((function, args))
 
     def estop(self, client, key) -> list:
+        for forget in self.at_estop:  # as the bridge's, once every bus has it
+            forget()
         return []
 
     def estop_reset(self, client) -> list:
@@ -227,17 +230,23 @@ def gripper_face() -> tuple[GatewayApi, HandingOnBridge, Ros2Face]:
     return api, bridge, Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
 
 
-def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(monkeypatch):
-    """Commands are handed to the loop, each joint's latest alone; the e-stop drops what is
-    due, so that nothing sent before it moves a joint after the reset (a flood held such a
-    command back until 7 s after the reset, which then moved the joint)."""
+@pytest.mark.parametrize("estop", ["service", "zenoh"])
+def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(monkeypatch, estop):
+    """Commands are handed to the loop, each joint's latest alone; any e-stop, the face's
+    service or the zenoh API's, drops what is due, so that nothing sent before it moves a
+    joint after the reset (a flood held such a command back until 7 s after the reset, which
+    then moved the joint)."""
     api, bridge, face = gripper_face()
+    bridge.at_estop.append(face._forget_before_estop)  # as ``open`` does
     ramps: list = []
     monkeypatch.setattr(api, "ramp_to", lambda device, fields, *_: ramps.append((device, fields)))
     for position in (0.001, 0.002, 0.003):  # three messages before the loop's turn
         face._command({"name": ["gripper"], "position": [position]})
     assert len(bridge.soon) == 1  # one hand-over for them all
-    face._estop({})
+    if estop == "service":
+        face._estop({})
+    else:
+        bridge.estop("teleop", "busgate/gw1/estop")
     bridge.run_soon()
     assert ramps == []
     face._command({"name": ["gripper"], "position": [0.004]})

@@ -14,6 +14,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future
 
 import pytest
 import zenoh
@@ -21,6 +22,7 @@ import zenoh
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -93,6 +95,35 @@ def served(endpoint: str) -> Iterator[tuple[zenoh.Session, SerialSimulator]]:
 def setup(free_port):
     with served(f"tcp/127.0.0.1:{free_port()}") as both:
         yield both
+
+
+@contextlib.contextmanager
+def idle_bridge(free_port) -> Iterator[tuple[ZenohBridge, zenoh.Session]]:
+    """A bridge over one LA bus that is never started (no port opened: what is tested is the
+    zenoh side), its loop running on a thread of its own (the replies'), and a client's
+    session connected to it."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = parse_config(config_for("/dev/null", endpoint))
+    runners = {bus.name: build_bus(bus) for bus in config.buses}
+    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
+    loop = asyncio.new_event_loop()
+    bridge.open(loop)
+    replies = threading.Thread(target=loop.run_forever, daemon=True)
+    replies.start()
+    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
+    try:
+        yield bridge, client
+    finally:
+        client.close()
+        loop.call_soon_threadsafe(loop.stop)
+        replies.join(5)
+        bridge.close()
+        loop.close()
+
+
+#: An e-stop's put, as the SDK puts it.
+URGENT = {"priority": zenoh.Priority.REAL_TIME, "express": True,
+          "congestion_control": zenoh.CongestionControl.BLOCK}
 
 
 def get(client: zenoh.Session, key: str, payload: bytes | str, timeout: float = 5.0) -> list:
@@ -483,10 +514,6 @@ def test_follow_targets_are_taken_by_their_own_thread_which_a_bug_does_not_end(
     """Follow targets wait in zenoh's ring for the ``follow-targets`` thread (bridge rule 6):
     each is handed to the API in order, a target whose handling raises is logged and the
     next is taken all the same, and closing the bridge ends the thread."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = parse_config(config_for("/dev/null", endpoint))
-    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
-    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
     taken: list[bytes] = []
 
     def follow(device: str, payload: bytes) -> None:
@@ -494,20 +521,15 @@ def test_follow_targets_are_taken_by_their_own_thread_which_a_bug_does_not_end(
         if payload == b"bug":
             raise RuntimeError("a bug")
 
-    bridge.api.follow = follow
-    bridge.open(asyncio.new_event_loop())
-    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
-    try:
+    with idle_bridge(free_port) as (bridge, client):
+        bridge.api.follow = follow
         wait_for(lambda: client.put("busgate/gw1/dev/la1/follow", b"probe") or taken, timeout=20)
         for payload in (b"1", b"bug", b"2"):  # after every probe: one session's puts in order
             client.put("busgate/gw1/dev/la1/follow", payload)
         wait_for(lambda: taken[-1:] == [b"2"])
         assert taken[-3:] == [b"1", b"bug", b"2"]
-        assert "follow target on busgate/gw1/dev/la1/follow" in caplog.text
-    finally:
-        client.close()
-        bridge.close()
-    assert not bridge._follow_reader.is_alive()
+        assert "follow-targets: what came on busgate/gw1/dev/la1/follow" in caplog.text
+    assert all(intake.join() for intake in bridge._intakes)
 
 
 def test_follow_targets_still_waiting_when_an_e_stop_comes_are_dropped(
@@ -516,10 +538,6 @@ def test_follow_targets_still_waiting_when_an_e_stop_comes_are_dropped(
     """Targets put before an e-stop, still waiting for the ``follow-targets`` thread when it
     comes, never reach the API: a reset right after the e-stop would let them start a
     stream. Targets put after it do."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = parse_config(config_for("/dev/null", endpoint))
-    runners = {bus.name: build_bus(bus) for bus in config.buses}  # not started: no port opened
-    bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
     taken: list[bytes] = []
     busy, stopped = threading.Event(), threading.Event()
 
@@ -529,23 +547,90 @@ def test_follow_targets_still_waiting_when_an_e_stop_comes_are_dropped(
             busy.set()
             stopped.wait(10)
 
-    bridge.api.follow = follow
-    bridge.api.stop_every_bus = lambda: []
-    bridge.open(asyncio.new_event_loop())
-    bridge.put_reports.estop = lambda key, sender: stopped.set()  # told after the drop
-    client = zenoh.open(session_config(mode="peer", connect=[endpoint]))
-    try:
-        wait_for(lambda: client.put("busgate/gw1/dev/la1/follow", b"probe") or taken, timeout=20)
-        client.put("busgate/gw1/dev/la1/follow", b"slow")
-        busy.wait(10)
-        for payload in (b"1", b"2", b"3"):
-            client.put("busgate/gw1/dev/la1/follow", payload)
-        time.sleep(0.2)  # they are in the ring by now
-        client.put("busgate/gw1/estop", b"{}")
-        client.put("busgate/gw1/dev/la1/follow", b"after")
-        wait_for(lambda: taken[-1:] == [b"after"])
-        assert not {b"1", b"2", b"3"} & set(taken)
-    finally:
-        stopped.set()
-        client.close()
-        bridge.close()
+    with idle_bridge(free_port) as (bridge, client):
+        bridge.api.follow = follow
+        bridge.api.stop_every_bus = lambda: []
+        bridge.put_reports.estop = lambda key, sender: stopped.set()  # told after the drop
+        try:
+            wait_for(lambda: client.put("busgate/gw1/dev/la1/follow", b"probe") or taken, 20)
+            client.put("busgate/gw1/dev/la1/follow", b"slow")
+            busy.wait(10)
+            for payload in (b"1", b"2", b"3"):
+                client.put("busgate/gw1/dev/la1/follow", payload)
+            time.sleep(0.2)  # they are in the ring by now
+            client.put("busgate/gw1/estop", b"{}")
+            client.put("busgate/gw1/dev/la1/follow", b"after")
+            wait_for(lambda: taken[-1:] == [b"after"])
+            assert not {b"1", b"2", b"3"} & set(taken)
+        finally:
+            stopped.set()
+
+
+def test_puts_held_up_by_their_handler_never_hold_up_an_e_stop(free_port, wait_for) -> None:
+    """Zenoh's receiving thread waited for a key's handler once 256 of its puts were waiting
+    (zenoh-python's channel to a callback's thread): an e-stop put behind a flood of commands
+    waited for the whole flood (0.2-2 s under two flooding clients). Now puts wait in their
+    intake's ring: with the handler of ``cmd`` puts held up, 1,000 more of them and then an
+    e-stop, the e-stop reaches the buses while the handler is still held."""
+    held, release, stopped = threading.Event(), threading.Event(), threading.Event()
+    handled: list[bytes] = []
+
+    def command(device: str, payload: bytes) -> Future:
+        handled.append(payload)
+        held.set()
+        release.wait(10)
+        return settled({"ok": True})
+
+    with idle_bridge(free_port) as (bridge, client):
+        bridge.api.command = command
+        bridge.api.stop_every_bus = lambda: stopped.set() or []
+        try:
+            wait_for(lambda: client.put("busgate/gw1/dev/la1/cmd", b"probe") or held.is_set(), 20)
+            for n in range(1000):
+                client.put("busgate/gw1/dev/la1/cmd", b"%d" % n)
+            client.put("busgate/gw1/estop", b"{}", **URGENT)
+            assert stopped.wait(10), "the e-stop waited behind the puts"
+            assert len(handled) == 1  # the handler still held up by the first
+        finally:
+            release.set()
+
+
+def test_commands_still_waiting_when_an_e_stop_comes_are_answered_estopped(
+    free_port, wait_for
+) -> None:
+    """Commands got before an e-stop and still waiting for their thread when it comes are
+    never carried out (a reset right after it would let them move a device): each is
+    answered ``estopped``. The command being handled when it came, and those got after it,
+    are carried out; what else was sent before it is forgotten (``at_estop``)."""
+    held, release = threading.Event(), threading.Event()
+    carried_out: list[bytes] = []
+
+    def command(device: str, payload: bytes) -> Future:
+        carried_out.append(payload)
+        if payload == b"slow":
+            held.set()
+            release.wait(10)
+        return settled({"ok": True, "payload": payload.decode()})
+
+    key = "busgate/gw1/dev/la1/cmd"
+    with idle_bridge(free_port) as (bridge, client):
+        bridge.api.command = command
+        bridge.api.stop_every_bus = lambda: []
+        forgotten: list[bool] = []
+        bridge.at_estop.append(lambda: forgotten.append(True))
+        try:
+            wait_for(lambda: get(client, key, b"probe", 1.0), timeout=20)
+            slow = client.get(key, payload=b"slow", timeout=20)
+            assert held.wait(10)
+            waiting = [client.get(key, payload=b"%d" % n, timeout=20) for n in range(3)]
+            time.sleep(0.2)  # in the ring by now
+            client.put("busgate/gw1/estop", b"{}", **URGENT)
+            for replies in waiting:
+                [reply] = [json.loads(r.ok.payload.to_bytes()) for r in replies]
+                assert reply["error"]["code"] == "estopped"
+            assert forgotten == [True]
+        finally:
+            release.set()
+        assert [json.loads(r.ok.payload.to_bytes())["ok"] for r in slow] == [True]
+        assert get(client, key, b"after") == [{"ok": True, "payload": "after"}]
+        assert carried_out[-2:] == [b"slow", b"after"]

@@ -18,24 +18,24 @@ Rules of this file:
    and the e-stop's reset on this gateway's own key. Only the gateway's name may be a
    wildcard (a fleet's command: each gateway with the device answers). A query that names
    nothing here is dropped unanswered (rule 2's one exception), left to those it names.
-6. A flood of follow targets never holds up an e-stop. They wait for their thread
-   (``follow-targets``) in a ring of ``FOLLOW_BACKLOG`` in zenoh, which drops the oldest
-   when full, so that zenoh's receiving threads never wait on Python for them; the e-stop
-   and its reset run on zenoh's receiving thread itself, with no thread of ours to wake.
-   The targets still waiting when an e-stop comes were put before it: they are dropped, so
-   that none starts a stream after a reset that follows at once. The ring is one for every
-   device: a flood past what the thread takes (tens of thousands a second) drops other
-   devices' targets too, and their streams go stale. Two clients putting follow targets as
-   fast as they could held a put e-stop 48-62 ms at the median before it reached the buses,
-   against 10-15 ms this way (docs/performance.md, "An e-stop under a flood of follow
-   targets").
+6. A flood of puts or gets never holds up an e-stop. Every key a client puts or gets on
+   but the e-stop's is taken through an ``Intake`` (``intake`` rules): zenoh's receiving
+   threads never wait on Python, and the e-stop and its reset run on the receiving thread
+   itself, with no thread of ours to wake. What still waits for its intake's thread when an
+   e-stop comes was put before it: commands, follow targets, twists and trajectory commands
+   so waiting are never carried out, so that none moves a device after a reset that follows
+   at once (a query is answered ``estopped``, a put dropped). A ring is one a key, for every
+   device: a flood past what its thread takes (thousands of commands, tens of thousands of
+   follow targets a second) drops other devices' puts and queries on that key too. Two
+   clients putting on a ``cmd`` key as fast as they could held an e-stop 0.2-2 s before it
+   reached the buses; two flooding follow targets, 48-62 ms at the median (docs/performance.md,
+   "An e-stop under a flood of follow targets", "... of commands").
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -48,12 +48,13 @@ import zenoh
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
+from busgate.gateway.api.intake import Intake, take_puts, take_queries
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
-from busgate.gateway.scheduler.outcomes import settled
+from busgate.gateway.scheduler.outcomes import cancelled_by_estop, settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
 from busgate.gateway.trajectory.playing import Trajectories
@@ -66,6 +67,11 @@ from busgate.schemas.zenoh_session import gateway_session_config
 
 log = logging.getLogger(__name__)
 
+#: A query taken: the (concrete) key its reply goes on, its payload, and what carries it out.
+Routed = tuple[str, bytes, Callable[[], Future]]
+#: What a query names here (``None``: nothing, and it was dropped), read off it.
+Route = Callable[[zenoh.Query], Routed | None]
+
 REPLY_TIMEOUT_S = 10.0
 #: The publishing round's period while it has timed work of its own (``_round_due``): a
 #: trajectory's verdicts, a base's wheels, a refusal held back.
@@ -76,12 +82,6 @@ PUBLISH_EVERY_S = 0.005
 #: than at 10 ms (docs/performance.md). A state carries the time it was read; it reaches
 #: clients up to a round later.
 TELEMETRY_EVERY_S = 0.01
-#: Follow targets received and not yet taken (rule 6): a burst of this many is taken whole
-#: (each refused one counted in its ``command_refused`` event), some 80 ms of the thread's
-#: work; past that, under a flood, the oldest are dropped.
-FOLLOW_BACKLOG = 4096
-#: How long closing waits for the ``follow-targets`` thread to take its last target.
-STOP_READER_S = 1.0
 #: The longest wait of a loop with no work: its doorbell cuts it short (``doorbell``).
 IDLE_WAIT_S = 0.1
 STATS_EVERY_S = 1.0
@@ -128,8 +128,13 @@ class ZenohBridge:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
-        self._follows: zenoh.Subscriber | None = None  # rule 6
-        self._follow_reader: threading.Thread | None = None
+        self._intakes: list[Intake] = []  # rule 6
+        #: The intakes whose waiting puts and queries an e-stop takes (rule 6), each with the
+        #: route of its queries (``None``: puts).
+        self._before_estop: list[tuple[Intake, Route | None]] = []
+        #: Called on the e-stop's thread once every bus has it (the ROS face's commands not
+        #: yet handed on, dropped as ours are).
+        self.at_estop: list[Callable[[], None]] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
@@ -164,26 +169,22 @@ class ZenohBridge:
         zenoh_section = self.config.zenoh
         self._session = session = zenoh.open(gateway_session_config(zenoh_section))
         base, prefix = self.base, self.config.gateway.prefix
-        follows = session.declare_subscriber(
-            f"{base}/dev/*/follow", zenoh.handlers.RingChannel(FOLLOW_BACKLOG)
-        )
-        self._follows = follows
-        self._follow_reader = threading.Thread(
-            target=self._take_follows, args=(follows,), name="follow-targets", daemon=True
-        )
-        self._follow_reader.start()
+        commands, puts = self._commands, self._puts
+        self._before_estop = []
+        self._intakes = [
+            commands(session, f"{base}/dev/*/cmd", self._device_query, "device-commands"),
+            puts(session, f"{base}/dev/*/cmd", self._on_device_put, "device-puts"),
+            puts(session, f"{base}/dev/*/follow", self._on_follow, "follow-targets"),
+            commands(session, f"{base}/bus/*/cmd", self._bus_query, "bus-commands"),
+            commands(session, f"{base}/trajectory", self._trajectory_query, "trajectories"),
+            commands(session, f"{base}/base/*/cmd", self._base_query, "base-commands"),
+            puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
+            take_queries(session, f"{base}/info", self._on_info, "info"),
+        ]
         self._keep = [
-            session.declare_queryable(f"{base}/dev/*/cmd", self._on_device_query),
-            session.declare_subscriber(f"{base}/dev/*/cmd", self._on_device_put),
-            follows,
-            session.declare_queryable(f"{base}/bus/*/cmd", self._on_bus_query),
             session.declare_subscriber(
                 f"{base}/estop/**", zenoh.handlers.Callback(self._on_estop_or_reset, indirect=False)
             ),
-            session.declare_queryable(f"{base}/info", self._on_info),
-            session.declare_queryable(f"{base}/trajectory", self._on_trajectory),
-            session.declare_queryable(f"{base}/base/*/cmd", self._on_base_query),
-            session.declare_subscriber(f"{base}/base/*/twist", self._on_twist),
             session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
             session.liveliness().declare_token(f"{base}/alive"),
         ]
@@ -209,6 +210,22 @@ class ZenohBridge:
         )
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
+    def _commands(self, session: zenoh.Session, key: str, route: Route, name: str) -> Intake:
+        """The queries on ``key``, each answered by carrying out what ``route`` reads off it;
+        those waiting when an e-stop comes, refused (rule 6)."""
+        intake = take_queries(session, key, self._answering(route), name)
+        self._before_estop.append((intake, route))
+        return intake
+
+    def _puts(
+        self, session: zenoh.Session, key: str, handle: Callable[[zenoh.Sample], None], name: str
+    ) -> Intake:
+        """The puts on ``key``, each handed to ``handle``; those waiting when an e-stop comes,
+        dropped (rule 6)."""
+        intake = take_puts(session, key, handle, name)
+        self._before_estop.append((intake, None))
+        return intake
+
     @property
     def session(self) -> zenoh.Session:
         """The open session (the ROS face lives on it too)."""
@@ -222,14 +239,16 @@ class ZenohBridge:
     def close(self) -> None:
         """Undeclare everything and close the session (last, at shutdown)."""
         self._trajectory_lanes.close()
+        for intake in self._intakes:
+            intake.close()
         session, self._session = self._session, None
         self._device_tokens.clear()
         self._publishers.clear()
         self._keep.clear()
         if session is not None:
             session.close()
-        if self._follow_reader is not None:  # its subscriber went with the session
-            self._follow_reader.join(STOP_READER_S)
+        for intake in self._intakes:
+            intake.join()
 
     async def publish_forever(self, stop: asyncio.Event) -> None:
         """Telemetry and events as they come (in rounds of ``telemetry_every_s`` while they
@@ -267,19 +286,30 @@ class ZenohBridge:
 
     # -- zenoh callbacks (zenoh's threads: hand over only) ----------------------------------
 
-    def _on_device_query(self, query: zenoh.Query) -> None:
+    def _answering(self, route: Route) -> Callable[[zenoh.Query], None]:
+        """A handler that answers each query ``route`` takes by carrying it out."""
+
+        def answer(query: zenoh.Query) -> None:
+            routed = route(query)
+            if routed is not None:
+                key, payload, carry_out = routed
+                self._answer(query, carry_out, key, payload)
+
+        return answer
+
+    def _device_query(self, query: zenoh.Query) -> Routed | None:
         device = self._ours(query, "dev", self.api.devices)
         if device is None:
-            return
-        reply_key, payload = f"{self.base}/dev/{device}/cmd", _payload(query)
-        self._answer(query, lambda: self.api.command(device, payload), reply_key, payload)
+            return None
+        payload = _payload(query)
+        return f"{self.base}/dev/{device}/cmd", payload, lambda: self.api.command(device, payload)
 
-    def _on_bus_query(self, query: zenoh.Query) -> None:
+    def _bus_query(self, query: zenoh.Query) -> Routed | None:
         bus = self._ours(query, "bus", self.runners)
         if bus is None:
-            return
-        reply_key, payload = f"{self.base}/bus/{bus}/cmd", _payload(query)
-        self._answer(query, lambda: self.api.bus_command(bus, payload), reply_key, payload)
+            return None
+        payload = _payload(query)
+        return f"{self.base}/bus/{bus}/cmd", payload, lambda: self.api.bus_command(bus, payload)
 
     def _named(self, key: str, room: str, leaf: str) -> str | None:
         """The name in a key of the shape ``<base>/<room>/<name>/<leaf>``; ``None`` for a key
@@ -302,12 +332,12 @@ class ZenohBridge:
         query.drop()
         return None
 
-    def _on_base_query(self, query: zenoh.Query) -> None:
+    def _base_query(self, query: zenoh.Query) -> Routed | None:
         name = self._ours(query, "base", self.bases.bases)
         if name is None:
-            return
-        reply_key, payload = f"{self.base}/base/{name}/cmd", _payload(query)
-        self._answer(query, lambda: self.bases.command(name, payload), reply_key, payload)
+            return None
+        payload = _payload(query)
+        return f"{self.base}/base/{name}/cmd", payload, lambda: self.bases.command(name, payload)
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
@@ -332,15 +362,15 @@ class ZenohBridge:
             return
         self._answer(query, lambda: settled(self.api.info()), key)
 
-    def _on_trajectory(self, query: zenoh.Query) -> None:
+    def _trajectory_query(self, query: zenoh.Query) -> Routed | None:
         """Only on this gateway's own key: a get on ``**`` or ``busgate/*/trajectory`` names
         no gateway, and a play it carried would move every gateway with those device names."""
-        if str(query.key_expr) != f"{self.base}/trajectory":
+        key = f"{self.base}/trajectory"
+        if str(query.key_expr) != key:
             query.drop()
-            return
+            return None
         payload = _payload(query)
-        submit = self.submit_trajectory
-        self._answer(query, lambda: submit(payload), f"{self.base}/trajectory", payload)
+        return key, payload, lambda: self.submit_trajectory(payload)
 
     def _on_device_put(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
@@ -351,21 +381,31 @@ class ZenohBridge:
         result = self.api.command(device, payload)
         result.add_done_callback(lambda done: self._report_put(device, key, payload, done.result()))
 
-    def _drop_waiting_follows(self) -> None:
-        """The follow targets still waiting, put before the e-stop that came: dropped (rule 6)."""
-        follows = self._follows
-        if follows is not None:
-            while follows.try_recv() is not None:
-                pass
+    def _take_what_came_before(self) -> None:
+        """What still waits for its intake when an e-stop came was put before it (rule 6):
+        commands refused ``estopped`` (on the loop's thread), puts dropped."""
+        refused: list[tuple[Route, zenoh.Query]] = []
+        dropped = 0
+        for intake, route in self._before_estop:
+            waiting = intake.take_waiting()
+            if route is None:
+                dropped += len(waiting)
+            else:
+                refused.extend((route, query) for query in waiting)
+        if refused:
+            self.call_soon(self._refuse_before_estop, refused)
+        if dropped:
+            log.info("e-stop: %d puts that came before it dropped, never carried out", dropped)
+        for forget in self.at_estop:
+            forget()
 
-    def _take_follows(self, follows: zenoh.Subscriber) -> None:
-        """The ``follow-targets`` thread (rule 6): each follow target as it comes, until the
-        subscriber is undeclared."""
-        for sample in follows:
-            try:
-                self._on_follow(sample)
-            except Exception:  # a bug must not end the thread: every later target is lost
-                log.exception("follow target on %s", sample.key_expr)
+    def _refuse_before_estop(self, refused: list[tuple[Route, zenoh.Query]]) -> None:
+        reply = error_reply(cancelled_by_estop())
+        for route, query in refused:
+            routed = route(query)
+            if routed is not None:
+                key, payload, _ = routed
+                self._answer(query, lambda: settled(reply), key, payload)
 
     def _on_follow(self, sample: zenoh.Sample) -> None:
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
@@ -409,7 +449,7 @@ class ZenohBridge:
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
         """Once every bus has the e-stop: the follow targets put before it dropped (rule 6),
         its log line and ``estop`` event (at most one every 0.1 s, ``put_reports``)."""
-        self._drop_waiting_follows()
+        self._take_what_came_before()
         self.put_reports.estop(key, sender)
         return stopped
 

@@ -26,12 +26,13 @@ Rules of this file:
    The e-stop service stops every bus whatever its request looks like; the reset service
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
    once a second; ``/diagnostics`` once a second.
-5. Zenoh callbacks hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
-   A command message is taken apart on zenoh's thread and its targets handed to the loop,
-   each joint's latest alone (``_due``): a flood of commands costs zenoh's thread little, so
-   an e-stop behind it waits for none of them, and the e-stop drops what is due, so that
-   nothing sent before it moves a joint after the reset. Nothing of a name no joint has is
-   kept beyond ``Commands``' few, nor logged but cut (``shown``).
+5. Handlers hand over (``bridge`` rule 1); the periodic work runs on the loop's thread.
+   A command message is taken apart on its subscription's thread (``node`` rule 3) and its
+   targets handed to the loop, each joint's latest alone (``_due``). Any e-stop, the zenoh
+   API's or the service's, drops what is due, the messages still waiting for their threads
+   and the trajectory message waiting for its turn, so that nothing sent before it moves a
+   joint after the reset. Nothing of a name no joint has is kept beyond ``Commands``' few,
+   nor logged but cut (``shown``).
 6. The face never ends the gateway: a failure of its periodic work or of a publication (a
    bug) is logged once, with its traceback, and the gateway serves on.
 """
@@ -139,6 +140,7 @@ class Ros2Face:
         )
         node.service(section.estop, TRIGGER, self._estop, always=True)
         node.service(section.reset_estop, TRIGGER, self._reset_estop)
+        self.bridge.at_estop.append(self._forget_before_estop)  # any e-stop's (rule 5)
         self.bridge.on_joints = self.publish_joints
         if self.bridge.bases.bases:
             topics = BaseTopics(node, section, self.bridge.bases)
@@ -156,6 +158,8 @@ class Ros2Face:
 
     def close(self) -> None:
         self.bridge.on_joints = self.bridge.on_odometry = None
+        if self._forget_before_estop in self.bridge.at_estop:
+            self.bridge.at_estop.remove(self._forget_before_estop)
         node, self._node = self._node, None
         if node is not None:
             node.close()
@@ -316,11 +320,19 @@ class Ros2Face:
 
     def _estop(self, request: dict[str, Any]) -> Future:
         key = f"ros2 {self._resolve(self.section.estop)}"
-        stopped = self.bridge.estop(self.section.client, key)
+        return _when_all(self.bridge.estop(self.section.client, key), "every bus stopped")
+
+    def _forget_before_estop(self) -> None:
+        """Any e-stop's (the bridge's ``at_estop``): what was sent before it, never carried
+        out after it (rule 5)."""
+        node = self._node
+        if node is not None:
+            node.take_waiting()
         with self._commands_lock:
-            self._due.clear()  # rule 5: sent before the stop, never carried out after it
+            self._due.clear()
             self.commands.forget(self.joints)
-        return _when_all(stopped, "every bus stopped")
+        with self._trajectory_lock:
+            self._trajectory_next = None
 
     def _reset_estop(self, request: dict[str, Any]) -> Future:
         return _when_all(self.bridge.estop_reset(self.section.client), "every bus reset")

@@ -17,9 +17,13 @@ Rules of this file:
    key, as rmw_zenoh's publishers and clients send it: a put or get on a wildcard key
    (``0/robot_joint_commands/**``, any peer's) reaches our subscriptions and queryables too,
    and is dropped (the e-stop's excepted, as a put on ``**`` stops on the zenoh API).
-3. Zenoh's callbacks hand over: a subscription's handler and a service's handler are given
-   decoded messages on zenoh's thread and must only hand work on (``bridge`` rule 1); a
-   service's reply is sent when the handler's future is done, whichever thread that is.
+3. A subscription's samples wait for a thread of their own in an ``Intake`` (``bridge``
+   rule 6: a flood of commands never holds zenoh's receiving threads, and with them an
+   e-stop), which ``take_waiting`` empties for an e-stop. A service's handler runs on zenoh's
+   receiving thread itself: the services are the e-stop and its reset, which must wait
+   behind nothing, and keep the order a client called them in. Handlers are given decoded
+   messages and must only hand work on (``bridge`` rule 1); a service's reply is sent when
+   the handler's future is done, whichever thread that is.
 4. Our publishers drop rather than block (congestion control DROP): a slow ROS subscriber
    never stalls the gateway. A publisher whose QoS is best effort is best effort on zenoh
    too, as rmw_zenoh maps it.
@@ -40,6 +44,7 @@ import zenoh
 
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
+from busgate.gateway.api.intake import Intake, take_puts
 from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
@@ -95,6 +100,7 @@ class Ros2Node:
         self._drops_told: dict[str, tuple[float, int]] = {}  # entity: when told, held since
         self._entity_ids = itertools.count(1)
         self._keep: list[Any] = []
+        self._intakes: list[Intake] = []  # rule 3
         self._node = rmw_zenoh.Node(name.domain_id, self.zid, 0, name.name, name.namespace)
         self._keep.append(session.liveliness().declare_token(rmw_zenoh.node_token(self._node)))
 
@@ -137,7 +143,8 @@ class Ros2Node:
                 return
             handler(message)
 
-        self._keep.append(self.session.declare_subscriber(key, received))
+        thread = f"ros2 {shown(topic)}"
+        self._intakes.append(take_puts(self.session, key, received, thread))
 
     def service(
         self, name: str, type_name: str, handler: ServiceHandler, *, always: bool = False
@@ -178,13 +185,23 @@ class Ros2Node:
 
             handler(request or {}).add_done_callback(reply)
 
-        self._keep.append(self.session.declare_queryable(key, asked, complete=True))
+        on_receiving_thread = zenoh.handlers.Callback(asked, indirect=False)  # rule 3
+        self._keep.append(self.session.declare_queryable(key, on_receiving_thread, complete=True))
+
+    def take_waiting(self) -> int:
+        """The subscriptions' samples still waiting for their threads, dropped (rule 3): how
+        many."""
+        return sum(len(intake.take_waiting()) for intake in self._intakes)
 
     def close(self) -> None:
         """Undeclare everything (the tokens go: the node leaves the graph)."""
+        for intake in self._intakes:
+            intake.close()
         for entity in reversed(self._keep):
             entity.undeclare()
         self._keep.clear()
+        for intake in self._intakes:
+            intake.join()
 
     def _announce(self, kind: EntityKind, name: str, type_name: str, qos: Qos) -> str:
         """The entity's liveliness token (rule 1); its data key."""

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
-from busgate.errors import BusgateError, BusyError
+from busgate.errors import BusgateError, BusyError, RefusedError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.scheduler.planner import Job
 
@@ -97,6 +97,12 @@ def pass_on(source: Future, future: Future) -> None:
         settle(future, result=None if error is not None else done.result(), error=error)
 
     source.add_done_callback(passed)
+
+
+def cancelled_by_estop() -> RefusedError:
+    """The refusal of a command that an e-stop came before: it is never carried out (a
+    reset right after the e-stop would otherwise let it move the device)."""
+    return RefusedError("estopped", "an e-stop cancelled it before it was carried out")
 
 
 def settled(result: Any) -> Future:

@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from typing import Any
 
-from busgate.errors import BusgateError, BusUnavailableError, BusyError, CommandError, RefusedError
+from busgate.errors import BusgateError, BusUnavailableError, BusyError, CommandError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
@@ -202,7 +202,7 @@ class BusWork:
         dropped, self._estop_dropped = self._estop_dropped, []
         self.streams.end_all("estop")
         self.plays.end_all(ESTOP)
-        cancelled = RefusedError("estopped", "an e-stop cancelled it before it was carried out")
+        cancelled = outcomes.cancelled_by_estop()
         for job in dropped:
             outcomes.fail(job, cancelled)
 

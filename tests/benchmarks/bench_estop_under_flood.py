@@ -1,15 +1,18 @@
-"""An e-stop put while other clients flood the gateway with follow targets: how long until it
-reaches the buses?
+"""An e-stop put while other clients flood the gateway with follow targets or commands: how
+long until it reaches the buses?
 
 Not a test (pytest does not collect it). The gateway's zenoh side (``ZenohBridge``) in this
 process, on 127.0.0.1 with multicast scouting off, over one LA bus that is never opened, so
 that what is timed is zenoh and the bridge alone: from a client's put on the e-stop key to the
 moment the bridge hands the e-stop to its buses (``GatewayApi.stop_every_bus``). ``--floods``
-child processes put follow targets for ``la1`` as fast as they can meanwhile (each its own
-session, as a runaway control loop would); each ends by its PID. Printed: p50, p90 and the
-worst of ``--estops`` e-stops, with no flood and with it.
+child processes send to ``la1`` as fast as they can meanwhile (each its own session, as a
+runaway control loop would), by ``--kind``: follow targets, commands put, or commands got
+(never waiting for the answers); each ends by its PID. The commands are ones no device
+takes, refused at once: what is timed is the flood's cost to zenoh and the bridge. Printed:
+p50, p90 and the worst of ``--estops`` e-stops, with no flood and with it.
 
     .venv/bin/python tests/benchmarks/bench_estop_under_flood.py [--floods 2] [--estops 25]
+        [--kind follow|cmd-put|cmd-get]
 
 Run with another checkout's interpreter (``OTHER/.venv/bin/python tests/benchmarks/...``) it
 times that checkout's bridge.
@@ -47,9 +50,16 @@ from busgate.schemas.zenoh_session import session_config
 session = zenoh.open(session_config(mode="client", connect=[sys.argv[1]]))
 n = 0
 while True:
-    session.put("busgate/gw1/dev/la1/follow", b'{"position": %d}' % (n % 2000))
+    %s
     n += 1
 """
+#: Each kind of flood's send, in ``FLOODER``'s loop.
+FLOODS = {
+    "follow": """session.put("busgate/gw1/dev/la1/follow", b'{"position": %d}' % (n % 2000))""",
+    "cmd-put": """session.put("busgate/gw1/dev/la1/cmd", b'{"op": "no such op"}')""",
+    "cmd-get": """session.get(
+        "busgate/gw1/dev/la1/cmd", lambda reply: None, payload=b'{"op": "no such op"}')""",
+}
 #: The e-stop's put, as the SDK puts it.
 URGENT = {
     "priority": zenoh.Priority.REAL_TIME,
@@ -79,6 +89,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--floods", type=positive(int), default=2)
     parser.add_argument("--estops", type=positive(int), default=25)
+    parser.add_argument("--kind", choices=sorted(FLOODS), default="follow")
     args = parser.parse_args()
     tune_interpreter()  # as the daemon does
     logging.getLogger("busgate").setLevel(logging.ERROR)  # not a line an e-stop
@@ -95,7 +106,7 @@ def main() -> int:
     try:
         for floods in (0, args.floods):
             flooders = [
-                subprocess.Popen([sys.executable, "-c", FLOODER, endpoint])
+                subprocess.Popen([sys.executable, "-c", FLOODER % FLOODS[args.kind], endpoint])
                 for _ in range(floods)
             ]
             try:
@@ -105,7 +116,7 @@ def main() -> int:
                     flooder.kill()
                     flooder.wait()
             print(
-                f"{floods} clients flooding follow targets: put → e-stop handed to the buses "
+                f"{floods} clients flooding ({args.kind}): put → e-stop handed to the buses "
                 f"p50 {ms(latencies, .5)} ms, p90 {ms(latencies, .9)} ms, "
                 f"worst {latencies[-1] * 1000:.1f} ms ({len(latencies)} e-stops)",
                 flush=True,
