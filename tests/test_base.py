@@ -200,7 +200,9 @@ def test_claims_hold_between_the_base_and_its_wheels_both_ways(world) -> None:
         assert world.base({"op": "release", "client": "nav"})["ok"]
 
 
-def test_the_estop_stops_the_base_and_a_twist_after_it_is_refused(world) -> None:
+def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
+    world,
+) -> None:
     assert world.base({"op": "enable"})["ok"]
     assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
     time.sleep(0.2)
@@ -216,8 +218,18 @@ def test_the_estop_stops_the_base_and_a_twist_after_it_is_refused(world) -> None
     assert any(e.type == "base_stopped" for e in world.events)
     refused = world.base({"op": "twist", "linear": 0.3})
     assert refused["error"]["code"] == "estopped"
+    assert world.base({"op": "status"})["base"]["twist"] == {"linear": 0.0, "angular": 0.0}
     for reset in world.api.reset_estop("test"):
         reset.result(5)
+    # After the reset the next play starts from rest, not from the 0.3 m/s before the e-stop.
+    assert world.base({"op": "enable"})["ok"]
+    since = len(world.sim.recorder.received())
+    assert world.base({"op": "twist", "linear": 0.01, "duration_s": 0.2})["ok"]
+    time.sleep(0.2)
+    rpms = [abs(rpm) for _, _, rpm in world.speeds(since)]
+    assert rpms and max(rpms) < 1.5  # 0.01 m/s on wheels of 82.5 mm: 1.16 rpm
+    world.base({"op": "stop"})
+    world.wait_rest()
 
 
 def _wheel_2(world: World):

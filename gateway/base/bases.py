@@ -338,7 +338,7 @@ class Bases:
             reason = refusal[1]
         else:
             reason = "left the base's play"
-        base.drive.stop()
+        base.drive.halt()  # its next play starts from rest (``drive`` rule 5)
         for each in base.wheels:  # one that left the play already: nothing to stop
             each.runner.stop_playing(each.name, speed=True)
         base.playing_since = None

@@ -14,6 +14,10 @@ Rules of this file:
    rest for two slots in a row (so both wheels have sent the first slot's 0): its play can
    end, leaving both wheels at 0 rpm.
 4. Commands come from any thread (one lock); samples come from the bus threads.
+5. A base stopped outside its ramp (a wheel left its play: an e-stop, a refusal, a wheel
+   gone) is at rest as far as the drive knows: its next play starts from 0, and the twist
+   it says it sent is 0. Started from the twist sent before, the first command after an
+   e-stop and its reset sent the wheels at that old speed at once.
 """
 
 from __future__ import annotations
@@ -53,6 +57,12 @@ class Drive:
         """The target is 0 from now: the base ramps down (rule 1)."""
         with self._lock:
             self._target, self._until = Twist(), 0.0
+
+    def halt(self) -> None:
+        """The wheels were stopped outright (rule 5): the target is 0, and so is the twist."""
+        with self._lock:
+            self._target, self._until = Twist(), 0.0
+            self._sent, self._rest_slots = (self._sent[0], Twist()), 0
 
     def begin(self, start: float, twist: Twist) -> None:
         """A play of both wheels from ``start`` (bus clock), the base at ``twist`` then."""
