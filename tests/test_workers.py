@@ -291,9 +291,11 @@ def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Serv
     reset_every_device(client)
 
 
-def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
+def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims_that_stand(
     served: Served, client
 ) -> None:
+    """An e-stop pressed while a worker hangs waits in its socket, never carried out: the
+    new worker carries it out (it was lost: the device moved on its next command)."""
     bus = "uart1"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
@@ -304,13 +306,18 @@ def test_a_hung_worker_is_killed_and_started_again_with_the_claims_that_stand(
     ):
         os.kill(victim, signal.SIGSTOP)  # alive, and silent: as a worker stuck for good
         try:
+            client.estop("gw1")
+            mark = served.marks()[bus]
             assert bus in served.gateway.wait_for("silent for")
             served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
         finally:
             if Path(f"/proc/{victim}").exists():
                 os.kill(victim, signal.SIGCONT)
         served.started_again(victim)
+        wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
         until_state(client, device, "online", True, timeout=10)  # on its new worker
+        assert client.device(device).state()["estopped"] is True
+        reset_every_device(client)
         marks = served.marks()
         with pytest.raises(bc.ClaimedError):  # judged by the new worker's bus thread
             late.device(device).move(700)

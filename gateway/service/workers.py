@@ -11,7 +11,10 @@ Rules of this file:
    anything goes to the worker, in the order it was made.
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
-   worker is given the table as it stands, and e-stops the buses whose devices were e-stopped.
+   worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
+   and those e-stopped by a call since their last reset, answered or not: a worker that hung
+   or ended with an e-stop in its socket never carried it out, and its last states did not
+   say it.
 3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
    word: it is killed), is reported once: every call waiting on it is answered
    ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
@@ -188,8 +191,9 @@ class WorkerProcess:
         self.outbox: link.Outbox | None = None
         self._spoken = False  # the running worker said a word since it was started
         self._pending: dict[int, Future] = {}
-        #: Buses e-stopped while no worker ran: the next one e-stops them as it starts.
-        self._estops_due: set[str] = set()
+        #: Buses e-stopped by a call since their last reset (rule 2): the next worker e-stops
+        #: them as it starts.
+        self._estopped: set[str] = set()
         self._ids = itertools.count()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -288,8 +292,7 @@ class WorkerProcess:
         outbox = link.Outbox(ours, f"worker{self.index}-send")
         with self._lock:  # an e-stop comes before (in the start) or after (a call), never lost
             estopped = {name for name, r in self.runners.items() if r.any_estopped()}
-            estopped |= self._estops_due
-            self._estops_due = set()
+            estopped |= self._estopped
             outbox.put(("start", self.config, list(self.runners), sorted(estopped)))
             self.process, self.outbox, self.last_word = process, outbox.start(), now()
         self._spoken = False
@@ -309,11 +312,13 @@ class WorkerProcess:
         future: Future = Future()
         with self._lock:  # registered before its answer can be read
             outbox = self.outbox
+            if method == "estop":  # kept until its reset: a new worker e-stops the bus (rule 2)
+                self._estopped.add(bus)
             if outbox is None:
-                if method == "estop":  # kept: the next worker e-stops the bus as it starts
-                    self._estops_due.add(bus)
                 future.set_exception(BusUnavailableError(f"bus {bus}: its worker is down"))
                 return future
+            if method == "reset_estop" and args == (None,):  # the whole bus, by its worker
+                self._estopped.discard(bus)
             call_id = next(self._ids)
             outbox.put_now(("call", call_id, bus, method, args, {}))  # refused here, if so
             self._pending[call_id] = future
