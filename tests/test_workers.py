@@ -18,6 +18,7 @@ import re
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -30,6 +31,8 @@ import pytest
 import busgate.client as bc
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.bus.clock import now
+from busgate.gateway.scheduler.runner import STALL_S
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.worker import Worker
@@ -753,14 +756,44 @@ def test_a_value_that_cannot_be_pickled_is_lost_never_the_sender() -> None:
         theirs.close()
 
 
-def test_a_worker_that_keeps_ending_before_its_first_word_waits_longer_each_time() -> None:
+def test_a_worker_that_keeps_ending_soon_after_its_start_waits_longer_each_time() -> None:
     waits, wait_s = [], 0.0
     for _ in range(10):
-        wait_s = restart_delay(wait_s, spoke=False)
+        wait_s = restart_delay(wait_s, steady=False)
         waits.append(wait_s)
     assert waits[:4] == [RESTART_S, 2 * RESTART_S, 4 * RESTART_S, 8 * RESTART_S]
     assert waits[-1] == RESTART_MAX_S
-    assert restart_delay(RESTART_MAX_S, spoke=True) == RESTART_S  # one that ran: at once again
+    assert restart_delay(RESTART_MAX_S, steady=True) == RESTART_S  # one that ran: at once again
+
+
+def test_a_worker_waiting_to_be_started_again_keeps_the_watchdog_fed(
+    lone_worker: WorkerProcess, monkeypatch
+) -> None:
+    """systemd's watchdog is fed only while every worker keeps its schedule. A worker that
+    ended and waits out its restart's delay (up to 30 s while it keeps ending soon after its
+    start) is not hung: its devices are offline and said so, as a lost link's. Taken for hung,
+    it had systemd kill the whole gateway 10 s into that wait. A supervisor overdue to start
+    it is."""
+    spawned: list[subprocess.Popen] = []
+
+    def spawn_one_that_ends() -> tuple[subprocess.Popen, socket.socket]:
+        process = subprocess.Popen([sys.executable, "-c", "pass"])
+        ours, theirs = link.pair()
+        theirs.close()  # its words end at once
+        lone_worker.process = process
+        spawned.append(process)
+        return process, ours
+
+    monkeypatch.setattr(lone_worker, "_spawn", spawn_one_that_ends)
+    lone_worker.start()
+    try:
+        wait_until(lambda: lone_worker._restart_at is not None, 10, "the worker ended")
+        assert spawned[0].poll() is not None
+        assert lone_worker.keeping_schedule()
+        lone_worker._restart_at = now() - STALL_S  # its supervisor stuck past its restart
+        assert not lone_worker.keeping_schedule()
+    finally:
+        lone_worker.stop()
 
 
 def test_messages_a_full_outbox_loses_are_counted_and_logged(caplog) -> None:

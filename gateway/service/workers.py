@@ -19,8 +19,11 @@ Rules of this file:
    word: it is killed), is reported once: every call waiting on it is answered
    ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
    worker is started again after ``RESTART_S`` (longer each time, up to ``RESTART_MAX_S``,
-   while it ends before its first word), with nothing to resume: no stream, no play, no ramp;
-   a client commands again.
+   while it ends before it has run ``STEADY_S`` since its first word), with nothing to
+   resume: no stream, no play, no ramp; a client commands again. While its supervisor waits
+   to start it again the worker keeps its schedule for systemd's watchdog, as a bus whose
+   link is lost does: its devices are offline and said so, nothing hangs (taken for hung, a
+   worker's wait of 30 s had systemd kill the whole gateway after 10).
 4. A worker is started and read by one supervising thread for the daemon's whole life: a
    child's death signal (``PR_SET_PDEATHSIG``) follows the thread that started it. A word of
    the worker's that cannot be taken (a bug) is logged and dropped; the thread goes on.
@@ -57,9 +60,12 @@ log = logging.getLogger(__name__)
 
 #: A worker that ended is started again after this long.
 RESTART_S = 0.5
-#: The longest wait before starting again a worker that keeps ending before its first word
+#: The longest wait before starting again a worker that keeps ending soon after its start
 #: (each such end doubles the wait: a worker that cannot start does not spin a core).
 RESTART_MAX_S = 30.0
+#: How long a worker runs past its first word before its end is a worker's end, not a start
+#: that failed (the next wait is ``RESTART_S`` again).
+STEADY_S = 10.0
 #: How long a new worker is given to say its first word before start-up goes on without it.
 FIRST_WORD_S = 5.0
 #: How long a worker just started may take to say its first word (an interpreter's start on a
@@ -69,11 +75,11 @@ SLOW_START_S = 20.0
 STOP_S = 2.0
 
 
-def restart_delay(previous_s: float, *, spoke: bool) -> float:
-    """How long to wait before starting a worker again: ``RESTART_S`` after one that spoke,
-    twice the wait before after one that ended before its first word (up to
-    ``RESTART_MAX_S``)."""
-    if spoke or previous_s <= 0.0:
+def restart_delay(previous_s: float, *, steady: bool) -> float:
+    """How long to wait before starting a worker again: ``RESTART_S`` after one that ran
+    steadily (``STEADY_S`` past its first word), twice the wait before after one that did not
+    (up to ``RESTART_MAX_S``)."""
+    if steady or previous_s <= 0.0:
         return RESTART_S
     return min(2 * previous_s, RESTART_MAX_S)
 
@@ -190,6 +196,9 @@ class WorkerProcess:
         self.process: subprocess.Popen | None = None
         self.outbox: link.Outbox | None = None
         self._spoken = False  # the running worker said a word since it was started
+        self._first_word_at = 0.0  # when it did
+        #: When the supervisor starts an ended worker again (``None``: one runs, rule 3).
+        self._restart_at: float | None = None
         self._pending: dict[int, Future] = {}
         #: Buses e-stopped by a call since their last reset (rule 2): the next worker e-stops
         #: them as it starts.
@@ -245,12 +254,15 @@ class WorkerProcess:
         of its bus threads keeps its schedule (systemd's watchdog is pinged only while every
         worker does)."""
         process = self.process
-        return (
-            process is not None
-            and process.poll() is None
-            and not self._silent_too_long()
-            and all(beat[0] for beat in self.beat.values())
-        )
+        if process is None or process.poll() is not None:
+            return self._restarting()
+        return not self._silent_too_long() and all(beat[0] for beat in self.beat.values())
+
+    def _restarting(self) -> bool:
+        """The worker ended and its supervisor waits to start it again, due within ``STALL_S``
+        (rule 3)."""
+        restart_at = self._restart_at
+        return restart_at is not None and now() < restart_at + STALL_S
 
     def _silent_too_long(self) -> bool:
         """Silent for ``STALL_S`` since its last word (``SLOW_START_S`` before its first)."""
@@ -265,11 +277,14 @@ class WorkerProcess:
                 self._ended(process)
             except Exception:  # a bug, or no process to be had (EMFILE): try again
                 log.exception("worker %d: its supervisor failed", self.index)
-            delay_s = restart_delay(delay_s, spoke=self._spoken)
+            ran_s = now() - self._first_word_at if self._spoken else 0.0
+            delay_s = restart_delay(delay_s, steady=ran_s >= STEADY_S)
+            self._restart_at = now() + delay_s
             if delay_s > RESTART_S:
                 log.warning(
-                    "worker %d ended before its first word: started again in %.0f s",
+                    "worker %d ended %s: started again in %.0f s",
                     self.index,
+                    f"{ran_s:.1f} s after its first word" if ran_s else "before its first word",
                     delay_s,
                 )
             if self._stopping.wait(delay_s):
@@ -295,6 +310,7 @@ class WorkerProcess:
             estopped |= self._estopped
             outbox.put(("start", self.config, list(self.runners), sorted(estopped)))
             self.process, self.outbox, self.last_word = process, outbox.start(), now()
+            self._restart_at = None
         self._spoken = False
         # The claims that stand, once the outbox is the worker's: a change made meanwhile
         # comes after them, in order (``ForwardedClaims.hand_over``).
@@ -357,7 +373,9 @@ class WorkerProcess:
                 continue
             if message is None:
                 break
-            self.last_word, self._spoken = now(), True
+            if not self._spoken:
+                self._first_word_at, self._spoken = now(), True
+            self.last_word = now()
             for said in link.unbatched(message):
                 handle = self._HANDLERS.get(said[0])
                 if handle is None:
