@@ -297,18 +297,34 @@ def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Serv
 def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims_that_stand(
     served: Served, client
 ) -> None:
-    """An e-stop pressed while a worker hangs waits in its socket, never carried out: the
-    new worker carries it out (it was lost: the device moved on its next command)."""
+    """A trajectory across the hung worker's bus and another worker's is aborted within half
+    a second, not when the worker is killed 4 s later (the other bus's device went on along
+    the path meanwhile). An e-stop pressed while a worker hangs waits in its socket, never
+    carried out: the new worker carries it out (it was lost: the device moved on its next
+    command)."""
     bus = "uart1"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
+    other = next(b for b in BUSES if served.worker_of(b) != victim)
     # Renewed only every 10 s: what the new worker knows of the claim is what it was handed.
     with (
         client.device(device).claim(ttl_s=30),
         bc.connect(served.endpoint, client_id="late") as late,
     ):
+        points = [{"t_s": 2.0, "positions": [300, 1700]}, {"t_s": 4.0, "positions": [1700, 300]}]
+        playing = client.play([device, DEVICES[other]], points)
+        time.sleep(0.5)
         os.kill(victim, signal.SIGSTOP)  # alive, and silent: as a worker stuck for good
         try:
+            hung_at = time.monotonic()
+            result = playing.wait(timeout=10)
+            assert result["result"] == "aborted"
+            assert result["reason"] == f"{device}'s bus silent for 0.5 s"
+            assert time.monotonic() - hung_at < 2.0  # the worker is killed at 4 s
+            mark_other = served.marks()[other]
+            time.sleep(0.3)
+            ticks = [f for _, f in served.frames(other, mark_other) if tick_targets(f) is not None]
+            assert ticks == []  # the other bus's device stopped with the trajectory
             client.estop("gw1")
             mark = served.marks()[bus]
             assert bus in served.gateway.wait_for("silent for")

@@ -249,14 +249,15 @@ class WorkerProcess:
                 process.wait()
         self._supervisor.join(STOP_S)
 
-    def keeping_schedule(self) -> bool:
-        """The worker is running, is not taken for hung (``_silent_too_long``) and says each
-        of its bus threads keeps its schedule (systemd's watchdog is pinged only while every
-        worker does)."""
+    def keeping_schedule(self, stall_s: float = STALL_S) -> bool:
+        """The worker is running, has said a word within ``stall_s`` (``_silent_too_long``)
+        and says each of its bus threads keeps its schedule (systemd's watchdog is pinged only
+        while every worker does; a trajectory plays only while its buses' workers do, within
+        half a second)."""
         process = self.process
         if process is None or process.poll() is not None:
             return self._restarting()
-        return not self._silent_too_long() and all(beat[0] for beat in self.beat.values())
+        return not self._silent_too_long(stall_s) and all(beat[0] for beat in self.beat.values())
 
     def _restarting(self) -> bool:
         """The worker ended and its supervisor waits to start it again, due within ``STALL_S``
@@ -264,9 +265,9 @@ class WorkerProcess:
         restart_at = self._restart_at
         return restart_at is not None and now() < restart_at + STALL_S
 
-    def _silent_too_long(self) -> bool:
-        """Silent for ``STALL_S`` since its last word (``SLOW_START_S`` before its first)."""
-        return now() - self.last_word > (STALL_S if self._spoken else SLOW_START_S)
+    def _silent_too_long(self, stall_s: float = STALL_S) -> bool:
+        """Silent for ``stall_s`` since its last word (``SLOW_START_S`` before its first)."""
+        return now() - self.last_word > (stall_s if self._spoken else SLOW_START_S)
 
     def _supervise(self) -> None:
         delay_s = 0.0
@@ -497,7 +498,7 @@ class WorkerRunner:
         return process is not None and process.poll() is None
 
     def keeping_schedule(self, stall_s: float = STALL_S) -> bool:
-        return self.worker.keeping_schedule()
+        return self.worker.keeping_schedule(stall_s)
 
     def statistics(self) -> BusStats:
         beat = self.worker.beat.get(self.name)

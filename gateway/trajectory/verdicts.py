@@ -6,7 +6,10 @@ Rules of this file:
 3. Watched on the loop's thread (``tick``), a running trajectory ends ``succeeded`` once every
    device has been sent its last point's value (the first tick at or after it) and is within
    its goal tolerance (at once without one), else is ``aborted`` (each device holding, a speed
-   ramped to 0) on: an e-stop, a device offline, its client gone, a claim it played under
+   ramped to 0) on: an e-stop, a device offline, a device whose bus thread (or bus worker)
+   has been silent for ``SILENT_S`` (the other buses' devices would go on along a path this
+   one no longer follows: a hung worker went unnoticed for 4 s, until it was killed), its
+   client gone, a claim it played under
    lost, a device claimed by another client, a device its bus took out of it (it could no
    longer take its target, or every device was stopped: ``Plays.refusal``), a measured value
    off the path by more than its path tolerance (compared with the path at the moment the
@@ -27,6 +30,9 @@ from busgate.gateway.trajectory.members import Member, Running
 #: sends each device that point's value (the next slot, a period at most) before it is
 #: aborted: a bus that stopped ticking without any other reason to abort.
 LAST_TICK_WAIT_S = 1.0
+#: How long a member's bus thread, or its bus worker, may go without turning its loop or
+#: saying a word (every 50 and 100 ms while well) before the trajectory is aborted (rule 3).
+SILENT_S = 0.5
 
 
 def verdict(running: Running, moment: float) -> tuple[str, ...] | None:
@@ -37,6 +43,8 @@ def verdict(running: Running, moment: float) -> tuple[str, ...] | None:
             return ("aborted", "estop")
         if not driver.online:
             return ("aborted", f"{member.name} offline")
+        if not member.runner.keeping_schedule(SILENT_S):
+            return ("aborted", f"{member.name}'s bus silent for {SILENT_S:g} s")
         claim = _claim_problem(member, running.client)
         if claim is not None:
             return ("aborted", claim)
