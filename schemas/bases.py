@@ -8,7 +8,10 @@ Rules of this file:
    ``scale`` turns one side round). A device is in one base at most.
 2. Every limit must be one the wheels can reach: ``max_linear_mps`` straight ahead, and
    ``max_angular_radps`` turning on the spot, each within the wheels' ``max_velocity`` (or
-   their top speed); a base that promises what its wheels cannot do is refused, naming both.
+   their top speed), and ``max_linear_accel`` and ``max_angular_accel`` so, each within the
+   wheels' ``max_acceleration``; a base that promises what its wheels cannot do is refused,
+   naming both. (Both at once may ask a wheel more: the drive holds each wheel within its
+   own limits as it goes, ``kinematics`` rules 2 and 3.)
 3. Checked with the rest of the config (``schemas.config``), before any port is opened.
 4. What the base's keys take (below) is validated as every command is: strict, closed,
    finite; a twist beyond the base's limits is not refused but scaled down (``kinematics``).
@@ -64,12 +67,10 @@ class BaseConfig(BaseModel):
             raise ValueError(f"left and right are both {self.left!r}: a base has two wheels")
         return self
 
-    def wheel_speed_needed(self) -> tuple[float, float]:
-        """The wheel speeds (rad/s) the limits ask: straight ahead at ``max_linear_mps``, and
-        turning on the spot at ``max_angular_radps`` (rule 2)."""
-        straight = self.max_linear_mps / self.wheel_radius_m
-        spin = self.max_angular_radps * self.track_m / 2 / self.wheel_radius_m
-        return straight, spin
+    def wheel_needs(self, linear: float, angular: float) -> tuple[float, float]:
+        """What a wheel is asked, straight ahead at ``linear`` and turning on the spot at
+        ``angular`` (speeds in m/s and rad/s give rad/s; accelerations, rad/s²: rule 2)."""
+        return linear / self.wheel_radius_m, angular * self.track_m / 2 / self.wheel_radius_m
 
 
 def reachable_radps(joint: Joint) -> float:
@@ -79,22 +80,30 @@ def reachable_radps(joint: Joint) -> float:
     return reachable if joint.max_velocity is None else min(reachable, joint.max_velocity)
 
 
-def wheel_problem(base: BaseConfig, side: str, reachable_radps: float) -> str | None:
-    """Why a wheel that turns at most ``reachable_radps`` cannot serve ``base`` (rule 2)."""
-    straight, spin = base.wheel_speed_needed()
-    wheel = getattr(base, side)
-    if straight > reachable_radps * (1 + 1e-9):
-        return (
-            f"max_linear_mps {base.max_linear_mps:g} needs the wheels at {straight:.4g} rad/s "
-            f"({base.max_linear_mps:g} / wheel_radius_m {base.wheel_radius_m:g}), but {side} "
-            f"wheel {wheel!r} turns at most {reachable_radps:.4g} rad/s"
-        )
-    if spin > reachable_radps * (1 + 1e-9):
-        return (
-            f"max_angular_radps {base.max_angular_radps:g} needs the wheels at {spin:.4g} rad/s "
-            f"(× track_m / 2 / wheel_radius_m), but {side} wheel {wheel!r} turns at most "
-            f"{reachable_radps:.4g} rad/s"
-        )
+def reachable_radps2(joint: Joint) -> float:
+    """How fast a wheel's speed may change, rad/s²: its joint's ``max_acceleration``."""
+    return math.inf if joint.max_acceleration is None else joint.max_acceleration
+
+
+def wheel_problem(base: BaseConfig, side: str, joint: Joint) -> str | None:
+    """Why the wheel ``side`` of ``base``, ``joint``, cannot serve it (rule 2)."""
+    speed, accel = reachable_radps(joint), reachable_radps2(joint)
+    straight, spin = base.wheel_needs(base.max_linear_mps, base.max_angular_radps)
+    straight_accel, spin_accel = base.wheel_needs(base.max_linear_accel, base.max_angular_accel)
+    radius = f"/ wheel_radius_m {base.wheel_radius_m:g}"
+    on_the_spot = "× track_m / 2 / wheel_radius_m"
+    needs = (  # (key, its limit, how the wheel's need follows, the need, what it has, unit)
+        ("max_linear_mps", base.max_linear_mps, radius, straight, speed, "rad/s"),
+        ("max_angular_radps", base.max_angular_radps, on_the_spot, spin, speed, "rad/s"),
+        ("max_linear_accel", base.max_linear_accel, radius, straight_accel, accel, "rad/s²"),
+        ("max_angular_accel", base.max_angular_accel, on_the_spot, spin_accel, accel, "rad/s²"),
+    )
+    for key, limit, how, needed, reachable, unit in needs:
+        if needed > reachable * (1 + 1e-9):
+            return (
+                f"{key} {limit:g} needs the wheels at {needed:.4g} {unit} ({limit:g} {how}), "
+                f"but {side} wheel {getattr(base, side)!r} reaches at most {reachable:.4g} {unit}"
+            )
     return None
 
 

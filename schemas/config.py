@@ -32,7 +32,7 @@ from pydantic import (
 
 from busgate.errors import ConfigError
 from busgate.schemas.base import KEY_PREFIX_PATTERN, Name
-from busgate.schemas.bases import BaseConfig, reachable_radps, wheel_problem
+from busgate.schemas.bases import BaseConfig, wheel_problem
 from busgate.schemas.endpoints import Endpoint, ListenEndpoint, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
@@ -291,7 +291,7 @@ def _check_bases(bases: list[BaseConfig], buses: list[SerialBus | CanBus]) -> No
                     f"{path}: {name!r} must be a velocity joint in rad (a joint table with "
                     'unit = "rad" and its scale, rad a pulse): the base speaks rad/s'
                 )
-            problem = wheel_problem(base, side, reachable_radps(joint))
+            problem = wheel_problem(base, side, joint)
             if problem is not None:
                 raise ValueError(f"bases[{index}]: {problem}")
 

@@ -56,10 +56,15 @@ def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None
     ({"right": "wl"}, "left and right are both 'wl'"),
     ({"max_linear_mps": 2.0}, "max_linear_mps 2 needs the wheels at 24.24 rad/s"),
     ({"max_angular_radps": 9.0}, "max_angular_radps 9 needs the wheels at 21.82 rad/s"),
+    ({"left": "slow"}, "max_linear_accel 2 needs the wheels at 24.24 rad/s² (2 / wheel_radius_m "
+                       "0.0825), but left wheel 'slow' reaches at most 10 rad/s²"),
+    ({"left": "slow", "max_linear_accel": 0.5},
+     "max_angular_accel 6 needs the wheels at 14.55 rad/s²"),
 ])
 def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None:
+    """Speeds and accelerations alike (``slow``: a wheel of 10 rad/s² at most)."""
     with pytest.raises(ConfigError, match=re.escape(words)):
-        config_of([BASE | change])
+        config_of([BASE | change], slow=LEFT | {"name": "slow", "max_acceleration": 10.0})
 
 
 def test_a_wheel_in_two_bases_or_without_a_joint_in_rad_is_refused() -> None:

@@ -55,6 +55,7 @@ from busgate.schemas.bases import (
     TwistCommand,
     TwistTarget,
     reachable_radps,
+    reachable_radps2,
 )
 from busgate.schemas.payload import decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
@@ -133,7 +134,6 @@ class Bases:
             Wheel(config.right, *self.api.devices[config.right]),
         )
         left, right = wheels[0].driver.joint, wheels[1].driver.joint
-        reachable = min(reachable_radps(left), reachable_radps(right))
         geometry = Geometry(
             config.wheel_radius_m,
             config.track_m,
@@ -141,7 +141,8 @@ class Bases:
             config.max_angular_radps,
             config.max_linear_accel,
             config.max_angular_accel,
-            reachable,
+            min(reachable_radps(left), reachable_radps(right)),
+            min(reachable_radps2(left), reachable_radps2(right)),
         )
         return LiveBase(config, wheels, Drive(geometry, left, right), Odometry(geometry))
 

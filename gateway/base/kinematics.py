@@ -11,8 +11,9 @@ Rules of this file:
    (angular / linear) the client asked for is the one driven.
 3. Acceleration moves the twist toward its target along the straight line between them in
    (linear, angular), by at most ``max_linear_accel × dt`` and ``max_angular_accel × dt`` in
-   each, one factor for both: from rest to a twist the curvature holds all the way, and a
-   stop decelerates both together.
+   each, and each wheel's speed by at most ``max_wheel_accel × dt`` (its joint's
+   ``max_acceleration``), one factor for all: from rest to a twist the curvature holds all
+   the way, and a stop decelerates both together.
 4. Odometry integrates the wheels' measured positions (encoder pulses, through their joints),
    never commanded speeds, at the midpoint heading of each step. Its twist is measured over
    the last ``TWIST_WINDOW_S`` at least: steps between two wheels' heartbeats are a few ms,
@@ -47,6 +48,7 @@ class Geometry:
     max_linear_accel: float
     max_angular_accel: float
     max_wheel: float = math.inf  # rad/s, what each wheel may turn
+    max_wheel_accel: float = math.inf  # rad/s², how fast each wheel's speed may change
 
     def wheels(self, twist: Twist) -> tuple[float, float]:
         """(left, right) wheel speeds in rad/s of ``twist``."""
@@ -75,9 +77,11 @@ class Geometry:
     def step(self, now: Twist, target: Twist, dt_s: float) -> Twist:
         """The twist ``dt_s`` after ``now`` on its way to ``target`` (rule 3)."""
         d_linear, d_angular = target.linear - now.linear, target.angular - now.angular
+        wheel_step = self.max_wheel_accel * dt_s
         factor = min(
             _room(d_linear, self.max_linear_accel * dt_s),
             _room(d_angular, self.max_angular_accel * dt_s),
+            *(_room(d, wheel_step) for d in self.wheels(Twist(d_linear, d_angular))),
         )
         if factor >= 1.0:
             return target
