@@ -201,6 +201,20 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
             problems.append(
                 (key, f"{value:g} {table.unit} is outside the device's range {low:g}–{high:g}")
             )
+    if problems or (table.min is None and table.max is None):
+        return problems
+    si_low = low if table.min is None else table.min
+    si_high = high if table.max is None else table.max
+    raw_ends = ((si_low - table.offset) / table.scale, (si_high - table.offset) / table.scale)
+    first, last = whole_counts(raw_ends, declaration.raw_range)
+    if first > last:  # a target would be rounded outside them (rule 2)
+        problems.append(
+            (
+                "min",
+                f"{si_low:g}–{si_high:g} {table.unit} holds no whole count of the device (one "
+                f"count is {abs(table.scale):g} {table.unit}): widen the limits",
+            )
+        )
     return problems
 
 
@@ -222,6 +236,16 @@ def table_warnings(declaration: JointDeclaration, table: JointTable) -> list[tup
 
 def _slack(value: float) -> float:
     return ON_THE_LIMIT * max(1.0, abs(value))
+
+
+def whole_counts(raw_ends: tuple[float, float], raw_range: tuple[int, int]) -> tuple[int, int]:
+    """The first and last whole raw counts between two raw positions (in either order) and
+    within ``raw_range``; the first past the last when there is none."""
+    low, high = sorted(raw_ends)
+    return (
+        max(math.ceil(low - _slack(low)), raw_range[0]),
+        min(math.floor(high + _slack(high)), raw_range[1]),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -291,11 +315,8 @@ class Joint:
     @property
     def raw_limits(self) -> tuple[int, int]:
         """The whole raw positions inside the limits and the device's range (rule 2)."""
-        ends = sorted((self.position_raw(self.min), self.position_raw(self.max)))
-        low = math.ceil(ends[0] - _slack(ends[0]))
-        high = math.floor(ends[1] + _slack(ends[1]))
-        range_low, range_high = self.declaration.raw_range
-        return max(low, range_low), min(high, range_high)
+        ends = (self.position_raw(self.min), self.position_raw(self.max))
+        return whole_counts(ends, self.declaration.raw_range)
 
     @property
     def limited(self) -> bool:

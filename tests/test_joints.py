@@ -177,6 +177,9 @@ def config_with(joint: dict, kind: str = "inspire_la") -> dict:
     ({"unit": "furlong", "scale": 1e-5}, "joint.unit", "'m' or 'rad'"),
     ({"unit": "m", "scale": 1e-5, "max_velocity": -1.0}, "joint.max_velocity", "greater than 0"),
     ({"unit": "m", "scale": 1e-5, "maxx": 1.0}, "joint", "did you mean `max`"),
+    # min and max within one count (5 µm): a target between them rounded outside them
+    ({"unit": "m", "scale": 5e-6, "min": 0.0050001, "max": 0.0050004}, "joint.min",
+     "0.0050001–0.0050004 m holds no whole count of the device"),
 ])
 def test_the_config_refuses_a_joint_table_naming_the_key(joint, path, words):
     with pytest.raises(ConfigError, match=words) as refused:
