@@ -39,6 +39,9 @@ from busgate.schemas.joints import Joint
 #: A base's name, as every name (``<p>/<gw>/base/<name>/cmd``).
 BaseName = Name
 Positive = Annotated[float, Field(gt=0, le=1e6)]
+#: A wheel's radius or the track between the wheels, m: a millimetre at least (a track of
+#: 1e-300 m passed, and the odometry's turn, divided by it, overflows), 100 m at most.
+Length = Annotated[float, Field(ge=0.001, le=100.0)]
 #: The longest a twist without a new one may drive the base (``cmd_timeout_s``) and the
 #: longest ``duration_s`` a twist may ask.
 MAX_HOLD_S = 10.0
@@ -53,8 +56,8 @@ class BaseConfig(BaseModel):
     kind: Literal["diff_drive"] = "diff_drive"
     left: str
     right: str
-    wheel_radius_m: Positive
-    track_m: Positive
+    wheel_radius_m: Length
+    track_m: Length
     max_linear_mps: Positive
     max_angular_radps: Positive
     max_linear_accel: Positive

@@ -60,6 +60,7 @@ def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None
                        "0.0825), but left wheel 'slow' reaches at most 10 rad/s²"),
     ({"left": "slow", "max_linear_accel": 0.5},
      "max_angular_accel 6 needs the wheels at 14.55 rad/s²"),
+    ({"track_m": 1e-300}, "bases[0].track_m: Input should be greater than or equal to 0.001"),
 ])
 def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None:
     """Speeds and accelerations alike (``slow``: a wheel of 10 rad/s² at most)."""
