@@ -15,6 +15,7 @@ port.
 
 from __future__ import annotations
 
+import json
 import os
 import tomllib
 from pathlib import Path
@@ -62,7 +63,8 @@ def _workers_value(value: object) -> object:
     if value == "auto" or (type(value) is int and 1 <= value <= MAX_WORKERS):
         return value
     raise ValueError(
-        f'"auto" or a whole number of processes from 1 to {MAX_WORKERS}, not {value!r}'
+        f'"auto" or a whole number of processes from 1 to {MAX_WORKERS}, '
+        f"not {json.dumps(value, default=repr)}"  # as TOML spells it: true, "AUTO"
     )
 
 

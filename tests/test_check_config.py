@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from busgate.gateway.cli import check_config as check_config_module
 from busgate.gateway.cli import main
+from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas.config import CanBus, SerialBus, load_config
 from tests.gateway_process import BUSGATE
@@ -277,7 +277,7 @@ def test_more_workers_than_the_cores_this_host_gives_are_a_warning(tmp_path, cap
     path = tmp_path / "gateway.toml"
     path.write_text('[gateway]\nname = "gw"\nworkers = 2\n' + la_buses(tmp_path, (1,), (2,)))
     for cores, warned in ((2, False), (1, True)):
-        monkeypatch.setattr(check_config_module, "usable_cores", lambda c=cores: c)
+        monkeypatch.setattr(workers_module, "usable_cores", lambda c=cores: c)
         assert main(["check-config", str(path)]) == 0
         warning = ('warning: gateway.workers: 2 workers on this host\'s 1 core(s) take turns on '
                    'them; "auto" makes one a core')

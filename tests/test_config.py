@@ -100,11 +100,12 @@ def test_buses_are_split_across_a_worker_per_core_unless_told_and_a_bad_value_is
     for count in (1, 64):
         config = parse_config({**BASE, "gateway": {"name": "gw1", "workers": count}})
         assert config.gateway.workers == count
-    for bad in (0, 65, -1, 2.0, "AUTO", "2", True, None, []):
+    for bad, spelt in ((0, "0"), (65, "65"), (-1, "-1"), (2.0, "2.0"), ("AUTO", '"AUTO"'),
+                       ("2", '"2"'), (True, "true"), (None, "null"), ([], "[]")):
         error = refused(lambda d, b=bad: d["gateway"].update(workers=b))
         assert error.path == "gateway.workers"
         assert str(error) == (
-            f'gateway.workers: "auto" or a whole number of processes from 1 to 64, not {bad!r}'
+            f'gateway.workers: "auto" or a whole number of processes from 1 to 64, not {spelt}'
         )
 
 

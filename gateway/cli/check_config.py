@@ -23,8 +23,7 @@ from busgate.gateway.bus.can_owner import unknown_interface
 from busgate.gateway.bus.port_access import missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
-from busgate.gateway.service.cores import usable_cores
-from busgate.gateway.service.workers import placement
+from busgate.gateway.service.workers import placement, too_many
 from busgate.schemas.config import CanBus, Config, SerialBus, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings
 
@@ -50,11 +49,8 @@ def check_config(args: argparse.Namespace) -> int:
     print(f"{args.file}: valid; {_overview(config)}")
     groups = placement(config)
     print(_workers(config, groups))
-    if len(groups) > (cores := usable_cores()):
-        print(
-            f"warning: gateway.workers: {len(groups)} workers on this host's {cores} core(s) "
-            'take turns on them; "auto" makes one a core'
-        )
+    if (crowded := too_many(len(groups))) is not None:
+        print(f"warning: {crowded}")
     if config.recorder is not None and (problem := folder_problem(Path(config.recorder.dir))):
         print(
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "

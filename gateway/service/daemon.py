@@ -53,7 +53,7 @@ from busgate.gateway.service.assembly import (
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
-from busgate.gateway.service.workers import WorkerProcess, placement
+from busgate.gateway.service.workers import WorkerProcess, placement, too_many
 from busgate.schemas.config import CanBus, Config, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings
 
@@ -321,9 +321,12 @@ async def _ready_when_open(
 def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProcess]:
     """The bus workers ``[gateway] workers`` asks for (none: every bus here), each given the
     buses ``placement`` chose, whose runners here become their shadows (``service.workers``)."""
+    groups = placement(config)
+    if (crowded := too_many(len(groups))) is not None:
+        log.warning("%s", crowded)
     return [
         WorkerProcess(index, config, [runners[name] for name in group])
-        for index, group in enumerate(placement(config))
+        for index, group in enumerate(groups)
     ]
 
 

@@ -114,6 +114,18 @@ def placement(config: Config) -> list[list[str]]:
     return split(config, names, count) if count else []
 
 
+def too_many(workers: int) -> str | None:
+    """Why ``workers`` workers are more than this host's cores serve (``check-config`` and
+    ``busgate run`` say it), ``None`` when they are not."""
+    cores = usable_cores()
+    if workers <= cores:
+        return None
+    return (
+        f"gateway.workers: {workers} workers on this host's {cores} core(s) take turns on "
+        'them; "auto" makes one a core'
+    )
+
+
 def split(config: Config, names: list[str], count: int) -> list[list[str]]:
     """The buses ``names`` (``movable``) in ``count`` workers: the busiest first onto the least
     loaded, by what the config's traffic takes of each bus's wire (its budget)."""
