@@ -19,17 +19,18 @@ Rules of this file:
    wildcard (a fleet's command: each gateway with the device answers). A query that names
    nothing here is dropped unanswered (rule 2's one exception), left to those it names.
 6. A flood of puts or gets never holds up an e-stop. Every key a client puts or gets on
-   but the e-stop's is taken through an ``Intake`` (``intake`` rules): zenoh's receiving
-   threads never wait on Python, and the e-stop and its reset run on the receiving thread
-   itself, with no thread of ours to wake. What still waits for its intake's thread when an
-   e-stop comes was put before it: commands, follow targets, twists and trajectory commands
-   so waiting are never carried out, so that none moves a device after a reset that follows
-   at once (a query is answered ``estopped``, a put dropped). A ring is one a key, for every
-   device: a flood past what its thread takes (thousands of commands, tens of thousands of
-   follow targets a second) drops other devices' puts and queries on that key too. Two
-   clients putting on a ``cmd`` key as fast as they could held an e-stop 0.2-2 s before it
-   reached the buses; two flooding follow targets, 48-62 ms at the median (docs/performance.md,
-   "An e-stop under a flood of follow targets", "... of commands").
+   but the e-stop's, and the clients' liveliness tokens, are taken through an ``Intake``
+   (``intake`` rules): zenoh's receiving threads never wait on Python, and the e-stop and
+   its reset run on the receiving thread itself, with no thread of ours to wake. What still
+   waits for its intake's thread when an e-stop comes was put before it: commands, follow
+   targets, twists and trajectory commands so waiting are never carried out, so that none
+   moves a device after a reset that follows at once (a query is answered ``estopped``, a
+   put dropped). A ring is one a key, for every device: a flood past what its thread takes
+   (thousands of commands, tens of thousands of follow targets a second) drops other
+   devices' puts and queries on that key too. Two clients putting on a ``cmd`` key as fast
+   as they could held an e-stop 0.2-2 s before it reached the buses; two flooding follow
+   targets, 48-62 ms at the median (docs/performance.md, "An e-stop under a flood of follow
+   targets", "... of commands").
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ import zenoh
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
-from busgate.gateway.api.intake import Intake, take_puts, take_queries
+from busgate.gateway.api.intake import Intake, take_liveliness, take_puts, take_queries
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.base.bases import Bases
@@ -180,12 +181,12 @@ class ZenohBridge:
             commands(session, f"{base}/base/*/cmd", self._base_query, "base-commands"),
             puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
             take_queries(session, f"{base}/info", self._on_info, "info"),
+            take_liveliness(session, f"{prefix}/clients/*", self._on_client, "clients"),
         ]
         self._keep = [
             session.declare_subscriber(
                 f"{base}/estop/**", zenoh.handlers.Callback(self._on_estop_or_reset, indirect=False)
             ),
-            session.liveliness().declare_subscriber(f"{prefix}/clients/*", self._on_client),
             session.liveliness().declare_token(f"{base}/alive"),
         ]
         drop = zenoh.CongestionControl.DROP

@@ -98,3 +98,12 @@ def take_queries(
     """The queries on ``key``, each handed to ``handle`` on the thread ``name``."""
     ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(BACKLOG)
     return Intake(name, session.declare_queryable(key, ring), handle)
+
+
+def take_liveliness(
+    session: zenoh.Session, key: str, handle: Callable[[zenoh.Sample], None], name: str
+) -> Intake[zenoh.Sample]:
+    """The liveliness tokens' comings and goings on ``key``, each handed to ``handle`` on the
+    thread ``name``."""
+    ring: zenoh.handlers.RingChannel[zenoh.Sample] = zenoh.handlers.RingChannel(BACKLOG)
+    return Intake(name, session.liveliness().declare_subscriber(key, ring), handle)

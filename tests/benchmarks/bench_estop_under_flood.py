@@ -6,13 +6,14 @@ process, on 127.0.0.1 with multicast scouting off, over one LA bus that is never
 that what is timed is zenoh and the bridge alone: from a client's put on the e-stop key to the
 moment the bridge hands the e-stop to its buses (``GatewayApi.stop_every_bus``). ``--floods``
 child processes send to ``la1`` as fast as they can meanwhile (each its own session, as a
-runaway control loop would), by ``--kind``: follow targets, commands put, or commands got
-(never waiting for the answers); each ends by its PID. The commands are ones no device
+runaway control loop would), by ``--kind``: follow targets, commands put, commands got
+(never waiting for the answers), or clients' liveliness tokens declared and undeclared;
+each ends by its PID. The commands are ones no device
 takes, refused at once: what is timed is the flood's cost to zenoh and the bridge. Printed:
 p50, p90 and the worst of ``--estops`` e-stops, with no flood and with it.
 
     .venv/bin/python tests/benchmarks/bench_estop_under_flood.py [--floods 2] [--estops 25]
-        [--kind follow|cmd-put|cmd-get]
+        [--kind follow|cmd-put|cmd-get|clients]
 
 Run with another checkout's interpreter (``OTHER/.venv/bin/python tests/benchmarks/...``) it
 times that checkout's bridge.
@@ -59,6 +60,7 @@ FLOODS = {
     "cmd-put": """session.put("busgate/gw1/dev/la1/cmd", b'{"op": "no such op"}')""",
     "cmd-get": """session.get(
         "busgate/gw1/dev/la1/cmd", lambda reply: None, payload=b'{"op": "no such op"}')""",
+    "clients": """session.liveliness().declare_token(f"busgate/clients/flood{n}").undeclare()""",
 }
 #: The e-stop's put, as the SDK puts it.
 URGENT = {
