@@ -7,6 +7,7 @@ as a user would run them. Everything stays on 127.0.0.1 with multicast scouting 
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -99,6 +100,23 @@ def answer_unknown(query: zenoh.Query) -> None:
             "code": "unknown_device", "message": f"no device {device!r} on gateway gwtwo"}}))
 
 
+def answer_info(gateway: str, protocol: str, devices: dict[str, int]):
+    """What gateway ``gateway`` answers ``info``: one bus of ``protocol`` with ``devices``
+    (name: id), none read yet. ``send`` asks it first for a bare device name."""
+    kind = {"inspire_la": "inspire_la", "ds_servo": "ds_servo"}[protocol]
+    body = json.dumps({"ok": True, "gateway": gateway, "version": "9", "buses": [{
+        "name": "bus0", "protocol": protocol, "devices": [
+            {"name": name, "kind": kind, "id": device_id, "state": None}
+            for name, device_id in devices.items()]}]})
+
+    def answer(query: zenoh.Query) -> None:
+        time.sleep(0.05)
+        with query:
+            query.reply(f"busgate/{gateway}/info", body)
+
+    return answer
+
+
 def answer_ok(query: zenoh.Query) -> None:
     with query:
         query.reply(query.key_expr, json.dumps({"ok": True, "data": {"ids": [1, 2]}}))
@@ -117,14 +135,23 @@ def publish_forever(session: zenoh.Session, stop: threading.Event) -> None:
         session.put("busgate/*/bus/*/stats", json.dumps(uart0_stats(1.0)))
 
 
-@pytest.fixture
-def stand_in(free_port) -> Iterator[StandIn]:
+@contextlib.contextmanager
+def stand_in_peer(free_port, *, info: bool) -> Iterator[StandIn]:
+    """A zenoh peer playing gateways ``gwtest`` and ``gwtwo``: their commands and states, and
+    with ``info`` their ``info`` (answered 50 ms late, as a busy gateway's)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(session_config(mode="peer", listen=[endpoint]))
     stand_in = StandIn(endpoint, session)
     stop = threading.Event()
     publisher = threading.Thread(target=publish_forever, args=(session, stop), daemon=True)
     try:
+        if info:
+            stand_in.held += [
+                session.declare_queryable("busgate/gwtest/info", answer_info(
+                    "gwtest", "inspire_la", {"la1": 1, "both": 2, "mute": 3})),
+                session.declare_queryable("busgate/gwtwo/info", answer_info(
+                    "gwtwo", "ds_servo", {"both": 2, "ds1": 1})),
+            ]
         stand_in.held += [
             session.declare_queryable("busgate/gwtest/dev/la1/cmd",
                                       lambda query: answer_la1(stand_in, query)),
@@ -146,6 +173,20 @@ def stand_in(free_port) -> Iterator[StandIn]:
             if isinstance(held, zenoh.Query):
                 held.drop()
         session.close()
+
+
+@pytest.fixture
+def stand_in(free_port) -> Iterator[StandIn]:
+    """The stand-in gateways, ``info`` and all: a bare name is looked up there first."""
+    with stand_in_peer(free_port, info=True) as peer:
+        yield peer
+
+
+@pytest.fixture
+def states_only(free_port) -> Iterator[StandIn]:
+    """The stand-in gateways without ``info``: what ``watch`` shows of states alone."""
+    with stand_in_peer(free_port, info=False) as peer:
+        yield peer
 
 
 @pytest.fixture
@@ -199,8 +240,10 @@ def test_the_payload_goes_as_given_so_the_gateway_judges_bad_json(stand_in, caps
     assert stand_in.commands == [b"{not json"]
 
 
-def test_gateways_without_the_device_are_heard_only_when_none_has_it(stand_in, capsys):
-    # gwtwo answers unknown_device for every device, la1 included.
+def test_a_bare_name_goes_to_the_one_gateway_that_has_it_and_nowhere_when_none_does(
+    stand_in, capsys
+):
+    # gwtwo answers unknown_device for every device, la1 included: it is never asked.
     assert main(["send", "la1", '{"op":"move","position":7}',
                  "--connect", stand_in.endpoint]) == 0
     out, err = capsys.readouterr()
@@ -208,8 +251,10 @@ def test_gateways_without_the_device_are_heard_only_when_none_has_it(stand_in, c
 
     assert main(["send", "la9", "{}", "--connect", stand_in.endpoint]) == 1
     out, err = capsys.readouterr()
-    assert json.loads(out)["error"]["code"] == "unknown_device"
-    assert err.strip() == "busgate send: unknown_device: no device 'la9' on gateway gwtwo"
+    assert out == ""
+    assert err.strip() == ("busgate send: unknown_device: no device 'la9' on the gateways that "
+                           "answered (gwtest, gwtwo): nothing was sent")
+    assert stand_in.commands == [b'{"op":"move","position":7}']
 
     # Named by key, a gateway's refusal counts like any other error.
     assert main(["send", "busgate/*/dev/la1/cmd", '{"op":"move","position":7}',
@@ -246,8 +291,8 @@ def test_a_device_no_gateway_has_is_unknown_device_naming_the_gateways(gateway, 
     status = main(["send", "la9", '{"op":"status"}', "--connect", gateway])
     out, err = capsys.readouterr()
     assert (status, out) == (1, "")
-    assert err.strip() == \
-        "busgate send: unknown_device: no device 'la9' on the gateways that answered (gw1)"
+    assert err.strip() == ("busgate send: unknown_device: no device 'la9' on the gateways that "
+                           "answered (gw1): nothing was sent")
     assert main(["send", "la1", '{"op":"status"}', "--connect", gateway]) == 0
 
 
@@ -301,11 +346,22 @@ def test_an_argument_with_a_slash_is_the_key_expression(stand_in, capsys):
     assert json.loads(out) == {"ok": True, "data": {"ids": [1, 2]}}
 
 
-def test_every_gateway_with_the_device_answers(stand_in, capsys):
+def test_a_bare_name_two_gateways_have_is_refused_naming_them(stand_in, capsys):
     status = main(["send", "both", '{"op":"read"}', "--connect", stand_in.endpoint])
-    out, _ = capsys.readouterr()
-    assert status == 0
-    assert len(out.strip().splitlines()) == 2
+    out, err = capsys.readouterr()
+    assert (status, out) == (2, "")
+    assert err.strip() == ("busgate send: error: 2 gateways have a device 'both' (gwtest, "
+                           "gwtwo): name one, e.g. gwtest/both; nothing was sent")
+
+
+@pytest.mark.parametrize("argv", [["send", "la1", "\udcff"], ["send", "la\udcff", "{}"],
+                                  ["watch", "--once", "\udcff"]])
+def test_an_argument_that_is_no_utf8_is_one_line_and_exit_2(argv, capsys):
+    """A byte that is no UTF-8 on the command line raised a UnicodeEncodeError traceback."""
+    assert main(argv) == 2
+    _, err = capsys.readouterr()
+    assert err.endswith("is not UTF-8 text (the byte 0xff): nothing was done\n")
+    assert len(err.splitlines()) == 1
 
 
 def test_another_prefix_changes_the_selector(stand_in, capsys):
@@ -313,7 +369,23 @@ def test_another_prefix_changes_the_selector(stand_in, capsys):
                    "--connect", stand_in.endpoint])
     _, err = capsys.readouterr()
     assert status == 2
-    assert "other/*/dev/la1/cmd" in err
+    assert err.strip() == ("busgate send: no gateway answered on other/*/info within 0.3 s: "
+                           "nothing was sent to other/*/dev/la1/cmd")
+
+
+@pytest.mark.parametrize("put", [False, True])
+def test_a_bare_name_no_gateway_answers_for_in_time_is_sent_nowhere(stand_in, capsys, put):
+    """With a timeout too short for any gateway's info, the command went to every gateway's
+    key, and each gateway with the device carried it out (two robots' la1 moved, while
+    ``send`` said nobody answered)."""
+    status = main(["send", "la1", '{"op":"move","position":1001}', "--timeout", "0.001",
+                   *(["--put"] if put else []), "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert err.strip() == ("busgate send: no gateway answered on busgate/*/info within 0.001 s:"
+                           " nothing was sent to busgate/*/dev/la1/cmd")
+    time.sleep(0.3)
+    assert stand_in.commands == [] and stand_in.puts == []
 
 
 def test_put_is_fire_and_forget(stand_in, capsys):
@@ -324,7 +396,7 @@ def test_put_is_fire_and_forget(stand_in, capsys):
     deadline = time.monotonic() + 2
     while not stand_in.puts and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert stand_in.puts == [("busgate/*/dev/la1/cmd", b'{"op":"stop"}')]
+    assert stand_in.puts == [("busgate/gwtest/dev/la1/cmd", b'{"op":"stop"}')]
     assert stand_in.commands == []  # no query reached the queryable
 
 
@@ -343,7 +415,7 @@ def test_a_put_that_is_not_json_is_refused_here_and_nothing_is_sent(stand_in, ca
     deadline = time.monotonic() + 2
     while not stand_in.puts and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert stand_in.puts == [("busgate/*/dev/la1/cmd", b"")]  # the empty one went, not the other
+    assert stand_in.puts == [("busgate/gwtest/dev/la1/cmd", b"")]  # the empty one, not the other
 
 
 def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
@@ -392,8 +464,8 @@ def test_a_key_zenoh_would_refuse_is_one_line_and_exit_2(command, message, free_
 # -- watch ----------------------------------------------------------------------------------
 
 
-def test_watch_once_shows_every_device_and_bus(stand_in, capsys, caplog):
-    status = main(["watch", "--once", "--seconds", "0.8", "--connect", stand_in.endpoint])
+def test_watch_once_shows_every_device_and_bus(states_only, capsys, caplog):
+    status = main(["watch", "--once", "--seconds", "0.8", "--connect", states_only.endpoint])
     out, _ = capsys.readouterr()
     assert status == 0
     assert not [r for r in caplog.records if "failed its subscriber" in r.getMessage()]
@@ -415,8 +487,9 @@ def test_watch_once_shows_every_device_and_bus(stand_in, capsys, caplog):
     assert 150 < float(bus[3]) < 250  # frames/s between samples: 2 × 100 per second of uptime
 
 
-def test_watch_narrows_to_one_gateway(stand_in, capsys):
-    status = main(["watch", "gwtwo", "--once", "--seconds", "0.5", "--connect", stand_in.endpoint])
+def test_watch_narrows_to_one_gateway(states_only, capsys):
+    status = main(["watch", "gwtwo", "--once", "--seconds", "0.5",
+                   "--connect", states_only.endpoint])
     out, _ = capsys.readouterr()
     assert status == 0
     assert "ds1" in out and "la1" not in out and "uart0" not in out
@@ -424,26 +497,26 @@ def test_watch_narrows_to_one_gateway(stand_in, capsys):
     assert not out.startswith("GATEWAY")  # one gateway: no gateway column
 
 
-def test_watch_narrows_to_a_key_expression(stand_in, capsys):
+def test_watch_narrows_to_a_key_expression(states_only, capsys):
     status = main(["watch", "busgate/gwtest/dev/la1/**", "--once", "--seconds", "0.5",
-                   "--connect", stand_in.endpoint])
+                   "--connect", states_only.endpoint])
     out, _ = capsys.readouterr()
     assert status == 0
     device_rows = [line for line in out.splitlines()[1:] if line and not line.startswith("(")]
     assert [row.split()[0] for row in device_rows] == ["la1"]
 
 
-def test_watch_once_with_nothing_seen_exits_1(stand_in, capsys):
+def test_watch_once_with_nothing_seen_exits_1(states_only, capsys):
     status = main(["watch", "nobody", "--once", "--seconds", "0.3",
-                   "--connect", stand_in.endpoint])
+                   "--connect", states_only.endpoint])
     out, err = capsys.readouterr()
     assert status == 1
     assert "(no device seen)" in out
     assert "nothing seen on busgate/nobody/**" in err
 
 
-def test_watch_without_a_tty_prints_one_line_per_updated_row(stand_in, capsys):
-    status = main(["watch", "gwtest", "--seconds", "0.7", "--connect", stand_in.endpoint])
+def test_watch_without_a_tty_prints_one_line_per_updated_row(states_only, capsys):
+    status = main(["watch", "gwtest", "--seconds", "0.7", "--connect", states_only.endpoint])
     out, _ = capsys.readouterr()
     assert status == 0
     lines = out.splitlines()
@@ -456,7 +529,7 @@ def test_watch_without_a_tty_prints_one_line_per_updated_row(stand_in, capsys):
     assert any("bus=uart0 utilisation=25%" in line for line in lines)
 
 
-def test_watch_on_a_tty_redraws_in_place(stand_in):
+def test_watch_on_a_tty_redraws_in_place(states_only):
     class Terminal(io.StringIO):
         def isatty(self) -> bool:
             return True
@@ -470,9 +543,9 @@ def test_watch_on_a_tty_redraws_in_place(stand_in):
     assert all(screen.endswith("\x1b[J") and "la1" in screen for screen in screens)
 
 
-def test_ctrl_c_ends_a_live_watch_with_status_0(stand_in):
+def test_ctrl_c_ends_a_live_watch_with_status_0(states_only):
     watch = subprocess.Popen(
-        [sys.executable, "-m", "busgate.gateway.cli", "watch", "--connect", stand_in.endpoint],
+        [sys.executable, "-m", "busgate.gateway.cli", "watch", "--connect", states_only.endpoint],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )

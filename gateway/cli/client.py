@@ -136,17 +136,17 @@ def run_send(args: argparse.Namespace) -> int:
     with open_client(args, "send") as client:
         gateways = gateway_devices(client.gateways(args.timeout)) if bare_name else {}
         if bare_name:
-            key = _one_gateways_key(args, key, gateways)
+            holder = _one_gateway_with(args, gateways)
+            if holder is None:
+                return _no_holder(args, key, gateways)
+            key = command_key(args.prefix, f"{holder}/{args.target}")
         if args.put:
             client.put(key, payload)
             return 0
         answers = client.query(key, payload, timeout=args.timeout)
         outcomes = list(answers)
-        if bare_name:
-            outcomes = _from_gateways_that_have_it(outcomes)
     if not outcomes:
-        waited = args.timeout if answers.timed_out else None
-        return _no_reply(args.target, key, gateways, waited=waited)
+        return _no_reply(key, waited=args.timeout if answers.timed_out else None)
     status = 0
     for answer in outcomes:  # printable: a reply is a peer's text, escapes and all
         body = json.dumps(answer.body, indent=2 if args.pretty else None, ensure_ascii=False)
@@ -159,17 +159,37 @@ def run_send(args: argparse.Namespace) -> int:
     return status
 
 
-def _one_gateways_key(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]) -> str:
-    """For a bare device name: the key of the one gateway of ``gateways`` (their devices)
-    that has it, ``key`` (every gateway's) when none says it has; ``CommandError`` when
-    several do (nothing is sent)."""
+def _one_gateway_with(args: argparse.Namespace, gateways: dict[str, set[str]]) -> str | None:
+    """For a bare device name: the one gateway of ``gateways`` (their devices) that has it,
+    ``None`` when none does; ``CommandError`` when several do (nothing is sent)."""
     holders = sorted(gateway for gateway, names in gateways.items() if args.target in names)
     if len(holders) > 1:
         raise CommandError(
             f"{len(holders)} gateways have a device {args.target!r} ({', '.join(holders)}): "
             f"name one, e.g. {holders[0]}/{args.target}; nothing was sent"
         )
-    return command_key(args.prefix, f"{holders[0]}/{args.target}") if holders else key
+    return holders[0] if holders else None
+
+
+def _no_holder(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]) -> int:
+    """No gateway said it has the bare name's device: nothing is sent, never the command to
+    every gateway's key (a gateway that did not answer in time, or whose info was no
+    gateway's, would carry it out, and in a fleet so would every robot's). Those that
+    answered are named (exit 1); none answering is exit 2."""
+    if gateways:
+        print(
+            f"busgate send: unknown_device: no device {args.target!r} on the gateways that "
+            f"answered ({', '.join(sorted(gateways))}): nothing was sent",
+            file=sys.stderr,
+        )
+        return ERROR_REPLY
+    info = Keys(args.prefix).info("*")
+    print(
+        f"busgate send: no gateway answered on {info} within {args.timeout:g} s: nothing was "
+        f"sent to {key}",
+        file=sys.stderr,
+    )
+    return NO_ANSWER
 
 
 def _put_judged(payload: bytes) -> bool:
@@ -188,28 +208,14 @@ def _put_judged(payload: bytes) -> bool:
     return True
 
 
-def _from_gateways_that_have_it(answers: list[bc.Answer]) -> list[bc.Answer]:
-    """A bare device name asks every gateway; those without the device answer
-    ``unknown_device``. Their replies matter only when no gateway has it."""
-    known = [a for a in answers if a.ok or a.error.get("code") != "unknown_device"]
-    return known or answers
-
-
 #: The last chunk of the API's keys that take puts only (docs/api.md): a get finds nobody.
 PUT_ONLY_LEAVES = frozenset({"estop", "reset", "follow", "twist"})
 
 
-def _no_reply(device: str, key: str, gateways: dict[str, set[str]], *, waited: float | None) -> int:
-    """Nothing came back on ``key``: no gateway has ``device`` (those that answered are named;
-    exit 1), or nobody answered (in the ``waited`` seconds, when zenoh did wait; exit 2): on a
-    key that takes puts only (an e-stop, say), the line says so, since nothing was done."""
-    if gateways and not any(device in devices for devices in gateways.values()):
-        print(
-            f"busgate send: unknown_device: no device {device!r} on the gateways that "
-            f"answered ({', '.join(sorted(gateways))})",
-            file=sys.stderr,
-        )
-        return ERROR_REPLY
+def _no_reply(key: str, *, waited: float | None) -> int:
+    """Nothing came back on ``key`` (in the ``waited`` seconds, when zenoh did wait; exit 2):
+    on a key that takes puts only (an e-stop, say), the line says so, since nothing was
+    done."""
     within = "" if waited is None else f" within {waited:g} s"
     puts_only = key.rsplit("/", 1)[-1] in PUT_ONLY_LEAVES
     hint = f": {key} takes puts, not gets: nothing was done (send --put)" if puts_only else ""
