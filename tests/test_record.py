@@ -23,6 +23,7 @@ import threading
 import time
 
 import pytest
+import zenoh
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
@@ -32,6 +33,7 @@ from busgate.gateway.recording import mcap_log
 from busgate.gateway.recording.mcap_log import McapLog
 from busgate.schemas.exported import generated
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
+from busgate.schemas.zenoh_session import session_config
 from tests.gateway_process import BUSGATE, TIMEOUT_S, run_busgate
 
 TEST_KEY = "busgate/rec-test/dev/x/state"
@@ -447,6 +449,23 @@ def test_replay_under_a_live_gateways_keys_is_refused(recorded, module_demo, cli
         "replay there writes into its telemetry; use another --prefix (default replay) or add "
         "--onto-live"]
     assert not [key for key, _, _ in heard if key.startswith("busgate/demo/x")]
+
+
+def test_replay_above_a_live_gateways_prefix_is_refused(recorded, module_demo, client) -> None:
+    """A gateway under ``fleet/site1``: a replay under ``fleet`` puts the file's keys where
+    that gateway's are (a file recorded under ``fleet`` wrote 30 stale states onto it)."""
+    path, _, _ = recorded
+    with zenoh.open(session_config(mode="client", connect=[module_demo.endpoint])) as peer:
+        info = json.dumps({"ok": True, "gateway": "gw", "version": "9", "buses": []})
+        peer.declare_queryable("fleet/site1/gw/info", lambda query: query.reply(
+            "fleet/site1/gw/info", info))
+        done, heard = replayed(client, "fleet/**", path, module_demo, "--prefix", "fleet")
+    assert done.returncode == 2, done
+    assert done.stderr.splitlines() == [
+        "busgate replay: error: --prefix fleet is live (gateway gw under fleet/site1): a replay "
+        "there writes into its telemetry; use another --prefix (default replay) or add "
+        "--onto-live"]
+    assert heard == []
 
 
 def test_keys_past_what_a_file_can_name_are_left_out_and_the_file_stays_readable(

@@ -412,8 +412,10 @@ def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
     """The gateways up under ``prefix`` (the client's session was opened with it), judged as
     the SDK judges whether a named gateway is up (``Shared.to_gateway``): the liveliness tokens
     its subscriber has seen, and whatever answers ``info`` within ``LIVE_WAIT_S`` (right after
-    a session opens, zenoh may not have told it every token yet); and those whose keys hold
-    ``prefix``, ``demo under busgate`` for ``busgate/demo/x``: whatever answers their ``info``."""
+    a session opens, zenoh may not have told it every token yet); those under a longer prefix
+    that ``prefix`` begins (``gw under fleet/site1`` for ``fleet``: the file's keys put under
+    ``fleet`` may be theirs); and those whose keys hold ``prefix``, ``demo under busgate`` for
+    ``busgate/demo/x``: whatever answers their ``info``."""
     keys = Keys(prefix)
     live: set[str] = set()
     stop = client.on_gateways(lambda gateway, alive: live.add(gateway) if alive else None)
@@ -422,6 +424,9 @@ def _live_gateways(client: bc.Client, prefix: str) -> list[str]:
     finally:
         stop()
     live.update(keys.gateway_of(answer.key) for answer in answers)
+    for answer in client.query(f"{prefix}/*/*/**/info", timeout=LIVE_WAIT_S):  # two or more
+        below, _, gateway = answer.key.removesuffix("/info").rpartition("/")
+        live.add(f"{gateway} under {below}")
     names = prefix.split("/")
     for above, gateway in ((Keys("/".join(names[:n])), names[n]) for n in range(1, len(names))):
         if client.query(above.info(gateway), timeout=LIVE_WAIT_S):
