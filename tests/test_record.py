@@ -304,7 +304,9 @@ def test_a_disk_refusing_a_write_ends_the_recording_in_one_line(module_demo, cli
                                                                 tmp_path) -> None:
     """A file size limit (``RLIMIT_FSIZE``: the write fails with EFBIG, as a full disk's with
     ENOSPC): the writer's first chunk fails while samples still come, the recording ends by
-    itself, the file kept as far as written, and the command fails in one line."""
+    itself, the file kept as far as written, the messages it lost counted, and the command
+    fails in one line. (Chunks of 1 MiB held the demo's telemetry 15 s before the disk was
+    asked, and the messages lost were reported recorded.)"""
     path = tmp_path / "full.mcap"
     # Not measured by coverage (the test command's --cov): the limit would refuse its data
     # file's writes too, and its error would be the last line.
@@ -314,14 +316,17 @@ def test_a_disk_refusing_a_write_ends_the_recording_in_one_line(module_demo, cli
                                 stderr=subprocess.PIPE, text=True, env=unmeasured)
     try:
         wait_recording(recorder)
-        for _ in range(40):  # 2.4 MB that zstd cannot shrink: the 1 MiB chunk is written
-            client.put("busgate/rec-test/dev/big/state", os.urandom(60_000))
+        for _ in range(200):  # 200 kB that zstd cannot shrink: past the first chunk
+            client.put("busgate/rec-test/dev/big/state", os.urandom(1000))
         _, stderr = recorder.communicate(timeout=TIMEOUT_S)  # no signal: it ends by itself
     finally:
         recorder.kill()
     assert recorder.returncode == 2, stderr
     lines = stderr.replace("\r", "\n").strip().splitlines()
     assert lines[-1] == f"busgate record: error: cannot write {path}: File too large", stderr
+    unwritten = re.fullmatch(r"busgate record: (\d+) messages were not written: the disk "
+                             r"refused them", lines[-2])
+    assert unwritten is not None and int(unwritten.group(1)) >= 60, stderr  # 64 KiB of them
     assert "Traceback" not in stderr
     assert path.stat().st_size == 4096
 

@@ -199,6 +199,9 @@ class Recording:
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self._stop = threading.Event()
         self.dropped = 0
+        #: Messages taken but never written: those of the chunk the disk refused, and those
+        #: queued behind it.
+        self.unwritten = 0
         self.too_large = 0  # messages larger than a gateway publishes on their key, left out
         self.elapsed_s = 0.0
         self.failure: Exception | None = None
@@ -217,12 +220,15 @@ class Recording:
     def _write(self) -> None:
         # Past a failure the queue is still emptied, up to close's None: a put never waits.
         while (item := self._queue.get()) is not None:
-            if self.failure is None:
-                try:
-                    self._log.add(*item)
-                except Exception as exc:  # the disk's refusal, or a bug: the thread lives on
-                    self.failure = exc
-                    self._stop.set()
+            if self.failure is not None:
+                self.unwritten += 1
+                continue
+            try:
+                self._log.add(*item)
+            except Exception as exc:  # the disk's refusal, or a bug: the thread lives on
+                self.failure = exc
+                self.unwritten += self._log.unwritten + 1  # its chunk, and this one
+                self._stop.set()
 
     def run_until_stopped(self, seconds: float | None) -> None:
         """Show progress until a signal, ``seconds`` or a failed write (rule 2)."""
@@ -254,6 +260,8 @@ class Recording:
                 if self.failure is None:
                     self._log.finish()
         except OSError as exc:
+            if self.failure is None:  # the file's last chunk went with its summary
+                self.unwritten += self._log.unwritten
             self.failure = self.failure or exc
         self._progress(self.elapsed_s, end="\n")
         for count, why in (
@@ -265,6 +273,12 @@ class Recording:
         if self.dropped:
             print(
                 f"busgate record: {self.dropped} messages were dropped: the disk could not keep up",
+                file=sys.stderr,
+            )
+        if self.unwritten:
+            print(
+                f"busgate record: {self.unwritten} messages were not written: the disk refused "
+                "them",
                 file=sys.stderr,
             )
 

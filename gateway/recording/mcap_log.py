@@ -25,6 +25,8 @@ Rules of this file:
 6. A file holds at most ``MAX_CHANNELS`` keys (a channel's id is 16 bits): a message on a
    key past them is left out and counted (``past_channels``), so that the file stays one a
    reader can read, whatever keys the network sends.
+7. Messages go to the stream a chunk (``CHUNK_BYTES``) at a time; ``unwritten`` counts those
+   added since the stream last took one, which a refused write loses.
 """
 
 from __future__ import annotations
@@ -54,8 +56,11 @@ REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "j
 #: The most keys a file holds: an MCAP channel's id is 16 bits (past it, a message on a new
 #: key is left out and counted; the file would be unreadable).
 MAX_CHANNELS = 65_535
-#: The most a reader holds of a file at once (rule 5): the writer's chunks are 1 MiB.
+#: The most a reader holds of a file at once (rule 5): the writer's chunks are far smaller.
 MAX_CHUNK = 64 * 1024 * 1024
+#: The writer's chunks (rule 7): what a refused write loses at most, and what a recording
+#: holds before the disk is asked to take any (at 1 MiB, some 15 s of the demo's telemetry).
+CHUNK_BYTES = 64 * 1024
 
 
 def schema_name(key: str, prefix: str, body: Any) -> str | None:
@@ -95,7 +100,8 @@ class McapLog:
     keys under ``prefix`` (rule 4)."""
 
     def __init__(self, stream: IO[bytes], prefix: str) -> None:
-        self._writer = Writer(stream)
+        self._stream = stream
+        self._writer = Writer(stream, chunk_size=CHUNK_BYTES)
         self._writer.start(profile="", library=LIBRARY)
         self._writer.add_metadata(PREFIX_METADATA, {"prefix": prefix})
         self._prefix = prefix
@@ -104,6 +110,8 @@ class McapLog:
         self._channels: dict[str, int] = {}
         self.messages = 0
         self.bytes = 0
+        #: Messages added since the stream last took a chunk (rule 7).
+        self.unwritten = 0
         #: Messages left out: on a key past the file's ``MAX_CHANNELS`` keys.
         self.past_channels = 0
 
@@ -122,6 +130,7 @@ class McapLog:
             channel = self._channels[key] = self._writer.register_channel(
                 topic=key, message_encoding="json", schema_id=self._schema(key, body)
             )
+        position = self._stream.tell()
         self._writer.add_message(
             channel,
             log_time=log_time_ns,
@@ -131,6 +140,7 @@ class McapLog:
         )
         self.messages += 1
         self.bytes += len(payload)
+        self.unwritten = 0 if self._stream.tell() != position else self.unwritten + 1
 
     def _schema(self, key: str, body: Any) -> int:
         name = schema_name(key, self._prefix, body)
