@@ -47,6 +47,13 @@ MAX_FILE_BYTES = 1024 * 1024
 TLS_PROTOCOLS = ("tls/", "quic/")
 
 
+#: The largest message a gateway's session takes in, in bytes: twice the largest payload any
+#: of its keys takes (a trajectory, 1 MiB; the ROS 2 face's trajectory topic, 1 MiB of CDR).
+#: Zenoh's own bound is 1 GiB: the messages waiting for a key's thread (``gateway.api.intake``)
+#: are bounded by this, not by what the key later refuses.
+MAX_RECEIVED = 2 * 1024 * 1024
+
+
 def session_config(
     *,
     mode: str = "peer",
@@ -134,14 +141,17 @@ def config_file_refusal(config_file: str | Path) -> str | None:
 
 def gateway_session_config(section: ZenohSection) -> zenoh.Config:
     """The session config of a gateway's ``[zenoh]`` table: the daemon's, and what
-    ``check-config`` checks the endpoints against."""
-    return session_config(
+    ``check-config`` checks the endpoints against. A message larger than ``MAX_RECEIVED``
+    is dropped by zenoh before the gateway holds it, whatever a config file says."""
+    config = session_config(
         mode=section.mode,
         listen=section.listen,
         connect=section.connect,
         multicast_scouting=section.multicast_scouting,
         config_file=section.config_file,
     )
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_RECEIVED))
+    return config
 
 
 def _check_protocols(config: zenoh.Config, endpoints: Sequence[str]) -> None:

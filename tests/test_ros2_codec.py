@@ -497,6 +497,17 @@ def test_a_huge_count_is_refused_before_anything_is_allocated() -> None:
     assert decode(JOINT_STATE, empty_header + bytes(16)) is not None
 
 
+def test_a_list_longer_than_max_count_is_refused_as_its_count_is_read() -> None:
+    """A megabyte held 43,688 empty trajectory points, read whole (0.36 s) before the
+    10,000-point limit refused them: with ``max_count`` the count itself refuses."""
+    trajectory = "trajectory_msgs/msg/JointTrajectory"
+    point = {"time_from_start": {"sec": 1, "nanosec": 0}}
+    for points, taken in ((10_000, True), (10_001, False)):
+        data = encode(trajectory, {"joint_names": ["j"], "points": [point] * points})
+        assert (decode(trajectory, data, max_count=10_000) is not None) is taken
+        assert decode(trajectory, data) is not None  # no limit: as long as the bytes hold
+
+
 def test_truncations_are_none_and_the_whole_is_a_message() -> None:
     assert decode(JOINT_STATE, VALID) is not None
     for cut in range(len(VALID)):

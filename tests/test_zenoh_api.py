@@ -28,7 +28,7 @@ from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import parse_config
-from busgate.schemas.zenoh_session import session_config
+from busgate.schemas.zenoh_session import MAX_RECEIVED, session_config
 
 
 def config_for(port: str, endpoint: str) -> dict:
@@ -593,6 +593,26 @@ def test_puts_held_up_by_their_handler_never_hold_up_an_e_stop(free_port, wait_f
             assert len(handled) == 1  # the handler still held up by the first
         finally:
             release.set()
+
+
+def test_a_message_larger_than_any_key_takes_is_dropped_before_the_gateway_holds_it(
+    free_port, wait_for
+) -> None:
+    """Zenoh took messages up to 1 GiB, held whole in a key's ring before its thread could
+    refuse them: a gateway's session takes none over ``MAX_RECEIVED`` (2 MiB)."""
+    sizes: list[int] = []
+
+    def command(device: str, payload: bytes) -> Future:
+        sizes.append(len(payload))
+        return settled({"ok": True})
+
+    with idle_bridge(free_port) as (bridge, client):
+        bridge.api.command = command
+        wait_for(lambda: client.put("busgate/gw1/dev/la1/cmd", b"probe") or sizes, timeout=20)
+        client.put("busgate/gw1/dev/la1/cmd", bytes(MAX_RECEIVED + 1024))
+        client.put("busgate/gw1/dev/la1/cmd", bytes(MAX_RECEIVED // 2))
+        wait_for(lambda: sizes[-1:] == [MAX_RECEIVED // 2])
+        assert max(sizes) == MAX_RECEIVED // 2
 
 
 def test_commands_still_waiting_when_an_e_stop_comes_are_answered_estopped(

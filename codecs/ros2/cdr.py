@@ -135,11 +135,13 @@ class CdrWriter:
 class CdrReader:
     """Reads one payload front to back; every method raises ``CdrError`` on bad bytes."""
 
-    def __init__(self, data: bytes | bytearray | memoryview) -> None:
+    def __init__(self, data: bytes | bytearray | memoryview, max_count: int | None = None) -> None:
         self._data = bytes(data)
         if self._data[:2] != CDR_LE[:2] or len(self._data) < HEADER_SIZE:
             raise CdrError("not a little-endian CDR payload")
         self._pos = HEADER_SIZE
+        #: The longest sequence or string taken (``None``: as long as the bytes left hold).
+        self._max_count = max_count
 
     @property
     def remaining(self) -> int:
@@ -182,6 +184,8 @@ class CdrReader:
         """Read a sequence's count; fail if the bytes left cannot hold that many elements."""
         self._align(_UINT32.size)
         (count,) = _UINT32.unpack_from(self._data, self._take(_UINT32.size))
+        if self._max_count is not None and count > self._max_count:
+            raise CdrError(f"a count of {count}, over the {self._max_count} taken")
         if count * element_min_bytes > self.remaining:
             raise CdrError(f"a count of {count} does not fit the {self.remaining} bytes left")
         return count

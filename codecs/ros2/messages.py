@@ -87,11 +87,15 @@ def seconds_of(time: Mapping[str, Any]) -> float:
     return time.get("sec", 0) + time.get("nanosec", 0) / 1e9
 
 
-def decode(name: str, data: bytes | bytearray | memoryview) -> dict[str, Any] | None:
-    """The message in ``data``, or ``None`` when it is not a valid payload of ``name``."""
+def decode(
+    name: str, data: bytes | bytearray | memoryview, *, max_count: int | None = None
+) -> dict[str, Any] | None:
+    """The message in ``data``, or ``None`` when it is not a valid payload of ``name`` (or
+    holds a sequence or string longer than ``max_count``: refused as it is read, before the
+    rest is)."""
     codec = _codec(name)
     try:
-        reader = CdrReader(data)
+        reader = CdrReader(data, max_count)
         value = codec.read(reader)
         reader.finish()
     except CdrError:

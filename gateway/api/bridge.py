@@ -49,7 +49,14 @@ import zenoh
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
-from busgate.gateway.api.intake import Intake, take_liveliness, take_puts, take_queries
+from busgate.gateway.api.intake import (
+    BACKLOG,
+    Intake,
+    backlog_for,
+    take_liveliness,
+    take_puts,
+    take_queries,
+)
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
 from busgate.gateway.base.bases import Bases
@@ -64,6 +71,7 @@ from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
+from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
 from busgate.schemas.zenoh_session import gateway_session_config
 
 log = logging.getLogger(__name__)
@@ -177,7 +185,13 @@ class ZenohBridge:
             puts(session, f"{base}/dev/*/cmd", self._on_device_put, "device-puts"),
             puts(session, f"{base}/dev/*/follow", self._on_follow, "follow-targets"),
             commands(session, f"{base}/bus/*/cmd", self._bus_query, "bus-commands"),
-            commands(session, f"{base}/trajectory", self._trajectory_query, "trajectories"),
+            commands(
+                session,
+                f"{base}/trajectory",
+                self._trajectory_query,
+                "trajectories",
+                backlog_for(MAX_TRAJECTORY_PAYLOAD),
+            ),
             commands(session, f"{base}/base/*/cmd", self._base_query, "base-commands"),
             puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
             take_queries(session, f"{base}/info", self._on_info, "info"),
@@ -211,10 +225,12 @@ class ZenohBridge:
         )
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
-    def _commands(self, session: zenoh.Session, key: str, route: Route, name: str) -> Intake:
+    def _commands(
+        self, session: zenoh.Session, key: str, route: Route, name: str, backlog: int = BACKLOG
+    ) -> Intake:
         """The queries on ``key``, each answered by carrying out what ``route`` reads off it;
         those waiting when an e-stop comes, refused (rule 6)."""
-        intake = take_queries(session, key, self._answering(route), name)
+        intake = take_queries(session, key, self._answering(route), name, backlog)
         self._before_estop.append((intake, route))
         return intake
 

@@ -10,8 +10,10 @@ flooding a ``cmd`` key held an e-stop put 0.2-2 s before it reached the buses
 Rules of this file:
 
 1. Zenoh's receiving threads never wait on Python for a client's put or query: each waits
-   in a ring of zenoh's (``RingChannel``, ``BACKLOG``) for the intake's own thread, which
-   takes them in the order they came. When the ring is full zenoh drops the oldest: a put so
+   in a ring of zenoh's (``RingChannel``: ``BACKLOG``, fewer on a key of large payloads,
+   ``backlog_for``; what it holds is bounded by the session's largest message,
+   ``schemas.zenoh_session.MAX_RECEIVED``) for the intake's own thread, which takes them in
+   the order they came. When the ring is full zenoh drops the oldest: a put so
    dropped is lost, a query so dropped is ended by zenoh with no reply (its getter hears that
    no gateway answered).
 2. A handler's exception is logged and the thread goes on: a bug must not lose every later
@@ -40,6 +42,8 @@ log = logging.getLogger(__name__)
 #: taken whole, some 80 ms of a thread's work for follow targets; past that, under a flood,
 #: the oldest are dropped.
 BACKLOG = 4096
+#: What a key whose payloads are large may hold waiting, in bytes (``backlog_for``).
+BACKLOG_BYTES = 16 * 1024 * 1024
 #: How long ``join`` waits for the thread to end (rule 4).
 JOIN_S = 1.0
 
@@ -84,19 +88,34 @@ class Intake(Generic[Item]):
                 log.exception("%s: what came on %s could not be handled", name, item.key_expr)
 
 
+def backlog_for(largest: int) -> int:
+    """The ring of a key whose payloads take up to ``largest`` bytes: ``BACKLOG``, fewer
+    where so many would hold more than ``BACKLOG_BYTES`` (a trajectory's megabyte: 16), and
+    never under 4."""
+    return max(4, min(BACKLOG, BACKLOG_BYTES // largest))
+
+
 def take_puts(
-    session: zenoh.Session, key: str, handle: Callable[[zenoh.Sample], None], name: str
+    session: zenoh.Session,
+    key: str,
+    handle: Callable[[zenoh.Sample], None],
+    name: str,
+    backlog: int = BACKLOG,
 ) -> Intake[zenoh.Sample]:
     """The puts on ``key``, each handed to ``handle`` on the thread ``name``."""
-    ring: zenoh.handlers.RingChannel[zenoh.Sample] = zenoh.handlers.RingChannel(BACKLOG)
+    ring: zenoh.handlers.RingChannel[zenoh.Sample] = zenoh.handlers.RingChannel(backlog)
     return Intake(name, session.declare_subscriber(key, ring), handle)
 
 
 def take_queries(
-    session: zenoh.Session, key: str, handle: Callable[[zenoh.Query], None], name: str
+    session: zenoh.Session,
+    key: str,
+    handle: Callable[[zenoh.Query], None],
+    name: str,
+    backlog: int = BACKLOG,
 ) -> Intake[zenoh.Query]:
     """The queries on ``key``, each handed to ``handle`` on the thread ``name``."""
-    ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(BACKLOG)
+    ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(backlog)
     return Intake(name, session.declare_queryable(key, ring), handle)
 
 

@@ -65,7 +65,7 @@ from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.replies import error_reply
 from busgate.schemas.ros2 import Ros2Section
-from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
+from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD, MAX_TRAJECTORY_POINTS
 from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,7 @@ class Ros2Face:
             rmw_zenoh.DEFAULT,
             self._trajectory,
             MAX_TRAJECTORY_PAYLOAD,
+            MAX_TRAJECTORY_POINTS,  # 40,000 empty points fit a megabyte, and took 0.4 s to read
         )
         node.service(section.estop, TRIGGER, self._estop, always=True)
         node.service(section.reset_estop, TRIGGER, self._reset_estop)

@@ -44,7 +44,7 @@ import zenoh
 
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
-from busgate.gateway.api.intake import Intake, take_puts
+from busgate.gateway.api.intake import Intake, backlog_for, take_puts
 from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
@@ -120,9 +120,12 @@ class Ros2Node:
         qos: Qos,
         handler: Callable[[dict[str, Any]], None],
         max_bytes: int,
+        max_count: int | None = None,
     ) -> None:
-        """Each ``type_name`` message on ``topic``'s own key, of at most ``max_bytes``, decoded
-        for ``handler``; anything else dropped (counted) before it is decoded."""
+        """Each ``type_name`` message on ``topic``'s own key, of at most ``max_bytes`` and with
+        no sequence longer than ``max_count``, decoded for ``handler``; anything else dropped
+        (counted) before it is decoded, or as soon as a count is read. A message waits for its
+        thread among at most ``backlog_for(max_bytes)`` (rule 3)."""
         key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
 
         def received(sample: zenoh.Sample) -> None:
@@ -137,14 +140,15 @@ class Ros2Node:
             if len(payload) > max_bytes:
                 self._drop(topic, f"a sample of {len(payload)} bytes, over {max_bytes}")
                 return
-            message = messages.decode(type_name, payload)
+            message = messages.decode(type_name, payload, max_count=max_count)
             if message is None:
-                self._drop(topic, f"a sample that is not {type_name} CDR")
+                longest = "" if max_count is None else f" with no list over {max_count}"
+                self._drop(topic, f"a sample that is not {type_name} CDR{longest}")
                 return
             handler(message)
 
         thread = f"ros2 {shown(topic)}"
-        self._intakes.append(take_puts(self.session, key, received, thread))
+        self._intakes.append(take_puts(self.session, key, received, thread, backlog_for(max_bytes)))
 
     def service(
         self, name: str, type_name: str, handler: ServiceHandler, *, always: bool = False
