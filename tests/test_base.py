@@ -68,6 +68,18 @@ def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None
         config_of([BASE | change], slow=LEFT | {"name": "slow", "max_acceleration": 10.0})
 
 
+def test_the_drive_takes_each_wheels_limits_from_its_joint() -> None:
+    """The slower wheel's ``max_velocity`` and ``max_acceleration`` bound both (the wheels
+    alone, never started)."""
+    config = config_of([BASE | {"right": "slow"}],
+                       slow=RIGHT | {"name": "slow", "max_acceleration": 30.0})
+    runner = build_bus(config.buses[0])
+    bases = Bases(config.bases, GatewayApi("gw", {"can0": runner}), lambda event: None,
+                  lambda name, odometry: None)
+    geometry = bases.bases["base"].drive.geometry
+    assert (geometry.max_wheel, geometry.max_wheel_accel) == (3 * TURN, 30.0)
+
+
 def test_a_wheel_in_two_bases_or_without_a_joint_in_rad_is_refused() -> None:
     with pytest.raises(ConfigError, match="'wl' is a wheel of base 'base' already"):
         config_of([BASE, BASE | {"name": "other", "right": "w3"}], w3=RIGHT | {"name": "w3"})

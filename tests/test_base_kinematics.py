@@ -101,6 +101,23 @@ def test_both_wheels_of_a_slot_get_speeds_of_one_twist_and_the_deadman_ramps_dow
     assert not drive.finished(100.0 + 0.4)  # the command still holds
 
 
+def test_a_halted_drive_is_at_rest_and_its_next_play_starts_from_rest() -> None:
+    """A wheel left the play (an e-stop): the drive's twist is 0 at once, a slot sampled
+    meanwhile is 0, and it ends as a drive at rest does (two slots at 0): its next play
+    starts from 0, not from the twist it had (``drive`` rule 5)."""
+    drive = Drive(GEOMETRY, wheel_joint(math.tau / 10_000), wheel_joint(-math.tau / 10_000))
+    drive.command(Twist(0.4, 0.0), now=100.0, hold_s=5.0)
+    drive.begin(100.0, Twist())
+    for k in range(1, 30):
+        drive.sample(k * 0.02)
+    assert drive.sent.linear > 0.3
+    drive.halt()
+    assert drive.sent == Twist()
+    assert drive.sample(30 * 0.02) == Twist()
+    assert not drive.finished(200.0)  # one slot at rest
+    assert drive.sample(31 * 0.02) == Twist() and drive.finished(200.0)
+
+
 def test_odometry_of_a_square_drive_returns_to_the_start() -> None:
     odometry, left, right, at = Odometry(GEOMETRY), 0.0, 0.0, 0.0
     odometry.take(left, right, at)
