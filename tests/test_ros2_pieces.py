@@ -255,6 +255,21 @@ def test_a_command_due_when_the_estop_comes_is_dropped_and_the_next_one_goes(mon
     assert ramps == [("la1", {"joint": 0.005})]
 
 
+def test_a_command_taken_before_an_estop_is_never_handed_on_after_it(monkeypatch):
+    """The loop takes what is due from the lock, then ramps each: an e-stop counted in
+    between (its forgetting came too early for them) still stops them."""
+    api, bridge, face = gripper_face()
+    ramps: list = []
+    monkeypatch.setattr(api, "ramp_to", lambda device, fields, *_: ramps.append((device, fields)))
+    face._command({"name": ["gripper"], "position": [0.001]})
+    api.estops += 1  # an e-stop handed to the buses, its forgetting not yet run
+    bridge.run_soon()
+    assert ramps == []
+    face._command({"name": ["gripper"], "position": [0.002]})
+    bridge.run_soon()
+    assert ramps == [("la1", {"joint": 0.002})]
+
+
 def test_a_joints_refusals_are_logged_once_a_second_however_their_words_change(caplog):
     """A refusal was logged again whenever its text differed from the last: commands whose
     position list alternated between two wrong lengths logged 20,000 lines for 10,000."""

@@ -24,7 +24,7 @@ class Held:
         self.started = threading.Event()  # a play is on the lane's thread
         self.carried_out: list[dict] = []
 
-    def __call__(self, payload: bytes) -> dict:
+    def __call__(self, payload: bytes, came_under: int | None = None) -> dict:
         fields = json.loads(payload)
         if fields.get("op") == "play":
             self.started.set()

@@ -589,6 +589,25 @@ def test_an_estop_aborts_the_trajectory_and_no_tick_follows_its_frames(world, pl
         enabled_again(world)
 
 
+def test_a_play_that_came_before_an_estop_never_starts_after_its_reset(world, player):
+    """A play waits in its lane (its parse: a tenth of a second for a large one) while an
+    e-stop and its reset come: it played after the reset, and la1 moved. It is refused
+    ``estopped``, nothing ticks; one that came after the reset plays."""
+    came_under = world.api.estops
+    stops = world.api.estop()
+    player.run_until(lambda: all(stop.done() for stop in stops))
+    enabled_again(world)
+    marks = marks_of(world)
+    late = json.dumps({"op": "play", "id": "late", "devices": ["la1"],
+                       "points": [{"t_s": 0.2, "positions": [700]}]}).encode()
+    reply = answer(lambda payload: player.trajectories.command(payload, came_under), late)
+    assert reply["error"]["code"] == "estopped", reply
+    time.sleep(0.3)
+    assert ticks(world.la_sim, marks["uart0"]) == []
+    played = player.play(["la1"], [{"t_s": 0.2, "positions": [700]}])
+    assert player.finished(played)["result"] == "succeeded"
+
+
 def test_an_estop_before_the_start_aborts_it_at_once_and_nothing_ticks(world, player):
     played = player.play(["la1", "arm1"], [{"t_s": 0.3, "positions": [100, 100]}], lead_s=0.5)
     try:

@@ -25,12 +25,13 @@ Rules of this file:
    waits for its intake's thread when an e-stop comes was put before it: commands, follow
    targets, twists and trajectory commands so waiting are never carried out, so that none
    moves a device after a reset that follows at once (a query is answered ``estopped``, a
-   put dropped). A ring is one a key, for every device: a flood past what its thread takes
-   (thousands of commands, tens of thousands of follow targets a second) drops other
-   devices' puts and queries on that key too. Two clients putting on a ``cmd`` key as fast
-   as they could held an e-stop 0.2-2 s before it reached the buses; two flooding follow
-   targets, 48-62 ms at the median (docs/performance.md, "An e-stop under a flood of follow
-   targets", "... of commands").
+   put dropped); a play already in its lane when an e-stop came is refused ``estopped`` as
+   it would start (``intake`` rule 5). A ring is one a key, for every device: a flood past
+   what its thread takes (thousands of commands, tens of thousands of follow targets a
+   second) drops other devices' puts and queries on that key too. Two clients putting on a
+   ``cmd`` key as fast as they could held an e-stop 0.2-2 s before it reached the buses; two
+   flooding follow targets, 48-62 ms at the median (docs/performance.md, "An e-stop under a
+   flood of follow targets", "... of commands").
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from busgate.gateway.api.intake import (
     BACKLOG,
     Intake,
     backlog_for,
+    estops_when_taken,
     take_liveliness,
     take_puts,
     take_queries,
@@ -230,7 +232,7 @@ class ZenohBridge:
     ) -> Intake:
         """The queries on ``key``, each answered by carrying out what ``route`` reads off it;
         those waiting when an e-stop comes, refused (rule 6)."""
-        intake = take_queries(session, key, self._answering(route), name, backlog)
+        intake = take_queries(session, key, self._answering(route), name, backlog, self._estops)
         self._before_estop.append((intake, route))
         return intake
 
@@ -239,9 +241,13 @@ class ZenohBridge:
     ) -> Intake:
         """The puts on ``key``, each handed to ``handle``; those waiting when an e-stop comes,
         dropped (rule 6)."""
-        intake = take_puts(session, key, handle, name)
+        intake = take_puts(session, key, handle, name, estops=self._estops)
         self._before_estop.append((intake, None))
         return intake
+
+    def _estops(self) -> int:
+        """The e-stops so far, for what the intakes take (``intake`` rule 5)."""
+        return self.api.estops
 
     @property
     def session(self) -> zenoh.Session:
@@ -477,10 +483,14 @@ class ZenohBridge:
             log_told(event.type, event.fields.get("client"), event.fields.get("suppressed", 0))
         self.events.append(event)
 
-    def submit_trajectory(self, payload: bytes) -> Future:
+    def submit_trajectory(self, payload: bytes, came_under: int | None = None) -> Future:
         """A trajectory command (``<base>/trajectory``'s payload) in its lane: the reply's
-        future."""
-        return self._trajectory_lanes.submit(payload)
+        future. A play is refused ``estopped`` if an e-stop came after it was taken:
+        ``came_under`` is the count of e-stops then, by default the one this thread's intake
+        took it under (``intake`` rule 5)."""
+        if came_under is None:
+            came_under = estops_when_taken(self.api.estops)
+        return self._trajectory_lanes.submit(payload, came_under)
 
     def _on_estop_reset(self, sample: zenoh.Sample) -> None:
         """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``

@@ -130,6 +130,9 @@ class GatewayApi:
         self.name = name
         self.runners = runners
         self.on_event = on_event
+        #: E-stops handed to the buses so far: a command taken off the network before one
+        #: and carried out later (a play's lane, a ROS 2 message's decoding) is refused.
+        self.estops = 0
         self.devices: dict[str, tuple[BusRunner, Driver]] = {
             device: (runner, driver)
             for runner in runners.values()
@@ -290,6 +293,7 @@ class GatewayApi:
     def stop_every_bus(self) -> list[Future]:
         """The e-stop without its log line (``log_told``): every bus's handed over, and let
         go (rule 4: they have the interpreter first)."""
+        self.estops += 1  # first: what was taken before it is judged by it (``intake`` rule 5)
         stopped = [runner.estop() for runner in self.runners.values()]
         let_estops_go(self.runners.values())
         return stopped

@@ -25,6 +25,10 @@ Rules of this file:
    channel (``join`` waits for that a bounded time). A daemon thread must not be in zenoh's
    code when the interpreter exits, and a backlog handled after the session is gone would
    only be refused.
+5. With ``estops`` (the gateway's count of e-stops), each put or query is handled with the
+   count it was taken under (``estops_when_taken``, on its thread): work it hands to
+   another thread (a play's lane) or does slowly (a ROS 2 trajectory's decoding) is judged
+   by it, and refused ``estopped`` when an e-stop came meanwhile.
 """
 
 from __future__ import annotations
@@ -48,14 +52,29 @@ BACKLOG_BYTES = 16 * 1024 * 1024
 JOIN_S = 1.0
 
 Item = TypeVar("Item", zenoh.Sample, zenoh.Query)
+#: The e-stops counted when the put or query an intake's thread handles was taken (rule 5).
+_taken = threading.local()
+
+
+def estops_when_taken(now: int) -> int:
+    """The e-stop count the put or query this thread handles was taken under (rule 5);
+    ``now`` on a thread that is no intake's."""
+    return getattr(_taken, "estops", now)
 
 
 class Intake(Generic[Item]):
     """One key's puts or queries (rule 1), each handed to ``handle`` on the thread ``name``."""
 
-    def __init__(self, name: str, source: Any, handle: Callable[[Item], None]) -> None:
+    def __init__(
+        self,
+        name: str,
+        source: Any,
+        handle: Callable[[Item], None],
+        estops: Callable[[], int] | None = None,
+    ) -> None:
         self._source = source
         self._handle: Callable[[Item], None] = handle
+        self._estops = estops
         self._stopped = False
         self._thread = threading.Thread(target=self._take, name=name, daemon=True)
         self._thread.start()
@@ -82,6 +101,8 @@ class Intake(Generic[Item]):
         for item in self._source:
             if self._stopped:
                 continue  # taken, left unhandled, until the channel's end ends the loop
+            if self._estops is not None:
+                _taken.estops = self._estops()
             try:
                 self._handle(item)
             except Exception:  # rule 2
@@ -101,10 +122,11 @@ def take_puts(
     handle: Callable[[zenoh.Sample], None],
     name: str,
     backlog: int = BACKLOG,
+    estops: Callable[[], int] | None = None,
 ) -> Intake[zenoh.Sample]:
     """The puts on ``key``, each handed to ``handle`` on the thread ``name``."""
     ring: zenoh.handlers.RingChannel[zenoh.Sample] = zenoh.handlers.RingChannel(backlog)
-    return Intake(name, session.declare_subscriber(key, ring), handle)
+    return Intake(name, session.declare_subscriber(key, ring), handle, estops)
 
 
 def take_queries(
@@ -113,10 +135,11 @@ def take_queries(
     handle: Callable[[zenoh.Query], None],
     name: str,
     backlog: int = BACKLOG,
+    estops: Callable[[], int] | None = None,
 ) -> Intake[zenoh.Query]:
     """The queries on ``key``, each handed to ``handle`` on the thread ``name``."""
     ring: zenoh.handlers.RingChannel[zenoh.Query] = zenoh.handlers.RingChannel(backlog)
-    return Intake(name, session.declare_queryable(key, ring), handle)
+    return Intake(name, session.declare_queryable(key, ring), handle, estops)
 
 
 def take_liveliness(

@@ -30,8 +30,10 @@ Rules of this file:
    A command message is taken apart on its subscription's thread (``node`` rule 3) and its
    targets handed to the loop, each joint's latest alone (``_due``). Any e-stop, the zenoh
    API's or the service's, drops what is due, the messages still waiting for their threads
-   and the trajectory message waiting for its turn, so that nothing sent before it moves a
-   joint after the reset. Nothing of a name no joint has is kept beyond ``Commands``' few,
+   and the trajectory message waiting for its turn; and what a message was taken under (the
+   gateway's count of e-stops, ``intake`` rule 5) goes with it, so that one being read or
+   handed on when the e-stop came is refused too: nothing sent before it moves a joint after
+   the reset. Nothing of a name no joint has is kept beyond ``Commands``' few,
    nor logged but cut (``shown``).
 6. The face never ends the gateway: a failure of its periodic work or of a publication (a
    bug) is logged once, with its traceback, and the gateway serves on.
@@ -55,6 +57,7 @@ from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.intake import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef, Target
@@ -108,8 +111,10 @@ class Ros2Face:
         #: The trajectory message on the trajectory key, and the newest come since (rule 3).
         self._trajectory_lock = threading.Lock()
         self._trajectory_sent = False
-        self._trajectory_next: tuple[list[str], bytes, bool] | None = None
-        self._due: dict[str, Target] = {}  # joint → its latest command not handed on (rule 5)
+        #: (joint names, payload, a cancel, the e-stops counted when it came)
+        self._trajectory_next: tuple[list[str], bytes, bool, int] | None = None
+        #: joint → its latest command not handed on, and the e-stops counted when it came
+        self._due: dict[str, tuple[Target, int]] = {}
         self._handing_on = False  # the loop is due to hand on ``_due``
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
         self._node: Ros2Node | None = None
@@ -124,6 +129,7 @@ class Ros2Face:
         self._node = node = Ros2Node(
             self.bridge.session,
             NodeName(section.domain_id, section.namespace, self.node_name, section.distro),
+            estops=lambda: self.api.estops,
         )
         self._states = node.publisher(section.joint_states, JOINT_STATE, rmw_zenoh.SENSOR_DATA)
         self._diagnostics = node.publisher(section.diagnostics, DIAGNOSTIC_ARRAY, rmw_zenoh.DEFAULT)
@@ -243,9 +249,10 @@ class Ros2Face:
     # -- in (zenoh's threads: hand over only) -----------------------------------------------
 
     def _command(self, message: dict[str, Any]) -> None:
+        came_under = estops_when_taken(self.api.estops)
         with self._commands_lock:
             taken = self.commands.take(message, time.monotonic())
-            self._due.update((target.joint.name, target) for target in taken.targets)
+            self._due.update((t.joint.name, (t, came_under)) for t in taken.targets)
             hand_on = bool(self._due) and not self._handing_on
             self._handing_on |= hand_on
         if hand_on:
@@ -259,8 +266,9 @@ class Ros2Face:
         """The loop's thread: each joint's latest command, to its device (rule 5)."""
         with self._commands_lock:
             due, self._due, self._handing_on = self._due, {}, False
-        for target in due.values():
-            self._ramp(target.joint, target.follow_fields)
+        for target, came_under in due.values():
+            if came_under == self.api.estops:  # else sent before an e-stop: never carried out
+                self._ramp(target.joint, target.follow_fields)
 
     def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
         refused = self.api.ramp_to(joint.device, fields, self.section.client, self._claim_ttl_s)
@@ -275,12 +283,13 @@ class Ros2Face:
         """Rule 3: one message at a time on the trajectory key, the newest of those that
         came meanwhile next."""
         names = message.get("joint_names") or []
+        came_under = estops_when_taken(self.api.estops)  # before its decoding took its time
         try:
             command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
             self._refused(names, str(exc))
             return
-        sent = (names, message_json(command), command["op"] == "cancel")
+        sent = (names, message_json(command), command["op"] == "cancel", came_under)
         with self._trajectory_lock:
             if self._trajectory_sent:
                 self._trajectory_next = sent  # the one it replaces: never sent
@@ -288,8 +297,10 @@ class Ros2Face:
             self._trajectory_sent = True
         self._send_trajectory(*sent)
 
-    def _send_trajectory(self, names: list[str], payload: bytes, cancel: bool) -> None:
-        answer = self.bridge.submit_trajectory(payload)
+    def _send_trajectory(
+        self, names: list[str], payload: bytes, cancel: bool, came_under: int
+    ) -> None:
+        answer = self.bridge.submit_trajectory(payload, came_under)
         answer.add_done_callback(
             lambda done: self._trajectory_answered(names, done.result(), cancel)
         )

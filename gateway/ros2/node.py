@@ -19,7 +19,8 @@ Rules of this file:
    and is dropped (the e-stop's excepted, as a put on ``**`` stops on the zenoh API).
 3. A subscription's samples wait for a thread of their own in an ``Intake`` (``bridge``
    rule 6: a flood of commands never holds zenoh's receiving threads, and with them an
-   e-stop), which ``take_waiting`` empties for an e-stop. A service's handler runs on zenoh's
+   e-stop), which ``take_waiting`` empties for an e-stop; each is handled with the count of
+   e-stops it was taken under (``intake`` rule 5). A service's handler runs on zenoh's
    receiving thread itself: the services are the e-stop and its reset, which must wait
    behind nothing, and keep the order a client called them in. Handlers are given decoded
    messages and must only hand work on (``bridge`` rule 1); a service's reply is sent when
@@ -92,9 +93,12 @@ class Ros2Publisher:
 class Ros2Node:
     """The node's entities on ``session`` (the rules above)."""
 
-    def __init__(self, session: zenoh.Session, name: NodeName) -> None:
+    def __init__(
+        self, session: zenoh.Session, name: NodeName, estops: Callable[[], int] | None = None
+    ) -> None:
         self.session = session
         self.name = name
+        self._estops = estops  # the gateway's count, for what the subscriptions take
         self.zid = str(session.zid())
         self.dropped = 0  # samples and requests dropped: not their type's CDR, or on a wildcard
         self._drops_told: dict[str, tuple[float, int]] = {}  # entity: when told, held since
@@ -148,7 +152,8 @@ class Ros2Node:
             handler(message)
 
         thread = f"ros2 {shown(topic)}"
-        self._intakes.append(take_puts(self.session, key, received, thread, backlog_for(max_bytes)))
+        backlog = backlog_for(max_bytes)
+        self._intakes.append(take_puts(self.session, key, received, thread, backlog, self._estops))
 
     def service(
         self, name: str, type_name: str, handler: ServiceHandler, *, always: bool = False

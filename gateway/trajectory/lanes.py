@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from functools import partial
 from typing import Any
 
 from busgate.errors import BusyError, RefusedError
@@ -87,14 +88,16 @@ class Lane:
 class TrajectoryLanes:
     """The two lanes of the trajectory key (rules 1 and 2)."""
 
-    def __init__(self, command: Callable[[bytes], Reply]) -> None:
-        self.command = command
+    def __init__(self, command: Callable[..., Reply]) -> None:
+        self.command = command  # (payload, came_under=: the e-stops counted when it came)
         self.plays = Lane("play", MAX_WAITING_PLAYS, PLAY_START_S)
         self.control = Lane("trajectory command", MAX_WAITING_CONTROL, None)
 
-    def submit(self, payload: bytes) -> Future[Reply]:
+    def submit(self, payload: bytes, came_under: int | None = None) -> Future[Reply]:
+        """``payload`` in its lane; ``came_under``: the e-stops counted when it came (a play
+        started after another is refused)."""
         lane = self.control if _is_control(payload) else self.plays
-        return lane.submit(lambda: answer(self.command, payload))
+        return lane.submit(lambda: answer(partial(self.command, came_under=came_under), payload))
 
     def close(self) -> None:
         self.plays.close()

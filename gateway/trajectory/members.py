@@ -84,10 +84,13 @@ class PathSampler:
 
 class Gateway(Protocol):
     """What a trajectory needs of its gateway (``busgate.gateway.api.commands.GatewayApi``):
-    its name and its devices, each with the runner of its bus."""
+    its name, its devices, each with the runner of its bus, and its count of e-stops."""
 
     @property
     def name(self) -> str: ...
+
+    @property
+    def estops(self) -> int: ...
 
     @property
     def devices(self) -> Mapping[str, tuple[BusRunner, Driver]]: ...

@@ -30,6 +30,7 @@ from typing import Any
 from busgate.errors import RefusedError
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
+from busgate.gateway.scheduler.outcomes import cancelled_by_estop
 from busgate.gateway.trajectory.checks import check_buses, members_of, start_at_of
 from busgate.gateway.trajectory.members import Gateway, Running
 from busgate.gateway.trajectory.verdicts import verdict
@@ -63,19 +64,20 @@ class Trajectories:
 
     # -- commands (a worker thread: rule 5) ------------------------------------------------------
 
-    def command(self, payload: bytes) -> dict[str, Any]:
-        """The reply to one query on the trajectory key."""
+    def command(self, payload: bytes, came_under: int | None = None) -> dict[str, Any]:
+        """The reply to one query on the trajectory key; ``came_under``: the gateway's count
+        of e-stops when the query came (a play is refused ``estopped`` past another)."""
         fields = decode_object(payload, limit=MAX_TRAJECTORY_PAYLOAD)
         request = TRAJECTORY_COMMAND_ADAPTER.validate_python(fields)
         if isinstance(request, TrajectoryPlay):
-            return self.play(request)
+            return self.play(request, came_under)
         if isinstance(request, TrajectoryCancel):
             return self.cancel(request.id)
         with self._lock:
             running = [r.summary(time.time()) for r in self._running.values()]
         return ok_reply(trajectories=running)
 
-    def play(self, request: TrajectoryPlay) -> dict[str, Any]:
+    def play(self, request: TrajectoryPlay, came_under: int | None = None) -> dict[str, Any]:
         members = members_of(self.api, request)
         start_at = start_at_of(request.start_at)
         check_buses(members)
@@ -90,6 +92,8 @@ class Trajectories:
             request.goal_time_s,
         )
         with self._lock:
+            if came_under is not None and came_under != self.api.estops:
+                raise cancelled_by_estop()  # sent before an e-stop (a reset may follow at once)
             self._check_id(request)
             taken = {m.name for m in members}
             for other in list(self._running.values()):
