@@ -29,7 +29,7 @@ from busgate.gateway.cli.watch_table import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.zenoh_session import session_config
-from tests.gateway_process import GatewayProcess, serial_bus, write_config
+from tests.gateway_process import GatewayProcess, run_busgate, serial_bus, write_config
 
 PUBLISH_EVERY_S = 0.05
 
@@ -362,6 +362,15 @@ def test_an_argument_that_is_no_utf8_is_one_line_and_exit_2(argv, capsys):
     _, err = capsys.readouterr()
     assert err.endswith("is not UTF-8 text (the byte 0xff): nothing was done\n")
     assert len(err.splitlines()) == 1
+
+
+def test_a_path_may_be_any_bytes(tmp_path):
+    """Only names, keys and commands must be UTF-8: a config file's name is the system's
+    (``gateway-\xe9.toml`` was refused as no UTF-8 text)."""
+    path = write_config(tmp_path / "gateway-\udce9.toml", "tcp/127.0.0.1:7447",  # byte 0xe9
+                        serial_bus("uart0", "/dev/null", "la1"))
+    done = run_busgate("check-config", str(path), errors="backslashreplace")
+    assert done.returncode == 0, done.stderr
 
 
 def test_another_prefix_changes_the_selector(stand_in, capsys):

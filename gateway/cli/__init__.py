@@ -83,14 +83,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     args = parser.parse_args(argv)
-    for arg in argv:  # a name or a command in bytes that are no UTF-8: no key, no JSON
-        if (byte := _not_utf8(arg)) is not None:
-            print(
-                f"busgate {args.subcommand}: error: the argument {arg!r} is not UTF-8 text (the "
-                f"byte 0x{byte:02x}): nothing was done",
-                file=sys.stderr,
-            )
-            return 2
     try:
         return args.handler(args)
     except BusgateError as exc:
@@ -100,12 +92,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # stdout's reader left (| head): nothing more to say, to anyone
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush too
         return 1
-
-
-def _not_utf8(arg: str) -> int | None:
-    """The first byte of ``arg`` that was no UTF-8 on the command line (Python keeps it as a
-    lone surrogate, ``os.fsdecode``'s), ``None`` when it is all text."""
-    for char in arg:
-        if "\udc80" <= char <= "\udcff":
-            return ord(char) - 0xDC00
-    return None

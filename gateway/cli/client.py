@@ -128,6 +128,7 @@ def command_key(prefix: str, target: str) -> str:
 
 
 def run_send(args: argparse.Namespace) -> int:
+    text_arguments(args.target, args.command, args.prefix)
     key = check_key(command_key(args.prefix, args.target))
     payload = args.command.encode()
     if args.put and not _put_judged(payload):
@@ -157,6 +158,19 @@ def run_send(args: argparse.Namespace) -> int:
                   file=sys.stderr)  # fmt: skip
             status = ERROR_REPLY
     return status
+
+
+def text_arguments(*arguments: str) -> None:
+    """``CommandError`` for a name, key or command given in bytes that are no UTF-8 (Python
+    keeps each such byte as a lone surrogate, ``os.fsdecode``'s): it is no key, nor JSON.
+    (A path may be any bytes: only these are judged.)"""
+    for argument in arguments:
+        for char in argument:
+            if "\udc80" <= char <= "\udcff":
+                raise CommandError(
+                    f"the argument {argument!r} is not UTF-8 text (the byte "
+                    f"0x{ord(char) - 0xDC00:02x}): nothing was done"
+                )
 
 
 def _one_gateway_with(args: argparse.Namespace, gateways: dict[str, set[str]]) -> str | None:
@@ -218,7 +232,12 @@ def _no_reply(key: str, *, waited: float | None) -> int:
     done."""
     within = "" if waited is None else f" within {waited:g} s"
     puts_only = key.rsplit("/", 1)[-1] in PUT_ONLY_LEAVES
-    hint = f": {key} takes puts, not gets: nothing was done (send --put)" if puts_only else ""
+    if puts_only:
+        hint = f": {key} takes puts, not gets: nothing was done (send --put)"
+    elif waited is not None:  # it went: an answer later than the wait is not heard
+        hint = ": the command went, and may have been carried out (see the device's state)"
+    else:
+        hint = ""
     print(f"busgate send: nobody answered on {key}{within}{hint}", file=sys.stderr)
     return NO_ANSWER
 
@@ -254,6 +273,7 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
 
 
 def run_watch(args: argparse.Namespace) -> int:
+    text_arguments(args.selector or "", args.prefix)
     state_key, stats_key, selector = watch_keys(args.prefix, args.selector)
     check_key(selector)
     table = WatchTable()
