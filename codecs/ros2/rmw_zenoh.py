@@ -287,10 +287,17 @@ def name_problem(name: str) -> str | None:
     return _tokens_problem(f"topic name {name!r}", body)
 
 
+#: The longest node name ROS 2 takes (rmw's ``RMW_NODE_NAME_MAX_NAME_LENGTH``).
+MAX_NODE_NAME = 255
+
+
 def node_name_problem(name: str) -> str | None:
-    """Why ``name`` is not a valid node name (letters, digits, ``_``; no leading digit)."""
+    """Why ``name`` is not a valid node name (letters, digits, ``_``; no leading digit; at
+    most ``MAX_NODE_NAME`` characters)."""
     if not name:
         return "a node name must not be empty"
+    if len(name) > MAX_NODE_NAME:
+        return f"node name {name[:40]!r}… is {len(name)} characters, over ROS 2's {MAX_NODE_NAME}"
     return _token_problem(f"node name {name!r}", name)
 
 
