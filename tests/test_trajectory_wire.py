@@ -26,6 +26,7 @@ import re
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from functools import partial
 
 import pytest
 import zenoh
@@ -39,6 +40,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.drivers.ds_servo import DsServoDriver
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.ros2.face import PLAY_JSON_MAX
 from busgate.gateway.scheduler.plays import RAMP_S
 from busgate.gateway.scheduler.trajectory_ticks import GRID_STRETCH, ON_TIME_S
 from busgate.gateway.service.assembly import build_bus
@@ -50,7 +52,7 @@ from busgate.gateway.trajectory.lanes import answer
 from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import SerialBus
 from busgate.schemas.events import EVENT_ADAPTER
-from busgate.schemas.trajectory import TrajectoryPlay
+from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD, TrajectoryPlay
 from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
@@ -606,6 +608,24 @@ def test_a_play_that_came_before_an_estop_never_starts_after_its_reset(world, pl
     assert ticks(world.la_sim, marks["uart0"]) == []
     played = player.play(["la1"], [{"t_s": 0.2, "positions": [700]}])
     assert player.finished(played)["result"] == "succeeded"
+
+
+def test_a_play_over_the_keys_megabyte_is_taken_where_its_sender_allows_it(world, player):
+    """The ROS 2 face's plays are its own JSON of a message of at most 1 MiB of CDR, some
+    three times the bytes: a message of 9,000 points of two joints, within both of its
+    limits, was refused at the trajectory key's megabyte. The key's own limit stays."""
+    tiny = 1.234567891e-09
+    points = [{"t_s": 2.0 + 0.02 * k + 1e-9, "positions": [1000, 2048],
+               "velocities": [tiny, tiny], "accelerations": [tiny, tiny]} for k in range(9000)]
+    payload = json.dumps({"op": "play", "id": "big", "devices": ["la1", "arm1"],
+                          "points": points}).encode()
+    assert MAX_TRAJECTORY_PAYLOAD < len(payload) < PLAY_JSON_MAX
+    assert answer(player.trajectories.command, payload)["error"]["code"] == "too_large"
+    try:
+        taken = answer(partial(player.trajectories.command, limit=PLAY_JSON_MAX), payload)
+        assert taken["ok"], taken
+    finally:
+        player.ask({"op": "cancel", "id": "big"})
 
 
 def test_an_estop_before_the_start_aborts_it_at_once_and_nothing_ticks(world, player):

@@ -483,14 +483,16 @@ class ZenohBridge:
             log_told(event.type, event.fields.get("client"), event.fields.get("suppressed", 0))
         self.events.append(event)
 
-    def submit_trajectory(self, payload: bytes, came_under: int | None = None) -> Future:
-        """A trajectory command (``<base>/trajectory``'s payload) in its lane: the reply's
-        future. A play is refused ``estopped`` if an e-stop came after it was taken:
-        ``came_under`` is the count of e-stops then, by default the one this thread's intake
-        took it under (``intake`` rule 5)."""
+    def submit_trajectory(
+        self, payload: bytes, came_under: int | None = None, limit: int = MAX_TRAJECTORY_PAYLOAD
+    ) -> Future:
+        """A trajectory command (``<base>/trajectory``'s payload, of at most ``limit`` bytes)
+        in its lane: the reply's future. A play is refused ``estopped`` if an e-stop came after
+        it was taken: ``came_under`` is the count of e-stops then, by default the one this
+        thread's intake took it under (``intake`` rule 5)."""
         if came_under is None:
             came_under = estops_when_taken(self.api.estops)
-        return self._trajectory_lanes.submit(payload, came_under)
+        return self._trajectory_lanes.submit(payload, came_under, limit=limit)
 
     def _on_estop_reset(self, sample: zenoh.Sample) -> None:
         """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``

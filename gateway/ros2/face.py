@@ -73,6 +73,12 @@ from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
 
+#: The largest play a trajectory message makes, in bytes of JSON: its CDR is at most
+#: ``MAX_TRAJECTORY_PAYLOAD``, where each value takes 8 bytes and its JSON at most some 26
+#: (held to the trajectory key's megabyte, a message of 9,000 points of two joints, well
+#: within both of its own limits, was refused).
+PLAY_JSON_MAX = 4 * MAX_TRAJECTORY_PAYLOAD
+
 #: How long a joint stays held by the face after its last command (rule 2): long enough that
 #: a controller's steady stream keeps it, short enough that another client gets it soon
 #: after ROS stops commanding.
@@ -300,7 +306,7 @@ class Ros2Face:
     def _send_trajectory(
         self, names: list[str], payload: bytes, cancel: bool, came_under: int
     ) -> None:
-        answer = self.bridge.submit_trajectory(payload, came_under)
+        answer = self.bridge.submit_trajectory(payload, came_under, PLAY_JSON_MAX)
         answer.add_done_callback(
             lambda done: self._trajectory_answered(names, done.result(), cancel)
         )

@@ -93,11 +93,14 @@ class TrajectoryLanes:
         self.plays = Lane("play", MAX_WAITING_PLAYS, PLAY_START_S)
         self.control = Lane("trajectory command", MAX_WAITING_CONTROL, None)
 
-    def submit(self, payload: bytes, came_under: int | None = None) -> Future[Reply]:
+    def submit(
+        self, payload: bytes, came_under: int | None = None, **options: Any
+    ) -> Future[Reply]:
         """``payload`` in its lane; ``came_under``: the e-stops counted when it came (a play
-        started after another is refused)."""
+        started after another is refused); ``options`` go to the command (``limit``)."""
         lane = self.control if _is_control(payload) else self.plays
-        return lane.submit(lambda: answer(partial(self.command, came_under=came_under), payload))
+        command = partial(self.command, came_under=came_under, **options)
+        return lane.submit(lambda: answer(command, payload))
 
     def close(self) -> None:
         self.plays.close()

@@ -64,10 +64,14 @@ class Trajectories:
 
     # -- commands (a worker thread: rule 5) ------------------------------------------------------
 
-    def command(self, payload: bytes, came_under: int | None = None) -> dict[str, Any]:
+    def command(
+        self, payload: bytes, came_under: int | None = None, limit: int = MAX_TRAJECTORY_PAYLOAD
+    ) -> dict[str, Any]:
         """The reply to one query on the trajectory key; ``came_under``: the gateway's count
-        of e-stops when the query came (a play is refused ``estopped`` past another)."""
-        fields = decode_object(payload, limit=MAX_TRAJECTORY_PAYLOAD)
+        of e-stops when the query came (a play is refused ``estopped`` past another);
+        ``limit``: the largest payload taken (the key's; the ROS 2 face's own JSON may be
+        larger than the message it came in)."""
+        fields = decode_object(payload, limit=limit)
         request = TRAJECTORY_COMMAND_ADAPTER.validate_python(fields)
         if isinstance(request, TrajectoryPlay):
             return self.play(request, came_under)
