@@ -90,6 +90,13 @@ def replayed(client, heard_on: str, path, module_demo, *args: str):
     return done, heard
 
 
+def live_refusal(prefix: str, gateways: str) -> str:
+    """``busgate replay``'s one line for a ``--prefix`` where ``gateways`` are live."""
+    return (f"busgate replay: error: --prefix {prefix} is live (gateway {gateways}): a replay "
+            "there writes into its telemetry; use another --prefix (default replay) or add "
+            "--onto-live")
+
+
 @pytest.fixture(scope="module")
 def recorded(module_demo, client, tmp_path_factory):
     path = tmp_path_factory.mktemp("record") / "demo.mcap"
@@ -180,9 +187,7 @@ def test_replay_under_a_live_gateways_prefix_is_refused_before_it_publishes(
     done, heard = replayed(client, "*/rec-test/**", path, module_demo, "--prefix", "busgate",
                            "--speed", "4")
     assert done.returncode == 2, done
-    assert done.stderr.splitlines() == [
-        "busgate replay: error: --prefix busgate is live (gateway demo): a replay there writes "
-        "into its telemetry; use another --prefix (default replay) or add --onto-live"]
+    assert done.stderr.splitlines() == [live_refusal("busgate", "demo")]
     assert heard == []
 
 
@@ -449,10 +454,7 @@ def test_replay_under_a_live_gateways_keys_is_refused(recorded, module_demo, cli
     path, _, _ = recorded
     done, heard = replayed(client, "busgate/**", path, module_demo, "--prefix", "busgate/demo/x")
     assert done.returncode == 2, done
-    assert done.stderr.splitlines() == [
-        "busgate replay: error: --prefix busgate/demo/x is live (gateway demo under busgate): a "
-        "replay there writes into its telemetry; use another --prefix (default replay) or add "
-        "--onto-live"]
+    assert done.stderr.splitlines() == [live_refusal("busgate/demo/x", "demo under busgate")]
     assert not [key for key, _, _ in heard if key.startswith("busgate/demo/x")]
 
 
@@ -466,10 +468,7 @@ def test_replay_above_a_live_gateways_prefix_is_refused(recorded, module_demo, c
             "fleet/site1/gw/info", info))
         done, heard = replayed(client, "fleet/**", path, module_demo, "--prefix", "fleet")
     assert done.returncode == 2, done
-    assert done.stderr.splitlines() == [
-        "busgate replay: error: --prefix fleet is live (gateway gw under fleet/site1): a replay "
-        "there writes into its telemetry; use another --prefix (default replay) or add "
-        "--onto-live"]
+    assert done.stderr.splitlines() == [live_refusal("fleet", "gw under fleet/site1")]
     assert heard == []
 
 

@@ -470,8 +470,8 @@ class ZenohBridge:
         return reset
 
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
-        """Once every bus has the e-stop: the follow targets put before it dropped (rule 6),
-        its log line and ``estop`` event (at most one every 0.1 s, ``put_reports``)."""
+        """Once every bus has the e-stop: what was put or got before it and still waits taken
+        (rule 6), its log line and ``estop`` event (at most one every 0.1 s, ``put_reports``)."""
         self._take_what_came_before()
         self.put_reports.estop(key, sender)
         return stopped

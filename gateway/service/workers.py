@@ -207,8 +207,8 @@ class WorkerProcess:
         self.last_word = now()
         self.process: subprocess.Popen | None = None
         self.outbox: link.Outbox | None = None
-        self._spoken = False  # the running worker said a word since it was started
-        self._first_word_at = 0.0  # when it did
+        #: When the running worker said its first word (``None``: not yet, since it started).
+        self._first_word_at: float | None = None
         #: When the supervisor starts an ended worker again (``None``: one runs, rule 3).
         self._restart_at: float | None = None
         self._pending: dict[int, Future] = {}
@@ -279,7 +279,8 @@ class WorkerProcess:
 
     def _silent_too_long(self, stall_s: float = STALL_S) -> bool:
         """Silent for ``stall_s`` since its last word (``SLOW_START_S`` before its first)."""
-        return now() - self.last_word > (stall_s if self._spoken else SLOW_START_S)
+        spoken = self._first_word_at is not None
+        return now() - self.last_word > (stall_s if spoken else SLOW_START_S)
 
     def _supervise(self) -> None:
         delay_s = 0.0
@@ -290,14 +291,16 @@ class WorkerProcess:
                 self._ended(process)
             except Exception:  # a bug, or no process to be had (EMFILE): try again
                 log.exception("worker %d: its supervisor failed", self.index)
-            ran_s = now() - self._first_word_at if self._spoken else 0.0
+            first_word = self._first_word_at
+            ran_s = 0.0 if first_word is None else now() - first_word
             delay_s = restart_delay(delay_s, steady=ran_s >= STEADY_S)
             self._restart_at = now() + delay_s
             if delay_s > RESTART_S:
+                when = "before" if first_word is None else f"{ran_s:.1f} s after"
                 log.warning(
-                    "worker %d ended %s: started again in %.0f s",
+                    "worker %d ended %s its first word: started again in %.0f s",
                     self.index,
-                    f"{ran_s:.1f} s after its first word" if ran_s else "before its first word",
+                    when,
                     delay_s,
                 )
             if self._stopping.wait(delay_s):
@@ -324,7 +327,7 @@ class WorkerProcess:
             outbox.put(("start", self.config, list(self.runners), sorted(estopped)))
             self.process, self.outbox, self.last_word = process, outbox.start(), now()
             self._restart_at = None
-        self._spoken = False
+        self._first_word_at = None
         # The claims that stand, once the outbox is the worker's: a change made meanwhile
         # comes after them, in order (``ForwardedClaims.hand_over``).
         moment = now()
@@ -386,9 +389,9 @@ class WorkerProcess:
                 continue
             if message is None:
                 break
-            if not self._spoken:
-                self._first_word_at, self._spoken = now(), True
             self.last_word = now()
+            if self._first_word_at is None:
+                self._first_word_at = self.last_word
             for said in link.unbatched(message):
                 handle = self._HANDLERS.get(said[0])
                 if handle is None:
