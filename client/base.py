@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -29,7 +30,16 @@ from busgate.client.errors import (
 from busgate.client.feeds import Latest
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, check_name, is_name, split_name
-from busgate.client.messages import UNPARSED, Answer, JointInfo, dumps, published_naming, then
+from busgate.client.messages import (
+    MAX_WAIT_S,
+    UNPARSED,
+    Answer,
+    JointInfo,
+    dumps,
+    published_naming,
+    seconds,
+    then,
+)
 from busgate.errors import CommandError
 from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
@@ -407,9 +417,15 @@ class Shared:
         model = TELEMETRY_MODELS[device.kind]
         return published_naming(model, payload, "states", device.gateway, "device", device.name)
 
-    def latest(self, key: str, gateway: str) -> Latest:
+    def latest(self, key: str, gateway: str, timeout: float, max_age: float) -> Latest:
         """The latest message on ``key``, one of ``gateway``'s, subscribed at the first ask
-        and kept until the client closes (one subscription per key however often asked)."""
+        and kept until the client closes (one subscription per key however often asked);
+        asked for one within ``max_age`` s, else the next within ``timeout`` s, both checked
+        here (``CommandError`` for NaN, a negative …), and refused by a closed client, whose
+        last message is no news."""
+        seconds("timeout", timeout, 0, MAX_WAIT_S)
+        seconds("max_age", max_age, 0, math.inf)
+        self.core.require_open(key)
         with self._latest_lock:
             latest = self._latest.get(key)
             if latest is None:

@@ -44,7 +44,15 @@ from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, split_name
-from busgate.client.messages import Answers, Odometry, dumps, first_ok, published_naming, then
+from busgate.client.messages import (
+    Answers,
+    Odometry,
+    dumps,
+    feed_deadline,
+    first_ok,
+    published_naming,
+    then,
+)
 from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.schemas.bases import TwistTarget
 
@@ -219,7 +227,7 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
         """The base's latest odometry (``x``, ``y``, ``theta``, ``linear``, ``angular``,
         ``ts``): one received in the last ``max_age`` seconds, else the next within
         ``timeout`` (it comes as the wheels are read)."""
-        latest = self._shared.latest(self._odometry_key(), self.gateway)
+        latest = self._shared.latest(self._odometry_key(), self.gateway, timeout, max_age)
         message = self._message(latest.recent(max_age))
         deadline = time.monotonic() + timeout
         while message is None and (left := deadline - time.monotonic()) > 0:
@@ -231,7 +239,7 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
     @feeding
     def odometry_feed(self, timeout: float = 5.0) -> Items[Odometry]:
         """Each new odometry message of the base, as it comes, until ``timeout`` seconds."""
-        deadline = time.monotonic() + timeout
+        deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
         with Stream(self._shared.core, self._odometry_key(), inbox.put):
             while (left := deadline - time.monotonic()) > 0:

@@ -202,6 +202,11 @@ class Core:
         if self._at_exit.detach() is not None:
             _close(self.session, self._held, self._drains)
 
+    def require_open(self, key: str) -> None:
+        """``CommandError`` once closed, as zenoh refuses a closed session's query on ``key``."""
+        if not self._at_exit.alive:
+            raise CommandError(f"cannot read {key[:200]!r}: session closed")
+
     # -- exchanges ---------------------------------------------------------------------------
 
     def ask(

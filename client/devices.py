@@ -18,6 +18,7 @@ from busgate.client.errors import NoAnswerError, error_for
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
+from busgate.client.messages import feed_deadline
 from busgate.client.steps import Items, Next, Steps, Wait
 
 Claim = TypeVar("Claim")
@@ -93,7 +94,7 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
 
     def _latest_state(self, timeout: float, max_age: float) -> Steps[Any]:
         key = self._shared.core.keys.device(self.gateway, self.name, "state")
-        latest = self._shared.latest(key, self.gateway)
+        latest = self._shared.latest(key, self.gateway, timeout, max_age)
         payload = latest.recent(max_age)
         if payload is None:
             payload = yield Next(latest.next(), timeout)
@@ -109,7 +110,7 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
     @feeding
     def states(self, timeout: float = 5.0) -> Items[Any]:
         """Each new state message of the device, as it comes, until ``timeout`` seconds."""
-        deadline = time.monotonic() + timeout
+        deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
         key = self._shared.core.keys.device(self.gateway, self.name, "state")
         with Stream(self._shared.core, key, inbox.put):

@@ -19,6 +19,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass
@@ -179,6 +181,13 @@ def seconds(what: str, value: float, least: float, most: float) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not least <= value <= most:
         raise CommandError(f"{what} must be a number of seconds from {least:g} to {most:g}")
     return value
+
+
+def feed_deadline(timeout: float) -> float:
+    """When a feed of ``timeout`` seconds ends, on ``time.monotonic``'s clock; ``CommandError``
+    for a timeout that is no number of seconds (NaN, a negative …: a feed that would end
+    before its first item, without a word)."""
+    return time.monotonic() + seconds("timeout", timeout, 0, math.inf)
 
 
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)

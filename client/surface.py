@@ -27,7 +27,7 @@ from busgate.client.errors import NoAnswerError
 from busgate.client.faces import Face, feeding, taking, waiting
 from busgate.client.feeds import Inbox, Stream
 from busgate.client.keys import check_name
-from busgate.client.messages import Answers, JointsMessage, joints_message
+from busgate.client.messages import Answers, JointsMessage, feed_deadline, joints_message
 from busgate.client.steps import Call, Items, Next, Steps, Wait
 from busgate.client.trajectories import Watch, one_gateway, play_body
 from busgate.schemas.api import InfoReply
@@ -109,7 +109,7 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         """The latest joints message of ``gateway`` (every joint of it in SI, published when
         any was read again): one received in the last ``max_age`` seconds, else the next
         within ``timeout``."""
-        latest = self._shared.latest(self._joints_key(gateway), gateway)
+        latest = self._shared.latest(self._joints_key(gateway), gateway, timeout, max_age)
         payload = latest.recent(max_age)
         message = None if payload is None else joints_message(payload, gateway)
         deadline = time.monotonic() + timeout
@@ -124,7 +124,7 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
     @feeding
     def joints_feed(self, gateway: str, timeout: float = 5.0) -> Items[JointsMessage]:
         """Each new joints message of ``gateway``, as it comes, until ``timeout`` seconds."""
-        deadline = time.monotonic() + timeout
+        deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
         with Stream(self._shared.core, self._joints_key(gateway), inbox.put):
             while (left := deadline - time.monotonic()) > 0:

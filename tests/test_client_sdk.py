@@ -32,6 +32,7 @@ from busgate.client.core import MAX_REPLY
 from busgate.client.messages import joints_message
 from busgate.client.trajectories import Watch
 from busgate.codecs import inspire_la as la
+from busgate.errors import CommandError
 from busgate.gateway import installed_version
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
@@ -614,6 +615,35 @@ def test_states_yields_each_new_sample_until_the_timeout(client) -> None:
     stamps = [s.ts for s in samples]  # when each was read: a state with events repeats one
     assert stamps == sorted(stamps) and len(set(stamps)) >= 5, stamps  # polled at 10 Hz
     assert 1.5 <= elapsed < 1.5 + 2.0, "the iteration did not end at its timeout"
+
+
+
+@pytest.mark.parametrize("bad", [math.nan, -1.0, "2", True])
+def test_a_wait_that_is_no_number_of_seconds_is_refused_even_with_a_state_kept(
+        client, bad) -> None:
+    """A state kept from a moment ago was returned whatever ``timeout`` or ``max_age`` came
+    with the ask (NaN, a negative, a string), and a feed of such a ``timeout`` ended before
+    its first item without a word: each is refused."""
+    la1 = client.device("demo/la1")
+    la1.state()
+    for ask in (lambda: la1.state(timeout=bad), lambda: la1.state(max_age=bad),
+                lambda: client.joints("demo", timeout=bad), lambda: next(la1.states(bad)),
+                lambda: next(client.joints_feed("demo", bad))):
+        with pytest.raises(CommandError, match="must be a number of seconds"):
+            ask()
+
+
+def test_a_closed_client_gives_no_state_it_kept(connect) -> None:
+    """A closed client's ``state()`` returned the last state it had kept, as if the device
+    had just been read: now it is refused, as a closed client's commands are."""
+    closed = connect("closed")
+    la1 = closed.device("demo/la1")
+    la1.state()
+    closed.close()
+    with pytest.raises(CommandError, match="session closed"):
+        la1.state()
+    with pytest.raises(CommandError, match="session closed"):
+        closed.joints("demo")
 
 
 # -- commands ---------------------------------------------------------------------------------
