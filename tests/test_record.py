@@ -238,6 +238,8 @@ def write_foreign(path) -> None:
     (["record", "--info", "{tmp}/none.mcap"], "cannot read"),
     (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),
     (["replay", "{tmp}/none.mcap"], "cannot read"),
+    (["record", "--info", "{tmp}/fifo.mcap"], "fifo.mcap is no regular file"),  # not waited on
+    (["replay", "{tmp}"], "is no regular file"),
     (["replay", "{tmp}/exists.mcap"], "is not a complete MCAP file"),  # before any session
     (["replay", "{tmp}/exists.mcap", "--prefix", "a*b"], "a*b"),
     (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is from 0.01 to 1000"),
@@ -251,6 +253,7 @@ def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message, huge_chunk) -
     (tmp_path / "exists.mcap").write_bytes(b"not an mcap file")
     write_foreign(tmp_path / "foreign.mcap")
     (tmp_path / "huge.mcap").write_bytes(huge_chunk)
+    os.mkfifo(tmp_path / "fifo.mcap")
     done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),
                        "--connect", "tcp/127.0.0.1:1")
     assert done.returncode == 2, done

@@ -37,8 +37,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import queue
 import signal
+import stat
 import sys
 import threading
 import time
@@ -285,15 +287,26 @@ class Recording:
 
 def _summary(path: Path) -> dict[str, Any]:
     """The file's summary (``mcap_log.summary``); ``CommandError`` when it cannot be read or
-    is not a complete MCAP file."""
+    is not a complete MCAP file. Every reading of a recording asks for it first."""
     try:
-        with path.open("rb") as stream:
+        with _opened(path) as stream:
             return mcap_log.summary(stream)
     except OSError as exc:
         raise CommandError(f"cannot read {path}: {exc.strerror}") from None
     except Exception as exc:  # the mcap reader's errors have no common base
         why = str(exc) or type(exc).__name__  # some say nothing
         raise CommandError(f"{path} is not a complete MCAP file: {why}") from None
+
+
+def _opened(path: Path) -> IO[bytes]:
+    """``path`` opened to be read; ``CommandError`` when it is no regular file: a FIFO's open
+    waits for a writer, and a recording is read by seeking to its end."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO's open returns at once
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise CommandError(f"{path} is no regular file: a recording is one")
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "rb")
 
 
 def _print_info(path: Path) -> int:
