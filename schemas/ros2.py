@@ -19,6 +19,10 @@ Rules of this file:
    (an e-stop call resetting the e-stop too), and a subscription on a publisher's topic would
    take the gateway's own joint states for commands. The bases' topics of one key may share
    an absolute name (every base's transforms on ``/tf``).
+6. ``pose_covariance_diagonal`` and ``twist_covariance_diagonal`` are diff_drive_controller's
+   keys, with its defaults (zeros, which a filter such as robot_localization's reads as
+   certainty): the diagonal of each base's odometry's pose and twist covariance, to be
+   tuned to the robot's odometry as the controller's are.
 """
 
 from __future__ import annotations
@@ -54,6 +58,10 @@ TOPIC_DEFAULTS: dict[str, str] = {
 }
 #: The keys of ``TOPIC_DEFAULTS`` that are each base's.
 BASE_TOPICS = ("cmd_vel", "odom", "tf")
+#: A variance of an odometry covariance's diagonal (rule 6).
+Variance = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+#: The six of a diagonal: x, y, z, then rotation about x, y, z (rule 6).
+CovarianceDiagonal = Annotated[list[Variance], Field(min_length=6, max_length=6)]
 
 
 class Ros2Section(BaseModel):
@@ -79,6 +87,8 @@ class Ros2Section(BaseModel):
     tf: str = TOPIC_DEFAULTS["tf"]
     odom_frame: Annotated[str, Field(pattern=FRAME_ID)] = "odom"
     base_frame: Annotated[str, Field(pattern=FRAME_ID)] = "base_link"
+    pose_covariance_diagonal: CovarianceDiagonal = [0.0] * 6
+    twist_covariance_diagonal: CovarianceDiagonal = [0.0] * 6
 
     @model_validator(mode="after")
     def _names(self) -> Ros2Section:

@@ -105,6 +105,12 @@ class Received:
                 self.changed.wait(left)
 
 
+#: The odometry's covariance diagonals: diff_drive_controller's suggested start, as a user
+#: would set them.
+POSE_VARIANCES = [0.001, 0.001, 0.001, 0.001, 0.001, 0.01]
+TWIST_VARIANCES = [0.002, 0.002, 0.002, 0.002, 0.002, 0.03]
+
+
 @pytest.fixture(scope="module")
 def ros(tmp_path_factory):
     """The daemon with ``[ros2]``, its simulators, a plain zenoh client, and the SDK set up
@@ -126,7 +132,8 @@ def ros(tmp_path_factory):
     daemon = Daemon({
         "gateway": {"name": "gw1"},
         "zenoh": {"listen": [endpoint]},
-        "ros2": {},
+        "ros2": {"pose_covariance_diagonal": POSE_VARIANCES,
+                 "twist_covariance_diagonal": TWIST_VARIANCES},
         "buses": [
             {"name": "uart0", "transport": "serial", "port": la_sim.port, "baudrate": 921_600,
              "reply_margin_ms": 50, "devices": [
@@ -534,6 +541,9 @@ def test_cmd_vel_drives_the_base_and_odom_and_tf_follow(ros) -> None:
     turned = odom.wait(lambda m: m.pose.pose.orientation.z > start.pose.pose.orientation.z
                        + 0.01)
     assert turned.header.frame_id == "odom" and turned.child_frame_id == "base_link"
+    assert list(turned.pose.covariance[::7]) == POSE_VARIANCES  # the diagonal, as configured
+    assert list(turned.twist.covariance[::7]) == TWIST_VARIANCES
+    assert sum(turned.pose.covariance) == sum(POSE_VARIANCES)  # and nothing else
     assert abs(turned.pose.pose.position.x - start.pose.pose.position.x) < 0.01
     [transform] = tf.wait(lambda m: True).transforms
     assert (transform.header.frame_id, transform.child_frame_id) == ("odom", "base_link")

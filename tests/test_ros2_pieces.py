@@ -322,6 +322,21 @@ def test_two_names_of_the_table_that_come_to_one_entity_are_refused(ros2, bases,
     assert why in str(refused.value)
 
 
+
+@pytest.mark.parametrize(("diagonal", "why"), [
+    ([0.001] * 5, "at least 6 items"),
+    ([0.001] * 7, "at most 6 items"),
+    ([0.001] * 5 + [-0.01], "greater than or equal to 0"),
+    ([0.001] * 5 + [math.nan], "finite number"),
+    ([0.001] * 5 + ["0.01"], "valid number"),
+])
+def test_an_odometry_covariance_diagonal_that_is_no_six_variances_is_refused(
+        diagonal, why) -> None:
+    for key in ("pose_covariance_diagonal", "twist_covariance_diagonal"):
+        with pytest.raises(ConfigError) as refused:
+            ros2_config({key: diagonal}, [BASE])
+        assert f"ros2.{key}" in str(refused.value) and why in str(refused.value)
+
 def test_names_of_their_own_and_bases_sharing_an_absolute_tf_are_taken() -> None:
     two = [BASE, {**BASE, "name": "other", "left": "wl2", "right": "wr2"}]
     assert ros2_config({}, [BASE]).ros2 is not None

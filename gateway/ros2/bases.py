@@ -11,7 +11,8 @@ Rules of this file:
    until a twist is taken again.
 2. Odometry goes out as the base's is published (``Bases`` rule 5), stamped with the time the
    wheels were read: the pose in ``odom_frame``, the twist in ``base_frame``, with the same
-   pose as one transform on ``tf``.
+   pose as one transform on ``tf``; their covariances are the config's diagonals
+   (``Ros2Section`` rule 6).
 3. Names and frames of several bases are each base's (``Ros2Section.topic_of``).
 """
 
@@ -44,6 +45,8 @@ class BaseTopics:
         self.section = section
         self.bases = bases
         self._refused: dict[str, str] = {}  # base → its last refusal told (rule 1)
+        self._pose_covariance = covariance(section.pose_covariance_diagonal)  # rule 2
+        self._twist_covariance = covariance(section.twist_covariance_diagonal)
         self._out: dict[str, tuple[Ros2Publisher, Ros2Publisher, str, str]] = {}
         count = len(bases.bases)
         for name in bases.bases:
@@ -88,12 +91,16 @@ class BaseTopics:
             {
                 "header": header,
                 "child_frame_id": base_frame,
-                "pose": {"pose": {"position": position, "orientation": rotation}},
+                "pose": {
+                    "pose": {"position": position, "orientation": rotation},
+                    "covariance": self._pose_covariance,
+                },
                 "twist": {
                     "twist": {
                         "linear": {"x": odometry["linear"], "y": 0.0, "z": 0.0},
                         "angular": {"x": 0.0, "y": 0.0, "z": odometry["angular"]},
-                    }
+                    },
+                    "covariance": self._twist_covariance,
                 },
             }
         )
@@ -108,3 +115,17 @@ class BaseTopics:
                 ]
             }
         )
+
+
+def covariance(diagonal: list[float]) -> list[float]:
+    """The 6×6 covariance, row by row, of ``diagonal``'s six variances and nothing else.
+
+    >>> covariance([1, 2, 3, 4, 5, 6])[:8], covariance([1, 2, 3, 4, 5, 6])[35]
+    ([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0], 6.0)
+    """
+    size = len(diagonal)
+    return [
+        float(diagonal[row]) if row == column else 0.0
+        for row in range(size)
+        for column in range(size)
+    ]
