@@ -53,6 +53,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.drivers.inspire_la_frames",
     "busgate.gateway.drivers.zlac706_can",
     "busgate.gateway.drivers.zlac706_rs232",
+    "busgate.gateway.recording.mcap_log",
     "busgate.gateway.ros2.bases",
     "busgate.gateway.scheduler.trajectory_ticks",
     "busgate.gateway.trajectory.bounds",

@@ -30,7 +30,7 @@ from mcap.writer import Writer
 import busgate.client as bc
 from busgate.gateway.cli import record as record_command
 from busgate.gateway.recording import mcap_log
-from busgate.gateway.recording.mcap_log import McapLog
+from busgate.gateway.recording.mcap_log import McapLog, schema_name
 from busgate.schemas.exported import generated
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
 from busgate.schemas.zenoh_session import session_config
@@ -141,6 +141,27 @@ def test_every_channel_has_its_key_and_schema_and_every_message_came(recorded) -
     for data, _, published in ours:
         assert published == int(json.loads(data)["ts"] * 1e9)
 
+
+
+@pytest.mark.parametrize(("tail", "body", "schema"), [
+    ("dev/la1/state", {"kind": "inspire_la"}, "telemetry.inspire_la.json"),
+    ("dev/la1/state", {"kind": "no such kind"}, None),
+    ("dev/la1/event", {}, "event.json"),
+    ("events", {}, "event.json"),
+    ("bus/can0/stats", {}, "bus_stats.json"),
+    ("bus/can0/frames", {}, "frame.json"),
+    ("commands", {}, "recorded_command.json"),
+    ("joints", {}, "joints.json"),
+    ("base/base/odom", {}, "odometry.json"),
+    ("dev/la1/cmd", {}, None),
+    ("estop", {}, None),
+])
+def test_a_keys_schema_is_its_shapes_under_the_prefix_or_deeper(tail, body, schema) -> None:
+    """``busgate record --prefix fleet`` over gateways under ``fleet/site1`` had no schema
+    on any channel: a key's shape was counted from the recording's prefix."""
+    assert schema_name(f"busgate/gw1/{tail}", "busgate", body) == schema
+    assert schema_name(f"fleet/site1/gw1/{tail}", "fleet", body) == schema
+    assert schema_name(f"other/gw1/{tail}", "busgate", body) is None
 
 def test_info_names_each_channel_its_count_and_the_span(recorded) -> None:
     path, _, _ = recorded

@@ -8,8 +8,10 @@ Rules of this file:
 1. A key's schema comes from the key's shape alone (and, for a state, the device's kind in
    the message): ``.../dev/<d>/state`` a kind's telemetry, ``.../dev/<d>/event`` and
    ``.../events`` the event, ``.../bus/<b>/stats`` the bus statistics; in an incident file
-   (``flight``) ``.../bus/<b>/frames`` a frame and ``.../commands`` a command. A key of no
-   known shape (an e-stop, a trajectory's feedback) gets a channel without a schema.
+   (``flight``) ``.../bus/<b>/frames`` a frame and ``.../commands`` a command. The shape is
+   the key's end, so that gateways recorded under a parent of their prefix (``--prefix
+   fleet`` over ``fleet/site1/gw1/…``) have their schemas too. A key of no known shape (an
+   e-stop, a trajectory's feedback) gets a channel without a schema.
 2. Times are nanoseconds: the log time when the sample was taken (zenoh's timestamp where it
    has one), the publish time the message's own ``ts`` (else the log time).
 3. Replay publishes only what is telemetry: never on a key that commands or stops
@@ -53,6 +55,20 @@ LIBRARY = "busgate"
 PREFIX_METADATA = "busgate"
 #: The last chunk of a key that replay may publish again (rule 3): telemetry, events, stats.
 REPLAYED_LEAVES = frozenset({"state", "event", "events", "stats", "feedback", "joints", "odom"})
+#: The schema of a key ``<gateway>/<what>/<name>/<leaf>`` by ``(what, leaf)``, a device's
+#: state excepted (its kind's), and of a key ``<gateway>/<leaf>`` by its leaf; the gateway
+#: directly under the recording's prefix, or deeper (rule 1).
+NAMED_KEY_SCHEMAS = {
+    ("dev", "event"): "event.json",
+    ("bus", "stats"): "bus_stats.json",
+    ("bus", "frames"): "frame.json",
+    ("base", "odom"): "odometry.json",
+}
+GATEWAY_KEY_SCHEMAS = {
+    "events": "event.json",
+    "commands": "recorded_command.json",
+    "joints": "joints.json",
+}
 #: The most keys a file holds: an MCAP channel's id is 16 bits (past it, a message on a new
 #: key is left out and counted; the file would be unreadable).
 MAX_CHANNELS = 65_535
@@ -64,26 +80,20 @@ CHUNK_BYTES = 64 * 1024
 
 
 def schema_name(key: str, prefix: str, body: Any) -> str | None:
-    """The file name of the JSON Schema the messages on ``key`` follow (rule 1)."""
+    """The file name of the JSON Schema the messages on ``key`` follow (rule 1).
+
+    >>> schema_name("fleet/site1/gw1/bus/can0/stats", "fleet", {})
+    'bus_stats.json'
+    """
     chunks = key[len(prefix) + 1 :].split("/") if key.startswith(prefix + "/") else []
-    if len(chunks) == 4 and chunks[1] == "dev" and chunks[3] == "state":
+    if len(chunks) >= 4 and (chunks[-3], chunks[-1]) == ("dev", "state"):
         kind = body.get("kind") if isinstance(body, dict) else None
         name = f"telemetry.{kind}.json"
         return name if name in SCHEMAS else None
-    if (len(chunks) == 4 and chunks[1] == "dev" and chunks[3] == "event") or (
-        len(chunks) == 2 and chunks[1] == "events"
-    ):
-        return "event.json"
-    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "stats":
-        return "bus_stats.json"
-    if len(chunks) == 4 and chunks[1] == "bus" and chunks[3] == "frames":
-        return "frame.json"
-    if len(chunks) == 2 and chunks[1] == "commands":
-        return "recorded_command.json"
-    if len(chunks) == 2 and chunks[1] == "joints":
-        return "joints.json"
-    if len(chunks) == 4 and chunks[1] == "base" and chunks[3] == "odom":
-        return "odometry.json"
+    if len(chunks) >= 4 and (named := NAMED_KEY_SCHEMAS.get((chunks[-3], chunks[-1]))):
+        return named
+    if len(chunks) >= 2:
+        return GATEWAY_KEY_SCHEMAS.get(chunks[-1])
     return None
 
 
