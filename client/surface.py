@@ -163,7 +163,7 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
 
     @waiting
     def estop(self, gateway: str | None = None) -> Steps[None]:
-        """Stop every device of ``gateway``, or of every gateway (``None``); no gateway
+        """Stop every device of ``gateway``, or of every gateway (``None``, or ``"*"``); no gateway
         refuses it. Devices stay e-stopped until each is reset (``reset_estop``) or enabled
         again (``Device.enable``). The put goes first, never slowed by a check; then
         ``UnknownGatewayError`` when no gateway of that name is up (known at once for one
