@@ -17,6 +17,7 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.api import commands
 from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
+from busgate.gateway.api.taken import taken_under
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers import inspire_la as inspire_la_driver
 from busgate.gateway.drivers import inspire_la_frames as la_frames
@@ -270,6 +271,34 @@ def test_every_state_says_estopped_from_the_estop_until_the_reenable_command(wai
     assert not any(state["estopped"] for _, state in published[mark:])
 
 
+def test_a_command_taken_before_an_e_stop_is_refused_as_it_goes_to_its_bus(gateway) -> None:
+    """A command an intake took off the network before an e-stop, still being validated
+    when the e-stop and a reset came, moved its device after the reset: now it is refused
+    ``estopped`` as it goes to its bus, a device's command as a bus's, and nothing is sent.
+    One taken after the e-stop goes."""
+    api, simulator, *_ = gateway
+    before = api.estops
+    for future in api.estop():
+        future.result(10)
+    accepted(api, "la1", json.loads(api.devices["la1"][1].reenable_op))  # the reset
+    sent = len(simulator.recorder.received())
+    group = {"op": "group_move", "targets": [{"device": "la1", "position": 700}]}
+    replies: list[dict] = []
+
+    def intake() -> None:  # a thread that took them before the e-stop
+        taken_under(before)
+        replies.append(ask(api, "la1", {"op": "move", "position": 700}))
+        replies.append(api.bus_command("uart0", json.dumps(group).encode()).result(10))
+
+    thread = threading.Thread(target=intake)
+    thread.start()
+    thread.join(20)
+    assert [code(reply) for reply in replies] == ["estopped", "estopped"]
+    assert [r.frame for r in simulator.recorder.received()[sent:]
+            if r.frame in ("MoveCommand", "GroupMoveCommand")] == []
+    accepted(api, "la1", {"op": "move", "position": 700})
+
+
 def test_follow_is_validated_and_claimed_like_a_command(gateway):
     api, *_ = gateway
     assert api.follow("la1", b'{"position": 1200}') is None
@@ -428,6 +457,7 @@ def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(wait_for
     reply = api.bus_command("uart0", json.dumps({"op": "group_move", "targets": [
         {"device": "la1", "position": 400}, {"device": "la2", "position": 600}]}).encode())
     assert reply.result(10)["ok"]
+
     def groups():
         return [r for r in simulator.recorder.received() if r.frame == "GroupMoveCommand"]
 

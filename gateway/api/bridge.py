@@ -54,13 +54,13 @@ from busgate.gateway.api.intake import (
     BACKLOG,
     Intake,
     backlog_for,
-    estops_when_taken,
     take_liveliness,
     take_puts,
     take_queries,
 )
 from busgate.gateway.api.joints import JointsFeed
 from busgate.gateway.api.put_reports import PutReports
+from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent

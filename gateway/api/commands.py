@@ -52,9 +52,10 @@ from typing import Any, ClassVar
 from busgate.errors import BusUnavailableError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
+from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect, Follows
-from busgate.gateway.scheduler.outcomes import settled
+from busgate.gateway.scheduler.outcomes import cancelled_by_estop, settled
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
 from busgate.schemas.api import (
     DEVICE_COMMAND_ADAPTERS,
@@ -167,6 +168,7 @@ class GatewayApi:
             command = command_from_object(adapter, _kind_command(driver, command), driver.kind)
         if driver.deadman and command.op == driver.deadman.op and client:
             self._deadman_clients[device] = client
+        self._require_no_estop_since_taken()
         submitted = runner.submit(device, command, client)
         return _chained(submitted, _joint_reply) if in_si else _mapped(submitted)
 
@@ -320,7 +322,15 @@ class GatewayApi:
         handler = self._BUS_OPS.get(op) if isinstance(op, str) else None
         if handler is None:
             raise RefusedError("bad_command", "bus ops are group_move and scan")
+        self._require_no_estop_since_taken()
         return handler(self, runner, fields)
+
+    def _require_no_estop_since_taken(self) -> None:
+        """``estopped`` for a command taken off the network before the latest e-stop and
+        validated while it came (``taken``): a reset right after the e-stop would otherwise
+        let it move a device. Asked as it goes to its bus, after its validation."""
+        if estops_when_taken(self.estops) != self.estops:
+            raise cancelled_by_estop()
 
     def _group_move(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
         request = BusGroupMove.model_validate(fields)

@@ -26,7 +26,7 @@ Rules of this file:
    code when the interpreter exits, and a backlog handled after the session is gone would
    only be refused.
 5. With ``estops`` (the gateway's count of e-stops), each put or query is handled with the
-   count it was taken under (``estops_when_taken``, on its thread): work it hands to
+   count it was taken under (``taken.estops_when_taken``, on its thread): work it hands to
    another thread (a play's lane) or does slowly (a ROS 2 trajectory's decoding) is judged
    by it, and refused ``estopped`` when an e-stop came meanwhile.
 """
@@ -40,6 +40,8 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
+from busgate.gateway.api.taken import taken_under
+
 log = logging.getLogger(__name__)
 
 #: Puts or queries received and not yet taken, a key's (rule 1): a burst of this many is
@@ -52,14 +54,6 @@ BACKLOG_BYTES = 16 * 1024 * 1024
 JOIN_S = 1.0
 
 Item = TypeVar("Item", zenoh.Sample, zenoh.Query)
-#: The e-stops counted when the put or query an intake's thread handles was taken (rule 5).
-_taken = threading.local()
-
-
-def estops_when_taken(now: int) -> int:
-    """The e-stop count the put or query this thread handles was taken under (rule 5);
-    ``now`` on a thread that is no intake's."""
-    return getattr(_taken, "estops", now)
 
 
 class Intake(Generic[Item]):
@@ -102,7 +96,7 @@ class Intake(Generic[Item]):
             if self._stopped:
                 continue  # taken, left unhandled, until the channel's end ends the loop
             if self._estops is not None:
-                _taken.estops = self._estops()
+                taken_under(self._estops())
             try:
                 self._handle(item)
             except Exception:  # rule 2

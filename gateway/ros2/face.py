@@ -57,7 +57,7 @@ from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.api.intake import estops_when_taken
+from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef, Target
