@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
@@ -169,6 +168,8 @@ def then(future: Future, make: Callable[[Any], Any]) -> Future:
 #: a healthy client; waits and leases past an hour are a mistake, not a choice.
 MIN_LEASE_S, MAX_LEASE_S = 0.1, 3600.0
 MIN_WAIT_S, MAX_WAIT_S = 0.001, 3600.0
+#: The longest feed (``feed_deadline``): for ever, as a thread can wait (``threading.TIMEOUT_MAX``).
+MAX_FEED_S = 1e9
 
 
 def seconds(what: str, value: float, least: float, most: float) -> float:
@@ -187,7 +188,7 @@ def feed_deadline(timeout: float) -> float:
     """When a feed of ``timeout`` seconds ends, on ``time.monotonic``'s clock; ``CommandError``
     for a timeout that is no number of seconds (NaN, a negative …: a feed that would end
     before its first item, without a word)."""
-    return time.monotonic() + seconds("timeout", timeout, 0, math.inf)
+    return time.monotonic() + seconds("timeout", timeout, 0, MAX_FEED_S)
 
 
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)

@@ -617,7 +617,6 @@ def test_states_yields_each_new_sample_until_the_timeout(client) -> None:
     assert 1.5 <= elapsed < 1.5 + 2.0, "the iteration did not end at its timeout"
 
 
-
 @pytest.mark.parametrize("bad", [math.nan, -1.0, "2", True])
 def test_a_wait_that_is_no_number_of_seconds_is_refused_even_with_a_state_kept(
         client, bad) -> None:

@@ -15,7 +15,7 @@ import busgate.client as bc
 from busgate.gateway.cli import main
 from tests.browser import browser_page, needs_chromium
 from tests.fleet import DEVICES_PER_GATEWAY, Hosts, running_fleet
-from tests.sdk_helpers import TRIES, patiently
+from tests.sdk_helpers import RETRY_PAUSE_S, TRIES, patiently
 
 pytestmark = needs_chromium
 
@@ -97,6 +97,7 @@ def test_a_bare_device_name_every_gateway_has_is_refused_and_nothing_moves(
         sent = main(["send", "gw3/la1", move, "--connect", fleet.router])
         if "device_timeout" not in capsys.readouterr().err:
             break
+        time.sleep(RETRY_PAUSE_S)
     assert sent == 0
     assert [client.device(f"{g}/la1").state().target == 1234 for g in NAMES] == [
         False, False, True]

@@ -142,7 +142,6 @@ def test_every_channel_has_its_key_and_schema_and_every_message_came(recorded) -
         assert published == int(json.loads(data)["ts"] * 1e9)
 
 
-
 @pytest.mark.parametrize(("tail", "body", "schema"), [
     ("dev/la1/state", {"kind": "inspire_la"}, "telemetry.inspire_la.json"),
     ("dev/la1/state", {"kind": "no such kind"}, None),
@@ -162,6 +161,7 @@ def test_a_keys_schema_is_its_shapes_under_the_prefix_or_deeper(tail, body, sche
     assert schema_name(f"busgate/gw1/{tail}", "busgate", body) == schema
     assert schema_name(f"fleet/site1/gw1/{tail}", "fleet", body) == schema
     assert schema_name(f"other/gw1/{tail}", "busgate", body) is None
+
 
 def test_info_names_each_channel_its_count_and_the_span(recorded) -> None:
     path, _, _ = recorded
@@ -259,8 +259,9 @@ def write_foreign(path) -> None:
     (["record", "--info", "{tmp}/none.mcap"], "cannot read"),
     (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),
     (["replay", "{tmp}/none.mcap"], "cannot read"),
-    (["record", "--info", "{tmp}/fifo.mcap"], "fifo.mcap is no regular file"),  # not waited on
-    (["replay", "{tmp}"], "is no regular file"),
+    (["record", "--info", "{tmp}/fifo.mcap"],  # not waited on
+     "busgate record: error: {tmp}/fifo.mcap is no regular file: a recording is one"),
+    (["replay", "{tmp}"], "busgate replay: error: {tmp} is no regular file: a recording is one"),
     (["replay", "{tmp}/exists.mcap"], "is not a complete MCAP file"),  # before any session
     (["replay", "{tmp}/exists.mcap", "--prefix", "a*b"], "a*b"),
     (["replay", "{tmp}/exists.mcap", "--speed", "0"], "--speed is from 0.01 to 1000"),
@@ -278,6 +279,7 @@ def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message, huge_chunk) -
     done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),
                        "--connect", "tcp/127.0.0.1:1")
     assert done.returncode == 2, done
+    message = message.replace("{tmp}", str(tmp_path))
     assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "x.mcap").exists(), "a recording that did not start leaves no file"

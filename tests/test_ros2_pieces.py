@@ -322,7 +322,6 @@ def test_two_names_of_the_table_that_come_to_one_entity_are_refused(ros2, bases,
     assert why in str(refused.value)
 
 
-
 @pytest.mark.parametrize(("diagonal", "why"), [
     ([0.001] * 5, "at least 6 items"),
     ([0.001] * 7, "at most 6 items"),
@@ -336,6 +335,7 @@ def test_an_odometry_covariance_diagonal_that_is_no_six_variances_is_refused(
         with pytest.raises(ConfigError) as refused:
             ros2_config({key: diagonal}, [BASE])
         assert f"ros2.{key}" in str(refused.value) and why in str(refused.value)
+
 
 def test_names_of_their_own_and_bases_sharing_an_absolute_tf_are_taken() -> None:
     two = [BASE, {**BASE, "name": "other", "left": "wl2", "right": "wr2"}]

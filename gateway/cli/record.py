@@ -291,6 +291,8 @@ def _summary(path: Path) -> dict[str, Any]:
     try:
         with _opened(path) as stream:
             return mcap_log.summary(stream)
+    except CommandError:
+        raise  # _opened's own, as it is
     except OSError as exc:
         raise CommandError(f"cannot read {path}: {exc.strerror}") from None
     except Exception as exc:  # the mcap reader's errors have no common base
