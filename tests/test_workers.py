@@ -321,6 +321,7 @@ def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims
             assert result["result"] == "aborted"
             assert result["reason"] == f"{device}'s bus silent for 0.5 s"
             assert time.monotonic() - hung_at < 2.0  # the worker is killed at 4 s
+            time.sleep(0.1)  # a tick on its way as the abort came (it crosses two processes)
             mark_other = served.marks()[other]
             time.sleep(0.3)
             ticks = [f for _, f in served.frames(other, mark_other) if tick_targets(f) is not None]
