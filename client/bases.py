@@ -241,7 +241,7 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
         """Each new odometry message of the base, as it comes, until ``timeout`` seconds."""
         deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
-        with Stream(self._shared.core, self._odometry_key(), inbox.put):
+        with Stream(self._shared.core, self._odometry_key(), inbox):
             while (left := deadline - time.monotonic()) > 0:
                 payload = yield Next(inbox.next(), left)
                 if payload is None:

@@ -205,7 +205,7 @@ class Core:
     def require_open(self, key: str) -> None:
         """``CommandError`` once closed, as zenoh refuses a closed session's query on ``key``."""
         if not self._at_exit.alive:
-            raise CommandError(f"cannot read {key[:200]!r}: session closed")
+            raise closed_reading(key)
 
     # -- exchanges ---------------------------------------------------------------------------
 
@@ -287,13 +287,23 @@ class Core:
         put.undeclare = publisher.undeclare  # type: ignore[attr-defined]
         return put
 
-    def subscribe(self, key: str, sink: Callable[[str, bytes], None]) -> Callable[[], None]:
+    def subscribe(
+        self,
+        key: str,
+        sink: Callable[[str, bytes], None],
+        ended: Callable[[], None] | None = None,
+    ) -> Callable[[], None]:
         """Hand each sample on ``key`` to ``sink(key, payload)`` (the subscription's thread: it
-        may not block); returns what ends the subscription."""
-        return self.subscribe_timed(key, lambda key, payload, ns: sink(key, payload))
+        may not block), then call ``ended()`` once the subscription has ended (undeclared,
+        or its session closed: what waits for its next sample waits for nothing); returns
+        what ends the subscription."""
+        return self.subscribe_timed(key, lambda key, payload, ns: sink(key, payload), ended)
 
     def subscribe_timed(
-        self, key: str, sink: Callable[[str, bytes, int], None]
+        self,
+        key: str,
+        sink: Callable[[str, bytes, int], None],
+        ended: Callable[[], None] | None = None,
     ) -> Callable[[], None]:
         """As ``subscribe``, with each sample's time in ns since the epoch: its zenoh
         timestamp where it carries one, else when it arrived here."""
@@ -307,7 +317,7 @@ class Core:
             subscriber = self.session.declare_subscriber(check_key(key), CHANNEL)
         except zenoh.ZError as exc:
             raise CommandError(f"cannot subscribe to {key[:200]!r}: {zenoh_reason(exc)}") from exc
-        _drained(subscriber, on_sample, key, self._drains)
+        _drained(subscriber, on_sample, key, self._drains, ended)
         return lambda: _quietly(subscriber.undeclare)
 
     # -- gateways coming and going -----------------------------------------------------------
@@ -345,11 +355,15 @@ class Core:
 
 
 def _drained(
-    subscriber: Any, on_sample: Callable[[Any], None], key: str, drains: list[threading.Thread]
+    subscriber: Any,
+    on_sample: Callable[[Any], None],
+    key: str,
+    drains: list[threading.Thread],
+    ended: Callable[[], None] | None = None,
 ) -> Any:
     """``subscriber`` (declared with ``CHANNEL``) drained into ``on_sample`` by a daemon thread
-    of its own until it is undeclared or the session closes (rule 5), the thread kept in
-    ``drains`` for the close to wait for (rule 6)."""
+    of its own until it is undeclared or the session closes (rule 5), then ``ended()``; the
+    thread kept in ``drains`` for the close to wait for (rule 6)."""
 
     def drain() -> None:
         for sample in subscriber:
@@ -357,12 +371,20 @@ def _drained(
                 on_sample(sample)
             except Exception:  # one sample that fails a sink must not end the subscription
                 log.exception("a sample on %s failed its subscriber", key[:200])
+        if ended is not None:
+            ended()
 
     thread = threading.Thread(target=drain, name=f"busgate {key[:100]}", daemon=True)
     drains[:] = [t for t in drains if t.is_alive()]  # an undeclared subscription's has ended
     drains.append(thread)
     thread.start()
     return subscriber
+
+
+def closed_reading(key: str) -> CommandError:
+    """What reading ``key`` meets once the client is closed, as a closed session's query
+    does."""
+    return CommandError(f"cannot read {key[:200]!r}: session closed")
 
 
 def _close(session: zenoh.Session, held: list[Any], drains: list[threading.Thread]) -> None:

@@ -113,7 +113,7 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
         deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
         key = self._shared.core.keys.device(self.gateway, self.name, "state")
-        with Stream(self._shared.core, key, inbox.put):
+        with Stream(self._shared.core, key, inbox):
             while (left := deadline - time.monotonic()) > 0:
                 payload = yield Next(inbox.next(), left)
                 if payload is None:

@@ -9,7 +9,9 @@ of its readers (whose callbacks may not block); parsing into the kind's model ha
 reader's thread or task. A gateway going away clears what ``Latest`` holds: the last message of
 a gateway that is gone is not handed out as its latest. A reader that gave up (its
 future cancelled, as at a timeout) takes nothing from those that still wait. A reader that
-falls behind loses the oldest of what waits for it, past ``MAX_WAITING``.
+falls behind loses the oldest of what waits for it, past ``MAX_WAITING``. A reader still
+waiting when its client closes meets ``session closed`` at once (``core.closed_reading``),
+not its timeout: nothing more comes.
 """
 
 from __future__ import annotations
@@ -21,9 +23,9 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
-from busgate.client.core import Core
+from busgate.client.core import Core, closed_reading
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -33,15 +35,18 @@ MAX_WAITING = 1000
 
 
 class Stream:
-    """Each payload on ``key`` to ``sink`` while the ``with`` block runs."""
+    """Each payload on ``key`` to ``inbox`` while the ``with`` block runs; the inbox ends with
+    the subscription (the client closed under its reader)."""
 
-    def __init__(self, core: Core, key: str, sink: Callable[[bytes], Any]) -> None:
-        self._key, self._core, self._sink = key, core, sink
+    def __init__(self, core: Core, key: str, inbox: Inbox[bytes]) -> None:
+        self._key, self._core, self._inbox = key, core, inbox
         self._end: Callable[[], None] | None = None
 
     def __enter__(self) -> Stream:
-        sink = self._sink
-        self._end = self._core.subscribe(self._key, lambda key, payload: sink(payload))
+        inbox, key = self._inbox, self._key
+        self._end = self._core.subscribe(
+            key, lambda key, payload: inbox.put(payload), lambda: inbox.end(closed_reading(key))
+        )
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -59,6 +64,7 @@ class Inbox(Generic[T]):
         self._lock = threading.Lock()
         self._items: deque[T] = deque(maxlen=MAX_WAITING)
         self._taker: Future | None = None
+        self._ended: Exception | None = None  # what a reader meets once the items run out
         #: The items dropped unread, the oldest first, a reader being ``MAX_WAITING`` behind.
         self.dropped = 0
 
@@ -85,9 +91,19 @@ class Inbox(Generic[T]):
         with self._lock:
             if self._items:
                 taken.set_result(self._items.popleft())
+            elif self._ended is not None:
+                taken.set_exception(self._ended)
             else:
                 self._taker = taken
         return taken
+
+    def end(self, why: Exception) -> None:
+        """Nothing more comes: the reader takes what waits, then meets ``why``."""
+        with self._lock:
+            self._ended = why
+            taker, self._taker = self._taker, None
+        if taker is not None and taker.set_running_or_notify_cancel():
+            taker.set_exception(why)
 
 
 class Latest:
@@ -99,7 +115,7 @@ class Latest:
         self._lock = threading.Lock()
         self._latest: tuple[float, bytes] | None = None
         self._waiting: list[Future] = []
-        core.subscribe(key, self._on_message)
+        core.subscribe(key, self._on_message, lambda: self._ended(closed_reading(key)))
         core.on_gateway_gone(self._gateway_gone)
 
     def recent(self, max_age_s: float) -> bytes | None:
@@ -136,6 +152,14 @@ class Latest:
         for came in waiting:
             with contextlib.suppress(InvalidStateError):  # given up on meanwhile
                 came.set_result(payload)
+
+    def _ended(self, why: Exception) -> None:
+        """The subscription ended (the client closed): what waits meets ``why``."""
+        with self._lock:
+            waiting, self._waiting = self._waiting, []
+        for came in waiting:
+            with contextlib.suppress(InvalidStateError):  # given up on meanwhile
+                came.set_exception(why)
 
     def _gateway_gone(self, gateway: str) -> None:
         if gateway == self.gateway:

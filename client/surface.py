@@ -126,7 +126,7 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         """Each new joints message of ``gateway``, as it comes, until ``timeout`` seconds."""
         deadline = feed_deadline(timeout)
         inbox: Inbox[bytes] = Inbox()
-        with Stream(self._shared.core, self._joints_key(gateway), inbox.put):
+        with Stream(self._shared.core, self._joints_key(gateway), inbox):
             while (left := deadline - time.monotonic()) > 0:
                 payload = yield Next(inbox.next(), left)
                 if payload is None:

@@ -284,11 +284,24 @@ def test_a_reader_far_behind_loses_the_oldest_and_is_told_once(caplog) -> None:
     assert waiting.result(timeout=0) == -1
 
 
+
+def test_an_ended_inbox_hands_what_waits_then_its_end_and_wakes_a_reader_waiting() -> None:
+    inbox: Inbox[int] = Inbox()
+    waiting = inbox.next()
+    inbox.end(CommandError("closed"))
+    assert isinstance(waiting.exception(timeout=0), CommandError)  # woken, not left to time out
+    ended: Inbox[int] = Inbox()
+    ended.put(1)
+    ended.end(CommandError("closed"))
+    assert ended.next().result(timeout=0) == 1
+    assert isinstance(ended.next().exception(timeout=0), CommandError)
+
+
 class _Core:
     """What ``Latest`` asks of a client's core: its subscription, kept here to be fed."""
 
-    def subscribe(self, key, on_message):
-        self.feed = on_message
+    def subscribe(self, key, on_message, ended):
+        self.feed, self.ended = on_message, ended
 
     def on_gateway_gone(self, callback):
         self.gone = callback

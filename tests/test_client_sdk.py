@@ -645,6 +645,42 @@ def test_a_closed_client_gives_no_state_it_kept(connect) -> None:
         closed.joints("demo")
 
 
+def test_a_wait_under_way_when_its_client_closes_ends_at_once_saying_so(connect) -> None:
+    """A thread waiting for a message, or reading a feed, when another closed the client
+    waited out its whole timeout (a feed of an hour: an hour), then heard only that nothing
+    came: each ends at the close, ``session closed``. (On a gateway nobody runs: nothing
+    comes to end them otherwise.)"""
+    closing = connect("closing")
+    outcomes: dict[str, BaseException | None] = {}
+
+    def waits(name: str, wait) -> None:
+        try:
+            wait()
+            outcomes[name] = None
+        except BaseException as exc:  # what the wait ended with
+            outcomes[name] = exc
+
+    def read_the_feed() -> None:
+        for _ in closing.joints_feed("nobody", 60):
+            pass
+
+    threads = [
+        threading.Thread(target=waits, args=("latest", lambda: closing.joints("nobody", 60))),
+        threading.Thread(target=waits, args=("feed", read_the_feed)),
+    ]
+    for thread in threads:
+        thread.start()
+    time.sleep(0.3)  # both waiting
+    started = time.monotonic()
+    closing.close()
+    for thread in threads:
+        thread.join(10)
+    assert time.monotonic() - started < 10
+    for name in ("latest", "feed"):
+        assert isinstance(outcomes[name], CommandError), (name, outcomes[name])
+        assert "session closed" in str(outcomes[name])
+
+
 # -- commands ---------------------------------------------------------------------------------
 
 
