@@ -463,10 +463,16 @@ class Shared:
         """Every answer to a get on any key expression, the payload as given."""
         return self.core.ask(key, raw_payload(payload), timeout_s=timeout_s)
 
-    def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
+    def subscribe(
+        self,
+        key: str,
+        callback: Callable[[str, Any], None],
+        ended: Callable[[], None] | None = None,
+    ) -> Callable[[], None]:
         """``callback(key, body)`` for each sample on ``key`` (zenoh's thread: it may not
         block); ``body`` is the sample's JSON, or ``None`` when it is not JSON or is larger
-        than any message a gateway publishes on that key (``largest_published``)."""
+        than any message a gateway publishes on that key (``largest_published``); then
+        ``ended()`` (``Core.subscribe``)."""
 
         def sink(sample_key: str, payload: bytes) -> None:
             body = None
@@ -475,7 +481,7 @@ class Shared:
                     body = json.loads(payload)
             callback(sample_key, body)
 
-        return self.core.subscribe(key, sink)
+        return self.core.subscribe(key, sink, ended)
 
     def estop(self, gateway: str | None) -> Future:
         """E-stop one gateway, or every gateway of the fleet (``None``, or ``"*"`` as the

@@ -10,15 +10,17 @@ trajectory's devices are found by name like any device, and must all be on one g
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from typing import Any
 
 from busgate.client.base import Shared
+from busgate.client.core import closed_reading
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox
 from busgate.client.messages import then
@@ -78,40 +80,56 @@ class Watch:
         self.gateway = gateway
         self.id = trajectory_id
         self._lock = threading.Lock()
-        self._sinks: list[Callable[[dict[str, Any]], object]] = []
+        self._inboxes: list[Inbox[dict[str, Any]]] = []
         self.result: dict[str, Any] | None = None
         self.finished: Future = Future()
-        self._end = shared.subscribe(
-            shared.core.keys.feedback(gateway, trajectory_id), self._on_message
-        )
+        self._closed = False  # by ``close``: the client may still be open
+        key = shared.core.keys.feedback(gateway, trajectory_id)
+        self._end = shared.subscribe(key, self._on_message, lambda: self._ended(key))
 
-    def add_sink(self, sink: Callable[[dict[str, Any]], object]) -> Callable[[], None]:
-        """``sink(message)`` for each message from now on (zenoh's thread); returns what
-        removes it."""
+    def add_inbox(self, inbox: Inbox[dict[str, Any]]) -> Callable[[], None]:
+        """Each message from now on to ``inbox``, which ends with the client (its reader
+        meets ``session closed``); returns what removes it."""
         with self._lock:
-            self._sinks.append(sink)
+            self._inboxes.append(inbox)
 
         def remove() -> None:
             with self._lock:
-                if sink in self._sinks:
-                    self._sinks.remove(sink)
+                if inbox in self._inboxes:
+                    self._inboxes.remove(inbox)
 
         return remove
 
     def close(self) -> None:
+        self._closed = True
         self._end()
 
     def _on_message(self, key: str, message: Any) -> None:
         if not isinstance(message, dict):  # not JSON, or past what a gateway publishes
             return
         with self._lock:
-            sinks = list(self._sinks)
+            inboxes = list(self._inboxes)
             if "result" in message and self.result is None:
                 self.result = message
-        for sink in sinks:
-            sink(message)
+        for inbox in inboxes:
+            inbox.put(message)
         if "result" in message and not self.finished.done():
             self.finished.set_result(message)
+
+    def _ended(self, key: str) -> None:
+        """The subscription ended (the client closed, or the watch): a wait for the result
+        or the feedback under way meets ``session closed``, or that the watch was closed."""
+        why = (
+            CommandError(f"trajectory {self.id} is no longer listened to: closed")
+            if self._closed
+            else closed_reading(key)
+        )
+        with self._lock:
+            inboxes = list(self._inboxes)
+        for inbox in inboxes:
+            inbox.end(why)
+        with contextlib.suppress(InvalidStateError):
+            self.finished.set_exception(why)
 
 
 class Handle(Face):
@@ -135,7 +153,8 @@ class Handle(Face):
         return self._watch.result
 
     def close(self) -> None:
-        """Stop listening to the trajectory (it plays on)."""
+        """Stop listening to the trajectory (it plays on); a wait for its result or its
+        feedback under way ends, with ``CommandError``."""
         self._watch.close()
 
     @waiting
@@ -159,7 +178,7 @@ class Handle(Face):
         joint's SI ``unit``), until the result or ``timeout``."""
         deadline = time.monotonic() + result_wait_s(self.end_at, timeout)
         inbox: Inbox[dict[str, Any]] = Inbox()
-        remove = self._watch.add_sink(inbox.put)
+        remove = self._watch.add_inbox(inbox)
         try:
             while self._watch.result is None and (left := deadline - time.monotonic()) > 0:
                 message = yield Next(inbox.next(), left)

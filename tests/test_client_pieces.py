@@ -8,6 +8,7 @@ import asyncio
 import logging
 import threading
 import time
+import types
 from concurrent.futures import Future
 
 import pytest
@@ -26,9 +27,10 @@ from busgate.client.base import (
 from busgate.client.claims import Timers
 from busgate.client.errors import MAX_CODE, NoAnswerError, raise_for
 from busgate.client.feeds import MAX_WAITING, Inbox, Latest
-from busgate.client.keys import check_key, check_name, split_name
+from busgate.client.keys import Keys, check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
+from busgate.client.trajectories import Watch
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
 from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
@@ -295,6 +297,38 @@ def test_an_ended_inbox_hands_what_waits_then_its_end_and_wakes_a_reader_waiting
     ended.end(CommandError("closed"))
     assert ended.next().result(timeout=0) == 1
     assert isinstance(ended.next().exception(timeout=0), CommandError)
+
+
+
+class _Shared:
+    """What a trajectory's ``Watch`` asks of the client: its keys and one subscription, whose
+    end the test calls."""
+
+    core = types.SimpleNamespace(keys=Keys("busgate"))
+
+    def subscribe(self, key, on_message, ended):
+        self.ended = ended
+        return lambda: None
+
+
+@pytest.mark.parametrize(("closed_first", "why"), [
+    (False, "cannot read 'busgate/gw/trajectory/t1/feedback': session closed"),
+    (True, "trajectory t1 is no longer listened to: closed"),
+])
+def test_a_trajectorys_result_and_feedback_waited_for_end_with_its_subscription(
+        closed_first, why) -> None:
+    """A wait for a trajectory's result, or its feedback, under way when the client closed
+    waited out its timeout (by default 30 s past the trajectory's end)."""
+    shared = _Shared()
+    watch = Watch(shared, "gw", "t1")
+    inbox: Inbox[dict] = Inbox()
+    watch.add_inbox(inbox)
+    feedback = inbox.next()
+    if closed_first:
+        watch.close()
+    shared.ended()
+    for future in (watch.finished, feedback):
+        assert str(future.exception(timeout=0)) == why
 
 
 class _Core:
