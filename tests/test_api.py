@@ -271,32 +271,50 @@ def test_every_state_says_estopped_from_the_estop_until_the_reenable_command(wai
     assert not any(state["estopped"] for _, state in published[mark:])
 
 
-def test_a_command_taken_before_an_e_stop_is_refused_as_it_goes_to_its_bus(gateway) -> None:
+@pytest.mark.parametrize(("validation", "command"), [
+    ("command_from_object", ("la1", {"op": "move", "position": 700})),
+    ("group_command", ("uart0", {"op": "group_move",
+                                 "targets": [{"device": "la1", "position": 700}]})),
+])
+def test_a_command_validated_while_an_e_stop_and_its_reset_came_is_refused(
+        gateway, monkeypatch, validation, command) -> None:
     """A command an intake took off the network before an e-stop, still being validated
     when the e-stop and a reset came, moved its device after the reset: now it is refused
     ``estopped`` as it goes to its bus, a device's command as a bus's, and nothing is sent.
     One taken after the e-stop goes."""
     api, simulator, *_ = gateway
-    before = api.estops
-    for future in api.estop():
-        future.result(10)
-    accepted(api, "la1", json.loads(api.devices["la1"][1].reenable_op))  # the reset
+    validate = getattr(commands, validation)
+
+    def stop_and_reset() -> None:  # another client, on another thread
+        for future in api.estop():
+            future.result(10)
+        accepted(api, "la1", json.loads(api.devices["la1"][1].reenable_op))
+
+    def validate_meanwhile(*args, **kwargs):
+        monkeypatch.setattr(commands, validation, validate)  # this command's alone
+        elsewhere = threading.Thread(target=stop_and_reset)
+        elsewhere.start()
+        elsewhere.join(20)
+        return validate(*args, **kwargs)
+
+    monkeypatch.setattr(commands, validation, validate_meanwhile)
+    target, body = command
+    payload = json.dumps(body).encode()
+    send = api.bus_command if target == "uart0" else api.command
     sent = len(simulator.recorder.received())
-    group = {"op": "group_move", "targets": [{"device": "la1", "position": 700}]}
     replies: list[dict] = []
 
-    def intake() -> None:  # a thread that took them before the e-stop
-        taken_under(before)
-        replies.append(ask(api, "la1", {"op": "move", "position": 700}))
-        replies.append(api.bus_command("uart0", json.dumps(group).encode()).result(10))
+    def intake() -> None:  # a thread that took the command before the e-stop
+        taken_under(api.estops)
+        replies.append(send(target, payload).result(10))
 
     thread = threading.Thread(target=intake)
     thread.start()
-    thread.join(20)
-    assert [code(reply) for reply in replies] == ["estopped", "estopped"]
+    thread.join(30)
+    assert [code(reply) for reply in replies] == ["estopped"]
     assert [r.frame for r in simulator.recorder.received()[sent:]
             if r.frame in ("MoveCommand", "GroupMoveCommand")] == []
-    accepted(api, "la1", {"op": "move", "position": 700})
+    assert send(target, payload).result(10)["ok"]  # taken after it: it goes
 
 
 def test_follow_is_validated_and_claimed_like_a_command(gateway):

@@ -166,9 +166,9 @@ class GatewayApi:
         in_si = isinstance(command, JointCommand)
         if in_si:  # the kind's own command, in its raw units (refused beyond a limit)
             command = command_from_object(adapter, _kind_command(driver, command), driver.kind)
+        self._require_no_estop_since_taken()
         if driver.deadman and command.op == driver.deadman.op and client:
             self._deadman_clients[device] = client
-        self._require_no_estop_since_taken()
         submitted = runner.submit(device, command, client)
         return _chained(submitted, _joint_reply) if in_si else _mapped(submitted)
 
@@ -322,7 +322,6 @@ class GatewayApi:
         handler = self._BUS_OPS.get(op) if isinstance(op, str) else None
         if handler is None:
             raise RefusedError("bad_command", "bus ops are group_move and scan")
-        self._require_no_estop_since_taken()
         return handler(self, runner, fields)
 
     def _require_no_estop_since_taken(self) -> None:
@@ -340,6 +339,7 @@ class GatewayApi:
                     "unknown_device", f"no device '{shown(target.device)}' on this bus"
                 )
         first, command = group_command(runner, request)  # the kind's schema checks targets
+        self._require_no_estop_since_taken()
         return _mapped(runner.submit(first, command, request.client))
 
     def _scan(self, runner: BusRunner, fields: dict[str, Any]) -> Future:
