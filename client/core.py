@@ -29,7 +29,9 @@ Rules of this file:
    thread given ``EXIT_CLOSE_S``: zenoh's close waits for its callbacks under way, and a
    subscription whose sink never returns leaves one under way once its queue is full (zenoh
    waits to put a sample in it); the exit must not wait for that (the process ends anyway,
-   and the gateways see the client go).
+   and the gateways see the client go). That close tells no subscription's reader that it
+   ended (``subscribe``'s ``ended``): a daemon thread still waiting for a message ends with
+   the program, where a wait woken to raise would print its traceback into the exit.
 6. A close waits, at most ``DRAIN_END_S``, for the subscriptions' daemon threads to end. Each
    waits for its next sample in zenoh, without the interpreter, and takes the interpreter
    again when the closed session ends its wait; a program that returns from its close at
@@ -166,6 +168,7 @@ class Core:
                 )
             raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
         self._lock = threading.Lock()
+        self._exiting = threading.Event()  # set by the close at exit (rule 5)
         self._listeners: list[Callable[[str, bool], None]] = []
         self.gateways_up: set[str] = set()
         try:
@@ -184,7 +187,7 @@ class Core:
             self.session.close()
             raise ConnectError(f"the session to {where} refused: {zenoh_reason(exc)}") from exc
         self._at_exit = weakref.finalize(
-            self, _close_in_time, self.session, self._held, self._drains
+            self, _close_in_time, self.session, self._held, self._drains, self._exiting
         )
 
     def next_seq(self) -> int:
@@ -317,7 +320,13 @@ class Core:
             subscriber = self.session.declare_subscriber(check_key(key), CHANNEL)
         except zenoh.ZError as exc:
             raise CommandError(f"cannot subscribe to {key[:200]!r}: {zenoh_reason(exc)}") from exc
-        _drained(subscriber, on_sample, key, self._drains, ended)
+        exiting = self._exiting
+
+        def end() -> None:
+            if ended is not None and not exiting.is_set():  # rule 5: an exit tells nobody
+                ended()
+
+        _drained(subscriber, on_sample, key, self._drains, end)
         return lambda: _quietly(subscriber.undeclare)
 
     # -- gateways coming and going -----------------------------------------------------------
@@ -372,7 +381,10 @@ def _drained(
             except Exception:  # one sample that fails a sink must not end the subscription
                 log.exception("a sample on %s failed its subscriber", key[:200])
         if ended is not None:
-            ended()
+            try:
+                ended()
+            except Exception:
+                log.exception("the end of the subscription to %s failed its subscriber", key[:200])
 
     thread = threading.Thread(target=drain, name=f"busgate {key[:100]}", daemon=True)
     drains[:] = [t for t in drains if t.is_alive()]  # an undeclared subscription's has ended
@@ -397,8 +409,15 @@ def _close(session: zenoh.Session, held: list[Any], drains: list[threading.Threa
             thread.join(max(deadline - time.monotonic(), 0.0))
 
 
-def _close_in_time(session: zenoh.Session, held: list[Any], drains: list[threading.Thread]) -> None:
-    """``_close`` of a client never closed, waited for at most ``EXIT_CLOSE_S`` (rule 5)."""
+def _close_in_time(
+    session: zenoh.Session,
+    held: list[Any],
+    drains: list[threading.Thread],
+    exiting: threading.Event,
+) -> None:
+    """``_close`` of a client never closed, waited for at most ``EXIT_CLOSE_S``, telling no
+    subscriber that its subscription ended (rule 5)."""
+    exiting.set()
     closing = threading.Thread(
         target=_close, args=(session, held, drains), name="busgate-client-close", daemon=True
     )

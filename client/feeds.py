@@ -115,6 +115,7 @@ class Latest:
         self._lock = threading.Lock()
         self._latest: tuple[float, bytes] | None = None
         self._waiting: list[Future] = []
+        self._ended_with: Exception | None = None  # the subscription's end: what a reader meets
         core.subscribe(key, self._on_message, lambda: self._ended(closed_reading(key)))
         core.on_gateway_gone(self._gateway_gone)
 
@@ -136,6 +137,9 @@ class Latest:
         """A future of the next payload; cancelling it (a wait that timed out) withdraws it."""
         came: Future = Future()
         with self._lock:
+            if self._ended_with is not None:
+                came.set_exception(self._ended_with)
+                return came
             self._waiting.append(came)
         came.add_done_callback(self._withdraw)
         return came
@@ -154,8 +158,10 @@ class Latest:
                 came.set_result(payload)
 
     def _ended(self, why: Exception) -> None:
-        """The subscription ended (the client closed): what waits meets ``why``."""
+        """The subscription ended (the client closed): what waits, and what asks later,
+        meets ``why``."""
         with self._lock:
+            self._ended_with = why
             waiting, self._waiting = self._waiting, []
         for came in waiting:
             with contextlib.suppress(InvalidStateError):  # given up on meanwhile

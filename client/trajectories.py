@@ -84,6 +84,7 @@ class Watch:
         self.result: dict[str, Any] | None = None
         self.finished: Future = Future()
         self._closed = False  # by ``close``: the client may still be open
+        self._ended_with: Exception | None = None  # the subscription's end: what a reader meets
         key = shared.core.keys.feedback(gateway, trajectory_id)
         self._end = shared.subscribe(key, self._on_message, lambda: self._ended(key))
 
@@ -91,6 +92,8 @@ class Watch:
         """Each message from now on to ``inbox``, which ends with the client (its reader
         meets ``session closed``); returns what removes it."""
         with self._lock:
+            if self._ended_with is not None:
+                inbox.end(self._ended_with)
             self._inboxes.append(inbox)
 
         def remove() -> None:
@@ -118,13 +121,15 @@ class Watch:
 
     def _ended(self, key: str) -> None:
         """The subscription ended (the client closed, or the watch): a wait for the result
-        or the feedback under way meets ``session closed``, or that the watch was closed."""
+        or the feedback, under way or to come, meets ``session closed``, or that the watch
+        was closed."""
         why = (
             CommandError(f"trajectory {self.id} is no longer listened to: closed")
             if self._closed
             else closed_reading(key)
         )
         with self._lock:
+            self._ended_with = why
             inboxes = list(self._inboxes)
         for inbox in inboxes:
             inbox.end(why)

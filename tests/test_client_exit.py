@@ -135,6 +135,32 @@ def test_a_client_never_closed_is_closed_at_exit_and_the_program_ends(
         assert status == 0, err[-2000:]
 
 
+WAITING = """\
+c = bc.connect(endpoint, client_id=client_id)
+CLIENT.append(c)
+for wait in (lambda: c.joints("nobody", 60), lambda: list(c.joints_feed("nobody", 60))):
+    threading.Thread(target=wait, daemon=True).start()
+time.sleep(0.3)
+print("last line at", time.monotonic(), flush=True)
+"""
+
+
+def test_daemon_threads_waiting_when_the_program_ends_end_with_it_saying_nothing(
+    demo, tmp_path, request
+) -> None:
+    """The close at exit ends every subscription; told of it, a daemon thread waiting for a
+    message raised ``session closed`` into the exit, its traceback on stderr."""
+    script = tmp_path / "waiting.py"
+    script.write_text(PROLOGUE + WAITING)
+    status, out, err, after = run_to_its_end(
+        script, demo.endpoint, the_client_id(request.node.name), "end"
+    )
+    assert status == 0, err[-2000:]
+    assert after < EXIT_BOUND_S
+    assert "closed at exit: True" in out.splitlines(), out
+    assert "Traceback" not in err and "session closed" not in err, err[-2000:]
+
+
 def test_a_callback_that_never_returns_holds_the_exit_only_for_the_sdks_bound(
     demo, tmp_path, request
 ) -> None:

@@ -327,8 +327,19 @@ def test_a_trajectorys_result_and_feedback_waited_for_end_with_its_subscription(
     if closed_first:
         watch.close()
     shared.ended()
-    for future in (watch.finished, feedback):
+    later: Inbox[dict] = Inbox()
+    watch.add_inbox(later)  # a feed started after the end: it ends at once too
+    for future in (watch.finished, feedback, later.next()):
         assert str(future.exception(timeout=0)) == why
+
+
+def test_a_latest_ended_fails_its_readers_and_those_that_come_after() -> None:
+    core = _Core()
+    latest = Latest(core, "busgate/gw/joints", "gw")
+    waiting = latest.next()
+    core.ended()
+    for future in (waiting, latest.next()):
+        assert "session closed" in str(future.exception(timeout=0))
 
 
 class _Core:
