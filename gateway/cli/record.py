@@ -36,6 +36,7 @@ Rules of this file:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import queue
@@ -45,6 +46,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -285,19 +287,24 @@ class Recording:
             )
 
 
-def _summary(path: Path) -> dict[str, Any]:
-    """The file's summary (``mcap_log.summary``); ``CommandError`` when it cannot be read or
-    is not a complete MCAP file. Every reading of a recording asks for it first."""
+@contextlib.contextmanager
+def _recording(path: Path) -> Iterator[tuple[IO[bytes], dict[str, Any]]]:
+    """The file, opened once for every reading of it (each seeks to where it starts), and
+    its summary (``mcap_log.summary``); ``CommandError`` when it cannot be read or is not a
+    complete MCAP file."""
     try:
-        with _opened(path) as stream:
-            return mcap_log.summary(stream)
-    except CommandError:
-        raise  # _opened's own, as it is
+        stream = _opened(path)
     except OSError as exc:
         raise CommandError(f"cannot read {path}: {exc.strerror}") from None
-    except Exception as exc:  # the mcap reader's errors have no common base
-        why = str(exc) or type(exc).__name__  # some say nothing
-        raise CommandError(f"{path} is not a complete MCAP file: {why}") from None
+    with stream:
+        try:
+            found = mcap_log.summary(stream)
+        except OSError as exc:
+            raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+        except Exception as exc:  # the mcap reader's errors have no common base
+            why = str(exc) or type(exc).__name__  # some say nothing
+            raise CommandError(f"{path} is not a complete MCAP file: {why}") from None
+        yield stream, found
 
 
 def _opened(path: Path) -> IO[bytes]:
@@ -309,6 +316,12 @@ def _opened(path: Path) -> IO[bytes]:
         raise CommandError(f"{path} is no regular file: a recording is one")
     os.set_blocking(fd, True)
     return os.fdopen(fd, "rb")
+
+
+def _summary(path: Path) -> dict[str, Any]:
+    """The file's summary alone (``_recording``)."""
+    with _recording(path) as (_, found):
+        return found
 
 
 def _print_info(path: Path) -> int:
@@ -333,14 +346,14 @@ def _draw_timeline(path: Path, args: argparse.Namespace) -> int:
         )
     if end is not None and not (math.isfinite(end) and end > 0):
         raise CommandError(f"--end is a Unix time in seconds, not {end}")
-    _summary(path)  # a file that is no complete recording: refused in its words
-    try:
-        with path.open("rb") as stream:
+    # A file that is no complete recording is refused in its words.
+    with _recording(path) as (stream, _):
+        try:
             window = timeline.window_of(stream, span_ms / 1e3, end)
-    except OSError as exc:
-        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
-    except Exception as exc:  # the mcap reader's errors have no common base; ours: too many
-        raise CommandError(f"{path}: {exc}") from None
+        except OSError as exc:
+            raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+        except Exception as exc:  # the mcap reader's errors have no common base; ours: too many
+            raise CommandError(f"{path}: {exc}") from None
     if not window.frames:
         raise CommandError(
             f"{path} holds no frames in those {span_ms:g} ms (the flight recorder's incident "
@@ -378,20 +391,27 @@ def run_replay(args: argparse.Namespace) -> int:
         raise CommandError(f"--speed is from {MIN_SPEED:g} to {MAX_SPEED:g}, not {args.speed}")
     Keys(args.prefix)  # a gateway's prefix, no wildcard: refused before any file or session
     path = Path(args.file)
-    largest = _summary(path)["largest_chunk"]  # a file that is no complete recording is
-    if largest > mcap_log.MAX_CHUNK:  # refused before any session, as one too large (rule 7)
+    with _recording(path) as (stream, found):
+        return _replay(args, path, stream, found["largest_chunk"])
+
+
+def _replay(args: argparse.Namespace, path: Path, stream: IO[bytes], largest: int) -> int:
+    """``run_replay`` of the recording ``stream``, whose largest chunk is ``largest`` bytes.
+    A file that is no complete recording was refused before any session; so is one too large
+    (rule 7)."""
+    if largest > mcap_log.MAX_CHUNK:
         raise CommandError(
             f"{path} holds a chunk of {largest / 2**20:.0f} MiB: replay reads at most "
             f"{mcap_log.MAX_CHUNK // 2**20} MiB at once"
         )
-    recorded_prefix = _recorded_prefix(path)
+    recorded_prefix = _recorded_prefix(stream, path)
     stop = threading.Event()
     try:
         client = open_client(args, "replay")
     except KeyboardInterrupt:  # while the session opens: nothing was published (rule 7)
         raise CommandError("stopped before anything was published") from None
     # From here a signal stops the replay between two messages, its session closed in order.
-    with path.open("rb") as stream, stopped_by_signals(stop), client:
+    with stopped_by_signals(stop), client:
         _refuse_live_prefix(client, args)
         print(f"busgate replay: replaying {path} under {args.prefix}/**", file=sys.stderr)
         started = time.monotonic()
@@ -412,11 +432,10 @@ def run_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _recorded_prefix(path: Path) -> str:
-    """The prefix the file's keys were recorded under; ``CommandError`` when it names none
-    (rule 5: its keys could not be put under ``--prefix``)."""
-    with path.open("rb") as stream:
-        found = mcap_log.recorded_prefix(stream)
+def _recorded_prefix(stream: IO[bytes], path: Path) -> str:
+    """The prefix the file ``path`` (``stream``) recorded its keys under; ``CommandError``
+    when it names none (rule 5: its keys could not be put under ``--prefix``)."""
+    found = mcap_log.recorded_prefix(stream)
     if found is None:
         raise CommandError(f"{path} names no prefix its keys were recorded under")
     return found
