@@ -64,7 +64,7 @@ class Inbox(Generic[T]):
         self._lock = threading.Lock()
         self._items: deque[T] = deque(maxlen=MAX_WAITING)
         self._taker: Future | None = None
-        self._ended: Exception | None = None  # what a reader meets once the items run out
+        self._ended_with: Exception | None = None  # what a reader meets once the items run out
         #: The items dropped unread, the oldest first, a reader being ``MAX_WAITING`` behind.
         self.dropped = 0
 
@@ -91,8 +91,8 @@ class Inbox(Generic[T]):
         with self._lock:
             if self._items:
                 taken.set_result(self._items.popleft())
-            elif self._ended is not None:
-                taken.set_exception(self._ended)
+            elif self._ended_with is not None:
+                taken.set_exception(self._ended_with)
             else:
                 self._taker = taken
         return taken
@@ -100,7 +100,7 @@ class Inbox(Generic[T]):
     def end(self, why: Exception) -> None:
         """Nothing more comes: the reader takes what waits, then meets ``why``."""
         with self._lock:
-            self._ended = why
+            self._ended_with = why
             taker, self._taker = self._taker, None
         if taker is not None and taker.set_running_or_notify_cancel():
             taker.set_exception(why)
