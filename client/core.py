@@ -87,6 +87,9 @@ MAX_REPLY = MAX_WHOLE_GATEWAY
 
 #: How long a client waits for an answer unless told otherwise (``connect``'s ``timeout``).
 DEFAULT_TIMEOUT_S = 5.0
+#: What a client's session may be: a router that listened on nothing would route for nobody
+#: (``busgate router`` is the fleet's).
+CLIENT_MODES = ("client", "peer")
 #: How long the close at interpreter exit of a client never closed may take (rule 5).
 EXIT_CLOSE_S = 0.5
 #: How long a close waits for its subscriptions' threads to end (rule 6).
@@ -139,6 +142,11 @@ class Core:
         self._seq = itertools.count(time.time_ns())
         self.keys = Keys(prefix)
         self.timeout_s = seconds("timeout", timeout, MIN_WAIT_S, MAX_WAIT_S)
+        if mode not in CLIENT_MODES:
+            raise CommandError(
+                f"mode must be {' or '.join(CLIENT_MODES)}, not {str(mode)[:80]!r}"
+                " (a fleet's router is `busgate router`)"
+            )
         seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
         where = ", ".join(endpoints) or str(config_file)

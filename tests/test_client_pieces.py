@@ -89,7 +89,8 @@ def test_a_name_that_would_address_others_is_refused(name: str) -> None:
 
 
 @pytest.mark.parametrize("options", [{"lease_s": 0}, {"lease_s": "1"}, {"timeout": float("nan")},
-                                     {"timeout": -1}, {"client_id": "a*b"}, {"client_id": ""}])
+                                     {"timeout": -1}, {"client_id": "a*b"}, {"client_id": ""},
+                                     {"mode": "router"}, {"mode": None}])
 def test_settings_that_make_no_sense_are_refused_before_any_session(options) -> None:
     with pytest.raises(CommandError):
         bc.connect("tcp/127.0.0.1:9", **{"client_id": "ok", **options})

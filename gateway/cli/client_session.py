@@ -15,6 +15,7 @@ import os
 from typing import Any
 
 import busgate.client as bc
+from busgate.client.core import CLIENT_MODES
 from busgate.errors import CommandError
 from busgate.schemas.files import FileRefused, read_text
 
@@ -40,7 +41,7 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mode",
-        choices=("client", "peer"),
+        choices=CLIENT_MODES,
         default="client",
         help="zenoh mode of this tool's session (default client)",
     )
