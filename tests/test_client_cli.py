@@ -354,6 +354,18 @@ def test_a_bare_name_two_gateways_have_is_refused_naming_them(stand_in, capsys):
                            "gwtwo): name one, e.g. gwtest/both; nothing was sent")
 
 
+@pytest.mark.parametrize("target", ["*", "la*", "**", "", "la 1"])
+def test_a_bare_target_that_is_no_device_name_is_refused_before_any_session(target, capsys):
+    """A bare ``*`` was taken as a device's name and looked up in every gateway's info, to be
+    answered ``unknown_device``: it is refused as no name, with where a key expression goes,
+    before any session (the endpoint here has nobody listening)."""
+    assert main(["send", target, "{}", "--connect", "tcp/127.0.0.1:9"]) == 2
+    _, err = capsys.readouterr()
+    assert err == (f"busgate send: error: not a device name: {target!r} (1-64 of A-Z a-z 0-9 _ -); "
+                   "a target with a '/' is a key expression, taken as given (e.g. "
+                   "busgate/*/dev/*/cmd)\n")
+
+
 @pytest.mark.parametrize("argv", [["send", "la1", "\udcff"], ["send", "la\udcff", "{}"],
                                   ["watch", "--once", "\udcff"]])
 def test_an_argument_that_is_no_utf8_is_one_line_and_exit_2(argv, capsys):

@@ -118,8 +118,14 @@ def command_key(prefix: str, target: str) -> str:
     >>> command_key("busgate", "busgate/gw1/bus/uart0/cmd")
     'busgate/gw1/bus/uart0/cmd'
     """
-    if "/" not in target:
-        return Keys(prefix).device("*", target, "cmd")
+    if "/" not in target:  # one device's name (a ``*`` would be every device's)
+        try:
+            return Keys(prefix).device("*", split_name(target, "device")[1], "cmd")
+        except CommandError as exc:
+            raise CommandError(
+                f"{exc}; a target with a '/' is a key expression, taken as given"
+                f" (e.g. {Keys(prefix).device('*', '*', 'cmd')})"
+            ) from None
     try:
         gateway, device = split_name(target)
     except CommandError:  # more than <gateway>/<device>, or a wildcard: a key expression
