@@ -161,20 +161,16 @@ class Core:
                 ca=ca,
             )
             self.session = zenoh.open(config)
-        except (zenoh.ZError, ValueError) as exc:
-            reason = zenoh_reason(exc)
-            if username is not None and isinstance(exc, zenoh.ZError):
-                # zenoh turns a refused login away as it does a port nobody listens on
-                reason += (
-                    " (a wrong user name or password, or a gateway that takes none, is refused"
-                    " so too)"
-                )
-            elif ca is None and any(e.startswith(TLS_PROTOCOLS) for e in endpoints):
-                reason += (
-                    " (a tls/ endpoint needs the CA that signed the gateway's certificate:"
-                    " ca=, --ca; and an account: username=, password=, --user)"
-                )
-            raise ConnectError(f"cannot open a zenoh session to {where}: {reason}") from exc
+        except ValueError as exc:  # a refusal that says what is wrong
+            raise ConnectError(
+                f"cannot open a zenoh session to {where}: {zenoh_reason(exc)}"
+            ) from exc
+        except zenoh.ZError as exc:
+            hint = _unopened_hint(endpoints, username, ca)
+            raise ConnectError(
+                f"cannot open a zenoh session to {where}: {zenoh_reason(exc)}{hint}",
+                unreached=not hint and config_file is None,
+            ) from exc
         self._lock = threading.Lock()
         self._exiting = threading.Event()  # set by the close at exit (rule 5)
         self._listeners: list[Callable[[str, bool], None]] = []
@@ -415,6 +411,33 @@ def _close(session: zenoh.Session, held: list[Any], drains: list[threading.Threa
     for thread in drains:  # rule 6; a sink that closes its own client does not wait for itself
         if thread is not threading.current_thread():
             thread.join(max(deadline - time.monotonic(), 0.0))
+
+
+def _unopened_hint(endpoints: Sequence[str], username: str | None, ca: object) -> str:
+    """What may have kept zenoh from opening a session, which its words do not say (it turns
+    a refused login or TLS handshake away as it does a port nobody listens on); ``""`` when
+    no account or TLS link was involved.
+
+    >>> _unopened_hint(["tls/gw:7447"], "operator", None)
+    " (a tls/ endpoint needs the CA that signed the gateway's certificate: ca=, --ca)"
+    >>> _unopened_hint(["tcp/gw:7447"], None, None)
+    ''
+    """
+    secured = any(endpoint.startswith(TLS_PROTOCOLS) for endpoint in endpoints)
+    if secured and ca is None:
+        account = "" if username is not None else "; and an account if it takes them: --user"
+        return (
+            " (a tls/ endpoint needs the CA that signed the gateway's certificate: ca=, --ca"
+            f"{account})"
+        )
+    if username is not None:
+        return " (a wrong user name or password, or a gateway that takes none, is refused so too)"
+    if secured:
+        return (
+            " (nobody listening there, or a gateway that takes accounts refusing a session"
+            " without one: username=, --user)"
+        )
+    return ""
 
 
 def _close_in_time(

@@ -127,6 +127,12 @@ class ConnectError(BusgateError, ConnectionError):
 
     code = "cannot_connect"
 
+    def __init__(self, message: str, *, unreached: bool = False) -> None:
+        super().__init__(message)
+        #: zenoh found nobody at the endpoints, and nothing else is known to be wrong (no
+        #: account or CA was involved): the usual case is a gateway not started yet.
+        self.unreached = unreached
+
 
 class NoAnswerError(BusgateError, TimeoutError):
     """Nobody answered in time: no gateway has the key, or it is down or cut off."""

@@ -449,6 +449,27 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize(("options", "hint"), [
+    (["--ca", "CA"], "(nobody listening there, or a gateway that takes accounts refusing a "
+                     "session without one: username=, --user)"),
+    (["--user", "op"], "(a tls/ endpoint needs the CA that signed the gateway's certificate: "
+                       "ca=, --ca)"),
+])
+def test_a_tls_session_that_cannot_open_says_what_it_lacks_not_that_nobody_listens(
+        options, hint, tmp_path, free_port, capsys, monkeypatch):
+    """With a CA and no user the tool said "is a gateway listening there?", and with a user
+    and no CA it blamed the password."""
+    ca = tmp_path / "ca.pem"
+    ca.write_text("-----BEGIN CERTIFICATE-----\nMIIB\n-----END CERTIFICATE-----\n")
+    monkeypatch.setenv("BUSGATE_PASSWORD", "secret")
+    options = [str(ca) if option == "CA" else option for option in options]
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    assert main(["send", "la1", "{}", "--connect", endpoint, *options]) == 2
+    _, err = capsys.readouterr()
+    assert err.startswith(f"busgate send: error: cannot open a zenoh session to {endpoint}: ")
+    assert err.endswith(f"{hint}\n") and "listening there?" not in err
+
+
 def test_a_password_file_that_cannot_be_one_is_one_line_and_exit_2(tmp_path, free_port,
                                                                    capsys):
     """``/dev/zero`` was read without end (5.5 GB in 4 s), a byte that is no UTF-8 raised a

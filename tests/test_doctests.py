@@ -20,6 +20,7 @@ import busgate.schemas
 
 DOCTEST_MODULES = [
     "busgate.client",
+    "busgate.client.core",
     "busgate.client.keys",
     "busgate.client.messages",
     "busgate.codecs.can_frame",

@@ -65,12 +65,13 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
 
 def open_client(args: argparse.Namespace, tool: str) -> bc.Client:
     """A ``busgate.client`` for a command-line tool (``ConnectError``: one line, exit 2, with
-    a hint where nothing listened: the usual case is a gateway not started yet)."""
+    a hint where nobody answered and nothing else is known: the usual case is a gateway not
+    started yet)."""
     try:
         return bc.connect(**client_options(args, tool))
     except bc.ConnectError as exc:
-        if args.user is not None or args.zenoh_config is not None:
-            raise  # its own words say what a login or a config file may have got wrong
+        if not exc.unreached:
+            raise  # its own words say what a login, a TLS link or a config file may lack
         raise bc.ConnectError(
             f"{exc} (is a gateway listening there? `busgate demo` listens on "
             f"{DEFAULT_ENDPOINT}; --connect names another endpoint)"
