@@ -130,6 +130,13 @@ class Answers(list[Answer]):
     timed_out = False
 
 
+#: Why a query ended at once with no answer: zenoh knew nobody who would take it.
+NOTHING_THERE = (
+    "nothing there took the query (no such gateway or device, or the access rules keep this "
+    "account from it)"
+)
+
+
 def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str | None) -> Any:
     """The body of the first ok answer; the error of the first other one; ``NoAnswerError``
     when there is none."""
@@ -140,10 +147,7 @@ def first_ok(answers: Sequence[Answer], key: str, timeout_s: float, gateway: str
         raise_for(answers[0].error, gateway=gateway)
     if getattr(answers, "timed_out", True):
         raise NoAnswerError(f"nobody answered on {key} within {timeout_s:g} s")
-    raise NoAnswerError(
-        f"nobody answered on {key}: nothing there took the query (no such gateway or device, "
-        "or the access rules keep this account from it)"
-    )
+    raise NoAnswerError(f"nobody answered on {key}: {NOTHING_THERE}")
 
 
 def then(future: Future, make: Callable[[Any], Any]) -> Future:

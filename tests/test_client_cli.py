@@ -265,13 +265,16 @@ def test_a_bare_name_goes_to_the_one_gateway_that_has_it_and_nowhere_when_none_d
 
 def test_nobody_answering_exits_2_naming_the_selector_and_no_wait_it_did_not_do(stand_in,
                                                                                 capsys):
-    # No queryable matches: zenoh ends the get at once, so no wait may be claimed.
+    # No queryable matches: zenoh ends the get at once, so no wait may be claimed; and it
+    # says what that may be, as the SDK says it (a viewer's command was "nobody answered").
     status = main(["send", "busgate/gwtest/dev/la9/cmd", '{"op":"stop"}', "--timeout", "5",
                    "--connect", stand_in.endpoint])
     out, err = capsys.readouterr()
     assert status == 2
     assert out == ""
-    assert err.strip() == "busgate send: nobody answered on busgate/gwtest/dev/la9/cmd"
+    assert err.strip() == ("busgate send: nobody answered on busgate/gwtest/dev/la9/cmd: "
+                           "nothing there took the query (no such gateway or device, or the "
+                           "access rules keep this account from it)")
 
 
 @pytest.mark.parametrize("key", ["busgate/gwtest/estop", "busgate/gwtest/estop/reset",

@@ -38,6 +38,7 @@ from typing import Any, TextIO
 
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key, intersects, split_name
+from busgate.client.messages import NOTHING_THERE
 from busgate.errors import CommandError
 from busgate.gateway.cli.arguments import seconds
 from busgate.gateway.cli.client_session import add_session_options, open_client
@@ -56,11 +57,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     send = subparsers.add_parser(
         "send",
         description="Send a JSON command to a device's cmd key and print each reply. A bare "
-        "device name means <prefix>/*/dev/<device>/cmd (whichever gateway has it answers), "
+        "device name is looked up in every gateway's info and sent to the one that has it "
+        "(refused, nothing sent, when several have it: name one as <gateway>/<device>); "
         "<gateway>/<device> means <prefix>/<gateway>/dev/<device>/cmd; any other argument "
         "with a '/' is used as the key expression as given. Exit status: 0 all replies ok, 1 "
-        "an error reply or no gateway has the device (unknown_device), 2 nobody answered (or, "
-        "with --put, a command that is not JSON: nothing is sent).",
+        "an error reply or no gateway has the device (unknown_device), 2 nobody answered, no "
+        "session opened, several gateways have the device, or, with --put, a command that is "
+        "not JSON (nothing is sent).",
     )
     send.add_argument(
         "target",
@@ -242,8 +245,8 @@ def _no_reply(key: str, *, waited: float | None) -> int:
         hint = f": {key} takes puts, not gets: nothing was done (send --put)"
     elif waited is not None:  # it went: an answer later than the wait is not heard
         hint = ": the command went, and may have been carried out (see the device's state)"
-    else:
-        hint = ""
+    else:  # zenoh knew nobody who would take it
+        hint = f": {NOTHING_THERE}"
     print(f"busgate send: nobody answered on {key}{within}{hint}", file=sys.stderr)
     return NO_ANSWER
 
