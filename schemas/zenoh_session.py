@@ -103,7 +103,7 @@ def session_config(
             raise ValueError(f"the CA certificate {ca}: {problem}")
         config.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
         _check_tls_endpoints(config, mode)
-    check_unix_listeners(_endpoints(config, "listen", mode))
+    check_unix_listeners(endpoints_of(config, "listen", mode))
     return config
 
 
@@ -184,7 +184,7 @@ def _parsed(config_file: str | Path) -> zenoh.Config:
 def _check_tls_endpoints(config: zenoh.Config, mode: str) -> None:
     """A CA certificate is for TLS (``tls/``, ``quic/``): refused when no endpoint of the
     session is one, where the link would be in the clear while its user thinks otherwise."""
-    endpoints = [*_endpoints(config, "listen", mode), *_endpoints(config, "connect", mode)]
+    endpoints = [*endpoints_of(config, "listen", mode), *endpoints_of(config, "connect", mode)]
     if not any(str(endpoint).startswith(TLS_PROTOCOLS) for endpoint in endpoints):
         where = ", ".join(map(str, endpoints)) or "none"
         raise ValueError(
@@ -193,7 +193,7 @@ def _check_tls_endpoints(config: zenoh.Config, mode: str) -> None:
         )
 
 
-def _endpoints(config: zenoh.Config, kind: str, mode: str) -> list[str]:
+def endpoints_of(config: zenoh.Config, kind: str, mode: str) -> list[str]:
     """The endpoints ``config`` listens on or connects to (``kind``) in ``mode``: a list,
     or (as zenoh's default, and a file a router shares with its clients) a list per mode, of
     which only its own."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -506,6 +507,31 @@ def test_a_command_sent_on_a_wildcard_reaches_only_info_and_is_told_so(free_port
         client.close()
         loop.call_soon_threadsafe(loop.stop)
         bridge.close()
+
+
+@pytest.mark.parametrize("in_file", [False, True])
+def test_the_session_up_line_names_the_endpoints_listened_on_a_config_files_too(
+    in_file, free_port, tmp_path, caplog
+) -> None:
+    """With its endpoints in ``[zenoh] config_file`` the line named the file, not where
+    the gateway listens; with them in ``listen`` it printed a Python list."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = config_for("/dev/null", endpoint)
+    if in_file:
+        zenoh_file = tmp_path / "zenoh.json5"
+        zenoh_file.write_text(json.dumps({"listen": {"endpoints": [endpoint]}}))
+        config["zenoh"] = {"mode": "peer", "config_file": str(zenoh_file)}
+    parsed = parse_config(config)
+    runners = {bus.name: build_bus(bus) for bus in parsed.buses}  # not started
+    bridge = ZenohBridge(parsed, GatewayApi("gw1", runners), runners, deque(), deque())
+    loop = asyncio.new_event_loop()
+    caplog.set_level(logging.INFO, logger="busgate.gateway.api.bridge")
+    try:
+        bridge.open(loop)
+    finally:
+        bridge.close()
+        loop.close()
+    assert f"zenoh session up: gateway busgate/gw1, listening on {endpoint}\n" in caplog.text
 
 
 def test_follow_targets_are_taken_by_their_own_thread_which_a_bug_does_not_end(

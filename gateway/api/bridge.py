@@ -74,7 +74,7 @@ from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
-from busgate.schemas.zenoh_session import gateway_session_config
+from busgate.schemas.zenoh_session import endpoints_of, gateway_session_config
 
 log = logging.getLogger(__name__)
 
@@ -178,7 +178,8 @@ class ZenohBridge:
         """Open the session and declare every key of the API."""
         self._loop = loop
         zenoh_section = self.config.zenoh
-        self._session = session = zenoh.open(gateway_session_config(zenoh_section))
+        config = gateway_session_config(zenoh_section)
+        self._session = session = zenoh.open(config)
         base, prefix = self.base, self.config.gateway.prefix
         commands, puts = self._commands, self._puts
         self._before_estop = []
@@ -220,11 +221,8 @@ class ZenohBridge:
         for name in self.bases.bases:
             key = f"{base}/base/{name}/odom"
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
-        where = (
-            zenoh_section.listen
-            or zenoh_section.config_file
-            or "no listen endpoint: reachable only through connect"
-        )
+        listening = endpoints_of(config, "listen", zenoh_section.mode)  # a config file's too
+        where = ", ".join(listening) or "no endpoint: reachable only through connect"
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
     def _commands(
