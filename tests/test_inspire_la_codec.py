@@ -94,6 +94,18 @@ def test_printed_follow_checksum_is_a_mismatch():
     assert first == ChecksumMismatch(bytes.fromhex("55AA04031937E80328"), 0x42, 0x28)
 
 
+@pytest.mark.parametrize("instruction", [0x02, 0x20, 0x21])
+def test_a_status_frame_under_the_cmd_byte_of_what_it_answers_is_the_status(instruction):
+    """Section 3.4.1 says a reply's cmd byte is its command's; the status frame answering a
+    write, a follow or a move is only printed as the status query's, with 04. A frame an
+    actuator echoed so was discarded, and every move with a reply timed out."""
+    printed = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
+    body = bytes((*printed[2:4], instruction, *printed[5:-1]))
+    echoed = b"\xaa\x55" + body + bytes((sum(body) & 0xFF,))
+    assert _events(ReplyDecoder, echoed) == _events(ReplyDecoder, printed) == [
+        StatusReply(1, 1003, 990, 20, 100, 500, Fault(0), 1800, 1802)]
+
+
 def test_status_reply_fault_bits_and_negative_values():
     reply = StatusReply(7, 0, -20, -5, 0, -500, Fault.STALL | Fault.OVER_CURRENT)
     wire = encode(reply)
@@ -245,7 +257,10 @@ def test_well_framed_but_unknown_is_discarded_whole(decoder_class, body, reason)
         (CommandDecoder, "55 AA 07 03 F2"),  # broadcast flag from a single id
         (CommandDecoder, "55 AA 04 00 21"),  # id 0 does not exist
         (ReplyDecoder, "AA 55 FF 01 04"),  # the status reply has length 0x11
-        (ReplyDecoder, "AA 55 FF 01 02"),  # a write reply has one data byte
+        (ReplyDecoder, "AA 55 FF 01 02"),  # a write reply has one data byte, or is the status
+        (ReplyDecoder, "AA 55 04 01 02"),
+        (ReplyDecoder, "AA 55 03 01 21"),  # a move's reply is the status frame
+        (ReplyDecoder, "AA 55 03 01 20"),  # a follow's too
         (ReplyDecoder, "AA 55 11 FF 04"),  # nobody answers as 255
     ],
 )

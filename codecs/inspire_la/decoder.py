@@ -10,7 +10,7 @@ with a sound header and checksum but an instruction we do not know becomes ``Dis
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from typing import ClassVar
 
 from busgate.codecs.framing import Discarded, HeaderFramedDecoder, sum8
@@ -67,7 +67,7 @@ class _LaDecoder(HeaderFramedDecoder[object]):
 
     max_frame = MAX_FRAME
     #: Allowed values of the length byte, per instruction (others: ``_ANY_LENGTH``).
-    lengths: ClassVar[dict[int, range]]
+    lengths: ClassVar[dict[int, Container[int]]]
     #: Allowed device ids, per instruction (others: ``default_ids``).
     ids: ClassVar[dict[int, range]] = {}
     default_ids: ClassVar[range]
@@ -136,9 +136,17 @@ def _group_targets(frame: bytes) -> tuple[Target, ...]:
     )
 
 
+#: The length byte of the status frame, and of section 3.4.1's answer to a write.
+STATUS_LENGTH = STATUS_REPLY_SIZE - FRAME_OVERHEAD
+WRITE_REPLY_LENGTH = 3
+#: The commands the status frame answers, besides a write.
+_ANSWERED_BY_STATUS = (Instruction.CONTROL, Instruction.FOLLOW, Instruction.MOVE)
+
+
 def _status_reply(frame: bytes) -> StatusReply:
     # Bytes 5-6 read 00 22 (the status query's code) in the manual. The replies to the other
-    # commands are only said to be "the same as the status query's", so they are not checked.
+    # commands are only said to be "the same as the status query's", so they are not checked;
+    # nor is byte 4 (see ``ReplyDecoder``).
     target, position, temperature, current, force_lo, faults, force_hi, in1, in2 = (
         STATUS_LAYOUT.unpack_from(frame, 7)
     )
@@ -191,15 +199,21 @@ class ReplyDecoder(_LaDecoder):
     """
 
     header = REPLY_HEADER
-    lengths: ClassVar[dict[int, range]] = {
+    lengths: ClassVar[dict[int, Container[int]]] = {
         Instruction.READ: _WITH_DATA,
-        # Section 3.4.1's one reserved byte; the status-frame answer comes as CONTROL.
-        Instruction.WRITE: _exactly(3),
-        Instruction.CONTROL: _exactly(STATUS_REPLY_SIZE - FRAME_OVERHEAD),
+        # Section 3.4.1's one reserved byte, or the status frame (sections 3.5.2, 3.7.x).
+        Instruction.WRITE: (WRITE_REPLY_LENGTH, STATUS_LENGTH),
+        # The status frame under the cmd byte of the command it answers (section 3.4.1: a
+        # reply's cmd is its command's), besides the status query's own 04 the manual prints.
+        **{instruction: _exactly(STATUS_LENGTH) for instruction in _ANSWERED_BY_STATUS},
     }
     default_ids = range(MIN_ID, MAX_ID + 1)
     decoders: ClassVar[dict[int, Callable[[bytes], object]]] = {
         Instruction.READ: lambda frame: ReadReply(frame[3], frame[5], frame[6:-1]),
-        Instruction.WRITE: lambda frame: WriteReply(frame[3], frame[5], frame[6]),
-        Instruction.CONTROL: _status_reply,
+        Instruction.WRITE: lambda frame: (
+            WriteReply(frame[3], frame[5], frame[6])
+            if frame[2] == WRITE_REPLY_LENGTH
+            else _status_reply(frame)
+        ),
+        **{instruction: _status_reply for instruction in _ANSWERED_BY_STATUS},
     }
