@@ -361,12 +361,19 @@ def test_an_rs232_checksum_mismatch_names_the_byte_received():
     assert some_events(decoder, 1) == [ChecksumMismatch(bytes.fromhex("05 27 10 00"), 0x3C, 0)]
 
 
-def test_an_rs232_monitor_request_with_data_is_discarded_whole_with_its_reason():
+def test_an_rs232_monitor_request_with_data_is_discarded_by_its_first_byte_with_its_reason():
+    """A stray 80 before a monitor request made ``80 80 00``, whose sum passes: it was
+    discarded whole, and every request after it was read out of step."""
+    decoder = zlac706_rs232.CommandDecoder()
+    decoder.feed(bytes.fromhex("80 80 00 80 80 00 80"))
+    assert some_events(decoder) == [
+        Discarded(b"\x80", "a monitor request carries no data"),
+        zlac706_rs232.MonitorRequest(),
+        zlac706_rs232.MonitorRequest(),
+    ]
     decoder = zlac706_rs232.CommandDecoder()
     decoder.feed(bytes.fromhex("80 01 81"))
-    assert some_events(decoder) == [
-        Discarded(bytes.fromhex("80 01 81"), "a monitor request carries no data")
-    ]
+    assert some_events(decoder, 1) == [Discarded(b"\x80", "a monitor request carries no data")]
 
 
 def test_a_monitor_reply_names_every_item_it_lacks():

@@ -85,13 +85,17 @@ class _FirstByteFramed(StreamDecoder[Event]):
         expected = self._check_byte(frame)
         if expected != frame[-1]:
             return ChecksumMismatch(frame, expected, frame[-1]), pos + 1
-        return self._decode(frame), pos + size
+        event = self._decode(frame)
+        # A frame refused by what it carries, not its check byte, is left after its first
+        # byte (its ``Discarded`` holds that byte): the next frame may begin inside it.
+        return event, pos + (len(event.data) if isinstance(event, Discarded) else size)
 
     def _check_byte(self, frame: bytes) -> int:
         return sum8(frame[:-1])
 
     def _decode(self, frame: bytes) -> Event | Discarded:
-        """A checked frame to its event; each subclass defines it."""
+        """A checked frame to its event, or its first byte ``Discarded``; each subclass
+        defines it."""
         raise NotImplementedError
 
 
@@ -112,8 +116,8 @@ class CommandDecoder(_FirstByteFramed[Command]):
 
     def _decode(self, frame: bytes) -> Command | Discarded:
         if frame[0] == MONITOR_REQUEST_ADDRESS:
-            if frame != MONITOR_REQUEST:
-                return Discarded(frame, "a monitor request carries no data")
+            if frame != MONITOR_REQUEST:  # 80 80 00 passes its sum: 80 00 80 may be next
+                return Discarded(frame[:1], "a monitor request carries no data")
             return MonitorRequest()
         codes = CODES.get(frame[0])
         value = _word(frame)
