@@ -166,7 +166,7 @@ class CommandDecoder(_LaDecoder):
     """
 
     header = COMMAND_HEADER
-    lengths: ClassVar[dict[int, range]] = {
+    lengths: ClassVar[dict[int, Container[int]]] = {
         Instruction.READ: _exactly(3),
         Instruction.WRITE: _WITH_DATA,
         **{instruction: _exactly(4) for instruction in _MOTION},
