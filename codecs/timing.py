@@ -51,10 +51,12 @@ def can_time(data_bytes: int, bitrate: int, *, worst_case: bool = True) -> float
 class ProtocolTiming:
     """A device family's timing: least idle line between exchanges (``min_gap_s``, and the
     default a bus gets, ``default_gap_s``), the device's reply time range, and the default
-    line speed (baud for UART, bit/s for CAN)."""
+    line speed (baud for UART, bit/s for CAN); ``rates``, the only line speeds the device
+    can run at, when its manual names them (empty: any the bus takes)."""
 
     min_gap_s: float
     default_gap_s: float
     reply_min_s: float
     reply_max_s: float
     default_rate: int
+    rates: tuple[int, ...] = ()

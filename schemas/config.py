@@ -359,6 +359,12 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
                 f"{path}.options.{key}: set by the bus's own {OWN_CAN_KEYS[key]} key, not in "
                 f"options (they pass on to python-can what its interface takes besides)"
             )
+    rate, rate_key = (
+        (bus.baudrate, "baudrate") if isinstance(bus, SerialBus) else (bus.bitrate, "bitrate")
+    )
+    if protocol.timing.rates and rate not in protocol.timing.rates:
+        rates = ", ".join(str(r) for r in protocol.timing.rates)
+        raise ValueError(f"{path}.{rate_key}: {protocol.name} runs at {rates} only, not {rate}")
     if isinstance(bus, SerialBus) and bus.gap_s < protocol.timing.min_gap_s:
         minimum = protocol.timing.min_gap_s * 1000
         raise ValueError(f"{path}.min_gap_ms: {protocol.name} needs at least {minimum:g} ms")

@@ -132,6 +132,17 @@ def test_gap_below_the_protocol_minimum_is_refused() -> None:
     assert error.path == "buses[0].min_gap_ms" and "at least 1 ms" in str(error)
 
 
+def test_an_la_bus_at_a_baud_rate_no_actuator_runs_at_is_refused() -> None:
+    """An LA runs at the four rates of its register 12 only; 9600 was taken, and the bus then
+    read nothing but garbage."""
+    error = refused(lambda d: d["buses"][0].update(baudrate=9600))
+    assert error.path == "buses[0].baudrate"
+    assert str(error) == ("buses[0].baudrate: inspire_la runs at 19200, 57600, 115200, 921600 "
+                          "only, not 9600")
+    for rate in (19200, 57600, 115200):
+        parse_config({**BASE, "buses": [{**BASE["buses"][0], "baudrate": rate}]})
+
+
 def test_ids_are_checked_per_protocol_and_per_bus() -> None:
     error = refused(lambda d: d["buses"][0]["devices"][0].update(id=255))
     assert error.path == "buses[0].devices[0].id" and "1–254" in str(error)

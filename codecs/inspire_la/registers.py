@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from busgate.codecs.errors import EncodeError
 from busgate.codecs.inspire_la.frames import (
+    BAUD_RATES,
     MAX_DATA,
     TABLE_SIZE,
     TARGET_INDEX,
@@ -30,9 +31,6 @@ from busgate.codecs.registers import Access, Reading, Register, RegisterMap, req
 TENTHS_PER_DEGREE = 10
 #: The over-temperature limit must stay at least 5 °C above the rewarm temperature.
 TEMPERATURE_GAP_RAW = 5 * TENTHS_PER_DEGREE
-
-#: Baud rates in the order of their codes in register 12.
-BAUD_RATES = (19200, 57600, 115200, 921600)
 
 ID = "id"
 BAUD_CODE = "baud_code"
