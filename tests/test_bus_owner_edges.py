@@ -26,6 +26,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import WRITE_TIMEOUT_S, SerialBusOwner
 from busgate.gateway.bus.stats import BusCounters
+from busgate.gateway.bus.tty_write import DRAIN_MAX_S, left_driver, queued_out
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
@@ -224,6 +225,45 @@ def test_a_port_that_takes_no_more_bytes_fails_the_link_waiting_not_spinning() -
     finally:
         owner.close()
         device.close()
+
+
+def test_a_frame_with_no_reply_frees_the_line_its_wire_time_after_it_left_the_driver() -> None:
+    """The gap after a frame that gets no reply counted from the write's return: a USB
+    adapter's driver sends a moment later, and the next frame could follow it by less than
+    the gap. A pty holds nothing back (its driver's queue reads empty at once): the line is
+    free the frame's wire time after the write, as before."""
+    device = PtyDevice()
+    owner = serial_owner(device.port)
+    try:
+        request = Request.of(la, la.FollowCommand(1, 700, reply=False))
+        exchange = owner.exchange(request)
+        assert queued_out(owner._serial.fileno()) == 0
+        assert exchange.end == exchange.start + LA_TIMING.wire_time(request.wire)
+    finally:
+        owner.close()
+        device.close()
+
+
+def test_left_driver_is_the_first_moment_the_drivers_queue_was_found_empty() -> None:
+    """Timing logic, with a stand-in for the driver's queue (no tty on this host holds
+    bytes back: a pty's reads empty at once)."""
+    written = now()
+    assert left_driver(-1, written, lambda fd: 0) == written  # nothing held: the write's moment
+    looks: list[float] = []
+
+    def draining(_fd: int) -> int:
+        looks.append(now())
+        return max(9 - 3 * len(looks), 0)  # 6, 3, then empty at the third look
+
+    left = left_driver(-1, written, draining)
+    assert len(looks) == 3 and looks[0] < looks[1] < looks[2] <= left
+    stuck = now()
+    assert left_driver(-1, stuck, lambda fd: 9) >= stuck + DRAIN_MAX_S  # then it gives up
+    reader, writer = os.pipe()
+    os.write(writer, b"held")
+    assert queued_out(writer) == 0  # no tty: nothing known to be held
+    os.close(reader)
+    os.close(writer)
 
 
 def test_an_adapter_unplugged_while_a_reply_is_awaited_closes_the_link(tmp_path) -> None:

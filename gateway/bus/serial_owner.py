@@ -10,7 +10,9 @@ Rules of this file:
 2. The gap counts from the last byte seen on the line: when the flush finds anything (a late
    reply, noise), the write waits until ``gap_s`` has passed since then, and looks again. The
    exchange says when that byte was read (``last_byte_before``), so the gap statistic counts
-   from it too.
+   from it too. After a frame that gets no reply, the line is free once the frame has left
+   the port's driver (``tty_write.left_driver``: a USB adapter's sends a moment after the
+   write) and then the wire.
 3. ``SerialException`` and ``OSError`` mean the link is down: the port is closed at once and
    ``BusIOError`` raised.
 4. Waiting for a reply uses ``select`` on the port's descriptor with the absolute deadline,
@@ -36,7 +38,7 @@ from busgate.gateway.bus.owner import RX, TX, BusOwner
 from busgate.gateway.bus.port_access import describe_open_error
 from busgate.gateway.bus.request import Exchange, LinkTiming, Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.bus.tty_write import write_all
+from busgate.gateway.bus.tty_write import left_driver, write_all
 
 #: How long a write may wait for the port to take its bytes (a wedged adapter) before the
 #: link counts as lost.
@@ -114,8 +116,11 @@ class SerialBusOwner(BusOwner):
         self.counters.frames_out += 1
         self.counters.bytes_out += len(request.wire)
         reply: tuple[object, ...] = ()
-        end = start + wire_time
-        if request.expected is not None:
+        if request.expected is None:
+            # No reply to say when the line was free: it is once the frame has left the port's
+            # driver (a USB adapter's, a moment after the write), and then the wire.
+            end = left_driver(port.fileno(), start) + wire_time
+        else:
             earliest, latest = self.timing.reply_window(request)
             end, reply = self._wait_reply(
                 port, request.expected, issued + wire_time + earliest, start + wire_time + latest
