@@ -138,3 +138,32 @@ def test_a_device_not_estopped_is_left_as_it_is_and_another_clients_claim_refuse
         assert refused["error"]["code"] == "claimed"
     finally:
         ok(world, "la3", {"op": "release", "client": "bob"})
+
+
+def test_a_reset_of_every_device_leaves_a_device_another_client_claims_to_its_holder(world):
+    """A reset of the whole gateway (its key, the dashboard's, the ROS 2 service) brought a
+    device another client claimed out of its e-stop, where that client's own reset of the
+    device is refused ``claimed``: the holder's control loop found it enabled by a reset it
+    never chose. It is kept e-stopped, and the event says so; the holder's reset brings it
+    back."""
+    for device in ("la1", "la3"):
+        ok(world, device, {"op": "enable"})
+    ok(world, "la3", {"op": "claim", "client": "bob", "ttl_s": 30})
+    events: list = []
+    world.api.on_event = events.append
+    try:
+        estop(world)
+        for reset in world.api.reset_estop("alice"):
+            reset.result(TIMEOUT_S)
+        assert driver(world, "la3").estopped and not driver(world, "la1").estopped
+        assert [(e.type, e.fields) for e in events if e.type == "estop_reset"] == [
+            ("estop_reset", {"client": "alice", "kept_estopped": ["la3"]})]
+        refused = ask(world, "la3", {"op": "move", "position": 900, "client": "bob"})
+        assert refused["error"]["code"] == "estopped"
+        reset, kept = world.api.reset_every_bus("bob")
+        for future in reset:
+            future.result(TIMEOUT_S)
+        assert kept == [] and not driver(world, "la3").estopped
+    finally:
+        world.api.on_event = lambda event: None
+        ok(world, "la3", {"op": "release", "client": "bob"})

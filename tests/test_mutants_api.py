@@ -583,6 +583,33 @@ def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
     ]
 
 
+@pytest.mark.parametrize(("payload", "code", "message"), [
+    (b"\xff", "not_utf8", "payload is not UTF-8: invalid start byte"),
+    (b"[]", "bad_command", "a command is a JSON object"),
+    (b'{"client": "a b"}', "bad_command", "client 'a b' is no client id"),
+    (b'{"client": 7}', "bad_command", "client '7' is no client id"),
+    (b'{"client": "panel"' + b" " * 70_000 + b"}", "too_large",
+     "payload of 70019 bytes; at most 65536"),
+])
+def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payload, code,
+                                                                           message):
+    """The e-stop takes any payload; its reset took any too (not UTF-8, 70 KB): a reset is
+    carried out only on an empty payload or an object naming a valid client, else it is
+    refused as any bad put is, by a ``command_refused`` event."""
+    bridge, runner, events = estop_bridge()
+    key = "busgate/gw/estop/reset"
+    bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload),
+                                           key_expr=key))
+    assert len(runner._inbox) == 0, "nothing reset"
+    [event] = events
+    assert (event.device, event.type, event.fields) == (
+        "*", "command_refused", {"code": code, "message": message})
+    for good in (b"", b"{}", b'{"client": "panel"}'):
+        bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda g=good: g),
+                                               key_expr=key))
+    assert len(runner._inbox) == 3
+
+
 def test_a_reset_of_every_bus_is_logged_told_and_handed_to_each_bus(caplog):
     """``GatewayApi.reset_estop`` (the ROS 2 face's service, the API's own): its log line and
     its event name the sender when there is one, and every bus is handed the reset."""

@@ -197,6 +197,7 @@ class HandingOnBridge:
         self.soon: list = []
         self.resets: list = []
         self.at_estop: list = []
+        self.kept: list[str] = []  # the devices a reset leaves to another client's claim
 
     def call_soon(self, function, *args) -> None:
         self.soon.append((function, args))
@@ -206,9 +207,9 @@ class HandingOnBridge:
             forget()
         return []
 
-    def estop_reset(self, client) -> list:
+    def estop_reset(self, client) -> tuple[list, list[str]]:
         self.resets.append(client)
-        return []
+        return [], self.kept
 
     def run_soon(self) -> None:
         soon, self.soon = self.soon, []
@@ -342,3 +343,12 @@ def test_names_of_their_own_and_bases_sharing_an_absolute_tf_are_taken() -> None
     assert ros2_config({}, [BASE]).ros2 is not None
     assert ros2_config({"namespace": "/robot"}, two).ros2.tf == "/tf"  # both bases' /tf
     assert ros2_config({"odom": "/diagnostics"}).ros2 is not None  # no base: no odom topic
+
+
+def test_the_reset_service_names_the_devices_another_clients_claim_kept_e_stopped() -> None:
+    _, bridge, face = gripper_face()
+    assert face._reset_estop({}).result(1) == {"success": True, "message": "every bus reset"}
+    bridge.kept = ["la1", "la2"]
+    assert face._reset_estop({}).result(1) == {
+        "success": True,
+        "message": "every bus reset; kept e-stopped, claimed by another client: la1, la2"}

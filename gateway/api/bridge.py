@@ -74,6 +74,7 @@ from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
+from busgate.schemas.validation import shown
 from busgate.schemas.zenoh_session import endpoints_of, gateway_session_config
 
 log = logging.getLogger(__name__)
@@ -460,12 +461,13 @@ class ZenohBridge:
         event naming where it came from (``key``); any thread."""
         return self._told_estop(self.api.stop_every_bus(), sender, key)
 
-    def estop_reset(self, sender: str | None) -> list[Future]:
-        """Every device out of its e-stop, told as an ``estop_reset`` event (at most one every
-        0.1 s, as the e-stop's, ``put_reports``); any thread."""
-        reset = self.api.reset_every_bus()
-        self.put_reports.estop_reset(sender)
-        return reset
+    def estop_reset(self, sender: str | None) -> tuple[list[Future], list[str]]:
+        """Every device out of its e-stop but those another client claims, told as an
+        ``estop_reset`` event (at most one every 0.1 s, as the e-stop's, ``put_reports``);
+        any thread. The buses' futures, and the devices kept e-stopped."""
+        reset, kept = self.api.reset_every_bus(sender)
+        self.put_reports.estop_reset(sender, kept)
+        return reset, kept
 
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
         """Once every bus has the e-stop: what was put or got before it and still waits taken
@@ -478,7 +480,13 @@ class ZenohBridge:
         """A refused put's, an e-stop's or a reset's event, told (the last two with their log
         line)."""
         if event.type in TOLD_LINES:
-            log_told(event.type, event.fields.get("client"), event.fields.get("suppressed", 0))
+            fields = event.fields
+            log_told(
+                event.type,
+                fields.get("client"),
+                fields.get("suppressed", 0),
+                fields.get("kept_estopped", ()),
+            )
         self.events.append(event)
 
     def submit_trajectory(
@@ -494,12 +502,20 @@ class ZenohBridge:
 
     def _on_estop_reset(self, sample: zenoh.Sample) -> None:
         """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``
-        reaches the e-stop too, and a reset must never ride along with a stop."""
+        reaches the e-stop too, and a reset must never ride along with a stop. Unlike the
+        e-stop, which takes any payload, a reset is carried out only on an empty payload or
+        an object whose ``client``, if any, is a client id: else it is refused, told as a
+        ``command_refused`` event, and nothing is reset."""
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
         if key != f"{self.base}/estop/reset":
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
-        self.estop_reset(_sender(payload))
+        try:
+            sender = _reset_sender(payload)
+        except RefusedError as refusal:
+            self.put_reports.refused("*", error_reply(refusal)["error"])  # the whole gateway's
+            return
+        self.estop_reset(sender)
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None, None)
 
@@ -662,6 +678,18 @@ def _sender(payload: bytes) -> str | None:
         return client_named(decode_object(payload).get("client"))
     except RefusedError:
         return None
+
+
+def _reset_sender(payload: bytes) -> str | None:
+    """The client a reset's payload names (``None``: empty, or naming none); ``RefusedError``
+    for a payload that is no JSON object, or a ``client`` that is no client id."""
+    if not payload:
+        return None
+    client = decode_object(payload).get("client")
+    sender = client_named(client)
+    if client is not None and sender is None:
+        raise RefusedError("bad_command", f"client '{shown(str(client))}' is no client id")
+    return sender
 
 
 def _payload(query: zenoh.Query) -> bytes:

@@ -45,7 +45,7 @@ import contextlib
 import functools
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
@@ -110,12 +110,17 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
 TOLD_LINES = {"estop": "e-stop of every bus", "estop_reset": "e-stop reset of every bus"}
 
 
-def log_told(event_type: str, sender: str | None, suppressed: int = 0) -> None:
+def log_told(
+    event_type: str, sender: str | None, suppressed: int = 0, kept: Sequence[str] = ()
+) -> None:
     """The log line of an e-stop or a reset of the whole gateway (``TOLD_LINES``), naming the
-    client that sent it when known, and how many came since the last line without one of
-    their own (``put_reports``)."""
+    client that sent it when known, how many came since the last line without one of their
+    own (``put_reports``), and the devices a reset ``kept`` e-stopped (``reset_every_bus``)."""
     since = f" ({suppressed} more since the last told)" if suppressed else ""
-    log.warning("%s%s%s", TOLD_LINES[event_type], f" from {sender}" if sender else "", since)
+    held = f"; kept e-stopped, claimed by another client: {', '.join(kept)}" if kept else ""
+    log.warning(
+        "%s%s%s%s", TOLD_LINES[event_type], f" from {sender}" if sender else "", since, held
+    )
 
 
 class GatewayApi:
@@ -302,14 +307,30 @@ class GatewayApi:
 
     def reset_estop(self, sender: str | None = None) -> list[Future]:
         """Every device of the gateway out of its e-stop, holding still
-        (``Driver.reset_estop``), told by a log line and an ``estop_reset`` event."""
-        log_told("estop_reset", sender)
-        self._event("*", "estop_reset", **_client_field(sender))
-        return self.reset_every_bus()
+        (``Driver.reset_estop``), but those another client claims; told by a log line and an
+        ``estop_reset`` event, which name those kept."""
+        reset, kept = self.reset_every_bus(sender)
+        log_told("estop_reset", sender, kept=kept)
+        self._event("*", "estop_reset", **_client_field(sender), **_kept_field(kept))
+        return reset
 
-    def reset_every_bus(self) -> list[Future]:
-        """The reset without its log line and event (``reset_estop``)."""
-        return [runner.reset_estop() for runner in self.runners.values()]
+    def reset_every_bus(self, sender: str | None = None) -> tuple[list[Future], list[str]]:
+        """The reset without its log line and event (``reset_estop``): every device out of
+        the e-stop but those claimed by a client other than ``sender``, which are their
+        holder's to reset (a device's own ``reset_estop`` from another is refused
+        ``claimed``). The buses' futures, and the devices kept e-stopped."""
+        reset: list[Future] = []
+        kept: list[str] = []
+        for runner in self.runners.values():
+            held = [
+                device for device in runner.drivers if _claimed_by_other(runner, device, sender)
+            ]
+            if not held:
+                reset.append(runner.reset_estop())
+                continue
+            kept += held
+            reset += [runner.reset_estop(device) for device in runner.drivers if device not in held]
+        return reset, kept
 
     @answered
     def bus_command(self, bus: str, payload: bytes) -> Future:
@@ -467,6 +488,23 @@ def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
 
 def _client_field(client: str | None) -> dict[str, str]:
     return {"client": client} if client else {}
+
+
+def _kept_field(kept: list[str]) -> dict[str, list[str]]:
+    """An ``estop_reset`` event's ``kept_estopped``: the devices it left to their holders."""
+    return {"kept_estopped": kept} if kept else {}
+
+
+def _claimed_by_other(runner: BusRunner, device: str, client: str | None) -> bool:
+    """Whether ``device`` is claimed by a client other than ``client`` (as the claim judges a
+    setting: a reset of its e-stop moves nothing)."""
+    try:
+        runner.authority.judge(device, Effect.SETTING, client)
+    except RefusedError as refusal:
+        if refusal.code != "claimed":
+            raise
+        return True
+    return False
 
 
 def _mapped(submitted: Future) -> Future:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -84,9 +84,13 @@ class PutReports:
         fields = {"key": key} | ({"client": sender} if sender else {})
         self._report(ESTOPS, DeviceEvent("*", "estop", fields))
 
-    def estop_reset(self, sender: str | None) -> None:
-        """Every device's e-stop was reset by a put of ``sender`` (when it named itself)."""
-        self._report(RESETS, DeviceEvent("*", "estop_reset", {"client": sender} if sender else {}))
+    def estop_reset(self, sender: str | None, kept: Sequence[str] = ()) -> None:
+        """Every device's e-stop was reset by a put of ``sender`` (when it named itself), but
+        those it ``kept`` e-stopped (claimed by another client)."""
+        fields = ({"client": sender} if sender else {}) | (
+            {"kept_estopped": list(kept)} if kept else {}
+        )
+        self._report(RESETS, DeviceEvent("*", "estop_reset", fields))
 
     @property
     def withheld(self) -> bool:

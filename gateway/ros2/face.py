@@ -353,7 +353,9 @@ class Ros2Face:
             self._trajectory_next = None
 
     def _reset_estop(self, request: dict[str, Any]) -> Future:
-        return _when_all(self.bridge.estop_reset(self.section.client), "every bus reset")
+        reset, kept = self.bridge.estop_reset(self.section.client)
+        held = f"; kept e-stopped, claimed by another client: {', '.join(kept)}" if kept else ""
+        return _when_all(reset, f"every bus reset{held}")
 
     # -- the loop's thread -------------------------------------------------------------------
 
