@@ -22,12 +22,16 @@ Rules of this file:
    refused or did not answer; ``failure`` says which, for every route.
 5. At most ``MAX_STREAMS`` event streams are open at once: the rest of the server's
    connections stay for pages and actions, whoever holds streams open without reading them.
+6. No response may be shown in another page's frame (``NEVER_FRAMED``): a page on another
+   site that framed the dashboard could trick a click on its e-stop, reset or enable, whose
+   requests would carry the dashboard's own host and origin.
+7. A body is read as the gateway reads a payload (``decode_object``): a key given twice, or
+   a number that is no number (``NaN``), is refused, never guessed.
 """
 
 from __future__ import annotations
 
 import ipaddress
-import json
 import re
 from collections.abc import Awaitable, Callable, Set
 from pathlib import Path
@@ -40,18 +44,24 @@ from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from busgate.client.errors import GatewayError, UnknownGatewayError
 from busgate.client.keys import check_name, split_name
 from busgate.dashboard.hub import Hub
-from busgate.errors import BusgateError
+from busgate.errors import BusgateError, RefusedError
+from busgate.schemas.payload import decode_object
 
 STATIC = Path(__file__).resolve().parent / "static"
 #: Live event streams at once (one a browser's page): past them a stream gets a 503, so that
 #: held streams never take the connections a page, and its e-stop, need (rule 5).
 MAX_STREAMS = 48
 MAX_BODY = 1024
+#: Rule 6, on every response: the old header and the one that replaced it.
+NEVER_FRAMED = (
+    (b"x-frame-options", b"DENY"),
+    (b"content-security-policy", b"frame-ancestors 'none'"),
+)
 #: ``HOST[:PORT]`` as a ``Host`` header or an origin carries it: a DNS name (253 characters at
 #: most) or an IPv4 address, or an IPv6 address in brackets.
 HOST_AND_PORT = re.compile(
@@ -130,12 +140,9 @@ async def _request_body(request: Request, hosts: Set[str]) -> dict[str, Any]:
     except ClientDisconnect:  # gone, or closed by the server for sending too slowly
         raise Refused(400, "bad_request", "the body did not come whole") from None
     try:
-        body = json.loads(raw)
-    except (ValueError, RecursionError):
-        raise Refused(400, "bad_request", "the body is not JSON") from None
-    if not isinstance(body, dict):
-        raise Refused(400, "bad_request", "the body is a JSON object")
-    return body
+        return decode_object(raw, limit=MAX_BODY)
+    except RefusedError as exc:
+        raise Refused(400, "bad_request", f"the body: {exc}") from None
 
 
 def _checked(check: Any, *args: Any) -> Any:
@@ -152,19 +159,28 @@ def _gateway(body: dict[str, Any]) -> str | None:
 
 
 class _KnownHostsOnly:
-    """Rule 3, in front of every route."""
+    """Rules 3 and 6, in front of every route."""
 
     def __init__(self, app: ASGIApp, hosts: Set[str]) -> None:
         self._app, self._hosts = app, hosts
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self._app(scope, receive, send)
+            return
+
+        async def never_framed(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message = {**message, "headers": [*message.get("headers", ()), *NEVER_FRAMED]}
+            await send(message)
+
         host = Headers(scope=scope).get("host", "")
         found = host_and_port(host)
-        if scope["type"] == "http" and (found is None or found[0] not in self._hosts):
+        if found is None or found[0] not in self._hosts:
             message = f"{host[:100]!r} is not a name this dashboard answers to"
-            await refusal(400, "unknown_host", message)(scope, receive, send)
+            await refusal(400, "unknown_host", message)(scope, receive, never_framed)
             return
-        await self._app(scope, receive, send)
+        await self._app(scope, receive, never_framed)
 
 
 def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:

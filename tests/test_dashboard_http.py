@@ -149,6 +149,8 @@ def test_busgate_dashboard_answers_to_a_name_given_with_allow_host(module_demo) 
     (b'{"gateway": "demo/x"}', {"Content-Type": "application/json"}, 400),
     (b'{"gateway": 7}', {"Content-Type": "application/json"}, 400),
     (b"\xff\xfe", {"Content-Type": "application/json"}, 400),
+    (b'{"gateway": "nowhere", "gateway": "demo"}', {"Content-Type": "application/json"}, 400),
+    (b'{"gateway": "demo", "x": NaN}', {"Content-Type": "application/json"}, 400),
 ])
 @pytest.mark.parametrize("path", ["/api/estop", "/api/reset_estop"])
 def test_an_estop_or_a_reset_asked_wrongly_is_refused_and_stops_nothing(
@@ -165,10 +167,22 @@ def test_an_estop_or_a_reset_asked_wrongly_is_refused_and_stops_nothing(
     ({"device": ["demo/la1"]}, 400, "bad_request"),
     ({}, 400, "bad_request"),
     ({"device": "demo/nothing"}, 502, "unknown_device"),
+    (b'{"device": "demo/la1", "device": "demo/la2"}', 400, "bad_request"),  # was la2's
 ])
 def test_an_enable_asked_wrongly_is_refused(dashboard, body, status, code) -> None:
     got, reply = post(dashboard, "/api/enable", body)
     assert (got, reply["ok"], reply["error"]["code"]) == (status, False, code), reply
+
+
+def test_no_response_may_be_shown_in_another_pages_frame(dashboard) -> None:
+    """No response said so: any site could frame the dashboard and trick a click on its
+    e-stop, reset or enable (the framed page's requests carry its own host and origin)."""
+    for method, path, host in (("GET", "/", None), ("GET", "/static/dashboard.js", None),
+                               ("POST", "/api/estop", None), ("GET", "/", "evil.example")):
+        headers = {"Host": host} if host else {}
+        _, _, got = request(dashboard, method, path, headers=headers)
+        assert got.get("x-frame-options") == "DENY", (path, got)
+        assert got.get("content-security-policy") == "frame-ancestors 'none'", (path, got)
 
 
 @pytest.mark.parametrize(("path", "body", "status", "code"), [
