@@ -160,8 +160,9 @@ def stand_in_peer(free_port, *, info: bool) -> Iterator[StandIn]:
             session.declare_queryable("busgate/gwtwo/dev/both/cmd", answer_ok),
             session.declare_queryable("busgate/gwtest/dev/mute/cmd", stand_in.held.append),
             session.declare_queryable("busgate/gwtwo/dev/*/cmd", answer_unknown),
-            session.declare_subscriber("busgate/*/dev/*/cmd", lambda sample: stand_in.puts.append(
-                (str(sample.key_expr), sample.payload.to_bytes()))),
+            *(session.declare_subscriber(key, lambda sample: stand_in.puts.append(
+                (str(sample.key_expr), sample.payload.to_bytes())))
+              for key in ("busgate/*/dev/*/cmd", "busgate/*/estop")),
         ]
         publisher.start()
         yield stand_in
@@ -425,21 +426,36 @@ def test_put_is_fire_and_forget(stand_in, capsys):
 
 
 @pytest.mark.parametrize(("command", "why"), [
-    ("{op:stop}", "Expecting property name enclosed in double quotes"),
-    ("[" * 100_000, "nested too deep"),
+    ("{op:stop}", "payload is not JSON: Expecting property name enclosed in double quotes"),
+    ("[" * 100_000, "payload of 100000 bytes; at most 65536"),
+    ("[" * 3000 + "]" * 3000, "payload is nested too deeply"),
+    # What plain JSON takes and the gateway does not: sent, it was refused as an event.
+    ('{"op":"move","position":NaN}', "payload is not JSON: NaN is not a number JSON allows"),
+    ('{"op":"move","op":"stop"}', "key 'op' appears twice: a command is never guessed"),
+    ("[1]", "a command is a JSON object"),
 ])
 def test_a_put_that_is_not_json_is_refused_here_and_nothing_is_sent(stand_in, capsys, command,
                                                                     why):
     status = main(["send", "la1", command, "--put", "--connect", stand_in.endpoint])
     _, err = capsys.readouterr()
     assert status == 2
-    assert err.startswith(f"busgate send: the command is not JSON ({why}")
+    assert err.startswith(f"busgate send: the command is not JSON the gateway takes ({why}")
     assert err.endswith("): nothing was sent\n")
     assert main(["send", "la1", "", "--put", "--connect", stand_in.endpoint]) == 0  # as an e-stop
     deadline = time.monotonic() + 2
     while not stand_in.puts and time.monotonic() < deadline:
         time.sleep(0.01)
     assert stand_in.puts == [("busgate/gwtest/dev/la1/cmd", b"")]  # the empty one, not the other
+
+
+def test_an_estop_put_goes_whatever_it_carries(stand_in, capsys):
+    """The gateway's e-stop takes any payload: the tool never holds one back as no JSON."""
+    assert main(["send", "busgate/gwtest/estop", "stop!", "--put",
+                 "--connect", stand_in.endpoint]) == 0
+    deadline = time.monotonic() + 2
+    while not stand_in.puts and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert stand_in.puts == [("busgate/gwtest/estop", b"stop!")]
 
 
 def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):

@@ -242,6 +242,11 @@ def test_cli_encode_defaults_to_id_1(capsys):
         (['{"op":"move","position":2001}'], "position: Input should be less than or equal to 2000"),
         (['{"op":"write","index":3,"data":"00"}'], "address 3 is reserved"),
         (["{not json"], "invalid command"),
+        # read as the gateway reads a command: not the last of two, nor NaN
+        (['{"op":"move","position":1,"position":2}'],
+         "error: invalid command: key 'position' appears twice: a command is never guessed\n"),
+        (['{"op":"move","position":NaN}'],
+         "error: invalid command: payload is not JSON: NaN is not a number JSON allows\n"),
         (['{"op":"mvoe"}'], "error: unknown op `mvoe` for inspire_la (did you mean `move`?)\n"),
         (['{"position":1500}'], "error: missing `op`: every inspire_la command names its op\n"),
     ],

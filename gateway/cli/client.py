@@ -4,7 +4,8 @@ comes back as it came).
 
 send: one get (or, with ``--put``, one fire-and-forget put) of a JSON command on a device's
 ``cmd`` key, the payload as given (the gateway judges it; a put's, which gets no reply, must
-be JSON or empty, or nothing is sent). The device is named as the SDK names it: ``la1`` on
+be a JSON object as the gateway reads one, or empty, or nothing is sent; an ``estop`` key's
+put goes whatever it carries). The device is named as the SDK names it: ``la1`` on
 whichever gateway has it, ``gw1/la1`` on gateway ``gw1`` (which answers ``unknown_device``
 itself when it lacks the device); any other target with a ``/`` is the key expression. A bare
 name that more than one gateway has (their ``info``) is refused with nothing sent, as the
@@ -39,11 +40,12 @@ from typing import Any, TextIO
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key, intersects, split_name
 from busgate.client.messages import NOTHING_THERE
-from busgate.errors import CommandError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.cli.arguments import seconds
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
+from busgate.schemas.payload import decode_object
 from busgate.schemas.validation import printable
 
 REDRAW_HZ = 5
@@ -140,7 +142,7 @@ def run_send(args: argparse.Namespace) -> int:
     text_arguments(args.target, args.command, args.prefix)
     key = check_key(command_key(args.prefix, args.target))
     payload = args.command.encode()
-    if args.put and not _put_judged(payload):
+    if args.put and not _put_judged(key, payload):
         return NO_ANSWER
     bare_name = "/" not in args.target
     with open_client(args, "send") as client:
@@ -215,18 +217,19 @@ def _no_holder(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]
     return NO_ANSWER
 
 
-def _put_judged(payload: bytes) -> bool:
-    """Whether a put may go: a put gets no reply, so a command that is not JSON (a tired
-    operator's quotes lost to the shell) is refused here, where someone reads the refusal,
-    rather than by the gateway as an event nobody watching ``send`` sees. An empty payload
-    goes: an e-stop needs none."""
-    if not payload.strip():
+def _put_judged(key: str, payload: bytes) -> bool:
+    """Whether a put may go: a put gets no reply, so a command the gateway would refuse as no
+    JSON object (a tired operator's quotes lost to the shell, a key given twice, ``NaN``) is
+    refused here, where someone reads the refusal, rather than by the gateway as an event
+    nobody watching ``send`` sees. An empty payload goes, and anything put on an ``estop``
+    key: the gateway's e-stop takes any payload, and is never held back here."""
+    if not payload.strip() or key.rsplit("/", 1)[-1] == "estop":
         return True
     try:
-        json.loads(payload)
-    except (ValueError, RecursionError) as exc:
-        why = "nested too deep" if isinstance(exc, RecursionError) else str(exc)
-        print(f"busgate send: the command is not JSON ({why}): nothing was sent", file=sys.stderr)
+        decode_object(payload)
+    except RefusedError as exc:
+        print(f"busgate send: the command is not JSON the gateway takes ({exc}): nothing was sent",
+              file=sys.stderr)  # fmt: skip
         return False
     return True
 

@@ -16,11 +16,12 @@ import sys
 
 from busgate.codecs.can_frame import CanFrame
 from busgate.codecs.framing import ChecksumMismatch, Discarded
-from busgate.errors import CommandError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.cli.jsonify import to_jsonable
 from busgate.gateway.drivers.families import driver_class
 from busgate.schemas.families import PROTOCOLS, WireProtocol
-from busgate.schemas.validation import command_from_json
+from busgate.schemas.payload import decode_object
+from busgate.schemas.validation import command_from_object
 
 DEFAULT_ID = 1  # the factory default of every addressed device family we drive
 
@@ -59,7 +60,11 @@ def run_encode(args: argparse.Namespace) -> int:
     protocol = PROTOCOLS[args.protocol]
     if args.id is not None and not protocol.addressed:
         raise CommandError(f"{protocol.name} frames carry no device id; drop --id")
-    command = command_from_json(protocol.schema.COMMAND_ADAPTER, args.command, protocol.kind)
+    try:  # read as the gateway reads a command: a key given twice, or NaN, is refused
+        fields = decode_object(args.command.encode())
+    except RefusedError as exc:
+        raise CommandError(f"invalid command: {exc}") from None
+    command = command_from_object(protocol.schema.COMMAND_ADAPTER, fields, protocol.kind)
     device_id = DEFAULT_ID if args.id is None else args.id
     for frame in driver_class(protocol)("encode", device_id).frames_of(command):
         print(wire_text(protocol.codec.encode(frame)))
