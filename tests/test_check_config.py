@@ -207,6 +207,24 @@ def test_a_listener_the_zenoh_files_links_leave_out_is_a_warning(tmp_path, capsy
         "or leave listen out to listen where the file says; busgate run refuses to start so")
 
 
+def test_a_unix_socket_listener_at_a_file_is_a_warning_without_a_zenoh_file_too(
+        tmp_path, capsys) -> None:
+    """Warned of only under a ``config_file``: in ``listen`` alone, check-config said valid
+    and ``busgate run`` refused to start. The file is left as it was."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("kept")
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace(
+        "[[buses]]", f'[zenoh]\nlisten = ["unixsock-stream/{victim}"]\n[[buses]]', 1))
+    assert main(["check-config", str(path)]) == 0
+    [line] = [line for line in capsys.readouterr().out.splitlines() if "zenoh:" in line]
+    assert line == (
+        f"warning: zenoh: cannot listen on unixsock-stream/{victim}: {victim} exists and is not "
+        "a socket (zenoh would delete it to listen there): name a path of its own; busgate run "
+        "refuses to start so")
+    assert victim.read_text() == "kept"
+
+
 @pytest.mark.parametrize(("listen", "config_file", "warned"), [
     ("tcp/0.0.0.0:7447", False, True),
     ("tcp/192.168.1.5:7447", False, True),

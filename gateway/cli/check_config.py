@@ -77,9 +77,10 @@ def check_config(args: argparse.Namespace) -> int:
 
 
 def zenoh_warnings(config: Config) -> list[str]:
-    """A zenoh config file this host has not, or that is none (``busgate run`` refuses to
-    start so), and each listener other hosts can reach with nothing but a file of the
-    operator's own (TLS, passwords, access control) to keep them from moving the devices."""
+    """A zenoh config file this host has not, or that is none, or endpoints the session
+    cannot be made of on this host (a Unix socket's path that is a file: ``busgate run``
+    refuses to start so), and each listener other hosts can reach with nothing but a file of
+    the operator's own (TLS, passwords, access control) to keep them from moving the devices."""
     zenoh_file, warnings = config.zenoh.config_file, []
     if zenoh_file is not None:
         from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
@@ -88,6 +89,8 @@ def zenoh_warnings(config: Config) -> list[str]:
             warnings.append(
                 f"zenoh.config_file: {zenoh_file}: {refusal}; busgate run refuses to start so"
             )
+    elif refusal := _endpoints_refusal(config):
+        warnings.append(f"zenoh: {refusal}; busgate run refuses to start so")
     return warnings + exposure_warnings(config.zenoh.listen, zenoh_file)
 
 
