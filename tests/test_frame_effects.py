@@ -46,6 +46,12 @@ DS_SERVO = [
     ('{"op":"torque","on":true}', Effect.SETTING),
     ('{"op":"write","address":48,"data":"00"}', Effect.SETTING),  # a 0, not the torque's
     ('{"op":"write","address":42,"data":"0064"}', Effect.MOTION),  # the target
+    # Where and how the shaft is driven with torque on: the same target is another angle, a
+    # servo made a motor may spin (they were settings, taken while e-stopped)
+    ('{"op":"write","address":20,"data":"0010"}', Effect.MOTION),  # the centre's offset
+    ('{"op":"write","address":28,"data":"01"}', Effect.MOTION),  # the motor mode
+    ('{"op":"write","address":29,"data":"01"}', Effect.MOTION),  # its direction
+    ('{"op":"write","address":9,"data":"0100"}', Effect.SETTING),  # the travel's lower limit
     ('{"op":"move","position":100}', Effect.MOTION),
     ('{"op":"goto_preset","n":2}', Effect.MOTION),
     ('{"op":"ping"}', Effect.READ),

@@ -117,6 +117,8 @@ def ramp_of(written: list[float]) -> list[float]:
     ("la1", {"op": "joint", "position": 0.0081}, "position 0.0081 m is beyond its max 0.008 m"),
     ("s1", {"op": "move", "position": 4000}, "joint wrist: position 6.13592 rad is beyond its max"),
     ("s1", {"op": "goto_preset", "n": 1}, "cannot know"),
+    ("s1", {"op": "write", "address": 20, "data": "0400"}, "cannot know"),  # the centre moved
+    ("s1", {"op": "write", "address": 28, "data": "01"}, "cannot know"),  # a motor may spin
     ("s1", {"op": "joint", "position": 0.2}, "beyond its min 0.5 rad"),
 ])  # fmt: skip
 def test_a_command_beyond_a_limit_is_refused_and_sends_nothing(gateway, device, command, words):

@@ -88,11 +88,16 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     return [_FRAME_FOR[type(command)](command, device_id)]
 
 
-#: Registers whose write moves the shaft: the target (with the move time after it) and the
-#: go-to-preset addresses.
+#: Registers whose write moves the shaft: the target (with the move time after it), the
+#: go-to-preset addresses, and those that change where or how it drives with its torque on:
+#: the centre's offset (the same target is then another angle) and the motor mode and its
+#: direction (the manual documents neither value: a servo turned into a motor may spin).
 _MOTION_REGISTERS = frozenset(
     {
         "target_position",
+        "centre_offset",
+        "motor_mode",
+        "motor_direction",
         *(r.name for r in map(codec.REGISTERS.at, codec.GOTO_PRESET_ADDRESSES) if r is not None),
     }
 )
@@ -109,8 +114,8 @@ _FRAME_EFFECTS: dict[type, Effect] = {
 
 
 def frame_effect(frame: codec.Frame) -> Effect:
-    """What ``frame`` does: torque off stops; a write reaching the target or a go-to-preset
-    address moves; other writes change settings."""
+    """What ``frame`` does: torque off stops; a write reaching a register that moves the
+    shaft (``_MOTION_REGISTERS``) moves; other writes change settings."""
     if not isinstance(frame, codec.Write):
         return _FRAME_EFFECTS[type(frame)]
     if frame.address == _TORQUE and frame.data == b"\x00":
@@ -137,16 +142,16 @@ def _torque_written(frame: object) -> int | None:
 
 
 def _writes_motion(frame: codec.Write) -> bool:
-    """Whether ``frame`` reaches the target (with the move time after it) or a go-to-preset
-    address."""
+    """Whether ``frame`` reaches a register that moves the shaft (``_MOTION_REGISTERS``)."""
     return bool(codec.REGISTERS.touched(frame.address, len(frame.data)) & _MOTION_REGISTERS)
 
 
 def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
     """The position targets ``frame`` sets, raw: a stored move's (its ACTION sets nothing
     more), each SYNC WRITE target under its own id, and a write's value of the target
-    register; ``None`` for a go-to-preset (the preset is stored in the servo) and for a write
-    of part of the target register."""
+    register; ``None`` for a go-to-preset (the preset is stored in the servo), a write of
+    part of the target register, and one of the centre's offset or the motor mode (where the
+    shaft goes then is the servo's)."""
     if isinstance(frame, codec.RegWrite):
         return [Setpoint(frame.device_id, "position", frame.position_raw)]
     if isinstance(frame, codec.SyncWrite):
