@@ -158,7 +158,8 @@ def test_the_reset_button_asks_first_and_puts_every_device_back_as_it_was(page) 
     until_powers(page, AS_STARTED)
     assert asked == 2 * ["Reset the e-stop of gateway demo? Each device goes back to the power "
                          "state it had before the stop and holds still; nothing moves until a "
-                         "new command."]
+                         "new command. A device a client claims stays e-stopped for that client "
+                         "to reset."]
     assert [json.loads(body) for body in resets] == [{"gateway": "demo"}]  # dismissed: nothing
     assert "reset demo: sent" in page.locator("#notice").inner_text()
     until(page, "() => [...document.querySelectorAll('#events li.estop_reset')].length > 0")

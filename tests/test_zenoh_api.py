@@ -459,7 +459,7 @@ def test_estops_and_resets_put_one_after_the_other_reach_the_buses_in_that_order
     bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
     handed: list[str] = []
     bridge.api.stop_every_bus = lambda: handed.append("estop") or []
-    bridge.api.reset_every_bus = lambda: handed.append("reset") or []
+    bridge.api.reset_every_bus = lambda sender: handed.append("reset") or ([], [])
     loop = asyncio.new_event_loop()
     bridge.open(loop)
     client = zenoh.open(session_config(mode="peer", connect=[endpoint]))

@@ -525,7 +525,8 @@ const enable = (device) => post("/api/enable", {device}, `enable ${device}`);
 
 function resetEstop(gateway) {
   const asked = `Reset the e-stop of gateway ${gateway}? Each device goes back to the power state `
-    + "it had before the stop and holds still; nothing moves until a new command.";
+    + "it had before the stop and holds still; nothing moves until a new command. A device a "
+    + "client claims stays e-stopped for that client to reset.";
   if (confirm(asked)) post("/api/reset_estop", {gateway}, `reset ${gateway}`);
 }
 

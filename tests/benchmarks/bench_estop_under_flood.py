@@ -101,7 +101,7 @@ def main() -> int:
     bridge = ZenohBridge(config, GatewayApi("gw1", runners), runners, deque(), deque())
     handed: list[float] = []
     bridge.api.stop_every_bus = lambda: handed.append(time.time()) or []  # type: ignore[method-assign]
-    bridge.api.reset_every_bus = lambda: []  # type: ignore[method-assign]
+    bridge.api.reset_every_bus = lambda sender: ([], [])  # type: ignore[method-assign]
     loop = asyncio.new_event_loop()
     bridge.open(loop)
     threading.Thread(target=loop.run_forever, daemon=True).start()
