@@ -139,6 +139,11 @@ class EstopResetEvent(Event):
         description="How many resets of every device were not told before this one: at most "
         "one is told every 0.1 s, the rest counted here.",
     )
+    not_reset: list[str] | None = Field(
+        default=None,
+        description="The devices a reset of every device left e-stopped: claimed by another "
+        "client than the one it names, theirs to reset.",
+    )
 
 
 class TrajectoryStartedEvent(Event):

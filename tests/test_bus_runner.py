@@ -518,7 +518,7 @@ def test_an_estop_answers_the_commands_it_took_out_once_its_frame_is_out(simulat
         waiting, reset = Future(), Future()
         work.queue_job(Job("la1", deque([status(1)]), future=waiting))
         work.plan_estop(Future())
-        work.plan_reset(None, now() + 10, reset)
+        work.plan_reset(None, now() + 10, reset, frozenset())
         assert not waiting.done()
         work.end_estopped()
         assert waiting.exception(0).code == "estopped"

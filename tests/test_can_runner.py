@@ -322,7 +322,7 @@ def test_a_re_enable_or_a_reset_that_never_went_leaves_the_device_e_stopped() ->
         runner.planner.drop_commands()
         wheel.driving_before_estop = True
         reset: Future = Future()
-        runner._work.plan_reset("wheel", now() + 0.001, reset)
+        runner._work.plan_reset("wheel", now() + 0.001, reset, frozenset())
         assert not wheel.estopped and not wheel.driving_before_estop  # as planned
         time.sleep(0.002)
         runner.planner.decide(now())

@@ -604,10 +604,10 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     [event] = events
     assert (event.device, event.type, event.fields) == (
         "*", "command_refused", {"code": code, "message": message})
-    for good in (b"", b"{}", b'{"client": "panel"}'):
+    for good in (b"", b" \n", b"{}", b'{"client": "panel"}'):
         bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda g=good: g),
                                                key_expr=key))
-    assert len(runner._inbox) == 3
+    assert len(runner._inbox) == 4
 
 
 def test_a_reset_of_every_bus_is_logged_told_and_handed_to_each_bus(caplog):
@@ -658,12 +658,13 @@ def test_a_follow_target_to_a_device_playing_a_trajectory_is_refused_busy_saying
 
 def test_a_devices_reset_goes_to_that_device_alone():
     api, runner = idle_bus_api()
-    asked: list[str | None] = []
+    asked: list[tuple[str | None, frozenset[str]]] = []
     reset = runner.reset_estop
-    runner.reset_estop = lambda device=None: asked.append(device) or reset(device)
+    runner.reset_estop = lambda device=None, skip=frozenset(): (
+        asked.append((device, skip)) or reset(device, skip))
     api.command("la1", b'{"op": "reset_estop"}')
     api.reset_estop()
-    assert asked == ["la1", None]
+    assert asked == [("la1", frozenset()), (None, frozenset())]
 
 
 def test_a_kept_target_holds_its_device_for_its_client_and_ramps_it_there(gateway, wait_for):

@@ -351,4 +351,4 @@ def test_the_reset_service_names_the_devices_another_clients_claim_kept_e_stoppe
     bridge.kept = ["la1", "la2"]
     assert face._reset_estop({}).result(1) == {
         "success": True,
-        "message": "every bus reset; kept e-stopped, claimed by another client: la1, la2"}
+        "message": "every bus reset; not reset, claimed by another client: la1, la2"}

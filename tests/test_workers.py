@@ -191,6 +191,23 @@ def test_claims_give_one_answer_per_device_across_workers(served: Served, client
         assert len(said) == 1, said
 
 
+def test_a_gateway_reset_leaves_a_device_claimed_in_a_worker_to_its_holder(
+        served: Served, client) -> None:
+    """The claim is judged in the daemon, the reset skips the device in its worker's bus."""
+    held = DEVICES["uart0"]
+    with bc.connect(served.endpoint, client_id="intruder") as intruder, \
+            client.device(held).claim(ttl_s=30):
+        client.estop("gw1")
+        for device in DEVICES.values():
+            until_state(client, device, "estopped", True)
+        intruder.reset_estop("gw1")
+        for device in DEVICES.values():
+            until_state(client, device, "estopped", device == held)
+        time.sleep(0.3)
+        assert client.device(held).state()["estopped"] is True
+        reset_every_device(client)  # the holder's own reset
+
+
 def test_an_estop_reaches_every_bus_of_every_worker(served: Served, client) -> None:
     marks = served.marks()
     client.estop("gw1")

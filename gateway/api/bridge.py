@@ -464,10 +464,10 @@ class ZenohBridge:
     def estop_reset(self, sender: str | None) -> tuple[list[Future], list[str]]:
         """Every device out of its e-stop but those another client claims, told as an
         ``estop_reset`` event (at most one every 0.1 s, as the e-stop's, ``put_reports``);
-        any thread. The buses' futures, and the devices kept e-stopped."""
-        reset, kept = self.api.reset_every_bus(sender)
-        self.put_reports.estop_reset(sender, kept)
-        return reset, kept
+        any thread. The buses' futures, and the devices not reset."""
+        reset, not_reset = self.api.reset_every_bus(sender)
+        self.put_reports.estop_reset(sender, not_reset)
+        return reset, not_reset
 
     def _told_estop(self, stopped: list[Future], sender: str | None, key: str) -> list[Future]:
         """Once every bus has the e-stop: what was put or got before it and still waits taken
@@ -485,7 +485,7 @@ class ZenohBridge:
                 event.type,
                 fields.get("client"),
                 fields.get("suppressed", 0),
-                fields.get("kept_estopped", ()),
+                fields.get("not_reset", ()),
             )
         self.events.append(event)
 
@@ -681,9 +681,10 @@ def _sender(payload: bytes) -> str | None:
 
 
 def _reset_sender(payload: bytes) -> str | None:
-    """The client a reset's payload names (``None``: empty, or naming none); ``RefusedError``
-    for a payload that is no JSON object, or a ``client`` that is no client id."""
-    if not payload:
+    """The client a reset's payload names (``None``: empty or blank, or naming none);
+    ``RefusedError`` for a payload that is no JSON object, or a ``client`` that is no client
+    id."""
+    if not payload.strip():
         return None
     client = decode_object(payload).get("client")
     sender = client_named(client)

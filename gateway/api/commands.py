@@ -111,13 +111,14 @@ TOLD_LINES = {"estop": "e-stop of every bus", "estop_reset": "e-stop reset of ev
 
 
 def log_told(
-    event_type: str, sender: str | None, suppressed: int = 0, kept: Sequence[str] = ()
+    event_type: str, sender: str | None, suppressed: int = 0, not_reset: Sequence[str] = ()
 ) -> None:
     """The log line of an e-stop or a reset of the whole gateway (``TOLD_LINES``), naming the
     client that sent it when known, how many came since the last line without one of their
-    own (``put_reports``), and the devices a reset ``kept`` e-stopped (``reset_every_bus``)."""
+    own (``put_reports``), and the devices a reset left to their holders
+    (``reset_every_bus``)."""
     since = f" ({suppressed} more since the last told)" if suppressed else ""
-    held = f"; kept e-stopped, claimed by another client: {', '.join(kept)}" if kept else ""
+    held = f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
     log.warning(
         "%s%s%s%s", TOLD_LINES[event_type], f" from {sender}" if sender else "", since, held
     )
@@ -308,29 +309,24 @@ class GatewayApi:
     def reset_estop(self, sender: str | None = None) -> list[Future]:
         """Every device of the gateway out of its e-stop, holding still
         (``Driver.reset_estop``), but those another client claims; told by a log line and an
-        ``estop_reset`` event, which name those kept."""
-        reset, kept = self.reset_every_bus(sender)
-        log_told("estop_reset", sender, kept=kept)
-        self._event("*", "estop_reset", **_client_field(sender), **_kept_field(kept))
+        ``estop_reset`` event, which name those not reset."""
+        reset, not_reset = self.reset_every_bus(sender)
+        log_told("estop_reset", sender, not_reset=not_reset)
+        self._event("*", "estop_reset", **_client_field(sender), **_not_reset_field(not_reset))
         return reset
 
     def reset_every_bus(self, sender: str | None = None) -> tuple[list[Future], list[str]]:
         """The reset without its log line and event (``reset_estop``): every device out of
         the e-stop but those claimed by a client other than ``sender``, which are their
         holder's to reset (a device's own ``reset_estop`` from another is refused
-        ``claimed``). The buses' futures, and the devices kept e-stopped."""
+        ``claimed``). The buses' futures, and the devices not reset."""
         reset: list[Future] = []
-        kept: list[str] = []
+        not_reset: list[str] = []
         for runner in self.runners.values():
-            held = [
-                device for device in runner.drivers if _claimed_by_other(runner, device, sender)
-            ]
-            if not held:
-                reset.append(runner.reset_estop())
-                continue
-            kept += held
-            reset += [runner.reset_estop(device) for device in runner.drivers if device not in held]
-        return reset, kept
+            held = frozenset(d for d in runner.drivers if _claimed_by_other(runner, d, sender))
+            reset.append(runner.reset_estop(skip=held))
+            not_reset += sorted(held)
+        return reset, not_reset
 
     @answered
     def bus_command(self, bus: str, payload: bytes) -> Future:
@@ -490,21 +486,16 @@ def _client_field(client: str | None) -> dict[str, str]:
     return {"client": client} if client else {}
 
 
-def _kept_field(kept: list[str]) -> dict[str, list[str]]:
-    """An ``estop_reset`` event's ``kept_estopped``: the devices it left to their holders."""
-    return {"kept_estopped": kept} if kept else {}
+def _not_reset_field(not_reset: list[str]) -> dict[str, list[str]]:
+    """An ``estop_reset`` event's ``not_reset``: the devices it left to their holders."""
+    return {"not_reset": not_reset} if not_reset else {}
 
 
 def _claimed_by_other(runner: BusRunner, device: str, client: str | None) -> bool:
-    """Whether ``device`` is claimed by a client other than ``client`` (as the claim judges a
-    setting: a reset of its e-stop moves nothing)."""
-    try:
-        runner.authority.judge(device, Effect.SETTING, client)
-    except RefusedError as refusal:
-        if refusal.code != "claimed":
-            raise
-        return True
-    return False
+    """Whether ``device`` is claimed by a client other than ``client`` now."""
+    authority = runner.authority
+    holder = authority.claims.holder(device, authority.clock())
+    return holder is not None and holder != client
 
 
 def _mapped(submitted: Future) -> Future:

@@ -84,11 +84,11 @@ class PutReports:
         fields = {"key": key} | ({"client": sender} if sender else {})
         self._report(ESTOPS, DeviceEvent("*", "estop", fields))
 
-    def estop_reset(self, sender: str | None, kept: Sequence[str] = ()) -> None:
+    def estop_reset(self, sender: str | None, not_reset: Sequence[str] = ()) -> None:
         """Every device's e-stop was reset by a put of ``sender`` (when it named itself), but
-        those it ``kept`` e-stopped (claimed by another client)."""
+        those ``not_reset`` (claimed by another client)."""
         fields = ({"client": sender} if sender else {}) | (
-            {"kept_estopped": list(kept)} if kept else {}
+            {"not_reset": list(not_reset)} if not_reset else {}
         )
         self._report(RESETS, DeviceEvent("*", "estop_reset", fields))
 

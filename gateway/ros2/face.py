@@ -353,8 +353,10 @@ class Ros2Face:
             self._trajectory_next = None
 
     def _reset_estop(self, request: dict[str, Any]) -> Future:
-        reset, kept = self.bridge.estop_reset(self.section.client)
-        held = f"; kept e-stopped, claimed by another client: {', '.join(kept)}" if kept else ""
+        reset, not_reset = self.bridge.estop_reset(self.section.client)
+        held = (
+            f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
+        )
         return _when_all(reset, f"every bus reset{held}")
 
     # -- the loop's thread -------------------------------------------------------------------

@@ -237,11 +237,12 @@ class BusRunner:
         meanwhile, to the bus thread."""
         return self._estop_sent.wait(timeout)
 
-    def reset_estop(self, device: str | None = None) -> Future:
-        """``device`` (``None``: every device of the bus) out of the gateway's e-stop, each
-        in the power state it had before and holding still (``Driver.reset_estop``)."""
+    def reset_estop(self, device: str | None = None, skip: frozenset[str] = frozenset()) -> Future:
+        """``device`` (``None``: every device of the bus but those of ``skip``) out of the
+        gateway's e-stop, each in the power state it had before and holding still
+        (``Driver.reset_estop``)."""
         start_by = now() + COMMAND_START_S
-        return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future))
+        return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future, skip))
 
     def follow(self, device: str, target: Any, follows: Follows) -> None:
         """The latest follow target of ``device`` (validated with its driver's

@@ -216,8 +216,13 @@ class BusWork:
             tell_unsent(job, self.drivers)
             outcomes.fail(job, jobs_error)
 
-    def plan_reset(self, device: str | None, start_by: float, future: Future) -> None:
-        drivers = list(self.drivers.values()) if device is None else [self.drivers[device]]
+    def plan_reset(
+        self, device: str | None, start_by: float, future: Future, skip: frozenset[str]
+    ) -> None:
+        if device is None:
+            drivers = [d for name, d in self.drivers.items() if name not in skip]
+        else:
+            drivers = [self.drivers[device]]
         estop_before = estop_states(drivers)
         requests = deque(r for driver in drivers for r in driver.reset_estop())
         # Every device's frames go, whatever one silent device does (as an e-stop's).

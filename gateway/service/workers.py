@@ -578,7 +578,9 @@ class WorkerRunner:
         their own."""
         return True
 
-    def reset_estop(self, device: str | None = None) -> Future:
+    def reset_estop(self, device: str | None = None, skip: frozenset[str] = frozenset()) -> Future:
+        if skip:  # not the whole bus: a new worker still e-stops it (rule 2)
+            return self.worker.call(self.name, "reset_estop", device, skip)
         return self.worker.call(self.name, "reset_estop", device)
 
     def stop_stream(self, device: str, reason: str) -> None:
