@@ -21,6 +21,7 @@ import pytest
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
+from busgate.gateway.bus import serial_owner as serial_owner_module
 from busgate.gateway.bus.can_owner import CAN_ERR_BUSOFF, LOOK_FRAMES_MAX, CanBusOwner
 from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.request import Request
@@ -227,28 +228,42 @@ def test_a_port_that_takes_no_more_bytes_fails_the_link_waiting_not_spinning() -
         device.close()
 
 
-def test_a_frame_with_no_reply_frees_the_line_its_wire_time_after_it_left_the_driver() -> None:
+def test_a_frame_with_no_reply_frees_the_line_its_wire_time_after_it_left_the_driver(
+        monkeypatch) -> None:
     """The gap after a frame that gets no reply counted from the write's return: a USB
     adapter's driver sends a moment later, and the next frame could follow it by less than
-    the gap. A pty holds nothing back (its driver's queue reads empty at once): the line is
-    free the frame's wire time after the write, as before."""
+    the gap. The exchange now ends the frame's wire time after the driver held none of it
+    (``left_driver``, here a stand-in 5 ms after the write); a pty holds nothing back, and it
+    ends its wire time after the first look, a moment after the write."""
     device = PtyDevice()
     owner = serial_owner(device.port)
+    request = Request.of(la, la.FollowCommand(1, 700, reply=False))
+    wire = LA_TIMING.wire_time(request.wire)
     try:
-        request = Request.of(la, la.FollowCommand(1, 700, reply=False))
         exchange = owner.exchange(request)
         assert queued_out(owner._serial.fileno()) == 0
-        assert exchange.end == exchange.start + LA_TIMING.wire_time(request.wire)
+        assert exchange.start + wire <= exchange.end <= now() + wire
+        asked: list[tuple[int, float]] = []
+        monkeypatch.setattr(serial_owner_module, "left_driver",
+                            lambda fd, written: asked.append((fd, written)) or written + 0.005)
+        exchange = owner.exchange(request)
+        assert asked == [(owner._serial.fileno(), exchange.start)]
+        assert exchange.end == exchange.start + 0.005 + wire
+        with pytest.raises(DeviceTimeoutError):  # nobody answers on this pty
+            owner.exchange(Request.of(la, la.ControlCommand(1, la.ControlCode.STATUS)))
+        assert len(asked) == 1  # a frame with a reply: its reply says when the line is free
     finally:
         owner.close()
         device.close()
 
 
-def test_left_driver_is_the_first_moment_the_drivers_queue_was_found_empty() -> None:
+def test_left_driver_is_the_first_look_that_found_the_drivers_queue_empty() -> None:
     """Timing logic, with a stand-in for the driver's queue (no tty on this host holds
     bytes back: a pty's reads empty at once)."""
     written = now()
-    assert left_driver(-1, written, lambda fd: 0) == written  # nothing held: the write's moment
+    assert written <= left_driver(-1, written, lambda fd: 0) <= now()  # the first look's
+    late = now() - 0.002  # a thread held up after its write: the look is later, and says so
+    assert left_driver(-1, late, lambda fd: 0) >= late + 0.002
     looks: list[float] = []
 
     def draining(_fd: int) -> int:

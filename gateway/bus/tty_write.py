@@ -6,11 +6,12 @@ a loop with no wait: a wedged USB adapter, whose far end takes no more bytes, to
 as long as the write's timeout ran (and for ever with none, as python-can's SLCAN writes had).
 
 A write returns once the kernel has the bytes; a USB adapter's driver hands them on in its
-own time, a USB frame or more later. ``left_driver`` says when it had (``TIOCOUTQ``, the
+own time, a USB frame or more later. ``left_driver`` says by when it had (``TIOCOUTQ``, the
 bytes still queued in the tty's driver), so that the gap after a frame that gets no reply
 counts from when it can have left, not from when it was written (a UART or a pty holds
-nothing back, and the answer is the write's own moment). It waits without ``tcdrain``, which
-has no timeout: a wedged adapter would hold the bus thread, and its e-stops, for ever.
+nothing back, and the answer is the first look, a moment after the write). It waits without
+``tcdrain``, which has no timeout: a wedged adapter would hold the bus thread, and its
+e-stops, for ever.
 """
 
 from __future__ import annotations
@@ -61,12 +62,11 @@ def queued_out(fd: int) -> int:
 
 
 def left_driver(fd: int, written: float, queued: Callable[[int], int] = queued_out) -> float:
-    """When the tty's driver had handed on every byte written to ``fd`` by ``written``:
-    ``written`` itself when none was left then, else the first moment none was, looked at
-    every ``DRAIN_POLL_S`` for ``DRAIN_MAX_S`` at most (then that moment: a wedged adapter is
-    the next write's to find)."""
-    if not queued(fd):
-        return written
+    """By when the tty's driver had handed on every byte written to ``fd`` at ``written``:
+    the first look that found none left (a look taken late, the thread held up after the
+    write, gives a later moment than the truth: a longer gap, never a shorter one), looked
+    at every ``DRAIN_POLL_S`` for ``DRAIN_MAX_S`` at most (then that moment: a wedged adapter
+    is the next write's to find)."""
     give_up = written + DRAIN_MAX_S
     while queued(fd) and now() < give_up:
         time.sleep(DRAIN_POLL_S)
