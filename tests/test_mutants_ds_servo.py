@@ -8,8 +8,8 @@ import pytest
 
 from busgate.codecs import ds_servo as ds
 from busgate.errors import CommandError
-from busgate.gateway.drivers.base import IdChange
-from busgate.gateway.drivers.ds_servo import DsServoDriver, poll_spans
+from busgate.gateway.drivers.base import IdChange, Setpoint
+from busgate.gateway.drivers.ds_servo import DsServoDriver, frame_setpoints, poll_spans
 from busgate.schemas import ds_servo as ds_schema
 from busgate.schemas import inspire_la
 from busgate.schemas.joints import Joint, JointTable
@@ -150,3 +150,12 @@ def test_an_action_or_sync_write_another_sent_is_its_own_too() -> None:
     assert (servo.pending_target, servo.target) == (None, 2222)
     servo.moved_by(ds.SyncWrite((ds.SyncTarget(1, 100, 0), ds.SyncTarget(2, 3300, 0))))
     assert servo.target == 3300
+
+
+def test_a_write_that_moves_the_centre_and_sets_the_target_sets_no_known_position() -> None:
+    """One write from the centre's offset on to the target passed the limits as the target
+    alone, where the shaft goes to that target shifted by the new offset."""
+    offset, target = (1000).to_bytes(2, "big"), (2048).to_bytes(2, "big")
+    spanning = ds.Write(1, 0x14, offset + bytes(0x2A - 0x16) + target)
+    assert frame_setpoints(spanning) == [Setpoint(1, "position", None)]
+    assert frame_setpoints(ds.Write(1, 0x2A, target)) == [Setpoint(1, "position", 2048)]

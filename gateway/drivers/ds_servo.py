@@ -101,6 +101,8 @@ _MOTION_REGISTERS = frozenset(
         *(r.name for r in map(codec.REGISTERS.at, codec.GOTO_PRESET_ADDRESSES) if r is not None),
     }
 )
+#: Of those, the ones after whose write no target says where the shaft goes.
+_SHIFTS_TARGETS = frozenset({"centre_offset", "motor_mode", "motor_direction"})
 _FRAME_EFFECTS: dict[type, Effect] = {
     codec.Ping: Effect.READ,
     codec.Read: Effect.READ,
@@ -157,8 +159,10 @@ def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
     if isinstance(frame, codec.SyncWrite):
         return [Setpoint(t.device_id, "position", t.position_raw) for t in frame.targets]
     if isinstance(frame, codec.Write) and _writes_motion(frame):
-        written = codec.values_from(frame.address, frame.data).get("target_position")
-        return [Setpoint(frame.device_id, "position", written)]
+        values = codec.values_from(frame.address, frame.data)
+        if values.keys() & _SHIFTS_TARGETS:  # the target, if written too, is another angle
+            return [Setpoint(frame.device_id, "position", None)]
+        return [Setpoint(frame.device_id, "position", values.get("target_position"))]
     return []
 
 
