@@ -449,13 +449,17 @@ def test_a_put_that_is_not_json_is_refused_here_and_nothing_is_sent(stand_in, ca
 
 
 def test_an_estop_put_goes_whatever_it_carries(stand_in, capsys):
-    """The gateway's e-stop takes any payload: the tool never holds one back as no JSON."""
-    assert main(["send", "busgate/gwtest/estop", "stop!", "--put",
-                 "--connect", stand_in.endpoint]) == 0
+    """The gateway's e-stop takes any payload: the tool never holds one back as no JSON, on
+    any key that reaches an e-stop; a reset's is judged."""
+    for key in ("busgate/gwtest/estop", "busgate/gwtest/estop/**"):
+        assert main(["send", key, "stop!", "--put", "--connect", stand_in.endpoint]) == 0
+    assert main(["send", "busgate/gwtest/estop/reset", "stop!", "--put",
+                 "--connect", stand_in.endpoint]) == 2
     deadline = time.monotonic() + 2
-    while not stand_in.puts and time.monotonic() < deadline:
+    while len(stand_in.puts) < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert stand_in.puts == [("busgate/gwtest/estop", b"stop!")]
+    assert sorted(stand_in.puts) == [("busgate/gwtest/estop", b"stop!"),
+                                     ("busgate/gwtest/estop/**", b"stop!")]
 
 
 def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):

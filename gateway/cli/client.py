@@ -142,7 +142,7 @@ def run_send(args: argparse.Namespace) -> int:
     text_arguments(args.target, args.command, args.prefix)
     key = check_key(command_key(args.prefix, args.target))
     payload = args.command.encode()
-    if args.put and not _put_judged(key, payload):
+    if args.put and not _put_judged(key, payload, args.prefix):
         return NO_ANSWER
     bare_name = "/" not in args.target
     with open_client(args, "send") as client:
@@ -217,13 +217,14 @@ def _no_holder(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]
     return NO_ANSWER
 
 
-def _put_judged(key: str, payload: bytes) -> bool:
+def _put_judged(key: str, payload: bytes, prefix: str) -> bool:
     """Whether a put may go: a put gets no reply, so a command the gateway would refuse as no
     JSON object (a tired operator's quotes lost to the shell, a key given twice, ``NaN``) is
     refused here, where someone reads the refusal, rather than by the gateway as an event
-    nobody watching ``send`` sees. An empty payload goes, and anything put on an ``estop``
-    key: the gateway's e-stop takes any payload, and is never held back here."""
-    if not payload.strip() or key.rsplit("/", 1)[-1] == "estop":
+    nobody watching ``send`` sees. An empty or blank payload goes, and anything put on a key
+    that reaches a gateway's e-stop (``estop``, ``**``): the e-stop takes any payload, and is
+    never held back here."""
+    if not payload.strip() or intersects(key, Keys(prefix).estop("*")):
         return True
     try:
         decode_object(payload)
