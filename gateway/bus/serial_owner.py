@@ -110,6 +110,10 @@ class SerialBusOwner(BusOwner):
         assert isinstance(request.wire, bytes)  # a UART codec's frames
         self._write(port, request.wire)
         start = now()
+        # No reply to say when the line was free: it is once the frame has left the port's
+        # driver (a USB adapter's, a moment after the write; looked at first, before anything
+        # else delays the look), and then the wire.
+        left = left_driver(port.fileno(), start) if request.expected is None else start
         if self.tap is not None:
             self.tap((start, TX, request.wire, None))
         wire_time = self.timing.wire_time(request.wire)
@@ -117,9 +121,7 @@ class SerialBusOwner(BusOwner):
         self.counters.bytes_out += len(request.wire)
         reply: tuple[object, ...] = ()
         if request.expected is None:
-            # No reply to say when the line was free: it is once the frame has left the port's
-            # driver (a USB adapter's, a moment after the write), and then the wire.
-            end = left_driver(port.fileno(), start) + wire_time
+            end = left + wire_time
         else:
             earliest, latest = self.timing.reply_window(request)
             end, reply = self._wait_reply(
