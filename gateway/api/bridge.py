@@ -511,7 +511,7 @@ class ZenohBridge:
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
         try:
-            sender = _reset_sender(payload)
+            sender = _named_sender(payload)
         except RefusedError as refusal:
             self.put_reports.refused("*", error_reply(refusal)["error"])  # the whole gateway's
             return
@@ -675,15 +675,15 @@ def _sender(payload: bytes) -> str | None:
     """The client an e-stop payload names (``{"client": "teleop"}``), if it names one validly:
     for the log only, the e-stop itself takes any payload."""
     try:
-        return client_named(decode_object(payload).get("client"))
+        return _named_sender(payload)
     except RefusedError:
         return None
 
 
-def _reset_sender(payload: bytes) -> str | None:
-    """The client a reset's payload names (``None``: empty or blank, or naming none);
-    ``RefusedError`` for a payload that is no JSON object, or a ``client`` that is no client
-    id."""
+def _named_sender(payload: bytes) -> str | None:
+    """The client a payload of the e-stop's or its reset's names (``None``: empty or blank,
+    or naming none); ``RefusedError`` for a payload that is no JSON object, or a ``client``
+    that is no client id."""
     if not payload.strip():
         return None
     client = decode_object(payload).get("client")
