@@ -52,6 +52,7 @@ from typing import Any, ClassVar
 from busgate.errors import BusUnavailableError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
+from busgate.gateway.api.put_reports import reset_fields
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect, Follows
@@ -312,7 +313,7 @@ class GatewayApi:
         ``estop_reset`` event, which name those not reset."""
         reset, not_reset = self.reset_every_bus(sender)
         log_told("estop_reset", sender, not_reset=not_reset)
-        self._event("*", "estop_reset", **_client_field(sender), **_not_reset_field(not_reset))
+        self._event("*", "estop_reset", **reset_fields(sender, not_reset))
         return reset
 
     def reset_every_bus(self, sender: str | None = None) -> tuple[list[Future], list[str]]:
@@ -484,11 +485,6 @@ def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
 
 def _client_field(client: str | None) -> dict[str, str]:
     return {"client": client} if client else {}
-
-
-def _not_reset_field(not_reset: list[str]) -> dict[str, list[str]]:
-    """An ``estop_reset`` event's ``not_reset``: the devices it left to their holders."""
-    return {"not_reset": not_reset} if not_reset else {}
 
 
 def _claimed_by_other(runner: BusRunner, device: str, client: str | None) -> bool:

@@ -87,10 +87,7 @@ class PutReports:
     def estop_reset(self, sender: str | None, not_reset: Sequence[str] = ()) -> None:
         """Every device's e-stop was reset by a put of ``sender`` (when it named itself), but
         those ``not_reset`` (claimed by another client)."""
-        fields = ({"client": sender} if sender else {}) | (
-            {"not_reset": list(not_reset)} if not_reset else {}
-        )
-        self._report(RESETS, DeviceEvent("*", "estop_reset", fields))
+        self._report(RESETS, DeviceEvent("*", "estop_reset", reset_fields(sender, not_reset)))
 
     @property
     def withheld(self) -> bool:
@@ -141,3 +138,11 @@ class PutReports:
             self._pending -= 1
         slot.told_at, slot.withheld, slot.latest = moment, 0, None
         self._tell(event)
+
+
+def reset_fields(sender: str | None, not_reset: Sequence[str]) -> dict[str, Any]:
+    """The fields of a whole gateway's ``estop_reset`` event: its ``client`` when it named
+    one, and the devices it left to their holders (``not_reset``) when there are any."""
+    return ({"client": sender} if sender else {}) | (
+        {"not_reset": list(not_reset)} if not_reset else {}
+    )
