@@ -119,10 +119,19 @@ def log_told(
     own (``put_reports``), and the devices a reset left to their holders
     (``reset_every_bus``)."""
     since = f" ({suppressed} more since the last told)" if suppressed else ""
-    held = f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
     log.warning(
-        "%s%s%s%s", TOLD_LINES[event_type], f" from {sender}" if sender else "", since, held
+        "%s%s%s%s",
+        TOLD_LINES[event_type],
+        f" from {sender}" if sender else "",
+        since,
+        not_reset_said(not_reset),
     )
+
+
+def not_reset_said(not_reset: Sequence[str]) -> str:
+    """What a reset of the whole gateway's line or answer adds of the devices it left to
+    their holders (``reset_every_bus``); nothing when it left none."""
+    return f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
 
 
 class GatewayApi:

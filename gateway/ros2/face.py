@@ -56,7 +56,7 @@ from busgate.codecs.ros2 import rmw_zenoh
 from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge
-from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.commands import GatewayApi, not_reset_said
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
@@ -354,10 +354,7 @@ class Ros2Face:
 
     def _reset_estop(self, request: dict[str, Any]) -> Future:
         reset, not_reset = self.bridge.estop_reset(self.section.client)
-        held = (
-            f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
-        )
-        return _when_all(reset, f"every bus reset{held}")
+        return _when_all(reset, f"every bus reset{not_reset_said(not_reset)}")
 
     # -- the loop's thread -------------------------------------------------------------------
 
