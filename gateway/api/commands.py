@@ -333,7 +333,9 @@ class GatewayApi:
         reset: list[Future] = []
         not_reset: list[str] = []
         for runner in self.runners.values():
-            held = frozenset(d for d in runner.drivers if _claimed_by_other(runner, d, sender))
+            held = frozenset(
+                d for d in runner.drivers if runner.authority.holder(d) not in (None, sender)
+            )
             reset.append(runner.reset_estop(skip=held))
             not_reset += sorted(held)
         return reset, not_reset
@@ -494,13 +496,6 @@ def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
 
 def _client_field(client: str | None) -> dict[str, str]:
     return {"client": client} if client else {}
-
-
-def _claimed_by_other(runner: BusRunner, device: str, client: str | None) -> bool:
-    """Whether ``device`` is claimed by a client other than ``client`` now."""
-    authority = runner.authority
-    holder = authority.claims.holder(device, authority.clock())
-    return holder is not None and holder != client
 
 
 def _mapped(submitted: Future) -> Future:

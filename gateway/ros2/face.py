@@ -230,14 +230,13 @@ class Ros2Face:
         joints = []
         for joint in self.joints.values():
             runner, driver = self.api.devices[joint.device]
-            authority = runner.authority
             joints.append(
                 JointHealth(
                     joint=joint.name,
                     device=joint.device,
                     hardware_id=f"{driver.kind} id {driver.device_id} on bus {runner.name}",
                     state=runner.states.get(joint.device),
-                    claimed_by=authority.claims.holder(joint.device, authority.clock()),
+                    claimed_by=runner.authority.holder(joint.device),
                     refusal=self._refusals.get(joint.name),
                 )
             )

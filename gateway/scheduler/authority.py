@@ -211,6 +211,10 @@ class Authority:
         driver = self.drivers[device]
         self.check([(frozenset({driver.device_id}), effect)], client, require_claim=require_claim)
 
+    def holder(self, device: str) -> str | None:
+        """Who holds ``device``'s claim now."""
+        return self.claims.holder(device, self.clock())
+
     def _by_id(self) -> dict[int, Driver]:
         """Each device by its id, built at each check: ids change (set_id) on the bus thread."""
         return {driver.device_id: driver for driver in self.drivers.values()}
