@@ -158,7 +158,7 @@ def _gateway(body: dict[str, Any]) -> str | None:
     return None if gateway is None else _checked(check_name, "gateway", gateway)
 
 
-class _KnownHostsOnly:
+class _KnownHostsNeverFramed:
     """Rules 3 and 6, in front of every route."""
 
     def __init__(self, app: ASGIApp, hosts: Set[str]) -> None:
@@ -247,5 +247,5 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
             Route("/api/enable", enable, methods=["POST"]),
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
-        middleware=[Middleware(_KnownHostsOnly, hosts=hosts)],
+        middleware=[Middleware(_KnownHostsNeverFramed, hosts=hosts)],
     )
