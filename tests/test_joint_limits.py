@@ -119,6 +119,8 @@ def ramp_of(written: list[float]) -> list[float]:
     ("s1", {"op": "goto_preset", "n": 1}, "cannot know"),
     ("s1", {"op": "write", "address": 20, "data": "0400"}, "cannot know"),  # the centre moved
     ("s1", {"op": "write", "address": 28, "data": "01"}, "cannot know"),  # a motor may spin
+    ("s1", {"op": "write", "address": 9, "data": "0bb8"}, "cannot know"),  # targets clamped up
+    ("s1", {"op": "write", "address": 11, "data": "0100"}, "cannot know"),  # and down
     ("s1", {"op": "joint", "position": 0.2}, "beyond its min 0.5 rad"),
 ])  # fmt: skip
 def test_a_command_beyond_a_limit_is_refused_and_sends_nothing(gateway, device, command, words):

@@ -88,21 +88,23 @@ def frames_for(command: Any, device_id: int) -> list[codec.Frame]:
     return [_FRAME_FOR[type(command)](command, device_id)]
 
 
-#: Registers whose write moves the shaft: the target (with the move time after it), the
-#: go-to-preset addresses, and those that change where or how it drives with its torque on:
-#: the centre's offset (the same target is then another angle) and the motor mode and its
+#: Registers after whose write no target says where the shaft goes: the centre's offset (the
+#: same target is then another angle), the angle limits (the servo clamps each target to
+#: them: a target below a raised ``min_angle`` is driven to it), and the motor mode and its
 #: direction (the manual documents neither value: a servo turned into a motor may spin).
+_SHIFTS_TARGETS = frozenset(
+    {"centre_offset", "min_angle", "max_angle", "motor_mode", "motor_direction"}
+)
+#: Registers whose write moves the shaft: the target (with the move time after it), the
+#: go-to-preset addresses, and those above, which change where or how it drives with its
+#: torque on.
 _MOTION_REGISTERS = frozenset(
     {
         "target_position",
-        "centre_offset",
-        "motor_mode",
-        "motor_direction",
+        *_SHIFTS_TARGETS,
         *(r.name for r in map(codec.REGISTERS.at, codec.GOTO_PRESET_ADDRESSES) if r is not None),
     }
 )
-#: Of those, the ones after whose write no target says where the shaft goes.
-_SHIFTS_TARGETS = frozenset({"centre_offset", "motor_mode", "motor_direction"})
 _FRAME_EFFECTS: dict[type, Effect] = {
     codec.Ping: Effect.READ,
     codec.Read: Effect.READ,
@@ -152,8 +154,8 @@ def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
     """The position targets ``frame`` sets, raw: a stored move's (its ACTION sets nothing
     more), each SYNC WRITE target under its own id, and a write's value of the target
     register; ``None`` for a go-to-preset (the preset is stored in the servo), a write of
-    part of the target register, and one of the centre's offset or the motor mode (where the
-    shaft goes then is the servo's)."""
+    part of the target register, and one of ``_SHIFTS_TARGETS`` (where the shaft goes then is
+    the servo's)."""
     if isinstance(frame, codec.RegWrite):
         return [Setpoint(frame.device_id, "position", frame.position_raw)]
     if isinstance(frame, codec.SyncWrite):
