@@ -69,6 +69,27 @@ def test_a_power_up_forgets_the_power_stage_and_the_speed_sent() -> None:
     assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
 
 
+@pytest.mark.parametrize("driver_class", [Zlac706CanDriver, Zlac706Rs232Driver])
+def test_a_drive_back_from_offline_gets_0_rpm_never_its_old_speed(driver_class) -> None:
+    """Turning when it went offline (its bus went down, or its heartbeats stopped): once back,
+    the keep-alive repeats 0 rpm, and what is restored ends with 0 rpm. An outside audit saw
+    the wheels of a base take their old speed up again after a CAN adapter's dropout, kept
+    alive with nothing commanding them."""
+    driver = driver_class("w", 1)
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
+                 '{"op":"velocity","rpm":100}'):
+        run(driver, plan(driver, text))
+    driver.went_offline("bus down")
+    driver.heard(1.0)  # back, as the first answer after the bus reopened says
+    assert driver.restore_pending and driver.commanded_speed_raw == 0
+    stop = [request.frame for request in driver.stale_stream()]
+    assert stop and [request.frame for request in driver.restore()][-len(stop):] == stop
+    kept_alive = driver.keepalive(1.0)
+    assert kept_alive is not None  # the drive still has the old speed preset: a stop is due
+    if driver_class is Zlac706CanDriver:  # CAN's keep-alive is the speed write itself
+        assert kept_alive[1].frame == stop[0]
+
+
 @pytest.mark.parametrize("heartbeats", [False, True], ids=["acks-only", "heartbeats"])
 def test_an_answer_clears_the_writes_gone_unanswered(heartbeats) -> None:
     driver = Zlac706CanDriver("w", 1, heartbeat_ms=10) if heartbeats else Zlac706CanDriver("w", 1)
@@ -154,8 +175,9 @@ def test_a_speed_that_went_is_the_one_kept_alive_before_its_ack_and_not_before_i
 def test_the_settings_restored_after_a_reboot_may_be_repeated() -> None:
     driver = Zlac706CanDriver("w", 1)
     run(driver, plan(driver, '{"op":"set_velocity_ramp","accel_ms":500,"decel_ms":500}'))
-    (restore,) = driver.restore()
+    restore, *nothing_preset = driver.restore()
     assert restore.idempotent
+    assert all(request.idempotent for request in nothing_preset)
 
 
 def test_a_reboot_is_a_jump_to_zero_of_more_than_the_bound_and_says_from_where() -> None:

@@ -397,6 +397,21 @@ class Zlac706Driver(Driver):
         if raw == 0 and before is not None and abs(before) > REBOOT_POSITION_JUMP:
             self.rebooted(f"position counter back at 0 from {before}")
 
+    def went_offline(self, reason: str) -> None:
+        """Offline (no heartbeat or answer, or its bus down): the speed commanded before is
+        no longer the gateway's to keep alive. The keep-alive repeats 0 rpm instead, and the
+        settings restored when the drive is back are followed by nothing preset
+        (``restore``): a drive that locked its shaft for want of a refresh, or that the
+        gateway could not stop while it was away, must not take its old speed up again at the
+        first refresh (docs/wire.md: nothing that moves it is sent until a client commands it
+        again)."""
+        super().went_offline(reason)
+        self.speed_sent_raw = 0
+
+    def restore(self) -> list[Request]:
+        """The settings the drive had confirmed, then nothing preset (``went_offline``)."""
+        return [*super().restore(), *self.nothing_preset()]
+
     def forget_on_reboot(self) -> None:
         """Power-up: released, every setting at its default until ``restore`` lands."""
         self.machine = Zlac706State()
