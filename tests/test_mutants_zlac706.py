@@ -13,6 +13,7 @@ from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.drivers.zlac706_state import REBOOT_POSITION_JUMP
+from busgate.gateway.scheduler.tickers import commanded
 from tests.test_driver_zlac706 import (
     MANUAL_MONITOR,
     event_types,
@@ -67,6 +68,22 @@ def test_a_power_up_forgets_the_power_stage_and_the_speed_sent() -> None:
     driver.take_position(0)  # the counter back at 0 from far away: the drive powered up
     assert driver.telemetry(0.0)["enabled"] is False
     assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
+
+
+def test_a_relative_move_leaves_no_place_for_a_stream_to_start_from_but_where_it_is() -> None:
+    """A relative target is a step, not a place: after one, back in absolute mode, a stream
+    starts from the position measured. An outside audit saw the step (500) taken for the
+    target, and a stream "to where it already is" (4500) swing the wheel back towards 500."""
+    driver = Zlac706CanDriver("w", 1)
+    for text in ('{"op":"set_mode","mode":"position"}',
+                 '{"op":"set_position_mode","relative":false}', '{"op":"enable"}',
+                 '{"op":"move","position":4000}', '{"op":"set_position_mode","relative":true}',
+                 '{"op":"move","position":500}'):
+        run(driver, plan(driver, text))
+    assert driver.telemetry(0.0)["target"] is None
+    driver.take_position(4500)
+    run(driver, plan(driver, '{"op":"set_position_mode","relative":false}'))
+    assert driver.follows == "position" and commanded(driver, 0.0) == 4500
 
 
 @pytest.mark.parametrize("driver_class", [Zlac706CanDriver, Zlac706Rs232Driver])

@@ -111,6 +111,10 @@ class Settings:
         """The fields a write of ``value`` in ``role`` sets."""
         if role is Role.ENABLE:
             return {"enabled": value, "run_signal": value}
+        if role is Role.POSITION and self.relative is not False:
+            # A step from where the shaft is, not a place: where it ends is not known here (a
+            # stream or a trajectory that took it for a place would start from it).
+            return {"target_position": None}
         return {} if role in _UNTRACKED else {role.value: value}
 
 
