@@ -297,6 +297,59 @@ def test_a_wheel_that_goes_offline_stops_the_base_at_once(world, heartbeats) -> 
         _back_online(world)
 
 
+def _until(condition, what: str) -> None:
+    deadline = time.monotonic() + 10
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def _faults_of(world: World, device: str) -> list[str]:
+    return world.api.devices[device][1].telemetry(0.0)["faults"]
+
+
+def _clear_fault(world: World) -> None:
+    """Wheel 2's alarm reset as a client would (disable first: ``zlac706_state`` rule 6)."""
+    assert world.wheel("wr", {"op": "disable"})["ok"]
+    assert world.wheel("wr", {"op": "clear_alarm"})["ok"]
+    _until(lambda: not _faults_of(world, "wr"), "wr's fault did not clear")
+    assert world.base({"op": "enable"})["ok"]
+
+
+def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> None:
+    """Rule 3 for a wheel whose drive alarms (its power stage off): a twist is refused naming
+    it and its fault, with nothing sent; one that faults while the base drives stops both."""
+    assert world.base({"op": "enable"})["ok"]
+    _wheel_2(world).inject_fault("over_current", time.monotonic())
+    try:
+        _until(lambda: _faults_of(world, "wr"), "wr's fault was not reported")
+        since = len(world.sim.recorder.received())
+        refused = world.base({"op": "twist", "linear": 0.3, "angular": 0.0})
+        assert refused["error"]["code"] == "bad_command"
+        assert "wheel wr is in fault (over_current)" in refused["error"]["message"]
+        assert world.bases.twist("base", b'{"linear":0.3,"angular":0.0}')["error"] == \
+            refused["error"]
+        time.sleep(0.1)
+        assert world.speeds(since) == [] and world.bases.bases["base"].playing_since is None
+    finally:
+        _clear_fault(world)
+    assert world.base({"op": "twist", "linear": 0.3, "angular": 0.0, "duration_s": 5})["ok"]
+    time.sleep(0.3)
+    events, started = len(world.events), time.monotonic()
+    _wheel_2(world).inject_fault("over_current", time.monotonic())
+    try:
+        world.wait_rest()
+        assert time.monotonic() - started < 2.0, "the base drove on with one wheel"
+        news = [(e.device, e.type, e.fields) for e in list(world.events)[events:]]
+        assert ("base", "base_stopped", {"base": "base", "wheel": "wr",
+                                          "reason": "in fault: over_current"}) in news
+        time.sleep(0.6)  # the ramp (0.5 s) down
+        left = [rpm for _, node, rpm in world.speeds(0) if node == 1]
+        assert left[-1] == 0
+    finally:
+        _clear_fault(world)
+
+
 def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
     def pulses() -> tuple[int, int]:
         return tuple(world.api.devices[name][1].telemetry(0.0)["position"]

@@ -8,9 +8,10 @@ Rules of this file:
 2. A claim of the base is the claim of both wheels, taken or refused together; a client that
    holds either wheel blocks the base, and a base's claim blocks each wheel.
 3. A base never drives on one wheel: when one wheel leaves the play (e-stopped, refused its
-   target) or its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2),
-   both are ramped to 0 at once, with a ``base_stopped`` event naming the wheel and why. An
-   e-stop takes both out.
+   target), its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2) or
+   reports a fault (its drive's alarm: its power stage is off), both are ramped to 0 at
+   once, with a ``base_stopped`` event naming the wheel and why. A twist while a wheel is
+   offline or in fault is refused, naming it. An e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
@@ -213,6 +214,13 @@ class Bases:
                     device_id=wheel.driver.device_id,
                 )
             telemetry = wheel.driver.telemetry(now())
+            if faults := telemetry.get("faults"):  # rule 3: the other would drive alone
+                raise RefusedError(
+                    "bad_command",
+                    f"base {base.config.name}: wheel {wheel.name} is in fault "
+                    f"({', '.join(faults)}): clear its alarm first (disable, then "
+                    '{"op":"clear_alarm"} to the wheel)',
+                )
             if not telemetry.get("enabled") or telemetry.get("mode") != "velocity":
                 raise RefusedError(
                     "bad_command",
@@ -320,7 +328,9 @@ class Bases:
             gone = [
                 w
                 for w in base.wheels
-                if not w.driver.online or (taken and not w.runner.plays.playing(w.name))
+                if not w.driver.online
+                or _faults(w, moment)
+                or (taken and not w.runner.plays.playing(w.name))
             ]
             if gone:
                 self._one_wheel_gone(base, gone[0])
@@ -335,6 +345,8 @@ class Bases:
     def _one_wheel_gone(self, base: LiveBase, wheel: Wheel) -> None:
         if not wheel.driver.online:  # still in the play: it is ramped down too, if it hears
             reason = "went offline"
+        elif faults := _faults(wheel, now()):
+            reason = f"in fault: {', '.join(faults)}"
         elif (refusal := wheel.runner.plays.refusal(wheel.name)) is not None:
             reason = refusal[1]
         else:
@@ -415,6 +427,11 @@ def _sent_before_stop(
     if stopped_by is None or seq is None or stopped_by[1] is None:
         return False
     return stopped_by[0] == client and seq <= stopped_by[1]
+
+
+def _faults(wheel: Wheel, moment: float) -> list[str]:
+    """The faults ``wheel``'s drive reports (its alarms), none when healthy."""
+    return list(wheel.driver.telemetry(moment).get("faults") or ())
 
 
 def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:
