@@ -60,9 +60,11 @@ class IdleBase:
                            lambda name, message: self.odometry.append((name, message)))
         self.base = self.bases.bases["base"]
 
-    def read(self, wheel: str, position: float | None, ts: float | None, **more) -> None:
+    def read(self, wheel: str, position: float | None, ts: float | None,
+             velocity: float | None = None, **more) -> None:
         """A state of ``wheel``, online in velocity mode unless ``more`` says otherwise."""
-        state = {"online": True, "mode": "velocity", "ts": ts, "joint": {"position": position}}
+        joint = {"position": position, "velocity": velocity}
+        state = {"online": True, "mode": "velocity", "ts": ts, "joint": joint}
         self.bases.take_state(wheel, state | more)
 
     def command(self, fields: dict) -> dict:
@@ -222,11 +224,35 @@ def test_odometry_takes_only_new_fresh_readings_of_a_position() -> None:
                        "linear": pytest.approx(0.5 * RADIUS / 0.5),
                        "angular": pytest.approx(0.0, abs=1e-12),
                        "commanded": {"linear": 0.0, "angular": 0.0}}
-    idle.read("wl", 1.0, 3.0)  # the left wheel at rest since 2 s
+    idle.read("wl", 1.0, 3.0, velocity=0.0)  # the left wheel at rest since 2 s
     idle.read("wr", 1.0, 2.5)
     # placed between its last two readings (at rest), not the three it had
     assert idle.odometry[-1][1]["x"] == pytest.approx(RADIUS)
     assert idle.odometry[-1][1]["theta"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_state_repeating_a_moving_wheels_measurement_is_no_reading() -> None:
+    """Rule 5: a write's acknowledgement restamps a wheel's state with the last heartbeat's
+    values; taken as a reading at its ``ts``, it paired one wheel's fresh position with the
+    other's stale one (a false turn going straight) and published odometry at each write,
+    stamped with the write's time. A wheel measured at rest holds its position: its repeats
+    are readings, so a base at rest goes on publishing."""
+    idle = IdleBase()
+    for wheel in ("wl", "wr"):
+        idle.read(wheel, 0.0, 1.0, velocity=1.0)
+    idle.read("wl", 0.1, 1.1, velocity=1.0)  # a heartbeat
+    idle.read("wr", 0.0, 1.105, velocity=1.0)  # a write acknowledged: the old values again
+    idle.read("wl", 0.1, 1.11, velocity=1.0)
+    assert idle.odometry == []
+    idle.read("wr", 0.1, 1.1, velocity=1.0)  # its heartbeat, read with the left's
+    (_, message), = idle.odometry
+    assert message["ts"] == 1.1 and message["theta"] == 0.0
+    assert message["x"] == pytest.approx(0.1 * RADIUS)
+    for wheel in ("wl", "wr"):
+        idle.read(wheel, 0.1, 1.2, velocity=0.0)  # stopped there
+        idle.read(wheel, 0.1, 1.3, velocity=0.0)  # and still there
+    assert [m["ts"] for _, m in idle.odometry] == [1.1, 1.2, 1.3]
+    assert idle.odometry[-1][1]["x"] == pytest.approx(0.1 * RADIUS)
 
 
 def test_a_wheel_is_placed_between_its_last_two_readings_only() -> None:

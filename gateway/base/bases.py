@@ -19,10 +19,15 @@ Rules of this file:
    thread brought them late. Once at rest with nothing holding it (both wheels have sent 0
    rpm: ``drive`` rule 3), its play ends and the wheels keep 0 rpm.
 5. Odometry comes from the wheels' readings (their joints' measured positions), published on
-   ``…/odom`` whenever both have been read past the last step. The two wheels are read at
-   different moments (each its own heartbeat): the step is taken at the earlier of their
-   latest readings, the other wheel's position there interpolated between its last two, so a
-   lag between them is not taken for a turn.
+   ``…/odom`` whenever both have been read past the last step, stamped with the readings'
+   time. A reading is a state whose measurement (the joint's position, velocity, effort) is
+   new, dated by that state's ``ts``; a state that repeats it (a write's acknowledgement
+   restamps the state with the old heartbeat's values) is no reading, unless the wheel was
+   measured at rest: it stays where it was until a write moves it, so its position holds at
+   the repeat's ``ts`` (a base at rest, or pivoting on that wheel, goes on publishing). The
+   two wheels are read at different moments (each its own heartbeat): the step is taken at
+   the earlier of their latest readings, the other wheel's position there interpolated
+   between its last two, so a lag between them is not taken for a turn.
 6. Wheels are put in velocity mode when they come online (``set_mode``, once per time they
    come online).
 7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks);
@@ -90,6 +95,8 @@ class Wheel:
     driver: Driver
     #: (position rad, ts) of its last two readings, the latest last
     readings: tuple[tuple[float, float], ...] = ()
+    #: The joint's (position, velocity, effort) of its last reading (rule 5)
+    measured: tuple[Any, ...] = ()
     online: bool = False
 
 
@@ -371,8 +378,8 @@ class Bases:
         position = joint.get("position")
         if position is None or ts is None or state.get("stale"):
             return
-        if wheel.readings and ts <= wheel.readings[-1][1]:
-            return  # the same reading again
+        if not _new_reading(wheel, joint, ts):
+            return
         wheel.readings = (*wheel.readings[-1:], (position, ts))
         if not all(w.readings for w in base.wheels):
             return
@@ -427,6 +434,16 @@ def _sent_before_stop(
     if stopped_by is None or seq is None or stopped_by[1] is None:
         return False
     return stopped_by[0] == client and seq <= stopped_by[1]
+
+
+def _new_reading(wheel: Wheel, joint: dict[str, Any], ts: float) -> bool:
+    """Whether ``joint``, of a wheel's state stamped ``ts``, is a new reading of it (rule 5):
+    a new measurement, or the last one again of a wheel measured at rest."""
+    if wheel.readings and ts <= wheel.readings[-1][1]:
+        return False  # the same state again, or an older one
+    measured = (joint.get("position"), joint.get("velocity"), joint.get("effort"))
+    fresh, wheel.measured = measured != wheel.measured, measured
+    return fresh or joint.get("velocity") == 0
 
 
 def _faults(wheel: Wheel, moment: float) -> list[str]:
