@@ -76,10 +76,15 @@ class BaseConfig(BaseModel):
         return linear / self.wheel_radius_m, angular * self.track_m / 2 / self.wheel_radius_m
 
 
+def top_radps(joint: Joint) -> float:
+    """The fastest a wheel's drive turns it, rad/s: its top speed (``inf`` when not known)."""
+    top = joint.declaration.top_speed
+    return abs(joint.velocity_si(top)) if top is not None else math.inf
+
+
 def reachable_radps(joint: Joint) -> float:
     """The fastest a wheel may turn, rad/s: its joint's ``max_velocity``, else its top speed."""
-    top = joint.declaration.top_speed
-    reachable = abs(joint.velocity_si(top)) if top is not None else math.inf
+    reachable = top_radps(joint)
     return reachable if joint.max_velocity is None else min(reachable, joint.max_velocity)
 
 

@@ -24,6 +24,7 @@ from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.errors import ConfigError
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.base.bases import Bases
+from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
@@ -320,7 +321,7 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
     """Rule 3 for a wheel whose drive alarms (its power stage off): a twist is refused naming
     it and its fault, with nothing sent; one that faults while the base drives stops both."""
     assert world.base({"op": "enable"})["ok"]
-    _wheel_2(world).inject_fault("over_current", time.monotonic())
+    _wheel_2(world).inject_fault("over_current", now())
     try:
         _until(lambda: _faults_of(world, "wr"), "wr's fault was not reported")
         since = len(world.sim.recorder.received())
@@ -336,7 +337,7 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
     assert world.base({"op": "twist", "linear": 0.3, "angular": 0.0, "duration_s": 5})["ok"]
     time.sleep(0.3)
     events, started = len(world.events), time.monotonic()
-    _wheel_2(world).inject_fault("over_current", time.monotonic())
+    _wheel_2(world).inject_fault("over_current", now())
     try:
         world.wait_rest()
         assert time.monotonic() - started < 2.0, "the base drove on with one wheel"
@@ -348,6 +349,29 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         assert left[-1] == 0
     finally:
         _clear_fault(world)
+
+
+def test_a_wheel_that_reboots_is_re_based_and_the_odometry_keeps_its_pose(world) -> None:
+    """Rule 5: wheel 2's drive reboots while the base drives straight, its counter back at 0
+    (from 2.6 rad: a step of 11 cm and half a radian in 20 ms when integrated); the pose
+    goes on from where it was."""
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "reset_odometry"})["ok"]
+    assert world.base({"op": "twist", "linear": 0.5, "angular": 0.0, "duration_s": 5})["ok"]
+    time.sleep(0.5)
+    told = len(world.odometry)
+    _wheel_2(world).reboot(now())
+    time.sleep(0.3)
+    world.base({"op": "stop"})
+    world.wait_rest()
+    time.sleep(0.1)
+    track = world.odometry[told - 1:]
+    # its drive off since (the simulated reboot): the other wheel turns the base, a
+    # centimetre and a few hundredths of a radian a heartbeat at 0.5 m/s
+    for a, b in pairwise(track):
+        assert math.hypot(b["x"] - a["x"], b["y"] - a["y"]) < 0.03, track
+        assert abs(math.remainder(b["theta"] - a["theta"], math.tau)) < 0.05, track
+    assert world.base({"op": "enable"})["ok"]  # the rebooted drive's power stage again
 
 
 def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:

@@ -255,6 +255,29 @@ def test_a_state_repeating_a_moving_wheels_measurement_is_no_reading() -> None:
     assert idle.odometry[-1][1]["x"] == pytest.approx(0.1 * RADIUS)
 
 
+def test_a_wheels_counter_set_back_re_bases_it_and_the_pose_keeps_what_it_had() -> None:
+    """Rule 5: a drive that rebooted counts from 0 again (its counter was at -46.6 rad); a
+    jump no turn of the wheel makes (its top speed, 1000 rpm, turns it 1.15 rad in 11 ms) is
+    re-based, not integrated, and the wheel's next readings go on from where it was."""
+    idle = IdleBase()
+    for wheel in ("wl", "wr"):
+        idle.read(wheel, -46.0, 1.0, velocity=1.0)
+        idle.read(wheel, -45.9, 1.1, velocity=1.0)
+    before = idle.odometry[-1][1]
+    assert before["x"] == pytest.approx(0.1 * RADIUS)
+    idle.read("wl", -45.8, 1.2, velocity=1.0)
+    idle.read("wr", 0.0, 1.2, velocity=1.0)  # rebooted at 1.1 s: back at 0
+    assert idle.odometry[-1][1]["theta"] == pytest.approx(-0.1 * RADIUS / TRACK)  # left on
+    idle.read("wl", -45.7, 1.3, velocity=1.0)
+    idle.read("wr", 0.2, 1.3, velocity=1.0)  # on from the reboot's 0
+    after = idle.odometry[-1][1]
+    assert after["x"] == pytest.approx(0.3 * RADIUS, abs=1e-3)
+    assert after["theta"] == pytest.approx(0.0, abs=1e-12)  # as far on both, since the reboot
+    idle.read("wl", -44.6, 1.311, velocity=1.0)  # 1.1 rad in 11 ms: a turn its drive makes
+    idle.read("wr", 1.3, 1.311, velocity=1.0)
+    assert idle.odometry[-1][1]["x"] == pytest.approx(after["x"] + 1.1 * RADIUS)
+
+
 def test_a_wheel_is_placed_between_its_last_two_readings_only() -> None:
     stopped = ((0.0, 1.0), (1.0, 2.0), (1.0, 3.0))  # on, then at rest
     assert _at(stopped[-2:], 2.5) == 1.0

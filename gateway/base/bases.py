@@ -27,7 +27,10 @@ Rules of this file:
    the repeat's ``ts`` (a base at rest, or pivoting on that wheel, goes on publishing). The
    two wheels are read at different moments (each its own heartbeat): the step is taken at
    the earlier of their latest readings, the other wheel's position there interpolated
-   between its last two, so a lag between them is not taken for a turn.
+   between its last two, so a lag between them is not taken for a turn. A wheel whose
+   reading moved further than its drive turns it at top speed since the last (its counter
+   set back: a drive that rebooted counts from 0 again) is re-based, not integrated: its
+   reading is taken as the last one, and the pose keeps what it had.
 6. Wheels are put in velocity mode when they come online (``set_mode``, once per time they
    come online).
 7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks);
@@ -40,7 +43,7 @@ import json
 import logging
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from busgate.errors import DeviceTimeoutError, RefusedError
@@ -62,6 +65,7 @@ from busgate.schemas.bases import (
     TwistTarget,
     reachable_radps,
     reachable_radps2,
+    top_radps,
 )
 from busgate.schemas.payload import decode_object, ok_reply
 from busgate.schemas.replies import REFUSALS, error_reply
@@ -97,7 +101,14 @@ class Wheel:
     readings: tuple[tuple[float, float], ...] = ()
     #: The joint's (position, velocity, effort) of its last reading (rule 5)
     measured: tuple[Any, ...] = ()
+    #: Added to its joint's position: its readings go on across a counter set back (rule 5)
+    offset_rad: float = 0.0
     online: bool = False
+    #: The fastest its drive turns it: a reading further than this allows is no motion
+    top_speed_radps: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.top_speed_radps = top_radps(self.driver.joint)
 
 
 @dataclass(slots=True)
@@ -380,7 +391,7 @@ class Bases:
             return
         if not _new_reading(wheel, joint, ts):
             return
-        wheel.readings = (*wheel.readings[-1:], (position, ts))
+        wheel.readings = (*wheel.readings[-1:], (_rebased(wheel, position, ts), ts))
         if not all(w.readings for w in base.wheels):
             return
         at = min(w.readings[-1][1] for w in base.wheels)
@@ -444,6 +455,18 @@ def _new_reading(wheel: Wheel, joint: dict[str, Any], ts: float) -> bool:
     measured = (joint.get("position"), joint.get("velocity"), joint.get("effort"))
     fresh, wheel.measured = measured != wheel.measured, measured
     return fresh or joint.get("velocity") == 0
+
+
+def _rebased(wheel: Wheel, position_rad: float, ts: float) -> float:
+    """``wheel``'s reading of its joint's ``position_rad`` at ``ts``, continuous across its
+    counter set back (rule 5): a jump no turn of the wheel makes re-bases it."""
+    reading = position_rad + wheel.offset_rad
+    if wheel.readings:
+        last, last_ts = wheel.readings[-1]
+        if abs(reading - last) > wheel.top_speed_radps * (ts - last_ts):
+            wheel.offset_rad += last - reading
+            return last
+    return reading
 
 
 def _faults(wheel: Wheel, moment: float) -> list[str]:
