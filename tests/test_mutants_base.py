@@ -149,6 +149,10 @@ def test_the_deadman_stops_only_the_base_its_leaving_client_drives() -> None:
     (event,) = idle.events
     assert (event.type, event.fields) == (
         "stopped", {"base": "base", "client": "teleop", "reason": "client gone"})
+    idle.wheels_online()
+    idle.runner.plays.start({w: base.drive.sampler(s) for s, w in enumerate(base.names)}, now())
+    idle.bases.tick()  # ramping down, its twist no longer held: stopped, not stale
+    assert len(idle.events) == 1 and base.playing_since is not None
     base.playing_since = None  # at rest: nothing to stop
     base.drive.command(Twist(0.5, 0.0), now(), 10.0)
     idle.bases.client_left("teleop")

@@ -327,6 +327,7 @@ class Bases:
         for base in self.bases.values():
             if base.client == client and base.playing_since is not None:
                 base.drive.stop()
+                base.stale_told = True  # stopped, not stale
                 self._event(base, "stopped", client=client, reason="client gone")
 
     # -- the loop's thread ----------------------------------------------------------------------
