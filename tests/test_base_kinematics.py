@@ -42,6 +42,16 @@ def test_saturation_keeps_the_curvature_and_every_limit(linear, angular) -> None
         assert held == Twist(linear, angular)
 
 
+@pytest.mark.parametrize("linear", [1.6e307, -1.7e308])
+def test_a_huge_twist_saturates_to_the_limit_as_a_finite_one_does(linear) -> None:
+    """Its wheels' speeds, reckoned from it unscaled, overflowed to infinity: it was scaled
+    to 0 (a ROS cmd_vel is not bounded by the schema's MAX_TWIST)."""
+    huge = GEOMETRY.saturated(Twist(linear, linear / 10))
+    finite = GEOMETRY.saturated(Twist(math.copysign(10.0, linear), math.copysign(1.0, linear)))
+    assert huge.linear == pytest.approx(finite.linear) and finite.linear != 0
+    assert huge.angular == pytest.approx(finite.angular)
+
+
 @given(st.floats(-1, 1), st.floats(-2, 2), st.floats(-1, 1), st.floats(-2, 2),
        st.floats(0.001, 0.05))
 @pytest.mark.parametrize("wheel_accel", [math.inf, 5.0])

@@ -64,15 +64,15 @@ class Geometry:
         return Twist(radius * (left + right) / 2, radius * (right - left) / self.track_m)
 
     def saturated(self, twist: Twist) -> Twist:
-        """``twist`` scaled down as a whole to within every limit (rule 2)."""
-        factor = min(
-            _room(twist.linear, self.max_linear),
-            _room(twist.angular, self.max_angular),
-            *(_room(speed, self.max_wheel) for speed in self.wheels(twist)),
+        """``twist`` scaled down as a whole to within every limit (rule 2): first within the
+        base's, then within the wheels' speeds, reckoned from the twist scaled already (those
+        of a huge twist, 1e307 m/s, overflowed to infinity and scaled it to 0)."""
+        within_base = _scaled(
+            twist,
+            min(_room(twist.linear, self.max_linear), _room(twist.angular, self.max_angular)),
         )
-        if factor >= 1.0:
-            return twist
-        return Twist(twist.linear * factor, twist.angular * factor)
+        wheels = self.wheels(within_base)
+        return _scaled(within_base, min(_room(speed, self.max_wheel) for speed in wheels))
 
     def step(self, now: Twist, target: Twist, dt_s: float) -> Twist:
         """The twist ``dt_s`` after ``now`` on its way to ``target`` (rule 3)."""
@@ -86,6 +86,13 @@ class Geometry:
         if factor >= 1.0:
             return target
         return Twist(now.linear + d_linear * factor, now.angular + d_angular * factor)
+
+
+def _scaled(twist: Twist, factor: float) -> Twist:
+    """``twist`` scaled by ``factor`` when it is below 1 (rule 2), else as it is."""
+    if factor >= 1.0:
+        return twist
+    return Twist(twist.linear * factor, twist.angular * factor)
 
 
 def _room(value: float, limit: float) -> float:
