@@ -331,7 +331,9 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         assert world.bases.twist("base", b'{"linear":0.3,"angular":0.0}')["error"] == \
             refused["error"]
         time.sleep(0.1)
-        assert world.speeds(since) == [] and world.bases.bases["base"].playing_since is None
+        # nothing moves (a 0 rpm may be what a wheel back from offline before is restored with)
+        assert [rpm for *_, rpm in world.speeds(since) if rpm] == []
+        assert world.bases.bases["base"].playing_since is None
     finally:
         _clear_fault(world)
     assert world.base({"op": "twist", "linear": 0.3, "angular": 0.0, "duration_s": 5})["ok"]

@@ -282,6 +282,17 @@ def test_a_wheels_counter_set_back_re_bases_it_and_the_pose_keeps_what_it_had() 
     assert idle.odometry[-1][1]["x"] == pytest.approx(after["x"] + 1.1 * RADIUS)
 
 
+def test_two_readings_dated_nearly_together_are_motion_not_a_counter_set_back() -> None:
+    """Rule 5: a bus thread held up takes two heartbeats of a wheel in one look and dates
+    them 1 ms apart, though 20 ms passed between them; the half radian the wheel turned is
+    integrated (``READING_DATE_SLACK_S``), not re-based as a jump no drive makes."""
+    idle = IdleBase()
+    for wheel in ("wl", "wr"):
+        idle.read(wheel, 0.0, 1.0, velocity=25.0)
+        idle.read(wheel, 0.5, 1.001, velocity=25.0)
+    assert idle.odometry[-1][1]["x"] == pytest.approx(0.5 * RADIUS)
+
+
 def test_a_wheel_is_placed_between_its_last_two_readings_only() -> None:
     stopped = ((0.0, 1.0), (1.0, 2.0), (1.0, 3.0))  # on, then at rest
     assert _at(stopped[-2:], 2.5) == 1.0

@@ -28,9 +28,10 @@ Rules of this file:
    two wheels are read at different moments (each its own heartbeat): the step is taken at
    the earlier of their latest readings, the other wheel's position there interpolated
    between its last two, so a lag between them is not taken for a turn. A wheel whose
-   reading moved further than its drive turns it at top speed since the last (its counter
-   set back: a drive that rebooted counts from 0 again) is re-based, not integrated: its
-   reading is taken as the last one, and the pose keeps what it had.
+   reading moved further than its drive turns it at top speed since the last, and
+   ``READING_DATE_SLACK_S`` more (its counter set back: a drive that rebooted counts from 0
+   again), is re-based, not integrated: its reading is taken as the last one, and the pose
+   keeps what it had.
 6. Wheels are put in velocity mode when they come online (``set_mode``, once per time they
    come online).
 7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks);
@@ -77,6 +78,10 @@ log = logging.getLogger(__name__)
 #: bus threads take the play from their inboxes) before a missing one counts as gone.
 PLAY_TAKEN_S = 0.2
 VELOCITY_MODE = b'{"op":"set_mode","mode":"velocity"}'
+#: Added to the time between two readings of a wheel before a jump is judged one its drive
+#: cannot make (rule 5): a reading is dated when its bus thread takes it, and two taken in one
+#: look, after a held-up thread, are dated nearly together however far apart they were read.
+READING_DATE_SLACK_S = 0.05
 
 
 class Gateway(Protocol):
@@ -464,7 +469,7 @@ def _rebased(wheel: Wheel, position_rad: float, ts: float) -> float:
     reading = position_rad + wheel.offset_rad
     if wheel.readings:
         last, last_ts = wheel.readings[-1]
-        if abs(reading - last) > wheel.top_speed_radps * (ts - last_ts):
+        if abs(reading - last) > wheel.top_speed_radps * (ts - last_ts + READING_DATE_SLACK_S):
             wheel.offset_rad += last - reading
             return last
     return reading
