@@ -364,10 +364,19 @@ class Joint:
         """The family's speed for the SI ``velocity`` (inverse of ``velocity_si``)."""
         return velocity / (self.scale * self._raw_per_speed)
 
-    def check_velocity(self, speed: float) -> None:
-        """Refuse a speed (the family's unit) past ``max_velocity``."""
+    def check_velocity(self, speed: float | None) -> None:
+        """Refuse a speed (the family's unit) past ``max_velocity``; ``None`` (a speed the
+        gateway cannot know, as a ZLAC706's move at a top speed never set) is refused when
+        the joint has one."""
         if self.max_velocity is None:
             return
+        if speed is None:
+            raise RefusedError(
+                "out_of_range",
+                f"joint {self.name}: the command moves at a speed the gateway cannot know (a "
+                "top speed not set), so it cannot keep the joint within its max_velocity "
+                f"{self.max_velocity:g} {self.unit}/s",
+            )
         velocity = self.velocity_si(speed)
         if abs(velocity) > self.max_velocity * (1 + ON_THE_LIMIT):
             raise self._refusal(
@@ -384,7 +393,7 @@ class Joint:
         """Refuse what sets ``quantity`` to ``value`` beyond a limit (rule 4)."""
         if quantity == "position":
             self.check_position(value)
-        elif value is not None and quantity == "velocity":
+        elif quantity == "velocity":
             self.check_velocity(value)
         elif value is not None:
             self.check_effort(value)
@@ -494,7 +503,7 @@ class Joint:
         self, what: str, value: float, unit: str, limit_name: str, limit: float
     ) -> RefusedError:
         shown = f"{value:g}"
-        if shown == f"{limit:g}":  # past it by less than six digits show: all of them
+        if f"{abs(value):g}" == f"{limit:g}":  # past it by less than six digits show: all
             shown = repr(value)
         return RefusedError(
             "out_of_range",

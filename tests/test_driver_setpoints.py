@@ -30,6 +30,11 @@ def position(device_id: int, value: float | None) -> Setpoint:
     return Setpoint(device_id, "position", value)
 
 
+def positions(driver: Driver, text: str) -> list[Setpoint]:
+    """The position setpoints of ``setpoints``."""
+    return [setpoint for setpoint in setpoints(driver, text) if setpoint.quantity == "position"]
+
+
 # --- Inspire LA ---------------------------------------------------------------------------------
 
 
@@ -190,23 +195,23 @@ both_wires = pytest.mark.parametrize("make", [can_driver, rs_driver], ids=["can"
 def test_zlac_absolute_position_is_the_target(make, target: int) -> None:
     d = prepared(make(), *ABSOLUTE)
     # RS232 sends the high half then the low half: one setpoint, the two joined.
-    assert setpoints(d, f'{{"op":"move","position":{target}}}') == [position(5, target)]
+    assert positions(d, f'{{"op":"move","position":{target}}}') == [position(5, target)]
 
 
 @both_wires
 def test_zlac_relative_position_is_judged_from_the_measured_position(make) -> None:
     d = prepared(make(), *RELATIVE)
-    assert setpoints(d, '{"op":"move","position":500}') == [position(5, None)]  # none measured
+    assert positions(d, '{"op":"move","position":500}') == [position(5, None)]  # none measured
     d.take_position(-12_000)
-    assert setpoints(d, '{"op":"move","position":500}') == [position(5, -11_500)]
-    assert setpoints(d, '{"op":"move","position":-70000}') == [position(5, -82_000)]
+    assert positions(d, '{"op":"move","position":500}') == [position(5, -11_500)]
+    assert positions(d, '{"op":"move","position":-70000}') == [position(5, -82_000)]
 
 
 @both_wires
 def test_zlac_position_mode_not_known_is_a_position_not_known(make) -> None:
     d = prepared(make(), *POSITION_MODE)
     d.take_position(100)
-    assert setpoints(d, '{"op":"move","position":500}') == [position(5, None)]
+    assert positions(d, '{"op":"move","position":500}') == [position(5, None)]
 
 
 @both_wires
@@ -232,7 +237,7 @@ def test_zlac_torque_is_an_effort_setpoint_in_amperes(make, amps: float, raw: in
 def test_zlac_can_raw_writes_go_through_the_roles() -> None:
     d = prepared(can_driver(), *ABSOLUTE)
     reg = can_codec.CanRegister
-    assert setpoints(d, f'{{"op":"write","register":{reg.TARGET_POSITION},"value":-5}}') == [
+    assert positions(d, f'{{"op":"write","register":{reg.TARGET_POSITION},"value":-5}}') == [
         position(5, -5)
     ]
     assert setpoints(d, f'{{"op":"write","register":{reg.TARGET_SPEED},"value":2730}}') == [
@@ -252,11 +257,11 @@ def test_zlac_rs232_raw_writes_go_through_the_roles() -> None:
     low = rs_codec.Rs232Register.POSITION_LOW
     high = rs_codec.Rs232Register.POSITION_HIGH
     # No high half written yet: the low half alone is a target the gateway cannot know.
-    assert setpoints(d, f'{{"op":"write","register":{low},"value":100}}') == [position(5, None)]
+    assert positions(d, f'{{"op":"write","register":{low},"value":100}}') == [position(5, None)]
     # The high half sets nothing itself; the low half written after it is joined to it.
     assert setpoints(d, f'{{"op":"write","register":{high},"value":-1}}') == []
     prepared(d, f'{{"op":"write","register":{high},"value":-1}}')
-    assert setpoints(d, f'{{"op":"write","register":{low},"value":55536}}') == [
+    assert positions(d, f'{{"op":"write","register":{low},"value":55536}}') == [
         position(5, -10_000)
     ]
     speed, torque = rs_codec.Rs232Register.SPEED, rs_codec.Rs232Register.TORQUE
@@ -270,7 +275,7 @@ def test_zlac_rs232_raw_writes_go_through_the_roles() -> None:
 
 def test_zlac_rs232_move_after_a_move_joins_its_own_halves() -> None:
     d = prepared(rs_driver(), *ABSOLUTE, '{"op":"move","position":-10000}')
-    assert setpoints(d, '{"op":"move","position":70000}') == [position(5, 70_000)]
+    assert positions(d, '{"op":"move","position":70000}') == [position(5, 70_000)]
 
 
 @both_wires
@@ -290,6 +295,22 @@ def test_zlac_rs232_move_after_a_move_joins_its_own_halves() -> None:
 )
 def test_zlac_settings_set_nothing(make, text: str) -> None:
     assert setpoints(make(), text) == []
+
+
+@both_wires
+def test_zlac_move_runs_at_the_top_speed_set_and_an_origin_search_to_a_place_not_known(
+    make,
+) -> None:
+    """A move in position mode runs at the drive's top speed (``None`` until one was set:
+    the drive's own, 100 rpm in the manual's example); an origin search turns the motor
+    until it finds the index (an outside audit saw both go past a joint's limits)."""
+    d = prepared(make(), *ABSOLUTE)
+    assert setpoints(d, '{"op":"move","position":10}') == [
+        position(5, 10), Setpoint(5, "velocity", None)]
+    assert setpoints(d, '{"op":"home"}') == [position(5, None)]
+    prepared(d, '{"op":"set_max_speed","rpm":60}')
+    (_, top) = setpoints(d, '{"op":"move","position":10}')
+    assert top.quantity == "velocity" and top.value == pytest.approx(60, abs=0.5)
 
 
 @both_wires
@@ -315,4 +336,4 @@ def test_zlac_setpoints_leave_the_state_as_it_was(make) -> None:
 @given(st.integers(-(2**31), 2**31 - 1))
 def test_zlac_rs232_any_absolute_position_round_trips_through_its_halves(target: int) -> None:
     d = prepared(rs_driver(), *ABSOLUTE)
-    assert setpoints(d, f'{{"op":"move","position":{target}}}') == [position(5, target)]
+    assert positions(d, f'{{"op":"move","position":{target}}}') == [position(5, target)]

@@ -135,6 +135,15 @@ def test_velocity_and_effort_limits():
     joint.check("effort", -5.0)
     with pytest.raises(RefusedError, match=re.escape("effort 5.5 A is beyond its max_effort 5 A")):
         joint.check("effort", 5.5)
+    # A speed the gateway cannot know (a ZLAC706's move before its top speed was set).
+    with pytest.raises(RefusedError, match=re.escape("cannot know (a top speed not set), so it "
+                                                     "cannot keep the joint within its "
+                                                     "max_velocity 6.28319 rad/s")):
+        joint.check("velocity", None)
+    wheel().check("velocity", None)  # without max_velocity: the drive's own range's to keep
+    with pytest.raises(RefusedError) as refused:  # below by less than six digits show: all
+        joint.check("effort", -5.0000001)
+    assert "effort -5.0000001 A is beyond" in str(refused.value)
 
 
 def test_commands_in_si_become_the_kinds_own():

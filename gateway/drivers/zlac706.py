@@ -176,25 +176,34 @@ class Zlac706Driver(Driver):
         return [
             Setpoint(self.device_id, *target)
             for _frame, role, value, outlook in self._walk(frames)
-            if (target := self._target(role, value, outlook)) is not None
+            for target in self._targets(role, value, outlook)
         ]
 
-    def _target(
+    def _targets(
         self, role: Role | None, value: Any, settings: Settings
-    ) -> tuple[Quantity, float | None] | None:
-        """What a write in ``role`` of ``value`` sets, as ``(quantity, value)``: position
-        mode's top speed is a speed too (a move never runs faster)."""
+    ) -> Iterator[tuple[Quantity, float | None]]:
+        """What a write in ``role`` of ``value`` sets, each as ``(quantity, value)``: position
+        mode's top speed is a speed too, and a move runs at it (``None`` while not set: the
+        drive's own, which ``max_velocity`` may not allow). An origin search turns the motor
+        until it finds the index: to a position not known."""
         if role in (Role.SPEED, Role.MAX_SPEED):
-            return "velocity", common.rpm_from_speed_raw(value)
-        if role is Role.TORQUE:
-            return "effort", float(value / common.TORQUE_RAW_PER_A)
-        if role is not Role.POSITION:
-            return None
+            yield "velocity", common.rpm_from_speed_raw(value)
+        elif role is Role.TORQUE:
+            yield "effort", float(value / common.TORQUE_RAW_PER_A)
+        elif role is Role.ONE_SHOT:
+            yield "position", None
+        elif role is Role.POSITION:
+            yield "position", self._place(value, settings)
+            yield "velocity", _rpm(settings.max_speed_raw)
+
+    def _place(self, value: int | None, settings: Settings) -> float | None:
+        """Where a position target of ``value`` sends the shaft: a relative one is judged
+        from the position measured last, ``None`` when none was or the mode is not known."""
         if settings.relative is False:
-            return "position", value
+            return value
         here = self.measured["position"]
         known = settings.relative is True and here is not None and value is not None
-        return "position", here + value if known else None
+        return here + value if known else None
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
         return Request.of(self.codec, frame, idempotent=is_idempotent(role, settings))
