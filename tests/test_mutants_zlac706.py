@@ -4,16 +4,23 @@ forgetting the power stage, and an answer clearing the count of writes gone unan
 
 from __future__ import annotations
 
+import math
+import re
+
 import pytest
 
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs.zlac706_common import AlarmFlags
-from busgate.errors import CommandError, DeviceRefusedError
+from busgate.errors import CommandError, DeviceRefusedError, RefusedError
+from busgate.gateway.api.commands import _kind_command
 from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.drivers.zlac706_state import REBOOT_POSITION_JUMP
 from busgate.gateway.scheduler.tickers import commanded
+from busgate.schemas import zlac706
+from busgate.schemas.api import JointCommand
+from busgate.schemas.joints import Joint, JointTable
 from tests.test_driver_zlac706 import (
     MANUAL_MONITOR,
     event_types,
@@ -84,6 +91,26 @@ def test_a_relative_move_leaves_no_place_for_a_stream_to_start_from_but_where_it
     driver.take_position(4500)
     run(driver, plan(driver, '{"op":"set_position_mode","relative":false}'))
     assert driver.follows == "position" and commanded(driver, 0.0) == 4500
+
+
+def test_the_joint_op_moves_to_a_place_and_is_refused_while_positions_are_steps() -> None:
+    """``{"op":"joint","position":x}`` names a place: in relative position mode, or one not
+    known, the target would be a step from where the wheel is (an outside audit saw 0.5 rad
+    asked and 1.1 rad reached). Refused, naming the mode and what to send."""
+    table = JointTable(type="position", unit="rad", scale=2 * math.pi / 10_000)
+    driver = Zlac706CanDriver("w", 1, joint=Joint.of("axle", zlac706.JOINT, table))
+    command = JointCommand(op="joint", position=0.5)
+    for text in ('{"op":"set_mode","mode":"position"}', '{"op":"enable"}'):
+        run(driver, plan(driver, text))
+    with pytest.raises(RefusedError, match="w's position mode is not known"):
+        _kind_command(driver, command)
+    run(driver, plan(driver, '{"op":"set_position_mode","relative":true}'))
+    with pytest.raises(RefusedError, match=re.escape(
+            'joint axle moves to places: w\'s position mode is relative: a target would be a '
+            'step from where it is; send {"op":"set_position_mode","relative":false} first')):
+        _kind_command(driver, command)
+    run(driver, plan(driver, '{"op":"set_position_mode","relative":false}'))
+    assert _kind_command(driver, command)["position"] == 796  # 0.5 rad
 
 
 @pytest.mark.parametrize("driver_class", [Zlac706CanDriver, Zlac706Rs232Driver])

@@ -459,6 +459,9 @@ def _kind_command(driver: Driver, command: JointCommand) -> dict[str, Any]:
     joint = driver.joint
     if command.position is not None:
         fields = joint.move_command(command.position)
+        steps = driver.why_positions_are_steps()
+        if steps is not None:
+            raise RefusedError("bad_command", f"joint {joint.name} moves to places: {steps}")
     else:
         assert command.velocity is not None  # the model's rule: one of them
         fields = joint.turn_command(command.velocity)

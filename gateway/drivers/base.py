@@ -297,6 +297,12 @@ class Driver(abc.ABC):
         and moves this device too: what it does to the state nobody's answer will tell. By
         default nothing (the device's next reading tells)."""
 
+    def why_positions_are_steps(self) -> str | None:
+        """Why a position target sent now would be a step from where the device is, not the
+        place a joint's position names (``None``: it is a place, as every family's is but a
+        ZLAC706's in relative position mode)."""
+        return None
+
     def position_to_hold(self, raw: float | None) -> int | None:
         """``raw``, the position read last, as the target ``hold_still`` may give: ``None``
         when none was read, or when it lies beyond the joint's limits (a reading that cannot

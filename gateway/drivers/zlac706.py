@@ -196,6 +196,16 @@ class Zlac706Driver(Driver):
             yield "position", self._place(value, settings)
             yield "velocity", _rpm(settings.max_speed_raw)
 
+    def why_positions_are_steps(self) -> str | None:
+        relative = self.machine.expected().relative
+        if relative is False:
+            return None
+        now = "relative" if relative else "not known"
+        return (
+            f"{self.name}'s position mode is {now}: a target would be a step from where it "
+            'is; send {"op":"set_position_mode","relative":false} first'
+        )
+
     def _place(self, value: int | None, settings: Settings) -> float | None:
         """Where a position target of ``value`` sends the shaft: a relative one is judged
         from the position measured last, ``None`` when none was or the mode is not known."""
