@@ -185,6 +185,22 @@ def test_claims_and_releases_are_told_with_who_and_for_how_long(gateway):
     assert said(events, "released") == [("la2", {"client": "alice"})]
 
 
+def test_a_client_refused_a_speed_is_not_the_one_whose_going_stops_the_wheel(gateway):
+    """An outside audit: a client refused a one-shot speed (the wheel claimed by another) was
+    taken for its deadman's, and its going stopped the wheel the holder drove."""
+    api, *_, events = gateway
+    for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
+        accepted(api, "wheel", op)
+    accepted(api, "wheel", {"op": "claim", "client": "teleop"})
+    accepted(api, "wheel", {"op": "velocity", "rpm": 200, "client": "teleop"})
+    refused = api.command("wheel", b'{"op":"velocity","rpm":10,"client":"other"}').result(10)
+    assert refused["error"]["code"] == "claimed"
+    api.client_left("other")
+    assert said(events, "stopped") == []
+    api.client_left("teleop")
+    assert said(events, "stopped") == [("wheel", {"client": "teleop", "reason": "client gone"})]
+
+
 def test_the_deadman_tells_what_it_released_stopped_and_why(wait_for, gateway):
     api, *_, events = gateway
     for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):

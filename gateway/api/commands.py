@@ -49,7 +49,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
-from busgate.errors import BusUnavailableError, RefusedError
+from busgate.errors import BusUnavailableError, CommandError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.api.put_reports import reset_fields
@@ -183,10 +183,33 @@ class GatewayApi:
         if in_si:  # the kind's own command, in its raw units (refused beyond a limit)
             command = command_from_object(adapter, _kind_command(driver, command), driver.kind)
         self._require_no_estop_since_taken()
+        refused = None
         if driver.deadman and command.op == driver.deadman.op and client:
-            self._deadman_clients[device] = client
-        submitted = runner.submit(device, command, client)
+            refused = self._hold_deadman(device, client)  # before it goes: a client gone
+        submitted = runner.submit(device, command, client)  # while it runs stops it
+        if refused is not None:
+            submitted.add_done_callback(refused)
         return _chained(submitted, _joint_reply) if in_si else _mapped(submitted)
+
+    def _hold_deadman(self, device: str, client: str) -> Callable[[Future], None]:
+        """``client``, who sends ``device`` a one-shot speed, is the one whose going stops it;
+        unless its bus refuses the command (nothing sent): a client never let move the device
+        must not stop it when it goes. What to call with the command's future: the one before
+        holds it again if refused."""
+        before = self._deadman_clients.get(device)
+        self._deadman_clients[device] = client
+
+        def unless_refused(done: Future) -> None:
+            refused = not done.cancelled() and isinstance(
+                done.exception(), (RefusedError, CommandError)
+            )
+            if refused and self._deadman_clients.get(device) == client:
+                if before is None:
+                    self._deadman_clients.pop(device, None)
+                else:
+                    self._deadman_clients[device] = before
+
+        return unless_refused
 
     def _claim(self, runner: BusRunner, device: str, fields: dict[str, Any]) -> dict[str, Any]:
         request = Claim.model_validate(fields)
