@@ -249,6 +249,14 @@ def test_a_position_step_with_max_acceleration_speeds_up_and_brakes_without_over
     assert max(values) == 1000 and values[-1] == 1000
 
 
+def test_a_stream_from_outside_the_limits_sends_the_nearest_limit_then_ramps():
+    """Rule 1: a device resting below ``min`` (raw 400) gets the limit first, never a target
+    beyond it to ramp in; from there, 40 counts a tick."""
+    joint = la_joint(min=0.002, max=0.008, max_velocity=0.01)
+    limiter = StreamLimiter(joint, 0.02, start=0)
+    assert [value for value, _ in ticks(limiter, 1000, 3)] == [400, 440, 480]
+
+
 def test_a_target_past_a_limit_is_clamped_to_it_whatever_the_scales_sign():
     joint = la_joint(scale=-5e-6, offset=0.01, min=0.002)  # min 0.002 m is raw 1600
     limiter = StreamLimiter(joint, 0.02, start=1000)

@@ -8,7 +8,9 @@ Rules of this file:
    ``max_acceleration`` its velocity changes by at most ``max_acceleration × period`` a tick
    and it brakes in time to stop at the target (never faster than what stops within the
    distance left, tick by tick); a target that turns round late is overshot rather than met
-   by a jerk. A step input becomes a ramp. It never leaves the limits.
+   by a jerk. A step input becomes a ramp. It never leaves the limits: a stream that starts
+   outside them (a device resting there) sends the nearest limit first, rather than targets
+   beyond it to ramp in (the device goes there at its own pace, as to a one-shot move).
 2. A speed target is clamped to ``±max_velocity`` and to the device's top speed; with
    ``max_acceleration`` it changes by at most ``max_acceleration × period`` a tick.
 3. Each tick says which limit held the target back, if any; the stream reports the first
