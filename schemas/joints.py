@@ -192,6 +192,16 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
         problems.append(("min", f"{table.min:g} must be below max {table.max:g}"))
     if table.raw_per_turn is not None and declaration.raw_per_turn is None:
         problems.append(("raw_per_turn", "this kind is not a rotary device"))
+    if (table.type or declaration.types[0]) == "velocity":
+        problems += [
+            (
+                key,
+                "bounds positions, and a velocity joint turns on without end: give the "
+                'joint type = "position", or leave min and max out',
+            )
+            for key in ("min", "max")
+            if getattr(table, key) is not None
+        ]
     if problems:
         return problems
     low, high = sorted(table.offset + table.scale * raw for raw in declaration.raw_range)

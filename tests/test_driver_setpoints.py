@@ -218,8 +218,12 @@ def test_zlac_position_mode_not_known_is_a_position_not_known(make) -> None:
 @pytest.mark.parametrize("rpm", [0, 500, -1000, 123.4])
 def test_zlac_speed_is_a_velocity_setpoint_in_rpm(make, rpm: float) -> None:
     d = prepared(make(), *VELOCITY_MODE)
-    [(device_id, quantity, value)] = setpoints(d, f'{{"op":"velocity","rpm":{rpm}}}')
+    found = setpoints(d, f'{{"op":"velocity","rpm":{rpm}}}')
+    [(device_id, quantity, value)] = [s for s in found if s.quantity == "velocity"]
     assert (device_id, quantity) == (5, "velocity")
+    # Turning, it goes to wherever it is stopped: a position not known (none for a stop).
+    assert positions(d, f'{{"op":"velocity","rpm":{rpm}}}') == ([position(5, None)] if rpm
+                                                                  else [])
     # The speed the wire carries (truncated toward zero, a step is 0.37 rpm), in rpm.
     assert value == common.rpm_from_speed_raw(common.speed_raw_truncated(rpm))
     assert value == pytest.approx(rpm, abs=0.37)
@@ -230,7 +234,7 @@ def test_zlac_speed_is_a_velocity_setpoint_in_rpm(make, rpm: float) -> None:
 def test_zlac_torque_is_an_effort_setpoint_in_amperes(make, amps: float, raw: int) -> None:
     d = prepared(make(), *TORQUE_MODE)
     # The current the wire carries, to its 3.2 mA step.
-    expected = [Setpoint(5, "effort", raw / 312.5)]
+    expected = [Setpoint(5, "effort", raw / 312.5)] + ([position(5, None)] if raw else [])
     assert setpoints(d, f'{{"op":"torque","current_a":{amps}}}') == expected
 
 
@@ -241,10 +245,10 @@ def test_zlac_can_raw_writes_go_through_the_roles() -> None:
         position(5, -5)
     ]
     assert setpoints(d, f'{{"op":"write","register":{reg.TARGET_SPEED},"value":2730}}') == [
-        Setpoint(5, "velocity", common.rpm_from_speed_raw(2730))
+        Setpoint(5, "velocity", common.rpm_from_speed_raw(2730)), position(5, None)
     ]
     assert setpoints(d, f'{{"op":"write","register":{reg.TARGET_TORQUE},"value":-7500}}') == [
-        Setpoint(5, "effort", -24.0)
+        Setpoint(5, "effort", -24.0), position(5, None)
     ]
     # Position mode's top speed: a move never runs faster, so it is a speed too.
     assert setpoints(d, f'{{"op":"write","register":{reg.MAX_SPEED},"value":100}}') == [
@@ -266,10 +270,10 @@ def test_zlac_rs232_raw_writes_go_through_the_roles() -> None:
     ]
     speed, torque = rs_codec.Rs232Register.SPEED, rs_codec.Rs232Register.TORQUE
     assert setpoints(d, f'{{"op":"write","register":{speed},"value":-1365}}') == [
-        Setpoint(5, "velocity", common.rpm_from_speed_raw(-1365))
+        Setpoint(5, "velocity", common.rpm_from_speed_raw(-1365)), position(5, None)
     ]
     assert setpoints(d, f'{{"op":"write","register":{torque},"value":1500}}') == [
-        Setpoint(5, "effort", 4.8)
+        Setpoint(5, "effort", 4.8), position(5, None)
     ]
 
 

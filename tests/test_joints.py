@@ -196,6 +196,18 @@ def test_the_config_refuses_a_joint_table_naming_the_key(joint, path, words):
     assert f"devices[0].{path}" in str(refused.value)
 
 
+@pytest.mark.parametrize("key", ["min", "max"])
+def test_min_and_max_of_a_velocity_joint_are_refused(key):
+    """An outside audit: taken, they showed in ``info`` as limits nothing kept (a wheel turns
+    on without end); a position joint of the same table takes them."""
+    table = {"unit": "rad", "scale": TURN / 10_000, key: 1.0 if key == "max" else -1.0}
+    with pytest.raises(ConfigError, match='velocity joint turns on without end: give the joint '
+                                          'type = "position"') as refused:
+        parse_config(config_with(table, kind="zlac706"))
+    assert f"devices[0].joint.{key}" in str(refused.value)
+    parse_config(config_with({**table, "type": "position"}, kind="zlac706"))
+
+
 def test_issue_26s_example_table_is_taken_and_its_max_effort_where_nothing_sets_one_ignored():
     example = {"name": "gripper_left", "unit": "m", "scale": 5.0e-6, "offset": 0.0, "min": 0.0,
                "max": 0.010, "max_velocity": 0.02, "max_acceleration": 0.5, "max_effort": 20.0}

@@ -113,6 +113,19 @@ def test_the_joint_op_moves_to_a_place_and_is_refused_while_positions_are_steps(
     assert _kind_command(driver, command)["position"] == 796  # 0.5 rad
 
 
+def test_a_joint_held_within_limits_takes_no_speed_stream() -> None:
+    """A position joint with min and max, its drive in velocity mode: a stream of speeds would
+    turn it past them (an outside audit saw a wheel held within 3 rad reach 21 rad)."""
+    table = JointTable(type="position", unit="rad", scale=2 * math.pi / 10_000, min=-3, max=3)
+    driver = Zlac706CanDriver("w", 1, joint=Joint.of("axle", zlac706.JOINT, table))
+    run(driver, plan(driver, '{"op":"set_mode","mode":"velocity"}'))
+    with pytest.raises(RefusedError, match="position the gateway cannot know"):
+        driver.follow_target({"rpm": 10})
+    unlimited = Zlac706CanDriver("w", 1)
+    run(unlimited, plan(unlimited, '{"op":"set_mode","mode":"velocity"}'))
+    assert unlimited.follow_target({"rpm": 10}) == 10.0
+
+
 @pytest.mark.parametrize("driver_class", [Zlac706CanDriver, Zlac706Rs232Driver])
 def test_a_drive_back_from_offline_gets_0_rpm_never_its_old_speed(driver_class) -> None:
     """Turning when it went offline (its bus went down, or its heartbeats stopped): once back,

@@ -184,12 +184,15 @@ class Zlac706Driver(Driver):
     ) -> Iterator[tuple[Quantity, float | None]]:
         """What a write in ``role`` of ``value`` sets, each as ``(quantity, value)``: position
         mode's top speed is a speed too, and a move runs at it (``None`` while not set: the
-        drive's own, which ``max_velocity`` may not allow). An origin search turns the motor
-        until it finds the index: to a position not known."""
+        drive's own, which ``max_velocity`` may not allow). A speed or a torque other than 0,
+        and an origin search (until it finds the index), turn the motor to a position not
+        known: refused on a joint held within limits."""
         if role in (Role.SPEED, Role.MAX_SPEED):
             yield "velocity", common.rpm_from_speed_raw(value)
         elif role is Role.TORQUE:
             yield "effort", float(value / common.TORQUE_RAW_PER_A)
+        if role in (Role.SPEED, Role.TORQUE) and value:
+            yield "position", None  # it turns on, to wherever it is stopped
         elif role is Role.ONE_SHOT:
             yield "position", None
         elif role is Role.POSITION:
@@ -346,6 +349,7 @@ class Zlac706Driver(Driver):
         outlook = self.machine.expected()
         if target.position is None:
             check(Role.SPEED, target.rpm, outlook)
+            self.joint.check_position(None)  # a joint held within limits: turned past them
             return float(target.rpm)
         if not self.streams_positions:
             raise CommandError(
