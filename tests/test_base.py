@@ -216,7 +216,11 @@ def test_claims_hold_between_the_base_and_its_wheels_both_ways(world) -> None:
             refused = world.wheel(wheel, {"op": "velocity", "rpm": 10, "client": "teleop"})
             assert refused["error"]["code"] == "claimed" and "nav" in refused["error"]["message"]
     finally:
-        assert world.base({"op": "release", "client": "nav"})["ok"]
+        events = len(world.events)
+        assert world.base({"op": "release", "client": "nav"})["released"] is True
+    told = [(e.device, e.type, e.fields) for e in list(world.events)[events:]]
+    assert ("base", "released", {"base": "base", "client": "nav"}) in told  # as a device's
+    assert world.base({"op": "release", "client": "nav"})["released"] is False  # none held
 
 
 def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(

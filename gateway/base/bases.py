@@ -270,12 +270,25 @@ class Bases:
         elif isinstance(request, BaseClaim):
             self._claim(base, request.client, request.ttl_s)
         elif isinstance(request, BaseRelease):
-            for wheel in base.wheels:
-                authority = wheel.runner.authority
-                authority.claims.release(wheel.name, request.client, authority.clock())
+            released = self._release(base, request.client)
+            return ok_reply(base=self._status(base), released=released)
         elif isinstance(request, ResetOdometry):
             base.odometry.reset()
         return ok_reply(base=self._status(base))
+
+    def _release(self, base: LiveBase, client: str) -> bool:
+        """Both wheels or neither (rule 2), told as a device's release is: whether ``client``
+        held a claim to give back, and a ``released`` event when it did."""
+        for wheel in base.wheels:  # ``claimed``, with nothing given back, if another holds one
+            authority = wheel.runner.authority
+            authority.claims.check(wheel.name, client, authority.clock())
+        released = False
+        for wheel in base.wheels:
+            authority = wheel.runner.authority
+            released |= authority.claims.release(wheel.name, client, authority.clock())
+        if released:
+            self._event(base, "released", client=client)
+        return released
 
     def _claim(self, base: LiveBase, client: str, ttl_s: float) -> None:
         """Both wheels or neither (rule 2)."""
