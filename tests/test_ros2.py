@@ -368,6 +368,37 @@ def test_a_command_for_a_joint_another_client_holds_moves_nothing(ros) -> None:
         assert command(ros, "la2", {"op": "release", "client": "teleop"})["ok"]
 
 
+@pytest.mark.parametrize(("names", "velocity", "refusal"), [
+    # ros2_control's topic-based system, the gripper state-only and a typo with its interface
+    (["gripper", "gripper_x"], [],
+     "position has 1, velocity 0 values for 2 names, 1 of them no joint of this gateway"),
+    (["gripper_x", "gripper"], [0.5],
+     "position has 1, velocity 1 values for 2 names, 1 of them no joint of this gateway"),
+])
+def test_a_command_that_cannot_say_whose_each_value_is_moves_nothing(
+        ros, names, velocity, refusal) -> None:
+    """The gripper took a value by its place in the list, meant for another name: the message
+    is refused whole, shown in the gripper's diagnostics. A command for la2 sent after it,
+    seen on the wire, says the gateway took the refused one before it."""
+    gripper_at = command(ros, "la1", {"op": "status"})["state"]["target"]
+    position = [0.006 if gripper_at != 1200 else 0.005]  # somewhere the gripper is not
+    la2_at = command(ros, "la2", {"op": "status"})["state"]["target"]
+    la2_next = 300 if la2_at != 300 else 500
+    diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
+    since = len(ros["la"].recorder.received())
+    commands.publish(**joint_state(ros, names, position=position, velocity=velocity))
+    commands.publish(**joint_state(ros, ["la2"], position=[float(la2_next)]))
+    wait_for_target(ros, since, 2, la2_next)
+    assert la_targets(ros, since, 1) == []
+
+    def gripper_refusal(array) -> str:
+        [status] = [s for s in array.status if s.name == f"{NODE}: joint gripper"]
+        return {kv.key: kv.value for kv in status.values}["last_refusal"]
+
+    diagnostics.wait(lambda a: refusal in gripper_refusal(a))
+
+
 def test_a_silent_velocity_joint_ramps_to_zero_after_the_timeout(ros) -> None:
     assert command(ros, "drive", {"op": "set_mode", "mode": "velocity"})["ok"]
     assert command(ros, "drive", {"op": "enable"})["ok"]

@@ -44,9 +44,9 @@ def test_each_joint_takes_its_interface_and_nan_or_inf_is_no_command() -> None:
         ("gripper", 0.004, {"joint": 0.004}),
         ("wheel", 2.5, {"joint_velocity": 2.5}),
     ]
-    assert taken.unknown == taken.problems == []
+    assert taken.unknown == [] and taken.refused is None
     nan = commands().take({"name": ["gripper", "wheel"], "position": [math.nan, 1.0]}, 0.1)
-    assert nan.targets == nan.problems == []  # NaN for the gripper, no velocity list at all
+    assert nan.targets == [] and nan.refused is None  # NaN for the gripper, no velocity list
     assert commands().take({"name": ["wheel"], "velocity": [math.inf]}, 0.2).targets == []
 
 
@@ -56,16 +56,54 @@ def test_a_list_of_one_interface_only_goes_to_the_joints_of_that_interface_in_or
                              "velocity": [1.5]}, 0.0)
     assert [(t.joint.name, t.value) for t in taken.targets] == [("gripper", 0.004),
                                                                 ("wheel", 1.5)]
-    assert taken.problems == []
+    assert taken.refused is None
 
 
 def test_a_list_that_cannot_say_whose_each_value_is_moves_nothing() -> None:
     more = {**JOINTS, "wrist": JointRef("wrist", "s1", "position")}
     taken = Commands(more, 0.5).take(
-        {"name": ["gripper", "wrist", "wheel"], "position": [0.004]}, 0.0)
+        {"name": ["gripper", "wrist", "wheel"], "position": [0.004], "velocity": [1.0]}, 0.0)
     assert taken.targets == []
-    assert taken.problems == ["position has 1 values for 3 names, 2 of them position joints: "
-                              "whose is each? (give every name a value, NaN for none)"]
+    assert taken.refused == (
+        "whose is each value? position has 1, velocity 1 values for 2 position and 1 velocity "
+        "joints (each joint's command interface must be its type, or give every name a value, "
+        "NaN for none)")
+
+
+@pytest.mark.parametrize("message", [
+    # ros2_control's topic-based system, the gripper state-only and a typo with its interface
+    {"name": ["gripper", "gripper_x"], "position": [0.008], "velocity": []},
+    {"name": ["wheel", "wheel_x"], "velocity": [3.0]},
+    {"name": ["gripper_x", "gripper"], "position": [0.006], "velocity": [0.5]},
+    # the wheel with no command interface (or a position one): whose is the one position?
+    {"name": ["gripper", "wheel"], "position": [0.004]},
+    {"name": ["gripper", "gripper", "wheel"], "position": [0.004], "velocity": [1.0]},
+])
+def test_lists_that_do_not_say_for_certain_whose_each_value_is_refuse_the_message(
+        message) -> None:
+    """A value meant for a name of no joint here (or for a joint of another interface) was
+    given by its place to a joint it was not meant for: the gripper took 0.008 m meant for a
+    misspelt joint, the wheel 3 rad/s."""
+    taken = commands()
+    first = taken.take(message, 0.0)
+    assert first.targets == [] and first.refused.startswith("whose is each value? ")
+    assert taken.expired(10.0) == []  # a refused velocity command is no command
+
+
+def test_a_message_that_says_nothing_certain_is_refused_in_one_line_and_the_diagnostics(
+        monkeypatch, caplog) -> None:
+    api, bridge, face = gripper_face()
+    monkeypatch.setattr(api, "ramp_to", lambda *_: pytest.fail("a refused message moved"))
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        face._command({"name": ["gripper", "gripper_x"], "position": [0.008], "velocity": []})
+    refusal = ("whose is each value? position has 1, velocity 0 values for 2 names, 1 of them "
+               "no joint of this gateway (give every name a value, NaN for none)")
+    assert [r.getMessage() for r in caplog.records] == [
+        "ros2: a command names no joint of this gateway: 'gripper_x'",
+        f"ros2: command for joint gripper refused: {refusal}"]
+    assert bridge.soon == []
+    [gripper] = [s for s in face.diagnostics()["status"] if s["name"].endswith("joint gripper")]
+    assert {kv["key"]: kv["value"] for kv in gripper["values"]}["last_refusal"] == refusal
 
 
 def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
@@ -73,7 +111,7 @@ def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
     first = taken.take({"name": ["elbow", "gripper"], "position": [1.0, 0.002]}, 0.0)
     assert first.unknown == ["elbow"] and [t.joint for t in first.targets] == [GRIPPER]
     again = taken.take({"name": ["elbow"], "position": [1.0]}, 0.1)
-    assert again.unknown == again.targets == again.problems == []
+    assert again.unknown == again.targets == [] and again.refused is None
 
 
 def test_unknown_names_are_kept_cut_and_no_more_than_unknown_kept() -> None:
@@ -283,6 +321,16 @@ def test_a_joints_refusals_are_logged_once_a_second_however_their_words_change(c
         assert face._refusals["gripper"] == "refusal 1"  # the diagnostics say the latest
     face._reset_estop({})
     assert bridge.resets == ["ros2"]  # told through the bridge's reports, as the key's reset
+
+
+def test_a_refusal_of_several_joints_is_one_line(caplog) -> None:
+    """A message naming several joints logged its refusal once for each."""
+    _, _, face = gripper_face()
+    face.joints["wheel"] = WHEEL
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        face._refused(["wheel", "elbow", "wheel", "gripper"], "one message's refusal")
+    assert [r.getMessage() for r in caplog.records] == [
+        "ros2: command for joints wheel, gripper refused: one message's refusal"]
 
 
 def ros2_config(ros2: dict, bases: list | None = None):

@@ -4,13 +4,15 @@ velocity joint has waited too long for its next command.
 Rules of this file:
 
 1. A joint is named by its joint name; a position joint takes the message's ``position``, a
-   velocity joint its ``velocity``. A list as long as ``name`` gives each named joint its
-   value, by index (sensor_msgs' rule: every list as long as the names, or empty). A list as
-   long as the named joints of its interface gives them their values in order: ros2_control's
-   topic-based system writes a joint's command only into the list of its command interface.
-   A list of any other length cannot say which value is whose: it moves nothing and is told
-   (``Taken.problems``). A NaN or infinite value is no command for that joint; a joint named
-   twice takes its last value, one target a joint.
+   velocity joint its ``velocity`` (``effort`` is never read). The lists are read one of two
+   ways. sensor_msgs': every list as long as ``name`` or empty, each named joint's value at
+   its index. ros2_control's topic-based system's: each joint's command only in its
+   interface's list, in the order of the names, which says whose each value is only when
+   every name is a joint of this gateway and each list is as long as the named joints of its
+   type (a name of no joint here, or a joint with no command interface or another one, would
+   shift values onto joints they were not meant for). A message read neither way is refused
+   whole (``Taken.refused``): nothing in it moves. A NaN or infinite value is no command for
+   that joint; a joint named twice takes its last value, one target a joint.
 2. A name no joint has is reported once (``unknown`` of the first message that names it),
    then ignored; at most ``UNKNOWN_KEPT`` of them are kept (a peer may send any number, of
    any length), each as a refusal repeats it (``shown``).
@@ -31,6 +33,8 @@ from busgate.schemas.validation import shown
 
 #: The unknown joint names kept for the log and /diagnostics (rule 2).
 UNKNOWN_KEPT = 16
+#: The lists a joint's command is in: a joint's type is its list's name.
+INTERFACES = ("position", "velocity")
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,11 +63,11 @@ class Target:
 @dataclass(slots=True)
 class Taken:
     """What one message asks: its targets, the names no joint has (told the first time),
-    and what in it cannot be taken (rule 1)."""
+    and why it is refused when it is (rule 1: then it has no targets)."""
 
     targets: list[Target] = field(default_factory=list)
     unknown: list[str] = field(default_factory=list)
-    problems: list[str] = field(default_factory=list)
+    refused: str | None = None
 
 
 @dataclass(slots=True)
@@ -78,43 +82,78 @@ class Commands:
     def take(self, message: dict[str, Any], now: float) -> Taken:
         """The targets ``message`` sets (the rules above)."""
         names = message.get("name") or []
-        taken = Taken()
-        known: list[JointRef] = []
-        for name in names:
-            joint = self.joints.get(name)
-            if joint is not None:
-                known.append(joint)
-            elif len(self.unknown) < UNKNOWN_KEPT and (named := shown(name)) not in self.unknown:
-                self.unknown.add(named)
-                taken.unknown.append(named)
-        for interface in ("position", "velocity"):  # a joint type is its list's name
-            values = message.get(interface) or []
-            if not values:
-                continue
-            if len(values) == len(names):
-                pairs = [
-                    (self.joints[name], value)
-                    for name, value in zip(names, values, strict=True)
-                    if name in self.joints and self.joints[name].type == interface
-                ]
-            else:
-                mine = [joint for joint in known if joint.type == interface]
-                if len(values) != len(mine):
-                    taken.problems.append(
-                        f"{interface} has {len(values)} values for {len(names)} names, "
-                        f"{len(mine)} of them {interface} joints: whose is each? (give every "
-                        "name a value, NaN for none)"
-                    )
-                    continue
-                pairs = list(zip(mine, values, strict=True))
-            for joint, value in pairs:
-                if math.isfinite(value):
-                    taken.targets.append(Target(joint, float(value)))
-                    if interface == "velocity":
-                        self._moving[joint.name] = now
+        lists: dict[str, list[float]] = {i: message.get(i) or [] for i in INTERFACES}
+        taken = Taken(unknown=self._newly_unknown(names))
+        if all(len(values) in (0, len(names)) for values in lists.values()):
+            pairs = self._by_index(names, lists)
+        else:
+            taken.refused = self._uncertain(names, lists)
+            if taken.refused is not None:
+                return taken
+            pairs = self._in_order(names, lists)
+        for joint, value in pairs:
+            if math.isfinite(value):
+                taken.targets.append(Target(joint, float(value)))
+                if joint.type == "velocity":
+                    self._moving[joint.name] = now
         # A name given twice: its last value (one target a joint, however long the message).
         taken.targets = list({target.joint.name: target for target in taken.targets}.values())
         return taken
+
+    def _newly_unknown(self, names: list[str]) -> list[str]:
+        """The names no joint has that no message named before (rule 2)."""
+        told = []
+        for name in names:
+            if name in self.joints or len(self.unknown) >= UNKNOWN_KEPT:
+                continue
+            if (named := shown(name)) not in self.unknown:
+                self.unknown.add(named)
+                told.append(named)
+        return told
+
+    def _by_index(
+        self, names: list[str], lists: dict[str, list[float]]
+    ) -> list[tuple[JointRef, float]]:
+        """sensor_msgs' reading: each named joint's value at its index in its type's list."""
+        return [
+            (self.joints[name], value)
+            for interface, values in lists.items()
+            if values  # else as long as the names
+            for name, value in zip(names, values, strict=True)
+            if name in self.joints and self.joints[name].type == interface
+        ]
+
+    def _uncertain(self, names: list[str], lists: dict[str, list[float]]) -> str | None:
+        """Why ros2_control's reading cannot say whose each value is, if it cannot (rule 1)."""
+        strangers = sum(name not in self.joints for name in names)
+        if strangers:
+            return (
+                f"whose is each value? {_lengths(lists)} for {len(names)} names, {strangers} "
+                "of them no joint of this gateway (give every name a value, NaN for none)"
+            )
+        counts = {i: sum(self.joints[name].type == i for name in names) for i in INTERFACES}
+        if all(len(lists[i]) == counts[i] for i in INTERFACES):
+            return None
+        return (
+            f"whose is each value? {_lengths(lists)} for {counts['position']} position and "
+            f"{counts['velocity']} velocity joints (each joint's command interface must be its "
+            "type, or give every name a value, NaN for none)"
+        )
+
+    def _in_order(
+        self, names: list[str], lists: dict[str, list[float]]
+    ) -> list[tuple[JointRef, float]]:
+        """ros2_control's reading, once certain: each list's values to the named joints of its
+        type, in order."""
+        return [
+            (joint, value)
+            for interface, values in lists.items()
+            for joint, value in zip(
+                (j for j in map(self.joints.__getitem__, names) if j.type == interface),
+                values,
+                strict=True,
+            )
+        ]
 
     def expired(self, now: float) -> list[JointRef]:
         """The velocity joints whose last command is older than ``timeout_s``: each is due a
@@ -129,3 +168,9 @@ class Commands:
         for them."""
         for name in joints:
             self._moving.pop(name, None)
+
+
+def _lengths(lists: dict[str, list[float]]) -> str:
+    """How many values each list has, in words (``position has 1, velocity 0 values``)."""
+    position, velocity = (len(lists[i]) for i in INTERFACES)
+    return f"position has {position}, velocity {velocity} values"

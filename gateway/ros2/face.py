@@ -88,6 +88,8 @@ TICK_S = 0.005
 EVERY_SECOND_S = 1.0
 #: A joint's refusals are logged at most this often (rule 2), however their words change.
 REFUSAL_TOLD_EVERY_S = 1.0
+#: A refusal is logged up to this many characters: whole, why included (its names are cut).
+REFUSAL_SHOWN_CHARS = 300
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
@@ -263,9 +265,9 @@ class Ros2Face:
         if hand_on:
             self.bridge.call_soon(self._hand_on)
         for name in taken.unknown:
-            log.warning("ros2: a command names no joint of this gateway: %r (ignored)", name)
-        for problem in taken.problems:
-            self._refused(message.get("name") or [], problem)
+            log.warning("ros2: a command names no joint of this gateway: %r", name)
+        if taken.refused is not None:
+            self._refused(message.get("name") or [], taken.refused)
 
     def _hand_on(self) -> None:
         """The loop's thread: each joint's latest command, to its device (rule 5)."""
@@ -323,17 +325,26 @@ class Ros2Face:
             self._send_trajectory(*following)
 
     def _refused(self, joints: Iterable[str], message: str) -> None:
-        """Told once per joint of this gateway (a name no joint has is ``Commands``' to
-        tell, rule 5)."""
+        """Shown for each joint of this gateway, and told in one line for those not told
+        so lately (a name no joint has is ``Commands``' to tell, rule 5)."""
         moment = time.monotonic()
-        for name in joints:
+        telling: list[str] = []
+        for name in dict.fromkeys(joints):  # a message may name a joint many times
             if name not in self.joints:
                 continue
             told = self._refusal_told.get(name, -math.inf)
             if self._refusals.get(name) != message and moment - told >= REFUSAL_TOLD_EVERY_S:
-                log.warning("ros2: command for joint %s refused: %s", name, shown(message))
+                telling.append(name)
                 self._refusal_told[name] = moment
             self._refusals[name] = message
+        if telling:
+            which = "joint" if len(telling) == 1 else "joints"
+            log.warning(
+                "ros2: command for %s %s refused: %s",
+                which,
+                ", ".join(telling),
+                shown(message, REFUSAL_SHOWN_CHARS),
+            )
 
     def _estop(self, request: dict[str, Any]) -> Future:
         key = f"ros2 {self._resolve(self.section.estop)}"
