@@ -368,20 +368,23 @@ def test_a_command_for_a_joint_another_client_holds_moves_nothing(ros) -> None:
         assert command(ros, "la2", {"op": "release", "client": "teleop"})["ok"]
 
 
-@pytest.mark.parametrize(("names", "velocity", "refusal"), [
+@pytest.mark.parametrize(("names", "more", "velocity", "refusal"), [
     # ros2_control's topic-based system, the gripper state-only and a typo with its interface
-    (["gripper", "gripper_x"], [],
+    (["gripper", "gripper_x"], [], [],
      "position has 1, velocity 0 values for 2 names, 1 of them no joint of this gateway"),
-    (["gripper_x", "gripper"], [0.5],
+    (["gripper_x", "gripper"], [], [0.5],
      "position has 1, velocity 1 values for 2 names, 1 of them no joint of this gateway"),
+    # the wheel commanded through an interface it does not have
+    (["gripper", "wheel"], [1.0], [], "position given for velocity joint wheel"),
 ])
 def test_a_command_that_cannot_say_whose_each_value_is_moves_nothing(
-        ros, names, velocity, refusal) -> None:
-    """The gripper took a value by its place in the list, meant for another name: the message
-    is refused whole, shown in the gripper's diagnostics. A command for la2 sent after it,
-    seen on the wire, says the gateway took the refused one before it."""
+        ros, names, more, velocity, refusal) -> None:
+    """The gripper took a value by its place in the list, meant for another name, or moved
+    while the wheel's value was thrown away without a word: the message is refused whole,
+    shown in the gripper's diagnostics. A command for la2 sent after it, seen on the wire,
+    says the gateway took the refused one before it."""
     gripper_at = command(ros, "la1", {"op": "status"})["state"]["target"]
-    position = [0.006 if gripper_at != 1200 else 0.005]  # somewhere the gripper is not
+    position = [0.006 if gripper_at != 1200 else 0.005, *more]  # somewhere the gripper is not
     la2_at = command(ros, "la2", {"op": "status"})["state"]["target"]
     la2_next = 300 if la2_at != 300 else 500
     diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")

@@ -37,16 +37,15 @@ def commands() -> Commands:
 
 
 def test_each_joint_takes_its_interface_and_nan_or_inf_is_no_command() -> None:
-    taken = commands().take(
-        {"name": ["gripper", "wheel"], "position": [0.004, 9.0], "velocity": [1.0, 2.5]}, 0.0
-    )
+    taken = commands().take({"name": ["gripper", "wheel"], "position": [0.004, math.nan],
+                             "velocity": [-math.inf, 2.5]}, 0.0)
     assert [(t.joint.name, t.value, t.follow_fields) for t in taken.targets] == [
         ("gripper", 0.004, {"joint": 0.004}),
         ("wheel", 2.5, {"joint_velocity": 2.5}),
     ]
     assert taken.unknown == [] and taken.refused is None
-    nan = commands().take({"name": ["gripper", "wheel"], "position": [math.nan, 1.0]}, 0.1)
-    assert nan.targets == [] and nan.refused is None  # NaN for the gripper, no velocity list
+    nan = commands().take({"name": ["gripper", "wheel"], "position": [math.nan, math.nan]}, 0.1)
+    assert nan.targets == [] and nan.refused is None  # NaN for both, no velocity list
     assert commands().take({"name": ["wheel"], "velocity": [math.inf]}, 0.2).targets == []
 
 
@@ -57,6 +56,26 @@ def test_a_list_of_one_interface_only_goes_to_the_joints_of_that_interface_in_or
     assert [(t.joint.name, t.value) for t in taken.targets] == [("gripper", 0.004),
                                                                 ("wheel", 1.5)]
     assert taken.refused is None
+
+
+@pytest.mark.parametrize(("message", "refusal"), [
+    ({"name": ["gripper", "wheel"], "position": [0.007, 1.0]},
+     "position given for velocity joint wheel"),
+    ({"name": ["gripper", "wheel"], "position": [0.004, 9.0], "velocity": [1.0, 2.5]},
+     "position given for velocity joint wheel"),
+    ({"name": ["gripper"], "position": [math.nan], "velocity": [0.5]},
+     "velocity given for position joint gripper"),
+])
+def test_a_joint_given_a_number_in_the_other_types_list_refuses_the_message(
+        message, refusal) -> None:
+    """The wheel's position was thrown away without a word while the gripper moved: a joint
+    commanded through an interface it does not have refuses the message, as ros2_control's
+    lists that say nothing certain do."""
+    taken = commands()
+    first = taken.take(message, 0.0)
+    assert first.targets == [] and first.refused == (
+        f"{refusal}: a joint takes only its type's list (NaN in the other for none)")
+    assert taken.expired(10.0) == []
 
 
 def test_a_list_that_cannot_say_whose_each_value_is_moves_nothing() -> None:
@@ -128,7 +147,8 @@ def test_unknown_names_are_kept_cut_and_no_more_than_unknown_kept() -> None:
 
 def test_a_silent_velocity_joint_is_due_a_stop_once_and_a_position_joint_never() -> None:
     taken = commands()
-    taken.take({"name": ["gripper", "wheel"], "position": [0.004, 0], "velocity": [0, 1.0]}, 0.0)
+    taken.take({"name": ["gripper", "wheel"], "position": [0.004, math.nan],
+                "velocity": [math.nan, 1.0]}, 0.0)
     assert taken.expired(0.5) == []
     assert taken.expired(0.51) == [WHEEL]
     assert taken.expired(5.0) == []  # told once per silence

@@ -6,13 +6,15 @@ Rules of this file:
 1. A joint is named by its joint name; a position joint takes the message's ``position``, a
    velocity joint its ``velocity`` (``effort`` is never read). The lists are read one of two
    ways. sensor_msgs': every list as long as ``name`` or empty, each named joint's value at
-   its index. ros2_control's topic-based system's: each joint's command only in its
-   interface's list, in the order of the names, which says whose each value is only when
-   every name is a joint of this gateway and each list is as long as the named joints of its
-   type (a name of no joint here, or a joint with no command interface or another one, would
-   shift values onto joints they were not meant for). A message read neither way is refused
-   whole (``Taken.refused``): nothing in it moves. A NaN or infinite value is no command for
-   that joint; a joint named twice takes its last value, one target a joint.
+   its index, and no number (NaN) for it in the other type's list: that would be a command
+   through an interface it does not have. ros2_control's topic-based system's: each joint's
+   command only in its interface's list, in the order of the names, which says whose each
+   value is only when every name is a joint of this gateway and each list is as long as the
+   named joints of its type (a name of no joint here, or a joint with no command interface
+   or another one, would shift values onto joints they were not meant for). A message read
+   neither way is refused whole (``Taken.refused``): nothing in it moves. A NaN or infinite
+   value is no command for that joint; a joint named twice takes its last value, one target
+   a joint.
 2. A name no joint has is reported once (``unknown`` of the first message that names it),
    then ignored; at most ``UNKNOWN_KEPT`` of them are kept (a peer may send any number, of
    any length), each as a refusal repeats it (``shown``).
@@ -84,13 +86,11 @@ class Commands:
         names = message.get("name") or []
         lists: dict[str, list[float]] = {i: message.get(i) or [] for i in INTERFACES}
         taken = Taken(unknown=self._newly_unknown(names))
-        if all(len(values) in (0, len(names)) for values in lists.values()):
-            pairs = self._by_index(names, lists)
-        else:
-            taken.refused = self._uncertain(names, lists)
-            if taken.refused is not None:
-                return taken
-            pairs = self._in_order(names, lists)
+        by_index = all(len(values) in (0, len(names)) for values in lists.values())
+        taken.refused = (self._misdirected if by_index else self._uncertain)(names, lists)
+        if taken.refused is not None:
+            return taken
+        pairs = (self._by_index if by_index else self._in_order)(names, lists)
         for joint, value in pairs:
             if math.isfinite(value):
                 taken.targets.append(Target(joint, float(value)))
@@ -122,6 +122,29 @@ class Commands:
             for name, value in zip(names, values, strict=True)
             if name in self.joints and self.joints[name].type == interface
         ]
+
+    def _misdirected(self, names: list[str], lists: dict[str, list[float]]) -> str | None:
+        """sensor_msgs' reading: a number for a joint in the other type's list, a command
+        through an interface the joint does not have, as a refusal (rule 1)."""
+        wrong = next(
+            (
+                (self.joints[name], interface)
+                for interface, values in lists.items()
+                if values  # else as long as the names
+                for name, value in zip(names, values, strict=True)
+                if name in self.joints
+                and self.joints[name].type != interface
+                and math.isfinite(value)
+            ),
+            None,
+        )
+        if wrong is None:
+            return None
+        joint, interface = wrong
+        return (
+            f"{interface} given for {joint.type} joint {joint.name}: a joint takes only its "
+            f"type's list (NaN in the other for none)"
+        )
 
     def _uncertain(self, names: list[str], lists: dict[str, list[float]]) -> str | None:
         """Why ros2_control's reading cannot say whose each value is, if it cannot (rule 1)."""
