@@ -337,6 +337,24 @@ def test_a_command_over_64_kib_is_dropped_before_it_is_decoded(ros) -> None:
     assert la_targets(ros, since, 1) == []
 
 
+def test_a_sample_the_node_drops_is_told_in_the_diagnostics(ros) -> None:
+    """The node counted what it dropped but no ROS user could see it: a publisher of the
+    wrong type or a bad serializer learned nothing from /diagnostics."""
+    diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    rmw_put(ros, COMMANDS_KEY, b"\x00\x01\x00\x00 not a JointState")
+
+    def input_status(array):
+        return next(s for s in array.status if s.name == f"{NODE}: input")
+
+    reason = "the last a sample that is not sensor_msgs/msg/JointState CDR"
+    told = input_status(diagnostics.wait(lambda a: reason in input_status(a).message))
+    assert told.level == 1  # WARN, while it comes
+    assert told.message.startswith("dropped in the last second: robot_joint_commands: ")
+    values = {kv.key: kv.value for kv in told.values}
+    assert values["dropped on robot_joint_commands"].endswith(f", {reason}")
+    assert int(values["dropped"]) >= 1
+
+
 def test_a_service_asked_on_a_wildcard_key_is_not_answered(ros) -> None:
     """The reset's request on its exact key without rmw_zenoh's attachment gets an error reply;
     on a wildcard key it is dropped before that: nothing is done and nothing answers."""

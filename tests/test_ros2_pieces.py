@@ -18,6 +18,7 @@ from busgate.gateway.ros2.diagnostics import (
     STALE,
     WARN,
     BusHealth,
+    Dropped,
     JointHealth,
     diagnostic_array,
 )
@@ -212,7 +213,7 @@ def health(state: dict | None, **fields) -> JointHealth:
     (health({"online": True, "stale": False}), OK, "ok"),
 ])
 def test_a_joints_level_is_its_worst_reason(joint, level, message) -> None:
-    [status, _] = diagnostic_array("node", {"sec": 1, "nanosec": 2}, [joint], [])["status"]
+    [status, _, _] = diagnostic_array("node", {"sec": 1, "nanosec": 2}, [joint], [])["status"]
     assert (status["level"], status["message"]) == (level, message)
     assert status["name"] == "node: joint gripper"
     values = {kv["key"]: kv["value"] for kv in status["values"]}
@@ -222,8 +223,26 @@ def test_a_joints_level_is_its_worst_reason(joint, level, message) -> None:
 def test_unknown_joint_names_are_a_warning_of_the_commands_status() -> None:
     statuses = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [], {"elbow", "arm"})
     assert [(s["name"], s["level"], s["message"]) for s in statuses["status"]] == [
-        ("n: commands", WARN, "commands name unknown joints: arm, elbow")]
-    quiet = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [])["status"][-1]
+        ("n: commands", WARN, "commands name unknown joints: arm, elbow"), ("n: input", OK, "ok")]
+    quiet = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [])["status"][-2]
+    assert (quiet["level"], quiet["message"]) == (OK, "ok")
+
+
+def test_what_the_node_dropped_is_a_warning_of_the_input_status_the_second_it_came() -> None:
+    """The node counted what it dropped (a sample without rmw_zenoh's attachment, not its
+    type's CDR) and said it in a warning a minute at most: no ROS user saw it."""
+    commands = Dropped("robot_joint_commands", 5, 2, "a sample without rmw_zenoh's attachment")
+    estop = Dropped("~/reset_estop", 1, 0, "a request on 0/x/**, not the service's key")
+    [*_, status] = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [], (),
+                                    [commands, estop])["status"]
+    assert (status["name"], status["level"], status["message"]) == (
+        "n: input", WARN, "dropped in the last second: robot_joint_commands: 2, the last a "
+        "sample without rmw_zenoh's attachment")
+    assert {kv["key"]: kv["value"] for kv in status["values"]} == {
+        "dropped": "6",
+        "dropped on robot_joint_commands": "5, the last a sample without rmw_zenoh's attachment",
+        "dropped on ~/reset_estop": "1, the last a request on 0/x/**, not the service's key"}
+    quiet = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [], (), [estop])["status"][-1]
     assert (quiet["level"], quiet["message"]) == (OK, "ok")
 
 
@@ -232,8 +251,8 @@ def test_a_bus_is_an_error_when_down_and_a_warning_when_it_erred() -> None:
     levels = [s["level"] for s in diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [
         BusHealth("uart0", False, stats, 0), BusHealth("uart1", True, stats, 2),
         BusHealth("can0", True, stats, 0)])["status"]]
-    assert levels == [ERROR, WARN, OK, OK]
-    [up, _] = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [],
+    assert levels == [ERROR, WARN, OK, OK, OK]
+    [up, _, _] = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [],
                                [BusHealth("can0", True, stats, 0)])["status"]
     assert {kv["key"]: kv["value"] for kv in up["values"]} == {
         "up": "true", "utilisation": "0.25", "timeouts": "3"}

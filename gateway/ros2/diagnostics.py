@@ -15,7 +15,11 @@ Rules of this file:
 4. One more status, ``<node>: commands``, is WARN once commands have named joints the gateway
    does not have (each is told in the log once), naming them: a controller's config that
    names them needs fixing.
-5. Pure: states, statistics and refusals in, the message out.
+5. One more, ``<node>: input``, is WARN when the node dropped samples or requests since the
+   last status (``node`` rule 2: not the type's CDR, without rmw_zenoh's attachment, on a
+   wildcard, too large), naming each topic or service that dropped and its last reason; its
+   values are the count since the start, each such topic's or service's among them.
+6. Pure: states, statistics and refusals in, the message out.
 """
 
 from __future__ import annotations
@@ -49,21 +53,44 @@ class BusHealth:
     new_errors: int  # timeouts and bad checksums since the last status
 
 
+@dataclass(frozen=True, slots=True)
+class Dropped:
+    """What one topic or service of the node dropped (rule 5)."""
+
+    entity: str
+    count: int  # since the start
+    new: int  # since the last status
+    last: str  # the last one, in words
+
+
 def diagnostic_array(
     node: str,
     stamp: dict[str, int],
     joints: list[JointHealth],
     buses: list[BusHealth],
     unknown: Iterable[str] = (),
+    dropped: Iterable[Dropped] = (),
 ) -> dict[str, Any]:
     """The message (the rules above); ``unknown``: the joint names commands gave that no
-    joint has (rule 4)."""
+    joint has (rule 4); ``dropped``: each topic or service that dropped any (rule 5)."""
     return {
         "header": {"stamp": stamp, "frame_id": ""},
         "status": [_joint_status(node, j) for j in joints]
         + [_bus_status(node, b) for b in buses]
-        + [_commands_status(node, sorted(unknown))],
+        + [_commands_status(node, sorted(unknown)), _input_status(node, list(dropped))],
     }
+
+
+def _input_status(node: str, dropped: list[Dropped]) -> dict[str, Any]:
+    lately = [f"{d.entity}: {d.new}, the last {d.last}" for d in dropped if d.new]
+    if lately:
+        level, message = WARN, f"dropped in the last second: {'; '.join(lately)}"
+    else:
+        level, message = OK, "ok"
+    values = {"dropped": sum(d.count for d in dropped)} | {
+        f"dropped on {d.entity}": f"{d.count}, the last {d.last}" for d in dropped
+    }
+    return _status(level, f"{node}: input", message, node, values)
 
 
 def _commands_status(node: str, unknown: list[str]) -> dict[str, Any]:

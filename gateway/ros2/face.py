@@ -61,7 +61,7 @@ from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef, Target
-from busgate.gateway.ros2.diagnostics import BusHealth, JointHealth, diagnostic_array
+from busgate.gateway.ros2.diagnostics import BusHealth, Dropped, JointHealth, diagnostic_array
 from busgate.gateway.ros2.node import NodeName, Ros2Node
 from busgate.gateway.ros2.trajectory import trajectory_command
 from busgate.schemas.encoding import message_json
@@ -125,6 +125,7 @@ class Ros2Face:
         self._due: dict[str, tuple[Target, int]] = {}
         self._handing_on = False  # the loop is due to hand on ``_due``
         self._errors_seen: dict[str, int] = {}  # bus → timeouts and bad checksums so far
+        self._drops_seen: dict[str, int] = {}  # topic or service → drops told in /diagnostics
         self._node: Ros2Node | None = None
         self._estopped: bool | None = None
         self._failed: set[str] = set()  # what failed and was told (rule 6)
@@ -251,7 +252,23 @@ class Ros2Face:
             buses.append(BusHealth(name, runner.owner.is_open, stats, new_errors))
         with self._commands_lock:  # zenoh's threads add to it
             unknown = set(self.commands.unknown)
-        return diagnostic_array(self.node_name, time_of(time.time()), joints, buses, unknown)
+        stamp = time_of(time.time())
+        return diagnostic_array(
+            self.node_name, stamp, joints, buses, unknown, self._dropped_since_last()
+        )
+
+    def _dropped_since_last(self) -> list[Dropped]:
+        """What each of the node's topics and services dropped, and how much of it since the
+        last status."""
+        node = self._node
+        if node is None:  # not open: nothing came
+            return []
+        dropped = []
+        for entity, drops in list(node.drops.items()):  # zenoh's threads add to them
+            count, last = drops.count, drops.last
+            dropped.append(Dropped(entity, count, count - self._drops_seen.get(entity, 0), last))
+            self._drops_seen[entity] = count
+        return dropped
 
     # -- in (zenoh's threads: hand over only) -----------------------------------------------
 

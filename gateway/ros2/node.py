@@ -10,8 +10,9 @@ Rules of this file:
 2. What comes off the network never raises: a sample without rmw_zenoh's attachment (as
    rmw_zenoh's own subscriptions drop it: a plain zenoh put drives no joint) or whose payload
    is not the type's CDR is dropped, counted, and said in a warning at most once every
-   ``DROPS_TOLD_EVERY_S`` an entity (a ROS user with a wrong type or a bad serializer learns
-   why nothing moves); a request without its attachment or CDR is answered with
+   ``DROPS_TOLD_EVERY_S`` an entity, each entity's count and last reason kept for the
+   diagnostics (``drops``: a ROS user with a wrong type or a bad serializer learns why
+   nothing moves); a request without its attachment or CDR is answered with
    an error reply and nothing is done, but for the e-stop's (``always=True``): an e-stop is
    carried out whatever its request looks like. Data is taken only on its entity's exact
    key, as rmw_zenoh's publishers and clients send it: a put or get on a wildcard key
@@ -57,6 +58,16 @@ DROPS_TOLD_EVERY_S = 60.0
 ServiceHandler = Callable[[dict[str, Any]], "Future[dict[str, Any]]"]
 
 
+@dataclass(slots=True)
+class Drops:
+    """What one entity dropped (rule 2)."""
+
+    count: int = 0
+    last: str = ""  # the last one, in words
+    told_at: float = -DROPS_TOLD_EVERY_S  # when a warning last said them (monotonic)
+    held: int = 0  # dropped since that warning
+
+
 @dataclass(frozen=True, slots=True)
 class NodeName:
     """Where the node is in the ROS graph."""
@@ -100,8 +111,9 @@ class Ros2Node:
         self.name = name
         self._estops = estops  # the gateway's count, for what the subscriptions take
         self.zid = str(session.zid())
-        self.dropped = 0  # samples and requests dropped: not their type's CDR, or on a wildcard
-        self._drops_told: dict[str, tuple[float, int]] = {}  # entity: when told, held since
+        #: entity → the samples and requests it dropped (rule 2): not its type's CDR, on a
+        #: wildcard, without the attachment, over its size
+        self.drops: dict[str, Drops] = {}
         self._entity_ids = itertools.count(1)
         self._keep: list[Any] = []
         self._intakes: list[Intake] = []  # rule 3
@@ -223,13 +235,14 @@ class Ros2Node:
 
     def _drop(self, entity: str, what: str) -> None:
         """``what`` came to ``entity`` and was dropped: counted, and told (rule 2)."""
-        self.dropped += 1
+        drops = self.drops.setdefault(entity, Drops())
+        drops.count += 1
+        drops.last = what
         moment = time.monotonic()
-        told, held = self._drops_told.get(entity, (-DROPS_TOLD_EVERY_S, 0))
-        if moment - told < DROPS_TOLD_EVERY_S:
-            self._drops_told[entity] = (told, held + 1)
+        if moment - drops.told_at < DROPS_TOLD_EVERY_S:
+            drops.held += 1
             log.debug("ros2: %s: dropped %s", entity, what)
             return
-        self._drops_told[entity] = (moment, 0)
-        also = f" ({held} more dropped since the last such line)" if held else ""
+        also = f" ({drops.held} more dropped since the last such line)" if drops.held else ""
+        drops.told_at, drops.held = moment, 0
         log.warning("ros2: %s: dropped %s%s", entity, what, also)
