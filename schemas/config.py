@@ -299,21 +299,26 @@ def _check_bases(bases: list[BaseConfig], buses: list[SerialBus | CanBus]) -> No
 
 
 def _require_own_device_files(buses: list[SerialBus | CanBus]) -> None:
-    """One bus per device file, however it is named: two would share the line unknowingly
-    (or the second never opens it: the first holds it exclusively)."""
+    """One bus per device file, however it is named, and per SocketCAN channel: two would
+    share the line unknowingly, each taking the other's replies for its own devices' (or the
+    second never opens a file: the first holds it exclusively)."""
     first: dict[str, tuple[str, str]] = {}  # real path: (bus, the name it gave)
     for index, bus in enumerate(buses):
-        if bus.device_key is None:
+        if bus.device_key is not None:
+            key, name = bus.device_key
+            real = os.path.realpath(name)
+        elif isinstance(bus, CanBus):  # a socket's channel, no file
+            key, name = "channel", f"{bus.interface} channel {bus.channel}"
+            real = name
+        else:
             continue
-        key, name = bus.device_key
-        real = os.path.realpath(name)
         if real not in first:
             first[real] = (bus.name, name)
             continue
         other_bus, other_name = first[real]
         raise ValueError(
             f"buses[{index}].{key}: buses {other_bus!r} and {bus.name!r} both open "
-            f"{_one_file(real, other_name, name)}; give each bus its own port"
+            f"{_one_file(real, other_name, name)}; give each bus its own {key}"
         )
 
 

@@ -196,6 +196,19 @@ def test_socketcan_channels_and_distinct_ports_are_not_device_files_in_common() 
     assert len(parse_config(data).buses) == 3
 
 
+def test_one_bus_per_socketcan_channel() -> None:
+    """Two buses on one channel would each take the other's replies for its own devices'
+    (an outside audit found two ZLAC706 of id 1 on can0 taken as valid)."""
+    can0 = {**_second_bus("can0", channel="can0"), "interface": "socketcan"}
+    twin = {**can0, "name": "can1", "devices": [{"name": "w2", "kind": "zlac706", "id": 1}]}
+    error = refused(lambda d: d["buses"].extend([can0, twin]))
+    assert str(error) == ("buses[2].channel: buses 'can0' and 'can1' both open socketcan "
+                          "channel can0; give each bus its own channel")
+    data = copy.deepcopy(BASE)
+    data["buses"] += [can0, {**twin, "interface": "virtual"}]  # another interface's can0
+    assert len(parse_config(data).buses) == 3
+
+
 def test_unknown_keys_and_wrong_types_are_refused_not_ignored() -> None:
     assert refused(lambda d: d["buses"][0].update(baud=9600)).path == "buses[0].baud"
     assert refused(lambda d: d["buses"][0].update(baudrate="fast")).path == "buses[0].baudrate"
