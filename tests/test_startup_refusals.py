@@ -20,6 +20,7 @@ import serial
 
 from busgate.codecs import inspire_la as la
 from busgate.errors import BusUnavailableError
+from busgate.gateway.bus import port_access
 from busgate.gateway.bus.port_access import UDEV_RULES, describe_open_error
 from busgate.gateway.cli import main
 from busgate.gateway.service.assembly import build_bus
@@ -246,9 +247,26 @@ def test_describe_open_error_tells_each_trouble_from_what_the_open_raised(simula
     text = describe_open_error("/dev/ttyUSB0", denied)
     assert text.startswith("/dev/ttyUSB0: permission denied for user ")
     assert "dialout group" in text and UDEV_RULES in text
+    # EPERM whatever the mode: a device cgroup's (the unit's DeviceAllow= lines), by driver
+    cgroup = PermissionError(errno.EPERM, "Operation not permitted", "/dev/ttySC0")
+    text = describe_open_error(str(tmp_path / "ttySC0"), cgroup)
+    assert "not permitted, whatever its mode" in text and "dialout" not in text
+    assert 'DeviceAllow=char-<its driver in /proc/devices> rw' in text  # no such file here
     broken = OSError(errno.EIO, "Input/output error")
     assert describe_open_error("/dev/ttyUSB0", broken) == \
         "cannot open /dev/ttyUSB0: Input/output error"
+
+
+def test_a_port_the_kernel_does_not_permit_is_told_its_drivers_deviceallow_name(
+        tmp_path, monkeypatch) -> None:
+    """Drivers share major numbers (4: ``tty`` and ``ttyS``): the longest name the device
+    file's own starts with is its (/dev/null, major 1, stands in for a port here)."""
+    devices = tmp_path / "devices"
+    devices.write_text("Character devices:\n  1 mem\n  1 n\n  1 nul\n  4 ttyS\n\n"
+                       "Block devices:\n  1 null\n")
+    monkeypatch.setattr(port_access, "PROC_DEVICES", devices)
+    assert describe_open_error("/dev/null", PermissionError(errno.EPERM, "x")).endswith(
+        '"DeviceAllow=char-nul rw")')
 
 
 # -- the command line -----------------------------------------------------------------------

@@ -33,7 +33,8 @@ MISSING, LOCKED, DENIED, NOT_A_DEVICE = "missing", "locked", "permission_denied"
 #: What a path that can never be a port is told to be instead.
 _NO_PORT = "a serial port is a device file (/dev/ttyUSB0, /dev/serial/by-id/…); give its path"
 _MISSING_ERRNOS = {errno.ENOENT, errno.ENODEV, errno.ENXIO}
-_DENIED_ERRNOS = {errno.EACCES, errno.EPERM}
+_DENIED_ERRNOS = {errno.EACCES}
+PROC_DEVICES = Path("/proc/devices")
 _LOCKED_ERRNOS = {errno.EAGAIN, errno.EBUSY}  # flock refused (EWOULDBLOCK); TIOCEXCL (EBUSY)
 
 
@@ -90,6 +91,8 @@ def describe_open_error(port: str, exc: BaseException) -> str:
         return missing(port)
     if code in _DENIED_ERRNOS:
         return denied(port)
+    if code == errno.EPERM:
+        return not_permitted(port)
     if code in _LOCKED_ERRNOS:
         return locked(port, lock_holder(port))
     reason = (cause.strerror or str(cause)) if cause is not None else str(exc)
@@ -143,6 +146,38 @@ def denied(port: str) -> str:
         f"(sudo usermod -aG {group} {user}, then log in again) or install {UDEV_RULES}, "
         f"which gives the adapters to group {SERIAL_GROUP} with mode 0660"
     )
+
+
+def not_permitted(port: str) -> str:
+    """A port whose open the kernel refuses whatever the file's mode (``EPERM``): a device
+    cgroup's, as the systemd unit's ``DeviceAllow=`` makes one, names the drivers allowed."""
+    driver = _driver_name(port)
+    allow = f"char-{driver}" if driver else "char-<its driver in /proc/devices>"
+    return (
+        f"{port}: not permitted, whatever its mode: under the systemd unit only the tty "
+        "drivers its DeviceAllow= lines name may be opened (ttyUSB, ttyACM, ttyS, ttyAMA); "
+        f'add this one\'s in a drop-in (systemctl edit busgate: "DeviceAllow={allow} rw")'
+    )
+
+
+def _driver_name(port: str) -> str | None:
+    """The name ``/proc/devices`` gives the driver of the character device ``port`` (what
+    a device cgroup's ``char-`` rule names), ``None`` when not found. Drivers may share a
+    major number (4: ``tty`` and ``ttyS``): the longest that the device file's name starts
+    with is its."""
+    try:
+        major = os.major(os.stat(port).st_rdev)
+        table = PROC_DEVICES.read_text()
+    except OSError:
+        return None
+    file_name = os.path.basename(os.path.realpath(port))
+    characters = table.split("Block devices:")[0].splitlines()
+    names = [
+        name
+        for number, _, name in (line.strip().partition(" ") for line in characters)
+        if number == str(major) and file_name.startswith(name)
+    ]
+    return max(names, key=len, default=None)
 
 
 def lock_holder(port: str) -> int | None:
