@@ -173,6 +173,9 @@ class BusRunner:
         self._evented = False
         self._stop = threading.Event()
         self._reconnect = Reconnect(name)
+        #: Why the last attempt to open the bus failed; ``None`` before the first attempt and
+        #: once it is open (the daemon's READY and STATUS for systemd read it).
+        self.open_failure: str | None = None
         self.last_turn = now()
         self._thread = threading.Thread(target=self._run, name=f"bus-{name}", daemon=True)
 
@@ -463,11 +466,13 @@ class BusRunner:
             try:
                 self.owner.open()
             except BusUnavailableError as exc:
+                self.open_failure = str(exc)
                 wait = reconnect.failed(exc, now())
         if not self.owner.is_open:
             self._stop.wait(wait)
             self._drain_inbox()
             return False
+        self.open_failure = None
         if not reconnect.quick_losses:  # else one of many: summed up (link rule 3)
             log.info("bus %s up on %s", self.name, self.owner.port)
         if reconnect.opened(now()):

@@ -7,7 +7,8 @@ It refuses to start, in one line and with exit status 2, when a port is locked b
 process (retrying would not win it) or zenoh or the metrics endpoint cannot listen where told
 (the address is in use: another gateway or demo), before any bus is opened; a port that does
 not exist yet only delays its bus, which retries.
-Under systemd (Type=notify) it says READY once every bus is open, pings the watchdog only
+Under systemd (Type=notify) it says READY once every bus has had its first attempt to open
+(a bus down retries: STATUS says which and why, and follows them), pings the watchdog only
 while every bus thread keeps its schedule (and every worker is alive and talking), and says
 STOPPING on the way out.
 Then it stops in order, within about a second: the streams and the devices (each bus puts its
@@ -66,6 +67,8 @@ log = logging.getLogger("busgate")
 BUS_OPEN_POLL_S = 0.01
 #: Who holds an address a gateway was told to listen on, most of the time.
 IN_USE_HINT = "another busgate demo or run?"
+#: How often systemd's STATUS is brought up to date (a bus that comes up, or goes down).
+STATUS_POLL_S = 0.5
 #: How long the start-up line waits for the buses whose ports look openable to be open.
 FIRST_OPEN_WAIT_S = 1.0
 EVENT_BACKLOG = 10_000
@@ -154,7 +157,7 @@ async def serve(
             ready.set()
         watchdog = Watchdog(notifier, lambda: all(r.keeping_schedule() for r in runners.values()))
         async with asyncio.TaskGroup() as tasks:
-            tasks.create_task(_ready_when_open(notifier, config, runners, stop))
+            tasks.create_task(_ready_once_tried(notifier, config, runners, stop))
             tasks.create_task(watchdog.run(stop))
             if recorder is not None:
                 tasks.create_task(recorder.run(stop))
@@ -304,18 +307,55 @@ def _log_budgets(config: Config) -> None:
             log.warning("bus %s: %s", bus.name, warning)
 
 
-async def _ready_when_open(
+async def _ready_once_tried(
     notifier: Notifier, config: Config, runners: dict[str, BusRunner], stop: asyncio.Event
 ) -> None:
-    """READY=1 once every bus is open (the zenoh session already is), with a status line."""
-    while not stop.is_set() and not all(r.owner.is_open for r in runners.values()):
+    """READY=1 once every bus has had its first attempt to open, open or not (the zenoh
+    session is up already), and STATUS kept saying which buses are down and why. A bus down
+    (its adapter unplugged) retries by itself; held back for it, READY never came and systemd
+    killed the whole gateway at TimeoutStartSec, its healthy buses brought to their safe state
+    each time."""
+    while not stop.is_set() and not all(_tried(r) for r in runners.values()):
         await asyncio.sleep(BUS_OPEN_POLL_S)
-    if not stop.is_set():
-        devices = sum(len(r.drivers) for r in runners.values())
-        notifier.ready(
-            f"gateway {config.gateway.name}: {len(runners)} bus(es) open, "
-            f"{devices} device(s), zenoh up"
-        )
+    if stop.is_set():
+        return
+    down = _down(runners)
+    notifier.ready(_status_line(config, runners, down))
+    if down:
+        log.warning("ready with %s down, retrying: %s", _buses(len(down)), _why(down))
+    while not stop.is_set():
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), STATUS_POLL_S)
+        if (now_down := _down(runners)) != down:
+            down = now_down
+            notifier.status(_status_line(config, runners, down))
+
+
+def _tried(runner: BusRunner) -> bool:
+    """The bus has had its first attempt to open: it is open, or why not is known."""
+    return runner.owner.is_open or runner.open_failure is not None
+
+
+def _down(runners: dict[str, BusRunner]) -> dict[str, str]:
+    """Each bus not open, and why (a bus lost has not failed to open again yet)."""
+    return {
+        name: runner.open_failure or "lost, opening it again"
+        for name, runner in runners.items()
+        if not runner.owner.is_open
+    }
+
+
+def _why(down: dict[str, str]) -> str:
+    return "; ".join(f"bus {name} down: {why}" for name, why in down.items())
+
+
+def _status_line(config: Config, runners: dict[str, BusRunner], down: dict[str, str]) -> str:
+    """systemd's STATUS: how many buses are open, and why each other is not."""
+    devices = sum(len(r.drivers) for r in runners.values())
+    opened = f"{len(runners) - len(down)} of " if down else ""
+    line = f"gateway {config.gateway.name}: {opened}{len(runners)} bus(es) open, "
+    line += f"{devices} device(s), zenoh up"
+    return f"{line}; {_why(down)}" if down else line
 
 
 def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProcess]:

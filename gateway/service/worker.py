@@ -16,7 +16,8 @@ them. Rules of this file:
    them; each bus's ``PlaysView`` and device ids when they changed (looked at when a bus
    thread published a new view or a call was answered, a ``MIRROR_S`` apart at most often),
    and every ``BEAT_S`` whether each bus thread keeps its schedule, whether its bus is open
-   and its statistics (``workers`` rule 1 reads them). With no trajectory playing, the
+   (or why its last attempt to open it failed) and its statistics (``workers`` rule 1 reads
+   them). With no trajectory playing, the
    mirror thread wakes only for the beat.
 3. When the socket closes (the daemon went), ``stop`` comes or SIGTERM, the buses stop in
    order (streams, safe state, close) and the process ends. SIGTERM only closes the socket's
@@ -213,7 +214,12 @@ class Worker:
 
     def _beat(self) -> dict[str, tuple]:
         return {
-            name: (runner.keeping_schedule(), runner.owner.is_open, runner.statistics())
+            name: (
+                runner.keeping_schedule(),
+                runner.owner.is_open,
+                runner.statistics(),
+                runner.open_failure,
+            )
             for name, runner in self.runners.items()
         }
 

@@ -7,8 +7,8 @@ Rules of this file:
 1. A ``WorkerRunner`` answers reads from the gateway's own copy of its bus (the *shadow*: the
    same ``build_bus``, never started, its port never opened), kept as the worker last said:
    each device's state (and from it ``online`` and ``estopped``), its id, the trajectories'
-   ``PlaysView``, the bus's statistics and whether it is open. Every call that moves or sets
-   anything goes to the worker, in the order it was made.
+   ``PlaysView``, the bus's statistics and whether it is open (or why not). Every call that
+   moves or sets anything goes to the worker, in the order it was made.
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
@@ -203,7 +203,10 @@ class WorkerProcess:
         self.config = config
         self.runners = {shadow.name: WorkerRunner(shadow, self) for shadow in shadows}
         self.on_event = shadows[0].telemetry.on_event  # every bus's: the daemon's events
-        self.beat: dict[str, tuple[bool, bool, BusStats]] = {}
+        self.beat: dict[str, tuple[bool, bool, BusStats, str | None]] = {}
+        #: How the last worker ended (``None``: none has), its buses' reason to be down until
+        #: the next one's first beat says how they are.
+        self.ended_because: str | None = None
         self.last_word = now()
         self.process: subprocess.Popen | None = None
         self.outbox: link.Outbox | None = None
@@ -438,7 +441,7 @@ class WorkerProcess:
     def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
         self.runners[bus].took_plays(view, ids)
 
-    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats]]) -> None:
+    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats, str | None]]) -> None:
         self.beat = beat
         self._first_word.set()
 
@@ -462,6 +465,7 @@ class WorkerProcess:
         self._first_word.set()  # start-up goes on: its buses are down
         self.beat = {}
         how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+        self.ended_because = f"{WORKER_ENDED_REASON} ({how})"
         gone = BusUnavailableError(f"the worker of its bus ended ({how})")
         for future in waiting.values():
             with contextlib.suppress(InvalidStateError):  # its caller gave up on it meanwhile
@@ -470,7 +474,7 @@ class WorkerProcess:
             return
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
-            runner.worker_ended(f"{WORKER_ENDED_REASON} ({how})")
+            runner.worker_ended(self.ended_because)
 
 
 class WorkerRunner:
@@ -502,6 +506,13 @@ class WorkerRunner:
     def is_open(self) -> bool:
         beat = self.worker.beat.get(self.name)
         return beat is not None and beat[1]
+
+    @property
+    def open_failure(self) -> str | None:
+        """Why the bus is not open, as its worker last said (``BusRunner.open_failure``), or
+        how its worker ended, when none has said since."""
+        beat = self.worker.beat.get(self.name)
+        return beat[3] if beat is not None else self.worker.ended_because
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
