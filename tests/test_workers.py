@@ -674,11 +674,11 @@ def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_ret
 
 @contextlib.contextmanager
 def two_workers(
-    tmp_path: Path, options: dict[str, dict] | None = None
+    tmp_path: Path, options: dict[str, dict] | None = None, **process_options
 ) -> Iterator[tuple[GatewayProcess, list[SerialSimulator], list[int]]]:
     """``busgate run`` with ``workers = 2`` over two simulated LA buses, ``uart0`` and
-    ``uart1`` (``options``: each bus's further settings), serving: the gateway, the
-    simulators and the workers' pids; all stopped at the end."""
+    ``uart1`` (``options``: each bus's further settings; ``process_options``: ``Popen``'s),
+    serving: the gateway, the simulators and the workers' pids; all stopped at the end."""
     simulators = [
         SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start() for _ in range(2)
     ]
@@ -695,7 +695,7 @@ def two_workers(
     endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
     config = write_config(tmp_path / "gw.toml", endpoint, *tables)
     config.write_text(config.read_text().replace('name = "gw1"\n', 'name = "gw1"\nworkers = 2\n'))
-    gateway = GatewayProcess(config)
+    gateway = GatewayProcess(config, **process_options)
     try:
         workers = [
             int(re.search(r"worker (\d+):", gateway.wait_for("service.worker: worker ")).group(1))
@@ -726,6 +726,29 @@ def test_the_workers_end_with_their_daemon_killed_outright(tmp_path) -> None:
                 if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
             ]
             assert stops, "a worker ended without its devices' safe stop"
+
+
+def _estops_since(simulator: SerialSimulator, mark: int) -> list:
+    return [
+        f
+        for _, f in received(simulator, mark, la)
+        if isinstance(f, la.ControlCommand) and f.code is la.ControlCode.ESTOP
+    ]
+
+
+def test_a_terminal_that_closes_stops_the_daemon_and_its_workers_in_order(tmp_path) -> None:
+    """SIGHUP to the whole process group, as a closed terminal or ssh session sends it: the
+    workers leave it to the daemon, which stops them in order (their default ended each at
+    once, its devices as they were, reported as a worker's end)."""
+    with two_workers(tmp_path, start_new_session=True) as (gateway, simulators, workers):
+        marks = [len(sim.recorder.received()) for sim in simulators]
+        os.killpg(gateway.process.pid, signal.SIGHUP)
+        assert gateway.process.wait(timeout=20) == 0
+        gateway.wait_for("gateway gw1 stopped")
+        assert not [line for line in gateway.logged if "ended:" in line]
+        assert all(_ended(pid) for pid in workers)
+        for sim, mark in zip(simulators, marks, strict=True):
+            assert _estops_since(sim, mark), "a worker ended without its devices' safe stop"
 
 
 def _scheduling(pid: int) -> dict[str, tuple[int, int]]:

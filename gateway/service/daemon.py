@@ -2,7 +2,8 @@
 
 It loads and checks the config (refusing it with the same messages as ``check-config``),
 opens the zenoh session, starts one bus runner per bus (with ``[gateway] workers``, the buses
-that move run in worker processes: ``service.workers``) and serves until SIGTERM or SIGINT.
+that move run in worker processes: ``service.workers``) and serves until SIGTERM, SIGINT or
+SIGHUP (``STOP_SIGNALS``).
 It refuses to start, in one line and with exit status 2, when a port is locked by another
 process (retrying would not win it) or zenoh or the metrics endpoint cannot listen where told
 (the address is in use: another gateway or demo), before any bus is opened; a port that does
@@ -67,6 +68,10 @@ log = logging.getLogger("busgate")
 BUS_OPEN_POLL_S = 0.01
 #: Who holds an address a gateway was told to listen on, most of the time.
 IN_USE_HINT = "another busgate demo or run?"
+#: What stops the daemon in order: systemd and ``kill`` (SIGTERM), a Ctrl-C (SIGINT), a
+#: terminal or ssh session that closes or a habitual ``kill -HUP`` (SIGHUP: nothing is
+#: reloaded; left to its default, it ended the daemon at once, the devices as they were).
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 #: How often systemd's STATUS is brought up to date (a bus that comes up, or goes down).
 STATUS_POLL_S = 0.5
 #: How long the start-up line waits for the buses whose ports look openable to be open.
@@ -80,7 +85,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
         description="Run the gateway: own the configured buses and serve them over zenoh until "
-        "SIGTERM or SIGINT. Exit status 0 once stopped so, 2 when it refuses to start (an "
+        "SIGTERM, SIGINT or SIGHUP. Exit status 0 once stopped so, 2 when it refuses to start (an "
         "invalid config, a port or address in use: one line on stderr per problem).",
     )
     run.add_argument("--config", required=True, help="the gateway's TOML config file")
@@ -104,7 +109,7 @@ def run_daemon(args: argparse.Namespace) -> int:
 async def serve(
     config: Config, *, ready: threading.Event | None = None, stop: asyncio.Event | None = None
 ) -> None:
-    """Serve ``config`` until ``stop`` is set (or SIGTERM/SIGINT when no ``stop`` is given)."""
+    """Serve ``config`` until ``stop`` is set (or a stop signal when no ``stop`` is given)."""
     from busgate.gateway.api import bridge as zenoh_side  # the one module that needs zenoh
 
     expected_up = _check_ports(config)
@@ -371,9 +376,14 @@ def _workers(config: Config, runners: dict[str, BusRunner]) -> list[WorkerProces
 
 
 def stop_on_signals(loop: asyncio.AbstractEventLoop) -> asyncio.Event:
-    """An event set on SIGTERM or SIGINT."""
+    """An event set on any of ``STOP_SIGNALS``, each logged by name."""
     stop = asyncio.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
+    for sig in STOP_SIGNALS:
         with contextlib.suppress(NotImplementedError, RuntimeError):
-            loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(sig, _stop_on, sig, stop)
     return stop
+
+
+def _stop_on(sig: signal.Signals, stop: asyncio.Event) -> None:
+    log.info("%s: stopping", sig.name)
+    stop.set()

@@ -23,8 +23,9 @@ them. Rules of this file:
    order (streams, safe state, close) and the process ends. SIGTERM only closes the socket's
    reading side, so that the stop is the same whatever the main thread was doing when it
    came; once stopping, a SIGTERM more (the daemon's death signal right after its socket
-   closed) is ignored. SIGINT is the daemon's to act on: a Ctrl-C in a terminal reaches the
-   whole process group.
+   closed) is ignored. SIGINT and SIGHUP are the daemon's to act on: a Ctrl-C, or a terminal
+   that closes, reaches the whole process group (left to its default, SIGHUP ended the worker
+   at once, its devices as they were).
 4. A message that cannot be carried out, and a mirror turn that fails, are bugs: logged, and
    the worker goes on.
 5. When a bus of the gateway asks for SCHED_FIFO, every thread of the worker runs under it
@@ -240,7 +241,8 @@ def _stop_on_sigterm(signum: int, frame: Any) -> NoReturn:
 def main() -> int:
     level = sys.argv[2] if len(sys.argv) > 2 else "INFO"  # the daemon's
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's (rule 3)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
     _die_with_the_daemon()
     reader = link.Reader(socket.socket(fileno=int(sys.argv[1])))
