@@ -296,6 +296,21 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     reset_every_device(client)
 
 
+def test_a_worker_sent_a_sigterm_alone_is_reported_and_started_again(
+    served: Served, client
+) -> None:
+    """A SIGTERM to a worker, the daemon not stopping: a worker's end as any other (its
+    supervisor waited for a stop of the daemon that did not come)."""
+    bus = "uart1"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    assert client.device(device).state()["online"] is True  # watched from now on
+    os.kill(victim, signal.SIGTERM)
+    assert bus in served.gateway.wait_for("ended: stopped on a SIGTERM of its own")
+    served.started_again(victim)
+    until_state(client, device, "online", True, timeout=10)  # on its new worker
+
+
 def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Served, client) -> None:
     bus = "uart0"
     device = DEVICES[bus]
@@ -674,11 +689,15 @@ def test_a_worker_stopped_while_its_supervisor_starts_it_has_ended_when_stop_ret
 
 @contextlib.contextmanager
 def two_workers(
-    tmp_path: Path, options: dict[str, dict] | None = None, **process_options
+    tmp_path: Path,
+    options: dict[str, dict] | None = None,
+    recorder: Path | None = None,
+    **process_options,
 ) -> Iterator[tuple[GatewayProcess, list[SerialSimulator], list[int]]]:
     """``busgate run`` with ``workers = 2`` over two simulated LA buses, ``uart0`` and
-    ``uart1`` (``options``: each bus's further settings; ``process_options``: ``Popen``'s),
-    serving: the gateway, the simulators and the workers' pids; all stopped at the end."""
+    ``uart1`` (``options``: each bus's further settings; ``recorder``: the flight recorder's
+    folder; ``process_options``: ``Popen``'s), serving: the gateway, the simulators and the
+    workers' pids; all stopped at the end."""
     simulators = [
         SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start() for _ in range(2)
     ]
@@ -695,6 +714,8 @@ def two_workers(
     endpoint = f"tcp/127.0.0.1:{unused_loopback_port()}"
     config = write_config(tmp_path / "gw.toml", endpoint, *tables)
     config.write_text(config.read_text().replace('name = "gw1"\n', 'name = "gw1"\nworkers = 2\n'))
+    if recorder is not None:
+        config.write_text(config.read_text() + f'[recorder]\ndir = "{recorder}"\n')
     gateway = GatewayProcess(config, **process_options)
     try:
         workers = [
@@ -748,6 +769,28 @@ def test_a_terminal_that_closes_stops_the_daemon_and_its_workers_in_order(tmp_pa
         assert not [line for line in gateway.logged if "ended:" in line]
         assert all(_ended(pid) for pid in workers)
         for sim, mark in zip(simulators, marks, strict=True):
+            assert _estops_since(sim, mark), "a worker ended without its devices' safe stop"
+
+
+def test_a_service_stop_whose_sigterm_reaches_the_workers_first_is_no_workers_end(
+    tmp_path,
+) -> None:
+    """``systemctl stop`` signals the daemon and its workers at once. A worker's end on its
+    own SIGTERM, read before the daemon had handled its own, was taken for a worker's failure:
+    an error logged, its devices said offline, an incident file written. Here the workers end
+    first for certain: the daemon's SIGTERM is sent once they have ended."""
+    incidents = tmp_path / "incidents"
+    with two_workers(tmp_path, recorder=incidents) as (gateway, simulators, workers):
+        marks = [len(sim.recorder.received()) for sim in simulators]
+        for pid in workers:
+            os.kill(pid, signal.SIGTERM)
+        wait_until(lambda: all(_ended(pid) for pid in workers), 10, "the workers stopped")
+        gateway.process.send_signal(signal.SIGTERM)
+        assert gateway.process.wait(timeout=20) == 0
+        gateway.wait_for("gateway gw1 stopped")
+        assert not [line for line in gateway.logged if "ended:" in line or "ERROR" in line]
+        assert not list(incidents.glob("*.mcap"))
+        for sim, mark in zip(simulators, marks, strict=True):  # each stopped its buses in order
             assert _estops_since(sim, mark), "a worker ended without its devices' safe stop"
 
 

@@ -170,6 +170,8 @@ async def serve(
                 tasks.create_task(ros2.run(stop))
             await bridge.publish_forever(stop)
     finally:
+        for worker in workers:  # first: a worker's end read from now on is the stop's own
+            worker.stopping()
         notifier.stopping(f"gateway {config.gateway.name} stopping")
         if metrics is not None:
             metrics.stop()

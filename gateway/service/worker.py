@@ -23,9 +23,11 @@ them. Rules of this file:
    order (streams, safe state, close) and the process ends. SIGTERM only closes the socket's
    reading side, so that the stop is the same whatever the main thread was doing when it
    came; once stopping, a SIGTERM more (the daemon's death signal right after its socket
-   closed) is ignored. SIGINT and SIGHUP are the daemon's to act on: a Ctrl-C, or a terminal
-   that closes, reaches the whole process group (left to its default, SIGHUP ended the worker
-   at once, its devices as they were).
+   closed) is ignored. Stopped by a SIGTERM of its own, it ends with ``STOPPED_ON_SIGTERM``
+   (``systemctl stop`` sends one to every process of the service at once: its supervisor may
+   read this end before the daemon has begun its stop). SIGINT and SIGHUP are the daemon's
+   to act on: a Ctrl-C, or a terminal that closes, reaches the whole process group (left to
+   its default, SIGHUP ended the worker at once, its devices as they were).
 4. A message that cannot be carried out, and a mirror turn that fails, are bugs: logged, and
    the worker goes on.
 5. When a bus of the gateway asks for SCHED_FIFO, every thread of the worker runs under it
@@ -74,6 +76,10 @@ log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
 #: How often at most each bus's trajectories and device ids are looked at (rule 2).
 MIRROR_S = 0.01
 PR_SET_PDEATHSIG = 1
+#: The exit status of a worker that stopped on a SIGTERM of its own, not on the daemon's
+#: ``stop`` (rule 3): as a shell says a death by SIGTERM, so that its supervisor tells it from
+#: a failure (``workers`` rule 3).
+STOPPED_ON_SIGTERM = 128 + signal.SIGTERM
 
 
 class Worker:
@@ -88,6 +94,8 @@ class Worker:
         self._estops_handed: set[str] = set()
         #: Something the mirror sends may have changed: a new trajectory view, an answer (rule 2).
         self._mirror_due = Flag()
+        #: A SIGTERM of its own stopped it (rule 3), not the daemon's ``stop``.
+        self.stopped_on_sigterm = False
         self.runners: dict[str, BusRunner] = {
             bus.name: build_bus(bus, on_event=self._event, on_state=partial(self._state, bus.name))
             for bus in config.buses
@@ -131,6 +139,7 @@ class Worker:
 
     def _stop_reading(self, signum: int, frame: Any) -> None:
         """SIGTERM: the read loop ends as when the daemon's socket closes (rule 3)."""
+        self.stopped_on_sigterm = True
         with contextlib.suppress(OSError):
             self.reader.sock.shutdown(socket.SHUT_RD)
 
@@ -235,7 +244,7 @@ def _die_with_the_daemon() -> None:
 
 
 def _stop_on_sigterm(signum: int, frame: Any) -> NoReturn:
-    raise SystemExit(0)
+    raise SystemExit(STOPPED_ON_SIGTERM)
 
 
 def main() -> int:
@@ -255,8 +264,9 @@ def main() -> int:
     # Its claim tables mirror the daemon's, which logs every change: one line each, not two.
     logging.getLogger(authority.__name__).setLevel(logging.ERROR)
     log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
-    Worker(reader, config, buses).run(estopped)
-    return 0
+    worker = Worker(reader, config, buses)
+    worker.run(estopped)
+    return STOPPED_ON_SIGTERM if worker.stopped_on_sigterm else 0
 
 
 if __name__ == "__main__":

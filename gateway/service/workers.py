@@ -20,7 +20,11 @@ Rules of this file:
    ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
    worker is started again after ``RESTART_S`` (longer each time, up to ``RESTART_MAX_S``,
    while it ends before it has run ``STEADY_S`` since its first word), with nothing to
-   resume: no stream, no play, no ramp; a client commands again. While its supervisor waits
+   resume: no stream, no play, no ramp; a client commands again. A worker that ends while the
+   daemon stops is none of that, nor one stopped by a SIGTERM of its own (``systemctl stop``
+   signals every process of the service at once) when the daemon's stop follows within
+   ``SIGTERM_WAIT_S``: read before the daemon's own SIGTERM was handled, it was taken for a
+   worker's failure, its devices said offline and an incident written. While its supervisor waits
    to start it again the worker keeps its schedule for systemd's watchdog, as a bus whose
    link is lost does: its devices are offline and said so, nothing hangs (taken for hung, a
    worker's wait of 30 s had systemd kill the whole gateway after 10).
@@ -34,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
+import signal
 import socket
 import subprocess
 import sys
@@ -73,6 +78,9 @@ FIRST_WORD_S = 5.0
 SLOW_START_S = 20.0
 #: How long a stopping worker is given to stop its buses before it is killed.
 STOP_S = 2.0
+#: How long the supervisor of a worker stopped by a SIGTERM of its own waits for the daemon's
+#: stop before that end is a worker's end (rule 3): ``systemctl stop`` signals them together.
+SIGTERM_WAIT_S = 2.0
 
 
 def restart_delay(previous_s: float, *, steady: bool) -> float:
@@ -241,11 +249,16 @@ class WorkerProcess:
         within ``timeout``."""
         return self._first_word.wait(timeout)
 
+    def stopping(self) -> None:
+        """The daemon stops: an end of the worker from now on is no worker's end, and it is
+        not started again (rule 3); ``stop`` follows."""
+        self._stopping.set()
+
     def stop(self) -> None:
         """Stop the worker's buses in order (streams, safe state, close), then the worker:
         returns once no worker runs, even one its supervisor was starting meanwhile (told to
         stop by ``_spawn``), after ``STOP_S`` by killing it."""
-        self._stopping.set()
+        self.stopping()
         with self._lock:
             outbox = self.outbox
         if outbox is not None:
@@ -464,17 +477,33 @@ class WorkerProcess:
         code = process.wait()
         self._first_word.set()  # start-up goes on: its buses are down
         self.beat = {}
-        how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+        how = _how_it_ended(code)
         self.ended_because = f"{WORKER_ENDED_REASON} ({how})"
         gone = BusUnavailableError(f"the worker of its bus ended ({how})")
         for future in waiting.values():
             with contextlib.suppress(InvalidStateError):  # its caller gave up on it meanwhile
                 future.set_exception(gone)
-        if self._stopping.is_set():
+        if self._daemon_stops(code):
             return
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             runner.worker_ended(self.ended_because)
+
+    def _daemon_stops(self, code: int) -> bool:
+        """The daemon is stopping, or (the worker ended on a SIGTERM of its own) begins to
+        within ``SIGTERM_WAIT_S`` (rule 3). The daemon's stop is waited for, never guessed
+        from the signal: a worker sent a SIGTERM alone is reported and started again as any
+        worker that ends; and the daemon, not the worker, knows whether it stops."""
+        if code in (worker_process.STOPPED_ON_SIGTERM, -signal.SIGTERM):
+            return self._stopping.wait(SIGTERM_WAIT_S)
+        return self._stopping.is_set()
+
+
+def _how_it_ended(code: int) -> str:
+    """A worker's exit status in words."""
+    if code == worker_process.STOPPED_ON_SIGTERM:
+        return "stopped on a SIGTERM of its own"
+    return f"killed by signal {-code}" if code < 0 else f"exit status {code}"
 
 
 class WorkerRunner:
