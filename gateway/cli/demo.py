@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import logging
 import math
 import os
 import shlex
@@ -42,6 +41,7 @@ from busgate.codecs.ros2.rmw_zenoh import resolve
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
 from busgate.errors import CommandError
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
+from busgate.gateway.service import logs
 from busgate.gateway.service.daemon import serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.recorder import Recorder
@@ -212,7 +212,7 @@ def run_demo(args: argparse.Namespace) -> int:
         if args.no_dashboard
         else Listen.parse(args.dashboard_listen, args.dashboard_allow_host)
     )
-    logging.basicConfig(level="INFO", format="%(levelname)s %(name)s: %(message)s")
+    logs.configure("INFO")
     with contextlib.ExitStack() as simulators:
         # Bound before anything starts: a port in use is refused at once, not after the
         # gateway came up (held until the dashboard serves it).

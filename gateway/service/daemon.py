@@ -46,6 +46,7 @@ from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.service import logs
 from busgate.gateway.service.assembly import (
     STOP_TIMEOUT_S,
     build_bus,
@@ -100,7 +101,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_daemon(args: argparse.Namespace) -> int:
-    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
+    logs.configure(args.log_level.upper())
     config = load_config(args.config)
     asyncio.run(serve(config))
     return 0

@@ -62,6 +62,7 @@ from busgate.gateway.bus.flag import Flag
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.scheduler import authority
 from busgate.gateway.scheduler.runner import BusRunner, let_estops_go
+from busgate.gateway.service import logs
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service.assembly import (
     STOP_TIMEOUT_S,
@@ -249,7 +250,7 @@ def _stop_on_sigterm(signum: int, frame: Any) -> NoReturn:
 
 def main() -> int:
     level = sys.argv[2] if len(sys.argv) > 2 else "INFO"  # the daemon's
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    logs.configure(level)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's (rule 3)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
