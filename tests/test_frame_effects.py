@@ -51,7 +51,9 @@ DS_SERVO = [
     ('{"op":"write","address":20,"data":"0010"}', Effect.MOTION),  # the centre's offset
     ('{"op":"write","address":28,"data":"01"}', Effect.MOTION),  # the motor mode
     ('{"op":"write","address":29,"data":"01"}', Effect.MOTION),  # its direction
-    ('{"op":"write","address":9,"data":"0100"}', Effect.SETTING),  # the travel's lower limit
+    # the travel's limits: the servo clamps each target to them (a raised min drives it)
+    ('{"op":"write","address":9,"data":"0100"}', Effect.MOTION),
+    ('{"op":"write","address":16,"data":"0320"}', Effect.SETTING),  # the torque's limit
     ('{"op":"move","position":100}', Effect.MOTION),
     ('{"op":"goto_preset","n":2}', Effect.MOTION),
     ('{"op":"ping"}', Effect.READ),
