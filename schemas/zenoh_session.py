@@ -47,6 +47,12 @@ MAX_FILE_BYTES = 1024 * 1024
 TLS_PROTOCOLS = ("tls/", "quic/")
 
 
+#: How long a check for live gateways waits for their liveliness tokens and ``info`` answers:
+#: ``busgate replay``'s for its ``--prefix``, a gateway's for its own name before it declares
+#: anything (``gateway.api.bridge`` rule 7). A router or a peer answers at once: the wait is
+#: only for one that never does.
+LIVE_WAIT_S = 1.0
+
 #: The largest message a gateway's session takes in, in bytes: twice the largest payload any
 #: of its keys takes (a trajectory, 1 MiB; the ROS 2 face's trajectory topic, 1 MiB of CDR).
 #: Zenoh's own bound is 1 GiB: the messages waiting for a key's thread (``gateway.api.intake``)

@@ -57,6 +57,7 @@ from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log, timeline
 from busgate.schemas.payload import largest_published
+from busgate.schemas.zenoh_session import LIVE_WAIT_S
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
@@ -71,8 +72,6 @@ TOO_LARGE = "larger than any a gateway sends on its key"
 REPLAY_PREFIX = "replay"
 #: ``--timeline``'s span (ms): by default, and the least and most it draws.
 TIMELINE_SPAN_MS, TIMELINE_SPAN_MS_MIN, TIMELINE_SPAN_MS_MAX = 100.0, 1.0, 60_000.0
-#: How long replay waits for the live gateways' liveliness tokens (a router answers at once).
-LIVE_WAIT_S = 1.0
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
