@@ -32,11 +32,22 @@ Rules of this file:
    ``cmd`` key as fast as they could held an e-stop 0.2-2 s before it reached the buses; two
    flooding follow targets, 48-62 ms at the median (docs/performance.md, "An e-stop under a
    flood of follow targets", "... of commands").
+7. One gateway a name under a prefix: two of one name would both carry out every command sent
+   to it, each answering ok. Before it declares anything the gateway asks, once its session
+   is open, for its own liveliness token and its own ``info`` (both at once, at most
+   ``LIVE_WAIT_S``, the wait of ``busgate replay``'s check of its prefix); another session
+   holding or answering either refuses the start (``ConfigError``), with the session closed
+   again. One that comes later (the two could not reach each other at the start, or started
+   together) is looked for whenever zenoh tells that this gateway's ``info`` is served
+   elsewhere or its token came (zenoh tells one or the other, not always both, since the
+   token is held here too): ``info`` is asked of the other sessions, and each that answers
+   is logged once, an ERROR naming it. Neither can stop the other.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections import deque
@@ -47,7 +58,7 @@ from typing import Any
 
 import zenoh
 
-from busgate.errors import CommandError, RefusedError
+from busgate.errors import CommandError, ConfigError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.intake import (
@@ -75,7 +86,7 @@ from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
 from busgate.schemas.validation import shown
-from busgate.schemas.zenoh_session import endpoints_of, gateway_session_config
+from busgate.schemas.zenoh_session import LIVE_WAIT_S, endpoints_of, gateway_session_config
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +96,14 @@ Routed = tuple[str, bytes, Callable[[], Future]]
 Route = Callable[[zenoh.Query], Routed | None]
 
 REPLY_TIMEOUT_S = 10.0
+#: A get of this gateway's ``info`` asked of the other sessions (rule 7): every answer, none
+#: merged into another (two gateways of one name answer on one key).
+_OTHERS: dict[str, Any] = {
+    "target": zenoh.QueryTarget.ALL,
+    "consolidation": zenoh.ConsolidationMode.NONE,
+    "timeout": LIVE_WAIT_S,
+    "allowed_destination": zenoh.Locality.REMOTE,
+}
 #: The publishing round's period while it has timed work of its own (``_round_due``): a
 #: trajectory's verdicts, a base's wheels, a refusal held back.
 PUBLISH_EVERY_S = 0.005
@@ -148,6 +167,10 @@ class ZenohBridge:
         #: yet handed on, dropped as ours are).
         self.at_estop: list[Callable[[], None]] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
+        #: What asks the other sessions for this gateway's ``info`` (rule 7), and the
+        #: sessions of this gateway's name already logged.
+        self._namesakes: zenoh.Querier | None = None
+        self._namesakes_told: set[str] = set()
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
         #: A refused put's event, at most one a device every 0.1 s, an e-stop's and a reset's,
@@ -176,11 +199,13 @@ class ZenohBridge:
     # -- lifetime ---------------------------------------------------------------------------
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Open the session and declare every key of the API."""
+        """Open the session and declare every key of the API; ``ConfigError``, with nothing
+        declared and the session closed, when a gateway of this name is live (rule 7)."""
         self._loop = loop
         zenoh_section = self.config.zenoh
         config = gateway_session_config(zenoh_section)
         self._session = session = zenoh.open(config)
+        self._refuse_namesakes(session)
         base, prefix = self.base, self.config.gateway.prefix
         commands, puts = self._commands, self._puts
         self._before_estop = []
@@ -206,6 +231,7 @@ class ZenohBridge:
                 f"{base}/estop/**", zenoh.handlers.Callback(self._on_estop_or_reset, indirect=False)
             ),
             session.liveliness().declare_token(f"{base}/alive"),
+            *self._watch_namesakes(session),
         ]
         drop = zenoh.CongestionControl.DROP
         for device in self.api.devices:
@@ -225,6 +251,90 @@ class ZenohBridge:
         listening = endpoints_of(config, "listen", zenoh_section.mode)  # a config file's too
         where = ", ".join(listening) or "no endpoint: reachable only through connect"
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
+
+    def _refuse_namesakes(self, session: zenoh.Session) -> None:
+        """``ConfigError`` when another session holds this gateway's liveliness token or
+        answers its ``info`` (rule 7), the session closed first; asked before anything is
+        declared, the two at once."""
+        name, prefix = self.config.gateway.name, self.config.gateway.prefix
+        tokens = session.liveliness().get(f"{self.base}/alive", timeout=LIVE_WAIT_S)
+        infos = session.get(f"{self.base}/info", **_OTHERS)
+        held = any(reply.ok is not None for reply in tokens)
+        answering = {str(r.replier_id.zid) for r in infos if r.ok is not None and r.replier_id}
+        if not held and not answering:
+            return
+        others = "; ".join(_session_named(session, zid) for zid in sorted(answering))
+        self._session = None
+        session.close()
+        raise ConfigError(
+            f"gateway {name} is already live under prefix {prefix} "
+            f"({others or f'its token {self.base}/alive is held'}): two gateways of one name "
+            f"both carry out every command sent to it; give each gateway its own [gateway] "
+            f"name (or stop the other). Nothing was declared",
+            path="gateway.name",
+        )
+
+    def _watch_namesakes(self, session: zenoh.Session) -> list[Any]:
+        """What tells of a gateway of this name that comes later (rule 7): a querier of the
+        other sessions' ``info``, whose status turns matching when one serves it, and a
+        subscriber of this gateway's liveliness token; each hands a look to the loop."""
+        self._namesakes = querier = session.declare_querier(f"{self.base}/info", **_OTHERS)
+
+        def matching(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                self.call_soon(self._ask_namesakes)
+
+        def token(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.call_soon(self._ask_namesakes)
+
+        watching = [
+            querier,
+            querier.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False)),
+            session.liveliness().declare_subscriber(
+                f"{self.base}/alive", zenoh.handlers.Callback(token, indirect=False)
+            ),
+        ]
+        status: Any = querier.matching_status  # a MatchingStatus (zenoh's stub says bool)
+        if getattr(status, "matching", status):  # one came since _refuse_namesakes asked
+            self.call_soon(self._ask_namesakes)
+        return watching
+
+    def _ask_namesakes(self) -> None:
+        """Ask the other sessions for this gateway's ``info`` (the loop's thread); those that
+        answer go to ``_tell_namesakes``."""
+        querier = self._namesakes
+        if querier is None or self._session is None:
+            return
+        answering: list[str] = []
+
+        def reply(answer: zenoh.Reply) -> None:
+            if answer.ok is not None and answer.replier_id is not None:
+                answering.append(str(answer.replier_id.zid))
+
+        with contextlib.suppress(zenoh.ZError):  # the session closing
+            querier.get(
+                zenoh.handlers.Callback(
+                    reply, lambda: self.call_soon(self._tell_namesakes, answering), indirect=False
+                )
+            )
+
+    def _tell_namesakes(self, answering: list[str]) -> None:
+        """An ERROR for each session serving this gateway's name not told yet (rule 7)."""
+        session = self._session
+        if session is None:
+            return
+        for zid in sorted(set(answering) - self._namesakes_told):
+            self._namesakes_told.add(zid)
+            log.error(
+                "another gateway named %s is live under prefix %s (%s): both carry out every "
+                "command sent to %s, and neither can stop the other; give one of them its own "
+                "[gateway] name and restart it",
+                self.config.gateway.name,
+                self.config.gateway.prefix,
+                _session_named(session, zid),
+                self.config.gateway.name,
+            )
 
     def _commands(
         self, session: zenoh.Session, key: str, route: Route, name: str, backlog: int = BACKLOG
@@ -264,6 +374,7 @@ class ZenohBridge:
         for intake in self._intakes:
             intake.close()
         session, self._session = self._session, None
+        self._namesakes = None
         self._device_tokens.clear()
         self._publishers.clear()
         self._keep.clear()
@@ -669,6 +780,13 @@ class ZenohBridge:
             self._device_tokens[device] = self._session.liveliness().declare_token(key)
         elif not online and device in self._device_tokens:
             self._device_tokens.pop(device).undeclare()
+
+
+def _session_named(session: zenoh.Session, zid: str) -> str:
+    """Another zenoh session as a log line names it: its id, and where it is linked with
+    ``session`` when it is directly (not through a router)."""
+    links = [link.dst for link in session.info.links() if str(link.zid) == zid]
+    return f"zenoh session {zid}" + (f" at {', '.join(links)}" if links else "")
 
 
 def _sender(payload: bytes) -> str | None:
