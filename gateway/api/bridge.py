@@ -36,12 +36,15 @@ Rules of this file:
    to it, each answering ok. Before it declares anything the gateway asks, once its session
    is open, for its own liveliness token and its own ``info`` (both at once, at most
    ``LIVE_WAIT_S``, the wait of ``busgate replay``'s check of its prefix); another session
-   holding or answering either refuses the start (``ConfigError``), with the session closed
-   again. One that comes later (the two could not reach each other at the start, or started
-   together) is looked for whenever zenoh tells that this gateway's ``info`` is served
-   elsewhere or its token came (zenoh tells one or the other, not always both, since the
-   token is held here too): ``info`` is asked of the other sessions, and each that answers
-   is logged once, an ERROR naming it. Neither can stop the other.
+   answering its ``info`` refuses the start (``ConfigError``), with the session closed
+   again. A token held with no ``info`` answering is a gateway's whose host went away (its
+   token outlives it until its lease runs out): warned of, and the start goes on, else a
+   restart after a power loss would be refused until then. One that comes later (the two
+   could not reach each other at the start, or started together) is looked for whenever
+   zenoh tells that this gateway's ``info`` is served elsewhere or its token came (zenoh
+   tells one or the other, not always both, since the token is held here too): ``info`` is
+   asked of the other sessions, and each that answers is logged once, an ERROR naming it.
+   Neither can stop the other.
 """
 
 from __future__ import annotations
@@ -253,24 +256,31 @@ class ZenohBridge:
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
 
     def _refuse_namesakes(self, session: zenoh.Session) -> None:
-        """``ConfigError`` when another session holds this gateway's liveliness token or
-        answers its ``info`` (rule 7), the session closed first; asked before anything is
-        declared, the two at once."""
+        """``ConfigError`` when another session answers this gateway's ``info`` (rule 7),
+        the session closed first; a warning when its liveliness token is held with no
+        ``info`` answering (a stale one). Asked before anything is declared, the two at once."""
         name, prefix = self.config.gateway.name, self.config.gateway.prefix
         tokens = session.liveliness().get(f"{self.base}/alive", timeout=LIVE_WAIT_S)
         infos = session.get(f"{self.base}/info", **_OTHERS)
         held = any(reply.ok is not None for reply in tokens)
         answering = {str(r.replier_id.zid) for r in infos if r.ok is not None and r.replier_id}
-        if not held and not answering:
+        if not answering:
+            if held:  # a gateway serving the name answers its info: this one is stale
+                log.warning(
+                    "the token %s/alive is held, but no gateway of name %s answers its info: "
+                    "taken for one whose host went away, its token kept until its lease runs "
+                    "out; serving",
+                    self.base,
+                    name,
+                )
             return
         others = "; ".join(_session_named(session, zid) for zid in sorted(answering))
         self._session = None
         session.close()
         raise ConfigError(
-            f"gateway {name} is already live under prefix {prefix} "
-            f"({others or f'its token {self.base}/alive is held'}): two gateways of one name "
-            f"both carry out every command sent to it; give each gateway its own [gateway] "
-            f"name (or stop the other). Nothing was declared",
+            f"gateway {name} is already live under prefix {prefix} ({others}): two "
+            "gateways of one name both carry out every command sent to it; give each gateway "
+            "its own [gateway] name (or stop the other). Nothing was declared",
             path="gateway.name",
         )
 
