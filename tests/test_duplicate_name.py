@@ -178,10 +178,12 @@ class Namesake:
         self.declare()
 
     def declare(self) -> None:
+        """Its ``info`` first, then its token, as a gateway declares them (``bridge.open``):
+        a token that came first sent the look for its ``info`` before it was served."""
         self.declared = [
-            self.session.liveliness().declare_token("busgate/aud1/alive"),
             self.session.declare_queryable(
                 "busgate/aud1/info", lambda query: query.reply(query.key_expr, b'{"ok":true}')),
+            self.session.liveliness().declare_token("busgate/aud1/alive"),
         ]
 
     def undeclare(self) -> None:

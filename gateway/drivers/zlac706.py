@@ -121,6 +121,8 @@ class Zlac706Driver(Driver):
         #: The settings ``telemetry`` last told of, and what it said of them: said again only
         #: when they change (every heartbeat makes a state; settings seldom change).
         self._told: tuple[Settings | None, dict[str, Any]] = (None, {})
+        #: A speed or a torque was commanded when it went offline: stopped when back.
+        self._preset_when_gone = False
 
     # -- planning -------------------------------------------------------------------------------
 
@@ -422,18 +424,23 @@ class Zlac706Driver(Driver):
 
     def went_offline(self, reason: str) -> None:
         """Offline (no heartbeat or answer, or its bus down): the speed commanded before is
-        no longer the gateway's to keep alive. The keep-alive repeats 0 rpm instead, and the
-        settings restored when the drive is back are followed by nothing preset
-        (``restore``): a drive that locked its shaft for want of a refresh, or that the
-        gateway could not stop while it was away, must not take its old speed up again at the
-        first refresh (docs/wire.md: nothing that moves it is sent until a client commands it
-        again)."""
+        no longer the gateway's to keep alive. The keep-alive repeats 0 rpm instead, and when
+        a speed or a torque had been commanded, the settings restored when the drive is back
+        are followed by nothing preset (``restore``): a drive that locked its shaft for want
+        of a refresh, or that the gateway could not stop while it was away, must not take its
+        old speed up again at the first refresh (docs/wire.md: nothing that moves it is sent
+        until a client commands it again)."""
+        if self.online:
+            turning = self.commanded_speed_raw or self.machine.settings.torque_raw
+            self._preset_when_gone = bool(turning)
         super().went_offline(reason)
         self.speed_sent_raw = 0
 
     def restore(self) -> list[Request]:
-        """The settings the drive had confirmed, then nothing preset (``went_offline``)."""
-        return [*super().restore(), *self.nothing_preset()]
+        """The settings the drive had confirmed, then nothing preset if it was commanded to
+        turn when it went (``went_offline``)."""
+        stop = self.nothing_preset() if self._preset_when_gone else []
+        return [*super().restore(), *stop]
 
     def forget_on_reboot(self) -> None:
         """Power-up: released, every setting at its default until ``restore`` lands."""
