@@ -21,6 +21,19 @@ from busgate.gateway.sim.serial_server import SerialSimulator
 from tests.gateway_process import TIMEOUT_S
 
 
+def _run_under_systemd(config: Path, notify_path: Path, watchdog_usec: str,
+                       timeout_s: float) -> tuple[socket.socket, subprocess.Popen]:
+    """``busgate run --config config`` with a stand-in for systemd's notify socket at
+    ``notify_path`` (its receives time out after ``timeout_s``), and the process."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(notify_path))
+    notify.settimeout(timeout_s)
+    env = {**os.environ, "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": watchdog_usec}
+    process = subprocess.Popen([sys.executable, "-m", "busgate.gateway.cli", "run", "--config",
+                                str(config)], env=env, stderr=subprocess.DEVNULL)
+    return notify, process
+
+
 def test_ready_watchdog_and_stopping(free_port, tmp_path) -> None:
     simulator = SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600).start()
     config = tmp_path / "gw.toml"
@@ -29,12 +42,7 @@ def test_ready_watchdog_and_stopping(free_port, tmp_path) -> None:
         f'[[buses]]\nname = "uart0"\ntransport = "serial"\nport = "{simulator.port}"\n'
         'baudrate = 921600\n[[buses.devices]]\nname = "la1"\nkind = "inspire_la"\nid = 1\n'
     )
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify"))
-    notify.settimeout(15)
-    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "400000"}
-    process = subprocess.Popen([sys.executable, "-m", "busgate.gateway.cli", "run", "--config",
-                                str(config)], env=env, stderr=subprocess.DEVNULL)
+    notify, process = _run_under_systemd(config, tmp_path / "notify", "400000", 15)
     try:
         messages = []
         while not any("READY=1" in m for m in messages):
@@ -86,12 +94,7 @@ def test_a_bus_whose_adapter_is_unplugged_does_not_hold_ready_back(
             for n, (bus, port) in enumerate(buses)
         )
     )
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify"))
-    notify.settimeout(30)
-    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "2000000"}
-    process = subprocess.Popen([sys.executable, "-m", "busgate.gateway.cli", "run", "--config",
-                                str(config)], env=env, stderr=subprocess.DEVNULL)
+    notify, process = _run_under_systemd(config, tmp_path / "notify", "2000000", 30)
     try:
         messages: list[str] = []
         ready = _notifications(notify, messages, "READY=1")
