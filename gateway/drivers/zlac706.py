@@ -193,13 +193,13 @@ class Zlac706Driver(Driver):
             yield "velocity", common.rpm_from_speed_raw(value)
         elif role is Role.TORQUE:
             yield "effort", float(value / common.TORQUE_RAW_PER_A)
-        if role in (Role.SPEED, Role.TORQUE) and value:
-            yield "position", None  # it turns on, to wherever it is stopped
         elif role is Role.ONE_SHOT:
             yield "position", None
         elif role is Role.POSITION:
             yield "position", self._place(value, settings)
             yield "velocity", _rpm(settings.max_speed_raw)
+        if role in (Role.SPEED, Role.TORQUE) and value:
+            yield "position", None  # it turns on, to wherever it is stopped
 
     def why_positions_are_steps(self) -> str | None:
         relative = self.machine.expected().relative
