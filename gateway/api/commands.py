@@ -52,7 +52,7 @@ from typing import Any, ClassVar
 from busgate.errors import BusUnavailableError, CommandError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
-from busgate.gateway.api.put_reports import reset_fields
+from busgate.gateway.api.put_reports import client_field, reset_fields
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect, Follows
@@ -246,7 +246,7 @@ class GatewayApi:
         runner.authority.judge(
             device, Effect.SETTING, request.client, require_claim=request.require_claim
         )
-        self._event(device, "estop_reset", **_client_field(request.client))
+        self._event(device, "estop_reset", **client_field(request.client))
         return _mapped(runner.reset_estop(device))
 
     #: The ops every device's ``cmd`` key takes besides its kind's own (``GatewayCommand``):
@@ -518,10 +518,6 @@ def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
             f"{device} is playing a trajectory: cancel it first ({what} and a trajectory would "
             "fight over its target)",
         )
-
-
-def _client_field(client: str | None) -> dict[str, str]:
-    return {"client": client} if client else {}
 
 
 def _mapped(submitted: Future) -> Future:

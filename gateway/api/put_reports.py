@@ -81,7 +81,7 @@ class PutReports:
 
     def estop(self, key: str, sender: str | None) -> None:
         """An e-stop was put on ``key`` by ``sender`` (when it named itself)."""
-        fields = {"key": key} | ({"client": sender} if sender else {})
+        fields = {"key": key} | client_field(sender)
         self._report(ESTOPS, DeviceEvent("*", "estop", fields))
 
     def estop_reset(self, sender: str | None, not_reset: Sequence[str] = ()) -> None:
@@ -143,6 +143,9 @@ class PutReports:
 def reset_fields(sender: str | None, not_reset: Sequence[str]) -> dict[str, Any]:
     """The fields of a whole gateway's ``estop_reset`` event: its ``client`` when it named
     one, and the devices it left to their holders (``not_reset``) when there are any."""
-    return ({"client": sender} if sender else {}) | (
-        {"not_reset": list(not_reset)} if not_reset else {}
-    )
+    return client_field(sender) | ({"not_reset": list(not_reset)} if not_reset else {})
+
+
+def client_field(sender: str | None) -> dict[str, str]:
+    """An event's ``client``: the one that sent what it tells, when it named one."""
+    return {"client": sender} if sender else {}
