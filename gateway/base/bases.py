@@ -109,6 +109,8 @@ class Wheel:
     #: Added to its joint's position: its readings go on across a counter set back (rule 5)
     offset_rad: float = 0.0
     online: bool = False
+    #: The faults its last state reported (its drive's alarms; rule 3)
+    faults: tuple[str, ...] = ()
     #: The fastest its drive turns it: a reading further than this allows is no motion
     top_speed_radps: float = field(init=False)
 
@@ -365,9 +367,7 @@ class Bases:
             gone = [
                 w
                 for w in base.wheels
-                if not w.driver.online
-                or _faults(w, moment)
-                or (taken and not w.runner.plays.playing(w.name))
+                if not w.driver.online or w.faults or (taken and not w.runner.plays.playing(w.name))
             ]
             if gone:
                 self._one_wheel_gone(base, gone[0])
@@ -382,8 +382,8 @@ class Bases:
     def _one_wheel_gone(self, base: LiveBase, wheel: Wheel) -> None:
         if not wheel.driver.online:  # still in the play: it is ramped down too, if it hears
             reason = "went offline"
-        elif faults := _faults(wheel, now()):
-            reason = f"in fault: {', '.join(faults)}"
+        elif wheel.faults:
+            reason = f"in fault: {', '.join(wheel.faults)}"
         elif (refusal := wheel.runner.plays.refusal(wheel.name)) is not None:
             reason = refusal[1]
         else:
@@ -404,6 +404,7 @@ class Bases:
         if online and not wheel.online and state.get("mode") != "velocity":
             self.api.command(device, VELOCITY_MODE)
         wheel.online = online
+        wheel.faults = tuple(state.get("faults") or ())
         joint, ts = state.get("joint") or {}, state.get("ts")
         position = joint.get("position")
         if position is None or ts is None or state.get("stale"):
@@ -486,11 +487,6 @@ def _rebased(wheel: Wheel, position_rad: float, ts: float) -> float:
             wheel.offset_rad += last - reading
             return last
     return reading
-
-
-def _faults(wheel: Wheel, moment: float) -> list[str]:
-    """The faults ``wheel``'s drive reports (its alarms), none when healthy."""
-    return list(wheel.driver.telemetry(moment).get("faults") or ())
 
 
 def _at(readings: tuple[tuple[float, float], ...], moment: float) -> float:
