@@ -98,6 +98,10 @@ class JointDeclaration:
     #: The fastest speed the device takes, in its speed unit (``None``: no speed commands).
     top_speed: float | None = None
 
+    def type_of(self, table: JointTable | None) -> JointType:
+        """The type of a device of the family with ``table``: the table's, else the first."""
+        return table.type if table is not None and table.type is not None else self.types[0]
+
     def raw_fields(self, joint_type: JointType) -> tuple[str, str]:
         """The telemetry fields of a joint's value, measured and commanded, raw: a velocity
         joint's speed when the family measures one, else its position."""
@@ -192,7 +196,7 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
         problems.append(("min", f"{table.min:g} must be below max {table.max:g}"))
     if table.raw_per_turn is not None and declaration.raw_per_turn is None:
         problems.append(("raw_per_turn", "this kind is not a rotary device"))
-    if (table.type or declaration.types[0]) == "velocity":
+    if declaration.type_of(table) == "velocity":
         problems += [
             (
                 key,
@@ -293,10 +297,10 @@ class Joint:
         """The joint of ``device``: its table's, or the raw joint (rule 3)."""
         low, high = declaration.raw_range
         if table is None:
-            return cls(device, declaration.types[0], "raw", 1.0, 0.0, low, high, None, None,
+            return cls(device, declaration.type_of(None), "raw", 1.0, 0.0, low, high, None, None,
                        None, declaration.raw_per_turn, declaration, False)  # fmt: skip
         ends = sorted(table.offset + table.scale * raw for raw in (low, high))
-        joint_type = table.type or declaration.types[0]
+        joint_type = declaration.type_of(table)
         return cls(
             table.name or device,
             joint_type,
