@@ -27,6 +27,8 @@ from pathlib import Path
 #: The udev rules that give busgate's adapters a stable name, group ``dialout`` and mode 0660.
 UDEV_RULES = "deploy/udev/99-busgate.rules"
 PROC_LOCKS = Path("/proc/locks")
+#: Each character device driver's name by major number (``not_permitted``).
+PROC_DEVICES = Path("/proc/devices")
 SERIAL_GROUP = "dialout"
 
 MISSING, LOCKED, DENIED, NOT_A_DEVICE = "missing", "locked", "permission_denied", "not_a_device"
@@ -34,7 +36,6 @@ MISSING, LOCKED, DENIED, NOT_A_DEVICE = "missing", "locked", "permission_denied"
 _NO_PORT = "a serial port is a device file (/dev/ttyUSB0, /dev/serial/by-id/…); give its path"
 _MISSING_ERRNOS = {errno.ENOENT, errno.ENODEV, errno.ENXIO}
 _DENIED_ERRNOS = {errno.EACCES}
-PROC_DEVICES = Path("/proc/devices")
 _LOCKED_ERRNOS = {errno.EAGAIN, errno.EBUSY}  # flock refused (EWOULDBLOCK); TIOCEXCL (EBUSY)
 
 
