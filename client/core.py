@@ -39,6 +39,14 @@ Rules of this file:
    finalizing program where it stands, inside zenoh's code, which aborts the process
    ("FATAL: exception not rethrown", exit status 134, about one ``busgate send`` in 40 on a
    loaded host).
+7. Ctrl-C ends a session's opening at once. ``zenoh.open`` cannot be interrupted, and waits
+   up to its connect timeout (some 10 s) for an endpoint that takes the connection and never
+   answers (a port some other program listens on, a host that drops the handshake): the
+   program's handlers ran only after it, so a Ctrl-C held a ``busgate send`` 9 s and then
+   printed a traceback. It runs on a daemon thread of its own (``_opened``), which the
+   calling thread waits for as signals allow (a wait on a lock); a session that opens after
+   its caller left is closed. The window of rule 6 is open again only should the opening end
+   in the milliseconds of the program's own end.
 """
 
 from __future__ import annotations
@@ -160,7 +168,7 @@ class Core:
                 password=password,
                 ca=ca,
             )
-            self.session = zenoh.open(config)
+            self.session = _opened(config)
         except ValueError as exc:  # a refusal that says what is wrong
             raise ConnectError(
                 f"cannot open a zenoh session to {where}: {zenoh_reason(exc)}"
@@ -395,6 +403,29 @@ def _drained(
     drains.append(thread)
     thread.start()
     return subscriber
+
+
+def _opened(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open(config)``, waited for as signals allow (rule 7)."""
+    opening: Future[zenoh.Session] = Future()
+
+    def open_session() -> None:
+        try:
+            opening.set_result(zenoh.open(config))
+        except BaseException as exc:  # handed to the caller as it is
+            opening.set_exception(exc)
+
+    threading.Thread(target=open_session, name="zenoh-open", daemon=True).start()
+    try:
+        return opening.result()
+    except BaseException:  # the caller leaves: a session that opens after all is closed
+        opening.add_done_callback(_close_unwanted)
+        raise
+
+
+def _close_unwanted(opening: Future[zenoh.Session]) -> None:
+    if opening.exception() is None:
+        opening.result().close()
 
 
 def closed_reading(key: str) -> CommandError:

@@ -12,6 +12,7 @@ import io
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -29,7 +30,14 @@ from busgate.gateway.cli.watch_table import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.zenoh_session import session_config
-from tests.gateway_process import GatewayProcess, run_busgate, serial_bus, write_config
+from tests.gateway_process import (
+    BUSGATE,
+    TIMEOUT_S,
+    GatewayProcess,
+    run_busgate,
+    serial_bus,
+    write_config,
+)
 
 PUBLISH_EVERY_S = 0.05
 
@@ -470,6 +478,27 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert err.startswith("busgate send: error: cannot open a zenoh session to tcp/127.0.0.1:")
     assert "(is a gateway listening there? `busgate demo` listens on tcp/127.0.0.1:7447" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_ctrl_c_while_the_session_opens_ends_the_tool_at_once_in_one_line():
+    """An endpoint that takes the connection and never answers holds zenoh's opening for its
+    connect timeout (some 10 s): a Ctrl-C then waited all of it and printed a traceback."""
+    with socket.socket() as mute:
+        mute.bind(("127.0.0.1", 0))
+        mute.listen()
+        mute.settimeout(TIMEOUT_S)
+        send = subprocess.Popen([*BUSGATE, "send", "la1", "{}", "--connect",
+                                 f"tcp/127.0.0.1:{mute.getsockname()[1]}"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            held, _ = mute.accept()  # the tool is in the opening now
+            with held:
+                send.send_signal(signal.SIGINT)
+                out, err = send.communicate(timeout=5.0)  # not zenoh's 10 s
+        finally:
+            send.kill()
+            send.wait()
+    assert (send.returncode, out, err) == (130, "", "busgate send: stopped (Ctrl-C)\n")
 
 
 @pytest.mark.parametrize(("options", "hint"), [

@@ -11,11 +11,15 @@ the same client's commands and telemetry worked again.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
+import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -205,6 +209,66 @@ def test_a_gateway_restart_under_a_live_client(free_port, connect, wait_for) -> 
             assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
     finally:
         assert gateway.terminate() == 0
+
+
+# -- a session's opening left by a signal ----------------------------------------------------
+
+
+class Left(Exception):
+    """What the test's signal raises in the thread waiting for the session's opening."""
+
+
+def _held_link(target_port: int, hold_s: float, client_gone: threading.Event) -> int:
+    """A loopback port whose first connection reaches ``target_port`` only ``hold_s`` after
+    it came (a slow handshake), then is carried both ways; ``client_gone`` is set when the
+    connecting side closes it."""
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def carry(source: socket.socket, sink: socket.socket, gone: threading.Event | None) -> None:
+        with contextlib.suppress(OSError):
+            while data := source.recv(65536):
+                sink.sendall(data)
+        if gone is not None:
+            gone.set()
+        with contextlib.suppress(OSError):
+            sink.shutdown(socket.SHUT_WR)
+
+    def serve() -> None:
+        with listener:
+            near, _ = listener.accept()
+        time.sleep(hold_s)
+        far = socket.create_connection(("127.0.0.1", target_port))
+        threading.Thread(target=carry, args=(far, near, None), daemon=True).start()
+        carry(near, far, client_gone)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return listener.getsockname()[1]
+
+
+def test_a_session_that_opens_after_its_caller_left_is_closed(module_demo) -> None:
+    """Ctrl-C (here SIGUSR1, raising) ends ``bc.connect``'s wait for zenoh's opening at once
+    (core rule 7); the session that opens after all is closed, not left open in the program,
+    even while the exception is kept (as an interactive Python keeps the last one, its frames
+    with it)."""
+    client_gone = threading.Event()
+    demo_port = int(module_demo.endpoint.rsplit(":", 1)[1])
+    port = _held_link(demo_port, hold_s=1.0, client_gone=client_gone)
+
+    def leave(signum, frame):
+        raise Left
+
+    previous = signal.signal(signal.SIGUSR1, leave)
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGUSR1))
+    try:
+        timer.start()
+        with pytest.raises(Left) as left:
+            bc.connect(f"tcp/127.0.0.1:{port}", client_id=the_client_id("left"))
+    finally:
+        timer.cancel()
+        timer.join()
+        signal.signal(signal.SIGUSR1, previous)
+    assert client_gone.wait(DEADLINE_S), "the session that opened late is still open"
+    assert left.tb is not None  # kept until here
 
 
 # -- accounts: the deploy config's TLS, passwords and ACL -------------------------------------

@@ -2,10 +2,12 @@
 
 A ``BusgateError`` (a bad command line, a refused command) is printed as one line and exits
 with status 2, never as a traceback; one that names several problems (a config refused by
-``busgate run``) is printed one line each, every line with the command's prefix. ``busgate
---version`` prints the installed version; ``busgate`` alone prints the help, listing the
-commands, on stderr and exits with status 2 (a command is missing, as for any other usage
-error).
+``busgate run``) is printed one line each, every line with the command's prefix. A Ctrl-C
+that the command does not take for its own stop (``send`` waiting for a session or a reply)
+is one line too, exit status 130 (``INTERRUPTED``, as a shell reports a command Ctrl-C
+ended). ``busgate --version`` prints the installed version; ``busgate`` alone prints the
+help, listing the commands, on stderr and exits with status 2 (a command is missing, as for
+any other usage error).
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from collections.abc import Sequence
 from busgate.errors import BusgateError
 from busgate.gateway import installed_version
 
+#: The exit status of a command a Ctrl-C ended (128 + SIGINT).
+INTERRUPTED = 130
 #: Each command, the module that adds its parser and carries it out, and its line in the
 #: list. A module is imported only for its own command: ``busgate --help`` and ``busgate
 #: encode`` load no zenoh, pyserial, python-can or prometheus_client.
@@ -92,3 +96,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # stdout's reader left (| head): nothing more to say, to anyone
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush too
         return 1
+    except KeyboardInterrupt:  # a Ctrl-C that no command took for its own stop
+        print(f"busgate {args.subcommand}: stopped (Ctrl-C)", file=sys.stderr)
+        return INTERRUPTED
