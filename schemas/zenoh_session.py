@@ -28,6 +28,7 @@ import os
 import re
 import socket
 import stat
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,6 +53,12 @@ TLS_PROTOCOLS = ("tls/", "quic/")
 #: anything (``gateway.api.bridge`` rule 7). A router or a peer answers at once: the wait is
 #: only for one that never does.
 LIVE_WAIT_S = 1.0
+
+#: How long a service's stop waits for its session's close (``close_within``): zenoh's close
+#: waits for a connect under way, to an endpoint that took the connection and never answers
+#: up to zenoh's open timeout (10 s), and systemd's stop gives a service 10 s in all
+#: (``TimeoutStopSec``) before it kills it and calls the stop a failure.
+CLOSE_WAIT_S = 1.0
 
 #: The largest message a gateway's session takes in, in bytes: twice the largest payload any
 #: of its keys takes (a trajectory, 1 MiB; the ROS 2 face's trajectory topic, 1 MiB of CDR).
@@ -111,6 +118,16 @@ def session_config(
         _check_tls_endpoints(config, mode)
     check_unix_listeners(endpoints_of(config, "listen", mode))
     return config
+
+
+def close_within(session: zenoh.Session, seconds: float = CLOSE_WAIT_S) -> bool:
+    """Close ``session`` on a daemon thread of its own, waiting ``seconds`` at most: whether
+    it closed. A close that outlasts the wait ends with the process, which goes on to its end
+    (the devices were stopped before; nothing of the session is waited for after it)."""
+    closing = threading.Thread(target=session.close, name="zenoh-close", daemon=True)
+    closing.start()
+    closing.join(seconds)
+    return not closing.is_alive()
 
 
 def endpoint_problem(endpoint: str, *, listening: bool = False) -> str | None:

@@ -152,6 +152,28 @@ def test_sigterm_and_sigint_each_end_it_with_exit_0(start_router, signum) -> Non
     assert router.stop(signum) == 0
 
 
+def test_a_router_it_connects_to_that_never_answers_holds_its_stop_a_second_at_most(
+        start_router, tmp_path) -> None:
+    """zenoh's close waits for a connect under way, to an endpoint that took the connection
+    and never answers for 10 s: all of the unit's ``TimeoutStopSec``."""
+    with socket.socket() as mute:
+        mute.bind(("127.0.0.1", 0))
+        mute.listen()
+        mute.settimeout(TIMEOUT_S)
+        config = _file(tmp_path, "zenoh.json5", json.dumps(
+            {"connect": {"endpoints": [f"tcp/127.0.0.1:{mute.getsockname()[1]}"]}}))
+        router = start_router("--listen", loopback(), "--config", config)
+        held, _ = mute.accept()  # its connect is under way
+        with held:
+            router.process.send_signal(signal.SIGTERM)
+            try:
+                status = router.process.wait(timeout=5.0)  # not zenoh's 10 s
+            except subprocess.TimeoutExpired:
+                status = None
+    assert status == 0
+    assert "did not close within 1 s" in router.process.stderr.read()
+
+
 # -- what it refuses ----------------------------------------------------------------------
 
 

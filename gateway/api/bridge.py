@@ -12,7 +12,10 @@ Rules of this file:
    finished in ``REPLY_TIMEOUT_S`` all the same (a bug), its future is cancelled, so that it
    is never carried out, and it is answered ``internal``.
 3. Telemetry publishers use congestion control DROP: a slow subscriber never stalls a bus.
-4. The session is closed last, after the buses have put their devices in a safe state.
+4. The session is closed last, after the buses have put their devices in a safe state, and
+   waited for ``CLOSE_WAIT_S`` at most (``close_within``): zenoh's close waits for a connect
+   under way, which to a router that took the connection and never answers is 10 s, all of
+   systemd's ``TimeoutStopSec``; the stop took that long, and systemd called it a failure.
 5. A command is taken only on a key that names it: its leaf as declared (``cmd``,
    ``follow``, ``twist``: a wildcard leaf reaches several handlers at once), the trajectory
    and the e-stop's reset on this gateway's own key. Only the gateway's name may be a
@@ -89,7 +92,13 @@ from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
 from busgate.schemas.validation import shown
-from busgate.schemas.zenoh_session import LIVE_WAIT_S, endpoints_of, gateway_session_config
+from busgate.schemas.zenoh_session import (
+    CLOSE_WAIT_S,
+    LIVE_WAIT_S,
+    close_within,
+    endpoints_of,
+    gateway_session_config,
+)
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +285,7 @@ class ZenohBridge:
             return
         others = "; ".join(_session_named(session, zid) for zid in sorted(answering))
         self._session = None
-        session.close()
+        close_within(session)
         raise ConfigError(
             f"gateway {name} is already live under prefix {prefix} ({others}): two "
             "gateways of one name both carry out every command sent to it; give each gateway "
@@ -388,8 +397,12 @@ class ZenohBridge:
         self._device_tokens.clear()
         self._publishers.clear()
         self._keep.clear()
-        if session is not None:
-            session.close()
+        if session is not None and not close_within(session):
+            log.warning(
+                "the zenoh session did not close within %g s (a connect under way to an "
+                "endpoint that does not answer): the gateway ends without waiting for it",
+                CLOSE_WAIT_S,
+            )
         for intake in self._intakes:
             intake.join()
 
