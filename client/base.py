@@ -11,7 +11,7 @@ import json
 import logging
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -45,8 +45,13 @@ from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
 from busgate.schemas.payload import largest_published
 from busgate.schemas.telemetry import TelemetryEnvelope
+from busgate.schemas.validation import closest
 
 log = logging.getLogger(__name__)
+
+#: The most names an unknown one's refusal lists when none is close to it (a fleet's dozens
+#: would bury the message).
+SUGGESTED_NAMES_MAX = 12
 
 
 @dataclass(frozen=True)
@@ -171,7 +176,8 @@ def locate(infos: dict[str, dict[str, Any]], name: str, what: str, asked: str) -
     if not found:
         code = "unknown_device" if what == "device" else "unknown_bus"
         raise error_for(code)(
-            f"no {what} {leaf!r} on the gateways that answered ({', '.join(sorted(infos))})"
+            f"no {what} {leaf!r} on the gateways that answered ({', '.join(sorted(infos))}"
+            f"{_meant(infos, gateway, leaf, what)})"
         )
     if len(found) > 1:
         names = [f.gateway for f in found]
@@ -213,6 +219,47 @@ def _named(gateway: str, info: dict[str, Any], what: str, leaf: str) -> list[Fou
                 device.get("kind"),
             )
     return found
+
+
+def _meant(infos: dict[str, dict[str, Any]], gateway: str | None, leaf: str, what: str) -> str:
+    """What a name no gateway has likely meant: for a gateway none is, one that has ``leaf``
+    (the closest to the one named); else the name of theirs closest to ``leaf``, else the
+    names they have (a few)."""
+    if gateway is not None and gateway not in infos:
+        holders = [name for name, info in sorted(infos.items()) if _named(name, info, what, leaf)]
+        meant = closest(gateway, holders) or (holders[0] if holders else None)
+        return f"; no gateway {gateway!r}" + (f": did you mean {meant}/{leaf}?" if meant else "")
+    names = {
+        name
+        for gateway_name, info in infos.items()
+        if gateway is None or gateway_name == gateway
+        for name in _names(info, what)
+    }
+    return name_hint(leaf, names)
+
+
+def name_hint(leaf: str, names: Iterable[str]) -> str:
+    """``; did you mean 'la1'?`` for the one of ``names`` that ``leaf`` likely misspells,
+    else ``; they have …`` (a few), else nothing."""
+    names = sorted(set(names))
+    meant = closest(leaf, names)
+    if meant is not None:
+        return f"; did you mean {meant!r}?"
+    return f"; they have {', '.join(names)}" if 0 < len(names) <= SUGGESTED_NAMES_MAX else ""
+
+
+def _names(info: dict[str, Any], what: str) -> list[str]:
+    """Every name ``info`` answers to for ``what``: its buses', or its devices' and joints'."""
+    buses = [bus for bus in _listed(info, "buses") if is_name(bus.get("name"))]
+    if what == "bus":
+        return [bus["name"] for bus in buses]
+    devices = [device for bus in buses for device in _listed(bus, "devices")]
+    return [
+        str(name)
+        for device in devices
+        for name in (device.get("name"), _joint_name(device))
+        if is_name(name)
+    ]
 
 
 def _listed(entry: dict[str, Any], field: str) -> list[dict[str, Any]]:

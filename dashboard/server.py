@@ -132,7 +132,7 @@ class Listen:
             bound.close()
             raise CommandError(
                 f"the dashboard cannot listen on {self.host}:{self.port}: {exc.strerror}"
-            ) from None
+            ) from exc
         return bound
 
     def url(self, port: int) -> str:

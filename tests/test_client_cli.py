@@ -262,7 +262,7 @@ def test_a_bare_name_goes_to_the_one_gateway_that_has_it_and_nowhere_when_none_d
     out, err = capsys.readouterr()
     assert out == ""
     assert err.strip() == ("busgate send: unknown_device: no device 'la9' on the gateways that "
-                           "answered (gwtest, gwtwo): nothing was sent")
+                           "answered (gwtest, gwtwo; did you mean 'la1'?): nothing was sent")
     assert stand_in.commands == [b'{"op":"move","position":7}']
 
     # Named by key, a gateway's refusal counts like any other error.
@@ -304,7 +304,7 @@ def test_a_device_no_gateway_has_is_unknown_device_naming_the_gateways(gateway, 
     out, err = capsys.readouterr()
     assert (status, out) == (1, "")
     assert err.strip() == ("busgate send: unknown_device: no device 'la9' on the gateways that "
-                           "answered (gw1): nothing was sent")
+                           "answered (gw1; did you mean 'la1'?): nothing was sent")
     assert main(["send", "la1", '{"op":"status"}', "--connect", gateway]) == 0
 
 

@@ -176,12 +176,30 @@ def test_several_gateways_with_the_name_are_named() -> None:
 
 def test_no_gateway_with_it_names_those_that_answered_and_nobody_is_no_answer() -> None:
     infos = {"gw1": _info("gw1", ("la1", "inspire_la"))}
-    with pytest.raises(bc.UnknownDeviceError, match=r"'la9'.*\(gw1\)"):
+    with pytest.raises(bc.UnknownDeviceError, match=r"'la9'.*\(gw1; did you mean 'la1'\?\)"):
         locate(infos, "la9", "device", "k")
     with pytest.raises(bc.UnknownBusError):
         locate(infos, "can7", "bus", "k")
     with pytest.raises(bc.NoAnswerError, match="busgate/gw3/info"):
         locate({}, "gw3/la1", "device", "busgate/gw3/info")
+
+
+@pytest.mark.parametrize(("name", "said"), [
+    ("la11", "(gw1, gw2; did you mean 'la1'?)"),  # the name closest to one they have
+    ("lfit", "(gw1, gw2; did you mean 'lift'?)"),  # a joint's name is a device's name too
+    ("gw1/xyz", "(gw1, gw2; they have la1, lift)"),  # none close: the named gateway's names
+    ("gw9/la1", "(gw1, gw2; no gateway 'gw9': did you mean gw1/la1?)"),  # the one with it
+    ("gw9/servo", "(gw1, gw2; no gateway 'gw9': did you mean gw2/servo?)"),
+    ("other/xyz", "(gw1, gw2; no gateway 'other')"),  # and no device of that name
+])
+def test_an_unknown_name_says_what_it_likely_meant(name: str, said: str) -> None:
+    """A newcomer's typo, told as an op's is (``did you mean``), where it said only who
+    answered."""
+    infos = {"gw1": _info("gw1", ("la1", "inspire_la")), "gw2": _info("gw2", ("servo", "ds_servo"))}
+    infos["gw1"]["buses"][0]["devices"][0]["joint"] = {"name": "lift"}
+    with pytest.raises(bc.UnknownDeviceError) as refused:
+        locate(infos, name, "device", "k")
+    assert str(refused.value).endswith(said), refused.value
 
 
 def test_commands_go_as_dicts_or_models_and_payloads_as_given() -> None:

@@ -134,7 +134,8 @@ def test_a_dashboard_port_in_use_stops_the_demo_at_once_saying_what_else_to_do(f
     assert done.returncode == 2 and done.stdout == "", done
     assert done.stderr.splitlines() == [  # at once: no gateway came up first
         f"busgate demo: error: the dashboard cannot listen on 127.0.0.1:{port}: Address already "
-        "in use (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard serves none)"]
+        "in use (another busgate demo? A second one runs beside it with --listen "
+        "tcp/127.0.0.1:<another port> --dashboard-listen 127.0.0.1:0, or --no-dashboard)"]
 
 
 def test_the_hints_name_the_busgate_started_by_its_absolute_path(monkeypatch, tmp_path) -> None:

@@ -38,6 +38,7 @@ from contextlib import contextmanager
 from typing import Any, TextIO
 
 import busgate.client as bc
+from busgate.client.base import name_hint
 from busgate.client.keys import Keys, check_key, intersects, split_name
 from busgate.client.messages import NOTHING_THERE
 from busgate.errors import CommandError, RefusedError
@@ -202,9 +203,10 @@ def _no_holder(args: argparse.Namespace, key: str, gateways: dict[str, set[str]]
     gateway's, would carry it out, and in a fleet so would every robot's). Those that
     answered are named (exit 1); none answering is exit 2."""
     if gateways:
+        hint = name_hint(args.target, (name for names in gateways.values() for name in names))
         print(
             f"busgate send: unknown_device: no device {args.target!r} on the gateways that "
-            f"answered ({', '.join(sorted(gateways))}): nothing was sent",
+            f"answered ({', '.join(sorted(gateways))}{hint}): nothing was sent",
             file=sys.stderr,
         )
         return ERROR_REPLY

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import math
 import os
 import shlex
@@ -240,6 +241,13 @@ def _bound(dashboard: Listen) -> socket.socket:
     try:
         return dashboard.bind()
     except CommandError as exc:  # where else it could go, for a new user
+        cause = exc.__cause__
+        if isinstance(cause, OSError) and cause.errno == errno.EADDRINUSE:  # a demo running?
+            raise CommandError(
+                f"{exc} (another busgate demo? A second one runs beside it with --listen "
+                "tcp/127.0.0.1:<another port> --dashboard-listen 127.0.0.1:0, or "
+                "--no-dashboard)"
+            ) from None
         raise CommandError(
             f"{exc} (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard "
             "serves none)"
