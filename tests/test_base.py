@@ -167,9 +167,12 @@ def test_a_twist_to_a_base_whose_wheels_are_off_is_refused_naming_enable(world) 
 def test_a_twist_ramps_both_wheels_together_and_the_deadman_ramps_them_down(world) -> None:
     assert world.base({"op": "enable"})["ok"]
     since = len(world.sim.recorder.received())
-    reply = world.base({"op": "twist", "linear": 0.5, "angular": 0.0})
+    reply = world.base({"op": "twist", "linear": 0.5, "angular": 0.0, "client": "teleop"})
     assert reply["ok"] and reply["base"]["target"] == {"linear": 0.5, "angular": 0.0}
+    assert reply["base"]["client"] == "teleop"  # whose twist it drives
     world.wait_rest()
+    at_rest = world.base({"op": "status"})["base"]
+    assert (at_rest["driving"], at_rest["client"]) == (False, None)  # it drives nobody's now
     writes = world.speeds(since)
     left = [(t, rpm) for t, node, rpm in writes if node == 1]
     right = [(t, rpm) for t, node, rpm in writes if node == 2]

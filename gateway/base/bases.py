@@ -448,7 +448,7 @@ class Bases:
             "name": base.config.name,
             "wheels": list(base.names),
             "driving": base.playing_since is not None,
-            "client": base.client,
+            "client": base.client if base.playing_since is not None else None,  # whose it drives
             "twist": _twist(base.drive.sent),
             "odometry": {"x": pose.x, "y": pose.y, "theta": pose.theta},
         }
