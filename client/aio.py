@@ -103,8 +103,8 @@ class Trajectory(Awaiting, Handle):
     async def __aenter__(self) -> Trajectory:
         return self
 
-    async def __aexit__(self, *exc_info: object) -> None:
-        self.close()
+    async def __aexit__(self, exc_type: object, *exc_info: object) -> None:
+        self._left(failed=exc_type is not None)
 
 
 class DriveStream(_Stream, DriveStreamBase):

@@ -88,8 +88,8 @@ class Trajectory(Blocking, Handle):
     def __enter__(self) -> Trajectory:
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc_info: object) -> None:
+        self._left(failed=exc_type is not None)
 
 
 class DriveStream(_Stream, DriveStreamBase):

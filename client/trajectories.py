@@ -25,7 +25,7 @@ from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox
 from busgate.client.messages import then
 from busgate.client.steps import Items, Next, Steps, Wait
-from busgate.errors import CommandError
+from busgate.errors import BusgateError, CommandError
 
 _ids = itertools.count(1)
 
@@ -161,6 +161,17 @@ class Handle(Face):
         """Stop listening to the trajectory (it plays on); a wait for its result or its
         feedback under way ends, with ``CommandError``."""
         self._watch.close()
+
+    def _left(self, failed: bool) -> None:
+        """The ``with`` block's end: ``close``; first, when an exception ended it (a Ctrl-C,
+        the program's own error) and the trajectory has no result yet, a cancel, sent without
+        waiting for its answer, as a follow stream's block ends its stream: the devices do
+        not play on for as long as the client stays open (a notebook, a program that goes on
+        after its ``except``)."""
+        if failed and self.result is None:
+            with contextlib.suppress(BusgateError):  # a closed client: its going ends it
+                send_cancel(self._shared, self.gateway, self.id, self._shared.core.timeout_s)
+        self.close()
 
     @waiting
     def wait(self, timeout: float | None = None) -> Steps[dict[str, Any]]:

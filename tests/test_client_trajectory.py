@@ -68,6 +68,43 @@ def test_a_new_play_replaces_the_old_and_cancel_ends_it_canceled(client) -> None
         second.cancel()
 
 
+class Interrupted(Exception):
+    """What ends a play's block here: a Ctrl-C, or the program's own error."""
+
+
+def _played_out(client: bc.Client, trajectory_id: str) -> None:
+    """Until the gateway plays ``trajectory_id`` no longer (a hang guard's time at most)."""
+    deadline = time.monotonic() + TIMEOUT_S
+    while True:
+        [status] = client.query("busgate/demo/trajectory", {"op": "status"})
+        if trajectory_id not in [r["id"] for r in status.body["trajectories"]]:
+            return
+        assert time.monotonic() < deadline, "the trajectory plays on"
+        time.sleep(0.05)
+
+
+TWENTY_SECONDS = [{"t_s": 20.0, "positions": [1900]}]
+
+
+def test_a_play_block_an_exception_ends_cancels_the_trajectory(client) -> None:
+    """It played on for as long as the client stayed open (a notebook, a program that goes on
+    after its ``except``), its block's exit only closing the watch."""
+    with pytest.raises(Interrupted), patiently(lambda: client.play(["la3"], TWENTY_SECONDS)) as t:
+        raise Interrupted
+    _played_out(client, t.id)  # the client open all along
+
+
+def test_so_does_an_asyncio_play_block(client, module_demo) -> None:
+    async def left_by_an_exception() -> None:
+        async with bc.aio.connect(module_demo.endpoint, client_id="trajectory-aio-left") as c:
+            with pytest.raises(Interrupted):
+                async with await patiently_async(lambda: c.play(["la3"], TWENTY_SECONDS)) as t:
+                    raise Interrupted
+            await asyncio.to_thread(_played_out, client, t.id)  # while this client is open
+
+    asyncio.run(left_by_an_exception())
+
+
 def test_refusals_are_the_classes_of_their_codes_and_nothing_runs(client) -> None:
     with pytest.raises(bc.OutOfRangeError, match=r"joint la1: position .* beyond its max "):
         patiently(lambda: client.play(["la1"], [{"t_s": 0.2, "positions": [2500]}]))
