@@ -54,6 +54,10 @@ TLS_PROTOCOLS = ("tls/", "quic/")
 #: only for one that never does.
 LIVE_WAIT_S = 1.0
 
+#: What zenoh's refusal to open a session says when no endpoint of its ``connect`` could be
+#: reached (nobody listening, a name that does not resolve, a peer that never answered).
+UNREACHED = "Unable to connect to any of"
+
 #: How long a service's stop waits for its session's close (``close_within``): zenoh's close
 #: waits for a connect under way, to an endpoint that took the connection and never answers
 #: up to zenoh's open timeout (10 s), and systemd's stop gives a service 10 s in all

@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 import pytest
 
@@ -161,6 +163,30 @@ def unused_loopback_port() -> int:
             except OSError:
                 continue
             return port
+
+
+@contextmanager
+def silent_listener() -> Iterator[tuple[socket.socket, str]]:
+    """A loopback TCP listener that takes connections and never speaks (a port some other
+    program holds, a router that hangs), and its zenoh endpoint; its ``accept()`` returns once
+    a connection came (30 s at most: a hang guard)."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        listener.settimeout(30.0)
+        yield listener, f"tcp/127.0.0.1:{listener.getsockname()[1]}"
+
+
+def status_once_signalled(process: subprocess.Popen, listener: socket.socket) -> int | None:
+    """Once ``process`` connected to ``listener`` (a ``silent_listener``: zenoh waits for it
+    10 s), SIGTERM: its exit status within 5 s, ``None`` when it still runs then."""
+    held, _ = listener.accept()
+    with held:
+        process.send_signal(signal.SIGTERM)
+        try:
+            return process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            return None
 
 
 @pytest.fixture

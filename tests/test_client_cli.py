@@ -12,7 +12,6 @@ import io
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -30,9 +29,9 @@ from busgate.gateway.cli.watch_table import WatchTable
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.zenoh_session import session_config
+from tests.conftest import silent_listener
 from tests.gateway_process import (
     BUSGATE,
-    TIMEOUT_S,
     GatewayProcess,
     run_busgate,
     serial_bus,
@@ -483,12 +482,8 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
 def test_ctrl_c_while_the_session_opens_ends_the_tool_at_once_in_one_line():
     """An endpoint that takes the connection and never answers holds zenoh's opening for its
     connect timeout (some 10 s): a Ctrl-C then waited all of it and printed a traceback."""
-    with socket.socket() as mute:
-        mute.bind(("127.0.0.1", 0))
-        mute.listen()
-        mute.settimeout(TIMEOUT_S)
-        send = subprocess.Popen([*BUSGATE, "send", "la1", "{}", "--connect",
-                                 f"tcp/127.0.0.1:{mute.getsockname()[1]}"],
+    with silent_listener() as (mute, endpoint):
+        send = subprocess.Popen([*BUSGATE, "send", "la1", "{}", "--connect", endpoint],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             held, _ = mute.accept()  # the tool is in the opening now

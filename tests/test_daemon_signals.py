@@ -7,14 +7,11 @@ that never answers: zenoh's close waited for it 10 s, systemd's whole ``TimeoutS
 from __future__ import annotations
 
 import signal
-import socket
-import subprocess
-import time
 
 from busgate.codecs import inspire_la as la
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
-from tests.conftest import unused_loopback_port
+from tests.conftest import silent_listener, status_once_signalled, unused_loopback_port
 from tests.gateway_process import TIMEOUT_S, GatewayProcess, serial_bus, write_config
 from tests.wire_frames import received
 
@@ -46,28 +43,33 @@ def test_sighup_stops_the_daemon_in_order_as_sigterm_does(tmp_path) -> None:
 
 def test_a_connect_endpoint_that_never_answers_holds_the_stop_one_second_at_most(
         tmp_path) -> None:
-    with socket.socket() as mute:  # takes the connection, never speaks zenoh
-        mute.bind(("127.0.0.1", 0))
-        mute.listen()
-        mute.settimeout(TIMEOUT_S)
+    with silent_listener() as (mute, endpoint):  # takes the connection, never speaks zenoh
         config = write_config(tmp_path / "gw.toml", f"tcp/127.0.0.1:{unused_loopback_port()}",
                               serial_bus("uart0", str(tmp_path / "unplugged"), "la1"), workers=1)
         config.write_text(config.read_text().replace(
-            "[zenoh]\n", f'[zenoh]\nconnect = ["tcp/127.0.0.1:{mute.getsockname()[1]}"]\n'))
+            "[zenoh]\n", f'[zenoh]\nconnect = ["{endpoint}"]\n'))
         gateway = GatewayProcess(config)
         try:
             gateway.wait_for("serving 1 bus")
-            held, _ = mute.accept()  # zenoh's connect is under way
-            with held:
-                gateway.process.send_signal(signal.SIGTERM)
-                signalled = time.monotonic()
-                try:
-                    status = gateway.process.wait(timeout=5.0)  # not zenoh's 10 s
-                except subprocess.TimeoutExpired:
-                    status = None
-                stopped_in = time.monotonic() - signalled
-            assert status == 0, f"still stopping after {stopped_in:.1f} s"
+            assert status_once_signalled(gateway.process, mute) == 0  # zenoh's connect under way
             gateway.wait_for("did not close within 1 s")
             gateway.wait_for("gateway gw1 stopped")
+        finally:
+            gateway.stop()
+
+
+def test_a_stop_while_zenoh_waits_for_a_router_that_never_answers_is_heard_at_once(
+        tmp_path) -> None:
+    """zenoh's opening waits 10 s for a router that took the connection and never answers:
+    the stop signal was heard only after it, systemd's whole ``TimeoutStopSec``."""
+    with silent_listener() as (mute, endpoint):
+        config = tmp_path / "gw.toml"
+        config.write_text(f'[gateway]\nname = "gw1"\n[zenoh]\nmode = "client"\n'
+                          f'connect = ["{endpoint}"]\n'
+                          + serial_bus("uart0", str(tmp_path / "unplugged"), "la1"))
+        gateway = GatewayProcess(config)
+        try:
+            assert status_once_signalled(gateway.process, mute) == 0  # zenoh's opening under way
+            gateway.wait_for("gateway gw1 stopped before its session opened")
         finally:
             gateway.stop()

@@ -28,7 +28,7 @@ from busgate.gateway.cli import main
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.zenoh_session import session_config
-from tests.conftest import unused_loopback_port
+from tests.conftest import silent_listener, status_once_signalled, unused_loopback_port
 from tests.gateway_process import BUSGATE, TIMEOUT_S, GatewayProcess, run_busgate, serial_bus
 from tests.secured_gateway import MDWE_PRELUDE, _kernel_has_mdwe
 
@@ -156,22 +156,36 @@ def test_a_router_it_connects_to_that_never_answers_holds_its_stop_a_second_at_m
         start_router, tmp_path) -> None:
     """zenoh's close waits for a connect under way, to an endpoint that took the connection
     and never answers for 10 s: all of the unit's ``TimeoutStopSec``."""
-    with socket.socket() as mute:
-        mute.bind(("127.0.0.1", 0))
-        mute.listen()
-        mute.settimeout(TIMEOUT_S)
-        config = _file(tmp_path, "zenoh.json5", json.dumps(
-            {"connect": {"endpoints": [f"tcp/127.0.0.1:{mute.getsockname()[1]}"]}}))
+    with silent_listener() as (mute, endpoint):
+        config = _file(tmp_path, "zenoh.json5", json.dumps({"connect": {"endpoints": [endpoint]}}))
         router = start_router("--listen", loopback(), "--config", config)
-        held, _ = mute.accept()  # its connect is under way
-        with held:
-            router.process.send_signal(signal.SIGTERM)
-            try:
-                status = router.process.wait(timeout=5.0)  # not zenoh's 10 s
-            except subprocess.TimeoutExpired:
-                status = None
-    assert status == 0
+        assert status_once_signalled(router.process, mute) == 0  # its connect under way
     assert "did not close within 1 s" in router.process.stderr.read()
+
+
+def test_a_client_gateway_that_starts_before_its_router_waits_for_it(start_router,
+                                                                      tmp_path) -> None:
+    """A robot that boots before its router: the gateway in client mode exited (exit 2), and
+    after five starts systemd left the unit failed. It waits, saying so, and serves once the
+    router is up; a stop while it waits is heard at once."""
+    router = loopback()
+    config = tmp_path / "gw.toml"
+    config.write_text(f'[gateway]\nname = "early"\n[zenoh]\nmode = "client"\n'
+                      f'connect = ["{router}"]\n'
+                      + serial_bus("uart0", str(tmp_path / "none"), "la1"))
+    gateway = GatewayProcess(config, env=QUIET)
+    try:
+        gateway.wait_for(f"no router reached at {router}: trying again every 2 s")
+        serving = start_router("--listen", router)
+        gateway.wait_for("gateway early serving 1 bus")
+    finally:
+        assert gateway.stop() == 0
+    assert serving.stop() == 0
+    waiting = GatewayProcess(config, env=QUIET)  # its router gone again
+    waiting.wait_for("no router reached")
+    waiting.process.send_signal(signal.SIGTERM)
+    assert waiting.process.wait(timeout=TIMEOUT_S) == 0
+    waiting.wait_for("gateway early stopped before its session opened")
 
 
 # -- what it refuses ----------------------------------------------------------------------

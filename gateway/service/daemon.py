@@ -34,7 +34,7 @@ import threading
 import time
 from collections import deque
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
@@ -73,6 +73,13 @@ IN_USE_HINT = "another busgate demo or run?"
 #: terminal or ssh session that closes or a habitual ``kill -HUP`` (SIGHUP: nothing is
 #: reloaded; left to its default, it ended the daemon at once, the devices as they were).
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+#: How often a gateway in client mode tries its routers again while none can be reached.
+OPEN_RETRY_S = 2.0
+#: How often a gateway waiting for its routers says so in the log.
+OPEN_WARN_EVERY_S = 60.0
+#: What a start waiting for a router asks systemd for at each try (``EXTEND_TIMEOUT_USEC``):
+#: a try that meets a router that takes the connection and never answers lasts 10 s.
+OPEN_WAIT_S = OPEN_RETRY_S + 15.0
 #: How often systemd's STATUS is brought up to date (a bus that comes up, or goes down).
 STATUS_POLL_S = 0.5
 #: How long the start-up line waits for the buses whose ports look openable to be open.
@@ -141,7 +148,10 @@ async def serve(
     ros2 = _ros2_face(config, api, bridge)
     recorder = _flight_recorder(config, runners, bridge)  # a folder it cannot write: refused
     _incident_on_sigusr1(loop, recorder)
-    _open_session(bridge, loop)  # first: a gateway nobody can reach opens no port
+    # First: a gateway nobody can reach opens no port.
+    if not await _session_opened(bridge, loop, stop, notifier):
+        log.info("gateway %s stopped before its session opened", config.gateway.name)
+        return
     if ros2 is not None:
         ros2.open()
     metrics: Metrics | None = None
@@ -256,22 +266,95 @@ def _check_ports(config: Config) -> set[str]:
     return expected_up
 
 
-def _open_session(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
-    """Open the bridge's zenoh session; zenoh's refusal becomes one line
-    (``ConnectError``), with whatever was opened closed again."""
+async def _session_opened(
+    bridge: ZenohBridge, loop: asyncio.AbstractEventLoop, stop: asyncio.Event, notifier: Notifier
+) -> bool:
+    """Open the bridge's zenoh session: whether it opened (``False``: stopped first). The
+    opening runs on a thread of its own, so that a stop signal is heard at once (zenoh waits
+    10 s for a router that took the connection and never answers: all of systemd's
+    ``TimeoutStopSec``). A gateway in client mode whose routers cannot be reached yet (a robot
+    that boots before its router) tries again every ``OPEN_RETRY_S``, saying so, and asks
+    systemd for the time; before, it exited, and the unit's start limit left it failed.
+    Any other refusal of zenoh's is one line (``ConnectError``)."""
+    from busgate.client.errors import ConnectError  # the client's package loads zenoh
+
+    zenoh_section = bridge.config.zenoh
+    client_mode = zenoh_section.mode == "client"
+    routers = ", ".join(zenoh_section.connect) or "the config file's endpoints"
+    waiting_since = told_at = None
+    while True:
+        opening = _opening(bridge, loop)
+        stopped: asyncio.Future[Any] = asyncio.ensure_future(stop.wait())
+        await asyncio.wait((opening, stopped), return_when=asyncio.FIRST_COMPLETED)
+        stopped.cancel()
+        if not opening.done():
+            opening.cancel()  # the thread closes what it opens after all
+            return False
+        try:
+            opening.result()
+            return True
+        except ConnectError as exc:
+            if not (client_mode and exc.unreached):
+                raise
+            now = time.monotonic()
+            waiting_since = waiting_since or now
+            told = f"no router reached at {routers}: trying again every {OPEN_RETRY_S:g} s"
+            if told_at is None or now - told_at >= OPEN_WARN_EVERY_S:  # not a line a try
+                told_at = now
+                log.warning("zenoh: %s (for %.0f s now)", told, now - waiting_since)
+            notifier.notify(f"EXTEND_TIMEOUT_USEC={int(OPEN_WAIT_S * 1e6)}", f"STATUS={told}")
+        if await _stopped_within(stop, OPEN_RETRY_S):
+            return False
+
+
+def _opening(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> asyncio.Future[None]:
+    """``bridge.open`` on a daemon thread, settling the future it returns: zenoh's refusal as
+    one line (``ConnectError``, ``unreached`` when no endpoint could be reached), with
+    whatever was opened closed again. A future cancelled meanwhile (the gateway stopped) has
+    the session closed once it opens."""
     import zenoh
 
     from busgate.client.errors import ConnectError
-    from busgate.schemas.zenoh_session import session_refusal
+    from busgate.schemas.zenoh_session import UNREACHED, session_refusal
 
-    try:
-        bridge.open(loop)
-    except zenoh.ZError as exc:
-        bridge.close()
-        raise ConnectError(session_refusal(exc, IN_USE_HINT)) from exc
-    except ValueError as exc:  # no zenoh config file, a Unix socket zenoh would take over
-        bridge.close()
-        raise ConnectError(str(exc)) from exc
+    opening: asyncio.Future[None] = loop.create_future()
+
+    def settle(exc: BaseException | None) -> None:
+        if opening.cancelled():
+            if exc is None:  # opened after all, for nobody (a refusal closed it already)
+                bridge.close()
+        elif exc is None:
+            opening.set_result(None)
+        else:
+            opening.set_exception(exc)
+
+    def open_session() -> None:
+        refusal: BaseException | None = None
+        try:
+            bridge.open(loop)
+        except zenoh.ZError as exc:
+            reason = session_refusal(exc, IN_USE_HINT)
+            refusal = ConnectError(reason, unreached=UNREACHED in str(exc))
+        except BusgateError as exc:  # a namesake live (``ConfigError``)
+            refusal = exc
+        except ValueError as exc:  # no zenoh config file, a Unix socket zenoh would take over
+            refusal = ConnectError(str(exc))
+        except Exception as exc:  # a bug: raised where the opening is awaited, never lost
+            refusal = exc
+        if refusal is not None:
+            bridge.close()
+        with contextlib.suppress(RuntimeError):  # the loop ended first: the process ends
+            loop.call_soon_threadsafe(settle, refusal)
+
+    threading.Thread(target=open_session, name="zenoh-open", daemon=True).start()
+    return opening
+
+
+async def _stopped_within(stop: asyncio.Event, seconds: float) -> bool:
+    """Whether ``stop`` is set within ``seconds``."""
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(stop.wait(), seconds)
+    return stop.is_set()
 
 
 def _start_metrics(runners: dict[str, BusRunner], bridge: ZenohBridge, listen: str) -> Metrics:
