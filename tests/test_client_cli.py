@@ -160,6 +160,8 @@ def stand_in_peer(free_port, *, info: bool) -> Iterator[StandIn]:
                     "gwtwo", "ds_servo", {"both": 2, "ds1": 1})),
             ]
         stand_in.held += [
+            *(session.liveliness().declare_token(f"busgate/{gateway}/alive")
+              for gateway in ("gwtest", "gwtwo")),
             session.declare_queryable("busgate/gwtest/dev/la1/cmd",
                                       lambda query: answer_la1(stand_in, query)),
             session.declare_queryable("busgate/gwtest/bus/uart0/cmd", answer_ok),
@@ -467,6 +469,17 @@ def test_an_estop_put_goes_whatever_it_carries(stand_in, capsys):
         time.sleep(0.01)
     assert sorted(stand_in.puts) == [("busgate/gwtest/estop", b"stop!"),
                                      ("busgate/gwtest/estop/**", b"stop!")]
+
+
+def test_a_put_that_reaches_no_gateway_says_so_and_exits_2(stand_in, capsys):
+    """An e-stop put on a misspelt gateway went, reached nobody, and ended with exit 0 and no
+    word, as one carried out does."""
+    status = main(["send", "--put", "busgate/gwtset/estop", "", "--timeout", "0.5",
+                   "--connect", stand_in.endpoint])
+    _, err = capsys.readouterr()
+    assert (status, err) == (2, "busgate send: no gateway under busgate/gwtset/estop is up "
+                                "(none seen within 0.5 s): the put reached nobody\n")
+    assert main(["send", "--put", "busgate/*/estop", "", "--connect", stand_in.endpoint]) == 0
 
 
 def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):

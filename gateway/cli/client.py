@@ -13,7 +13,8 @@ SDK's ``AmbiguousError``: in a fleet, ``la1`` would move every robot's ``la1``. 
 status 0 when every reply has ``"ok": true``, 1 when any reply is an error or, for a bare
 device name, when gateways answer (their ``info``) but none has the device
 (``unknown_device``: a gateway leaves a fleet-wide command for a device it lacks
-unanswered), 2 when nobody answered (or no session opened, or a put's command is not JSON).
+unanswered), 2 when nobody answered (or no session opened, or a put's command is not JSON, or a
+put's key reached no gateway up: it went first, nobody took it).
 
 watch: subscribes to the state of devices and the statistics of buses, keeps the latest of
 each (``watch_table.py``), and redraws a table at most ``REDRAW_HZ`` times a second. Rules:
@@ -66,7 +67,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "with a '/' is used as the key expression as given. Exit status: 0 all replies ok, 1 "
         "an error reply or no gateway has the device (unknown_device), 2 nobody answered, no "
         "session opened, several gateways have the device, or, with --put, a command that is "
-        "not JSON (nothing is sent).",
+        "not JSON (nothing is sent) or a key that reached no gateway up (it went; nobody took "
+        "it).",
     )
     send.add_argument(
         "target",
@@ -80,7 +82,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     send.add_argument(
         "--put",
         action="store_true",
-        help="put instead of get: no reply; errors go to the gateway's events key",
+        help="put instead of get: no reply (errors go to the gateway's events key); it ends "
+        "once a gateway the key reaches is seen up",
     )
     add_session_options(send)
     send.set_defaults(handler=run_send)
@@ -155,7 +158,7 @@ def run_send(args: argparse.Namespace) -> int:
             key = command_key(args.prefix, f"{holder}/{args.target}")
         if args.put:
             client.put(key, payload)
-            return 0
+            return _put_reached(client, key, args)
         answers = client.query(key, payload, timeout=args.timeout)
         outcomes = list(answers)
     if not outcomes:
@@ -235,6 +238,33 @@ def _put_judged(key: str, payload: bytes, prefix: str) -> bool:
               file=sys.stderr)  # fmt: skip
         return False
     return True
+
+
+def _put_reached(client: bc.Client, key: str, args: argparse.Namespace) -> int:
+    """After a put (it went first: an e-stop is never slowed by a check), whether a gateway
+    its key reaches is up (its liveliness token; at once for one the session has seen): 0,
+    else a line saying the put reached nobody and exit 2. An e-stop put on a misspelt
+    gateway, or over a link that reached none, ended as silently as one carried out. A key
+    outside the prefix is not judged."""
+    keys = Keys(args.prefix)
+    if not key.startswith(f"{args.prefix}/"):
+        return 0
+    addressed = keys.alive(keys.gateway_of(key))
+    reached = threading.Event()
+
+    def seen(gateway: str, alive: bool) -> None:
+        if alive and intersects(addressed, keys.alive(gateway)):
+            reached.set()
+
+    stop_watching = client.on_gateways(seen)
+    try:
+        if reached.wait(args.timeout):
+            return 0
+    finally:
+        stop_watching()
+    print(f"busgate send: no gateway under {key} is up (none seen within {args.timeout:g} s): "
+          "the put reached nobody", file=sys.stderr)  # fmt: skip
+    return NO_ANSWER
 
 
 #: The last chunk of the API's keys that take puts only (docs/api.md): a get finds nobody.
