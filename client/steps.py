@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 from collections.abc import AsyncGenerator, Callable, Generator
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -98,8 +99,11 @@ class Next(Step):
 
 @dataclass(frozen=True, slots=True)
 class Call(Step):
-    """``function()``, a call that blocks: made as it is by the blocking face, in a worker
-    thread by the asyncio face (the loop never blocks)."""
+    """``function()``, a call that blocks: made as it is by the blocking face, on a daemon
+    thread of its own by the asyncio face (the loop never blocks). Not asyncio's executor,
+    whose threads the interpreter's exit waits for: a program that stopped waiting for a
+    session's opening (a Ctrl-C, a stop signal) waited at its exit until zenoh gave up on an
+    endpoint that never answered, 10 s."""
 
     function: Callable[[], Any]
 
@@ -107,7 +111,28 @@ class Call(Step):
         return self.function()
 
     async def awaited(self) -> Any:
-        return await asyncio.to_thread(self.function)
+        loop = asyncio.get_running_loop()
+        called: asyncio.Future[Any] = loop.create_future()
+
+        def settle(result: Any, error: BaseException | None) -> None:
+            if called.cancelled():
+                return
+            if error is None:
+                called.set_result(result)
+            else:
+                called.set_exception(error)
+
+        def call() -> None:
+            result, error = None, None
+            try:
+                result = self.function()
+            except BaseException as exc:  # raised where it is awaited
+                error = exc
+            with contextlib.suppress(RuntimeError):  # the loop ended first: nobody awaits it
+                loop.call_soon_threadsafe(settle, result, error)
+
+        threading.Thread(target=call, name="busgate-call", daemon=True).start()
+        return await called
 
 
 #: An operation: the steps it waits for, then its result.

@@ -10,6 +10,7 @@ import hashlib
 import http.client
 import json
 import re
+import subprocess
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -17,7 +18,8 @@ import pytest
 
 import busgate.client as bc
 from busgate.dashboard.app import MAX_BODY
-from tests.gateway_process import ServingProcess
+from tests.conftest import silent_listener, status_once_signalled
+from tests.gateway_process import BUSGATE, ServingProcess
 from tests.sdk_helpers import patiently
 
 VENDOR = Path(__file__).resolve().parent.parent / "dashboard" / "static" / "vendor"
@@ -135,6 +137,21 @@ def test_busgate_dashboard_answers_to_a_name_given_with_allow_host(module_demo) 
             assert request(where, "GET", "/", headers={"Host": host})[0] == status, host
     finally:
         assert served.terminate() == 0
+
+
+def test_a_stop_while_its_session_opens_is_heard_at_once() -> None:
+    """zenoh waits 10 s for an endpoint that took the connection and never answers; the
+    dashboard's stop signal was heard only after it (and then its exit waited as long again
+    for the thread that opened)."""
+    with silent_listener() as (mute, endpoint):
+        dashboard = subprocess.Popen([*BUSGATE, "dashboard", "--connect", endpoint, "--listen",
+                                      "127.0.0.1:0"], stderr=subprocess.PIPE, text=True)
+        try:
+            assert status_once_signalled(dashboard, mute) == 0
+        finally:
+            dashboard.kill()
+            _, err = dashboard.communicate()
+    assert err == "busgate dashboard: stopped before a session opened\n"
 
 
 @pytest.mark.parametrize(("body", "headers", "status"), [

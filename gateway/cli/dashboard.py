@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import sys
 from typing import TYPE_CHECKING
 
 from busgate.client import aio
@@ -46,6 +47,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     dashboard.set_defaults(handler=run_dashboard)
 
 
+async def _connected(args: argparse.Namespace) -> aio.Client:
+    return await aio.connect(**client_options(args, "dashboard"))
+
+
 def run_dashboard(args: argparse.Namespace) -> int:
     from busgate.dashboard.server import Listen
 
@@ -58,7 +63,15 @@ async def _serve(args: argparse.Namespace, listen: Listen) -> None:
     from busgate.dashboard.server import serve_dashboard
 
     stop = stop_on_signals(asyncio.get_running_loop())
-    client = await aio.connect(**client_options(args, "dashboard"))
+    connecting = asyncio.ensure_future(_connected(args))
+    stopped = asyncio.ensure_future(stop.wait())
+    await asyncio.wait((connecting, stopped), return_when=asyncio.FIRST_COMPLETED)
+    stopped.cancel()
+    if not connecting.done():  # a stop while zenoh waits (10 s for an endpoint that never
+        connecting.cancel()  # answers): heard at once, as the gateway hears it
+        print("busgate dashboard: stopped before a session opened", file=sys.stderr)
+        return
+    client = connecting.result()
     try:
         await serve_dashboard(
             client,
