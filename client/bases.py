@@ -210,7 +210,8 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
         """A twist stream while the ``with`` block runs: ``send(linear, angular)`` puts the
         base's new twist on its ``twist`` key (latest wins); the base holds each for its
         ``cmd_timeout_s``, then ramps to 0 (``stream_stale``), so keep sending. On exit the
-        base is stopped at once (a zero twist, then ``stop``), not after its timeout."""
+        base is stopped at once (``stop``, numbered after the last twist: one of the block's
+        that reaches the gateway later is dropped), not after its timeout."""
         return self._DriveStream(self._shared, self._found)
 
     def _odometry_key(self) -> str:

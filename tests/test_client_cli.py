@@ -23,6 +23,7 @@ import pytest
 import zenoh
 
 from busgate.codecs import inspire_la
+from busgate.gateway import cli
 from busgate.gateway.cli import client as client_cli
 from busgate.gateway.cli import main
 from busgate.gateway.cli.watch_table import WatchTable
@@ -469,6 +470,17 @@ def test_an_estop_put_goes_whatever_it_carries(stand_in, capsys):
         time.sleep(0.01)
     assert sorted(stand_in.puts) == [("busgate/gwtest/estop", b"stop!"),
                                      ("busgate/gwtest/estop/**", b"stop!")]
+
+
+def test_ctrl_c_while_the_command_loads_is_one_line_too(monkeypatch, capsys):
+    """The command's module (zenoh, pydantic) takes some 0.5 s to load: a Ctrl-C then was a
+    traceback."""
+    def loading(command):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", loading)
+    assert main(["send", "la1", "{}"]) == 130
+    assert capsys.readouterr().err == "busgate send: stopped (Ctrl-C)\n"
 
 
 def test_a_put_that_reaches_no_gateway_says_so_and_exits_2(stand_in, capsys):

@@ -82,7 +82,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(next((arg for arg in argv if not arg.startswith("-")), None))
+    command = next((arg for arg in argv if not arg.startswith("-")), None)
+    try:  # a Ctrl-C while the command's module loads (zenoh, pydantic: some 0.5 s) too
+        parser = build_parser(command)
+    except KeyboardInterrupt:
+        return _interrupted(command or "")
     if not argv:
         parser.print_help(sys.stderr)
         return 2
@@ -97,5 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush too
         return 1
     except KeyboardInterrupt:  # a Ctrl-C that no command took for its own stop
-        print(f"busgate {args.subcommand}: stopped (Ctrl-C)", file=sys.stderr)
-        return INTERRUPTED
+        return _interrupted(args.subcommand)
+
+
+def _interrupted(command: str) -> int:
+    print(f"busgate {command}: stopped (Ctrl-C)" if command else "busgate: stopped (Ctrl-C)",
+          file=sys.stderr)  # fmt: skip
+    return INTERRUPTED
