@@ -55,6 +55,8 @@ import contextlib
 import itertools
 import json
 import logging
+import re
+import socket
 import threading
 import time
 import weakref
@@ -81,6 +83,8 @@ from busgate.client.messages import (
     then,
 )
 from busgate.errors import CommandError
+from busgate.schemas.endpoints import PATTERN as ENDPOINT_PATTERN
+from busgate.schemas.endpoints import PROTOCOLS, host_of
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
 from busgate.schemas.zenoh_session import TLS_PROTOCOLS, session_config, zenoh_reason
 
@@ -93,6 +97,8 @@ ZENOH_TIMEOUT = b"Timeout"
 #: query's timeout. A gateway's largest reply is its ``info`` (``MAX_WHOLE_GATEWAY``).
 MAX_REPLY = MAX_WHOLE_GATEWAY
 
+#: The longest endpoint shown whole in a refusal (one of 5,000 characters was echoed).
+SHOWN_ENDPOINT_CHARS = 80
 #: How long a client waits for an answer unless told otherwise (``connect``'s ``timeout``).
 DEFAULT_TIMEOUT_S = 5.0
 #: What a client's session may be: a router that listened on nothing would route for nobody
@@ -157,7 +163,7 @@ class Core:
             )
         seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
-        where = ", ".join(endpoints) or str(config_file)
+        where = ", ".join(endpoints) or (str(config_file) if config_file else "no endpoint")
         try:
             config = session_config(
                 mode=mode,
@@ -174,7 +180,7 @@ class Core:
                 f"cannot open a zenoh session to {where}: {zenoh_reason(exc)}"
             ) from exc
         except zenoh.ZError as exc:
-            hint = _unopened_hint(endpoints, username, ca)
+            hint = _endpoints_hint(endpoints) or _unopened_hint(endpoints, username, ca)
             raise ConnectError(
                 f"cannot open a zenoh session to {where}: {zenoh_reason(exc)}{hint}",
                 unreached=not hint and config_file is None,
@@ -442,6 +448,37 @@ def _close(session: zenoh.Session, held: list[Any], drains: list[threading.Threa
     for thread in drains:  # rule 6; a sink that closes its own client does not wait for itself
         if thread is not threading.current_thread():
             thread.join(max(deadline - time.monotonic(), 0.0))
+
+
+def _endpoints_hint(endpoints: Sequence[str]) -> str:
+    """What is wrong with an endpoint itself, which zenoh's "unable to connect" does not say:
+    one that is none busgate knows (another protocol, a space before it), or whose host name
+    does not resolve here; ``""`` when none is.
+
+    >>> _endpoints_hint(["tcp/127.0.0.1:7447", " tcp/127.0.0.1:7447"])[:40]
+    " (' tcp/127.0.0.1:7447' is no endpoint: "
+    >>> _endpoints_hint(["tcp/a..b:7447"])  # refused before any lookup leaves the host
+    " (its host 'a..b' does not resolve here)"
+    """
+    for endpoint in endpoints:
+        if not re.match(ENDPOINT_PATTERN, endpoint):
+            shown = endpoint if len(endpoint) <= SHOWN_ENDPOINT_CHARS else endpoint[:80] + "…"
+            return (
+                f" ({shown!r} is no endpoint: protocol/address, its protocol one of "
+                f"{', '.join(PROTOCOLS)})"
+            )
+        host = host_of(endpoint)
+        if host is not None and not _resolves(host):
+            return f" (its host {host!r} does not resolve here)"
+    return ""
+
+
+def _resolves(host: str) -> bool:
+    try:
+        socket.getaddrinfo(host, None)
+    except (socket.gaierror, UnicodeError):
+        return False
+    return True
 
 
 def _unopened_hint(endpoints: Sequence[str], username: str | None, ca: object) -> str:

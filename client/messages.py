@@ -130,10 +130,12 @@ class Answers(list[Answer]):
     timed_out = False
 
 
-#: Why a query ended at once with no answer: zenoh knew nobody who would take it.
+#: Why a query ended before its timeout with no answer: zenoh knew nobody who would take it,
+#: or the one that took it went (its link dropped) before it answered.
 NOTHING_THERE = (
     "nothing there took the query (no such gateway or device, or the access rules keep this "
-    "account from it)"
+    "account from it), or its gateway went before it answered (then it may have been carried "
+    "out: see the device's state)"
 )
 
 

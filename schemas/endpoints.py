@@ -56,6 +56,17 @@ def port_problem(endpoint: str, *, listening: bool = False) -> str | None:
     return None
 
 
+def host_of(endpoint: str) -> str | None:
+    """The host an endpoint of ``NETWORK_PROTOCOLS`` names (an IPv6 address without its
+    brackets); ``None`` for any other.
+
+    >>> host_of("tcp/[::1]:7447"), host_of("tls/gw.local:7447"), host_of("unixsock-stream//x")
+    ('::1', 'gw.local', None)
+    """
+    address = _address(endpoint)
+    return None if address is None else address["host"].strip("[]")
+
+
 def beyond_this_host(endpoint: str) -> bool:
     """Whether a listener on ``endpoint`` can be reached from other hosts (rule 3)."""
     address = _address(endpoint)

@@ -285,7 +285,9 @@ def test_nobody_answering_exits_2_naming_the_selector_and_no_wait_it_did_not_do(
     assert out == ""
     assert err.strip() == ("busgate send: nobody answered on busgate/gwtest/dev/la9/cmd: "
                            "nothing there took the query (no such gateway or device, or the "
-                           "access rules keep this account from it)")
+                           "access rules keep this account from it), or its gateway went "
+                           "before it answered (then it may have been carried out: see the "
+                           "device's state)")
 
 
 @pytest.mark.parametrize("key", ["busgate/gwtest/estop", "busgate/gwtest/estop/reset",
@@ -502,6 +504,16 @@ def test_nothing_listening_is_one_line_and_exit_2(free_port, capsys):
     assert err.startswith("busgate send: error: cannot open a zenoh session to tcp/127.0.0.1:")
     assert "(is a gateway listening there? `busgate demo` listens on tcp/127.0.0.1:7447" in err
     assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("endpoint", ["foo/bar", " tcp/127.0.0.1:7447"])
+def test_an_endpoint_that_is_none_says_so_not_that_nobody_listens(endpoint, capsys):
+    """A protocol busgate knows no link of, a space before it: the line asked "is a gateway
+    listening there?", as for a gateway not started."""
+    assert main(["send", "la1", "{}", "--connect", endpoint]) == 2
+    err = capsys.readouterr().err
+    assert f"({endpoint!r} is no endpoint: protocol/address, its protocol one of tcp," in err
+    assert "listening there" not in err and len(err.splitlines()) == 1
 
 
 def test_ctrl_c_while_the_session_opens_ends_the_tool_at_once_in_one_line():

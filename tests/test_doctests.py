@@ -59,6 +59,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.scheduler.trajectory_ticks",
     "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
+    "busgate.schemas.endpoints",
     "busgate.schemas.payload",
     "busgate.schemas.telemetry",
     "busgate.schemas.validation",
