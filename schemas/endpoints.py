@@ -108,6 +108,22 @@ def takes_tcp_port(endpoint: str, host: str, port: int) -> bool:
     return len(hosts) == 1 or bool(hosts & WILDCARD_HOSTS)
 
 
+def share_a_tcp_port(first: str, second: str) -> bool:
+    """Whether listeners on ``first`` and ``second`` would take one TCP port (the same host,
+    or one of them every address's): the second to bind finds it in use.
+
+    >>> share_a_tcp_port("tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447")
+    True
+    >>> share_a_tcp_port("tcp/127.0.0.1:7447", "udp/127.0.0.1:7447")
+    False
+    """
+    address = _address(second)
+    if address is None or address["protocol"] not in TCP_PROTOCOLS:
+        return False
+    port = address["port"]
+    return port.isdecimal() and takes_tcp_port(first, address["host"], int(port))
+
+
 def _address(endpoint: str) -> re.Match[str] | None:
     """``endpoint``'s protocol, host and port, without zenoh's metadata and configuration."""
     return _ADDRESS.match(re.split(r"[?#]", endpoint, maxsplit=1)[0])

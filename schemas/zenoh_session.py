@@ -58,6 +58,13 @@ LIVE_WAIT_S = 1.0
 #: reached (nobody listening, a name that does not resolve, a peer that never answered).
 UNREACHED = "Unable to connect to any of"
 
+#: What a gateway that listens on no endpoint, connects to none and scouts for no peer is
+#: told (its config is valid: a zenoh config file may add endpoints).
+NOBODY_REACHES = (
+    "the gateway listens on no endpoint and connects to none: no client can reach it (give "
+    '[zenoh] listen = ["tcp/127.0.0.1:7447"], or connect to a router)'
+)
+
 #: How long a service's stop waits for its session's close (``close_within``): zenoh's close
 #: waits for a connect under way, to an endpoint that took the connection and never answers
 #: up to zenoh's open timeout (10 s), and systemd's stop gives a service 10 s in all

@@ -92,6 +92,19 @@ def test_an_unreadable_or_non_toml_file_is_an_error(tmp_path, capsys) -> None:
     assert "cannot read" in errors[0] and "not valid TOML" in errors[1]
 
 
+def test_a_gateway_no_client_can_reach_is_a_warning(tmp_path, capsys) -> None:
+    """No [zenoh] listen, connect, scouting or file: valid (a file may add endpoints), and
+    the gateway is reached by nobody."""
+    assert main(["check-config", str(write(tmp_path, [la(1)]))]) == 0
+    assert "warning: zenoh: the gateway listens on no endpoint and connects to none: no " \
+           "client can reach it" in capsys.readouterr().out
+    reached = write(tmp_path, [la(1)], extra="").read_text() + \
+        '[zenoh]\nlisten = ["tcp/127.0.0.1:7447"]\n'
+    (tmp_path / "reached.toml").write_text(reached)
+    assert main(["check-config", str(tmp_path / "reached.toml")]) == 0
+    assert "no client can reach it" not in capsys.readouterr().out
+
+
 def test_a_port_missing_on_this_host_is_a_warning_not_an_error(tmp_path, capsys) -> None:
     path = write(tmp_path, [la(1)], port=str(tmp_path / "usb-nothing"))
     assert main(["check-config", str(path)]) == 0

@@ -229,6 +229,8 @@ def _misspell(table: dict, key: str, typo: str) -> None:
                                  "(tcp/127.0.0.1:7447)"),
     ({"listen": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7447"]}, None,
      "zenoh: listen: tcp/127.0.0.1:7447 is given twice"),
+    ({"listen": ["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447"]}, None,  # run found it "in use"
+     "zenoh: listen: tcp/0.0.0.0:7447 and tcp/127.0.0.1:7447 take the same port"),
     ({"mode": "client"}, None, 'zenoh: connect: a gateway in mode "client" reaches others '
                                'through a router: name its endpoint (connect = '
                                '["tcp/192.168.1.2:7447"])'),
@@ -237,7 +239,8 @@ def _misspell(table: dict, key: str, typo: str) -> None:
     ({"listen": ["tcp/0.0.0.0:9108"]}, "127.0.0.1:9108",
      "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/0.0.0.0:9108's port"),
 ], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port", "listen twice",
-        "client with no router", "metrics on zenoh's port", "zenoh on every address"])
+        "one port listened on twice", "client with no router", "metrics on zenoh's port",
+        "zenoh on every address"])
 def test_a_zenoh_setting_that_could_never_open_is_refused_before_anything_opens(
         zenoh, metrics, message) -> None:
     """Each passed check-config and failed at run, where zenoh's refusal named nothing."""

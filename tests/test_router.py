@@ -258,6 +258,10 @@ REFUSALS: dict[str, tuple[Callable[[Path, int], list[str]], str]] = {
     "endpoint given twice": (lambda d, p: ["--listen", "tcp/127.0.0.1:7", "--listen",
                                            "tcp/127.0.0.1:7"],
                              "--listen tcp/127.0.0.1:7 is given twice"),
+    "one port listened on twice": (lambda d, p: ["--listen", "tcp/0.0.0.0:7", "--listen",
+                                                 "tcp/127.0.0.1:7"],
+                                   "--listen tcp/0.0.0.0:7 and --listen tcp/127.0.0.1:7 take the "
+                                   "same port"),
     "unix socket path on a file": (lambda d, p: ["--listen",
                                                  f"unixsock-stream/{_file(d, 'keep.conf', 'x')}"],
                                    "keep.conf exists and is not a socket (zenoh would delete it"),

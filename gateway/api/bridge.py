@@ -95,6 +95,7 @@ from busgate.schemas.validation import shown
 from busgate.schemas.zenoh_session import (
     CLOSE_WAIT_S,
     LIVE_WAIT_S,
+    NOBODY_REACHES,
     close_within,
     endpoints_of,
     gateway_session_config,
@@ -263,6 +264,9 @@ class ZenohBridge:
         listening = endpoints_of(config, "listen", zenoh_section.mode)  # a config file's too
         where = ", ".join(listening) or "no endpoint: reachable only through connect"
         log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
+        connecting = endpoints_of(config, "connect", zenoh_section.mode)
+        if not (listening or connecting or zenoh_section.multicast_scouting):
+            log.warning("zenoh: %s", NOBODY_REACHES)
 
     def _refuse_namesakes(self, session: zenoh.Session) -> None:
         """``ConfigError`` when another session answers this gateway's ``info`` (rule 7),

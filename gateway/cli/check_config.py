@@ -8,8 +8,10 @@ locked by another process, is no serial port, or a CAN interface python-can does
 streams cannot all fit, a flight recorder's folder this user cannot write, a zenoh config file
 missing or that zenoh cannot parse, a listener other hosts reach with no zenoh config file to
 keep them out, more bus workers than the cores this host gives the gateway — is a warning, as
-is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs):
-printed with the budget, exit status 0.
+is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs)
+and a gateway that listens nowhere, connects nowhere and scouts for nobody (valid: a zenoh
+config file may give it endpoints; else no client reaches it): printed with the budget, exit
+status 0.
 """
 
 from __future__ import annotations
@@ -91,6 +93,10 @@ def zenoh_warnings(config: Config) -> list[str]:
             )
     elif refusal := _endpoints_refusal(config):
         warnings.append(f"zenoh: {refusal}; busgate run refuses to start so")
+    elif not (config.zenoh.listen or config.zenoh.connect or config.zenoh.multicast_scouting):
+        from busgate.schemas.zenoh_session import NOBODY_REACHES
+
+        warnings.append(f"zenoh: {NOBODY_REACHES}")
     return warnings + exposure_warnings(config.zenoh.listen, zenoh_file)
 
 

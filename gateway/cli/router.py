@@ -36,6 +36,7 @@ import zenoh
 
 from busgate.errors import CommandError
 from busgate.gateway.cli.stopping import stopped_by_signals
+from busgate.schemas.endpoints import share_a_tcp_port
 from busgate.schemas.zenoh_session import (
     CLOSE_WAIT_S,
     clean,
@@ -81,11 +82,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 def run_router(args: argparse.Namespace) -> int:
     listen: list[str] = args.listen
-    for endpoint in listen:
+    for index, endpoint in enumerate(listen):  # zenoh would say one is in use: by itself
         if problem := endpoint_problem(endpoint, listening=True):
             raise CommandError(f"--listen {endpoint!r}: {problem}")
-        if listen.count(endpoint) > 1:  # zenoh would say it is in use: by itself
+        if listen.count(endpoint) > 1:
             raise CommandError(f"--listen {endpoint} is given twice")
+        if other := next((o for o in listen[:index] if share_a_tcp_port(o, endpoint)), None):
+            raise CommandError(f"--listen {other} and --listen {endpoint} take the same port")
     if args.config is not None and (refusal := config_file_refusal(args.config)):
         raise CommandError(f"--config {args.config}: {refusal}")
     try:
