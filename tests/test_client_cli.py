@@ -641,6 +641,13 @@ def test_watch_once_with_nothing_seen_exits_1(states_only, capsys):
     assert "nothing seen on busgate/nobody/**" in err
 
 
+def test_watch_once_of_a_misspelt_gateway_names_the_gateways_that_answer(stand_in, capsys):
+    assert main(["watch", "gwtset", "--once", "--seconds", "0.3",
+                 "--connect", stand_in.endpoint]) == 1
+    assert capsys.readouterr().err == ("busgate watch: nothing seen on busgate/gwtset/** in 0.3 s "
+                                       "(the gateways that answer: gwtest, gwtwo)\n")
+
+
 def test_watch_without_a_tty_prints_one_line_per_updated_row(states_only, capsys):
     status = main(["watch", "gwtest", "--seconds", "0.7", "--connect", states_only.endpoint])
     out, _ = capsys.readouterr()

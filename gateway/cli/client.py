@@ -326,7 +326,8 @@ def run_watch(args: argparse.Namespace) -> int:
     with open_client(args, "watch") as client:
         _subscribe(client, table, Keys(args.prefix), selector, state_key, stats_key)
         gateway = state_key.split("/")[-4]
-        for name, info in client.gateways(1.0).items():
+        answered = client.gateways(1.0)
+        for name, info in answered.items():
             if gateway in ("*", name):
                 seeding = info.model_dump(mode="json")  # the table holds what came as JSON
                 table.seed(seeding, lambda key: intersects(selector, f"{args.prefix}/{key}"))
@@ -336,8 +337,10 @@ def run_watch(args: argparse.Namespace) -> int:
             _wait_showing_live(table, sys.stdout, seconds)
     if args.once:
         print("\n".join(table.render(time.monotonic())))
-        if table.empty:
-            print(f"busgate watch: nothing seen on {selector} in {seconds:g} s", file=sys.stderr)
+        if table.empty:  # a misspelt gateway, as often as not: those that answer are named
+            up = ", ".join(sorted(answered)) or "none"
+            print(f"busgate watch: nothing seen on {selector} in {seconds:g} s (the gateways "
+                  f"that answer: {up})", file=sys.stderr)  # fmt: skip
             return 1
     return 0
 
