@@ -222,13 +222,17 @@ def _named(gateway: str, info: dict[str, Any], what: str, leaf: str) -> list[Fou
 
 
 def _meant(infos: dict[str, dict[str, Any]], gateway: str | None, leaf: str, what: str) -> str:
-    """What a name no gateway has likely meant: for a gateway none is, one that has ``leaf``
+    """What a name no gateway has likely meant: for a gateway named, one that has ``leaf``
     (the closest to the one named); else the name of theirs closest to ``leaf``, else the
     names they have (a few)."""
-    if gateway is not None and gateway not in infos:
+    if gateway is not None:  # a gateway named: one that has ``leaf``, if another has it
         holders = [name for name, info in sorted(infos.items()) if _named(name, info, what, leaf)]
         meant = closest(gateway, holders) or (holders[0] if holders else None)
-        return f"; no gateway {gateway!r}" + (f": did you mean {meant}/{leaf}?" if meant else "")
+        offered = "" if meant is None else f"did you mean {meant}/{leaf}?"
+        if gateway not in infos:
+            return f"; no gateway {gateway!r}" + (f": {offered}" if offered else "")
+        if offered:
+            return f"; {offered}"
     names = {
         name
         for gateway_name, info in infos.items()

@@ -45,8 +45,9 @@ Rules of this file:
    program's handlers ran only after it, so a Ctrl-C held a ``busgate send`` 9 s and then
    printed a traceback. It runs on a daemon thread of its own (``_opened``), which the
    calling thread waits for as signals allow (a wait on a lock); a session that opens after
-   its caller left is closed. The window of rule 6 is open again only should the opening end
-   in the milliseconds of the program's own end.
+   its caller left is closed (on the asyncio face too, whose awaiting a deadline or a stop
+   cancels: ``steps.Call``'s ``unwanted``). The window of rule 6 is open again only should
+   the opening end in the milliseconds of the program's own end.
 """
 
 from __future__ import annotations

@@ -106,6 +106,9 @@ class Call(Step):
     endpoint that never answered, 10 s."""
 
     function: Callable[[], Any]
+    #: What is done with a result whose awaiter left (cancelled) before it came: a session
+    #: opened for nobody is closed (core rule 7), as the blocking face's is.
+    unwanted: Callable[[Any], None] | None = None
 
     def wait(self) -> Any:
         return self.function()
@@ -113,9 +116,12 @@ class Call(Step):
     async def awaited(self) -> Any:
         loop = asyncio.get_running_loop()
         called: asyncio.Future[Any] = loop.create_future()
+        unwanted = self.unwanted
 
         def settle(result: Any, error: BaseException | None) -> None:
             if called.cancelled():
+                if error is None and unwanted is not None:
+                    threading.Thread(target=unwanted, args=(result,), daemon=True).start()
                 return
             if error is None:
                 called.set_result(result)
@@ -128,8 +134,11 @@ class Call(Step):
                 result = self.function()
             except BaseException as exc:  # raised where it is awaited
                 error = exc
-            with contextlib.suppress(RuntimeError):  # the loop ended first: nobody awaits it
+            try:
                 loop.call_soon_threadsafe(settle, result, error)
+            except RuntimeError:  # the loop ended first: nobody awaits it
+                if error is None and unwanted is not None:
+                    unwanted(result)
 
         threading.Thread(target=call, name="busgate-call", daemon=True).start()
         return await called

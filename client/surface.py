@@ -46,7 +46,7 @@ def connecting(*args: Any, **options: Any) -> Steps[Shared]:
     ``close`` it. ``lease_s``: how soon gateways give up on this client when it freezes or
     is cut off (its claims and streams go with it). ``timeout``: the default wait of every
     command. ``ConnectError`` when no session can be opened."""
-    core = yield Call(functools.partial(Core, *args, **options))
+    core = yield Call(functools.partial(Core, *args, **options), unwanted=Core.close)
     return Shared(core)
 
 

@@ -168,10 +168,12 @@ class Handle(Face):
         waiting for its answer, as a follow stream's block ends its stream: the devices do
         not play on for as long as the client stays open (a notebook, a program that goes on
         after its ``except``)."""
-        if failed and self.result is None:
-            with contextlib.suppress(BusgateError):  # a closed client: its going ends it
-                send_cancel(self._shared, self.gateway, self.id, self._shared.core.timeout_s)
-        self.close()
+        try:
+            if failed and self.result is None:
+                with contextlib.suppress(BusgateError):  # a closed client: its going ends it
+                    send_cancel(self._shared, self.gateway, self.id, self._shared.core.timeout_s)
+        finally:  # a second Ctrl-C in the cancel still stops the listening
+            self.close()
 
     @waiting
     def wait(self, timeout: float | None = None) -> Steps[dict[str, Any]]:

@@ -32,7 +32,6 @@ PATTERN = rf"^({'|'.join(PROTOCOLS)})/\S*$"
 #: Those over TCP: a listener on one takes a TCP port.
 TCP_PROTOCOLS = ("tcp", "tls", "ws")
 #: The hosts a listener binds to take a port on every address.
-WILDCARD_HOSTS = {"0.0.0.0", "::"}
 _ADDRESS = re.compile(
     rf"^(?P<protocol>{'|'.join(NETWORK_PROTOCOLS)})/(?P<host>.*):(?P<port>[^:]*)$"
 )
@@ -105,7 +104,9 @@ def takes_tcp_port(endpoint: str, host: str, port: int) -> bool:
     if address["port"] != str(port):
         return False
     hosts = {host.strip("[]"), address["host"].strip("[]")}
-    return len(hosts) == 1 or bool(hosts & WILDCARD_HOSTS)
+    if len(hosts) == 1 or "::" in hosts:  # the IPv6 wildcard takes IPv4's too (dual stack)
+        return True
+    return "0.0.0.0" in hosts and not any(":" in named for named in hosts)  # IPv4's alone
 
 
 def share_a_tcp_port(first: str, second: str) -> bool:
@@ -115,6 +116,8 @@ def share_a_tcp_port(first: str, second: str) -> bool:
     >>> share_a_tcp_port("tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447")
     True
     >>> share_a_tcp_port("tcp/127.0.0.1:7447", "udp/127.0.0.1:7447")
+    False
+    >>> share_a_tcp_port("tcp/0.0.0.0:7447", "tcp/[::1]:7447")  # one family each: both bind
     False
     """
     address = _address(second)

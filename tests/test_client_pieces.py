@@ -191,6 +191,7 @@ def test_no_gateway_with_it_names_those_that_answered_and_nobody_is_no_answer() 
     ("gw9/la1", "(gw1, gw2; no gateway 'gw9': did you mean gw1/la1?)"),  # the one with it
     ("gw9/servo", "(gw1, gw2; no gateway 'gw9': did you mean gw2/servo?)"),
     ("other/xyz", "(gw1, gw2; no gateway 'other')"),  # and no device of that name
+    ("gw1/servo", "(gw1, gw2; did you mean gw2/servo?)"),  # another gateway's, not gw1's la1
 ])
 def test_an_unknown_name_says_what_it_likely_meant(name: str, said: str) -> None:
     """A newcomer's typo, told as an op's is (``did you mean``), where it said only who

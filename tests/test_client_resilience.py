@@ -11,6 +11,7 @@ the same client's commands and telemetry worked again.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import itertools
 import json
@@ -269,6 +270,22 @@ def test_a_session_that_opens_after_its_caller_left_is_closed(module_demo) -> No
         signal.signal(signal.SIGUSR1, previous)
     assert client_gone.wait(DEADLINE_S), "the session that opened late is still open"
     assert left.tb is not None  # kept until here
+
+
+def test_an_asyncio_connect_given_up_while_it_opens_closes_its_session(module_demo) -> None:
+    """``asyncio.wait_for`` (a dashboard's stop, a program's deadline) cancelling
+    ``bc.aio.connect``: the session that opened after all stayed open, its token held."""
+    client_gone = threading.Event()
+    demo_port = int(module_demo.endpoint.rsplit(":", 1)[1])
+    port = _held_link(demo_port, hold_s=1.0, client_gone=client_gone)
+
+    async def given_up() -> None:
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(bc.aio.connect(f"tcp/127.0.0.1:{port}",
+                                                  client_id=the_client_id("given-up")), 0.3)
+
+    asyncio.run(given_up())
+    assert client_gone.wait(DEADLINE_S), "the session that opened late is still open"
 
 
 # -- accounts: the deploy config's TLS, passwords and ACL -------------------------------------

@@ -6,11 +6,18 @@ that never answers: zenoh's close waited for it 10 s, systemd's whole ``TimeoutS
 
 from __future__ import annotations
 
+import asyncio
 import signal
+import socket
+import threading
+import time
 
 from busgate.codecs import inspire_la as la
+from busgate.gateway.api.bridge import ZenohBridge
+from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas.config import parse_config
 from tests.conftest import silent_listener, status_once_signalled, unused_loopback_port
 from tests.gateway_process import TIMEOUT_S, GatewayProcess, serial_bus, write_config
 from tests.wire_frames import received
@@ -73,3 +80,40 @@ def test_a_stop_while_zenoh_waits_for_a_router_that_never_answers_is_heard_at_on
             gateway.wait_for("gateway gw1 stopped before its session opened")
         finally:
             gateway.stop()
+
+
+def test_a_stop_while_the_session_opens_leaves_nothing_of_it_open(monkeypatch, tmp_path) -> None:
+    """``serve`` in a process that goes on (a test, a benchmark): an opening the stop came
+    in the middle of ended, after ``serve`` returned, with its session open for nobody, its
+    listen port held and its threads running; in ``busgate run`` the process aborted
+    ("FATAL: exception not rethrown") when zenoh handed the thread back as it ended."""
+    opened_late = threading.Event()
+    opening = ZenohBridge.open
+
+    def slow_open(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
+        time.sleep(0.5)  # a router that answers slowly
+        opening(bridge, loop)
+        opened_late.set()
+
+    monkeypatch.setattr(ZenohBridge, "open", slow_open)
+    port = unused_loopback_port()
+    config = parse_config({
+        "gateway": {"name": "ghost", "workers": 1},
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+        "buses": [{"name": "uart0", "transport": "serial", "port": str(tmp_path / "unplugged"),
+                   "baudrate": 921600,
+                   "devices": [{"name": "la1", "kind": "inspire_la", "id": 1}]}],
+    })
+
+    async def stopped_while_opening() -> None:
+        stop = asyncio.Event()
+        serving = asyncio.create_task(serve(config, stop=stop))
+        await asyncio.sleep(0.2)
+        stop.set()
+        await serving
+
+    asyncio.run(stopped_while_opening())
+    assert opened_late.is_set()  # waited for: the thread came back before serve returned
+    assert "zenoh-open" not in [thread.name for thread in threading.enumerate()]
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", port))  # its listener closed with the session

@@ -178,6 +178,13 @@ def test_a_client_gateway_that_starts_before_its_router_waits_for_it(start_route
         gateway.wait_for(f"no router reached at {router}: trying again every 2 s")
         serving = start_router("--listen", router)
         gateway.wait_for("gateway early serving 1 bus")
+        session = client_session(router)
+        try:  # every key served, the trajectory's too (its lanes outlived the tries)
+            [reply] = session.get("busgate/early/trajectory", payload='{"op": "status"}',
+                                  timeout=TIMEOUT_S)
+            assert json.loads(reply.ok.payload.to_bytes()) == {"ok": True, "trajectories": []}
+        finally:
+            session.close()
     finally:
         assert gateway.stop() == 0
     assert serving.stop() == 0

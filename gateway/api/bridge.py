@@ -394,6 +394,11 @@ class ZenohBridge:
     def close(self) -> None:
         """Undeclare everything and close the session (last, at shutdown)."""
         self._trajectory_lanes.close()
+        self.close_session()
+
+    def close_session(self) -> None:
+        """Undeclare the keys and close the session, keeping what ``open`` does not make
+        again (the trajectory lanes): an opening refused, to be tried again."""
         for intake in self._intakes:
             intake.close()
         session, self._session = self._session, None

@@ -75,6 +75,8 @@ IN_USE_HINT = "another busgate demo or run?"
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 #: How often a gateway in client mode tries its routers again while none can be reached.
 OPEN_RETRY_S = 2.0
+#: How long a stop waits for an opening under way to hand its thread back (``_Opening``).
+OPEN_ABANDON_WAIT_S = 2.0
 #: How often a gateway waiting for its routers says so in the log.
 OPEN_WARN_EVERY_S = 60.0
 #: What a start waiting for a router asks systemd for at each try (``EXTEND_TIMEOUT_USEC``):
@@ -283,15 +285,20 @@ async def _session_opened(
     routers = ", ".join(zenoh_section.connect) or "the config file's endpoints"
     waiting_since = told_at = None
     while True:
-        opening = _opening(bridge, loop)
+        opening = _Opening(bridge, loop)
         stopped: asyncio.Future[Any] = asyncio.ensure_future(stop.wait())
-        await asyncio.wait((opening, stopped), return_when=asyncio.FIRST_COMPLETED)
-        stopped.cancel()
-        if not opening.done():
-            opening.cancel()  # the thread closes what it opens after all
+        try:
+            await asyncio.wait((opening.done, stopped), return_when=asyncio.FIRST_COMPLETED)
+        except asyncio.CancelledError:
+            await opening.abandon()
+            raise
+        finally:
+            stopped.cancel()
+        if not opening.done.done():
+            await opening.abandon()
             return False
         try:
-            opening.result()
+            opening.done.result()
             return True
         except ConnectError as exc:
             if not (client_mode and exc.unreached):
@@ -301,37 +308,53 @@ async def _session_opened(
             told = f"no router reached at {routers}: trying again every {OPEN_RETRY_S:g} s"
             if told_at is None or now - told_at >= OPEN_WARN_EVERY_S:  # not a line a try
                 told_at = now
-                log.warning("zenoh: %s (for %.0f s now)", told, now - waiting_since)
+                log.warning("zenoh: %s (for %.0f s now; %s)", told, now - waiting_since, exc)
             notifier.notify(f"EXTEND_TIMEOUT_USEC={int(OPEN_WAIT_S * 1e6)}", f"STATUS={told}")
         if await _stopped_within(stop, OPEN_RETRY_S):
             return False
 
 
-def _opening(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> asyncio.Future[None]:
-    """``bridge.open`` on a daemon thread, settling the future it returns: zenoh's refusal as
-    one line (``ConnectError``, ``unreached`` when no endpoint could be reached), with
-    whatever was opened closed again. A future cancelled meanwhile (the gateway stopped) has
-    the session closed once it opens."""
-    import zenoh
+class _Opening:
+    """One try at the bridge's session, on a daemon thread of its own; ``done``, the loop's
+    future of it: zenoh's refusal as one line (``ConnectError``, ``unreached`` when no
+    endpoint could be reached), with what was opened closed again (``close_session``: the
+    next try opens it anew)."""
 
-    from busgate.client.errors import ConnectError
-    from busgate.schemas.zenoh_session import UNREACHED, session_refusal
+    def __init__(self, bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> None:
+        self.done: asyncio.Future[None] = loop.create_future()
+        self._bridge, self._loop = bridge, loop
+        self._lock = threading.Lock()
+        self._abandoned = False
+        self._ended: tuple[BaseException | None] | None = None  # (its refusal,) once it ended
+        self._thread = threading.Thread(target=self._open, name="zenoh-open", daemon=True)
+        self._thread.start()
 
-    opening: asyncio.Future[None] = loop.create_future()
+    async def abandon(self) -> None:
+        """Give the try up (the gateway stops before its session opened): the session is
+        closed should it open after all, by whichever of the two threads sees it last. The
+        thread is waited for ``OPEN_ABANDON_WAIT_S`` at most: a process that ends while zenoh
+        is handing a thread back aborts (its return into a finalizing interpreter: "FATAL:
+        exception not rethrown", in 9 of 10 stops that came as a router answered)."""
+        with self._lock:
+            self._abandoned, ended = True, self._ended
+        self.done.cancel()
+        if ended is not None:  # it ended first: only this thread knows the session is unused
+            if ended[0] is None:
+                self._bridge.close()
+            return
+        deadline = time.monotonic() + OPEN_ABANDON_WAIT_S
+        while self._thread.is_alive() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
 
-    def settle(exc: BaseException | None) -> None:
-        if opening.cancelled():
-            if exc is None:  # opened after all, for nobody (a refusal closed it already)
-                bridge.close()
-        elif exc is None:
-            opening.set_result(None)
-        else:
-            opening.set_exception(exc)
+    def _open(self) -> None:
+        import zenoh
 
-    def open_session() -> None:
+        from busgate.client.errors import ConnectError
+        from busgate.schemas.zenoh_session import UNREACHED, session_refusal
+
         refusal: BaseException | None = None
         try:
-            bridge.open(loop)
+            self._bridge.open(self._loop)
         except zenoh.ZError as exc:
             reason = session_refusal(exc, IN_USE_HINT)
             refusal = ConnectError(reason, unreached=UNREACHED in str(exc))
@@ -342,12 +365,23 @@ def _opening(bridge: ZenohBridge, loop: asyncio.AbstractEventLoop) -> asyncio.Fu
         except Exception as exc:  # a bug: raised where the opening is awaited, never lost
             refusal = exc
         if refusal is not None:
-            bridge.close()
+            self._bridge.close_session()
+        with self._lock:
+            self._ended, abandoned = (refusal,), self._abandoned
+        if abandoned:  # nobody waits for it: what opened after all closes here
+            if refusal is None:
+                self._bridge.close()
+            return
         with contextlib.suppress(RuntimeError):  # the loop ended first: the process ends
-            loop.call_soon_threadsafe(settle, refusal)
+            self._loop.call_soon_threadsafe(self._settle, refusal)
 
-    threading.Thread(target=open_session, name="zenoh-open", daemon=True).start()
-    return opening
+    def _settle(self, refusal: BaseException | None) -> None:
+        if self.done.done():  # abandoned meanwhile: ``abandon`` saw it end, and closed it
+            return
+        if refusal is None:
+            self.done.set_result(None)
+        else:
+            self.done.set_exception(refusal)
 
 
 async def _stopped_within(stop: asyncio.Event, seconds: float) -> bool:
