@@ -7,6 +7,7 @@ a ``bc.aio.Claim``). A face's module adds only the ways into and out of a block 
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -20,6 +21,7 @@ from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.messages import feed_deadline
 from busgate.client.steps import Items, Next, Steps, Wait
+from busgate.errors import BusgateError
 
 Claim = TypeVar("Claim")
 Follow = TypeVar("Follow")
@@ -218,9 +220,15 @@ class ClaimBase(Face):
         return self
 
     def _given_back(self, kind: type[BaseException] | None) -> Steps[None]:
-        """Release the claim (the block's exit)."""
+        """Release the claim (the block's exit). A base's block that an exception ends (a
+        Ctrl-C, the program's own error) stops the base first, without waiting for the
+        answer: a one-shot drive's ``duration_s`` ran on after the release, up to 10 s."""
         lease, self._lease = self._lease, None
         assert lease is not None
+        if kind is not None and self._found.room == "base":
+            stop = {"op": "stop", "seq": self._shared.core.next_seq()}
+            with contextlib.suppress(BusgateError):  # a closed client: its going stops it
+                self._shared.send(self._found, stop, None)
         released = self._shared.unclaim(lease)
         yield from last_exchange(self._shared, released, kind, f"release of {lease.device}")
 

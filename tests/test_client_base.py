@@ -208,6 +208,22 @@ def test_a_drive_is_refused_claimed_while_another_client_holds_the_base(gw, conn
             assert mine.drive(0.1, duration_s=0.5)["client"] == nav.client_id
 
 
+class Interrupted(Exception):
+    """What ends a claim's block here: a Ctrl-C, or the program's own error."""
+
+
+def test_a_claim_block_an_exception_ends_stops_its_base(gw, connect) -> None:
+    """A one-shot drive for 8 s under a claim: a Ctrl-C ending the block released the claim
+    and left the base driving out its duration."""
+    base = connect(gw.endpoint).base("base")
+    patiently(base.enable)
+    with at_rest(base):
+        with pytest.raises(Interrupted), base.claim(ttl_s=5.0):
+            assert base.drive(0.1, duration_s=8.0)["driving"] is True
+            raise Interrupted
+        until(lambda: not base.status()["driving"], timeout=4.0)  # its ramp down, not 8 s
+
+
 def test_a_drive_stream_puts_twists_and_stops_the_base_when_it_ends(gw, connect) -> None:
     base = connect(gw.endpoint).base("base")
     patiently(base.enable)
