@@ -189,10 +189,13 @@ def test_a_client_gateway_that_starts_before_its_router_waits_for_it(start_route
         assert gateway.stop() == 0
     assert serving.stop() == 0
     waiting = GatewayProcess(config, env=QUIET)  # its router gone again
-    waiting.wait_for("no router reached")
-    waiting.process.send_signal(signal.SIGTERM)
-    assert waiting.process.wait(timeout=TIMEOUT_S) == 0
-    waiting.wait_for("gateway early stopped before its session opened")
+    try:
+        waiting.wait_for("no router reached")
+        waiting.process.send_signal(signal.SIGTERM)
+        assert waiting.process.wait(timeout=TIMEOUT_S) == 0
+        waiting.wait_for("gateway early stopped before its session opened")
+    finally:
+        waiting.stop()  # a test that fails leaves no gateway behind
 
 
 # -- what it refuses ----------------------------------------------------------------------
