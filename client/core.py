@@ -57,7 +57,6 @@ import contextlib
 import itertools
 import json
 import logging
-import re
 import socket
 import threading
 import time
@@ -85,9 +84,9 @@ from busgate.client.messages import (
     then,
 )
 from busgate.errors import CommandError
-from busgate.schemas.endpoints import PATTERN as ENDPOINT_PATTERN
-from busgate.schemas.endpoints import PROTOCOLS, host_of
+from busgate.schemas.endpoints import ENDPOINT_FORM, host_of, is_endpoint
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
+from busgate.schemas.validation import cut
 from busgate.schemas.zenoh_session import TLS_PROTOCOLS, session_config, zenoh_reason
 
 log = logging.getLogger(__name__)
@@ -469,12 +468,8 @@ def _endpoints_hint(endpoints: Sequence[str]) -> str:
     " (its host 'a..b' does not resolve here)"
     """
     for endpoint in endpoints:
-        if not re.match(ENDPOINT_PATTERN, endpoint):
-            shown = endpoint if len(endpoint) <= SHOWN_ENDPOINT_CHARS else endpoint[:80] + "…"
-            return (
-                f" ({shown!r} is no endpoint: protocol/address, its protocol one of "
-                f"{', '.join(PROTOCOLS)})"
-            )
+        if not is_endpoint(endpoint):
+            return f" ({cut(endpoint, SHOWN_ENDPOINT_CHARS)!r} is no endpoint: {ENDPOINT_FORM})"
         host = host_of(endpoint)
         if host is not None and not _resolves(host):
             return f" (its host {host!r} does not resolve here)"

@@ -34,12 +34,7 @@ from pydantic import (
 from busgate.errors import ConfigError
 from busgate.schemas.base import KEY_PREFIX_PATTERN, Name
 from busgate.schemas.bases import BaseConfig, wheel_problem
-from busgate.schemas.endpoints import (
-    Endpoint,
-    ListenEndpoint,
-    share_a_tcp_port,
-    takes_tcp_port,
-)
+from busgate.schemas.endpoints import Endpoint, ListenEndpoint, clash_at, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
 from busgate.schemas.joints import Joint, JointTable, table_problems, table_warnings
@@ -94,12 +89,11 @@ class ZenohSection(Section):
 
     @model_validator(mode="after")
     def _check_endpoints(self) -> ZenohSection:
-        for index, endpoint in enumerate(self.listen):  # zenoh would find one in use: by itself
-            if self.listen.count(endpoint) > 1:
-                raise ValueError(f"listen: {endpoint} is given twice")
-            if other := next(
-                (o for o in self.listen[:index] if share_a_tcp_port(o, endpoint)), None
-            ):
+        for index in range(len(self.listen)):
+            if clash := clash_at(self.listen, index):
+                other, endpoint = clash
+                if other == endpoint:
+                    raise ValueError(f"listen: {endpoint} is given twice")
                 raise ValueError(f"listen: {other} and {endpoint} take the same port")
         if self.mode == "client" and not self.connect and self.config_file is None:
             raise ValueError(

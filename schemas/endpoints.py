@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Annotated
 
 from pydantic import AfterValidator, Field
@@ -29,9 +29,10 @@ NETWORK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 #: Every protocol an endpoint may have: those, and a Unix socket's (rule 2).
 PROTOCOLS = (*NETWORK_PROTOCOLS, "unixsock-stream")
 PATTERN = rf"^({'|'.join(PROTOCOLS)})/\S*$"
+#: What an endpoint is, as a refusal of one that is none says it.
+ENDPOINT_FORM = f"protocol/address, its protocol one of {', '.join(PROTOCOLS)}"
 #: Those over TCP: a listener on one takes a TCP port.
 TCP_PROTOCOLS = ("tcp", "tls", "ws")
-#: The hosts a listener binds to take a port on every address.
 _ADDRESS = re.compile(
     rf"^(?P<protocol>{'|'.join(NETWORK_PROTOCOLS)})/(?P<host>.*):(?P<port>[^:]*)$"
 )
@@ -127,6 +128,26 @@ def share_a_tcp_port(first: str, second: str) -> bool:
     return port.isdecimal() and takes_tcp_port(first, address["host"], int(port))
 
 
+def is_endpoint(endpoint: str) -> bool:
+    """Whether ``endpoint`` is of a protocol busgate knows, ``protocol/address`` (rule 1)."""
+    return re.match(PATTERN, endpoint) is not None
+
+
+def clash_at(listen: Sequence[str], index: int) -> tuple[str, str] | None:
+    """What keeps ``listen[index]`` from listening beside the others, as the two that clash:
+    itself given twice (anywhere in ``listen``), or one before it whose TCP port it would take
+    (``share_a_tcp_port``): zenoh would find it in use, by the same gateway or router.
+
+    >>> clash_at(["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447"], 1)
+    ('tcp/0.0.0.0:7447', 'tcp/127.0.0.1:7447')
+    """
+    endpoint = listen[index]
+    if listen.count(endpoint) > 1:
+        return endpoint, endpoint
+    other = next((o for o in listen[:index] if share_a_tcp_port(o, endpoint)), None)
+    return None if other is None else (other, endpoint)
+
+
 def _address(endpoint: str) -> re.Match[str] | None:
     """``endpoint``'s protocol, host and port, without zenoh's metadata and configuration."""
     return _ADDRESS.match(re.split(r"[?#]", endpoint, maxsplit=1)[0])
@@ -137,11 +158,8 @@ def _refusing(*, listening: bool) -> Callable[[str], str]:
     port is wrong (rule 1)."""
 
     def check(endpoint: str) -> str:
-        if not re.match(PATTERN, endpoint):
-            raise ValueError(
-                f"an endpoint is protocol/address, its protocol one of {', '.join(PROTOCOLS)} "
-                "(tcp/127.0.0.1:7447)"
-            )
+        if not is_endpoint(endpoint):
+            raise ValueError(f"an endpoint is {ENDPOINT_FORM} (tcp/127.0.0.1:7447)")
         problem = port_problem(endpoint, listening=listening)
         if problem is not None:
             raise ValueError(problem)

@@ -36,7 +36,7 @@ import zenoh
 
 from busgate.errors import CommandError
 from busgate.gateway.cli.stopping import stopped_by_signals
-from busgate.schemas.endpoints import share_a_tcp_port
+from busgate.schemas.endpoints import clash_at
 from busgate.schemas.zenoh_session import (
     CLOSE_WAIT_S,
     clean,
@@ -82,12 +82,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 def run_router(args: argparse.Namespace) -> int:
     listen: list[str] = args.listen
-    for index, endpoint in enumerate(listen):  # zenoh would say one is in use: by itself
+    for index, endpoint in enumerate(listen):
         if problem := endpoint_problem(endpoint, listening=True):
             raise CommandError(f"--listen {endpoint!r}: {problem}")
-        if listen.count(endpoint) > 1:
-            raise CommandError(f"--listen {endpoint} is given twice")
-        if other := next((o for o in listen[:index] if share_a_tcp_port(o, endpoint)), None):
+        if clash := clash_at(listen, index):
+            other, endpoint = clash
+            if other == endpoint:
+                raise CommandError(f"--listen {endpoint} is given twice")
             raise CommandError(f"--listen {other} and --listen {endpoint} take the same port")
     if args.config is not None and (refusal := config_file_refusal(args.config)):
         raise CommandError(f"--config {args.config}: {refusal}")
