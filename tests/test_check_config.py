@@ -64,6 +64,19 @@ def test_every_example_config_passes_with_a_budget_line_per_bus(path, capsys) ->
     assert "oversubscribed" not in out
 
 
+def test_the_first_line_names_the_bases_and_the_ros_2_face(tmp_path, capsys) -> None:
+    """What the gateway serves beyond its buses, or that it serves none of it."""
+    assert main(["check-config", str(DEPLOY / "inspire_la.toml")]) == 0
+    assert ", no base, no ROS 2 face, " in capsys.readouterr().out.splitlines()[0]
+    text = (DEPLOY / "robot.toml").read_text() + '[ros2]\ndomain_id = 7\ndistro = "humble"\n'
+    path = tmp_path / "robot.toml"
+    path.write_text(text)
+    assert main(["check-config", str(path)]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert ", base base (wheels wheel_left, wheel_right), ROS 2 node busgate_robot1 in domain 7 " \
+           "(humble), " in first
+
+
 def test_a_broken_config_names_each_key_path_and_exits_1(tmp_path, capsys) -> None:
     path = write(tmp_path, [la(1, poll_hz='"fast"'), la(2, follow_period_ms=5)], baud=100)
     assert main(["check-config", str(path)]) == 1

@@ -120,9 +120,16 @@ def _overview(config: Config) -> str:
         if config.recorder
         else "no flight recorder"
     )
+    bases = ", ".join(f"base {b.name} (wheels {b.left}, {b.right})" for b in config.bases)
+    ros2 = config.ros2
+    face = (
+        f"ROS 2 node {ros2.node_of(config.gateway.name)} in domain {ros2.domain_id} ({ros2.distro})"
+        if ros2
+        else "no ROS 2 face"
+    )
     return (
         f"gateway {config.gateway.name}, {len(config.buses)} bus(es), {devices} device(s), "
-        f"{metrics}, {recorder}"
+        f"{bases or 'no base'}, {face}, {metrics}, {recorder}"
     )
 
 
