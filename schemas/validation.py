@@ -2,8 +2,10 @@
 
 Pydantic's ``ValidationError`` becomes a ``CommandError`` raised from it, whose message names
 every offending field, so the CLI and the zenoh API report the same words. An op the family
-does not have is told in one line of its own, with the op it most likely misspells
-(``suggestion``, which also serves the config's unknown keys). The code a reply gives it is the
+does not have is told in one line of its own: for an op another family has (``disable`` to an
+LA), what does its deed in this one (the family schema's ``OPS_ELSEWHERE``); else the op it
+most likely misspells (``suggestion``, which also serves the config's unknown keys), never one
+that undoes what was asked (``enable`` for ``disable``). The code a reply gives it is the
 ``ValidationError``'s (``refusal_code``): ``out_of_range`` when only values were outside their
 bounds, else ``bad_command``; the gateway's replies (``busgate.schemas.replies``) and the
 client's own checks (``busgate.client``) both ask it.
@@ -20,6 +22,7 @@ from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from busgate.codecs.errors import EncodeError
 from busgate.errors import CommandError
+from busgate.schemas.families import FAMILIES
 
 #: Pydantic error types that mean "a value outside its range".
 RANGE_ERRORS = frozenset(
@@ -39,6 +42,8 @@ RANGE_ERRORS = frozenset(
 SHOWN_OP_CHARS = 40
 #: How much of a name a refusal repeats (a key may carry 60,000 characters of one).
 SHOWN_NAME_CHARS = 64
+#: Words a suggestion never puts for each other: each undoes what the other does.
+OPPOSITES = frozenset({frozenset({"enable", "disable"})})
 #: A quoted tag in pydantic's ``expected_tags`` (``'move', 'follow'``).
 _QUOTED_TAG = re.compile(r"'([^']*)'")
 
@@ -81,6 +86,8 @@ def describe_command_error(exc: ValidationError, family: str) -> str:
     if len(errors) == 1 and errors[0]["type"] == "union_tag_invalid" and not errors[0]["loc"]:
         op, expected = errors[0]["ctx"]["tag"], errors[0]["ctx"]["expected_tags"]
         named = shown(op, SHOWN_OP_CHARS)
+        if instead := _ops_elsewhere(family).get(op):
+            return f"unknown op `{named}` for {family}: {instead}"
         return f"unknown op `{named}` for {family}{suggestion(op, _QUOTED_TAG.findall(expected))}"
     return f"invalid command: {describe_validation_error(exc)}"
 
@@ -90,11 +97,17 @@ def suggestion(word: str, choices: Sequence[str], *, listed: int | None = None) 
     one it most likely misspells (``closest``); else the choices, when there are at most
     ``listed`` of them (``None``: however many), or nothing."""
     meant = closest(word, choices)
-    if meant is not None:
+    if meant is not None and frozenset({word, meant}) not in OPPOSITES:
         return f" (did you mean `{meant}`?)"
     if listed is None or len(choices) <= listed:
         return f" (allowed: {', '.join(f'`{choice}`' for choice in choices)})"
     return ""
+
+
+def _ops_elsewhere(family: str) -> dict[str, str]:
+    """What does another family's op in ``family`` (its schema's ``OPS_ELSEWHERE``)."""
+    entry = FAMILIES.get(family)
+    return {} if entry is None else getattr(entry.schema, "OPS_ELSEWHERE", {})
 
 
 def closest(word: str, choices: Sequence[str]) -> str | None:

@@ -15,6 +15,7 @@ from pydantic import ValidationError
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
+from busgate.errors import CommandError
 from busgate.gateway.api import commands
 from busgate.gateway.api.commands import END_FENCE_S, MAX_PAYLOAD, GatewayApi
 from busgate.gateway.api.taken import taken_under
@@ -30,6 +31,7 @@ from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.api import DEVICE_COMMAND_ADAPTERS
 from busgate.schemas.config import CanBus, SerialBus
+from busgate.schemas.validation import command_from_object, suggestion
 
 _channels = itertools.count()
 
@@ -137,6 +139,33 @@ def test_an_unknown_op_is_one_line_naming_the_op_it_most_likely_misspells(gatewa
     ops = ", ".join(f"`{op}`" for op in DEVICE_COMMAND_ADAPTERS["zlac706"].core_schema["choices"])
     assert ask(api, "wheel", {"op": "fly"}) == refusal(
         f"unknown op `fly` for zlac706 (allowed: {ops})")
+    # Never the op that undoes what was asked (``disable`` is close to ``enable``).
+    assert ask(api, "wheel", {"op": "enabel"}) == refusal(
+        "unknown op `enabel` for zlac706 (did you mean `enable`?)")
+
+
+@pytest.mark.parametrize(("device", "op", "instead"), [
+    ("la1", "disable", "`pause` switches its power stage off"),
+    ("wheel", "estop", "`disable` releases the motor"),
+    ("wheel", "pause", "`disable` releases the motor"),
+])  # fmt: skip
+def test_another_familys_op_is_answered_with_what_does_its_deed_here(gateway, device, op,
+                                                                       instead) -> None:
+    """An LA has no ``disable`` (where ``enable`` was the op it was closest to)."""
+    api, *_ = gateway
+    reply = ask(api, device, {"op": op})
+    assert reply["error"]["code"] == "bad_command"
+    assert reply["error"]["message"].startswith(f"unknown op `{op}` for ")
+    assert instead in reply["error"]["message"] and "did you mean" not in reply["error"]["message"]
+
+
+def test_the_opposite_op_is_never_the_suggestion() -> None:
+    assert suggestion("disable", ["enable", "move"]) == " (allowed: `enable`, `move`)"
+    assert suggestion("disabel", ["disable", "enable"]) == " (did you mean `disable`?)"
+    assert suggestion("enabel", ["enable"]) == " (did you mean `enable`?)"
+    with pytest.raises(CommandError, match=r'^unknown op `enable` for ds_servo: `torque` with '
+                                           r'`"on": true`'):
+        command_from_object(DEVICE_COMMAND_ADAPTERS["ds_servo"], {"op": "enable"}, "ds_servo")
 
 
 @pytest.mark.parametrize(("device", "command", "found_by"), [
