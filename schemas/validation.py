@@ -117,12 +117,36 @@ def closest(word: str, choices: Sequence[str]) -> str | None:
 
 
 def describe_validation_error(exc: ValidationError) -> str:
-    """``position: Input should be less than or equal to 2000; …`` on one line."""
+    """``position: must be at most 2000, not 2500; …`` on one line: a number past a bound
+    with the bound and the number (``_past_bound``), any other problem in pydantic's words."""
     parts = []
     for error in exc.errors(include_url=False):
         location = ".".join(str(p) for p in error["loc"])
-        parts.append(f"{location}: {error['msg']}" if location else error["msg"])
+        message = _past_bound(error) or error["msg"]
+        parts.append(f"{location}: {message}" if location else message)
     return "; ".join(parts)
+
+
+#: How a number past each of pydantic's bounds is told, by the bound's error type.
+_BOUNDS = {
+    "less_than_equal": ("le", "at most"),
+    "less_than": ("lt", "below"),
+    "greater_than_equal": ("ge", "at least"),
+    "greater_than": ("gt", "above"),
+}
+
+
+def _past_bound(error: Any) -> str | None:
+    """``must be at most 2000, not 2500`` for a number past a bound; ``None`` for anything
+    else. The number as sent, cut (a peer may send a thousand digits)."""
+    bound = _BOUNDS.get(error["type"])
+    value = error.get("input")
+    if bound is None or isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    key, words = bound
+    limit = error["ctx"][key]
+    shown_limit = f"{limit:.15g}" if isinstance(limit, float) else limit  # 1000, not 1000.0
+    return f"must be {words} {shown_limit}, not {cut(repr(value), SHOWN_OP_CHARS)}"
 
 
 def refusal_code(exc: ValidationError) -> str:

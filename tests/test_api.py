@@ -159,6 +159,20 @@ def test_another_familys_op_is_answered_with_what_does_its_deed_here(gateway, de
     assert instead in reply["error"]["message"] and "did you mean" not in reply["error"]["message"]
 
 
+@pytest.mark.parametrize(("fields", "words"), [
+    ({"op": "velocity", "rpm": 1e300}, "velocity.rpm: must be at most 1000, not 1e+300"),
+    ({"op": "velocity", "rpm": -2000}, "velocity.rpm: must be at least -1000, not -2000"),
+    ({"op": "velocity", "rpm": 10**80},
+     f"velocity.rpm: must be at most 1000, not {'1' + '0' * 39}…"),
+    ({"op": "velocity", "rpm": True}, "velocity.rpm: Input should be a valid number"),
+])  # fmt: skip
+def test_a_number_past_a_bound_is_refused_with_the_bound_and_the_number(fields, words) -> None:
+    """In the schema's own words otherwise (a bool is no number); a thousand digits are cut."""
+    with pytest.raises(CommandError) as refused:
+        command_from_object(DEVICE_COMMAND_ADAPTERS["zlac706"], fields, "zlac706")
+    assert str(refused.value) == f"invalid command: {words}"
+
+
 def test_the_opposite_op_is_never_the_suggestion() -> None:
     assert suggestion("disable", ["enable", "move"]) == " (allowed: `enable`, `move`)"
     assert suggestion("disabel", ["disable", "enable"]) == " (did you mean `disable`?)"

@@ -181,7 +181,7 @@ def test_cli_encode(capsys, argv, lines):
         (["--id", "254", '{"op":"ping"}'], "ping cannot be sent to the broadcast id 254"),
         (["--id", "254", '{"op":"move","position":1,"deferred":true}'], "REG WRITE cannot"),
         (["--id", "251", '{"op":"reset"}'], "device_id 251 is out of range"),
-        (['{"op":"move","position":5000}'], "position: Input should be less than or equal to 4095"),
+        (['{"op":"move","position":5000}'], "position: must be at most 4095, not 5000"),
         (['{"op":"write","address":56,"data":"0000"}'], "read only"),
         (["{not json"], "invalid command"),
     ],

@@ -239,7 +239,7 @@ def test_cli_encode_defaults_to_id_1(capsys):
     [
         (["--id", "0", '{"op":"status"}'], "device_id 0 is out of range [1, 255]"),
         (["--id", "255", '{"op":"read","index":2,"length":1}'], "device_id 255 is out of range"),
-        (['{"op":"move","position":2001}'], "position: Input should be less than or equal to 2000"),
+        (['{"op":"move","position":2001}'], "position: must be at most 2000, not 2001"),
         (['{"op":"write","index":3,"data":"00"}'], "address 3 is reserved"),
         (["{not json"], "invalid command"),
         # read as the gateway reads a command: not the last of two, nor NaN
