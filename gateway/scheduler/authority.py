@@ -134,7 +134,11 @@ class ClaimTable:
             log.info("device %s: claim of %s lapsed", device, held.client)
             return
         if held.client != client:
-            raise RefusedError("claimed", f"{device} is claimed by {held.client!r}")
+            raise RefusedError(
+                "claimed",
+                f"{device} is claimed by {held.client!r} (its claim lapses in "
+                f"{held.until - now:.1f} s unless renewed)",
+            )
 
 
 class Authority:
