@@ -461,7 +461,9 @@ def _tables_in(annotation: Any) -> list[type[BaseModel]]:
 
 
 def load_config(path: str | Path) -> Config:
-    """Read and validate a TOML config file."""
+    """Read and validate a TOML config file; each line of a refusal names the file
+    (``gw.toml: buses[0].baudrate: …``), as a compiler's do: the journal's reader may not know
+    which one the unit was given."""
     try:
         text = read_text(path, MAX_CONFIG_BYTES, "a config")
     except FileRefused as exc:
@@ -474,7 +476,11 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
     except RecursionError as exc:
         raise ConfigError(f"{path} is not valid TOML: nested too deeply", path="") from exc
-    return parse_config(data)
+    try:
+        return parse_config(data)
+    except ConfigError as exc:
+        lines = (f"{path}: {line}" for line in str(exc).splitlines())
+        raise ConfigError("\n".join(lines), path=exc.path) from exc.__cause__
 
 
 def _key_path(loc: tuple[int | str, ...]) -> str:

@@ -82,10 +82,11 @@ def test_a_broken_config_names_each_key_path_and_exits_1(tmp_path, capsys) -> No
     assert main(["check-config", str(path)]) == 1
     captured = capsys.readouterr()
     errors = captured.err.splitlines()
-    assert any(e.startswith("error: buses[0].baudrate:") and "1200" in e for e in errors)
-    assert any(e.startswith("error: buses[0].devices[0].poll_hz:") for e in errors)
-    assert any(e.startswith("error: buses[0].devices[1].follow_period_ms:") and "10" in e
+    assert any(e.startswith(f"error: {path}: buses[0].baudrate:") and "1200" in e
                for e in errors)
+    assert any(e.startswith(f"error: {path}: buses[0].devices[0].poll_hz:") for e in errors)
+    assert any(e.startswith(f"error: {path}: buses[0].devices[1].follow_period_ms:")
+               and "10" in e for e in errors)
     assert captured.out == ""
 
 
@@ -93,7 +94,7 @@ def test_a_misspelt_key_is_one_error_naming_the_key_it_means(tmp_path, capsys) -
     path = write(tmp_path, [la(1).replace("kind", "knd")])
     assert main(["check-config", str(path)]) == 1
     assert capsys.readouterr().err.splitlines() == [
-        "error: buses[0].devices[0]: unknown key `knd` (did you mean `kind`?)"]
+        f"error: {path}: buses[0].devices[0]: unknown key `knd` (did you mean `kind`?)"]
 
 
 def test_an_unreadable_or_non_toml_file_is_an_error(tmp_path, capsys) -> None:

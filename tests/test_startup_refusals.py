@@ -63,8 +63,8 @@ def test_two_buses_on_one_device_file_are_refused_naming_both(through_a_link, tm
                           serial_bus("uart1", str(other), "la2"))
     real = os.path.realpath(device)
     named = f" (as {device} and {other})" if through_a_link else ""
-    refusal = (f"buses[1].port: buses 'uart0' and 'uart1' both open {real}{named}; give each "
-               f"bus its own port")
+    refusal = (f"{config}: buses[1].port: buses 'uart0' and 'uart1' both open {real}{named}; "
+               f"give each bus its own port")
 
     run = run_busgate("run", "--config", str(config))
     assert (run.returncode, run.stderr.splitlines()) == (2, [f"busgate run: error: {refusal}"])
@@ -84,10 +84,11 @@ def test_a_config_that_is_not_utf8_is_one_line_naming_the_file(tmp_path, capsys)
 
 
 def test_every_line_of_a_refusal_has_the_prefix(tmp_path, endpoint, capsys) -> None:
+    """And names the file, as a compiler's lines do: the journal's reader may not know it."""
     bus = serial_bus("uart0", "/dev/ttyUSB0", "la1").replace("baudrate", "baudrat")
     config = write_config(tmp_path / "gw.toml", endpoint, bus + "poll_hz = 0\n")
-    refusal = ["buses[0].devices[0].poll_hz: Input should be greater than 0",
-               "buses[0]: unknown key `baudrat` (did you mean `baudrate`?)"]
+    refusal = [f"{config}: buses[0].devices[0].poll_hz: Input should be greater than 0",
+               f"{config}: buses[0]: unknown key `baudrat` (did you mean `baudrate`?)"]
 
     run = run_busgate("run", "--config", str(config))
     assert (run.returncode, run.stderr.splitlines()) == (
