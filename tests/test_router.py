@@ -185,6 +185,11 @@ def test_a_client_gateway_that_starts_before_its_router_waits_for_it(start_route
             assert json.loads(reply.ok.payload.to_bytes()) == {"ok": True, "trajectories": []}
         finally:
             session.close()
+        # The router goes and comes back: the journal tells both.
+        assert serving.stop() == 0
+        gateway.wait_for(f"zenoh: no router reached at {router} any more")
+        serving = start_router("--listen", router)
+        gateway.wait_for(f"zenoh: a router reached again at {router}, after ")
     finally:
         assert gateway.stop() == 0
     assert serving.stop() == 0

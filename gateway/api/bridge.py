@@ -387,6 +387,10 @@ class ZenohBridge:
         assert self._session is not None, "open() first"
         return self._session
 
+    def routers(self) -> int:
+        """The zenoh routers the session reaches now."""
+        return len(self._session.info.routers_zid()) if self._session is not None else 0
+
     def connections(self) -> int:
         """Open zenoh transports: the clients, peers and routers connected now."""
         return len(self._session.info.transports()) if self._session is not None else 0

@@ -82,6 +82,8 @@ OPEN_WARN_EVERY_S = 60.0
 #: What a start waiting for a router asks systemd for at each try (``EXTEND_TIMEOUT_USEC``):
 #: a try that meets a router that takes the connection and never answers lasts 10 s.
 OPEN_WAIT_S = OPEN_RETRY_S + 15.0
+#: How often a gateway in client mode looks whether it still reaches a router (``_routers``).
+ROUTER_CHECK_S = 1.0
 #: How often systemd's STATUS is brought up to date (a bus that comes up, or goes down).
 STATUS_POLL_S = 0.5
 #: How long the start-up line waits for the buses whose ports look openable to be open.
@@ -181,6 +183,8 @@ async def serve(
                 tasks.create_task(recorder.run(stop))
             if ros2 is not None:
                 tasks.create_task(ros2.run(stop))
+            if config.zenoh.mode == "client":
+                tasks.create_task(_routers(bridge, stop))
             await bridge.publish_forever(stop)
     finally:
         for worker in workers:  # first: a worker's end read from now on is the stop's own
@@ -382,6 +386,31 @@ class _Opening:
             self.done.set_result(None)
         else:
             self.done.set_exception(refusal)
+
+
+async def _routers(bridge: ZenohBridge, stop: asyncio.Event) -> None:
+    """A gateway in client mode reaches its clients through its routers only: the moment it
+    reaches none, and the moment it reaches one again, are logged (zenoh connects again by
+    itself; the buses go on meanwhile, and a follow stream whose client cannot reach it goes
+    stale as any other). Looked at every ``ROUTER_CHECK_S``."""
+    endpoints = ", ".join(bridge.config.zenoh.connect) or "the config file's endpoints"
+    lost_at: float | None = None
+    while not await _stopped_within(stop, ROUTER_CHECK_S):
+        reached = bridge.routers() > 0
+        if not reached and lost_at is None:
+            lost_at = time.monotonic()
+            log.warning(
+                "zenoh: no router reached at %s any more: no client reaches this gateway until "
+                "one is back (zenoh connects again by itself; the buses go on)",
+                endpoints,
+            )
+        elif reached and lost_at is not None:
+            log.info(
+                "zenoh: a router reached again at %s, after %.0f s without",
+                endpoints,
+                time.monotonic() - lost_at,
+            )
+            lost_at = None
 
 
 async def _stopped_within(stop: asyncio.Event, seconds: float) -> bool:
