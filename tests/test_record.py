@@ -28,6 +28,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 import busgate.client as bc
+from busgate.gateway.cli import main
 from busgate.gateway.cli import record as record_command
 from busgate.gateway.recording import mcap_log
 from busgate.gateway.recording.mcap_log import McapLog, schema_name
@@ -303,6 +304,27 @@ def test_seconds_ends_a_recording_with_a_complete_file(module_demo, tmp_path) ->
         summary = make_reader(stream).get_summary()
     assert summary is not None and summary.statistics.message_count > 0
     assert {c.topic for c in summary.channels.values()} == {"busgate/demo/dev/la1/state"}
+
+
+def test_a_second_ctrl_c_while_the_file_is_finished_leaves_it_complete(module_demo, tmp_path,
+                                                                       monkeypatch) -> None:
+    """A Ctrl-C pressed twice: the second came while the file got its summary and index, and
+    its ``KeyboardInterrupt`` left the file without them. Here it comes from the file's close
+    itself, in this process, to land there every time."""
+    closing = record_command.Recording.close
+
+    def interrupted_close(recording) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs here, before the close's first line
+        closing(recording)
+
+    monkeypatch.setattr(record_command.Recording, "close", interrupted_close)
+    path = tmp_path / "twice.mcap"
+    assert main(["record", "--connect", module_demo.endpoint, "-o", str(path), "--seconds",
+                 "0.5", "busgate/demo/dev/la1/state"]) == 0
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics.message_count > 0
 
 
 def test_a_recording_stopped_while_its_session_opens_leaves_no_file(tmp_path) -> None:

@@ -10,7 +10,8 @@ Rules of this file:
    than any a gateway publishes on its key (``payload.largest_published``) is left out and
    counted: a queue of them would be memory without end.
 2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
-   queue is written out, and the file gets its summary and index (a complete MCAP file). A
+   queue is written out, and the file gets its summary and index (a complete MCAP file); a
+   second signal meanwhile (a Ctrl-C pressed twice) changes nothing of that. A
    write the disk refuses (full) ends it the same way, the file ended as far as the disk
    lets it, and the command fails in one line naming the file and why.
 3. An existing file is never overwritten: a recording is evidence.
@@ -172,20 +173,21 @@ def run_record(args: argparse.Namespace) -> int:
             stream.close()
             raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
         ends: list = []
-        try:
-            for key in keys:
-                ends.append(client.subscribe_raw(key, recording.take))
-            until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
-            print(
-                f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
-                file=sys.stderr,
-                flush=True,
-            )
-            recording.run_until_stopped(args.seconds)
-        finally:
-            for end in ends:
-                end()
-            recording.close()
+        with recording.stopped_by_signals():  # to the file's last byte (rule 2)
+            try:
+                for key in keys:
+                    ends.append(client.subscribe_raw(key, recording.take))
+                until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
+                print(
+                    f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                recording.run_until_stopped(args.seconds)
+            finally:
+                for end in ends:
+                    end()
+                recording.close()
     if recording.failure is not None:
         why = getattr(recording.failure, "strerror", None) or recording.failure
         raise CommandError(f"cannot write {args.output}: {why}")
@@ -233,14 +235,18 @@ class Recording:
                 self.unwritten += self._log.unwritten + 1  # its chunk, and this one
                 self._stop.set()
 
+    def stopped_by_signals(self) -> contextlib.AbstractContextManager[None]:
+        """SIGINT and SIGTERM end the recording while the block runs, and do nothing more."""
+        return stopped_by_signals(self._stop)
+
     def run_until_stopped(self, seconds: float | None) -> None:
-        """Show progress until a signal, ``seconds`` or a failed write (rule 2)."""
+        """Show progress until a signal (``stopped_by_signals``), ``seconds`` or a failed
+        write (rule 2)."""
         started = time.monotonic()
         deadline = math.inf if seconds is None else started + seconds
-        with stopped_by_signals(self._stop):
-            while not self._stop.is_set() and time.monotonic() < deadline:
-                self._stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
-                self._progress(time.monotonic() - started, end="\r")
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            self._stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
+            self._progress(time.monotonic() - started, end="\r")
         self.elapsed_s = time.monotonic() - started
 
     def _progress(self, elapsed: float, end: str) -> None:
