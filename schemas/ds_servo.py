@@ -167,7 +167,7 @@ COMMAND_ADAPTER: TypeAdapter[Command] = TypeAdapter(Command)
 #: The command that lets the device move again after a gateway e-stop (its driver's
 #: ``reenable_op``; the SDK's ``Device.enable``).
 REENABLE_COMMAND: dict[str, object] = {"op": "torque", "on": True}
-#: Ops of the other families, and what does their deed here (``validation.OPS_ELSEWHERE``).
+#: Ops other families have, and what does their deed here (an unknown op's refusal says it).
 OPS_ELSEWHERE: dict[str, str] = {
     "enable": '`torque` with `"on": true` switches its torque on',
     "disable": '`torque` with `"on": false` switches its torque off (the shaft turns freely)',
