@@ -10,6 +10,7 @@ from busgate.codecs import inspire_la as la
 from busgate.errors import CommandError
 from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.schemas import inspire_la as inspire_la_schema
 from busgate.schemas.joints import Joint, JointTable
 from tests.test_driver_inspire_la import answer, decoded, driver, plan, status
@@ -24,6 +25,28 @@ def test_a_reboot_restores_the_estop_only_of_an_estopped_actuator_and_limits_rep
     actuator.safe_stop()
     estop, again = actuator.restore()
     assert estop.wire.hex() == "55aa03030400232d" and again.wire == limit.wire
+
+
+def test_both_temperatures_restored_go_in_an_order_the_actuator_takes_from_any_pair() -> None:
+    """Set 70 °C, rewarm 50, then 58 °C; the reboot brings the actuator's 80 and 60 back, and
+    58 written first is out of the pair's range (under 60 + 5): the simulated actuator ignored
+    it and stayed at 80 °C while the driver said 58 (outside audit). Read back after the
+    restore, the actuator holds what the driver says."""
+    actuator, device = driver(), InspireLaDevice(3)
+
+    def run(requests: list, now: float) -> None:
+        for request in requests:
+            replies = [event for reply in device.handle(request.frame, now)
+                       for event in decoded(reply)]
+            answer(actuator, request, tuple(replies), now)
+
+    for text in ('{"op":"set_overtemp","temp_c":70}', '{"op":"set_rewarm","temp_c":50}',
+                 '{"op":"set_overtemp","temp_c":58}'):
+        run(plan(actuator, text), 1.0)
+    device.reboot(2.0)
+    run(actuator.restore(), 3.0)
+    run(actuator.init(), 4.0)  # reads of what the actuator holds now
+    assert (actuator.table[la.OVERTEMP_LIMIT], actuator.table[la.REWARM_TEMPERATURE]) == (580, 500)
 
 
 def test_a_write_of_part_of_a_register_is_refused_and_a_target_never_restored() -> None:

@@ -11,6 +11,10 @@ Rules of ``InspireLaDriver``:
 2. The over-temperature limit must stay ≥ rewarm + 5 °C (``codec.check_temperature_limits``).
    A write of either is checked against every value the other may hold on the device: the one
    last read or confirmed (at first the manual's default) and one planned but not yet confirmed.
+   After a reboot, when both are written again (``restore``), the actuator holds what its
+   flash had, which the driver does not know, and ignores a write out of the pair's range:
+   rewarm goes to its floor (20 °C, below any limit) first, then the limit, then rewarm,
+   each write within range whatever the actuator held.
 3. Writes change the driver's picture of the control table, its id above all, only once the
    actuator's reply confirms them: polling a new id the actuator never took would lose it.
 4. Faults come from status frames (polls, control and motion replies, writes answered the
@@ -182,9 +186,27 @@ class InspireLaDriver(Driver):
         return self.poll() + [_request(read, idempotent=True) for read in reads]
 
     def restore(self) -> list[Request]:
-        """After a reboot the power stage is on again: an e-stop is sent again first."""
+        """After a reboot the power stage is on again: an e-stop is sent again first. Both
+        temperatures written again go in an order the actuator takes from any pair (rule 2)."""
         estop = [_estop_request(self.device_id)] if self.power is PowerStage.ESTOPPED else []
-        return estop + super().restore()
+        settings = super().restore()
+        rewarm = codec.REGISTERS[codec.REWARM_TEMPERATURE].address
+        limit = codec.REGISTERS[codec.OVERTEMP_LIMIT].address
+        if {rewarm, limit} <= self.applied_settings.keys():
+            floor, _ = codec.REGISTERS[codec.REWARM_TEMPERATURE].limits
+            settings = [
+                request
+                for index, request in self.applied_settings.items()
+                if index not in (rewarm, limit)
+            ] + [
+                _request(
+                    codec.register_write(self.device_id, codec.REWARM_TEMPERATURE, floor),
+                    idempotent=True,
+                ),
+                self.applied_settings[limit],
+                self.applied_settings[rewarm],
+            ]
+        return estop + settings
 
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""
