@@ -27,8 +27,9 @@ MAX_ID: Final = 250
 ADDRESSED: Final = True
 DEVICE_IDS: Final = range(MIN_ID, MAX_ID + 1)
 #: The manual states no reply time, gap or baud rate: we assume a reply within 500 µs, ask no
-#: minimum gap of the protocol, default to 0.5 ms of idle line and 115200 baud.
-TIMING: Final = ProtocolTiming(0.0, 0.0005, 50e-6, 500e-6, 115_200)
+#: minimum gap of the protocol, default to 1 ms of idle line (the gateway's rule for every
+#: UART, the LA manual's figure) and 115200 baud.
+TIMING: Final = ProtocolTiming(0.0, 0.001, 50e-6, 500e-6, 115_200)
 #: Every servo executes a frame sent to 254; none replies.
 BROADCAST_ID: Final = 254
 

@@ -23,9 +23,10 @@ from busgate.codecs.zlac706_rs232.registers import MonitorItem
 #: a label (one byte, like the other families' ids).
 ADDRESSED: Final = False
 DEVICE_IDS: Final = range(0, 256)
-#: The manual states no RS232 baud rate or acknowledgement time: we assume an acknowledgement
-#: within 1 ms and default to 115200 baud; the bus config names the rate.
-TIMING: Final = ProtocolTiming(0.0, 0.0005, 100e-6, 1e-3, 115_200)
+#: The manual states no RS232 baud rate, acknowledgement time or gap: we assume an
+#: acknowledgement within 1 ms, default to 1 ms of idle line (the gateway's rule for every
+#: UART, the LA manual's figure) and 115200 baud; the bus config names the rate.
+TIMING: Final = ProtocolTiming(0.0, 0.001, 100e-6, 1e-3, 115_200)
 #: The monitor request: address 80, one data byte 00, its sum.
 MONITOR_REQUEST: Final = b"\x80\x00\x80"
 FRAME_SIZE: Final = 4
