@@ -560,11 +560,34 @@ def test_rs232_move_before_enable_is_refused() -> None:
         plan(d, '{"op":"move","position":10000}')
 
 
+def test_rs232_init_leaves_no_speed_or_torque_preset_as_can_does() -> None:
+    """A speed preset before the gateway came starts the motor at the next enable (8.1.2
+    (4)): the monitor, then 0 rpm and 0 A (the mode unknown), no release; 0 rpm alone once the
+    mode is known as velocity; nothing once a client enabled the motor (outside wire audit:
+    RS232 sent only the monitor)."""
+    d = rs_driver()
+    assert wire(d.init()) == ["800080", "06000006", "08000008"]
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'))
+    assert wire(d.init()) == ["800080", "06000006"]
+    run(d, plan(d, '{"op":"enable"}'))
+    assert wire(d.init()) == ["800080"]
+
+
+def test_a_reset_writes_0_rpm_before_it_enables() -> None:
+    """A speed preset at the enable would start the motor (outside wire audit: the enable
+    went first, leaning on the e-stop's 0 rpm having been taken)."""
+    d = can_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'))
+    run(d, plan(d, '{"op":"enable"}'))
+    d.safe_stop()
+    assert wire(d.hold_still()) == ["001#00fa001100000000", "001#00fa00100000001f"]
+
+
 def test_rs232_poll_is_the_monitor_and_its_reply_becomes_telemetry() -> None:
     d = rs_driver()
     (request,) = d.poll()
     assert wire([request]) == ["800080"] and request.expected.frames == 8 and request.idempotent
-    assert d.init() == [request]
+    assert d.init()[0] == request
     d.apply(request, rs_events(MANUAL_MONITOR), 0.0)
     state = d.telemetry(0)
     assert (state["voltage_v"], state["current_ma"], state["position"]) == (28, 170, 10000)

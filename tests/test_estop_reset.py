@@ -121,8 +121,8 @@ def test_every_device_of_the_gateway_is_reset_to_its_own_power_state(world):
     assert arm1[1].data == b"\x01"
     assert not_status(ds_frames, 2) == [] and not driver(world, "arm2").estopped
     writes = [(w.register, w.value) for w in can_writes(world, can_mark)]
-    assert writes[:2] == [(zcan.CanRegister.CONTROL_WORD, zcan.ControlWord.ENABLE),
-                          (zcan.CanRegister.TARGET_SPEED, 0)]
+    assert writes[:2] == [(zcan.CanRegister.TARGET_SPEED, 0),  # nothing preset, then enable
+                          (zcan.CanRegister.CONTROL_WORD, zcan.ControlWord.ENABLE)]
     assert driver(world, "wheel").machine.settings.enabled
     assert [e for e in world.api.devices] and not any(driver(world, d).estopped
                                                       for d in world.api.devices)

@@ -273,12 +273,12 @@ class Zlac706Driver(Driver):
         return self.machine.settings.enabled is True
 
     def hold_still(self) -> list[Request]:
-        """Enabled again: in velocity mode at 0 rpm (the speed the stop left preset), in
-        position mode holding where it is (no target is written: a target moves it)."""
-        requests = self.plan(_ENABLE)
-        if self.machine.expected().mode is Mode.VELOCITY:
-            requests += self.plan(_STOP)
-        return requests
+        """Enabled again: in velocity mode at 0 rpm, written before the enable (a speed
+        preset would start the motor at it: the stop wrote 0 rpm, but the enable must not
+        hang on that), in position mode holding where it is (no target is written: a target
+        moves it)."""
+        stop = self.plan(_STOP) if self.machine.expected().mode is Mode.VELOCITY else []
+        return stop + self.plan(_ENABLE)
 
     def stale_stream(self) -> list[Request]:
         """0 rpm: a client that stopped streaming speeds must not leave the wheel turning

@@ -10,7 +10,8 @@ refused here. Values wider than 16 bits are refused by the codec's encoder.
 ``Zlac706Rs232Driver`` (below the table) is the gateway's driver; its state machine is shared
 with CAN (``zlac706_state``). What is RS232's own:
 
-1. ``poll`` (and ``init``) is the monitor request; its eight frames give the status word
+1. ``poll`` is the monitor request (and ``init``'s first, nothing preset after it); its
+   eight frames give the status word
    (alarms → faults; its running bit says whether the motor is enabled, so a device that
    rebooted or dropped out on a fault is known to be disabled), bus voltage, current, speed
    and the feedback position.
@@ -161,6 +162,15 @@ class Zlac706Rs232Driver(Zlac706Driver):
 
     def poll(self) -> list[Request]:
         return [_MONITOR]
+
+    def init(self) -> list[Request]:
+        """The monitor; then, unless a client enabled the motor since, nothing preset (0 rpm,
+        0 A, as CAN's ``init``; harmless to a motor that is off or in another mode), so that
+        no speed or torque preset before the gateway came starts the motor at the next enable
+        (manual 8.1.2 (4))."""
+        if self.machine.settings.enabled:
+            return self.poll()
+        return self.poll() + self.nothing_preset()
 
     @classmethod
     def probe(cls, device_id: int) -> Request:
