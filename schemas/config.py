@@ -476,6 +476,9 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(f"{path} is not valid TOML: {exc}", path="") from exc
     except RecursionError as exc:
         raise ConfigError(f"{path} is not valid TOML: nested too deeply", path="") from exc
+    except ValueError as exc:  # an integer of thousands of digits: Python's own limit
+        too_long = f"{path}: a number of thousands of digits: not a config"
+        raise ConfigError(too_long, path="") from exc
     try:
         return parse_config(data)
     except ConfigError as exc:

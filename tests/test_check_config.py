@@ -137,14 +137,17 @@ def test_a_max_effort_no_command_of_the_kind_sets_is_a_warning(tmp_path, capsys)
 def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
                                                                         capsys) -> None:
     """/dev/zero was read without end (2.7 GB), a named pipe nobody writes to waited on for
-    ever, a 3000-deep array raised RecursionError."""
+    ever, a 3000-deep array raised RecursionError, an integer of 4301 digits Python's
+    ValueError (its limit on turning digits into an int)."""
     fifo = tmp_path / "pipe.toml"
     os.mkfifo(fifo)
     deep = tmp_path / "deep.toml"
     deep.write_text("x = " + "[" * 3000 + "]" * 3000)
     big = tmp_path / "big.toml"
     big.write_text("# " + "x" * 1024 * 1024)
-    for path in ("/dev/zero", fifo, deep, big, tmp_path):
+    digits = tmp_path / "digits.toml"
+    digits.write_text('[gateway]\nname = 1' + "0" * 4300 + "\n")
+    for path in ("/dev/zero", fifo, deep, big, tmp_path, digits):
         assert main(["check-config", str(path)]) == 1
     assert capsys.readouterr().err.splitlines() == [
         "error: /dev/zero is over 1 MiB: not a config",
@@ -152,6 +155,7 @@ def test_a_file_that_cannot_be_a_config_is_one_error_and_nothing_waits(tmp_path,
         f"error: {deep} is not valid TOML: nested too deeply",
         f"error: {big} is over 1 MiB: not a config",
         f"error: cannot read {tmp_path}: Is a directory",
+        f"error: {digits}: a number of thousands of digits: not a config",
     ]
 
 
