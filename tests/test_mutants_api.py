@@ -604,6 +604,10 @@ def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
     (b"[]", "bad_command", "a command is a JSON object"),
     (b'{"client": "a b"}', "bad_command", "client 'a b' is no client id"),
     (b'{"client": 7}', "bad_command", "client '7' is no client id"),
+    (b'{"op": "move", "position": 500}', "bad_command",  # a command on the wrong key
+     'a reset of every device takes nothing but "client", not op, position: nothing was reset'),
+    (b'{"client": "x", "extra": 1}', "bad_command",
+     'a reset of every device takes nothing but "client", not extra: nothing was reset'),
     (b'{"client": "panel"' + b" " * 70_000 + b"}", "too_large",
      "payload of 70019 bytes; at most 65536"),
 ])

@@ -651,14 +651,14 @@ class ZenohBridge:
         """Only on this gateway's own reset key: a put on ``**`` or ``busgate/*/estop/**``
         reaches the e-stop too, and a reset must never ride along with a stop. Unlike the
         e-stop, which takes any payload, a reset is carried out only on an empty payload or
-        an object whose ``client``, if any, is a client id: else it is refused, told as a
-        ``command_refused`` event, and nothing is reset."""
+        an object with nothing but a ``client``, if any, that is a client id: else it is
+        refused, told as a ``command_refused`` event, and nothing is reset."""
         key, payload = str(sample.key_expr), sample.payload.to_bytes()
         if key != f"{self.base}/estop/reset":
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
         try:
-            sender = _named_sender(payload)
+            sender = _named_sender(payload, only_client=True)
         except RefusedError as refusal:
             self.put_reports.refused("*", error_reply(refusal)["error"])  # the whole gateway's
             return
@@ -834,13 +834,21 @@ def _sender(payload: bytes) -> str | None:
         return None
 
 
-def _named_sender(payload: bytes) -> str | None:
+def _named_sender(payload: bytes, *, only_client: bool = False) -> str | None:
     """The client a payload of the e-stop's or its reset's names (``None``: empty or blank,
     or naming none); ``RefusedError`` for a payload that is no JSON object, or a ``client``
-    that is no client id."""
+    that is no client id, or (``only_client``: a reset's) that holds anything else: a
+    command put on the reset's key by mistake resets nothing."""
     if not payload.strip():
         return None
-    client = decode_object(payload).get("client")
+    fields = decode_object(payload)
+    if only_client and (others := sorted(set(fields) - {"client"})):
+        raise RefusedError(
+            "bad_command",
+            f'a reset of every device takes nothing but "client", not '
+            f"{shown(', '.join(others))}: nothing was reset",
+        )
+    client = fields.get("client")
     sender = client_named(client)
     if client is not None and sender is None:
         raise RefusedError("bad_command", f"client '{shown(str(client))}' is no client id")
