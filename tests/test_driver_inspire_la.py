@@ -351,7 +351,7 @@ def test_follow_request_leaves_out_an_estopped_actuator_and_switches_a_paused_on
     request = InspireLaDriver.follow_request([(stopped, 10), (paused, 20)])
     assert request.frame == la.FollowCommand(2, 20, reply=False)
     assert paused.telemetry(0)["power"] == "on"
-    with pytest.raises(CommandError, match="enable"):
+    with pytest.raises(RefusedError, match="enable"):  # code estopped
         InspireLaDriver.follow_request([(stopped, 10)])
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from busgate.codecs import inspire_la as la
-from busgate.errors import CommandError
+from busgate.errors import CommandError, RefusedError
 from busgate.gateway.drivers.base import IdChange
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.sim.inspire_la import InspireLaDevice
@@ -87,10 +87,11 @@ def test_what_a_group_or_a_follow_tick_cannot_carry_is_refused_saying_why() -> N
     with pytest.raises(CommandError) as refused:
         actuator.group_entry(1000, 500)
     assert str(refused.value) == "Inspire LA group moves have no move time; drop time_ms"
-    actuator.safe_stop()
-    with pytest.raises(CommandError) as refused:
+    actuator.safe_stop()  # an e-stop that came as a play was checked: refused as any motion
+    with pytest.raises(RefusedError) as refused:
         InspireLaDriver.follow_request([(actuator, 1000)])
-    assert str(refused.value) == "every actuator of this follow tick is e-stopped: send enable"
+    assert refused.value.code == "estopped"  # was bad_command, saying only "send enable"
+    assert str(refused.value).startswith('rod is e-stopped: send {"op":"reset_estop"}')
 
 
 def test_holding_still_after_a_reset_targets_where_the_status_last_said() -> None:

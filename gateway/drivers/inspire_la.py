@@ -257,13 +257,14 @@ class InspireLaDriver(Driver):
         """Follow without reply: ``0x19`` for one actuator, one broadcast ``0xF3`` for several.
 
         An e-stopped actuator is left out of the frame rather than failing its neighbours'
-        tick; ``CommandError`` when none is left or there are too many for one frame.
+        tick; the first one's ``estopped`` refusal when none is left (an e-stop that came as
+        a play was checked), ``CommandError`` when there are too many for one frame.
         """
         # A follow tick groups the targets of one driver class: here, actuators.
         actuators = cast("Sequence[tuple[InspireLaDriver, Any]]", targets)
         moving = [(d, p) for d, p in actuators if d.power is not PowerStage.ESTOPPED]
         if not moving:
-            raise CommandError("every actuator of this follow tick is e-stopped: send enable")
+            raise actuators[0][0].estopped_error()
         if len(moving) > cls.follow_group_limit:
             raise CommandError(
                 f"{len(moving)} follow targets, one frame carries {cls.follow_group_limit}"
