@@ -503,6 +503,15 @@ def test_a_command_sent_on_a_wildcard_reaches_only_info_and_is_told_so(free_port
         [refused] = get(client, "busgate/gw1/**", '{"op":"estop"}')
         assert refused["ok"] is False and refused["error"]["code"] == "bad_command"
         assert "takes no payload" in refused["error"]["message"]
+        # A wildcard where a command names one device, or one bus: one refusal, not silence
+        # (the client waited out its timeout); a fleet's command for a device not here: none.
+        for key, noun in [("busgate/gw1/dev/*/cmd", "device"), ("busgate/*/dev/la2/*", "device"),
+                          ("busgate/gw1/bus/*/cmd", "bus")]:
+            [refused] = get(client, key, '{"op":"status"}')
+            assert refused["error"]["code"] == "bad_command"
+            assert refused["error"]["message"].startswith(
+                f"{key} has a wildcard where a command names one {noun} and its cmd key")
+        assert get(client, "busgate/*/dev/la9/cmd", '{"op":"status"}', 1.0) == []
     finally:
         client.close()
         loop.call_soon_threadsafe(loop.stop)

@@ -491,15 +491,34 @@ class ZenohBridge:
         return chunks[-2]
 
     def _ours(self, query: zenoh.Query, room: str, known) -> str | None:
-        """The device or bus ``query`` names; ``None`` when a query with wildcards names
+        """The device, bus or base ``query`` names; ``None`` when a query with wildcards names
         nothing of this gateway (``busgate/*/dev/la9/cmd`` sent to a fleet, or ``**``): it is
-        left to the gateways that have it, dropped without a reply."""
+        left to the gateways that have it, dropped without a reply; unless its wildcard
+        stands where a command names one of this gateway's (``dev/*/cmd``, ``dev/la1/*``,
+        ``base/**``): refused, once a gateway, rather than left to wait out its timeout."""
         key = str(query.key_expr)
         name = self._named(key, room, "cmd")
         if name is not None and (name in known or "*" not in key):
             return name
-        query.drop()
+        reached = self._one_of_many(query.key_expr, room, known)
+        if reached is None:
+            query.drop()
+            return None
+        refused = CommandError(
+            f"{shown(key)} has a wildcard where a command names one {ROOM_NOUNS[room]} and its "
+            f"cmd key (such as {reached}): send it to one. Nothing was sent"
+        )
+        self._answer(query, lambda: settled(error_reply(refused)), reached)
         return None
+
+    def _one_of_many(self, asked: zenoh.KeyExpr, room: str, known) -> str | None:
+        """The first of this gateway's ``room`` command keys that ``asked`` reaches, unless it
+        reaches the info key too (``**``, ``busgate/demo/**``: the info answers those,
+        once)."""
+        if asked.intersects(zenoh.KeyExpr(f"{self.base}/info")):
+            return None
+        keys = (f"{self.base}/{room}/{name}/cmd" for name in known)
+        return next((key for key in keys if asked.intersects(zenoh.KeyExpr(key))), None)
 
     def _base_query(self, query: zenoh.Query) -> Routed | None:
         name = self._ours(query, "base", self.bases.bases)
@@ -832,6 +851,10 @@ def _sender(payload: bytes) -> str | None:
         return _named_sender(payload)
     except RefusedError:
         return None
+
+
+#: What a command key's name names, in each room (``_ours``).
+ROOM_NOUNS = {"dev": "device", "bus": "bus", "base": "base"}
 
 
 def _named_sender(payload: bytes, *, only_client: bool = False) -> str | None:
