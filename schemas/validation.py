@@ -183,9 +183,10 @@ def printable(text: str, most: int | None = None, *, lines: bool = False) -> str
 
 
 def shown(text: str, most: int = SHOWN_NAME_CHARS) -> str:
-    """``text`` as a refusal repeats it: its control characters escaped, cut to ``most``
-    characters (``…``)."""
-    return cut(text.encode("unicode_escape").decode("ascii"), most)
+    """``text`` as a refusal repeats it: cut to ``most`` characters (``…``), its control
+    characters and reordering marks escaped (``printable``), any other letter as it is (``ü``,
+    not ``\\xfc``, which the reply's JSON escaped again)."""
+    return printable(text, most)
 
 
 def cut(text: str, most: int) -> str:

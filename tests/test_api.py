@@ -174,6 +174,13 @@ def test_a_number_past_a_bound_is_refused_with_the_bound_and_the_number(fields, 
     assert str(refused.value) == f"invalid command: {words}"
 
 
+def test_a_refusal_repeats_a_letter_as_it_is_and_a_control_escaped() -> None:
+    """``mové`` was repeated as ``mov\\xe9``, and the reply's JSON escaped that again."""
+    with pytest.raises(CommandError) as refused:
+        command_from_object(DEVICE_COMMAND_ADAPTERS["zlac706"], {"op": "mové\x1b[2J"}, "zlac706")
+    assert str(refused.value).startswith("unknown op `mové\\u001b[2J` for zlac706")
+
+
 def test_the_opposite_op_is_never_the_suggestion() -> None:
     assert suggestion("disable", ["enable", "move"]) == " (allowed: `enable`, `move`)"
     assert suggestion("disabel", ["disable", "enable"]) == " (did you mean `disable`?)"
