@@ -10,8 +10,12 @@ missing or that zenoh cannot parse, a listener other hosts reach with no zenoh c
 keep them out, more bus workers than the cores this host gives the gateway — is a warning, as
 is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs)
 and a gateway that listens nowhere, connects nowhere and scouts for nobody (valid: a zenoh
-config file may give it endpoints; else no client reaches it): printed with the budget, exit
-status 0.
+config file may give it endpoints; else no client reaches it): printed with the budget. Exit
+status 0, unless a warning is one ``busgate run`` on this host refuses to start with (a port
+that is no serial port, a CAN interface python-can does not have here, a recorder's folder
+it cannot write, a zenoh config file or endpoint it cannot use): then 2, with a last line on
+stderr saying so, so that a deployment script stops where the service would not start. A
+locked port stays a warning, exit 0: its holder may be the very gateway being checked.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from pathlib import Path
 
 from busgate.errors import ConfigError
 from busgate.gateway.bus.can_owner import unknown_interface
-from busgate.gateway.bus.port_access import missing, port_problem
+from busgate.gateway.bus.port_access import NOT_A_DEVICE, missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.workers import placement, too_many
@@ -35,7 +39,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "check-config",
         description="Validate a gateway config without touching hardware, and print per bus "
         "the wire time its polling and follow streams take and the share of the bus they "
-        "reserve. Exit status 1 when the config is invalid.",
+        "reserve. Exit status 1 when the config is invalid, 2 when it is valid but busgate "
+        "run on this host would refuse to start with it (a warning says why).",
     )
     check.add_argument("file", help="the gateway's TOML config file")
     check.set_defaults(handler=check_config)
@@ -53,18 +58,25 @@ def check_config(args: argparse.Namespace) -> int:
     print(_workers(config, groups))
     if (crowded := too_many(len(groups))) is not None:
         print(f"warning: {crowded}")
+    refusals = 0  # the warnings busgate run refuses to start with, on this host
     if config.recorder is not None and (problem := folder_problem(Path(config.recorder.dir))):
+        refusals += 1
         print(
             f"warning: recorder.dir: {problem}; busgate run refuses to start so (run this as "
             "the service user to check its access; the systemd unit makes the default dir)"
         )
-    for problem in [*zenoh_warnings(config), *ignored_keys(config)]:
+    refused, warned = zenoh_warnings(config)
+    refusals += len(refused)
+    for problem in [*refused, *warned, *ignored_keys(config)]:
         print(f"warning: {problem}")
     for index, bus in enumerate(config.buses):
         budget = bus_budget(bus)
         print(budget.summary())
+        refused, warned = host_warnings(f"buses[{index}]", bus)
+        refusals += len(refused)
         problems = [
-            *host_warnings(f"buses[{index}]", bus),
+            *refused,
+            *warned,
             *(f"buses[{index}]: {text}" for text in budget.warnings()),
             *(
                 f"buses[{index}].devices[{at}]: {device.name} has no joint table: it is a joint "
@@ -75,29 +87,37 @@ def check_config(args: argparse.Namespace) -> int:
         ]
         for problem in problems:
             print(f"warning: {problem}")
+    if refusals:
+        print(
+            f"{args.file}: valid, but busgate run on this host refuses to start with it "
+            f"({refusals} of the warnings above)",
+            file=sys.stderr,
+        )
+        return 2
     return 0
 
 
-def zenoh_warnings(config: Config) -> list[str]:
-    """A zenoh config file this host has not, or that is none, or endpoints the session
-    cannot be made of on this host (a Unix socket's path that is a file: ``busgate run``
-    refuses to start so), and each listener other hosts can reach with nothing but a file of
-    the operator's own (TLS, passwords, access control) to keep them from moving the devices."""
-    zenoh_file, warnings = config.zenoh.config_file, []
+def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
+    """What ``busgate run`` refuses to start with: a zenoh config file this host has not, or
+    that is none, or endpoints the session cannot be made of on this host (a Unix socket's
+    path that is a file); and what it starts with all the same: each listener other hosts
+    can reach with nothing but a file of the operator's own (TLS, passwords, access control)
+    to keep them from moving the devices, a gateway that listens and connects nowhere."""
+    zenoh_file, refused, warned = config.zenoh.config_file, [], []
     if zenoh_file is not None:
         from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
 
         if refusal := config_file_refusal(zenoh_file) or _endpoints_refusal(config):
-            warnings.append(
+            refused.append(
                 f"zenoh.config_file: {zenoh_file}: {refusal}; busgate run refuses to start so"
             )
     elif refusal := _endpoints_refusal(config):
-        warnings.append(f"zenoh: {refusal}; busgate run refuses to start so")
+        refused.append(f"zenoh: {refusal}; busgate run refuses to start so")
     elif not (config.zenoh.listen or config.zenoh.connect or config.zenoh.multicast_scouting):
         from busgate.schemas.zenoh_session import NOBODY_REACHES
 
-        warnings.append(f"zenoh: {NOBODY_REACHES}")
-    return warnings + exposure_warnings(config.zenoh.listen, zenoh_file)
+        warned.append(f"zenoh: {NOBODY_REACHES}")
+    return refused, warned + exposure_warnings(config.zenoh.listen, zenoh_file)
 
 
 def _endpoints_refusal(config: Config) -> str | None:
@@ -146,17 +166,24 @@ def _workers(config: Config, groups: list[list[str]]) -> str:
     )
 
 
-def host_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
-    """What this host would stand in the way of the bus's port or CAN interface: missing (the
-    gateway would start and retry until it appears), locked by another process or no device
-    file (``busgate run`` would refuse to start), or not readable and writable by this user —
-    run it as the service user to check that user's access."""
+def host_warnings(path: str, bus: SerialBus | CanBus) -> tuple[list[str], list[str]]:
+    """What this host would stand in the way of the bus's port or CAN interface, as what
+    ``busgate run`` would refuse to start with (a port that is no device file, an interface
+    python-can does not have here) and what it would not, or may not: missing (the gateway
+    would start and retry until it appears), locked by another process (refused, unless the
+    holder is the gateway being checked, and restarted), or not readable and writable by
+    this user (run it as the service user to check that user's access)."""
     if isinstance(bus, CanBus) and (unknown := unknown_interface(bus.interface)):
-        return [f"{path}.interface: {unknown}"]
+        return [f"{path}.interface: {unknown}; busgate run refuses to start so"], []
     if bus.device_key is not None:
         key, port = bus.device_key
         problem = port_problem(port)
-        return [] if problem is None else [f"{path}.{key}: {problem.message}"]
+        if problem is None:
+            return [], []
+        if problem.kind == NOT_A_DEVICE:  # locked is a warning: its holder may be the very
+            # gateway being checked, whose restart frees it
+            return [f"{path}.{key}: {problem.message}; busgate run refuses to start so"], []
+        return [], [f"{path}.{key}: {problem.message}"]
     if bus.interface == "socketcan" and not (Path("/sys/class/net") / bus.channel).exists():
-        return [f"{path}.channel: {missing(bus.channel)}"]
-    return []
+        return [], [f"{path}.channel: {missing(bus.channel)}"]
+    return [], []
