@@ -396,7 +396,7 @@ def test_a_path_may_be_any_bytes(tmp_path):
     """Only names, keys and commands must be UTF-8: a config file's name is the system's
     (``gateway-\xe9.toml`` was refused as no UTF-8 text)."""
     path = write_config(tmp_path / "gateway-\udce9.toml", "tcp/127.0.0.1:7447",  # byte 0xe9
-                        serial_bus("uart0", "/dev/null", "la1"))
+                        serial_bus("uart0", str(tmp_path / "ttyUSB0"), "la1"))  # missing here
     done = run_busgate("check-config", str(path), errors="backslashreplace")
     assert done.returncode == 0, done.stderr
 
