@@ -80,6 +80,15 @@ def test_a_config_takes_a_kind_where_the_registry_puts_it(kind: str, transport: 
             parse_config(document)
 
 
+def test_every_uart_protocol_keeps_1_ms_of_idle_line_by_default() -> None:
+    """The gateway's rule for every UART exchange, the LA manual's figure; the DS and RS232
+    manuals state no gap, and their buses kept 0.5 ms (an outside wire audit measured half
+    the DS gaps under 1 ms). CAN arbitrates: no gap."""
+    defaults = {name: p.timing.default_gap_s for name, p in PROTOCOLS.items()}
+    assert {n: g for n, g in defaults.items() if not PROTOCOLS[n].can and g < 0.001} == {}
+    assert all(gap == 0 for name, gap in defaults.items() if PROTOCOLS[name].can)
+
+
 def test_a_kind_or_protocol_is_registered_once() -> None:
     la = FAMILIES["inspire_la"]
     with pytest.raises(ValueError, match="inspire_la already registered"):
