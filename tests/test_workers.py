@@ -831,7 +831,7 @@ def _ended(pid: int) -> bool:
     """``pid`` has exited (reaped, or a zombie whose new parent has not reaped it yet)."""
     try:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in "ZX"
-    except FileNotFoundError:
+    except (FileNotFoundError, ProcessLookupError):  # gone before the open, or the read (ESRCH)
         return True
 
 
