@@ -189,24 +189,20 @@ class InspireLaDriver(Driver):
         """After a reboot the power stage is on again: an e-stop is sent again first. Both
         temperatures written again go in an order the actuator takes from any pair (rule 2)."""
         estop = [_estop_request(self.device_id)] if self.power is PowerStage.ESTOPPED else []
-        settings = super().restore()
         rewarm = codec.REGISTERS[codec.REWARM_TEMPERATURE].address
         limit = codec.REGISTERS[codec.OVERTEMP_LIMIT].address
-        if {rewarm, limit} <= self.applied_settings.keys():
-            floor, _ = codec.REGISTERS[codec.REWARM_TEMPERATURE].limits
-            settings = [
-                request
-                for index, request in self.applied_settings.items()
-                if index not in (rewarm, limit)
-            ] + [
-                _request(
-                    codec.register_write(self.device_id, codec.REWARM_TEMPERATURE, floor),
-                    idempotent=True,
-                ),
-                self.applied_settings[limit],
-                self.applied_settings[rewarm],
-            ]
-        return estop + settings
+        if not {rewarm, limit} <= self.applied_settings.keys():
+            return estop + super().restore()
+        others = [r for index, r in self.applied_settings.items() if index not in (rewarm, limit)]
+        floor, _ = codec.REGISTERS[codec.REWARM_TEMPERATURE].limits
+        to_floor = codec.register_write(self.device_id, codec.REWARM_TEMPERATURE, floor)
+        return [
+            *estop,
+            *others,
+            _request(to_floor, idempotent=True),
+            self.applied_settings[limit],
+            self.applied_settings[rewarm],
+        ]
 
     def safe_stop(self) -> list[Request]:
         """E-stop (single control 0x23): the power stage stays off until ``enable``."""

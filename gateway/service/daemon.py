@@ -284,9 +284,8 @@ async def _session_opened(
     Any other refusal of zenoh's is one line (``ConnectError``)."""
     from busgate.client.errors import ConnectError  # the client's package loads zenoh
 
-    zenoh_section = bridge.config.zenoh
-    client_mode = zenoh_section.mode == "client"
-    routers = ", ".join(zenoh_section.connect) or "the config file's endpoints"
+    client_mode = bridge.config.zenoh.mode == "client"
+    routers = _routers_named(bridge)
     waiting_since = told_at = None
     while True:
         opening = _Opening(bridge, loop)
@@ -393,7 +392,7 @@ async def _routers(bridge: ZenohBridge, stop: asyncio.Event) -> None:
     reaches none, and the moment it reaches one again, are logged (zenoh connects again by
     itself; the buses go on meanwhile, and a follow stream whose client cannot reach it goes
     stale as any other). Looked at every ``ROUTER_CHECK_S``."""
-    endpoints = ", ".join(bridge.config.zenoh.connect) or "the config file's endpoints"
+    endpoints = _routers_named(bridge)
     lost_at: float | None = None
     while not await _stopped_within(stop, ROUTER_CHECK_S):
         reached = bridge.routers() > 0
@@ -411,6 +410,11 @@ async def _routers(bridge: ZenohBridge, stop: asyncio.Event) -> None:
                 time.monotonic() - lost_at,
             )
             lost_at = None
+
+
+def _routers_named(bridge: ZenohBridge) -> str:
+    """Where a gateway in client mode looks for its routers, as its log lines name it."""
+    return ", ".join(bridge.config.zenoh.connect) or "the config file's endpoints"
 
 
 async def _stopped_within(stop: asyncio.Event, seconds: float) -> bool:
