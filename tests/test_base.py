@@ -449,10 +449,11 @@ def _drive_until(world: World, linear: float, angular: float, reached) -> None:
     """Hold ``linear``/``angular`` until ``reached(odometry)``, then stop and wait for rest.
     Each twist holds 0.1 s: a host that stalls this loop (a CI host did, for a few hundred
     ms) lets the base run on that long at most before it ramps down."""
-    deadline = time.monotonic() + 30
+    deadline, reply = time.monotonic() + 30, None
     while not (world.odometry and reached(world.odometry[-1])):
-        assert time.monotonic() < deadline, "the base never got there"
-        world.base({"op": "twist", "linear": linear, "angular": angular, "duration_s": 0.1})
+        assert time.monotonic() < deadline, f"the base never got there; its last reply: {reply}"
+        reply = world.base({"op": "twist", "linear": linear, "angular": angular,
+                            "duration_s": 0.1})
         time.sleep(0.02)
     world.base({"op": "stop"})
     world.wait_rest()

@@ -109,6 +109,77 @@ def test_precedence_estop_then_commands_then_polls():
     assert order == [Priority.ESTOP, Priority.COMMAND, Priority.POLL]
 
 
+class ProbePoller(Poller):
+    """An offline device's probe: two frames, decided from what the test says the gateway
+    knows when they are built (an ``init`` that releases a motor nobody enabled)."""
+
+    def __init__(self, device: str) -> None:
+        super().__init__(device, 0.25)
+        self.enabled = False
+
+    def build(self) -> list[Request]:
+        self.built += 1
+        return [] if self.enabled else [status_request(), silent_request(5)]
+
+
+def _sent(planner: BusPlanner, t: float, steps: int) -> list[tuple[str, object]]:
+    """The device and frame of each of the next ``steps`` exchanges, a millisecond each."""
+    sent = []
+    for _ in range(steps):
+        slot = planner.decide(t)
+        assert isinstance(slot, Slot), slot
+        sent.append((slot.source.device, slot.request.frame))
+        run(planner, slot, t, 0.001)
+        t += 0.001 + GAP
+    return sent
+
+
+def test_a_devices_job_that_started_runs_to_its_end_before_its_next_starts():
+    """Rule 8: another device's command goes between a probe's frames, the probed device's
+    own (an enable: the probe's release would undo it) waits for their end."""
+    planner = BusPlanner(TIMING)
+    planner.pollers = [ProbePoller("la1")]
+    assert _sent(planner, 0.0, 1) == [("la1", ("status", 1))]
+    planner.push_command(Job("la1", deque([silent_request(7)])))
+    planner.push_command(Job("la2", deque([status_request(2)])))
+    assert _sent(planner, 0.002, 3) == [
+        ("la2", ("status", 2)), ("la1", ("broadcast", 5)), ("la1", ("broadcast", 7))]
+
+
+def test_a_devices_poll_is_built_after_its_waiting_commands_and_goes_before_later_ones():
+    """Rule 8: a probe due while the device's command waits is decided after it (the enable
+    it brought: nothing to release); one built before a command came goes first."""
+    planner = BusPlanner(TIMING)
+    probe = ProbePoller("la1")
+    planner.pollers = [probe]
+    planner.push_command(Job("la1", deque([silent_request(7)])))
+    assert _sent(planner, 0.0, 1) == [("la1", ("broadcast", 7))]
+    assert probe.built == 0
+    probe.enabled = True  # what the command did
+    assert planner.decide(0.002) == pytest.approx(0.25)  # built then: nothing to send
+    assert probe.built == 1
+
+    planner, probe = BusPlanner(TIMING), ProbePoller("la1")
+    planner.pollers = [probe]
+    planner.push_command(Job("la2", deque([status_request(2)])))
+    assert _sent(planner, 0.0, 1) == [("la2", ("status", 2))]  # the probe is built meanwhile
+    planner.push_command(Job("la1", deque([silent_request(7)])))
+    assert _sent(planner, 0.002, 3) == [
+        ("la1", ("status", 1)), ("la1", ("broadcast", 5)), ("la1", ("broadcast", 7))]
+    assert probe.built == 1
+
+
+def test_a_poll_held_behind_its_devices_command_does_not_wake_the_planner_early():
+    """The command waits for room before a tick; the poll it holds back is no reason to ask
+    again before then (it is built once the command is done)."""
+    planner = BusPlanner(TIMING)
+    ticker_at(planner, now=0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    planner.pollers = [Poller("la2", 0.05, next_due=0.0)]
+    planner.push_command(Job("la2", deque([silent_request(2000)])))  # never fits in 10 ms
+    assert planner.decide(0.002) == pytest.approx(0.010)
+
+
 def test_a_due_tick_goes_first_and_nothing_starts_that_would_make_it_late():
     planner = BusPlanner(TIMING)
     ticker = ticker_at(planner, now=0.0)

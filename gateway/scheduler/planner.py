@@ -24,6 +24,13 @@ The rules it enforces:
    later: its client has been answered. A scan's probes all start by the scan's ``start_by``.
 7. Scans wait in a lane of their own, after commands and due polls: a long scan interleaves
    with everything else instead of holding the command queue.
+8. One device's jobs never interleave, and each is decided from the state the jobs before it
+   left: a device's jobs go in the order they came (precedence is between devices), one
+   that has started runs to its end before another of its device starts (an e-stop's goes
+   first all the same), and a device's poll is built only when none of its commands waits.
+   A poll's frames may depend on what the gateway knows of the device (an offline device's
+   ``init`` releases a motor no client has enabled): a client's enable never goes between
+   them, nor before them once they were built.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -31,9 +38,11 @@ head of its job.
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 from collections import deque
 from collections.abc import Sequence
+from collections.abc import Set as AbstractSet
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -98,6 +107,8 @@ class Job:
     #: A scan: its probes wait in the scan lane, each tried once, a silent id costing its
     #: reply window and nothing more.
     scan: bool = False
+    #: When the planner took it in (a count): a device's jobs go in this order (rule 8).
+    order: int = 0
 
     def expired(self, now: float) -> bool:
         return now > self.start_by and (self.scan or not self.started)
@@ -166,6 +177,7 @@ class BusPlanner:
         self.pollers: Sequence[Poller] = []
         #: Each device's last follow target, from whichever ticker or command sent it.
         self.spacing = FollowSpacing()
+        self._taken_in = itertools.count()
 
     def push_estop(self, job: Job) -> Job:
         """Queue an e-stop ahead of everything, never refused; the job that will send its
@@ -186,12 +198,14 @@ class BusPlanner:
         queue = self._scans if job.scan else self._commands
         if len(queue) >= self._command_limit or self.share_taken(job.client):
             return False
+        job.order = next(self._taken_in)
         queue.append(job)
         return True
 
     def push_stop(self, job: Job) -> None:
         """Queue a stop the gateway makes itself, behind the commands already waiting: never
         refused (rule 4)."""
+        job.order = next(self._taken_in)
         self._commands.append(job)
 
     def share_taken(self, client: str | None) -> bool:
@@ -244,7 +258,8 @@ class BusPlanner:
             if request is not None:
                 return Slot(request, Priority.FOLLOW, ticker)
             return self.decide(now)  # nothing to send now: its next tick is later, or none
-        self._start_due_polls(now)
+        commanded = {job.device for job in self._commands} if self._commands else _NONE
+        self._start_due_polls(now, commanded)
         self._expire(now)
         held = now < self.hold_replies_until
         for job in self._candidates():
@@ -253,7 +268,7 @@ class BusPlanner:
                 continue
             if now + self.timing.worst_case(request) + self.slack_s <= tick_due:
                 return self._slot(job)
-        wake = min(tick_due, self._next_poll_due())
+        wake = min(tick_due, self._next_poll_due(commanded))
         return min(wake, self.hold_replies_until) if held else wake
 
     def finished(self, slot: Slot, end: float, *, failed: bool) -> Job | None:
@@ -292,7 +307,14 @@ class BusPlanner:
             candidates += sorted(self._polls.values(), key=_poll_due)
         if self._scans:
             candidates.append(self._scans[0])  # the scan lane: its first job only
-        return candidates
+        if not self._commands:  # one poll a device: nothing to put in order
+            return candidates
+        first: dict[str, Job] = {}  # rule 8: each device's first job only
+        for job in candidates:
+            earlier = first.get(job.device)
+            if earlier is None or job.order < earlier.order:
+                first[job.device] = job
+        return [job for job in candidates if first[job.device] is job]
 
     def _expire(self, now: float) -> None:
         for queue in (self._commands, self._scans):
@@ -302,9 +324,9 @@ class BusPlanner:
                 queue.remove(job)
                 self._expired.append(job)
 
-    def _start_due_polls(self, now: float) -> None:
+    def _start_due_polls(self, now: float, commanded: AbstractSet[str]) -> None:
         for poller in self.pollers:
-            if poller.next_due > now:
+            if poller.next_due > now or poller.device in commanded:  # rule 8: built after
                 continue
             if poller.device in self._polls:  # the last poll has not gone out in a whole period
                 self.skipped_polls += 1
@@ -317,11 +339,21 @@ class BusPlanner:
             poller.next_due += poller.period_s
             if requests:
                 self._polls[poller.device] = Job(
-                    poller.device, requests, Priority.POLL, next_poll_due=poller.next_due
+                    poller.device,
+                    requests,
+                    Priority.POLL,
+                    next_poll_due=poller.next_due,
+                    order=next(self._taken_in),
                 )
 
-    def _next_poll_due(self) -> float:
-        waiting = [p.next_due for p in self.pollers if p.device not in self._polls]
+    def _next_poll_due(self, commanded: AbstractSet[str]) -> float:
+        """The next poll to build: a device's that waits for its commands is built once they
+        are done (the planner is asked again then)."""
+        waiting = [
+            p.next_due
+            for p in self.pollers
+            if p.device not in self._polls and p.device not in commanded
+        ]
         return min(waiting, default=math.inf)
 
     def _remove(self, job: Job) -> None:
@@ -331,6 +363,9 @@ class BusPlanner:
                 return
         if self._polls.get(job.device) is job:
             del self._polls[job.device]
+
+
+_NONE: AbstractSet[str] = frozenset()
 
 
 def _poll_due(job: Job) -> float:
