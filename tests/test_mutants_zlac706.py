@@ -145,12 +145,33 @@ def test_a_drive_back_from_offline_gets_0_rpm_never_its_old_speed(driver_class) 
     assert kept_alive is not None  # the drive still has the old speed preset: a stop is due
     if driver_class is Zlac706CanDriver:  # CAN's keep-alive is the speed write itself
         assert kept_alive[1].frame == stop[0]
+    run(driver, driver.restore())  # the stop went: a later restore has none to send
+    assert [request.frame for request in driver.restore()][-len(stop):] != stop
     idle = driver_class("w", 1)  # never commanded to turn: restored with nothing more
     run(idle, plan(idle, '{"op":"set_mode","mode":"velocity"}'))
     idle.went_offline("bus down")
     idle.heard(1.0)
     assert [request.frame for request in idle.restore()] == [
         request.frame for request in idle.applied_settings.values()]
+
+
+@pytest.mark.parametrize("driver_class", [Zlac706CanDriver, Zlac706Rs232Driver])
+def test_a_speed_a_client_sends_once_the_drive_is_back_is_not_undone_by_its_restore(
+        driver_class) -> None:
+    """The restore is built at the device's next poll, after the commands that wait for it
+    (``planner`` rule 8): a client that commanded a speed as soon as the drive was back, and
+    was answered ok, keeps it. An outside audit saw the restore's 0 rpm stop such a wheel
+    (10 runs in 10)."""
+    driver = driver_class("w", 1)
+    for text in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}',
+                 '{"op":"velocity","rpm":100}'):
+        run(driver, plan(driver, text))
+    driver.went_offline("heartbeats lost")
+    driver.heard(1.0)
+    run(driver, plan(driver, '{"op":"velocity","rpm":50}'))
+    assert driver.restore_pending
+    assert [request.frame for request in driver.restore()] == [
+        request.frame for request in driver.applied_settings.values()]
 
 
 @pytest.mark.parametrize("heartbeats", [False, True], ids=["acks-only", "heartbeats"])

@@ -411,6 +411,8 @@ class Zlac706Driver(Driver):
                 change["target_position"] = zero
                 self.measured["position"] = zero
             self.machine.acknowledged(change)
+        if role in (Role.SPEED, Role.TORQUE):  # a fresh target: no old one left to clear
+            self._preset_when_gone = False
         if role in RESTORED:
             self.applied_settings[frame.register] = Request.of(  # type: ignore[attr-defined]
                 self.codec, frame, idempotent=True
@@ -438,7 +440,8 @@ class Zlac706Driver(Driver):
 
     def restore(self) -> list[Request]:
         """The settings the drive had confirmed, then nothing preset if it was commanded to
-        turn when it went (``went_offline``)."""
+        turn when it went (``went_offline``) and has taken no speed or torque since (a
+        client's, sent once it was back, or this stop's own: ``acknowledged``)."""
         stop = self.nothing_preset() if self._preset_when_gone else []
         return [*super().restore(), *stop]
 
