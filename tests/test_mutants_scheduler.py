@@ -141,7 +141,7 @@ def test_during_the_holdoff_a_silent_command_passes_one_waiting_for_its_reply():
     planner = BusPlanner(TIMING)
     planner.hold_replies_until = 0.5
     planner.push_command(Job("la1", deque([asking()])))
-    broadcast = Job("*", deque([silent()]))
+    broadcast = Job("la2", deque([silent()]))  # another device's: la1's own would wait
     planner.push_command(broadcast)
     slot = planner.decide(0.0)
     assert isinstance(slot, Slot) and slot.source is broadcast

@@ -16,6 +16,7 @@ from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_state import Mode, Settings
 from busgate.gateway.scheduler.planner import (
     CLIENT_SHARE,
+    EVERY_DEVICE,
     MAX_RETRIES,
     BusPlanner,
     Job,
@@ -123,14 +124,15 @@ class ProbePoller(Poller):
 
 
 def _sent(planner: BusPlanner, t: float, steps: int) -> list[tuple[str, object]]:
-    """The device and frame of each of the next ``steps`` exchanges, a millisecond each."""
+    """The device and frame of each of the next ``steps`` exchanges, a millisecond each,
+    each asked for a little past the gap after the one before."""
     sent = []
     for _ in range(steps):
         slot = planner.decide(t)
         assert isinstance(slot, Slot), slot
         sent.append((slot.source.device, slot.request.frame))
         run(planner, slot, t, 0.001)
-        t += 0.001 + GAP
+        t += 0.001 + GAP + 0.0001
     return sent
 
 
@@ -167,6 +169,24 @@ def test_a_devices_poll_is_built_after_its_waiting_commands_and_goes_before_late
     assert _sent(planner, 0.002, 3) == [
         ("la1", ("status", 1)), ("la1", ("broadcast", 5)), ("la1", ("broadcast", 7))]
     assert probe.built == 1
+
+
+def test_a_job_for_every_device_waits_for_each_started_job_and_holds_the_later_ones():
+    """Rule 8 for a reset of the whole bus (one job, ``EVERY_DEVICE``): an outside audit saw
+    it go between an offline drive's probe frames, whose release then undid the reset's
+    enable. A command that came after it waits for it, and no poll is decided meanwhile."""
+    planner = BusPlanner(TIMING)
+    later = Poller("la3", 0.05, next_due=0.0015)
+    planner.pollers = [ProbePoller("la1"), later]
+    assert _sent(planner, 0.0, 1) == [("la1", ("status", 1))]
+    planner.push_command(Job(EVERY_DEVICE, deque([silent_request(7), silent_request(8)])))
+    planner.push_command(Job("la2", deque([status_request(2)])))
+    assert _sent(planner, 0.002, 3) == [
+        ("la1", ("broadcast", 5)), (EVERY_DEVICE, ("broadcast", 7)),
+        (EVERY_DEVICE, ("broadcast", 8))]
+    assert later.built == 0  # due meanwhile: decided once the reset went
+    assert _sent(planner, 0.0085, 2) == [("la2", ("status", 2)), ("la3", ("status", 1))]
+    assert later.built == 1
 
 
 def test_a_poll_held_behind_its_devices_command_does_not_wake_the_planner_early():

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Mapping
 
 from busgate.codecs.framing import ExpectedReply
 from busgate.gateway.drivers.base import Driver
-from busgate.gateway.scheduler.planner import Job
+from busgate.gateway.scheduler.planner import EVERY_DEVICE, Job
 
 
 class BusDevices:
@@ -73,7 +73,7 @@ def tell_unsent(job: Job, drivers: Mapping[str, Driver]) -> None:
     reset that never went leaves the device e-stopped)."""
     names = {job.device, *job.also_moves}
     for driver in drivers.values():
-        if "*" in names or driver.name in names:
+        if EVERY_DEVICE in names or driver.name in names:
             driver.unsent()
         if driver.name in job.estop_before:
             driver.estop_latched, driver.driving_before_estop = job.estop_before[driver.name]

@@ -30,7 +30,9 @@ The rules it enforces:
    first all the same), and a device's poll is built only when none of its commands waits.
    A poll's frames may depend on what the gateway knows of the device (an offline device's
    ``init`` releases a motor no client has enabled): a client's enable never goes between
-   them, nor before them once they were built.
+   them, nor before them once they were built. A job for ``EVERY_DEVICE`` (a reset of the
+   whole bus) is every device's job in that order; a scan's probes address no device of
+   the bus and keep their lane.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -54,6 +56,8 @@ MAX_RETRIES = 2
 #: The host's time, after a reply, to interpret it and have the next tick's frame ready.
 HOST_SLACK_S = 0.0008
 COMMAND_QUEUE = 64
+#: The device of a job for every device of the bus (an e-stop, a reset of them all; a scan).
+EVERY_DEVICE = "*"
 #: How many of a bus's waiting commands may be one client's (rule 4): half, so that a client
 #: reading every device of a full bus at once (an LA bus carries 15, a DS bus more) is not
 #: refused, and a flood leaves the other half to the rest.
@@ -309,12 +313,7 @@ class BusPlanner:
             candidates.append(self._scans[0])  # the scan lane: its first job only
         if not self._commands:  # one poll a device: nothing to put in order
             return candidates
-        first: dict[str, Job] = {}  # rule 8: each device's first job only
-        for job in candidates:
-            earlier = first.get(job.device)
-            if earlier is None or job.order < earlier.order:
-                first[job.device] = job
-        return [job for job in candidates if first[job.device] is job]
+        return _first_of_each_device(candidates)
 
     def _expire(self, now: float) -> None:
         for queue in (self._commands, self._scans):
@@ -325,8 +324,9 @@ class BusPlanner:
                 self._expired.append(job)
 
     def _start_due_polls(self, now: float, commanded: AbstractSet[str]) -> None:
+        every = EVERY_DEVICE in commanded
         for poller in self.pollers:
-            if poller.next_due > now or poller.device in commanded:  # rule 8: built after
+            if poller.next_due > now or every or poller.device in commanded:  # rule 8
                 continue
             if poller.device in self._polls:  # the last poll has not gone out in a whole period
                 self.skipped_polls += 1
@@ -349,6 +349,8 @@ class BusPlanner:
     def _next_poll_due(self, commanded: AbstractSet[str]) -> float:
         """The next poll to build: a device's that waits for its commands is built once they
         are done (the planner is asked again then)."""
+        if EVERY_DEVICE in commanded:
+            return math.inf
         waiting = [
             p.next_due
             for p in self.pollers
@@ -366,6 +368,30 @@ class BusPlanner:
 
 
 _NONE: AbstractSet[str] = frozenset()
+
+
+def _first_of_each_device(candidates: list[Job]) -> list[Job]:
+    """Rule 8: of each device's jobs, the first that came, unless a job for every device
+    came before it; that one only when it came before all the others. A scan goes as ever."""
+    first: dict[str, int] = {}
+    every = earliest = math.inf
+    for job in candidates:
+        if job.scan:
+            continue
+        if job.device == EVERY_DEVICE:
+            every = min(every, job.order)
+        else:
+            first[job.device] = min(first.get(job.device, job.order), job.order)
+        earliest = min(earliest, job.order)
+
+    def goes(job: Job) -> bool:
+        if job.scan:
+            return True
+        if job.device == EVERY_DEVICE:
+            return job.order == earliest
+        return job.order == first[job.device] and job.order < every
+
+    return [job for job in candidates if goes(job)]
 
 
 def _poll_due(job: Job) -> float:

@@ -36,7 +36,7 @@ from busgate.gateway.drivers.base import Driver, Effect, Follows
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import estop_changed, estop_states, tell_unsent
-from busgate.gateway.scheduler.planner import CLIENT_SHARE, BusPlanner, Job
+from busgate.gateway.scheduler.planner import CLIENT_SHARE, EVERY_DEVICE, BusPlanner, Job
 from busgate.gateway.scheduler.plays import ESTOP, Plays
 from busgate.gateway.scheduler.streams import FollowStreams
 
@@ -78,7 +78,7 @@ class BusWork:
         self._estop_dropped: list[Job] = []
 
     def plan_scan(self, requests: list[Request], start_by: float, future: Future) -> None:
-        probes = Job("*", deque(requests), keep_going=True, outcomes=[], scan=True)
+        probes = Job(EVERY_DEVICE, deque(requests), keep_going=True, outcomes=[], scan=True)
         probes.start_by, probes.future = start_by, future
         self.queue_job(probes)
 
@@ -183,7 +183,7 @@ class BusWork:
         # The job's own future, which no caller holds, so none can cancel it (``outcomes``
         # rule 2): each e-stop that joins the job waiting (``push_estop``) gets its outcome.
         carrier = self.planner.push_estop(
-            Job("*", deque(requests), keep_going=True, future=Future())
+            Job(EVERY_DEVICE, deque(requests), keep_going=True, future=Future())
         )
         assert carrier.future is not None
         if self.owner.is_open:
@@ -227,7 +227,11 @@ class BusWork:
         requests = deque(r for driver in drivers for r in driver.reset_estop())
         # Every device's frames go, whatever one silent device does (as an e-stop's).
         job = Job(
-            device or "*", requests, keep_going=device is None, start_by=start_by, future=future
+            device or EVERY_DEVICE,
+            requests,
+            keep_going=device is None,
+            start_by=start_by,
+            future=future,
         )
         job.estop_before = estop_changed(estop_before, drivers)
         self.queue_job(job)
