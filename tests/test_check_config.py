@@ -424,6 +424,21 @@ def test_la_streams_of_one_period_share_one_frame_per_tick() -> None:
     assert bus_budget(bus).follow.frames == pytest.approx(200)
 
 
+def test_a_zlac706_position_joint_with_limits_has_its_budget_and_the_config_is_valid(
+        tmp_path, capsys) -> None:
+    """Its budget's sample is a speed, which a limited position joint refuses (where it
+    would turn to is not known): an outside audit saw ``check-config`` and ``run`` stop on
+    it, the only way to give a ZLAC706 position limits."""
+    path = tmp_path / "gateway.toml"
+    path.write_text(
+        '[gateway]\nname = "gw"\n[[buses]]\nname = "can0"\ntransport = "can"\n'
+        'interface = "socketcan"\nchannel = "can0"\n[[buses.devices]]\nname = "wp"\n'
+        'kind = "zlac706"\nid = 1\n[buses.devices.joint]\ntype = "position"\nunit = "rad"\n'
+        'scale = 6.283185307179586e-4\nmin = -3.0\nmax = 3.0\nmax_velocity = 5.0\n')
+    assert main(["check-config", str(path)]) == 0, capsys.readouterr()
+    assert capsys.readouterr().out.startswith(f"{path}: valid")
+
+
 def test_can_heartbeats_count_against_the_bus() -> None:
     # Two 8-byte heartbeat frames per node and interval: 135 bits each at worst-case stuffing.
     bus = CanBus.model_validate({

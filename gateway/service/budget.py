@@ -214,10 +214,13 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
 def _follow_target(driver: Driver) -> float:
     """A representative follow target, validated by the driver itself once the commands that
     make it ready to follow are planned (a ZLAC706's make it stream speeds: a position
-    target is a frame of the same size).
-    Frame sizes do not depend on the values."""
+    target is a frame of the same size). Frame sizes do not depend on the values, nor on the
+    joint: a ZLAC706 position joint with limits refuses a speed stream (where it would turn
+    to is not known), and its positions' frames are as long."""
     for command in driver.follow_preparation:
         driver.plan(driver.parse(command))
+    if driver.joint.limited:  # the same device with the family's unlimited joint
+        return _follow_target(type(driver)(driver.name, driver.device_id))
     return driver.follow_target(driver.follow_sample(0.0, 0))
 
 
