@@ -9,6 +9,7 @@ import json
 import re
 import threading
 import time
+from collections.abc import Callable
 
 import can
 import pytest
@@ -501,15 +502,23 @@ def test_a_target_checked_as_the_stream_ends_is_handed_to_the_bus_before_the_end
     assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"]
 
 
-def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses_it(wait_for,
-                                                                                   gateway):
-    api, _, can_sim, _, events = gateway
+def on_in_velocity_mode(api: GatewayApi, can_sim) -> Callable[[int], list[str]]:
+    """The wheel enabled in velocity mode; what gives the speed writes (register 0x11) the
+    simulator received since its ``since``-th frame."""
     for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
         accepted(api, "wheel", op)
 
-    def speed_writes(since: int = 0) -> list[str]:  # register 0x11, the speed target
+    def speed_writes(since: int = 0) -> list[str]:
         return [r.wire for r in can_sim.recorder.received()[since:]
                 if r.wire.startswith("005#00fa0011")]
+
+    return speed_writes
+
+
+def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses_it(wait_for,
+                                                                                   gateway):
+    api, _, can_sim, _, events = gateway
+    speed_writes = on_in_velocity_mode(api, can_sim)
 
     assert api.follow("wheel", b'{"rpm": 120}') is None
     wait_for(lambda: any(wire != "005#00fa001100000000" for wire in speed_writes()))
@@ -521,6 +530,48 @@ def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses
     for future in api.estop():
         future.result(10)
     assert ask(api, "la2", {"op": "end_follow"}) == {"ok": True, "ended": True}
+
+
+def test_a_one_shot_target_for_a_streamed_device_is_refused_and_a_stop_ends_the_stream(
+        wait_for, gateway):
+    """A stream's next tick would overwrite a one-shot target, and its 0 rpm when it went
+    stale would stop it (an outside audit: a velocity answered ok, then 0 rpm): refused
+    ``busy``, nothing sent. A stop ends the stream, or its next tick would undo it."""
+    api, simulator, can_sim, _, events = gateway
+    speed_writes = on_in_velocity_mode(api, can_sim)
+
+    streaming = threading.Event()
+
+    def stream() -> None:  # the streams' client, a target each 20 ms: never stale
+        while not streaming.wait(0.02):
+            api.follow("wheel", b'{"rpm": 120}')
+            api.follow("la1", b'{"position": 700}')
+
+    client = threading.Thread(target=stream)
+    client.start()
+    try:
+        wait_for(lambda: any(wire != "005#00fa001100000000" for wire in speed_writes()))
+        wait_for(lambda: follow_ticks(simulator) > 0)
+        streamed = speed_writes()[-1]
+        mark = len(can_sim.recorder.received())
+        refused = ask(api, "wheel", {"op": "velocity", "rpm": 50})
+        assert code(refused) == "busy" and "end_follow" in refused["error"]["message"]
+        assert code(ask(api, "la1", {"op": "move", "position": 3})) == "busy"
+        time.sleep(0.1)
+        assert set(speed_writes(mark)) == {streamed}
+        assert not [r for r in simulator.recorder.received() if r.frame == "MoveCommand"]
+        assert not [e for e in events if e.type.startswith("stream_")]
+        # the stops, the streams still fed: each ends its stream (the client's next target
+        # starts another, as after an end_follow)
+        accepted(api, "la1", {"op": "pause"})
+        accepted(api, "wheel", {"op": "velocity", "rpm": 0})
+        wait_for(lambda: len([e for e in events if e.type.startswith("stream_")]) == 2)
+    finally:
+        streaming.set()
+        client.join()
+    assert [(e.device, e.type, e.fields) for e in events if e.type.startswith("stream_")][:2] == [
+        ("la1", "stream_stopped", {"reason": "stopped by a command"}),
+        ("wheel", "stream_stopped", {"reason": "stopped by a command"})]
 
 
 def test_group_move_is_one_broadcast_frame_and_scan_finds_the_actuators(wait_for, gateway):

@@ -369,9 +369,13 @@ def _ready(session: zenoh.Session) -> zenoh.Session:
 
 
 def _enable(operator: zenoh.Session) -> None:
-    """Power la1 after an earlier test's e-stop: an e-stopped actuator refuses motion."""
-    reply = _until_answered(operator, f"{LA1}/cmd", json.dumps({"op": "enable"}))
-    assert reply[0]["ok"] is True, reply
+    """Power la1 after an earlier test's e-stop (an e-stopped actuator refuses motion), and
+    end the follow stream an earlier test's target started (a one-shot target for a device a
+    stream follows is refused); ended by a client of its own, whose targets alone the end
+    would hold back for a while."""
+    for command in ({"op": "enable"}, {"op": "end_follow", "client": "tidy"}):
+        reply = _until_answered(operator, f"{LA1}/cmd", json.dumps(command))
+        assert reply[0]["ok"] is True, reply
 
 
 def _frames_since(simulator: SerialSimulator, mark: int) -> list:

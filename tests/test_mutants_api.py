@@ -124,10 +124,12 @@ def test_stops_and_reads_pass_another_clients_claim_and_settings_do_not():
 
 def test_the_devices_a_frame_moves_are_those_its_motion_names():
     authority = authority_of_two()
-    names = [d.name for d in authority.moved([(frozenset({2}), Effect.MOTION),
-                                              (frozenset({1}), Effect.SETTING)])]
+    names = [d.name for d in authority.addressed([(frozenset({2}), Effect.MOTION),
+                                                  (frozenset({1}), Effect.SETTING)])]
     assert names == ["la2"]
-    assert [d.name for d in authority.moved([(None, Effect.MOTION)])] == ["la1", "la2"]
+    assert [d.name for d in authority.addressed([(None, Effect.MOTION)])] == ["la1", "la2"]
+    stops = [(frozenset({1}), Effect.STOP), (frozenset({2}), Effect.MOTION)]
+    assert [d.name for d in authority.addressed(stops, Effect.STOP)] == ["la1"]
 
 
 def test_a_free_device_needs_no_claim_unless_one_is_required_and_says_so():

@@ -173,13 +173,13 @@ class Authority:
                     if driver.estopped:
                         raise driver.estopped_error()
 
-    def moved(self, effects: Iterable[tuple[Addressed, Effect]]) -> list[Driver]:
-        """The devices frames with these effects move (checked by ``check`` before)."""
+    def addressed(
+        self, effects: Iterable[tuple[Addressed, Effect]], effect: Effect = Effect.MOTION
+    ) -> list[Driver]:
+        """The devices frames with these effects do ``effect`` to (by default: move; checked
+        by ``check`` before)."""
         return [
-            driver
-            for ids, effect in effects
-            if effect is Effect.MOTION
-            for driver in self._devices(ids, effect)
+            driver for ids, done in effects if done is effect for driver in self._devices(ids, done)
         ]
 
     def check_limits(self, setpoints: Iterable[Setpoint]) -> None:

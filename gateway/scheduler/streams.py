@@ -5,11 +5,12 @@ Rules of this file:
 
 1. Bus thread only, but for ``store_latest``: a client's new target for a running stream is
    stored where the next tick reads it, from any thread, without waking the bus thread.
-2. A stream that goes stale or is stopped for one device (its client left, it rebooted) is
-   reported with an event and followed by the device's ``stale_stream`` requests (a ZLAC706
-   gets 0 rpm) as a command. Streams ended all at once (e-stop, lost bus, shutdown) are only
-   reported: what comes next puts every device in its safe state anyway; so is a stream a
-   trajectory takes over (``drop``): the trajectory goes on from where it left the device.
+2. A stream that goes stale or is stopped for one device (its client left, it rebooted, a
+   command stopped the device: ``BusWork``) is reported with an event and followed by the
+   device's ``stale_stream`` requests (a ZLAC706 gets 0 rpm) as a command. Streams ended all
+   at once (e-stop, lost bus, shutdown) are only reported: what comes next puts every device
+   in its safe state anyway; so is a stream a trajectory takes over (``drop``): the
+   trajectory goes on from where it left the device.
 """
 
 from __future__ import annotations
@@ -47,6 +48,12 @@ class FollowStreams:
     def following(self, device: str) -> bool:
         """Whether ``device`` has a running stream."""
         return device in self._streams
+
+    def fed(self, device: str) -> bool:
+        """Whether ``device``'s running stream takes a client's targets as they come (a
+        follow stream; not a ramp to a target kept, which a new target feeds)."""
+        stream = self._streams.get(device)
+        return stream is not None and not stream.ends_on_target
 
     def start(
         self, driver: Driver, target: Any, moment: float, *, ends_on_target: bool = False

@@ -15,7 +15,10 @@ follow stream or a trajectory follows (its ticks keep the period: the client put
 the follow key instead), and for one sent such a target less than its follow period before
 (by a command, or by the last tick of a stream or a trajectory), or whose command carrying
 one still waits to go out (``_check_follow_mode``): the period is counted from when that
-target went on the wire, not from when it was planned (``spacing``).
+target went on the wire, not from when it was planned (``spacing``). Any other command that
+would move a device a client's follow stream drives is refused ``busy`` too (the next tick
+would overwrite its target, and the stream's stop once it ended: ``_check_streams``), and one
+that stops such a device ends its stream first (its next tick would undo the stop).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver, Effect, Follows
+from busgate.gateway.drivers.base import Addressed, Driver, Effect, Follows
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import estop_changed, estop_states, tell_unsent
@@ -95,6 +98,7 @@ class BusWork:
             self.authority.check_limits(driver.setpoints(frames))
             self.authority.check_ids(driver.id_changes(frames))
             followed = self._check_follow_mode(driver.follow_mode_ids(frames))
+            self._check_streams(effects)
             estop_before = estop_states([driver])
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
@@ -103,7 +107,9 @@ class BusWork:
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
-            also = {other.name for other in self.authority.moved(effects) if other is not driver}
+            also = {
+                other.name for other in self.authority.addressed(effects) if other is not driver
+            }
             reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
@@ -123,6 +129,9 @@ class BusWork:
         )
         job.estop_before = estop_changed(estop_before, [driver])
         self.planner.spacing.commanded(followed, job)
+        for stopped in self.authority.addressed(effects, Effect.STOP):
+            if self.streams.fed(stopped.name):  # its next tick would undo the stop
+                self.streams.end(stopped.name, "stopped by a command")
         self.queue_job(job)
 
     def _check_follow_mode(self, ids: frozenset[int]) -> list[str]:
@@ -154,6 +163,17 @@ class BusWork:
                 f"fixed period), and {last}; nothing was sent"
             )
         return [driver.name for driver in followed]
+
+    def _check_streams(self, effects: list[tuple[Addressed, Effect]]) -> None:
+        """Refuse (``busy``, nothing sent) a one-shot target for a device whose follow stream
+        runs: its next tick would overwrite it, and its stop when it ends."""
+        for moved in self.authority.addressed(effects):
+            if self.streams.fed(moved.name):
+                raise BusyError(
+                    f"{moved.name} follows a stream (targets put on its follow key), whose next "
+                    "tick would overwrite this target: put it on the follow key, or end the "
+                    'stream first ({"op":"end_follow"}); nothing was sent'
+                )
 
     def queue_job(self, job: Job) -> None:
         if not self.owner.is_open:
