@@ -629,6 +629,27 @@ def test_follow_mode_targets_by_command_keep_the_follow_period_and_leave_a_strea
         runner.owner.close()
 
 
+def test_a_stop_the_queue_refuses_leaves_the_stream_it_would_have_ended(simulator) -> None:
+    """A stop ends its device's stream once it is queued: refused ``busy`` (nothing sent), it
+    ends nothing, as its reply says (an LA's stream has no stop of its own to send)."""
+    runner = build_bus(bus(simulator.port))  # not started: the test runs it
+    runner.owner.open()
+    la1 = runner.drivers["la1"]
+    try:
+        runner.streams.start(la1, la1.follow_target({"position": 1000}), now())
+        runner.planner._command_limit = 0  # full
+        refused = Future()
+        runner._work.plan_command("la1", la1.parse('{"op":"pause"}'), None, now() + 10, refused)
+        assert refused.exception(0).code == "busy"
+        assert runner.streams.fed("la1")
+        runner.planner._command_limit = 1
+        taken = Future()
+        runner._work.plan_command("la1", la1.parse('{"op":"pause"}'), None, now() + 10, taken)
+        assert not taken.done() and not runner.streams.following("la1")
+    finally:
+        runner.owner.close()
+
+
 def test_a_device_passed_between_a_command_follow_and_a_stream_keeps_its_follow_period(
     simulator,
 ) -> None:

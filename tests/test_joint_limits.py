@@ -256,6 +256,24 @@ def test_a_speed_step_becomes_a_ramp_at_max_acceleration_and_a_fast_one_is_refus
     assert len(written) >= 25
 
 
+def test_a_stop_while_a_one_shot_speed_ramps_ends_the_ramp(gateway):
+    """A disable while the ramp of a one-shot speed runs: its next ticks wrote speeds to the
+    released drive (a preset its next enable would start the motor at), found by a review.
+    The stop ends the ramp (``stream_stopped``); the drive gets 0 rpm and nothing more."""
+    api, simulators, events = gateway
+    can_sim = simulators["can0"]
+    accepted(api, "wheel", {"op": "enable"})
+    told = len(events)
+    accepted(api, "wheel", {"op": "joint", "velocity": TURN / 2})  # 30 rpm: 25 ticks of ramp
+    time.sleep(0.1)
+    accepted(api, "wheel", {"op": "disable"})
+    before = len(can_sim.recorder.received())
+    time.sleep(0.2)
+    assert set(speeds(can_sim, before)) <= {0}
+    assert ("stream_stopped", {"reason": "stopped by a command"}) in [
+        (e.type, e.fields) for e in events[told:] if e.device == "wheel"]
+
+
 def test_a_wheel_in_absolute_position_mode_streams_positions_held_by_its_joint(gateway):
     """A ZLAC706 in absolute position mode follows positions (its target register, 16): a
     step becomes a ramp within the joint's max_velocity (200 pulses a 20 ms tick) and

@@ -388,6 +388,18 @@ def test_store_latest_feeds_a_running_stream_only():
     assert planner.decide(0.001).request.frame == ("follow", (("la1", 6),))
 
 
+def test_store_latest_never_feeds_a_ramp():
+    """A ramp ends on its target and never goes stale: a follow target stored into it (a
+    put of another thread) would be kept for ever. The bus thread makes it a stream."""
+    driver = Follower("la1", 1)
+    _, streams = streams_of(driver)
+    streams.start(driver, 5, 0.0, ends_on_target=True)
+    assert not streams.store_latest("la1", 6, 0.001, "position")
+    assert streams.following("la1") and not streams.fed("la1")
+    streams.start(driver, 6, 0.001)
+    assert streams.fed("la1") and streams.store_latest("la1", 7, 0.002, "position")
+
+
 def test_a_stream_ended_is_reported_and_followed_by_its_stop():
     a, b = Follower("la1", 1), Follower("la2", 2)
     planner, streams = streams_of(a, b)

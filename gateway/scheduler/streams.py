@@ -37,11 +37,12 @@ class FollowStreams:
 
     def store_latest(self, device: str, target: Any, moment: float, follows: Follows) -> bool:
         """Any thread: the new target of ``device``'s running stream of what the target
-        ``follows``; ``False`` (nothing stored) when it has none, and the bus thread must
-        ``start`` one (or refuse the target: ``BusWork.start_stream``)."""
+        ``follows``; ``False`` (nothing stored) when it has none, or a ramp that ends on its
+        target (fed here, it would never go stale), and the bus thread must ``start`` one (or
+        refuse the target: ``BusWork.start_stream``)."""
         stream = self._streams.get(device)
-        if stream is None or stream.limiter.follows != follows:
-            return False
+        if stream is None or stream.limiter.follows != follows or stream.ends_on_target:
+            return False  # a ramp: the bus thread makes it a stream again, which goes stale
         stream.latest = (target, moment)
         return True
 

@@ -18,7 +18,8 @@ one still waits to go out (``_check_follow_mode``): the period is counted from w
 target went on the wire, not from when it was planned (``spacing``). Any other command that
 would move a device a client's follow stream drives is refused ``busy`` too (the next tick
 would overwrite its target, and the stream's stop once it ended: ``_check_streams``), and one
-that stops such a device ends its stream first (its next tick would undo the stop).
+that stops a device on a stream or a ramp ends it once the stop is queued (its next tick
+would undo the stop), unless the stop is that ramp (to 0, at the joint's max_acceleration).
 """
 
 from __future__ import annotations
@@ -111,6 +112,13 @@ class BusWork:
                 other.name for other in self.authority.addressed(effects) if other is not driver
             }
             reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
+            # a stop ends the stream or ramp its device is on (its next tick would undo it),
+            # unless the stop became that ramp (to 0 at the joint's max_acceleration)
+            stopped = [
+                d.name
+                for d in self.authority.addressed(effects, Effect.STOP)
+                if self.streams.following(d.name) and not (ramp is not None and d is driver)
+            ]
         except BusgateError as exc:
             outcomes.settle(future, error=exc)
             return
@@ -129,10 +137,9 @@ class BusWork:
         )
         job.estop_before = estop_changed(estop_before, [driver])
         self.planner.spacing.commanded(followed, job)
-        for stopped in self.authority.addressed(effects, Effect.STOP):
-            if self.streams.fed(stopped.name):  # its next tick would undo the stop
-                self.streams.end(stopped.name, "stopped by a command")
-        self.queue_job(job)
+        if self.queue_job(job):  # taken: ended behind it (its stop goes first, then the stream's)
+            for name in stopped:
+                self.streams.end(name, "stopped by a command")
 
     def _check_follow_mode(self, ids: frozenset[int]) -> list[str]:
         """Refuse follow-mode targets for the devices of ``ids`` that a stream or a trajectory
@@ -175,13 +182,17 @@ class BusWork:
                     'stream first ({"op":"end_follow"}); nothing was sent'
                 )
 
-    def queue_job(self, job: Job) -> None:
+    def queue_job(self, job: Job) -> bool:
+        """Queue ``job``, or answer it at once (nothing to send); ``False`` when refused (its
+        bus down, the queue full), answered so."""
         if not self.owner.is_open:
             tell_unsent(job, self.drivers)
             outcomes.fail(job, BusUnavailableError(f"bus {self.name} is down"))
-        elif not job.requests:
+            return False
+        if not job.requests:
             outcomes.complete(job, self.state_of)
-        elif not self.planner.push_command(job):
+            return True
+        if not self.planner.push_command(job):
             self.counters.busy_commands += 1
             why = (
                 f"client {job.client!r} has {CLIENT_SHARE} commands waiting already"
@@ -190,6 +201,8 @@ class BusWork:
             )
             tell_unsent(job, self.drivers)
             outcomes.fail(job, BusyError(f"bus {self.name}: {why}; nothing was sent"))
+            return False
+        return True
 
     def plan_estop(self, future: Future) -> None:
         """The e-stop ahead of everything, with only what must come before its first frame:

@@ -26,6 +26,7 @@ from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from busgate.errors import RefusedError
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import driver_class
@@ -214,14 +215,17 @@ def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
 def _follow_target(driver: Driver) -> float:
     """A representative follow target, validated by the driver itself once the commands that
     make it ready to follow are planned (a ZLAC706's make it stream speeds: a position
-    target is a frame of the same size). Frame sizes do not depend on the values, nor on the
-    joint: a ZLAC706 position joint with limits refuses a speed stream (where it would turn
-    to is not known), and its positions' frames are as long."""
+    target is a frame of the same size). Frame sizes do not depend on the values: a driver
+    whose joint refuses the sample (a ZLAC706 position joint with limits takes no speed
+    stream, where it would turn to not being known) is sized as its family's, unlimited."""
     for command in driver.follow_preparation:
         driver.plan(driver.parse(command))
-    if driver.joint.limited:  # the same device with the family's unlimited joint
+    try:
+        return driver.follow_target(driver.follow_sample(0.0, 0))
+    except RefusedError:
+        if not driver.joint.limited:
+            raise
         return _follow_target(type(driver)(driver.name, driver.device_id))
-    return driver.follow_target(driver.follow_sample(0.0, 0))
 
 
 def _heartbeats(bus: SerialBus | CanBus, timing: LinkTiming) -> Load:
