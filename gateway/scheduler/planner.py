@@ -324,9 +324,8 @@ class BusPlanner:
                 self._expired.append(job)
 
     def _start_due_polls(self, now: float, commanded: AbstractSet[str]) -> None:
-        every = EVERY_DEVICE in commanded
         for poller in self.pollers:
-            if poller.next_due > now or every or poller.device in commanded:  # rule 8
+            if poller.next_due > now or _waits_for(poller.device, commanded):  # rule 8
                 continue
             if poller.device in self._polls:  # the last poll has not gone out in a whole period
                 self.skipped_polls += 1
@@ -349,12 +348,10 @@ class BusPlanner:
     def _next_poll_due(self, commanded: AbstractSet[str]) -> float:
         """The next poll to build: a device's that waits for its commands is built once they
         are done (the planner is asked again then)."""
-        if EVERY_DEVICE in commanded:
-            return math.inf
         waiting = [
             p.next_due
             for p in self.pollers
-            if p.device not in self._polls and p.device not in commanded
+            if p.device not in self._polls and not _waits_for(p.device, commanded)
         ]
         return min(waiting, default=math.inf)
 
@@ -368,6 +365,12 @@ class BusPlanner:
 
 
 _NONE: AbstractSet[str] = frozenset()
+
+
+def _waits_for(device: str, commanded: AbstractSet[str]) -> bool:
+    """Whether ``device``'s poll waits for commands (its own, or one for every device) to be
+    built (rule 8); ``commanded``: the devices of the waiting commands."""
+    return device in commanded or EVERY_DEVICE in commanded
 
 
 def _first_of_each_device(candidates: list[Job]) -> list[Job]:

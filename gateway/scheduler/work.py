@@ -36,7 +36,7 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.bus.owner import BusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Addressed, Driver, Effect, Follows
+from busgate.gateway.drivers.base import Driver, Effect, Follows
 from busgate.gateway.scheduler import outcomes
 from busgate.gateway.scheduler.authority import Authority
 from busgate.gateway.scheduler.devices import estop_changed, estop_states, tell_unsent
@@ -99,7 +99,8 @@ class BusWork:
             self.authority.check_limits(driver.setpoints(frames))
             self.authority.check_ids(driver.id_changes(frames))
             followed = self._check_follow_mode(driver.follow_mode_ids(frames))
-            self._check_streams(effects)
+            moved = self.authority.addressed(effects)
+            self._check_streams(moved)
             estop_before = estop_states([driver])
             ramp = self._speed_ramp(driver, command)
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
@@ -108,9 +109,7 @@ class BusWork:
                 requests = []
             else:
                 requests = driver.plan_frames(command, frames)
-            also = {
-                other.name for other in self.authority.addressed(effects) if other is not driver
-            }
+            also = {other.name for other in moved if other is not driver}
             reads_only = bool(frames) and all(effect is Effect.READ for _, effect in effects)
             # a stop ends the stream or ramp its device is on (its next tick would undo it),
             # unless the stop became that ramp (to 0 at the joint's max_acceleration)
@@ -171,13 +170,13 @@ class BusWork:
             )
         return [driver.name for driver in followed]
 
-    def _check_streams(self, effects: list[tuple[Addressed, Effect]]) -> None:
-        """Refuse (``busy``, nothing sent) a one-shot target for a device whose follow stream
-        runs: its next tick would overwrite it, and its stop when it ends."""
-        for moved in self.authority.addressed(effects):
-            if self.streams.fed(moved.name):
+    def _check_streams(self, moved: list[Driver]) -> None:
+        """Refuse (``busy``, nothing sent) a one-shot target for a device ``moved`` whose
+        follow stream runs: its next tick would overwrite it, and its stop when it ends."""
+        for driver in moved:
+            if self.streams.fed(driver.name):
                 raise BusyError(
-                    f"{moved.name} follows a stream (targets put on its follow key), whose next "
+                    f"{driver.name} follows a stream (targets put on its follow key), whose next "
                     "tick would overwrite this target: put it on the follow key, or end the "
                     'stream first ({"op":"end_follow"}); nothing was sent'
                 )
