@@ -23,6 +23,7 @@ from busgate.gateway.scheduler.planner import (
     Priority,
     Slot,
 )
+from busgate.gateway.scheduler.polling import DevicePoller
 from busgate.gateway.scheduler.tickers import FollowTicker
 from tests.stand_in_driver import StandInDriver
 
@@ -46,11 +47,14 @@ WORST = TIMING.worst_case(status_request())
 class Poller:
     def __init__(self, device: str, period_s: float, next_due: float = 0.0) -> None:
         self.device, self.period_s, self.next_due = device, period_s, next_due
-        self.built = 0
+        self.built = self.withdrawals = 0
 
     def build(self) -> list[Request]:
         self.built += 1
         return [status_request()]
+
+    def withdrawn(self) -> None:
+        self.withdrawals += 1
 
 
 class FollowingDriver(StandInDriver):
@@ -148,9 +152,10 @@ def test_a_devices_job_that_started_runs_to_its_end_before_its_next_starts():
         ("la2", ("status", 2)), ("la1", ("broadcast", 5)), ("la1", ("broadcast", 7))]
 
 
-def test_a_devices_poll_is_built_after_its_waiting_commands_and_goes_before_later_ones():
+def test_a_devices_poll_is_built_after_its_waiting_commands_even_when_built_before():
     """Rule 8: a probe due while the device's command waits is decided after it (the enable
-    it brought: nothing to release); one built before a command came goes first."""
+    it brought: nothing to release); one built before a command came, not started, gives way
+    to it and is built again after it."""
     planner = BusPlanner(TIMING)
     probe = ProbePoller("la1")
     planner.pollers = [probe]
@@ -166,9 +171,36 @@ def test_a_devices_poll_is_built_after_its_waiting_commands_and_goes_before_late
     planner.push_command(Job("la2", deque([status_request(2)])))
     assert _sent(planner, 0.0, 1) == [("la2", ("status", 2))]  # the probe is built meanwhile
     planner.push_command(Job("la1", deque([silent_request(7)])))
-    assert _sent(planner, 0.002, 3) == [
-        ("la1", ("status", 1)), ("la1", ("broadcast", 5)), ("la1", ("broadcast", 7))]
-    assert probe.built == 1
+    assert _sent(planner, 0.002, 1) == [("la1", ("broadcast", 7))]
+    assert (probe.built, probe.withdrawals) == (1, 1)
+    probe.enabled = True  # what the command did
+    assert planner.decide(0.0045) == pytest.approx(0.252)  # built again, due since 0.002: empty
+    assert probe.built == 2
+
+
+def test_a_poll_that_waits_for_room_before_a_tick_never_holds_its_devices_command():
+    """Rule 8 with a follow stream: a poll built, too long to fit between two ticks, gives
+    way to a short command of its device, which goes in the room the poll could not use."""
+    planner = BusPlanner(TIMING)
+    ticker_at(planner, now=0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    long_poll = Poller("la2", 0.05, next_due=0.0)
+    long_poll.build = lambda: [silent_request(2000)]  # never fits in 10 ms
+    planner.pollers = [long_poll]
+    assert planner.decide(0.002) == pytest.approx(0.010)  # built; it waits for room
+    planner.push_command(Job("la2", deque([status_request(2)])))
+    slot = planner.decide(0.002)
+    assert isinstance(slot, Slot) and slot.request.frame == ("status", 2)
+    assert long_poll.withdrawals == 1 and long_poll.next_due == pytest.approx(0.002)
+
+
+def test_an_estop_gives_back_what_the_polls_it_drops_handed_out():
+    planner = BusPlanner(TIMING)
+    planner.pollers = [Poller("la1", 0.05, next_due=0.0), Poller("la2", 0.05, next_due=1.0)]
+    planner.push_command(Job("la3", deque([silent_request(7)])))
+    planner.decide(0.0)  # la1's poll built
+    planner.drop_commands()
+    assert [p.withdrawals for p in planner.pollers] == [1, 0]
 
 
 def test_a_job_for_every_device_waits_for_each_started_job_and_holds_the_later_ones():
@@ -481,3 +513,21 @@ def test_a_tick_built_and_put_off_does_not_move_its_streams_limiter_on() -> None
     ticker.sent(0.001)
     assert ticker.build(0.021).wire != first.wire
     assert stream.limiter.value == pytest.approx(80)  # two ticks on the wire, 40 counts each
+
+
+def test_a_device_poller_gives_back_the_restore_of_a_poll_taken_out_unsent():
+    """A rebooted device's settings go with its next poll; that poll taken out unsent (its
+    device's command came first, an e-stop) leaves them due, and a plain poll's does not."""
+    driver = StandInDriver("la1", 1)
+    driver.online = True
+    driver.applied_settings = {7: silent_request(7)}
+    poller = DevicePoller(driver, 20.0, start=0.0)
+    driver.restore_pending = True
+    assert poller.build() == [silent_request(7)]
+    assert not driver.restore_pending
+    poller.withdrawn()
+    assert driver.restore_pending
+    assert poller.build() == [silent_request(7)]
+    assert poller.build() == []  # a plain poll: nothing to give back
+    poller.withdrawn()
+    assert not driver.restore_pending

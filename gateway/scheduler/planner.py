@@ -30,9 +30,11 @@ The rules it enforces:
    first all the same), and a device's poll is built only when none of its commands waits.
    A poll's frames may depend on what the gateway knows of the device (an offline device's
    ``init`` releases a motor no client has enabled): a client's enable never goes between
-   them, nor before them once they were built. A job for ``EVERY_DEVICE`` (a reset of the
-   whole bus) is every device's job in that order; a scan's probes address no device of
-   the bus and keep their lane.
+   them. A poll built but not started gives way to a command of its device that comes
+   (``withdrawn``), and is built again once the commands are done, from the state they
+   left: a poll that waits for room before a tick never holds its device's commands. A job
+   for ``EVERY_DEVICE`` (a reset of the whole bus) is every device's job in that order; a
+   scan's probes address no device of the bus and keep their lane.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -148,6 +150,10 @@ class Poller(Protocol):
     def build(self) -> list[Request]:
         """The requests of one poll."""
 
+    def withdrawn(self) -> None:
+        """The poll last built was taken out unsent (rule 8, an e-stop, a lost link): what
+        building it handed out (a restore of the device's settings) is due again."""
+
 
 @dataclass(frozen=True, slots=True)
 class Slot:
@@ -228,7 +234,9 @@ class BusPlanner:
         dropped += [*self._scans, *self._polls.values()]
         self._commands = kept
         self._scans.clear()
-        self._polls.clear()
+        for poller in self.pollers:
+            if self._polls.pop(poller.device, None) is not None:
+                poller.withdrawn()
         return dropped
 
     def discard(self, job: Job) -> None:
@@ -263,6 +271,8 @@ class BusPlanner:
                 return Slot(request, Priority.FOLLOW, ticker)
             return self.decide(now)  # nothing to send now: its next tick is later, or none
         commanded = {job.device for job in self._commands} if self._commands else _NONE
+        if commanded and self._polls:
+            self._withdraw_polls(now, commanded)
         self._start_due_polls(now, commanded)
         self._expire(now)
         held = now < self.hold_replies_until
@@ -344,6 +354,16 @@ class BusPlanner:
                     next_poll_due=poller.next_due,
                     order=next(self._taken_in),
                 )
+
+    def _withdraw_polls(self, now: float, commanded: AbstractSet[str]) -> None:
+        """Rule 8: a poll not started gives way to its device's waiting commands; it is due
+        again at once, built when they are done."""
+        for poller in self.pollers:
+            job = self._polls.get(poller.device)
+            if job is not None and not job.started and _waits_for(poller.device, commanded):
+                del self._polls[poller.device]
+                poller.withdrawn()
+                poller.next_due = min(poller.next_due, now)
 
     def _next_poll_due(self, commanded: AbstractSet[str]) -> float:
         """The next poll to build: a device's that waits for its commands is built once they

@@ -24,6 +24,8 @@ class DevicePoller:
         self.device = driver.name
         self.poll_period_s = 1.0 / poll_hz
         self.next_due = start
+        #: The poll last built carries the device's settings again (its ``restore``).
+        self._restoring = False
 
     @property
     def period_s(self) -> float:
@@ -33,9 +35,15 @@ class DevicePoller:
 
     def build(self) -> list[Request]:
         driver = self.driver
+        self._restoring = driver.online and driver.restore_pending
         if not driver.online:
             return driver.init()
-        if driver.restore_pending:  # it rebooted: its settings again, then the poll
+        if self._restoring:  # it rebooted: its settings again, then the poll
             driver.restore_pending = False
             return driver.restore() + driver.poll()
         return driver.poll()
+
+    def withdrawn(self) -> None:
+        if self._restoring:  # the settings never went: due with the next poll
+            self.driver.restore_pending = True
+        self._restoring = False
