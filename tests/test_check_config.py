@@ -465,3 +465,36 @@ def test_a_reader_that_leaves_early_ends_it_quietly(tmp_path) -> None:
         done = subprocess.run([*BUSGATE, "check-config", str(config)], stdout=nobody,
                               stderr=subprocess.PIPE, text=True, timeout=60, check=False)
     assert (done.returncode, done.stderr) == (1, "")
+
+
+def test_a_bus_whose_commands_never_fit_between_follow_ticks_says_so() -> None:
+    """Actuators streaming every 20 ms leave room for a status read with the default reply
+    margin, none with 50 ms: their polls stop, and every command waits out the streams until
+    it is answered busy. The warning says both."""
+    def streaming(margin_ms: int) -> SerialBus:
+        return SerialBus.model_validate({
+            "name": "uart0", "transport": "serial", "port": "/dev/null", "baudrate": BAUD,
+            "reply_margin_ms": margin_ms,
+            "devices": [{"name": "la1", "kind": "inspire_la", "id": 1, "follow_period_ms": 20}],
+        })
+    assert bus_budget(streaming(2)).warnings() == []
+    (warning,) = bus_budget(streaming(50)).warnings()
+    assert "so polls stop while every device streams, and commands wait" in warning
+    assert "each is answered busy after 2 s" in warning
+    assert "reply_margin_ms (now 50 ms)" in warning
+
+
+def test_commands_that_never_fit_between_ticks_are_warned_of_where_nothing_is_polled() -> None:
+    """A ZLAC706 on CAN is never polled (its heartbeats are its telemetry): the room its
+    ticks leave is judged for a command (its init's write) alone."""
+    bus = CanBus.model_validate({
+        "name": "can0", "transport": "can", "interface": "socketcan", "channel": "can0",
+        "reply_margin_ms": 10, "bitrate": 125_000,
+        "devices": [{"name": "w1", "kind": "zlac706", "id": 1, "heartbeat_ms": 20,
+                     "follow_period_ms": 15}],
+    })
+    budget = bus_budget(bus)
+    assert budget.longest_poll_s == 0 and budget.reserved_share < 1.0
+    (warning,) = budget.warnings()
+    assert warning.startswith("follow ticks every 15 ms leave at most ")
+    assert "so commands wait while every device streams" in warning

@@ -10,7 +10,11 @@ Rules of this file:
    at the bus's rate). *Reserved* time is what the scheduler holds the line for: the worst
    case (frame, then the reply's deadline) plus the gap. The bus is oversubscribed when the
    reserved time passes 100 %, or when the longest poll exchange cannot fit between two
-   follow ticks: polls are then skipped and telemetry goes stale.
+   follow ticks: polls are then skipped and telemetry goes stale. It is warned of, besides,
+   when not even its shortest exchange with a reply (a device's ``poll`` or ``init``: what a
+   command is at its shortest), worst case, fits in what the ticks leave of their period at
+   best (their frames and replies on the wire, no more): commands then wait while every
+   device streams, until they are answered ``busy``.
 3. Follow streams count as if every device streamed at its period, coalesced as the runner
    coalesces them: one frame per tick for up to ``follow_group_limit`` devices of one kind
    and one period (one 0xF3 frame for 15 LA actuators, one SYNC WRITE for DS servos). Polls
@@ -30,7 +34,7 @@ from busgate.errors import RefusedError
 from busgate.gateway.bus.request import LinkTiming, Request
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.drivers.families import driver_class
-from busgate.gateway.scheduler.runner import BusRunner
+from busgate.gateway.scheduler.runner import COMMAND_START_S, BusRunner
 from busgate.gateway.service.assembly import build_bus
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.families import PROTOCOLS
@@ -69,11 +73,15 @@ class BusBudget:
     polling: Load
     follow: Load
     heartbeats: Load
-    #: The shortest follow period, and the line left in it once every follow frame went out.
+    #: The shortest follow period, and the line left in it once every follow frame went out:
+    #: at worst (each tick's worst case and gap) and at best (its wire time and gap).
     follow_period_s: float | None
     tick_free_s: float | None
+    tick_room_s: float | None
     #: The longest poll exchange, worst case, plus the planner's slack before a tick.
     longest_poll_s: float
+    #: The shortest exchange with a reply, worst case, plus the slack (rule 2; 0: none).
+    shortest_reply_s: float
     reply_margin_s: float
 
     @property
@@ -92,6 +100,11 @@ class BusBudget:
     def poll_fits(self) -> bool:
         """The longest poll exchange fits between two follow ticks."""
         return self.tick_free_s is None or self.longest_poll_s <= self.tick_free_s
+
+    @property
+    def command_fits(self) -> bool:
+        """The shortest exchange with a reply fits between two follow ticks (rule 2)."""
+        return self.tick_room_s is None or self.shortest_reply_s <= self.tick_room_s
 
     @property
     def oversubscribed(self) -> bool:
@@ -119,6 +132,8 @@ class BusBudget:
             found.append(self._overload())
         if not self.poll_fits:
             found.append(self._no_room_for_polls())
+        elif not self.command_fits:
+            found.append(self._no_room_for_commands())
         return found
 
     @property
@@ -127,11 +142,37 @@ class BusBudget:
 
     def _no_room_for_polls(self) -> str:
         free_ms = max(self.tick_free_s or 0.0, 0.0) * 1000
+        commands = "" if self.command_fits else f", and commands wait ({self._commands_wait})"
         return (
             f"oversubscribed: a poll exchange needs {self.longest_poll_s * 1000:.2f} ms (worst "
             f"case) but only {free_ms:.2f} ms are left between follow ticks every "
-            f"{(self.follow_period_s or 0.0) * 1000:g} ms, so polls stop while every device "
-            f"streams; raise follow_period_ms, lower reply_margin_ms (now "
+            f"{self._period_ms:g} ms, so polls stop while every device streams{commands}; "
+            f"{self._remedies}"
+        )
+
+    def _no_room_for_commands(self) -> str:
+        room_ms = max(self.tick_room_s or 0.0, 0.0) * 1000
+        return (
+            f"follow ticks every {self._period_ms:g} ms leave at most "
+            f"{room_ms:.2f} ms between them, so commands wait while every device streams "
+            f"({self._commands_wait}); {self._remedies}"
+        )
+
+    @property
+    def _commands_wait(self) -> str:
+        return (
+            f"the shortest needs {self.shortest_reply_s * 1000:.2f} ms, worst case; each is "
+            f"answered busy after {COMMAND_START_S:g} s"
+        )
+
+    @property
+    def _period_ms(self) -> float:
+        return (self.follow_period_s or 0.0) * 1000
+
+    @property
+    def _remedies(self) -> str:
+        return (
+            f"raise follow_period_ms, lower reply_margin_ms (now "
             f"{self.reply_margin_s * 1000:g} ms) or use a faster {self._rate_key}"
         )
 
@@ -166,10 +207,18 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
     ticks = _follow_frames(runner)
     follow = sum((_load(timing, gap, [request], 1 / period) for period, request in ticks), Load())
     shortest = min((period for period, _ in ticks), default=None)
-    tick_free = None
+    tick_free = tick_room = None
     if shortest is not None:
         tick_free = shortest - sum(timing.worst_case(r) + gap for _, r in ticks)
+        tick_room = shortest - sum(_wire_s(timing, r) + gap for _, r in ticks)
     longest = max((timing.worst_case(r) for _, requests in polls for r in requests), default=0.0)
+    answered = [
+        timing.worst_case(r)
+        for driver in runner.drivers.values()
+        for r in [*driver.poll(), *driver.init()]
+        if r.expected is not None
+    ]
+    quickest = min(answered, default=0.0)
     return BusBudget(
         bus=bus.name,
         transport=bus.transport,
@@ -181,7 +230,9 @@ def bus_budget(bus: SerialBus | CanBus) -> BusBudget:
         heartbeats=_heartbeats(bus, timing),
         follow_period_s=shortest,
         tick_free_s=tick_free,
+        tick_room_s=tick_room,
         longest_poll_s=longest + runner.planner.slack_s if longest else 0.0,
+        shortest_reply_s=quickest + runner.planner.slack_s if quickest else 0.0,
         reply_margin_s=timing.margin_s,
     )
 
@@ -190,11 +241,17 @@ def _load(timing: LinkTiming, gap_s: float, requests: Iterable[Request], hz: flo
     """``requests`` repeated ``hz`` times a second."""
     total = Load()
     for request in requests:
-        wire = timing.wire_time(request.wire)
-        if request.expected is not None:
-            wire += timing.reply_time(request.expected)
+        wire = _wire_s(timing, request)
         total += Load(hz, wire * hz, (timing.worst_case(request) + gap_s) * hz)
     return total
+
+
+def _wire_s(timing: LinkTiming, request: Request) -> float:
+    """What ``request`` and its reply take of the wire, at the bus's rate."""
+    wire = timing.wire_time(request.wire)
+    if request.expected is not None:
+        wire += timing.reply_time(request.expected)
+    return wire
 
 
 def _follow_frames(runner: BusRunner) -> list[tuple[float, Request]]:
