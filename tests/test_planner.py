@@ -531,3 +531,22 @@ def test_a_device_poller_gives_back_the_restore_of_a_poll_taken_out_unsent():
     assert poller.build() == []  # a plain poll: nothing to give back
     poller.withdrawn()
     assert not driver.restore_pending
+
+
+def test_a_group_frame_is_a_job_of_each_device_it_moves():
+    """Rule 8 for a group move, queued under its first device: another device it moves has
+    no poll built while it waits, and a stop of that device sent after it waits for it (left
+    behind a tick, the group frame went after the stop and moved that device again)."""
+    planner = BusPlanner(TIMING)
+    ticker_at(planner, now=0.0)
+    run(planner, planner.decide(0.0), 0.0, 0.0001)
+    poll = Poller("la2", 0.05, next_due=0.0)
+    planner.pollers = [poll]
+    group = silent_request(500)  # 5.4 ms: it fits only early between two ticks
+    planner.push_command(Job("la1", deque([group]), also_moves=("la2",)))
+    assert planner.decide(0.005) == pytest.approx(0.010)
+    assert poll.built == 0
+    planner.push_command(Job("la2", deque([silent_request(9)])))
+    assert planner.decide(0.005) == pytest.approx(0.010)
+    run(planner, planner.decide(0.010), 0.010, 0.0001)  # the tick
+    assert _sent(planner, 0.0112, 2) == [("la1", ("broadcast", 500)), ("la2", ("broadcast", 9))]

@@ -33,8 +33,9 @@ The rules it enforces:
    them. A poll built but not started gives way to a command of its device that comes
    (``withdrawn``), and is built again once the commands are done, from the state they
    left: a poll that waits for room before a tick never holds its device's commands. A job
-   for ``EVERY_DEVICE`` (a reset of the whole bus) is every device's job in that order; a
-   scan's probes address no device of the bus and keep their lane.
+   is a job of each device it moves (``Job.devices``: a group frame's too), and one for
+   ``EVERY_DEVICE`` (a reset of the whole bus) of every device, in that order; a scan's
+   probes address no device of the bus and keep their lane.
 An exchange that may be retried (idempotent, at most ``MAX_RETRIES`` times) goes back to the
 head of its job.
 """
@@ -115,6 +116,11 @@ class Job:
     scan: bool = False
     #: When the planner took it in (a count): a device's jobs go in this order (rule 8).
     order: int = 0
+
+    @property
+    def devices(self) -> tuple[str, ...]:
+        """The devices it is a job of (rule 8): its own and those its frames also move."""
+        return (self.device, *self.also_moves)
 
     def expired(self, now: float) -> bool:
         return now > self.start_by and (self.scan or not self.started)
@@ -270,7 +276,7 @@ class BusPlanner:
             if request is not None:
                 return Slot(request, Priority.FOLLOW, ticker)
             return self.decide(now)  # nothing to send now: its next tick is later, or none
-        commanded = {job.device for job in self._commands} if self._commands else _NONE
+        commanded = {d for job in self._commands for d in job.devices} if self._commands else _NONE
         if commanded and self._polls:
             self._withdraw_polls(now, commanded)
         self._start_due_polls(now, commanded)
@@ -394,8 +400,9 @@ def _waits_for(device: str, commanded: AbstractSet[str]) -> bool:
 
 
 def _first_of_each_device(candidates: list[Job]) -> list[Job]:
-    """Rule 8: of each device's jobs, the first that came, unless a job for every device
-    came before it; that one only when it came before all the others. A scan goes as ever."""
+    """Rule 8: the jobs that are the first that came of each of their devices, unless a job
+    for every device came before them; that one only when it came before all the others. A
+    scan goes as ever."""
     first: dict[str, int] = {}
     every = earliest = math.inf
     for job in candidates:
@@ -404,7 +411,8 @@ def _first_of_each_device(candidates: list[Job]) -> list[Job]:
         if job.device == EVERY_DEVICE:
             every = min(every, job.order)
         else:
-            first[job.device] = min(first.get(job.device, job.order), job.order)
+            for device in job.devices:
+                first[device] = min(first.get(device, job.order), job.order)
         earliest = min(earliest, job.order)
 
     def goes(job: Job) -> bool:
@@ -412,7 +420,7 @@ def _first_of_each_device(candidates: list[Job]) -> list[Job]:
             return True
         if job.device == EVERY_DEVICE:
             return job.order == earliest
-        return job.order == first[job.device] and job.order < every
+        return job.order < every and all(first[device] == job.order for device in job.devices)
 
     return [job for job in candidates if goes(job)]
 
