@@ -397,6 +397,30 @@ def test_a_client_that_goes_loses_its_claims_streams_and_speed(wait_for, gateway
     wait_for(lambda: any(e.type == "stream_stopped" for e in events))
 
 
+def test_a_client_that_goes_leaves_the_stream_another_client_drives_its_wheel_with(
+        wait_for, gateway):
+    """A one-shot speed's client is no longer the one moving the wheel once another's follow
+    stream drives it: its going neither stops the wheel nor ends that stream (the deadman's
+    0 rpm, a stop, ended it)."""
+    api, _, can_sim, _, events = gateway
+    for op in ({"op": "set_mode", "mode": "velocity"}, {"op": "enable"}):
+        accepted(api, "wheel", op)
+    accepted(api, "wheel", {"op": "velocity", "rpm": 200, "client": "teleop"})
+    assert api.follow("wheel", b'{"rpm": 100, "client": "planner"}') is None
+    streamed, stopped = "005#00fa001100000111", "005#00fa001100000000"
+
+    def sent_since(start: int) -> list[str]:
+        return [r.wire for r in can_sim.recorder.received()[start:]]
+
+    wait_for(lambda: streamed in sent_since(0))
+    before = len(can_sim.recorder.received())
+    api.client_left("teleop")
+    wait_for(lambda: sent_since(before).count(streamed) >= 3)
+    assert stopped not in sent_since(before)
+    assert not [e for e in events if e.type == "stream_stopped" or e.type == "stopped"]
+    assert api.follow("wheel", b'{"rpm": 100, "client": "planner"}') is None
+
+
 def follow_ticks(simulator) -> int:
     return sum(r.frame == "FollowCommand" for r in simulator.recorder.received())
 

@@ -20,15 +20,16 @@ every rule of the API is tested without a network. Rules of this file:
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
    by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
-   ZLAC706 whose speed it commanded is brought to 0 rpm at once. A client may end a stream
-   itself (``end_follow``): claimed like a follow target, never refused for an e-stop. zenoh
-   hands a put (a target) and a query (the end) to different threads, so a target sent
-   before the end may be taken after it; it must not start a stream that then goes stale.
-   The order holds by construction when the client numbers what it sends a stream
-   (``seq``, as the SDK does): a target of that client numbered below the end was sent
-   before it and is dropped, whenever it arrives (so is one with the end's own number: a
-   client that numbers twice alike cannot be ordered, and nothing moves); one above starts
-   a new stream at once.
+   ZLAC706 whose speed it commanded is brought to 0 rpm at once, unless a follow stream or
+   a kept target (``ramp_to``) has driven it since: its speed is theirs then. A client may
+   end a stream itself (``end_follow``): claimed like a follow target, never refused for an
+   e-stop. zenoh hands a put (a target) and a query (the end) to different threads, so a
+   target sent before the end may be taken after it; it must not start a stream that then
+   goes stale. The order holds by construction when the client numbers what it sends a
+   stream (``seq``, as the SDK does): a target of that client numbered below the end was
+   sent before it and is dropped, whenever it arrives (so is one with the end's own number:
+   a client that numbers twice alike cannot be ordered, and nothing moves); one above
+   starts a new stream at once.
    Without numbers on both, the client's targets within ``END_FENCE_S`` of the end are
    taken as sent before it. A target and an end taken at once on two of zenoh's threads are
    handed to the bus in the order they passed the fence (one lock over the check and the
@@ -276,6 +277,7 @@ class GatewayApi:
                 )
                 if client is not None:
                     self._stream_clients[device] = client
+                self._deadman_clients.pop(device, None)  # rule 3: the stream moves it now
                 runner.follow(device, target, follows)
             return None
         except REFUSALS as exc:
@@ -304,6 +306,7 @@ class GatewayApi:
             authority.judge(device, Effect.MOTION, client)  # claimed by another, e-stopped
             if authority.claims.hold(device, client, claim_ttl_s, authority.clock()):
                 self._event(device, "claimed", client=client, ttl_s=claim_ttl_s)
+            self._deadman_clients.pop(device, None)  # rule 3: the ramp moves it now
             runner.ramp(device, target, follows)
             return None
         except REFUSALS as exc:
