@@ -446,26 +446,36 @@ def test_end_follow_ends_a_stream_at_once_claimed_like_a_target(wait_for, gatewa
     assert follow_ticks(simulator) == ended
 
 
+@pytest.mark.parametrize("end", ["end_follow", "pause"])
 def test_a_target_of_the_client_that_ended_the_stream_coming_just_after_is_dropped(wait_for,
-                                                                                 gateway):
-    """A target that reaches the gateway after its client's end_follow was sent before it:
-    it starts no stream (which would only go stale). Another client's does, and so does the
-    same client's once the fence has passed."""
+                                                                                 gateway, end):
+    """A target that reaches the gateway after its client's end_follow, or its stop on
+    ``cmd`` (an LA's pause, which ends the stream too), was sent before it: it starts no
+    stream (which would only go stale, or set the paused actuator going again). The same
+    client's does once the fence has passed; another client's stop fences nothing of its."""
     api, simulator, _, _, events = gateway
+
+    def stopped(count: int) -> None:
+        wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == count)
+
     assert api.follow("la2", b'{"position": 700, "client": "alice"}') is None
     wait_for(lambda: follow_ticks(simulator) > 0)
-    accepted(api, "la2", {"op": "end_follow", "client": "alice"})
-    wait_for(lambda: any(e.type == "stream_stopped" for e in events))
-    assert api.follow("la2", b'{"position": 701, "client": "alice"}') is None
-    accepted(api, "la2", {"op": "status"})
+    accepted(api, "la2", {"op": end, "client": "alice"})
+    stopped(1)
     ended = follow_ticks(simulator)
+    assert api.follow("la2", b'{"position": 701, "client": "alice"}') is None
     time.sleep(END_FENCE_S)
     assert follow_ticks(simulator) == ended  # nothing started
     assert api.follow("la2", b'{"position": 702, "client": "alice"}') is None  # past the fence
     wait_for(lambda: follow_ticks(simulator) > ended)
+    accepted(api, "la2", {"op": "pause", "client": "bob"})
+    stopped(2)
+    ended = follow_ticks(simulator)
+    assert api.follow("la2", b'{"position": 703, "client": "alice"}') is None
+    wait_for(lambda: follow_ticks(simulator) > ended)
     accepted(api, "la2", {"op": "end_follow", "client": "alice"})
-    wait_for(lambda: sum(e.type == "stream_stopped" for e in events) == 2)
-    assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"] * 2
+    stopped(3)
+    assert [e.type for e in events if e.type.startswith("stream_")] == ["stream_stopped"] * 3
 
 
 def test_numbered_targets_are_ordered_against_the_end_by_their_seq_not_by_a_fence(

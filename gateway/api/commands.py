@@ -31,9 +31,11 @@ every rule of the API is tested without a network. Rules of this file:
    a client that numbers twice alike cannot be ordered, and nothing moves); one above
    starts a new stream at once.
    Without numbers on both, the client's targets within ``END_FENCE_S`` of the end are
-   taken as sent before it. A target and an end taken at once on two of zenoh's threads are
-   handed to the bus in the order they passed the fence (one lock over the check and the
-   hand-over), so a target checked before the end can never start its stream after it.
+   taken as sent before it. A stop the stream's client sends on ``cmd`` (a pause, 0 rpm:
+   its bus ends the stream) fences that client's targets as an unnumbered end does. A
+   target and an end taken at once on two of zenoh's threads are handed to the bus in the
+   order they passed the fence (one lock over the check and the hand-over), so a target
+   checked before the end can never start its stream after it.
 4. Nothing here blocks: commands go to the bus runners and come back as futures. One wait,
    bounded: an e-stop, handed to every bus, waits for its first exchange on each bus of this
    process (``runner.let_estops_go``) before its log line, so that the bus threads have the
@@ -50,7 +52,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
-from busgate.errors import BusUnavailableError, CommandError, RefusedError
+from busgate.errors import BusgateError, BusUnavailableError, CommandError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
 from busgate.gateway.api.put_reports import client_field, reset_fields
@@ -187,6 +189,9 @@ class GatewayApi:
         refused = None
         if driver.deadman and command.op == driver.deadman.op and client:
             refused = self._hold_deadman(device, client)  # before it goes: a client gone
+        if client and self._stream_clients.get(device) == client and _stops(driver, command):
+            with self._fence:  # its targets sent before it, taken after, start nothing (rule 3)
+                self._ended[device] = (client, now(), None)
         submitted = runner.submit(device, command, client)  # while it runs stops it
         if refused is not None:
             submitted.add_done_callback(refused)
@@ -511,6 +516,16 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> tuple[float, Follo
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
     driver.follow_target(payload)
     return raw, driver.follow_carries(payload)
+
+
+def _stops(driver: Driver, command: Any) -> bool:
+    """Whether ``command``'s frames stop a device (a pause, a disable, 0 rpm …): it ends
+    that device's stream on its bus (``BusWork.plan_command``)."""
+    try:
+        effects = driver.effects_of(driver.frames_of(command))
+    except BusgateError:  # its bus refuses it, with the reason: it stops nothing
+        return False
+    return any(effect is Effect.STOP for _, effect in effects)
 
 
 def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
