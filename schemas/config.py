@@ -58,7 +58,7 @@ class Section(BaseModel):
 MAX_WORKERS = 64
 
 
-def _workers_value(value: object) -> object:
+def workers_value(value: object) -> object:
     """``[gateway] workers`` refused in one line, whatever is wrong with it."""
     if value == "auto" or (type(value) is int and 1 <= value <= MAX_WORKERS):
         return value
@@ -76,7 +76,7 @@ class GatewaySection(Section):
     #: process).
     workers: Annotated[
         Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)],
-        BeforeValidator(_workers_value),
+        BeforeValidator(workers_value),
     ] = "auto"
 
 

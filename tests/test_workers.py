@@ -11,6 +11,7 @@ this shared host: here they meet within a generous bound."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import gc
 import os
 import pickle
@@ -21,7 +22,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,11 +35,13 @@ from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import now
 from busgate.gateway.scheduler.runner import STALL_S
 from busgate.gateway.service import worker_link as link
+from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.service.worker import Worker
 from busgate.gateway.service.workers import (
     RESTART_MAX_S,
     RESTART_S,
+    STEADY_S,
     STOP_S,
     WorkerProcess,
     restart_delay,
@@ -552,7 +555,7 @@ def test_a_withdrawn_call_is_cancelled_in_the_worker_and_never_answered(
     ours, theirs = link.pair()
     worker = Worker(link.Reader(theirs), lone_worker.config, ["uart0"])
     said: list[tuple] = []
-    monkeypatch.setattr(worker.outbox, "put", lambda message, urgent=False: said.append(message))
+    monkeypatch.setattr(worker.outbox, "put", lambda message, **_: said.append(message))
     runner = worker.runners["uart0"]
     submitted: list[Future] = []
     submit = runner.submit
@@ -635,7 +638,7 @@ def test_a_workers_mirror_sends_a_new_trajectory_view_or_id_when_told_not_at_its
     ours, theirs = link.pair()
     worker = Worker(link.Reader(theirs), lone_worker.config, ["uart0"])
     sent: list[tuple] = []
-    monkeypatch.setattr(worker.outbox, "put", lambda message, urgent=False: sent.append(message))
+    monkeypatch.setattr(worker.outbox, "put", lambda message, **_: sent.append(message))
     runner, done = worker.runners["uart0"], threading.Event()
     mirror = threading.Thread(target=worker._mirror, args=(done,), daemon=True)
     mirror.start()
@@ -866,6 +869,33 @@ def test_a_worker_that_keeps_ending_soon_after_its_start_waits_longer_each_time(
     assert restart_delay(RESTART_MAX_S, steady=True) == RESTART_S  # one that ran: at once again
 
 
+def test_a_worker_that_cannot_be_started_is_tried_again_later_each_time(
+    lone_worker: WorkerProcess, monkeypatch
+) -> None:
+    """No process to be had (too many open files): the supervisor backs off as for a worker
+    that ends before its first word, where it tried every 0.5 s for ever, a traceback each,
+    after a worker that had run steadily."""
+    delays: list[float] = []
+
+    def delay_seen(previous_s: float, *, steady: bool) -> float:
+        delays.append(restart_delay(previous_s, steady=steady))
+        return delays[-1]
+
+    def no_process() -> tuple[subprocess.Popen, socket.socket]:
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    monkeypatch.setattr(workers_module, "RESTART_S", RESTART_S / 100)  # a hundred times quicker
+    monkeypatch.setattr(workers_module, "restart_delay", delay_seen)
+    monkeypatch.setattr(lone_worker, "_spawn", no_process)
+    lone_worker._first_word_at = now() - 2 * STEADY_S  # the worker before ran steadily
+    lone_worker.start()
+    try:
+        wait_until(lambda: len(delays) >= 4, 10, "four tries")
+    finally:
+        lone_worker.stop()
+    assert delays[:4] == [RESTART_S / 100 * 2**n for n in range(4)]  # was 0.005 each time
+
+
 def test_a_worker_waiting_to_be_started_again_keeps_the_watchdog_fed(
     lone_worker: WorkerProcess, monkeypatch
 ) -> None:
@@ -896,30 +926,77 @@ def test_a_worker_waiting_to_be_started_again_keeps_the_watchdog_fed(
         lone_worker.stop()
 
 
-def test_messages_a_full_outbox_loses_are_counted_and_logged(caplog) -> None:
+@contextlib.contextmanager
+def outbox_to_a_peer_not_reading(backlog: int = link.Outbox.BACKLOG):
+    """An outbox whose peer stopped reading (the socket to it full), its sender holding a
+    first message it waits to send; and the peer's reader, for when it reads again."""
+
     class SmallOutbox(link.Outbox):
-        BACKLOG = 8
+        BACKLOG = backlog
 
     ours, theirs = link.pair()
-    reader = link.Reader(theirs)
     with contextlib.suppress(BlockingIOError):
-        while True:  # a peer that stopped reading: the socket to it is full
+        while True:
             ours.send(b"=" + pickle.dumps(("batch", [])), socket.MSG_DONTWAIT)
     outbox = SmallOutbox(ours, "test-send").start()
     try:
-        outbox.put(("state", "uart0", "la1", {"n": -1}), urgent=True)
-        wait_until(lambda: not outbox._queue, what="the sender holding it, waiting for room")
-        for n in range(20):  # 8 wait; the 12 oldest are lost
-            outbox.put(("state", "uart0", "la1", {"n": n}))
-        states = []
-        while len(states) < 9:
-            states += [m[3]["n"] for m in link.unbatched(reader.receive(5.0)) if m[0] == "state"]
-        assert states == [-1, *range(12, 20)]
-        wait_until(lambda: "12 messages lost" in caplog.text, what="the loss logged")
+        outbox.put(("state", "uart0", "la1", {"n": -1}), urgent=True, shed=True)
+        wait_until(lambda: not outbox.waiting, what="the sender holding it, waiting for room")
+        yield outbox, link.Reader(theirs)
     finally:
         outbox.close()
         ours.close()
         theirs.close()
+
+
+def read_until(reader: link.Reader, until: Callable[[list[tuple]], bool]) -> list[tuple]:
+    """What the reader takes until ``until`` holds of it (the full socket's empty batches
+    left out)."""
+    messages: list[tuple] = []
+    while not until(messages):
+        messages += link.unbatched(reader.receive(5.0))
+    return messages
+
+
+def test_a_full_outbox_loses_the_oldest_states_never_what_must_cross(caplog) -> None:
+    """A worker stalled (its peer not reading): the states wait 8 at most and lose their
+    oldest, counted and logged; an e-stop, an answer and an event put among them all cross,
+    in their order among the states kept."""
+    with outbox_to_a_peer_not_reading(backlog=8) as (outbox, reader):
+        for n in range(20):
+            outbox.put(("state", "uart0", "la1", {"n": n}), shed=True)
+            if n == 5:
+                outbox.put_now(("call", 1, "uart0", "estop", (), {}))
+            if n == 15:
+                outbox.put(("result", 9, True, {"ok": True}), urgent=True)
+                outbox.put(("event", "la1 offline"))
+        taken = read_until(reader, lambda m: sum(x[0] == "state" for x in m) == 9)
+        said = [m[3]["n"] if m[0] == "state" else m[0] for m in taken]
+        assert said == [-1, "call", 12, 13, 14, 15, "result", "event", 16, 17, 18, 19]
+        wait_until(lambda: "12 messages lost" in caplog.text, what="the loss logged")
+
+
+def test_a_flood_of_targets_waits_as_one_a_device_and_never_ahead_of_what_came_between():
+    """A client floods follow targets for two devices at a stalled worker: one a device
+    waits, the latest, and an e-stop put after them waits behind two, not behind the flood.
+    A target put after a message that keeps its order (a command) waits after it."""
+    with outbox_to_a_peer_not_reading() as (outbox, reader):
+
+        def target(device: str, n: int) -> None:
+            outbox.put_now(("call", None, "uart0", "follow", (device, n), {}),
+                           latest_of=("uart0", device))
+
+        for n in range(1000):
+            target("la1", n)
+            target("la2", n)
+        outbox.put_now(("call", 1, "uart0", "submit", ("la1", "pause"), {}))
+        target("la1", 1000)
+        outbox.put_now(("call", 2, "uart0", "estop", (), {}))
+        assert outbox.waiting == 5
+        taken = read_until(reader, lambda m: any(x[1] == 2 for x in m if x[0] == "call"))
+        calls = [(m[3], m[4]) for m in taken if m[0] == "call"]
+        assert calls == [("follow", ("la1", 999)), ("follow", ("la2", 999)),
+                         ("submit", ("la1", "pause")), ("follow", ("la1", 1000)), ("estop", ())]
 
 
 def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_config) -> None:

@@ -46,7 +46,7 @@ from busgate.gateway.service import logs
 from busgate.gateway.service.daemon import serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.recorder import Recorder
-from busgate.schemas.config import Config, parse_config
+from busgate.schemas.config import Config, parse_config, workers_value
 from busgate.schemas.families import PROTOCOLS
 
 GATEWAY_NAME = "demo"
@@ -254,9 +254,17 @@ def _bound(dashboard: Listen) -> socket.socket:
         ) from None
 
 
-def _workers(text: str) -> str | int:
-    """``--workers``: a whole number as one, anything else as given (the config judges it)."""
-    return int(text) if text.isdecimal() else text
+def _workers(text: str) -> object:
+    """``--workers``: what ``[gateway] workers`` takes, a number as one; refused as the
+    config refuses it, argparse naming the flag."""
+    try:
+        value: object = int(text)
+    except ValueError:
+        value = text
+    try:
+        return workers_value(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
 def _record_dir(path: str) -> Path:

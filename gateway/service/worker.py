@@ -190,13 +190,13 @@ class Worker:
         self._mirror_due.set()  # a command may have changed a device's id (rule 2)
 
     def _state(self, bus: str, device: str, state: dict[str, Any]) -> None:
-        self.outbox.put(("state", bus, device, state))
+        self.outbox.put(("state", bus, device, state), shed=True)
 
     def _event(self, event: DeviceEvent) -> None:
         self.outbox.put(("event", event))
 
     def _frame(self, bus: str, frame: tuple) -> None:
-        self.outbox.put(("frame", bus, frame))
+        self.outbox.put(("frame", bus, frame), shed=True)
 
     def _mirror(self, done: threading.Event) -> None:
         """Rule 2: trajectories and ids when they change, the beat every ``BEAT_S``."""
@@ -215,7 +215,7 @@ class Worker:
                         self.outbox.put(("plays", name, view, ids))
                 if last_turn >= next_beat:
                     next_beat = last_turn + link.BEAT_S
-                    self.outbox.put(("beat", self._beat()))
+                    self.outbox.put(("beat", self._beat()), shed=True)
             except Exception:  # rule 4
                 log.exception("worker: a mirror turn failed")
             # Until something changed or the beat is due (stopping raises the flag too); a

@@ -13,7 +13,9 @@ merged), each message a pickled tuple whose first item names it. Rules of this f
 3. A send never blocks a bus thread: the socket is written by one sender thread per end,
    from an outbox (``Outbox``), or by a caller of ``put_now`` when nothing waits and the
    socket takes it at once. The socket never has a timeout: the sender waits for room as
-   long as the peer lives, and what the socket cannot take at once is queued, never lost.
+   long as the peer lives, and what the socket cannot take at once is queued: never lost
+   but for what a newer message makes worthless (a state, a beat), and a device's target
+   replaced by its next one (``Outbox``).
 4. A message larger than ``PART`` crosses in parts of ``PART`` bytes, in order, joined by the
    ``Reader`` of the other end: a kernel's send buffer (by default some 416 KiB of datagram
    at most) never decides what can cross. One larger than ``MAX_MESSAGE`` is a bug: the
@@ -22,12 +24,14 @@ merged), each message a pickled tuple whose first item names it. Rules of this f
 
 from __future__ import annotations
 
+import itertools
 import logging
 import pickle
 import select
 import socket
 import threading
 from collections import deque
+from collections.abc import Hashable
 from typing import Any
 
 import busgate.errors as errors_module
@@ -67,6 +71,15 @@ BATCH_MAX = 64
 GATHER_S = 0.002
 #: How often a worker says how its bus threads are doing.
 BEAT_S = 0.1
+
+
+class _Target:
+    """A device's target waiting in an ``Outbox``, which the device's next one may replace."""
+
+    __slots__ = ("key", "message")
+
+    def __init__(self, key: Hashable, message: tuple) -> None:
+        self.key, self.message = key, message
 
 
 def portable(exc: BaseException) -> tuple[str, str, str, dict[str, Any]]:
@@ -164,18 +177,35 @@ class Outbox:
     """Messages for the socket, sent in order by a thread of their own (rule 3). What waits
     together goes as one ``batch``: the first message wakes the sender, which lets more
     gather for ``GATHER_S`` unless one is urgent (an answer, a call), so that a worker's states
-    cost one wake-up, one pickling and one send per batch rather than each."""
+    cost one wake-up, one pickling and one send per batch rather than each.
 
-    #: Messages waiting at most: a peer that stopped reading loses the oldest (counted, and
-    #: logged once the sender moves again), never the memory of the process that writes.
+    A peer that stops reading (a worker stalled, before it is found silent and killed) never
+    costs a message that must cross, nor the memory of the process that writes:
+
+    - What a newer message makes worthless (``shed``: a state, a frame, a beat) waits in a
+      queue of ``BACKLOG`` at most, which loses its oldest when full (counted, and logged once
+      the sender moves again). Everything else (an e-stop, a call, a claim, an answer, an
+      event) waits, however much waits; the two queues keep their order between them.
+    - A device's target (``latest_of`` its bus and device: a follow or a ramp target) takes
+      the place of the one of its device still waiting, unless a message that keeps its order
+      was queued after that one: a client flooding a stalled worker with targets queues one a
+      device, and an e-stop put behind them never waits for thousands.
+    """
+
+    #: The most messages ``shed`` that wait: a peer that stopped reading loses the oldest.
     BACKLOG = 65_536
 
     def __init__(self, sock: socket.socket, name: str) -> None:
         self._sock = sock
-        self._queue: deque[tuple] = deque(maxlen=self.BACKLOG)
+        #: What waits, each with its place in the order: what must cross, and what is shed.
+        self._kept: deque[tuple[int, Any]] = deque()
+        self._shed: deque[tuple[int, Any]] = deque(maxlen=self.BACKLOG)
+        self._order = itertools.count()
+        #: Each device's target still waiting, that the device's next one may replace.
+        self._targets: dict[Hashable, _Target] = {}
         self._ready = Flag()
         self._urgent = Flag()
-        self._lock = threading.Lock()  # the queue's head and what is being sent
+        self._lock = threading.Lock()  # the queues, their order and what is being sent
         self._sending = False
         self._closed = False
         self._dropped = 0  # the oldest messages the full queue lost since the last log
@@ -185,24 +215,32 @@ class Outbox:
         self._thread.start()
         return self
 
-    def put(self, message: tuple, *, urgent: bool = False) -> None:
-        """``message`` out, pickled by the sender thread (for a bus thread: rule 3)."""
-        self._queue_up(message)
+    @property
+    def waiting(self) -> int:
+        """How many messages wait for the sender."""
+        return len(self._kept) + len(self._shed)
+
+    def put(self, message: tuple, *, urgent: bool = False, shed: bool = False) -> None:
+        """``message`` out, pickled by the sender thread (for a bus thread: rule 3); ``shed``:
+        a newer message makes it worthless, and it may be lost while the peer reads nothing."""
+        with self._lock:
+            self._queue_up(message, shed=shed)
         if urgent:
             self._urgent.set()
         self._ready.set()
 
-    def put_now(self, message: tuple) -> None:
+    def put_now(self, message: tuple, *, latest_of: Hashable = None) -> None:
         """``message`` out at once, pickled here first: what cannot cross is refused to its
         caller (``pickle.PicklingError``, ``TypeError``, ``ValueError`` when larger than
         ``MAX_MESSAGE``), not lost on the way. Sent from the caller's thread when nothing is
         ahead of it, it is one datagram and the socket takes it without waiting (an e-stop
-        goes with no thread in between), else queued for the sender."""
+        goes with no thread in between), else queued for the sender. ``latest_of``: it is
+        the target of that device, replacing its last one if that still waits."""
         data = pickle.dumps(message, pickle.HIGHEST_PROTOCOL)
         if len(data) > MAX_MESSAGE:
             raise ValueError(f"a {message[0]!r} message of {len(data)} bytes is too large to cross")
         with self._lock:
-            if not self._queue and not self._sending and len(data) <= PART:
+            if not self.waiting and not self._sending and len(data) <= PART:
                 try:
                     write(self._sock, data, socket.MSG_DONTWAIT)
                     return
@@ -210,15 +248,25 @@ class Outbox:
                     pass
                 except OSError:
                     return  # the peer has gone: its supervisor reports it
-            self._queue_up((_PICKLED, data))
+            self._queue_up((_PICKLED, data), latest_of=latest_of)
         self._urgent.set()
         self._ready.set()
 
-    def _queue_up(self, item: tuple) -> None:
-        """``item`` at the queue's end; a full queue loses its oldest, counted (``BACKLOG``)."""
-        if len(self._queue) == self.BACKLOG:
+    def _queue_up(self, message: tuple, *, shed: bool = False, latest_of: Hashable = None) -> None:
+        """``message`` in its queue, or in place of its device's target (the class's rules);
+        with the lock held."""
+        entry: Any = message
+        if latest_of is not None:
+            waiting = self._targets.get(latest_of)
+            if waiting is not None:
+                waiting.message = message
+                return
+            entry = self._targets[latest_of] = _Target(latest_of, message)
+        elif not shed:  # it keeps its order: no target before it is replaced by one after it
+            self._targets.clear()
+        if shed and len(self._shed) == self.BACKLOG:
             self._dropped += 1
-        self._queue.append(item)
+        (self._shed if shed else self._kept).append((next(self._order), entry))
 
     def close(self) -> None:
         self._closed = True
@@ -234,7 +282,7 @@ class Outbox:
             self._urgent.clear()
             while True:
                 with self._lock:
-                    if not self._queue:
+                    if not self.waiting:
                         break
                     message, self._sending = self._next(), True
                 try:
@@ -255,13 +303,41 @@ class Outbox:
     def _next(self) -> tuple:
         """The next message to send: one pickled already, or what waits, as one ``batch``
         when more than one."""
-        first = self._queue.popleft()
-        if first[0] is _PICKLED or not self._queue or self._queue[0][0] is _PICKLED:
+        first = self._take()
+        if first[0] is _PICKLED:
             return first
         batch = [first]
-        while self._queue and self._queue[0][0] is not _PICKLED and len(batch) < BATCH_MAX:
-            batch.append(self._queue.popleft())
-        return ("batch", batch)
+        while len(batch) < BATCH_MAX and (head := self._head()) is not None:
+            if head[0] is _PICKLED:
+                break
+            batch.append(self._take())
+        return first if len(batch) == 1 else ("batch", batch)
+
+    def _queue_ahead(self) -> deque[tuple[int, Any]] | None:
+        """The queue whose head comes next in the order; ``None`` when nothing waits."""
+        kept, shed = self._kept, self._shed
+        if not shed:
+            return kept or None
+        return kept if kept and kept[0][0] < shed[0][0] else shed
+
+    def _head(self) -> tuple | None:
+        """The next message, left waiting; ``None`` when nothing waits."""
+        queue = self._queue_ahead()
+        if queue is None:
+            return None
+        entry = queue[0][1]
+        return entry.message if isinstance(entry, _Target) else entry
+
+    def _take(self) -> tuple:
+        """The next message, taken: a target taken is no longer replaced."""
+        queue = self._queue_ahead()
+        assert queue is not None  # only while something waits
+        _, entry = queue.popleft()
+        if not isinstance(entry, _Target):
+            return entry
+        if self._targets.get(entry.key) is entry:
+            del self._targets[entry.key]
+        return entry.message
 
     def _send(self, message: tuple) -> bool:
         """``False`` once the peer has gone; a message that cannot be pickled or is too large

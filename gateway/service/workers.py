@@ -43,7 +43,7 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from concurrent.futures import Future, InvalidStateError
 from functools import cache, partial
 from typing import Any, ClassVar
@@ -305,9 +305,12 @@ class WorkerProcess:
                 process, sock = self._spawn()
                 self._read(sock)
                 self._ended(process)
-            except Exception:  # a bug, or no process to be had (EMFILE): try again
+                first_word = self._first_word_at
+            except Exception:  # a bug, or no process to be had (EMFILE): try again, later
                 log.exception("worker %d: its supervisor failed", self.index)
-            first_word = self._first_word_at
+                first_word = None  # as a worker that ended before its first word: backing off
+            if self._stopping.is_set():  # it ended because the gateway stops: nothing to say
+                return
             ran_s = 0.0 if first_word is None else now() - first_word
             delay_s = restart_delay(delay_s, steady=ran_s >= STEADY_S)
             self._restart_at = now() + delay_s
@@ -386,12 +389,18 @@ class WorkerProcess:
         """``method`` of ``bus``'s runner in the worker, with no answer."""
         self.send(("call", None, bus, method, args, kwargs))
 
-    def send(self, message: tuple) -> None:
+    def target(self, bus: str, method: str, device: str, *args: Any) -> None:
+        """``method`` (``follow``, ``ramp``) of ``bus``'s runner with ``device``'s new target,
+        with no answer: one still waiting for the socket gives it its place
+        (``link.Outbox``)."""
+        self.send(("call", None, bus, method, (device, *args), {}), latest_of=(bus, device))
+
+    def send(self, message: tuple, *, latest_of: Hashable = None) -> None:
         """``message`` to the worker (dropped while there is none: a new one is told what
         stands, rule 2)."""
         outbox = self.outbox
         if outbox is not None:
-            outbox.put_now(message)
+            outbox.put_now(message, latest_of=latest_of)
 
     # -- the worker's words -------------------------------------------------------------------
 
@@ -627,10 +636,10 @@ class WorkerRunner:
         self.worker.tell(self.name, "stop_stream", device, reason)
 
     def follow(self, device: str, target: Any, follows: Follows) -> None:
-        self.worker.tell(self.name, "follow", device, target, follows)
+        self.worker.target(self.name, "follow", device, target, follows)
 
     def ramp(self, device: str, target: Any, follows: Follows) -> None:
-        self.worker.tell(self.name, "ramp", device, target, follows)
+        self.worker.target(self.name, "ramp", device, target, follows)
 
     def play(self, samplers: dict, start: float) -> None:
         self.worker.tell(self.name, "play", samplers, start)
