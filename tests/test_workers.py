@@ -263,8 +263,11 @@ def test_a_killed_worker_is_reported_restarted_and_resumes_nothing(served: Serve
         until_state(client, device, "online", False)  # its worker killed
     line = served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
     assert bus in line
-    # its devices' going offline is in the log too, as a bus's own offline is
+    # its devices' going offline is in the log too, as a bus's own offline is, after the end
+    # of the stream it ran (clients watching for it are told, as of a lost link's streams)
     served.gateway.wait_for(f"device {device}: offline (reason=its worker ended (killed by")
+    stopped = f"device {device}: stream_stopped (reason=its worker ended (killed by signal 9))"
+    assert any(stopped in line for line in served.gateway.lines)
     served.started_again(victim)
     until_state(client, device, "online", True, timeout=10)  # on its new worker
     mark = served.marks()[bus]

@@ -17,7 +17,9 @@ Rules of this file:
    say it.
 3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
    word: it is killed), is reported once: every call waiting on it is answered
-   ``bus_unavailable``, each of its devices goes offline with an event saying why, and the
+   ``bus_unavailable``, each of its devices goes offline with an event saying why (after a
+   ``stream_stopped`` for each stream it was sent and did not say ended, as a lost link's
+   streams are told), and the
    worker is started again after ``RESTART_S`` (longer each time, up to ``RESTART_MAX_S``,
    while it ends before it has run ``STEADY_S`` since its first word), with nothing to
    resume: no stream, no play, no ramp; a client commands again. A worker that ends while the
@@ -453,6 +455,9 @@ class WorkerProcess:
         self.runners[bus].took_state(device, state)
 
     def _on_event(self, event: DeviceEvent) -> None:
+        for runner in self.runners.values():
+            if event.device in runner.drivers:
+                runner.took_event(event)
         self.on_event(event)
 
     def _on_frame(self, bus: str, frame: tuple) -> None:
@@ -508,6 +513,10 @@ class WorkerProcess:
         return self._stopping.is_set()
 
 
+#: The events that say a device's stream ended.
+STREAM_ENDS = frozenset({"stream_stale", "stream_stopped"})
+
+
 def _how_it_ended(code: int) -> str:
     """A worker's exit status in words."""
     if code == worker_process.STOPPED_ON_SIGTERM:
@@ -534,6 +543,9 @@ class WorkerRunner:
         self.counters = shadow.counters
         #: The flight recorder's tap of this bus's frames (the daemon sets it, as an owner's).
         self.tap: Callable[[tuple], None] | None = None
+        #: The devices sent a follow or ramp target whose stream the worker has not said ended
+        #: (``stream_stale``, ``stream_stopped``): told ended when the worker ends (rule 3).
+        self._streamed: set[str] = set()
 
     @property
     def owner(self) -> WorkerRunner:
@@ -586,10 +598,19 @@ class WorkerRunner:
         for device, device_id in ids.items():
             self.drivers[device].device_id = device_id
 
+    def took_event(self, event: DeviceEvent) -> None:
+        """An event of the worker's about one of this bus's devices: a stream it said ended."""
+        if event.type in STREAM_ENDS:
+            self._streamed.discard(event.device)
+
     def worker_ended(self, why: str) -> None:
-        """Rule 3: each device offline, with its event, its last state marked so."""
+        """Rule 3: each stream told ended, each device offline, with its event, its last state
+        marked so."""
         self.plays.view = type(self.plays.view)()
         moment = now()
+        for device in sorted(self._streamed):
+            self.telemetry.tell(DeviceEvent(device, "stream_stopped", {"reason": why}), moment)
+        self._streamed.clear()
         for name, driver in self.drivers.items():
             driver.went_offline(why)
             for event in driver.drain_events():
@@ -636,9 +657,11 @@ class WorkerRunner:
         self.worker.tell(self.name, "stop_stream", device, reason)
 
     def follow(self, device: str, target: Any, follows: Follows) -> None:
+        self._streamed.add(device)
         self.worker.target(self.name, "follow", device, target, follows)
 
     def ramp(self, device: str, target: Any, follows: Follows) -> None:
+        self._streamed.add(device)
         self.worker.target(self.name, "ramp", device, target, follows)
 
     def play(self, samplers: dict, start: float) -> None:
