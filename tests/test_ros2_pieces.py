@@ -126,6 +126,21 @@ def test_a_message_that_says_nothing_certain_is_refused_in_one_line_and_the_diag
     assert {kv["key"]: kv["value"] for kv in gripper["values"]}["last_refusal"] == refusal
 
 
+def test_a_trajectory_naming_only_joints_the_gateway_lacks_is_told_and_shown(caplog) -> None:
+    """A MoveIt trajectory with a misspelt joint plays nothing: its name is logged once and
+    shown in the commands' diagnostics, as a command's (it was refused in silence)."""
+    _, _, face = gripper_face()
+    message = {"joint_names": ["gripper_typo"],
+               "points": [{"positions": [0.001], "time_from_start": {"sec": 1, "nanosec": 0}}]}
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        face._trajectory(message)
+        face._trajectory(message)
+    assert [r.getMessage() for r in caplog.records] == [
+        "ros2: a trajectory names no joint of this gateway: 'gripper_typo'"]
+    [commands_status] = [s for s in face.diagnostics()["status"] if s["name"].endswith("commands")]
+    assert "gripper_typo" in commands_status["message"]
+
+
 def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
     taken = commands()
     first = taken.take({"name": ["elbow", "gripper"], "position": [1.0, 0.002]}, 0.0)

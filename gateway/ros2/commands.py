@@ -85,7 +85,7 @@ class Commands:
         """The targets ``message`` sets (the rules above)."""
         names = message.get("name") or []
         lists: dict[str, list[float]] = {i: message.get(i) or [] for i in INTERFACES}
-        taken = Taken(unknown=self._newly_unknown(names))
+        taken = Taken(unknown=self.newly_unknown(names))
         by_index = all(len(values) in (0, len(names)) for values in lists.values())
         taken.refused = (self._misdirected if by_index else self._uncertain)(names, lists)
         if taken.refused is not None:
@@ -100,8 +100,9 @@ class Commands:
         taken.targets = list({target.joint.name: target for target in taken.targets}.values())
         return taken
 
-    def _newly_unknown(self, names: list[str]) -> list[str]:
-        """The names no joint has that no message named before (rule 2)."""
+    def newly_unknown(self, names: list[str]) -> list[str]:
+        """The names no joint has that no message (a command, a trajectory) named before
+        (rule 2)."""
         told = []
         for name in names:
             if name in self.joints or len(self.unknown) >= UNKNOWN_KEPT:

@@ -281,8 +281,7 @@ class Ros2Face:
             self._handing_on |= hand_on
         if hand_on:
             self.bridge.call_soon(self._hand_on)
-        for name in taken.unknown:
-            log.warning("ros2: a command names no joint of this gateway: %r", name)
+        _log_unknown(taken.unknown, "a command")
         if taken.refused is not None:
             self._refused(message.get("name") or [], taken.refused)
 
@@ -311,6 +310,7 @@ class Ros2Face:
         try:
             command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
+            self._unknown(names, "a trajectory")
             self._refused(names, str(exc))
             return
         sent = (names, message_json(command), command["op"] == "cancel", came_under)
@@ -340,6 +340,13 @@ class Ros2Face:
             self._trajectory_sent = following is not None
         if following is not None:
             self._send_trajectory(*following)
+
+    def _unknown(self, names: list[str], what: str) -> None:
+        """The names of a message that no joint has, logged and shown once (``commands``
+        rule 2)."""
+        with self._commands_lock:
+            unknown = self.commands.newly_unknown(names)
+        _log_unknown(unknown, what)
 
     def _refused(self, joints: Iterable[str], message: str) -> None:
         """Shown for each joint of this gateway, and told in one line for those not told
@@ -404,6 +411,11 @@ class Ros2Face:
 
     def _resolve(self, name: str) -> str:
         return rmw_zenoh.resolve(name, self.section.namespace, self.node_name)
+
+
+def _log_unknown(names: list[str], what: str) -> None:
+    for name in names:
+        log.warning("ros2: %s names no joint of this gateway: %r", what, name)
 
 
 def _when_all(futures: list[Future], done_message: str) -> Future:
