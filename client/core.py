@@ -374,7 +374,9 @@ class Core:
         return self.on_gateways(lambda gateway, alive: None if alive else listener(gateway))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        gateway = self.keys.gateway_of(str(sample.key_expr))
+        gateway = self.keys.gateway_in(str(sample.key_expr), "alive")
+        if gateway is None:  # a token on busgate/*/alive is no gateway: it would stand for all
+            return
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._lock:
             if alive:

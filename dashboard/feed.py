@@ -12,13 +12,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 from collections.abc import Callable
 from typing import Any
 
 from busgate.client import aio
+from busgate.client.base import gateway_infos
 from busgate.client.errors import GatewayError
 from busgate.client.keys import Keys
-from busgate.dashboard.fleet import Fleet
+from busgate.dashboard.fleet import MAX_GATEWAYS, Fleet
 from busgate.errors import BusgateError
 
 log = logging.getLogger(__name__)
@@ -35,6 +37,10 @@ class Feed:
         self._client, self._fleet, self._keys = client, fleet, Keys(prefix)
         self._loop = asyncio.get_running_loop()
         self._asking: set[asyncio.Task] = set()
+        #: Gateways up that found the fleet full (``MAX_GATEWAYS``), in the order they came:
+        #: the first is taken when a gateway goes.
+        self._waiting: dict[str, None] = {}
+        self._waiting_lock = threading.Lock()
         self._ends: list[Callable[[], None]] = [
             client.subscribe(self._keys.device("*", "*", "state"), self._on_state),
             client.subscribe(self._keys.base("*", "*", "odom"), self._on_odometry),
@@ -75,10 +81,24 @@ class Feed:
             self._fleet.event(gateway, body)
 
     def _on_gateway(self, gateway: str, alive: bool) -> None:
-        if not alive:
-            self._fleet.gateway_gone(gateway)
-        elif self._fleet.gateway_up(gateway):
-            self._loop.call_soon_threadsafe(self._ask_info, gateway)
+        with self._waiting_lock:
+            if not alive:
+                self._waiting.pop(gateway, None)
+                self._fleet.gateway_gone(gateway)
+                taken = next((w for w in self._waiting if self._fleet.gateway_up(w)), None)
+                if taken is not None:
+                    del self._waiting[taken]
+                    self._loop.call_soon_threadsafe(self._ask_info, taken)
+            elif self._fleet.gateway_up(gateway):
+                self._loop.call_soon_threadsafe(self._ask_info, gateway)
+            elif self._fleet.full and not self._fleet.has(gateway):
+                if not self._waiting:
+                    log.warning(
+                        "%d gateways shown already: %s, and any more, wait for one to go",
+                        MAX_GATEWAYS,
+                        gateway,
+                    )
+                self._waiting[gateway] = None
 
     # -- the loop --------------------------------------------------------------------------------
 
@@ -91,10 +111,10 @@ class Feed:
         for _ in range(INFO_TRIES):
             with contextlib.suppress(BusgateError, GatewayError):
                 answers = await self._client.query(self._keys.info(gateway), timeout=INFO_WAIT_S)
-                for answer in answers:
-                    if answer.ok:
-                        self._fleet.info(gateway, answer.body)
-                        return
+                info = gateway_infos(answers).get(gateway)  # its own, on its own key
+                if info is not None:
+                    self._fleet.info(gateway, info)
+                    return
             if not self._fleet.has(gateway):
                 return
             await asyncio.sleep(INFO_WAIT_S / 2)

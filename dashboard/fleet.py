@@ -10,11 +10,15 @@ Rules of this file:
 2. Nothing here trusts a sample. A gateway's data is taken only while its liveliness token is
    up (a sample that arrives after it went does not bring it back), a device's state only for
    a device the gateway's ``info`` lists, a plotted value only when it is a finite number; a
-   payload that is not the JSON object it should be is dropped. What is kept is bounded: at
-   most ``MAX_GATEWAYS`` gateways and ``MAX_DEVICES`` devices each, ``HISTORY_S`` of samples
+   payload that is not the JSON object it should be is dropped, and one nested deeper than
+   ``CLEAN_DEPTH`` is cut there. What is kept is bounded: at most ``MAX_GATEWAYS`` gateways
+   (one refused for that is taken when another goes: ``Feed``), ``MAX_BUSES`` buses and
+   ``MAX_DEVICES`` devices each, names of ``NAME_CHARS`` at most, ``HISTORY_S`` of samples
    per device, ``EVENTS_KEPT`` events.
 3. A plot sample is taken at most every ``SAMPLE_EVERY_S`` per device (the latest state
-   wins): the browser draws a minute of them for every device, at 50 devices too.
+   wins): the browser draws a minute of them for every device, at 50 devices too. A sample
+   more than ``CLOCK_STEP_S`` older than the last one kept (the gateway's clock was set
+   back, or a state came stamped in the future) starts the device's history again.
 4. What the browsers get is JSON made of what came in, under the dashboard's own names:
    ``snapshot()`` for a browser that just connected, ``drain()`` for the others since.
 5. A device is shown as its joint, in SI (``JointView``): a position joint's position, a
@@ -51,7 +55,14 @@ HISTORY_S = 60.0
 SAMPLE_EVERY_S = 0.05
 EVENTS_KEPT = 500
 MAX_GATEWAYS = 256
+MAX_BUSES = 64
 MAX_DEVICES = 512
+#: The longest gateway, bus or device name kept (a config's names are far shorter).
+NAME_CHARS = 128
+#: How deep a payload's JSON is read: a state is some four levels deep.
+CLEAN_DEPTH = 16
+#: A sample this much older than the last one kept starts the history again (rule 3).
+CLOCK_STEP_S = 1.0
 #: What a sample holds after its time: the joint's value (its position, or a velocity
 #: joint's velocity) and its target, in SI, and the motor current.
 PLOTTED = ("joint", "joint_target", "current_ma")
@@ -75,16 +86,25 @@ def number(value: Any) -> float | None:
     return value if math.isfinite(value) else None
 
 
-def clean(value: Any) -> Any:
-    """``value`` with every non-finite float made ``None``: JSON has no NaN, and a browser's
-    ``JSON.parse`` refuses the whole message that carries one."""
+def clean(value: Any, depth: int = CLEAN_DEPTH) -> Any:
+    """``value`` with every non-finite float made ``None`` (JSON has no NaN, and a browser's
+    ``JSON.parse`` refuses the whole message that carries one), and what is nested deeper
+    than ``depth`` too (rule 2: it would exhaust the interpreter's stack)."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
+    if isinstance(value, dict | list) and depth <= 0:
+        return None
     if isinstance(value, dict):
-        return {key: clean(item) for key, item in value.items()}
+        return {key: clean(item, depth - 1) for key, item in value.items()}
     if isinstance(value, list):
-        return [clean(item) for item in value]
+        return [clean(item, depth - 1) for item in value]
     return value
+
+
+def _named(entry: dict[str, Any]) -> bool:
+    """Whether an info's bus or device has a name the dashboard keeps (rule 2)."""
+    name = entry.get("name")
+    return isinstance(name, str) and 0 < len(name) <= NAME_CHARS
 
 
 def _text(value: Any, most: int) -> str | None:
@@ -179,6 +199,9 @@ class Device:
             return
         ts = sample[0]
         assert ts is not None
+        if ts < self.last_sample_at - CLOCK_STEP_S:  # rule 3: a clock set back
+            self.samples.clear()
+            self.last_sample_at = -math.inf
         if ts - self.last_sample_at < SAMPLE_EVERY_S and self.samples:
             self.samples[-1] = sample  # rule 3: the latest of the interval
             if self.pending:
@@ -294,7 +317,8 @@ class Fleet:
     # -- what comes in (zenoh's threads) ---------------------------------------------------------
 
     def gateway_up(self, name: str) -> bool:
-        """A gateway's token came: ``True`` when it is new here (its ``info`` is wanted)."""
+        """A gateway's token came: ``True`` when it is new here (its ``info`` is wanted);
+        ``False`` too when ``MAX_GATEWAYS`` are (``full``)."""
         with self._lock:
             if name in self._gateways or len(self._gateways) >= MAX_GATEWAYS:
                 return False
@@ -306,6 +330,12 @@ class Fleet:
     def has(self, name: str) -> bool:
         with self._lock:
             return name in self._gateways
+
+    @property
+    def full(self) -> bool:
+        """Whether ``MAX_GATEWAYS`` gateways are shown: another waits for one to go."""
+        with self._lock:
+            return len(self._gateways) >= MAX_GATEWAYS
 
     def gateway_gone(self, name: str) -> None:
         with self._lock:
@@ -334,11 +364,13 @@ class Fleet:
             self._changed_gateways.add(name)
 
     def _take_bus(self, gateway: Gateway, bus: Any) -> None:
-        if not isinstance(bus, dict) or not isinstance(bus.get("name"), str):
+        if not isinstance(bus, dict) or not _named(bus):
+            return
+        if bus["name"] not in gateway.buses and len(gateway.buses) >= MAX_BUSES:
             return
         gateway.buses.setdefault(bus["name"], {"protocol": str(bus.get("protocol")), "stats": None})
         for device in bus.get("devices") or ():
-            if not isinstance(device, dict) or not isinstance(device.get("name"), str):
+            if not isinstance(device, dict) or not _named(device):
                 continue
             if device["name"] not in gateway.devices and len(gateway.devices) < MAX_DEVICES:
                 gateway.devices[device["name"]] = Device(str(device.get("kind")), bus["name"])

@@ -32,6 +32,8 @@ from tests.sdk_helpers import the_client_id
 UP = ["gwx", "gwy"]
 BUSES = [{"name": "uart0", "protocol": "inspire_la", "devices": [
     {"name": "la1", "kind": "inspire_la"}]}]  # fmt: skip
+#: Liveliness tokens the fake session holds whose gateway chunk is no name.
+NO_GATEWAYS = ["*", "**", "a$*", "gwx/la1"]
 #: A hang guard for what is waited for, not a speed requirement.
 DEADLINE_S = 5.0
 
@@ -50,6 +52,8 @@ class FakeGateways:
         liveliness = self.session.liveliness()
         self._held = [
             *(liveliness.declare_token(f"busgate/{gateway}/alive") for gateway in UP),
+            # a peer's tokens that name no gateway: none of them is one (nor every one)
+            *(liveliness.declare_token(f"busgate/{key}/alive") for key in NO_GATEWAYS),
             self.session.declare_subscriber("busgate/**", self._direct(self._on_put)),
             *(
                 self.session.declare_queryable(f"busgate/{gateway}/info", self._info(gateway))
@@ -201,6 +205,17 @@ def test_a_gateway_up_is_put_to_and_one_nobody_runs_is_put_to_then_unknown_gatew
     came, body = gateways.put_on(f"busgate/gw-typo/{leaf}")
     assert body == {"client": face.client_id}
     assert came < min(t for t in gateways.asked if t > asking), "the lookup went first"
+
+
+def test_a_token_whose_gateway_is_no_name_is_no_gateway_up(face) -> None:
+    """A peer's token on ``busgate/*/alive`` stood for a gateway named ``*`` (the dashboard
+    showed it, filled by every gateway's info, a wildcard query)."""
+    core = face.client._shared.core
+    deadline = time.monotonic() + DEADLINE_S
+    while set(UP) - core.gateways_up and time.monotonic() < deadline:
+        time.sleep(0.005)
+    time.sleep(0.1)  # the other tokens came with them, in the same declarations
+    assert sorted(core.gateways_up) == UP
 
 
 def test_unknown_gateway_is_the_sdks_code_in_the_unknown_device_family() -> None:

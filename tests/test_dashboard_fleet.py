@@ -10,9 +10,11 @@ import math
 import pytest
 
 from busgate.dashboard.fleet import (
+    CLOCK_STEP_S,
     EVENTS_KEPT,
     HISTORY_S,
     MAX_BASES,
+    MAX_BUSES,
     MAX_DEVICES,
     MAX_GATEWAYS,
     SAMPLE_EVERY_S,
@@ -155,12 +157,45 @@ def test_events_are_kept_to_a_bound_and_each_told_once() -> None:
     assert fleet.drain() is None and len(fleet.snapshot()["events"]) == EVENTS_KEPT
 
 
-def test_a_flood_of_gateways_or_devices_is_bounded() -> None:
+def test_a_flood_of_gateways_buses_or_devices_is_bounded() -> None:
     fleet = Fleet()
     assert all(fleet.gateway_up(f"gw{n}") for n in range(MAX_GATEWAYS))
-    assert not fleet.gateway_up("one-too-many")
+    assert not fleet.gateway_up("one-too-many") and fleet.full
     fleet.info("gw0", info(*(f"d{n}" for n in range(MAX_DEVICES + 5))))
     assert sum(d["gateway"] == "gw0" for d in fleet.snapshot()["devices"]) == MAX_DEVICES
+    buses = [{"name": f"b{n}", "protocol": "inspire_la", "devices": []} for n in range(40_000)]
+    long_name = {"name": "x" * 100_000, "protocol": "inspire_la", "devices": [{"name": "y"}]}
+    fleet.info("gw1", {"ok": True, "gateway": "gw1", "buses": [long_name, *buses]})
+    [gw1] = [g for g in fleet.snapshot()["gateways"] if g["name"] == "gw1"]
+    assert len(gw1["buses"]) == MAX_BUSES and "x" * 200 not in str(gw1)
+
+
+def test_a_payload_nested_past_any_state_is_cut_not_a_crash() -> None:
+    """``json.loads`` takes nesting 999 deep, past the interpreter's stack for a recursive
+    reading: one such state raised in zenoh's thread, logged with a 150 KB traceback."""
+    fleet = Fleet()
+    up(fleet, "la1")
+    deep: object = 1
+    for _ in range(900):
+        deep = {"a": deep}
+    fleet.state("gw1", "la1", state(1.0, position=5, deep=deep))
+    [la1] = fleet.snapshot()["devices"]
+    assert la1["state"]["position"] == 5
+
+
+def test_a_state_from_before_a_clock_set_back_starts_the_plot_again() -> None:
+    """One state stamped an hour ahead (a peer's put, a clock set back) left every later
+    sample replacing the last for an hour: the plot held one point."""
+    fleet = Fleet()
+    up(fleet, "la1")
+    fleet.state("gw1", "la1", state(100.0 + 3600, position=1))
+    for n in range(20):
+        fleet.state("gw1", "la1", state(100.0 + n * SAMPLE_EVERY_S * 2, position=n))
+    [la1] = fleet.snapshot()["devices"]
+    assert len(la1["samples"]) == 20
+    last = 100.0 + 19 * SAMPLE_EVERY_S * 2
+    fleet.state("gw1", "la1", state(last - CLOCK_STEP_S / 2, position=99))  # jitter: kept
+    assert len(fleet.snapshot()["devices"][0]["samples"]) == 20
 
 
 # -- joints ------------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import socket
 import pytest
 
 from busgate.dashboard.feed import Feed
-from busgate.dashboard.fleet import Fleet
+from busgate.dashboard.fleet import MAX_GATEWAYS, Fleet
 from busgate.dashboard.hub import BACKLOG, Hub
 from busgate.dashboard.server import Listen
 from busgate.errors import CommandError
@@ -102,6 +102,9 @@ class SubscribedClient:
     def on_gateways(self, callback: object) -> object:
         return lambda: None
 
+    async def query(self, key: str, timeout: float) -> list:
+        return []  # no gateway answers its info here
+
 
 def test_a_sample_on_a_wildcard_key_is_dropped_and_a_named_one_taken() -> None:
     """A put on ``busgate/**/state`` reaches every subscriber of states: the feed drops it
@@ -125,6 +128,28 @@ def test_a_sample_on_a_wildcard_key_is_dropped_and_a_named_one_taken() -> None:
 
     snapshot = str(asyncio.run(run()))
     assert "777" in snapshot and "'n': 2" in snapshot and "'n': 1" not in snapshot
+
+
+def test_a_gateway_that_found_the_dashboard_full_is_shown_once_one_goes(caplog) -> None:
+    """256 gateways shown (peers' tokens, say): the next one's token is not announced again,
+    so it was never shown, even once they had gone."""
+    async def run() -> tuple[bool, bool, bool]:
+        fleet, client = Fleet(), SubscribedClient()
+        feed = Feed(client, fleet, "busgate")
+        try:
+            for n in range(MAX_GATEWAYS):
+                feed._on_gateway(f"fake{n}", True)
+            feed._on_gateway("late", True)
+            feed._on_gateway("later", True)
+            shown_while_full = fleet.has("late")
+            feed._on_gateway("fake7", False)
+            await asyncio.sleep(0)
+            return shown_while_full, fleet.has("late"), fleet.has("later")
+        finally:
+            feed.close()
+
+    assert asyncio.run(run()) == (False, True, False)
+    assert "256 gateways shown already: late, and any more, wait for one to go" in caplog.text
 
 
 def test_a_browser_gets_a_snapshot_then_each_change_once() -> None:
