@@ -137,11 +137,15 @@ class Ros2Node:
         handler: Callable[[dict[str, Any]], None],
         max_bytes: int,
         max_count: int | None = None,
+        *,
+        newest_only: bool = False,
     ) -> None:
         """Each ``type_name`` message on ``topic``'s own key, of at most ``max_bytes`` and with
         no sequence longer than ``max_count``, decoded for ``handler``; anything else dropped
         (counted) before it is decoded, or as soon as a count is read. A message waits for its
-        thread among at most ``backlog_for(max_bytes)`` (rule 3)."""
+        thread among at most ``backlog_for(max_bytes)`` (rule 3); ``newest_only``: a message
+        that comes while one waits takes its place, undecoded (where the handler keeps only
+        the newest anyway: a burst of large messages costs two decodings, not one each)."""
         key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
 
         def received(sample: zenoh.Sample) -> None:
@@ -164,7 +168,7 @@ class Ros2Node:
             handler(message)
 
         thread = f"ros2 {shown(topic)}"
-        backlog = backlog_for(max_bytes)
+        backlog = 1 if newest_only else backlog_for(max_bytes)
         self._intakes.append(take_puts(self.session, key, received, thread, backlog, self._estops))
 
     def service(
