@@ -24,14 +24,17 @@ Rules of this file:
    given one: a query's callbacks run on zenoh's thread (``indirect=False``), and each
    subscription is declared with zenoh's channel and drained by a daemon thread of its own
    (as fast as zenoh's threads: a callback on zenoh's thread would cost each sample a Python
-   thread state made and dropped, about 10 µs). A client never closed is closed at exit by
-   a ``weakref.finalize`` (its registry holds no client, and none once closed), on a daemon
-   thread given ``EXIT_CLOSE_S``: zenoh's close waits for its callbacks under way, and a
-   subscription whose sink never returns leaves one under way once its queue is full (zenoh
-   waits to put a sample in it); the exit must not wait for that (the process ends anyway,
-   and the gateways see the client go). That close tells no subscription's reader that it
-   ended (``subscribe``'s ``ended``): a daemon thread still waiting for a message ends with
-   the program, where a wait woken to raise would print its traceback into the exit.
+   thread state made and dropped, about 10 µs); a sample its sink fails is logged with its
+   traceback once every ``FAILURE_TOLD_EVERY_S`` at most (a peer's flood of what the sink
+   cannot take would fill the log), the failures between counted in the next line. A client
+   never closed is closed at exit by a ``weakref.finalize`` (its registry holds no client,
+   and none once closed), on a daemon thread given ``EXIT_CLOSE_S``: zenoh's close waits for
+   its callbacks under way, and a subscription whose sink never returns leaves one under way
+   once its queue is full (zenoh waits to put a sample in it); the exit must not wait for
+   that (the process ends anyway, and the gateways see the client go). That close tells no
+   subscription's reader that it ended (``subscribe``'s ``ended``): a daemon thread still
+   waiting for a message ends with the program, where a wait woken to raise would print its
+   traceback into the exit.
 6. A close waits, at most ``DRAIN_END_S``, for the subscriptions' daemon threads to end. Each
    waits for its next sample in zenoh, without the interpreter, and takes the interpreter
    again when the closed session ends its wait; a program that returns from its close at
@@ -57,6 +60,7 @@ import contextlib
 import itertools
 import json
 import logging
+import math
 import socket
 import threading
 import time
@@ -113,6 +117,9 @@ EXIT_CLOSE_S = 0.5
 LEFT_OPEN_WAIT_S = 0.5
 #: How long a close waits for its subscriptions' threads to end (rule 6).
 DRAIN_END_S = 0.5
+#: A subscriber that fails sample after sample (a peer putting what it cannot take) has its
+#: traceback logged once in this long, with a count of the failures not told.
+FAILURE_TOLD_EVERY_S = 60.0
 #: What a subscription is declared with: zenoh's own queue of samples, drained (rule 5).
 CHANNEL: zenoh.handlers.DefaultHandler[Any] = zenoh.handlers.DefaultHandler()
 
@@ -400,11 +407,18 @@ def _drained(
     thread kept in ``drains`` for the close to wait for (rule 6)."""
 
     def drain() -> None:
+        told_at, untold = -math.inf, 0  # a sink that fails each sample logs once in a while
         for sample in subscriber:
             try:
                 on_sample(sample)
             except Exception:  # one sample that fails a sink must not end the subscription
-                log.exception("a sample on %s failed its subscriber", key[:200])
+                moment = time.monotonic()
+                if moment - told_at < FAILURE_TOLD_EVERY_S:
+                    untold += 1
+                    continue
+                since = f" ({untold} more since the last told)" if untold else ""
+                log.exception("a sample on %s failed its subscriber%s", key[:200], since)
+                told_at, untold = moment, 0
         if ended is not None:
             try:
                 ended()

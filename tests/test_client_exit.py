@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from busgate.client import core
 from busgate.client.core import EXIT_CLOSE_S
 from tests.sdk_helpers import the_client_id
 
@@ -198,3 +199,16 @@ def test_a_close_returns_once_its_subscriptions_threads_have_ended(demo, request
     assert inside.wait(10)
     client.close()
     assert not [t.name for t in drains if t.is_alive()]
+
+
+def test_a_sink_that_fails_every_sample_is_told_once_in_a_while_not_for_each(caplog) -> None:
+    """A peer putting what a subscriber cannot take (a payload nested past the stack, say)
+    had each sample log its traceback: 150 KB a sample, megabytes a second."""
+    def fails(sample: object) -> None:
+        raise ValueError(f"cannot take {sample}")
+
+    drains: list[threading.Thread] = []
+    core._drained(range(1000), fails, "busgate/gw1/dev/la1/state", drains)
+    drains[0].join(5)
+    [told] = [r for r in caplog.records if "failed its subscriber" in r.getMessage()]
+    assert told.exc_info is not None and "cannot take 0" in str(told.exc_info[1])
