@@ -419,6 +419,8 @@ def _drained(
                 since = f" ({untold} more since the last told)" if untold else ""
                 log.exception("a sample on %s failed its subscriber%s", key[:200], since)
                 told_at, untold = moment, 0
+        if untold:
+            log.error("%d more samples on %s failed its subscriber", untold, key[:200])
         if ended is not None:
             try:
                 ended()

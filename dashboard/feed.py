@@ -98,7 +98,8 @@ class Feed:
                         MAX_GATEWAYS,
                         gateway,
                     )
-                self._waiting[gateway] = None
+                if len(self._waiting) < MAX_GATEWAYS:  # bounded too (fleet rule 2)
+                    self._waiting[gateway] = None
 
     # -- the loop --------------------------------------------------------------------------------
 

@@ -18,7 +18,8 @@ Rules of this file:
 3. A plot sample is taken at most every ``SAMPLE_EVERY_S`` per device (the latest state
    wins): the browser draws a minute of them for every device, at 50 devices too. A sample
    more than ``CLOCK_STEP_S`` older than the last one kept (the gateway's clock was set
-   back, or a state came stamped in the future) starts the device's history again.
+   back, or a state came stamped in the future) starts the device's history again, and the
+   browsers start theirs again (``restart``, as a base's track).
 4. What the browsers get is JSON made of what came in, under the dashboard's own names:
    ``snapshot()`` for a browser that just connected, ``drain()`` for the others since.
 5. A device is shown as its joint, in SI (``JointView``): a position joint's position, a
@@ -191,6 +192,7 @@ class Device:
         self.samples: deque[list[float | None]] = deque()
         self.pending: list[list[float | None]] = []  # samples the browsers have not had
         self.last_sample_at = -math.inf
+        self.restarted = False  # since the last drain: the browsers start their history again
 
     def take(self, state: dict[str, Any]) -> None:
         self.state = state
@@ -201,7 +203,9 @@ class Device:
         assert ts is not None
         if ts < self.last_sample_at - CLOCK_STEP_S:  # rule 3: a clock set back
             self.samples.clear()
+            self.pending.clear()
             self.last_sample_at = -math.inf
+            self.restarted = True
         if ts - self.last_sample_at < SAMPLE_EVERY_S and self.samples:
             self.samples[-1] = sample  # rule 3: the latest of the interval
             if self.pending:
@@ -444,7 +448,7 @@ class Fleet:
                 "now": self._clock(),
                 "gateways": [g.view() for g in self._gateways.values()],
                 "devices": [
-                    _device_view(g.name, name, device, list(device.samples))
+                    _device_view(g.name, name, device, list(device.samples), restart=True)
                     for g in self._gateways.values()
                     for name, device in g.devices.items()
                 ],
@@ -470,8 +474,10 @@ class Fleet:
             devices = []
             for gateway_name, name in sorted(self._changed_states):
                 device = self._gateways[gateway_name].devices[name]
-                devices.append(_device_view(gateway_name, name, device, device.pending))
-                device.pending = []
+                devices.append(
+                    _device_view(gateway_name, name, device, device.pending, device.restarted)
+                )
+                device.pending, device.restarted = [], False
             bases = []
             for gateway_name, name in sorted(self._changed_bases):
                 base = self._gateways[gateway_name].bases[name]
@@ -492,8 +498,10 @@ class Fleet:
 
 
 def _device_view(
-    gateway: str, name: str, device: Device, samples: list[list[float | None]]
+    gateway: str, name: str, device: Device, samples: list[list[float | None]], restart: bool
 ) -> dict[str, Any]:
+    """A device as a browser gets it: its state, its joint, and its plot samples (those since
+    the last drain; all of them with ``restart``, which says to drop what it has: rule 3)."""
     view = None if device.state is None else JointView.of(device.kind, device.state)
     return {
         "gateway": gateway,
@@ -503,6 +511,7 @@ def _device_view(
         "state": device.state,
         "joint": None if view is None else view.told(),
         "samples": samples,
+        "restart": restart,
     }
 
 

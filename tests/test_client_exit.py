@@ -210,5 +210,7 @@ def test_a_sink_that_fails_every_sample_is_told_once_in_a_while_not_for_each(cap
     drains: list[threading.Thread] = []
     core._drained(range(1000), fails, "busgate/gw1/dev/la1/state", drains)
     drains[0].join(5)
-    [told] = [r for r in caplog.records if "failed its subscriber" in r.getMessage()]
+    told, counted = [r for r in caplog.records if "failed its subscriber" in r.getMessage()]
     assert told.exc_info is not None and "cannot take 0" in str(told.exc_info[1])
+    assert counted.getMessage() == (
+        "999 more samples on busgate/gw1/dev/la1/state failed its subscriber")

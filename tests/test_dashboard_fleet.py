@@ -189,13 +189,19 @@ def test_a_state_from_before_a_clock_set_back_starts_the_plot_again() -> None:
     fleet = Fleet()
     up(fleet, "la1")
     fleet.state("gw1", "la1", state(100.0 + 3600, position=1))
+    [told] = fleet.drain()["devices"]  # an open browser has it
+    assert not told["restart"] and len(told["samples"]) == 1
     for n in range(20):
         fleet.state("gw1", "la1", state(100.0 + n * SAMPLE_EVERY_S * 2, position=n))
     [la1] = fleet.snapshot()["devices"]
-    assert len(la1["samples"]) == 20
-    last = 100.0 + 19 * SAMPLE_EVERY_S * 2
+    assert len(la1["samples"]) == 20 and la1["restart"]  # a new browser's first message
+    [told] = fleet.drain()["devices"]  # and the open browser drops the hour-ahead one
+    assert told["restart"] and len(told["samples"]) == 20
+    last = 100.0 + 20 * SAMPLE_EVERY_S * 2
+    fleet.state("gw1", "la1", state(last, position=20))
+    assert not fleet.drain()["devices"][0]["restart"]
     fleet.state("gw1", "la1", state(last - CLOCK_STEP_S / 2, position=99))  # jitter: kept
-    assert len(fleet.snapshot()["devices"][0]["samples"]) == 20
+    assert len(fleet.snapshot()["devices"][0]["samples"]) == 21
 
 
 # -- joints ------------------------------------------------------------------------------------

@@ -220,6 +220,10 @@ function showDevice(view) {
   device.element.querySelector(".kind").textContent = view.kind;
   if (view.state) device.state = view.state;
   if (view.joint !== undefined) device.joint = view.joint;
+  if (view.restart) {  // its gateway's clock was set back, or a browser's first message
+    for (const series of ["t", "position", "target", "current"]) device[series] = [];
+    device.dirty = true;
+  }
   for (const [t, position, target, current] of view.samples) {
     if (device.t.length && t <= device.t[device.t.length - 1]) continue;
     device.t.push(t); device.position.push(position); device.target.push(target); device.current.push(current);

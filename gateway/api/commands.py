@@ -82,12 +82,13 @@ SCAN_MAX_S = 4.0
 #: The room a scan gets beyond its planned duration before its last probes are dropped:
 #: twice the plan (it shares the bus with commands, ticks and polls) plus this.
 SCAN_SLACK_S = 1.0
-#: After a client's ``end_follow`` without ``seq``, how long its targets for that device
-#: without one are taken as sent before the end (rule 3). zenoh hands a put and a query to
-#: their callbacks on different threads, so a target sent just before the end can be taken
-#: after it; on a loaded host that was seen past 100 ms (CI), so the fence is wider. A client
-#: that streams again that soon after ending loses its first half second of targets: the
-#: SDK numbers its targets and ends (``seq``) and never meets the fence.
+#: After a client's ``end_follow`` without ``seq``, or its stop of its own stream, how long
+#: its targets for that device are taken as sent before the end (rule 3; with ``seq`` on the
+#: end and the target, not at all). zenoh hands a put and a query to their callbacks on
+#: different threads, so a target sent just before the end can be taken after it; on a
+#: loaded host that was seen past 100 ms (CI), so the fence is wider. A client that streams
+#: again that soon after ending loses its first half second of targets: the SDK numbers its
+#: targets and ends (``seq``) and meets the fence only after a stop (which carries none).
 END_FENCE_S = 0.5
 
 log = logging.getLogger(__name__)
@@ -191,6 +192,7 @@ class GatewayApi:
             refused = self._hold_deadman(device, client)  # before it goes: a client gone
         if client and self._stream_clients.get(device) == client and _stops(driver, command):
             with self._fence:  # its targets sent before it, taken after, start nothing (rule 3)
+                self._stream_clients.pop(device, None)
                 self._ended[device] = (client, now(), None)
         submitted = runner.submit(device, command, client)  # while it runs stops it
         if refused is not None:

@@ -157,8 +157,9 @@ class Poller(Protocol):
         """The requests of one poll."""
 
     def withdrawn(self) -> None:
-        """The poll last built was taken out unsent (rule 8, an e-stop, a lost link): what
-        building it handed out (a restore of the device's settings) is due again."""
+        """The poll last built was taken out before all of it went (rule 8, an e-stop, a lost
+        link): what building it handed out (a restore of the device's settings, written
+        again whole: each write sets a value) is due again."""
 
 
 @dataclass(frozen=True, slots=True)

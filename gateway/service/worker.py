@@ -230,6 +230,7 @@ class Worker:
                 runner.owner.is_open,
                 runner.statistics(),
                 runner.open_failure,
+                frozenset(d for d in runner.drivers if runner.streams.following(d)),
             )
             for name, runner in self.runners.items()
         }

@@ -188,8 +188,9 @@ class Outbox:
       event) waits, however much waits; the two queues keep their order between them.
     - A device's target (``latest_of`` its bus and device: a follow or a ramp target) takes
       the place of the one of its device still waiting, unless a message that keeps its order
-      was queued after that one: a client flooding a stalled worker with targets queues one a
-      device, and an e-stop put behind them never waits for thousands.
+      was queued after that one: a client flooding a stalled worker with follow targets
+      queues one a device, and an e-stop put behind them never waits for thousands (a ROS 2
+      target renews its client's claim, a message that keeps its order: those queue each).
     """
 
     #: The most messages ``shed`` that wait: a peer that stopped reading loses the oldest.
@@ -292,10 +293,10 @@ class Outbox:
                     sent = True
                 with self._lock:
                     self._sending = False
+                    dropped, self._dropped = self._dropped, 0
                 if not sent:
                     return
-                if self._dropped:
-                    dropped, self._dropped = self._dropped, 0
+                if dropped:
                     log.error("%d messages lost: the other process did not read them", dropped)
             if self._closed:
                 return

@@ -8,7 +8,9 @@ Rules of this file:
    same ``build_bus``, never started, its port never opened), kept as the worker last said:
    each device's state (and from it ``online`` and ``estopped``), its id, the trajectories'
    ``PlaysView``, the bus's statistics and whether it is open (or why not). Every call that
-   moves or sets anything goes to the worker, in the order it was made.
+   moves or sets anything goes to the worker, in the order it was made, but that a device's
+   follow or ramp target still waiting for the socket is replaced by its next one
+   (``link.Outbox``).
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
@@ -18,8 +20,8 @@ Rules of this file:
 3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
    word: it is killed), is reported once: every call waiting on it is answered
    ``bus_unavailable``, each of its devices goes offline with an event saying why (after a
-   ``stream_stopped`` for each stream it was sent and did not say ended, as a lost link's
-   streams are told), and the
+   ``stream_stopped`` for each stream it ran, as a lost link's streams are told: those its
+   last beat named, and those fed in the last ``RECENT_TARGET_S``), and the
    worker is started again after ``RESTART_S`` (longer each time, up to ``RESTART_MAX_S``,
    while it ends before it has run ``STEADY_S`` since its first word), with nothing to
    resume: no stream, no play, no ramp; a client commands again. A worker that ends while the
@@ -73,6 +75,13 @@ RESTART_MAX_S = 30.0
 #: How long a worker runs past its first word before its end is a worker's end, not a start
 #: that failed (the next wait is ``RESTART_S`` again).
 STEADY_S = 10.0
+#: What a worker's beat says of each of its buses (``worker.Worker._beat``): whether its
+#: thread keeps its schedule, whether it is open (else why not), its statistics, and the
+#: devices its follow streams and ramps drive.
+BusBeat = tuple[bool, bool, BusStats, str | None, frozenset[str]]
+#: A device sent a target this recently may have a stream its worker's last beat did not
+#: name yet (rule 3): longer than a stream stays fresh without one (``tickers.MIN_FRESH_S``).
+RECENT_TARGET_S = 1.0
 #: How long a new worker is given to say its first word before start-up goes on without it.
 FIRST_WORD_S = 5.0
 #: How long a worker just started may take to say its first word (an interpreter's start on a
@@ -213,7 +222,7 @@ class WorkerProcess:
         self.config = config
         self.runners = {shadow.name: WorkerRunner(shadow, self) for shadow in shadows}
         self.on_event = shadows[0].telemetry.on_event  # every bus's: the daemon's events
-        self.beat: dict[str, tuple[bool, bool, BusStats, str | None]] = {}
+        self.beat: dict[str, BusBeat] = {}
         #: How the last worker ended (``None``: none has), its buses' reason to be down until
         #: the next one's first beat says how they are.
         self.ended_because: str | None = None
@@ -455,9 +464,6 @@ class WorkerProcess:
         self.runners[bus].took_state(device, state)
 
     def _on_event(self, event: DeviceEvent) -> None:
-        for runner in self.runners.values():
-            if event.device in runner.drivers:
-                runner.took_event(event)
         self.on_event(event)
 
     def _on_frame(self, bus: str, frame: tuple) -> None:
@@ -468,7 +474,7 @@ class WorkerProcess:
     def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
         self.runners[bus].took_plays(view, ids)
 
-    def _on_beat(self, beat: dict[str, tuple[bool, bool, BusStats, str | None]]) -> None:
+    def _on_beat(self, beat: dict[str, BusBeat]) -> None:
         self.beat = beat
         self._first_word.set()
 
@@ -490,7 +496,7 @@ class WorkerProcess:
             outbox.close()
         code = process.wait()
         self._first_word.set()  # start-up goes on: its buses are down
-        self.beat = {}
+        last_beat, self.beat = self.beat, {}
         how = _how_it_ended(code)
         self.ended_because = f"{WORKER_ENDED_REASON} ({how})"
         gone = BusUnavailableError(f"the worker of its bus ended ({how})")
@@ -501,7 +507,8 @@ class WorkerProcess:
             return
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
-            runner.worker_ended(self.ended_because)
+            beat = last_beat.get(runner.name)
+            runner.worker_ended(self.ended_because, beat[4] if beat else frozenset())
 
     def _daemon_stops(self, code: int) -> bool:
         """The daemon is stopping, or (the worker ended on a SIGTERM of its own) begins to
@@ -511,10 +518,6 @@ class WorkerProcess:
         if code in (worker_process.STOPPED_ON_SIGTERM, -signal.SIGTERM):
             return self._stopping.wait(SIGTERM_WAIT_S)
         return self._stopping.is_set()
-
-
-#: The events that say a device's stream ended.
-STREAM_ENDS = frozenset({"stream_stale", "stream_stopped"})
 
 
 def _how_it_ended(code: int) -> str:
@@ -543,9 +546,8 @@ class WorkerRunner:
         self.counters = shadow.counters
         #: The flight recorder's tap of this bus's frames (the daemon sets it, as an owner's).
         self.tap: Callable[[tuple], None] | None = None
-        #: The devices sent a follow or ramp target whose stream the worker has not said ended
-        #: (``stream_stale``, ``stream_stopped``): told ended when the worker ends (rule 3).
-        self._streamed: set[str] = set()
+        #: When each device was last sent a follow or ramp target (rule 3).
+        self._fed_at: dict[str, float] = {}
 
     @property
     def owner(self) -> WorkerRunner:
@@ -598,19 +600,15 @@ class WorkerRunner:
         for device, device_id in ids.items():
             self.drivers[device].device_id = device_id
 
-    def took_event(self, event: DeviceEvent) -> None:
-        """An event of the worker's about one of this bus's devices: a stream it said ended."""
-        if event.type in STREAM_ENDS:
-            self._streamed.discard(event.device)
-
-    def worker_ended(self, why: str) -> None:
-        """Rule 3: each stream told ended, each device offline, with its event, its last state
-        marked so."""
+    def worker_ended(self, why: str, streaming: frozenset[str]) -> None:
+        """Rule 3: each stream told ended (``streaming``, its last beat's, and those fed
+        lately), each device offline, with its event, its last state marked so."""
         self.plays.view = type(self.plays.view)()
         moment = now()
-        for device in sorted(self._streamed):
+        fed = {device for device, at in list(self._fed_at.items()) if moment - at < RECENT_TARGET_S}
+        self._fed_at.clear()
+        for device in sorted(streaming | fed):
             self.telemetry.tell(DeviceEvent(device, "stream_stopped", {"reason": why}), moment)
-        self._streamed.clear()
         for name, driver in self.drivers.items():
             driver.went_offline(why)
             for event in driver.drain_events():
@@ -657,11 +655,11 @@ class WorkerRunner:
         self.worker.tell(self.name, "stop_stream", device, reason)
 
     def follow(self, device: str, target: Any, follows: Follows) -> None:
-        self._streamed.add(device)
+        self._fed_at[device] = now()
         self.worker.target(self.name, "follow", device, target, follows)
 
     def ramp(self, device: str, target: Any, follows: Follows) -> None:
-        self._streamed.add(device)
+        self._fed_at[device] = now()
         self.worker.target(self.name, "ramp", device, target, follows)
 
     def play(self, samplers: dict, start: float) -> None:
