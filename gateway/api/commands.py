@@ -190,14 +190,28 @@ class GatewayApi:
         refused = None
         if driver.deadman and command.op == driver.deadman.op and client:
             refused = self._hold_deadman(device, client)  # before it goes: a client gone
-        if client and self._stream_clients.get(device) == client and _stops(driver, command):
-            with self._fence:  # its targets sent before it, taken after, start nothing (rule 3)
-                self._stream_clients.pop(device, None)
-                self._ended[device] = (client, now(), None)
+        if client:
+            self._fence_own_streams(runner, driver, command, client)
         submitted = runner.submit(device, command, client)  # while it runs stops it
         if refused is not None:
             submitted.add_done_callback(refused)
         return _chained(submitted, _joint_reply) if in_si else _mapped(submitted)
+
+    def _fence_own_streams(
+        self, runner: BusRunner, driver: Driver, command: Any, client: str
+    ) -> None:
+        """Rule 3: ``command`` of ``client`` stops devices (a pause, 0 rpm …), judged as its
+        bus judges it (``BusWork.plan_command`` ends their streams): the streams of those that
+        are ``client``'s end, and its targets sent before, taken after, start nothing."""
+        try:
+            effects = driver.effects_of(driver.frames_of(command))
+        except BusgateError:  # its bus refuses it, with the reason: it stops nothing
+            return
+        for stopped in runner.authority.addressed(effects, Effect.STOP):
+            if self._stream_clients.get(stopped.name) == client:
+                with self._fence:
+                    self._stream_clients.pop(stopped.name, None)
+                    self._ended[stopped.name] = (client, now(), None)
 
     def _hold_deadman(self, device: str, client: str) -> Callable[[Future], None]:
         """``client``, who sends ``device`` a one-shot speed, is the one whose going stops it;
@@ -518,16 +532,6 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> tuple[float, Follo
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
     driver.follow_target(payload)
     return raw, driver.follow_carries(payload)
-
-
-def _stops(driver: Driver, command: Any) -> bool:
-    """Whether ``command``'s frames stop a device (a pause, a disable, 0 rpm …): it ends
-    that device's stream on its bus (``BusWork.plan_command``)."""
-    try:
-        effects = driver.effects_of(driver.frames_of(command))
-    except BusgateError:  # its bus refuses it, with the reason: it stops nothing
-        return False
-    return any(effect is Effect.STOP for _, effect in effects)
 
 
 def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
