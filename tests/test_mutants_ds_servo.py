@@ -81,12 +81,12 @@ def test_a_goto_preset_leaves_the_target_unknown_and_another_write_keeps_it() ->
     assert servo.telemetry(0.0)["target"] is None  # the preset's position is on the servo
 
 
-def test_torque_on_after_an_estop_says_estopped_false_in_the_state() -> None:
+def test_torque_on_after_an_estop_clears_estopped() -> None:
     servo = driver()
     servo.safe_stop()
-    assert servo.state(0.0)["estopped"] is True
+    assert servo.estopped is True
     plan(servo, '{"op":"torque","on":true}')
-    assert servo.state(0.0)["estopped"] is False
+    assert servo.estopped is False
 
 
 def test_a_servos_part_of_a_group_move_and_its_scan_probe() -> None:

@@ -428,7 +428,8 @@ class Driver(abc.ABC):
     def telemetry(self, now: float) -> dict[str, Any]:
         """The device's values in named units (``position``, ``faults`` …) and whether its
         power stage drives the motor (``enabled``, ``None`` when not known), without the
-        envelope fields (``device``, ``kind``, ``online`` …) that ``state`` adds. A new dict
+        envelope fields (``device``, ``kind``, ``online`` …) that the bus's telemetry adds
+        (``Telemetry``). A new dict
         at each call, its values never changed afterwards: the bus's telemetry keeps the one
         it published, to tell whether the next differs."""
 
@@ -494,19 +495,3 @@ class Driver(abc.ABC):
     def drain_events(self) -> list[DeviceEvent]:
         events, self._events = self._events, []
         return events
-
-    def state(self, now: float, telemetry: dict[str, Any] | None = None) -> dict[str, Any]:
-        """The telemetry (``telemetry``: its ``telemetry(now)``, when the caller has it) with
-        its envelope; the bus's telemetry stamps it (``ts``: when it was read) and marks it
-        ``stale``."""
-        if telemetry is None:
-            telemetry = self.telemetry(now)
-        return {
-            "device": self.name,
-            "kind": self.kind,
-            "online": self.online,
-            "last_reply_age_s": None if self.last_reply is None else now - self.last_reply,
-            "estopped": self.estopped,
-            **telemetry,
-            "joint": self.joint.state(telemetry),
-        }

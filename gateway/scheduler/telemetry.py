@@ -156,9 +156,20 @@ class Telemetry:
         return replied, driver.online, driver.estopped, stale, driver.telemetry(moment)
 
     def _built(self, driver: Driver, moment: float, told: Told) -> dict[str, Any]:
-        state = {"ts": self._read_time(driver, moment), **driver.state(moment, told[4])}
-        state["stale"] = told[3]
-        return state
+        """``driver``'s state, made of ``told`` (its envelope, ``ts`` first and ``stale`` last,
+        around the driver's telemetry): one dict, built once (a heartbeat makes one)."""
+        replied, online, estopped, stale, telemetry = told
+        return {
+            "ts": self._read_time(driver, moment),
+            "device": driver.name,
+            "kind": driver.kind,
+            "online": online,
+            "last_reply_age_s": None if replied is None else moment - replied,
+            "estopped": estopped,
+            **telemetry,
+            "joint": driver.joint.state(telemetry),
+            "stale": stale,
+        }
 
     def _read_time(self, driver: Driver, moment: float) -> float:
         """The wall time of ``driver``'s last reply, converted when first asked for; the wall
