@@ -18,6 +18,7 @@ from busgate.gateway.drivers.ds_servo import DsServoDriver
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.sim.ds_servo import AMBIENT_C, CURRENT_MA, DsServoDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
+from tests.published_state import published
 
 OK = ds.ServoStatus(0)
 HOT = ds.ServoStatus.TEMPERATURE
@@ -138,14 +139,15 @@ def test_poll_replies_become_telemetry_in_named_units() -> None:
     d = driver(1)
     for request, data in zip(d.poll(), _poll_replies(2047, 12, 250, 31), strict=True):
         answer(d, request, data=data)
-    assert d.state(2.0) | {"last_reply_age_s": None} == {
-        "device": "arm", "kind": "ds_servo", "online": True, "last_reply_age_s": None,
+    assert published(d, 2.0) | {"ts": None, "last_reply_age_s": None} == {
+        "ts": None, "device": "arm", "kind": "ds_servo", "online": True, "last_reply_age_s": None,
         "estopped": False, "position": 2047, "speed_raw": 12, "current_ma": 250,
         "temperature_c": 31, "target": 2047, "pending_target": None, "torque_on": True,
         "enabled": True, "faults": [],
         # Without a joint table: raw units, its current as its effort in A.
         "joint": {"name": "arm", "type": "position", "unit": "raw", "position": 2047.0,
                   "velocity": None, "effort": 0.25, "target": 2047.0},
+        "stale": False,
     }
 
 

@@ -21,6 +21,7 @@ from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas import inspire_la as schema
+from tests.published_state import published
 
 OK = la.Fault(0)
 
@@ -230,7 +231,7 @@ def test_status_replies_become_telemetry_in_named_units():
     expected = {"target": 1003, "position": -20, "temperature_c": 20, "current_ma": 100,
                 "force_g": -500}  # fmt: skip
     assert {key: state[key] for key in expected} == expected
-    assert d.state(1.5)["online"] and d.state(1.5)["last_reply_age_s"] == 0.5
+    assert published(d, 1.5)["online"] and published(d, 1.5)["last_reply_age_s"] == 0.5
 
 
 @pytest.mark.parametrize("text", [

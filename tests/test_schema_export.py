@@ -42,13 +42,12 @@ from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.gateway.drivers.zlac706_rs232 import Zlac706Rs232Driver
 from busgate.gateway.scheduler.authority import Authority
-from busgate.gateway.scheduler.devices import BusDevices
-from busgate.gateway.scheduler.telemetry import Telemetry
 from busgate.schemas import api, exported, trajectory
 from busgate.schemas.config import Config
 from busgate.schemas.events import EVENT_ADAPTER
 from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.replies import error_reply
+from tests.published_state import published
 
 ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = ROOT / "schemas" / "json"
@@ -230,14 +229,6 @@ def test_an_out_that_cannot_be_written_is_one_line(tmp_path, capsys):
 
 
 # --- telemetry: states built by the drivers from decoded replies --------------------------------
-
-
-def published(driver: Driver, now: float) -> dict[str, Any]:
-    """The state as the bus runner publishes it: the driver's, stamped, its ``stale`` flag set
-    (a device polled at no rate is never stale)."""
-    telemetry = Telemetry("uart0", BusDevices([driver]), {}, on_event=lambda event: None,
-                          on_state=lambda device, state: None)
-    return telemetry.reply_state(driver, now)
 
 
 def answered(driver: Driver, request, reply: tuple[object, ...], now: float) -> None:
