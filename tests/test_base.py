@@ -28,8 +28,10 @@ from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import parse_config
 from busgate.schemas.events import EVENT_ADAPTER
+from busgate.schemas.replies import REFUSALS, error_reply
 from tests.wire_frames import received, written_speed
 
 TURN = 2 * math.pi
@@ -97,7 +99,7 @@ class World:
                                        Zlac706CanDevice(2, heartbeat_ms=20)],
                                 bus=can.Bus(interface="virtual", channel=channel))
         self.sim.start()
-        config = config_of([BASE], channel)
+        self.config = config = config_of([BASE], channel)
         self.events: deque = deque()
         self.states: deque = deque()
         self.odometry: list[dict] = []
@@ -105,8 +107,13 @@ class World:
                            on_state=lambda device, state: self.states.append((device, state)))
         self.runner = runner.start()
         self.api = GatewayApi("gw", {"can0": runner}, on_event=self.events.append)
+        # Wired as the bridge wires them: a play and a twist chosen under one lock.
+        self.trajectories = Trajectories(self.api, "busgate/gw", lambda key, body: None,
+                                         self.events.append,
+                                         driven_by=lambda device: self.bases.driving_wheel(device))
         self.bases = Bases(config.bases, self.api, self.events.append,
-                           lambda name, odometry: self.odometry.append(odometry))
+                           lambda name, odometry: self.odometry.append(odometry),
+                           self.trajectories)
         self._stop = threading.Event()
         self._rounds = threading.Thread(target=self._loop, daemon=True)
         self._rounds.start()
@@ -120,6 +127,7 @@ class World:
             while self.states:
                 self.bases.take_state(*self.states.popleft())
             self.bases.tick()
+            self.trajectories.tick()
             time.sleep(0.005)
 
     def close(self) -> None:
@@ -256,6 +264,64 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
     assert rpms and max(rpms) < 1.5  # 0.01 m/s on wheels of 82.5 mm: 1.16 rpm
     world.base({"op": "stop"})
     world.wait_rest()
+
+
+def _play(world: World, devices: list[str], rpms: float, trajectory: str = "spin") -> dict:
+    """A trajectory from another client turning ``devices`` at ``rpms`` for 3 s."""
+    points = [{"t_s": t, "rpms": [rpms] * len(devices)} for t in (2.0, 3.0)]
+    play = {"op": "play", "id": trajectory, "client": "other", "devices": devices,
+            "points": points}
+    try:
+        return world.trajectories.command(json.dumps(play).encode())
+    except REFUSALS as exc:
+        return error_reply(exc)
+
+
+def test_a_trajectory_takes_no_wheel_of_a_driving_base(world) -> None:
+    """Rule 3: a play naming one wheel of a base that drives it (no claim held) would turn
+    the base on the spot; it is refused ``busy`` and the base drives on both wheels."""
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "twist", "linear": 0.3, "duration_s": 2, "client": "drv"})["ok"]
+    events = len(world.events)
+    try:
+        for devices in (["wl"], ["wl", "wr"]):
+            refused = _play(world, devices, -100.0)
+            assert refused["error"]["code"] == "busy"
+            assert "wl is a wheel of base base, which is driving it: stop the base first" in (
+                refused["error"]["message"])
+        assert world.trajectories.playing("wl") is None
+        assert world.bases.driving_wheel("wl") == "base"
+        assert not any(e.type == "base_stopped" for e in list(world.events)[events:])
+    finally:
+        world.base({"op": "stop", "client": "drv"})
+        world.wait_rest()
+
+
+class OnePlaying:
+    """The gateway's trajectories as a base asks them (``bases.Plays``), one playing ``wr``:
+    this bus has no room for a trajectory's ticks beside the base's (its reply margin, 50 ms
+    for a loaded host, reserves each tick's exchange)."""
+
+    def __init__(self) -> None:
+        self.players = threading.Lock()
+
+    def playing(self, device: str) -> str | None:
+        return "spin" if device == "wr" else None
+
+
+def test_a_twist_takes_no_wheel_a_trajectory_plays(world) -> None:
+    """Rule 3 the other way: a twist while a wheel plays a trajectory is refused ``busy``,
+    naming it, and nothing moves."""
+    assert world.base({"op": "enable"})["ok"]
+    bases = Bases(world.config.bases, world.api, world.events.append,
+                  lambda name, odometry: None, OnePlaying())
+    since = len(world.sim.recorder.received())
+    refused = bases.command("base", b'{"op":"twist","linear":0.2}').result(10)
+    assert refused["error"]["code"] == "busy"
+    assert "wheel wr plays trajectory 'spin': cancel it first" in refused["error"]["message"]
+    assert bases.driving_wheel("wr") is None
+    time.sleep(0.1)
+    assert world.speeds(since) == []
 
 
 def _wheel_2(world: World):

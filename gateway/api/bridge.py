@@ -190,7 +190,11 @@ class ZenohBridge:
         #: at most one of each every 0.1 s: the rest counted (``put_reports``).
         self.put_reports = PutReports(api.devices, self._tell_put)
         self.trajectories = Trajectories(
-            api, self.base, self._put_any, lambda event: self.events.append(event)
+            api,
+            self.base,
+            self._put_any,
+            lambda event: self.events.append(event),
+            driven_by=lambda device: self.bases.driving_wheel(device),
         )
         #: Trajectory commands run here, off zenoh's threads and the loop (a 1 MiB play is
         #: parsed and checked whole): plays in their lane, cancels and status in another.
@@ -201,6 +205,7 @@ class ZenohBridge:
             api,
             lambda event: self.events.append(event),
             self._odometry,
+            self.trajectories,
         )
         self.joints = JointsFeed(
             config.gateway.name,

@@ -11,7 +11,10 @@ Rules of this file:
    target), its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2) or
    reports a fault (its drive's alarm: its power stage is off), both are ramped to 0 at
    once, with a ``base_stopped`` event naming the wheel and why. A twist while a wheel is
-   offline or in fault is refused, naming it. An e-stop takes both out.
+   offline or in fault is refused, naming it; while a wheel plays a trajectory, refused
+   ``busy``, as a trajectory naming a wheel of a driving base is (``trajectory.playing``
+   rule 1: a drive and a play are chosen under one lock, the trajectories' ``players``).
+   An e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -97,6 +101,25 @@ class Gateway(Protocol):
     def command(self, device: str, payload: bytes) -> Future: ...
 
 
+class Plays(Protocol):
+    """What a base needs of the gateway's trajectories (``trajectory.playing.Trajectories``):
+    the lock a device's player is chosen under, and the trajectory a device plays (rule 3)."""
+
+    players: threading.Lock
+
+    def playing(self, device: str) -> str | None: ...
+
+
+class NoTrajectories:
+    """The trajectories of a gateway that plays none (bases on their own, as in a test)."""
+
+    def __init__(self) -> None:
+        self.players = threading.Lock()
+
+    def playing(self, device: str) -> str | None:
+        return None
+
+
 @dataclass(slots=True)
 class Wheel:
     name: str
@@ -147,10 +170,13 @@ class Bases:
         api: Gateway,
         on_event: Callable[[DeviceEvent], None],
         publish: Callable[[str, dict[str, Any]], None],
+        trajectories: Plays | None = None,
     ) -> None:
         self.api = api
         self.on_event = on_event
         self.publish = publish  # (base name, odometry message)
+        #: A twist and a trajectory's play are chosen under one lock (rule 3).
+        self._trajectories = trajectories or NoTrajectories()
         self.bases = {config.name: self._live(config) for config in configs}
         self._wheel_of = {w.name: (b, w) for b in self.bases.values() for w in b.wheels}
 
@@ -231,8 +257,21 @@ class Bases:
     def _drive(
         self, base: LiveBase, twist: Twist, hold_s: float, client: str | None, require: bool
     ) -> dict[str, Any]:
+        with self._trajectories.players:  # rule 3: a trajectory takes no wheel meanwhile
+            return self._drive_chosen(base, twist, hold_s, client, require)
+
+    def _drive_chosen(
+        self, base: LiveBase, twist: Twist, hold_s: float, client: str | None, require: bool
+    ) -> dict[str, Any]:
         for wheel in base.wheels:  # rule 1: as any client's motion, both wheels
             wheel.runner.authority.judge(wheel.name, Effect.MOTION, client, require_claim=require)
+            if (trajectory := self._trajectories.playing(wheel.name)) is not None:  # rule 3
+                raise RefusedError(
+                    "busy",
+                    f"base {base.config.name}: wheel {wheel.name} plays trajectory "
+                    f"{trajectory!r}: cancel it first (the base and the trajectory would fight "
+                    "over its speed)",
+                )
             if not wheel.driver.online:  # rule 3: it would stop the base at once
                 raise DeviceTimeoutError(
                     f"base {base.config.name}: wheel {wheel.name} is offline",
@@ -356,6 +395,13 @@ class Bases:
     def driving(self) -> bool:
         """Whether a base plays its wheels' speeds (``tick`` has work every round)."""
         return any(base.playing_since is not None for base in self.bases.values())
+
+    def driving_wheel(self, device: str) -> str | None:
+        """The base that drives ``device`` (one of its wheels), if one does (rule 3)."""
+        found = self._wheel_of.get(device)
+        if found is None or found[0].playing_since is None:
+            return None
+        return found[0].config.name
 
     def tick(self) -> None:
         """Plays that ended, a wheel that left, a twist that timed out (rules 3 and 4)."""

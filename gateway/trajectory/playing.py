@@ -4,7 +4,11 @@
 Rules of this file:
 
 1. A ``play`` is refused, with a stable code and nothing moving, by its checks (``checks``),
-   or when its ``id`` is that of a trajectory another client is playing (``bad_command``).
+   when its ``id`` is that of a trajectory another client is playing (``bad_command``), or
+   when a device is a wheel of a base that drives it (``busy``: the base never drives on
+   one wheel, ``busgate.gateway.base.bases`` rule 3). A play and a base's drive are
+   chosen under one lock (``players``), so that neither takes a wheel the other has just
+   taken.
 2. Accepted, each device's bus samples it on the shared grid (``scheduler.trajectory_ticks``)
    from the one start time; a device of another running trajectory is taken from it, whose
    result is ``replaced``, as is a trajectory of the same client under the same id.
@@ -54,11 +58,16 @@ class Trajectories:
         base: str,
         publish: Callable[[str, dict[str, Any]], None],
         on_event: Callable[[DeviceEvent], None],
+        driven_by: Callable[[str], str | None] = lambda device: None,
     ) -> None:
         self.api = api
         self.base = base
         self.publish = publish
         self.on_event = on_event
+        #: The base that drives a device (one of its wheels), if one does (rule 1).
+        self.driven_by = driven_by
+        #: Held while a play, or a base's drive, takes its devices (rule 1).
+        self.players = threading.Lock()
         self._lock = threading.Lock()
         self._running: dict[str, Running] = {}
 
@@ -82,6 +91,7 @@ class Trajectories:
         return ok_reply(trajectories=running)
 
     def play(self, request: TrajectoryPlay, came_under: int | None = None) -> dict[str, Any]:
+        self._check_bases(request.devices)  # first, by name; again as the play is chosen
         members = members_of(self.api, request)
         start_at = start_at_of(request.start_at)
         check_buses(members)
@@ -95,17 +105,19 @@ class Trajectories:
             max(m.path.end_s for m in members),
             request.goal_time_s,
         )
-        with self._lock:
-            if came_under is not None and came_under != self.api.estops:
-                raise cancelled_by_estop()  # sent before an e-stop (a reset may follow at once)
-            self._check_id(request)
-            taken = {m.name for m in members}
-            for other in list(self._running.values()):
-                if other.id == request.id or taken & {m.name for m in other.members}:
-                    self._end(other, "replaced", keep=frozenset(taken))
-            self._running[request.id] = running
-        for runner in {m.runner for m in members}:
-            runner.play({m.name: m.sampler for m in members if m.runner is runner}, start_bus)
+        with self.players:
+            self._check_bases(request.devices)
+            with self._lock:
+                if came_under is not None and came_under != self.api.estops:
+                    raise cancelled_by_estop()  # sent before an e-stop (a reset may follow)
+                self._check_id(request)
+                taken = {m.name for m in members}
+                for other in list(self._running.values()):
+                    if other.id == request.id or taken & {m.name for m in other.members}:
+                        self._end(other, "replaced", keep=frozenset(taken))
+                self._running[request.id] = running
+            for runner in {m.runner for m in members}:
+                runner.play({m.name: m.sampler for m in members if m.runner is runner}, start_bus)
         self._event(running, "trajectory_started", start_at=start_at, end_at=running.end_at)
         return ok_reply(
             trajectory={
@@ -115,6 +127,14 @@ class Trajectories:
                 "devices": request.devices,
             }
         )
+
+    def playing(self, device: str) -> str | None:
+        """The id of the running trajectory ``device`` plays, if it plays one."""
+        with self._lock:
+            for running in self._running.values():
+                if any(member.name == device for member in running.members):
+                    return running.id
+        return None
 
     def cancel(self, trajectory: str) -> dict[str, Any]:
         with self._lock:
@@ -150,6 +170,16 @@ class Trajectories:
             for running in list(self._running.values()):
                 if running.client == client:
                     self._end(running, "aborted", reason="client gone")
+
+    def _check_bases(self, devices: list[str]) -> None:
+        """A wheel a base drives is refused (rule 1); for good under ``players``."""
+        for device in devices:
+            if (base := self.driven_by(device)) is not None:
+                raise RefusedError(
+                    "busy",
+                    f"{device} is a wheel of base {base}, which is driving it: stop the base "
+                    "first (a trajectory would take one wheel from it)",
+                )
 
     def _check_id(self, request: TrajectoryPlay) -> None:
         """A running trajectory's id is its client's (rule 1): under the lock."""
