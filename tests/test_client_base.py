@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import itertools
+import json
 import logging
 import math
 import os
@@ -25,6 +26,7 @@ from itertools import pairwise
 
 import can
 import pytest
+import zenoh
 
 import busgate.client as bc
 from busgate.client.base import Found
@@ -36,6 +38,7 @@ from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.errors import CommandError
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
+from busgate.schemas.zenoh_session import session_config
 from tests.conftest import unused_loopback_port
 from tests.sdk_helpers import patiently, patiently_async, the_client_id
 from tests.test_client_faces import TWINS, function_of, kind, public
@@ -245,6 +248,43 @@ def test_a_drive_stream_puts_twists_and_stops_the_base_when_it_ends(gw, connect)
     assert time.monotonic() - ended < CMD_TIMEOUT_S - 0.5
     with pytest.raises(RuntimeError, match=r"send\(\) outside the drive stream's with block"):
         stream.send(0.1)
+
+
+def test_a_put_on_the_base_cmd_key_runs_and_a_refused_one_is_an_event_naming_it(
+    gw, connect
+) -> None:
+    """A put (``busgate send --put``) is carried out as a device's is: a ``stop`` stops a
+    driving base long before its twist's 5 s; a refused one is a ``command_refused`` event
+    naming the base, in a slot of its own (``put_reports`` rule 2)."""
+    base = connect(gw.endpoint).base("gw/base")
+    patiently(base.enable)
+    events: list[dict] = []
+    session = zenoh.open(session_config(connect=[gw.endpoint]))
+    try:
+        subscriber = session.declare_subscriber(
+            "busgate/gw/events", lambda sample: events.append(json.loads(sample.payload.to_bytes()))
+        )
+        with at_rest(base):
+            base.drive(0.3, duration_s=5.0)
+            session.put("busgate/gw/base/base/cmd", b'{"op":"stop"}')
+            until(lambda: not base.status()["driving"], timeout=2.0)
+
+        def refused() -> list[dict]:  # put again until the subscriber hears one
+            session.put("busgate/gw/base/base/cmd", b'{"op":"fly"}')
+            return [e for e in events if e.get("type") == "command_refused"]
+
+        until(refused)
+        told = refused()[0]
+        assert (told["device"], told["code"]) == ("base", "bad_command"), told
+        # The base's slot is its own: bad names put around its refusal do not bury it.
+        time.sleep(0.2)  # past the slots' interval (0.1 s): the next of each is told at once
+        events.clear()
+        for key in ("nosuch", "base", "nosuch", "nosuch", "nosuch"):
+            session.put(f"busgate/gw/base/{key}/cmd", b'{"op":"fly"}')
+        until(lambda: any(e.get("device") == "base" for e in events))
+        subscriber.undeclare()
+    finally:
+        session.close()
 
 
 # -- the asyncio face --------------------------------------------------------------------------

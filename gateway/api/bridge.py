@@ -186,9 +186,11 @@ class ZenohBridge:
         self._namesakes_told: set[str] = set()
         self._device_tokens: dict[str, Any] = {}
         self._state_keys: dict[str, str] = {}  # each device's state key, written once
-        #: A refused put's event, at most one a device every 0.1 s, an e-stop's and a reset's,
-        #: at most one of each every 0.1 s: the rest counted (``put_reports``).
-        self.put_reports = PutReports(api.devices, self._tell_put)
+        #: A refused put's event, at most one a device or base every 0.1 s, an e-stop's and a
+        #: reset's, at most one of each every 0.1 s: the rest counted (``put_reports``).
+        self.put_reports = PutReports(
+            [*api.devices, *(b.name for b in config.bases)], self._tell_put
+        )
         self.trajectories = Trajectories(
             api,
             self.base,
@@ -229,7 +231,7 @@ class ZenohBridge:
         self._before_estop = []
         self._intakes = [
             commands(session, f"{base}/dev/*/cmd", self._device_query, "device-commands"),
-            puts(session, f"{base}/dev/*/cmd", self._on_device_put, "device-puts"),
+            puts(session, f"{base}/dev/*/cmd", self._command_puts("dev"), "device-puts"),
             puts(session, f"{base}/dev/*/follow", self._on_follow, "follow-targets"),
             commands(session, f"{base}/bus/*/cmd", self._bus_query, "bus-commands"),
             commands(
@@ -240,6 +242,7 @@ class ZenohBridge:
                 backlog_for(MAX_TRAJECTORY_PAYLOAD),
             ),
             commands(session, f"{base}/base/*/cmd", self._base_query, "base-commands"),
+            puts(session, f"{base}/base/*/cmd", self._command_puts("base"), "base-puts"),
             puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
             take_queries(session, f"{base}/info", self._on_info, "info"),
             take_liveliness(session, f"{prefix}/clients/*", self._on_client, "clients"),
@@ -565,14 +568,21 @@ class ZenohBridge:
         payload = _payload(query)
         return key, payload, lambda: self.submit_trajectory(payload)
 
-    def _on_device_put(self, sample: zenoh.Sample) -> None:
-        key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        device = self._named(key, "dev", "cmd")
-        if device is None:
-            log.debug("put on %s names no device: dropped", key)
-            return
-        result = self.api.command(device, payload)
-        result.add_done_callback(lambda done: self._report_put(device, key, payload, done.result()))
+    def _command_puts(self, room: str) -> Callable[[zenoh.Sample], None]:
+        """The handler of the puts on ``<room>/<name>/cmd`` (a device's, a base's): each
+        command carried out without a reply (``busgate send --put``), its refusal an event."""
+
+        def on_put(sample: zenoh.Sample) -> None:
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            name = self._named(key, room, "cmd")
+            if name is None:
+                log.debug("put on %s names no %s: dropped", key, ROOM_NOUNS[room])
+                return
+            command = self.api.command if room == "dev" else self.bases.command
+            done = command(name, payload)
+            done.add_done_callback(lambda end: self._report_put(name, key, payload, end.result()))
+
+        return on_put
 
     def _take_what_came_before(self) -> None:
         """What still waits for its intake when an e-stop came was put before it (rule 6):

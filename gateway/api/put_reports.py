@@ -15,9 +15,10 @@ Rules of this file:
    field of the next one told in its slot (a device's refusals, the e-stops, the resets)
    since the last told one. The last withheld one is told by ``flush`` once its slot's interval has
    passed, so a burst's end is told, however the burst ended.
-2. Memory is bounded whatever the names: a device the gateway does not have counts under one
-   shared slot, its event naming the device as the put did (cut, ``shown``); every e-stop,
-   whoever sent it, under one other, and every reset under a third.
+2. Memory is bounded whatever the names: each device and base of the gateway has a slot of
+   its own; a name the gateway does not have counts under one shared slot, its event naming
+   the device as the put did (cut, ``shown``); every e-stop, whoever sent it, under one
+   other, and every reset under a third.
 3. Any thread may report (zenoh's, a bus thread's future callback); ``flush`` runs on the
    publishing loop's thread. One lock guards the slots.
 4. E-stops and resets are told in the order they came: an e-stop withheld when a reset comes
