@@ -512,6 +512,13 @@ def test_a_command_sent_on_a_wildcard_reaches_only_info_and_is_told_so(free_port
             assert refused["error"]["message"].startswith(
                 f"{key} has a wildcard where a command names one {noun} and its cmd key")
         assert get(client, "busgate/*/dev/la9/cmd", '{"op":"status"}', 1.0) == []
+        # The trajectory key takes no wildcard at all, the gateway's name included.
+        for key in ("busgate/*/trajectory", "busgate/gw1/traj$*", "busgate/gw1/trajectory/**"):
+            [refused] = get(client, key, '{"op":"status"}')
+            assert refused["error"]["code"] == "bad_command"
+            assert refused["error"]["message"] == (
+                f"{key} has a wildcard: a trajectory is sent to one gateway's own key (such "
+                "as busgate/gw1/trajectory). Nothing was played")
     finally:
         client.close()
         loop.call_soon_threadsafe(loop.stop)

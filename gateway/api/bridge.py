@@ -20,7 +20,9 @@ Rules of this file:
    ``follow``, ``twist``: a wildcard leaf reaches several handlers at once), the trajectory
    and the e-stop's reset on this gateway's own key. Only the gateway's name may be a
    wildcard (a fleet's command: each gateway with the device answers). A query that names
-   nothing here is dropped unanswered (rule 2's one exception), left to those it names.
+   nothing here is dropped unanswered (rule 2's one exception), left to those it names; one
+   with a wildcard where its key names this gateway's device, bus, base or trajectory key is
+   refused ``bad_command`` once, unless it reaches the info key too (which answers it).
 6. A flood of puts or gets never holds up an e-stop. Every key a client puts or gets on
    but the e-stop's, and the clients' liveliness tokens, are taken through an ``Intake``
    (``intake`` rules): zenoh's receiving threads never wait on Python, and the e-stop and
@@ -559,11 +561,20 @@ class ZenohBridge:
         self._answer(query, lambda: settled(self.api.info()), key)
 
     def _trajectory_query(self, query: zenoh.Query) -> Routed | None:
-        """Only on this gateway's own key: a get on ``**`` or ``busgate/*/trajectory`` names
-        no gateway, and a play it carried would move every gateway with those device names."""
+        """Only on this gateway's own key: a get on ``busgate/*/trajectory`` names no gateway,
+        and a play it carried would move every gateway with those device names. Refused,
+        once by each gateway it reaches (rather than left to wait out its timeout), unless
+        it reaches the info key too (``**``: the info answers it, rule 5)."""
         key = f"{self.base}/trajectory"
         if str(query.key_expr) != key:
-            query.drop()
+            if query.key_expr.intersects(zenoh.KeyExpr(f"{self.base}/info")):
+                query.drop()
+                return None
+            refused = CommandError(
+                f"{shown(str(query.key_expr))} has a wildcard: a trajectory is sent to one "
+                f"gateway's own key (such as {key}). Nothing was played"
+            )
+            self._answer(query, lambda: settled(error_reply(refused)), key)
             return None
         payload = _payload(query)
         return key, payload, lambda: self.submit_trajectory(payload)
