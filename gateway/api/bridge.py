@@ -514,12 +514,18 @@ class ZenohBridge:
         if reached is None:
             query.drop()
             return None
-        refused = CommandError(
+        self._refuse_wildcard(
+            query,
             f"{shown(key)} has a wildcard where a command names one {ROOM_NOUNS[room]} and its "
-            f"cmd key (such as {reached}): send it to one. Nothing was sent"
+            f"cmd key (such as {reached}): send it to one. Nothing was sent",
+            reached,
         )
-        self._answer(query, lambda: settled(error_reply(refused)), reached)
         return None
+
+    def _refuse_wildcard(self, query: zenoh.Query, why: str, reached: str) -> None:
+        """``query``, whose wildcard reached ``reached``, refused ``bad_command`` (rule 5)."""
+        refused = CommandError(why)
+        self._answer(query, lambda: settled(error_reply(refused)), reached)
 
     def _one_of_many(self, asked: zenoh.KeyExpr, room: str, known) -> str | None:
         """The first of this gateway's ``room`` command keys that ``asked`` reaches, unless it
@@ -570,11 +576,12 @@ class ZenohBridge:
             if query.key_expr.intersects(zenoh.KeyExpr(f"{self.base}/info")):
                 query.drop()
                 return None
-            refused = CommandError(
+            self._refuse_wildcard(
+                query,
                 f"{shown(str(query.key_expr))} has a wildcard: a trajectory is sent to one "
-                f"gateway's own key (such as {key}). Nothing was played"
+                f"gateway's own key (such as {key}). Nothing was played",
+                key,
             )
-            self._answer(query, lambda: settled(error_reply(refused)), key)
             return None
         payload = _payload(query)
         return key, payload, lambda: self.submit_trajectory(payload)
