@@ -39,7 +39,7 @@ from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
 from busgate.schemas.joints import Joint, JointTable, table_problems, table_warnings
 from busgate.schemas.ros2 import Ros2Section
-from busgate.schemas.validation import closest, suggestion
+from busgate.schemas.validation import SHOWN_OP_CHARS, closest, cut, suggestion
 
 KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
 
@@ -419,6 +419,11 @@ def _describe(error: Any) -> tuple[str, str]:
     if error["type"] == "union_tag_not_found":  # pydantic's words name no key a user wrote
         key = error["ctx"]["discriminator"].strip("'")
         message = f"`{key}` is missing: {' or '.join(_TAGS.get(key, ()))} (which kind of table)"
+    if error["type"] == "union_tag_invalid":  # the key's value, as the user wrote it
+        key = error["ctx"]["discriminator"].strip("'")
+        path = f"{path}.{key}" if path else key
+        tag = cut(repr(error["ctx"]["tag"]), SHOWN_OP_CHARS)
+        message = f"must be {' or '.join(_TAGS.get(key, ()))}, not {tag}"
     if not path:
         return message.split(":", 1)[0], message
     return path, f"{path}: {message}"

@@ -122,9 +122,23 @@ def describe_validation_error(exc: ValidationError) -> str:
     parts = []
     for error in exc.errors(include_url=False):
         location = ".".join(str(p) for p in error["loc"])
-        message = _past_bound(error) or error["msg"]
+        message = _past_bound(error) or _plain(error)
         parts.append(f"{location}: {message}" if location else message)
     return "; ".join(parts)
+
+
+def _plain(error: Any) -> str:
+    """pydantic's words for ``error``, but for those in its own terms: a validator's own
+    message without "Value error, ", and a command's missing or unknown op said as such."""
+    kind, context = error["type"], error.get("ctx", {})
+    if kind == "value_error":
+        return str(error["msg"]).removeprefix("Value error, ")
+    if kind == "union_tag_not_found":
+        return f'no {context["discriminator"]}: a command names what it is ({{"op": …}})'
+    if kind == "union_tag_invalid":
+        tag = cut(repr(context["tag"]), SHOWN_OP_CHARS)
+        return f"unknown {context['discriminator']} {tag}: one of {context['expected_tags']}"
+    return str(error["msg"])
 
 
 #: How a number past each of pydantic's bounds is told, by the bound's error type.

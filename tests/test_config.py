@@ -151,6 +151,15 @@ def test_ids_are_checked_per_protocol_and_per_bus() -> None:
     assert error.path == "buses[0].devices[1].id"
 
 
+def test_a_transport_that_is_none_is_named_with_the_ones_there_are() -> None:
+    """pydantic said "Input tag 'Serial' found using 'transport' does not match any of the
+    expected tags"."""
+    bus = {"name": "uart0", "transport": "Serial", "port": "/dev/ttyUSB0", "devices": []}
+    with pytest.raises(ConfigError) as refused:
+        parse_config({"gateway": {"name": "gw"}, "buses": [bus]})
+    assert str(refused.value) == "buses[0].transport: must be serial or can, not 'Serial'"
+
+
 def test_one_kind_per_bus_and_kinds_on_their_transport() -> None:
     error = refused(lambda d: d["buses"][0]["devices"].append(
         {"name": "s1", "kind": "ds_servo", "id": 2}))

@@ -24,6 +24,7 @@ from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
 from busgate.gateway.drivers.zlac706_can import Zlac706CanDriver
 from busgate.schemas import ds_servo, inspire_la
+from busgate.schemas.bases import BASE_COMMAND_ADAPTER
 from busgate.schemas.replies import error_code, error_reply
 
 
@@ -47,6 +48,18 @@ def test_a_value_outside_its_bounds_is_out_of_range_anything_else_bad_command():
         "bad_command")
     both = refused(inspire_la.COMMAND_ADAPTER, {"op": "move", "position": 2001, "x": 1})
     assert error_code(both) == "bad_command", "out_of_range only when every problem is a range"
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    ({"linear": 1}, 'no \'op\': a command names what it is ({"op": …})'),
+    ({"op": "fly"}, "unknown 'op' 'fly': one of 'twist', 'stop', 'claim'"),
+])  # fmt: skip
+def test_a_missing_or_unknown_op_is_said_so_not_in_pydantics_words(value, message):
+    """pydantic's "Unable to extract tag using discriminator 'op'" named nothing a client
+    wrote (a base's command here; every kind's command is such a union)."""
+    reply = error_reply(refused(BASE_COMMAND_ADAPTER, value))
+    assert reply["error"]["code"] == "bad_command"
+    assert reply["error"]["message"].startswith(f"invalid command: {message}")
 
 
 def test_an_encode_error_is_out_of_range_however_it_is_raised():

@@ -153,9 +153,9 @@ STRUCTURE = [
      "points[1] gives rpms and points[0] positions: a trajectory moves positions or speeds, "
      "not both"),
     (play(points=points({}, {}, {"rpms": [1, 2, 3]})),
-     "points.2: Value error, a point gives positions or rpms, not both"),
+     "points.2: a point gives positions or rpms, not both"),
     (play(points=points({"positions": None}, {}, {})),
-     "points.0: Value error, a point needs positions (or rpms, for a speed trajectory)"),
+     "points.0: a point needs positions (or rpms, for a speed trajectory)"),
     (play(devices=["la1", "la2", "la1"]), "devices must be distinct: la1 is named twice"),
     (play(path_tolerance=[100, 100]), "path_tolerance has 2 values for 3 devices"),
     (play(goal_tolerance=[1, 1, 1, 1]), "goal_tolerance has 4 values for 3 devices"),
