@@ -252,6 +252,9 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
     assert any(e.type == "base_stopped" for e in world.events)
     refused = world.base({"op": "twist", "linear": 0.3})
     assert refused["error"]["code"] == "estopped"
+    assert refused["error"]["message"] == (  # what the base takes, not the wheel's own op
+        'base base: wheel wl is e-stopped: send {"op":"enable"} to the base to let it move '
+        "again (or reset the e-stop: a put on <prefix>/gw/estop/reset)")
     assert world.base({"op": "status"})["base"]["twist"] == {"linear": 0.0, "angular": 0.0}
     for reset in world.api.reset_estop("test"):
         reset.result(5)

@@ -264,7 +264,19 @@ class Bases:
         self, base: LiveBase, twist: Twist, hold_s: float, client: str | None, require: bool
     ) -> dict[str, Any]:
         for wheel in base.wheels:  # rule 1: as any client's motion, both wheels
-            wheel.runner.authority.judge(wheel.name, Effect.MOTION, client, require_claim=require)
+            try:
+                wheel.runner.authority.judge(
+                    wheel.name, Effect.MOTION, client, require_claim=require
+                )
+            except RefusedError as exc:
+                if exc.code != "estopped":
+                    raise
+                raise RefusedError(  # what the base takes, not the wheel's own op
+                    "estopped",
+                    f"base {base.config.name}: wheel {wheel.name} is e-stopped: send "
+                    '{"op":"enable"} to the base to let it move again (or reset the e-stop: '
+                    f"a put on <prefix>/{self.api.name}/estop/reset)",
+                ) from None
             if (trajectory := self._trajectories.playing(wheel.name)) is not None:  # rule 3
                 raise RefusedError(
                     "busy",
