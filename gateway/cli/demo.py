@@ -35,7 +35,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from busgate.client import aio
 from busgate.codecs.ros2.rmw_zenoh import resolve
@@ -276,13 +276,23 @@ def _record_dir(path: str) -> Path:
     return folder
 
 
+def _record_file(path: Path) -> IO[str]:
+    """``path`` opened for writing, or refused in one line naming it (a folder that takes no
+    files, as ``/proc``, or a directory of that name): the simulators started before it stop
+    as the refusal leaves ``run_demo``'s stack."""
+    try:
+        return path.open("w")
+    except OSError as exc:
+        raise CommandError(f"cannot write the wire record {path}: {exc.strerror}") from exc
+
+
 def _start_simulator(
     bus: DemoBus, stack: contextlib.ExitStack, records: Path | None
 ) -> dict[str, Any]:
     """Start ``bus``'s simulator (stopped when ``stack`` closes), recording its wire in
     ``records``/<bus>.jsonl when given; return the config keys that lead the gateway to it."""
     protocol = PROTOCOLS[bus.protocol]
-    record = stack.enter_context((records / f"{bus.name}.jsonl").open("w")) if records else None
+    record = stack.enter_context(_record_file(records / f"{bus.name}.jsonl")) if records else None
     recorder = Recorder(record, keep=0)  # the demo reads none back: its file alone, if any
     options = {"heartbeat_ms": bus.heartbeat_ms} if protocol.can else {}
     devices = make_devices(bus.protocol, [ident for _, ident in bus.devices], **options)
