@@ -187,14 +187,54 @@ OWN_CAN_KEYS = {"interface": "interface", "bustype": "interface", "channel": "ch
                 "bitrate": "bitrate"}  # fmt: skip
 
 
+#: The largest CAN identifier, an extended (29-bit) one's.
+CAN_ID_MAX = 0x1FFFFFFF
+CanId = Annotated[int, Field(ge=0, le=CAN_ID_MAX)]
+
+
+class CanFilter(Section):
+    """One of python-can's receive filters (``can.BusABC.set_filters``): a frame passes when
+    its identifier ``& can_mask`` is ``can_id & can_mask`` and, when ``extended`` is given,
+    its identifier is extended or not as it says."""
+
+    can_id: CanId
+    can_mask: CanId
+    extended: bool | None = None
+
+
+def can_filters_value(value: object) -> object:
+    """``options.can_filters`` refused in one line when it is not a list of tables (python-can
+    took a string, and raised at every frame it read)."""
+    if isinstance(value, list) and all(isinstance(item, dict) for item in value):
+        return value
+    raise ValueError(
+        "a list of tables, each with can_id and can_mask (and extended, true or false), as "
+        "python-can takes them: can_filters = [{ can_id = 0x581, can_mask = 0x7FF }]"
+    )
+
+
+class CanOptions(BaseModel):
+    """A CAN bus's ``options``: further keyword arguments for ``can.Bus`` (e.g.
+    ``tty_baudrate`` for slcan), each a value as TOML writes it, but ``can_filters``, a list
+    of filters (``CanFilter``)."""
+
+    model_config = ConfigDict(extra="allow", strict=True, frozen=True, allow_inf_nan=False)
+    __pydantic_extra__: dict[str, str | int | float | bool] = Field(init=False)
+    can_filters: Annotated[list[CanFilter], BeforeValidator(can_filters_value)] | None = None
+
+    def arguments(self) -> dict[str, Any]:
+        """What ``can.Bus`` is given: the options as written, each filter a plain dict with
+        ``extended`` only when given (python-can tells an absent one from ``false``)."""
+        return self.model_dump(exclude_none=True)
+
+
 class CanBus(BusBase):
     transport: Literal["can"]
     interface: Annotated[str, Field(min_length=1)]
     channel: Annotated[str, Field(min_length=1)]
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] = 500_000
-    #: Further keyword arguments for ``can.Bus`` (e.g. ``tty_baudrate`` for slcan), none of
-    #: ``OWN_CAN_KEYS``.
-    options: dict[str, str | int | float | bool] = {}
+    #: Further keyword arguments for ``can.Bus``, none of ``OWN_CAN_KEYS``.
+    options: CanOptions = CanOptions()
 
     @property
     def device_key(self) -> tuple[str, str] | None:
@@ -362,7 +402,7 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
             for key, problem in table_problems(declaration, device.joint):
                 raise ValueError(f"{path}.devices[{index}].joint.{key}: {problem}")
     if isinstance(bus, CanBus):
-        for key in sorted(bus.options.keys() & OWN_CAN_KEYS.keys()):
+        for key in sorted(bus.options.arguments().keys() & OWN_CAN_KEYS.keys()):
             raise ValueError(
                 f"{path}.options.{key}: set by the bus's own {OWN_CAN_KEYS[key]} key, not in "
                 f"options (they pass on to python-can what its interface takes besides)"

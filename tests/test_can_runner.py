@@ -147,6 +147,21 @@ def test_lost_heartbeats_mark_the_node_offline(wait_for, virtual_channel) -> Non
         runner.stop()
 
 
+def test_a_bus_s_can_filters_reach_python_can_which_applies_them() -> None:
+    """As plain dicts: a filter of another type (a string was taken) raised in python-can's
+    match at every frame, and the bus thread opened the bus again each second."""
+    runner = build_bus(can_bus("virtual", f"test-can-runner-{next(_channels)}",
+                               can_filters=[{"can_id": 2, "can_mask": 0x7FF}]))
+    runner.owner.open()
+    try:
+        python_can = runner.owner._bus
+        assert python_can is not None and python_can.filters == [{"can_id": 2, "can_mask": 0x7FF}]
+        assert [python_can._matches_filters(can.Message(arbitration_id=node, is_extended_id=False))
+                for node in (1, 2)] == [False, True]
+    finally:
+        runner.owner.close()
+
+
 def test_an_idle_slcan_adapter_s_heartbeats_are_taken_by_a_look(wait_for) -> None:
     """While idle the owner looks at an SLCAN adapter without waiting for a frame (a deadline
     long past), and a look takes the heartbeats that came."""

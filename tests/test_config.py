@@ -341,6 +341,57 @@ def test_can_options_never_set_what_the_bus_sets_itself(key) -> None:
     assert str(refused_.value).startswith(f"buses[0].options.{key}: set by the bus's own")
 
 
+def can_options(options: dict) -> dict:
+    """The options python-can is given by a CAN bus with ``options``."""
+    bus = {"name": "can0", "transport": "can", "interface": "virtual", "channel": "x",
+           "options": options, "devices": [{"name": "w1", "kind": "zlac706", "id": 1}]}
+    config = parse_config({"gateway": {"name": "gw1"}, "buses": [bus]})
+    assert isinstance(config.buses[0], CanBus)
+    return config.buses[0].options.arguments()
+
+
+def test_can_filters_reach_python_can_as_its_list_of_plain_dicts_beside_the_other_options(
+) -> None:
+    """python-can's own form, which the config could not write at all; ``extended`` only
+    when given (python-can tells an absent one from false)."""
+    filters = [{"can_id": 0x581, "can_mask": 0x7FF}, {"can_id": 2, "can_mask": 0x1FFFFFFF,
+                                                       "extended": True}]
+    arguments = can_options({"can_filters": filters, "tty_baudrate": 2000000,
+                             "receive_own_messages": False, "sleep_after_open": 0.5})
+    assert arguments == {"can_filters": filters, "tty_baudrate": 2000000,
+                         "receive_own_messages": False, "sleep_after_open": 0.5}
+    assert all(type(each) is dict for each in arguments["can_filters"])
+    assert can_options({}) == {}
+
+
+NOT_A_LIST = ("buses[0].options.can_filters: a list of tables, each with can_id and can_mask "
+              "(and extended, true or false), as python-can takes them: can_filters = "
+              "[{ can_id = 0x581, can_mask = 0x7FF }]")
+
+
+@pytest.mark.parametrize(("filters", "line"), [
+    ("x", NOT_A_LIST),  # passed, and python-can raised at every frame it read
+    (0x581, NOT_A_LIST),
+    ({"can_id": 1, "can_mask": 2}, NOT_A_LIST),
+    ([1], NOT_A_LIST),
+    ([{"can_id": 1}], "buses[0].options.can_filters[0].can_mask: Field required"),
+    ([{"can_id": 1, "can_msk": 2}],
+     "buses[0].options.can_filters[0]: unknown key `can_msk` (did you mean `can_mask`?)"),
+    ([{"can_id": 0x20000000, "can_mask": 1}],
+     "buses[0].options.can_filters[0].can_id: Input should be less than or equal to 536870911"),
+    ([{"can_id": -1, "can_mask": 1}],
+     "buses[0].options.can_filters[0].can_id: Input should be greater than or equal to 0"),
+    ([{"can_id": "1", "can_mask": 1}],
+     "buses[0].options.can_filters[0].can_id: Input should be a valid integer"),
+    ([{"can_id": 1, "can_mask": 1, "extended": 1}],
+     "buses[0].options.can_filters[0].extended: Input should be a valid boolean"),
+])
+def test_can_filters_in_any_other_shape_are_refused_naming_the_key(filters, line) -> None:
+    with pytest.raises(ConfigError) as refused_:
+        can_options({"can_filters": filters})
+    assert str(refused_.value) == line
+
+
 def test_a_metrics_port_over_65535_and_a_port_with_a_nul_are_refused_naming_the_key() -> None:
     error = refused(lambda d: d.update(metrics={"listen": "127.0.0.1:99999"}))
     assert error.path == "metrics.listen" and "over 65535" in str(error)

@@ -48,7 +48,7 @@ def build_bus(
         owner = CanBusOwner(
             bus.interface,
             bus.channel,
-            bus.options,
+            bus.options.arguments(),
             protocol.codec,
             timing,
             counters,
