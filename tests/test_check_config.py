@@ -10,6 +10,7 @@ import os
 import subprocess
 from pathlib import Path
 
+import can
 import pytest
 
 from busgate.gateway.cli import main
@@ -309,6 +310,38 @@ def test_a_can_channel_missing_on_this_host_is_a_warning(tmp_path, capsys) -> No
     )
     assert main(["check-config", str(path)]) == 0
     assert "warning: buses[0].channel: nosuchcan9 does not exist" in capsys.readouterr().out
+
+
+def can_config(tmp_path: Path, interface: str, options: str) -> Path:
+    path = tmp_path / "can.toml"
+    path.write_text(
+        '[gateway]\nname = "gw"\n[[buses]]\nname = "can9"\ntransport = "can"\n'
+        f'interface = "{interface}"\nchannel = "nosuchcan9"\noptions = {{ {options} }}\n'
+        '[[buses.devices]]\nname = "wheel"\nkind = "zlac706"\nid = 1\n'
+    )
+    return path
+
+
+def test_a_can_option_python_can_s_bus_names_no_parameter_for_is_a_warning(tmp_path,
+                                                                          capsys) -> None:
+    """A misspelt option passed in silence (the bus class's ``**kwargs`` takes it); the class's
+    own parameters, ``can.BusABC``'s (``can_filters``) and ``can.Bus``'s are named."""
+    path = can_config(tmp_path, "socketcan", "bogus_option = 1, receive_own_messages = false, "
+                      "can_filters = [{ can_id = 1, can_mask = 0x7FF }], ignore_config = true")
+    assert main(["check-config", str(path)]) == 0  # a warning only: it is passed on
+    assert [line for line in capsys.readouterr().out.splitlines() if ".options." in line] == [
+        "warning: buses[0].options.bogus_option: python-can's socketcan bus names no such "
+        "parameter: check its spelling (it is passed on all the same)"]
+
+
+def test_can_options_of_a_bus_class_that_cannot_be_loaded_here_are_not_warned_of(
+        tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setitem(can.interfaces.BACKENDS, "broken", ("busgate_no_such_module", "Bus"))
+    monkeypatch.setattr(can.interfaces, "VALID_INTERFACES",
+                        can.interfaces.VALID_INTERFACES | {"broken"})
+    path = can_config(tmp_path, "broken", "bogus_option = 1")
+    assert main(["check-config", str(path)]) == 0
+    assert ".options." not in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("workers, line", [

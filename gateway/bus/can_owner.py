@@ -48,12 +48,15 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import importlib
+import inspect
+import logging
 import math
 import select
 import socket
 import struct
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from functools import partial
 from types import ModuleType
 from typing import Any, ClassVar
@@ -329,6 +332,31 @@ def unknown_interface(interface: str) -> str | None:
         return None
     known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
     return f"python-can has no interface {interface!r} on this host (it has {known})"
+
+
+def unnamed_options(interface: str, options: Iterable[str]) -> list[str]:
+    """Those of ``options`` that python-can's bus for ``interface`` names no parameter for
+    (nor ``can.Bus``, nor ``can.BusABC``, which every bus takes): most likely misspelt, as
+    the class's ``**kwargs`` takes any name in silence. None when the class cannot be loaded
+    here; python-can's warnings as it loads one (``Kvaser canlib is unavailable.``) are kept
+    quiet meanwhile: opening the bus tells what it lacks."""
+    python_can_log = logging.getLogger("can")
+    level = python_can_log.level
+    python_can_log.setLevel(logging.ERROR)
+    try:
+        module, name = can.interfaces.BACKENDS[interface]
+        bus_class = getattr(importlib.import_module(module), name)
+        named = {
+            parameter.name
+            for function in (bus_class.__init__, can.BusABC.__init__, can.Bus)
+            for parameter in inspect.signature(function).parameters.values()
+            if parameter.kind not in (parameter.VAR_POSITIONAL, parameter.VAR_KEYWORD)
+        }
+    except Exception:  # a plugin's module may raise anything as it loads
+        return []
+    finally:
+        python_can_log.setLevel(level)
+    return [key for key in options if key not in named]
 
 
 def frames_of(interface: str, bus: can.BusABC) -> TakeFrame:

@@ -7,7 +7,9 @@ locked by another process, is no serial port, or a CAN interface python-can does
 (``busgate run`` refuses those three), a port this user may not read and write, a bus whose
 streams cannot all fit, a flight recorder's folder this user cannot write, a zenoh config file
 missing or that zenoh cannot parse, a listener other hosts reach with no zenoh config file to
-keep them out, more bus workers than the cores this host gives the gateway — is a warning, as
+keep them out, more bus workers than the cores this host gives the gateway, a CAN bus's option
+that python-can's bus for its interface names no parameter for (passed on all the same; not
+told when that bus cannot be loaded here) — is a warning, as
 is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs)
 and a gateway that listens nowhere, connects nowhere and scouts for nobody (valid: a zenoh
 config file may give it endpoints; else no client reaches it): printed with the budget. Exit
@@ -25,7 +27,7 @@ import sys
 from pathlib import Path
 
 from busgate.errors import ConfigError
-from busgate.gateway.bus.can_owner import unknown_interface
+from busgate.gateway.bus.can_owner import unknown_interface, unnamed_options
 from busgate.gateway.bus.port_access import NOT_A_DEVICE, missing, port_problem
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
@@ -77,6 +79,7 @@ def check_config(args: argparse.Namespace) -> int:
         problems = [
             *refused,
             *warned,
+            *_option_warnings(f"buses[{index}]", bus),
             *(f"buses[{index}]: {text}" for text in budget.warnings()),
             *(
                 f"buses[{index}].devices[{at}]: {device.name} has no joint table: it is a joint "
@@ -130,6 +133,18 @@ def _endpoints_refusal(config: Config) -> str | None:
     except ValueError as exc:
         return str(exc)
     return None
+
+
+def _option_warnings(path: str, bus: SerialBus | CanBus) -> list[str]:
+    """Each of a CAN bus's ``options`` that python-can's bus for its interface names no
+    parameter for (``unnamed_options``): passed on, and most likely misspelt."""
+    if not isinstance(bus, CanBus):
+        return []
+    return [
+        f"{path}.options.{key}: python-can's {bus.interface} bus names no such parameter: "
+        "check its spelling (it is passed on all the same)"
+        for key in unnamed_options(bus.interface, bus.options.arguments())
+    ]
 
 
 def _overview(config: Config) -> str:
