@@ -104,8 +104,15 @@ class ZenohSection(Section):
 
 
 def _port_in_range(listen: str) -> str:
-    """``HOST:PORT`` whose port a socket can bind."""
-    if int(listen.rpartition(":")[2]) > 65535:
+    """``HOST:PORT`` whose port a socket can bind, and is named: as a zenoh listener's
+    (``schemas.endpoints`` rule 1), port 0 would be one the system picks, that no scraper
+    could be told."""
+    port = int(listen.rpartition(":")[2])
+    if port == 0:
+        raise ValueError(
+            "port 0 is one the system picks and tells nobody: name the port Prometheus scrapes"
+        )
+    if port > 65535:
         raise ValueError(f"the port of {listen} is over 65535")
     return listen
 

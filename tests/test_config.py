@@ -247,9 +247,11 @@ def _misspell(table: dict, key: str, typo: str) -> None:
      "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/127.0.0.1:9108's port"),
     ({"listen": ["tcp/0.0.0.0:9108"]}, "127.0.0.1:9108",
      "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/0.0.0.0:9108's port"),
+    ({}, "127.0.0.1:0", "metrics.listen: port 0 is one the system picks and tells nobody: name "
+                        "the port Prometheus scrapes"),  # logged as metrics on …:0/metrics
 ], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port", "listen twice",
         "one port listened on twice", "client with no router", "metrics on zenoh's port",
-        "zenoh on every address"])
+        "zenoh on every address", "metrics on port 0"])
 def test_a_zenoh_setting_that_could_never_open_is_refused_before_anything_opens(
         zenoh, metrics, message) -> None:
     """Each passed check-config and failed at run, where zenoh's refusal named nothing."""

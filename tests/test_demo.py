@@ -101,9 +101,10 @@ def test_the_demo_config_is_validated_like_any_config() -> None:
              for bus in DEMO_BUSES}
     config = demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen="127.0.0.1:9108")
     assert config.metrics is not None and config.metrics.listen == "127.0.0.1:9108"
-    with pytest.raises(ConfigError) as refused:
-        demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen="9108")
-    assert refused.value.path == "metrics.listen"
+    for metrics_listen in ("9108", "127.0.0.1:0"):
+        with pytest.raises(ConfigError) as refused:
+            demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen=metrics_listen)
+        assert refused.value.path == "metrics.listen"
 
 
 def test_a_demo_joining_a_router_names_its_gateway_in_the_send_it_suggests(monkeypatch) -> None:
