@@ -9,7 +9,8 @@ Rules of this file:
 
 1. A file is read to its limit and one byte more: a longer one is refused, whatever it is.
 2. A named pipe is opened without waiting for a writer, then read as a file is (``--config
-   <(envsubst < gw.toml)``): one nobody writes to reads as empty.
+   <(envsubst < gw.toml)``): one nobody writes to reads as empty, and one whose writer sends
+   nothing more for ``STALL_S`` (while keeping it open) is refused.
 3. Text is UTF-8, after the byte-order mark some editors write first, if any; where it stops
    being UTF-8 is named (its line and byte).
 4. Every refusal is a ``FileRefused`` whose message names the file.
@@ -19,7 +20,13 @@ from __future__ import annotations
 
 import codecs
 import os
+import select
 from pathlib import Path
+
+#: The longest a read waits for more of a file (rule 2): a pipe's writer sends what it has at
+#: once (``envsubst``, ``cat``); one silent this long is stuck, and ``busgate run`` under
+#: systemd would otherwise wait for ever, never starting nor failing.
+STALL_S = 10.0
 
 
 class FileRefused(ValueError):
@@ -31,8 +38,7 @@ def read_text(path: str | Path, limit: int, what: str) -> str:
     file should be, for a refusal (``a config``: "… is over 1 MiB: not a config")."""
     try:
         with open(path, "rb", opener=_opener_no_wait) as file:
-            os.set_blocking(file.fileno(), True)  # opened: now wait for what a writer sends
-            data = file.read(limit + 1)
+            data = _read(file.fileno(), limit + 1, path)
     except OSError as exc:
         raise FileRefused(f"cannot read {path}: {exc.strerror}") from exc
     if len(data) > limit:
@@ -45,6 +51,28 @@ def read_text(path: str | Path, limit: int, what: str) -> str:
             f"{path} is not UTF-8 text (line {line} has the byte "
             f"0x{exc.object[exc.start]:02x}): save it as UTF-8"
         ) from exc
+
+
+def _read(fd: int, most: int, path: str | Path) -> bytes:
+    """Up to ``most`` bytes of ``fd`` (opened not to wait), to its end: waiting for more at
+    most ``STALL_S`` each time a writer has sent nothing yet (rules 1 and 2)."""
+    chunks: list[bytes] = []
+    left = most
+    while left > 0:
+        try:
+            chunk = os.read(fd, left)
+        except BlockingIOError:  # a writer holds it open and has sent nothing more yet
+            if not select.select([fd], [], [], STALL_S)[0]:
+                raise FileRefused(
+                    f"{path}: nothing more came for {STALL_S:g} s: whatever writes it is "
+                    "stuck; give a file, or a pipe that ends"
+                ) from None
+            continue
+        if not chunk:  # its end, or a pipe nobody writes to
+            break
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
 
 
 def _opener_no_wait(path: str, flags: int) -> int:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import threading
 from pathlib import Path
 
 import can
@@ -16,6 +17,7 @@ import pytest
 from busgate.gateway.cli import main
 from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.budget import bus_budget
+from busgate.schemas import files
 from busgate.schemas.config import CanBus, SerialBus, load_config
 from tests.gateway_process import BUSGATE
 
@@ -174,6 +176,30 @@ def test_a_config_through_a_pipe_is_read_as_a_file(tmp_path, capsys) -> None:
     finally:
         os.close(reading)
     assert capsys.readouterr().out.startswith(f"/dev/fd/{reading}: valid; gateway gw,")
+
+
+@pytest.mark.parametrize("head", [False, True], ids=["nothing sent", "a config sent, never ended"])
+def test_a_config_whose_writer_stalls_is_refused_and_nothing_waits_for_ever(
+        tmp_path, capsys, monkeypatch, head) -> None:
+    """``check-config <(sleep 40)`` and ``run --config <(cat gw.toml; sleep 40)`` waited until
+    the writer ended (for ever, for a writer stuck for good). The wait for more is shortened
+    here from ``STALL_S``'s 10 s."""
+    monkeypatch.setattr(files, "STALL_S", 0.2)
+    reading, writing = os.pipe()
+    os.write(writing, write(tmp_path, [la(1)]).read_bytes() if head else b"")
+    statuses: list[int] = []
+    checking = threading.Thread(
+        target=lambda: statuses.append(main(["check-config", f"/dev/fd/{reading}"])))
+    checking.start()
+    checking.join(5)
+    stuck = checking.is_alive()
+    os.close(writing)  # a wait for the writer's end ends with it
+    checking.join()
+    os.close(reading)
+    assert not stuck and statuses == [1]
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: /dev/fd/{reading}: nothing more came for 0.2 s: whatever writes it is stuck; "
+        "give a file, or a pipe that ends"]
 
 
 @pytest.mark.parametrize(("port", "what"), [
