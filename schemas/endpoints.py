@@ -67,6 +67,16 @@ def host_of(endpoint: str) -> str | None:
     return None if address is None else address["host"].strip("[]")
 
 
+def settings_of(endpoint: str) -> dict[str, str]:
+    """zenoh's configuration of an endpoint, after its ``#``: ``key=value`` pairs split by ``;``.
+
+    >>> settings_of("tcp/127.0.0.1:7447#iface=eth0;so_sndbuf=65000"), settings_of("tcp/h:1")
+    ({'iface': 'eth0', 'so_sndbuf': '65000'}, {})
+    """
+    pairs = endpoint.partition("#")[2].split(";")
+    return dict(pair.partition("=")[::2] for pair in pairs if pair)
+
+
 def beyond_this_host(endpoint: str) -> bool:
     """Whether a listener on ``endpoint`` can be reached from other hosts (rule 3)."""
     address = _address(endpoint)

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from busgate.schemas.endpoints import port_problem
+from busgate.schemas.endpoints import port_problem, settings_of
 
 if TYPE_CHECKING:
     from busgate.schemas.config import ZenohSection
@@ -227,6 +227,26 @@ def _check_tls_endpoints(config: zenoh.Config, mode: str) -> None:
         )
 
 
+def tls_listen_missing(config: zenoh.Config, endpoint: str) -> list[str]:
+    """What a listener on ``endpoint`` of a TLS protocol lacks of a private key and a
+    certificate, without which zenoh refuses the session ("Missing TLS private key"): each
+    key of the zenoh config (``transport/link/tls/…``) given neither there (as a file or in
+    base64) nor in the endpoint's configuration (``#listen_private_key_file=…``); none for an
+    endpoint of another protocol."""
+    if not endpoint.startswith(TLS_PROTOCOLS):
+        return []
+    settings = settings_of(endpoint)
+    return [
+        f"transport/link/tls/{key}"
+        for key in ("listen_private_key", "listen_certificate")
+        if not any(name.startswith(key) for name in settings)  # listen_certificate_file …
+        and not any(
+            json.loads(config.get_json(f"transport/link/tls/{name}"))
+            for name in (key, f"{key}_base64")
+        )
+    ]
+
+
 def endpoints_of(config: zenoh.Config, kind: str, mode: str) -> list[str]:
     """The endpoints ``config`` listens on or connects to (``kind``) in ``mode``: a list,
     or (as zenoh's default, and a file a router shares with its clients) a list per mode, of
@@ -247,9 +267,9 @@ def check_unix_listeners(endpoints: Sequence[str]) -> None:
     empty lock, left by a process that ended, are taken.
     """
     for endpoint in endpoints:
-        if not endpoint.startswith("unixsock-stream/"):
+        path = unix_socket_path(endpoint)
+        if path is None:
             continue
-        path = re.split(r"[?#]", endpoint.removeprefix("unixsock-stream/"), maxsplit=1)[0]
         _check_lock_file(endpoint, f"{path}.lock")
         try:
             if not stat.S_ISSOCK(os.lstat(path).st_mode):
@@ -264,6 +284,14 @@ def check_unix_listeners(endpoints: Sequence[str]) -> None:
         except OSError as exc:  # not ours to look at, or a socket that neither takes nor refuses
             why = exc.strerror or "no answer within 1 s"
             raise ValueError(f"cannot listen on {endpoint}: {path}: {why}") from exc
+
+
+def unix_socket_path(endpoint: str) -> str | None:
+    """The path of a ``unixsock-stream`` endpoint, without zenoh's metadata and
+    configuration; ``None`` for an endpoint of another protocol."""
+    if not endpoint.startswith("unixsock-stream/"):
+        return None
+    return re.split(r"[?#]", endpoint.removeprefix("unixsock-stream/"), maxsplit=1)[0]
 
 
 def _check_lock_file(endpoint: str, lock: str) -> None:

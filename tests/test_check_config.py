@@ -312,6 +312,76 @@ def test_a_listener_other_hosts_reach_with_nothing_to_keep_them_out_is_a_warning
                       "(docs/running.md#threat-model-who-can-move-what)"] if warned else [])
 
 
+NO_TLS_FILES = ("needs a private key and a certificate, and it has no transport/link/tls/"
+                "listen_private_key and no transport/link/tls/listen_certificate: set them in a "
+                "zenoh config file (docs/running.md#access-control-passwords-and-tls)")
+
+
+@pytest.mark.parametrize(("listen", "refused"), [
+    ("tls/127.0.0.1:27801", f"a tls listener {NO_TLS_FILES}"),  # zenoh: Missing TLS private key
+    ("quic/127.0.0.1:27801", f"a quic listener {NO_TLS_FILES}"),
+    ("tcp/no-such-host.invalid:27801", "its host no-such-host.invalid does not resolve here "
+                                       "(Name or service not known)"),
+    ("tcp/" + "a" * 64 + ".invalid:27801", f"its host {'a' * 64}.invalid is no host name"),
+    ("tcp/127.0.0.1:27801#iface=nonexistent0",
+     "this host has no network interface 'nonexistent0' (iface)"),
+    ("unixsock-stream/{tmp}/" + "s" * 100, "a Unix socket's path is at most 107 bytes: name a "
+                                           "shorter one"),
+    ("unixsock-stream//nonexistent/dir/gw.sock", "its folder /nonexistent/dir does not exist"),
+    ("tls/127.0.0.1:27801#listen_private_key_file=/k.pem;listen_certificate_file=/c.pem", None),
+    ("tcp/localhost:27801", None),
+    ("tcp/127.0.0.1:27801#iface=lo", None),
+    ("unixsock-stream/{tmp}/gw.sock", None),
+], ids=["tls", "quic", "unresolved", "a label over 63", "no such iface", "long unix path",
+        "no unix folder", "tls files on the endpoint", "localhost", "iface lo", "unix socket"])
+def test_a_listener_zenoh_cannot_listen_on_here_is_a_warning_and_run_refuses_it(
+        tmp_path, capsys, listen, refused) -> None:
+    """check-config said valid (exit 0) and ``busgate run`` refused to start (exit 2)."""
+    listen = listen.format(tmp=tmp_path)
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace(
+        "[[buses]]", f'[zenoh]\nlisten = ["{listen}"]\n[[buses]]', 1))
+    assert main(["check-config", str(path)]) == (2 if refused else 0)
+    lines = [line for line in capsys.readouterr().out.splitlines() if "cannot listen" in line]
+    assert lines == ([f"warning: zenoh.listen[0]: cannot listen on {listen}: {refused}; busgate "
+                      "run refuses to start so"] if refused else [])
+
+
+@pytest.mark.parametrize(("tls", "refused"), [
+    ("", "a tls listener " + NO_TLS_FILES),
+    ('listen_private_key: "/k.pem"', "a tls listener needs a private key and a certificate, "
+     "and it has no transport/link/tls/listen_certificate: set them in a zenoh config file "
+     "(docs/running.md#access-control-passwords-and-tls)"),
+    ('listen_private_key: "/k.pem", listen_certificate: "/c.pem"', None),
+], ids=["neither", "no certificate", "both"])
+def test_a_tls_listener_is_refused_only_when_the_zenoh_file_gives_no_key_or_certificate(
+        tmp_path, capsys, tls, refused) -> None:
+    zenoh_file = tmp_path / "zenoh.json5"
+    zenoh_file.write_text(f"{{ transport: {{ link: {{ tls: {{ {tls} }} }} }} }}")
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace("[[buses]]", (
+        f'[zenoh]\nlisten = ["tls/127.0.0.1:27801"]\nconfig_file = "{zenoh_file}"\n'
+        "[[buses]]"), 1))
+    assert main(["check-config", str(path)]) == (2 if refused else 0)
+    lines = [line for line in capsys.readouterr().out.splitlines() if "cannot listen" in line]
+    assert lines == ([f"warning: zenoh.listen[0]: cannot listen on tls/127.0.0.1:27801: "
+                      f"{refused}; busgate run refuses to start so"] if refused else [])
+
+
+@pytest.mark.parametrize(("host", "refused"), [
+    ("no-such-host.invalid", True), ("localhost", False), ("127.0.0.1", False)])
+def test_a_metrics_host_that_does_not_resolve_is_a_warning_and_run_refuses_it(
+        tmp_path, capsys, host, refused) -> None:
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace(
+        "[[buses]]", f'[metrics]\nlisten = "{host}:27802"\n[[buses]]', 1))
+    assert main(["check-config", str(path)]) == (2 if refused else 0)
+    lines = [line for line in capsys.readouterr().out.splitlines() if "metrics.listen" in line]
+    assert lines == ([f"warning: metrics.listen: {host}:27802: its host {host} does not resolve "
+                      "here (Name or service not known); busgate run refuses to start so"]
+                     if refused else [])
+
+
 def test_a_recorder_folder_this_user_cannot_write_is_a_warning(tmp_path, capsys) -> None:
     (tmp_path / "a-file").write_text("")
     path = write(tmp_path, [la(1)])

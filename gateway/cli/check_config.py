@@ -15,7 +15,10 @@ and a gateway that listens nowhere, connects nowhere and scouts for nobody (vali
 config file may give it endpoints; else no client reaches it): printed with the budget. Exit
 status 0, unless a warning is one ``busgate run`` on this host refuses to start with (a port
 that is no serial port, a CAN interface python-can does not have here, a recorder's folder
-it cannot write, a zenoh config file or endpoint it cannot use): then 2, with a last line on
+it cannot write, a zenoh config file or endpoint it cannot use, a listener zenoh cannot listen
+on here — a tls/ or quic/ one given no private key or certificate, a host that does not
+resolve, a network interface this host has not, a Unix socket's path too long for one or in a
+folder that does not exist — or a metrics host that does not resolve): then 2, with a last line on
 stderr saying so, so that a deployment script stops where the service would not start. A
 locked port stays a warning, exit 0: its holder may be the very gateway being checked.
 """
@@ -23,6 +26,8 @@ locked port stays a warning, exit 0: its holder may be the very gateway being ch
 from __future__ import annotations
 
 import argparse
+import os
+import socket
 import sys
 from pathlib import Path
 
@@ -33,7 +38,10 @@ from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.workers import placement, too_many
 from busgate.schemas.config import CanBus, Config, SerialBus, ignored_keys, load_config
-from busgate.schemas.endpoints import exposure_warnings
+from busgate.schemas.endpoints import exposure_warnings, host_of, settings_of
+
+#: The longest path a Unix socket takes, in bytes (``sun_path``'s 108, with its NUL).
+UNIX_PATH_MAX = 107
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -68,6 +76,13 @@ def check_config(args: argparse.Namespace) -> int:
             "the service user to check its access; the systemd unit makes the default dir)"
         )
     refused, warned = zenoh_warnings(config)
+    if config.metrics is not None and (
+        unresolved := _unresolved(config.metrics.listen.rpartition(":")[0])
+    ):
+        refused.append(
+            f"metrics.listen: {config.metrics.listen}: {unresolved}; busgate run refuses to "
+            "start so"
+        )
     refusals += len(refused)
     for problem in [*refused, *warned, *ignored_keys(config)]:
         print(f"warning: {problem}")
@@ -103,7 +118,8 @@ def check_config(args: argparse.Namespace) -> int:
 def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
     """What ``busgate run`` refuses to start with: a zenoh config file this host has not, or
     that is none, or endpoints the session cannot be made of on this host (a Unix socket's
-    path that is a file); and what it starts with all the same: each listener other hosts
+    path that is a file), or where zenoh cannot listen here (``_listener_refusals``); and
+    what it starts with all the same: each listener other hosts
     can reach with nothing but a file of the operator's own (TLS, passwords, access control)
     to keep them from moving the devices, a gateway that listens and connects nowhere."""
     zenoh_file, refused, warned = config.zenoh.config_file, [], []
@@ -120,7 +136,74 @@ def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
         from busgate.schemas.zenoh_session import NOBODY_REACHES
 
         warned.append(f"zenoh: {NOBODY_REACHES}")
+    if not refused:  # the session's config could be made: where it would listen
+        refused += _listener_refusals(config)
     return refused, warned + exposure_warnings(config.zenoh.listen, zenoh_file)
+
+
+def _listener_refusals(config: Config) -> list[str]:
+    """Each endpoint the gateway's session would listen on (``listen``, or its zenoh config
+    file's) where zenoh would refuse to listen on this host (``_listener_problem``)."""
+    from busgate.schemas.zenoh_session import (
+        endpoints_of,
+        gateway_session_config,
+        tls_listen_missing,
+    )
+
+    session = gateway_session_config(config.zenoh)
+    refused = []
+    for index, endpoint in enumerate(endpoints_of(session, "listen", config.zenoh.mode)):
+        if problem := _listener_problem(endpoint, tls_listen_missing(session, endpoint)):
+            where = (
+                f"zenoh.listen[{index}]"
+                if config.zenoh.listen
+                else f"zenoh.config_file: {config.zenoh.config_file}: listen endpoint {index}"
+            )
+            refused.append(
+                f"{where}: cannot listen on {endpoint}: {problem}; busgate run refuses to start so"
+            )
+    return refused
+
+
+def _listener_problem(endpoint: str, tls_missing: list[str]) -> str | None:
+    """Why zenoh could not listen on ``endpoint`` here: a tls/ or quic/ listener given no
+    private key or certificate (``tls_missing``: ``tls_listen_missing``), a host that does not
+    resolve, a network interface (``#iface=``) this host has not, a Unix socket's path longer
+    than one takes or in a folder that does not exist; ``None`` when none of those."""
+    from busgate.schemas.zenoh_session import unix_socket_path
+
+    if tls_missing:
+        return (
+            f"a {endpoint.partition('/')[0]} listener needs a private key and a certificate, "
+            f"and it has no {' and no '.join(tls_missing)}: set them in a zenoh config file "
+            "(docs/running.md#access-control-passwords-and-tls)"
+        )
+    if (path := unix_socket_path(endpoint)) is not None:
+        if len(os.fsencode(path)) > UNIX_PATH_MAX:
+            return f"a Unix socket's path is at most {UNIX_PATH_MAX} bytes: name a shorter one"
+        if not os.path.isdir(folder := os.path.dirname(path) or "."):
+            return f"its folder {folder} does not exist"
+    host = host_of(endpoint)
+    if host is not None and (unresolved := _unresolved(host)):
+        return unresolved
+    if (iface := settings_of(endpoint).get("iface")) is not None:
+        try:
+            socket.if_nametoindex(iface)
+        except OSError:
+            return f"this host has no network interface {iface!r} (iface)"
+    return None
+
+
+def _unresolved(host: str) -> str | None:
+    """Why ``host`` does not resolve here, ``None`` when it does: only the resolver is asked
+    (``.invalid`` names never resolve)."""
+    try:
+        socket.getaddrinfo(host, None)
+    except socket.gaierror as exc:
+        return f"its host {host} does not resolve here ({exc.strerror})"
+    except UnicodeError:  # a label over 63 characters: the resolver is never asked
+        return f"its host {host} is no host name"
+    return None
 
 
 def _endpoints_refusal(config: Config) -> str | None:
