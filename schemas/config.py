@@ -140,7 +140,8 @@ class DeviceConfig(Section):
     id: int = 1
     poll_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
     follow_period_ms: Annotated[float, Field(ge=FOLLOW_PERIOD_MS[0], le=FOLLOW_PERIOD_MS[1])] = 20.0
-    #: ZLAC706 on CAN: the heartbeat interval set with the vendor tool (0 = no heartbeats).
+    #: ZLAC706 on CAN: the heartbeat interval set with the vendor tool (0 = no heartbeats);
+    #: on any other bus, ignored and warned of (``ignored_keys``).
     heartbeat_ms: Annotated[int, Field(ge=0, le=60_000)] = 0
     #: The device as a joint in SI units: name, unit, calibration, limits (docs/joints.md).
     #: Without it, a joint in the family's raw units limited by the device's own range.
@@ -426,14 +427,27 @@ def _check_bus(path: str, bus: SerialBus | CanBus) -> None:
 
 
 def ignored_keys(config: Config) -> list[str]:
-    """A line for each key of the joint tables that is taken but ignored (``table_warnings``),
-    by its path: ``busgate run`` and ``check-config`` warn of them."""
+    """A line for each key that is taken but ignored, by its path: of the joint tables
+    (``table_warnings``), and a device's ``heartbeat_ms`` on a bus other than CAN (only a
+    device on CAN sends heartbeats: its driver is given none). ``busgate run`` and
+    ``check-config`` warn of them."""
     return [
-        f"buses[{b}].devices[{d}].joint.{key}: {device.name}: {why}"
-        for b, bus in enumerate(config.buses)
-        for d, device in enumerate(bus.devices)
-        if device.joint is not None
-        for key, why in table_warnings(FAMILIES[device.kind].schema.JOINT, device.joint)
+        *(
+            f"buses[{b}].devices[{d}].joint.{key}: {device.name}: {why}"
+            for b, bus in enumerate(config.buses)
+            for d, device in enumerate(bus.devices)
+            if device.joint is not None
+            for key, why in table_warnings(FAMILIES[device.kind].schema.JOINT, device.joint)
+        ),
+        *(
+            f"buses[{b}].devices[{d}].heartbeat_ms: {device.name}: {device.heartbeat_ms} ms is "
+            f"ignored: only a device on a CAN bus sends heartbeats, and this one is on a "
+            f"{bus.transport} bus"
+            for b, bus in enumerate(config.buses)
+            if not PROTOCOLS[bus.protocol].can
+            for d, device in enumerate(bus.devices)
+            if device.heartbeat_ms
+        ),
     ]
 
 

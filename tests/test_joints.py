@@ -170,7 +170,7 @@ def test_a_joints_follow_targets_in_si_are_its_types_where_its_family_streams_bo
     assert la_joint(type="position").follows == "position"
 
 
-def config_with(joint: dict, kind: str = "inspire_la") -> dict:
+def config_with(joint: dict | None, kind: str = "inspire_la") -> dict:
     return {"gateway": {"name": "g"}, "buses": [{
         "name": "b", "transport": "serial", "port": "/dev/null", "baudrate": 921600,
         "devices": [{"name": "d1", "kind": kind, "id": 1, "joint": joint}]}]}
@@ -220,6 +220,19 @@ def test_issue_26s_example_table_is_taken_and_its_max_effort_where_nothing_sets_
     wheel_table = JointTable(unit="rad", scale=1e-3, max_effort=3.0)
     assert table_warnings(zlac706.JOINT, wheel_table) == [], "a torque command sets one"
     assert Joint.of("w", zlac706.JOINT, wheel_table).max_effort == 3.0
+
+
+@pytest.mark.parametrize("kind", ["inspire_la", "zlac706"])
+def test_a_heartbeat_interval_off_can_is_warned_of_as_ignored(kind):
+    """Only a device on CAN sends heartbeats (its driver alone is given the interval): an LA's
+    or an RS232 ZLAC706's ``heartbeat_ms`` was taken and ignored in silence."""
+    data = config_with(None, kind=kind)
+    data["buses"][0]["devices"][0]["heartbeat_ms"] = 100
+    assert ignored_keys(parse_config(data)) == [
+        "buses[0].devices[0].heartbeat_ms: d1: 100 ms is ignored: only a device on a CAN bus "
+        "sends heartbeats, and this one is on a serial bus"]
+    data["buses"][0]["devices"][0]["heartbeat_ms"] = 0  # the default: none
+    assert ignored_keys(parse_config(data)) == []
 
 
 def test_joint_names_are_unique_and_never_another_devices_name():

@@ -10,7 +10,8 @@ missing or that zenoh cannot parse, a listener other hosts reach with no zenoh c
 keep them out, more bus workers than the cores this host gives the gateway, a CAN bus's option
 that python-can's bus for its interface names no parameter for (passed on all the same; not
 told when that bus cannot be loaded here) — is a warning, as
-is a joint table's key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs)
+is a key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs: a joint
+table's, a heartbeat interval off CAN)
 and a gateway that listens nowhere, connects nowhere and scouts for nobody (valid: a zenoh
 config file may give it endpoints; else no client reaches it): printed with the budget. Exit
 status 0, unless a warning is one ``busgate run`` on this host refuses to start with (a port
