@@ -155,7 +155,9 @@ def test_the_hints_name_the_busgate_started_by_its_absolute_path(monkeypatch, tm
 
 
 @pytest.mark.parametrize("where", ["proc", "a directory"])
-def test_a_wire_record_that_cannot_be_written_is_refused_in_one_line(where, tmp_path) -> None:
+def test_a_wire_record_that_cannot_be_written_is_refused_in_one_line(
+    where, tmp_path, free_port
+) -> None:
     """``--record /proc`` (a folder that takes no files) and a directory named as a bus's
     record are refused naming the file, the simulators started before it stopped: the demo
     exits at once (one left running would keep it from exiting)."""
@@ -165,7 +167,7 @@ def test_a_wire_record_that_cannot_be_written_is_refused_in_one_line(where, tmp_
         (tmp_path / "can0.jsonl").mkdir()  # a later bus's: uart0's and uart1's simulators run
         folder, record = str(tmp_path), str(tmp_path / "can0.jsonl")
     done = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
-                           "tcp/127.0.0.1:27801", "--no-dashboard", "--record", folder],
+                           f"tcp/127.0.0.1:{free_port()}", "--no-dashboard", "--record", folder],
                           capture_output=True, text=True, timeout=TIMEOUT_S)
     reason = "No such file or directory" if where == "proc" else "Is a directory"
     assert (done.returncode, done.stdout, done.stderr.splitlines()) == (
