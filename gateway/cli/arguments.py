@@ -4,6 +4,7 @@ imports nothing heavy: ``busgate bench`` must not load zenoh to parse ``--second
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 #: The longest wait a command takes (a year): past it a timer cannot be set, and no
 #: measurement or watch runs longer.
@@ -18,3 +19,18 @@ def seconds(text: str) -> float:
             f"must be a number of seconds above 0 and at most {MAX_SECONDS}, not {text}"
         )
     return value
+
+
+def seconds_from(least: float, most: float) -> Callable[[str], float]:
+    """A type of a number of seconds from ``least`` to ``most`` (what the command then hands
+    it to takes: ``--timeout`` the SDK's wait), refused by argparse naming the flag."""
+
+    def within(text: str) -> float:
+        value = float(text)
+        if not least <= value <= most:
+            raise argparse.ArgumentTypeError(
+                f"must be a number of seconds from {least:g} to {most:g}, not {text}"
+            )
+        return value
+
+    return within

@@ -41,9 +41,9 @@ from typing import Any, TextIO
 import busgate.client as bc
 from busgate.client.base import name_hint
 from busgate.client.keys import Keys, check_key, intersects, split_name
-from busgate.client.messages import NOTHING_THERE
+from busgate.client.messages import MAX_WAIT_S, MIN_WAIT_S, NOTHING_THERE
 from busgate.errors import CommandError, RefusedError
-from busgate.gateway.cli.arguments import seconds
+from busgate.gateway.cli.arguments import seconds, seconds_from
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
@@ -76,7 +76,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     send.add_argument("command", help='the JSON command, e.g. \'{"op":"move","position":1000}\'')
     send.add_argument(
-        "--timeout", type=seconds, default=2.0, help="seconds to wait for replies (default 2)"
+        "--timeout",
+        type=seconds_from(MIN_WAIT_S, MAX_WAIT_S),
+        default=2.0,
+        help="seconds to wait for replies (default 2)",
     )
     send.add_argument("--pretty", action="store_true", help="indent the printed replies")
     send.add_argument(
