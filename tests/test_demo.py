@@ -17,6 +17,7 @@ import zenoh
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.errors import ConfigError
 from busgate.gateway.cli import demo as demo_cli
+from busgate.gateway.cli import main
 from busgate.gateway.cli.demo import DEMO_BUSES, demo_config
 from busgate.schemas.families import PROTOCOLS
 from busgate.schemas.zenoh_session import session_config
@@ -105,6 +106,17 @@ def test_the_demo_config_is_validated_like_any_config() -> None:
         with pytest.raises(ConfigError) as refused:
             demo_config(links, listen="tcp/127.0.0.1:7447", metrics_listen=metrics_listen)
         assert refused.value.path == "metrics.listen"
+
+
+@pytest.mark.parametrize("name", ["a/b", "", "x" * 65, "gw*"])
+def test_a_gateway_name_that_is_none_is_refused_naming_the_flag(name, capsys) -> None:
+    """Before anything starts; the config's refusal named its key (``gateway.name``) and
+    pydantic's pattern."""
+    with pytest.raises(SystemExit) as exited:
+        main(["demo", f"--name={name}", "--no-dashboard"])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.endswith(
+        f"argument --name: not a gateway name: {name[:80]!r} (1-64 of A-Z a-z 0-9 _ -)\n")
 
 
 def test_a_demo_joining_a_router_names_its_gateway_in_the_send_it_suggests(monkeypatch) -> None:

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from busgate.client import aio
+from busgate.client.keys import check_name
 from busgate.codecs.ros2.rmw_zenoh import resolve
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
 from busgate.errors import CommandError
@@ -155,7 +156,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         help="join a zenoh router here (as a client) instead of listening",
     )
     demo.add_argument(
-        "--name", default=GATEWAY_NAME, help=f"the gateway's name (default {GATEWAY_NAME})"
+        "--name",
+        type=_gateway_name,
+        default=GATEWAY_NAME,
+        help=f"the gateway's name (default {GATEWAY_NAME})",
     )
     demo.add_argument(
         "--dashboard-listen",
@@ -252,6 +256,15 @@ def _bound(dashboard: Listen) -> socket.socket:
             f"{exc} (--dashboard-listen 127.0.0.1:0 takes any free port, --no-dashboard "
             "serves none)"
         ) from None
+
+
+def _gateway_name(text: str) -> str:
+    """``--name``: a gateway's name, refused as the SDK refuses one (argparse naming the flag,
+    where the config's refusal named its key, ``gateway.name``)."""
+    try:
+        return check_name("gateway", text)
+    except CommandError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _workers(text: str) -> object:
