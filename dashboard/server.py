@@ -135,6 +135,16 @@ class Listen:
             ) from exc
         return bound
 
+    def exposure(self) -> str | None:
+        """What listening here lets others do, when other hosts can reach it (a warning, as a
+        gateway's zenoh listener's is); ``None`` on a loopback address."""
+        if ipaddress.ip_address(self.host).is_loopback:
+            return None
+        return (
+            f"{self.host}:{self.port} can be reached from other hosts: whoever reaches it may "
+            "e-stop any gateway, reset its e-stop and enable any device (docs/fleet.md)"
+        )
+
     def url(self, port: int) -> str:
         address = ipaddress.ip_address(self.host)
         shown = "127.0.0.1" if address.is_unspecified else self.host

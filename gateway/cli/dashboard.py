@@ -55,6 +55,8 @@ def run_dashboard(args: argparse.Namespace) -> int:
     from busgate.dashboard.server import Listen
 
     listen = Listen.parse(args.listen, args.allow_host)  # refused before any session opens
+    if (exposed := listen.exposure()) is not None:
+        print(f"busgate dashboard: warning: {exposed}", file=sys.stderr)
     asyncio.run(_serve(args, listen))
     return 0
 

@@ -218,6 +218,8 @@ def run_demo(args: argparse.Namespace) -> int:
         else Listen.parse(args.dashboard_listen, args.dashboard_allow_host)
     )
     logs.configure("INFO")
+    if dashboard is not None and (exposed := dashboard.exposure()) is not None:
+        print(f"busgate demo: warning: the dashboard at {exposed}", file=sys.stderr)
     with contextlib.ExitStack() as simulators:
         # Bound before anything starts: a port in use is refused at once, not after the
         # gateway came up (held until the dashboard serves it).
