@@ -14,6 +14,7 @@ from pathlib import Path
 import can
 import pytest
 
+from busgate.gateway.bus.can_owner import unnamed_options
 from busgate.gateway.cli import main
 from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.budget import bus_budget
@@ -428,6 +429,14 @@ def test_a_can_option_python_can_s_bus_names_no_parameter_for_is_a_warning(tmp_p
     assert [line for line in capsys.readouterr().out.splitlines() if ".options." in line] == [
         "warning: buses[0].options.bogus_option: python-can's socketcan bus names no such "
         "parameter: check its spelling (it is passed on all the same)"]
+
+
+def test_can_options_python_can_takes_by_no_parameter_name_are_not_warned_of() -> None:
+    """A pcan bus's ``fd`` (read from its ``**kwargs``) and a bit timing's keys (python-can's
+    own, for every interface) were told to be checked for their spelling."""
+    options = ["fd", "data_bitrate", "f_clock", "brp", "tseg1", "tseg2", "sjw", "auto_reset",
+               "bogus"]
+    assert unnamed_options("pcan", options) == ["bogus"]
 
 
 def test_can_options_of_a_bus_class_that_cannot_be_loaded_here_are_not_warned_of(
