@@ -213,7 +213,7 @@ class CanFilter(Section):
 def can_filters_value(value: object) -> object:
     """``options.can_filters`` refused in one line when it is not a list of tables (python-can
     took a string, and raised at every frame it read)."""
-    if isinstance(value, list) and all(isinstance(item, dict) for item in value):
+    if isinstance(value, list) and all(isinstance(item, dict | CanFilter) for item in value):
         return value
     raise ValueError(
         "a list of tables, each with can_id and can_mask (and extended, true or false), as "
@@ -319,12 +319,17 @@ def _require_distinct_joint_names(buses: list[SerialBus | CanBus]) -> None:
 
 
 def _check_bases(bases: list[BaseConfig], buses: list[SerialBus | CanBus]) -> None:
-    """Each base's wheels: devices of the gateway, ZLAC706 velocity joints in rad, in one
-    base only, fast enough for its limits (``schemas.bases``)."""
+    """Each base's name, none a device's; its wheels: devices of the gateway, ZLAC706
+    velocity joints in rad, in one base only, fast enough for its limits (``schemas.bases``)."""
     devices = {device.name: device for bus in buses for device in bus.devices}
     _require_unique("bases", [base.name for base in bases], "base name")
     taken: dict[str, str] = {}
     for index, base in enumerate(bases):
+        if base.name in devices:  # its events and refused puts would read as the device's
+            raise ValueError(
+                f"bases[{index}].name: {base.name!r} is a device's name too: name the base "
+                "otherwise (its events would be taken for the device's)"
+            )
         for side in ("left", "right"):
             name = getattr(base, side)
             path = f"bases[{index}].{side}"

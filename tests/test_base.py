@@ -56,6 +56,7 @@ def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None
 
 @pytest.mark.parametrize(("change", "words"), [
     ({"left": "nothing"}, "bases[0].left: no device 'nothing' in the config's buses"),
+    ({"name": "wl"}, "bases[0].name: 'wl' is a device's name too: name the base otherwise"),
     ({"right": "wl"}, "left and right are both 'wl'"),
     ({"max_linear_mps": 2.0}, "max_linear_mps 2 needs the wheels at 24.24 rad/s"),
     ({"max_angular_radps": 9.0}, "max_angular_radps 9 needs the wheels at 21.82 rad/s"),

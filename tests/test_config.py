@@ -9,7 +9,14 @@ from pathlib import Path
 import pytest
 
 from busgate.errors import ConfigError
-from busgate.schemas.config import CanBus, SerialBus, load_config, parse_config
+from busgate.schemas.config import (
+    CanBus,
+    CanFilter,
+    CanOptions,
+    SerialBus,
+    load_config,
+    parse_config,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -364,6 +371,8 @@ def test_can_filters_reach_python_can_as_its_list_of_plain_dicts_beside_the_othe
                          "receive_own_messages": False, "sleep_after_open": 0.5}
     assert all(type(each) is dict for each in arguments["can_filters"])
     assert can_options({}) == {}
+    built = CanOptions(can_filters=[CanFilter(can_id=1, can_mask=0x7FF)])  # the models too
+    assert built.arguments() == {"can_filters": [{"can_id": 1, "can_mask": 0x7FF}]}
 
 
 NOT_A_LIST = ("buses[0].options.can_filters: a list of tables, each with can_id and can_mask "
