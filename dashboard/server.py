@@ -140,8 +140,9 @@ class Listen:
         gateway's zenoh listener's is); ``None`` on a loopback address."""
         if ipaddress.ip_address(self.host).is_loopback:
             return None
+        host = f"[{self.host}]" if ":" in self.host else self.host
         return (
-            f"{self.host}:{self.port} can be reached from other hosts: whoever reaches it may "
+            f"{host}:{self.port} can be reached from other hosts: whoever reaches it may "
             "e-stop any gateway, reset its e-stop and enable any device (docs/fleet.md)"
         )
 

@@ -23,7 +23,7 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.errors import ConfigError
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.base.bases import Bases
+from busgate.gateway.base.bases import Bases, NoTrajectories
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -79,7 +79,7 @@ def test_the_drive_takes_each_wheels_limits_from_its_joint() -> None:
                        slow=RIGHT | {"name": "slow", "max_acceleration": 30.0})
     runner = build_bus(config.buses[0])
     bases = Bases(config.bases, GatewayApi("gw", {"can0": runner}), lambda event: None,
-                  lambda name, odometry: None)
+                  lambda name, odometry: None, NoTrajectories())
     geometry = bases.bases["base"].drive.geometry
     assert (geometry.max_wheel, geometry.max_wheel_accel) == (3 * TURN, 30.0)
 
@@ -291,8 +291,9 @@ def test_a_trajectory_takes_no_wheel_of_a_driving_base(world) -> None:
         for devices in (["wl"], ["wl", "wr"]):
             refused = _play(world, devices, -100.0)
             assert refused["error"]["code"] == "busy"
-            assert "wl is a wheel of base base, which is driving it: stop the base first" in (
-                refused["error"]["message"])
+            assert refused["error"]["message"].startswith(
+                "wl is a wheel of base base, which is driving it: stop the base and wait until "
+                "it is at rest")
         assert world.trajectories.playing("wl") is None
         assert world.bases.driving_wheel("wl") == "base"
         assert not any(e.type == "base_stopped" for e in list(world.events)[events:])

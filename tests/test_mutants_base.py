@@ -13,7 +13,7 @@ from concurrent.futures import Future
 import pytest
 
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.base.bases import Bases, _at, _sent_before_stop
+from busgate.gateway.base.bases import Bases, NoTrajectories, _at, _sent_before_stop
 from busgate.gateway.base.kinematics import Twist
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
@@ -57,7 +57,8 @@ class IdleBase:
         self.odometry: list[tuple[str, dict]] = []
         self.bases = Bases(config.bases, self.gateway if recorded else self.api,
                            self.events.append,
-                           lambda name, message: self.odometry.append((name, message)))
+                           lambda name, message: self.odometry.append((name, message)),
+                           NoTrajectories())
         self.base = self.bases.bases["base"]
 
     def read(self, wheel: str, position: float | None, ts: float | None,

@@ -191,7 +191,7 @@ class ZenohBridge:
         #: A refused put's event, at most one a device or base every 0.1 s, an e-stop's and a
         #: reset's, at most one of each every 0.1 s: the rest counted (``put_reports``).
         self.put_reports = PutReports(
-            [*api.devices, *(b.name for b in config.bases)], self._tell_put
+            frozenset([*api.devices, *(b.name for b in config.bases)]), self._tell_put
         )
         self.trajectories = Trajectories(
             api,

@@ -37,8 +37,9 @@ Rules of this file:
    keeps what it had.
 6. Wheels are put in velocity mode when they come online (``set_mode``, once per time they
    come online).
-7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks);
-   ``tick`` and ``take_state`` run on the loop's thread.
+7. Threads: commands come on zenoh's threads (the drive's lock, the claim tables' locks; a
+   twist's drive is chosen under the trajectories' ``players``, rule 3); ``tick`` and
+   ``take_state`` run on the loop's thread, ``driving_wheel`` on any (a trajectory's lane).
 """
 
 from __future__ import annotations
@@ -111,7 +112,8 @@ class Plays(Protocol):
 
 
 class NoTrajectories:
-    """The trajectories of a gateway that plays none (bases on their own, as in a test)."""
+    """The trajectories of a gateway that plays none (bases on their own, as in a test of
+    them): a lock of its own, nothing playing."""
 
     def __init__(self) -> None:
         self.players = threading.Lock()
@@ -170,13 +172,13 @@ class Bases:
         api: Gateway,
         on_event: Callable[[DeviceEvent], None],
         publish: Callable[[str, dict[str, Any]], None],
-        trajectories: Plays | None = None,
+        trajectories: Plays,
     ) -> None:
         self.api = api
         self.on_event = on_event
         self.publish = publish  # (base name, odometry message)
-        #: A twist and a trajectory's play are chosen under one lock (rule 3).
-        self._trajectories = trajectories or NoTrajectories()
+        #: A twist and a trajectory's play are chosen under one lock, theirs (rule 3).
+        self._trajectories = trajectories
         self.bases = {config.name: self._live(config) for config in configs}
         self._wheel_of = {w.name: (b, w) for b in self.bases.values() for w in b.wheels}
 

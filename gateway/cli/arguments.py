@@ -33,4 +33,5 @@ def seconds_from(least: float, most: float) -> Callable[[str], float]:
             )
         return value
 
+    within.__name__ = "seconds"  # argparse names a value it cannot read by it
     return within

@@ -178,7 +178,8 @@ class Trajectories:
                 raise RefusedError(
                     "busy",
                     f"{device} is a wheel of base {base}, which is driving it: stop the base "
-                    "first (a trajectory would take one wheel from it)",
+                    "and wait until it is at rest (its status says driving false; a trajectory "
+                    "would take one wheel from it)",
                 )
 
     def _check_id(self, request: TrajectoryPlay) -> None:

@@ -10,8 +10,9 @@ the shape the gateway does it: one thread a bus that looks at its socket every
 heartbeat's two frames into one state (``ts``, device, position, current, speed), and a
 publishing thread that puts the states with zenoh every ``TELEMETRY_EVERY_S``. No codec, no
 driver, no joint, no check: its CPU is the host's price of the wake-ups, the syscalls, the
-zenoh puts and a minimum of Python, so the ratio is the gateway's own cost, which the host's
-load moves less than either figure (the goal, 10 % of a core, is a figure of the host).
+zenoh puts and a minimum of Python at that hour, so the pair says how far the gateway is from
+what the host allows (the goal, 10 % of a core, is a figure of the host). The floor moves with
+the host's load as much as the gateway does: compare ratios over several pairs, not one.
 
     .venv/bin/python tests/benchmarks/bench_heartbeat_floor.py [PAIRS] [SECONDS]
 """
