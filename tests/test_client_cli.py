@@ -382,6 +382,18 @@ def test_a_bare_target_that_is_no_device_name_is_refused_before_any_session(targ
                    "busgate/*/dev/*/cmd)\n")
 
 
+@pytest.mark.parametrize("selector", ["la 1", "gw.1", "x" * 65])
+def test_a_watch_selector_that_is_no_gateway_name_is_refused_before_any_session(selector,
+                                                                              capsys):
+    """``watch --once 'la 1'`` watched a gateway no config can name, and said nothing was
+    seen; a pattern of names (``robot*``) is still a selector."""
+    assert main(["watch", "--once", selector, "--connect", "tcp/127.0.0.1:9"]) == 2
+    assert capsys.readouterr().err == (
+        f"busgate watch: error: not a gateway name: {selector[:80]!r} (1-64 of A-Z a-z 0-9 _ -); "
+        "a selector with a '/' is a key expression, taken as given (e.g. "
+        "busgate/*/dev/la1/state)\n")
+
+
 @pytest.mark.parametrize("argv", [["send", "la1", "\udcff"], ["send", "la\udcff", "{}"],
                                   ["watch", "--once", "\udcff"]])
 def test_an_argument_that_is_no_utf8_is_one_line_and_exit_2(argv, capsys):

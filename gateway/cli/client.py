@@ -40,7 +40,7 @@ from typing import Any, TextIO
 
 import busgate.client as bc
 from busgate.client.base import name_hint
-from busgate.client.keys import Keys, check_key, intersects, split_name
+from busgate.client.keys import Keys, check_key, check_name, intersects, split_name
 from busgate.client.messages import MAX_WAIT_S, MIN_WAIT_S, NOTHING_THERE
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.cli.arguments import seconds, seconds_from
@@ -311,7 +311,15 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
     """
     if selector is None:
         return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", f"{prefix}/**"
-    if "/" not in selector:  # a gateway name
+    if "/" not in selector:  # a gateway's name, or a pattern of names (``*``, ``robot*``)
+        if "*" not in selector:
+            try:
+                check_name("gateway", selector)
+            except CommandError as exc:  # 'la 1' was watched for, and nothing was seen
+                raise CommandError(
+                    f"{exc}; a selector with a '/' is a key expression, taken as given"
+                    f" (e.g. {prefix}/*/dev/la1/state)"
+                ) from None
         return (
             f"{prefix}/{selector}/dev/*/state",
             f"{prefix}/{selector}/bus/*/stats",
