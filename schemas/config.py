@@ -32,7 +32,7 @@ from pydantic import (
 )
 
 from busgate.errors import ConfigError
-from busgate.schemas.base import KEY_PREFIX_PATTERN, Name
+from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_PATTERN, Name
 from busgate.schemas.bases import BaseConfig, wheel_problem
 from busgate.schemas.endpoints import Endpoint, ListenEndpoint, clash_at, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
@@ -103,6 +103,17 @@ class ZenohSection(Section):
         return self
 
 
+#: ``HOST:PORT`` (an address to listen on) and an absolute path, as keys' patterns.
+HOST_PORT_PATTERN, ABSOLUTE_PATH_PATTERN = r"^[^:\s]+:\d{1,5}$", r"^/[^\x00]*$"
+#: What a key of each pattern takes, as a refusal says it (pydantic names the pattern).
+PATTERN_FORMS = {
+    CLIENT_ID_PATTERN: "1-64 of A-Z a-z 0-9 _ -",
+    KEY_PREFIX_PATTERN: "one to eight names of 1-64 of A-Z a-z 0-9 _ -, joined by /",
+    HOST_PORT_PATTERN: "HOST:PORT (e.g. 127.0.0.1:9100)",
+    ABSOLUTE_PATH_PATTERN: "an absolute path",
+}
+
+
 def _port_in_range(listen: str) -> str:
     """``HOST:PORT`` whose port a socket can bind, and is named: as a zenoh listener's
     (``schemas.endpoints`` rule 1), port 0 would be one the system picks, that no scraper
@@ -118,7 +129,7 @@ def _port_in_range(listen: str) -> str:
 
 
 class MetricsSection(Section):
-    listen: Annotated[str, Field(pattern=r"^[^:\s]+:\d{1,5}$"), AfterValidator(_port_in_range)]
+    listen: Annotated[str, Field(pattern=HOST_PORT_PATTERN), AfterValidator(_port_in_range)]
 
 
 class RecorderSection(Section):
@@ -128,7 +139,7 @@ class RecorderSection(Section):
     ``max_total_mb``."""
 
     seconds: Annotated[float, Field(ge=1, le=600)] = 60.0
-    dir: Annotated[str, Field(pattern=r"^/[^\x00]*$", max_length=1024)] = (
+    dir: Annotated[str, Field(pattern=ABSOLUTE_PATH_PATTERN, max_length=1024)] = (
         "/var/lib/busgate/incidents"
     )
     max_total_mb: Annotated[int, Field(ge=1, le=1_000_000)] = 1024
@@ -485,6 +496,10 @@ def _describe(error: Any) -> tuple[str, str]:
     if error["type"] == "union_tag_not_found":  # pydantic's words name no key a user wrote
         key = error["ctx"]["discriminator"].strip("'")
         message = f"`{key}` is missing: {' or '.join(_TAGS.get(key, ()))} (which kind of table)"
+    if error["type"] == "string_pattern_mismatch" and (
+        form := PATTERN_FORMS.get(error["ctx"]["pattern"])
+    ):
+        message = f"must be {form}, not {cut(repr(error['input']), SHOWN_OP_CHARS)}"
     if error["type"] == "union_tag_invalid":  # the key's value, as the user wrote it
         key = error["ctx"]["discriminator"].strip("'")
         path = f"{path}.{key}" if path else key

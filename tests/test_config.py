@@ -158,6 +158,20 @@ def test_ids_are_checked_per_protocol_and_per_bus() -> None:
     assert error.path == "buses[0].devices[1].id"
 
 
+@pytest.mark.parametrize(("change", "line"), [
+    ({"gateway": {"name": "a/b"}}, "gateway.name: must be 1-64 of A-Z a-z 0-9 _ -, not 'a/b'"),
+    ({"metrics": {"listen": "garbage"}},
+     "metrics.listen: must be HOST:PORT (e.g. 127.0.0.1:9100), not 'garbage'"),
+    ({"recorder": {"dir": "incidents"}}, "recorder.dir: must be an absolute path, not 'incidents'"),
+])  # fmt: skip
+def test_a_value_of_the_wrong_form_is_told_the_form_it_takes(change, line) -> None:
+    """pydantic said "String should match pattern '^[^:\\s]+:\\d{1,5}$'"."""
+    document = {"gateway": {"name": "gw"}, "buses": []} | change
+    with pytest.raises(ConfigError) as refused:
+        parse_config(document)
+    assert line in str(refused.value).splitlines()
+
+
 def test_a_transport_that_is_none_is_named_with_the_ones_there_are() -> None:
     """pydantic said "Input tag 'Serial' found using 'transport' does not match any of the
     expected tags"."""
