@@ -119,39 +119,44 @@ def check_config(args: argparse.Namespace) -> int:
 def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
     """What ``busgate run`` refuses to start with: a zenoh config file this host has not, or
     that is none, or endpoints the session cannot be made of on this host (a Unix socket's
-    path that is a file), or where zenoh cannot listen here (``_listener_refusals``); and
+    path that is a file), or where zenoh cannot listen here (``_session_refusals``); and
     what it starts with all the same: each listener other hosts
     can reach with nothing but a file of the operator's own (TLS, passwords, access control)
     to keep them from moving the devices, a gateway that listens and connects nowhere."""
     zenoh_file, refused, warned = config.zenoh.config_file, [], []
+    file_refusal = None
     if zenoh_file is not None:
         from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
 
-        if refusal := config_file_refusal(zenoh_file) or _endpoints_refusal(config):
-            refused.append(
-                f"zenoh.config_file: {zenoh_file}: {refusal}; busgate run refuses to start so"
-            )
-    elif refusal := _endpoints_refusal(config):
-        refused.append(f"zenoh: {refusal}; busgate run refuses to start so")
-    elif not (config.zenoh.listen or config.zenoh.connect or config.zenoh.multicast_scouting):
+        file_refusal = config_file_refusal(zenoh_file)
+    refusal, listeners = (file_refusal, []) if file_refusal else _session_refusals(config)
+    if refusal:
+        where = "zenoh" if zenoh_file is None else f"zenoh.config_file: {zenoh_file}"
+        refused.append(f"{where}: {refusal}; busgate run refuses to start so")
+    elif zenoh_file is None and not (
+        config.zenoh.listen or config.zenoh.connect or config.zenoh.multicast_scouting
+    ):
         from busgate.schemas.zenoh_session import NOBODY_REACHES
 
         warned.append(f"zenoh: {NOBODY_REACHES}")
-    if not refused:  # the session's config could be made: where it would listen
-        refused += _listener_refusals(config)
-    return refused, warned + exposure_warnings(config.zenoh.listen, zenoh_file)
+    return refused + listeners, warned + exposure_warnings(config.zenoh.listen, zenoh_file)
 
 
-def _listener_refusals(config: Config) -> list[str]:
-    """Each endpoint the gateway's session would listen on (``listen``, or its zenoh config
-    file's) where zenoh would refuse to listen on this host (``_listener_problem``)."""
-    from busgate.schemas.zenoh_session import (
+def _session_refusals(config: Config) -> tuple[str | None, list[str]]:
+    """Why the zenoh session could not be made of the config file and the endpoints (an
+    endpoint of a protocol the file's links leave out), ``None`` when it can; and, made once,
+    each endpoint it would listen on (``listen``, or its zenoh config file's) where zenoh
+    would refuse to listen on this host (``_listener_problem``)."""
+    from busgate.schemas.zenoh_session import (  # loads zenoh: only here
         endpoints_of,
         gateway_session_config,
         tls_listen_missing,
     )
 
-    session = gateway_session_config(config.zenoh)
+    try:
+        session = gateway_session_config(config.zenoh)
+    except ValueError as exc:
+        return str(exc), []
     refused = []
     for index, endpoint in enumerate(endpoints_of(session, "listen", config.zenoh.mode)):
         if problem := _listener_problem(endpoint, tls_listen_missing(session, endpoint)):
@@ -163,7 +168,7 @@ def _listener_refusals(config: Config) -> list[str]:
             refused.append(
                 f"{where}: cannot listen on {endpoint}: {problem}; busgate run refuses to start so"
             )
-    return refused
+    return None, refused
 
 
 def _listener_problem(endpoint: str, tls_missing: list[str]) -> str | None:
@@ -204,18 +209,6 @@ def _unresolved(host: str) -> str | None:
         return f"its host {host} does not resolve here ({exc.strerror})"
     except UnicodeError:  # a label over 63 characters: the resolver is never asked
         return f"its host {host} is no host name"
-    return None
-
-
-def _endpoints_refusal(config: Config) -> str | None:
-    """Why the zenoh session could not be made of the config file and the endpoints (an
-    endpoint of a protocol the file's links leave out); ``None`` when it can."""
-    from busgate.schemas.zenoh_session import gateway_session_config  # loads zenoh: only here
-
-    try:
-        gateway_session_config(config.zenoh)
-    except ValueError as exc:
-        return str(exc)
     return None
 
 
