@@ -41,7 +41,7 @@ from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.gateway.trajectory.checks import members_of, start_at_of
 from busgate.gateway.trajectory.interpolation import Knot, paths_of
 from busgate.gateway.trajectory.lanes import answer
-from busgate.gateway.trajectory.playing import Trajectories
+from busgate.gateway.trajectory.playing import Trajectories, no_base
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.joints import Joint, JointTable
 from busgate.schemas.trajectory import TRAJECTORY_COMMAND_ADAPTER, TrajectoryPlay
@@ -115,7 +115,8 @@ class Player:
     def __init__(self, world: World) -> None:
         self.world = world
         self.published: list[tuple[str, dict]] = []
-        self.trajectories = Trajectories(world.api, BASE, self._publish, lambda event: None)
+        self.trajectories = Trajectories(world.api, BASE, self._publish, lambda event: None,
+                                         no_base)
 
     def _publish(self, key: str, body: dict) -> None:
         self.published.append((key, body))

@@ -49,7 +49,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Path, paths_of, sent
 from busgate.gateway.trajectory.lanes import answer
-from busgate.gateway.trajectory.playing import Trajectories
+from busgate.gateway.trajectory.playing import Trajectories, no_base
 from busgate.schemas.config import SerialBus
 from busgate.schemas.events import EVENT_ADAPTER
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD, TrajectoryPlay
@@ -124,7 +124,8 @@ class Player:
         self.world = world
         self.published: list[tuple[str, dict]] = []
         self.events: list[DeviceEvent] = []
-        self.trajectories = Trajectories(world.api, BASE, self._publish, self.events.append)
+        self.trajectories = Trajectories(world.api, BASE, self._publish, self.events.append,
+                                         no_base)
 
     def _publish(self, key: str, body: dict) -> None:
         self.published.append((key, body | {"_at": now()}))
@@ -871,7 +872,8 @@ def test_a_play_needing_more_of_a_bus_than_it_has_is_refused_naming_the_bus():
         try:
             api = GatewayApi("gw", {"slow": runner})
             wait_until(lambda: all(driver.online for driver in runner.drivers.values()))
-            trajectories = Trajectories(api, BASE, lambda key, body: None, lambda event: None)
+            trajectories = Trajectories(api, BASE, lambda key, body: None, lambda event: None,
+                                        no_base)
             mark = len(sim.recorder.received())
             start_at = time.time() + 0.05
             reply = answer(trajectories.command, json.dumps({

@@ -49,6 +49,12 @@ from busgate.schemas.trajectory import (
 FEEDBACK_EVERY_S = 0.1
 
 
+def no_base(device: str) -> None:
+    """``driven_by`` of a gateway with no bases (trajectories on their own, as in a test of
+    them): no device is a wheel a base drives."""
+    return None
+
+
 class Trajectories:
     """The trajectory key of one gateway."""
 
@@ -58,13 +64,14 @@ class Trajectories:
         base: str,
         publish: Callable[[str, dict[str, Any]], None],
         on_event: Callable[[DeviceEvent], None],
-        driven_by: Callable[[str], str | None] = lambda device: None,
+        driven_by: Callable[[str], str | None],
     ) -> None:
         self.api = api
         self.base = base
         self.publish = publish
         self.on_event = on_event
-        #: The base that drives a device (one of its wheels), if one does (rule 1).
+        #: The base that drives a device (one of its wheels), if one does (rule 1): the
+        #: gateway's ``Bases.driving_wheel``.
         self.driven_by = driven_by
         #: Held while a play, or a base's drive, takes its devices (rule 1).
         self.players = threading.Lock()
