@@ -531,10 +531,15 @@ class ZenohBridge:
         """The first of this gateway's ``room`` command keys that ``asked`` reaches, unless it
         reaches the info key too (``**``, ``busgate/demo/**``: the info answers those,
         once)."""
-        if asked.intersects(zenoh.KeyExpr(f"{self.base}/info")):
+        if self._reaches_info(asked):
             return None
         keys = (f"{self.base}/{room}/{name}/cmd" for name in known)
         return next((key for key in keys if asked.intersects(zenoh.KeyExpr(key))), None)
+
+    def _reaches_info(self, asked: zenoh.KeyExpr) -> bool:
+        """Whether a query on ``asked`` reaches this gateway's info, which answers it (rule 5:
+        ``**``, ``busgate/demo/**``), once."""
+        return asked.intersects(zenoh.KeyExpr(f"{self.base}/info"))
 
     def _base_query(self, query: zenoh.Query) -> Routed | None:
         name = self._ours(query, "base", self.bases.bases)
@@ -573,7 +578,7 @@ class ZenohBridge:
         it reaches the info key too (``**``: the info answers it, rule 5)."""
         key = f"{self.base}/trajectory"
         if str(query.key_expr) != key:
-            if query.key_expr.intersects(zenoh.KeyExpr(f"{self.base}/info")):
+            if self._reaches_info(query.key_expr):
                 query.drop()
                 return None
             self._refuse_wildcard(
