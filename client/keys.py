@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import zenoh
 
 from busgate.errors import CommandError
-from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_PATTERN
+from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_FORM, KEY_PREFIX_PATTERN, NAME_FORM
 from busgate.schemas.zenoh_session import zenoh_reason
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
@@ -41,8 +41,8 @@ class Keys:
         address keys of other prefixes than meant, and names nothing to take apart."""
         if not isinstance(self.prefix, str) or not re.fullmatch(KEY_PREFIX_PATTERN, self.prefix):
             raise CommandError(
-                f"not a key prefix: {str(self.prefix)[:80]!r} (one to eight names of 1-64 of "
-                f"A-Z a-z 0-9 _ -, joined by /, as a gateway's [gateway] prefix)"
+                f"not a key prefix: {str(self.prefix)[:80]!r} ({KEY_PREFIX_FORM}, as a "
+                "gateway's [gateway] prefix)"
             )
 
     def device(self, gateway: str, device: str, leaf: str) -> str:
@@ -141,7 +141,7 @@ def check_name(what: str, name: str) -> str:
             f"not a {what} name: {str(name)[:80]} is a {type(name).__name__}, not a string"
         )
     if not is_name(name):
-        raise CommandError(f"not a {what} name: {name[:80]!r} (1-64 of A-Z a-z 0-9 _ -)")
+        raise CommandError(f"not a {what} name: {name[:80]!r} ({NAME_FORM})")
     return name
 
 

@@ -15,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 #: A client's self-chosen identity: 1–64 letters, digits, ``_`` or ``-``.
 CLIENT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+#: What ``CLIENT_ID_PATTERN`` takes, as a refusal says it.
+NAME_FORM = "1-64 of A-Z a-z 0-9 _ -"
 ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
 #: A gateway's, bus's, device's or joint's name: names end up in zenoh key expressions, so
 #: they are one safe chunk, as a client id is.
@@ -22,6 +24,8 @@ Name = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
 #: The prefix of every key (``[gateway] prefix``): one to eight such names joined by ``/``,
 #: no wildcard.
 KEY_PREFIX_PATTERN = r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$"
+#: What ``KEY_PREFIX_PATTERN`` takes, as a refusal says it.
+KEY_PREFIX_FORM = f"one to eight names of {NAME_FORM}, joined by /"
 
 
 def client_named(value: object) -> str | None:

@@ -32,7 +32,13 @@ from pydantic import (
 )
 
 from busgate.errors import ConfigError
-from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_PATTERN, Name
+from busgate.schemas.base import (
+    CLIENT_ID_PATTERN,
+    KEY_PREFIX_FORM,
+    KEY_PREFIX_PATTERN,
+    NAME_FORM,
+    Name,
+)
 from busgate.schemas.bases import BaseConfig, wheel_problem
 from busgate.schemas.endpoints import Endpoint, ListenEndpoint, clash_at, takes_tcp_port
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
@@ -107,8 +113,8 @@ class ZenohSection(Section):
 HOST_PORT_PATTERN, ABSOLUTE_PATH_PATTERN = r"^[^:\s]+:\d{1,5}$", r"^/[^\x00]*$"
 #: What a key of each pattern takes, as a refusal says it (pydantic names the pattern).
 PATTERN_FORMS = {
-    CLIENT_ID_PATTERN: "1-64 of A-Z a-z 0-9 _ -",
-    KEY_PREFIX_PATTERN: "one to eight names of 1-64 of A-Z a-z 0-9 _ -, joined by /",
+    CLIENT_ID_PATTERN: NAME_FORM,
+    KEY_PREFIX_PATTERN: KEY_PREFIX_FORM,
     HOST_PORT_PATTERN: "HOST:PORT (e.g. 127.0.0.1:9100)",
     ABSOLUTE_PATH_PATTERN: "an absolute path",
 }
