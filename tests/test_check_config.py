@@ -313,6 +313,15 @@ def test_a_listener_other_hosts_reach_with_nothing_to_keep_them_out_is_a_warning
                       "(docs/running.md#threat-model-who-can-move-what)"] if warned else [])
 
 
+def checked(tmp_path: Path, capsys, tables: str, about: str) -> tuple[int, list[str]]:
+    """check-config's status on an LA config with ``tables`` (TOML) before its buses, and
+    the lines it printed that speak ``about`` something."""
+    path = write(tmp_path, [la(1)])
+    path.write_text(path.read_text().replace("[[buses]]", f"{tables}\n[[buses]]", 1))
+    status = main(["check-config", str(path)])
+    return status, [line for line in capsys.readouterr().out.splitlines() if about in line]
+
+
 NO_TLS_FILES = ("needs a private key and a certificate, and it has no transport/link/tls/"
                 "listen_private_key and no transport/link/tls/listen_certificate: set them in a "
                 "zenoh config file (docs/running.md#access-control-passwords-and-tls)")
@@ -339,11 +348,8 @@ def test_a_listener_zenoh_cannot_listen_on_here_is_a_warning_and_run_refuses_it(
         tmp_path, capsys, listen, refused) -> None:
     """check-config said valid (exit 0) and ``busgate run`` refused to start (exit 2)."""
     listen = listen.format(tmp=tmp_path)
-    path = write(tmp_path, [la(1)])
-    path.write_text(path.read_text().replace(
-        "[[buses]]", f'[zenoh]\nlisten = ["{listen}"]\n[[buses]]', 1))
-    assert main(["check-config", str(path)]) == (2 if refused else 0)
-    lines = [line for line in capsys.readouterr().out.splitlines() if "cannot listen" in line]
+    status, lines = checked(tmp_path, capsys, f'[zenoh]\nlisten = ["{listen}"]', "cannot listen")
+    assert status == (2 if refused else 0)
     assert lines == ([f"warning: zenoh.listen[0]: cannot listen on {listen}: {refused}; busgate "
                       "run refuses to start so"] if refused else [])
 
@@ -359,12 +365,9 @@ def test_a_tls_listener_is_refused_only_when_the_zenoh_file_gives_no_key_or_cert
         tmp_path, capsys, tls, refused) -> None:
     zenoh_file = tmp_path / "zenoh.json5"
     zenoh_file.write_text(f"{{ transport: {{ link: {{ tls: {{ {tls} }} }} }} }}")
-    path = write(tmp_path, [la(1)])
-    path.write_text(path.read_text().replace("[[buses]]", (
-        f'[zenoh]\nlisten = ["tls/127.0.0.1:27801"]\nconfig_file = "{zenoh_file}"\n'
-        "[[buses]]"), 1))
-    assert main(["check-config", str(path)]) == (2 if refused else 0)
-    lines = [line for line in capsys.readouterr().out.splitlines() if "cannot listen" in line]
+    zenoh = f'[zenoh]\nlisten = ["tls/127.0.0.1:27801"]\nconfig_file = "{zenoh_file}"'
+    status, lines = checked(tmp_path, capsys, zenoh, "cannot listen")
+    assert status == (2 if refused else 0)
     assert lines == ([f"warning: zenoh.listen[0]: cannot listen on tls/127.0.0.1:27801: "
                       f"{refused}; busgate run refuses to start so"] if refused else [])
 
@@ -373,11 +376,9 @@ def test_a_tls_listener_is_refused_only_when_the_zenoh_file_gives_no_key_or_cert
     ("no-such-host.invalid", True), ("localhost", False), ("127.0.0.1", False)])
 def test_a_metrics_host_that_does_not_resolve_is_a_warning_and_run_refuses_it(
         tmp_path, capsys, host, refused) -> None:
-    path = write(tmp_path, [la(1)])
-    path.write_text(path.read_text().replace(
-        "[[buses]]", f'[metrics]\nlisten = "{host}:27802"\n[[buses]]', 1))
-    assert main(["check-config", str(path)]) == (2 if refused else 0)
-    lines = [line for line in capsys.readouterr().out.splitlines() if "metrics.listen" in line]
+    status, lines = checked(tmp_path, capsys, f'[metrics]\nlisten = "{host}:27802"',
+                            "metrics.listen")
+    assert status == (2 if refused else 0)
     assert lines == ([f"warning: metrics.listen: {host}:27802: its host {host} does not resolve "
                       "here (Name or service not known); busgate run refuses to start so"]
                      if refused else [])
