@@ -11,6 +11,14 @@ from collections.abc import Callable
 MAX_SECONDS = 365 * 86400
 
 
+def named_path(text: str) -> str:
+    """A file's or a folder's path, as given; an empty one is refused, where ``Path("")``
+    would be the working directory, which nobody means by it."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path names no file ('.' is this folder)")
+    return text
+
+
 def seconds(text: str) -> float:
     """A number of seconds above 0 and at most ``MAX_SECONDS`` (NaN and infinity refused)."""
     value = float(text)

@@ -35,6 +35,7 @@ from pathlib import Path
 from busgate.errors import ConfigError
 from busgate.gateway.bus.can_owner import unknown_interface, unnamed_options
 from busgate.gateway.bus.port_access import NOT_A_DEVICE, missing, port_problem
+from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.workers import placement, too_many
@@ -53,7 +54,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "reserve. Exit status 1 when the config is invalid, 2 when it is valid but busgate "
         "run on this host would refuse to start with it (a warning says why).",
     )
-    check.add_argument("file", help="the gateway's TOML config file")
+    check.add_argument("file", type=named_path, help="the gateway's TOML config file")
     check.set_defaults(handler=check_config)
 
 

@@ -17,6 +17,7 @@ from typing import Any
 import busgate.client as bc
 from busgate.client.core import CLIENT_MODES
 from busgate.errors import CommandError
+from busgate.gateway.cli.arguments import named_path
 from busgate.schemas.files import FileRefused, read_text
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -48,6 +49,7 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--zenoh-config",
         default=None,
+        type=named_path,
         metavar="FILE",
         help="a zenoh config file (TLS, auth …) laid underneath",
     )
@@ -55,11 +57,16 @@ def add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--password-file",
         default=None,
+        type=named_path,
         metavar="FILE",
         help=f"a file holding the user's password (default: ${PASSWORD_VARIABLE})",
     )
     parser.add_argument(
-        "--ca", default=None, metavar="FILE", help="the CA certificate of a tls/ endpoint"
+        "--ca",
+        default=None,
+        type=named_path,
+        metavar="FILE",
+        help="the CA certificate of a tls/ endpoint",
     )
 
 

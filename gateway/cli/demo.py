@@ -42,6 +42,7 @@ from busgate.client.keys import check_name
 from busgate.codecs.ros2.rmw_zenoh import resolve
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
 from busgate.errors import CommandError
+from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
 from busgate.gateway.service import logs
 from busgate.gateway.service.daemon import serve, stop_on_signals
@@ -178,12 +179,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument(
         "--record",
         default=None,
+        type=named_path,
         metavar="DIR",
         help="write each simulator's wire record to DIR/<bus>.jsonl (JSON lines)",
     )
     demo.add_argument(
         "--incidents",
         default=None,
+        type=named_path,
         metavar="DIR",
         help="turn the flight recorder on: an incident file (MCAP) in DIR on each e-stop, "
         "fault, bus down or SIGUSR1",

@@ -54,6 +54,7 @@ from typing import IO, Any
 import busgate.client as bc
 from busgate.client.keys import Keys, check_key
 from busgate.errors import BusgateError, CommandError
+from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log, timeline
@@ -85,11 +86,16 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     )
     add_session_options(record)
     record.add_argument("keys", nargs="*", metavar="KEYEXPR", help="what to record")
-    record.add_argument("-o", "--output", metavar="FILE.mcap", help="the file to write")
+    record.add_argument(
+        "-o", "--output", type=named_path, metavar="FILE.mcap", help="the file to write"
+    )
     record.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    record.add_argument("--info", metavar="FILE.mcap", help="print a file's channels and span")
+    record.add_argument(
+        "--info", type=named_path, metavar="FILE.mcap", help="print a file's channels and span"
+    )
     record.add_argument(
         "--timeline",
+        type=named_path,
         metavar="FILE.mcap",
         help="draw an incident file's frames, bus by bus, as SVG (to -o FILE.svg, else stdout)",
     )
@@ -128,7 +134,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="replay even where a gateway is live under --prefix: onto its own keys",
     )
-    replay.add_argument("file", metavar="FILE.mcap")
+    replay.add_argument("file", type=named_path, metavar="FILE.mcap")
     replay.add_argument("--speed", type=float, default=1.0, help="how much faster (default 1)")
     replay.set_defaults(handler=run_replay)
 
@@ -143,8 +149,6 @@ def run_record(args: argparse.Namespace) -> int:
         return _draw_timeline(Path(args.timeline), args)
     if args.output is None:
         raise CommandError("name the file to write: -o FILE.mcap (or --info FILE.mcap)")
-    if not args.output:  # Path("") is the current directory
-        raise CommandError("-o: an empty file name")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise CommandError(f"--seconds is a positive number, not {args.seconds}")
     keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]

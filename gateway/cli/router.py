@@ -35,6 +35,7 @@ from importlib import metadata
 import zenoh
 
 from busgate.errors import CommandError
+from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.schemas.endpoints import clash_at
 from busgate.schemas.zenoh_session import (
@@ -72,6 +73,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     router.add_argument(
         "--config",
         default=None,
+        type=named_path,
         metavar="FILE",
         help="a zenoh config file (.json5, .json, .yaml or .toml: TLS, passwords, access "
         "control …) laid underneath; its mode is set to router, multicast scouting and shared "

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from busgate.errors import CommandError
+from busgate.gateway.cli.arguments import named_path
 from busgate.schemas import api
 from busgate.schemas.exported import SCHEMAS, generated
 
@@ -80,6 +81,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--out",
         default=str(DEFAULT_OUT),
+        type=named_path,
         help="directory to write to (default: the repository's schemas/json)",
     )
     parser.add_argument(

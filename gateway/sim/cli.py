@@ -31,6 +31,7 @@ from typing import IO
 
 from busgate.errors import CommandError
 from busgate.gateway.bus.clock import now
+from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
@@ -63,7 +64,10 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim.add_argument("--stroke-s", type=_stroke_s, help="Inspire LA: seconds for a full stroke")
     sim.add_argument("--link", help="keep a symlink here pointing at the current pty")
     sim.add_argument(
-        "--record", metavar="FILE", help="write every frame to FILE (JSON lines; - for stdout)"
+        "--record",
+        type=named_path,
+        metavar="FILE",
+        help="write every frame to FILE (JSON lines; - for stdout)",
     )
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
     sim.add_argument(

@@ -1,0 +1,36 @@
+"""Every command's file and folder arguments refuse an empty path: ``Path("")`` is the working
+directory, where ``demo --record ''`` wrote its simulators' records and ``schema --out ''``
+its schemas, and where an empty ``--zenoh-config`` was read as none."""
+
+from __future__ import annotations
+
+import pytest
+
+from busgate.gateway.cli import main
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["run", "--config", ""], "--config"),
+    (["check-config", ""], "file"),
+    (["demo", "--record", ""], "--record"),
+    (["demo", "--incidents", ""], "--incidents"),
+    (["schema", "--out", ""], "--out"),
+    (["record", "-o", ""], "-o/--output"),
+    (["record", "--info", ""], "--info"),
+    (["record", "--timeline", ""], "--timeline"),
+    (["replay", ""], "FILE.mcap"),
+    (["router", "--listen", "tcp/127.0.0.1:1", "--config", ""], "--config"),
+    (["sim", "inspire_la", "--record", ""], "--record"),
+    (["send", "--zenoh-config", "", "la1", "{}"], "--zenoh-config"),
+    (["watch", "--password-file", "", "--user", "u"], "--password-file"),
+    (["dashboard", "--ca", ""], "--ca"),
+])
+def test_an_empty_path_is_refused_before_anything_runs(args, named, tmp_path, monkeypatch,
+                                                        capsys) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exited:
+        main(args)
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.endswith(
+        f"argument {named}: an empty path names no file ('.' is this folder)\n")
+    assert list(tmp_path.iterdir()) == []
