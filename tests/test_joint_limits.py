@@ -18,6 +18,7 @@ from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.ds_servo import DsServoDevice
@@ -25,6 +26,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.config import parse_config
+from tests.conftest import wait_until
 from tests.wire_frames import received, written, written_speed
 
 TURN = 2 * math.pi
@@ -272,6 +274,32 @@ def test_a_stop_while_a_one_shot_speed_ramps_ends_the_ramp(gateway):
     assert set(speeds(can_sim, before)) <= {0}
     assert ("stream_stopped", {"reason": "stopped by a command"}) in [
         (e.type, e.fields) for e in events[told:] if e.device == "wheel"]
+
+
+def test_a_one_shot_speed_that_would_ramp_is_refused_while_the_wheel_plays(gateway):
+    """A one-shot speed to a wheel that plays (a trajectory, a base's drive) became a ramp
+    that took turns with the play's ticks setting its speed, and the play's next tick then
+    jumped back past max_acceleration (found by an audit, on a base's wheel). It is refused
+    ``busy`` and nothing of it reaches the wire: every speed written is the play's."""
+    api, simulators, _ = gateway
+    can_sim = simulators["can0"]
+    accepted(api, "wheel", {"op": "set_mode", "mode": "velocity"})
+    accepted(api, "wheel", {"op": "enable"})
+    runner = api.devices["wheel"][0]
+    runner.play({"wheel": lambda t_s: {"rpm": 6}}, now())
+    try:
+        wait_until(lambda: runner.plays.playing("wheel"))
+        before = len(can_sim.recorder.received())
+        for command in ({"op": "joint", "velocity": TURN / 2}, {"op": "velocity", "rpm": -30}):
+            refused = ask(api, "wheel", command)
+            assert refused["error"]["code"] == "busy", refused
+            assert "wheel plays a trajectory or drives a base" in refused["error"]["message"]
+        time.sleep(0.2)
+        written = speeds(can_sim, before)
+        assert written and all(speed == pytest.approx(6, abs=0.2) for speed in written), written
+    finally:
+        runner.stop_playing("wheel", speed=True)
+        accepted(api, "wheel", {"op": "disable"})
 
 
 def test_a_wheel_in_absolute_position_mode_streams_positions_held_by_its_joint(gateway):

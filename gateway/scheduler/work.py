@@ -20,6 +20,9 @@ would move a device a client's follow stream drives is refused ``busy`` too (the
 would overwrite its target, and the stream's stop once it ended: ``_check_streams``), and one
 that stops a device on a stream or a ramp ends it once the stop is queued (its next tick
 would undo the stop), unless the stop is that ramp (to 0, at the joint's max_acceleration).
+A one-shot speed that would be such a ramp is refused ``busy`` for a device that plays (a
+trajectory, or a base's drive): the ramp's ticks and the play's would take turns setting its
+speed, and the play's next would jump back past the ramp's acceleration.
 """
 
 from __future__ import annotations
@@ -103,6 +106,13 @@ class BusWork:
             self._check_streams(moved)
             estop_before = estop_states([driver])
             ramp = self._speed_ramp(driver, command)
+            if ramp is not None and self.plays.playing(device):
+                raise BusyError(
+                    f"{device} plays a trajectory or drives a base, whose next tick sets its "
+                    "speed: this speed, ramped at its joint's max_acceleration, would fight it "
+                    "for as long as the ramp lasts; cancel the trajectory or stop the base "
+                    "first; nothing was sent"
+                )
             if ramp is not None:  # a ramp at the joint's max_acceleration (``tickers`` rule 5)
                 target, follows = driver.follow_target(ramp), driver.follow_carries(ramp)
                 self.start_stream(device, target, now(), follows, ends_on_target=True)
