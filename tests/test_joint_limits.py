@@ -123,6 +123,7 @@ def ramp_of(written: list[float]) -> list[float]:
     ("s1", {"op": "write", "address": 28, "data": "01"}, "cannot know"),  # a motor may spin
     ("s1", {"op": "write", "address": 9, "data": "0bb8"}, "cannot know"),  # targets clamped up
     ("s1", {"op": "write", "address": 11, "data": "0100"}, "cannot know"),  # and down
+    ("s1", {"op": "reset"}, "cannot know"),  # the factory centre and angle limits again
     ("s1", {"op": "joint", "position": 0.2}, "beyond its min 0.5 rad"),
 ])  # fmt: skip
 def test_a_command_beyond_a_limit_is_refused_and_sends_nothing(gateway, device, command, words):
@@ -274,6 +275,31 @@ def test_a_stop_while_a_one_shot_speed_ramps_ends_the_ramp(gateway):
     assert set(speeds(can_sim, before)) <= {0}
     assert ("stream_stopped", {"reason": "stopped by a command"}) in [
         (e.type, e.fields) for e in events[told:] if e.device == "wheel"]
+
+
+def test_a_speed_that_would_ramp_is_refused_while_the_motor_is_off(gateway):
+    """A one-shot speed to a disabled wheel ramped the drive's preset at max_acceleration
+    while the motor was off, and the enable then started the motor at the ramp's end at once
+    (0 to 15 rad/s in one heartbeat, found by an audit). A speed its joint would ramp is
+    refused until the motor is enabled, a stream's and a kept target's too: nothing is
+    written."""
+    api, simulators, _ = gateway
+    can_sim = simulators["can0"]
+    accepted(api, "wheel", {"op": "disable"})
+    accepted(api, "wheel", {"op": "set_mode", "mode": "velocity"})
+    before = len(can_sim.recorder.received())
+    refused = ask(api, "wheel", {"op": "joint", "velocity": TURN / 2})
+    assert refused["error"]["code"] == "bad_command", refused
+    assert refused["error"]["message"].startswith(
+        "joint left_wheel ramps its speeds at its max_acceleration from the speed the motor "
+        "turns at, and the motor is off")
+    assert ask(api, "wheel", {"op": "velocity", "rpm": 30})["error"]["code"] == "bad_command"
+    followed = api.follow("wheel", b'{"joint_velocity": 3.0, "client": "c4"}')
+    assert followed is not None and followed["error"]["code"] == "bad_command", followed
+    kept = api.ramp_to("wheel", {"joint_velocity": 3.0}, "c4", 1.0)
+    assert kept is not None and kept["error"]["code"] == "bad_command", kept
+    time.sleep(0.2)
+    assert speeds(can_sim, before) == []
 
 
 def test_a_one_shot_speed_that_would_ramp_is_refused_while_the_wheel_plays(gateway):

@@ -154,8 +154,10 @@ def frame_setpoints(frame: codec.Frame) -> list[Setpoint]:
     """The position targets ``frame`` sets, raw: a stored move's (its ACTION sets nothing
     more), each SYNC WRITE target under its own id, and a write's value of the target
     register; ``None`` for a go-to-preset (the preset is stored in the servo), a write of
-    part of the target register, and one of ``_SHIFTS_TARGETS`` (where the shaft goes then is
-    the servo's)."""
+    part of the target register, and one of ``_SHIFTS_TARGETS`` or a factory reset, which
+    restores them (where the shaft goes then is the servo's)."""
+    if isinstance(frame, codec.Reset):
+        return [Setpoint(frame.device_id, "position", None)]
     if isinstance(frame, codec.RegWrite):
         return [Setpoint(frame.device_id, "position", frame.position_raw)]
     if isinstance(frame, codec.SyncWrite):

@@ -344,13 +344,22 @@ class Zlac706Driver(Driver):
         self.machine.forget_pending()
 
     def follow_target(self, payload: dict[str, Any]) -> float:
-        """The speed of ``{"rpm": R}`` in velocity mode, or the position of ``{"position":
-        P}`` in absolute position mode with the motor enabled (CAN only), once where it holds
-        is known (a stream starts there: ``tickers.commanded``)."""
+        """The speed of ``{"rpm": R}`` in velocity mode (with the motor enabled when its joint
+        has a ``max_acceleration``), or the position of ``{"position": P}`` in absolute
+        position mode with the motor enabled (CAN only), once where it holds is known (a
+        stream starts there: ``tickers.commanded``)."""
         target = self.follow_payload(payload)
         outlook = self.machine.expected()
         if target.position is None:
             check(Role.SPEED, target.rpm, outlook)
+            if self.joint.max_acceleration is not None and outlook.enabled is not True:
+                raise CommandError(
+                    f"joint {self.joint.name} ramps its speeds at its max_acceleration from "
+                    "the speed the motor turns at, and the motor is "
+                    f"{'off' if outlook.enabled is False else 'perhaps off (not known)'}: a "
+                    "ramp now would leave the drive a speed its enable starts at at once; "
+                    "send enable first; nothing was sent"
+                )
             self.joint.check_position(None)  # a joint held within limits: turned past them
             return float(target.rpm)
         if not self.streams_positions:
