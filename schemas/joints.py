@@ -516,9 +516,10 @@ class Joint:
     def _refusal(
         self, what: str, value: float, unit: str, limit_name: str, limit: float
     ) -> RefusedError:
+        value += 0.0  # -0.0 is 0 (shown "-0" beyond a min above it, it read as a sign error)
         shown = f"{value:g}"
-        if f"{abs(value):g}" == f"{limit:g}":  # past it by less than six digits show: all
-            shown = repr(value)
+        if f"{abs(value):g}" == f"{limit:g}":  # past it by less than six digits show: all,
+            shown = repr(published(value))  # to the digits a double keeps through units
         return RefusedError(
             "out_of_range",
             f"joint {self.name}: {what} {shown} {unit} is beyond its {limit_name} {limit:g} {unit}",

@@ -124,6 +124,15 @@ def test_a_refusal_names_the_joint_the_limit_and_the_value():
     with pytest.raises(RefusedError) as refused:  # past it by less than six digits show
         joint.target_raw(0.0080001)
     assert str(refused.value).endswith("position 0.0080001 m is beyond its max 0.008 m")
+    with pytest.raises(RefusedError) as refused:  # not "-0" (an audit's)
+        joint.target_raw(-0.0)
+    assert str(refused.value).endswith("position 0 m is beyond its min 0.001 m")
+    # past it by a hair, as a conversion leaves it: to the digits a double keeps, not repr's
+    fast = wheel(max_velocity=15.0)
+    with pytest.raises(RefusedError) as refused:
+        fast.check("velocity", fast.speed_of(15.0000001))
+    assert str(refused.value).endswith("velocity 15.0000001 rad/s is beyond its max_velocity "
+                                       "15 rad/s"), refused.value
 
 
 def test_velocity_and_effort_limits():
