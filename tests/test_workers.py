@@ -1029,3 +1029,23 @@ def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_
     runner.took_state("drive", {"online": True, "estopped": False, "mode": "position"})
     refused = api.follow("drive", b'{"rpm": 30}')
     assert refused is not None and "the motor is in position mode" in refused["error"]["message"]
+
+
+def test_a_worker_whose_interpreter_hangs_is_ended_by_the_kernel() -> None:
+    """A hung worker whose daemon was killed held its ports for ever: its death signal is a
+    SIGTERM, which a hung interpreter never acts on (found by an audit). Each beat sets the
+    process's timer again; with no beat for ``HANG_LIMIT_S`` (shortened here) SIGALRM's
+    default action ends it. Here a worker's ``main`` waits for a start that never comes,
+    its far end held open, so that no beat ever comes."""
+    code = (
+        "import socket, sys\n"
+        "from busgate.gateway.service import worker\n"
+        "worker.HANG_LIMIT_S = 0.3\n"
+        "ours, far = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)\n"
+        "sys.argv = ['worker', str(ours.detach()), 'ERROR']\n"
+        "worker.main()\n"
+    )
+    started = time.monotonic()
+    ended = subprocess.run([sys.executable, "-c", code], timeout=20, check=False)
+    assert ended.returncode == -signal.SIGALRM
+    assert time.monotonic() - started < 5

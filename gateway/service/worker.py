@@ -40,6 +40,12 @@ them. Rules of this file:
    frozen out of the garbage collector once the buses run (``gc.freeze``), as the daemon's
    is: a full collection walking it holds the interpreter, every bus thread of the worker
    with it, for milliseconds.
+8. A worker whose interpreter hangs ends by the kernel's hand after ``HANG_LIMIT_S``: each
+   beat sets the process's timer again, and SIGALRM's default action ends the process when
+   no beat came. The daemon's supervisor kills a silent worker sooner; this is for a worker
+   whose daemon is gone (killed: its death signal is a SIGTERM, which a hung interpreter
+   never acts on), so that it does not hold its ports for ever. A stopped worker (SIGSTOP)
+   takes no signal but SIGKILL: it ends once continued.
 """
 
 from __future__ import annotations
@@ -76,6 +82,10 @@ log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
 
 #: How often at most each bus's trajectories and device ids are looked at (rule 2).
 MIRROR_S = 0.01
+#: How long a worker's interpreter may hang before the kernel ends it (rule 8): past the
+#: supervisor's patience (``runner.STALL_S`` after a beat, ``workers.SLOW_START_S`` before
+#: the first), so that a worker whose daemon lives is reported and restarted first.
+HANG_LIMIT_S = 30.0
 PR_SET_PDEATHSIG = 1
 #: The exit status of a worker that stopped on a SIGTERM of its own, not on the daemon's
 #: ``stop`` (rule 3): as a shell says a death by SIGTERM, so that its supervisor tells it from
@@ -86,8 +96,18 @@ STOPPED_ON_SIGTERM = 128 + signal.SIGTERM
 class Worker:
     """The buses of one worker, and what carries the daemon's calls to them."""
 
-    def __init__(self, reader: link.Reader, config: Config, buses: list[str]) -> None:
+    def __init__(
+        self,
+        reader: link.Reader,
+        config: Config,
+        buses: list[str],
+        *,
+        hang_limit_s: float | None = None,
+    ) -> None:
         self.reader = reader
+        #: The process's own timer, set again at each beat (rule 8); ``None``: not this
+        #: worker's to set (it runs in a process of another's, a test's).
+        self.hang_limit_s = hang_limit_s
         self.outbox = link.Outbox(reader.sock, "worker-send")
         #: The daemon's calls not yet answered, by id (rule 1: a withdrawal cancels one).
         self._calls: dict[int, Future] = {}
@@ -216,6 +236,8 @@ class Worker:
                 if last_turn >= next_beat:
                     next_beat = last_turn + link.BEAT_S
                     self.outbox.put(("beat", self._beat()), shed=True)
+                    if self.hang_limit_s is not None:
+                        _hang_limit(self.hang_limit_s)
             except Exception:  # rule 4
                 log.exception("worker: a mirror turn failed")
             # Until something changed or the beat is due (stopping raises the flag too); a
@@ -245,6 +267,12 @@ def _die_with_the_daemon() -> None:
     libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def _hang_limit(seconds: float) -> None:
+    """The kernel ends this process ``seconds`` from now unless this is called again (rule
+    8)."""
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+
+
 def _stop_on_sigterm(signum: int, frame: Any) -> NoReturn:
     raise SystemExit(STOPPED_ON_SIGTERM)
 
@@ -255,7 +283,9 @@ def main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's (rule 3)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)  # rule 8: its default ends the process
     _die_with_the_daemon()
+    _hang_limit(HANG_LIMIT_S)
     reader = link.Reader(socket.socket(fileno=int(sys.argv[1])))
     first = reader.receive()
     if first is None or first[0] != "start":
@@ -266,7 +296,7 @@ def main() -> int:
     # Its claim tables mirror the daemon's, which logs every change: one line each, not two.
     logging.getLogger(authority.__name__).setLevel(logging.ERROR)
     log.info("worker %d: buses %s", os.getpid(), ", ".join(buses))
-    worker = Worker(reader, config, buses)
+    worker = Worker(reader, config, buses, hang_limit_s=HANG_LIMIT_S)
     worker.run(estopped)
     return STOPPED_ON_SIGTERM if worker.stopped_on_sigterm else 0
 
