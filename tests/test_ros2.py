@@ -420,6 +420,29 @@ def test_a_command_that_cannot_say_whose_each_value_is_moves_nothing(
     diagnostics.wait(lambda a: refusal in gripper_refusal(a))
 
 
+def commands_values(array) -> dict[str, str]:
+    [status] = [s for s in array.status if s.name == f"{NODE}: commands"]
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_values_without_names_move_nothing_and_are_shown_in_the_commands_status(
+        ros, caplog) -> None:
+    """A message of values without names was refused in silence: no line, no diagnostics,
+    ``<node>: input`` ok."""
+    diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
+    since = len(ros["la"].recorder.received())
+    commands.publish(**joint_state(ros, [], position=[0.003], velocity=[1.0]))
+    why = "position has 1, velocity 1 values for 0 position and 0 velocity joints"
+    told = diagnostics.wait(lambda a: why in commands_values(a).get("last_refusal", ""))
+    [status] = [s for s in told.status if s.name == f"{NODE}: commands"]
+    assert status.level == 1 and why in status.message
+    assert any(r.getMessage().startswith("ros2: a command naming no joint of this gateway "
+                                         "refused, nothing in it moves: whose is each value?")
+               for r in caplog.records)
+    assert la_targets(ros, since, 1) == []
+
+
 def test_a_silent_velocity_joint_ramps_to_zero_after_the_timeout(ros) -> None:
     assert command(ros, "drive", {"op": "set_mode", "mode": "velocity"})["ok"]
     assert command(ros, "drive", {"op": "enable"})["ok"]
@@ -489,6 +512,36 @@ def test_a_trajectory_is_played_and_an_empty_one_cancels_it(ros, caplog) -> None
     trajectories.publish(header=header(ros), joint_names=["gripper"], points=[point(0.002, 0.4)])
     wait_for_target(ros, since, 1, 400)  # the play behind it was sent once it was answered
     assert not [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+
+
+def test_every_trajectory_naming_a_joint_the_gateway_lacks_is_told_refused(ros, caplog) -> None:
+    """A trajectory with a misspelt joint was told only as an unknown name, the first time,
+    and its refusal thrown away."""
+    diagnostics = subscribe(ros, "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+    trajectories = publisher(ros, "/joint_trajectory", "trajectory_msgs/msg/JointTrajectory")
+    types = ros["types"]
+    point = types["trajectory_msgs/msg/JointTrajectoryPoint"](
+        numpy.array([0.002]), *[numpy.array([], dtype=numpy.float64)] * 3,
+        types["builtin_interfaces/msg/Duration"](1, 0))
+    why = "no joint 'typo_joint' on this gateway"
+    line = f"ros2: a trajectory refused, it plays nothing: {why}"
+    deadline = time.monotonic() + 10
+    told: list[str] = []
+    while not told:  # one told in the second before this test may hold its line back
+        assert time.monotonic() < deadline, "no refusal told"
+        trajectories.publish(header=header(ros), joint_names=["typo_joint"], points=[point])
+        time.sleep(0.5)
+        told = [r.getMessage() for r in caplog.records if r.getMessage().startswith(line)]
+    assert len(told) == 1
+    diagnostics.wait(lambda a: commands_values(a).get("last_refusal") == f"trajectory: {why}")
+    caplog.clear()
+    for _ in range(2):  # again: told again, once a second at most
+        time.sleep(0.6)
+        trajectories.publish(header=header(ros), joint_names=["typo_joint"], points=[point])
+    deadline = time.monotonic() + 10
+    while not [r for r in caplog.records if r.getMessage().startswith(line)]:
+        assert time.monotonic() < deadline, "a repeated refusal was not told"
+        time.sleep(0.05)
 
 
 def test_trajectory_messages_are_carried_out_in_order_the_newest_of_a_burst_last(ros) -> None:

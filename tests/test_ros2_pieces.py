@@ -22,7 +22,7 @@ from busgate.gateway.ros2.diagnostics import (
     JointHealth,
     diagnostic_array,
 )
-from busgate.gateway.ros2.face import Ros2Face
+from busgate.gateway.ros2.face import REFUSAL_TOLD_EVERY_S, Ros2Face
 from busgate.gateway.ros2.trajectory import ROS_TRAJECTORY_ID, trajectory_command
 from busgate.gateway.service.assembly import build_bus
 from busgate.schemas.config import parse_config
@@ -126,19 +126,77 @@ def test_a_message_that_says_nothing_certain_is_refused_in_one_line_and_the_diag
     assert {kv["key"]: kv["value"] for kv in gripper["values"]}["last_refusal"] == refusal
 
 
+def commands_status(face: Ros2Face) -> tuple[int, str, dict[str, str]]:
+    """The level, message and values of the face's ``<node>: commands`` status."""
+    [status] = [s for s in face.diagnostics()["status"] if s["name"].endswith(": commands")]
+    return status["level"], status["message"], {kv["key"]: kv["value"] for kv in status["values"]}
+
+
 def test_a_trajectory_naming_only_joints_the_gateway_lacks_is_told_and_shown(caplog) -> None:
     """A MoveIt trajectory with a misspelt joint plays nothing: its name is logged once and
-    shown in the commands' diagnostics, as a command's (it was refused in silence)."""
+    shown in the commands' diagnostics, as a command's (it was refused in silence); and every
+    such trajectory is told refused, why and that it plays nothing, a line a second at most
+    (the first was told only as an unknown name, the next not at all)."""
     _, _, face = gripper_face()
     message = {"joint_names": ["gripper_typo"],
                "points": [{"positions": [0.001], "time_from_start": {"sec": 1, "nanosec": 0}}]}
+    refused = ("ros2: a trajectory refused, it plays nothing: no joint 'gripper_typo' on this "
+               "gateway")
     with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        for _ in range(3):
+            face._trajectory(message)
+        assert [r.getMessage() for r in caplog.records] == [
+            "ros2: a trajectory names no joint of this gateway: 'gripper_typo'", refused]
+        face._trajectories_told.told_at -= REFUSAL_TOLD_EVERY_S  # a second later
         face._trajectory(message)
-        face._trajectory(message)
+    assert caplog.records[-1].getMessage() == f"{refused} (2 more since the last such line)"
+    level, said, values = commands_status(face)
+    assert level == WARN and "'gripper_typo'" in said
+    assert values["last_refusal"] == "trajectory: no joint 'gripper_typo' on this gateway"
+    # one the play refuses: told as a trajectory's, shown in the joint's status
+    face._trajectories_told.told_at -= REFUSAL_TOLD_EVERY_S
+    face._trajectory_answered(["gripper"], {"ok": False, "error": {"message": "la1 is e-stopped"}},
+                              cancel=False)
+    assert caplog.records[-1].getMessage() == (
+        "ros2: a trajectory refused, it plays nothing: la1 is e-stopped")
+    assert face._refusals["gripper"] == "trajectory: la1 is e-stopped"
+
+
+def test_a_command_naming_no_joint_is_refused_in_one_line_and_the_commands_status(
+        monkeypatch, caplog) -> None:
+    """Values without names were refused in silence: no line, no diagnostics (no joint's
+    status to show it in). Told a line a second at most, shown until a command is taken."""
+    api, bridge, face = gripper_face()
+    monkeypatch.setattr(api, "ramp_to", lambda *_: pytest.fail("a refused message moved"))
+    nameless = {"name": [], "position": [0.003], "velocity": [1.0]}
+    refusal = ("whose is each value? position has 1, velocity 1 values for 0 position and 0 "
+               "velocity joints (each joint's command interface must be its type, or give "
+               "every name a value, NaN for none)")
+    line = ("ros2: a command naming no joint of this gateway refused, nothing in it moves: "
+            f"{refusal}")
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        for _ in range(4):
+            face._command(nameless)
+        assert [r.getMessage() for r in caplog.records] == [line]
+        face._nameless_told.told_at -= REFUSAL_TOLD_EVERY_S  # a second later
+        face._command(nameless)
     assert [r.getMessage() for r in caplog.records] == [
-        "ros2: a trajectory names no joint of this gateway: 'gripper_typo'"]
-    [commands_status] = [s for s in face.diagnostics()["status"] if s["name"].endswith("commands")]
-    assert "gripper_typo" in commands_status["message"]
+        line, f"{line} (3 more since the last such line)"]
+    assert bridge.soon == []
+    assert commands_status(face) == (
+        WARN, f"a message naming no joint of this gateway refused: {refusal}",
+        {"unknown_joints": "", "last_refusal": refusal})
+    face._command({"name": ["gripper"], "position": [0.003]})  # taken: the refusal is past
+    assert commands_status(face) == (OK, "ok", {"unknown_joints": "", "last_refusal": ""})
+
+
+def test_an_empty_joint_name_is_shown_in_quotes() -> None:
+    """An empty name read as nothing: ``commands name unknown joints: , elbow``."""
+    _, _, face = gripper_face()
+    face._command({"name": ["", "elbow", "gripper"], "position": [1.0, 1.0, 0.002]})
+    level, said, values = commands_status(face)
+    assert (level, said) == (WARN, "commands name unknown joints: '', 'elbow'")
+    assert values["unknown_joints"] == "'', 'elbow'"
 
 
 def test_an_unknown_name_is_told_once_and_the_rest_is_taken() -> None:
@@ -238,7 +296,8 @@ def test_a_joints_level_is_its_worst_reason(joint, level, message) -> None:
 def test_unknown_joint_names_are_a_warning_of_the_commands_status() -> None:
     statuses = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [], {"elbow", "arm"})
     assert [(s["name"], s["level"], s["message"]) for s in statuses["status"]] == [
-        ("n: commands", WARN, "commands name unknown joints: arm, elbow"), ("n: input", OK, "ok")]
+        ("n: commands", WARN, "commands name unknown joints: 'arm', 'elbow'"),
+        ("n: input", OK, "ok")]
     quiet = diagnostic_array("n", {"sec": 0, "nanosec": 0}, [], [])["status"][-2]
     assert (quiet["level"], quiet["message"]) == (OK, "ok")
 

@@ -13,8 +13,10 @@ Rules of this file:
 3. Names are ``<node>: joint <name>`` and ``<node>: bus <name>``; ``hardware_id`` is the
    device's (``<kind> id <n> on bus <bus>``) or the bus's name.
 4. One more status, ``<node>: commands``, is WARN once commands have named joints the gateway
-   does not have (each is told in the log once), naming them: a controller's config that
-   names them needs fixing.
+   does not have (each is told in the log once), naming them, each in quotes (an empty name
+   is ``''``): a controller's config that names them needs fixing. It is WARN too while the
+   last message refused named no joint of the gateway (no names, or only names no joint
+   has: no joint's status can show it), saying why.
 5. One more, ``<node>: input``, is WARN when the node dropped samples or requests since the
    last status (``node`` rule 2: not the type's CDR, without rmw_zenoh's attachment, on a
    wildcard, too large), naming each topic or service that dropped and its last reason; its
@@ -70,14 +72,16 @@ def diagnostic_array(
     buses: list[BusHealth],
     unknown: Iterable[str] = (),
     dropped: Iterable[Dropped] = (),
+    refusal: str | None = None,
 ) -> dict[str, Any]:
     """The message (the rules above); ``unknown``: the joint names commands gave that no
-    joint has (rule 4); ``dropped``: each topic or service that dropped any (rule 5)."""
+    joint has, and ``refusal``: the last refused message's, when it named no joint (rule 4);
+    ``dropped``: each topic or service that dropped any (rule 5)."""
     return {
         "header": {"stamp": stamp, "frame_id": ""},
         "status": [_joint_status(node, j) for j in joints]
         + [_bus_status(node, b) for b in buses]
-        + [_commands_status(node, sorted(unknown)), _input_status(node, list(dropped))],
+        + [_commands_status(node, sorted(unknown), refusal), _input_status(node, list(dropped))],
     }
 
 
@@ -93,18 +97,14 @@ def _input_status(node: str, dropped: list[Dropped]) -> dict[str, Any]:
     return _status(level, f"{node}: input", message, node, values)
 
 
-def _commands_status(node: str, unknown: list[str]) -> dict[str, Any]:
-    level, message = (
-        (WARN, f"commands name unknown joints: {', '.join(unknown)}")
-        if unknown
-        else (
-            OK,
-            "ok",
-        )
-    )
-    return _status(
-        level, f"{node}: commands", message, node, {"unknown_joints": ", ".join(unknown)}
-    )
+def _commands_status(node: str, unknown: list[str], refusal: str | None) -> dict[str, Any]:
+    named = ", ".join(f"'{name}'" for name in unknown)
+    said = [f"commands name unknown joints: {named}"] if unknown else []
+    if refusal is not None:
+        said.append(f"a message naming no joint of this gateway refused: {refusal}")
+    level, message = (WARN, "; ".join(said)) if said else (OK, "ok")
+    values = {"unknown_joints": named, "last_refusal": refusal or ""}
+    return _status(level, f"{node}: commands", message, node, values)
 
 
 def _joint_status(node: str, health: JointHealth) -> dict[str, Any]:

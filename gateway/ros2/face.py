@@ -13,15 +13,18 @@ Rules of this file:
    ramps to its target within its limits (``GatewayApi.ramp_to``); a refusal (claimed by
    another client, e-stopped, a trajectory playing) moves nothing and is said once in the log
    (once a second at most, whatever its words) and in the diagnostics until a command for that
-   joint is taken again. A velocity joint without a command for ``command_timeout_s`` ramps
-   to 0.
+   joint is taken again. A refused message that names no joint of this gateway (no names, or
+   only names no joint has) is shown in the commands' status instead, until a command or a
+   trajectory is taken, and each such refusal is told, a line a second at most (``Hushed``).
+   A velocity joint without a command for ``command_timeout_s`` ramps to 0.
 3. A trajectory goes to the gateway's trajectory lane as the trajectory key's command would,
-   under the same client; its refusal is logged and shown in the joints' diagnostics (but
-   for an empty one's when nothing plays: the controller's way to stop asks nothing that
-   was refused). One
-   message is on the key at a time, so they are carried out in the order they came (an
-   empty one right behind a play cancels that play, never a play before it); of those that
-   came while one was on the key only the newest is sent next, as a topic wants.
+   under the same client; its refusal is shown in the joints' diagnostics, or the commands'
+   status when it names none of them (but for an empty one's when nothing plays: the
+   controller's way to stop asks nothing that was refused), and each refusal is told, saying
+   it plays nothing, a line a second at most (``Hushed``). One message is on the key at a
+   time, so they are carried out in the order they came (an empty one right behind a play
+   cancels that play, never a play before it); of those that came while one was on the key
+   only the newest is sent next, as a topic wants.
 4. Each base takes ``cmd_vel`` and publishes ``odom`` and ``tf`` (``ros2.bases``).
    The e-stop service stops every bus whatever its request looks like; the reset service
    brings them back as ``<gw>/estop/reset`` does. ``~/estopped`` is published on change and
@@ -49,7 +52,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from busgate.codecs.ros2 import rmw_zenoh
@@ -86,7 +89,8 @@ CLAIM_TTL_S = 2.0
 #: How often the periodic work looks at the time (velocity timeouts, the e-stop state).
 TICK_S = 0.005
 EVERY_SECOND_S = 1.0
-#: A joint's refusals are logged at most this often (rule 2), however their words change.
+#: A joint's refusals are logged at most this often (rule 2), however their words change;
+#: and so are the refusals no joint's line tells, each kind's (``Hushed``).
 REFUSAL_TOLD_EVERY_S = 1.0
 #: A refusal is logged up to this many characters: whole, why included (its names are cut).
 REFUSAL_SHOWN_CHARS = 300
@@ -96,6 +100,25 @@ JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 BOOL = "std_msgs/msg/Bool"
 TRIGGER = "std_srvs/srv/Trigger"
+
+
+@dataclass(slots=True)
+class Hushed:
+    """A warning told every time it comes, but at most once every ``REFUSAL_TOLD_EVERY_S``:
+    the line after a quiet spell says how many were held back (a flood never fills the
+    journal)."""
+
+    told_at: float = -math.inf  # monotonic
+    held: int = 0  # come since that line, not told
+
+    def warn(self, line: str) -> None:
+        moment = time.monotonic()
+        if moment - self.told_at < REFUSAL_TOLD_EVERY_S:
+            self.held += 1
+            return
+        since = f" ({self.held} more since the last such line)" if self.held else ""
+        self.told_at, self.held = moment, 0
+        log.warning("%s%s", line, since)
 
 
 class Ros2Face:
@@ -116,6 +139,10 @@ class Ros2Face:
         self._commands_lock = threading.Lock()
         self._refusals: dict[str, str] = {}  # joint → its last refused command (rule 2)
         self._refusal_told: dict[str, float] = {}  # joint → when its last refusal was logged
+        #: The last refused message that named no joint of this gateway, until one is taken.
+        self._nameless_refusal: str | None = None
+        self._nameless_told = Hushed()  # commands that name no joint of this gateway, refused
+        self._trajectories_told = Hushed()  # trajectories refused
         #: The trajectory message on the trajectory key, and the newest come since (rule 3).
         self._trajectory_lock = threading.Lock()
         self._trajectory_sent = False
@@ -255,7 +282,13 @@ class Ros2Face:
             unknown = set(self.commands.unknown)
         stamp = time_of(time.time())
         return diagnostic_array(
-            self.node_name, stamp, joints, buses, unknown, self._dropped_since_last()
+            self.node_name,
+            stamp,
+            joints,
+            buses,
+            unknown,
+            self._dropped_since_last(),
+            self._nameless_refusal,
         )
 
     def _dropped_since_last(self) -> list[Dropped]:
@@ -283,7 +316,9 @@ class Ros2Face:
         if hand_on:
             self.bridge.call_soon(self._hand_on)
         _log_unknown(taken.unknown, "a command")
-        if taken.refused is not None:
+        if taken.refused is None:
+            self._nameless_refusal = None
+        else:
             self._refused(message.get("name") or [], taken.refused)
 
     def _hand_on(self) -> None:
@@ -312,7 +347,7 @@ class Ros2Face:
             command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
             self._unknown(names, "a trajectory")
-            self._refused(names, str(exc))
+            self._trajectory_refused(names, str(exc))
             return
         sent = (names, message_json(command), command["op"] == "cancel", came_under)
         with self._trajectory_lock:
@@ -334,8 +369,9 @@ class Ros2Face:
         if reply.get("ok") or cancel:  # a cancel is refused only when nothing plays (rule 3)
             for name in names:
                 self._refusals.pop(name, None)
+            self._nameless_refusal = None
         else:
-            self._refused(names, f"trajectory: {reply['error']['message']}")
+            self._trajectory_refused(names, reply["error"]["message"])
         with self._trajectory_lock:
             following, self._trajectory_next = self._trajectory_next, None
             self._trajectory_sent = following is not None
@@ -349,20 +385,25 @@ class Ros2Face:
             unknown = self.commands.newly_unknown(names)
         _log_unknown(unknown, what)
 
-    def _refused(self, joints: Iterable[str], message: str) -> None:
-        """Shown for each joint of this gateway, and told in one line for those not told
-        so lately (a name no joint has is ``Commands``' to tell, rule 5)."""
+    def _refused(self, names: Iterable[str], message: str) -> None:
+        """A command's refusal: shown for each joint of this gateway it names, and told in
+        one line for those not told so lately (rule 2); one that names none, shown and told
+        as such (a name no joint has is ``Commands``' to tell, rule 5)."""
         moment = time.monotonic()
+        joints = self._joints_among(names)
         telling: list[str] = []
-        for name in dict.fromkeys(joints):  # a message may name a joint many times
-            if name not in self.joints:
-                continue
+        for name in joints:
             told = self._refusal_told.get(name, -math.inf)
             if self._refusals.get(name) != message and moment - told >= REFUSAL_TOLD_EVERY_S:
                 telling.append(name)
                 self._refusal_told[name] = moment
-            self._refusals[name] = message
-        if telling:
+        self._show_refusal(joints, message)
+        if not joints:
+            self._nameless_told.warn(
+                "ros2: a command naming no joint of this gateway refused, nothing in it "
+                f"moves: {shown(message, REFUSAL_SHOWN_CHARS)}"
+            )
+        elif telling:
             which = "joint" if len(telling) == 1 else "joints"
             log.warning(
                 "ros2: command for %s %s refused: %s",
@@ -370,6 +411,26 @@ class Ros2Face:
                 ", ".join(telling),
                 shown(message, REFUSAL_SHOWN_CHARS),
             )
+
+    def _trajectory_refused(self, names: Iterable[str], why: str) -> None:
+        """Shown as a command's refusal is; told each time, a line a second at most (rule 3)."""
+        self._show_refusal(self._joints_among(names), f"trajectory: {why}")
+        self._trajectories_told.warn(
+            f"ros2: a trajectory refused, it plays nothing: {shown(why, REFUSAL_SHOWN_CHARS)}"
+        )
+
+    def _joints_among(self, names: Iterable[str]) -> list[str]:
+        """The joints of this gateway ``names`` names, each once (a message may name a joint
+        many times)."""
+        return [name for name in dict.fromkeys(names) if name in self.joints]
+
+    def _show_refusal(self, joints: list[str], message: str) -> None:
+        """``message`` in the diagnostics of each of ``joints``, or of the commands when
+        there are none (rules 2 and 3)."""
+        for name in joints:
+            self._refusals[name] = message
+        if not joints:
+            self._nameless_refusal = message
 
     def _estop(self, request: dict[str, Any]) -> Future:
         key = f"ros2 {self._resolve(self.section.estop)}"
