@@ -52,7 +52,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any
 
 from busgate.codecs.ros2 import rmw_zenoh
@@ -65,7 +65,7 @@ from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef, Target
 from busgate.gateway.ros2.diagnostics import BusHealth, Dropped, JointHealth, diagnostic_array
-from busgate.gateway.ros2.node import NodeName, Ros2Node
+from busgate.gateway.ros2.node import Hushed, NodeName, Ros2Node
 from busgate.gateway.ros2.trajectory import trajectory_command
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import MAX_PAYLOAD
@@ -102,25 +102,6 @@ BOOL = "std_msgs/msg/Bool"
 TRIGGER = "std_srvs/srv/Trigger"
 
 
-@dataclass(slots=True)
-class Hushed:
-    """A warning told every time it comes, but at most once every ``REFUSAL_TOLD_EVERY_S``:
-    the line after a quiet spell says how many were held back (a flood never fills the
-    journal)."""
-
-    told_at: float = -math.inf  # monotonic
-    held: int = 0  # come since that line, not told
-
-    def warn(self, line: str) -> None:
-        moment = time.monotonic()
-        if moment - self.told_at < REFUSAL_TOLD_EVERY_S:
-            self.held += 1
-            return
-        since = f" ({self.held} more since the last such line)" if self.held else ""
-        self.told_at, self.held = moment, 0
-        log.warning("%s%s", line, since)
-
-
 class Ros2Face:
     """The gateway's ROS 2 node (the rules above)."""
 
@@ -141,8 +122,9 @@ class Ros2Face:
         self._refusal_told: dict[str, float] = {}  # joint → when its last refusal was logged
         #: The last refused message that named no joint of this gateway, until one is taken.
         self._nameless_refusal: str | None = None
-        self._nameless_told = Hushed()  # commands that name no joint of this gateway, refused
-        self._trajectories_told = Hushed()  # trajectories refused
+        #: Commands that name no joint of this gateway, refused; trajectories refused.
+        self._nameless_told = Hushed(REFUSAL_TOLD_EVERY_S)
+        self._trajectories_told = Hushed(REFUSAL_TOLD_EVERY_S)
         #: The trajectory message on the trajectory key, and the newest come since (rule 3).
         self._trajectory_lock = threading.Lock()
         self._trajectory_sent = False

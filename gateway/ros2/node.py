@@ -35,11 +35,12 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -59,13 +60,33 @@ ServiceHandler = Callable[[dict[str, Any]], "Future[dict[str, Any]]"]
 
 
 @dataclass(slots=True)
+class Hushed:
+    """A warning told each time it comes, but at most once every ``every_s``: the line after
+    a quiet spell says how many were held back (a flood never fills the journal)."""
+
+    every_s: float
+    told_at: float = -math.inf  # monotonic
+    held: int = 0  # come since that line, not told
+
+    def warn(self, line: str) -> bool:
+        """``line`` told, or held back (``False``)."""
+        moment = time.monotonic()
+        if moment - self.told_at < self.every_s:
+            self.held += 1
+            return False
+        since = f" ({self.held} more since the last such line)" if self.held else ""
+        self.told_at, self.held = moment, 0
+        log.warning("%s%s", line, since)
+        return True
+
+
+@dataclass(slots=True)
 class Drops:
     """What one entity dropped (rule 2)."""
 
     count: int = 0
     last: str = ""  # the last one, in words
-    told_at: float = -DROPS_TOLD_EVERY_S  # when a warning last said them (monotonic)
-    held: int = 0  # dropped since that warning
+    told: Hushed = field(default_factory=lambda: Hushed(DROPS_TOLD_EVERY_S))
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,11 +263,5 @@ class Ros2Node:
         drops = self.drops.setdefault(entity, Drops())
         drops.count += 1
         drops.last = what
-        moment = time.monotonic()
-        if moment - drops.told_at < DROPS_TOLD_EVERY_S:
-            drops.held += 1
+        if not drops.told.warn(f"ros2: {entity}: dropped {what}"):
             log.debug("ros2: %s: dropped %s", entity, what)
-            return
-        also = f" ({drops.held} more dropped since the last such line)" if drops.held else ""
-        drops.told_at, drops.held = moment, 0
-        log.warning("ros2: %s: dropped %s%s", entity, what, also)
