@@ -389,6 +389,36 @@ def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims
         assert moves == [600]
 
 
+
+def test_a_worker_stalled_briefly_carries_out_no_follow_target_that_went_stale_meanwhile(
+    served: Served, client
+) -> None:
+    """A worker stopped (SIGSTOP) for less than it takes to be killed reads, once it goes on,
+    the targets a client set meanwhile and then stopped setting, its stream left open: each is
+    judged by when the gateway took it, as in one process, so the stream is stale and the
+    device stays (judged by when each came, they were fresh: the device went to the last)."""
+    bus = "uart0"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    assert client.device(device).move(500)["ok"]
+    with client.device(device).follow() as stream:
+        for _ in range(5):  # a stream running, at 500
+            stream.set(position=500)
+            time.sleep(PERIOD_S)
+        os.kill(victim, signal.SIGSTOP)
+        try:
+            for k in range(10):  # 500 … 1400 over 0.2 s, then no more
+                stream.set(position=500 + 100 * k)
+                time.sleep(PERIOD_S)
+            time.sleep(1.0)  # well short of the 4 s that has a silent worker killed
+            mark = served.marks()[bus]
+        finally:
+            os.kill(victim, signal.SIGCONT)
+        time.sleep(0.5)
+    ticks = [t for _, f in served.frames(bus, mark) if (t := tick_targets(f)) is not None]
+    assert all(t == {1: 500} for t in ticks), ticks  # a tick built before the stop may go
+    assert victim in served.workers.values()  # never killed: a worker that went on
+
 # -- the link itself: no process ----------------------------------------------------------------
 
 

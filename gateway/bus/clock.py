@@ -39,6 +39,10 @@ SWITCH_INTERVAL_S = 0.0002
 _PR_SET_NAME = 15
 _PR_SET_TIMERSLACK = 29
 
+#: The bus clock: ``CLOCK_MONOTONIC`` on Linux (``time.get_clock_info("perf_counter")``), kept
+#: by the kernel for the whole host, not per process (a worker, a child of the daemon, is in
+#: its time namespace): a time taken in the gateway's process means the same in a worker's (a
+#: trajectory's start, when a follow target was taken).
 now = time.perf_counter
 
 

@@ -247,11 +247,15 @@ class BusRunner:
         start_by = now() + COMMAND_START_S
         return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future, skip))
 
-    def follow(self, device: str, target: Any, follows: Follows) -> None:
+    def follow(
+        self, device: str, target: Any, follows: Follows, taken_at: float | None = None
+    ) -> None:
         """The latest follow target of ``device`` (validated with its driver's
         ``follow_target`` while it ``follows`` that: a position or a speed); streaming
-        starts, or goes on, at the device's period."""
-        moment = now()
+        starts, or goes on, at the device's period. Its stream judges it fresh by when the
+        gateway took it (``tickers`` rule 2): now, or ``taken_at`` (bus clock) for a target
+        that crossed to a worker, which may have read it late."""
+        moment = now() if taken_at is None else taken_at
         if self.streams.store_latest(device, target, moment, follows):
             return
         self._inbox.append(lambda: self._work.start_stream(device, target, moment, follows))

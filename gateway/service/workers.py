@@ -10,7 +10,8 @@ Rules of this file:
    ``PlaysView``, the bus's statistics and whether it is open (or why not). Every call that
    moves or sets anything goes to the worker, in the order it was made, but that a device's
    follow or ramp target still waiting for the socket is replaced by its next one
-   (``link.Outbox``).
+   (``link.Outbox``). A follow target goes with the time it was taken here, by which the
+   worker's stream judges it fresh (``BusRunner.follow``), not the time it came.
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
@@ -655,8 +656,12 @@ class WorkerRunner:
         self.worker.tell(self.name, "stop_stream", device, reason)
 
     def follow(self, device: str, target: Any, follows: Follows) -> None:
-        self._fed_at[device] = now()
-        self.worker.target(self.name, "follow", device, target, follows)
+        # Taken now, and judged fresh by that in the worker (rule 1): one that waited for a
+        # worker stopped a while (SIGSTOP, swapping) is stale when it is read, as in one
+        # process, not carried out after its client stopped sending. The bus clock is
+        # CLOCK_MONOTONIC (``clock.now``): one clock for the processes of a host.
+        taken_at = self._fed_at[device] = now()
+        self.worker.target(self.name, "follow", device, target, follows, taken_at)
 
     def ramp(self, device: str, target: Any, follows: Follows) -> None:
         self._fed_at[device] = now()
