@@ -37,7 +37,7 @@ from busgate.gateway.scheduler.runner import STALL_S
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.assembly import build_bus
-from busgate.gateway.service.worker import Worker
+from busgate.gateway.service.worker import STOPPED_ON_SIGTERM, Worker
 from busgate.gateway.service.workers import (
     RESTART_MAX_S,
     RESTART_S,
@@ -302,19 +302,37 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     reset_every_device(client)
 
 
-def test_a_worker_sent_a_sigterm_alone_is_reported_and_started_again(
+def test_a_worker_sent_a_sigterm_alone_is_reported_and_started_again_e_stopped(
     served: Served, client
 ) -> None:
     """A SIGTERM to a worker, the daemon not stopping: a worker's end as any other (its
-    supervisor waited for a stop of the daemon that did not come)."""
+    supervisor waited for a stop of the daemon that did not come), but one whose stop put its
+    devices in their safe state (an LA latches that e-stop): the next worker e-stops them
+    again, as after an e-stop, and a reset moves them (the next worker said them not
+    e-stopped, and a move was answered ok but not made)."""
     bus = "uart1"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
     assert client.device(device).state()["online"] is True  # watched from now on
+    assert client.device(device).state()["estopped"] is False
     os.kill(victim, signal.SIGTERM)
-    assert bus in served.gateway.wait_for("ended: stopped on a SIGTERM of its own")
+    line = served.gateway.wait_for("ended: stopped on a SIGTERM of its own")
+    assert bus in line
+    assert "its devices put in their safe state" in line  # why the next one is e-stopped
+    mark = served.marks()[bus]  # its own safe state went 2 s before (``SIGTERM_WAIT_S``)
     served.started_again(victim)
+    wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
     until_state(client, device, "online", True, timeout=10)  # on its new worker
+    assert client.device(device).state()["estopped"] is True
+    with pytest.raises(bc.error_for("estopped")):  # judged by the new worker's bus thread
+        client.device(device).move(500)
+    reset_every_device(client)
+    assert client.device(device).move(1200)["ok"]
+    wait_until(
+        lambda: abs(client.device(device).state()["position"] - 1200) < 20,
+        timeout=5,
+        what=f"{device} at 1200",
+    )
 
 
 def test_an_estop_while_a_worker_is_down_is_carried_out_by_the_next(served: Served, client) -> None:
@@ -928,6 +946,36 @@ def test_a_worker_that_cannot_be_started_is_tried_again_later_each_time(
         lone_worker.stop()
     assert delays[:4] == [RESTART_S / 100 * 2**n for n in range(4)]  # was 0.005 each time
 
+
+class _Ended:
+    """A worker's process that ended with ``code``, as ``WorkerProcess._ended`` waits for it."""
+
+    def __init__(self, code: int) -> None:
+        self.code = code
+
+    def wait(self) -> int:
+        return self.code
+
+
+@pytest.mark.parametrize(
+    ("code", "ran", "safe_stopped"),
+    [
+        (STOPPED_ON_SIGTERM, True, True),  # a SIGTERM of its own: its stop ran
+        (1, True, True),  # an error its stop followed out of ``Worker.run``
+        (-signal.SIGKILL, True, False),  # killed: it sent nothing
+        (STOPPED_ON_SIGTERM, False, False),  # a SIGTERM while it started: no bus ran yet
+    ],
+)
+def test_the_next_worker_e_stops_the_buses_of_one_that_ended_through_its_own_stop(
+    lone_worker: WorkerProcess, monkeypatch, code: int, ran: bool, safe_stopped: bool
+) -> None:
+    """That stop put its devices in their safe state (an LA's e-stop, latched), which a new
+    worker's drivers would not know; one killed, or ended before its buses ran, sent none."""
+    monkeypatch.setattr(workers_module, "SIGTERM_WAIT_S", 0.0)  # the daemon does not stop
+    lone_worker._first_word_at = now() if ran else None
+    lone_worker._ended(_Ended(code))
+    assert lone_worker._estopped == ({"uart0"} if safe_stopped else set())
+    assert ("their safe state" in lone_worker.ended_because) is safe_stopped
 
 def test_a_worker_waiting_to_be_started_again_keeps_the_watchdog_fed(
     lone_worker: WorkerProcess, monkeypatch

@@ -27,7 +27,10 @@ them. Rules of this file:
    (``systemctl stop`` sends one to every process of the service at once: its supervisor may
    read this end before the daemon has begun its stop). SIGINT and SIGHUP are the daemon's
    to act on: a Ctrl-C, or a terminal that closes, reaches the whole process group (left to
-   its default, SIGHUP ended the worker at once, its devices as they were).
+   its default, SIGHUP ended the worker at once, its devices as they were). Once its buses
+   run, whatever it can catch ends it through that stop (an error out of ``run`` too), so an
+   exit status, not a signal, tells its supervisor that its devices were put in their safe
+   state (``workers.safe_stopped``).
 4. A message that cannot be carried out, and a mirror turn that fails, are bugs: logged, and
    the worker goes on.
 5. When a bus of the gateway asks for SCHED_FIFO, every thread of the worker runs under it

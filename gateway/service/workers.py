@@ -17,7 +17,9 @@ Rules of this file:
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
    and those e-stopped by a call since their last reset, answered or not: a worker that hung
    or ended with an e-stop in its socket never carried it out, and its last states did not
-   say it.
+   say it. So it does the buses of a worker that ended through its own stop, the daemon not
+   stopping (``safe_stopped``): that stop put their devices in their safe state (an Inspire
+   LA's e-stop, latched), where a new worker's drivers take them to be driving.
 3. A worker that ends, or hangs (silent for ``STALL_S``, ``SLOW_START_S`` before its first
    word: it is killed), is reported once: every call waiting on it is answered
    ``bus_unavailable``, each of its devices goes offline with an event saying why (after a
@@ -93,6 +95,8 @@ STOP_S = 2.0
 #: How long the supervisor of a worker stopped by a SIGTERM of its own waits for the daemon's
 #: stop before that end is a worker's end (rule 3): ``systemctl stop`` signals them together.
 SIGTERM_WAIT_S = 2.0
+#: What the end of a worker that put its devices in their safe state adds (rule 2).
+SAFE_STATE_SENT = "its devices put in their safe state, e-stopped until a reset"
 
 
 def restart_delay(previous_s: float, *, steady: bool) -> float:
@@ -235,8 +239,8 @@ class WorkerProcess:
         #: When the supervisor starts an ended worker again (``None``: one runs, rule 3).
         self._restart_at: float | None = None
         self._pending: dict[int, Future] = {}
-        #: Buses e-stopped by a call since their last reset (rule 2): the next worker e-stops
-        #: them as it starts.
+        #: Buses e-stopped by a call, or by their worker's own stop, since their last reset
+        #: (rule 2): the next worker e-stops them as it starts.
         self._estopped: set[str] = set()
         self._ids = itertools.count()
         self._lock = threading.Lock()
@@ -498,7 +502,8 @@ class WorkerProcess:
         code = process.wait()
         self._first_word.set()  # start-up goes on: its buses are down
         last_beat, self.beat = self.beat, {}
-        how = _how_it_ended(code)
+        safe = safe_stopped(code, ran=self._first_word_at is not None)
+        how = _how_it_ended(code) + (f"; {SAFE_STATE_SENT}" if safe else "")
         self.ended_because = f"{WORKER_ENDED_REASON} ({how})"
         gone = BusUnavailableError(f"the worker of its bus ended ({how})")
         for future in waiting.values():
@@ -506,6 +511,9 @@ class WorkerProcess:
                 future.set_exception(gone)
         if self._daemon_stops(code):
             return
+        if safe:  # before the next worker's start reads it (rule 2)
+            with self._lock:
+                self._estopped.update(self.runners)
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             beat = last_beat.get(runner.name)
@@ -519,6 +527,15 @@ class WorkerProcess:
         if code in (worker_process.STOPPED_ON_SIGTERM, -signal.SIGTERM):
             return self._stopping.wait(SIGTERM_WAIT_S)
         return self._stopping.is_set()
+
+
+def safe_stopped(code: int, *, ran: bool) -> bool:
+    """Whether a worker that ended with ``code`` put its devices in their safe state: one whose
+    buses ran (``ran``: it said its first word) ends through its stop, safe states sent, on
+    whatever it can catch (``worker`` rule 3), and so with an exit status of its own
+    (``STOPPED_ON_SIGTERM``, 0, or 1 for an error its stop followed out of ``Worker.run``);
+    killed by a signal (SIGKILL, a crash), it sent none."""
+    return ran and code >= 0
 
 
 def _how_it_ended(code: int) -> str:
