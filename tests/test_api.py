@@ -634,3 +634,23 @@ def test_info_lists_buses_devices_and_their_state(gateway):
     assert buses["uart0"]["protocol"] == "inspire_la"
     assert [d["name"] for d in buses["uart0"]["devices"]] == ["la1", "la2"]
     assert buses["can0"]["devices"][0]["kind"] == "zlac706"
+
+
+def test_a_reset_of_every_bus_says_which_bus_it_could_not_reset(tmp_path, caplog) -> None:
+    """A reset while a bus was down (in a worker: while the worker was down) was told as a
+    reset of every bus, and its devices stayed e-stopped with nothing said (an audit's). The
+    bus whose reset fails says so in a line of its own."""
+    bus = SerialBus(name="uart9", transport="serial", port=str(tmp_path / "gone"), baudrate=921_600,
+                    devices=[{"name": "la9", "kind": "inspire_la", "id": 1}])
+    runner = build_bus(bus).start()
+    try:
+        api = GatewayApi("gw", {"uart9": runner})
+        with caplog.at_level("WARNING", logger=commands.__name__):
+            (reset,) = api.reset_estop("c1")
+            assert isinstance(reset.exception(timeout=5), Exception)
+        said = [r.getMessage() for r in caplog.records if "not reset" in r.getMessage()]
+        assert said and said[0].startswith(
+            "e-stop reset: bus uart9 not reset, its devices still e-stopped (reset again once "
+            "it is back): "), said
+    finally:
+        runner.stop()

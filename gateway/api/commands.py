@@ -376,14 +376,17 @@ class GatewayApi:
         """The reset without its log line and event (``reset_estop``): every device out of
         the e-stop but those claimed by a client other than ``sender``, which are their
         holder's to reset (a device's own ``reset_estop`` from another is refused
-        ``claimed``). The buses' futures, and the devices not reset."""
+        ``claimed``). The buses' futures, and the devices not reset; a bus whose reset fails
+        (down, its worker down) says so in a line of its own, its devices still e-stopped."""
         reset: list[Future] = []
         not_reset: list[str] = []
         for runner in self.runners.values():
             held = frozenset(
                 d for d in runner.drivers if runner.authority.holder(d) not in (None, sender)
             )
-            reset.append(runner.reset_estop(skip=held))
+            future = runner.reset_estop(skip=held)
+            future.add_done_callback(functools.partial(_tell_bus_not_reset, runner.name))
+            reset.append(future)
             not_reset += sorted(held)
         return reset, not_reset
 
@@ -532,6 +535,19 @@ def _follow_target(driver: Driver, fields: dict[str, Any]) -> tuple[float, Follo
     payload, raw = driver.joint.kind_follow(request.joint, request.joint_velocity)
     driver.follow_target(payload)
     return raw, driver.follow_carries(payload)
+
+
+def _tell_bus_not_reset(bus: str, done: Future) -> None:
+    """A warning when the reset of ``bus`` failed: the reset's own line and event speak for
+    every bus, and its devices are still e-stopped."""
+    failure = None if done.cancelled() else done.exception()
+    if failure is not None:
+        log.warning(
+            "e-stop reset: bus %s not reset, its devices still e-stopped (reset again once it "
+            "is back): %s",
+            bus,
+            failure,
+        )
 
 
 def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
