@@ -290,10 +290,13 @@ def test_a_worker_started_again_e_stops_again_the_buses_that_were_e_stopped(
     assert client.device(device).state()["online"] is True  # watched from now on
     client.estop("gw1")
     until_state(client, device, "estopped", True)
-    mark = served.marks()[bus]
+    mark, logged = served.marks()[bus], len(served.gateway.lines)
     served.kill(victim)
     served.started_again(victim)
-    # The gateway holds it e-stopped: the new worker e-stops it again, first of all it does.
+    # The gateway holds it e-stopped: the new worker e-stops it again, first of all it does,
+    # and the log says why (an audit found nothing said it after devices' own resets).
+    said = [line for line in served.gateway.lines[logged:] if "e-stopped as it starts" in line]
+    assert said and bus in said[0] and "since their last reset of the whole bus" in said[0], said
     wait_until(lambda: served.estops(bus, mark), timeout=10, what=f"an e-stop frame on {bus}")
     until_state(client, device, "online", True, timeout=10)  # on its new worker
     assert client.device(device).state()["estopped"] is True

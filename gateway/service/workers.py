@@ -362,6 +362,14 @@ class WorkerProcess:
             outbox.put(("start", self.config, list(self.runners), sorted(estopped)))
             self.process, self.outbox, self.last_word = process, outbox.start(), now()
             self._restart_at = None
+        if estopped:  # its devices say so from its first states; the log says why
+            log.warning(
+                "worker %d: buses %s e-stopped as it starts: e-stopped since their last reset "
+                "of the whole bus (a device's own reset leaves its bus e-stopped for the next "
+                "worker); reset them to move again",
+                self.index,
+                ", ".join(sorted(estopped)),
+            )
         self._first_word_at = None
         # The claims that stand, once the outbox is the worker's: a change made meanwhile
         # comes after them, in order (``ForwardedClaims.hand_over``).
