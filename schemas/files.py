@@ -27,6 +27,9 @@ from pathlib import Path
 #: once (``envsubst``, ``cat``); one silent this long is stuck, and ``busgate run`` under
 #: systemd would otherwise wait for ever, never starting nor failing.
 STALL_S = 10.0
+#: Why an empty path is refused wherever one is named: ``Path("")`` is the working directory,
+#: which nobody means by it.
+EMPTY_PATH = "an empty path names no file ('.' is this folder)"
 
 
 class FileRefused(ValueError):
@@ -36,6 +39,8 @@ class FileRefused(ValueError):
 def read_text(path: str | Path, limit: int, what: str) -> str:
     """The UTF-8 text of ``path``, at most ``limit`` bytes of it (rules 1–3); ``what`` the
     file should be, for a refusal (``a config``: "… is over 1 MiB: not a config")."""
+    if not str(path):
+        raise FileRefused(EMPTY_PATH)
     try:
         with open(path, "rb", opener=_opener_no_wait) as file:
             data = _read(file.fileno(), limit + 1, path)

@@ -7,10 +7,10 @@ from __future__ import annotations
 import pytest
 
 from busgate.gateway.cli import main
+from busgate.schemas.files import EMPTY_PATH
 
 
 @pytest.mark.parametrize(("args", "named"), [
-    (["run", "--config", ""], "--config"),
     (["check-config", ""], "file"),
     (["demo", "--record", ""], "--record"),
     (["demo", "--incidents", ""], "--incidents"),
@@ -20,7 +20,6 @@ from busgate.gateway.cli import main
     (["record", "--timeline", ""], "--timeline"),
     (["replay", ""], "FILE.mcap"),
     (["router", "--listen", "tcp/127.0.0.1:1", "--config", ""], "--config"),
-    (["sim", "inspire_la", "--record", ""], "--record"),
     (["send", "--zenoh-config", "", "la1", "{}"], "--zenoh-config"),
     (["watch", "--password-file", "", "--user", "u"], "--password-file"),
     (["dashboard", "--ca", ""], "--ca"),
@@ -32,5 +31,18 @@ def test_an_empty_path_is_refused_before_anything_runs(args, named, tmp_path, mo
         main(args)
     assert exited.value.code == 2
     assert capsys.readouterr().err.endswith(
-        f"argument {named}: an empty path names no file ('.' is this folder)\n")
+        f"argument {named}: {EMPTY_PATH}\n")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    # commands of rooms below the command line's: refused as they read or open the path
+    (["run", "--config", ""], "busgate run: error: "),
+    (["sim", "inspire_la", "--record", ""], "busgate sim: error: --record: "),
+])
+def test_an_empty_path_is_refused_by_the_command_that_reads_it(args, said, tmp_path,
+                                                               monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    assert capsys.readouterr().err.endswith(f"{said}{EMPTY_PATH}\n")
     assert list(tmp_path.iterdir()) == []

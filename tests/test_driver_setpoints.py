@@ -113,6 +113,7 @@ def test_la_any_position_written_raw_is_the_setpoint(raw: int) -> None:
         ('{"op":"write","address":42,"data":"0fa003e8"}', [position(1, 4000)]),  # and time
         ('{"op":"goto_preset","n":1}', [position(1, None)]),  # the preset is the servo's
         ('{"op":"goto_preset","n":3}', [position(1, None)]),
+        ('{"op":"reset"}', [position(1, None)]),  # the factory centre and angle limits again
     ],
 )
 def test_ds_targets_are_position_setpoints(text: str, expected: list[Setpoint]) -> None:
@@ -129,7 +130,6 @@ def test_ds_targets_are_position_setpoints(text: str, expected: list[Setpoint]) 
         '{"op":"torque","on":false}',
         '{"op":"set_id","new_id":2}',
         '{"op":"store_preset","n":1}',
-        '{"op":"reset"}',
         '{"op":"write","address":44,"data":"03e8"}',  # the move time alone
     ],
 )

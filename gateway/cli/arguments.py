@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
+from busgate.schemas.files import EMPTY_PATH
+
 #: The longest wait a command takes (a year): past it a timer cannot be set, and no
 #: measurement or watch runs longer.
 MAX_SECONDS = 365 * 86400
@@ -15,7 +17,7 @@ def named_path(text: str) -> str:
     """A file's or a folder's path, as given; an empty one is refused, where ``Path("")``
     would be the working directory, which nobody means by it."""
     if not text:
-        raise argparse.ArgumentTypeError("an empty path names no file ('.' is this folder)")
+        raise argparse.ArgumentTypeError(EMPTY_PATH)
     return text
 
 

@@ -43,7 +43,6 @@ from busgate.gateway.api.doorbell import Doorbell, Mailbox
 from busgate.gateway.bus.can_owner import unknown_interface
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
-from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
 from busgate.gateway.scheduler.runner import BusRunner
@@ -101,9 +100,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "SIGTERM, SIGINT or SIGHUP. Exit status 0 once stopped so, 2 when it refuses to start (an "
         "invalid config, a port or address in use: one line on stderr per problem).",
     )
-    run.add_argument(
-        "--config", required=True, type=named_path, help="the gateway's TOML config file"
-    )
+    run.add_argument("--config", required=True, help="the gateway's TOML config file")
     run.add_argument(
         "--log-level",
         default="info",

@@ -31,12 +31,12 @@ from typing import IO
 
 from busgate.errors import CommandError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.sim.faults import FaultConfig, FaultInjector
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.pty_link import PtyLink
 from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.files import EMPTY_PATH
 
 #: The longest time an option sets: a day, more than any simulated wait needs, and short
 #: enough that a timer can be set for it (``time.sleep`` overflows long before infinity).
@@ -64,10 +64,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     sim.add_argument("--stroke-s", type=_stroke_s, help="Inspire LA: seconds for a full stroke")
     sim.add_argument("--link", help="keep a symlink here pointing at the current pty")
     sim.add_argument(
-        "--record",
-        type=named_path,
-        metavar="FILE",
-        help="write every frame to FILE (JSON lines; - for stdout)",
+        "--record", metavar="FILE", help="write every frame to FILE (JSON lines; - for stdout)"
     )
     sim.add_argument("--seed", type=int, default=0, help="seed for turnaround times and faults")
     sim.add_argument(
@@ -142,7 +139,9 @@ def run_sim(args: argparse.Namespace) -> int:
         except OSError as exc:  # rule 3: a file or directory there, or no such folder
             raise CommandError(f"--link {args.link}: {exc.strerror}") from None
         stack.callback(link.close)  # closed again by the server's stop: twice is once
-        record_file = stack.enter_context(_open_record(args.record)) if args.record else None
+        record_file = (
+            None if args.record is None else stack.enter_context(_open_record(args.record))
+        )
         server = _make_server(args, devices, faults, Recorder(record_file, keep=0), link)
         stop = threading.Event()
         _install_signals(server, devices, stop)  # before PORT: a stop may follow it at once
@@ -158,6 +157,8 @@ def _open_record(path: str) -> contextlib.AbstractContextManager[IO[str]]:
     closed by the caller."""
     if path == "-":
         return contextlib.nullcontext(sys.stdout)
+    if not path:
+        raise CommandError(f"--record: {EMPTY_PATH}")
     try:
         return open(path, "w")
     except OSError as exc:
