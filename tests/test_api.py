@@ -34,6 +34,7 @@ from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.schemas.api import DEVICE_COMMAND_ADAPTERS
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.validation import command_from_object, suggestion
+from tests.conftest import wait_until
 
 _channels = itertools.count()
 
@@ -648,9 +649,13 @@ def test_a_reset_of_every_bus_says_which_bus_it_could_not_reset(tmp_path, caplog
         with caplog.at_level("WARNING", logger=commands.__name__):
             (reset,) = api.reset_estop("c1")
             assert isinstance(reset.exception(timeout=5), Exception)
-        said = [r.getMessage() for r in caplog.records if "not reset" in r.getMessage()]
-        assert said and said[0].startswith(
+
+            def said() -> list[str]:  # told by the future's callback, after its waiters wake
+                return [r.getMessage() for r in caplog.records if "not reset" in r.getMessage()]
+
+            wait_until(said, what="the bus's line")
+        assert said()[0].startswith(
             "e-stop reset: bus uart9 not reset, its devices still e-stopped (reset again once "
-            "it is back): "), said
+            "it is back): "), said()
     finally:
         runner.stop()
