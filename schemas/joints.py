@@ -518,7 +518,7 @@ class Joint:
     ) -> RefusedError:
         value += 0.0  # -0.0 is 0 (shown "-0" beyond a min above it, it read as a sign error)
         shown = f"{value:g}"
-        if f"{abs(value):g}" == f"{limit:g}":  # past it by less than six digits show: all,
+        if f"{abs(value):g}" == f"{abs(limit):g}":  # past it by less than six digits show: all,
             shown = repr(published(value))  # to the digits a double keeps through units
         return RefusedError(
             "out_of_range",

@@ -94,13 +94,13 @@ def test_a_wheel_in_two_bases_or_without_a_joint_in_rad_is_refused() -> None:
 class World:
     """The bus, the API, the bases, and a thread doing the loop's rounds."""
 
-    def __init__(self) -> None:
+    def __init__(self, **wheel_tables: dict) -> None:
         channel = f"test-base-{next(_channels)}"
         self.sim = CanSimulator(zcan, [Zlac706CanDevice(1, heartbeat_ms=20),
                                        Zlac706CanDevice(2, heartbeat_ms=20)],
                                 bus=can.Bus(interface="virtual", channel=channel))
         self.sim.start()
-        self.config = config = config_of([BASE], channel)
+        self.config = config = config_of([BASE], channel, **wheel_tables)
         self.events: deque = deque()
         self.states: deque = deque()
         self.odometry: list[dict] = []
@@ -161,6 +161,25 @@ def world():
     made = World()
     yield made
     made.close()
+
+
+def test_a_base_whose_wheels_ramp_their_speeds_is_enabled_at_0_rpm() -> None:
+    """Wheels with a max_acceleration (as the shipped robot's): the base's enable sends each
+    0 rpm before its enable, which a review found refused while the motor was off (a ramp
+    there would run on the drive's preset), so that the enable answered an error. A stop is
+    no ramp: 0 rpm goes as it is, then the enable."""
+    ramped = World(wl=LEFT | {"max_acceleration": 50.0}, wr=RIGHT | {"max_acceleration": 50.0})
+    try:
+        for wheel in ("wl", "wr"):
+            assert ramped.wheel(wheel, {"op": "disable"})["ok"]
+        since = len(ramped.sim.recorder.received())
+        reply = ramped.base({"op": "enable"})
+        assert reply["ok"], reply
+        assert [(node, rpm) for _, node, rpm in ramped.speeds(since)] == [(1, 0), (2, 0)]
+        state = {name: ramped.api.devices[name][1].telemetry(0.0) for name in ("wl", "wr")}
+        assert all(s["enabled"] and s["mode"] == "velocity" for s in state.values())
+    finally:
+        ramped.close()
 
 
 def test_a_twist_to_a_base_whose_wheels_are_off_is_refused_naming_enable(world) -> None:

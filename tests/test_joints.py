@@ -127,6 +127,10 @@ def test_a_refusal_names_the_joint_the_limit_and_the_value():
     with pytest.raises(RefusedError) as refused:  # not "-0" (an audit's)
         joint.target_raw(-0.0)
     assert str(refused.value).endswith("position 0 m is beyond its min 0.001 m")
+    below_zero = la_joint(name="g", offset=-0.005, min=-0.002, max=0.002)
+    with pytest.raises(RefusedError) as refused:  # a negative limit too (a review's)
+        below_zero.target_raw(-0.002000004)
+    assert str(refused.value).endswith("position -0.002000004 m is beyond its min -0.002 m")
     # past it by a hair, as a conversion leaves it: to the digits a double keeps, not repr's
     fast = wheel(max_velocity=15.0)
     with pytest.raises(RefusedError) as refused:

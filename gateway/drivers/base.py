@@ -331,6 +331,12 @@ class Driver(abc.ABC):
         raise CommandError(f"{self.kind} has no follow stream")
 
     @property
+    def turning_on(self) -> bool:
+        """Whether its motor is known to be on, so that a speed sent now is ramped from the
+        speed it turns at (``BusWork``'s one-shot speeds); a family that cannot tell: on."""
+        return True
+
+    @property
     def follows(self) -> Follows | None:
         """What its follow stream's targets are now, raw: positions or speeds (its joint's; a
         family whose stream carries both may say which by the device's mode, ``None`` in a

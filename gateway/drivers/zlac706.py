@@ -343,16 +343,20 @@ class Zlac706Driver(Driver):
         # keep-alive repeats only speeds that went: ``went``).
         self.machine.forget_pending()
 
+    @property
+    def turning_on(self) -> bool:
+        return self.machine.expected().enabled is True
+
     def follow_target(self, payload: dict[str, Any]) -> float:
         """The speed of ``{"rpm": R}`` in velocity mode (with the motor enabled when its joint
-        has a ``max_acceleration``), or the position of ``{"position": P}`` in absolute
-        position mode with the motor enabled (CAN only), once where it holds is known (a
-        stream starts there: ``tickers.commanded``)."""
+        has a ``max_acceleration``, but for 0: a stop), or the position of ``{"position":
+        P}`` in absolute position mode with the motor enabled (CAN only), once where it holds
+        is known (a stream starts there: ``tickers.commanded``)."""
         target = self.follow_payload(payload)
         outlook = self.machine.expected()
         if target.position is None:
             check(Role.SPEED, target.rpm, outlook)
-            if self.joint.max_acceleration is not None and outlook.enabled is not True:
+            if self.joint.max_acceleration is not None and target.rpm and not self.turning_on:
                 raise CommandError(
                     f"joint {self.joint.name} ramps its speeds at its max_acceleration from "
                     "the speed the motor turns at, and the motor is "

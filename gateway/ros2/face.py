@@ -123,8 +123,8 @@ class Ros2Face:
         #: The last refused message that named no joint of this gateway, until one is taken.
         self._nameless_refusal: str | None = None
         #: Commands that name no joint of this gateway, refused; trajectories refused.
-        self._nameless_told = Hushed(REFUSAL_TOLD_EVERY_S)
-        self._trajectories_told = Hushed(REFUSAL_TOLD_EVERY_S)
+        self._nameless_told = Hushed(REFUSAL_TOLD_EVERY_S, log)
+        self._trajectories_told = Hushed(REFUSAL_TOLD_EVERY_S, log)
         #: The trajectory message on the trajectory key, and the newest come since (rule 3).
         self._trajectory_lock = threading.Lock()
         self._trajectory_sent = False

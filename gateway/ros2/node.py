@@ -65,6 +65,7 @@ class Hushed:
     a quiet spell says how many were held back (a flood never fills the journal)."""
 
     every_s: float
+    logger: logging.Logger = log  # whose lines they are
     told_at: float = -math.inf  # monotonic
     held: int = 0  # come since that line, not told
 
@@ -76,7 +77,7 @@ class Hushed:
             return False
         since = f" ({self.held} more since the last such line)" if self.held else ""
         self.told_at, self.held = moment, 0
-        log.warning("%s%s", line, since)
+        self.logger.warning("%s%s", line, since)
         return True
 
 

@@ -22,7 +22,8 @@ that stops a device on a stream or a ramp ends it once the stop is queued (its n
 would undo the stop), unless the stop is that ramp (to 0, at the joint's max_acceleration).
 A one-shot speed that would be such a ramp is refused ``busy`` for a device that plays (a
 trajectory, or a base's drive): the ramp's ticks and the play's would take turns setting its
-speed, and the play's next would jump back past the ramp's acceleration.
+speed, and the play's next would jump back past the ramp's acceleration. A stop (0) is no
+ramp then, nor while the motor is not known to be on: it goes as it is (``_speed_ramp``).
 """
 
 from __future__ import annotations
@@ -105,8 +106,9 @@ class BusWork:
             moved = self.authority.addressed(effects)
             self._check_streams(moved)
             estop_before = estop_states([driver])
-            ramp = self._speed_ramp(driver, command)
-            if ramp is not None and self.plays.playing(device):
+            playing = self.plays.playing(device)
+            ramp = self._speed_ramp(driver, command, playing)
+            if ramp is not None and playing:
                 raise BusyError(
                     f"{device} plays a trajectory or drives a base, whose next tick sets its "
                     "speed: this speed, ramped at its joint's max_acceleration, would fight it "
@@ -308,10 +310,13 @@ class BusWork:
         self.streams.start(driver, target, moment, ends_on_target=ends_on_target)
 
     @staticmethod
-    def _speed_ramp(driver: Driver, command: Any) -> dict[str, Any] | None:
+    def _speed_ramp(driver: Driver, command: Any, playing: bool) -> dict[str, Any] | None:
         """The follow payload of the ramp a one-shot speed becomes on a velocity joint with a
         ``max_acceleration`` (its family's speed command, ``JointDeclaration.turn``), or
-        ``None``: the command is planned as it is."""
+        ``None``: the command is planned as it is. A stop (0) goes as it is while the motor
+        is not known to be on (a base's 0 rpm before its enable; a ramp would run on the
+        drive's preset) or while the device plays (the play's next tick overrides it, as a
+        move's)."""
         joint = driver.joint
         turn, field = joint.declaration.turn, joint.declaration.follow_velocity
         if joint.type != "velocity" or joint.max_acceleration is None or turn is None:
@@ -319,4 +324,7 @@ class BusWork:
         op, value = turn
         if field is None or getattr(command, "op", None) != op:
             return None
-        return {field: getattr(command, value)}
+        speed = getattr(command, value)
+        if speed == 0 and (playing or not driver.turning_on):
+            return None
+        return {field: speed}

@@ -365,8 +365,9 @@ class WorkerProcess:
         if estopped:  # its devices say so from its first states; the log says why
             log.warning(
                 "worker %d: buses %s e-stopped as it starts: e-stopped since their last reset "
-                "of the whole bus (a device's own reset leaves its bus e-stopped for the next "
-                "worker); reset them to move again",
+                "of the whole bus, or put in their safe state by the worker before (a device's "
+                "own reset leaves its bus e-stopped for the next worker); reset them to move "
+                "again",
                 self.index,
                 ", ".join(sorted(estopped)),
             )
