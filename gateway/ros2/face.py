@@ -297,7 +297,7 @@ class Ros2Face:
             self._handing_on |= hand_on
         if hand_on:
             self.bridge.call_soon(self._hand_on)
-        _log_unknown(taken.unknown, "a command")
+        _log_unknown(taken.unknown)
         if taken.refused is None:
             self._nameless_refusal = None
         else:
@@ -328,7 +328,8 @@ class Ros2Face:
         try:
             command = trajectory_command(message, self.joints, self.section.client, time.time())
         except RefusedError as exc:
-            self._unknown(names, "a trajectory")
+            with self._commands_lock:  # shown in the commands' status; its refusal tells them
+                self.commands.newly_unknown(names)
             self._trajectory_refused(names, str(exc))
             return
         sent = (names, message_json(command), command["op"] == "cancel", came_under)
@@ -359,13 +360,6 @@ class Ros2Face:
             self._trajectory_sent = following is not None
         if following is not None:
             self._send_trajectory(*following)
-
-    def _unknown(self, names: list[str], what: str) -> None:
-        """The names of a message that no joint has, logged and shown once (``commands``
-        rule 2)."""
-        with self._commands_lock:
-            unknown = self.commands.newly_unknown(names)
-        _log_unknown(unknown, what)
 
     def _refused(self, names: Iterable[str], message: str) -> None:
         """A command's refusal: shown for each joint of this gateway it names, and told in
@@ -457,9 +451,10 @@ class Ros2Face:
         return rmw_zenoh.resolve(name, self.section.namespace, self.node_name)
 
 
-def _log_unknown(names: list[str], what: str) -> None:
+def _log_unknown(names: list[str]) -> None:
+    """A command's names that no joint has, each once (``Commands.newly_unknown``)."""
     for name in names:
-        log.warning("ros2: %s names no joint of this gateway: %r", what, name)
+        log.warning("ros2: a command names no joint of this gateway: %r", name)
 
 
 def _when_all(futures: list[Future], done_message: str) -> Future:
