@@ -519,18 +519,24 @@ def test_replay_above_a_live_gateways_prefix_is_refused(recorded, module_demo, c
     assert heard == []
 
 
+def write_keys(path, keys: list[str]) -> McapLog:
+    """A recording under ``busgate`` of an empty message on each of ``keys``, in order."""
+    with path.open("wb") as stream:
+        log = McapLog(stream, "busgate")
+        for n, key in enumerate(keys):
+            log.add(key, b"{}", n)
+        log.finish()
+    return log
+
+
 def test_keys_past_what_a_file_can_name_are_left_out_and_the_file_stays_readable(
         monkeypatch, tmp_path) -> None:
     """A channel's id is 16 bits: the 65,536th key killed the writer (struct.error) and left
     a file no reader could read. Here the most is 3."""
     monkeypatch.setattr(mcap_log, "MAX_CHANNELS", 3)
     path = tmp_path / "keys.mcap"
-    with path.open("wb") as stream:
-        log = McapLog(stream, "busgate")
-        for n in range(5):
-            log.add(f"busgate/gw{n}/dev/la1/state", b"{}", n)
-        log.add("busgate/gw0/dev/la1/state", b"{}", 9)  # a key it has: taken
-        log.finish()
+    keys = [f"busgate/gw{n}/dev/la1/state" for n in range(5)]
+    log = write_keys(path, [*keys, keys[0]])  # the last a key it has: taken
     assert log.past_channels == 2
     with path.open("rb") as stream:
         kept = [message.topic for message in mcap_log.messages(stream)]
@@ -552,3 +558,34 @@ def test_a_sample_larger_than_any_gateway_publishes_is_left_out_and_counted(
     with (tmp_path / "big.mcap").open("rb") as stream:
         topics = [m.topic for m in mcap_log.messages(stream)]
     assert topics == ["busgate/demo/events", "busgate/demo/joints"]
+
+
+@pytest.mark.parametrize("damage", ["length", "name"])
+def test_a_file_whose_metadata_is_damaged_is_refused_in_one_line(tmp_path, damage, capsys):
+    """A metadata record claiming a terabyte, or a name of four gigabytes, crashed replay
+    with a traceback (an audit's); nothing was published, and nothing is."""
+    path = tmp_path / "damaged.mcap"
+    write_keys(path, ["busgate/gw/dev/la1/state"])
+    data = bytearray(path.read_bytes())
+    opcode = b"\x0c"  # a Metadata record, its length, then its name
+    name = next(i for i in range(len(data)) if data[i:i + 1] == opcode
+                and data[i + 9:i + 13 + len(mcap_log.PREFIX_METADATA)]
+                == struct.pack("<I", len(mcap_log.PREFIX_METADATA))
+                + mcap_log.PREFIX_METADATA.encode()) + 9
+    at = name - 8 if damage == "length" else name  # the record's length, or its name's
+    data[at:at + (8 if damage == "length" else 4)] = (
+        struct.pack("<Q", 2**40) if damage == "length" else struct.pack("<I", 0xFFFFFFFF))
+    path.write_bytes(bytes(data))
+    assert main(["replay", str(path), "--connect", "tcp/127.0.0.1:1"]) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"busgate replay: error: {path}: its metadata cannot be read ("), line
+
+
+def test_a_file_whose_keys_take_too_much_is_refused_as_it_is_read(tmp_path, monkeypatch):
+    """Thousands of channels of a megabyte's key each, from a small compressed file, held
+    1.6 GB while replay or --timeline read it (an audit's): the keys held are bounded."""
+    monkeypatch.setattr(mcap_log, "MAX_TOPIC_BYTES", 100)
+    path = tmp_path / "keys.mcap"
+    write_keys(path, [f"busgate/gw/dev/{'d' * 30}{n}/state" for n in range(4)])
+    with path.open("rb") as stream, pytest.raises(ValueError, match="channels whose keys take"):
+        list(mcap_log.messages(stream))

@@ -154,3 +154,40 @@ def test_a_file_that_is_no_recording_is_refused_saying_why(tmp_path, capsys) -> 
     [line] = capsys.readouterr().err.strip().splitlines()
     assert line.startswith(f"busgate record: error: {empty} is not a complete MCAP file: ")
     assert not line.endswith(":"), "the reader's error said nothing: its kind is said"
+
+
+def test_what_xml_cannot_hold_is_drawn_as_a_replacement_and_the_file_is_written(
+        tmp_path, capsys) -> None:
+    """A lone surrogate in a bus's name crashed the command, leaving an empty file behind,
+    and a control character made a picture no viewer reads; a frame nested past what the
+    JSON reader takes refused the whole file, and a bus's name printed its escapes to the
+    terminal (an audit's). Each is drawn, left out, or shown escaped."""
+    path = tmp_path / "odd.mcap"
+    deep = b'{"ts": 1, "bus": "x", "dir": "tx", "wire": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    write_incident(path, [
+        ("busgate/gw/bus/u/frames", {"ts": T0, "bus": "uart\ud800", "dir": "tx",
+                                     "wire": "00\x01\x0b"}),
+        ("busgate/gw/bus/c/frames", {"ts": T0 + 1e-3, "bus": "can\x1b[2J", "dir": "rx",
+                                     "wire": "00"}),
+        ("busgate/gw/bus/a/frames", deep),
+        ("busgate/gw/commands", b'{"key": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"),
+    ])
+    out = tmp_path / "odd.svg"
+    assert main(["record", "--timeline", str(path), "--end", str(T0 + 0.01),
+                 "-o", str(out)]) == 0
+    picture = out.read_text(encoding="utf-8")
+    assert set(lanes(picture)) == {"uart\ufffd", "can\ufffd[2J"}  # parsed: well-formed
+    said = capsys.readouterr().err
+    assert "\x1b" not in said and "1 frame messages not a recorder's, left out" in said, said
+
+
+def test_a_flood_of_estops_marks_at_most_max_marks(tmp_path) -> None:
+    """A small file of a million e-stops made a picture of 147 MB (an audit's)."""
+    estop = ("busgate/gw/commands", {"ts": T0, "key": "busgate/*/estop", "command": {}})
+    path = tmp_path / "estops.mcap"
+    write_incident(path, [frame(T0, "u", "tx")] + [
+        ("busgate/gw/commands", {**estop[1], "ts": T0 + n * 1e-6}) for n in range(300)])
+    with path.open("rb") as stream:
+        window = timeline.window_of(stream, 0.010)
+    assert len(window.estops) == timeline.MAX_MARKS
+    assert window.estops == sorted(window.estops)

@@ -59,12 +59,16 @@ from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log, timeline
 from busgate.schemas.payload import largest_published
+from busgate.schemas.validation import printable
 from busgate.schemas.zenoh_session import LIVE_WAIT_S
 
 QUEUE_MAX = 100_000
 PROGRESS_EVERY_S = 1.0
 MIN_SPEED = 0.01
 MAX_SPEED = 1000.0
+#: The most of a file's key (a topic, a bus's name) ``--info`` and ``--timeline`` print: a
+#: file is a peer's word, and a key may be 64 KiB of terminal escapes.
+SHOWN_TOPIC_CHARS = 300
 #: The longest wait between two replayed messages, in recorded time (rule 7): a recording of
 #: the fleet holds none longer, a crafted one may name years.
 MAX_GAP_S = 60.0
@@ -340,10 +344,9 @@ def _print_info(path: Path) -> int:
         f"{path}: {found['messages']} messages in {len(found['channels'])} channels over "
         f"{span:.3f} s"
     )
-    for channel in found["channels"]:
-        print(
-            f"  {channel['messages']:>8}  {channel['topic']}  ({channel['schema'] or 'no schema'})"
-        )
+    for channel in found["channels"]:  # a file's keys are a peer's word: shown, not obeyed
+        topic = printable(channel["topic"], SHOWN_TOPIC_CHARS)
+        print(f"  {channel['messages']:>8}  {topic}  ({channel['schema'] or 'no schema'})")
     return 0
 
 
@@ -385,7 +388,8 @@ def _draw_timeline(path: Path, args: argparse.Namespace) -> int:
         f"; {window.left_out} frame messages not a recorder's, left out" if window.left_out else ""
     )
     print(
-        f"busgate record: {drawn} frames on {', '.join(sorted(window.frames))} drawn, "
+        f"busgate record: {drawn} frames on "
+        f"{', '.join(printable(bus, SHOWN_TOPIC_CHARS) for bus in sorted(window.frames))} drawn, "
         f"{span_ms:g} ms{left_out}",
         file=sys.stderr,
     )
@@ -443,8 +447,12 @@ def _replay(args: argparse.Namespace, path: Path, stream: IO[bytes], largest: in
 
 def _recorded_prefix(stream: IO[bytes], path: Path) -> str:
     """The prefix the file ``path`` (``stream``) recorded its keys under; ``CommandError``
-    when it names none (rule 5: its keys could not be put under ``--prefix``)."""
-    found = mcap_log.recorded_prefix(stream)
+    when it names none (rule 5: its keys could not be put under ``--prefix``), or its
+    metadata cannot be read (a damaged file: the ``mcap`` reader's errors are of many kinds)."""
+    try:
+        found = mcap_log.recorded_prefix(stream)
+    except Exception as exc:
+        raise CommandError(f"{path}: its metadata cannot be read ({exc})") from None
     if found is None:
         raise CommandError(f"{path} names no prefix its keys were recorded under")
     return found

@@ -22,8 +22,10 @@ Rules of this file:
 5. Reading a file back holds one record of it at a time, of at most ``MAX_CHUNK`` bytes
    whatever it claims: a chunk (with its records, decompressed no further than it claims,
    and split: some three times ``MAX_CHUNK`` at worst), or a record outside chunks, in the
-   order the file holds them (the order they were written); a larger one ends the reading.
-   A file is a peer's word: 32 KiB of zstd may claim, and hold, a gigabyte.
+   order the file holds them (the order they were written); a larger one ends the reading,
+   as do channels whose keys take more than ``MAX_TOPIC_BYTES`` together (each is held while
+   the file is read). A file is a peer's word: 32 KiB of zstd may claim, and hold, a
+   gigabyte.
 6. A file holds at most ``MAX_CHANNELS`` keys (a channel's id is 16 bits): a message on a
    key past them is left out and counted (``past_channels``), so that the file stays one a
    reader can read, whatever keys the network sends.
@@ -74,6 +76,10 @@ GATEWAY_KEY_SCHEMAS = {
 MAX_CHANNELS = 65_535
 #: The most a reader holds of a file at once (rule 5): the writer's chunks are far smaller.
 MAX_CHUNK = 64 * 1024 * 1024
+#: The most its channels' keys may take together, read back (rule 5): a reader holds every
+#: channel's key while it reads, and a small compressed file may name thousands of keys of
+#: a megabyte each; busgate's own files name a few hundred short ones.
+MAX_TOPIC_BYTES = 16 * 1024 * 1024
 #: The writer's chunks (rule 7): what a refused write loses at most, and what a recording
 #: holds before the disk is asked to take any (at 1 MiB, some 15 s of the demo's telemetry).
 CHUNK_BYTES = 64 * 1024
@@ -185,12 +191,18 @@ def messages(stream: IO[bytes]) -> Iterator[Recorded]:
     ``mcap`` reader's own) at a record or chunk larger than ``MAX_CHUNK`` (rule 5)."""
     stream.seek(0)
     topics: dict[int, str] = {}
+    topic_bytes = 0
     records = StreamReader(stream, emit_chunks=True, record_size_limit=MAX_CHUNK).records
     for record in records:
         for inner in (
             breakup_chunk(_decompressed(record)) if isinstance(record, Chunk) else [record]
         ):
             if isinstance(inner, Channel):
+                topic_bytes += len(inner.topic) - len(topics.get(inner.id, ""))
+                if topic_bytes > MAX_TOPIC_BYTES:
+                    raise ValueError(
+                        f"channels whose keys take more than {MAX_TOPIC_BYTES // 2**20} MiB"
+                    )
                 topics[inner.id] = inner.topic
             elif isinstance(inner, Message):
                 if inner.channel_id not in topics:

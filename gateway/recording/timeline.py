@@ -9,9 +9,12 @@ its arrival) and its bytes, so every figure on it is the host's view of the wire
 
 Rules of this file:
 
-1. The file is a peer's word: a frame message that is not the recorder's shape is left out
-   and counted, never an exception; at most ``MAX_FRAMES`` frames are drawn (a longer
-   window is refused, asking for a shorter one), so no file makes a picture without end.
+1. The file is a peer's word: a frame message that is not the recorder's shape (nested past
+   what the JSON reader takes too) is left out and counted, never an exception; at most
+   ``MAX_FRAMES`` frames are drawn (a longer window is refused, asking for a shorter one)
+   and ``MAX_MARKS`` e-stops marked, so no file makes a picture without end; its text is
+   escaped, and what XML cannot hold (control characters, lone surrogates) is drawn as
+   U+FFFD (``_text``), so the picture is always one a viewer reads.
 2. Drawing is pure (``svg``: a window in, SVG text out); reading the file is
    ``window_of``'s, the command line ``cli.record``'s.
 3. The figures beside each lane are the host's: the smallest time from a frame received to
@@ -25,6 +28,7 @@ import datetime
 import itertools
 import json
 import math
+import re
 import statistics
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -33,8 +37,12 @@ from typing import IO
 
 from busgate.gateway.recording import mcap_log
 
-#: The most frames one picture draws (rule 1).
+#: The most frames one picture draws, and e-stops it marks (rule 1).
 MAX_FRAMES = 20_000
+MAX_MARKS = 100
+#: What XML 1.0 cannot hold: control characters but tab and newlines, lone surrogates, and
+#: the two non-characters U+FFFE and U+FFFF (rule 1).
+NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
 #: The picture's geometry, in pixels.
 WIDTH, LEFT, RIGHT, TOP, LANE, AXIS = 1000, 110, 20, 40, 80, 40
 #: Steps the time axis is ticked at (ms): the first that gives at most ``MAX_TICKS`` ticks.
@@ -71,22 +79,22 @@ def window_of(stream: IO[bytes], span_s: float, end: float | None = None) -> Win
     the span after the file's first e-stop, else at its last frame. ``ValueError`` past
     ``MAX_FRAMES`` frames in it (rule 1), or the ``mcap`` reader's own errors."""
     if end is None:
-        estops, last = [], -math.inf
+        first_estop, last = math.inf, -math.inf
         for message in mcap_log.messages(stream):
             if _is_frames(message.topic):
                 last = max(last, message.log_time_ns / 1e9)
             elif _is_estop(message):
-                estops.append(message.log_time_ns / 1e9)
-        end = min(estops) + span_s / 5 if estops else last
+                first_estop = min(first_estop, message.log_time_ns / 1e9)
+        end = first_estop + span_s / 5 if math.isfinite(first_estop) else last
     start = end - span_s
     frames: dict[str, list[WireFrame]] = {}
-    marks: list[float] = []
+    marks: set[float] = set()
     left_out = drawn = 0
     for message in mcap_log.messages(stream):
         if not start <= message.log_time_ns / 1e9 <= end:
             continue
-        if _is_estop(message):
-            marks.append(message.log_time_ns / 1e9)
+        if _is_estop(message) and len(marks) < MAX_MARKS:
+            marks.add(message.log_time_ns / 1e9)
         if not _is_frames(message.topic):
             continue
         parsed = _frame(message.data)
@@ -100,7 +108,7 @@ def window_of(stream: IO[bytes], span_s: float, end: float | None = None) -> Win
                 f"more than {MAX_FRAMES} frames in {span_s * 1e3:g} ms: ask for a shorter span"
             )
         frames.setdefault(bus, []).append(frame)
-    return Window(start, end, frames, marks, left_out)
+    return Window(start, end, frames, sorted(marks), left_out)
 
 
 def _is_frames(topic: str) -> bool:
@@ -114,7 +122,7 @@ def _is_estop(message: mcap_log.Recorded) -> bool:
         return False
     try:
         body = json.loads(message.data)
-    except ValueError:
+    except (ValueError, RecursionError):
         return False
     return isinstance(body, dict) and str(body.get("key", "")).endswith("/estop")
 
@@ -123,7 +131,7 @@ def _frame(data: bytes) -> tuple[str, WireFrame] | None:
     """A frame message's bus and frame, ``None`` when it is not the recorder's shape."""
     try:
         body = json.loads(data)
-    except ValueError:
+    except (ValueError, RecursionError):
         return None
     if not isinstance(body, dict):
         return None
@@ -132,7 +140,7 @@ def _frame(data: bytes) -> tuple[str, WireFrame] | None:
         return None
     if direction not in ("tx", "rx") or not isinstance(wire, str):
         return None
-    return bus, WireFrame(float(ts), direction == "tx", wire)
+    return _text(bus), WireFrame(float(ts), direction == "tx", _text(wire))
 
 
 def smallest_gap_s(frames: Iterable[WireFrame]) -> float | None:
@@ -233,3 +241,9 @@ def _axis(span: float, top: float, x, start: float) -> list[str]:
             f"{tick * step_ms:g} ms</text>"
         )
     return out
+
+
+def _text(value: str) -> str:
+    """A frame's text with what XML cannot hold as U+FFFD (rule 1), as read: the picture's
+    text and the command's line are then always encodable (a lone surrogate is not)."""
+    return NOT_XML.sub("\ufffd", value)
