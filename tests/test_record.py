@@ -183,7 +183,7 @@ def test_replay_where_no_gateway_is_live_publishes_telemetry_in_order_never_earl
     assert done.returncode == 0, done
     first, *_, last = done.stderr.splitlines()
     assert first == f"busgate replay: replaying {path} under replayed/**"
-    assert last.endswith(" s; 2 on command or e-stop keys left out")
+    assert last.endswith(" s; 2 on keys not telemetry (commands, e-stops, frames) left out")
     ours = [(payload, at) for key, payload, at in heard if key == "replayed/rec-test/dev/x/state"]
     assert [payload for payload, _ in ours] == sent
     assert not [key for key, _, _ in heard if key.endswith(("/cmd", "/estop", "/follow"))]
@@ -225,18 +225,23 @@ def test_replay_onto_live_goes_under_the_live_prefix(recorded, module_demo, clie
 def test_replay_leaves_out_a_key_outside_the_recorded_prefix(tmp_path, module_demo,
                                                               client) -> None:
     """A file whose keys are not all under the prefix it names (made so, or recorded from
-    key expressions outside it): only those under it are published, under ``--prefix``."""
+    key expressions outside it): only those under it are published, under ``--prefix``; and
+    none on a wildcard key, one put on which reached every subscriber it covers (an
+    audit's)."""
     path = tmp_path / "mixed.mcap"
     with path.open("wb") as stream:
         log = McapLog(stream, "rec")
         log.add("rec/gw9/dev/la1/state", b'{"n": 1}', time.time_ns())
         log.add("busgate/gw9/dev/la1/state", b'{"n": 2}', time.time_ns())
+        log.add("rec/*/dev/la1/state", b'{"n": 3}', time.time_ns())
+        log.add("rec/**/state", b'{"n": 4}', time.time_ns())
         log.finish()
     done, heard = replayed(client, "*/gw9/**", path, module_demo)
     assert done.returncode == 0, done
     assert [(key, payload) for key, payload, _ in heard] == [
         ("replay/gw9/dev/la1/state", b'{"n": 1}')]
-    assert done.stderr.splitlines()[-1].endswith(" s; 1 outside rec/** left out")
+    assert done.stderr.splitlines()[-1].endswith(
+        " s; 1 outside rec/**, 2 on wildcard keys left out")
 
 
 def write_foreign(path) -> None:

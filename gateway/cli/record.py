@@ -19,7 +19,8 @@ Rules of this file:
    target or an e-stop, whatever the file holds.
 5. Replay publishes only under ``--prefix`` (default ``replay``, no live gateway's), a key
    under it in place of the recorded prefix: a key outside the recorded prefix is left out,
-   a file naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
+   as is a key with a wildcard (one put reaches every subscriber it covers), and a file
+   naming none is refused. A ``--prefix`` a gateway is live under (its liveliness
    token, asked for with a bounded get), or one under a live gateway's keys (``busgate/demo``
    while gateway ``demo`` is live under ``busgate``), is refused before anything is
    published, unless ``--onto-live``: recorded states would go out on that gateway's own keys.
@@ -540,9 +541,11 @@ def _route(topic: str, recorded_prefix: str, prefix: str) -> tuple[str, str | No
     """The key a recorded ``topic`` is published on under ``prefix``, or why it is left out
     (rules 4, 5, 7): a topic zenoh refuses is named, once."""
     if topic.rsplit("/", 1)[-1] not in mcap_log.REPLAYED_LEAVES:  # rule 4
-        return "", "on command or e-stop keys"
+        return "", "on keys not telemetry (commands, e-stops, frames)"
     if not topic.startswith(recorded_prefix + "/"):  # rule 5
         return "", f"outside {recorded_prefix}/**"
+    if "*" in topic:  # one put there reaches every subscriber the wildcard covers (rule 5)
+        return "", "on wildcard keys"
     try:
         return check_key(prefix + topic[len(recorded_prefix) :]), None
     except CommandError as exc:
