@@ -22,6 +22,8 @@ Rules of this file:
    refused or did not answer; ``failure`` says which, for every route.
 5. At most ``MAX_STREAMS`` event streams are open at once: the rest of the server's
    connections stay for pages and actions, whoever holds streams open without reading them.
+   They are counted as each stream begins (``Hub.stream``: one past them ends at once), and
+   only a ``GET`` opens one (a ``HEAD``'s body is dropped, so it never fell behind).
 6. No response may be shown in another page's frame (``NEVER_FRAMED``): a page on another
    site that framed the dashboard could trick a click on its e-stop, reset or enable, whose
    requests would carry the dashboard's own host and origin.
@@ -190,10 +192,12 @@ def create_app(hub: Hub, actions: Actions, *, hosts: Set[str]) -> Starlette:
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
     async def events(request: Request) -> Response:
+        if request.method != "GET":  # rule 5: a HEAD's body is dropped, its view never behind
+            return refusal(405, "method_not_allowed", "the live view is a GET")
         if hub.browsers >= MAX_STREAMS:
             return refusal(503, "busy", f"{MAX_STREAMS} live views are open: close one")
         return StreamingResponse(
-            hub.stream(),
+            hub.stream(MAX_STREAMS),
             media_type="text/event-stream",
             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
         )

@@ -41,8 +41,12 @@ class Hub:
     def browsers(self) -> int:
         return len(self._queues)
 
-    async def stream(self) -> AsyncIterator[bytes]:
-        """One browser's events, from its snapshot on, until it is let go or leaves."""
+    async def stream(self, most: int) -> AsyncIterator[bytes]:
+        """One browser's events, from its snapshot on, until it is let go or leaves; none
+        when ``most`` browsers have streams already, counted as this one joins (a burst of
+        requests each passed a count made before any of their streams began)."""
+        if len(self._queues) >= most:
+            return
         queue: asyncio.Queue[bytes] = asyncio.Queue(BACKLOG)
         first = event("snapshot", self._fleet.snapshot())
         self._queues.add(queue)  # rule 1: no await since the snapshot

@@ -228,6 +228,12 @@ def test_only_posts_act(dashboard) -> None:
         assert request(dashboard, "GET", path)[0] == 405
 
 
+def test_a_head_opens_no_view(dashboard) -> None:
+    """A HEAD of the events held a view for ever, its body dropped, so that it never fell
+    behind; 48 of them left every browser its 503 (an audit's)."""
+    assert request(dashboard, "HEAD", "/events")[0] == 405
+
+
 def test_the_gateway_estop_stops_every_device_and_each_enable_brings_one_back(
         dashboard, client, wait_for) -> None:
     origin = f"http://{dashboard.netloc}"

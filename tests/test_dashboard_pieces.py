@@ -156,7 +156,7 @@ def test_a_browser_gets_a_snapshot_then_each_change_once() -> None:
     async def run() -> list[bytes]:
         fleet = fleet_with_a_device()
         hub = Hub(fleet)
-        stream = hub.stream()
+        stream = hub.stream(10)
         first = await anext(stream)  # the snapshot, taken with the browser joining
         fleet.state("gw1", "la1", {"ts": 1.0, "position": 7})
         hub.push()
@@ -182,7 +182,7 @@ def test_a_browser_that_falls_behind_is_let_go_and_the_others_are_not() -> None:
     async def run() -> tuple[list[bytes], list[bytes], int]:
         fleet = fleet_with_a_device()
         hub = Hub(fleet)
-        slow, quick = hub.stream(), hub.stream()
+        slow, quick = hub.stream(10), hub.stream(10)
         slow_seen = [await anext(slow)]
         quick_seen = [await anext(quick)]
         for n in range(BACKLOG + 1):  # one more than the slow browser's queue holds
@@ -228,3 +228,22 @@ def test_busgate_dashboard_refuses_a_port_in_use(module_demo) -> None:
     assert done.returncode == 2, done
     assert done.stderr.strip() == (f"busgate dashboard: error: the dashboard cannot listen on "
                                    f"127.0.0.1:{port}: Address already in use")
+
+
+def test_streams_past_the_most_end_at_once_however_many_were_admitted_together() -> None:
+    """A burst of requests each passed the count made before any of their streams began, and
+    100 views held every connection the server had (an audit's): a stream is counted as it
+    begins, and one past the most ends at once, sending nothing."""
+    async def run() -> tuple[list[int], int]:
+        hub = Hub(fleet_with_a_device())
+        admitted = [hub.stream(2) for _ in range(4)]  # all asked before any began
+        for stream in admitted[:2]:
+            await anext(stream)  # its snapshot: it has begun
+        async def drained(stream) -> list[bytes]:
+            return [chunk async for chunk in stream]
+
+        sent = [len(await asyncio.wait_for(drained(stream), 2.0)) for stream in admitted[2:]]
+        return sent, hub.browsers
+
+    sent, browsers = asyncio.run(run())
+    assert sent == [0, 0] and browsers == 2
