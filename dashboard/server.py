@@ -41,7 +41,7 @@ import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from busgate.client import aio
-from busgate.client.errors import error_for
+from busgate.client.errors import NoAnswerError, UnknownGatewayError, error_for
 from busgate.dashboard.app import create_app, host_and_port
 from busgate.dashboard.feed import Feed
 from busgate.dashboard.fleet import Fleet
@@ -181,8 +181,19 @@ class ClientActions:
     async def enable(self, device: str) -> dict[str, Any]:
         """The device's re-enable command, sent again (``ENABLE_TRIES`` in all) while its reply
         times out: a timeout says nothing of whether it was taken, and enabling an enabled
-        device changes nothing."""
-        found = await self._client.device(device)
+        device changes nothing. A gateway whose info nobody answers is not up (``app`` rule
+        4: 404, as the other actions answer)."""
+        try:
+            found = await self._client.device(device)
+        except NoAnswerError:
+            gateway = device.split("/", 1)[0]  # the app takes only a device named gw/name
+            up = sorted(await self._client.gateways())
+            raise UnknownGatewayError(
+                f"no gateway {gateway!r} is up (the gateways that answer: "
+                f"{', '.join(up) or 'none'})",
+                gateway=gateway,
+                gateways=up,
+            ) from None
         for attempt in range(1, ENABLE_TRIES + 1):
             try:
                 return await found.enable()

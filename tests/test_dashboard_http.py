@@ -210,6 +210,7 @@ def test_no_response_may_be_shown_in_another_pages_frame(dashboard) -> None:
 @pytest.mark.parametrize(("path", "body", "status", "code"), [
     ("/api/estop", {"gateway": "nowhere"}, 404, "unknown_gateway"),  # put all the same
     ("/api/reset_estop", {"gateway": "nowhere"}, 404, "unknown_gateway"),
+    ("/api/enable", {"device": "nowhere/la1"}, 404, "unknown_gateway"),  # was 502 no_answer
     ("/api/reset_estop", {}, 400, "bad_request"),  # a reset is never the fleet's
     ("/api/reset_estop", {"gateway": None}, 400, "bad_request"),
 ])
