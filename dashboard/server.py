@@ -42,6 +42,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from busgate.client import aio
 from busgate.client.errors import NoAnswerError, UnknownGatewayError, error_for
+from busgate.client.keys import split_name
 from busgate.dashboard.app import create_app, host_and_port
 from busgate.dashboard.feed import Feed
 from busgate.dashboard.fleet import Fleet
@@ -186,7 +187,7 @@ class ClientActions:
         try:
             found = await self._client.device(device)
         except NoAnswerError:
-            gateway = device.split("/", 1)[0]  # the app takes only a device named gw/name
+            gateway, _ = split_name(device)  # the app takes only a device named gw/name
             up = sorted(await self._client.gateways())
             raise UnknownGatewayError(
                 f"no gateway {gateway!r} is up (the gateways that answer: "
