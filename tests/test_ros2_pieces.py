@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 
 import pytest
 
@@ -23,6 +24,7 @@ from busgate.gateway.ros2.diagnostics import (
     diagnostic_array,
 )
 from busgate.gateway.ros2.face import REFUSAL_TOLD_EVERY_S, Ros2Face
+from busgate.gateway.ros2.node import Hushed
 from busgate.gateway.ros2.trajectory import ROS_TRAJECTORY_ID, trajectory_command
 from busgate.gateway.service.assembly import build_bus
 from busgate.schemas.config import parse_config
@@ -132,6 +134,19 @@ def commands_status(face: Ros2Face) -> tuple[int, str, dict[str, str]]:
     return status["level"], status["message"], {kv["key"]: kv["value"] for kv in status["values"]}
 
 
+def told_then_a_second_later(caplog, hushed: Hushed, send: Callable[[], None],
+                             times: int) -> tuple[list[str], list[str]]:
+    """The face's warnings as ``send()`` comes ``times`` times, then once more a second
+    later (``hushed``'s interval past)."""
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
+        for _ in range(times):
+            send()
+        first = [r.getMessage() for r in caplog.records]
+        hushed.told_at -= REFUSAL_TOLD_EVERY_S
+        send()
+    return first, [r.getMessage() for r in caplog.records]
+
+
 def test_a_trajectory_naming_only_joints_the_gateway_lacks_is_told_and_shown(caplog) -> None:
     """A MoveIt trajectory with a misspelt joint plays nothing: its name is shown in the
     commands' diagnostics, as a command's (it was refused in silence); and every such
@@ -143,13 +158,10 @@ def test_a_trajectory_naming_only_joints_the_gateway_lacks_is_told_and_shown(cap
                "points": [{"positions": [0.001], "time_from_start": {"sec": 1, "nanosec": 0}}]}
     refused = ("ros2: a trajectory refused, it plays nothing: no joint 'gripper_typo' on this "
                "gateway")
-    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
-        for _ in range(3):
-            face._trajectory(message)
-        assert [r.getMessage() for r in caplog.records] == [refused]
-        face._trajectories_told.told_at -= REFUSAL_TOLD_EVERY_S  # a second later
-        face._trajectory(message)
-    assert caplog.records[-1].getMessage() == f"{refused} (2 more since the last such line)"
+    first, then = told_then_a_second_later(
+        caplog, face._trajectories_told, lambda: face._trajectory(message), 3)
+    assert first == [refused]
+    assert then[-1] == f"{refused} (2 more since the last such line)"
     level, said, values = commands_status(face)
     assert level == WARN and "'gripper_typo'" in said
     assert values["last_refusal"] == "trajectory: no joint 'gripper_typo' on this gateway"
@@ -174,14 +186,10 @@ def test_a_command_naming_no_joint_is_refused_in_one_line_and_the_commands_statu
                "every name a value, NaN for none)")
     line = ("ros2: a command naming no joint of this gateway refused, nothing in it moves: "
             f"{refusal}")
-    with caplog.at_level(logging.WARNING, logger="busgate.gateway.ros2.face"):
-        for _ in range(4):
-            face._command(nameless)
-        assert [r.getMessage() for r in caplog.records] == [line]
-        face._nameless_told.told_at -= REFUSAL_TOLD_EVERY_S  # a second later
-        face._command(nameless)
-    assert [r.getMessage() for r in caplog.records] == [
-        line, f"{line} (3 more since the last such line)"]
+    first, then = told_then_a_second_later(
+        caplog, face._nameless_told, lambda: face._command(nameless), 4)
+    assert first == [line]
+    assert then == [line, f"{line} (3 more since the last such line)"]
     assert bridge.soon == []
     assert commands_status(face) == (
         WARN, f"a message naming no joint of this gateway refused: {refusal}",
