@@ -45,7 +45,7 @@ from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
 from busgate.schemas.joints import Joint, JointTable, table_problems, table_warnings
 from busgate.schemas.ros2 import Ros2Section
-from busgate.schemas.validation import SHOWN_OP_CHARS, closest, cut, suggestion
+from busgate.schemas.validation import SHOWN_OP_CHARS, closest, cut, message_of, suggestion
 
 KeyPrefix = Annotated[str, Field(pattern=KEY_PREFIX_PATTERN)]
 
@@ -497,7 +497,7 @@ def _describe(error: Any) -> tuple[str, str]:
     """(key path, one line) for a pydantic error; our own checks put the path in the message."""
     if error["type"] == "extra_forbidden":
         return _unknown_key(error["loc"])
-    message = error["msg"].removeprefix("Value error, ")
+    message = message_of(error)
     path = _key_path(error["loc"])
     if error["type"] == "union_tag_not_found":  # pydantic's words name no key a user wrote
         key = error["ctx"]["discriminator"].strip("'")

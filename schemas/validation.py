@@ -131,14 +131,18 @@ def _plain(error: Any) -> str:
     """pydantic's words for ``error``, but for those in its own terms: a validator's own
     message without "Value error, ", and a command's missing or unknown op said as such."""
     kind, context = error["type"], error.get("ctx", {})
-    if kind == "value_error":
-        return str(error["msg"]).removeprefix("Value error, ")
     if kind == "union_tag_not_found":
         return f'no {context["discriminator"]}: a command names what it is ({{"op": …}})'
     if kind == "union_tag_invalid":
         tag = cut(repr(context["tag"]), SHOWN_OP_CHARS)
         return f"unknown {context['discriminator']} {tag}: one of {context['expected_tags']}"
-    return str(error["msg"])
+    return message_of(error)
+
+
+def message_of(error: Any) -> str:
+    """pydantic's message for ``error``; a validator's own as it wrote it, without the
+    "Value error, " pydantic puts before it."""
+    return str(error["msg"]).removeprefix("Value error, ")
 
 
 #: How a number past each of pydantic's bounds is told, by the bound's error type.
