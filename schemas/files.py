@@ -1,4 +1,5 @@
-"""The small text files an operator names — a config, a password — read whole before use.
+"""The small text files an operator names — a config, a password — read whole before use, and
+the folders an operator names for the gateway to write in.
 
 A wrong name is easy to give (``/dev/zero``, a directory, a named pipe, a binary file) and
 must be a one-line refusal, never a read without end, a wait for ever or a traceback; the
@@ -14,6 +15,8 @@ Rules of this file:
 3. Text is UTF-8, after the byte-order mark some editors write first, if any; where it stops
    being UTF-8 is named (its line and byte).
 4. Every refusal is a ``FileRefused`` whose message names the file.
+5. A folder to write in is made where it is missing; a file in its place is named as one, not
+   told in mkdir's words ("File exists").
 """
 
 from __future__ import annotations
@@ -56,6 +59,22 @@ def read_text(path: str | Path, limit: int, what: str) -> str:
             f"{path} is not UTF-8 text (line {line} has the byte "
             f"0x{exc.object[exc.start]:02x}): save it as UTF-8"
         ) from exc
+
+
+def make_folder(path: str | Path) -> Path:
+    """``path`` as a folder, made with its parents where missing (rule 5)."""
+    if not str(path):
+        raise FileRefused(EMPTY_PATH)
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        there = (part for part in (folder, *folder.parents) if part.exists() or part.is_symlink())
+        file = next(there)
+        raise FileRefused(f"{file} is a file, not a folder") from None
+    except OSError as exc:
+        raise FileRefused(f"cannot make the folder {path}: {exc.strerror}") from exc
+    return folder
 
 
 def _read(fd: int, most: int, path: str | Path) -> bytes:

@@ -46,3 +46,21 @@ def test_an_empty_path_is_refused_by_the_command_that_reads_it(args, said, tmp_p
     assert main(args) == 2
     assert capsys.readouterr().err.endswith(f"{said}{EMPTY_PATH}\n")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("under", ["", "/records"])
+@pytest.mark.parametrize(("args", "said"), [
+    (["demo", "--listen", "tcp/127.0.0.1:1", "--no-dashboard", "--record"],
+     "cannot write wire records: "),
+    (["schema", "--out"], "--out: "),
+])
+def test_a_file_named_as_a_folder_is_refused_as_one(args, said, under, tmp_path,
+                                                    capsys) -> None:
+    """Not in mkdir's words ("File exists", "Not a directory"): the file in the way is named,
+    whether it is the folder itself or one of its parents."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main([*args, f"{blocker}{under}"]) == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        f"error: {said}{blocker} is a file, not a folder")
+    assert blocker.read_text() == ""

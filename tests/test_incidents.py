@@ -172,8 +172,8 @@ def test_a_folder_that_cannot_be_written_refuses_the_start(tmp_path, free_port) 
     result = run_busgate("run", "--config", str(config))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.splitlines()[-1] == (
-        f"busgate run: error: recorder: cannot write incident files in {tmp_path}/a-file/"
-        "incidents: Not a directory (the [recorder] dir of the config)")
+        f"busgate run: error: recorder: {tmp_path}/a-file is a file, not a folder (the "
+        "[recorder] dir of the config)")
     assert "zenoh session up" not in result.stderr  # refused before anything opened
 
 

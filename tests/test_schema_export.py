@@ -225,7 +225,7 @@ def test_an_out_that_cannot_be_written_is_one_line(tmp_path, capsys):
     (tmp_path / "a-file").write_text("")
     assert main(["schema", "--out", str(tmp_path / "a-file")]) == 2
     assert capsys.readouterr().err.strip() == (
-        f"busgate schema: error: --out {tmp_path / 'a-file'}: File exists")
+        f"busgate schema: error: --out: {tmp_path / 'a-file'} is a file, not a folder")
 
 
 # --- telemetry: states built by the drivers from decoded replies --------------------------------

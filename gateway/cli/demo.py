@@ -50,6 +50,7 @@ from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.config import Config, parse_config, workers_value
 from busgate.schemas.families import PROTOCOLS
+from busgate.schemas.files import FileRefused, make_folder
 
 GATEWAY_NAME = "demo"
 HEARTBEAT_MS = 100
@@ -286,12 +287,10 @@ def _workers(text: str) -> object:
 
 
 def _record_dir(path: str) -> Path:
-    folder = Path(path)
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CommandError(f"cannot write wire records in {path}: {exc.strerror}") from exc
-    return folder
+        return make_folder(path)
+    except FileRefused as exc:
+        raise CommandError(f"cannot write wire records: {exc}") from exc
 
 
 def _record_file(path: Path) -> IO[str]:

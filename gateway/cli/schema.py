@@ -18,6 +18,7 @@ from busgate.errors import CommandError
 from busgate.gateway.cli.arguments import named_path
 from busgate.schemas import api
 from busgate.schemas.exported import SCHEMAS, generated
+from busgate.schemas.files import FileRefused, make_folder
 
 #: The repository's ``schemas/json`` (beside the models), whatever the working directory.
 DEFAULT_OUT = Path(api.__file__).resolve().parent / "json"
@@ -42,7 +43,7 @@ def write_all(out: Path) -> list[str]:
     in the repository's folder alone); return what changed."""
     texts = generated()
     changed = stale_files(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     for name in changed:
         path = out / name
         if name in texts:
@@ -63,6 +64,8 @@ def _run(args: argparse.Namespace) -> int:
         return 1 if stale else 0
     try:
         changed = write_all(out)
+    except FileRefused as exc:
+        raise CommandError(f"--out: {exc}") from exc
     except OSError as exc:
         raise CommandError(f"--out {out}: {exc.strerror or exc}") from exc
     print(

@@ -49,6 +49,7 @@ from busgate.gateway.bus.owner import Tap
 from busgate.gateway.recording.ring import Ring
 from busgate.schemas.config import RecorderSection
 from busgate.schemas.events import BUS_DOWN_REASON, WORKER_ENDED_REASON
+from busgate.schemas.files import FileRefused, make_folder
 
 log = logging.getLogger(__name__)
 
@@ -139,15 +140,18 @@ class FlightRecorder:
     def prepare(self) -> None:
         """Make the folder (refusing, in one line, one that cannot be written) and remove
         what a crash left half written."""
+        where = "(the [recorder] dir of the config)"
         try:
-            self.folder.mkdir(parents=True, exist_ok=True)
+            make_folder(self.folder)
             probe = self.folder / f".busgate-write-test-{os.getpid()}"
             probe.write_bytes(b"")
             probe.unlink()
+        except FileRefused as exc:
+            raise BusgateError(f"recorder: {exc} {where}") from exc
         except OSError as exc:
             raise BusgateError(
                 f"recorder: cannot write incident files in {self.folder}: "
-                f"{exc.strerror or exc} (the [recorder] dir of the config)"
+                f"{exc.strerror or exc} {where}"
             ) from exc
         for part in self.folder.glob(INCIDENT_GLOB + ".part"):
             with contextlib.suppress(OSError):
