@@ -433,7 +433,7 @@ def test_values_without_names_move_nothing_and_are_shown_in_the_commands_status(
     commands = publisher(ros, "/robot_joint_commands", "sensor_msgs/msg/JointState")
     since = len(ros["la"].recorder.received())
     commands.publish(**joint_state(ros, [], position=[0.003], velocity=[1.0]))
-    why = "position has 1, velocity 1 values for 0 position and 0 velocity joints"
+    why = "position has 1, velocity 1 values for no names (name their joints)"
     told = diagnostics.wait(lambda a: why in commands_values(a).get("last_refusal", ""))
     [status] = [s for s in told.status if s.name == f"{NODE}: commands"]
     assert status.level == 1 and why in status.message

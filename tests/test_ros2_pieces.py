@@ -181,9 +181,8 @@ def test_a_command_naming_no_joint_is_refused_in_one_line_and_the_commands_statu
     api, bridge, face = gripper_face()
     monkeypatch.setattr(api, "ramp_to", lambda *_: pytest.fail("a refused message moved"))
     nameless = {"name": [], "position": [0.003], "velocity": [1.0]}
-    refusal = ("whose is each value? position has 1, velocity 1 values for 0 position and 0 "
-               "velocity joints (each joint's command interface must be its type, or give "
-               "every name a value, NaN for none)")
+    refusal = ("whose is each value? position has 1, velocity 1 values for no names (name "
+               "their joints)")
     line = ("ros2: a command naming no joint of this gateway refused, nothing in it moves: "
             f"{refusal}")
     first, then = told_then_a_second_later(

@@ -149,6 +149,8 @@ class Commands:
 
     def _uncertain(self, names: list[str], lists: dict[str, list[float]]) -> str | None:
         """Why ros2_control's reading cannot say whose each value is, if it cannot (rule 1)."""
+        if not names:
+            return f"whose is each value? {_lengths(lists)} for no names (name their joints)"
         strangers = sum(name not in self.joints for name in names)
         if strangers:
             return (
