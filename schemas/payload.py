@@ -6,7 +6,7 @@ Rules of this file:
 
 1. Refused with a stable code and nothing else done: over its key's ``limit`` (``too_large``),
    not UTF-8 (``not_utf8``), not JSON, or a number JSON cannot carry: NaN, infinities, past a
-   double (``not_json``), a key given twice, nested too deeply, or not an object
+   double, integers too (``not_json``), a key given twice, nested too deeply, or not an object
    (``bad_command``).
 2. The payload is parsed once, here; what it means is the schemas' (``validation``).
 """
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from typing import Any
 
 from busgate.errors import RefusedError
@@ -29,6 +30,8 @@ MAX_PAYLOAD = 64 * 1024
 #: as the gateway encodes it. The joints message and a trajectory's feedback (some 170 bytes a
 #: device) are bounded by it too: past 64 KiB from some 390 devices on.
 MAX_WHOLE_GATEWAY = 32 * 1024 * 1024
+#: The most digits of a double's integers (its largest, 1.8e308, has 309).
+DOUBLE_DIGITS = len(str(int(sys.float_info.max)))
 #: The last chunk of the keys a gateway publishes its whole-gateway messages on.
 WHOLE_GATEWAY_LEAVES = frozenset({"joints", "feedback"})
 
@@ -58,12 +61,13 @@ def _reject_constant(name: str) -> float:
 
 
 def _integer(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:  # past the interpreter's 4300 digits: its message names sys's knobs
-        raise ValueError(
-            f"an integer of {len(text.lstrip('-'))} digits is past any number a command takes"
-        ) from None
+    """An integer within a double's range, as ``_finite`` takes a float: every number a
+    command takes is one (``10**400`` was left for each field to refuse in its own words, or
+    the interpreter's past 4300 digits, which name sys's knobs)."""
+    digits = len(text.lstrip("-"))
+    if digits > DOUBLE_DIGITS or abs(value := int(text)) > sys.float_info.max:
+        raise ValueError(f"an integer of {digits} digits is too large for a double")
+    return value
 
 
 def _finite(text: str) -> float:

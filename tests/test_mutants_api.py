@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import sys
 from collections import deque
 from concurrent.futures import Future
 from types import SimpleNamespace
@@ -286,7 +287,17 @@ HUGE = b'{"op":"' + b"x" * MAX_PAYLOAD + b'"}'
         (
             b'{"position": ' + b"9" * 5000 + b"}",  # past the interpreter's own limit
             "not_json",
-            "payload is not JSON: an integer of 5000 digits is past any number a command takes",
+            "payload is not JSON: an integer of 5000 digits is too large for a double",
+        ),
+        (
+            b'{"position": -1' + b"0" * 400 + b"}",  # was refused by each field in its words
+            "not_json",
+            "payload is not JSON: an integer of 401 digits is too large for a double",
+        ),
+        (
+            b'{"position": ' + str(int(sys.float_info.max) + 1).encode() + b"}",
+            "not_json",
+            "payload is not JSON: an integer of 309 digits is too large for a double",
         ),
     ],
 )
