@@ -441,7 +441,7 @@ function showEvent({gateway, event}) {
     item.querySelector(".count").textContent = ` ×${item.busgateCount}`;
   } else {
     item = document.createElement("li");
-    item.className = String(type);
+    item.dataset.type = String(type);  // styled by the stylesheet's known types alone
     item.busgateKey = key;
     item.busgateCount = 1;
     const what = document.createElement("span");
