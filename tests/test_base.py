@@ -427,6 +427,8 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         assert "wheel wr is in fault (over_current)" in refused["error"]["message"]
         assert world.bases.twist("base", b'{"linear":0.3,"angular":0.0}')["error"] == \
             refused["error"]
+        # the base's enable too (it answered ok, its power stage staying off)
+        assert world.base({"op": "enable"})["error"] == refused["error"]
         time.sleep(0.1)
         # nothing moves (a 0 rpm may be what a wheel back from offline before is restored with)
         assert [rpm for *_, rpm in world.speeds(since) if rpm] == []
@@ -448,6 +450,54 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         assert left[-1] == 0
     finally:
         _clear_fault(world)
+
+
+def test_the_client_that_enabled_the_base_going_stops_no_wheel_another_client_drives() -> None:
+    """The base's enable sends each wheel 0 rpm as its caller: that made it each wheel's
+    deadman, whose going then sent the wheels 0 rpm one-shot under another client's twist (an
+    audit saw 58 -> 0 -> 54 rpm on the demo's wheels, which ramp their speeds: one wheel at 0
+    and the other at full speed). A wheel the base plays is the play's: the going client
+    stops nothing."""
+    ramped = World(wl=LEFT | {"max_acceleration": 50.0}, wr=RIGHT | {"max_acceleration": 50.0})
+    try:
+        assert ramped.base({"op": "enable", "client": "enabler"})["ok"]
+        assert ramped.base({"op": "twist", "linear": 0.3, "duration_s": 5,
+                            "client": "driver"})["ok"]
+        time.sleep(0.6)  # at speed
+        since, events = len(ramped.sim.recorder.received()), len(ramped.events)
+        ramped.api.client_left("enabler")
+        ramped.bases.client_left("enabler")
+        time.sleep(0.3)
+        speeds = [abs(rpm) for *_, rpm in ramped.speeds(since)]
+        assert len(speeds) > 10 and min(speeds) > 30, speeds  # 34.7 rpm at 0.3 m/s
+        assert [e for e in list(ramped.events)[events:] if e.type == "stopped"] == []
+    finally:
+        ramped.close()
+
+
+def test_a_twist_while_the_wheels_ramp_down_after_base_stopped_is_refused_busy(world) -> None:
+    """After a ``base_stopped`` the drive starts its next play from rest, while the wheels
+    still ramp down from their speed: a twist then was taken, and the wheels' speed cut from
+    78 to 4 rpm in one slot (an audit's wheel back online at once). It is refused ``busy``
+    until they rest; then a twist starts from there."""
+    assert world.base({"op": "enable"})["ok"]
+    assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
+    time.sleep(0.6)
+    events = len(world.events)
+    world.runner.stop_playing("wr", speed=True)  # it leaves the base's play, ramping
+    _until(lambda: any(e.type == "base_stopped" for e in list(world.events)[events:]),
+           "the base did not stop")
+    refused = world.base({"op": "twist", "linear": 0.3, "duration_s": 5})
+    assert refused["error"] == {
+        "code": "busy",
+        "message": "base base: wheel wl still ramps to 0 after the base stopped (within 0.5 s): "
+                   "send the twist again once it rests"}
+    _until(lambda: not world.runner.plays.playing("wl"), "wl did not come to rest")
+    since = len(world.sim.recorder.received())
+    assert world.base({"op": "twist", "linear": 0.3, "duration_s": 0.1})["ok"]
+    world.wait_rest()
+    first = next(rpm for _, node, rpm in world.speeds(since) if node == 1)
+    assert first < 5  # from rest, at the base's acceleration (4.7 rpm a slot)
 
 
 def test_a_wheel_that_reboots_is_re_based_and_the_odometry_keeps_its_pose(world) -> None:

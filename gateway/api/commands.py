@@ -20,8 +20,9 @@ every rule of the API is tested without a network. Rules of this file:
    and e-stops are never refused. Each bus's ``Authority`` decides this for every request,
    by the devices its frames address (``busgate.gateway.scheduler.authority``).
 3. Deadman: when a client goes, its claims are released, its follow streams stop, and a
-   ZLAC706 whose speed it commanded is brought to 0 rpm at once, unless a follow stream or
-   a kept target (``ramp_to``) has driven it since: its speed is theirs then. A client may
+   ZLAC706 whose speed it commanded is brought to 0 rpm at once, unless a follow stream, a
+   kept target (``ramp_to``) or a play (a trajectory, a base's twist: they ramp) has driven
+   it since: its speed is theirs then. A client may
    end a stream itself (``end_follow``): claimed like a follow target, never refused for an
    e-stop. zenoh hands a put (a target) and a query (the end) to different threads, so a
    target sent before the end may be taken after it; it must not start a stream that then
@@ -462,6 +463,8 @@ class GatewayApi:
             if owner == client:
                 del self._deadman_clients[device]
                 runner, driver = self.devices[device]
+                if runner.plays.playing(device):  # a play moves it now (a base's, a trajectory)
+                    continue
                 assert driver.deadman is not None
                 runner.submit(device, driver.parse(driver.deadman.stop))
                 self._event(device, "stopped", client=client, reason="client gone")

@@ -10,11 +10,14 @@ Rules of this file:
 3. A base never drives on one wheel: when one wheel leaves the play (e-stopped, refused its
    target), its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2) or
    reports a fault (its drive's alarm: its power stage is off), both are ramped to 0 at
-   once, with a ``base_stopped`` event naming the wheel and why. A twist while a wheel is
-   offline or in fault is refused, naming it; while a wheel plays a trajectory, refused
-   ``busy``, as a trajectory naming a wheel of a driving base is (``trajectory.playing``
-   rule 1: a drive and a play are chosen under one lock, the trajectories' ``players``).
-   An e-stop takes both out.
+   once (over ``plays.RAMP_S``, whatever the base's deceleration limits: the sooner, the less
+   it turns), with a ``base_stopped`` event naming the wheel and why. A twist while a wheel
+   is offline or in fault is refused, naming it, as an enable of the base while a wheel is
+   in fault is; while a wheel plays a trajectory, refused ``busy``, as a trajectory naming
+   a wheel of a driving base is (``trajectory.playing`` rule 1: a drive and a play are
+   chosen under one lock, the trajectories' ``players``); while the wheels still ramp to 0
+   after a ``base_stopped``, refused ``busy`` too (the drive starts its next play from
+   rest). An e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
@@ -58,6 +61,7 @@ from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.outcomes import settled
+from busgate.gateway.scheduler.plays import RAMP_S
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.schemas.bases import (
     BASE_COMMAND_ADAPTER,
@@ -292,12 +296,12 @@ class Bases:
                     device_id=wheel.driver.device_id,
                 )
             telemetry = wheel.driver.telemetry(now())
-            if faults := telemetry.get("faults"):  # rule 3: the other would drive alone
-                raise RefusedError(
-                    "bad_command",
-                    f"base {base.config.name}: wheel {wheel.name} is in fault "
-                    f"({', '.join(faults)}): clear its alarm first (disable, then "
-                    '{"op":"clear_alarm"} to the wheel)',
+            _refuse_fault(base, wheel, telemetry)
+            if base.playing_since is None and wheel.runner.plays.playing(wheel.name):
+                raise RefusedError(  # rule 3: started from rest, it would cut the ramp short
+                    "busy",
+                    f"base {base.config.name}: wheel {wheel.name} still ramps to 0 after the "
+                    f"base stopped (within {RAMP_S:g} s): send the twist again once it rests",
                 )
             if not telemetry.get("enabled") or telemetry.get("mode") != "velocity":
                 raise RefusedError(
@@ -369,6 +373,9 @@ class Bases:
         wheels')."""
         if request.op == "disable":
             base.drive.stop()
+        else:
+            for wheel in base.wheels:  # its power stage would stay off: the base on one wheel
+                _refuse_fault(base, wheel, wheel.driver.telemetry(now()))
         who = request.model_dump(include={"client", "require_claim"}, exclude_none=True)
         # 0 rpm before the enable: a speed preset (a wheel's own velocity op while the base
         # was off) would start the motor the moment it is enabled; a base moves on twists only.
@@ -515,6 +522,16 @@ class Bases:
 
     def _event(self, base: LiveBase, type_: str, **fields: Any) -> None:
         self.on_event(DeviceEvent(base.config.name, type_, {"base": base.config.name, **fields}))
+
+
+def _refuse_fault(base: LiveBase, wheel: Wheel, telemetry: dict[str, Any]) -> None:
+    """A wheel in fault is refused for the base (rule 3: the other would drive alone)."""
+    if faults := telemetry.get("faults"):
+        raise RefusedError(
+            "bad_command",
+            f"base {base.config.name}: wheel {wheel.name} is in fault ({', '.join(faults)}): "
+            'clear its alarm first (disable, then {"op":"clear_alarm"} to the wheel)',
+        )
 
 
 def _sent_before_stop(
