@@ -418,6 +418,17 @@ def test_can_poll_is_empty_and_init_writes_something_harmless() -> None:
     assert wire(d.init()) == ["001#00fa00190000008f"]  # mode known: written again
 
 
+def test_can_init_releases_a_motor_whose_mode_is_known_and_power_stage_is_not() -> None:
+    """A base sets its wheels' velocity mode as they come online, which can be before their
+    first init: the init, seeing the mode known, only wrote it again, and a speed preset
+    before the gateway came started the motor at the next enable of the wheel (an audit saw
+    the demo's wheels never released)."""
+    d = can_driver()
+    run(d, plan(d, '{"op":"set_mode","mode":"velocity"}'))
+    assert wire(d.init()) == ["001#00fa00190000002f", "001#00fa001100000000",
+                              "001#00fa00100000000f"]  # the mode, 0 rpm (no torque there), off
+
+
 def test_a_disable_leaves_no_speed_preset_for_the_next_enable() -> None:
     """The manual: a speed preset starts the motor the moment it is enabled. A speed written
     before a disable must not: the disable writes 0 rpm first (and the keep-alive forgets the

@@ -522,6 +522,7 @@ def test_a_device_poller_gives_back_the_restore_of_a_poll_taken_out_unsent():
     driver.online = True
     driver.applied_settings = {7: silent_request(7)}
     poller = DevicePoller(driver, 20.0, start=0.0)
+    poller.build()  # its first: its init
     driver.restore_pending = True
     assert poller.build() == [silent_request(7)]
     assert not driver.restore_pending
@@ -550,3 +551,29 @@ def test_a_group_frame_is_a_job_of_each_device_it_moves():
     assert planner.decide(0.005) == pytest.approx(0.010)
     run(planner, planner.decide(0.010), 0.010, 0.0001)  # the tick
     assert _sent(planner, 0.0112, 2) == [("la1", ("broadcast", 500)), ("la2", ("broadcast", 9))]
+
+
+class Greeted(StandInDriver):
+    """Its init and its poll told apart."""
+
+    def init(self) -> list:
+        return [silent_request(1)]
+
+    def poll(self) -> list:
+        return [silent_request(2)]
+
+
+def test_a_device_online_before_its_first_poll_is_sent_its_init_first():
+    """A device that reports unasked (a ZLAC706's heartbeats) can be online before its first
+    poll is built, and was then polled, never sent its init: an audit saw the demo's base
+    wheels never released at start (the ZLAC706's init). Its init goes first, and again if
+    that poll is taken out unsent; then it is polled."""
+    driver = Greeted("w", 1)
+    driver.online = True
+    poller = DevicePoller(driver, 20.0, start=0.0)
+    assert poller.build() == [silent_request(1)]
+    poller.withdrawn()
+    assert poller.build() == [silent_request(1)]
+    assert poller.build() == [silent_request(2)]
+    poller.withdrawn()
+    assert poller.build() == [silent_request(2)]

@@ -30,9 +30,10 @@ with RS232 (``zlac706_state``). What is CAN's own:
    device that sends one) is news at once; an alarm report is news at once. A heartbeat's
    first frame begins a new reading (``begins_reading``): one look that takes two heartbeats
    publishes the first's state before the second's frames are taken in.
-4. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); when the mode
-   is not known yet, it releases the motor (control word ``0F``): a gateway that does not know
-   what the motor is doing stops it rather than guesses (but not once a client enabled it).
+4. ``init`` re-writes the acknowledged work mode (harmless, and echoed ``FB``); while the
+   power stage is not known, it releases the motor (control word ``0F``), whether the mode
+   is known or not: a gateway that does not know what the motor is doing stops it rather
+   than guesses (but not once a client enabled it).
 """
 
 from __future__ import annotations
@@ -187,15 +188,20 @@ class Zlac706CanDriver(Zlac706Driver):
     def init(self) -> list[Request]:
         """Rule 4. The runner repeats ``init`` at the poll rate while the node is offline (with
         heartbeats expected, until the first one), so it never releases a motor that a client
-        enabled since: with the mode unknown and the motor enabled, nothing is sent; else 0 rpm,
-        0 A and a release, so that no speed or torque preset before the gateway came starts the
-        motor at the next enable."""
+        enabled since: the mode is written again, if known, and while the power stage is not
+        known (the gateway's first word to it), 0 rpm, 0 A and a release, so that no speed or
+        torque preset before the gateway came starts the motor at the next enable; even when
+        the mode is known by then (a base sets its wheels' mode as they come online, which
+        may be before their first ``init``)."""
         settings = self.machine.settings
-        if settings.mode is not None:
-            return self._unchecked(schema.SetMode(op="set_mode", mode=settings.mode))
-        if settings.enabled:
-            return []
-        return [*self.nothing_preset(), *self._unchecked(schema.Disable(op="disable"))]
+        mode = (
+            []
+            if settings.mode is None
+            else self._unchecked(schema.SetMode(op="set_mode", mode=settings.mode))
+        )
+        if settings.enabled is not None:
+            return mode
+        return [*mode, *self.nothing_preset(), *self._unchecked(schema.Disable(op="disable"))]
 
     def keepalive_request(self) -> Request:
         """The last speed written, again (``commanded_speed_raw``)."""

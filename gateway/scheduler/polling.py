@@ -1,8 +1,9 @@
 """A device's telemetry reads at its poll rate, and what a poll is while the device is away.
 
 Its own module because polling is the one place where a device's being online changes what
-the bus sends on its behalf: an online device is polled, one that went offline is asked
-whether it is back (its ``init``), and one that rebooted first gets its settings again.
+the bus sends on its behalf: an online device is polled, one that went offline (or was never
+sent its ``init``) is asked whether it is back (its ``init``), and one that rebooted first gets
+its settings again.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ class DevicePoller:
         self.next_due = start
         #: The poll last built carries the device's settings again (its ``restore``).
         self._restoring = False
+        #: Its ``init`` was built (``_greeting``: the poll last built is the first): a device
+        #: that reports unasked (heartbeats) may be online before it, and is sent it then.
+        self._greeted = self._greeting = False
 
     @property
     def period_s(self) -> float:
@@ -36,7 +40,9 @@ class DevicePoller:
     def build(self) -> list[Request]:
         driver = self.driver
         self._restoring = driver.online and driver.restore_pending
-        if not driver.online:
+        self._greeting = not self._greeted
+        if not driver.online or self._greeting:  # online before its first: a report unasked
+            self._greeted = True
             return driver.init()
         if self._restoring:  # it rebooted: its settings again, then the poll
             driver.restore_pending = False
@@ -46,4 +52,5 @@ class DevicePoller:
     def withdrawn(self) -> None:
         if self._restoring:  # the settings never went: due with the next poll
             self.driver.restore_pending = True
-        self._restoring = False
+        self._greeted = self._greeted and not self._greeting
+        self._restoring = self._greeting = False
