@@ -17,7 +17,9 @@ Rules of this file:
    is lost, and it is the class of the gateway's ``not_claimed``. ``UnknownGatewayError``
    (``unknown_gateway``) is the SDK's own finding, in the family of ``unknown_device``: no
    gateway of the name given is up; ``error_for`` finds it too. No ``zenoh.ZError`` reaches
-   a user: the modules that call zenoh turn it into one of these.
+   a user: the modules that call zenoh turn it into one of these. An argument the SDK
+   refuses before anything is sent (a name that would address others, a timeout that is no
+   number) is busgate's ``CommandError``, as the gateway's own refusal of a bad argument is.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from busgate.errors import BusgateError
+from busgate.errors import BusgateError, CommandError
 from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
 from busgate.schemas.validation import cut
 
@@ -157,6 +159,7 @@ __all__ = [
     "BusgateError",
     "ClaimLostError",
     "ClaimedError",
+    "CommandError",
     "ConnectError",
     "GatewayError",
     "NoAnswerError",

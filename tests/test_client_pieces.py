@@ -77,8 +77,9 @@ def test_an_error_message_is_cut_to_the_longest_a_gateway_sends() -> None:
 
 
 def test_client_side_failures_are_busgate_errors_too() -> None:
-    for cls in (bc.ConnectError, bc.NoAnswerError, bc.AmbiguousError):
+    for cls in (bc.ConnectError, bc.NoAnswerError, bc.AmbiguousError, bc.CommandError):
         assert issubclass(cls, bc.BusgateError) and not issubclass(cls, bc.GatewayError)
+    assert bc.CommandError is CommandError  # as sdk.md names it: the arguments refused
     assert bc.error_for("not_claimed") is bc.ClaimLostError  # the SDK's and the gateway's
 
 

@@ -1,7 +1,7 @@
 """The README's picture of the dashboard: ``busgate demo`` (a child process, on a free
 loopback port, its dashboard on another), three of its devices moving for ``--seconds`` (a
-claim, a follow stream of a sine on la1, moves of la2 and servo1), then the page as Debian's
-Chromium draws it (``tests.browser``), saved as a PNG.
+claim, a follow stream of a sine on la1, moves of la2 and servo1) while its base drives an
+arc, then the page as Debian's Chromium draws it (``tests.browser``), saved as a PNG.
 
     .venv/bin/python tests/benchmarks/screenshot_dashboard.py [--out docs/dashboard.png]
                                                              [--seconds 12]
@@ -36,10 +36,13 @@ def main() -> None:
         with bc.connect(demo.endpoint, client_id="screenshot") as client, \
                 browser_page(demo.dashboard, width=1400, height=900) as page:
             la1, la2, servo1 = (client.device(n) for n in ("la1", "la2", "servo1"))
+            base = client.base("base")
+            base.enable()
             started, moves = time.monotonic(), 0
-            with la1.claim(ttl_s=2.0), la1.follow() as stream:
+            with la1.claim(ttl_s=2.0), la1.follow() as stream, base.drive_stream() as drive:
                 while (elapsed := time.monotonic() - started) < args.seconds:
                     stream.set(position=round(1000 + 700 * math.sin(elapsed * 1.2)))
+                    drive.send(0.3, 0.4)
                     if elapsed >= moves * MOVE_EVERY_S:  # now and then, a move the other way
                         la2.move(1800 if moves % 2 == 0 else 300)
                         servo1.move(3200 if moves % 2 == 0 else 1000)
