@@ -127,8 +127,11 @@ def test_a_zenoh_endpoint_in_use_is_refused_in_one_line(held_address, existing_p
     config = write_config(tmp_path / "gw.toml", endpoint, serial_bus("uart0", existing_port, "la1"))
     results = {"run": run_busgate("run", "--config", str(config)),
                "demo": run_busgate("demo", "--listen", endpoint)}
+    beside = {"run": "", "demo": " A second one runs beside it with --listen "
+                                 "tcp/127.0.0.1:<another port>"}
     for command, result in results.items():
-        refusal = f"busgate {command}: error: zenoh cannot listen on {endpoint}: {IN_USE}"
+        refusal = (f"busgate {command}: error: zenoh cannot listen on {endpoint}: "
+                   f"{IN_USE[:-1]}{beside[command]})")
         assert (result.returncode, result.stderr.splitlines()) == (2, [refusal]), command
         assert result.stdout == ""
 

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from busgate.client import aio
+from busgate.client.errors import ConnectError
 from busgate.client.keys import check_name
 from busgate.codecs.ros2.rmw_zenoh import resolve
 from busgate.dashboard.server import DEFAULT_LISTEN, Listen, serve_dashboard
@@ -45,7 +46,7 @@ from busgate.errors import CommandError
 from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.cli.client_session import DEFAULT_ENDPOINT
 from busgate.gateway.service import logs
-from busgate.gateway.service.daemon import serve, stop_on_signals
+from busgate.gateway.service.daemon import IN_USE_HINT, serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.config import Config, parse_config, workers_value
@@ -242,8 +243,22 @@ def run_demo(args: argparse.Namespace) -> int:
             ros2=args.ros2,
             workers=args.workers,
         )
-        asyncio.run(_serve_announcing(config, links, dashboard, bound))
+        try:
+            asyncio.run(_serve_announcing(config, links, dashboard, bound))
+        except ConnectError as exc:
+            raise _beside(exc) from None
     return 0
+
+
+def _beside(exc: ConnectError) -> ConnectError:
+    """zenoh's endpoint in use, told with the option that runs a second demo beside the
+    first, as the dashboard's address in use is (``_bound``)."""
+    said = str(exc)
+    if not said.endswith(f"({IN_USE_HINT})"):
+        return exc
+    return ConnectError(
+        f"{said[:-1]} A second one runs beside it with --listen tcp/127.0.0.1:<another port>)"
+    )
 
 
 def _bound(dashboard: Listen) -> socket.socket:
