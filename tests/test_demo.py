@@ -91,7 +91,8 @@ def test_a_second_demo_on_the_same_endpoint_is_refused_in_one_line(demo) -> None
     second = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
                              endpoint], capture_output=True, text=True, timeout=TIMEOUT_S)
     refusal = (f"busgate demo: error: zenoh cannot listen on {endpoint}: it is in use (another "
-               f"busgate demo or run?)")
+               "busgate demo or run? A second one runs beside it with --listen "
+               "tcp/127.0.0.1:<another port>)")
     assert (second.returncode, second.stderr.splitlines(), second.stdout) == (2, [refusal], "")
 
 
