@@ -4,7 +4,9 @@ Times are ``time.perf_counter()`` seconds, which on Linux is CLOCK_MONOTONIC and
 across processes: ``start`` is when the frame's first byte went on the wire and ``end`` when its
 last byte left it, so gaps and follow periods can be measured on the device side. Received
 frames also carry ``arrived``, when the simulator read them off the pty: frames read in one go
-were written in one burst, and their spacing on the wire cannot be told from the device side.
+were written in one burst, or waited while the simulator's thread did not run (a loaded host
+starves it): either way their spacing on the wire cannot be told from the device side, and
+the host's own write times say what the gateway kept.
 """
 
 from __future__ import annotations
