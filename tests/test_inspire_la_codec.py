@@ -4,6 +4,7 @@ behaviour on damaged input, and what answers what."""
 from __future__ import annotations
 
 import typing
+from dataclasses import replace
 
 import pytest
 from hypothesis import given
@@ -11,7 +12,7 @@ from hypothesis import strategies as st
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs.errors import EncodeError
-from busgate.codecs.framing import NEED_DATA, ChecksumMismatch, Discarded, ExpectedReply
+from busgate.codecs.framing import NEED_DATA, ChecksumMismatch, Discarded
 from busgate.codecs.inspire_la import (
     CommandDecoder,
     ControlCode,
@@ -102,8 +103,43 @@ def test_a_status_frame_under_the_cmd_byte_of_what_it_answers_is_the_status(inst
     printed = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
     body = bytes((*printed[2:4], instruction, *printed[5:-1]))
     echoed = b"\xaa\x55" + body + bytes((sum(body) & 0xFF,))
-    assert _events(ReplyDecoder, echoed) == _events(ReplyDecoder, printed) == [
-        StatusReply(1, 1003, 990, 20, 100, 500, Fault(0), 1800, 1802)]
+    status = StatusReply(1, 1003, 990, 20, 100, 500, Fault(0), 1800, 1802)
+    assert _events(ReplyDecoder, printed) == [status]
+    assert _events(ReplyDecoder, echoed) == [replace(status, command=instruction)]
+    assert encode(replace(status, command=instruction)) == echoed  # the byte kept both ways
+
+
+STATUS_QUERY = ControlCommand(1, ControlCode.STATUS)
+MOVE = MoveCommand(1, 1000)
+
+
+@pytest.mark.parametrize(("command", "under", "answers"), [
+    (STATUS_QUERY, 0x04, True),
+    (STATUS_QUERY, 0x21, False),  # a move's answer, late: a stale state for the query's
+    (STATUS_QUERY, 0x02, False),
+    (MOVE, 0x21, True),
+    (MOVE, 0x04, True),  # as the manual prints every status frame
+    (MOVE, 0x20, False),  # a follow's, late
+    (FollowCommand(1, 1000), 0x20, True),
+    (FollowCommand(1, 1000), 0x21, False),
+    (WriteCommand(1, 98, b"\x58\x02"), 0x02, True),
+    (WriteCommand(1, 98, b"\x58\x02"), 0x04, True),
+    (WriteCommand(1, 98, b"\x58\x02"), 0x21, False),
+])
+def test_a_status_frame_answers_only_a_command_of_the_cmd_byte_it_came_under(command, under,
+                                                                            answers):
+    """A late status frame under another command's cmd byte (3.4.1: a reply's is its
+    command's) is that command's answer, not the next one's: an audit saw a late move's
+    status taken for the next status query's. Under the status query's 04, as the manual
+    prints it, it answers any: which one it is cannot be told (docs/wire.md)."""
+    status = StatusReply(1, 1000, 990, 20, 100, 0, Fault(0), command=under)
+    assert expected_reply(command).matches(status) is answers
+    assert not expected_reply(command).matches(replace(status, device_id=2))
+
+
+def test_a_status_frame_under_a_cmd_byte_no_answer_has_is_not_encoded():
+    with pytest.raises(EncodeError, match="a status frame comes under cmd 04, 20, 21, 02"):
+        encode(StatusReply(1, 0, 0, 0, 0, 0, Fault(0), command=0x01))
 
 
 def test_status_reply_fault_bits_and_negative_values():
@@ -404,7 +440,8 @@ def _status(device_id: int) -> StatusReply:
 )
 def test_status_answers(command):
     expectation = expected_reply(command)
-    assert expectation == ExpectedReply(3, la.STATUS_REPLY_SIZE, (StatusReply,))
+    assert (expectation.source_id, expectation.wire_bytes, expectation.kinds,
+            expectation.frames) == (3, la.STATUS_REPLY_SIZE, (StatusReply,), 1)
     assert expectation.matches(_status(3))
     assert not expectation.matches(_status(4))
     assert not expectation.matches(ReadReply(3, 0x37, b"\x00"))

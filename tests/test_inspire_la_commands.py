@@ -272,6 +272,7 @@ def test_cli_decode_status_reply(capsys):
         "faults": ["STALL", "OVER_CURRENT"],
         "internal_1": 1800,
         "internal_2": 1802,
+        "command": 4,  # the cmd byte it came under: the status query's
     }
 
 

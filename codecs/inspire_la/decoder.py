@@ -26,6 +26,7 @@ from busgate.codecs.inspire_la.frames import (
     MAX_LENGTH,
     MIN_ID,
     REPLY_HEADER,
+    STATUS_COMMANDS,
     STATUS_LAYOUT,
     STATUS_REPLY_SIZE,
     TARGET_INDEX,
@@ -139,20 +140,20 @@ def _group_targets(frame: bytes) -> tuple[Target, ...]:
 #: The length byte of the status frame, and of section 3.4.1's answer to a write.
 STATUS_LENGTH = STATUS_REPLY_SIZE - FRAME_OVERHEAD
 WRITE_REPLY_LENGTH = 3
-#: The commands the status frame answers, besides a write.
-_ANSWERED_BY_STATUS = (Instruction.CONTROL, Instruction.FOLLOW, Instruction.MOVE)
+#: The commands the status frame answers, besides a write (whose answer has two lengths).
+_ANSWERED_BY_STATUS = tuple(i for i in STATUS_COMMANDS if i is not Instruction.WRITE)
 
 
 def _status_reply(frame: bytes) -> StatusReply:
     # Bytes 5-6 read 00 22 (the status query's code) in the manual. The replies to the other
     # commands are only said to be "the same as the status query's", so they are not checked;
-    # nor is byte 4 (see ``ReplyDecoder``).
+    # byte 4 is kept, for the exchange to tell whose answer it is (``exchange``).
     target, position, temperature, current, force_lo, faults, force_hi, in1, in2 = (
         STATUS_LAYOUT.unpack_from(frame, 7)
     )
     force = int.from_bytes(bytes((force_lo, force_hi)), "little", signed=True)
     return StatusReply(
-        frame[3], target, position, temperature, current, force, Fault(faults), in1, in2
+        frame[3], target, position, temperature, current, force, Fault(faults), in1, in2, frame[4]
     )
 
 

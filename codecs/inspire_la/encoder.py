@@ -20,6 +20,7 @@ from busgate.codecs.inspire_la.frames import (
     MAX_ID,
     MIN_ID,
     REPLY_HEADER,
+    STATUS_COMMANDS,
     STATUS_LAYOUT,
     TABLE_SIZE,
     TARGET_INDEX,
@@ -138,6 +139,13 @@ def _group_follow(frame: GroupFollowCommand) -> bytes:
 
 
 def _status(frame: StatusReply) -> bytes:
+    if frame.command not in STATUS_COMMANDS:
+        raise EncodeError(
+            f"a status frame comes under cmd {', '.join(f'{c:02x}' for c in STATUS_COMMANDS)}, "
+            f"not {frame.command!r}",
+            field="command",
+            value=frame.command,
+        )
     require_range("force_g", frame.force_g, -0x8000, 0x7FFF)
     force = frame.force_g & 0xFFFF
     values = STATUS_LAYOUT.pack(
@@ -151,7 +159,7 @@ def _status(frame: StatusReply) -> bytes:
         require_range("internal_1", frame.internal_1, 0, 0xFFFF),
         require_range("internal_2", frame.internal_2, 0, 0xFFFF),
     )
-    body = bytes((Instruction.CONTROL, 0, ControlCode.STATUS)) + values
+    body = bytes((frame.command, 0, ControlCode.STATUS)) + values
     return _wire(REPLY_HEADER, _reply_id(frame.device_id), body)
 
 

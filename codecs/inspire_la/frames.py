@@ -67,6 +67,12 @@ class Instruction(enum.IntEnum):
     GROUP_FOLLOW = 0xF3
 
 
+#: The cmd bytes a status frame comes under: the status query's (``CONTROL``, as the manual
+#: prints it), or that of the command it answers (erratum LA-7). A write's own answer may be
+#: the one-reserved-byte frame instead (LA-2).
+STATUS_COMMANDS = (Instruction.CONTROL, Instruction.FOLLOW, Instruction.MOVE, Instruction.WRITE)
+
+
 class ControlCode(enum.IntEnum):
     """Single-control (``0x04``) codes, the data byte of ``55 AA 03 id 04 00 code sum``."""
 
@@ -168,7 +174,9 @@ class StatusReply:
 
     ``force_g`` is only meaningful on force-sensing models (LAF, LASF); its low and high bytes
     sit on either side of the fault byte on the wire. ``internal_1``/``internal_2`` are the
-    manual's undocumented "internal data".
+    manual's undocumented "internal data". ``command`` is the cmd byte it came under: the
+    status query's ``04``, as the manual prints it, or that of the command it answers (3.4.1:
+    a reply's cmd is its command's; erratum LA-7).
     """
 
     device_id: int
@@ -180,6 +188,7 @@ class StatusReply:
     faults: Fault
     internal_1: int = 0
     internal_2: int = 0
+    command: int = Instruction.CONTROL
 
 
 @dataclass(frozen=True, slots=True)
