@@ -108,6 +108,22 @@ def test_safe_stop_switches_torque_off() -> None:
     assert wire([request]) == ["FF FF 01 04 03 28 00 CF"]  # ~(01+04+03+28+00)
 
 
+def test_safe_stop_replaces_a_stored_move_by_one_to_where_the_servo_is() -> None:
+    """A move stored for ACTION before an e-stop ran at the first ACTION after its reset (an
+    audit: any client's action on any servo of the bus); the stop stores one to where the
+    servo is in its place, once torque is off."""
+    d = driver(1)
+    answer(d, plan(d, '{"op":"move","position":700,"time_ms":300,"deferred":true}')[0])
+    d.measured["position"] = 3500
+    torque_off, stored = d.safe_stop()
+    assert torque_off.frame == ds.Write(1, 0x28, b"\x00")
+    assert stored.frame == ds.RegWrite(1, 3500, 0) and stored.idempotent
+    answer(d, stored)
+    assert d.telemetry(0)["pending_target"] == 3500
+    d.measured["position"] = None  # where it is not known: nothing to store in its place
+    assert len(d.safe_stop()) == 1
+
+
 # --- poll ----------------------------------------------------------------------------------------
 
 

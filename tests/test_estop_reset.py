@@ -7,6 +7,7 @@ the reset is the evidence, and a refusal of motion while e-stopped names the res
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
@@ -169,3 +170,25 @@ def test_a_reset_of_every_device_leaves_a_device_another_client_claims_to_its_ho
     finally:
         world.api.on_event = lambda event: None
         ok(world, "la3", {"op": "release", "client": "bob"})
+
+
+def test_a_move_stored_before_the_estop_is_not_started_by_an_action_after_its_reset(world):
+    """A DS servo's move stored for ACTION (a REG WRITE) before the e-stop ran at the first
+    ACTION after the reset, sent by any client to any servo of the bus (an audit): the stop
+    stores a move to where the servo is in its place, so the ACTION moves nothing."""
+    ok(world, "arm1", {"op": "torque", "on": True})
+    ok(world, "arm1", {"op": "move", "position": 3000, "time_ms": 100})
+    wait_until(lambda: abs((driver(world, "arm1").measured["position"] or 0) - 3000) < 5)
+    ok(world, "arm1", {"op": "move", "position": 700, "time_ms": 100, "deferred": True})
+    estop(world)
+    for stopped in world.api.reset_estop("tester"):
+        stopped.result(TIMEOUT_S)
+    _, ds_mark, _ = marks(world)
+    ok(world, "arm2", {"op": "action"})
+    wait_until(lambda: any(isinstance(f, ds.Action)
+                           for f in serial_frames(world.ds_sim, ds_mark)))
+    wait_until(lambda: driver(world, "arm1").telemetry(0.0)["pending_target"] is None)
+    assert abs(driver(world, "arm1").telemetry(0.0)["target"] - 3000) < 5  # not 700
+    time.sleep(0.3)  # the stored move took 100 ms; then a poll or two
+    here = driver(world, "arm1").measured["position"]
+    assert abs(here - 3000) < 5, here

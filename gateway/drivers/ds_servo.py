@@ -287,10 +287,17 @@ class DsServoDriver(Driver):
     def safe_stop(self) -> list[Request]:
         """Torque off: the manual documents no value for the lock (e-stop) flag at 0x30, and
         torque off is its one documented way to stop driving the shaft. The servo goes limp:
-        a load it was holding against gravity is no longer held."""
+        a load it was holding against gravity is no longer held. Then a move stored for
+        ACTION (a REG WRITE) is replaced by one to where the servo is (a new REG WRITE
+        replaces the stored one, manual 2.3.4): an ACTION after the e-stop's reset, which any
+        client may send to the bus, started the move stored before it."""
         self.note_estop()
         self.estop_latched = True
-        return [_torque_off(self.device_id)]
+        stop = [_torque_off(self.device_id)]
+        here = self.position_to_hold(self.measured["position"])
+        if self.pending_target is None or here is None:
+            return stop
+        return [*stop, Request.of(codec, codec.RegWrite(self.device_id, here, 0), idempotent=True)]
 
     def driving(self) -> bool:
         return self.torque_on is True
