@@ -264,8 +264,10 @@ class CanBus(BusBase):
     @property
     def device_key(self) -> tuple[str, str] | None:
         """(key, value) of the device file this bus opens: slcan and other adapters are named
-        by their tty; a SocketCAN channel is a socket, no file."""
-        return ("channel", self.channel) if self.channel.startswith("/") else None
+        by their tty (``/dev/ttyACM0@115200``: the tty, its baud rate after ``@``, as python-can
+        reads it); a SocketCAN channel is a socket, no file."""
+        path = self.channel.split("@", 1)[0]
+        return ("channel", path) if path.startswith("/") else None
 
 
 Bus = Annotated[SerialBus | CanBus, Field(discriminator="transport")]

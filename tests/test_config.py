@@ -217,6 +217,10 @@ def test_one_bus_per_device_file_however_it_is_named(tmp_path) -> None:
     assert f"both open /dev/ttyUSB0 (as /dev/ttyUSB0 and {link})" in str(error)
     error = refused(lambda d: d["buses"].append(_second_bus("can0", channel=str(link))))
     assert error.path == "buses[1].channel"  # an slcan adapter is a tty too
+    error = refused(lambda d: d["buses"].append(
+        _second_bus("can0", channel="/dev/ttyUSB0@115200")))  # its baud rate after the tty
+    assert str(error) == ("buses[1].channel: buses 'uart0' and 'can0' both open /dev/ttyUSB0; "
+                          "give each bus its own channel")
 
 
 def test_socketcan_channels_and_distinct_ports_are_not_device_files_in_common() -> None:
