@@ -8,8 +8,10 @@ Rules of this file:
 
 1. An endpoint of a network protocol (``tcp``, ``udp``, ``tls``, ``quic``, ``ws``) ends with
    ``host:port`` (then, maybe, zenoh's ``?`` metadata or ``#`` configuration), its port a
-   number from 1 to 65535. Port 0 is refused to a listener too: zenoh would pick a port
-   and tell nobody, so no client could be told where to connect.
+   number from 1 to 65535, its host an IPv6 address in brackets where it has a colon (one
+   bracket alone, ``tcp/[::1:7447``, was taken offline and failed the session's lookup).
+   Port 0 is refused to a listener too: zenoh would pick a port and tell nobody, so no
+   client could be told where to connect.
 2. A ``unixsock-stream`` endpoint has a path, no port; it is reachable from this host only.
 3. A listener is reachable from this host only when its host is a loopback address
    (``127.0.0.0/8``, ``::1``) or ``localhost``.
@@ -47,6 +49,9 @@ def port_problem(endpoint: str, *, listening: bool = False) -> str | None:
         if endpoint.startswith(tuple(f"{name}/" for name in NETWORK_PROTOCOLS)):
             return "it names no port: write host:port (tcp/127.0.0.1:7447)"
         return None
+    host = address["host"]
+    if host.startswith("[") != host.endswith("]") or (":" in host and not host.startswith("[")):
+        return f"host {host!r} is no host: an IPv6 address goes in brackets (tcp/[::1]:7447)"
     port = address["port"]
     number = int(port) if port.isascii() and port.isdigit() else None
     if listening and number == 0:

@@ -261,6 +261,10 @@ def _misspell(table: dict, key: str, typo: str) -> None:
                                             "nobody: name the port clients connect to"),
     ({"listen": ["tcp/"]}, None, "zenoh.listen[0]: it names no port: write host:port "
                                  "(tcp/127.0.0.1:7447)"),
+    ({"listen": ["tcp/[::1:7447"]}, None, "zenoh.listen[0]: host '[::1' is no host: an IPv6 "
+                                          "address goes in brackets (tcp/[::1]:7447)"),
+    ({"connect": ["tcp/::1:7447"]}, None, "zenoh.connect[0]: host '::1' is no host: an IPv6 "
+                                          "address goes in brackets (tcp/[::1]:7447)"),
     ({"listen": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7447"]}, None,
      "zenoh: listen: tcp/127.0.0.1:7447 is given twice"),
     ({"listen": ["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447"]}, None,  # run found it "in use"
@@ -274,7 +278,8 @@ def _misspell(table: dict, key: str, typo: str) -> None:
      "metrics.listen: 127.0.0.1:9108 is the zenoh listener tcp/0.0.0.0:9108's port"),
     ({}, "127.0.0.1:0", "metrics.listen: port 0 is one the system picks and tells nobody: name "
                         "the port Prometheus scrapes"),  # logged as metrics on …:0/metrics
-], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port", "listen twice",
+], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port",
+        "one bracket of an IPv6 host", "an IPv6 host without brackets", "listen twice",
         "one port listened on twice", "client with no router", "metrics on zenoh's port",
         "zenoh on every address", "metrics on port 0"])
 def test_a_zenoh_setting_that_could_never_open_is_refused_before_anything_opens(
