@@ -134,6 +134,19 @@ class JointFollow(FollowModel):
     joint: SiValue | None = None
     joint_velocity: SiValue | None = None
 
+    @model_validator(mode="before")
+    @classmethod
+    def _one_unit(cls, data: Any) -> Any:
+        """A target in the device's own units beside one in SI is told as such, not as an
+        extra field (``position: Extra inputs are not permitted``)."""
+        if isinstance(data, dict) and (own := sorted(k for k in data if k not in cls.model_fields)):
+            raise ValueError(
+                f"a follow target in joint units takes joint or joint_velocity, not "
+                f"{', '.join(map(str, own))} beside it (one in the device's own units gives "
+                "those alone)"
+            )
+        return data
+
     @model_validator(mode="after")
     def _one_value(self) -> JointFollow:
         if (self.joint is None) == (self.joint_velocity is None):

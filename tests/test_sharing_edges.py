@@ -304,6 +304,10 @@ def test_a_bad_joint_follow_target_says_so_as_a_bad_kind_payload_does(gateway):
         reply = api.follow("la1", payload)
         assert code(reply) == "bad_command", reply
         assert reply["error"]["message"].startswith("invalid follow target: "), reply
+    both = api.follow("la1", b'{"position": 100, "joint": 0.001}')  # was "Extra inputs …"
+    assert both["error"]["message"] == (
+        "invalid follow target: a follow target in joint units takes joint or joint_velocity, "
+        "not position beside it (one in the device's own units gives those alone)")
 
 
 def test_require_claim_refuses_what_needs_a_claim_the_client_does_not_hold(gateway):
