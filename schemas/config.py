@@ -187,9 +187,18 @@ class BusBase(Section):
         return protocol.name
 
 
+def _absolute_port(port: str) -> str:
+    """A serial port is named from ``/``: a relative name is the working directory's, which is
+    ``/`` under systemd (``ttyUSB0`` would be ``/ttyUSB0``)."""
+    if not port.startswith("/"):
+        meant = f"/{port}" if port.startswith("dev/") else f"/dev/{port}"
+        raise ValueError(f"a port is a path from / ({meant}?), not {port!r}")
+    return port
+
+
 class SerialBus(BusBase):
     transport: Literal["serial"]
-    port: Annotated[str, Field(min_length=1, pattern=r"^[^\x00]+$")]
+    port: Annotated[str, Field(min_length=1, pattern=r"^[^\x00]+$"), AfterValidator(_absolute_port)]
     baudrate: Annotated[int, Field(ge=1200, le=4_000_000)]
     #: Idle line between exchanges; default per protocol, never below the protocol's minimum.
     min_gap_ms: Annotated[float, Field(ge=0, le=100)] | None = None

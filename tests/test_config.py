@@ -206,6 +206,15 @@ def _second_bus(name: str, **link: str) -> dict:
             "devices": [{"name": f"{name}_1", "kind": kind, "id": 1}]}
 
 
+@pytest.mark.parametrize(("port", "meant"), [("ttyUSB0", "/dev/ttyUSB0"),
+                                             ("dev/ttyUSB0", "/dev/ttyUSB0")])
+def test_a_relative_port_is_refused_naming_the_path_it_likely_means(port, meant) -> None:
+    """It was the working directory's: ``/`` under systemd, where ``ttyUSB0`` never is."""
+    error = refused(lambda d: d["buses"][0].update(port=port))
+    assert error.path == "buses[0].port"
+    assert str(error) == f"buses[0].port: a port is a path from / ({meant}?), not {port!r}"
+
+
 def test_one_bus_per_device_file_however_it_is_named(tmp_path) -> None:
     error = refused(lambda d: d["buses"].append(_second_bus("uart1", port="/dev/ttyUSB0")))
     assert error.path == "buses[1].port"
