@@ -99,7 +99,7 @@ def run_bench(args: argparse.Namespace) -> int:
     protocol = PROTOCOLS[args.protocol]
     baudrate = protocol.timing.default_rate if args.baudrate is None else args.baudrate
     # Refused before anything opens; the simulator's port is not known yet, a stand-in is.
-    bus_config(args, ids, args.port or "simulator", baudrate)
+    bus_config(args, ids, args.port or "/dev/pts/simulator", baudrate)
     tune_interpreter()
     with tempfile.TemporaryDirectory() as scratch, contextlib.ExitStack() as simulator:
         port, record = args.port, None
