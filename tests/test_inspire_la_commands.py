@@ -286,3 +286,11 @@ def test_cli_decode_command(capsys):
 def test_cli_decode_names_the_checksum_of_the_printed_follow_frame(capsys):
     assert main(["decode", "inspire_la", "--as", "command", "55aa04031937e80328"]) == 1
     assert "checksum should be 0x42, frame has 0x28" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("wire", ["", " "])
+def test_cli_decode_of_no_bytes_says_so(wire, capsys):
+    """It printed nothing and exited 0, as if a frame had been decoded."""
+    assert main(["decode", "inspire_la", wire]) == 2
+    assert capsys.readouterr().err == (
+        "busgate decode: error: no bytes to decode: give the frame in hex\n")

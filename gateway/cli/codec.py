@@ -109,9 +109,12 @@ def decode_wire(protocol: WireProtocol, direction: str, wire: list[str]) -> tupl
 
 def _parse_hex(text: str) -> bytes:
     try:
-        return bytes.fromhex(text)
+        data = bytes.fromhex(text)
     except ValueError as exc:
         raise CommandError(f"not hex bytes: {text!r}") from exc
+    if not data:  # decoded, it printed nothing and said it went well
+        raise CommandError("no bytes to decode: give the frame in hex")
+    return data
 
 
 def _badness(result: tuple[list, int]) -> tuple[int, int]:
