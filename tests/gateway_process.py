@@ -127,15 +127,16 @@ class ServingProcess:
 
 class DemoProcess(ServingProcess):
     """``busgate demo --listen ENDPOINT`` as a child (its dashboard on a free port, unless
-    ``options`` say otherwise), returned once it serves; ``hints`` holds what it printed and
+    ``options`` say otherwise; with ``--connect`` among them, a client of the router there,
+    listening on nothing), returned once it serves; ``hints`` holds what it printed and
     ``dashboard`` the URL it printed (``None`` without one)."""
 
     def __init__(self, endpoint: str, *options: str, within: Sequence[str] = (),
                  stderr=None) -> None:
         self.endpoint = endpoint
         options = options or ("--dashboard-listen", "127.0.0.1:0")
-        super().__init__("demo", "--listen", endpoint, *options, ready="Ctrl-C", within=within,
-                         stderr=stderr)
+        link = () if "--connect" in options else ("--listen", endpoint)  # a router's client
+        super().__init__("demo", *link, *options, ready="Ctrl-C", within=within, stderr=stderr)
         self.hints = self.printed
         shown = re.search(r"in a browser: (\S+)", self.hints)
         self.dashboard = shown.group(1) if shown else None

@@ -185,3 +185,12 @@ def test_a_wire_record_that_cannot_be_written_is_refused_in_one_line(
     reason = "No such file or directory" if where == "proc" else "Is a directory"
     assert (done.returncode, done.stdout, done.stderr.splitlines()) == (
         2, "", [f"busgate demo: error: cannot write the wire record {record}: {reason}"])
+
+
+def test_listen_and_connect_together_are_refused(capsys) -> None:
+    """A demo that joins a router listens on nothing: --listen was ignored in silence."""
+    with pytest.raises(SystemExit) as exited:
+        main(["demo", "--listen", "tcp/127.0.0.1:1", "--connect", "tcp/127.0.0.1:2"])
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.endswith(
+        "busgate demo: error: argument --connect: not allowed with argument --listen\n")

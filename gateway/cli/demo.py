@@ -146,13 +146,14 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "differential-drive base) and one on RS232, with "
         "wire timing emulated. Prints how to connect; serves until SIGTERM or Ctrl-C.",
     )
-    demo.add_argument(
+    link = demo.add_mutually_exclusive_group()  # a client of a router listens on nothing
+    link.add_argument(
         "--listen",
         default=DEFAULT_ENDPOINT,
         metavar="ENDPOINT",
         help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})",
     )
-    demo.add_argument(
+    link.add_argument(
         "--connect",
         default=None,
         metavar="ENDPOINT",
