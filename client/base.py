@@ -45,13 +45,15 @@ from busgate.schemas.api import FOLLOW_MODELS, TELEMETRY_MODELS, InfoReply
 from busgate.schemas.families import FAMILIES
 from busgate.schemas.payload import largest_published
 from busgate.schemas.telemetry import TelemetryEnvelope
-from busgate.schemas.validation import closest
+from busgate.schemas.validation import closest, likeliest
 
 log = logging.getLogger(__name__)
 
 #: The most names an unknown one's refusal lists when none is close to it (a fleet's dozens
 #: would bury the message).
 SUGGESTED_NAMES_MAX = 12
+#: The most names a misspelling is told it may mean, when several are as close.
+TIED_SHOWN = 3
 
 
 @dataclass(frozen=True)
@@ -243,12 +245,14 @@ def _meant(infos: dict[str, dict[str, Any]], gateway: str | None, leaf: str, wha
 
 
 def name_hint(leaf: str, names: Iterable[str]) -> str:
-    """``; did you mean 'la1'?`` for the one of ``names`` that ``leaf`` likely misspells,
-    else ``; they have …`` (a few), else nothing."""
+    """``; did you mean 'la1'?`` for the one of ``names`` that ``leaf`` likely misspells (up
+    to ``TIED_SHOWN`` of them, as close as each other), else ``; they have …`` (a few), else
+    nothing."""
     names = sorted(set(names))
-    meant = closest(leaf, names)
-    if meant is not None:
-        return f"; did you mean {meant!r}?"
+    if meant := likeliest(leaf, names):
+        shown = [repr(name) for name in meant[:TIED_SHOWN]]
+        said = shown[0] if len(shown) == 1 else f"{', '.join(shown[:-1])} or {shown[-1]}"
+        return f"; did you mean {said}?"
     return f"; they have {', '.join(names)}" if 0 < len(names) <= SUGGESTED_NAMES_MAX else ""
 
 

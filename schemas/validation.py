@@ -116,6 +116,14 @@ def closest(word: str, choices: Sequence[str]) -> str | None:
     return matches[0] if matches else None
 
 
+def likeliest(word: str, choices: Sequence[str]) -> list[str]:
+    """Every choice ``word`` most likely misspells, in order: those as close as ``closest``'s,
+    whose pick among them would be a guess (``lal``: ``la1``, ``la2`` and ``la3`` alike)."""
+    scores = {c: difflib.SequenceMatcher(None, word, c).ratio() for c in choices}
+    best = max(scores.values(), default=0.0)
+    return sorted(c for c, score in scores.items() if score == best) if best >= 0.6 else []
+
+
 def describe_validation_error(exc: ValidationError) -> str:
     """``position: must be at most 2000, not 2500; …`` on one line: a number past a bound
     with the bound and the number (``_past_bound``), any other problem in pydantic's words."""

@@ -21,6 +21,7 @@ from busgate.client.base import (
     as_body,
     gateway_infos,
     locate,
+    name_hint,
     raw_payload,
     reenable_command,
 )
@@ -202,6 +203,16 @@ def test_an_unknown_name_says_what_it_likely_meant(name: str, said: str) -> None
     with pytest.raises(bc.UnknownDeviceError) as refused:
         locate(infos, name, "device", "k")
     assert str(refused.value).endswith(said), refused.value
+
+
+@pytest.mark.parametrize(("leaf", "names", "said"), [
+    ("lal", ["la1", "la2", "la3", "servo1"], "; did you mean 'la1', 'la2' or 'la3'?"),
+    ("la", ["la1", "la2", "la3", "la4"], "; did you mean 'la1', 'la2' or 'la3'?"),  # 3 at most
+    ("la11", ["la1", "la2"], "; did you mean 'la1'?"),  # the one closer
+])
+def test_a_name_as_close_to_several_names_them(leaf, names, said) -> None:
+    """``lal`` was told ``did you mean 'la3'?``: the last of several alike, a guess."""
+    assert name_hint(leaf, names) == said
 
 
 def test_commands_go_as_dicts_or_models_and_payloads_as_given() -> None:
