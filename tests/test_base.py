@@ -500,6 +500,22 @@ def test_a_twist_while_the_wheels_ramp_down_after_base_stopped_is_refused_busy(w
     assert first < 5  # from rest, at the base's acceleration (4.7 rpm a slot)
 
 
+def test_a_twist_right_after_a_base_came_to_rest_is_taken(world) -> None:
+    """Its play ends on the loop's thread, its wheels leave it on their bus threads a moment
+    later: a twist between the two was refused as if the wheels still ramped down after a
+    ``base_stopped`` (a review found it 5 times in 5)."""
+    assert world.base({"op": "enable"})["ok"]
+    base = world.bases.bases["base"]
+    for _ in range(3):
+        assert world.base({"op": "twist", "linear": 0.1, "duration_s": 0.05})["ok"]
+        deadline = time.monotonic() + 10
+        while base.playing_since is not None:  # no sleep: the window is a few ms
+            assert time.monotonic() < deadline, "the base did not come to rest"
+        again = world.base({"op": "twist", "linear": 0.1, "duration_s": 0.05})
+        assert again["ok"], again
+        world.wait_rest()
+
+
 def test_a_wheel_that_reboots_is_re_based_and_the_odometry_keeps_its_pose(world) -> None:
     """Rule 5: wheel 2's drive reboots while the base drives straight, its counter back at 0
     (from 2.6 rad: a step of 11 cm and half a radian in 20 ms when integrated); the pose

@@ -161,6 +161,8 @@ class LiveBase:
     stopped_by: tuple[str | None, int | None] | None = None
     playing_since: float | None = None  # bus clock
     stale_told: bool = False
+    #: Bus clock: until then its wheels may still ramp down after a ``base_stopped`` (rule 3)
+    ramped_until: float = 0.0
 
     @property
     def names(self) -> tuple[str, str]:
@@ -297,7 +299,7 @@ class Bases:
                 )
             telemetry = wheel.driver.telemetry(now())
             _refuse_fault(base, wheel, telemetry)
-            if base.playing_since is None and wheel.runner.plays.playing(wheel.name):
+            if now() < base.ramped_until and wheel.runner.plays.playing(wheel.name):
                 raise RefusedError(  # rule 3: started from rest, it would cut the ramp short
                     "busy",
                     f"base {base.config.name}: wheel {wheel.name} still ramps to 0 after the "
@@ -459,6 +461,8 @@ class Bases:
         for each in base.wheels:  # one that left the play already: nothing to stop
             each.runner.stop_playing(each.name, speed=True)
         base.playing_since = None
+        # each ramp begins once its bus thread takes the stop, as it takes a play
+        base.ramped_until = now() + RAMP_S + PLAY_TAKEN_S
         self._event(base, "base_stopped", wheel=wheel.name, reason=reason)
 
     def take_state(self, device: str, state: dict[str, Any]) -> None:
