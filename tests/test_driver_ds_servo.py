@@ -120,8 +120,24 @@ def test_safe_stop_replaces_a_stored_move_by_one_to_where_the_servo_is() -> None
     assert stored.frame == ds.RegWrite(1, 3500, 0) and stored.idempotent
     answer(d, stored)
     assert d.telemetry(0)["pending_target"] == 3500
+    d.measured["position"] = 3400  # limp, it sagged: the reset stores where it is now
+    [move] = plan(d, '{"op":"move","position":3400}')
+    assert [r.frame for r in d.hold_still()] == [
+        move.frame, ds.RegWrite(1, 3400, 0), ds.Write(1, 0x28, b"\x01")]
     d.measured["position"] = None  # where it is not known: nothing to store in its place
     assert len(d.safe_stop()) == 1
+
+
+def test_a_stored_move_whose_answer_was_lost_is_replaced_at_the_stop_too() -> None:
+    """A REG WRITE unanswered may be stored all the same; an ACTION since starts it."""
+    d = driver(1)
+    d.measured["position"] = 2000
+    [store] = plan(d, '{"op":"move","position":700,"deferred":true}')
+    d.missed(1.0, store.frame)
+    assert [r.frame for r in d.safe_stop()][1:] == [ds.RegWrite(1, 2000, 0)]
+    [action] = plan(d, '{"op":"action"}')
+    d.apply(action, (), 1.0)
+    assert len(d.safe_stop()) == 1  # started since: nothing stored
 
 
 # --- poll ----------------------------------------------------------------------------------------

@@ -244,6 +244,7 @@ class DsServoDriver(Driver):
         self.measured: dict[str, int | None] = dict.fromkeys(_MEASURED.values())
         self.target: int | None = None
         self.pending_target: int | None = None  # a REG WRITE waiting for ACTION
+        self._store_unknown = False  # one went unanswered: it may be stored (``missed``)
         self.torque_on: bool | None = None
         self.faults = codec.ServoStatus(0)
 
@@ -293,25 +294,31 @@ class DsServoDriver(Driver):
         client may send to the bus, started the move stored before it."""
         self.note_estop()
         self.estop_latched = True
-        stop = [_torque_off(self.device_id)]
+        return [_torque_off(self.device_id), *self._stored_here()]
+
+    def _stored_here(self) -> list[Request]:
+        """A move to where the servo is, stored for ACTION in place of one that may be stored
+        (sent, answered or not, and no ACTION since); nothing where none may be, or where the
+        servo is not known."""
         here = self.position_to_hold(self.measured["position"])
-        if self.pending_target is None or here is None:
-            return stop
-        return [*stop, Request.of(codec, codec.RegWrite(self.device_id, here, 0), idempotent=True)]
+        if here is None or (self.pending_target is None and not self._store_unknown):
+            return []
+        return [Request.of(codec, codec.RegWrite(self.device_id, here, 0), idempotent=True)]
 
     def driving(self) -> bool:
         return self.torque_on is True
 
     def hold_still(self) -> list[Request]:
-        """The target at the present position first, then torque on: the servo holds where it
-        is instead of going back to the target it had. Its position not known, or none the
-        gateway would send (``position_to_hold``), it stays off (torque on would drive it to
-        an old target)."""
+        """The target at the present position first (and the move stored for ACTION, if one
+        may be: the stop's was where the servo was then, and a limp servo sags), then torque
+        on: the servo holds where it is instead of going back to the target it had. Its
+        position not known, or none the gateway would send (``position_to_hold``), it stays
+        off (torque on would drive it to an old target)."""
         here = self.position_to_hold(self.measured["position"])
         if here is None:
             self.stay_off()
             return []
-        requests = self.plan(schema.Move(op="move", position=here))
+        requests = self.plan(schema.Move(op="move", position=here)) + self._stored_here()
         return requests + self.plan(schema.Torque(op="torque", on=True))
 
     def follow_target(self, payload: dict[str, Any]) -> int:
@@ -367,8 +374,10 @@ class DsServoDriver(Driver):
         }
 
     def forget_on_reboot(self) -> None:
-        """Power-up: torque on, holding where it is; no target of ours stands."""
+        """Power-up: torque on, holding where it is; no target of ours stands, nor a move
+        stored for ACTION."""
         self.target = self.pending_target = None
+        self._store_unknown = False
         self.torque_on = True
 
     def _set_faults(self, status: codec.ServoStatus) -> None:
@@ -391,9 +400,12 @@ class DsServoDriver(Driver):
 
     def missed(self, now: float, frame: object = None) -> None:
         """A torque write unanswered may have landed all the same: the torque is not known
-        until it is read (and a read of it on is then no reboot)."""
+        until it is read (and a read of it on is then no reboot); a REG WRITE unanswered may
+        be stored all the same."""
         if isinstance(frame, codec.Write) and frame.address == _TORQUE:
             self.torque_on = None
+        if isinstance(frame, codec.RegWrite):
+            self._store_unknown = True
         super().missed(now, frame)
 
     def _applied_read(self, frame: codec.Read, answer: codec.StatusReply) -> dict[str, Any]:
@@ -428,11 +440,12 @@ class DsServoDriver(Driver):
             self._change_id(values["servo_id"], "written")
 
     def _applied_reg_write(self, frame: codec.RegWrite, answer: object) -> None:
-        self.pending_target = frame.position_raw
+        self.pending_target, self._store_unknown = frame.position_raw, False
 
     def _applied_action(self, frame: codec.Action, answer: object) -> None:
         # Sent by any driver on the bus, ACTION starts every servo's stored move; this one
         # knows only its own REG WRITE.
+        self._store_unknown = False
         if self.pending_target is not None:
             self.target, self.pending_target = self.pending_target, None
 
@@ -451,6 +464,7 @@ class DsServoDriver(Driver):
         """Factory settings for "all data" (manual 2.3.7), the id included: the servo now
         answers at the factory id, and what was commanded is gone."""
         self.target = self.pending_target = self.torque_on = None
+        self._store_unknown = False
         self._change_id(codec.REGISTERS.default("servo_id"), "reset")
 
 
