@@ -19,6 +19,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import functools
 from typing import Annotated, Any, Literal, TypeAlias, Union, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter, model_validator
@@ -139,7 +140,7 @@ class JointFollow(FollowModel):
     def _one_unit(cls, data: Any) -> Any:
         """A target in the device's own units beside one in SI is told as such, not as an
         extra field (``position: Extra inputs are not permitted``)."""
-        if isinstance(data, dict) and (own := sorted(k for k in data if k not in cls.model_fields)):
+        if isinstance(data, dict) and (own := sorted(k for k in data if k in _device_units())):
             raise ValueError(
                 f"a follow target in joint units takes joint or joint_velocity, not "
                 f"{', '.join(map(str, own))} beside it (one in the device's own units gives "
@@ -152,6 +153,14 @@ class JointFollow(FollowModel):
         if (self.joint is None) == (self.joint_velocity is None):
             raise ValueError("a joint follow target gives joint or joint_velocity, one of them")
         return self
+
+
+@functools.cache
+def _device_units() -> frozenset[str]:
+    """The keys of every family's own follow target (``position``, ``rpm`` …), those of every
+    follow payload (client, seq) aside."""
+    fields = {name for f in FAMILIES.values() for name in f.schema.FollowTarget.model_fields}
+    return frozenset(fields - set(FollowModel.model_fields))
 
 
 class BusGroupTarget(BaseModel):

@@ -191,14 +191,19 @@ def _absolute_port(port: str) -> str:
     """A serial port is named from ``/``: a relative name is the working directory's, which is
     ``/`` under systemd (``ttyUSB0`` would be ``/ttyUSB0``)."""
     if not port.startswith("/"):
-        meant = f"/{port}" if port.startswith("dev/") else f"/dev/{port}"
-        raise ValueError(f"a port is a path from / ({meant}?), not {port!r}")
+        meant = f"/{port}" if port.startswith("dev/") else None if "/" in port else f"/dev/{port}"
+        raise ValueError(f"a port is a path from /{f' ({meant}?)' if meant else ''}, not {port!r}")
     return port
 
 
 class SerialBus(BusBase):
     transport: Literal["serial"]
-    port: Annotated[str, Field(min_length=1, pattern=r"^[^\x00]+$"), AfterValidator(_absolute_port)]
+    port: Annotated[
+        str,
+        # the schema says what ``_absolute_port`` checks, which refuses in words of its own
+        Field(min_length=1, pattern=r"^[^\x00]+$", json_schema_extra={"pattern": r"^/[^\x00]*$"}),
+        AfterValidator(_absolute_port),
+    ]
     baudrate: Annotated[int, Field(ge=1200, le=4_000_000)]
     #: Idle line between exchanges; default per protocol, never below the protocol's minimum.
     min_gap_ms: Annotated[float, Field(ge=0, le=100)] | None = None

@@ -49,15 +49,15 @@ def port_problem(endpoint: str, *, listening: bool = False) -> str | None:
         if endpoint.startswith(tuple(f"{name}/" for name in NETWORK_PROTOCOLS)):
             return "it names no port: write host:port (tcp/127.0.0.1:7447)"
         return None
-    host = address["host"]
-    if host.startswith("[") != host.endswith("]") or (":" in host and not host.startswith("[")):
-        return f"host {host!r} is no host: an IPv6 address goes in brackets (tcp/[::1]:7447)"
     port = address["port"]
     number = int(port) if port.isascii() and port.isdigit() else None
     if listening and number == 0:
         return "port 0 is one zenoh picks and tells nobody: name the port clients connect to"
-    if number is None or not PORTS[0] <= number <= PORTS[1]:
+    if number is None or not PORTS[0] <= number <= PORTS[1]:  # tcp/[::1] too: port "1]"
         return f"port {port!r} is no port: from {PORTS[0]} to {PORTS[1]}"
+    host = address["host"]
+    if host.startswith("[") != host.endswith("]") or (":" in host and not host.startswith("[")):
+        return f"host {host!r} is no host: an IPv6 address goes in brackets (tcp/[::1]:7447)"
     return None
 
 

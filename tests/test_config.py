@@ -206,13 +206,13 @@ def _second_bus(name: str, **link: str) -> dict:
             "devices": [{"name": f"{name}_1", "kind": kind, "id": 1}]}
 
 
-@pytest.mark.parametrize(("port", "meant"), [("ttyUSB0", "/dev/ttyUSB0"),
-                                             ("dev/ttyUSB0", "/dev/ttyUSB0")])
-def test_a_relative_port_is_refused_naming_the_path_it_likely_means(port, meant) -> None:
+@pytest.mark.parametrize(("port", "said"), [("ttyUSB0", " (/dev/ttyUSB0?)"),
+                                            ("dev/ttyUSB0", " (/dev/ttyUSB0?)"), ("./x", "")])
+def test_a_relative_port_is_refused_naming_the_path_it_likely_means(port, said) -> None:
     """It was the working directory's: ``/`` under systemd, where ``ttyUSB0`` never is."""
     error = refused(lambda d: d["buses"][0].update(port=port))
     assert error.path == "buses[0].port"
-    assert str(error) == f"buses[0].port: a port is a path from / ({meant}?), not {port!r}"
+    assert str(error) == f"buses[0].port: a port is a path from /{said}, not {port!r}"
 
 
 def test_one_bus_per_device_file_however_it_is_named(tmp_path) -> None:
@@ -274,6 +274,9 @@ def _misspell(table: dict, key: str, typo: str) -> None:
                                           "address goes in brackets (tcp/[::1]:7447)"),
     ({"connect": ["tcp/::1:7447"]}, None, "zenoh.connect[0]: host '::1' is no host: an IPv6 "
                                           "address goes in brackets (tcp/[::1]:7447)"),
+    ({"connect": ["tcp/[::1]"]}, None, "zenoh.connect[0]: port '1]' is no port: from 1 to "
+                                       "65535"),  # its port first: the host is no '[:'
+
     ({"listen": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7447"]}, None,
      "zenoh: listen: tcp/127.0.0.1:7447 is given twice"),
     ({"listen": ["tcp/0.0.0.0:7447", "tcp/127.0.0.1:7447"]}, None,  # run found it "in use"
@@ -288,7 +291,8 @@ def _misspell(table: dict, key: str, typo: str) -> None:
     ({}, "127.0.0.1:0", "metrics.listen: port 0 is one the system picks and tells nobody: name "
                         "the port Prometheus scrapes"),  # logged as metrics on …:0/metrics
 ], ids=["port over 65535", "connect to port 0", "listen on port 0", "no port",
-        "one bracket of an IPv6 host", "an IPv6 host without brackets", "listen twice",
+        "one bracket of an IPv6 host", "an IPv6 host without brackets", "an IPv6 host alone",
+        "listen twice",
         "one port listened on twice", "client with no router", "metrics on zenoh's port",
         "zenoh on every address", "metrics on port 0"])
 def test_a_zenoh_setting_that_could_never_open_is_refused_before_anything_opens(
