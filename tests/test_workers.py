@@ -829,6 +829,27 @@ def test_a_terminal_that_closes_stops_the_daemon_and_its_workers_in_order(tmp_pa
             assert _estops_since(sim, mark), "a worker ended without its devices' safe stop"
 
 
+def test_sigusr1_to_every_process_of_the_service_writes_an_incident_and_ends_no_worker(
+    tmp_path,
+) -> None:
+    """``systemctl kill -s USR1 busgate``, as the docs ask for an incident file, signals
+    every process of the service: its default ended each worker at once, its devices as they
+    were (an audit: a ZLAC706 turned on for 2 s until the next worker stopped it)."""
+    incidents = tmp_path / "incidents"
+    with two_workers(tmp_path, recorder=incidents, start_new_session=True) as (
+        gateway,
+        simulators,
+        workers,
+    ):
+        marks = [len(sim.recorder.received()) for sim in simulators]
+        os.killpg(gateway.process.pid, signal.SIGUSR1)
+        wait_until(lambda: list(incidents.glob("*.mcap")), 10, "an incident file")
+        assert not [line for line in gateway.logged if "ended:" in line]
+        assert not any(_ended(pid) for pid in workers)
+        for sim, mark in zip(simulators, marks, strict=True):
+            assert not _estops_since(sim, mark)  # nothing was stopped
+
+
 def test_a_service_stop_whose_sigterm_reaches_the_workers_first_is_no_workers_end(
     tmp_path,
 ) -> None:

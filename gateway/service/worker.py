@@ -25,9 +25,10 @@ them. Rules of this file:
    came; once stopping, a SIGTERM more (the daemon's death signal right after its socket
    closed) is ignored. Stopped by a SIGTERM of its own, it ends with ``STOPPED_ON_SIGTERM``
    (``systemctl stop`` sends one to every process of the service at once: its supervisor may
-   read this end before the daemon has begun its stop). SIGINT and SIGHUP are the daemon's
-   to act on: a Ctrl-C, or a terminal that closes, reaches the whole process group (left to
-   its default, SIGHUP ended the worker at once, its devices as they were). Once its buses
+   read this end before the daemon has begun its stop). SIGINT, SIGHUP and SIGUSR1 are the
+   daemon's to act on: a Ctrl-C, or a terminal that closes, reaches the whole process group,
+   and ``systemctl kill -s USR1`` (an incident file) every process of the service (left to
+   their defaults, each ended the worker at once, its devices as they were). Once its buses
    run, whatever it can catch ends it through that stop (an error out of ``run`` too), so an
    exit status, not a signal, tells its supervisor that its devices were put in their safe
    state (``workers.safe_stopped``).
@@ -285,6 +286,7 @@ def main() -> int:
     logs.configure(level)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon's (rule 3)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN)  # the flight recorder's, the daemon's
     signal.signal(signal.SIGTERM, _stop_on_sigterm)
     signal.signal(signal.SIGALRM, signal.SIG_DFL)  # rule 8: its default ends the process
     _die_with_the_daemon()
