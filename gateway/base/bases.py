@@ -316,7 +316,7 @@ class Bases:
         base.client, base.stale_told = client, False
         if base.playing_since is None:
             base.drive.begin(moment, base.drive.sent)
-            base.playing_since = moment
+            base.playing_since, base.ramped_until = moment, 0.0  # any ramp before it is over
             for side, wheel in enumerate(base.wheels):
                 wheel.runner.play({wheel.name: base.drive.sampler(side)}, moment)
         return ok_reply(base=self._status(base) | {"target": _twist(target)})
