@@ -368,6 +368,7 @@ class Shared:
         self.leases: dict[str, ClaimLease] = {}
         self._latest: dict[str, Latest] = {}
         self._latest_lock = threading.Lock()
+        self._leases_lock = threading.Lock()  # ``claim``'s look and its lease, as one
 
     def close(self) -> None:
         self.timers.close()
@@ -440,10 +441,20 @@ class Shared:
         return failed_as(sent, lambda exc: lease.lost_error(exc))
 
     def claim(self, device: Found, ttl_s: float) -> ClaimLease:
-        """Claim the device or base ``found`` (a ``ClaimLease`` to ``take``)."""
+        """Claim the device or base ``found`` (a ``ClaimLease`` to ``take``). One claim block
+        a device at a time, this client's: the gateway keeps one claim a client, so an inner
+        block's exit gave the outer's back, and another client moved the device inside it
+        (``CommandError``; a block whose claim was lost or given back does not count)."""
         key = self.command_key(device)
-        lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s, key)
-        self.leases[key] = lease
+        with self._leases_lock:
+            held = self.leases.get(key)
+            if held is not None and not held.ended and held.lost is None:
+                raise CommandError(
+                    f"{device.gateway}/{device.name} is claimed already by a claim block of "
+                    "this client: one block a device (the gateway holds one claim a client)"
+                )
+            lease = ClaimLease(self.core, self.timers, device.gateway, device.name, ttl_s, key)
+            self.leases[key] = lease
         return lease
 
     def unclaim(self, lease: ClaimLease) -> Future:

@@ -391,8 +391,14 @@ class Core:
             else:
                 self.gateways_up.discard(gateway)
             listeners = list(self._listeners)
-        for listener in listeners:
-            listener(gateway, alive)
+        for listener in listeners:  # the claims' own among them: one's failure stops none
+            try:
+                listener(gateway, alive)
+            except Exception:
+                log.exception("a listener to gateway %r %s failed", gateway, _CAME[alive])
+
+
+_CAME = {True: "coming", False: "going"}
 
 
 def _drained(

@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 #: The most items an ``Inbox`` holds for its reader: ten seconds of a device's states at
 #: 100 Hz.
 MAX_WAITING = 1000
+#: The most bytes of payloads it holds: a thousand of a peer's 2 MiB messages (what a session
+#: takes in at most) held 2 GiB for a reader that had stopped reading.
+MAX_WAITING_BYTES = 64 * 1024 * 1024
 
 
 class Stream:
@@ -57,12 +60,14 @@ class Stream:
 class Inbox(Generic[T]):
     """Items put on zenoh's threads, taken one at a time by one reader: ``next`` is a future
     of the next one (done at once when one waits), ``put`` settles it. A reader more than
-    ``MAX_WAITING`` items behind loses the oldest (a warning says so, once): a feed's newest
-    messages are what a late reader wants, and what waits is memory."""
+    ``MAX_WAITING`` items (or ``MAX_WAITING_BYTES`` of payloads) behind loses the oldest (a
+    warning says so, once): a feed's newest messages are what a late reader wants, and what
+    waits is memory."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._items: deque[T] = deque(maxlen=MAX_WAITING)
+        self._items: deque[T] = deque()
+        self._bytes = 0  # of the payloads waiting (items that are bytes)
         self._taker: Future | None = None
         self._ended_with: Exception | None = None  # what a reader meets once the items run out
         #: The items dropped unread, the oldest first, a reader being ``MAX_WAITING`` behind.
@@ -72,17 +77,20 @@ class Inbox(Generic[T]):
         with self._lock:
             taker, self._taker = self._taker, None
             if taker is None or not taker.set_running_or_notify_cancel():
-                if len(self._items) == MAX_WAITING:
-                    self._fell_behind()
                 self._items.append(item)  # nobody waits, or the reader gave up: the next's
+                self._bytes += _size(item)
+                while len(self._items) > MAX_WAITING or self._bytes > MAX_WAITING_BYTES:
+                    self._fell_behind()
+                    self._bytes -= _size(self._items.popleft())
                 return
         taker.set_result(item)
 
     def _fell_behind(self) -> None:
         if not self.dropped:
             log.warning(
-                "a feed's reader is %d messages behind: the oldest are dropped unread",
+                "a feed's reader is %d messages or %d MiB behind: the oldest are dropped unread",
                 MAX_WAITING,
+                MAX_WAITING_BYTES >> 20,
             )
         self.dropped += 1
 
@@ -90,7 +98,9 @@ class Inbox(Generic[T]):
         taken: Future = Future()
         with self._lock:
             if self._items:
-                taken.set_result(self._items.popleft())
+                item = self._items.popleft()
+                self._bytes -= _size(item)
+                taken.set_result(item)
             elif self._ended_with is not None:
                 taken.set_exception(self._ended_with)
             else:
@@ -104,6 +114,11 @@ class Inbox(Generic[T]):
             taker, self._taker = self._taker, None
         if taker is not None and taker.set_running_or_notify_cancel():
             taker.set_exception(why)
+
+
+def _size(item: object) -> int:
+    """What an item waiting weighs against ``MAX_WAITING_BYTES``: a payload its length."""
+    return len(item) if isinstance(item, bytes) else 0
 
 
 class Latest:

@@ -23,7 +23,7 @@ from busgate.client.base import Shared
 from busgate.client.core import closed_reading
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox
-from busgate.client.messages import then
+from busgate.client.messages import MAX_WAIT_S, seconds, then
 from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.errors import BusgateError, CommandError
 
@@ -55,8 +55,12 @@ def one_gateway(found: list[Any]) -> str:
 
 
 def result_wait_s(end_at: float, timeout: float | None) -> float:
-    """How long to wait for a result: ``timeout``, or until 30 s past ``end_at``."""
-    return timeout if timeout is not None else max(1.0, end_at - time.time() + 30.0)
+    """How long to wait for a result: ``timeout`` (``CommandError`` unless a number of
+    seconds from 0 to ``MAX_WAIT_S``: infinity overflowed the wait), or until 30 s past
+    ``end_at``."""
+    if timeout is not None:
+        return seconds("timeout", timeout, 0, MAX_WAIT_S)
+    return max(1.0, end_at - time.time() + 30.0)
 
 
 def play_body(

@@ -27,11 +27,11 @@ from busgate.client.base import (
 )
 from busgate.client.claims import Timers
 from busgate.client.errors import MAX_CODE, NoAnswerError, raise_for
-from busgate.client.feeds import MAX_WAITING, Inbox, Latest
+from busgate.client.feeds import MAX_WAITING, MAX_WAITING_BYTES, Inbox, Latest
 from busgate.client.keys import Keys, check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
-from busgate.client.trajectories import Watch
+from busgate.client.trajectories import Watch, result_wait_s
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
 from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
@@ -318,6 +318,19 @@ def test_a_reader_far_behind_loses_the_oldest_and_is_told_once(caplog) -> None:
     assert waiting.result(timeout=0) == -1
 
 
+def test_a_reader_behind_holds_at_most_max_waiting_bytes_of_payloads() -> None:
+    """A thousand of a peer's 2 MiB payloads waited for a reader that had stopped reading (an
+    audit: 1.2 GB): past ``MAX_WAITING_BYTES`` the oldest go as well."""
+    inbox: Inbox[bytes] = Inbox()
+    big = MAX_WAITING_BYTES // 4 + 1
+    for n in range(6):
+        inbox.put(bytes([n]) * big)
+    assert inbox.dropped == 3  # four would be one byte past the budget
+    assert [inbox.next().result(timeout=0)[0] for _ in range(3)] == [3, 4, 5]
+    inbox.put(b"x" * MAX_WAITING_BYTES)  # the budget free again: one as large as it waits
+    assert inbox.dropped == 3 and inbox.next().result(timeout=0) == b"x" * MAX_WAITING_BYTES
+
+
 
 def test_an_ended_inbox_hands_what_waits_then_its_end_and_wakes_a_reader_waiting() -> None:
     inbox: Inbox[int] = Inbox()
@@ -398,3 +411,12 @@ def test_a_latest_payload_newer_than_one_taken_is_found_without_waiting() -> Non
     assert latest.newer_than(junk) == b'{"good": 1}'
     core.gone("gw")
     assert latest.newer_than(junk) is None  # the gateway went: nothing is its latest
+
+
+@pytest.mark.parametrize("timeout", [float("inf"), 1e12, "x", -1, float("nan"), True])
+def test_a_trajectory_wait_that_is_no_number_of_seconds_is_a_command_error(timeout) -> None:
+    """``t.wait(float("inf"))`` raised OverflowError, ``"x"`` TypeError: both outside the
+    SDK's errors (an audit)."""
+    with pytest.raises(CommandError, match="timeout must be a number of seconds from 0 to"):
+        result_wait_s(0.0, timeout)
+    assert result_wait_s(0.0, 5) == 5 and result_wait_s(time.time(), None) >= 29

@@ -505,6 +505,9 @@ def test_on_gateways_tells_each_gateway_up_now_then_as_they_come_and_go(
     nothing more."""
     client = connect()
     heard: list[tuple[str, bool]] = []
+    # a program's callback that fails stops none after it (the claims' own: a claim lost
+    # with its gateway was taken again in silence when one did)
+    failing = client.on_gateways(lambda name, alive: None if alive else 1 / 0)
     stop = client.on_gateways(lambda name, alive: heard.append((name, alive)))
     wait_for(lambda: ("demo", True) in heard, timeout=DEADLINE_S)  # up now, or once its
     # token's history reaches this new session
@@ -520,6 +523,7 @@ def test_on_gateways_tells_each_gateway_up_now_then_as_they_come_and_go(
             assert gateway.stop() == 0, gateway.lines
         wait_for(lambda: ("gw3", False) in heard, timeout=DEADLINE_S)
     stop()
+    failing()
     count = len(heard)
     gateway = GatewayProcess(config)  # again: nobody listens now
     try:
@@ -812,6 +816,22 @@ def test_a_claim_refuses_others_naming_the_holder_and_is_released_on_exit(connec
         assert patiently(lambda: mine.move(next(POSITIONS)))["ok"] is True
         assert claim.lost is None
     assert patiently(lambda: theirs.move(next(POSITIONS)))["ok"] is True
+
+
+def test_a_second_claim_block_of_one_device_in_one_client_is_refused(connect) -> None:
+    """The gateway holds one claim a client: an inner block's exit gave the outer's back,
+    and another client moved the device inside the outer block (an audit)."""
+    holder, other = connect("holder"), connect("other")
+    mine, theirs = holder.device("demo/la2"), other.device("demo/la2")
+    with mine.claim(ttl_s=2.0) as claim:
+        inner = mine.claim(ttl_s=2.0)
+        with pytest.raises(bc.CommandError, match="claimed already by a claim block of this "):
+            inner.__enter__()
+        with pytest.raises(bc.ClaimedError):  # the outer's claim still holds
+            theirs.move(next(POSITIONS))
+        assert claim.lost is None
+    with mine.claim(ttl_s=2.0):  # once the block ended, a new one
+        pass
 
 
 def test_a_claim_is_released_when_its_block_raises(connect) -> None:
