@@ -45,17 +45,18 @@ class Step:
 
 @dataclass(frozen=True, slots=True)
 class Wait(Step):
-    """The result of ``future`` (its exception raised), within ``timeout_s`` plus the margin
-    zenoh may take to settle it; else ``NoAnswerError`` naming ``what`` (the future is
-    cancelled)."""
+    """The result of ``future`` (its exception raised), within ``timeout_s`` plus ``margin_s``,
+    the margin zenoh may take to settle a query (none for a future settled here, as a
+    trajectory's result); else ``NoAnswerError`` naming ``what`` (the future is cancelled)."""
 
     future: Future
     timeout_s: float
     what: str
+    margin_s: float = WAIT_MARGIN_S
 
     def wait(self) -> Any:
         try:
-            return self.future.result(self.timeout_s + WAIT_MARGIN_S)
+            return self.future.result(self.timeout_s + self.margin_s)
         except TimeoutError:
             if self.future.done():  # its own (a NoAnswerError is a TimeoutError too), or it
                 return self.future.result(0)  # came just as the wait ended
@@ -65,7 +66,7 @@ class Wait(Step):
     async def awaited(self) -> Any:
         came = asyncio.wrap_future(self.future)  # settled on the loop, cancelled with it
         try:
-            return await asyncio.wait_for(came, self.timeout_s + WAIT_MARGIN_S)
+            return await asyncio.wait_for(came, self.timeout_s + self.margin_s)
         except TimeoutError:
             if came.done() and not came.cancelled():  # its own error, or late: as in ``wait``
                 return came.result()

@@ -184,7 +184,8 @@ class Handle(Face):
         """The result (``{"result": "succeeded" | "canceled" | "replaced" | "aborted",
         "reason"?, "errors"}``); by default waits until 30 s past ``end_at``."""
         waited = result_wait_s(self.end_at, timeout)
-        return (yield Wait(self._watch.finished, waited, f"the result of trajectory {self.id}"))
+        result = Wait(self._watch.finished, waited, f"the result of trajectory {self.id}", 0.0)
+        return (yield result)  # no query's margin: the result comes on a subscription
 
     @waiting
     def cancel(self, *, timeout: float | None = None) -> Steps[dict[str, Any]]:

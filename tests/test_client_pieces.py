@@ -10,11 +10,11 @@ import threading
 import time
 import types
 from concurrent.futures import Future
+from types import SimpleNamespace
 
 import pytest
 
 import busgate.client as bc
-from busgate.client import steps
 from busgate.client.base import (
     Found,
     Shared,
@@ -31,7 +31,7 @@ from busgate.client.feeds import MAX_WAITING, MAX_WAITING_BYTES, Inbox, Latest
 from busgate.client.keys import Keys, check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
-from busgate.client.trajectories import Watch, result_wait_s
+from busgate.client.trajectories import Handle, Watch, result_wait_s
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
 from busgate.schemas.api import ERROR_CODES, MAX_MESSAGE
@@ -245,7 +245,7 @@ def test_timers_call_in_time_order_on_their_own_thread_and_stop_on_close() -> No
     assert len(called) == 2
 
 
-def test_a_wait_raises_what_its_future_raised_not_a_timeout_of_its_own(monkeypatch) -> None:
+def test_a_wait_raises_what_its_future_raised_not_a_timeout_of_its_own() -> None:
     """A ``NoAnswerError`` is a ``TimeoutError`` too: the one a lookup raised at once ("no
     gateway answered on busgate/ghost/info") was told as the wait's own timeout ("finding
     ghost/la1: no answer within 5 s", in 1.6 ms), sync and asyncio alike."""
@@ -255,9 +255,16 @@ def test_a_wait_raises_what_its_future_raised_not_a_timeout_of_its_own(monkeypat
         Wait(failed, 5.0, "finding ghost/la1").wait()
     with pytest.raises(NoAnswerError, match="no gateway answered on busgate/ghost/info"):
         asyncio.run(Wait(failed, 5.0, "finding ghost/la1").awaited())
-    monkeypatch.setattr(steps, "WAIT_MARGIN_S", 0.0)
     with pytest.raises(NoAnswerError, match=r"finding ghost/la1: no answer within 0\.01 s"):
-        Wait(Future(), 0.01, "finding ghost/la1").wait()  # nothing came
+        Wait(Future(), 0.01, "finding ghost/la1", margin_s=0.0).wait()  # nothing came
+
+
+def test_a_trajectorys_result_is_waited_for_without_a_querys_margin() -> None:
+    """``t.wait(0.1)`` waited 1.1 s: the margin zenoh may take to settle a query was added to
+    a result that comes on a subscription (an audit)."""
+    handle = SimpleNamespace(_watch=SimpleNamespace(finished=Future()), end_at=0.0, id="t1")
+    step = next(Handle.__dict__["wait"].steps(handle, 0.1))
+    assert isinstance(step, Wait) and (step.timeout_s, step.margin_s) == (0.1, 0.0)
 
 
 def test_a_name_that_is_not_a_string_is_said_to_be_none() -> None:
