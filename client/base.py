@@ -336,14 +336,14 @@ def settled(value: Any) -> Future:
     return done
 
 
-def known_gateway(gateway: str, known: set[str], key: str) -> None:
+def known_gateway(gateway: str, known: set[str], outcome: str) -> None:
     """Nothing when ``gateway`` is among the gateways ``known``; else the
-    ``UnknownGatewayError`` that names them (what was put on ``key`` reached nobody)."""
+    ``UnknownGatewayError`` that names them, saying the ``outcome`` (what came of it)."""
     if gateway not in known:
         up = sorted(known)
         raise UnknownGatewayError(
-            f"no gateway {gateway!r} is up: the put on {key} reached none (the gateways that "
-            f"answer: {', '.join(up) or 'none'})",
+            f"no gateway {gateway!r} is up: {outcome} (the gateways that answer: "
+            f"{', '.join(up) or 'none'})",
             gateway=gateway,
             gateways=up,
         )
@@ -397,13 +397,19 @@ class Shared:
         """A future of the ``Found`` device or bus (``what``) of each name (``"gw/x"`` or a
         bare ``"x"``), from one ``info`` query of the gateways they name (all, when any name
         is bare)."""
-        gateways = {split_name(name)[0] for name in names}
-        gateway = gateways.pop() if len(gateways) == 1 else None
+        named = {split_name(name)[0] for name in names}  # None: a bare name
+        gateway = next(iter(named)) if len(named) == 1 else None
+        if gateway is not None and gateway not in self.core.gateways_up:
+            gateway = None  # not seen up: every gateway's, to name those up if it is none
         asked = self.core.keys.info(gateway or "*")
-        return then(
-            self.infos(gateway, timeout_s),
-            lambda infos: [locate(infos, name, what, asked) for name in names],
-        )
+
+        def located(infos: dict[str, Any]) -> list[Found]:
+            if gateway is None and (infos or self.core.gateways_up):  # else: no answer at all
+                for each in (g for g in named if g is not None):
+                    known_gateway(each, {*infos, *self.core.gateways_up}, "nothing was sent")
+            return [locate(infos, name, what, asked) for name in names]
+
+        return then(self.infos(gateway, timeout_s), located)
 
     def find(self, name: str, what: str, timeout_s: float) -> Future:
         """A future of the ``Found`` device or bus ``name``."""
@@ -578,7 +584,9 @@ class Shared:
             return settled(None)
         return then(
             self.infos(None, self.core.timeout_s),
-            lambda infos: known_gateway(gateway, {*infos, *self.core.gateways_up}, where),
+            lambda infos: known_gateway(
+                gateway, {*infos, *self.core.gateways_up}, f"the put on {where} reached none"
+            ),
         )
 
     def signed(self) -> bytes:

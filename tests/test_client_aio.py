@@ -133,7 +133,7 @@ def test_unknown_names_and_silent_gateways_raise_their_errors(connect) -> None:
                 await client.device("la9")
             with pytest.raises(bc.error_for("unknown_bus")):
                 await client.bus("demo/uart9")
-            with pytest.raises(bc.NoAnswerError):
+            with pytest.raises(bc.UnknownGatewayError):  # the demo answers, not gw9
                 await client.device("gw9/la1", timeout=0.5)
 
     run(main())

@@ -585,11 +585,14 @@ def test_a_bus_no_gateway_has_is_unknown_bus(client, name) -> None:
     assert unknown.value.code == "unknown_bus"
 
 
-def test_a_gateway_nobody_runs_is_no_answer(client) -> None:
-    with pytest.raises(bc.NoAnswerError):
-        client.device("gw9/la1", timeout=0.5)
-    with pytest.raises(bc.NoAnswerError):
-        client.bus("gw9/uart0", timeout=0.5)
+def test_a_gateway_nobody_runs_is_an_unknown_gateway_naming_those_up(client) -> None:
+    """As sdk.md says of ``UnknownGatewayError``; it was a ``NoAnswerError`` saying only that
+    nobody answered on ``busgate/gw9/info`` (an audit)."""
+    for find, name in ((client.device, "gw9/la1"), (client.bus, "gw9/uart0")):
+        with pytest.raises(bc.UnknownGatewayError) as refused:
+            find(name, timeout=0.5)
+        assert refused.value.gateway == "gw9" and "demo" in refused.value.gateways
+        assert str(refused.value).startswith("no gateway 'gw9' is up: nothing was sent (the ")
 
 
 # -- telemetry -------------------------------------------------------------------------------
