@@ -6,10 +6,12 @@ its loop) on a real bus runner."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import socket
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -21,6 +23,7 @@ from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.scheduler.devices import BusDevices
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.service.assembly import build_bus
+from busgate.gateway.service.daemon import every_bus_on_schedule
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.pty_link import PtyLink
@@ -208,6 +211,24 @@ def test_a_stuck_bus_thread_stops_the_pings(manager) -> None:
     assert manager.received() == []
 
 
+def test_a_bus_thread_that_does_not_stop_is_told_of(caplog) -> None:
+    """A stop whose bus thread hung read as a clean one: ``gateway … stopped``, exit 0, and
+    nothing said of the safe state that may not have gone out (an audit)."""
+    owner = StuckOwner()
+    runner = BusRunner("stuck", owner, link_timing("inspire_la", 921_600, margin_s=0.002),
+                       BusDevices([]), poll_hz={}).start()
+    try:
+        assert owner.entered.wait(10)
+        with caplog.at_level(logging.WARNING, logger="busgate.gateway.scheduler.runner"):
+            runner.stop(timeout=0.05)
+        assert [r.getMessage() for r in caplog.records] == [
+            "bus stuck: its thread did not stop within 0.05 s: its devices' safe state may not "
+            "have been sent"]
+    finally:
+        owner.release.set()
+        runner.stop()
+
+
 def test_a_working_bus_keeps_its_schedule(tmp_path) -> None:
     bus = SerialBus(name="uart0", transport="serial", port=str(tmp_path / "usb-la"),
                     baudrate=921_600,
@@ -224,3 +245,15 @@ def test_a_working_bus_keeps_its_schedule(tmp_path) -> None:
         finally:
             runner.stop()
     assert not runner.keeping_schedule()
+
+
+def test_a_held_back_ping_names_the_buses_off_their_schedule(caplog) -> None:
+    """The journal showed only systemd's watchdog timeout, naming no bus (an audit)."""
+    runners = {"uart0": SimpleNamespace(keeping_schedule=lambda: True),
+               "can0": SimpleNamespace(keeping_schedule=lambda: False)}
+    with caplog.at_level(logging.WARNING, logger="busgate.gateway.service.daemon"):
+        assert not every_bus_on_schedule(runners)  # type: ignore[arg-type]
+        assert every_bus_on_schedule({"uart0": runners["uart0"]})  # type: ignore[arg-type]
+    assert [r.getMessage() for r in caplog.records] == [
+        "watchdog: not pinged, bus can0 not keeping its schedule (systemd restarts the service "
+        "if it goes on)"]

@@ -284,11 +284,20 @@ class BusRunner:
         self._wake.set()
 
     def stop(self, timeout: float = 1.0) -> None:
-        """Stop the streams, put the devices in their safe state, close the bus."""
+        """Stop the streams, put the devices in their safe state, close the bus; a thread
+        that has not ended within ``timeout`` (hung) is told of: its safe state is not known
+        to have gone out, where the daemon's stop would otherwise read as a clean one."""
         self._stop.set()
         self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.warning(
+                    "bus %s: its thread did not stop within %g s: its devices' safe state "
+                    "may not have been sent",
+                    self.name,
+                    timeout,
+                )
         self.owner.close()
 
     def _hand_over(self, action: Callable[[Future], None], *, estop: bool = False) -> Future:

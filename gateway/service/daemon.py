@@ -33,6 +33,7 @@ import signal
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
@@ -175,7 +176,7 @@ async def serve(
         log.info("gateway %s serving %s, %d up", config.gateway.name, _buses(len(runners)), up)
         if ready is not None:
             ready.set()
-        watchdog = Watchdog(notifier, lambda: all(r.keeping_schedule() for r in runners.values()))
+        watchdog = Watchdog(notifier, lambda: every_bus_on_schedule(runners))
         async with asyncio.TaskGroup() as tasks:
             tasks.create_task(_ready_once_tried(notifier, config, runners, stop))
             tasks.create_task(watchdog.run(stop))
@@ -434,6 +435,20 @@ def _start_metrics(runners: dict[str, BusRunner], bridge: ZenohBridge, listen: s
     bridge.on_latency = metrics.observe
     log.info("metrics on http://%s/metrics", listen)
     return metrics
+
+
+def every_bus_on_schedule(runners: Mapping[str, BusRunner]) -> bool:
+    """Whether every bus thread keeps its schedule (the watchdog's ping goes); a warning names
+    those that do not, each time the ping is held back: systemd's watchdog timeout, a while
+    later, names none."""
+    late = [name for name, runner in runners.items() if not runner.keeping_schedule()]
+    if late:
+        log.warning(
+            "watchdog: not pinged, bus %s not keeping its schedule (systemd restarts the "
+            "service if it goes on)",
+            ", ".join(late),
+        )
+    return not late
 
 
 async def _buses_up(runners: dict[str, BusRunner], expected_up: set[str]) -> int:
