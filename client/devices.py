@@ -21,7 +21,7 @@ from busgate.client.feeds import Inbox, Stream
 from busgate.client.follow import FollowSender
 from busgate.client.messages import feed_deadline
 from busgate.client.steps import Items, Next, Steps, Wait
-from busgate.errors import BusgateError
+from busgate.errors import BusgateError, CommandError
 
 Claim = TypeVar("Claim")
 Follow = TypeVar("Follow")
@@ -259,8 +259,8 @@ class StreamBase(Face):
         return 0 if self._sender is None else self._sender.puts
 
     def _put(self, target: dict[str, Any]) -> None:
-        if self._sender is None:
-            raise RuntimeError(f"{self._setter}() outside the {self._called}'s {self._block} block")
+        if self._sender is None:  # a BusgateError, as everything the SDK raises
+            raise CommandError(f"{self._setter}() outside the {self._called}'s {self._block} block")
         self._sender.set(target)
 
     def _ended(self, kind: type[BaseException] | None) -> Steps[None]:

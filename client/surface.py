@@ -30,6 +30,7 @@ from busgate.client.keys import check_name
 from busgate.client.messages import Answers, JointsMessage, feed_deadline, joints_message
 from busgate.client.steps import Call, Items, Next, Steps, Wait
 from busgate.client.trajectories import Watch, one_gateway, play_body
+from busgate.errors import CommandError
 from busgate.schemas.api import InfoReply
 
 Device = TypeVar("Device", bound=DeviceBase[Any, Any, Any])
@@ -193,6 +194,10 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         takes them; ``options``: ``start_at``, ``interpolation``, ``path_tolerance``,
         ``goal_tolerance``, ``goal_time_s``); the devices must be on one gateway. Returns
         once it is accepted, with its ``start_at`` and ``end_at``."""
+        if isinstance(devices, str) or not devices:  # a str's letters were each a name
+            raise CommandError(
+                f"devices is a list of their names (['la1', 'la2']), not {devices!r}"
+            )
         waited = self.timeout if timeout is None else timeout
         finding = self._shared.find_all(devices, "device", waited)
         found = yield Wait(finding, waited, "finding the devices")

@@ -271,7 +271,7 @@ def test_a_follow_stream_ends_with_end_follow_when_its_block_raises(demo, connec
             assert [(e["type"], e.get("reason")) for e in ends] == [
                 ("stream_stopped", f"ended by {client.client_id}")]
             await settled(la1, target=400, position=400)
-            with pytest.raises(RuntimeError):
+            with pytest.raises(bc.CommandError, match=r"set\(\) outside"):  # a BusgateError
                 stream.set(position=500)
 
     run(main())

@@ -246,7 +246,7 @@ def test_a_drive_stream_puts_twists_and_stops_the_base_when_it_ends(gw, connect)
     until(lambda: all(rpms and rpms[-1] == 0 for rpms in gw.speeds(since).values()),
           timeout=CMD_TIMEOUT_S - 0.5)
     assert time.monotonic() - ended < CMD_TIMEOUT_S - 0.5
-    with pytest.raises(RuntimeError, match=r"send\(\) outside the drive stream's with block"):
+    with pytest.raises(bc.CommandError, match=r"send\(\) outside the drive stream's with block"):
         stream.send(0.1)
 
 

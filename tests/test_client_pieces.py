@@ -31,6 +31,7 @@ from busgate.client.feeds import MAX_WAITING, MAX_WAITING_BYTES, Inbox, Latest
 from busgate.client.keys import Keys, check_key, check_name, split_name
 from busgate.client.messages import Answer
 from busgate.client.steps import Wait
+from busgate.client.surface import ClientBase
 from busgate.client.trajectories import Handle, Watch, result_wait_s
 from busgate.errors import BusgateError, CommandError
 from busgate.schemas import inspire_la
@@ -427,3 +428,12 @@ def test_a_trajectory_wait_that_is_no_number_of_seconds_is_a_command_error(timeo
     with pytest.raises(CommandError, match="timeout must be a number of seconds from 0 to"):
         result_wait_s(0.0, timeout)
     assert result_wait_s(0.0, 5) == 5 and result_wait_s(time.time(), None) >= 29
+
+
+@pytest.mark.parametrize("devices", ["la1", []])
+def test_a_play_of_devices_that_are_no_list_of_names_is_refused(devices) -> None:
+    """``c.play("la1", …)`` looked up 'l', 'a' and '1'; ``c.play([], …)`` was refused in a
+    garbled line ("…not of : play one trajectory…")."""
+    face = SimpleNamespace(timeout=1.0)
+    with pytest.raises(CommandError, match=r"devices is a list of their names \(\['la1'"):
+        next(ClientBase.__dict__["play"].steps(face, devices, []))
