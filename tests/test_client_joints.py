@@ -162,7 +162,7 @@ def test_a_joint_follow_stream_is_held_within_the_limits_and_says_so_once(gwj, c
         streams = 1 + len(events.of("la1", "stream_stale", since=since))  # a loaded host's
     assert 1 <= len(limited) <= streams, limited  # told once a stream
     assert all((e["joint"], e["limit"]) == ("lift", "max") for e in limited), limited
-    with pytest.raises(RuntimeError, match="outside the follow stream's with block"):
+    with pytest.raises(bc.CommandError, match="outside the follow stream's with block"):
         stream.set(0.01)
 
 

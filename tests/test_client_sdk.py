@@ -923,7 +923,7 @@ def test_a_follow_target_no_schema_allows_is_refused_before_it_is_sent(client) -
             stream.set(position=2001)
         with pytest.raises(bc.error_for("bad_command")):
             stream.set(rpm=10)
-    with pytest.raises(RuntimeError):
+    with pytest.raises(bc.CommandError, match=r"set\(\) outside"):  # a BusgateError
         stream.set(position=100)
 
 
