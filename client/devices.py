@@ -233,6 +233,12 @@ class ClaimBase(Face):
         yield from last_exchange(self._shared, released, kind, f"release of {lease.device}")
 
 
+class OutsideBlockError(CommandError, RuntimeError):
+    """A stream's ``set()`` or ``send()`` outside its block: a ``CommandError``, as every
+    refusal of the SDK's is a ``BusgateError``, and the ``RuntimeError`` it was before, for
+    the programs that caught that."""
+
+
 class StreamBase(Face):
     """A stream of targets held by a block, of either face: a device's follow stream
     (``FollowBase``), a joint's (``joints.JointFollowBase``), each with its own ``set``, or a
@@ -259,8 +265,10 @@ class StreamBase(Face):
         return 0 if self._sender is None else self._sender.puts
 
     def _put(self, target: dict[str, Any]) -> None:
-        if self._sender is None:  # a BusgateError, as everything the SDK raises
-            raise CommandError(f"{self._setter}() outside the {self._called}'s {self._block} block")
+        if self._sender is None:
+            raise OutsideBlockError(
+                f"{self._setter}() outside the {self._called}'s {self._block} block"
+            )
         self._sender.set(target)
 
     def _ended(self, kind: type[BaseException] | None) -> Steps[None]:

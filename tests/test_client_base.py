@@ -248,6 +248,8 @@ def test_a_drive_stream_puts_twists_and_stops_the_base_when_it_ends(gw, connect)
     assert time.monotonic() - ended < CMD_TIMEOUT_S - 0.5
     with pytest.raises(bc.CommandError, match=r"send\(\) outside the drive stream's with block"):
         stream.send(0.1)
+    with pytest.raises(RuntimeError):  # what it was before: caught as that too
+        stream.send(0.1)
 
 
 def test_a_put_on_the_base_cmd_key_runs_and_a_refused_one_is_an_event_naming_it(
