@@ -65,7 +65,7 @@ import socket
 import threading
 import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, InvalidStateError
 from pathlib import Path
 from typing import Any
@@ -174,7 +174,13 @@ class Core:
                 " (a fleet's router is `busgate router`)"
             )
         seconds("lease_s", lease_s, MIN_LEASE_S, MAX_LEASE_S)
-        endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        endpoints = _endpoint_list(endpoints)
+        for what, text in (("username", username), ("password", password)):
+            if text is not None and not isinstance(text, str):
+                raise CommandError(f"{what} must be a string, not {type(text).__name__}")
+        for what, path in (("config_file", config_file), ("ca", ca)):
+            if path is not None and not isinstance(path, str | Path):
+                raise CommandError(f"{what} must be a path, not {type(path).__name__}")
         where = ", ".join(endpoints) or (str(config_file) if config_file else "no endpoint")
         try:
             config = session_config(
@@ -479,6 +485,22 @@ def _close(session: zenoh.Session, held: list[Any], drains: list[threading.Threa
     for thread in drains:  # rule 6; a sink that closes its own client does not wait for itself
         if thread is not threading.current_thread():
             thread.join(max(deadline - time.monotonic(), 0.0))
+
+
+def _endpoint_list(endpoints: object) -> list[str]:
+    """``endpoints`` as a list: one endpoint, or several (a program may pass a tuple, or a
+    generator); a ``CommandError`` for anything else (a port number alone, a list with one)."""
+    listed: list[object] = [endpoints]
+    if isinstance(endpoints, Iterable) and not isinstance(endpoints, str | bytes | bytearray):
+        listed = list(endpoints)
+    texts = [endpoint for endpoint in listed if isinstance(endpoint, str)]
+    if len(texts) < len(listed):
+        wrong = next(endpoint for endpoint in listed if not isinstance(endpoint, str))
+        raise CommandError(
+            "endpoints must be a zenoh endpoint ('tcp/host:port') or a list of them, "
+            f"not {type(wrong).__name__}"
+        )
+    return texts
 
 
 def _endpoints_hint(endpoints: Sequence[str]) -> str:

@@ -99,6 +99,23 @@ def test_settings_that_make_no_sense_are_refused_before_any_session(options) -> 
         bc.connect("tcp/127.0.0.1:9", **{"client_id": "ok", **options})
 
 
+@pytest.mark.parametrize(("arguments", "options", "said"), [
+    ((7447,), {}, "endpoints must be a zenoh endpoint ('tcp/host:port') or a list of them, not"),
+    ((b"tcp/127.0.0.1:9",), {}, "or a list of them, not bytes"),
+    ((["tcp/127.0.0.1:9", 9],), {}, "or a list of them, not int"),
+    ((), {"config_file": 5}, "config_file must be a path, not int"),
+    ((), {"ca": 1.5}, "ca must be a path, not float"),
+    ((), {"username": 5, "password": "x"}, "username must be a string, not int"),
+])
+def test_arguments_of_the_wrong_type_are_a_command_error(arguments, options, said) -> None:
+    """Under ``BusgateError`` as everything the SDK raises: a port number for the endpoint
+    was Python's own ``TypeError`` ('int' object is not iterable), a user name that is no
+    string zenoh's JSON5 error."""
+    with pytest.raises(CommandError) as refused:
+        bc.connect(*arguments, **{"client_id": "ok", **options})
+    assert said in str(refused.value)
+
+
 def test_an_endpoint_zenoh_cannot_use_is_a_connect_error() -> None:
     with pytest.raises(bc.ConnectError, match="cannot open a zenoh session to nonsense"):
         bc.connect("nonsense", client_id="ok")
