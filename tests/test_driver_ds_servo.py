@@ -124,7 +124,22 @@ def test_safe_stop_replaces_a_stored_move_by_one_to_where_the_servo_is() -> None
     [move] = plan(d, '{"op":"move","position":3400}')
     assert [r.frame for r in d.hold_still()] == [
         move.frame, ds.RegWrite(1, 3400, 0), ds.Write(1, 0x28, b"\x01")]
-    d.measured["position"] = None  # where it is not known: nothing to store in its place
+    d.measured["position"] = None  # where it is not known, nor its target: nothing to store
+    assert len(d.safe_stop()) == 1
+
+
+def test_a_stored_move_of_a_servo_whose_position_is_not_known_goes_to_its_target() -> None:
+    """Its position not known at the stop (no reading yet, or one past its joint's limits),
+    the move stored before the stop was left in place, and the first ACTION after the reset
+    started it once torque was on again. Its target is what torque on drives it to anyway,
+    so a move there is stored in its place; with no target known either, nothing."""
+    d = driver(1)
+    [move] = plan(d, '{"op":"move","position":2500}')
+    answer(d, move)
+    answer(d, plan(d, '{"op":"move","position":700,"deferred":true}')[0])
+    assert d.measured["position"] is None
+    assert [r.frame for r in d.safe_stop()][1:] == [ds.RegWrite(1, 2500, 0)]
+    d.target = None
     assert len(d.safe_stop()) == 1
 
 

@@ -298,10 +298,16 @@ class DsServoDriver(Driver):
 
     def _stored_here(self) -> list[Request]:
         """A move to where the servo is, stored for ACTION in place of one that may be stored
-        (sent, answered or not, and no ACTION since); nothing where none may be, or where the
-        servo is not known."""
+        (sent, answered or not, and no ACTION since); where it is not known, a move to the
+        target it has, which torque on drives it to all the same, so that an ACTION moves it
+        no further than torque on would; nothing where no move may be stored, or neither is
+        known."""
+        if self.pending_target is None and not self._store_unknown:
+            return []
         here = self.position_to_hold(self.measured["position"])
-        if here is None or (self.pending_target is None and not self._store_unknown):
+        if here is None:
+            here = self.position_to_hold(self.target)
+        if here is None:
             return []
         return [Request.of(codec, codec.RegWrite(self.device_id, here, 0), idempotent=True)]
 
