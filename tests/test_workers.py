@@ -360,7 +360,9 @@ def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims
     a second, not when the worker is killed 4 s later (the other bus's device went on along
     the path meanwhile). An e-stop pressed while a worker hangs waits in its socket, never
     carried out: the new worker carries it out (it was lost: the device moved on its next
-    command)."""
+    command), even after a reset put while it hung, which the hung worker never answered (it
+    was taken as done: the new worker did not e-stop the bus, and a move went with no reset
+    after the stop)."""
     bus = "uart1"
     device = DEVICES[bus]
     victim = served.worker_of(bus)
@@ -387,6 +389,7 @@ def test_a_hung_worker_is_killed_and_started_again_with_its_estop_and_the_claims
             assert ticks == []  # the other bus's device stopped with the trajectory
             client.estop("gw1")
             mark = served.marks()[bus]
+            client.reset_estop("gw1")  # the other worker's buses are reset; this one is not
             assert bus in served.gateway.wait_for("silent for")
             served.gateway.wait_for(f"ended: killed by signal {signal.SIGKILL.value}")
         finally:

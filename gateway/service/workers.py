@@ -242,6 +242,8 @@ class WorkerProcess:
         #: Buses e-stopped by a call, or by their worker's own stop, since their last reset
         #: (rule 2): the next worker e-stops them as it starts.
         self._estopped: set[str] = set()
+        #: How many e-stops each bus was called to, a reset's answer judged by it (``_reset_done``).
+        self._estop_calls: dict[str, int] = {}
         self._ids = itertools.count()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -390,16 +392,28 @@ class WorkerProcess:
             outbox = self.outbox
             if method == "estop":  # kept until its reset: a new worker e-stops the bus (rule 2)
                 self._estopped.add(bus)
+                self._estop_calls[bus] = self._estop_calls.get(bus, 0) + 1
             if outbox is None:
                 future.set_exception(BusUnavailableError(f"bus {bus}: its worker is down"))
                 return future
             if method == "reset_estop" and args == (None,):  # the whole bus, by its worker
-                self._estopped.discard(bus)
+                estop_calls = self._estop_calls.get(bus, 0)
+                future.add_done_callback(partial(self._reset_done, bus, estop_calls))
             call_id = next(self._ids)
             outbox.put_now(("call", call_id, bus, method, args, {}))  # refused here, if so
             self._pending[call_id] = future
         future.add_done_callback(partial(self._withdraw_if_cancelled, call_id))
         return future
+
+    def _reset_done(self, bus: str, estop_calls: int, future: Future) -> None:
+        """A whole bus's reset answered: done, and no e-stop called since it was, the next
+        worker no longer e-stops the bus; failed (its worker ended or hung first, with the
+        reset, and maybe the e-stop, still in its socket), it still does (rule 2)."""
+        if future.cancelled() or future.exception() is not None:
+            return
+        with self._lock:
+            if self._estop_calls.get(bus, 0) == estop_calls:
+                self._estopped.discard(bus)
 
     def _withdraw_if_cancelled(self, call_id: int, future: Future) -> None:
         """A call cancelled here (its client was answered without it) is withdrawn in the
