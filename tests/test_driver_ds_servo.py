@@ -143,6 +143,19 @@ def test_a_stored_move_of_a_servo_whose_position_is_not_known_goes_to_its_target
     assert len(d.safe_stop()) == 1
 
 
+def test_a_move_stored_before_the_driver_was_made_is_replaced_at_the_stop() -> None:
+    """A servo keeps a move stored for ACTION while a gateway, or a bus worker, starts anew
+    (an audit: a worker killed and started again, its e-stop left the move stored before for
+    the first action after the reset). A new driver takes one to be stored until it sees an
+    ACTION."""
+    d = driver(1)
+    d.measured["position"] = 1000
+    assert [r.frame for r in d.safe_stop()] == [ds.Write(1, 0x28, b"\x00"), ds.RegWrite(1, 1000, 0)]
+    [action] = plan(d, '{"op":"action"}')
+    d.apply(action, (), 1.0)
+    assert len(d.safe_stop()) == 1
+
+
 def test_a_stored_move_whose_answer_was_lost_is_replaced_at_the_stop_too() -> None:
     """A REG WRITE unanswered may be stored all the same; an ACTION since starts it."""
     d = driver(1)
@@ -205,7 +218,7 @@ def test_torque_back_on_after_the_gateway_switched_it_off_is_a_reboot() -> None:
     d = driver(1)
     for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30), strict=True):
         answer(d, request, data=data)
-    [stop] = d.safe_stop()
+    stop, _ = d.safe_stop()  # torque off, and a move stored where the servo is
     answer(d, stop)
     for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30, torque=0), strict=True):
         answer(d, request, data=data)
@@ -224,10 +237,11 @@ def test_a_resets_torque_on_left_unanswered_and_read_back_on_is_no_reboot() -> N
     d = driver(1)
     for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30), strict=True):
         answer(d, request, data=data)
-    [stop] = d.safe_stop()
+    stop, _ = d.safe_stop()  # torque off, and a move stored where the servo is
     answer(d, stop)
-    move, torque_on = d.reset_estop()
+    move, stored, torque_on = d.reset_estop()
     answer(d, move)
+    answer(d, stored)
     d.missed(1.5, torque_on.frame)
     assert d.telemetry(1.5)["enabled"] is None, "not known until read"
     for request, data in zip(d.poll(), _poll_replies(100, 0, 0, 30, torque=1), strict=True):

@@ -244,7 +244,10 @@ class DsServoDriver(Driver):
         self.measured: dict[str, int | None] = dict.fromkeys(_MEASURED.values())
         self.target: int | None = None
         self.pending_target: int | None = None  # a REG WRITE waiting for ACTION
-        self._store_unknown = False  # one went unanswered: it may be stored (``missed``)
+        #: A move may be stored for ACTION that this driver did not see answered: one sent
+        #: unanswered (``missed``), or one stored before it was made (a gateway, or a bus
+        #: worker, started anew: the servo kept it); an ACTION seen, or a reboot, clears it.
+        self._store_unknown = True
         self.torque_on: bool | None = None
         self.faults = codec.ServoStatus(0)
 
