@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 
 import pytest
@@ -238,6 +239,25 @@ def test_a_silent_velocity_joint_is_due_a_stop_once_and_a_position_joint_never()
     assert taken.expired(7.0) == []
 
 
+def test_a_refused_command_of_a_turning_velocity_joint_leaves_its_stop_due() -> None:
+    """An audit: a velocity joint turning at one command, its next refused (2e9 rad/s), was
+    forgotten: no stop came, and it turned with no end. Refused, a joint that never moved
+    is due no stop; one that turns keeps its stop, timed from its last command."""
+    taken = commands()
+    taken.take({"name": ["wheel"], "velocity": [1.0]}, 0.0)
+    taken.refused("wheel")  # its first command: it never moved
+    assert taken.expired(1.0) == []
+    taken.take({"name": ["wheel"], "velocity": [1.0]}, 2.0)
+    taken.carried_out("wheel")
+    taken.take({"name": ["wheel"], "velocity": [2e9]}, 2.2)
+    taken.refused("wheel")
+    assert taken.expired(2.6) == []
+    assert taken.expired(2.71) == [WHEEL]
+    taken.take({"name": ["wheel"], "velocity": [1.0]}, 3.0)
+    taken.refused("wheel")  # stopped since: it turned no more
+    assert taken.expired(9.0) == []
+
+
 def point(seconds: float, positions: list[float], **fields: list[float]) -> dict:
     whole, fraction = divmod(seconds, 1)
     return {"positions": positions, "time_from_start": {"sec": int(whole),
@@ -356,6 +376,7 @@ class HandingOnBridge:
         self.resets: list = []
         self.at_estop: list = []
         self.kept: list[str] = []  # the devices a reset leaves to another client's claim
+        self.events: list = []
 
     def call_soon(self, function, *args) -> None:
         self.soon.append((function, args))
@@ -375,18 +396,42 @@ class HandingOnBridge:
             function(*args)
 
 
-def gripper_face() -> tuple[GatewayApi, HandingOnBridge, Ros2Face]:
-    """A face on a gateway of one LA, joint ``gripper``, whose bus is built, never started."""
-    gripper = {"name": "la1", "kind": "inspire_la", "id": 1,
-               "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}
+def face_on(device: dict, baudrate: int) -> tuple[GatewayApi, HandingOnBridge, Ros2Face]:
+    """A face on a gateway of ``device`` alone, whose bus is built, never started."""
     config = parse_config({
         "gateway": {"name": "gw1"}, "ros2": {},
-        "buses": [{"name": "uart0", "transport": "serial", "port": "/dev/null",
-                   "baudrate": 921_600, "devices": [gripper]}],
+        "buses": [{"name": "bus0", "transport": "serial", "port": "/dev/null",
+                   "baudrate": baudrate, "devices": [device]}],
     })
-    api = GatewayApi("gw1", {"uart0": build_bus(config.buses[0])})
+    api = GatewayApi("gw1", {"bus0": build_bus(config.buses[0])})
     bridge = HandingOnBridge()
     return api, bridge, Ros2Face(config.ros2, api, bridge)  # type: ignore[arg-type]
+
+
+def gripper_face() -> tuple[GatewayApi, HandingOnBridge, Ros2Face]:
+    """A face on a gateway of one LA, joint ``gripper``."""
+    return face_on({"name": "la1", "kind": "inspire_la", "id": 1,
+                    "joint": {"name": "gripper", "unit": "m", "scale": 5e-6}}, 921_600)
+
+
+def test_a_velocity_joint_turning_when_its_next_command_is_refused_is_stopped_in_time(
+        monkeypatch):
+    """An audit: ``drive`` turning at a command carried out, its next refused, turned with
+    no end (the refusal forgot it: no stop was due). Its stop comes ``command_timeout_s``
+    after that command, as after any."""
+    api, bridge, face = face_on({"name": "drive", "kind": "zlac706", "id": 1, "joint": {
+        "name": "wheel", "unit": "rad", "scale": 0.0006283185307179586}}, 115_200)
+    ramps: list = []
+    too_fast = {"ok": False, "error": {"code": "out_of_range", "message": "too fast"}}
+    monkeypatch.setattr(api, "ramp_to", lambda device, fields, *_: ramps.append(fields) or (
+        too_fast if fields["joint_velocity"] > 100 else None))
+    face._command({"name": ["wheel"], "velocity": [1.0]})
+    bridge.run_soon()
+    face._command({"name": ["wheel"], "velocity": [2e9]})
+    bridge.run_soon()
+    assert ramps == [{"joint_velocity": 1.0}, {"joint_velocity": 2e9}]
+    face._stop_silent_joints(time.monotonic() + face.section.command_timeout_s + 0.1)
+    assert ramps[2:] == [{"joint_velocity": 0.0}]
 
 
 @pytest.mark.parametrize("estop", ["service", "zenoh"])

@@ -20,7 +20,9 @@ Rules of this file:
    any length), each as a refusal repeats it (``shown``).
 3. A position joint's command is kept: it goes to its target and stays (silence is never a
    stop: ros2_control sends nothing while its command is unchanged). A velocity joint whose
-   last command is older than ``timeout_s`` is due a stop (``expired``), once per silence.
+   last command is older than ``timeout_s`` is due a stop (``expired``), once per silence,
+   but one that never moved: its command refused and none carried out since its last stop
+   (``refused``; one carried out, ``carried_out``, keeps it turning until the stop).
 4. Pure: times are given, nothing is sent from here.
 """
 
@@ -80,6 +82,7 @@ class Commands:
     timeout_s: float
     unknown: set[str] = field(default_factory=set)
     _moving: dict[str, float] = field(default_factory=dict)  # velocity joint → last command
+    _driven: set[str] = field(default_factory=set)  # of those, moved since their last stop
 
     def take(self, message: dict[str, Any], now: float) -> Taken:
         """The targets ``message`` sets (the rules above)."""
@@ -187,13 +190,26 @@ class Commands:
         late = [name for name, when in self._moving.items() if now - when > self.timeout_s]
         for name in late:
             del self._moving[name]
+            self._driven.discard(name)
         return [self.joints[name] for name in late]
 
+    def carried_out(self, joint: str) -> None:
+        """``joint``'s command went to its device: a velocity joint turns until its stop."""
+        if joint in self._moving:
+            self._driven.add(joint)
+
+    def refused(self, joint: str) -> None:
+        """``joint``'s command was refused: no stop is due for it unless a command carried
+        out since its last stop still turns it (rule 3: a refused command after one that was
+        taken forgot the joint, which then turned with no end)."""
+        if joint not in self._driven:
+            self._moving.pop(joint, None)
+
     def forget(self, joints: Iterable[str]) -> None:
-        """Joints stopped otherwise (an e-stop), or whose command was refused: no stop is due
-        for them."""
+        """Joints stopped otherwise (an e-stop): no stop is due for them."""
         for name in joints:
             self._moving.pop(name, None)
+            self._driven.discard(name)
 
 
 def _lengths(lists: dict[str, list[float]]) -> str:

@@ -313,11 +313,14 @@ class Ros2Face:
 
     def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
         refused = self.api.ramp_to(joint.device, fields, self.section.client, self._claim_ttl_s)
+        with self._commands_lock:  # a stop is due for a velocity joint that turns (rule 3)
+            if refused is None:
+                self.commands.carried_out(joint.name)
+            else:
+                self.commands.refused(joint.name)
         if refused is None:
             self._refusals.pop(joint.name, None)
             return
-        with self._commands_lock:  # it never moved: no stop is due for it
-            self.commands.forget([joint.name])
         self._refused([joint.name], refused["error"]["message"])
 
     def _trajectory(self, message: dict[str, Any]) -> None:
