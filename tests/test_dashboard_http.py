@@ -242,7 +242,10 @@ def test_the_gateway_estop_stops_every_device_and_each_enable_brings_one_back(
         200, {"ok": True, "estop": "demo"})
     wait_for(lambda: all(power(client).values()))
     for device in sorted(DEVICES):
-        status, reply = post(dashboard, "/api/enable", {"device": f"demo/{device}"})
+        for _ in range(3):  # sent once: a reply that timed out (a loaded host) is ours to retry
+            status, reply = post(dashboard, "/api/enable", {"device": f"demo/{device}"})
+            if reply["ok"] or reply["error"]["code"] != "device_timeout":
+                break
         assert status == 200 and reply["ok"] and reply["device"] == f"demo/{device}", reply
     wait_for(lambda: not any(power(client).values()))
     patiently(client.device("wheel").send, {"op": "disable"})  # as the demo starts it

@@ -22,6 +22,7 @@ from urllib.parse import SplitResult, urlsplit
 
 import pytest
 
+import busgate.client as bc
 from busgate.dashboard import app as app_module
 from busgate.dashboard import server
 from busgate.dashboard.server import Listen, serve_dashboard
@@ -114,6 +115,25 @@ def test_a_page_that_rebinds_its_name_to_the_dashboard_gets_nothing_whatever_it_
         assert client.asked == []
         assert act(where, where.netloc, f"http://{where.netloc}", action)[0] == 200
         assert client.asked == [ACTIONS[action][2]]
+
+
+def test_an_enable_whose_reply_timed_out_is_not_sent_again() -> None:
+    """An audit: the dashboard sent a device's enable again (three times in all) while its
+    reply timed out, and one sent after an e-stop put meanwhile took the device out of it.
+    Sent once, the timeout is the operator's answer."""
+
+    async def timed_out(timeout: float | None = None) -> dict:
+        asked.append("enable")
+        raise bc.error_for("device_timeout")("no reply from la1")
+
+    async def device(name: str) -> SimpleNamespace:
+        return SimpleNamespace(enable=timed_out)
+
+    asked: list[str] = []
+    actions = server.ClientActions(SimpleNamespace(device=device))  # type: ignore[arg-type]
+    with pytest.raises(bc.error_for("device_timeout")):
+        asyncio.run(actions.enable("demo/la1"))
+    assert asked == ["enable"]
 
 
 def test_a_name_given_with_allow_host_is_answered_and_acted_for() -> None:
