@@ -4,6 +4,7 @@ online/offline events once each, keep-alive, follow stream, safe stop and idempo
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
@@ -13,7 +14,7 @@ import pytest
 from busgate.codecs import zlac706_can as can_codec
 from busgate.codecs import zlac706_rs232 as rs_codec
 from busgate.codecs.can_frame import CanFrame
-from busgate.errors import CommandError, DeviceRefusedError
+from busgate.errors import CommandError, DeviceRefusedError, RefusedError
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.request import Request
 from busgate.gateway.bus.serial_owner import SerialBusOwner
@@ -28,6 +29,10 @@ from busgate.gateway.scheduler.planner import Job
 from busgate.gateway.sim import zlac706 as sim
 from busgate.gateway.sim.can_server import CanSimulator
 from busgate.gateway.sim.serial_server import SerialSimulator
+from busgate.schemas import zlac706 as zlac_schema
+from busgate.schemas.joints import Joint, JointTable
+
+TURN = 2 * math.pi
 
 MANUAL_MONITOR = "80000181 e1001cfd e20011f3 e4010ef3 e60000e6 e727101e e80000e8 e9271020"
 
@@ -84,7 +89,8 @@ def event_types(driver) -> list[str]:
 def test_settings_fields_are_the_tracked_roles() -> None:
     untracked = {Role.ONE_SHOT, Role.ALARM_RESET, Role.SETTING}
     tracked = {r.value for r in Role if r not in untracked}
-    assert set(Settings.__dataclass_fields__) == tracked | {"run_signal"}  # the enable's too
+    # the enable's run signal too, and where the position targets send the shaft
+    assert set(Settings.__dataclass_fields__) == tracked | {"run_signal", "place"}
 
 
 # --- CAN: frames and order -----------------------------------------------------------------------
@@ -338,6 +344,31 @@ def position_driver(driver, *commands: str):
     for command in ('{"op":"set_mode","mode":"position"}', *commands):
         run(driver, plan(driver, command))
     return driver
+
+
+def test_relative_steps_are_judged_from_where_the_steps_before_send_the_shaft() -> None:
+    """An audit: two steps of 6000 pulses sent back to back, each judged from the position
+    measured (the shaft had not moved yet), were both within a joint's max of 10000; the
+    drive adds each to its last target and stopped at 12000. Judged from where the steps
+    before send the shaft as well, the second is refused."""
+    joint = Joint.of("wheel", zlac_schema.JOINT, JointTable(
+        unit="rad", scale=TURN / 10_000, type="position", min=-TURN, max=TURN))
+    d = Zlac706CanDriver("wheel", 1, joint=joint)
+    d = position_driver(d, '{"op":"disable"}', '{"op":"set_position_mode","relative":true}',
+                        '{"op":"enable"}')  # enabled from off: its zero, and its target, here
+    d.take_position(0)
+    plan(d, '{"op":"move","position":6000}')  # queued, not yet answered
+    steps = d.setpoints(d.frames_of(d.parse('{"op":"move","position":6000}')))
+    assert sorted(s.value for s in steps if s.quantity == "position") == [6000, 12_000]
+    with pytest.raises(RefusedError, match="max"):  # as the bus judges each (``check_limits``)
+        for step in steps:
+            joint.check(step.quantity, step.value)
+    d.take_position(5000)  # on its way: from the place it goes to, and from where it is
+    steps = d.setpoints(d.frames_of(d.parse('{"op":"move","position":-2000}')))
+    assert sorted(s.value for s in steps if s.quantity == "position") == [3000, 4000]
+    d.missed(1.0, plan(d, '{"op":"move","position":100}')[0].frame)  # landed, or not
+    steps = d.setpoints(d.frames_of(d.parse('{"op":"move","position":100}')))
+    assert [s.value for s in steps if s.quantity == "position"] == [5100]  # the place not known
 
 
 def test_follow_takes_positions_in_absolute_position_mode_once_enabled() -> None:

@@ -172,8 +172,9 @@ class Zlac706Driver(Driver):
 
     def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
         """The position (pulses), speed (rpm) and torque (A) targets ``frames`` write. A
-        relative position is judged from the position measured last, and is ``None`` when no
-        position was measured or the position mode is not known; a position's high half
+        relative position is judged from the drive's last target and from the position
+        measured last (``_places``), and is ``None`` when neither is known or the position
+        mode is not; a position's high half
         (RS232) sets nothing until the low half joins it."""
         return [
             Setpoint(self.device_id, *target)
@@ -196,7 +197,8 @@ class Zlac706Driver(Driver):
         elif role is Role.ONE_SHOT:
             yield "position", None
         elif role is Role.POSITION:
-            yield "position", self._place(value, settings)
+            for place in self._places(value, settings):
+                yield "position", place
             yield "velocity", _rpm(settings.max_speed_raw)
         if role in (Role.SPEED, Role.TORQUE) and value:
             yield "position", None  # it turns on, to wherever it is stopped
@@ -211,14 +213,19 @@ class Zlac706Driver(Driver):
             'is; send {"op":"set_position_mode","relative":false} first'
         )
 
-    def _place(self, value: int | None, settings: Settings) -> float | None:
-        """Where a position target of ``value`` sends the shaft: a relative one is judged
-        from the position measured last, ``None`` when none was or the mode is not known."""
+    def _places(self, value: int | None, settings: Settings) -> list[float | None]:
+        """Where a position target of ``value`` may send the shaft, each judged against the
+        joint's limits: an absolute one to itself; a relative one a step from the drive's
+        last target (``Settings.place``: an audit's two steps back to back, each judged from
+        the position measured, went past ``max``) and from the position measured last (the
+        one base known before a first target): ``[None]`` when neither is known, or the mode
+        is not."""
         if settings.relative is False:
-            return value
-        here = self.measured["position"]
-        known = settings.relative is True and here is not None and value is not None
-        return here + value if known else None
+            return [value]
+        if settings.relative is None or value is None:
+            return [None]
+        bases = {base for base in (settings.place, self.measured["position"]) if base is not None}
+        return [base + value for base in sorted(bases)] or [None]
 
     def _request(self, frame: object, role: Role | None, settings: Settings) -> Request:
         return Request.of(self.codec, frame, idempotent=is_idempotent(role, settings))
@@ -421,7 +428,7 @@ class Zlac706Driver(Driver):
             starts = role is Role.ENABLE and value and settings.enabled is not True
             if starts and settings.mode is Mode.POSITION:
                 zero = 0 if settings.enabled is False else None  # None: the next reading tells
-                change["target_position"] = zero
+                change["target_position"] = change["place"] = zero
                 self.measured["position"] = zero
             self.machine.acknowledged(change)
         if role in (Role.SPEED, Role.TORQUE):  # a fresh target: no old one left to clear
@@ -498,6 +505,9 @@ class Zlac706Driver(Driver):
         # and the power stage it switched is not known (an enable from there may or may not
         # move position mode's zero).
         self.machine.forget_pending()
-        if frame is not None and self._role(frame, self.machine.settings)[0] is Role.ENABLE:
+        role = None if frame is None else self._role(frame, self.machine.settings)[0]
+        if role is Role.ENABLE:
             self.machine.settings = replace(self.machine.settings, enabled=None, run_signal=None)
+        elif role is Role.POSITION:  # it may have moved the drive's target, by a step
+            self.machine.settings = replace(self.machine.settings, place=None)
         super().missed(now, frame)

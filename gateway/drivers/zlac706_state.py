@@ -102,6 +102,11 @@ class Settings:
     position_ramp: int | None = None
     speed_ramp: int | None = None
     max_speed_raw: int | None = None
+    #: Where the position targets written so far send the shaft (``None``: not known): the
+    #: last absolute target, or the drive's last target with each relative step since added
+    #: to it (the drive adds a step to its last target, not to where the shaft has got: two
+    #: steps sent back to back go twice as far), from the zero a position mode's enable sets.
+    place: int | None = None
     #: The enable the gateway last wrote and the drive took: the manual's run signal, by
     #: which an alarm reset is judged (rule 6). ``enabled`` is whether the motor runs, which
     #: on RS232 the monitor's running bit tells: a fault clears it while the signal stays on.
@@ -112,9 +117,15 @@ class Settings:
         if role is Role.ENABLE:
             return {"enabled": value, "run_signal": value}
         if role is Role.POSITION and self.relative is not False:
-            # A step from where the shaft is, not a place: where it ends is not known here (a
-            # stream or a trajectory that took it for a place would start from it).
-            return {"target_position": None}
+            # A step, not a place a client may take for its target (a stream or a trajectory
+            # that took it for one would start from it); where it sends the shaft is known
+            # only from a known place and a known relative mode.
+            known = self.relative is True and self.place is not None and value is not None
+            return {"target_position": None, "place": self.place + value if known else None}
+        if role is Role.POSITION:
+            return {"target_position": value, "place": value}
+        if role is Role.ONE_SHOT:  # an origin search: a new zero, and no place known
+            return {"place": None}
         return {} if role in _UNTRACKED else {role.value: value}
 
 
