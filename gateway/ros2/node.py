@@ -20,7 +20,10 @@ Rules of this file:
    and is dropped (the e-stop's excepted, as a put on ``**`` stops on the zenoh API).
 3. A subscription's samples wait for a thread of their own in an ``Intake`` (``bridge``
    rule 6: a flood of commands never holds zenoh's receiving threads, and with them an
-   e-stop), which ``take_waiting`` empties for an e-stop; each is handled with the count of
+   e-stop), which ``take_waiting`` empties for an e-stop. Its ring is sized for the largest
+   sample the session takes (``MAX_RECEIVED``), not the largest the topic keeps: a sample's
+   size is read only once its thread takes it, so a ring of a topic of small messages held
+   a peer's 2 MiB samples by the hundred (an audit). Each is handled with the count of
    e-stops it was taken under (``intake`` rule 5). A service's handler runs on zenoh's
    receiving thread itself: the services are the e-stop and its reset, which must wait
    behind nothing, and keep the order a client called them in. Handlers are given decoded
@@ -49,6 +52,7 @@ from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
 from busgate.gateway.api.intake import Intake, backlog_for, take_puts
 from busgate.schemas.validation import shown
+from busgate.schemas.zenoh_session import MAX_RECEIVED
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +169,7 @@ class Ros2Node:
         """Each ``type_name`` message on ``topic``'s own key, of at most ``max_bytes`` and with
         no sequence longer than ``max_count``, decoded for ``handler``; anything else dropped
         (counted) before it is decoded, or as soon as a count is read. A message waits for its
-        thread among at most ``backlog_for(max_bytes)`` (rule 3); ``newest_only``: a message
+        thread among at most ``backlog_for(MAX_RECEIVED)`` (rule 3); ``newest_only``: a message
         that comes while one waits takes its place, undecoded (where the handler keeps only
         the newest anyway: a burst of large messages costs two decodings, not one each)."""
         key = self._announce(EntityKind.SUBSCRIPTION, topic, type_name, qos)
@@ -190,7 +194,7 @@ class Ros2Node:
             handler(message)
 
         thread = f"ros2 {shown(topic)}"
-        backlog = 1 if newest_only else backlog_for(max_bytes)
+        backlog = 1 if newest_only else backlog_for(MAX_RECEIVED)
         self._intakes.append(take_puts(self.session, key, received, thread, backlog, self._estops))
 
     def service(
