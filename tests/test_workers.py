@@ -443,6 +443,41 @@ def test_a_worker_stalled_briefly_carries_out_no_follow_target_that_went_stale_m
     assert all(t == {1: 500} for t in ticks), ticks  # a tick built before the stop may go
     assert victim in served.workers.values()  # never killed: a worker that went on
 
+
+def test_a_command_that_waited_for_a_stalled_worker_past_its_deadline_is_busy_never_sent(
+    served: Served, client
+) -> None:
+    """A worker stopped (SIGSTOP) with a move in its socket for longer than a command may
+    wait to start (2 s), and less than it takes to be killed: once it goes on, the move is
+    judged by when the gateway took it, as in one process, so it is dropped and answered
+    ``busy``, never sent (judged by when the worker read it, it went out 2.5 s late,
+    answered ok)."""
+    bus = "uart2"
+    device = DEVICES[bus]
+    victim = served.worker_of(bus)
+    assert client.device(device).move(400)["ok"]
+    mark = served.marks()[bus]
+    moving: Future = Future()
+
+    def move() -> None:
+        try:
+            moving.set_result(client.device(device).move(1600))
+        except BaseException as exc:
+            moving.set_exception(exc)
+
+    os.kill(victim, signal.SIGSTOP)
+    try:
+        threading.Thread(target=move, daemon=True).start()
+        time.sleep(2.5)  # past the 2 s a command may wait, short of the 4 s that kills it
+    finally:
+        os.kill(victim, signal.SIGCONT)
+    with pytest.raises(bc.BusyError):
+        moving.result(timeout=5)
+    time.sleep(0.1)
+    assert [f for _, f in served.frames(bus, mark) if isinstance(f, la.MoveCommand)] == []
+    assert victim in served.workers.values()  # never killed: a worker that went on
+
+
 # -- the link itself: no process ----------------------------------------------------------------
 
 
@@ -656,15 +691,76 @@ def test_a_worker_lets_its_estops_go_once_every_bus_has_one(monkeypatch) -> None
     for name, runner in worker.runners.items():
         monkeypatch.setattr(runner, "estop_sent", lambda timeout, name=name: waited.append(name))
     try:
-        worker._carry_out(("call", 1, "uart0", "estop", (), {}))
+        worker._carry_out_all([("call", 1, "uart0", "estop", (), {})])
         assert waited == []
-        worker._carry_out(("call", 2, "uart1", "estop", (), {}))
+        worker._carry_out_all([("call", 2, "uart1", "estop", (), {})])
         assert sorted(waited) == ["uart0", "uart1"]
-        worker._carry_out(("call", 3, "uart0", "estop", (), {}))  # the next e-stop's first
+        worker._carry_out_all([("call", 3, "uart0", "estop", (), {})])  # the next e-stop's first
         assert len(waited) == 2
+        waited.clear()  # read together (rule 9): handed together, then waited for, once each
+        together = [("call", 4, "uart1", "estop", (), {}), ("call", 5, "uart0", "estop", (), {})]
+        worker._carry_out_all(together)
+        assert sorted(waited) == ["uart0", "uart1"]
     finally:
         theirs.close()
         ours.close()
+
+
+def test_an_estop_read_with_a_move_sent_before_it_takes_the_move_out_in_one_turn(
+    monkeypatch,
+) -> None:
+    """A move and then an e-stop waiting together in a worker's socket (sent while it was
+    stalled) reach the bus thread in one turn (``worker`` rule 9): the e-stop takes the move
+    out, answered ``estopped``, and no move reaches the wire (handed one at a time, the bus
+    thread woken by the move sent it before the reader read the e-stop, and it was answered
+    ok). The bus thread's turns are taken here, one each time it is woken: which goes first
+    is the worker's doing, not the scheduler's."""
+    with SerialSimulator(la, [InspireLaDevice(1)], baudrate=921_600) as simulator:
+        config = parse_config({
+            "gateway": {"name": "gw1", "workers": 2},
+            "buses": [{"name": "uart0", "transport": "serial", "port": simulator.port,
+                       "baudrate": 921_600,
+                       "devices": [{"name": "la0", "kind": "inspire_la", "id": 1}]}],
+        })  # fmt: skip
+        ours, theirs = link.pair()
+        worker = Worker(link.Reader(theirs), config, ["uart0"])
+        said: list[tuple] = []
+        monkeypatch.setattr(worker.outbox, "put", lambda message, **_: said.append(message))
+        runner = worker.runners["uart0"]
+        monkeypatch.setattr(runner, "start", lambda: runner)  # its turns are the test's
+        woken = runner._wake.set
+
+        def turn() -> None:  # the bus thread's, as soon as it is woken
+            woken()
+            runner._drain_inbox()
+            until = now() + 0.15
+            while now() < until:
+                runner._step()
+
+        monkeypatch.setattr(runner._wake, "set", turn)
+        sigterm = signal.getsignal(signal.SIGTERM)
+        move = runner.drivers["la0"].parse('{"op":"move","position":1600}')
+        for message in [
+            ("call", 1, "uart0", "submit", ("la0", move, None), {}),
+            ("call", 2, "uart0", "estop", (), {}),
+            ("stop",),
+        ]:
+            link.write(ours, pickle.dumps(message))
+        try:
+            assert runner._ensure_open()
+            mark = len(simulator.recorder.received())
+            worker.run([])
+        finally:
+            gc.unfreeze()  # this test process's objects back in its collections
+            signal.signal(signal.SIGTERM, sigterm)  # a worker's run ignores it once stopping
+            theirs.close()
+            ours.close()
+        frames = [f for _, f in received(simulator, mark, la)]
+    results = {m[1]: m[2:] for m in said if m[0] == "result"}
+    assert results[1][0] is False and results[1][1][1] == "estopped", results
+    assert results[2][0] is True, results
+    assert not [f for f in frames if isinstance(f, la.MoveCommand)], frames
+    assert [f for f in frames if isinstance(f, la.ControlCommand)], frames  # the e-stop's
 
 
 def test_a_worker_freezes_what_its_start_up_made_out_of_the_garbage_collector(
@@ -1120,7 +1216,7 @@ def test_a_shadow_judges_a_speed_target_by_the_mode_its_worker_said(lone_worker_
     assert refused is not None and "its mode is not known" in refused["error"]["message"]
 
     answers: list[Future] = []
-    worker.call = lambda *call: answers.append(Future()) or answers[-1]  # type: ignore[method-assign]
+    worker.call = lambda *call, **kwargs: answers.append(Future()) or answers[-1]  # type: ignore[method-assign]
     answered = runner.submit("drive", "set_mode velocity, as the worker's driver planned it")
     answers[0].set_result({"ok": True, "state": {"mode": "velocity", "enabled": True}})
     assert answered.result(0)["ok"]

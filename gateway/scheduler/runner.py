@@ -36,16 +36,24 @@ Rules of this file:
    state go out through ``telemetry``.
 5. A client's command is authorised (``authority``) on the bus thread (``work``), right before
    it is planned; it must start within ``COMMAND_START_S`` of being handed over, else it is dropped
-   and answered ``busy``. A job whose future was cancelled before it started is never sent.
+   and answered ``busy``; a command or reset that crossed to a worker, within that of when the
+   gateway took it (``taken_at``, bus clock), however late the worker read it. A job whose
+   future was cancelled before it started is never sent.
+6. What one caller hands over within ``together`` reaches the bus thread at once, on its exit,
+   in order: one drain of the inbox takes it all before the thread plans or sends anything, so
+   an e-stop among it takes out what came before it as if they had come in one turn (a
+   command waiting, not a read; a reset; a stream's new target). Only one thread at a time
+   holds a bus so (a worker's reader, ``worker`` rule 9).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from typing import Any
 
@@ -162,6 +170,11 @@ class BusRunner:
         )
         self.realtime_priority = realtime_priority
         self._inbox: deque[Callable[[], None]] = deque()
+        #: What is handed over within ``together``, for the inbox on its exit (rule 6);
+        #: ``None``: nothing holds the bus, work goes to the inbox as it is handed over.
+        self._held: list[Callable[[], None]] | None = None
+        #: An e-stop is among what is held.
+        self._held_estop = False
         self._wake = Flag()
         #: An e-stop is in the inbox: it cuts even a wait's last stretch short (rule 2).
         self._estop_due = Flag()
@@ -207,10 +220,14 @@ class BusRunner:
     def statistics(self) -> BusStats:
         return self.counters.snapshot(now())
 
-    def submit(self, device: str, command: Any, client: str | None = None) -> Future:
+    def submit(
+        self, device: str, command: Any, client: str | None = None, taken_at: float | None = None
+    ) -> Future:
         """Carry out a validated command on ``device`` for ``client`` (``None``: anonymous);
-        the future gets the result dict, or the refusal."""
-        start_by = now() + COMMAND_START_S
+        the future gets the result dict, or the refusal. It starts within ``COMMAND_START_S``
+        of now, or of ``taken_at`` (bus clock) for a command that crossed to a worker, which
+        may have read it late (rule 5)."""
+        start_by = (now() if taken_at is None else taken_at) + COMMAND_START_S
         return self._hand_over(
             lambda future: self._work.plan_command(device, command, client, start_by, future)
         )
@@ -225,8 +242,7 @@ class BusRunner:
     def stop_stream(self, device: str, reason: str) -> None:
         """End ``device``'s follow stream now (its client went away, or ended it), as if it
         went stale, but reported ``stream_stopped`` with ``reason``."""
-        self._inbox.append(lambda: self.streams.end(device, reason))
-        self._wake.set()
+        self._put(lambda: self.streams.end(device, reason))
 
     def estop(self) -> Future:
         """Put every device of the bus in its safe state, ahead of everything else."""
@@ -240,11 +256,17 @@ class BusRunner:
         meanwhile, to the bus thread."""
         return self._estop_sent.wait(timeout)
 
-    def reset_estop(self, device: str | None = None, skip: frozenset[str] = frozenset()) -> Future:
+    def reset_estop(
+        self,
+        device: str | None = None,
+        skip: frozenset[str] = frozenset(),
+        taken_at: float | None = None,
+    ) -> Future:
         """``device`` (``None``: every device of the bus but those of ``skip``) out of the
         gateway's e-stop, each in the power state it had before and holding still
-        (``Driver.reset_estop``)."""
-        start_by = now() + COMMAND_START_S
+        (``Driver.reset_estop``); by ``COMMAND_START_S`` after now, or ``taken_at``, as
+        ``submit``."""
+        start_by = (now() if taken_at is None else taken_at) + COMMAND_START_S
         return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future, skip))
 
     def follow(
@@ -256,10 +278,11 @@ class BusRunner:
         gateway took it (``tickers`` rule 2): now, or ``taken_at`` (bus clock) for a target
         that crossed to a worker, which may have read it late."""
         moment = now() if taken_at is None else taken_at
-        if self.streams.store_latest(device, target, moment, follows):
+        # Held (rule 6), it waits its turn with the rest: an e-stop after it ends its stream
+        # before its tick, where stored now, a tick might send it before the e-stop came.
+        if self._held is None and self.streams.store_latest(device, target, moment, follows):
             return
-        self._inbox.append(lambda: self._work.start_stream(device, target, moment, follows))
-        self._wake.set()
+        self._put(lambda: self._work.start_stream(device, target, moment, follows))
 
     def ramp(self, device: str, target: Any, follows: Follows) -> None:
         """Bring ``device`` to ``target`` (a follow target, judged while it ``follows`` that)
@@ -268,20 +291,17 @@ class BusRunner:
         never lands on a ramp that has just ended (a ROS command is sent once and must not be
         lost)."""
         moment = now()
-        self._inbox.append(
+        self._put(
             lambda: self._work.start_stream(device, target, moment, follows, ends_on_target=True)
         )
-        self._wake.set()
 
     def play(self, samplers: dict[str, Sampler], start: float) -> None:
         """Play each device's trajectory sampler on the grid from ``start`` (bus clock)."""
-        self._inbox.append(lambda: self.plays.start(samplers, start))
-        self._wake.set()
+        self._put(lambda: self.plays.start(samplers, start))
 
     def stop_playing(self, device: str, *, speed: bool) -> None:
         """``device`` leaves its trajectory: it holds, or (``speed``) ramps to 0 rpm."""
-        self._inbox.append(lambda: self.plays.stop(device, speed=speed))
-        self._wake.set()
+        self._put(lambda: self.plays.stop(device, speed=speed))
 
     def stop(self, timeout: float = 1.0) -> None:
         """Stop the streams, put the devices in their safe state, close the bus; a thread
@@ -300,12 +320,35 @@ class BusRunner:
                 )
         self.owner.close()
 
-    def _hand_over(self, action: Callable[[Future], None], *, estop: bool = False) -> Future:
-        future: Future = Future()
-        self._inbox.append(lambda: action(future))
+    @contextlib.contextmanager
+    def together(self) -> Iterator[None]:
+        """What is handed over within reaches the bus thread at once, on exit, in order
+        (rule 6)."""
+        self._held, self._held_estop = [], False
+        try:
+            yield
+        finally:
+            held, self._held = self._held, None
+            self._inbox.extend(held)  # one step: the bus thread drains none of it before all
+            if self._held_estop:  # after the extend, as ``_hand_over``'s
+                self._estop_due.set()
+            self._wake.set()
+
+    def _put(self, action: Callable[[], None], *, estop: bool = False) -> None:
+        """``action`` for the bus thread: to its inbox, or held for it (rule 6)."""
+        held = self._held
+        if held is not None:
+            held.append(action)
+            self._held_estop |= estop
+            return
+        self._inbox.append(action)
         if estop:  # after the append: when the flag is seen, its e-stop is in the inbox (it
             self._estop_due.set()  # may outlive it by a drain: one wait decided again)
         self._wake.set()
+
+    def _hand_over(self, action: Callable[[Future], None], *, estop: bool = False) -> Future:
+        future: Future = Future()
+        self._put(lambda: action(future), estop=estop)
         return future
 
     # -- bus thread: the loop ---------------------------------------------------------------

@@ -11,7 +11,9 @@ them. Rules of this file:
 1. The daemon's calls are carried out on the runner by the name the link allows
    (``worker_link.CALLS``, ``CLAIM_OPS``), in the order they came; a call's future answers it,
    and a call withdrawn (``withdraw``: cancelled in the daemon) cancels its future here, so
-   that a job that has not started never does.
+   that a job that has not started never does. A command and a reset carry the time the
+   daemon took them (``taken_at``), by which their bus judges their start deadline
+   (``runner`` rule 5): one read late (the worker stalled) is answered ``busy``, never sent.
 2. States, events and (with a flight recorder) frames go to the outbox as the bus threads make
    them; each bus's ``PlaysView`` and device ids when they changed (looked at when a bus
    thread published a new view or a call was answered, a ``MIRROR_S`` apart at most often),
@@ -50,6 +52,20 @@ them. Rules of this file:
    whose daemon is gone (killed: its death signal is a SIGTERM, which a hung interpreter
    never acts on), so that it does not hold its ports for ever. A stopped worker (SIGSTOP)
    takes no signal but SIGKILL: it ends once continued.
+9. The reader takes every message already waiting in the socket before it acts on any (those
+   sent while it was stalled, stopped or behind: a datagram that came after it looked is
+   read next time), and each bus given an e-stop among them is handed its messages together
+   (``runner.together``, ``runner`` rule 6): its bus thread takes the e-stop in the same turn
+   as the calls that came before it, which it takes out as in one process (a command waiting
+   is answered ``estopped``, not a read; a reset; a stream's target), so that nothing the
+   daemon sent before an e-stop goes to the wire after the e-stop reached the worker. Handed
+   one at a time, a move read just before the e-stop could go out while the reader read on
+   (a stalled worker's move went ahead of its e-stop frames, answered ok). Chosen over each
+   call carrying the daemon's count of e-stops: that count helps only once the e-stop has
+   been read, and the move was sent before. Reordering (the e-stop before what came before
+   it) would carry out a reset sent before the e-stop after it. What the reader took before
+   the e-stop was in the socket reached its bus before it, as a command handed to a bus
+   thread in one process before the e-stop.
 """
 
 from __future__ import annotations
@@ -146,13 +162,11 @@ class Worker:
             mirror.start()
             gc.freeze()  # rule 7
             while (received := self.reader.receive()) is not None:
-                for message in link.unbatched(received):
-                    try:
-                        if message[0] == "stop":
-                            return
-                        self._carry_out(message)
-                    except Exception:  # rule 4
-                        log.exception("worker: a message could not be carried out")
+                messages = list(link.unbatched(received))
+                for waiting in self.reader.waiting():  # rule 9
+                    messages.extend(link.unbatched(waiting))
+                if self._carry_out_all(messages):
+                    return
         finally:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # stopping already (rule 3)
             done.set()
@@ -168,6 +182,26 @@ class Worker:
         with contextlib.suppress(OSError):
             self.reader.sock.shutdown(socket.SHUT_RD)
 
+    def _carry_out_all(self, messages: list[tuple]) -> bool:
+        """``messages`` (read together) carried out in order, those of each bus given an
+        e-stop among them handed to it together (rule 9); whether ``stop`` came."""
+        estopped = [m[2] for m in messages if _estop_of(m) in self.runners]
+        try:
+            with contextlib.ExitStack() as holding:
+                for bus in dict.fromkeys(estopped):
+                    holding.enter_context(self.runners[bus].together())
+                for message in messages:
+                    try:
+                        if message[0] == "stop":
+                            return True
+                        self._carry_out(message)
+                    except Exception:  # rule 4
+                        log.exception("worker: a message could not be carried out")
+        finally:  # handed over now (rule 6)
+            for bus in estopped:
+                self._handed_estop(bus)
+        return False
+
     def _carry_out(self, message: tuple) -> None:
         kind = message[0]
         if kind == "call" and message[3] in link.CALLS and message[2] in self.runners:
@@ -181,8 +215,6 @@ class Worker:
             if call_id is not None and isinstance(result, Future):
                 self._calls[call_id] = result
                 result.add_done_callback(partial(self._answer, call_id))
-            if method == "estop":
-                self._handed_estop(bus)
         elif kind == "withdraw":
             withdrawn = self._calls.get(message[1])
             if withdrawn is not None:
@@ -260,6 +292,20 @@ class Worker:
             )
             for name, runner in self.runners.items()
         }
+
+
+def _estop_of(message: tuple) -> str | None:
+    """The bus ``message`` e-stops, if it is an e-stop (rule 9); checked as ``_carry_out``
+    checks, so that a malformed message is that one's failure (rule 4), not the batch's."""
+    if (
+        isinstance(message, tuple)
+        and len(message) == 6
+        and message[:1] == ("call",)
+        and message[3] == "estop"
+    ):
+        bus = message[2]
+        return bus if isinstance(bus, str) else None
+    return None
 
 
 def _die_with_the_daemon() -> None:

@@ -11,7 +11,10 @@ Rules of this file:
    moves or sets anything goes to the worker, in the order it was made, but that a device's
    follow or ramp target still waiting for the socket is replaced by its next one
    (``link.Outbox``). A follow target goes with the time it was taken here, by which the
-   worker's stream judges it fresh (``BusRunner.follow``), not the time it came.
+   worker's stream judges it fresh (``BusRunner.follow``), not the time it came; so do a
+   command and a reset, by which the worker judges their start deadline (``runner`` rule 5:
+   one that waited for a stalled worker past it is answered ``busy``, never sent late). A
+   play goes with its start, a scan with its deadline, both on the bus clock already.
 2. Claims are taken and released here, in the one table per bus the API judges by, and each
    change goes to the worker before any later call (its bus thread judges by the same); a new
    worker is given the table as it stands, and e-stops the buses whose devices were e-stopped
@@ -385,7 +388,7 @@ class WorkerProcess:
 
     # -- calls ----------------------------------------------------------------------------------
 
-    def call(self, bus: str, method: str, *args: Any) -> Future:
+    def call(self, bus: str, method: str, *args: Any, **kwargs: Any) -> Future:
         """``method`` of ``bus``'s runner in the worker; its future, settled by the answer."""
         future: Future = Future()
         with self._lock:  # registered before its answer can be read
@@ -400,7 +403,7 @@ class WorkerProcess:
                 estop_calls = self._estop_calls.get(bus, 0)
                 future.add_done_callback(partial(self._reset_done, bus, estop_calls))
             call_id = next(self._ids)
-            outbox.put_now(("call", call_id, bus, method, args, {}))  # refused here, if so
+            outbox.put_now(("call", call_id, bus, method, args, kwargs))  # refused here, if so
             self._pending[call_id] = future
         future.add_done_callback(partial(self._withdraw_if_cancelled, call_id))
         return future
@@ -666,7 +669,9 @@ class WorkerRunner:
         """The worker's answer, whose state the shadow's driver takes first (``mirror``): a
         client told ``set_mode`` is done may stream at once, before the state's own message
         has crossed."""
-        answer = self.worker.call(self.name, "submit", device, command, client)
+        # Taken now: its start deadline is judged by that in the worker (rule 1), as in one
+        # process, not by when a stalled worker read it (the bus clock is CLOCK_MONOTONIC).
+        answer = self.worker.call(self.name, "submit", device, command, client, taken_at=now())
         answer.add_done_callback(partial(self._mirror_reply, device))
         return answer
 
@@ -688,9 +693,10 @@ class WorkerRunner:
         return True
 
     def reset_estop(self, device: str | None = None, skip: frozenset[str] = frozenset()) -> Future:
+        taken_at = now()  # its start deadline's, as a command's (rule 1)
         if skip:  # not the whole bus: a new worker still e-stops it (rule 2)
-            return self.worker.call(self.name, "reset_estop", device, skip)
-        return self.worker.call(self.name, "reset_estop", device)
+            return self.worker.call(self.name, "reset_estop", device, skip, taken_at=taken_at)
+        return self.worker.call(self.name, "reset_estop", device, taken_at=taken_at)
 
     def stop_stream(self, device: str, reason: str) -> None:
         self.worker.tell(self.name, "stop_stream", device, reason)
