@@ -423,6 +423,47 @@ def test_a_full_disk_under_a_flood_never_holds_the_recordings_end(monkeypatch) -
     assert recording.failure is not None and recording.failure.errno == errno.ENOSPC
 
 
+def test_a_chunk_the_disk_refuses_is_counted_though_the_file_buffers_it() -> None:
+    """An audit: a compressed chunk (some 6 KB) fit in a buffered file's 8 KiB, was taken for
+    written, and the disk's refusal came a chunk later; the messages of the chunk it lost
+    were never counted. Flushed with each chunk, the refusal comes with it: every message
+    added is in ``unwritten``, or is the one ``add`` raised for."""
+    log = mcap_log.McapLog(io.BufferedWriter(FullDisk()), "busgate")
+    state = b'{"faults": ["' + b"x" * 1000 + b'"]}'  # a chunk of 60 of them: 2 KB compressed
+    added = 0
+    with pytest.raises(OSError):
+        for n in range(100_000):
+            added += 1
+            log.add("busgate/gw/dev/la1/state", state, n)
+    assert log.unwritten + 1 == added > 1  # as ``Recording`` counts them: all
+
+
+def test_the_queue_holds_a_bounded_number_of_bytes_whatever_the_messages_sizes(
+        monkeypatch) -> None:
+    """An audit: a peer's 30 MiB ``joints`` messages, within what a gateway may publish on
+    that key, filled a queue of 100,000 messages to gigabytes while the disk wrote a few.
+    Past ``QUEUE_MAX_BYTES`` waiting, a message is dropped and counted; once written, its
+    room is taken again."""
+    monkeypatch.setattr(record_command, "QUEUE_MAX_BYTES", 3 * 1024)
+    started, writing = threading.Event(), threading.Event()
+    recording = record_command.Recording(io.BytesIO(), "busgate")
+    monkeypatch.setattr(recording._log, "add",  # a slow disk
+                        lambda *_: started.set() or writing.wait(TIMEOUT_S))
+    recording.take("busgate/demo/joints", b"x" * 1024, 0)
+    assert started.wait(TIMEOUT_S)  # the writer holds it: three of 1 KiB may wait behind it
+    for n in range(1, 10):
+        recording.take("busgate/demo/joints", b"x" * 1024, n)
+    assert recording.dropped == 6
+    writing.set()
+    deadline = time.monotonic() + TIMEOUT_S
+    while recording._queued_bytes:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    recording.take("busgate/demo/joints", b"x" * 1024, 11)
+    assert recording.dropped == 6
+    recording.close()
+
+
 # -- a hostile file -----------------------------------------------------------------------------
 
 

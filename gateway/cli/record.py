@@ -5,8 +5,9 @@ the client commands' options.
 Rules of this file:
 
 1. Recording never blocks zenoh's threads: a sample is put in a bounded queue and written by
-   one writer thread. When the queue is full (a disk slower than the fleet) the sample is
-   dropped and counted; the progress line and the last line say how many. A sample larger
+   one writer thread. When the queue is full (``QUEUE_MAX`` samples or ``QUEUE_MAX_BYTES``:
+   a disk slower than the fleet, or a peer's large messages) the sample is dropped and
+   counted; the progress line and the last line say how many. A sample larger
    than any a gateway publishes on its key (``payload.largest_published``) is left out and
    counted: a queue of them would be memory without end.
 2. SIGINT, SIGTERM or ``--seconds`` end a recording the same way: the subscriptions end, the
@@ -64,6 +65,9 @@ from busgate.schemas.validation import printable
 from busgate.schemas.zenoh_session import LIVE_WAIT_S
 
 QUEUE_MAX = 100_000
+#: The most the queue holds in bytes (rule 1): 100,000 of the fleet's states are some 40 MB,
+#: where a peer's 30 MiB ``joints`` messages held gigabytes (an audit).
+QUEUE_MAX_BYTES = 64 * 1024 * 1024
 PROGRESS_EVERY_S = 1.0
 MIN_SPEED = 0.01
 MAX_SPEED = 1000.0
@@ -211,6 +215,8 @@ class Recording:
         self._stream = stream
         self._log = mcap_log.McapLog(stream, prefix)
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
+        self._queued_bytes = 0  # of the payloads in the queue (rule 1)
+        self._queued_lock = threading.Lock()
         self._stop = threading.Event()
         self.dropped = 0
         #: Messages taken but never written: those of the chunk the disk refused, and those
@@ -223,17 +229,25 @@ class Recording:
         self._writer.start()
 
     def take(self, key: str, payload: bytes, ns: int) -> None:
-        if len(payload) > largest_published(key):  # no gateway's: a queue of them is memory
+        size = len(payload)
+        if size > largest_published(key):  # no gateway's: a queue of them is memory
             self.too_large += 1  # without end
             return
-        try:
-            self._queue.put_nowait((key, payload, ns))
-        except queue.Full:
-            self.dropped += 1
+        with self._queued_lock:
+            try:
+                if self._queued_bytes + size > QUEUE_MAX_BYTES:
+                    raise queue.Full
+                self._queue.put_nowait((key, payload, ns))
+            except queue.Full:
+                self.dropped += 1
+                return
+            self._queued_bytes += size
 
     def _write(self) -> None:
         # Past a failure the queue is still emptied, up to close's None: a put never waits.
         while (item := self._queue.get()) is not None:
+            with self._queued_lock:
+                self._queued_bytes -= len(item[1])
             if self.failure is not None:
                 self.unwritten += 1
                 continue

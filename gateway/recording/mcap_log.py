@@ -29,8 +29,11 @@ Rules of this file:
 6. A file holds at most ``MAX_CHANNELS`` keys (a channel's id is 16 bits): a message on a
    key past them is left out and counted (``past_channels``), so that the file stays one a
    reader can read, whatever keys the network sends.
-7. Messages go to the stream a chunk (``CHUNK_BYTES``) at a time; ``unwritten`` counts those
-   added since the stream last took one, which a refused write loses.
+7. Messages go to the stream a chunk (``CHUNK_BYTES``) at a time, and the stream is flushed
+   with each chunk; ``unwritten`` counts those added since the stream last took one, which
+   a refused write loses. Unflushed, a buffered file took a compressed chunk (some 6 KB)
+   into its 8 KiB buffer, and the disk's refusal came a chunk later: the chunk it lost went
+   uncounted (an audit).
 """
 
 from __future__ import annotations
@@ -156,7 +159,11 @@ class McapLog:
         )
         self.messages += 1
         self.bytes += len(payload)
-        self.unwritten = 0 if self._stream.tell() != position else self.unwritten + 1
+        if self._stream.tell() == position:
+            self.unwritten += 1
+            return
+        self._stream.flush()  # the chunk on the disk, or refused now (rule 7)
+        self.unwritten = 0
 
     def _schema(self, key: str, body: Any) -> int:
         name = schema_name(key, self._prefix, body)
