@@ -18,6 +18,7 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import OFFLINE_AFTER
 from busgate.gateway.drivers.families import link_timing
 from busgate.gateway.drivers.inspire_la import InspireLaDriver
+from busgate.gateway.scheduler.tickers import commanded
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas import inspire_la as schema
@@ -354,6 +355,30 @@ def test_follow_request_leaves_out_an_estopped_actuator_and_switches_a_paused_on
     assert paused.telemetry(0)["power"] == "on"
     with pytest.raises(RefusedError, match="enable"):  # code estopped
         InspireLaDriver.follow_request([(stopped, 10)])
+
+
+def test_a_stream_starts_from_the_target_last_sent_until_a_status_tells_it_again():
+    """A follow frame has no reply: the target it carried is where the next stream starts,
+    not the older one the last poll read, which would make its first tick a jump back (an
+    audit: a stream took la1 to 1560, the next one's first tick sent 1160). A status answered
+    after it says the actuator's own target, as new as any sent before it."""
+    d, other = driver(3), driver(4)
+    answer(d, d.poll()[0], status(target_raw=1160))
+    assert commanded(d, 1.0) == 1160
+    tick = InspireLaDriver.follow_request([(d, 1560)])
+    answer(d, tick, ())  # went; nobody answers it
+    assert commanded(d, 1.1) == 1560, "from the tick's target, not the poll's"
+    assert d.telemetry(1.1)["target"] == 1160, "its telemetry says what was read"
+    group = InspireLaDriver.follow_request([(other, 500), (d, 1500)])
+    answer(other, group, ())  # the broadcast frame, as each device it carried is told
+    answer(d, group, ())
+    assert (commanded(d, 1.2), commanded(other, 1.2)) == (1500, 500)
+    answer(d, plan(d, '{"op":"move","position":900,"reply":false}')[0], ())
+    assert commanded(d, 1.3) == 900
+    d.moved_by(la.GroupMoveCommand((la.Target(3, 800), la.Target(4, 700))))  # another's
+    assert commanded(d, 1.4) == 800
+    answer(d, d.poll()[0], status(target_raw=780))  # whatever it says is newer (a frame lost)
+    assert commanded(d, 1.5) == 780
 
 
 # --- end to end: the real serial bus owner against the simulated actuator -----------------------

@@ -297,6 +297,13 @@ class Driver(abc.ABC):
         and moves this device too: what it does to the state nobody's answer will tell. By
         default nothing (the device's next reading tells)."""
 
+    def sent_position_raw(self) -> float | None:
+        """The position target (raw) the device was last sent by a frame nobody answers, when
+        its telemetry's ``target`` does not say it yet (an Inspire LA's follow tick, whose
+        target the next poll tells): where a stream starts from. By default ``None``: a
+        family's telemetry says every target it sent (a DS servo's SYNC WRITE's)."""
+        return None
+
     def why_positions_are_steps(self) -> str | None:
         """Why a position target sent now would be a step from where the device is, not the
         place a joint's position names (``None``: it is a place, as every family's is but a

@@ -20,6 +20,14 @@ Rules of ``InspireLaDriver``:
 4. Faults come from status frames (polls, control and motion replies, writes answered the
    3.5.2 way); each change of the set emits one ``fault`` event naming what was raised and
    what cleared.
+5. Where the actuator is commanded is the target the last frame nobody answers carried it
+   (a follow tick, a move or a group frame without reply), from the moment it went, until a
+   status frame tells its target: a bus carries one exchange at a time and the actuator
+   takes each frame before the next, so a status answered after that frame went says its
+   target or a newer one (the same, unless the frame was lost: then the one it really has).
+   A follow frame has no reply, so its target reaches no telemetry before the next poll's;
+   a stream or a play that starts meanwhile starts from it (``sent_position_raw``), not
+   from the poll's older one, which would make its first tick a jump back.
 """
 
 from __future__ import annotations
@@ -111,6 +119,9 @@ class InspireLaDriver(Driver):
         _estop_request(device_id)  # ready before its first e-stop
         self.power = PowerStage.ON  # the actuator works from power-up (manual 3.5.4)
         self.status: codec.StatusReply | None = None
+        #: The target the last frame nobody answers gave it (a follow tick, a move or a group
+        #: frame without reply), until a status frame says its target again (rule 5).
+        self.target_sent_raw: int | None = None
         self.faults = codec.Fault(0)
         #: Raw values read or confirmed; the manual's defaults until then.
         self.table = {name: codec.REGISTERS.default(name) for name in _TRACKED.values()}
@@ -227,9 +238,14 @@ class InspireLaDriver(Driver):
         self.power = PowerStage.PAUSED  # off, and a new target switches it on
 
     def moved_by(self, frame: object) -> None:
-        """A group target switches it on, paused or off (manual 3.5.4), as its own does."""
+        """A group target switches it on, paused or off (manual 3.5.4), as its own does, and
+        is its target now, as its own is (rule 5)."""
         if self.power is not PowerStage.ESTOPPED:  # the authority let no motion reach it
             self.power = PowerStage.ON
+        self._sent(frame)
+
+    def sent_position_raw(self) -> int | None:
+        return self.target_sent_raw
 
     def follow_target(self, payload: dict[str, Any]) -> int:
         """The position of a follow payload ``{"position": 0–2000}``."""
@@ -319,6 +335,9 @@ class InspireLaDriver(Driver):
     # -- interpreting -----------------------------------------------------------------------
 
     def apply(self, request: Request, reply: tuple[object, ...], now: float) -> dict[str, Any]:
+        if request.expected is None:  # nobody answers it: that it went is all there is (rule 5)
+            self._sent(request.frame)
+            return {}
         if not reply:
             return {}  # unconfirmed: the actuator may or may not have done it
         result: dict[str, Any] = {}
@@ -328,8 +347,16 @@ class InspireLaDriver(Driver):
             self._confirm(request.frame)
         return result
 
+    def _sent(self, frame: object) -> None:
+        """``frame``, which nobody answers, went: the target it carries this actuator is the
+        one it was last sent (rule 5)."""
+        for setpoint in frame_setpoints(frame):  # type: ignore[arg-type]
+            if setpoint.device_id == self.device_id and setpoint.value is not None:
+                self.target_sent_raw = round(setpoint.value)
+
     def _take_status(self, status: codec.StatusReply) -> dict[str, Any]:
         self.status = status
+        self.target_sent_raw = None  # its target is as new as any sent before it (rule 5)
         self._measured = {key: getattr(status, field) for key, field in _STATUS_FIELDS.items()}
         if status.faults != self.faults:
             raised, cleared = status.faults & ~self.faults, self.faults & ~status.faults

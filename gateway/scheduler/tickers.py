@@ -88,10 +88,14 @@ class FollowStream:
 
 
 def commanded(driver: Driver, now: float) -> float | None:
-    """Where a stream of ``driver`` starts from: its commanded position target (else its
-    measured position), or its commanded speed (else 0), in the family's units."""
+    """Where a stream of ``driver`` starts from: its commanded position target (the one last
+    sent, when its telemetry does not say it yet; else its measured position), or its
+    commanded speed (else 0), in the family's units."""
     declaration, telemetry = driver.joint.declaration, driver.telemetry(now)
     if driver.follows == "position":
+        sent = driver.sent_position_raw()
+        if sent is not None:  # an LA's last follow tick: no telemetry says it before a poll
+            return sent
         target = telemetry.get(declaration.target)
         return target if target is not None else telemetry.get(declaration.position)
     speed = telemetry.get(declaration.target_speed_rpm or "")
