@@ -395,6 +395,39 @@ def test_a_trajectory_takes_a_device_from_its_follow_stream_without_stopping_it(
     assert not streams.store_latest("la1", 900, START, "position")  # the stream is gone for good
 
 
+def sent_tick(planner: BusPlanner, now: float) -> Slot:
+    """The follow tick due at ``now``, carried out in ``Execution``'s order: each driver it
+    carried told its frame went (no reply), its ticker, the spacing, the line."""
+    slot = planner.decide(now)
+    assert isinstance(slot, Slot) and slot.priority is Priority.FOLLOW, slot
+    for driver in slot.source.carried():
+        driver.apply(slot.request, (), now + 0.0002)
+    slot.source.sent(now)
+    planner.spacing.ticked(slot.source.carried(), slot.source, now)
+    planner.finished(slot, now + 0.0002, failed=False)
+    return slot
+
+
+def test_an_actuator_whose_stream_ended_is_held_where_its_last_tick_sent_it():
+    """An LA's follow frame has no reply: its state says the last tick's target only at the
+    next poll, so a play checked before then starts from that tick (``plays`` rule 4), not
+    from the older target its state says (an audit: a play's first tick jumped 1560→1160)."""
+    la1, la2, la3 = three_actuators()
+    planner, plays, streams = bus_of(la1, la2, la3)
+    streams.start(la1, 1560, START)
+    streams.start(la2, 700, START, ends_on_target=True)  # a ramp: it ends with its target
+    assert positions(sent_tick(planner, START)) == {1: 1560, 2: 700}
+    assert plays.held("la2") == (START, 700), "a ramp's end is held once its tick went"
+    assert plays.held("la1") is None, "streaming still"
+    streams.start(la3, 300, START + PERIOD)
+    streams.end("la1", "its client left")
+    assert plays.held("la1") == (START, 1560)
+    assert positions(sent_tick(planner, START + PERIOD)) == {3: 300}
+    assert plays.held("la3") is None
+    streams.end_all("estop")
+    assert plays.held("la3") == (START + PERIOD, 300)
+
+
 def test_a_position_device_stopped_holds_its_last_target():
     planner, plays, _ = bus_of(*three_actuators())
     plays.start({"la1": position_of(RAMP_UP), "la2": position_of(RAMP_UP)}, START)

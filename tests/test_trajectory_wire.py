@@ -465,6 +465,43 @@ def test_a_trajectory_played_right_after_another_starts_where_that_one_left(worl
             device: [1500, 3900][device == 2]}
 
 
+def test_a_play_right_after_an_actuators_follow_stream_starts_where_its_last_tick_left(
+    world, player
+):
+    """An LA's follow frame has no reply, and no poll fits between a bus's follow ticks (the
+    world's margin; la1 streams all along): its state says the target it had before the
+    stream. A play checked then starts from the stream's last tick (``plays`` rule 4), not
+    from that older target, which its first tick would jump back to (an audit: 1560, then
+    1160)."""
+    runner = world.api.devices["la3"][0]
+    before = start_values(world, ["la3"], speeds=False)[0]
+    target = 1800 if before < 1000 else 200
+    mark = len(world.la_sim.recorder.received())
+
+    def streaming(la3: bool = False) -> bool:
+        for device in ("la1", "la3") if la3 else ("la1",):
+            payload = {"position": target if device == "la3" else 1000}
+            assert world.api.follow(device, json.dumps(payload).encode()) is None
+        time.sleep(0.01)
+        return True
+
+    for _ in range(5):
+        streaming(la3=True)
+    command(world, "la3", {"op": "end_follow"})
+    wait_until(lambda: streaming() and not runner.streams.following("la3"))
+    reply = player.ask({"op": "play", "id": "after-a-stream", "devices": ["la3"],
+                        "start_at": time.time() + 0.05,
+                        "points": [{"t_s": 0.2, "positions": [1000]}]})
+    assert reply["ok"], reply
+    player.run_until(lambda: player.result("after-a-stream"))
+    start_bus = now() + (reply["trajectory"]["start_at"] - time.time())
+    found = [t for t in ticks(world.la_sim, mark) if 3 in t.values]
+    last_of_stream = [t for t in found if t.start < start_bus - 1e-4][-1]
+    first_of_play = next(t for t in found if t.start >= start_bus - 1e-4)
+    assert last_of_stream.values[3] == target
+    assert first_of_play.values == {3: target}, f"the state's target was {before}"
+
+
 # -- speeds ------------------------------------------------------------------------------------
 
 

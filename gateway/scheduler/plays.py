@@ -17,7 +17,10 @@ Rules of this file:
    every device in its safe state anyway.
 4. Once a device left, ``held`` keeps when its last tick went and what it carried: where the
    device is commanded until something newer is known of it (a trajectory that follows
-   starts there).
+   starts there). So does a device whose follow stream ended (``streams`` rule 3) when its
+   driver knows the target of that tick before its telemetry says it
+   (``Driver.sent_position_raw``: an Inspire LA's follow frame has no reply, and its state
+   tells its target at the next poll, a poll period late at most).
 5. A device whose trajectory was ended here, not by its player (its ticker left it out for
    good: it could not take its target; every device was taken out: ``end_all``; or it was
    e-stopped when the play reached its bus, after the play was checked), keeps
@@ -81,6 +84,7 @@ class Plays:
         #: The snapshot other threads read (rule 1), and what is told of each new one.
         self.view = PlaysView()
         self.on_view: Callable[[], None] = _nothing
+        streams.on_left = self._stream_left
 
     def playing(self, device: str) -> bool:
         """Any thread: ``device`` is in a trajectory (its ticks carry it)."""
@@ -153,6 +157,13 @@ class Plays:
                 if requests:
                     self.planner.push_stop(Job(name, deque(requests)))
         self._publish()
+
+    def _stream_left(self, driver: Driver, at: float) -> None:
+        """``driver``'s follow stream ended, its last tick gone at ``at`` (rule 4)."""
+        sent = driver.sent_position_raw()
+        if sent is not None and driver.name not in self._tickers:
+            self._held[driver.name] = (at, sent)
+            self._publish()
 
     def _publish(self) -> None:
         """A new snapshot for the other threads (rule 1): copies, one assignment."""

@@ -11,11 +11,16 @@ Rules of this file:
    at once (e-stop, lost bus, shutdown) are only reported: what comes next puts every device
    in its safe state anyway; so is a stream a trajectory takes over (``drop``): the
    trajectory goes on from where it left the device.
+3. A stream that ended but by ``drop`` tells ``on_left`` when its last tick went (a ramp's:
+   once the tick that sends its target went), for where the device is commanded to be held
+   until something newer is read of it (``plays`` rule 4).
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 from busgate.gateway.bus.stats import BusCounters
@@ -34,6 +39,8 @@ class FollowStreams:
         self.counters = counters
         self.drivers = drivers
         self._streams: dict[str, FollowStream] = {}
+        #: Told of a device whose stream ended, with when its last tick went (rule 3).
+        self.on_left: Callable[[Driver, float], None] = lambda driver, at: None
 
     def store_latest(self, device: str, target: Any, moment: float, follows: Follows) -> bool:
         """Any thread: the new target of ``device``'s running stream of what the target
@@ -79,6 +86,7 @@ class FollowStreams:
                 self._went_stale,
                 self._reached,
                 spacing=self.planner.spacing,
+                on_ramp_sent=lambda driver, at: self.on_left(driver, at),
             )
             self.planner.tickers.append(chosen)
         self._streams[driver.name] = chosen.update(
@@ -108,6 +116,7 @@ class FollowStreams:
                 ticker.stop(name)
                 self._streams.pop(name, None)
                 self.drivers[name].emit("stream_stopped", reason=reason)
+                self._left(self.drivers[name])
 
     def _reached(self, driver: Driver) -> None:
         """A ramp sent its target: the device keeps it; nothing to report."""
@@ -119,9 +128,17 @@ class FollowStreams:
     def _ended(self, driver: Driver, event: str, **fields: Any) -> None:
         self._streams.pop(driver.name, None)
         driver.emit(event, **fields)
+        self._left(driver)
         requests = driver.stale_stream()
         if requests:
             self.planner.push_stop(Job(driver.name, deque(requests)))
+
+    def _left(self, driver: Driver) -> None:
+        """``driver``'s stream ended after its last tick went, if one did (rule 3); not while
+        a command's follow target to it waits to go (that one will be the last)."""
+        at = self.planner.spacing.last(driver.name)
+        if at is not None and at > -math.inf:
+            self.on_left(driver, at)
 
     def _tickers(self) -> list[FollowTicker]:
         return [t for t in self.planner.tickers if isinstance(t, FollowTicker)]

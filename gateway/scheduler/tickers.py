@@ -19,7 +19,8 @@ Rules of this file:
 5. A ramp (``ends_on_target``: a one-shot speed the gateway brings a velocity joint to at its
    max_acceleration, a ROS command's position or speed) never goes stale: it ends, through
    ``on_reached``, with the tick that sends its target (held within the limits: a target
-   beyond one ends on the limit), and the device keeps it.
+   beyond one ends on the limit), and the device keeps it. Once that tick went,
+   ``on_ramp_sent`` says when (where the device is held: ``plays`` rule 4).
 6. A stream's limiter steps once per tick that goes on the wire: a tick built and then put
    off (the line taken by a command, an e-stop) is built again from where the last one sent
    left it, so no step on the wire is ever larger than the limits allow.
@@ -113,6 +114,7 @@ class FollowTicker:
         on_stale: Callable[[Driver], None],
         on_reached: Callable[[Driver], None] = lambda driver: None,
         spacing: FollowSpacing | None = None,
+        on_ramp_sent: Callable[[Driver, float], None] = lambda driver, at: None,
     ) -> None:
         self.driver_class = driver_class
         self.period_s = period_s
@@ -121,6 +123,9 @@ class FollowTicker:
         self.counters = counters
         self.on_stale = on_stale
         self.on_reached = on_reached
+        self.on_ramp_sent = on_ramp_sent
+        #: The ramps the tick built last ends (rule 5): told once it went.
+        self._ramps_ending: list[Driver] = []
         self.streams: dict[str, FollowStream] = {}
         #: Devices whose last ramp ended held back and told so (rule 4).
         self._ended_held: set[str] = set()
@@ -176,6 +181,7 @@ class FollowTicker:
         return self._due if self.streams else None
 
     def build(self, now: float) -> Request | None:
+        self._ramps_ending.clear()
         for name, stream in list(self.streams.items()):
             stale = not stream.ends_on_target and now - stream.latest[1] > self.fresh_s
             if stale or stream.limiter.follows != stream.driver.follows:  # rules 2 and 7
@@ -197,6 +203,7 @@ class FollowTicker:
                 if stream.held and stream.told_limited:  # rule 4
                     self._ended_held.add(name)
                 self.on_reached(stream.driver)
+                self._ramps_ending.append(stream.driver)
         if not targets:  # every stream held off (rule 8)
             self._due = soonest_held
             return None
@@ -211,6 +218,9 @@ class FollowTicker:
         self._continuing = True
         self._last_start = start
         self._due = start + self.period_s
+        for driver in self._ramps_ending:  # rule 5
+            self.on_ramp_sent(driver, start)
+        self._ramps_ending.clear()
 
 
 class KeepaliveTicker:

@@ -105,8 +105,9 @@ def _check_device(
 
 def _start_value(runner: BusRunner, name: str, stream: Stream) -> float:
     """Where ``name`` is commanded: its trajectory's last tick, while it plays, or once it
-    left while nothing was read from it since; else its state's commanded value, else its
-    measured value (0 when nothing is known)."""
+    left while nothing was read from it since, as its follow stream's last tick once that
+    ended when its state does not say that tick's target (``plays`` rule 4: an LA's); else
+    its state's commanded value, else its measured value (0 when nothing is known)."""
     commanded = runner.plays.commanded(name)
     if commanded is not None:
         return float(commanded[1])
