@@ -109,9 +109,9 @@ class World:
         self.runner = runner.start()
         self.api = GatewayApi("gw", {"can0": runner}, on_event=self.events.append)
         # Wired as the bridge wires them: a play and a twist chosen under one lock.
+        self.api.driven_by = lambda device: self.bases.driving_wheel(device)
         self.trajectories = Trajectories(self.api, "busgate/gw", lambda key, body: None,
-                                         self.events.append,
-                                         driven_by=lambda device: self.bases.driving_wheel(device))
+                                         self.events.append, driven_by=self.api.driven_by)
         self.bases = Bases(config.bases, self.api, self.events.append,
                            lambda name, odometry: self.odometry.append(odometry),
                            self.trajectories)
@@ -315,6 +315,14 @@ def test_a_trajectory_takes_no_wheel_of_a_driving_base(world) -> None:
                 "it is at rest")
         assert world.trajectories.playing("wl") is None
         assert world.bases.driving_wheel("wl") == "base"
+        # A stream or a ROS command to the wheel is told what drives it, not a trajectory
+        # (it was: "wl is playing a trajectory: cancel it first"; an audit)
+        follow = b'{"rpm": 10, "client": "other"}'
+        for refused in (world.api.follow("wl", follow),
+                        world.api.ramp_to("wl", {"joint_velocity": 1.0}, "ros2", 1.0)):
+            assert refused["error"]["code"] == "busy"
+            assert refused["error"]["message"].startswith(
+                "wl is a wheel of base base, which is driving it: stop the base first"), refused
         assert not any(e.type == "base_stopped" for e in list(world.events)[events:])
     finally:
         world.base({"op": "stop", "client": "drv"})

@@ -193,12 +193,13 @@ class ZenohBridge:
         self.put_reports = PutReports(
             frozenset([*api.devices, *(b.name for b in config.bases)]), self._tell_put
         )
+        api.driven_by = lambda device: self.bases.driving_wheel(device)
         self.trajectories = Trajectories(
             api,
             self.base,
             self._put_any,
             lambda event: self.events.append(event),
-            driven_by=lambda device: self.bases.driving_wheel(device),
+            driven_by=api.driven_by,
         )
         #: Trajectory commands run here, off zenoh's threads and the loop (a 1 MiB play is
         #: parsed and checked whole): plays in their lane, cancels and status in another.

@@ -167,6 +167,8 @@ class GatewayApi:
         #: targets were sent before it (rule 3).
         self._ended: dict[str, tuple[str | None, float, int | None]] = {}
         self._fence = threading.Lock()  # a target's check and hand-over vs an end (rule 3)
+        #: The base whose drive plays a device (a wheel), if one does: set by the bridge.
+        self.driven_by: Callable[[str], str | None] = lambda device: None
 
     # -- commands ---------------------------------------------------------------------------
 
@@ -293,7 +295,7 @@ class GatewayApi:
             with self._fence:
                 if self._sent_before_the_end(device, client, seq):
                     return None
-                _refuse_while_playing(runner, device, "a follow stream")
+                self._refuse_while_playing(runner, device, "a follow stream")
                 runner.authority.judge(
                     device, Effect.MOTION, client, require_claim=fields.get("require_claim") is True
                 )
@@ -308,6 +310,25 @@ class GatewayApi:
             log.exception("follow on %s failed", device)
             return error_reply(exc)
 
+    def _refuse_while_playing(self, runner: BusRunner, device: str, what: str) -> None:
+        """``busy`` while a base drives ``device`` (a wheel), from its twist taken on, or
+        while it plays a trajectory: ``what`` would fight it over its target. Each named as
+        what it is: a wheel told to cancel a trajectory had none to cancel (an audit)."""
+        base = self.driven_by(device)
+        if base is not None:
+            raise RefusedError(
+                "busy",
+                f"{device} is a wheel of base {base}, which is driving it: stop the base first "
+                f"({what} would take one wheel from it)",
+            )
+        if not runner.plays.playing(device):
+            return
+        raise RefusedError(
+            "busy",
+            f"{device} is playing a trajectory: cancel it first ({what} and a trajectory would "
+            "fight over its target)",
+        )
+
     def ramp_to(
         self, device: str, fields: dict[str, Any], client: str, claim_ttl_s: float
     ) -> dict[str, Any] | None:
@@ -321,7 +342,7 @@ class GatewayApi:
         try:
             runner, driver = self._device(device)
             target, follows = _follow_target(driver, fields)
-            _refuse_while_playing(runner, device, "a target kept")
+            self._refuse_while_playing(runner, device, "a target kept")
             if not runner.owner.is_open:
                 raise BusUnavailableError(f"bus {runner.name} is down: {device} cannot move")
             authority = runner.authority
@@ -550,16 +571,6 @@ def _tell_bus_not_reset(bus: str, done: Future) -> None:
             "is back): %s",
             bus,
             failure,
-        )
-
-
-def _refuse_while_playing(runner: BusRunner, device: str, what: str) -> None:
-    """``busy`` while ``device`` plays a trajectory: ``what`` would fight it over its target."""
-    if runner.plays.playing(device):
-        raise RefusedError(
-            "busy",
-            f"{device} is playing a trajectory: cancel it first ({what} and a trajectory would "
-            "fight over its target)",
         )
 
 
