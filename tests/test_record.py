@@ -260,6 +260,9 @@ def write_foreign(path) -> None:
     (["record", "-o", "{tmp}/x.mcap", "--seconds", "nan"], "--seconds is a positive number"),
     (["record", "-o", "{tmp}/x.mcap", "a//b"], "a//b"),
     (["record", "-o", "{tmp}/exists.mcap"], "exists: a recording is never overwritten"),
+    (["record", "-o", "{tmp}/x.mcap", "busgate/**", "busgate/demo/dev/la1/state"],  # twice each
+     "key expressions busgate/** and busgate/demo/dev/la1/state overlap"),
+    (["record", "-o", "{tmp}/x.mcap", "a/*/c", "a/b/*"], "a/*/c and a/b/* overlap"),
     (["record", "-o", "{tmp}/no/such/dir/x.mcap"], "cannot write"),
     (["record", "--info", "{tmp}/none.mcap"], "cannot read"),
     (["record", "--info", "{tmp}/exists.mcap"], "is not a complete MCAP file"),

@@ -54,14 +54,14 @@ from pathlib import Path
 from typing import IO, Any
 
 import busgate.client as bc
-from busgate.client.keys import Keys, check_key
+from busgate.client.keys import Keys, check_key, intersects
 from busgate.errors import BusgateError, CommandError
 from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.recording import mcap_log, timeline
 from busgate.schemas.payload import largest_published
-from busgate.schemas.validation import printable
+from busgate.schemas.validation import printable, shown
 from busgate.schemas.zenoh_session import LIVE_WAIT_S
 
 QUEUE_MAX = 100_000
@@ -161,6 +161,7 @@ def run_record(args: argparse.Namespace) -> int:
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise CommandError(f"--seconds is a positive number, not {args.seconds}")
     keys = [check_key(key) for key in args.keys] or [f"{check_key(args.prefix)}/**"]
+    _refuse_overlaps(keys)
     output = Path(args.output)
     try:
         stream = output.open("xb")  # rule 3; closed by Recording.close (or below, at once)
@@ -205,6 +206,19 @@ def run_record(args: argparse.Namespace) -> int:
         why = getattr(recording.failure, "strerror", None) or recording.failure
         raise CommandError(f"cannot write {args.output}: {why}")
     return 0
+
+
+def _refuse_overlaps(keys: list[str]) -> None:
+    """``CommandError`` for two key expressions that a key can match both of: each is a
+    subscription of its own, and a sample on such a key would be recorded twice (and
+    replayed twice; an audit)."""
+    for n, first in enumerate(keys):
+        for second in keys[n + 1 :]:
+            if intersects(first, second):
+                raise CommandError(
+                    f"key expressions {shown(first)} and {shown(second)} overlap: a message on "
+                    "a key both match would be recorded twice; give one that covers both"
+                )
 
 
 class Recording:
