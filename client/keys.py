@@ -19,7 +19,13 @@ from dataclasses import dataclass
 import zenoh
 
 from busgate.errors import CommandError
-from busgate.schemas.base import CLIENT_ID_PATTERN, KEY_PREFIX_FORM, KEY_PREFIX_PATTERN, NAME_FORM
+from busgate.schemas.base import (
+    CLIENT_ID_PATTERN,
+    CLIENTS_ROOM,
+    KEY_PREFIX_FORM,
+    KEY_PREFIX_PATTERN,
+    NAME_FORM,
+)
 from busgate.schemas.zenoh_session import zenoh_reason
 
 #: zenoh carries a message in batches of 64 KiB; a longer key makes the client session panic.
@@ -88,7 +94,7 @@ class Keys:
 
     def client(self, client_id: str) -> str:
         """The liveliness token a client holds: its claims and streams last as long as it."""
-        return f"{self.prefix}/clients/{client_id}"
+        return f"{self.prefix}/{CLIENTS_ROOM}/{client_id}"
 
     def gateway_of(self, key: str) -> str:
         """The gateway chunk of a key under this prefix."""
@@ -96,16 +102,17 @@ class Keys:
 
     def gateway_in(self, key: str, leaf: str) -> str | None:
         """The gateway of a key ``<prefix>/<gateway>/<leaf>`` when it is a name; ``None`` for
-        a key of any other shape, or with a wildcard for the gateway.
+        a key of any other shape, with a wildcard for the gateway, or in the clients' room
+        (a client named ``alive`` is no gateway ``clients``).
 
         >>> Keys().gateway_in("busgate/gw1/events", "events"), Keys().gateway_in(
-        ...     "busgate/**/events", "events")
-        ('gw1', None)
+        ...     "busgate/**/events", "events"), Keys().gateway_in("busgate/clients/alive", "alive")
+        ('gw1', None, None)
         """
         gateway, slash, found = key.removeprefix(f"{self.prefix}/").partition("/")
         if not (key.startswith(f"{self.prefix}/") and slash and found == leaf):
             return None
-        return gateway if is_name(gateway) else None
+        return gateway if is_name(gateway) and gateway != CLIENTS_ROOM else None
 
     def names_in(self, key: str, room: str, leaf: str) -> tuple[str, str] | None:
         """``(gateway, name)`` of a key ``<prefix>/<gateway>/<room>/<name>/<leaf>`` whose

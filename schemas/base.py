@@ -21,6 +21,10 @@ ClientId = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
 #: A gateway's, bus's, device's or joint's name: names end up in zenoh key expressions, so
 #: they are one safe chunk, as a client id is.
 Name = Annotated[str, Field(pattern=CLIENT_ID_PATTERN)]
+#: The chunk under the prefix where clients hold their liveliness tokens
+#: (``<prefix>/clients/<id>``): no gateway's name, or a client named ``alive`` would be taken
+#: for a gateway of that name (an audit: the dashboard showed one, with an e-stop button).
+CLIENTS_ROOM = "clients"
 #: The prefix of every key (``[gateway] prefix``): one to eight such names joined by ``/``,
 #: no wildcard.
 KEY_PREFIX_PATTERN = r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$"

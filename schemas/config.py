@@ -28,12 +28,14 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    field_validator,
     model_validator,
 )
 
 from busgate.errors import ConfigError
 from busgate.schemas.base import (
     CLIENT_ID_PATTERN,
+    CLIENTS_ROOM,
     KEY_PREFIX_FORM,
     KEY_PREFIX_PATTERN,
     NAME_FORM,
@@ -84,6 +86,16 @@ class GatewaySection(Section):
         Literal["auto"] | Annotated[int, Field(ge=1, le=MAX_WORKERS)],
         BeforeValidator(workers_value),
     ] = "auto"
+
+    @field_validator("name")
+    @classmethod
+    def _not_the_clients_room(cls, name: str) -> str:
+        if name == CLIENTS_ROOM:
+            raise ValueError(
+                f"{CLIENTS_ROOM!r} is where clients hold their liveliness tokens "
+                f"(<prefix>/{CLIENTS_ROOM}/<id>): name the gateway otherwise"
+            )
+        return name
 
 
 class ZenohSection(Section):

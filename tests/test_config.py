@@ -160,6 +160,9 @@ def test_ids_are_checked_per_protocol_and_per_bus() -> None:
 
 @pytest.mark.parametrize(("change", "line"), [
     ({"gateway": {"name": "a/b"}}, "gateway.name: must be 1-64 of A-Z a-z 0-9 _ -, not 'a/b'"),
+    ({"gateway": {"name": "clients"}},  # a client named "alive" would be taken for it
+     "gateway.name: 'clients' is where clients hold their liveliness tokens "
+     "(<prefix>/clients/<id>): name the gateway otherwise"),
     ({"metrics": {"listen": "garbage"}},
      "metrics.listen: must be HOST:PORT (e.g. 127.0.0.1:9100), not 'garbage'"),
     ({"recorder": {"dir": "incidents"}}, "recorder.dir: must be an absolute path, not 'incidents'"),

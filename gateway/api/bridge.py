@@ -87,7 +87,7 @@ from busgate.gateway.scheduler.outcomes import cancelled_by_estop, settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
 from busgate.gateway.trajectory.playing import Trajectories
-from busgate.schemas.base import client_named
+from busgate.schemas.base import CLIENTS_ROOM, client_named
 from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.payload import decode_object
@@ -248,7 +248,7 @@ class ZenohBridge:
             puts(session, f"{base}/base/*/cmd", self._command_puts("base"), "base-puts"),
             puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
             take_queries(session, f"{base}/info", self._on_info, "info"),
-            take_liveliness(session, f"{prefix}/clients/*", self._on_client, "clients"),
+            take_liveliness(session, f"{prefix}/{CLIENTS_ROOM}/*", self._on_client, "clients"),
         ]
         self._keep = [
             session.declare_subscriber(
