@@ -630,6 +630,8 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     carried out only on an empty payload or an object naming a valid client, else it is
     refused as any bad put is, by a ``command_refused`` event."""
     bridge, runner, events = estop_bridge()
+    recorded: list = []
+    bridge.on_command = lambda *command: recorded.append(command)  # as the flight recorder
     key = "busgate/gw/estop/reset"
     bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload),
                                            key_expr=key))
@@ -637,6 +639,10 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     [event] = events
     assert (event.device, event.type, event.fields) == (
         "*", "command_refused", {"code": code, "message": message})
+    # kept among the commands with its refusal, as a refused command is (an audit: missing)
+    [(recorded_key, recorded_payload, reply, _)] = recorded
+    assert (recorded_key, recorded_payload) == (key, payload)
+    assert reply["error"] == {"code": code, "message": message}
     for good in (b"", b" \n", b"{}", b'{"client": "panel"}'):
         bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda g=good: g),
                                                key_expr=key))

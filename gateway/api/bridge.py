@@ -718,11 +718,14 @@ class ZenohBridge:
         try:
             sender = _named_sender(payload, only_client=True)
         except RefusedError as refusal:
-            self.put_reports.refused("*", error_reply(refusal)["error"])  # the whole gateway's
+            refused = error_reply(refusal)
+            self.put_reports.refused("*", refused["error"])  # the whole gateway's
+            if self.on_command is not None:  # the flight recorder keeps refusals too
+                self.on_command(key, payload, refused, None)
             return
         self.estop_reset(sender)
         if self.on_command is not None:
-            self.on_command(str(sample.key_expr), payload, None, None)
+            self.on_command(key, payload, None, None)
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
