@@ -8,14 +8,17 @@ not write."""
 from __future__ import annotations
 
 import asyncio
+import errno
 import gc
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from mcap.reader import make_reader
@@ -299,14 +302,20 @@ def test_only_the_last_seconds_go_into_the_file(tmp_path) -> None:
     assert [json.loads(m.data)["wire"] for _, _, m in messages] == ["02"]
 
 
-def test_old_incidents_are_pruned_to_the_budget_and_the_new_one_stays(tmp_path) -> None:
-    made = recorder(tmp_path, max_total_mb=1)
+def old_incidents(folder: Path) -> list[Path]:
+    """Three incident files of 400 kB in ``folder``, oldest first."""
     old = []
     for n in range(3):
-        path = tmp_path / f"incident-gw-2026010{n}T000000.000Z-estop.mcap"
+        path = folder / f"incident-gw-2026010{n}T000000.000Z-estop.mcap"
         path.write_bytes(b"x" * 400_000)
         os.utime(path, (1_000_000 + n, 1_000_000 + n))
         old.append(path)
+    return old
+
+
+def test_old_incidents_are_pruned_to_the_budget_and_the_new_one_stays(tmp_path) -> None:
+    made = recorder(tmp_path, max_total_mb=1)
+    old = old_incidents(tmp_path)
     unrelated = tmp_path / "notes.txt"
     unrelated.write_bytes(b"y" * 2_000_000)
     made.trigger(Trigger("signal", "SIGUSR1"))
@@ -314,6 +323,31 @@ def test_old_incidents_are_pruned_to_the_budget_and_the_new_one_stays(tmp_path) 
     assert newest is not None and newest.exists()
     assert [path.exists() for path in old] == [False, True, True]  # 1 MiB: two of 400 kB left
     assert unrelated.exists()  # only incident files are the recorder's
+
+
+def test_a_disk_with_no_room_for_an_incident_loses_the_oldest_not_the_newest(
+        tmp_path, monkeypatch) -> None:
+    """An audit: on a full disk the newest incident (the e-stop's, say) failed and the oldest
+    stayed, for good. A write that fails on a disk with less room than the largest incident
+    there takes the oldest away until there is, and is written again. (The disk is a stand-in:
+    100 kB free and what each file taken away frees.)"""
+    made = recorder(tmp_path)
+    old = old_incidents(tmp_path)
+    freed = lambda: 100_000 + 400_000 * sum(not p.exists() for p in old)  # noqa: E731
+    monkeypatch.setattr(shutil, "disk_usage", lambda _: SimpleNamespace(free=freed()))
+    write, tries = made.write_incident, []
+
+    def full_once(*args):
+        tries.append(args)
+        if len(tries) == 1:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write(*args)
+
+    monkeypatch.setattr(made, "write_incident", full_once)
+    made.trigger(Trigger("estop", "e-stop"))
+    newest = made.write_pending()
+    assert newest is not None and newest.exists() and len(tries) == 2
+    assert [path.exists() for path in old] == [False, True, True]  # 500 kB free: room for one
 
 
 def test_a_file_larger_than_the_budget_is_kept_alone(tmp_path) -> None:

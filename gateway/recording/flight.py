@@ -23,6 +23,10 @@ Rules of this file:
    ``HOLDOFF_S``, not on each flap.
 4. Shutdown writes a pending incident after the buses have stopped (their last frames in it),
    never before: the devices' safe state comes first.
+5. The newest incident matters most (the e-stop's own, say): one whose write fails on a
+   disk with no room left (less than the largest incident file there) makes room by
+   taking the oldest files away, and is written again, once. On a full disk the newest
+   was lost and the oldest kept, for good (an audit).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import logging
 import os
 import pickle
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -219,13 +224,31 @@ class FlightRecorder:
             triggers, self._pending = self._pending, []
         if not triggers:
             return None
-        try:
-            path = self.write_incident(triggers, now())
-        except Exception:  # a full disk, a folder gone: said, and the gateway goes on
-            log.exception("incident (%s) not written", "; ".join(t.text for t in triggers))
-            return None
+        for again in (False, True):
+            try:
+                path = self.write_incident(triggers, now())
+                break
+            except Exception:  # a full disk, a folder gone: said, and the gateway goes on
+                if again or not self._room_made():  # rule 5
+                    log.exception("incident (%s) not written", "; ".join(t.text for t in triggers))
+                    return None
         self._prune(path)
         return path
+
+    def _room_made(self) -> bool:
+        """Whether the oldest incident files went to leave the disk room for one as large as
+        the largest there (rule 5); none go while it has that room."""
+        files = self._incident_files()
+        room = max((size for _, _, size, _ in files), default=0)
+        made = False
+        for _, _, _, path in sorted(files):
+            with contextlib.suppress(OSError):
+                if shutil.disk_usage(self.folder).free > room:
+                    break
+                path.unlink()
+                made = True
+                log.warning("incident pruned: %s (the disk had no room for a new one)", path)
+        return made
 
     def write_incident(self, triggers: list[Trigger], at: float) -> Path:
         """The rings' last ``seconds`` before ``at`` (a ``now()`` time) as one MCAP file,
@@ -289,15 +312,20 @@ class FlightRecorder:
                 pickle.dump(("frames", bus, chunk), pipe, PICKLE_PROTOCOL)
         pickle.dump(None, pipe, PICKLE_PROTOCOL)
 
-    def _prune(self, keep: Path) -> None:
-        """The oldest incident files go until all take at most ``max_total_mb`` (the one
-        just written stays, however large)."""
-        budget = self.settings.max_total_mb * 1024 * 1024
+    def _incident_files(self) -> list[tuple[float, str, int, Path]]:
+        """Each incident file of the folder: when it was written, its name, size and path."""
         files = []
         for path in self.folder.glob(INCIDENT_GLOB):
             with contextlib.suppress(OSError):
                 found = path.stat()
                 files.append((found.st_mtime, path.name, found.st_size, path))
+        return files
+
+    def _prune(self, keep: Path) -> None:
+        """The oldest incident files go until all take at most ``max_total_mb`` (the one
+        just written stays, however large)."""
+        budget = self.settings.max_total_mb * 1024 * 1024
+        files = self._incident_files()
         total = sum(size for _, _, size, _ in files)
         for _, _, size, path in sorted(files):
             if total <= budget:
