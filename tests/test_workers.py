@@ -33,6 +33,7 @@ import busgate.client as bc
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.bus.clock import now
+from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.scheduler.runner import STALL_S
 from busgate.gateway.service import worker_link as link
 from busgate.gateway.service import workers as workers_module
@@ -571,6 +572,26 @@ def lone_worker() -> WorkerProcess:
         }
     )
     return WorkerProcess(0, config, [build_bus(config.buses[0])])
+
+
+def test_a_buss_counts_go_on_over_a_new_worker_and_each_restart_is_a_reconnect(
+    lone_worker: WorkerProcess,
+) -> None:
+    """An audit: a bus's metrics fell to 0 at each worker's restart (``frames_total`` 371 → 0
+    → 93), and no reconnect was counted."""
+    runner = lone_worker.runners["uart0"]
+
+    def beat(frames: int) -> dict:
+        counters = BusCounters(now())
+        counters.frames_out = frames
+        return {"uart0": (True, True, counters.snapshot(now()), None, frozenset())}
+
+    lone_worker._on_beat(beat(371))
+    assert runner.statistics().frames_out == 371
+    lone_worker._ended(subprocess.Popen(["sh", "-c", "kill -9 $$"]))  # SIGKILLed
+    assert (runner.statistics().frames_out, runner.statistics().reconnects) == (371, 1)
+    lone_worker._on_beat(beat(93))  # the next worker's, counting from 0
+    assert (runner.statistics().frames_out, runner.statistics().reconnects) == (464, 1)
 
 
 def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(

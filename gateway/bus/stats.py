@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 SAMPLES = 10_000
 
@@ -104,3 +104,16 @@ def percentile(ordered: list[float], q: float) -> float | None:
         return None
     rank = max(1, math.ceil(q * len(ordered)))
     return ordered[rank - 1]
+
+
+#: The fields of ``BusStats`` that count since the bus started (the rest are of the moment).
+COUNTS = tuple(f.name for f in fields(BusStats) if f.type == "int")
+
+
+def carried(before: BusStats, later: BusStats, *, reconnects: int = 0) -> BusStats:
+    """``later``'s statistics with ``before``'s counts added, and ``reconnects`` more: a bus
+    whose counters started again (its worker did) counts on, as a counter must (Prometheus
+    takes a fall for a reset)."""
+    added = {name: getattr(before, name) + getattr(later, name) for name in COUNTS}
+    added["reconnects"] += reconnects
+    return replace(later, **added)

@@ -60,7 +60,7 @@ from typing import Any, ClassVar
 
 from busgate.errors import BusUnavailableError
 from busgate.gateway.bus.clock import now
-from busgate.gateway.bus.stats import BusStats
+from busgate.gateway.bus.stats import BusStats, carried
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Follows
 from busgate.gateway.scheduler.authority import ClaimTable
 from busgate.gateway.scheduler.runner import STALL_S, BusRunner
@@ -543,7 +543,10 @@ class WorkerProcess:
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             beat = last_beat.get(runner.name)
-            runner.worker_ended(self.ended_because, beat[4] if beat else frozenset())
+            if beat is None:
+                runner.worker_ended(self.ended_because, frozenset(), None)
+            else:
+                runner.worker_ended(self.ended_because, beat[4], beat[2])
 
     def _daemon_stops(self, code: int) -> bool:
         """The daemon is stopping, or (the worker ended on a SIGTERM of its own) begins to
@@ -588,6 +591,9 @@ class WorkerRunner:
         self.claims = ForwardedClaims(worker.send, shadow.name)
         self.authority.claims = self.claims
         self.counters = shadow.counters
+        #: The counts of the workers that ran the bus before this one, and how many ended.
+        self._before: BusStats | None = None
+        self._restarts = 0
         #: The flight recorder's tap of this bus's frames (the daemon sets it, as an owner's).
         self.tap: Callable[[tuple], None] | None = None
         #: When each device was last sent a follow or ramp target (rule 3).
@@ -623,8 +629,14 @@ class WorkerRunner:
         return self.worker.keeping_schedule(stall_s)
 
     def statistics(self) -> BusStats:
+        """The worker's last word of them, counting on from the workers before it (each
+        restart a reconnect): a new worker's counters start at 0, and the metrics' totals
+        fell with them (an audit)."""
         beat = self.worker.beat.get(self.name)
-        return beat[2] if beat is not None else self.counters.snapshot(now())
+        latest = beat[2] if beat is not None else self.counters.snapshot(now())
+        if self._before is None:
+            return latest
+        return carried(self._before, latest, reconnects=self._restarts)
 
     def any_estopped(self) -> bool:
         return any(driver.estopped for driver in self.drivers.values())
@@ -644,9 +656,13 @@ class WorkerRunner:
         for device, device_id in ids.items():
             self.drivers[device].device_id = device_id
 
-    def worker_ended(self, why: str, streaming: frozenset[str]) -> None:
+    def worker_ended(self, why: str, streaming: frozenset[str], counted: BusStats | None) -> None:
         """Rule 3: each stream told ended (``streaming``, its last beat's, and those fed
-        lately), each device offline, with its event, its last state marked so."""
+        lately), each device offline, with its event, its last state marked so; the counts
+        of its statistics (``counted``, its last beat's) carried on (``statistics``)."""
+        self._restarts += 1
+        if counted is not None:
+            self._before = counted if self._before is None else carried(self._before, counted)
         self.plays.view = type(self.plays.view)()
         moment = now()
         fed = {device for device, at in list(self._fed_at.items()) if moment - at < RECENT_TARGET_S}
