@@ -46,8 +46,12 @@ Quantity = Literal["position", "velocity", "effort"]
 MAX_SI = 1e9
 #: The smallest |scale| a table may give: below it an SI value of MAX_SI is no float of raw.
 MIN_SCALE = 1e-12
-#: How far past a limit a value still counts as on it (floating-point noise, relative).
+#: How far past a limit a value still counts as on it (floating-point noise, relative)...
 ON_THE_LIMIT = 1e-9
+#: ... and never more than this part of one count of the device: relative alone, a limit
+#: near a large offset took values a count or more past it (an audit: 0.09 m past an LA's
+#: stroke at an offset of 1e8 m; a raw count past max at 1.5e9 counts).
+COUNT_SLACK = 1e-3
 #: Significant digits of a joint's published values (rule 5).
 PUBLISHED_DIGITS = 15
 #: A unit as a joint is published with: ``m``, ``rad`` or ``raw``, an effort's ``N`` or
@@ -209,9 +213,22 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
     if problems:
         return problems
     low, high = sorted(table.offset + table.scale * raw for raw in declaration.raw_range)
+    count = abs(table.scale)
+    step = math.ulp(max(abs(low), abs(high)))
+    if step > COUNT_SLACK * count:
+        return [
+            (
+                "offset",
+                f"{table.offset:g} {table.unit} leaves no count of {count:g} {table.unit} told "
+                f"apart near {max(abs(low), abs(high)):g} {table.unit} (a double's step there "
+                f"is {step:g}): an offset nearer 0, or a larger scale",
+            )
+        ]
     for key in ("min", "max"):
         value = getattr(table, key)
-        if value is not None and not low - _slack(low) <= value <= high + _slack(high):
+        if value is not None and not low - _slack(low, count) <= value <= high + _slack(
+            high, count
+        ):
             problems.append(
                 (key, f"{value:g} {table.unit} is outside the device's range {low:g}–{high:g}")
             )
@@ -248,8 +265,9 @@ def table_warnings(declaration: JointDeclaration, table: JointTable) -> list[tup
     return []
 
 
-def _slack(value: float) -> float:
-    return ON_THE_LIMIT * max(1.0, abs(value))
+def _slack(value: float, count: float = 1.0) -> float:
+    """How far past ``value`` still counts as on it, where one count is ``count``."""
+    return min(ON_THE_LIMIT * max(1.0, abs(value)), COUNT_SLACK * count)
 
 
 def whole_counts(raw_ends: tuple[float, float], raw_range: tuple[int, int]) -> tuple[int, int]:
@@ -345,7 +363,8 @@ class Joint:
         return min(max(round(self.position_raw(si)), low), high)
 
     def check_position_si(self, si: float) -> None:
-        if not self.min - _slack(self.min) <= si <= self.max + _slack(self.max):
+        count = abs(self.scale)
+        if not self.min - _slack(self.min, count) <= si <= self.max + _slack(self.max, count):
             limit, side = (self.min, "min") if si < self.min else (self.max, "max")
             raise self._refusal("position", si, self.unit, side, limit)
 

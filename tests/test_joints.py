@@ -202,6 +202,13 @@ def config_with(joint: dict | None, kind: str = "inspire_la") -> dict:
     # min and max within one count (5 µm): a target between them rounded outside them
     ({"unit": "m", "scale": 5e-6, "min": 0.0050001, "max": 0.0050004}, "joint.min",
      "0.0050001–0.0050004 m holds no whole count of the device"),
+    # an audit's: near a large offset a limit past the stroke was taken (at 1e8 m, 0.05 m
+    # past it; here a tenth of a count past it at 1000 m)...
+    ({"unit": "m", "scale": 5e-6, "offset": 1000.0, "max": 1000.0100005}, "joint.max",
+     "outside the device's range"),
+    # ... and a calibration whose counts a double cannot tell apart (every target raw 0)
+    ({"unit": "m", "scale": 1e-12, "offset": 1e9}, "joint.offset",
+     r"1e\+09 m leaves no count of 1e-12 m told apart near 1e\+09 m"),
 ])
 def test_the_config_refuses_a_joint_table_naming_the_key(joint, path, words):
     with pytest.raises(ConfigError, match=words) as refused:
@@ -219,6 +226,17 @@ def test_min_and_max_of_a_velocity_joint_are_refused(key):
         parse_config(config_with(table, kind="zlac706"))
     assert f"devices[0].joint.{key}" in str(refused.value)
     parse_config(config_with({**table, "type": "position"}, kind="zlac706"))
+
+
+def test_whole_count_limits_stay_within_the_limits_however_large_the_counts():
+    """An audit: at 1.5e9 counts the relative slack was 1.5 counts, and a max 0.4 count past
+    a whole one took the next count, past max."""
+    table = {"unit": "m", "scale": 1e-3, "type": "position", "max": 1_500_000.0004}
+    config = parse_config(config_with(table, kind="zlac706"))
+    joint = Joint.of("d1", zlac706.JOINT, config.buses[0].devices[0].joint)
+    assert joint.raw_limits[1] == 1_500_000_000
+    with pytest.raises(RefusedError):
+        joint.check_position(1_500_000_001)
 
 
 def test_issue_26s_example_table_is_taken_and_its_max_effort_where_nothing_sets_one_ignored():
