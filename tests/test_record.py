@@ -276,12 +276,19 @@ def write_foreign(path) -> None:
     (["replay", "{tmp}/exists.mcap", "--speed", "1e-300"], "--speed is from 0.01 to 1000"),
     (["replay", "{tmp}/exists.mcap", "--speed", "inf"], "--speed is from 0.01 to 1000"),
     (["replay", "{tmp}/foreign.mcap"], "names no prefix its keys were recorded under"),
+    (["record", "--info", "{tmp}/killed.mcap"],  # it said only what mcap's reader did
+     "killed.mcap is not a complete MCAP file: it ends short of its summary and index (a "
+     "recording killed, or its disk full, before its end): `mcap recover` mends it"),
     (["replay", "{tmp}/huge.mcap"], "huge.mcap holds a chunk of 65 MiB: replay reads at most "
                                    "64 MiB at once"),
 ])
 def test_a_refusal_is_one_line_and_exit_2(tmp_path, args, message, huge_chunk) -> None:
     (tmp_path / "exists.mcap").write_bytes(b"not an mcap file")
     write_foreign(tmp_path / "foreign.mcap")
+    with (tmp_path / "killed.mcap").open("wb") as killed:  # chunks written, no summary
+        log = mcap_log.McapLog(killed, "busgate")
+        for n in range(3000):
+            log.add("busgate/gw/dev/la1/state", b'{"position": %d}' % n, n)
     (tmp_path / "huge.mcap").write_bytes(huge_chunk)
     os.mkfifo(tmp_path / "fifo.mcap")
     done = run_busgate(*(a.replace("{tmp}", str(tmp_path)) for a in args),

@@ -345,6 +345,12 @@ def _recording(path: Path) -> Iterator[tuple[IO[bytes], dict[str, Any]]]:
             raise CommandError(f"cannot read {path}: {exc.strerror}") from None
         except Exception as exc:  # the mcap reader's errors have no common base
             why = str(exc) or type(exc).__name__  # some say nothing
+            if mcap_log.starts_as_mcap(stream):  # killed, or its disk full, before its end
+                why = (
+                    "it ends short of its summary and index (a recording killed, or its disk "
+                    "full, before its end): `mcap recover` mends it, keeping every chunk "
+                    f"written whole ({why})"
+                )
             raise CommandError(f"{path} is not a complete MCAP file: {why}") from None
         yield stream, found
 

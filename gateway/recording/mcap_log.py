@@ -51,7 +51,7 @@ import zstandard
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import Writer
+from mcap.writer import MCAP0_MAGIC, Writer
 
 from busgate.schemas.exported import SCHEMAS, generated
 
@@ -245,6 +245,16 @@ def recorded_prefix(stream: IO[bytes]) -> str | None:
         if record.name == PREFIX_METADATA:
             found = record.metadata.get("prefix") or None
     return found
+
+
+def starts_as_mcap(stream: IO[bytes]) -> bool:
+    """Whether ``stream`` begins as an MCAP file does (its magic): one that then fails to
+    read ends short (a recording killed, or its disk full, before its end)."""
+    try:
+        stream.seek(0)
+        return stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
+    except OSError:
+        return False
 
 
 def summary(stream: IO[bytes]) -> dict[str, Any]:
