@@ -425,11 +425,8 @@ class Zlac706Driver(Driver):
         role, value = self._role(frame, settings)
         if role is not None:
             change = settings.change(role, value)
-            starts = role is Role.ENABLE and value and settings.enabled is not True
-            if starts and settings.mode is Mode.POSITION:
-                zero = 0 if settings.enabled is False else None  # None: the next reading tells
-                change["target_position"] = change["place"] = zero
-                self.measured["position"] = zero
+            if role is Role.ENABLE and "place" in change:  # its zero here (``Settings.change``)
+                self.measured["position"] = change["place"]  # None: the next reading tells
             self.machine.acknowledged(change)
         if role in (Role.SPEED, Role.TORQUE):  # a fresh target: no old one left to clear
             self._preset_when_gone = False

@@ -115,6 +115,12 @@ class Settings:
     def change(self, role: Role, value: Any) -> dict[str, Any]:
         """The fields a write of ``value`` in ``role`` sets."""
         if role is Role.ENABLE:
+            if value and self.enabled is not True and self.mode is Mode.POSITION:
+                # Enabled in position mode, the drive takes where the shaft is as its zero
+                # and holds there (5.1): from off, its target is 0; from not known, not known.
+                zero = 0 if self.enabled is False else None
+                return {"enabled": value, "run_signal": value, "target_position": zero,
+                        "place": zero}  # fmt: skip
             return {"enabled": value, "run_signal": value}
         if role is Role.POSITION and self.relative is not False:
             # A step, not a place a client may take for its target (a stream or a trajectory
