@@ -245,17 +245,24 @@ def test_a_refused_command_of_a_turning_velocity_joint_leaves_its_stop_due() -> 
     is due no stop; one that turns keeps its stop, timed from its last command."""
     taken = commands()
     taken.take({"name": ["wheel"], "velocity": [1.0]}, 0.0)
-    taken.refused("wheel")  # its first command: it never moved
+    taken.refused("wheel", 0.0)  # its first command: it never moved
     assert taken.expired(1.0) == []
     taken.take({"name": ["wheel"], "velocity": [1.0]}, 2.0)
     taken.carried_out("wheel")
     taken.take({"name": ["wheel"], "velocity": [2e9]}, 2.2)
-    taken.refused("wheel")
+    taken.refused("wheel", 2.2)
     assert taken.expired(2.6) == []
     assert taken.expired(2.71) == [WHEEL]
     taken.take({"name": ["wheel"], "velocity": [1.0]}, 3.0)
-    taken.refused("wheel")  # stopped since: it turned no more
+    taken.refused("wheel", 3.0)  # stopped since: it turned no more
     assert taken.expired(9.0) == []
+    # A review: the next command taken (another thread) while the first was refused; the
+    # refusal must not forget the next one's stop
+    taken.take({"name": ["wheel"], "velocity": [1.0]}, 10.0)
+    taken.take({"name": ["wheel"], "velocity": [2.0]}, 10.01)
+    taken.refused("wheel", 10.0)
+    taken.carried_out("wheel")
+    assert taken.expired(100.0) == [WHEEL]
 
 
 def point(seconds: float, positions: list[float], **fields: list[float]) -> dict:

@@ -22,7 +22,8 @@ Rules of this file:
    stop: ros2_control sends nothing while its command is unchanged). A velocity joint whose
    last command is older than ``timeout_s`` is due a stop (``expired``), once per silence,
    but one that never moved: its command refused and none carried out since its last stop
-   (``refused``; one carried out, ``carried_out``, keeps it turning until the stop).
+   (``refused``; one carried out, ``carried_out``, keeps it turning until the stop), and
+   none taken since the refused one (its own: another thread takes the next meanwhile).
 4. Pure: times are given, nothing is sent from here.
 """
 
@@ -56,6 +57,8 @@ class Target:
 
     joint: JointRef
     value: float
+    #: When its message was taken (``take``'s ``now``): which command a refusal is of (rule 3).
+    taken_at: float = 0.0
 
     @property
     def follow_fields(self) -> dict[str, float]:
@@ -96,7 +99,7 @@ class Commands:
         pairs = (self._by_index if by_index else self._in_order)(names, lists)
         for joint, value in pairs:
             if math.isfinite(value):
-                taken.targets.append(Target(joint, float(value)))
+                taken.targets.append(Target(joint, float(value), now))
                 if joint.type == "velocity":
                     self._moving[joint.name] = now
         # A name given twice: its last value (one target a joint, however long the message).
@@ -198,12 +201,13 @@ class Commands:
         if joint in self._moving:
             self._driven.add(joint)
 
-    def refused(self, joint: str) -> None:
-        """``joint``'s command was refused: no stop is due for it unless a command carried
-        out since its last stop still turns it (rule 3: a refused command after one that was
-        taken forgot the joint, which then turned with no end)."""
-        if joint not in self._driven:
-            self._moving.pop(joint, None)
+    def refused(self, joint: str, taken_at: float) -> None:
+        """``joint``'s command taken at ``taken_at`` was refused: no stop is due for it unless
+        a command carried out since its last stop still turns it (rule 3: a refused command
+        after one that was taken forgot the joint, which then turned with no end), or one was
+        taken after it (it would forget that one's)."""
+        if joint not in self._driven and self._moving.get(joint) == taken_at:
+            del self._moving[joint]
 
     def forget(self, joints: Iterable[str]) -> None:
         """Joints stopped otherwise (an e-stop): no stop is due for them."""

@@ -309,15 +309,17 @@ class Ros2Face:
             due, self._due, self._handing_on = self._due, {}, False
         for target, came_under in due.values():
             if came_under == self.api.estops:  # else sent before an e-stop: never carried out
-                self._ramp(target.joint, target.follow_fields)
+                self._ramp(target.joint, target.follow_fields, target.taken_at)
 
-    def _ramp(self, joint: JointRef, fields: dict[str, float]) -> None:
+    def _ramp(self, joint: JointRef, fields: dict[str, float], taken_at: float = -1.0) -> None:
+        """``fields`` to ``joint``'s device, a command taken at ``taken_at`` (a timeout's stop:
+        none)."""
         refused = self.api.ramp_to(joint.device, fields, self.section.client, self._claim_ttl_s)
         with self._commands_lock:  # a stop is due for a velocity joint that turns (rule 3)
             if refused is None:
                 self.commands.carried_out(joint.name)
             else:
-                self.commands.refused(joint.name)
+                self.commands.refused(joint.name, taken_at)
         if refused is None:
             self._refusals.pop(joint.name, None)
             return
