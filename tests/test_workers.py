@@ -520,6 +520,25 @@ def test_what_waits_crosses_in_order_and_one_too_large_is_dropped_not_the_link()
         theirs.close()
 
 
+def test_what_waits_is_taken_a_bounded_number_of_datagrams_at_a_time() -> None:
+    """A review: the reader's drain read on while datagrams kept coming, so a flood as fast as
+    it read held back what it had read, an e-stop among it."""
+    ours, theirs = link.pair()
+    reader = link.Reader(theirs)
+    outbox = link.Outbox(ours, "test-send").start()
+    try:
+        for n in range(10):
+            outbox.put_now(("call", n, "uart0", "estop", (), {}))  # a datagram each
+        time.sleep(0.3)  # all ten in the socket
+        taken = reader.waiting(3)
+        assert [m[1] for w in taken for m in link.unbatched(w)] == [0, 1, 2]
+        assert [m[1] for w in reader.waiting(100) for m in link.unbatched(w)] == list(range(3, 10))
+    finally:
+        outbox.close()
+        ours.close()
+        theirs.close()
+
+
 def test_a_message_larger_than_the_kernel_lets_one_datagram_be_crosses_in_parts() -> None:
     ours, theirs = link.pair()
     for end in (ours, theirs):  # what a kernel with the default net.core.wmem_max gives

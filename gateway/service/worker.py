@@ -52,9 +52,10 @@ them. Rules of this file:
    whose daemon is gone (killed: its death signal is a SIGTERM, which a hung interpreter
    never acts on), so that it does not hold its ports for ever. A stopped worker (SIGSTOP)
    takes no signal but SIGKILL: it ends once continued.
-9. The reader takes every message already waiting in the socket before it acts on any (those
-   sent while it was stalled, stopped or behind: a datagram that came after it looked is
-   read next time), and each bus given an e-stop among them is handed its messages together
+9. The reader takes the messages already waiting in the socket before it acts on any (those
+   sent while it was stalled, stopped or behind), ``WAITING_MAX`` datagrams at most past the
+   one it woke for (a flood coming as fast as it reads must not hold back what it has read,
+   an e-stop among it), and each bus given an e-stop among them is handed its messages together
    (``runner.together``, ``runner`` rule 6): its bus thread takes the e-stop in the same turn
    as the calls that came before it, which it takes out as in one process (a command waiting
    is answered ``estopped``, not a read; a reset; a stream's target), so that nothing the
@@ -102,6 +103,9 @@ log = logging.getLogger("busgate.gateway.service.worker")  # as run: __main__
 
 #: How often at most each bus's trajectories and device ids are looked at (rule 2).
 MIRROR_S = 0.01
+#: The most datagrams the reader takes from its socket past the one it woke for before it
+#: acts on what it read (rule 9).
+WAITING_MAX = 64
 #: How long a worker's interpreter may hang before the kernel ends it (rule 8): past the
 #: supervisor's patience (``runner.STALL_S`` after a beat, ``workers.SLOW_START_S`` before
 #: the first), so that a worker whose daemon lives is reported and restarted first.
@@ -163,7 +167,7 @@ class Worker:
             gc.freeze()  # rule 7
             while (received := self.reader.receive()) is not None:
                 messages = list(link.unbatched(received))
-                for waiting in self.reader.waiting():  # rule 9
+                for waiting in self.reader.waiting(WAITING_MAX):  # rule 9
                     messages.extend(link.unbatched(waiting))
                 if self._carry_out_all(messages):
                     return
@@ -198,7 +202,7 @@ class Worker:
                     except Exception:  # rule 4
                         log.exception("worker: a message could not be carried out")
         finally:  # handed over now (rule 6)
-            for bus in estopped:
+            for bus in dict.fromkeys(estopped):
                 self._handed_estop(bus)
         return False
 

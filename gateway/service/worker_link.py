@@ -172,12 +172,12 @@ class Reader:
                 log.exception("a message of %d bytes could not be read: dropped", len(body))
                 return ("batch", [])
 
-    def waiting(self) -> list[tuple]:
-        """The messages already in the socket, without waiting for one more (a message whose
-        first part is there is read whole); none once the other end has gone (``receive``
-        says so next)."""
+    def waiting(self, most: int) -> list[tuple]:
+        """The messages already in the socket, ``most`` at most, without waiting for one more
+        (a message whose first part is there is read whole); none once the other end has gone
+        (``receive`` says so next)."""
         messages: list[tuple] = []
-        while self._incoming.poll(0):
+        while len(messages) < most and self._incoming.poll(0):
             message = self.receive()
             if message is None:
                 break
