@@ -600,17 +600,19 @@ def test_a_buss_counts_go_on_over_a_new_worker_and_each_restart_is_a_reconnect(
     → 93), and no reconnect was counted."""
     runner = lone_worker.runners["uart0"]
 
-    def beat(frames: int) -> dict:
-        counters = BusCounters(now())
-        counters.frames_out = frames
+    def beat(frames: int, gap_s: float, up_s: float) -> dict:
+        counters = BusCounters(now() - up_s)
+        counters.frames_out, counters.smallest_gap_s = frames, gap_s
         return {"uart0": (True, True, counters.snapshot(now()), None, frozenset())}
 
-    lone_worker._on_beat(beat(371))
+    lone_worker._on_beat(beat(371, 0.0011, 10.0))
     assert runner.statistics().frames_out == 371
     lone_worker._ended(subprocess.Popen(["sh", "-c", "kill -9 $$"]))  # SIGKILLed
     assert (runner.statistics().frames_out, runner.statistics().reconnects) == (371, 1)
-    lone_worker._on_beat(beat(93))  # the next worker's, counting from 0
-    assert (runner.statistics().frames_out, runner.statistics().reconnects) == (464, 1)
+    lone_worker._on_beat(beat(93, 0.0012, 1.0))  # the next worker's, counting from 0
+    stats = runner.statistics()
+    assert (stats.frames_out, stats.reconnects, stats.smallest_gap_s) == (464, 1, 0.0011)
+    assert stats.uptime_s == pytest.approx(11.0, abs=0.5)  # frames/s no spike (a review)
 
 
 def test_a_word_the_supervisor_cannot_take_is_logged_and_reading_goes_on(

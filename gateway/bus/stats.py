@@ -11,6 +11,7 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 SAMPLES = 10_000
 
@@ -111,9 +112,13 @@ COUNTS = tuple(f.name for f in fields(BusStats) if f.type == "int")
 
 
 def carried(before: BusStats, later: BusStats, *, reconnects: int = 0) -> BusStats:
-    """``later``'s statistics with ``before``'s counts added, and ``reconnects`` more: a bus
-    whose counters started again (its worker did) counts on, as a counter must (Prometheus
-    takes a fall for a reset)."""
-    added = {name: getattr(before, name) + getattr(later, name) for name in COUNTS}
+    """``later``'s statistics with ``before``'s counts, its time up and its smallest gap
+    taken in, and ``reconnects`` more: a bus whose counters started again (its worker did)
+    counts on, as a counter must (Prometheus takes a fall for a reset), and its rates stay
+    rates (``busgate watch`` divides the counts by the time up)."""
+    added: dict[str, Any] = {name: getattr(before, name) + getattr(later, name) for name in COUNTS}
     added["reconnects"] += reconnects
+    added["uptime_s"] = before.uptime_s + later.uptime_s
+    gaps = [g for g in (before.smallest_gap_s, later.smallest_gap_s) if g is not None]
+    added["smallest_gap_s"] = min(gaps) if gaps else None
     return replace(later, **added)

@@ -523,11 +523,15 @@ class WorkerProcess:
         with self._lock:
             outbox, self.outbox = self.outbox, None
             waiting, self._pending = self._pending, {}
+            # Its counts carried on as its last beat goes, in one step (``statistics``).
+            last_beat, self.beat = self.beat, {}
+            for runner in self.runners.values():
+                beat = last_beat.get(runner.name)
+                runner.count_on(None if beat is None else beat[2])
         if outbox is not None:
             outbox.close()
         code = process.wait()
         self._first_word.set()  # start-up goes on: its buses are down
-        last_beat, self.beat = self.beat, {}
         safe = safe_stopped(code, ran=self._first_word_at is not None)
         how = _how_it_ended(code) + (f"; {SAFE_STATE_SENT}" if safe else "")
         self.ended_because = f"{WORKER_ENDED_REASON} ({how})"
@@ -543,10 +547,7 @@ class WorkerProcess:
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             beat = last_beat.get(runner.name)
-            if beat is None:
-                runner.worker_ended(self.ended_because, frozenset(), None)
-            else:
-                runner.worker_ended(self.ended_because, beat[4], beat[2])
+            runner.worker_ended(self.ended_because, beat[4] if beat else frozenset())
 
     def _daemon_stops(self, code: int) -> bool:
         """The daemon is stopping, or (the worker ended on a SIGTERM of its own) begins to
@@ -630,13 +631,21 @@ class WorkerRunner:
 
     def statistics(self) -> BusStats:
         """The worker's last word of them, counting on from the workers before it (each
-        restart a reconnect): a new worker's counters start at 0, and the metrics' totals
-        fell with them (an audit)."""
-        beat = self.worker.beat.get(self.name)
+        end a reconnect): a new worker's counters start at 0, and the metrics' totals fell
+        with them (an audit). Read under the worker's lock, which ``count_on`` takes with
+        the beat that goes: never its counts twice, nor none."""
+        with self.worker._lock:
+            beat = self.worker.beat.get(self.name)
+            before, restarts = self._before, self._restarts
         latest = beat[2] if beat is not None else self.counters.snapshot(now())
-        if self._before is None:
-            return latest
-        return carried(self._before, latest, reconnects=self._restarts)
+        return latest if before is None else carried(before, latest, reconnects=restarts)
+
+    def count_on(self, counted: BusStats | None) -> None:
+        """Its worker ended, its statistics last ``counted`` (its last beat's): the next
+        worker's count on from them (``statistics``); under the worker's lock."""
+        self._restarts += 1
+        if counted is not None:
+            self._before = counted if self._before is None else carried(self._before, counted)
 
     def any_estopped(self) -> bool:
         return any(driver.estopped for driver in self.drivers.values())
@@ -656,13 +665,9 @@ class WorkerRunner:
         for device, device_id in ids.items():
             self.drivers[device].device_id = device_id
 
-    def worker_ended(self, why: str, streaming: frozenset[str], counted: BusStats | None) -> None:
+    def worker_ended(self, why: str, streaming: frozenset[str]) -> None:
         """Rule 3: each stream told ended (``streaming``, its last beat's, and those fed
-        lately), each device offline, with its event, its last state marked so; the counts
-        of its statistics (``counted``, its last beat's) carried on (``statistics``)."""
-        self._restarts += 1
-        if counted is not None:
-            self._before = counted if self._before is None else carried(self._before, counted)
+        lately), each device offline, with its event, its last state marked so."""
         self.plays.view = type(self.plays.view)()
         moment = now()
         fed = {device for device, at in list(self._fed_at.items()) if moment - at < RECENT_TARGET_S}
