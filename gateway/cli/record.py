@@ -345,7 +345,7 @@ def _recording(path: Path) -> Iterator[tuple[IO[bytes], dict[str, Any]]]:
             raise CommandError(f"cannot read {path}: {exc.strerror}") from None
         except Exception as exc:  # the mcap reader's errors have no common base
             why = str(exc) or type(exc).__name__  # some say nothing
-            if mcap_log.starts_as_mcap(stream):  # killed, or its disk full, before its end
+            if mcap_log.ends_short(stream):  # killed, or its disk full, before its end
                 why = (
                     "it ends short of its summary and index (a recording killed, or its disk "
                     "full, before its end): `mcap recover` mends it, keeping every chunk "

@@ -247,13 +247,16 @@ def recorded_prefix(stream: IO[bytes]) -> str | None:
     return found
 
 
-def starts_as_mcap(stream: IO[bytes]) -> bool:
-    """Whether ``stream`` begins as an MCAP file does (its magic): one that then fails to
-    read ends short (a recording killed, or its disk full, before its end)."""
+def ends_short(stream: IO[bytes]) -> bool:
+    """Whether ``stream`` begins as an MCAP file does (its magic) but does not end as one:
+    a recording killed, or its disk full, before its end (summary, footer, magic)."""
+    size = len(MCAP0_MAGIC)
     try:
         stream.seek(0)
-        return stream.read(len(MCAP0_MAGIC)) == MCAP0_MAGIC
-    except OSError:
+        starts = stream.read(size) == MCAP0_MAGIC
+        stream.seek(-size, 2)
+        return starts and stream.read(size) != MCAP0_MAGIC
+    except OSError:  # shorter than the magic, or no seeking
         return False
 
 
