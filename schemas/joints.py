@@ -213,22 +213,21 @@ def table_problems(declaration: JointDeclaration, table: JointTable) -> list[tup
     if problems:
         return problems
     low, high = sorted(table.offset + table.scale * raw for raw in declaration.raw_range)
-    count = abs(table.scale)
-    step = math.ulp(max(abs(low), abs(high)))
+    count, farthest = abs(table.scale), max(abs(low), abs(high))
+    step = math.ulp(farthest)
     if step > COUNT_SLACK * count:
         return [
             (
                 "offset",
                 f"{table.offset:g} {table.unit} leaves no count of {count:g} {table.unit} told "
-                f"apart near {max(abs(low), abs(high)):g} {table.unit} (a double's step there "
-                f"is {step:g}): an offset nearer 0, or a larger scale",
+                f"apart near {farthest:g} {table.unit} (a double's step there is {step:g}): "
+                "an offset nearer 0, or a larger scale",
             )
         ]
+    lowest, highest = low - _slack(low, count), high + _slack(high, count)
     for key in ("min", "max"):
         value = getattr(table, key)
-        if value is not None and not low - _slack(low, count) <= value <= high + _slack(
-            high, count
-        ):
+        if value is not None and not lowest <= value <= highest:
             problems.append(
                 (key, f"{value:g} {table.unit} is outside the device's range {low:g}–{high:g}")
             )

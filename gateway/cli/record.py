@@ -248,14 +248,12 @@ class Recording:
             self.too_large += 1  # without end
             return
         with self._queued_lock:
-            try:
-                if self._queued_bytes + size > QUEUE_MAX_BYTES:
-                    raise queue.Full
-                self._queue.put_nowait((key, payload, ns))
-            except queue.Full:
-                self.dropped += 1
-                return
-            self._queued_bytes += size
+            if self._queued_bytes + size <= QUEUE_MAX_BYTES:
+                with contextlib.suppress(queue.Full):
+                    self._queue.put_nowait((key, payload, ns))
+                    self._queued_bytes += size
+                    return
+        self.dropped += 1
 
     def _write(self) -> None:
         # Past a failure the queue is still emptied, up to close's None: a put never waits.

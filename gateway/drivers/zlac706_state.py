@@ -115,13 +115,13 @@ class Settings:
     def change(self, role: Role, value: Any) -> dict[str, Any]:
         """The fields a write of ``value`` in ``role`` sets."""
         if role is Role.ENABLE:
+            change = {"enabled": value, "run_signal": value}
             if value and self.enabled is not True and self.mode is Mode.POSITION:
                 # Enabled in position mode, the drive takes where the shaft is as its zero
                 # and holds there (5.1): from off, its target is 0; from not known, not known.
                 zero = 0 if self.enabled is False else None
-                return {"enabled": value, "run_signal": value, "target_position": zero,
-                        "place": zero}  # fmt: skip
-            return {"enabled": value, "run_signal": value}
+                change |= {"target_position": zero, "place": zero}
+            return change
         if role is Role.POSITION and self.relative is not False:
             # A step, not a place a client may take for its target (a stream or a trajectory
             # that took it for one would start from it); where it sends the shaft is known

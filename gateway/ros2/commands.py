@@ -201,12 +201,15 @@ class Commands:
         if joint in self._moving:
             self._driven.add(joint)
 
-    def refused(self, joint: str, taken_at: float) -> None:
-        """``joint``'s command taken at ``taken_at`` was refused: no stop is due for it unless
-        a command carried out since its last stop still turns it (rule 3: a refused command
-        after one that was taken forgot the joint, which then turned with no end), or one was
-        taken after it (it would forget that one's)."""
-        if joint not in self._driven and self._moving.get(joint) == taken_at:
+    def refused(self, joint: str, taken_at: float | None) -> None:
+        """``joint``'s command taken at ``taken_at`` (``None``: the stop's own, no command's)
+        was refused: no stop is due for it unless a command carried out since its last stop
+        still turns it (rule 3: a refused command after one that was taken forgot the joint,
+        which then turned with no end), or one was taken after it (it would forget that
+        one's)."""
+        if joint in self._driven or taken_at is None:
+            return
+        if self._moving.get(joint) == taken_at:
             del self._moving[joint]
 
     def forget(self, joints: Iterable[str]) -> None:

@@ -311,9 +311,11 @@ class Ros2Face:
             if came_under == self.api.estops:  # else sent before an e-stop: never carried out
                 self._ramp(target.joint, target.follow_fields, target.taken_at)
 
-    def _ramp(self, joint: JointRef, fields: dict[str, float], taken_at: float = -1.0) -> None:
-        """``fields`` to ``joint``'s device, a command taken at ``taken_at`` (a timeout's stop:
-        none)."""
+    def _ramp(
+        self, joint: JointRef, fields: dict[str, float], taken_at: float | None = None
+    ) -> None:
+        """``fields`` to ``joint``'s device, a command taken at ``taken_at`` (``None``: a
+        timeout's stop, no command's)."""
         refused = self.api.ramp_to(joint.device, fields, self.section.client, self._claim_ttl_s)
         with self._commands_lock:  # a stop is due for a velocity joint that turns (rule 3)
             if refused is None:

@@ -189,10 +189,10 @@ class Worker:
     def _carry_out_all(self, messages: list[tuple]) -> bool:
         """``messages`` (read together) carried out in order, those of each bus given an
         e-stop among them handed to it together (rule 9); whether ``stop`` came."""
-        estopped = [m[2] for m in messages if _estop_of(m) in self.runners]
+        estopped = list(dict.fromkeys(m[2] for m in messages if _estop_of(m) in self.runners))
         try:
             with contextlib.ExitStack() as holding:
-                for bus in dict.fromkeys(estopped):
+                for bus in estopped:
                     holding.enter_context(self.runners[bus].together())
                 for message in messages:
                     try:
@@ -202,7 +202,7 @@ class Worker:
                     except Exception:  # rule 4
                         log.exception("worker: a message could not be carried out")
         finally:  # handed over now (rule 6)
-            for bus in dict.fromkeys(estopped):
+            for bus in estopped:
                 self._handed_estop(bus)
         return False
 
