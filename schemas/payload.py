@@ -86,11 +86,16 @@ def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return value
 
 
+def too_large(size: int, limit: int) -> RefusedError:
+    """The refusal of a payload of ``size`` bytes where its key takes ``limit`` at most."""
+    return RefusedError("too_large", f"payload of {size} bytes; at most {limit}")
+
+
 def decode_object(payload: bytes, *, limit: int = MAX_PAYLOAD) -> dict[str, Any]:
     """Bytes off the network to a JSON object, or ``RefusedError`` saying what is wrong
     (``limit``: the most bytes this key takes)."""
     if len(payload) > limit:
-        raise RefusedError("too_large", f"payload of {len(payload)} bytes; at most {limit}")
+        raise too_large(len(payload), limit)
     try:
         text = payload.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -29,6 +29,7 @@ from busgate.gateway.service.daemon import serve
 from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.schemas.config import parse_config
+from busgate.schemas.payload import MAX_PAYLOAD
 from busgate.schemas.zenoh_session import MAX_RECEIVED, session_config
 
 
@@ -641,20 +642,15 @@ def test_a_message_larger_than_any_key_takes_is_dropped_before_the_gateway_holds
     free_port, wait_for
 ) -> None:
     """Zenoh took messages up to 1 GiB, held whole in a key's ring before its thread could
-    refuse them: a gateway's session takes none over ``MAX_RECEIVED`` (2 MiB)."""
-    sizes: list[int] = []
-
-    def command(device: str, payload: bytes) -> Future:
-        sizes.append(len(payload))
-        return settled({"ok": True})
-
-    with idle_bridge(free_port) as (bridge, client):
-        bridge.api.command = command
-        wait_for(lambda: client.put("busgate/gw1/dev/la1/cmd", b"probe") or sizes, timeout=20)
-        client.put("busgate/gw1/dev/la1/cmd", bytes(MAX_RECEIVED + 1024))
-        client.put("busgate/gw1/dev/la1/cmd", bytes(MAX_RECEIVED // 2))
-        wait_for(lambda: sizes[-1:] == [MAX_RECEIVED // 2])
-        assert max(sizes) == MAX_RECEIVED // 2
+    refuse them: a gateway's session takes none over ``MAX_RECEIVED`` (2 MiB), and a get of
+    more is never answered; one under it, past its key's 64 KiB, is refused by its size."""
+    key = "busgate/gw1/dev/la1/cmd"
+    with idle_bridge(free_port) as (_, client):
+        wait_for(lambda: get(client, "busgate/gw1/info", b"", timeout=1), timeout=20)
+        assert get(client, key, bytes(MAX_RECEIVED + 1024), timeout=2) == []
+        [half] = get(client, key, bytes(MAX_RECEIVED // 2))
+        assert half["error"] == {"code": "too_large", "message": (
+            f"payload of {MAX_RECEIVED // 2} bytes; at most {MAX_PAYLOAD}")}
 
 
 def test_commands_still_waiting_when_an_e_stop_comes_are_answered_estopped(
