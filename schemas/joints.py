@@ -415,6 +415,21 @@ class Joint:
                 "velocity", velocity, f"{self.unit}/s", "max_velocity", self.max_velocity
             )
 
+    def takes_step(self, step: float, period_s: float, *, speed: bool) -> bool:
+        """Whether a step of ``step`` in one follow period (a trajectory's first tick, from
+        where the joint was commanded) is within its limits: ``max_velocity`` for a position
+        (raw; what is sent is rounded, half a count either way), ``max_acceleration`` for a
+        speed (the family's unit); any step without that limit."""
+        if speed:
+            limit = self.max_acceleration
+            top = None if limit is None else abs(self.speed_of(limit)) * period_s
+            size = abs(step)
+        else:
+            limit = self.max_velocity
+            top = None if limit is None else limit / abs(self.scale) * period_s
+            size = max(0.0, abs(step) - 0.5)
+        return top is None or size <= top * (1 + ON_THE_LIMIT)
+
     def check_effort(self, effort: float) -> None:
         """Refuse an effort (the family's effort unit) past ``max_effort``."""
         if self.max_effort is not None and abs(effort) > self.max_effort * (1 + ON_THE_LIMIT):

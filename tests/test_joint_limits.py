@@ -317,9 +317,11 @@ def test_a_one_shot_speed_that_would_ramp_is_refused_while_the_wheel_plays(gatew
     accepted(api, "wheel", {"op": "set_mode", "mode": "velocity"})
     accepted(api, "wheel", {"op": "enable"})
     runner = api.devices["wheel"][0]
-    runner.play({"wheel": lambda t_s: {"rpm": 6}}, now())
+    # from rest to 6 rpm at its max_acceleration (60 rpm/s): a step is refused (plays rule 6)
+    runner.play({"wheel": lambda t_s: {"rpm": min(6.0, 60.0 * t_s)}}, now())
     try:
         wait_until(lambda: runner.plays.playing("wheel"))
+        time.sleep(0.15)  # at 6 rpm
         before = len(can_sim.recorder.received())
         for command in ({"op": "joint", "velocity": TURN / 2}, {"op": "velocity", "rpm": -30}):
             refused = ask(api, "wheel", command)

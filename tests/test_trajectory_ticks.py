@@ -33,7 +33,9 @@ from busgate.gateway.scheduler.trajectory_ticks import (
     next_slot,
 )
 from busgate.gateway.trajectory.interpolation import Knot, Path, sent
-from tests.test_driver_zlac706 import can_driver, velocity_driver, wire
+from tests.test_driver_zlac706 import can_driver, plan, velocity_driver, wire
+from tests.test_driver_zlac706 import run as applied
+from tests.test_mutants_scheduler import la_joint, wheel_joint
 from tests.test_planner import run as carried_out
 
 PERIOD = 0.02
@@ -426,6 +428,84 @@ def test_an_actuator_whose_stream_ended_is_held_where_its_last_tick_sent_it():
     assert plays.held("la3") is None
     streams.end_all("estop")
     assert plays.held("la3") == (START + PERIOD, 300)
+
+
+#: 0.01 m/s on a 5 µm count: 2000 counts/s, 40 counts in one follow period (``PERIOD``).
+LIMITED = {"max_velocity": 0.01}
+
+
+def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_stream_does_not_start():
+    """``plays`` rule 6: a play is checked from where the device was commanded when it was
+    accepted (an LA's state says a stream's target only at a poll); its stream goes on
+    until the play reaches the bus. A first tick past max_velocity from where the stream
+    sent it last is refused there; the stream ends, the actuator holds (nothing sent after
+    the stream's last tick). A device whose first tick is within goes, from its stream."""
+    la1 = InspireLaDriver("la1", 1, joint=la_joint(**LIMITED))
+    la2 = InspireLaDriver("la2", 2, joint=la_joint(**LIMITED))
+    planner, plays, streams = bus_of(la1, la2)
+    for driver in (la1, la2):
+        streams.start(driver, 0, START)  # its first target: where it is, nothing being known
+    positions(sent_tick(planner, START))
+    for driver in (la1, la2):
+        streams.start(driver, 2000, START)
+    sent = [positions(sent_tick(planner, START + k * PERIOD)) for k in range(1, 5)]
+    assert [s[1] - before[1] for before, s in pairwise(sent)] == [40, 40, 40]  # limited
+    last = sent[-1]
+    start = START + 6 * PERIOD
+    jump = Path(float(last[1] - 41), [Knot(1.0, 0.0)], "linear")  # the check's stale start
+    near = Path(float(last[2] - 40), [Knot(1.0, 0.0)], "linear")
+    plays.start({"la1": position_of(jump), "la2": position_of(near)}, start)
+    assert plays.refusal("la1") == (start, (
+        "would step -0.000205 m at its first tick from where its follow stream had sent it when "
+        "the play reached its bus, past its max_velocity in one follow period"))
+    assert not plays.playing("la1") and not streams.following("la1")
+    assert plays.held("la1") == (pytest.approx(START + 4 * PERIOD), last[1])
+    assert plays.refusal("la2") is None and plays.playing("la2")
+    assert not streams.following("la2")
+    assert positions(tick(planner, start)) == {2: last[2] - 40}
+    assert "stream_stopped" in [e.type for e in la1.drain_events()]
+
+
+def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_trajectory_holds_it():
+    """``plays`` rule 6, a trajectory taken over: the old one ticked on after the new one was
+    checked from its last tick. Past max_velocity from there, the device holds at the old
+    one's last tick (rule 3) and the new one is refused; within, it goes on from there."""
+    la1 = InspireLaDriver("la1", 1, joint=la_joint(**LIMITED))
+    planner, plays, _ = bus_of(la1)
+    plays.start({"la1": position_of(RAMP_UP)}, START)  # 20 counts a tick
+    for k in range(5):
+        tick(planner, START + k * GRID)
+    checked_at = slot_value(2)  # the new play was checked two ticks back, from 40
+    later = START + 10 * GRID
+    plays.start({"la1": position_of(Path(float(checked_at - 1), [Knot(1.0, 0.0)], "linear"))},
+                later)  # 81 → 39: 42 counts
+    assert plays.refusal("la1")[1].startswith("would step -0.00021 m at its first tick from "
+                                              "where its trajectory had sent it")
+    assert plays.held("la1")[1] == slot_value(4) and trajectory_tickers(planner) == []
+    assert planner.decide(later) == math.inf  # it holds: nothing more goes
+    plays.start({"la1": position_of(Path(float(slot_value(4) - 40), [Knot(1.0, 0.0)], "linear"))},
+                later)
+    assert plays.refusal("la1") is None  # nothing sent it since it held: the checks judged it
+    assert positions(tick(planner, later)) == {1: slot_value(4) - 40}
+
+
+def test_a_speed_play_reaching_the_bus_a_step_past_max_acceleration_ramps_the_old_one_down():
+    """``plays`` rule 6 for a speed: from the old trajectory's 300 rpm, a first tick of 0 rpm
+    is past max_acceleration in one period: the new play is refused and the wheel ramps to 0
+    over ``RAMP_S`` as a stopped speed does (rule 3), never left turning."""
+    wheel = velocity_driver(Zlac706CanDriver("wheel", 1, joint=wheel_joint(max_acceleration=10.0)),
+                            rpm=0)
+    applied(wheel, plan(wheel, '{"op":"enable"}'))
+    applied(wheel, plan(wheel, '{"op":"velocity","rpm":300}'))  # where the old one starts
+    planner, plays, _ = bus_of(wheel)
+    plays.start({"wheel": lambda t_s: {"rpm": 300.0}}, START)
+    for k in range(3):
+        tick(planner, START + k * GRID)
+    plays.start({"wheel": lambda t_s: {"rpm": 0.0}}, START + 5 * GRID)
+    assert "past its max_acceleration" in plays.refusal("wheel")[1]
+    [ticker] = trajectory_tickers(planner)
+    tick(planner, START + 3 * GRID)
+    assert 0 < ticker.commanded["wheel"][1] < 300.0  # ramping down on the old one's grid
 
 
 def test_a_position_device_stopped_holds_its_last_target():

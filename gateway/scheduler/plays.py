@@ -27,6 +27,13 @@ Rules of this file:
    why in ``refusal``, with the start of the trajectory it was playing, until it starts
    another one: that trajectory is over (``busgate.gateway.trajectory.playing`` aborts it,
    even when the device has been enabled again since).
+6. A play is checked from where its devices were commanded when it was accepted; a device's
+   trajectory or follow stream may send it on until the play reaches its bus (a stream's
+   target is known to the checks only at a poll: an Inspire LA's), and its last command's
+   target is known there first. There, a device whose first tick would be a step past its
+   joint's limits from where it was sent last (``Joint.takes_step``, the check of a first
+   point's) does not start: it stops as rule 3 says, or its stream ends as a stale one
+   does, and the refusal says why (rule 5).
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ from busgate.gateway.bus.stats import BusCounters
 from busgate.gateway.drivers.base import Driver
 from busgate.gateway.scheduler.planner import BusPlanner, Job
 from busgate.gateway.scheduler.streams import FollowStreams
+from busgate.gateway.scheduler.tickers import commanded
 from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
 
 #: How long a speed is ramped to 0 when its device leaves a trajectory early.
@@ -107,11 +115,20 @@ class Plays:
         """Play each device's sampler from ``start`` (bus clock) on (rule 2)."""
         for name, sample in samplers.items():
             driver = self.drivers[name]
-            self._leave(name)
             self._refusals.pop(name, None)
             if driver.estopped:  # e-stopped since the play was checked: it does not start
+                self._leave(name)
                 self._refusals[name] = (start, ESTOPPED)
                 continue
+            too_far = self._first_step_past_limits(driver, sample, start)
+            if too_far is not None:  # rule 6: it goes on as if stopped, or its stream as stale
+                if name in self._tickers:
+                    self.stop(name, speed=driver.follow_carries(sample(0.0)) == "velocity")
+                elif self.streams.following(name):
+                    self.streams.end(name, "trajectory refused")
+                self._refusals[name] = (start, too_far)
+                continue
+            self._leave(name)
             self.streams.drop(name, "trajectory")
             ticker = self._ticker_for(driver, start)
             ticker.add(driver, sample)
@@ -157,6 +174,36 @@ class Plays:
                 if requests:
                     self.planner.push_stop(Job(name, deque(requests)))
         self._publish()
+
+    def _first_step_past_limits(self, driver: Driver, sample: Sampler, start: float) -> str | None:
+        """Why ``driver``'s first tick of ``sample`` may not go: a step past its joint's
+        limits from where its trajectory, its follow stream or its last command sent it
+        (rule 6); ``None`` when it may."""
+        name, joint = driver.name, driver.joint
+        payload = sample(0.0)
+        carries = driver.follow_carries(payload)
+        ticker = self._tickers.get(name)
+        if ticker is not None:
+            last = ticker.commanded.get(name)
+            same = driver.follow_carries(ticker.playing[name].sample(0.0)) == carries
+            was, source = (last[1] if last is not None and same else None), "its trajectory"
+        elif (sent := self.streams.sent(name, carries)) is not None:
+            was, source = sent, "its follow stream"
+        else:  # what it is commanded, unless its mode takes another kind of value
+            same = driver.follows == carries
+            was, source = (commanded(driver, start) if same else None), "its last command"
+        [first] = payload.values()
+        speed = carries == "velocity"
+        if was is None or joint.takes_step(first - was, driver.follow_period_s, speed=speed):
+            return None
+        if speed:
+            step, unit, limit = joint.velocity_si(first - was), f"{joint.unit}/s", "acceleration"
+        else:
+            step, unit, limit = (first - was) * joint.scale, joint.unit, "velocity"
+        return (
+            f"would step {step:+g} {unit} at its first tick from where {source} had sent it "
+            f"when the play reached its bus, past its max_{limit} in one follow period"
+        )
 
     def _stream_left(self, driver: Driver, at: float) -> None:
         """``driver``'s follow stream ended, its last tick gone at ``at`` (rule 4)."""

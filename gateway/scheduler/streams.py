@@ -57,6 +57,14 @@ class FollowStreams:
         """Whether ``device`` has a running stream."""
         return device in self._streams
 
+    def sent(self, device: str, follows: Follows) -> float | None:
+        """Where ``device``'s running stream of what it ``follows`` sent it last
+        (``FollowStream.sent_value``), or ``None`` with no such stream."""
+        stream = self._streams.get(device)
+        if stream is None or stream.limiter.follows != follows:
+            return None
+        return stream.sent_value()
+
     def fed(self, device: str) -> bool:
         """Whether ``device``'s running stream takes a client's targets as they come (a
         follow stream; not a ramp to a target kept, which a new target feeds)."""

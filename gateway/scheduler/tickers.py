@@ -66,6 +66,11 @@ class FollowStream:
     #: The limiter before the last tick built, while that tick is not sent (rule 6).
     unsent: tuple[float | None, float] | None = None
 
+    def sent_value(self) -> float | None:
+        """Where its ticks sent the device last (a tick built and put off is not: rule 6),
+        or where it started from before its first."""
+        return self.unsent[0] if self.unsent is not None else self.limiter.value
+
     def next_target(self) -> float:
         """The latest target, held within the joint's limits (rule 4), a step from the last
         tick sent (rule 6)."""

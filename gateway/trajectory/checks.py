@@ -203,23 +203,18 @@ def _check_first_step(member: Member, joint: Joint, start: float) -> None:
     """A first point at ``t_s`` 0 replaces the start (``interpolation`` rule 2): the device is
     sent it at the first tick, a step no segment holds. With the joint's limit of that step
     (``max_velocity`` for a position, ``max_acceleration`` for a speed), it is held to it as
-    a move over one follow period (a position within half a count more: what rounding
-    sends)."""
+    a move over one follow period (``Joint.takes_step``)."""
     step = member.path.knots[0].value - start
     period = member.driver.follow_period_s
+    if joint.takes_step(step, period, speed=member.speed):
+        return
     at_start = Refused(member.path.knots[0].value, 0.0)
     if member.speed:
-        limit = joint.max_acceleration
-        if limit is not None and not _at_most(abs(joint.speed_of(limit)) * period)(step):
-            raise _beyond(joint, "acceleration", joint.velocity_si(step / period),
-                          f"{joint.unit}/s²", at_start, "max_acceleration", limit,
-                          _FIRST_STEP)  # fmt: skip
-        return
-    limit = joint.max_velocity
-    rounded = max(0.0, abs(step) - 0.5)  # what is sent is rounded: half a count either way
-    if limit is not None and not _at_most(limit / abs(joint.scale) * period)(rounded):
-        raise _beyond(joint, "velocity", step * joint.scale / period, f"{joint.unit}/s",
-                      at_start, "max_velocity", limit, _FIRST_STEP)  # fmt: skip
+        raise _beyond(joint, "acceleration", joint.velocity_si(step / period),
+                      f"{joint.unit}/s²", at_start, "max_acceleration",
+                      joint.max_acceleration or 0.0, _FIRST_STEP)  # fmt: skip
+    raise _beyond(joint, "velocity", step * joint.scale / period, f"{joint.unit}/s", at_start,
+                  "max_velocity", joint.max_velocity or 0.0, _FIRST_STEP)  # fmt: skip
 
 
 #: What a refusal of a first point's step says besides (``_check_first_step``).
