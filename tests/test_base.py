@@ -460,6 +460,36 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         _clear_fault(world)
 
 
+def test_a_base_at_rest_takes_no_wheel_from_a_speed_of_its_own() -> None:
+    """Rule 3: the base's play starts from rest, and its first tick cut a wheel's own speed to
+    0 at once (an audit: 76 to 0 rpm in one slot, past the wheel's max_acceleration). While
+    the wheel's speed command ramps (a stream), a twist is refused ``busy``; once the wheel
+    turns at its speed, the twist's play is refused when it reaches the bus (``plays`` rule
+    6): ``base_stopped`` names the step, and the wheel's speed is untouched."""
+    ramped = World(wl=LEFT | {"max_acceleration": 50.0}, wr=RIGHT | {"max_acceleration": 50.0})
+    try:
+        assert ramped.base({"op": "enable"})["ok"]
+        assert ramped.wheel("wl", {"op": "velocity", "rpm": 76})["ok"]  # 0.16 s of ramp
+        refused = ramped.base({"op": "twist", "linear": 0.05})
+        assert refused["error"] == {"code": "busy", "message": (
+            "base base: wheel wl follows a stream of its own (a client's follow key, or its "
+            "speed command's ramp): the base starts from rest and would stop it at once; end "
+            'it first ({"op":"end_follow"} to the wheel)')}
+        _until(lambda: not ramped.runner.streams.following("wl"), "wl's ramp did not end")
+        since, events = len(ramped.sim.recorder.received()), len(ramped.events)
+        assert ramped.base({"op": "twist", "linear": 0.05, "duration_s": 1})["ok"]
+        _until(lambda: any(e.type == "base_stopped" for e in list(ramped.events)[events:]),
+               "the base did not stop")
+        stopped = next(e for e in list(ramped.events)[events:] if e.type == "base_stopped")
+        assert stopped.fields["wheel"] == "wl"
+        assert stopped.fields["reason"].startswith("would step -7.9")  # rad/s, from 76 rpm
+        assert "from where its last command had sent it" in stopped.fields["reason"]
+        time.sleep(0.1)
+        assert [rpm for _, node, rpm in ramped.speeds(since) if node == 1] == []
+    finally:
+        ramped.close()
+
+
 def test_the_client_that_enabled_the_base_going_stops_no_wheel_another_client_drives() -> None:
     """The base's enable sends each wheel 0 rpm as its caller: that made it each wheel's
     deadman, whose going then sent the wheels 0 rpm one-shot under another client's twist (an

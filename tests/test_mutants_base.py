@@ -13,11 +13,20 @@ from concurrent.futures import Future
 import pytest
 
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.base.bases import Bases, NoTrajectories, _at, _sent_before_stop
+from busgate.gateway.base.bases import (
+    STOPS_KEPT,
+    Bases,
+    NoTrajectories,
+    _at,
+    _note_stop,
+    _sent_before_stop,
+)
 from busgate.gateway.base.kinematics import Twist
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from tests.test_base import BASE, LEFT, config_of
+from tests.test_driver_zlac706 import plan
+from tests.test_driver_zlac706 import run as applied
 
 #: The left wheel slower than the right: a twist of both limits needs 16.97 rad/s of the
 #: right wheel, which the left one (the slower of the two) caps at 13.
@@ -71,9 +80,14 @@ class IdleBase:
     def command(self, fields: dict) -> dict:
         return self.bases.command("base", json.dumps(fields).encode()).result(1)
 
-    def wheels_online(self) -> None:
-        for _, driver in (self.api.devices["wl"], self.api.devices["wr"]):
+    def wheels_online(self, *names: str) -> None:
+        """The wheels (both of the base by default) heard from, and on in velocity mode (their
+        drives answered so)."""
+        for name in names or ("wl", "wr"):
+            driver = self.api.devices[name][1]
             driver.reported(now())
+            for op in ('{"op":"set_mode","mode":"velocity"}', '{"op":"enable"}'):
+                applied(driver, plan(driver, op))
 
 
 def test_the_drive_holds_the_configured_limits_and_the_slower_wheel() -> None:
@@ -181,18 +195,60 @@ def test_a_base_stopped_by_an_online_wheel_names_why(refused) -> None:
     assert base.playing_since is None
 
 
-@pytest.mark.parametrize(("stopped_by", "client", "seq", "dropped"), [
-    (("nav", 9), "nav", 8, True),
-    (("nav", 9), "nav", 9, True),  # numbered alike: it cannot be ordered, nothing moves
-    (("nav", 9), "nav", 10, False),
-    (("nav", 9), "teleop", 3, False),  # another client's count
-    (("nav", 9), "nav", None, False),  # not numbered: not ordered by numbers
-    (("nav", None), "nav", 3, False),  # a stop not numbered
-    (None, "nav", 3, False),
+def test_a_wheel_disabled_by_any_client_stops_a_driving_base() -> None:
+    """Rule 3: a disable, a stop any client may send, takes no wheel out of the base's play,
+    and the other wheel drove on alone (an audit: the base turned on the spot for 7 s with
+    ``driving`` true and no event). The next tick stops both, naming the wheel."""
+    idle = IdleBase()
+    idle.wheels_online()
+    base = idle.base
+    idle.runner.plays.start({w: base.drive.sampler(s) for s, w in enumerate(base.names)}, now())
+    base.drive.command(Twist(0.2, 0.0), now(), 10.0)
+    base.playing_since = now()
+    idle.bases.tick()
+    assert idle.events == [] and base.playing_since is not None  # both on: it drives
+    wr = idle.api.devices["wr"][1]
+    applied(wr, plan(wr, '{"op":"disable"}'))
+    idle.bases.tick()
+    (event,) = idle.events
+    assert (event.type, event.fields) == ("base_stopped", {
+        "base": "base", "wheel": "wr",
+        "reason": "is not on in velocity mode"})
+    assert base.playing_since is None
+
+
+@pytest.mark.parametrize(("stops", "client", "seq", "dropped"), [
+    ([("nav", 9)], "nav", 8, True),
+    ([("nav", 9)], "nav", 9, True),  # numbered alike: it cannot be ordered, nothing moves
+    ([("nav", 9)], "nav", 10, False),
+    ([("nav", 9)], "teleop", 3, False),  # another client's count
+    ([("nav", 9)], "nav", None, False),  # not numbered: not ordered by numbers
+    ([("nav", None)], "nav", 3, False),  # a stop not numbered
+    ([], "nav", 3, False),
+    # another client's stop since, numbered or not, forgets nothing of nav's (an audit: a
+    # late twist of nav's, numbered before its stop, was driven after teleop's stop)
+    ([("nav", 9), ("teleop", 1)], "nav", 8, True),
+    ([("nav", 9), (None, None)], "nav", 8, True),
+    ([("nav", 9), ("nav", 4)], "nav", 8, False),  # its own latest stop is the one it keeps
 ])
 def test_only_a_twist_numbered_at_or_before_its_clients_stop_is_dropped(
-        stopped_by, client, seq, dropped) -> None:
-    assert _sent_before_stop(stopped_by, client, seq) is dropped
+        stops, client, seq, dropped) -> None:
+    base = IdleBase().base
+    for by, number in stops:
+        _note_stop(base, by, number)
+    assert _sent_before_stop(base, client, seq) is dropped
+
+
+def test_a_base_keeps_the_last_stop_of_its_latest_clients_only() -> None:
+    base = IdleBase().base
+    _note_stop(base, "nav", 9)
+    for n in range(STOPS_KEPT - 1):
+        _note_stop(base, f"c{n}", 1)
+    assert _sent_before_stop(base, "nav", 8) and len(base.stopped_by) == STOPS_KEPT
+    _note_stop(base, "nav", 10)  # renewed: now the latest
+    _note_stop(base, "one-more", 1)  # the oldest, c0, is forgotten
+    assert _sent_before_stop(base, "nav", 8) and not _sent_before_stop(base, "c0", 1)
+    assert len(base.stopped_by) == STOPS_KEPT
 
 
 def test_a_wheel_coming_online_in_another_mode_is_put_in_velocity_mode_once() -> None:
@@ -338,8 +394,7 @@ def test_tick_looks_at_every_base_and_gives_a_new_play_time_to_be_taken() -> Non
     mirrored = LEFT | {"scale": -LEFT["scale"]}
     idle = IdleBase((BASE, BASE | {"name": "b2", "left": "w3", "right": "w4"}),
                     w3=LEFT | {"name": "w3"}, w4=mirrored | {"name": "w4"})
-    for _, driver in idle.api.devices.values():
-        driver.reported(now())
+    idle.wheels_online(*idle.api.devices)
     b2 = idle.bases.bases["b2"]
     b2.drive.command(Twist(0.2, 0.0), now(), 10.0)
     b2.playing_since = now()  # just handed to the bus: not in its play yet

@@ -8,16 +8,20 @@ Rules of this file:
 2. A claim of the base is the claim of both wheels, taken or refused together; a client that
    holds either wheel blocks the base, and a base's claim blocks each wheel.
 3. A base never drives on one wheel: when one wheel leaves the play (e-stopped, refused its
-   target), its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2) or
-   reports a fault (its drive's alarm: its power stage is off), both are ramped to 0 at
-   once (over ``plays.RAMP_S``, whatever the base's deceleration limits: the sooner, the less
-   it turns), with a ``base_stopped`` event naming the wheel and why. A twist while a wheel
-   is offline or in fault is refused, naming it, as an enable of the base while a wheel is
-   in fault is; while a wheel plays a trajectory, refused ``busy``, as a trajectory naming
-   a wheel of a driving base is (``trajectory.playing`` rule 1: a drive and a play are
-   chosen under one lock, the trajectories' ``players``); while the wheels still ramp to 0
-   after a ``base_stopped``, refused ``busy`` too (the drive starts its next play from
-   rest). An e-stop takes both out.
+   target), its device goes offline (silent, or taking no write: ``zlac706_can`` rule 2),
+   reports a fault (its drive's alarm: its power stage is off) or is no longer on in
+   velocity mode (a client's disable, which stops no play), both are ramped to 0 at once
+   (over ``plays.RAMP_S``, whatever the base's deceleration limits: the sooner, the less it
+   turns), with a ``base_stopped`` event naming the wheel and why. A
+   twist while a wheel is offline or in fault is refused, naming it, as an enable of the
+   base while a wheel is in fault is; while a wheel plays a trajectory, refused ``busy``, as
+   a trajectory naming a wheel of a driving base is (``trajectory.playing`` rule 1: a drive
+   and a play are chosen under one lock, the trajectories' ``players``); while the wheels
+   still ramp to 0 after a ``base_stopped``, or a wheel of a base at rest follows a stream
+   of its own, refused ``busy`` too (the drive starts its next play from rest: its first
+   tick would stop that wheel at once; a wheel that turns at a speed of its own command and
+   has a ``max_acceleration`` leaves the play when it reaches the bus, ``plays`` rule 6).
+   An e-stop takes both out.
 4. A twist holds for ``cmd_timeout_s`` (or its ``duration_s``); a put stream that stops
    putting, a client that goes, a ``stop``: the base ramps to 0 at its deceleration limits
    (``stream_stale``, ``stopped``). A client that numbers its twists (``seq``) and its
@@ -91,6 +95,10 @@ VELOCITY_MODE = b'{"op":"set_mode","mode":"velocity"}'
 #: cannot make (rule 5): a reading is dated when its bus thread takes it, and two taken in one
 #: look, after a held-up thread, are dated nearly together however far apart they were read.
 READING_DATE_SLACK_S = 0.05
+#: The clients whose last numbered ``stop`` a base keeps (rule 4): past so many, the one that
+#: stopped it longest ago is forgotten (a client naming itself anew at each stop cannot grow
+#: the table).
+STOPS_KEPT = 256
 
 
 class Gateway(Protocol):
@@ -156,9 +164,9 @@ class LiveBase:
     drive: Drive
     odometry: Odometry
     client: str | None = None  # whose twist drives it (the deadman's)
-    #: (client, seq) of the last ``stop``: that client's twists numbered below it were sent
-    #: before it (rule 4)
-    stopped_by: tuple[str | None, int | None] | None = None
+    #: Client → seq of its last numbered ``stop``: its twists numbered at or below it were
+    #: sent before it (rule 4); the ``STOPS_KEPT`` latest clients'
+    stopped_by: dict[str, int] = field(default_factory=dict)
     playing_since: float | None = None  # bus clock
     stale_told: bool = False
     #: Bus clock: until then its wheels may still ramp down after a ``base_stopped`` (rule 3)
@@ -255,7 +263,7 @@ class Bases:
         reply."""
         try:
             base = self._base(name)
-            if _sent_before_stop(base.stopped_by, client, seq):
+            if _sent_before_stop(base, client, seq):
                 return None
             self._drive(base, twist, base.config.cmd_timeout_s, client, require_claim)
             return None
@@ -305,12 +313,14 @@ class Bases:
                     f"base {base.config.name}: wheel {wheel.name} still ramps to 0 after the "
                     f"base stopped (within {RAMP_S:g} s): send the twist again once it rests",
                 )
-            if not telemetry.get("enabled") or telemetry.get("mode") != "velocity":
+            if not _on(wheel, now()):
                 raise RefusedError(
                     "bad_command",
                     f"base {base.config.name}: wheel {wheel.name} is not on in velocity mode: "
                     'send {"op":"enable"} to the base first',
                 )
+            if base.playing_since is None:
+                _refuse_streamed(base, wheel)
         moment = now()
         target = base.drive.command(twist, moment, hold_s)
         base.client, base.stale_told = client, False
@@ -324,7 +334,7 @@ class Bases:
     def _other(self, base: LiveBase, request: Any) -> dict[str, Any]:
         if isinstance(request, BaseStop):
             base.drive.stop()
-            base.stopped_by = (request.client, request.seq)
+            _note_stop(base, request.client, request.seq)
             if base.playing_since is not None:
                 base.stale_told = True  # stopped, not stale
                 self._event(base, "stopped", client=request.client, reason="stop")
@@ -436,7 +446,10 @@ class Bases:
             gone = [
                 w
                 for w in base.wheels
-                if not w.driver.online or w.faults or (taken and not w.runner.plays.playing(w.name))
+                if not w.driver.online
+                or w.faults
+                or not _on(w, moment)
+                or (taken and not w.runner.plays.playing(w.name))
             ]
             if gone:
                 self._one_wheel_gone(base, gone[0])
@@ -453,6 +466,8 @@ class Bases:
             reason = "went offline"
         elif wheel.faults:
             reason = f"in fault: {', '.join(wheel.faults)}"
+        elif not _on(wheel, now()):
+            reason = "is not on in velocity mode"
         elif (refusal := wheel.runner.plays.refusal(wheel.name)) is not None:
             reason = refusal[1]
         else:
@@ -528,6 +543,26 @@ class Bases:
         self.on_event(DeviceEvent(base.config.name, type_, {"base": base.config.name, **fields}))
 
 
+def _on(wheel: Wheel, moment: float) -> bool:
+    """Whether ``wheel``'s drive turns it at the speeds it is sent: enabled, in velocity mode
+    (rule 3: a disable or a mode set by any client does not take it out of the base's play)."""
+    telemetry = wheel.driver.telemetry(moment)
+    return telemetry.get("enabled") is True and telemetry.get("mode") == "velocity"
+
+
+def _refuse_streamed(base: LiveBase, wheel: Wheel) -> None:
+    """A wheel that a stream of its own drives (a client's, or the ramp of its own speed
+    command) is refused for a base at rest (rule 3): the base's play starts from rest, and
+    its first tick would stop the wheel at once."""
+    if wheel.runner.streams.following(wheel.name):
+        raise RefusedError(
+            "busy",
+            f"base {base.config.name}: wheel {wheel.name} follows a stream of its own (a "
+            "client's follow key, or its speed command's ramp): the base starts from rest and "
+            'would stop it at once; end it first ({"op":"end_follow"} to the wheel)',
+        )
+
+
 def _refuse_fault(base: LiveBase, wheel: Wheel, telemetry: dict[str, Any]) -> None:
     """A wheel in fault is refused for the base (rule 3: the other would drive alone)."""
     if faults := telemetry.get("faults"):
@@ -538,14 +573,24 @@ def _refuse_fault(base: LiveBase, wheel: Wheel, telemetry: dict[str, Any]) -> No
         )
 
 
-def _sent_before_stop(
-    stopped_by: tuple[str | None, int | None] | None, client: str | None, seq: int | None
-) -> bool:
-    """A numbered twist of the client whose numbered ``stop`` came after it, or has its
-    number: numbered alike, the two cannot be ordered, and the base stays stopped (rule 4)."""
-    if stopped_by is None or seq is None or stopped_by[1] is None:
+def _note_stop(base: LiveBase, client: str | None, seq: int | None) -> None:
+    """``client``'s numbered ``stop`` (rule 4): kept for it, whoever stops the base after."""
+    if client is None or seq is None:
+        return
+    stops = base.stopped_by
+    stops.pop(client, None)  # the latest last: the oldest is the one forgotten
+    stops[client] = seq
+    if len(stops) > STOPS_KEPT:
+        del stops[next(iter(stops))]
+
+
+def _sent_before_stop(base: LiveBase, client: str | None, seq: int | None) -> bool:
+    """A numbered twist of a client whose numbered ``stop`` came after it, or has its number:
+    numbered alike, the two cannot be ordered, and the base stays stopped (rule 4)."""
+    if client is None or seq is None:
         return False
-    return stopped_by[0] == client and seq <= stopped_by[1]
+    stopped = base.stopped_by.get(client)
+    return stopped is not None and seq <= stopped
 
 
 def _new_reading(wheel: Wheel, joint: dict[str, Any], ts: float) -> bool:
