@@ -18,6 +18,7 @@ from concurrent.futures import Future
 from types import SimpleNamespace
 
 import pytest
+import zenoh
 from pydantic import BaseModel, Field, ValidationError
 
 from busgate.codecs import inspire_la as la
@@ -375,6 +376,10 @@ def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monk
     monkeypatch.setattr(runner, "estop", lambda: order.append("handed") or handed())
 
     class Payload:
+        def __len__(self) -> int:
+            order.append("measured")
+            return len(b'{"client": "teleop"}')
+
         def to_bytes(self) -> bytes:
             order.append("read")
             return b'{"client": "teleop"}'
@@ -382,11 +387,28 @@ def test_an_estop_is_handed_to_every_bus_before_its_payload_is_read(caplog, monk
     sample = SimpleNamespace(payload=Payload(), key_expr="busgate/gw/estop")
     with caplog.at_level("WARNING"):
         bridge._on_estop(sample)
-    assert order == ["handed", "read"]
+    assert order == ["handed", "measured", "read"]
     assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus from teleop"]
     assert [(e.type, e.fields) for e in events] == [
         ("estop", {"key": "busgate/gw/estop", "client": "teleop"})
     ]
+
+
+def test_an_estop_whose_payload_is_too_large_to_name_a_client_is_never_read():
+    """Its payload only names its sender, at most 64 KiB of it: a larger one, copied out of
+    zenoh on its receiving thread, held it by a copy of up to 2 MiB each (a flood of them)."""
+    bridge, runner, events = estop_bridge()
+
+    class Payload:
+        def __len__(self) -> int:
+            return MAX_PAYLOAD + 1
+
+        def to_bytes(self) -> bytes:
+            raise AssertionError("read")
+
+    bridge._on_estop(SimpleNamespace(payload=Payload(), key_expr="busgate/gw/estop"))
+    assert len(runner._inbox) == 1
+    assert [(e.type, e.fields) for e in events] == [("estop", {"key": "busgate/gw/estop"})]
 
 
 # -- the authority's refusals and its log ----------------------------------------------------
@@ -577,7 +599,7 @@ def test_estops_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
     # The bridge's own reports and their teller, on a clock that stands still: the ten puts
     # come within 0.1 s however slow the host.
     bridge.put_reports = PutReports(bridge.api.devices, bridge._tell_put, clock=lambda: 0.0)
-    payload = SimpleNamespace(to_bytes=lambda: b'{"client": "teleop"}')
+    payload = zenoh.ZBytes(b'{"client": "teleop"}')
     sample = SimpleNamespace(payload=payload, key_expr="busgate/gw/estop")
     with caplog.at_level("WARNING"):
         for _ in range(10):
@@ -596,7 +618,7 @@ def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
     every 0.1 s; a put on another gateway's or a wildcard reset key does nothing."""
     bridge, runner, events = estop_bridge()
     bridge.put_reports = PutReports(bridge.api.devices, bridge._tell_put, clock=lambda: 0.0)
-    payload = SimpleNamespace(to_bytes=lambda: b'{"client": "panel"}')
+    payload = zenoh.ZBytes(b'{"client": "panel"}')
     with caplog.at_level("WARNING"):
         for key in ["busgate/gw/estop/reset"] * 5 + ["busgate/*/estop/reset", "busgate/gw/**"]:
             bridge._on_estop_reset(SimpleNamespace(payload=payload, key_expr=key))
@@ -633,19 +655,18 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     recorded: list = []
     bridge.on_command = lambda *command: recorded.append(command)  # as the flight recorder
     key = "busgate/gw/estop/reset"
-    bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload),
-                                           key_expr=key))
+    bridge._on_estop_reset(SimpleNamespace(payload=zenoh.ZBytes(payload), key_expr=key))
     assert len(runner._inbox) == 0, "nothing reset"
     [event] = events
     assert (event.device, event.type, event.fields) == (
         "*", "command_refused", {"code": code, "message": message})
     # kept among the commands with its refusal, as a refused command is (an audit: missing)
     [(recorded_key, recorded_payload, reply, _)] = recorded
-    assert (recorded_key, recorded_payload) == (key, payload)
+    kept = b"" if code == "too_large" else payload  # one too large is never read (bridge's _read)
+    assert (recorded_key, recorded_payload) == (key, kept)
     assert reply["error"] == {"code": code, "message": message}
     for good in (b"", b" \n", b"{}", b'{"client": "panel"}'):
-        bridge._on_estop_reset(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda g=good: g),
-                                               key_expr=key))
+        bridge._on_estop_reset(SimpleNamespace(payload=zenoh.ZBytes(good), key_expr=key))
     assert len(runner._inbox) == 4
 
 
