@@ -229,6 +229,8 @@ def test_a_wheel_disabled_by_any_client_stops_a_driving_base() -> None:
     # late twist of nav's, numbered before its stop, was driven after teleop's stop)
     ([("nav", 9), ("teleop", 1)], "nav", 8, True),
     ([("nav", 9), (None, None)], "nav", 8, True),
+    ([(None, 9)], None, 8, True),  # a client naming none is one too
+    ([(None, 9)], "nav", 8, False),
     ([("nav", 9), ("nav", 4)], "nav", 8, False),  # its own latest stop is the one it keeps
 ])
 def test_only_a_twist_numbered_at_or_before_its_clients_stop_is_dropped(

@@ -164,9 +164,11 @@ class LiveBase:
     drive: Drive
     odometry: Odometry
     client: str | None = None  # whose twist drives it (the deadman's)
-    #: Client → seq of its last numbered ``stop``: its twists numbered at or below it were
-    #: sent before it (rule 4); the ``STOPS_KEPT`` latest clients'
-    stopped_by: dict[str, int] = field(default_factory=dict)
+    #: Client (``None``: one that names none) → seq of its last numbered ``stop``: its twists
+    #: numbered at or below it were sent before it (rule 4); the ``STOPS_KEPT`` latest
+    #: clients', under ``stops_lock`` (zenoh's threads bring stops and twists)
+    stopped_by: dict[str | None, int] = field(default_factory=dict)
+    stops_lock: threading.Lock = field(default_factory=threading.Lock)
     playing_since: float | None = None  # bus clock
     stale_told: bool = False
     #: Bus clock: until then its wheels may still ramp down after a ``base_stopped`` (rule 3)
@@ -575,21 +577,23 @@ def _refuse_fault(base: LiveBase, wheel: Wheel, telemetry: dict[str, Any]) -> No
 
 def _note_stop(base: LiveBase, client: str | None, seq: int | None) -> None:
     """``client``'s numbered ``stop`` (rule 4): kept for it, whoever stops the base after."""
-    if client is None or seq is None:
+    if seq is None:
         return
-    stops = base.stopped_by
-    stops.pop(client, None)  # the latest last: the oldest is the one forgotten
-    stops[client] = seq
-    if len(stops) > STOPS_KEPT:
-        del stops[next(iter(stops))]
+    with base.stops_lock:
+        stops = base.stopped_by
+        stops.pop(client, None)  # the latest last: the oldest is the one forgotten
+        stops[client] = seq
+        if len(stops) > STOPS_KEPT:
+            del stops[next(iter(stops))]
 
 
 def _sent_before_stop(base: LiveBase, client: str | None, seq: int | None) -> bool:
     """A numbered twist of a client whose numbered ``stop`` came after it, or has its number:
     numbered alike, the two cannot be ordered, and the base stays stopped (rule 4)."""
-    if client is None or seq is None:
+    if seq is None:
         return False
-    stopped = base.stopped_by.get(client)
+    with base.stops_lock:
+        stopped = base.stopped_by.get(client)
     return stopped is not None and seq <= stopped
 
 

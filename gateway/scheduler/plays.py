@@ -29,11 +29,13 @@ Rules of this file:
    even when the device has been enabled again since).
 6. A play is checked from where its devices were commanded when it was accepted; a device's
    trajectory or follow stream may send it on until the play reaches its bus (a stream's
-   target is known to the checks only at a poll: an Inspire LA's), and its last command's
-   target is known there first. There, a device whose first tick would be a step past its
-   joint's limits from where it was sent last (``Joint.takes_step``, the check of a first
-   point's) does not start: it stops as rule 3 says, or its stream ends as a stale one
-   does, and the refusal says why (rule 5).
+   target is known to the checks only at a poll: an Inspire LA's). There, a device whose
+   first tick would be a step past its joint's limits (``Joint.takes_step``, the check of a
+   first point's) from where it was sent last does not start, and the refusal says why
+   (rule 5): a step past them in one follow period from its last command's target, in
+   ``1 + RACED_TICKS`` from its trajectory's or stream's last tick (a tick may go between
+   the check and the bus, at the path's own pace). A trajectory it played stops as rule 3
+   says; a stream, or a speed of its own command, goes on: the play did not take it.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from busgate.gateway.bus.stats import BusCounters
-from busgate.gateway.drivers.base import Driver
+from busgate.gateway.drivers.base import Driver, Follows
 from busgate.gateway.scheduler.planner import BusPlanner, Job
 from busgate.gateway.scheduler.streams import FollowStreams
 from busgate.gateway.scheduler.tickers import commanded
@@ -52,6 +54,11 @@ from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
 
 #: How long a speed is ramped to 0 when its device leaves a trajectory early.
 RAMP_S = 0.5
+#: The ticks a device's trajectory or stream may have sent between a play's check and its
+#: reaching the bus, whose step rule 6 allows on top of its first tick's: the check may start
+#: from a tick before the last (a play is checked on a thread of its own), and a path at its
+#: limit steps 1 % more than one period's worth a slot (``trajectory_ticks.GRID_STRETCH``).
+RACED_TICKS = 1
 #: Why a device left its trajectory in ``end_all`` (rule 5), by what ended them all.
 END_ALL = "was stopped with every device of its bus ({why})"
 #: What ``end_all`` is told on an e-stop; its refusal is ``ESTOPPED`` (a watcher tells the
@@ -121,11 +128,9 @@ class Plays:
                 self._refusals[name] = (start, ESTOPPED)
                 continue
             too_far = self._first_step_past_limits(driver, sample, start)
-            if too_far is not None:  # rule 6: it goes on as if stopped, or its stream as stale
+            if too_far is not None:  # rule 6: its trajectory stops, anything else goes on
                 if name in self._tickers:
                     self.stop(name, speed=driver.follow_carries(sample(0.0)) == "velocity")
-                elif self.streams.following(name):
-                    self.streams.end(name, "trajectory refused")
                 self._refusals[name] = (start, too_far)
                 continue
             self._leave(name)
@@ -182,19 +187,19 @@ class Plays:
         name, joint = driver.name, driver.joint
         payload = sample(0.0)
         carries = driver.follow_carries(payload)
-        ticker = self._tickers.get(name)
+        ticker, periods = self._tickers.get(name), 1 + RACED_TICKS
         if ticker is not None:
             last = ticker.commanded.get(name)
             same = driver.follow_carries(ticker.playing[name].sample(0.0)) == carries
             was, source = (last[1] if last is not None and same else None), "its trajectory"
         elif (sent := self.streams.sent(name, carries)) is not None:
             was, source = sent, "its follow stream"
-        else:  # what it is commanded, unless its mode takes another kind of value
-            same = driver.follows == carries
-            was, source = (commanded(driver, start) if same else None), "its last command"
+        else:  # a command's target is known to the checks as soon as to the bus: no race
+            was, source, periods = _last_commanded(driver, carries, start), "its last command", 1
         [first] = payload.values()
         speed = carries == "velocity"
-        if was is None or joint.takes_step(first - was, driver.follow_period_s, speed=speed):
+        limit_s = driver.follow_period_s * periods
+        if was is None or joint.takes_step(first - was, limit_s, speed=speed):
             return None
         if speed:
             step, unit, limit = joint.velocity_si(first - was), f"{joint.unit}/s", "acceleration"
@@ -202,7 +207,8 @@ class Plays:
             step, unit, limit = (first - was) * joint.scale, joint.unit, "velocity"
         return (
             f"would step {step:+g} {unit} at its first tick from where {source} had sent it "
-            f"when the play reached its bus, past its max_{limit} in one follow period"
+            f"when the play reached its bus, past its max_{limit} in "
+            f"{'one follow period' if periods == 1 else f'{periods} follow periods'}"
         )
 
     def _stream_left(self, driver: Driver, at: float) -> None:
@@ -261,6 +267,18 @@ class Plays:
         )
         self.planner.tickers.append(ticker)
         return ticker
+
+
+def _last_commanded(driver: Driver, carries: Follows, moment: float) -> float | None:
+    """Where ``driver``'s last command sent it, as a value of the kind a play ``carries``;
+    ``None`` when its mode takes another kind, or for a speed its telemetry does not know
+    (the checks took its measured speed then)."""
+    if driver.follows != carries:
+        return None
+    speed_field = driver.joint.declaration.target_speed_rpm or ""
+    if carries == "velocity" and driver.telemetry(moment).get(speed_field) is None:
+        return None
+    return commanded(driver, moment)
 
 
 def _ramp_to_zero(field: str, from_s: float, speed: float) -> Sampler:
