@@ -606,6 +606,17 @@ def test_a_reader_that_leaves_early_ends_it_quietly(tmp_path) -> None:
     assert (done.returncode, done.stderr) == (1, "")
 
 
+def test_an_output_that_finds_no_room_is_told_in_one_line(tmp_path) -> None:
+    """``busgate check-config robot.toml > /dev/full``: the write fails (no space), and that is
+    said in one line, status 1, not a traceback (an audit: every command that prints)."""
+    config = write(tmp_path, [la(1)])
+    with open("/dev/full", "w") as full:
+        done = subprocess.run([*BUSGATE, "check-config", str(config)], stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=60, check=False)
+    assert (done.returncode, done.stderr) == (
+        1, "busgate check-config: error: cannot write its output: No space left on device\n")
+
+
 def test_a_bus_whose_commands_never_fit_between_follow_ticks_says_so() -> None:
     """Actuators streaming every 20 ms leave room for a status read with the default reply
     margin, none with 50 ms: their polls stop, and every command waits out the streams until

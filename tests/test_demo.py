@@ -187,6 +187,18 @@ def test_a_wire_record_that_cannot_be_written_is_refused_in_one_line(
         2, "", [f"busgate demo: error: cannot write the wire record {record}: {reason}"])
 
 
+def test_a_dashboard_on_zenohs_own_port_is_refused_before_anything_starts(free_port) -> None:
+    """Its socket is bound, not listening, until it serves: zenoh took the same port, and
+    the dashboard failed after the gateway came up, with two tracebacks (an audit)."""
+    port = free_port()
+    done = subprocess.run([sys.executable, "-m", "busgate.gateway.cli", "demo", "--listen",
+                           f"tcp/127.0.0.1:{port}", "--dashboard-listen", f"127.0.0.1:{port}"],
+                          capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert (done.returncode, done.stdout, done.stderr.splitlines()) == (2, "", [
+        f"busgate demo: error: --dashboard-listen 127.0.0.1:{port} is the port zenoh listens on "
+        f"(tcp/127.0.0.1:{port}): give the dashboard another"])
+
+
 def test_listen_and_connect_together_are_refused(capsys) -> None:
     """A demo that joins a router listens on nothing: --listen was ignored in silence."""
     with pytest.raises(SystemExit) as exited:

@@ -13,6 +13,7 @@ any other usage error).
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
@@ -23,6 +24,9 @@ from busgate.gateway import installed_version
 
 #: The exit status of a command a Ctrl-C ended (128 + SIGINT).
 INTERRUPTED = 130
+#: The errors of a write that found no room or no device (stdout ``> /dev/full``, a record's
+#: file on a full disk): told in one line, as a refusal is, where any other is a bug's.
+WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
 #: Each command, the module that adds its parser and carries it out, and its line in the
 #: list. A module is imported only for its own command: ``busgate --help`` and ``busgate
 #: encode`` load no zenoh, pyserial, python-can or prometheus_client.
@@ -98,10 +102,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"busgate {args.subcommand}: error: {line}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # stdout's reader left (| head): nothing more to say, to anyone
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush too
+        _drop_stdout()
+        return 1
+    except OSError as exc:
+        if exc.errno not in WRITE_FAILURES:
+            raise  # no output that could not be written: a bug, told whole
+        _drop_stdout()  # what waits in it would fail again at the exit's flush
+        print(f"busgate {args.subcommand}: error: cannot write its output: {exc.strerror}",
+              file=sys.stderr)  # fmt: skip
         return 1
     except KeyboardInterrupt:  # a Ctrl-C that no command took for its own stop
         return _interrupted(args.subcommand)
+
+
+def _drop_stdout() -> None:
+    """Whatever is written to stdout from now on, and what waits in it, goes nowhere."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def _interrupted(command: str) -> int:

@@ -50,6 +50,7 @@ from busgate.gateway.service.daemon import IN_USE_HINT, serve, stop_on_signals
 from busgate.gateway.sim.models import make_devices
 from busgate.gateway.sim.recorder import Recorder
 from busgate.schemas.config import Config, parse_config, workers_value
+from busgate.schemas.endpoints import takes_tcp_port
 from busgate.schemas.families import PROTOCOLS
 from busgate.schemas.files import FileRefused, make_folder
 
@@ -229,7 +230,8 @@ def run_demo(args: argparse.Namespace) -> int:
     with contextlib.ExitStack() as simulators:
         # Bound before anything starts: a port in use is refused at once, not after the
         # gateway came up (held until the dashboard serves it).
-        bound = None if dashboard is None else _bound(dashboard)
+        listening = None if args.connect else args.listen  # a client of a router listens on none
+        bound = None if dashboard is None else _bound(dashboard, listening)
         if bound is not None:
             simulators.callback(bound.close)
         records = None if args.record is None else _record_dir(args.record)
@@ -262,8 +264,16 @@ def _beside(exc: ConnectError) -> ConnectError:
     )
 
 
-def _bound(dashboard: Listen) -> socket.socket:
-    """The dashboard's socket (``Listen.bind``), its refusal saying what else to do."""
+def _bound(dashboard: Listen, endpoint: str | None) -> socket.socket:
+    """The dashboard's socket (``Listen.bind``), its refusal saying what else to do; refused
+    too on the port the gateway's zenoh ``endpoint`` listens on (the socket is bound, not
+    listening, until the dashboard serves: zenoh took the port, and the dashboard failed
+    after the gateway came up, with a traceback)."""
+    if endpoint is not None and takes_tcp_port(endpoint, dashboard.host, dashboard.port):
+        raise CommandError(
+            f"--dashboard-listen {dashboard.host}:{dashboard.port} is the port zenoh listens "
+            f"on ({endpoint}): give the dashboard another"
+        )
     try:
         return dashboard.bind()
     except CommandError as exc:  # where else it could go, for a new user

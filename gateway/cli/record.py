@@ -169,43 +169,53 @@ def run_record(args: argparse.Namespace) -> int:
         raise CommandError(f"{args.output} exists: a recording is never overwritten") from None
     except OSError as exc:
         raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+    stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # as Ctrl-C, here
     try:
-        client = open_client(args, "record")
-    except BaseException as exc:  # no session: the empty file made above goes (rule 6)
-        stream.close()
-        output.unlink(missing_ok=True)
-        if isinstance(exc, KeyboardInterrupt):
-            raise CommandError("stopped before a session opened: nothing recorded") from None
-        raise
+        try:
+            client = open_client(args, "record")
+        except BaseException as exc:  # no session: the empty file made above goes (rule 6)
+            stream.close()
+            output.unlink(missing_ok=True)
+            if isinstance(exc, KeyboardInterrupt):
+                raise CommandError("stopped before a session opened: nothing recorded") from None
+            raise
+        # From the session on, a signal ends the recording, whole to its last byte (rule 2):
+        # one before its header was written left an empty file (an audit).
+        with client, stopped_by_signals(stop):
+            _record(client, stream, keys, stop, args)
     finally:
         signal.signal(signal.SIGTERM, previous)
-    with client:
-        try:
-            recording = Recording(stream, args.prefix)  # writes the file's header
-        except OSError as exc:
-            stream.close()
-            raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
-        ends: list = []
-        with recording.stopped_by_signals():  # to the file's last byte (rule 2)
-            try:
-                for key in keys:
-                    ends.append(client.subscribe_raw(key, recording.take))
-                until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
-                print(
-                    f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                recording.run_until_stopped(args.seconds)
-            finally:
-                for end in ends:
-                    end()
-                recording.close()
+    return 0
+
+
+def _record(
+    client: Any, stream: IO[bytes], keys: list[str], stop: threading.Event, args: argparse.Namespace
+) -> None:
+    """``keys`` recorded to ``stream`` until ``stop``, ``--seconds`` or a failed write."""
+    try:
+        recording = Recording(stream, args.prefix, stop)  # writes the file's header
+    except OSError as exc:
+        stream.close()
+        raise CommandError(f"cannot write {args.output}: {exc.strerror}") from None
+    ends: list = []
+    try:
+        for key in keys:
+            ends.append(client.subscribe_raw(key, recording.take))
+        until = "Ctrl-C" if args.seconds is None else f"{args.seconds:g} s or Ctrl-C"
+        print(
+            f"busgate record: recording {', '.join(keys)} to {args.output} until {until}",
+            file=sys.stderr,
+            flush=True,
+        )
+        recording.run_until_stopped(args.seconds)
+    finally:
+        for end in ends:
+            end()
+        recording.close()
     if recording.failure is not None:
         why = getattr(recording.failure, "strerror", None) or recording.failure
         raise CommandError(f"cannot write {args.output}: {why}")
-    return 0
 
 
 def _refuse_overlaps(keys: list[str]) -> None:
@@ -225,13 +235,14 @@ class Recording:
     """Samples in (``take``, zenoh's threads), the file written on one thread (rule 1) and
     closed by ``close``; ``failure``: the write the disk refused (rule 2)."""
 
-    def __init__(self, stream: IO[bytes], prefix: str) -> None:
+    def __init__(self, stream: IO[bytes], prefix: str, stop: threading.Event | None = None) -> None:
         self._stream = stream
         self._log = mcap_log.McapLog(stream, prefix)
         self._queue: queue.Queue[tuple[str, bytes, int] | None] = queue.Queue(QUEUE_MAX)
         self._queued_bytes = 0  # of the payloads in the queue (rule 1)
         self._queued_lock = threading.Lock()
-        self._stop = threading.Event()
+        #: Set by a signal (``stopped_by_signals``) or a failed write: the recording ends.
+        self._stop = stop or threading.Event()
         self.dropped = 0
         #: Messages taken but never written: those of the chunk the disk refused, and those
         #: queued behind it.
@@ -270,12 +281,8 @@ class Recording:
                 self.unwritten += self._log.unwritten + 1  # its chunk, and this one
                 self._stop.set()
 
-    def stopped_by_signals(self) -> contextlib.AbstractContextManager[None]:
-        """SIGINT and SIGTERM end the recording while the block runs, and do nothing more."""
-        return stopped_by_signals(self._stop)
-
     def run_until_stopped(self, seconds: float | None) -> None:
-        """Show progress until a signal (``stopped_by_signals``), ``seconds`` or a failed
+        """Show progress until its ``stop`` (a signal), ``seconds`` or a failed
         write (rule 2)."""
         started = time.monotonic()
         deadline = math.inf if seconds is None else started + seconds
