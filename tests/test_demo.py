@@ -199,6 +199,16 @@ def test_a_dashboard_on_zenohs_own_port_is_refused_before_anything_starts(free_p
         f"(tcp/127.0.0.1:{port}): give the dashboard another"])
 
 
+@pytest.mark.parametrize("dashboard", [["--dashboard-listen", "127.0.0.1:8081"],
+                                       ["--dashboard-allow-host", "robot.local"]])
+def test_no_dashboard_with_the_dashboards_options_is_refused(capsys, dashboard) -> None:
+    """They were ignored in silence (an audit)."""
+    assert main(["demo", "--listen", "tcp/127.0.0.1:1", "--no-dashboard", *dashboard]) == 2
+    assert capsys.readouterr().err == (
+        "busgate demo: error: --no-dashboard serves none: --dashboard-listen and "
+        "--dashboard-allow-host would be ignored; give one or the other\n")
+
+
 def test_listen_and_connect_together_are_refused(capsys) -> None:
     """A demo that joins a router listens on nothing: --listen was ignored in silence."""
     with pytest.raises(SystemExit) as exited:

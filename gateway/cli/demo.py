@@ -219,6 +219,11 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    if args.no_dashboard and (args.dashboard_listen != DEFAULT_LISTEN or args.dashboard_allow_host):
+        raise CommandError(
+            "--no-dashboard serves none: --dashboard-listen and --dashboard-allow-host would be "
+            "ignored; give one or the other"
+        )
     dashboard = (
         None
         if args.no_dashboard
@@ -495,8 +500,13 @@ async def _serve_announcing(
         showing = asyncio.create_task(_dashboard(config, dashboard, stop, shown.set_result, bound))
         await asyncio.wait({shown, showing}, return_when=asyncio.FIRST_COMPLETED)
         if not shown.done():
+            signalled = stop.is_set()  # a Ctrl-C while it started: the gateway stops anyway
             stop.set()
             await serving
+            if signalled:  # what the dashboard said meanwhile (its session found no gateway)
+                with contextlib.suppress(Exception):
+                    await showing
+                return
             await showing  # its error
         url = shown.result()
     print(_hints(config, links, url), flush=True)
