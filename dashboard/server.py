@@ -95,15 +95,19 @@ class Listen:
         host = written[1:-1] if bracketed else written
         try:
             address = ipaddress.ip_address(host)
-            number = int(port) if PORT.fullmatch(port) else -1
-            if (address.version == 6) != bracketed:  # "::1:8080" is an address, not a port
-                number = -1
+            hosted = (address.version == 6) == bracketed  # "::1:8080" is an address, no port
         except ValueError:
-            number = -1
-        if not colon or not 0 <= number <= 65535:
+            hosted = False
+        if not colon or not hosted:
             raise CommandError(
                 f"listen on HOST:PORT with HOST an IP address, e.g. {DEFAULT_LISTEN}, "
                 f"not {text[:100]!r}"
+            )
+        number = int(port) if PORT.fullmatch(port) else -1
+        if not 0 <= number <= 65535:
+            raise CommandError(
+                f"listen on HOST:PORT: port {port[:20]!r} is no port: from 0 to 65535 (0: any "
+                "free one)"
             )
         return cls(host, number, tuple(allowed_name(name) for name in also_named))
 

@@ -14,6 +14,7 @@ client's own checks (``busgate.client``) both ask it.
 from __future__ import annotations
 
 import difflib
+import json
 import re
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -85,6 +86,10 @@ def describe_command_error(exc: ValidationError, family: str) -> str:
         return f"missing `{field}`: every {family} command names its {field}"
     if len(errors) == 1 and errors[0]["type"] == "union_tag_invalid" and not errors[0]["loc"]:
         op, expected = errors[0]["ctx"]["tag"], errors[0]["ctx"]["expected_tags"]
+        field = errors[0]["ctx"]["discriminator"].strip("'")
+        given = errors[0]["input"].get(field) if isinstance(errors[0]["input"], dict) else op
+        if not isinstance(given, str):  # its tag is Python's repr: `None`, `7`
+            return f"`{field}` is a string naming the command, not {json.dumps(given)[:40]}"
         named = shown(op, SHOWN_OP_CHARS)
         if instead := _ops_elsewhere(family).get(op):
             return f"unknown op `{named}` for {family}: {instead}"

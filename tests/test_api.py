@@ -145,6 +145,10 @@ def test_an_unknown_op_is_one_line_naming_the_op_it_most_likely_misspells(gatewa
     # Never the op that undoes what was asked (``disable`` is close to ``enable``).
     assert ask(api, "wheel", {"op": "enabel"}) == refusal(
         "unknown op `enabel` for zlac706 (did you mean `enable`?)")
+    # An op that is no string is named as sent, not as Python's `None` (an audit)
+    for op, sent in ((None, "null"), (7, "7"), ([1], "[1]")):
+        assert ask(api, "la1", {"op": op}) == refusal(
+            f"`op` is a string naming the command, not {sent}")
 
 
 @pytest.mark.parametrize(("device", "op", "instead"), [

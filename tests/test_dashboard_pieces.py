@@ -39,6 +39,15 @@ def test_anything_else_is_refused(text) -> None:
         Listen.parse(text)
 
 
+@pytest.mark.parametrize("port", ["65536", "70000", "-5", "80x"])
+def test_a_bad_port_is_named_as_the_port(port) -> None:
+    """The host was blamed for it (an audit: ``127.0.0.1:70000``)."""
+    with pytest.raises(CommandError) as refused:
+        Listen.parse(f"127.0.0.1:{port}")
+    assert str(refused.value) == (
+        f"listen on HOST:PORT: port '{port}' is no port: from 0 to 65535 (0: any free one)")
+
+
 def test_the_hosts_a_browser_may_name_follow_the_address_and_allow_host() -> None:
     assert Listen("127.0.0.1", 1).names() == {"127.0.0.1", "localhost"}
     assert Listen("0:0::1", 1).names() == {"::1", "localhost"}
