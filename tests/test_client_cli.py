@@ -582,6 +582,19 @@ def test_a_password_file_that_cannot_be_one_is_one_line_and_exit_2(tmp_path, fre
                        "--connect", f"tcp/127.0.0.1:{free_port()}"])
         _, err = capsys.readouterr()
         assert (status, err) == (2, f"busgate send: error: --password-file: {reason}\n")
+    # a file without a user, an empty user or an empty file failed as nobody answering
+    empty = tmp_path / "empty"
+    empty.write_text(" \n")
+    for options, reason in (
+            (["--password-file", str(big)], "--password-file needs --user: the account it is "
+                                            "the password of"),
+            (["--user", " "], "--user names an account, not an empty string"),
+            (["--user", "operator", "--password-file", str(empty)],
+             f"--password-file: {empty} holds no password")):
+        status = main(["send", "la1", "{}", *options, "--connect",
+                       f"tcp/127.0.0.1:{free_port()}"])
+        _, err = capsys.readouterr()
+        assert (status, err) == (2, f"busgate send: error: {reason}\n")
 
 
 @pytest.mark.parametrize(("command", "message"), [

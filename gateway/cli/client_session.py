@@ -100,9 +100,19 @@ def client_options(args: argparse.Namespace, tool: str) -> dict[str, Any]:
 
 
 def _password(args: argparse.Namespace) -> str | None:
+    """The password of ``--user``: its ``--password-file``'s, else the environment's. A file
+    without a user, an empty user or an empty file is refused: each failed as a gateway
+    nobody answered (an audit)."""
+    if args.user is not None and not args.user.strip():
+        raise CommandError("--user names an account, not an empty string")
     if args.password_file is None:
         return os.environ.get(PASSWORD_VARIABLE) if args.user is not None else None
+    if args.user is None:
+        raise CommandError("--password-file needs --user: the account it is the password of")
     try:
-        return read_text(args.password_file, MAX_PASSWORD_FILE_BYTES, "a password file").strip()
+        password = read_text(args.password_file, MAX_PASSWORD_FILE_BYTES, "a password file")
     except FileRefused as exc:
         raise CommandError(f"--password-file: {exc}") from exc
+    if not password.strip():
+        raise CommandError(f"--password-file: {args.password_file} holds no password")
+    return password.strip()

@@ -288,7 +288,8 @@ class Recording:
         deadline = math.inf if seconds is None else started + seconds
         while not self._stop.is_set() and time.monotonic() < deadline:
             self._stop.wait(min(PROGRESS_EVERY_S, max(0.0, deadline - time.monotonic())))
-            self._progress(time.monotonic() - started, end="\r")
+            if sys.stderr.isatty():  # a line redrawn in place: a log would get them run together
+                self._progress(time.monotonic() - started, end="\r")
         self.elapsed_s = time.monotonic() - started
 
     def _progress(self, elapsed: float, end: str) -> None:
