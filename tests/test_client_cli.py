@@ -394,6 +394,20 @@ def test_a_watch_selector_that_is_no_gateway_name_is_refused_before_any_session(
         "busgate/*/dev/la1/state)\n")
 
 
+@pytest.mark.parametrize("selector", ["$*", "robot*", "a**"])
+def test_a_watch_pattern_zenoh_refuses_is_told_as_typed(selector, capsys):
+    """``watch '$*'`` was refused naming ``busgate/$*/**``, a key the user never wrote (an
+    audit); ``**`` is every gateway, as no selector is."""
+    assert main(["watch", "--once", selector, "--connect", "tcp/127.0.0.1:9"]) == 2
+    assert capsys.readouterr().err == (
+        f"busgate watch: error: {selector} is no gateway name or pattern of names: * alone, or "
+        "zenoh's $* within a name (robot$*)\n")
+
+
+def test_a_watch_of_every_gateway_may_say_so_with_two_stars() -> None:
+    assert client_cli.watch_keys("busgate", "**") == client_cli.watch_keys("busgate", None)
+
+
 @pytest.mark.parametrize("argv", [["send", "la1", "\udcff"], ["send", "la\udcff", "{}"],
                                   ["watch", "--once", "\udcff"]])
 def test_an_argument_that_is_no_utf8_is_one_line_and_exit_2(argv, capsys):

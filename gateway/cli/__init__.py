@@ -24,9 +24,9 @@ from busgate.gateway import installed_version
 
 #: The exit status of a command a Ctrl-C ended (128 + SIGINT).
 INTERRUPTED = 130
-#: The errors of a write that found no room or no device (stdout ``> /dev/full``, a record's
-#: file on a full disk): told in one line, as a refusal is, where any other is a bug's.
-WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
+#: The errors of a write that found no room (stdout ``> /dev/full``, a full disk): told in one
+#: line, as a refusal is, where any other is a bug's (an EIO may be a device's: told whole).
+WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 #: Each command, the module that adds its parser and carries it out, and its line in the
 #: list. A module is imported only for its own command: ``busgate --help`` and ``busgate
 #: encode`` load no zenoh, pyserial, python-can or prometheus_client.

@@ -48,7 +48,7 @@ from busgate.gateway.cli.client_session import add_session_options, open_client
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
 from busgate.schemas.payload import decode_object
-from busgate.schemas.validation import printable
+from busgate.schemas.validation import printable, shown
 
 REDRAW_HZ = 5
 NO_ANSWER, ERROR_REPLY = 2, 1
@@ -309,9 +309,9 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
     >>> watch_keys("busgate", "gw1")
     ('busgate/gw1/dev/*/state', 'busgate/gw1/bus/*/stats', 'busgate/gw1/**')
     """
-    if selector is None:
+    if selector is None or selector == "**":  # every gateway's
         return f"{prefix}/*/dev/*/state", f"{prefix}/*/bus/*/stats", f"{prefix}/**"
-    if "/" not in selector:  # a gateway's name, or a pattern of names (``*``, ``robot*``)
+    if "/" not in selector:  # a gateway's name, or a pattern of names (``*``, ``robot$*``)
         if "*" not in selector:
             try:
                 check_name("gateway", selector)
@@ -331,7 +331,16 @@ def watch_keys(prefix: str, selector: str | None) -> tuple[str, str, str]:
 def run_watch(args: argparse.Namespace) -> int:
     text_arguments(args.selector or "", args.prefix)
     state_key, stats_key, selector = watch_keys(args.prefix, args.selector)
-    check_key(selector)
+    try:
+        for key in (selector, state_key, stats_key):
+            check_key(key)
+    except CommandError as exc:  # a pattern of names whose keys zenoh refuses: said as typed
+        if args.selector is None or "/" in args.selector:
+            raise
+        raise CommandError(
+            f"{shown(args.selector)} is no gateway name or pattern of names: * alone, or "
+            "zenoh's $* within a name (robot$*)"
+        ) from exc
     table = WatchTable()
     seconds = args.seconds if args.seconds is not None else (1.5 if args.once else None)
     with open_client(args, "watch") as client:
