@@ -437,9 +437,10 @@ LIMITED = {"max_velocity": 0.01}
 def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_stream_does_not_start():
     """``plays`` rule 6: a play is checked from where the device was commanded when it was
     accepted (an LA's state says a stream's target only at a poll); its stream goes on
-    until the play reaches the bus. A first tick past max_velocity in two periods (a tick may
-    go between the check and the bus) from where the stream sent it last is refused there,
-    and the stream goes on, untaken. A device whose first tick is within goes, from there."""
+    until the play reaches the bus. A first tick past max_velocity in one period from where
+    the stream sent it last is refused there (a tick gone between the check and the bus made
+    it twice the limit: a review), and the stream goes on, untaken. A device whose first tick
+    is within goes, from there."""
     la1 = InspireLaDriver("la1", 1, joint=la_joint(**LIMITED))
     la2 = InspireLaDriver("la2", 2, joint=la_joint(**LIMITED))
     planner, plays, streams = bus_of(la1, la2)
@@ -452,22 +453,22 @@ def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_stream_doe
     assert [s[1] - before[1] for before, s in pairwise(sent)] == [40, 40, 40]  # limited
     last = sent[-1]
     start = START + 6 * PERIOD
-    jump = Path(float(last[1] - 81), [Knot(1.0, 0.0)], "linear")  # a poll's stale target
-    raced = Path(float(last[2] - 80), [Knot(1.0, 0.0)], "linear")  # checked two ticks back
-    plays.start({"la1": position_of(jump), "la2": position_of(raced)}, start)
+    jump = Path(float(last[1] - 41), [Knot(1.0, 0.0)], "linear")  # checked a tick back
+    near = Path(float(last[2] - 40), [Knot(1.0, 0.0)], "linear")
+    plays.start({"la1": position_of(jump), "la2": position_of(near)}, start)
     assert plays.refusal("la1") == (start, (
-        "would step -0.000405 m at its first tick from where its follow stream had sent it when "
-        "the play reached its bus, past its max_velocity in 2 follow periods"))
+        "would step -0.000205 m at its first tick from where its follow stream had sent it when "
+        "the play reached its bus, past its max_velocity in one follow period"))
     assert not plays.playing("la1") and streams.following("la1")  # it streams on
     assert plays.refusal("la2") is None and plays.playing("la2")
     assert not streams.following("la2")
-    assert positions(tick(planner, start)) == {2: last[2] - 80}
+    assert positions(tick(planner, start)) == {2: last[2] - 40}
     assert "stream_stopped" not in [e.type for e in la1.drain_events()]
 
 
 def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_trajectory_holds_it():
     """``plays`` rule 6, a trajectory taken over: the old one ticked on after the new one was
-    checked from an earlier tick. Past max_velocity in two periods from its last tick, the
+    checked from an earlier tick. Past max_velocity in one period from its last tick, the
     device holds there (rule 3) and the new one is refused; within, it goes on from there."""
     la1 = InspireLaDriver("la1", 1, joint=la_joint(**LIMITED))
     planner, plays, _ = bus_of(la1)
@@ -475,15 +476,17 @@ def test_a_play_reaching_the_bus_a_step_past_the_limit_from_a_running_trajectory
     for k in range(6):
         tick(planner, START + k * GRID)
     later = START + 10 * GRID
-    plays.start({"la1": position_of(Path(0.0, [Knot(1.0, 0.0)], "linear"))}, later)  # 101 → 0
-    assert plays.refusal("la1")[1].startswith("would step -0.000505 m at its first tick from "
+    checked_at = slot_value(3)  # two ticks back: 61 → 101 is 40 counts, then 101 → 60
+    plays.start({"la1": position_of(Path(float(checked_at - 1), [Knot(1.0, 0.0)], "linear"))},
+                later)
+    assert plays.refusal("la1")[1].startswith("would step -0.000205 m at its first tick from "
                                               "where its trajectory had sent it")
     assert plays.held("la1")[1] == slot_value(5) and trajectory_tickers(planner) == []
     assert planner.decide(later) == math.inf  # it holds: nothing more goes
-    plays.start({"la1": position_of(Path(float(slot_value(5) - 80), [Knot(1.0, 0.0)], "linear"))},
+    plays.start({"la1": position_of(Path(float(slot_value(5) - 40), [Knot(1.0, 0.0)], "linear"))},
                 later)
-    assert plays.refusal("la1") is None  # within two periods' step: it goes
-    assert positions(tick(planner, later)) == {1: slot_value(5) - 80}
+    assert plays.refusal("la1") is None  # within one period's step: it goes
+    assert positions(tick(planner, later)) == {1: slot_value(5) - 40}
 
 
 def test_a_speed_play_reaching_the_bus_a_step_past_max_acceleration_ramps_the_old_one_down():

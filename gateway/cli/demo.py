@@ -274,7 +274,11 @@ def _bound(dashboard: Listen, endpoint: str | None) -> socket.socket:
     too on the port the gateway's zenoh ``endpoint`` listens on (the socket is bound, not
     listening, until the dashboard serves: zenoh took the port, and the dashboard failed
     after the gateway came up, with a traceback)."""
-    if endpoint is not None and takes_tcp_port(endpoint, dashboard.host, dashboard.port):
+    if (
+        endpoint is not None
+        and dashboard.port
+        and takes_tcp_port(endpoint, dashboard.host, dashboard.port)
+    ):  # port 0 is any free one: never zenoh's
         raise CommandError(
             f"--dashboard-listen {dashboard.host}:{dashboard.port} is the port zenoh listens "
             f"on ({endpoint}): give the dashboard another"

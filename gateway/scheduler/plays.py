@@ -30,12 +30,11 @@ Rules of this file:
 6. A play is checked from where its devices were commanded when it was accepted; a device's
    trajectory or follow stream may send it on until the play reaches its bus (a stream's
    target is known to the checks only at a poll: an Inspire LA's). There, a device whose
-   first tick would be a step past its joint's limits (``Joint.takes_step``, the check of a
-   first point's) from where it was sent last does not start, and the refusal says why
-   (rule 5): a step past them in one follow period from its last command's target, in
-   ``1 + RACED_TICKS`` from its trajectory's or stream's last tick (a tick may go between
-   the check and the bus, at the path's own pace). A trajectory it played stops as rule 3
-   says; a stream, or a speed of its own command, goes on: the play did not take it.
+   first tick would be a step past its joint's limits in one follow period
+   (``Joint.takes_step``, the check of a first point's) from where its trajectory, its
+   stream or its last command sent it does not start, and the refusal says why (rule 5):
+   the step would reach the device whatever the check saw. A trajectory it played stops as
+   rule 3 says; a stream, or a speed of its own command, goes on: the play did not take it.
 """
 
 from __future__ import annotations
@@ -54,11 +53,6 @@ from busgate.gateway.scheduler.trajectory_ticks import Sampler, TrajectoryTicker
 
 #: How long a speed is ramped to 0 when its device leaves a trajectory early.
 RAMP_S = 0.5
-#: The ticks a device's trajectory or stream may have sent between a play's check and its
-#: reaching the bus, whose step rule 6 allows on top of its first tick's: the check may start
-#: from a tick before the last (a play is checked on a thread of its own), and a path at its
-#: limit steps 1 % more than one period's worth a slot (``trajectory_ticks.GRID_STRETCH``).
-RACED_TICKS = 1
 #: Why a device left its trajectory in ``end_all`` (rule 5), by what ended them all.
 END_ALL = "was stopped with every device of its bus ({why})"
 #: What ``end_all`` is told on an e-stop; its refusal is ``ESTOPPED`` (a watcher tells the
@@ -187,7 +181,7 @@ class Plays:
         name, joint = driver.name, driver.joint
         payload = sample(0.0)
         carries = driver.follow_carries(payload)
-        ticker, periods = self._tickers.get(name), 1 + RACED_TICKS
+        ticker = self._tickers.get(name)
         if ticker is not None:
             last = ticker.commanded.get(name)
             same = driver.follow_carries(ticker.playing[name].sample(0.0)) == carries
@@ -195,11 +189,10 @@ class Plays:
         elif (sent := self.streams.sent(name, carries)) is not None:
             was, source = sent, "its follow stream"
         else:  # a command's target is known to the checks as soon as to the bus: no race
-            was, source, periods = _last_commanded(driver, carries, start), "its last command", 1
+            was, source = _last_commanded(driver, carries, start), "its last command"
         [first] = payload.values()
         speed = carries == "velocity"
-        limit_s = driver.follow_period_s * periods
-        if was is None or joint.takes_step(first - was, limit_s, speed=speed):
+        if was is None or joint.takes_step(first - was, driver.follow_period_s, speed=speed):
             return None
         if speed:
             step, unit, limit = joint.velocity_si(first - was), f"{joint.unit}/s", "acceleration"
@@ -207,8 +200,7 @@ class Plays:
             step, unit, limit = (first - was) * joint.scale, joint.unit, "velocity"
         return (
             f"would step {step:+g} {unit} at its first tick from where {source} had sent it "
-            f"when the play reached its bus, past its max_{limit} in "
-            f"{'one follow period' if periods == 1 else f'{periods} follow periods'}"
+            f"when the play reached its bus, past its max_{limit} in one follow period"
         )
 
     def _stream_left(self, driver: Driver, at: float) -> None:
