@@ -662,7 +662,7 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
         "*", "command_refused", {"code": code, "message": message})
     # kept among the commands with its refusal, as a refused command is (an audit: missing)
     [(recorded_key, recorded_payload, reply, _)] = recorded
-    kept = b"" if code == "too_large" else payload  # one too large is never read (bridge's _read)
+    kept = b"" if code == "too_large" else payload  # one too large is never read (bridge's _taken)
     assert (recorded_key, recorded_payload) == (key, kept)
     assert reply["error"] == {"code": code, "message": message}
     for good in (b"", b" \n", b"{}", b'{"client": "panel"}'):

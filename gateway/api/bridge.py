@@ -663,7 +663,10 @@ class ZenohBridge:
     def _on_estop(self, sample: zenoh.Sample) -> None:
         came = now()  # when it came, for the recorder: its frames may go before it is told
         stopped = self.api.stop_every_bus()  # first: the payload only names its sender
-        payload = _read(sample.payload) or b""  # one too large for a client's name: none
+        try:
+            payload = _taken(sample.payload)
+        except RefusedError:  # too large to name a client: it names none
+            payload = b""
         self._told_estop(stopped, _sender(payload), str(sample.key_expr))
         if self.on_command is not None:
             self.on_command(str(sample.key_expr), payload, None, came)
@@ -722,16 +725,15 @@ class ZenohBridge:
         if key != f"{self.base}/estop/reset":
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
-        payload = _read(sample.payload)
+        payload = b""  # what is recorded of one too large to read
         try:
-            if payload is None:
-                raise too_large(_size(sample.payload), MAX_PAYLOAD)
+            payload = _taken(sample.payload)
             sender = _named_sender(payload, only_client=True)
         except RefusedError as refusal:
             refused = error_reply(refusal)
             self.put_reports.refused("*", refused["error"])  # the whole gateway's
             if self.on_command is not None:  # the flight recorder keeps refusals too
-                self.on_command(key, payload or b"", refused, None)
+                self.on_command(key, payload, refused, None)
             return
         self.estop_reset(sender)
         if self.on_command is not None:
@@ -811,11 +813,11 @@ class ZenohBridge:
         """The payload of a put on ``key`` (of the device or base ``name``), copied out of
         zenoh only when the key takes so many bytes (``_routed``); else ``None``, refused
         ``too_large`` and told as any refused put is."""
-        payload = _read(sample.payload)
-        if payload is None:
-            refused = too_large(_size(sample.payload), MAX_PAYLOAD)
+        try:
+            return _taken(sample.payload)
+        except RefusedError as refused:
             self._report_put(name, key, b"", error_reply(refused))
-        return payload
+            return None
 
     def _report_put(
         self, device: str, key: str, payload: bytes, reply: dict[str, Any] | None
@@ -949,20 +951,19 @@ def _routed(
     2 MiB gets was handled some 300 a second, fewer than four clients sent, and zenoh's ring
     held what waited (3.7 GB in 25 s); refused unread, they are handled as fast as they come
     (rule 6)."""
-    payload = _read(query.payload, limit)
-    if payload is None:
-        refused = error_reply(too_large(_size(query.payload), limit))
+    try:
+        payload = _taken(query.payload, limit)
+    except RefusedError as exc:
+        refused = error_reply(exc)
         return key, b"", lambda: settled(refused)
     return key, payload, lambda: carry_out(payload)
 
 
-def _read(payload: zenoh.ZBytes | None, limit: int = MAX_PAYLOAD) -> bytes | None:
+def _taken(payload: zenoh.ZBytes | None, limit: int = MAX_PAYLOAD) -> bytes:
     """``payload`` copied out of zenoh when it is at most ``limit`` bytes (none: empty);
-    ``None`` past it, never copied (``_routed``)."""
+    past it refused ``too_large`` by its size, never copied (``_routed``)."""
     if payload is None:
         return b""
-    return payload.to_bytes() if len(payload) <= limit else None
-
-
-def _size(payload: zenoh.ZBytes | None) -> int:
-    return 0 if payload is None else len(payload)
+    if len(payload) > limit:
+        raise too_large(len(payload), limit)
+    return payload.to_bytes()

@@ -267,9 +267,8 @@ def _last_commanded(driver: Driver, carries: Follows, moment: float) -> float | 
     (the checks took its measured speed then)."""
     if driver.follows != carries:
         return None
-    speed_field = driver.joint.declaration.target_speed_rpm or ""
-    if carries == "velocity" and driver.telemetry(moment).get(speed_field) is None:
-        return None
+    if carries == "velocity":  # ``commanded`` takes 0 for a speed not known: a stream's start
+        return driver.telemetry(moment).get(driver.joint.declaration.target_speed_rpm or "")
     return commanded(driver, moment)
 
 
