@@ -79,7 +79,7 @@ def test_the_drive_takes_each_wheels_limits_from_its_joint() -> None:
                        slow=RIGHT | {"name": "slow", "max_acceleration": 30.0})
     runner = build_bus(config.buses[0])
     bases = Bases(config.bases, GatewayApi("gw", {"can0": runner}), lambda event: None,
-                  lambda name, odometry: None, NoTrajectories())
+                  lambda name, odometry: None, NoTrajectories(), key_base="busgate/gw")
     geometry = bases.bases["base"].drive.geometry
     assert (geometry.max_wheel, geometry.max_wheel_accel) == (3 * TURN, 30.0)
 
@@ -114,7 +114,7 @@ class World:
                                          self.events.append, driven_by=self.api.driven_by)
         self.bases = Bases(config.bases, self.api, self.events.append,
                            lambda name, odometry: self.odometry.append(odometry),
-                           self.trajectories)
+                           self.trajectories, key_base="busgate/gw")
         self._stop = threading.Event()
         self._rounds = threading.Thread(target=self._loop, daemon=True)
         self._rounds.start()
@@ -274,7 +274,7 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
     assert refused["error"]["code"] == "estopped"
     assert refused["error"]["message"] == (  # what the base takes, not the wheel's own op
         'base base: wheel wl is e-stopped: send {"op":"enable"} to the base to let it move '
-        "again (or reset the e-stop: a put on <prefix>/gw/estop/reset)")
+        "again (or reset the e-stop: a put on busgate/gw/estop/reset)")
     assert world.base({"op": "status"})["base"]["twist"] == {"linear": 0.0, "angular": 0.0}
     for reset in world.api.reset_estop("test"):
         reset.result(5)
@@ -346,7 +346,7 @@ def test_a_twist_takes_no_wheel_a_trajectory_plays(world) -> None:
     naming it, and nothing moves."""
     assert world.base({"op": "enable"})["ok"]
     bases = Bases(world.config.bases, world.api, world.events.append,
-                  lambda name, odometry: None, OnePlaying())
+                  lambda name, odometry: None, OnePlaying(), key_base="busgate/gw")
     since = len(world.sim.recorder.received())
     refused = bases.command("base", b'{"op":"twist","linear":0.2}').result(10)
     assert refused["error"]["code"] == "busy"

@@ -67,7 +67,7 @@ class IdleBase:
         self.bases = Bases(config.bases, self.gateway if recorded else self.api,
                            self.events.append,
                            lambda name, message: self.odometry.append((name, message)),
-                           NoTrajectories())
+                           NoTrajectories(), key_base="busgate/gw")
         self.base = self.bases.bases["base"]
 
     def read(self, wheel: str, position: float | None, ts: float | None,

@@ -191,3 +191,19 @@ def test_a_flood_of_estops_marks_at_most_max_marks(tmp_path) -> None:
         window = timeline.window_of(stream, 0.010)
     assert len(window.estops) == timeline.MAX_MARKS
     assert window.estops == sorted(window.estops)
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["-o", "x.mcap", "--span-ms", "200"],
+     "--span-ms cannot go with a recording (no --info, no --timeline)"),
+    (["-o", "x.mcap", "--end", "5"], "--end cannot go with a recording (no --info, no --timeline)"),
+    (["--info", "x.mcap", "--timeline", "x.mcap", "-o", "y.svg"],
+     "--timeline and -o cannot go with --info"),
+    (["--timeline", "x.mcap", "--seconds", "3", "busgate/**"],
+     "--seconds and a KEYEXPR cannot go with --timeline"),
+])
+def test_an_option_its_mode_would_ignore_is_refused(tmp_path, monkeypatch, capsys, args, words):
+    monkeypatch.chdir(tmp_path)
+    assert main(["record", *args]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [f"busgate record: error: {words}"]
+    assert list(tmp_path.iterdir()) == []  # nothing written, no session opened

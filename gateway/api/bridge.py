@@ -211,6 +211,7 @@ class ZenohBridge:
             lambda event: self.events.append(event),
             self._odometry,
             self.trajectories,
+            key_base=self.base,
         )
         self.joints = JointsFeed(
             config.gateway.name,

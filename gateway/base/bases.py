@@ -189,8 +189,11 @@ class Bases:
         on_event: Callable[[DeviceEvent], None],
         publish: Callable[[str, dict[str, Any]], None],
         trajectories: Plays,
+        *,
+        key_base: str,
     ) -> None:
         self.api = api
+        self._estop_reset_key = f"{key_base}/estop/reset"  # named in the refusal that needs it
         self.on_event = on_event
         self.publish = publish  # (base name, odometry message)
         #: A twist and a trajectory's play are chosen under one lock, theirs (rule 3).
@@ -293,7 +296,7 @@ class Bases:
                     "estopped",
                     f"base {base.config.name}: wheel {wheel.name} is e-stopped: send "
                     '{"op":"enable"} to the base to let it move again (or reset the e-stop: '
-                    f"a put on <prefix>/{self.api.name}/estop/reset)",
+                    f"a put on {self._estop_reset_key})",
                 ) from None
             if (trajectory := self._trajectories.playing(wheel.name)) is not None:  # rule 3
                 raise RefusedError(

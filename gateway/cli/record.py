@@ -111,7 +111,6 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     record.add_argument(
         "--span-ms",
         type=float,
-        default=TIMELINE_SPAN_MS,
         help=f"--timeline: how much to draw (default {TIMELINE_SPAN_MS:g} ms)",
     )
     record.add_argument(
@@ -152,6 +151,7 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_record(args: argparse.Namespace) -> int:
+    _refuse_strays(args)
     if args.info is not None:
         return _print_info(Path(args.info))
     if args.timeline is not None:
@@ -187,6 +187,29 @@ def run_record(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _refuse_strays(args: argparse.Namespace) -> None:
+    """An option the chosen mode (--info, --timeline, or recording) would ignore is refused:
+    a tired operator's ``--span-ms`` without ``--timeline`` drew nothing and said nothing."""
+    given = {
+        "--info": args.info is not None,
+        "--timeline": args.timeline is not None,
+        "-o": args.output is not None,
+        "--seconds": args.seconds is not None,
+        "a KEYEXPR": bool(args.keys),
+        "--span-ms": args.span_ms is not None,
+        "--end": args.end is not None,
+    }
+    if given["--info"]:
+        mode, takes = "--info", {"--info"}
+    elif given["--timeline"]:
+        mode, takes = "--timeline", {"--timeline", "-o", "--span-ms", "--end"}
+    else:
+        mode, takes = "a recording (no --info, no --timeline)", {"-o", "--seconds", "a KEYEXPR"}
+    strays = [option for option, present in given.items() if present and option not in takes]
+    if strays:
+        raise CommandError(f"{' and '.join(strays)} cannot go with {mode}")
 
 
 def _record(
@@ -392,7 +415,8 @@ def _print_info(path: Path) -> int:
 
 
 def _draw_timeline(path: Path, args: argparse.Namespace) -> int:
-    span_ms, end = args.span_ms, args.end
+    span_ms = TIMELINE_SPAN_MS if args.span_ms is None else args.span_ms
+    end = args.end
     if not (math.isfinite(span_ms) and TIMELINE_SPAN_MS_MIN <= span_ms <= TIMELINE_SPAN_MS_MAX):
         raise CommandError(
             f"--span-ms is from {TIMELINE_SPAN_MS_MIN:g} to {TIMELINE_SPAN_MS_MAX:g}, not {span_ms}"
