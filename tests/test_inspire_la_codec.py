@@ -273,13 +273,22 @@ def _events(decoder_class, wire: bytes) -> list:
         (CommandDecoder, "02 01 7F 00", "unknown instruction 0x7f"),
         (CommandDecoder, "04 01 21 38 E8 03", "motion instruction at index 0x38, not 0x37"),
         (CommandDecoder, "03 01 04 00 99", "unknown control code 0x99"),
-        (ReplyDecoder, "03 01 7F 00 00", "unknown instruction 0x7f"),
     ],
 )
 def test_well_framed_but_unknown_is_discarded_whole(decoder_class, body, reason):
     header = "55 AA" if decoder_class is CommandDecoder else "AA 55"
     wire = _frame(header, body)
     assert _events(decoder_class, wire) == [Discarded(wire, reason)]
+
+
+def test_a_stray_header_before_a_reply_loses_not_the_reply():
+    """An audit's noise on the line: ``AA 55`` then the manual's status reply. The stray pair
+    read as a header (length 0xAA, id 0x55, instruction 0x11) held the reply behind it, waiting
+    for 175 bytes, until its exchange timed out."""
+    reply = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
+    events = _events(ReplyDecoder, bytes.fromhex("AA 55") + reply)
+    assert [type(event) for event in events] == [Discarded, Discarded, StatusReply]
+    assert events[0].reason == "instruction 0x11 answers no command"
 
 
 @pytest.mark.parametrize(
@@ -298,6 +307,7 @@ def test_well_framed_but_unknown_is_discarded_whole(decoder_class, body, reason)
         (ReplyDecoder, "AA 55 03 01 21"),  # a move's reply is the status frame
         (ReplyDecoder, "AA 55 03 01 20"),  # a follow's too
         (ReplyDecoder, "AA 55 11 FF 04"),  # nobody answers as 255
+        (ReplyDecoder, "AA 55 03 01 7F"),  # a reply is to a command the host sends
     ],
 )
 def test_impossible_header_is_dropped_without_waiting_for_a_body(decoder_class, head):

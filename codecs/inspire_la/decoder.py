@@ -4,8 +4,10 @@
 Both check the cheap header fields — length, id, instruction — as soon as the first five
 bytes are in, before waiting for the body: an instruction with a fixed size must carry exactly
 that length, broadcast frames must come from id 255, replies from ids 1–254. A corrupt
-header is thus discarded at once instead of holding the decoder for up to 255 bytes. A frame
-with a sound header and checksum but an instruction we do not know becomes ``Discarded``.
+header is thus discarded at once instead of holding the decoder for up to 255 bytes. A
+command with a sound header and checksum but an instruction we do not know becomes
+``Discarded``; a reply's instruction is its command's, so a reply header naming none the host
+sends is noise (a stray ``AA 55`` before a reply read as length 0xAA held the reply behind it).
 """
 
 from __future__ import annotations
@@ -67,8 +69,10 @@ class _LaDecoder(HeaderFramedDecoder[object]):
     """What both directions share; subclasses fill in the tables."""
 
     max_frame = MAX_FRAME
-    #: Allowed values of the length byte, per instruction (others: ``_ANY_LENGTH``).
+    #: Allowed values of the length byte, per instruction.
     lengths: ClassVar[dict[int, Container[int]]]
+    #: Those of an instruction not in ``lengths``: any (framed, then ``Discarded``) or none.
+    unknown_lengths: ClassVar[Container[int]] = _ANY_LENGTH
     #: Allowed device ids, per instruction (others: ``default_ids``).
     ids: ClassVar[dict[int, range]] = {}
     default_ids: ClassVar[range]
@@ -79,7 +83,9 @@ class _LaDecoder(HeaderFramedDecoder[object]):
         if len(buf) - start < FRAME_OVERHEAD:
             return None
         length, device_id, instruction = buf[start + 2 : start + 5]
-        if length not in self.lengths.get(instruction, _ANY_LENGTH):
+        if instruction not in self.lengths and not self.unknown_lengths:
+            return f"instruction {instruction:#04x} answers no command"
+        if length not in self.lengths.get(instruction, self.unknown_lengths):
             return f"length {length} impossible for instruction {instruction:#04x}"
         if device_id not in self.ids.get(instruction, self.default_ids):
             return f"device id {device_id} impossible for instruction {instruction:#04x}"
@@ -200,6 +206,7 @@ class ReplyDecoder(_LaDecoder):
     """
 
     header = REPLY_HEADER
+    unknown_lengths: ClassVar[Container[int]] = ()
     lengths: ClassVar[dict[int, Container[int]]] = {
         Instruction.READ: _WITH_DATA,
         # Section 3.4.1's one reserved byte, or the status frame (sections 3.5.2, 3.7.x).
