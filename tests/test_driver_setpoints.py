@@ -202,7 +202,7 @@ def test_zlac_absolute_position_is_the_target(make, target: int) -> None:
 def test_zlac_relative_position_is_judged_from_the_measured_position(make) -> None:
     d = prepared(make(), *RELATIVE)
     assert positions(d, '{"op":"move","position":500}') == [position(5, None)]  # none measured
-    d.take_position(-12_000)
+    d.take_position(-12_000, 0.0)
     assert positions(d, '{"op":"move","position":500}') == [position(5, -11_500)]
     assert positions(d, '{"op":"move","position":-70000}') == [position(5, -82_000)]
 
@@ -210,7 +210,7 @@ def test_zlac_relative_position_is_judged_from_the_measured_position(make) -> No
 @both_wires
 def test_zlac_position_mode_not_known_is_a_position_not_known(make) -> None:
     d = prepared(make(), *POSITION_MODE)
-    d.take_position(100)
+    d.take_position(100, 0.0)
     assert positions(d, '{"op":"move","position":500}') == [position(5, None)]
 
 
@@ -330,7 +330,7 @@ def test_zlac_rs232_monitor_sets_nothing() -> None:
 @both_wires
 def test_zlac_setpoints_leave_the_state_as_it_was(make) -> None:
     d = prepared(make(), *RELATIVE)
-    d.take_position(7)
+    d.take_position(7, 0.0)
     before = (d.machine.settings, d.machine.expected(), dict(d.measured))
     for text in ('{"op":"move","position":9}', '{"op":"set_mode","mode":"velocity"}'):
         d.setpoints(d.frames_of(d.parse(text)))

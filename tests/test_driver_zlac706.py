@@ -356,14 +356,14 @@ def test_relative_steps_are_judged_from_where_the_steps_before_send_the_shaft() 
     d = Zlac706CanDriver("wheel", 1, joint=joint)
     d = position_driver(d, '{"op":"disable"}', '{"op":"set_position_mode","relative":true}',
                         '{"op":"enable"}')  # enabled from off: its zero, and its target, here
-    d.take_position(0)
+    d.take_position(0, 0.0)
     plan(d, '{"op":"move","position":6000}')  # queued, not yet answered
     steps = d.setpoints(d.frames_of(d.parse('{"op":"move","position":6000}')))
     assert sorted(s.value for s in steps if s.quantity == "position") == [6000, 12_000]
     with pytest.raises(RefusedError, match="max"):  # as the bus judges each (``check_limits``)
         for step in steps:
             joint.check(step.quantity, step.value)
-    d.take_position(5000)  # on its way: from the place it goes to, and from where it is
+    d.take_position(5000, 0.0)  # on its way: from the place it goes to, and from where it is
     steps = d.setpoints(d.frames_of(d.parse('{"op":"move","position":-2000}')))
     assert sorted(s.value for s in steps if s.quantity == "position") == [3000, 4000]
     d.missed(1.0, plan(d, '{"op":"move","position":100}')[0].frame)  # landed, or not

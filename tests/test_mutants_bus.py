@@ -35,6 +35,7 @@ import pytest
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can as zcan
+from busgate.codecs import zlac706_rs232 as zrs232
 from busgate.codecs.can_frame import CanFrame
 from busgate.errors import BusIOError, BusUnavailableError, DeviceTimeoutError
 from busgate.gateway.bus import can_owner as can_owner_module
@@ -902,6 +903,17 @@ def test_a_silent_device_times_out_by_id_each_time_and_the_link_stays(device):
         counters = owner.counters
         assert (counters.timeouts, counters.frames_out) == (2, 2)
         assert counters.bytes_out == 2 * len(STATUS_1.wire) and owner.is_open
+    finally:
+        owner.close()
+
+
+def test_a_silent_device_of_a_link_without_ids_is_told_as_the_device(device):
+    """RS232's frames carry no id: its timeout said "no reply from id None" (a wire audit)."""
+    owner = open_serial(device.port, link_timing("zlac706_rs232", 115_200, margin_s=0.01))
+    try:
+        with pytest.raises(DeviceTimeoutError) as timeout:
+            finished(lambda: owner.exchange(Request.of(zrs232, zrs232.MonitorRequest())))
+        assert str(timeout.value) == f"no reply from the device on {device.port}"
     finally:
         owner.close()
 

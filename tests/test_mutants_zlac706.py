@@ -71,8 +71,8 @@ def test_a_power_up_forgets_the_power_stage_and_the_speed_sent() -> None:
                  '{"op":"velocity","rpm":100}'):
         run(driver, plan(driver, text))
     assert driver.keepalive(0.0) is not None
-    driver.take_position(100_000)
-    driver.take_position(0)  # the counter back at 0 from far away: the drive powered up
+    driver.take_position(100_000, 0.0)
+    driver.take_position(0, 0.0)  # the counter back at 0 from far away: the drive powered up
     assert driver.telemetry(0.0)["enabled"] is False
     assert driver.commanded_speed_raw == 0 and driver.keepalive(0.0) is None
 
@@ -88,7 +88,7 @@ def test_a_relative_move_leaves_no_place_for_a_stream_to_start_from_but_where_it
                  '{"op":"move","position":500}'):
         run(driver, plan(driver, text))
     assert driver.telemetry(0.0)["target"] is None
-    driver.take_position(4500)
+    driver.take_position(4500, 0.0)
     run(driver, plan(driver, '{"op":"set_position_mode","relative":false}'))
     assert driver.follows == "position" and commanded(driver, 0.0) == 4500
 
@@ -265,15 +265,29 @@ def test_the_settings_restored_after_a_reboot_may_be_repeated() -> None:
 
 def test_a_reboot_is_a_jump_to_zero_of_more_than_the_bound_and_says_from_where() -> None:
     driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
-    driver.take_position(REBOOT_POSITION_JUMP)
-    driver.take_position(0)
+    driver.take_position(REBOOT_POSITION_JUMP, 0.0)
+    driver.take_position(0, 0.0)
     assert event_types(driver) == []
-    driver.take_position(-REBOOT_POSITION_JUMP - 1)
-    driver.take_position(0)
+    driver.take_position(-REBOOT_POSITION_JUMP - 1, 0.0)
+    driver.take_position(0, 0.0)
     (event,) = driver.drain_events()
     assert event.type == "rebooted"
     far = -REBOOT_POSITION_JUMP - 1
     assert event.fields["evidence"] == f"position counter back at 0 from {far}"
+
+
+def test_reports_further_apart_allow_a_longer_jump_before_a_zero_is_a_reboot() -> None:
+    """An outside wire audit, heartbeats 500 ms apart (the manual's example): a real move home
+    at speed, 80,000 pulses in one interval (960 rpm), was taken for a reboot. The bound is
+    what the motor turns at its 1000 rpm limit between the two reports, 50 ms more."""
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=500)
+    driver.take_position(80_000, 10.0)
+    driver.take_position(0, 10.5)
+    assert event_types(driver) == []
+    driver.take_position(95_000, 11.0)  # past 1000 rpm over 0.55 s (91,667): no motion
+    driver.take_position(0, 11.5)
+    (event,) = driver.drain_events()
+    assert event.type == "rebooted"
 
 
 def test_a_late_echo_is_no_news_and_an_alarm_report_begins_no_reading() -> None:
@@ -380,6 +394,6 @@ def test_a_drive_that_powered_up_again_has_its_run_signal_cut() -> None:
     """A power-up leaves the drive released: an alarm reset may go without a disable."""
     driver = Zlac706CanDriver("w", 1, heartbeat_ms=10)
     run(driver, plan(driver, '{"op":"enable"}'))
-    driver.take_position(100_000)
-    driver.take_position(0)  # the counter back at 0 from far away: the drive powered up
+    driver.take_position(100_000, 0.0)
+    driver.take_position(0, 0.0)  # the counter back at 0 from far away: the drive powered up
     assert plan(driver, '{"op":"clear_alarm"}')

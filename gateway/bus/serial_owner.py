@@ -172,7 +172,8 @@ class SerialBusOwner(BusOwner):
             if remaining <= 0:
                 break
         self.counters.timeouts += 1
-        message = f"no reply from id {expected.source_id} on {self.port}"
+        who = "the device" if expected.source_id is None else f"id {expected.source_id}"
+        message = f"no reply from {who} on {self.port}"  # RS232's one device has no id
         if self._early:
             message += (
                 f"; {self._early} came before the request could have left the wire at "

@@ -19,7 +19,6 @@ from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
 from busgate.gateway.drivers.base import Deadman, Driver, Effect, Follows, Setpoint
 from busgate.gateway.drivers.zlac706_state import (
-    REBOOT_POSITION_JUMP,
     RESTORED,
     SETTING,
     Mode,
@@ -29,6 +28,7 @@ from busgate.gateway.drivers.zlac706_state import (
     Zlac706State,
     check,
     is_idempotent,
+    reboot_jump_pulses,
     role_effect,
 )
 from busgate.schemas import zlac706 as schema
@@ -123,6 +123,7 @@ class Zlac706Driver(Driver):
         self._told: tuple[Settings | None, dict[str, Any]] = (None, {})
         #: A speed or a torque was commanded when it went offline: stopped when back.
         self._preset_when_gone = False
+        self._position_at: float | None = None  # when the last position was reported
 
     # -- planning -------------------------------------------------------------------------------
 
@@ -435,11 +436,15 @@ class Zlac706Driver(Driver):
                 self.codec, frame, idempotent=True
             )
 
-    def take_position(self, raw: int) -> None:
-        """A reported position; a jump to 0 from far away means the drive powered up again."""
+    def take_position(self, raw: int, now: float) -> None:
+        """A position reported at ``now``; a jump to 0 from further than the motor turns
+        meanwhile means the drive powered up again."""
         before, self.measured["position"] = self.measured["position"], raw
-        if raw == 0 and before is not None and abs(before) > REBOOT_POSITION_JUMP:
-            self.rebooted(f"position counter back at 0 from {before}")
+        since, self._position_at = self._position_at, now
+        if raw == 0 and before is not None:
+            elapsed_s = 0.0 if since is None else max(0.0, now - since)
+            if abs(before) > reboot_jump_pulses(elapsed_s):
+                self.rebooted(f"position counter back at 0 from {before}")
 
     def went_offline(self, reason: str) -> None:
         """Offline (no heartbeat or answer, or its bus down): the speed commanded before is

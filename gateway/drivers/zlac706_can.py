@@ -236,7 +236,7 @@ class Zlac706CanDriver(Zlac706Driver):
         self.last_heartbeat = now
         if self.misses < OFFLINE_AFTER:  # rule 2: a heartbeat answers no write
             self.reported(now)
-        handler(self, event)
+        handler(self, event, now)
         return self._news_with(kind)
 
     def begins_reading(self, event: object) -> bool:
@@ -273,23 +273,23 @@ class Zlac706CanDriver(Zlac706Driver):
     def has_measurements(self) -> bool:
         return self.last_heartbeat is not None
 
-    def _take_position(self, event: codec.HeartbeatPosition) -> None:
-        self.take_position(event.position_raw)
+    def _take_position(self, event: codec.HeartbeatPosition, now: float) -> None:
+        self.take_position(event.position_raw, now)
         self.take_alarms(NO_ALARMS)
 
-    def _take_current_speed(self, event: codec.HeartbeatCurrentSpeed) -> None:
+    def _take_current_speed(self, event: codec.HeartbeatCurrentSpeed, now: float) -> None:
         self.measured["current_ma"] = round(event.current_a * 1000)
         self.measured["speed_rpm"] = event.speed_rpm
         self.take_alarms(NO_ALARMS)
 
-    def _take_alarm_report(self, event: codec.AlarmReport) -> None:
+    def _take_alarm_report(self, event: codec.AlarmReport, now: float) -> None:
         self.take_alarms(event.alarms)
 
 
 #: The frames of one heartbeat (rule 3).
 HEARTBEAT_HALVES = frozenset({codec.HeartbeatPosition, codec.HeartbeatCurrentSpeed})
 
-_UNSOLICITED: dict[type, Callable[[Zlac706CanDriver, Any], None]] = {
+_UNSOLICITED: dict[type, Callable[[Zlac706CanDriver, Any, float], None]] = {
     codec.HeartbeatPosition: Zlac706CanDriver._take_position,
     codec.HeartbeatCurrentSpeed: Zlac706CanDriver._take_current_speed,
     codec.AlarmReport: Zlac706CanDriver._take_alarm_report,

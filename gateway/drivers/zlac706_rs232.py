@@ -191,11 +191,11 @@ class Zlac706Rs232Driver(Zlac706Driver):
             monitor = codec.assemble_monitor(reply)
         except CodecError:
             return {}  # eight frames, but one of them twice: take none rather than guess
-        self._take_monitor(monitor)
+        self._take_monitor(monitor, now)
         return {}
 
-    def _take_monitor(self, monitor: codec.MonitorReply) -> None:
-        self.take_position(monitor.feedback_position_raw)
+    def _take_monitor(self, monitor: codec.MonitorReply, now: float) -> None:
+        self.take_position(monitor.feedback_position_raw, now)
         self.measured.update(
             current_ma=round(monitor.current_a * 1000),
             speed_rpm=monitor.speed_rpm,

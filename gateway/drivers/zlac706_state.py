@@ -80,8 +80,22 @@ RESTORED = frozenset(
 )
 #: A position report of exactly 0 after one this far away (pulses) is the counter's power-up
 #: value, not motion: with note 6's 10000 pulses per turn, a hub motor at its 1000 rpm limit
-#: covers 16,667 pulses between two reports 100 ms apart; this is four times that.
+#: covers 16,667 pulses between two reports 100 ms apart; this is four times that. Reports
+#: further apart (a heartbeat set slower: the manual's example is 500 ms) allow more
+#: (``reboot_jump_pulses``).
 REBOOT_POSITION_JUMP = 65_536
+#: The most a hub motor's counter moves in a second: its 1000 rpm limit.
+_TOP_PULSES_PER_S = common.MAX_SPEED_RPM * common.PULSES_PER_TURN / 60
+#: Added to the time between two reports: each is dated when its bus thread took it.
+_REPORT_DATE_SLACK_S = 0.05
+
+
+def reboot_jump_pulses(elapsed_s: float) -> float:
+    """How far from 0 a position reported ``elapsed_s`` before a report of 0 must be for the
+    0 to be a power-up: further than the motor turns at its limit meanwhile (an audit saw a
+    real move home, between heartbeats 500 ms apart, taken for a reboot: the drive's settings
+    written again and its next move refused as before enable)."""
+    return max(REBOOT_POSITION_JUMP, _TOP_PULSES_PER_S * (elapsed_s + _REPORT_DATE_SLACK_S))
 
 
 @dataclass(frozen=True, slots=True)
