@@ -49,9 +49,10 @@ Rules of this file:
    printed a traceback. It runs on a daemon thread of its own (``_opened``), which the
    calling thread waits for as signals allow (a wait on a lock); a session that opens after
    its caller left is closed (on the asyncio face too, whose awaiting a deadline or a stop
-   cancels: ``steps.Call``'s ``unwanted``). The caller that leaves waits ``LEFT_OPEN_WAIT_S``
-   at most for the opening to end first: one that ends as the program does opens rule 6's
-   window again (zenoh handing its thread back to an interpreter that is finalizing).
+   cancels: ``steps.Call``'s ``unwanted``). The caller that leaves (of either face:
+   ``Call.left_wait_s``) waits ``LEFT_OPEN_WAIT_S`` at most for the opening, and that close,
+   to end first: one that ends as the program does opens rule 6's window again (zenoh
+   handing its thread back to an interpreter that is finalizing).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from typing import Any, Generic, TypeVar
 from busgate.client import trajectories
 from busgate.client.base import FleetDevice, Found, Shared, raw_payload
 from busgate.client.bases import find_base
-from busgate.client.core import Core
+from busgate.client.core import LEFT_OPEN_WAIT_S, Core
 from busgate.client.devices import DeviceBase
 from busgate.client.errors import NoAnswerError
 from busgate.client.faces import Face, feeding, taking, waiting
@@ -47,7 +47,11 @@ def connecting(*args: Any, **options: Any) -> Steps[Shared]:
     ``close`` it. ``lease_s``: how soon gateways give up on this client when it freezes or
     is cut off (its claims and streams go with it). ``timeout``: the default wait of every
     command. ``ConnectError`` when no session can be opened."""
-    core = yield Call(functools.partial(Core, *args, **options), unwanted=Core.close)
+    core = yield Call(
+        functools.partial(Core, *args, **options),
+        unwanted=Core.close,
+        left_wait_s=LEFT_OPEN_WAIT_S,
+    )
     return Shared(core)
 
 
