@@ -92,7 +92,12 @@ from busgate.errors import CommandError
 from busgate.schemas.endpoints import ENDPOINT_FORM, host_of, is_endpoint
 from busgate.schemas.payload import MAX_WHOLE_GATEWAY
 from busgate.schemas.validation import cut
-from busgate.schemas.zenoh_session import TLS_PROTOCOLS, session_config, zenoh_reason
+from busgate.schemas.zenoh_session import (
+    MAX_RECEIVED,
+    TLS_PROTOCOLS,
+    session_config,
+    zenoh_reason,
+)
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +115,8 @@ DEFAULT_TIMEOUT_S = 5.0
 #: What a client's session may be: a router that listened on nothing would route for nobody
 #: (``busgate router`` is the fleet's).
 CLIENT_MODES = ("client", "peer")
+#: The most of a client id another names that a refusal shows (a program's may be megabytes).
+SHOWN_CLIENT_CHARS = 200
 #: How long the close at interpreter exit of a client never closed may take (rule 5).
 EXIT_CLOSE_S = 0.5
 #: How long a caller that leaves an opening (a Ctrl-C) waits for zenoh to hand its thread
@@ -290,11 +297,18 @@ class Core:
         reply's body, or of the error it is."""
         if body.get("client", self.client_id) != self.client_id:
             raise CommandError(
-                f"a command of client {self.client_id!r} names client {body['client']!r}"
+                f"a command of client {self.client_id!r} names client "
+                f"{cut(repr(body['client']), SHOWN_CLIENT_CHARS)}"
             )
         waited = self.timeout_s if timeout_s is None else timeout_s
         gateway = self.keys.gateway_of(key)
-        asked = self.ask(key, dumps({**body, "client": self.client_id}), timeout_s=waited)
+        payload = dumps({**body, "client": self.client_id})
+        if len(payload) > MAX_RECEIVED:  # dropped unseen: an audit's 3 MB waited its timeout
+            raise CommandError(
+                f"a command of {len(payload)} bytes to {key[:200]!r}: no gateway reads a "
+                f"message over {MAX_RECEIVED} bytes"
+            )
+        asked = self.ask(key, payload, timeout_s=waited)
         return then(asked, lambda answers: first_ok(answers, key, waited, gateway))
 
     def put(self, key: str, payload: bytes, *, urgent: bool = False) -> None:
@@ -370,7 +384,9 @@ class Core:
 
     def on_gateways(self, listener: Callable[[str, bool], None]) -> Callable[[], None]:
         """Call ``listener(gateway, alive)`` (zenoh's thread) when a gateway's token comes
-        (``True``) or goes (``False``), first for each gateway up now; returns what stops it."""
+        (``True``) or goes (``False``), first for each gateway up now; returns what stops it.
+        ``CommandError`` once closed: it would never be called."""
+        self.require_open(self.keys.alive("*"))
         with self._lock:
             self._listeners.append(listener)
             up = sorted(self.gateways_up)

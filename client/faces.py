@@ -166,6 +166,7 @@ def opener(steps: Callable[P, Steps[S]], face: Callable[[S], R]) -> Callable[P, 
     the parameters and docstring of ``steps``."""
 
     def connect(*args: P.args, **kwargs: P.kwargs) -> R:
+        inspect.signature(steps).bind(*args, **kwargs)  # told as connect's, not Core's
         return face(run(steps(*args, **kwargs)))
 
     _signed(connect, steps, face.__module__, getattr(face, "__name__", "{}"))

@@ -166,6 +166,8 @@ def split_name(name: str, what: str = "device or bus") -> tuple[str | None, str]
 def check_key(text: str) -> str:
     """``text`` when zenoh takes it as a key expression; ``CommandError`` (one line) when zenoh
     would refuse it, or it is too long for a zenoh message (the session would panic)."""
+    if not isinstance(text, str):
+        raise CommandError(f"a key expression is text, not {type(text).__name__}")
     size = len(text.encode())
     if size > MAX_KEY_BYTES:
         raise CommandError(

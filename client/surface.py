@@ -38,6 +38,7 @@ Bus = TypeVar("Bus")
 Trajectory = TypeVar("Trajectory")
 Joint = TypeVar("Joint")
 Base = TypeVar("Base")
+C = TypeVar("C", bound=Callable[..., Any])
 
 
 @taking(Core)
@@ -164,7 +165,7 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         now) and goes (``False``: its liveliness token went, as when its process ended), on
         zenoh's thread (it must not block; ``loop.call_soon_threadsafe`` brings it to an
         asyncio loop); returns what stops it."""
-        return self._shared.core.on_gateways(callback)
+        return self._shared.core.on_gateways(_callable(callback))
 
     @waiting
     def estop(self, gateway: str | None = None) -> Steps[None]:
@@ -234,10 +235,18 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         """``callback(key, payload, ns)`` for every sample on ``key``: its bytes as they came
         and its time (ns since the epoch: zenoh's timestamp where it has one, else its
         arrival), on zenoh's thread; returns what ends the subscription (``busgate record``)."""
-        return self._shared.core.subscribe_timed(key, callback)
+        return self._shared.core.subscribe_timed(key, _callable(callback))
 
     def subscribe(self, key: str, callback: Callable[[str, Any], None]) -> Callable[[], None]:
         """``callback(key, body)`` for every sample on ``key``, on zenoh's thread (it must not
         block: hand over and return; ``loop.call_soon_threadsafe`` hands over to an asyncio
         loop); returns what ends the subscription."""
-        return self._shared.subscribe(key, callback)
+        return self._shared.subscribe(key, _callable(callback))
+
+
+def _callable(callback: C) -> C:
+    """``callback`` when it can be called; ``CommandError`` at once, not a traceback logged
+    for each sample later (an audit's ``subscribe(key, None)``)."""
+    if not callable(callback):
+        raise CommandError(f"a callback is a function, not {type(callback).__name__}")
+    return callback

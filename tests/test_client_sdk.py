@@ -650,6 +650,24 @@ def test_a_closed_client_gives_no_state_it_kept(connect) -> None:
         la1.state()
     with pytest.raises(CommandError, match="session closed"):
         closed.joints("demo")
+    with pytest.raises(CommandError, match="session closed"):  # it would never be called
+        closed.on_gateways(lambda gateway, alive: None)
+
+
+def test_a_tired_programmers_arguments_are_refused_at_once_in_one_line(client, demo) -> None:
+    """An audit's misuse: each failed later or as Python's own error naming internals."""
+    for subscribe in (client.subscribe, client.subscribe_raw):
+        with pytest.raises(CommandError, match="a callback is a function, not NoneType"):
+            subscribe("busgate/demo/dev/la1/state", None)  # a traceback logged each sample
+    with pytest.raises(CommandError, match="a callback is a function, not str"):
+        client.on_gateways("print")
+    with pytest.raises(CommandError, match="a key expression is text, not NoneType"):
+        client.put(None, {})  # AttributeError
+    with pytest.raises(TypeError, match=r"^missing a required argument: 'client_id'$"):
+        bc.connect(demo.endpoint)  # named Core.__init__
+    with pytest.raises(CommandError) as foreign:
+        client.device("demo/la1").send({"op": "status", "client": "x" * 100_000})
+    assert len(str(foreign.value)) < 400  # the whole 100,000 characters before
 
 
 def test_a_wait_under_way_when_its_client_closes_ends_at_once_saying_so(connect) -> None:
@@ -765,6 +783,20 @@ def test_the_gateways_refusal_is_raised_as_its_codes_class(client, case) -> None
         la2.send(REFUSED[case])
     assert refused.value.code == CODES[case] and refused.value.gateway == "demo"
     assert refused.value.message
+
+
+def test_a_payload_no_gateway_reads_is_refused_at_once_not_after_the_timeout(client) -> None:
+    """An audit: a 3 MB command was dropped unseen by the gateway's session (2 MiB at most)
+    and told as "nobody answered" after the whole timeout. (A raw query or put is left as
+    the program wrote it: its key may be a peer's that reads more.)"""
+    pad = "x" * 3_000_000
+    started = time.monotonic()
+    with pytest.raises(CommandError, match="bytes to 'busgate/demo/dev/la2/cmd': no gateway "
+                                           "reads a message over 2097152 bytes"):
+        client.device("demo/la2").send({"op": "status", "pad": pad}, timeout=10)
+    with pytest.raises(CommandError, match="no gateway reads"):
+        client.bus("demo/uart0").send({"op": "status", "pad": pad}, timeout=10)
+    assert time.monotonic() - started < 5  # not the 10 s each would have waited
 
 
 def test_out_of_range_for_each_kind_and_for_the_typed_helpers(client) -> None:
