@@ -67,7 +67,7 @@ CovarianceDiagonal = Annotated[list[Variance], Field(min_length=6, max_length=6)
 class Ros2Section(BaseModel):
     """``[ros2]``: the ROS 2 face (the rules above)."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
     domain_id: Annotated[int, Field(ge=0, le=232)] = 0
     namespace: str = ""

@@ -638,7 +638,9 @@ def test_resets_put_in_a_loop_each_reach_the_bus_and_are_told_once_a_tenth_of_a_
     (b"\xff", "not_utf8", "payload is not UTF-8: invalid start byte"),
     (b"[]", "bad_command", "a command is a JSON object"),
     (b'{"client": "a b"}', "bad_command", "client 'a b' is no client id"),
-    (b'{"client": 7}', "bad_command", "client '7' is no client id"),
+    (b'{"client": 7}', "bad_command", "client 7 is no client id"),  # told as sent, not '7'
+    (b'{"client": true}', "bad_command", "client true is no client id"),
+    (b'{"client": ["a"]}', "bad_command", 'client ["a"] is no client id'),
     (b'{"op": "move", "position": 500}', "bad_command",  # a command on the wrong key
      'a reset of every device takes nothing but "client", not op, position: nothing was reset'),
     (b'{"client": "x", "extra": 1}', "bad_command",
@@ -665,9 +667,9 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     kept = b"" if code == "too_large" else payload  # one too large is never read (bridge's _taken)
     assert (recorded_key, recorded_payload) == (key, kept)
     assert reply["error"] == {"code": code, "message": message}
-    for good in (b"", b" \n", b"{}", b'{"client": "panel"}'):
+    for good in (b"", b" \n", b"{}", b'{"client": null}', b'{"client": "panel"}'):
         bridge._on_estop_reset(SimpleNamespace(payload=zenoh.ZBytes(good), key_expr=key))
-    assert len(runner._inbox) == 4
+    assert len(runner._inbox) == 5
 
 
 def test_a_reset_of_every_bus_is_logged_told_and_handed_to_each_bus(caplog):

@@ -558,6 +558,14 @@ def test_an_odometry_covariance_diagonal_that_is_no_six_variances_is_refused(
         assert f"ros2.{key}" in str(refused.value) and why in str(refused.value)
 
 
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_a_timeout_that_is_no_finite_number_is_told_so(value) -> None:
+    """An audit: NaN was refused as "less than or equal to 60", unlike every other table."""
+    with pytest.raises(ConfigError) as refused:
+        ros2_config({"command_timeout_s": value})
+    assert "ros2.command_timeout_s: Input should be a finite number" in str(refused.value)
+
+
 def test_names_of_their_own_and_bases_sharing_an_absolute_tf_are_taken() -> None:
     two = [BASE, {**BASE, "name": "other", "left": "wl2", "right": "wr2"}]
     assert ros2_config({}, [BASE]).ros2 is not None

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import time
 from collections import deque
@@ -939,7 +940,8 @@ def _named_sender(payload: bytes, *, only_client: bool = False) -> str | None:
     client = fields.get("client")
     sender = client_named(client)
     if client is not None and sender is None:
-        raise RefusedError("bad_command", f"client '{shown(str(client))}' is no client id")
+        named = f"'{shown(client)}'" if isinstance(client, str) else json.dumps(client)[:40]
+        raise RefusedError("bad_command", f"client {named} is no client id")
     return sender
 
 
