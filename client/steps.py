@@ -76,7 +76,7 @@ class Wait(Step):
             raise self._no_answer() from None
 
     def _no_answer(self) -> NoAnswerError:
-        return NoAnswerError(f"{self.what}: no answer within {self.timeout_s:g} s")
+        return NoAnswerError(f"{self.what}: no answer within {self.timeout_s:.3g} s")
 
 
 @dataclass(frozen=True, slots=True)

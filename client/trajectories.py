@@ -21,6 +21,7 @@ from typing import Any
 
 from busgate.client.base import Shared
 from busgate.client.core import closed_reading
+from busgate.client.errors import NoAnswerError
 from busgate.client.faces import Face, feeding, waiting
 from busgate.client.feeds import Inbox
 from busgate.client.messages import MAX_WAIT_S, seconds, then
@@ -89,6 +90,7 @@ class Watch:
         self.finished: Future = Future()
         self._closed = False  # by ``close``: the client may still be open
         self._ended_with: Exception | None = None  # the subscription's end: what a reader meets
+        self._stop_listening = shared.core.on_gateway_gone(self._gateway_gone)
         key = shared.core.keys.feedback(gateway, trajectory_id)
         self._end = shared.subscribe(key, self._on_message, lambda: self._ended(key))
 
@@ -109,6 +111,7 @@ class Watch:
 
     def close(self) -> None:
         self._closed = True
+        self._stop_listening()
         self._end()
 
     def _on_message(self, key: str, message: Any) -> None:
@@ -121,17 +124,33 @@ class Watch:
         for inbox in inboxes:
             inbox.put(message)
         if "result" in message and not self.finished.done():
+            self._stop_listening()  # its gateway's going is no news to it now
             self.finished.set_result(message)
+
+    def _gateway_gone(self, gateway: str) -> None:
+        """The gateway's token went: a result still to come never will (a restarted gateway
+        plays nothing it played before). A wait for it ended only at its timeout, told as
+        "no answer" (an audit: 35 s after a restart the client itself knew of at once)."""
+        if gateway == self.gateway and self.result is None:
+            self._end_waits(
+                NoAnswerError(
+                    f"trajectory {self.id}: gateway {gateway} went away (restarted or cut "
+                    "off) before its result came"
+                )
+            )
 
     def _ended(self, key: str) -> None:
         """The subscription ended (the client closed, or the watch): a wait for the result
         or the feedback, under way or to come, meets ``session closed``, or that the watch
         was closed."""
-        why = (
+        self._stop_listening()
+        self._end_waits(
             CommandError(f"trajectory {self.id} is no longer listened to: closed")
             if self._closed
             else closed_reading(key)
         )
+
+    def _end_waits(self, why: Exception) -> None:
         with self._lock:
             self._ended_with = why
             inboxes = list(self._inboxes)

@@ -371,13 +371,19 @@ def test_an_ended_inbox_hands_what_waits_then_its_end_and_wakes_a_reader_waiting
 
 
 class _Shared:
-    """What a trajectory's ``Watch`` asks of the client: its keys and one subscription, whose
-    end the test calls."""
+    """What a trajectory's ``Watch`` asks of the client: its keys, the gateways' going and one
+    subscription, whose end (and a gateway's going) the test calls."""
 
-    core = types.SimpleNamespace(keys=Keys("busgate"))
+    def __init__(self) -> None:
+        self.gone: list = []
+        self.core = types.SimpleNamespace(keys=Keys("busgate"), on_gateway_gone=self.listen)
+
+    def listen(self, listener):
+        self.gone.append(listener)
+        return lambda: listener in self.gone and self.gone.remove(listener)  # again: no-op
 
     def subscribe(self, key, on_message, ended):
-        self.ended = ended
+        self.ended, self.feed = ended, on_message
         return lambda: None
 
 
@@ -401,6 +407,24 @@ def test_a_trajectorys_result_and_feedback_waited_for_end_with_its_subscription(
     watch.add_inbox(later)  # a feed started after the end: it ends at once too
     for future in (watch.finished, feedback, later.next()):
         assert str(future.exception(timeout=0)) == why
+
+
+def test_a_trajectorys_waits_end_when_its_gateway_goes_and_only_its_own() -> None:
+    shared = _Shared()
+    watch, done = Watch(shared, "gw", "t1"), Watch(shared, "gw", "t2")
+    shared.feed("busgate/gw/trajectory/t2/feedback", {"id": "t2", "result": "succeeded"})
+    assert len(shared.gone) == 1  # a finished one no longer listens
+    inbox: Inbox[dict] = Inbox()
+    watch.add_inbox(inbox)
+    feedback = inbox.next()
+    shared.gone[0]("other")
+    assert not watch.finished.done()
+    shared.gone[0]("gw")
+    why = "trajectory t1: gateway gw went away (restarted or cut off) before its result came"
+    for future in (watch.finished, feedback):
+        assert isinstance(future.exception(timeout=0), bc.NoAnswerError)
+        assert str(future.exception(timeout=0)) == why
+    assert done.finished.result(timeout=0)["result"] == "succeeded"
 
 
 def test_a_latest_ended_fails_its_readers_and_those_that_come_after() -> None:

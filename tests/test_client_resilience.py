@@ -184,8 +184,14 @@ def test_a_gateway_restart_under_a_live_client(free_port, connect, wait_for) -> 
         # a TTL far past the test: only the gateway's going can tell the claim is lost
         with pytest.raises(bc.ClaimLostError), la1.claim(ttl_s=600.0) as claim:
             assert patiently(lambda: la1.move(next(POSITIONS)))["ok"] is True
+            playing = client.play(["la1"], [{"t_s": 10.0, "positions": [1000]}])
             stopped, stopped_wall = time.monotonic(), time.time()
             assert gateway.terminate(signal.SIGINT) == 0
+            # Its result never comes: told at once, not as "no answer" after 40 s (an audit).
+            with pytest.raises(bc.NoAnswerError, match=f"trajectory {playing.id}: gateway "
+                                                       "demo went away"):
+                playing.wait()
+            assert time.monotonic() - stopped < DEADLINE_S
             wait_for(lambda: claim.lost is not None, timeout=DEADLINE_S)
             with pytest.raises(bc.ClaimLostError):
                 la1.move(next(POSITIONS))
