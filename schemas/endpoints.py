@@ -72,6 +72,18 @@ def host_of(endpoint: str) -> str | None:
     return None if address is None else address["host"].strip("[]")
 
 
+def port_of(endpoint: str) -> int | None:
+    """The port an endpoint of ``NETWORK_PROTOCOLS`` names; ``None`` for any other, or one
+    that is no number.
+
+    >>> port_of("tcp/[::1]:7447"), port_of("udp/h:x"), port_of("unixsock-stream//x")
+    (7447, None, None)
+    """
+    address = _address(endpoint)
+    port = None if address is None else address["port"]
+    return int(port) if port is not None and port.isascii() and port.isdigit() else None
+
+
 def settings_of(endpoint: str) -> dict[str, str]:
     """zenoh's configuration of an endpoint, after its ``#``: ``key=value`` pairs split by ``;``.
 

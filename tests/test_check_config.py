@@ -7,6 +7,7 @@ it says where each bus would run (bus workers).
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import threading
 from pathlib import Path
@@ -20,6 +21,7 @@ from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas import files
 from busgate.schemas.config import CanBus, SerialBus, load_config
+from tests.conftest import unused_loopback_port
 from tests.gateway_process import BUSGATE
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy" / "config"
@@ -352,6 +354,24 @@ def test_a_listener_zenoh_cannot_listen_on_here_is_a_warning_and_run_refuses_it(
     assert status == (2 if refused else 0)
     assert lines == ([f"warning: zenoh.listen[0]: cannot listen on {listen}: {refused}; busgate "
                       "run refuses to start so"] if refused else [])
+
+
+@pytest.mark.parametrize("protocol", ["tcp", "udp"])
+def test_a_listen_port_in_use_now_is_a_warning_as_a_locked_serial_port_is(
+        tmp_path, capsys, protocol) -> None:
+    """An audit: check-config said valid with no word and ``busgate run`` then refused to
+    start ("it is in use"). A warning, exit 0: its holder may be the gateway being checked."""
+    listen = f"{protocol}/127.0.0.1:{unused_loopback_port()}"
+    tables = f'[zenoh]\nlisten = ["{listen}"]'
+    sort = socket.SOCK_DGRAM if protocol == "udp" else socket.SOCK_STREAM
+    with socket.socket(socket.AF_INET, sort) as holder:
+        holder.bind(("127.0.0.1", int(listen.rpartition(":")[2])))
+        if protocol == "tcp":
+            holder.listen()
+        assert checked(tmp_path, capsys, tables, "in use") == (0, [
+            f"warning: zenoh.listen[0]: {listen} is in use on this host now (another busgate "
+            "demo or run, or this gateway itself?): busgate run refuses to start while it is"])
+    assert checked(tmp_path, capsys, tables, "in use") == (0, [])  # free again: no word
 
 
 @pytest.mark.parametrize(("tls", "refused"), [

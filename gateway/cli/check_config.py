@@ -14,7 +14,9 @@ is a key that is taken but ignored (``ignored_keys``, which ``busgate run`` logs
 table's, a heartbeat interval off CAN)
 and a gateway that listens nowhere, connects nowhere and scouts for nobody (valid: a zenoh
 config file may give it endpoints; else no client reaches it): printed with the budget. Exit
-status 0, unless a warning is one ``busgate run`` on this host refuses to start with (a port
+status 0 (a zenoh listen port another socket holds now is a warning too: the holder may be
+the gateway being checked), unless a warning is one ``busgate run`` on this host refuses to
+start with (a port
 that is no serial port, a CAN interface python-can does not have here, a recorder's folder
 it cannot write, a zenoh config file or endpoint it cannot use, a listener zenoh cannot listen
 on here — a tls/ or quic/ one given no private key or certificate, a host that does not
@@ -27,6 +29,7 @@ locked port stays a warning, exit 0: its holder may be the very gateway being ch
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import socket
 import sys
@@ -40,10 +43,12 @@ from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.workers import placement, too_many
 from busgate.schemas.config import CanBus, Config, SerialBus, ignored_keys, load_config
-from busgate.schemas.endpoints import exposure_warnings, host_of, settings_of
+from busgate.schemas.endpoints import exposure_warnings, host_of, port_of, settings_of
 
 #: The longest path a Unix socket takes, in bytes (``sun_path``'s 108, with its NUL).
 UNIX_PATH_MAX = 107
+#: The listeners' protocols over UDP (``_in_use`` asks for a datagram socket); the others TCP.
+DATAGRAM_PROTOCOLS = ("udp", "quic")
 
 
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
@@ -130,7 +135,9 @@ def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
         from busgate.schemas.zenoh_session import config_file_refusal  # loads zenoh: only here
 
         file_refusal = config_file_refusal(zenoh_file)
-    refusal, listeners = (file_refusal, []) if file_refusal else _session_refusals(config)
+    refusal, listeners, in_use = (
+        (file_refusal, [], []) if file_refusal else _session_refusals(config)
+    )
     if refusal:
         where = "zenoh" if zenoh_file is None else f"zenoh.config_file: {zenoh_file}"
         refused.append(f"{where}: {refusal}; busgate run refuses to start so")
@@ -140,14 +147,15 @@ def zenoh_warnings(config: Config) -> tuple[list[str], list[str]]:
         from busgate.schemas.zenoh_session import NOBODY_REACHES
 
         warned.append(f"zenoh: {NOBODY_REACHES}")
-    return refused + listeners, warned + exposure_warnings(config.zenoh.listen, zenoh_file)
+    exposed = exposure_warnings(config.zenoh.listen, zenoh_file)
+    return refused + listeners, warned + in_use + exposed
 
 
-def _session_refusals(config: Config) -> tuple[str | None, list[str]]:
+def _session_refusals(config: Config) -> tuple[str | None, list[str], list[str]]:
     """Why the zenoh session could not be made of the config file and the endpoints (an
     endpoint of a protocol the file's links leave out), ``None`` when it can; and, made once,
     each endpoint it would listen on (``listen``, or its zenoh config file's) where zenoh
-    would refuse to listen on this host (``_listener_problem``)."""
+    would refuse to listen on this host (``_listener_problem``), and each in use now."""
     from busgate.schemas.zenoh_session import (  # loads zenoh: only here
         endpoints_of,
         gateway_session_config,
@@ -157,19 +165,48 @@ def _session_refusals(config: Config) -> tuple[str | None, list[str]]:
     try:
         session = gateway_session_config(config.zenoh)
     except ValueError as exc:
-        return str(exc), []
-    refused = []
+        return str(exc), [], []
+    refused, in_use = [], []
     for index, endpoint in enumerate(endpoints_of(session, "listen", config.zenoh.mode)):
+        where = (
+            f"zenoh.listen[{index}]"
+            if config.zenoh.listen
+            else f"zenoh.config_file: {config.zenoh.config_file}: listen endpoint {index}"
+        )
         if problem := _listener_problem(endpoint, tls_listen_missing(session, endpoint)):
-            where = (
-                f"zenoh.listen[{index}]"
-                if config.zenoh.listen
-                else f"zenoh.config_file: {config.zenoh.config_file}: listen endpoint {index}"
-            )
             refused.append(
                 f"{where}: cannot listen on {endpoint}: {problem}; busgate run refuses to start so"
             )
-    return None, refused
+        elif _in_use(endpoint):
+            in_use.append(
+                f"{where}: {endpoint} is in use on this host now (another busgate demo or "
+                "run, or this gateway itself?): busgate run refuses to start while it is"
+            )
+    return None, refused, in_use
+
+
+def _in_use(endpoint: str) -> bool:
+    """Whether a socket of another process holds ``endpoint``'s port here now, as a locked
+    serial port is told: a warning, its holder may be the very gateway being checked (an
+    audit: check-config passed a port ``busgate run`` then refused)."""
+    host, port = host_of(endpoint), port_of(endpoint)
+    if host is None or not port:
+        return False
+    protocol = endpoint.partition("/")[0]
+    kind = socket.SOCK_DGRAM if protocol in DATAGRAM_PROTOCOLS else socket.SOCK_STREAM
+    try:
+        found = socket.getaddrinfo(host, port, type=kind)
+    except (OSError, UnicodeError):  # told by ``_listener_problem``
+        return False
+    for family, sort, proto, _, address in found:
+        with socket.socket(family, sort, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as zenoh's listener
+            try:
+                probe.bind(address)
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    return True
+    return False
 
 
 def _listener_problem(endpoint: str, tls_missing: list[str]) -> str | None:
