@@ -125,7 +125,8 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
         "replay",
         description="Publish a recording's telemetry again at its pace (or --speed times "
         f"it), under --prefix (default {REPLAY_PREFIX}) in place of the recorded prefix, so "
-        "busgate watch and the dashboard can be pointed at it. Never publishes a command, "
+        "busgate watch can be pointed at it (not the dashboard: a replay has no gateway's "
+        "liveliness token nor info). Never publishes a command, "
         "follow target or e-stop, nor outside --prefix; refuses a --prefix a gateway is live "
         "under, unless --onto-live.",
         conflict_handler="resolve",  # its own --prefix replaces the session options' one

@@ -78,8 +78,10 @@ def _run(args: argparse.Namespace) -> int:
 def add_parsers(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "schema",
-        description="Write one JSON Schema per command set, reply, telemetry kind, event, bus "
-        "statistics, info and config to schemas/json/.",
+        description="Write one JSON Schema per message of the API to schemas/json/: each "
+        "device kind's commands, follow targets and telemetry; the bus, trajectory and base "
+        "commands; replies, events, bus statistics, info, the joints message, a base's twist "
+        "and odometry; a recording's frames and commands; and the config.",
     )
     parser.add_argument(
         "--out",

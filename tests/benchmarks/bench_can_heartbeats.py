@@ -22,6 +22,7 @@ from collections import Counter
 from typing import Any
 
 import can
+from usage import arguments
 
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.bus.can_owner import CanBusOwner
@@ -57,7 +58,7 @@ def stream(runner: BusRunner, stop: threading.Event) -> None:
 
 
 def main() -> int:
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 8.0
+    seconds = arguments(__doc__, ("seconds", float, 8.0, "how long to measure")).seconds
     counted(BusRunner, "_step", "loop turns")
     counted(CanBusOwner, "take_unsolicited", "looks at the bus")
     counted(BusPlanner, "decide", "decisions")

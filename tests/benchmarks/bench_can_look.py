@@ -27,6 +27,7 @@ import time
 
 import can
 import unix_can
+from usage import arguments
 
 from busgate.codecs import zlac706_can as zcan
 from busgate.gateway.bus.can_owner import CanBusOwner
@@ -133,7 +134,7 @@ def _message(event: object) -> can.Message:
 
 
 def main() -> int:
-    runs = int(sys.argv[1]) if len(sys.argv) > 1 else 3
+    runs = arguments(__doc__, ("runs", int, 3, "how many runs")).runs
     costs = [look_cost_us() for _ in range(runs)]
     print(f"a look at a SocketCAN-like bus: {statistics.median(costs):.2f} µs of thread CPU a "
           f"frame (median of {runs} runs: {', '.join(f'{c:.2f}' for c in costs)})")

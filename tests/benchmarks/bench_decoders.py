@@ -16,6 +16,8 @@ import random
 import sys
 import time
 
+from usage import arguments
+
 from busgate.codecs import ds_servo, inspire_la, zlac706_can, zlac706_rs232
 from busgate.codecs.can_frame import CanFrame
 
@@ -87,6 +89,7 @@ def time_can(decoder_class, frames: list[CanFrame]) -> float:
 
 
 def main() -> int:
+    arguments(__doc__)
     rng = random.Random(1)
     worst = float("inf")
     print(f"{'protocol':14} {'direction':9} {'MB/s':>7} {'link KB/s':>9} {'× link':>7}")

@@ -14,9 +14,10 @@ Medians of the runs; the figures depend on the host.
 from __future__ import annotations
 
 import statistics
-import sys
 import threading
 import time
+
+from usage import arguments
 
 from busgate.gateway.bus.flag import Flag
 
@@ -73,4 +74,4 @@ def main(runs: int) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 5)
+    main(arguments(__doc__, ("runs", int, 5, "how many runs of each kind")).runs)

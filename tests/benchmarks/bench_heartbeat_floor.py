@@ -31,6 +31,7 @@ import orjson
 import unix_can
 import zenoh
 from bench_zenoh import SUBSCRIBER, _apart_simulators, free_endpoint, telemetry_cpu_apart
+from usage import arguments
 
 from busgate.codecs.zlac706_can.frames import HeartbeatRegister
 from busgate.codecs.zlac706_common import amps_from_current_raw, rpm_from_speed_raw
@@ -141,8 +142,12 @@ def _measured(endpoint: str, seconds: float) -> tuple[float, float]:
 
 
 def main() -> int:
-    pairs = int(sys.argv[1]) if len(sys.argv) > 1 else 3
-    seconds = float(sys.argv[2]) if len(sys.argv) > 2 else 10.0
+    given = arguments(
+        __doc__,
+        ("pairs", int, 3, "how many pairs, gateway then bare loop"),
+        ("seconds", float, 10.0, "how long each measures"),
+    )
+    pairs, seconds = given.pairs, given.seconds
     ratios = []
     for pair in range(1, pairs + 1):
         floor, floor_rate = bare_cpu(seconds)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import time
 
+from usage import arguments
+
 from busgate.codecs import inspire_la as la
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.group import scan_requests
@@ -26,6 +28,7 @@ RUNS = 5
 
 
 def main() -> None:
+    arguments(__doc__)
     with SerialSimulator(la, [InspireLaDevice(i) for i in (1, 2, 3)], baudrate=921_600) as sim:
         bus = SerialBus(name="uart0", transport="serial", port=sim.port, baudrate=921_600,
                         devices=[{"name": f"la{i}", "kind": "inspire_la", "id": i}

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from bench_zenoh import SUBSCRIBER, free_endpoint
 from can.interfaces.slcan import slcanBus
+from usage import arguments
 
 from busgate.gateway.bus.can_owner import CanBusOwner
 from busgate.gateway.bus.slcan import SlcanBus
@@ -107,8 +108,12 @@ def stopped(signum: int, frame: object) -> None:
 
 def main() -> int:
     signal.signal(signal.SIGTERM, stopped)
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 5.0
-    rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
+    given = arguments(
+        __doc__,
+        ("seconds", float, 5.0, "how long each reading measures"),
+        ("rounds", int, 3, "how many rounds, turn about"),
+    )
+    seconds, rounds = given.seconds, given.rounds
     sim, port = simulator()
     try:
         for _ in range(rounds):

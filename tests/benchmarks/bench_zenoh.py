@@ -41,6 +41,7 @@ from pathlib import Path
 import can
 import unix_can
 import zenoh
+from usage import arguments
 
 from busgate.codecs import inspire_la as la
 from busgate.codecs import zlac706_can
@@ -371,6 +372,7 @@ def _daemon_run(config, seconds: float,
 
 
 def main() -> int:
+    arguments(__doc__)
     with tempfile.TemporaryDirectory() as scratch_dir:
         scratch = Path(scratch_dir)
         hop = bare_hop()
