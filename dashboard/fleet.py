@@ -64,9 +64,6 @@ NAME_CHARS = 128
 CLEAN_DEPTH = 16
 #: A sample this much older than the last one kept starts the history again (rule 3).
 CLOCK_STEP_S = 1.0
-#: What a sample holds after its time: the joint's value (its position, or a velocity
-#: joint's velocity) and its target, in SI, and the motor current.
-PLOTTED = ("joint", "joint_target", "current_ma")
 #: The longest joint name and unit told to a browser.
 MAX_NAME, MAX_UNIT = 64, 16
 MAX_BASES = 64

@@ -106,7 +106,6 @@ class ResetEstop(CommandModel):
 
 #: The ops every device's ``cmd`` key takes besides its kind's own.
 GatewayCommand = Annotated[Claim | Release | EndFollow | ResetEstop, Field(discriminator="op")]
-GATEWAY_COMMAND_ADAPTER: TypeAdapter[GatewayCommand] = TypeAdapter(GatewayCommand)
 
 
 #: A value in SI: finite, and within ``MAX_SI`` (past it is a typo, never a joint's).

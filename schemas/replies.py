@@ -15,6 +15,7 @@ exception into another to get a code. Rules:
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from pydantic import ValidationError
@@ -46,6 +47,15 @@ def error_reply(exc: BaseException) -> dict[str, Any]:
         "ok": False,
         "error": {"code": error_code(exc), "message": cut(message, MAX_MESSAGE - 1)},
     }
+
+
+def failure_reply(exc: Exception, log: logging.Logger, what: str) -> dict[str, Any]:
+    """The error reply of what a request's handling raised (called in its ``except``): a
+    refusal as its code, anything else ``internal`` with its traceback logged as ``what``
+    failed (rule 3): every request gets one answer, whatever happens."""
+    if not isinstance(exc, REFUSALS):
+        log.exception("%s failed", what)
+    return error_reply(exc)
 
 
 def _schema_refusal(exc: BaseException) -> ValidationError | None:

@@ -23,7 +23,7 @@ from busgate.codecs import zlac706_can as zcan
 from busgate.codecs.zlac706_common import rpm_from_speed_raw
 from busgate.errors import ConfigError
 from busgate.gateway.api.commands import GatewayApi
-from busgate.gateway.base.bases import Bases, NoTrajectories
+from busgate.gateway.base.bases import Bases
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
 from busgate.gateway.sim.can_server import CanSimulator
@@ -44,6 +44,17 @@ BASE = {"name": "base", "left": "wl", "right": "wr", "wheel_radius_m": 0.0825, "
         "max_angular_accel": 6.0, "cmd_timeout_s": 0.3}
 _channels = itertools.count()
 
+
+
+class NoTrajectories:
+    """The trajectories of a gateway that plays none (bases on their own): a lock of its
+    own, nothing playing."""
+
+    def __init__(self) -> None:
+        self.players = threading.Lock()
+
+    def playing(self, device: str) -> str | None:
+        return None
 
 def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None):
     tables = {"wl": LEFT, "wr": RIGHT} | wheel_tables
@@ -700,3 +711,17 @@ def test_a_square_of_one_metre_sides_returns_to_its_start(world) -> None:
     end = world.odometry[-1]
     assert math.hypot(end["x"], end["y"]) < 0.02, end
     assert abs(math.remainder(end["theta"], math.tau)) < math.radians(2), end
+
+
+def test_a_bug_under_a_twist_put_is_its_internal_refusal_not_lost(world, monkeypatch,
+                                                                  caplog) -> None:
+    """A code review: only refusals were caught, so a bug under a twist put escaped to the
+    intake's log line, and the flight recorder never kept the put with its answer."""
+    def broken(*args) -> None:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(world.bases, "_drive", broken)
+    with caplog.at_level("ERROR"):
+        reply = world.bases.twist("base", b'{"linear":0.3}')
+    assert reply == {"ok": False, "error": {"code": "internal", "message": "a bug"}}
+    assert "base base: twist failed" in caplog.text and "RuntimeError: a bug" in caplog.text

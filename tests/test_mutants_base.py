@@ -16,7 +16,6 @@ from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.base.bases import (
     STOPS_KEPT,
     Bases,
-    NoTrajectories,
     _at,
     _note_stop,
     _sent_before_stop,
@@ -24,7 +23,7 @@ from busgate.gateway.base.bases import (
 from busgate.gateway.base.kinematics import Twist
 from busgate.gateway.bus.clock import now
 from busgate.gateway.service.assembly import build_bus
-from tests.test_base import BASE, LEFT, config_of
+from tests.test_base import BASE, LEFT, NoTrajectories, config_of
 from tests.test_driver_zlac706 import plan
 from tests.test_driver_zlac706 import run as applied
 

@@ -41,13 +41,13 @@ from busgate.gateway.sim.zlac706 import Zlac706CanDevice
 from busgate.gateway.trajectory.checks import members_of, start_at_of
 from busgate.gateway.trajectory.interpolation import Knot, paths_of
 from busgate.gateway.trajectory.lanes import answer
-from busgate.gateway.trajectory.playing import Trajectories, no_base
+from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import CanBus, SerialBus
 from busgate.schemas.joints import Joint, JointTable
 from busgate.schemas.trajectory import TRAJECTORY_COMMAND_ADAPTER, TrajectoryPlay
 from busgate.schemas.validation import describe_validation_error, refusal_code
 from tests.conftest import wait_until
-from tests.wire_frames import received, tick_targets, written_speed
+from tests.wire_frames import no_base, received, tick_targets, written_speed
 
 BASE = "busgate/gw"
 MARGIN_MS = 10  # as tests/test_trajectory_wire.py: room for the polls between ticks

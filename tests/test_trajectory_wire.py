@@ -49,7 +49,7 @@ from busgate.gateway.sim.inspire_la import InspireLaDevice
 from busgate.gateway.sim.serial_server import SerialSimulator
 from busgate.gateway.trajectory.interpolation import INTERPOLATIONS, Path, paths_of, sent
 from busgate.gateway.trajectory.lanes import answer
-from busgate.gateway.trajectory.playing import Trajectories, no_base
+from busgate.gateway.trajectory.playing import Trajectories
 from busgate.schemas.config import SerialBus
 from busgate.schemas.events import EVENT_ADAPTER
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD, TrajectoryPlay
@@ -58,7 +58,7 @@ from tests.conftest import unused_loopback_port, wait_until
 from tests.gateway_process import GatewayProcess, bus_table, write_config
 from tests.simulated_buses import SimulatedGateway, simulated_gateway
 from tests.test_zenoh_api import connected, get
-from tests.wire_frames import received, tick_targets, written, written_speed
+from tests.wire_frames import no_base, received, tick_targets, written, written_speed
 
 BASE = "busgate/gw"
 #: Reply margins that leave room, between the ticks of a 20 ms period, for the polls that

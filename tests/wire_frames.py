@@ -47,3 +47,9 @@ def written(frame: object, register: zcan.CanRegister) -> int | None:
     if isinstance(frame, zcan.Write) and frame.register == register:
         return frame.value
     return None
+
+
+def no_base(device: str) -> None:
+    """``driven_by`` of a gateway with no bases (trajectories on their own): no device is a
+    wheel a base drives."""
+    return None

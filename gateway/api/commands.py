@@ -75,7 +75,7 @@ from busgate.schemas.api import (
     ResetEstop,
 )
 from busgate.schemas.payload import MAX_PAYLOAD, decode_object, ok_reply
-from busgate.schemas.replies import REFUSALS, error_reply
+from busgate.schemas.replies import error_reply, failure_reply
 from busgate.schemas.validation import command_from_object, cut, follow_target_from, shown
 
 #: A scan that could take longer than this on its bus is refused: ask for fewer ids.
@@ -103,11 +103,8 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
     def wrapper(self: GatewayApi, *args: Any) -> Future:
         try:
             return handler(self, *args)
-        except REFUSALS as exc:
-            return settled(error_reply(exc))
         except Exception as exc:
-            log.exception("%s%r failed", handler.__name__, args[:1])
-            return settled(error_reply(exc))
+            return settled(failure_reply(exc, log, f"{handler.__name__}{args[:1]!r}"))
 
     return wrapper
 
@@ -304,11 +301,8 @@ class GatewayApi:
                 self._deadman_clients.pop(device, None)  # rule 3: the stream moves it now
                 runner.follow(device, target, follows)
             return None
-        except REFUSALS as exc:
-            return error_reply(exc)
         except Exception as exc:
-            log.exception("follow on %s failed", device)
-            return error_reply(exc)
+            return failure_reply(exc, log, f"follow on {device}")
 
     def _refuse_while_playing(self, runner: BusRunner, device: str, what: str) -> None:
         """``busy`` while a base drives ``device`` (a wheel), from its twist taken on, or
@@ -352,11 +346,8 @@ class GatewayApi:
             self._deadman_clients.pop(device, None)  # rule 3: the ramp moves it now
             runner.ramp(device, target, follows)
             return None
-        except REFUSALS as exc:
-            return error_reply(exc)
         except Exception as exc:
-            log.exception("ramp on %s failed", device)
-            return error_reply(exc)
+            return failure_reply(exc, log, f"ramp on {device}")
 
     def _sent_before_the_end(self, device: str, client: str | None, seq: int | None) -> bool:
         """A target of the client that ended ``device``'s stream, come after the end but sent

@@ -38,8 +38,8 @@ class JointsFeed:
         #: Each device's latest state with a joint (states are not changed once published):
         #: its entry is built when a message goes out, not at every state.
         self._latest: dict[str, dict[str, Any]] = {}
-        #: Each device's entry as last sent, and the state it was built from: a device not
-        #: read again since keeps it (an entry is not changed once sent either).
+        #: Each device's state an entry was last built from, and that entry as sent: a
+        #: device not read again since keeps it (an entry is not changed once sent either).
         self._sent: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
         self._read_again = False
         self._last_sent: float | None = None

@@ -82,7 +82,7 @@ from busgate.schemas.bases import (
     top_radps,
 )
 from busgate.schemas.payload import decode_object, ok_reply
-from busgate.schemas.replies import REFUSALS, error_reply
+from busgate.schemas.replies import failure_reply
 from busgate.schemas.validation import shown
 
 log = logging.getLogger(__name__)
@@ -114,24 +114,13 @@ class Gateway(Protocol):
     def command(self, device: str, payload: bytes) -> Future: ...
 
 
-class Plays(Protocol):
+class TrajectoryPlayers(Protocol):
     """What a base needs of the gateway's trajectories (``trajectory.playing.Trajectories``):
     the lock a device's player is chosen under, and the trajectory a device plays (rule 3)."""
 
     players: threading.Lock
 
     def playing(self, device: str) -> str | None: ...
-
-
-class NoTrajectories:
-    """The trajectories of a gateway that plays none (bases on their own, as in a test of
-    them): a lock of its own, nothing playing."""
-
-    def __init__(self) -> None:
-        self.players = threading.Lock()
-
-    def playing(self, device: str) -> str | None:
-        return None
 
 
 @dataclass(slots=True)
@@ -188,7 +177,7 @@ class Bases:
         api: Gateway,
         on_event: Callable[[DeviceEvent], None],
         publish: Callable[[str, dict[str, Any]], None],
-        trajectories: Plays,
+        trajectories: TrajectoryPlayers,
         *,
         key_base: str,
     ) -> None:
@@ -235,18 +224,15 @@ class Bases:
             if isinstance(request, BasePower):
                 return self._power(base, request)
             return settled(self._other(base, request))
-        except REFUSALS as exc:
-            return settled(error_reply(exc))
         except Exception as exc:
-            log.exception("base %s: command failed", name)
-            return settled(error_reply(exc))
+            return settled(failure_reply(exc, log, f"base {name}: command"))
 
     def twist(self, name: str, payload: bytes) -> dict[str, Any] | None:
         """A put on ``…/base/<name>/twist``: ``None`` when taken, else the error reply."""
         try:
             target = TwistTarget.model_validate(decode_object(payload))
-        except REFUSALS as exc:
-            return error_reply(exc)
+        except Exception as exc:
+            return failure_reply(exc, log, f"base {name}: twist")
         return self.stream(
             name,
             Twist(target.linear, target.angular),
@@ -272,8 +258,8 @@ class Bases:
                 return None
             self._drive(base, twist, base.config.cmd_timeout_s, client, require_claim)
             return None
-        except REFUSALS as exc:
-            return error_reply(exc)
+        except Exception as exc:  # a bug too: told as the put's refusal, not lost (an audit)
+            return failure_reply(exc, log, f"base {name}: twist")
 
     def _drive(
         self, base: LiveBase, twist: Twist, hold_s: float, client: str | None, require: bool

@@ -329,7 +329,7 @@ class Driver(abc.ABC):
         by default, one poll, which also tells whether it answers."""
         return self.poll()
 
-    # A family's driver defines the four parts below (``FAMILY_PARTS``; the registry's check
+    # A family's driver defines the parts named in ``FAMILY_PARTS`` (the registry's check
     # names one that is missing); the defaults serve drivers that are not a family's.
 
     def follow_target(self, payload: dict[str, Any]) -> float:

@@ -29,7 +29,7 @@ from typing import Any
 from busgate.errors import BusyError, RefusedError
 from busgate.gateway.scheduler.outcomes import settled
 from busgate.schemas.payload import decode_object
-from busgate.schemas.replies import REFUSALS, error_reply
+from busgate.schemas.replies import error_reply, failure_reply
 
 log = logging.getLogger(__name__)
 
@@ -111,11 +111,8 @@ def answer(command: Callable[[bytes], Reply], payload: bytes) -> Reply:
     """``command``'s reply to ``payload``, whatever happens (rule 3)."""
     try:
         return command(payload)
-    except REFUSALS as exc:
-        return error_reply(exc)
     except Exception as exc:
-        log.exception("trajectory command failed")
-        return error_reply(exc)
+        return failure_reply(exc, log, "trajectory command")
 
 
 def _is_control(payload: bytes) -> bool:

@@ -49,12 +49,6 @@ from busgate.schemas.trajectory import (
 FEEDBACK_EVERY_S = 0.1
 
 
-def no_base(device: str) -> None:
-    """``driven_by`` of a gateway with no bases (trajectories on their own, as in a test of
-    them): no device is a wheel a base drives."""
-    return None
-
-
 class Trajectories:
     """The trajectory key of one gateway."""
 
