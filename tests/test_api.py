@@ -281,7 +281,7 @@ def test_a_claim_lapses_after_its_ttl(gateway):
 
 def test_estop_reaches_every_bus_ahead_of_everything(gateway):
     api, simulator, can_sim, *_ = gateway
-    for future in api.estop():
+    for future in api.stop_every_bus():
         future.result(10)
     la_frames = {r.wire for r in simulator.recorder.received()}
     assert la.encode(la.ControlCommand(1, la.ControlCode.ESTOP)).hex() in la_frames
@@ -295,7 +295,7 @@ def test_an_estop_returns_once_its_first_frame_went_on_every_bus(gateway, monkey
     wait, some milliseconds, is made long here so that a loaded host cannot reach it."""
     api, simulator, can_sim, *_ = gateway
     monkeypatch.setattr(runner_module, "ESTOP_SENT_S", 30.0)
-    api.estop()
+    api.stop_every_bus()
     la_frames = {r.wire for r in simulator.recorder.received()}
     la_stops = {la.encode(la.ControlCommand(i, la.ControlCode.ESTOP)).hex() for i in (1, 2)}
     assert la_frames & la_stops
@@ -309,7 +309,7 @@ def test_every_state_says_estopped_from_the_estop_until_the_reenable_command(wai
     published: list[tuple[str, dict]] = []
     for runner in api.runners.values():
         runner.telemetry.on_state = lambda device, state: published.append((device, state))
-    for future in api.estop():
+    for future in api.stop_every_bus():
         future.result(10)
     mark = len(published)
 
@@ -345,7 +345,7 @@ def test_a_command_validated_while_an_e_stop_and_its_reset_came_is_refused(
     validate = getattr(commands, validation)
 
     def stop_and_reset() -> None:  # another client, on another thread
-        for future in api.estop():
+        for future in api.stop_every_bus():
             future.result(10)
         accepted(api, "la1", json.loads(api.devices["la1"][1].reenable_op))
 
@@ -566,7 +566,7 @@ def test_end_follow_brings_a_velocity_stream_to_0_rpm_and_an_estop_never_refuses
     wait_for(lambda: "005#00fa001100000000" in speed_writes(mark))
     assert [(e.type, e.fields) for e in events if e.type.startswith("stream_")] == [
         ("stream_stopped", {"reason": "ended"})]
-    for future in api.estop():
+    for future in api.stop_every_bus():
         future.result(10)
     assert ask(api, "la2", {"op": "end_follow"}) == {"ok": True, "ended": True}
 
@@ -651,7 +651,7 @@ def test_a_reset_of_every_bus_says_which_bus_it_could_not_reset(tmp_path, caplog
     try:
         api = GatewayApi("gw", {"uart9": runner})
         with caplog.at_level("WARNING", logger=commands.__name__):
-            (reset,) = api.reset_estop("c1")
+            (reset,) = api.reset_every_bus("c1")[0]
             assert isinstance(reset.exception(timeout=5), Exception)
 
             def said() -> list[str]:  # told by the future's callback, after its waiters wake

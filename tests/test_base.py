@@ -272,7 +272,7 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
     assert world.base({"op": "twist", "linear": 0.3, "duration_s": 5})["ok"]
     time.sleep(0.2)
     since = len(world.sim.recorder.received())
-    for stopped in world.api.estop("test"):
+    for stopped in world.api.stop_every_bus():
         stopped.result(5)
     world.wait_rest()
     # Both wheels at 0 rpm before either is released: the base stops together.
@@ -287,7 +287,7 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
         'base base: wheel wl is e-stopped: send {"op":"enable"} to the base to let it move '
         "again (or reset the e-stop: a put on busgate/gw/estop/reset)")
     assert world.base({"op": "status"})["base"]["twist"] == {"linear": 0.0, "angular": 0.0}
-    for reset in world.api.reset_estop("test"):
+    for reset in world.api.reset_every_bus("test")[0]:
         reset.result(5)
     # After the reset the next play starts from rest, not from the 0.3 m/s before the e-stop.
     assert world.base({"op": "enable"})["ok"]

@@ -340,12 +340,6 @@ def test_an_unknown_device_is_named_with_the_gateway():
     assert reply["error"] == {"code": "unknown_device", "message": "no device 'la9' on gateway gw"}
 
 
-def test_an_estop_without_a_sender_is_logged_without_one(caplog):
-    with caplog.at_level("WARNING"):
-        assert GatewayApi("gw", {}).estop() == []
-    assert [r.getMessage() for r in caplog.records] == ["e-stop of every bus"]
-
-
 def estop_bridge() -> tuple[ZenohBridge, BusRunner, deque[DeviceEvent]]:
     """A bridge with no session over one bus never started: its e-stops wait in its inbox."""
     config = parse_config({
@@ -672,26 +666,6 @@ def test_a_reset_put_whose_payload_is_no_reset_resets_nothing_and_is_told(payloa
     assert len(runner._inbox) == 5
 
 
-def test_a_reset_of_every_bus_is_logged_told_and_handed_to_each_bus(caplog):
-    """``GatewayApi.reset_estop`` (the ROS 2 face's service, the API's own): its log line and
-    its event name the sender when there is one, and every bus is handed the reset."""
-    _, runner, _ = estop_bridge()
-    events: list[DeviceEvent] = []
-    api = GatewayApi("gw", {"uart0": runner}, on_event=events.append)
-    with caplog.at_level("WARNING"):
-        handed = api.reset_estop("panel")
-        api.reset_estop()
-    assert len(handed) == 1 and not handed[0].done() and len(runner._inbox) == 2
-    assert [r.getMessage() for r in caplog.records] == [
-        "e-stop reset of every bus from panel",
-        "e-stop reset of every bus",
-    ]
-    assert [(e.device, e.type, e.fields) for e in events] == [
-        ("*", "estop_reset", {"client": "panel"}),
-        ("*", "estop_reset", {}),
-    ]
-
-
 def test_a_devices_reset_is_told_and_handed_over_unless_another_client_holds_it():
     _, runner, _ = estop_bridge()
     events: list[DeviceEvent] = []
@@ -725,7 +699,7 @@ def test_a_devices_reset_goes_to_that_device_alone():
     runner.reset_estop = lambda device=None, skip=frozenset(): (
         asked.append((device, skip)) or reset(device, skip))
     api.command("la1", b'{"op": "reset_estop"}')
-    api.reset_estop()
+    api.reset_every_bus()
     assert asked == [("la1", frozenset()), (None, frozenset())]
 
 

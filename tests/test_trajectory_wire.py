@@ -611,7 +611,7 @@ def test_an_estop_aborts_the_trajectory_and_no_tick_follows_its_frames(world, pl
     player.run_until(lambda: time.time() > played.start_at + 0.2)
     called = now()
     try:
-        stops = world.api.estop()
+        stops = world.api.stop_every_bus()
         player.run_until(lambda: all(stop.done() for stop in stops))
         result = player.finished(played)
         assert (result["result"], result["reason"]) == ("aborted", "estop")
@@ -634,7 +634,7 @@ def test_a_play_that_came_before_an_estop_never_starts_after_its_reset(world, pl
     e-stop and its reset come: it played after the reset, and la1 moved. It is refused
     ``estopped``, nothing ticks; one that came after the reset plays."""
     came_under = world.api.estops
-    stops = world.api.estop()
+    stops = world.api.stop_every_bus()
     player.run_until(lambda: all(stop.done() for stop in stops))
     enabled_again(world)
     marks = marks_of(world)
@@ -669,7 +669,7 @@ def test_a_play_over_the_keys_megabyte_is_taken_where_its_sender_allows_it(world
 def test_an_estop_before_the_start_aborts_it_at_once_and_nothing_ticks(world, player):
     played = player.play(["la1", "arm1"], [{"t_s": 0.3, "positions": [100, 100]}], lead_s=0.5)
     try:
-        stops = world.api.estop()
+        stops = world.api.stop_every_bus()
         player.run_until(lambda: all(stop.done() for stop in stops))
         player.run_until(lambda: player.result(played.id))
         result = player.result(played.id)
@@ -688,7 +688,7 @@ def test_an_estop_the_watcher_missed_still_aborts_the_trajectory(world, player):
     so, whatever the drivers' state says by then)."""
     played = player.play(["la1", "la2"], [{"t_s": 1.0, "positions": [300, 300]}])
     player.run_until(lambda: time.time() > played.start_at + 0.2)
-    for stop in world.api.estop():  # no round of the loop meanwhile
+    for stop in world.api.stop_every_bus():  # no round of the loop meanwhile
         stop.result(5)
     enabled_again(world)
     result = player.finished(played)

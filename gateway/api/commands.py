@@ -56,7 +56,7 @@ from typing import Any, ClassVar
 from busgate.errors import BusgateError, BusUnavailableError, CommandError, RefusedError
 from busgate.gateway import installed_version
 from busgate.gateway.api.group import group_command, scan_requests, scan_result
-from busgate.gateway.api.put_reports import client_field, reset_fields
+from busgate.gateway.api.put_reports import client_field
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect, Follows
@@ -361,36 +361,22 @@ class GatewayApi:
             return seq <= end_seq
         return now() - when < END_FENCE_S
 
-    def estop(self, sender: str | None = None) -> list[Future]:
-        """Stop every device of the gateway, ahead of everything (its log line too); never
-        refused."""
-        stopped = self.stop_every_bus()
-        log_told("estop", sender)
-        return stopped
-
     def stop_every_bus(self) -> list[Future]:
-        """The e-stop without its log line (``log_told``): every bus's handed over, and let
-        go (rule 4: they have the interpreter first)."""
+        """Stop every device of the gateway, ahead of everything; never refused: every bus's
+        e-stop handed over, and let go (rule 4: they have the interpreter first). Told by the
+        caller (the bridge's ``put_reports``, rate-limited)."""
         self.estops += 1  # first: what was taken before it is judged by it (``intake`` rule 5)
         stopped = [runner.estop() for runner in self.runners.values()]
         let_estops_go(self.runners.values())
         return stopped
 
-    def reset_estop(self, sender: str | None = None) -> list[Future]:
-        """Every device of the gateway out of its e-stop, holding still
-        (``Driver.reset_estop``), but those another client claims; told by a log line and an
-        ``estop_reset`` event, which name those not reset."""
-        reset, not_reset = self.reset_every_bus(sender)
-        log_told("estop_reset", sender, not_reset=not_reset)
-        self._event("*", "estop_reset", **reset_fields(sender, not_reset))
-        return reset
-
     def reset_every_bus(self, sender: str | None = None) -> tuple[list[Future], list[str]]:
-        """The reset without its log line and event (``reset_estop``): every device out of
-        the e-stop but those claimed by a client other than ``sender``, which are their
-        holder's to reset (a device's own ``reset_estop`` from another is refused
+        """Every device of the gateway out of its e-stop, holding still
+        (``Driver.reset_estop``), but those claimed by a client other than ``sender``, which
+        are their holder's to reset (a device's own ``reset_estop`` from another is refused
         ``claimed``). The buses' futures, and the devices not reset; a bus whose reset fails
-        (down, its worker down) says so in a line of its own, its devices still e-stopped."""
+        (down, its worker down) says so in a line of its own, its devices still e-stopped.
+        Told by the caller (the bridge's ``put_reports``, rate-limited)."""
         reset: list[Future] = []
         not_reset: list[str] = []
         for runner in self.runners.values():
