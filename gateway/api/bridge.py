@@ -157,21 +157,19 @@ class ZenohBridge:
         #: work waits for it.
         self.doorbell = doorbell or Doorbell()
         #: Called with each command's time from query to reply (the metrics' histogram).
-        self.on_latency: Callable[[float], None] = lambda seconds: None
+        self.on_latency: Callable[[float], None] = ignored
         #: Called with every message published: key, body, and the bytes sent (the flight
         #: recorder's ring); on the loop's thread.
-        self.on_published: Callable[[str, dict[str, Any], bytes], None] | None = None
+        self.on_published: Callable[[str, dict[str, Any], bytes], None] = ignored
         #: Called with every command (key, payload), its reply (``None`` for what gets none:
         #: an e-stop, a follow target taken) and when it came (``None``: now; an e-stop's
         #: frames may go before it is told); on the thread that has the reply.
-        self.on_command: (
-            Callable[[str, bytes, dict[str, Any] | None, float | None], None] | None
-        ) = None
+        self.on_command: Callable[[str, bytes, dict[str, Any] | None, float | None], None] = ignored
         #: Called with every joints message published (the ROS face's joint states); on the
         #: loop's thread.
-        self.on_joints: Callable[[dict[str, Any]], None] | None = None
+        self.on_joints: Callable[[dict[str, Any]], None] = ignored
         #: Called with each base's name and odometry as published (the ROS face's odom).
-        self.on_odometry: Callable[[str, dict[str, Any]], None] | None = None
+        self.on_odometry: Callable[[str, dict[str, Any]], None] = ignored
         self._loop: asyncio.AbstractEventLoop | None = None
         self._session: zenoh.Session | None = None
         self._keep: list[Any] = []
@@ -670,8 +668,7 @@ class ZenohBridge:
         except RefusedError:  # too large to name a client: it names none
             payload = b""
         self._told_estop(stopped, _sender(payload), str(sample.key_expr))
-        if self.on_command is not None:
-            self.on_command(str(sample.key_expr), payload, None, came)
+        self.on_command(str(sample.key_expr), payload, None, came)
 
     def estop(self, sender: str | None, key: str) -> list[Future]:
         """Every device of the gateway stopped, ahead of everything, told as an ``estop``
@@ -734,12 +731,10 @@ class ZenohBridge:
         except RefusedError as refusal:
             refused = error_reply(refusal)
             self.put_reports.refused("*", refused["error"])  # the whole gateway's
-            if self.on_command is not None:  # the flight recorder keeps refusals too
-                self.on_command(key, payload, refused, None)
+            self.on_command(key, payload, refused, None)  # the flight recorder keeps refusals
             return
         self.estop_reset(sender)
-        if self.on_command is not None:
-            self.on_command(key, payload, None, None)
+        self.on_command(key, payload, None, None)
 
     def _on_client(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
@@ -780,7 +775,7 @@ class ZenohBridge:
             finally:
                 query.drop()
                 self.on_latency(time.perf_counter() - asked)
-                if payload is not None and self.on_command is not None:
+                if payload is not None:
                     self.on_command(key, payload, reply, None)
 
         try:
@@ -827,8 +822,7 @@ class ZenohBridge:
         """A put's outcome (``None``: a follow target taken): a refusal is an event."""
         if reply is not None and not reply.get("ok"):
             self.put_reports.refused(device, reply["error"])
-        if self.on_command is not None:
-            self.on_command(key, payload, reply, None)
+        self.on_command(key, payload, reply, None)
 
     def call_soon(self, function, *args: Any) -> None:
         """``function(*args)`` on the loop's thread, from any thread (rule 1's hand-over)."""
@@ -855,8 +849,7 @@ class ZenohBridge:
         joints = self.joints.due(time.monotonic(), time.time())
         if joints is not None:
             self._put(f"{self.base}/joints", joints)
-            if self.on_joints is not None:
-                self.on_joints(joints)
+            self.on_joints(joints)
 
     def publish_events(self) -> None:
         while self.events:
@@ -877,21 +870,18 @@ class ZenohBridge:
         if publisher is not None:
             data = message_json(value)
             publisher.put(data)
-            if self.on_published is not None:
-                self.on_published(key, value, data)
+            self.on_published(key, value, data)
 
     def _odometry(self, name: str, odometry: dict[str, Any]) -> None:
         self._put(f"{self.base}/base/{name}/odom", odometry)
-        if self.on_odometry is not None:
-            self.on_odometry(name, odometry)
+        self.on_odometry(name, odometry)
 
     def _put_any(self, key: str, value: dict[str, Any]) -> None:
         """A put on a key with no declared publisher (a trajectory's feedback)."""
         if self._session is not None:
             data = message_json(value)
             self._session.put(key, data, congestion_control=zenoh.CongestionControl.DROP)
-            if self.on_published is not None:
-                self.on_published(key, value, data)
+            self.on_published(key, value, data)
 
     def _track_liveliness(self, device: str, online: bool) -> None:
         if self._session is None:
@@ -901,6 +891,10 @@ class ZenohBridge:
             self._device_tokens[device] = self._session.liveliness().declare_token(key)
         elif not online and device in self._device_tokens:
             self._device_tokens.pop(device).undeclare()
+
+
+def ignored(*args: Any) -> None:
+    """A hook (``on_published``, ``on_command``…) nothing listens to."""
 
 
 def _session_named(session: zenoh.Session, zid: str) -> str:

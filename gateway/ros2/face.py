@@ -58,7 +58,7 @@ from typing import Any
 from busgate.codecs.ros2 import rmw_zenoh
 from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
-from busgate.gateway.api.bridge import ZenohBridge
+from busgate.gateway.api.bridge import ZenohBridge, ignored
 from busgate.gateway.api.commands import GatewayApi, not_reset_said
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
@@ -183,7 +183,7 @@ class Ros2Face:
         )
 
     def close(self) -> None:
-        self.bridge.on_joints = self.bridge.on_odometry = None
+        self.bridge.on_joints = self.bridge.on_odometry = ignored
         if self._forget_before_estop in self.bridge.at_estop:
             self.bridge.at_estop.remove(self._forget_before_estop)
         node, self._node = self._node, None
