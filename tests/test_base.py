@@ -37,13 +37,20 @@ from tests.wire_frames import received, written_speed
 TURN = 2 * math.pi
 #: Each wheel: 10000 pulses a turn, the right one mirrored; at most 3 turns a second.
 LEFT = {"name": "left_wheel", "unit": "rad", "scale": TURN / 10_000, "max_velocity": 3 * TURN}
-RIGHT = {"name": "right_wheel", "unit": "rad", "scale": -TURN / 10_000,
-         "max_velocity": 3 * TURN}
-BASE = {"name": "base", "left": "wl", "right": "wr", "wheel_radius_m": 0.0825, "track_m": 0.4,
-        "max_linear_mps": 1.0, "max_angular_radps": 2.0, "max_linear_accel": 2.0,
-        "max_angular_accel": 6.0, "cmd_timeout_s": 0.3}
+RIGHT = {"name": "right_wheel", "unit": "rad", "scale": -TURN / 10_000, "max_velocity": 3 * TURN}
+BASE = {
+    "name": "base",
+    "left": "wl",
+    "right": "wr",
+    "wheel_radius_m": 0.0825,
+    "track_m": 0.4,
+    "max_linear_mps": 1.0,
+    "max_angular_radps": 2.0,
+    "max_linear_accel": 2.0,
+    "max_angular_accel": 6.0,
+    "cmd_timeout_s": 0.3,
+}
 _channels = itertools.count()
-
 
 
 class NoTrajectories:
@@ -56,27 +63,56 @@ class NoTrajectories:
     def playing(self, device: str) -> str | None:
         return None
 
+
 def config_of(bases: list[dict], channel: str = "x", **wheel_tables: dict | None):
     tables = {"wl": LEFT, "wr": RIGHT} | wheel_tables
-    return parse_config({"gateway": {"name": "gw"}, "bases": bases, "buses": [
-        {"name": "can0", "transport": "can", "interface": "virtual", "channel": channel,
-         "reply_margin_ms": 50, "devices": [
-             {"name": name, "kind": "zlac706", "id": i, "heartbeat_ms": 20, "joint": table}
-             for i, (name, table) in enumerate(tables.items(), 1)]}]})
+    return parse_config(
+        {
+            "gateway": {"name": "gw"},
+            "bases": bases,
+            "buses": [
+                {
+                    "name": "can0",
+                    "transport": "can",
+                    "interface": "virtual",
+                    "channel": channel,
+                    "reply_margin_ms": 50,
+                    "devices": [
+                        {
+                            "name": name,
+                            "kind": "zlac706",
+                            "id": i,
+                            "heartbeat_ms": 20,
+                            "joint": table,
+                        }
+                        for i, (name, table) in enumerate(tables.items(), 1)
+                    ],
+                }
+            ],
+        }
+    )
 
 
-@pytest.mark.parametrize(("change", "words"), [
-    ({"left": "nothing"}, "bases[0].left: no device 'nothing' in the config's buses"),
-    ({"name": "wl"}, "bases[0].name: 'wl' is a device's name too: name the base otherwise"),
-    ({"right": "wl"}, "left and right are both 'wl'"),
-    ({"max_linear_mps": 2.0}, "max_linear_mps 2 needs the wheels at 24.24 rad/s"),
-    ({"max_angular_radps": 9.0}, "max_angular_radps 9 needs the wheels at 21.82 rad/s"),
-    ({"left": "slow"}, "max_linear_accel 2 needs the wheels at 24.24 rad/s² (2 / wheel_radius_m "
-                       "0.0825), but left wheel 'slow' reaches at most 10 rad/s²"),
-    ({"left": "slow", "max_linear_accel": 0.5},
-     "max_angular_accel 6 needs the wheels at 14.55 rad/s²"),
-    ({"track_m": 1e-300}, "bases[0].track_m: Input should be greater than or equal to 0.001"),
-])
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"left": "nothing"}, "bases[0].left: no device 'nothing' in the config's buses"),
+        ({"name": "wl"}, "bases[0].name: 'wl' is a device's name too: name the base otherwise"),
+        ({"right": "wl"}, "left and right are both 'wl'"),
+        ({"max_linear_mps": 2.0}, "max_linear_mps 2 needs the wheels at 24.24 rad/s"),
+        ({"max_angular_radps": 9.0}, "max_angular_radps 9 needs the wheels at 21.82 rad/s"),
+        (
+            {"left": "slow"},
+            "max_linear_accel 2 needs the wheels at 24.24 rad/s² (2 / wheel_radius_m "
+            "0.0825), but left wheel 'slow' reaches at most 10 rad/s²",
+        ),
+        (
+            {"left": "slow", "max_linear_accel": 0.5},
+            "max_angular_accel 6 needs the wheels at 14.55 rad/s²",
+        ),
+        ({"track_m": 1e-300}, "bases[0].track_m: Input should be greater than or equal to 0.001"),
+    ],
+)
 def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None:
     """Speeds and accelerations alike (``slow``: a wheel of 10 rad/s² at most)."""
     with pytest.raises(ConfigError, match=re.escape(words)):
@@ -86,11 +122,18 @@ def test_check_config_refuses_a_base_its_wheels_cannot_be(change, words) -> None
 def test_the_drive_takes_each_wheels_limits_from_its_joint() -> None:
     """The slower wheel's ``max_velocity`` and ``max_acceleration`` bound both (the wheels
     alone, never started)."""
-    config = config_of([BASE | {"right": "slow"}],
-                       slow=RIGHT | {"name": "slow", "max_acceleration": 30.0})
+    config = config_of(
+        [BASE | {"right": "slow"}], slow=RIGHT | {"name": "slow", "max_acceleration": 30.0}
+    )
     runner = build_bus(config.buses[0])
-    bases = Bases(config.bases, GatewayApi("gw", {"can0": runner}), lambda event: None,
-                  lambda name, odometry: None, NoTrajectories(), key_base="busgate/gw")
+    bases = Bases(
+        config.bases,
+        GatewayApi("gw", {"can0": runner}),
+        lambda event: None,
+        lambda name, odometry: None,
+        NoTrajectories(),
+        estop_reset_key="busgate/gw/estop/reset",
+    )
     geometry = bases.bases["base"].drive.geometry
     assert (geometry.max_wheel, geometry.max_wheel_accel) == (3 * TURN, 30.0)
 
@@ -98,7 +141,7 @@ def test_the_drive_takes_each_wheels_limits_from_its_joint() -> None:
 def test_a_wheel_in_two_bases_or_without_a_joint_in_rad_is_refused() -> None:
     with pytest.raises(ConfigError, match="'wl' is a wheel of base 'base' already"):
         config_of([BASE, BASE | {"name": "other", "right": "w3"}], w3=RIGHT | {"name": "w3"})
-    with pytest.raises(ConfigError, match='must be a velocity joint in rad'):
+    with pytest.raises(ConfigError, match="must be a velocity joint in rad"):
         config_of([BASE], wr=None)
 
 
@@ -107,25 +150,40 @@ class World:
 
     def __init__(self, **wheel_tables: dict) -> None:
         channel = f"test-base-{next(_channels)}"
-        self.sim = CanSimulator(zcan, [Zlac706CanDevice(1, heartbeat_ms=20),
-                                       Zlac706CanDevice(2, heartbeat_ms=20)],
-                                bus=can.Bus(interface="virtual", channel=channel))
+        self.sim = CanSimulator(
+            zcan,
+            [Zlac706CanDevice(1, heartbeat_ms=20), Zlac706CanDevice(2, heartbeat_ms=20)],
+            bus=can.Bus(interface="virtual", channel=channel),
+        )
         self.sim.start()
         self.config = config = config_of([BASE], channel, **wheel_tables)
         self.events: deque = deque()
         self.states: deque = deque()
         self.odometry: list[dict] = []
-        runner = build_bus(config.buses[0], on_event=self.events.append,
-                           on_state=lambda device, state: self.states.append((device, state)))
+        runner = build_bus(
+            config.buses[0],
+            on_event=self.events.append,
+            on_state=lambda device, state: self.states.append((device, state)),
+        )
         self.runner = runner.start()
         self.api = GatewayApi("gw", {"can0": runner}, on_event=self.events.append)
         # Wired as the bridge wires them: a play and a twist chosen under one lock.
         self.api.driven_by = lambda device: self.bases.driving_wheel(device)
-        self.trajectories = Trajectories(self.api, "busgate/gw", lambda key, body: None,
-                                         self.events.append, driven_by=self.api.driven_by)
-        self.bases = Bases(config.bases, self.api, self.events.append,
-                           lambda name, odometry: self.odometry.append(odometry),
-                           self.trajectories, key_base="busgate/gw")
+        self.trajectories = Trajectories(
+            self.api,
+            "busgate/gw",
+            lambda key, body: None,
+            self.events.append,
+            driven_by=self.api.driven_by,
+        )
+        self.bases = Bases(
+            config.bases,
+            self.api,
+            self.events.append,
+            lambda name, odometry: self.odometry.append(odometry),
+            self.trajectories,
+            estop_reset_key="busgate/gw/estop/reset",
+        )
         self._stop = threading.Event()
         self._rounds = threading.Thread(target=self._loop, daemon=True)
         self._rounds.start()
@@ -156,9 +214,11 @@ class World:
 
     def speeds(self, since: int) -> list[tuple[float, int, float]]:
         """(when, node, rpm) of every speed write since the ``since``-th frame."""
-        return [(record.start, frame.device_id, rpm_from_speed_raw(speed))
-                for record, frame in received(self.sim, since, zcan)
-                if (speed := written_speed(frame)) is not None]
+        return [
+            (record.start, frame.device_id, rpm_from_speed_raw(speed))
+            for record, frame in received(self.sim, since, zcan)
+            if (speed := written_speed(frame)) is not None
+        ]
 
     def wait_rest(self) -> None:
         deadline = time.monotonic() + 10
@@ -233,8 +293,10 @@ def test_a_twist_ramps_both_wheels_together_and_the_deadman_ramps_them_down(worl
     step = 2.0 * 0.0202 / 0.0825 * 60 / TURN  # 2 m/s² for a 20.2 ms slot: 4.7 rpm
     assert max(ramp) == pytest.approx(top, abs=0.4)
     # a slot the host let pass (a tick over 1 ms late gives up the next) is a step of two
-    assert all(abs(b - a) <= step * max(1, round((tb - ta) / 0.0202)) + 0.4
-               for (ta, a), (tb, b) in pairwise(left)), ramp
+    assert all(
+        abs(b - a) <= step * max(1, round((tb - ta) / 0.0202)) + 0.4
+        for (ta, a), (tb, b) in pairwise(left)
+    ), ramp
     assert ramp[0] <= step + 0.4 and ramp[-1] == 0
     # held for cmd_timeout_s (0.3 s) from the command, then down: the top is short-lived
     held = [t for t, rpm in left if rpm == pytest.approx(top, abs=0.4)]
@@ -285,7 +347,8 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
     assert refused["error"]["code"] == "estopped"
     assert refused["error"]["message"] == (  # what the base takes, not the wheel's own op
         'base base: wheel wl is e-stopped: send {"op":"enable"} to the base to let it move '
-        "again (or reset the e-stop: a put on busgate/gw/estop/reset)")
+        "again (or reset the e-stop: a put on busgate/gw/estop/reset)"
+    )
     assert world.base({"op": "status"})["base"]["twist"] == {"linear": 0.0, "angular": 0.0}
     for reset in world.api.reset_every_bus("test")[0]:
         reset.result(5)
@@ -303,8 +366,7 @@ def test_the_estop_stops_the_base_and_after_its_reset_the_base_starts_from_rest(
 def _play(world: World, devices: list[str], rpms: float, trajectory: str = "spin") -> dict:
     """A trajectory from another client turning ``devices`` at ``rpms`` for 3 s."""
     points = [{"t_s": t, "rpms": [rpms] * len(devices)} for t in (2.0, 3.0)]
-    play = {"op": "play", "id": trajectory, "client": "other", "devices": devices,
-            "points": points}
+    play = {"op": "play", "id": trajectory, "client": "other", "devices": devices, "points": points}
     try:
         return world.trajectories.command(json.dumps(play).encode())
     except REFUSALS as exc:
@@ -323,17 +385,21 @@ def test_a_trajectory_takes_no_wheel_of_a_driving_base(world) -> None:
             assert refused["error"]["code"] == "busy"
             assert refused["error"]["message"].startswith(
                 "wl is a wheel of base base, which is driving it: stop the base and wait until "
-                "it is at rest")
+                "it is at rest"
+            )
         assert world.trajectories.playing("wl") is None
         assert world.bases.driving_wheel("wl") == "base"
         # A stream or a ROS command to the wheel is told what drives it, not a trajectory
         # (it was: "wl is playing a trajectory: cancel it first"; an audit)
         follow = b'{"rpm": 10, "client": "other"}'
-        for refused in (world.api.follow("wl", follow),
-                        world.api.ramp_to("wl", {"joint_velocity": 1.0}, "ros2", 1.0)):
+        for refused in (
+            world.api.follow("wl", follow),
+            world.api.ramp_to("wl", {"joint_velocity": 1.0}, "ros2", 1.0),
+        ):
             assert refused["error"]["code"] == "busy"
             assert refused["error"]["message"].startswith(
-                "wl is a wheel of base base, which is driving it: stop the base first"), refused
+                "wl is a wheel of base base, which is driving it: stop the base first"
+            ), refused
         assert not any(e.type == "base_stopped" for e in list(world.events)[events:])
     finally:
         world.base({"op": "stop", "client": "drv"})
@@ -356,8 +422,14 @@ def test_a_twist_takes_no_wheel_a_trajectory_plays(world) -> None:
     """Rule 3 the other way: a twist while a wheel plays a trajectory is refused ``busy``,
     naming it, and nothing moves."""
     assert world.base({"op": "enable"})["ok"]
-    bases = Bases(world.config.bases, world.api, world.events.append,
-                  lambda name, odometry: None, OnePlaying(), key_base="busgate/gw")
+    bases = Bases(
+        world.config.bases,
+        world.api,
+        world.events.append,
+        lambda name, odometry: None,
+        OnePlaying(),
+        estop_reset_key="busgate/gw/estop/reset",
+    )
     since = len(world.sim.recorder.received())
     refused = bases.command("base", b'{"op":"twist","linear":0.2}').result(10)
     assert refused["error"]["code"] == "busy"
@@ -445,8 +517,9 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         refused = world.base({"op": "twist", "linear": 0.3, "angular": 0.0})
         assert refused["error"]["code"] == "bad_command"
         assert "wheel wr is in fault (over_current)" in refused["error"]["message"]
-        assert world.bases.twist("base", b'{"linear":0.3,"angular":0.0}')["error"] == \
-            refused["error"]
+        assert (
+            world.bases.twist("base", b'{"linear":0.3,"angular":0.0}')["error"] == refused["error"]
+        )
         # the base's enable too (it answered ok, its power stage staying off)
         assert world.base({"op": "enable"})["error"] == refused["error"]
         time.sleep(0.1)
@@ -463,8 +536,11 @@ def test_a_wheel_in_fault_refuses_a_twist_and_stops_a_driving_base(world) -> Non
         world.wait_rest()
         assert time.monotonic() - started < 2.0, "the base drove on with one wheel"
         news = [(e.device, e.type, e.fields) for e in list(world.events)[events:]]
-        assert ("base", "base_stopped", {"base": "base", "wheel": "wr",
-                                          "reason": "in fault: over_current"}) in news
+        assert (
+            "base",
+            "base_stopped",
+            {"base": "base", "wheel": "wr", "reason": "in fault: over_current"},
+        ) in news
         time.sleep(0.6)  # the ramp (0.5 s) down
         left = [rpm for _, node, rpm in world.speeds(0) if node == 1]
         assert left[-1] == 0
@@ -483,15 +559,21 @@ def test_a_base_at_rest_takes_no_wheel_from_a_speed_of_its_own() -> None:
         assert ramped.base({"op": "enable"})["ok"]
         assert ramped.wheel("wl", {"op": "velocity", "rpm": 76})["ok"]  # 0.16 s of ramp
         refused = ramped.base({"op": "twist", "linear": 0.05})
-        assert refused["error"] == {"code": "busy", "message": (
-            "base base: wheel wl follows a stream of its own (a client's follow key, or its "
-            "speed command's ramp): the base starts from rest and would stop it at once; end "
-            'it first ({"op":"end_follow"} to the wheel)')}
+        assert refused["error"] == {
+            "code": "busy",
+            "message": (
+                "base base: wheel wl follows a stream of its own (a client's follow key, or its "
+                "speed command's ramp): the base starts from rest and would stop it at once; end "
+                'it first ({"op":"end_follow"} to the wheel)'
+            ),
+        }
         _until(lambda: not ramped.runner.streams.following("wl"), "wl's ramp did not end")
         since, events = len(ramped.sim.recorder.received()), len(ramped.events)
         assert ramped.base({"op": "twist", "linear": 0.05, "duration_s": 1})["ok"]
-        _until(lambda: any(e.type == "base_stopped" for e in list(ramped.events)[events:]),
-               "the base did not stop")
+        _until(
+            lambda: any(e.type == "base_stopped" for e in list(ramped.events)[events:]),
+            "the base did not stop",
+        )
         stopped = next(e for e in list(ramped.events)[events:] if e.type == "base_stopped")
         assert stopped.fields["wheel"] == "wl"
         assert stopped.fields["reason"].startswith("would step -7.9")  # rad/s, from 76 rpm
@@ -511,8 +593,9 @@ def test_the_client_that_enabled_the_base_going_stops_no_wheel_another_client_dr
     ramped = World(wl=LEFT | {"max_acceleration": 50.0}, wr=RIGHT | {"max_acceleration": 50.0})
     try:
         assert ramped.base({"op": "enable", "client": "enabler"})["ok"]
-        assert ramped.base({"op": "twist", "linear": 0.3, "duration_s": 5,
-                            "client": "driver"})["ok"]
+        assert ramped.base({"op": "twist", "linear": 0.3, "duration_s": 5, "client": "driver"})[
+            "ok"
+        ]
         time.sleep(0.6)  # at speed
         since, events = len(ramped.sim.recorder.received()), len(ramped.events)
         ramped.api.client_left("enabler")
@@ -535,13 +618,16 @@ def test_a_twist_while_the_wheels_ramp_down_after_base_stopped_is_refused_busy(w
     time.sleep(0.6)
     events = len(world.events)
     world.runner.stop_playing("wr", speed=True)  # it leaves the base's play, ramping
-    _until(lambda: any(e.type == "base_stopped" for e in list(world.events)[events:]),
-           "the base did not stop")
+    _until(
+        lambda: any(e.type == "base_stopped" for e in list(world.events)[events:]),
+        "the base did not stop",
+    )
     refused = world.base({"op": "twist", "linear": 0.3, "duration_s": 5})
     assert refused["error"] == {
         "code": "busy",
         "message": "base base: wheel wl still ramps to 0 after the base stopped (within 0.5 s): "
-                   "send the twist again once it rests"}
+        "send the twist again once it rests",
+    }
     _until(lambda: not world.runner.plays.playing("wl"), "wl did not come to rest")
     since = len(world.sim.recorder.received())
     assert world.base({"op": "twist", "linear": 0.3, "duration_s": 0.1})["ok"]
@@ -566,8 +652,10 @@ def test_a_twist_right_after_a_base_came_to_rest_is_taken(world) -> None:
         stopped = [e for e in list(world.events)[events:] if e.type == "base_stopped"]
         if stopped:  # a loaded host let a wheel's tick go by: then the refusal is the rule's
             assert again["error"]["code"] == "busy", (again, stopped)
-            _until(lambda: not any(world.runner.plays.playing(w) for w in ("wl", "wr")),
-                   "the wheels did not rest")
+            _until(
+                lambda: not any(world.runner.plays.playing(w) for w in ("wl", "wr")),
+                "the wheels did not rest",
+            )
             continue
         assert again["ok"], again
         world.wait_rest()
@@ -587,7 +675,7 @@ def test_a_wheel_that_reboots_is_re_based_and_the_odometry_keeps_its_pose(world)
     world.base({"op": "stop"})
     world.wait_rest()
     time.sleep(0.1)
-    track = world.odometry[told - 1:]
+    track = world.odometry[told - 1 :]
     # its drive off since (the simulated reboot): the other wheel turns the base, a
     # centimetre and a few hundredths of a radian a heartbeat at 0.5 m/s
     for a, b in pairwise(track):
@@ -598,8 +686,7 @@ def test_a_wheel_that_reboots_is_re_based_and_the_odometry_keeps_its_pose(world)
 
 def test_odometry_follows_the_wheels_encoders_and_resets(world) -> None:
     def pulses() -> tuple[int, int]:
-        return tuple(world.api.devices[name][1].telemetry(0.0)["position"]
-                     for name in ("wl", "wr"))
+        return tuple(world.api.devices[name][1].telemetry(0.0)["position"] for name in ("wl", "wr"))
 
     assert world.base({"op": "enable"})["ok"]
     assert world.base({"op": "reset_odometry"})["ok"]
@@ -666,8 +753,7 @@ def _drive_until(world: World, linear: float, angular: float, reached) -> None:
     deadline, reply = time.monotonic() + 30, None
     while not (world.odometry and reached(world.odometry[-1])):
         assert time.monotonic() < deadline, f"the base never got there; its last reply: {reply}"
-        reply = world.base({"op": "twist", "linear": linear, "angular": angular,
-                            "duration_s": 0.1})
+        reply = world.base({"op": "twist", "linear": linear, "angular": angular, "duration_s": 0.1})
         time.sleep(0.02)
     world.base({"op": "stop"})
     world.wait_rest()
@@ -713,10 +799,12 @@ def test_a_square_of_one_metre_sides_returns_to_its_start(world) -> None:
     assert abs(math.remainder(end["theta"], math.tau)) < math.radians(2), end
 
 
-def test_a_bug_under_a_twist_put_is_its_internal_refusal_not_lost(world, monkeypatch,
-                                                                  caplog) -> None:
+def test_a_bug_under_a_twist_put_is_its_internal_refusal_not_lost(
+    world, monkeypatch, caplog
+) -> None:
     """A code review: only refusals were caught, so a bug under a twist put escaped to the
     intake's log line, and the flight recorder never kept the put with its answer."""
+
     def broken(*args) -> None:
         raise RuntimeError("a bug")
 

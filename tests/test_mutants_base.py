@@ -66,7 +66,7 @@ class IdleBase:
         self.bases = Bases(config.bases, self.gateway if recorded else self.api,
                            self.events.append,
                            lambda name, message: self.odometry.append((name, message)),
-                           NoTrajectories(), key_base="busgate/gw")
+                           NoTrajectories(), estop_reset_key="busgate/gw/estop/reset")
         self.base = self.bases.bases["base"]
 
     def read(self, wheel: str, position: float | None, ts: float | None,

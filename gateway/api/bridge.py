@@ -88,9 +88,10 @@ from busgate.gateway.scheduler.outcomes import cancelled_by_estop, settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
 from busgate.gateway.trajectory.playing import Trajectories
-from busgate.schemas.base import CLIENTS_ROOM, client_named
+from busgate.schemas.base import client_named
 from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
+from busgate.schemas.keys import Keys
 from busgate.schemas.payload import MAX_PAYLOAD, decode_object, too_large
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
@@ -149,8 +150,9 @@ class ZenohBridge:
         self.config = config
         self.api = api
         self.runners = runners
-        self.base = f"{config.gateway.prefix}/{config.gateway.name}"
-        self._estop_key = zenoh.KeyExpr(f"{self.base}/estop")
+        #: The API's keys (``schemas.keys``), and this gateway's name in them.
+        self.keys, self.name = Keys(config.gateway.prefix), config.gateway.name
+        self._estop_key = zenoh.KeyExpr(self.keys.estop(self.name))
         self.events = events  # filled by the bus threads and the API, drained here
         self.states = states  # every new device state, filled by the bus threads, drained here
         #: Rung by what fills ``events`` and ``states`` (``doorbell.Mailbox``): a loop with no
@@ -195,7 +197,7 @@ class ZenohBridge:
         api.driven_by = lambda device: self.bases.driving_wheel(device)
         self.trajectories = Trajectories(
             api,
-            self.base,
+            f"{config.gateway.prefix}/{self.name}",
             self._put_any,
             lambda event: self.events.append(event),
             driven_by=api.driven_by,
@@ -210,7 +212,7 @@ class ZenohBridge:
             lambda event: self.events.append(event),
             self._odometry,
             self.trajectories,
-            key_base=self.base,
+            estop_reset_key=self.keys.estop_reset(self.name),
         )
         self.joints = JointsFeed(
             config.gateway.name,
@@ -229,52 +231,52 @@ class ZenohBridge:
         config = gateway_session_config(zenoh_section)
         self._session = session = zenoh.open(config)
         self._refuse_namesakes(session)
-        base, prefix = self.base, self.config.gateway.prefix
+        keys, gw = self.keys, self.name
         commands, puts = self._commands, self._puts
         self._before_estop = []
         self._intakes = [
-            commands(session, f"{base}/dev/*/cmd", self._device_query, "device-commands"),
-            puts(session, f"{base}/dev/*/cmd", self._command_puts("dev"), "device-puts"),
-            puts(session, f"{base}/dev/*/follow", self._on_follow, "follow-targets"),
-            commands(session, f"{base}/bus/*/cmd", self._bus_query, "bus-commands"),
+            commands(session, keys.device(gw, "*", "cmd"), self._device_query, "device-commands"),
+            puts(session, keys.device(gw, "*", "cmd"), self._command_puts("dev"), "device-puts"),
+            puts(session, keys.device(gw, "*", "follow"), self._on_follow, "follow-targets"),
+            commands(session, keys.bus(gw, "*", "cmd"), self._bus_query, "bus-commands"),
             commands(
                 session,
-                f"{base}/trajectory",
+                keys.trajectory(gw),
                 self._trajectory_query,
                 "trajectories",
                 backlog_for(MAX_TRAJECTORY_PAYLOAD),
             ),
-            commands(session, f"{base}/base/*/cmd", self._base_query, "base-commands"),
-            puts(session, f"{base}/base/*/cmd", self._command_puts("base"), "base-puts"),
-            puts(session, f"{base}/base/*/twist", self._on_twist, "twists"),
-            take_queries(session, f"{base}/info", self._on_info, "info"),
-            take_liveliness(session, f"{prefix}/{CLIENTS_ROOM}/*", self._on_client, "clients"),
+            commands(session, keys.base(gw, "*", "cmd"), self._base_query, "base-commands"),
+            puts(session, keys.base(gw, "*", "cmd"), self._command_puts("base"), "base-puts"),
+            puts(session, keys.base(gw, "*", "twist"), self._on_twist, "twists"),
+            take_queries(session, keys.info(gw), self._on_info, "info"),
+            take_liveliness(session, keys.client("*"), self._on_client, "clients"),
         ]
         self._keep = [
             session.declare_subscriber(
-                f"{base}/estop/**", zenoh.handlers.Callback(self._on_estop_or_reset, indirect=False)
+                f"{keys.estop(gw)}/**",
+                zenoh.handlers.Callback(self._on_estop_or_reset, indirect=False),
             ),
-            session.liveliness().declare_token(f"{base}/alive"),
+            session.liveliness().declare_token(keys.alive(gw)),
             *self._watch_namesakes(session),
         ]
         drop = zenoh.CongestionControl.DROP
-        for device in self.api.devices:
-            for kind in ("state", "event"):
-                key = f"{base}/dev/{device}/{kind}"
-                self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
-        for bus in self.runners:
-            key = f"{base}/bus/{bus}/stats"
+        published = [
+            *(
+                keys.device(gw, device, kind)
+                for device in self.api.devices
+                for kind in ("state", "event")
+            ),
+            *(keys.bus(gw, bus, "stats") for bus in self.runners),
+            keys.joints(gw),
+            *(keys.base(gw, name, "odom") for name in self.bases.bases),
+        ]
+        for key in published:  # each dropped when late: the next one says it again
             self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
-        self._publishers[f"{base}/events"] = session.declare_publisher(f"{base}/events")
-        self._publishers[f"{base}/joints"] = session.declare_publisher(
-            f"{base}/joints", congestion_control=drop
-        )
-        for name in self.bases.bases:
-            key = f"{base}/base/{name}/odom"
-            self._publishers[key] = session.declare_publisher(key, congestion_control=drop)
+        self._publishers[keys.events(gw)] = session.declare_publisher(keys.events(gw))
         listening = endpoints_of(config, "listen", zenoh_section.mode)  # a config file's too
         where = ", ".join(listening) or "no endpoint: reachable only through connect"
-        log.info("zenoh session up: gateway %s, listening on %s", self.base, where)
+        log.info("zenoh session up: gateway %s/%s, listening on %s", keys.prefix, gw, where)
         connecting = endpoints_of(config, "connect", zenoh_section.mode)
         if not (listening or connecting or zenoh_section.multicast_scouting):
             log.warning("zenoh: %s", NOBODY_REACHES)
@@ -284,17 +286,17 @@ class ZenohBridge:
         the session closed first; a warning when its liveliness token is held with no
         ``info`` answering (a stale one). Asked before anything is declared, the two at once."""
         name, prefix = self.config.gateway.name, self.config.gateway.prefix
-        tokens = session.liveliness().get(f"{self.base}/alive", timeout=LIVE_WAIT_S)
-        infos = session.get(f"{self.base}/info", **_OTHERS)
+        tokens = session.liveliness().get(self.keys.alive(name), timeout=LIVE_WAIT_S)
+        infos = session.get(self.keys.info(name), **_OTHERS)
         held = any(reply.ok is not None for reply in tokens)
         answering = {str(r.replier_id.zid) for r in infos if r.ok is not None and r.replier_id}
         if not answering:
             if held:  # a gateway serving the name answers its info: this one is stale
                 log.warning(
-                    "the token %s/alive is held, but no gateway of name %s answers its info: "
+                    "the token %s is held, but no gateway of name %s answers its info: "
                     "taken for one whose host went away, its token kept until its lease runs "
                     "out; serving",
-                    self.base,
+                    self.keys.alive(name),
                     name,
                 )
             return
@@ -312,7 +314,7 @@ class ZenohBridge:
         """What tells of a gateway of this name that comes later (rule 7): a querier of the
         other sessions' ``info``, whose status turns matching when one serves it, and a
         subscriber of this gateway's liveliness token; each hands a look to the loop."""
-        self._namesakes = querier = session.declare_querier(f"{self.base}/info", **_OTHERS)
+        self._namesakes = querier = session.declare_querier(self.keys.info(self.name), **_OTHERS)
 
         def matching(status: zenoh.MatchingStatus) -> None:
             if status.matching:
@@ -326,7 +328,7 @@ class ZenohBridge:
             querier,
             querier.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False)),
             session.liveliness().declare_subscriber(
-                f"{self.base}/alive", zenoh.handlers.Callback(token, indirect=False)
+                self.keys.alive(self.name), zenoh.handlers.Callback(token, indirect=False)
             ),
         ]
         status: Any = querier.matching_status  # a MatchingStatus (zenoh's stub says bool)
@@ -481,23 +483,27 @@ class ZenohBridge:
         device = self._ours(query, "dev", self.api.devices)
         if device is None:
             return None
-        key = f"{self.base}/dev/{device}/cmd"
+        key = self.keys.device(self.name, device, "cmd")
         return _routed(key, query, lambda payload: self.api.command(device, payload))
 
     def _bus_query(self, query: zenoh.Query) -> Routed | None:
         bus = self._ours(query, "bus", self.runners)
         if bus is None:
             return None
-        key = f"{self.base}/bus/{bus}/cmd"
+        key = self.keys.bus(self.name, bus, "cmd")
         return _routed(key, query, lambda payload: self.api.bus_command(bus, payload))
 
     def _named(self, key: str, room: str, leaf: str) -> str | None:
-        """The name in a key of the shape ``<base>/<room>/<name>/<leaf>``; ``None`` for a key
-        of another shape (``**`` matches every key: it names no device) or another leaf (a
-        wildcard leaf, ``<base>/dev/la1/*``, names no command: it would reach cmd and follow
-        alike)."""
+        """The name in a key of the shape ``<prefix>/<gw>/<room>/<name>/<leaf>``; ``None`` for
+        a key of another shape (``**`` matches every key: it names no device) or another leaf
+        (a wildcard leaf, ``<prefix>/<gw>/dev/la1/*``, names no command: it would reach cmd
+        and follow alike)."""
         chunks = key.split("/")
-        if len(chunks) != self.base.count("/") + 4 or chunks[-3] != room or chunks[-1] != leaf:
+        if (
+            len(chunks) != self.keys.prefix.count("/") + 5
+            or chunks[-3] != room
+            or chunks[-1] != leaf
+        ):
             return None
         return chunks[-2]
 
@@ -534,19 +540,19 @@ class ZenohBridge:
         once)."""
         if self._reaches_info(asked):
             return None
-        keys = (f"{self.base}/{room}/{name}/cmd" for name in known)
+        keys = (self.keys.room(self.name, room, name, "cmd") for name in known)
         return next((key for key in keys if asked.intersects(zenoh.KeyExpr(key))), None)
 
     def _reaches_info(self, asked: zenoh.KeyExpr) -> bool:
         """Whether a query on ``asked`` reaches this gateway's info, which answers it (rule 5:
         ``**``, ``busgate/demo/**``), once."""
-        return asked.intersects(zenoh.KeyExpr(f"{self.base}/info"))
+        return asked.intersects(zenoh.KeyExpr(self.keys.info(self.name)))
 
     def _base_query(self, query: zenoh.Query) -> Routed | None:
         name = self._ours(query, "base", self.bases.bases)
         if name is None:
             return None
-        key = f"{self.base}/base/{name}/cmd"
+        key = self.keys.base(self.name, name, "cmd")
         return _routed(key, query, lambda payload: self.bases.command(name, payload))
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
@@ -563,7 +569,7 @@ class ZenohBridge:
         """The gateway's info; a get that carries a payload (a command sent on ``**`` or
         ``busgate/<gw>/*``, which reaches only this key: the device keys take no wildcard) is
         told so, never answered with an info that reads as the command's success."""
-        key = f"{self.base}/info"
+        key = self.keys.info(self.name)
         if query.payload is not None and len(query.payload):
             refused = CommandError(
                 f"{key} takes no payload: this get ({str(query.key_expr)[:200]}) carried one, "
@@ -579,7 +585,7 @@ class ZenohBridge:
         and a play it carried would move every gateway with those device names. Refused,
         once by each gateway it reaches (rather than left to wait out its timeout), unless
         it reaches the info key too (``**``: the info answers it, rule 5)."""
-        key = f"{self.base}/trajectory"
+        key = self.keys.trajectory(self.name)
         if str(query.key_expr) != key:
             if self._reaches_info(query.key_expr):
                 query.drop()
@@ -721,7 +727,7 @@ class ZenohBridge:
         an object with nothing but a ``client``, if any, that is a client id: else it is
         refused, told as a ``command_refused`` event, and nothing is reset."""
         key = str(sample.key_expr)
-        if key != f"{self.base}/estop/reset":
+        if key != self.keys.estop_reset(self.name):
             log.debug("e-stop reset on %s ignored: a reset names its gateway's key", key)
             return
         payload = b""  # what is recorded of one too large to read
@@ -839,7 +845,7 @@ class ZenohBridge:
             device, state = states.popleft()
             key = keys.get(device)
             if key is None:
-                key = keys[device] = f"{self.base}/dev/{device}/state"
+                key = keys[device] = self.keys.device(self.name, device, "state")
             self._put(key, state)
             online = bool(state.get("online"))
             if online is not (device in tokens):  # its token comes or goes
@@ -848,7 +854,7 @@ class ZenohBridge:
             self.bases.take_state(device, state)
         joints = self.joints.due(time.monotonic(), time.time())
         if joints is not None:
-            self._put(f"{self.base}/joints", joints)
+            self._put(self.keys.joints(self.name), joints)
             self.on_joints(joints)
 
     def publish_events(self) -> None:
@@ -856,14 +862,14 @@ class ZenohBridge:
             event = self.events.popleft()
             body = {"ts": time.time(), "device": event.device, "type": event.type, **event.fields}
             if event.device in self.api.devices:
-                self._put(f"{self.base}/dev/{event.device}/event", body)
-            self._put(f"{self.base}/events", body)
+                self._put(self.keys.device(self.name, event.device, "event"), body)
+            self._put(self.keys.events(self.name), body)
 
     def publish_stats(self) -> None:
         for bus, runner in self.runners.items():
             stats = asdict(runner.statistics())
             body = {"ts": time.time(), "bus": bus, "up": runner.owner.is_open, **stats}
-            self._put(f"{self.base}/bus/{bus}/stats", body)
+            self._put(self.keys.bus(self.name, bus, "stats"), body)
 
     def _put(self, key: str, value: dict[str, Any]) -> None:
         publisher = self._publishers.get(key)
@@ -873,7 +879,7 @@ class ZenohBridge:
             self.on_published(key, value, data)
 
     def _odometry(self, name: str, odometry: dict[str, Any]) -> None:
-        self._put(f"{self.base}/base/{name}/odom", odometry)
+        self._put(self.keys.base(self.name, name, "odom"), odometry)
         self.on_odometry(name, odometry)
 
     def _put_any(self, key: str, value: dict[str, Any]) -> None:
@@ -887,7 +893,7 @@ class ZenohBridge:
         if self._session is None:
             return
         if online and device not in self._device_tokens:
-            key = f"{self.base}/dev/{device}/alive"
+            key = self.keys.device(self.name, device, "alive")
             self._device_tokens[device] = self._session.liveliness().declare_token(key)
         elif not online and device in self._device_tokens:
             self._device_tokens.pop(device).undeclare()

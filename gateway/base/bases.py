@@ -179,10 +179,10 @@ class Bases:
         publish: Callable[[str, dict[str, Any]], None],
         trajectories: TrajectoryPlayers,
         *,
-        key_base: str,
+        estop_reset_key: str,
     ) -> None:
         self.api = api
-        self._estop_reset_key = f"{key_base}/estop/reset"  # named in the refusal that needs it
+        self._estop_reset_key = estop_reset_key  # named in the refusal that needs it
         self.on_event = on_event
         self.publish = publish  # (base name, odometry message)
         #: A twist and a trajectory's play are chosen under one lock, theirs (rule 3).
