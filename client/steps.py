@@ -76,7 +76,7 @@ class Wait(Step):
             raise self._no_answer() from None
 
     def _no_answer(self) -> NoAnswerError:
-        return NoAnswerError(f"{self.what}: no answer within {self.timeout_s:.3g} s")
+        return NoAnswerError(f"{self.what}: no answer within {self.timeout_s:.4g} s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,6 +160,9 @@ class Call(Step):
         try:
             return await called
         except asyncio.CancelledError:
+            if called.done() and not called.cancelled() and called.exception() is None:
+                ended.clear()  # its result came as the awaiter was cancelled: nobody takes it
+                threading.Thread(target=dispose, args=(called.result(), None), daemon=True).start()
             deadline = loop.time() + self.left_wait_s
             while not ended.is_set() and loop.time() < deadline:
                 await asyncio.sleep(LEFT_POLL_S)

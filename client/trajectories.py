@@ -123,9 +123,10 @@ class Watch:
                 self.result = message
         for inbox in inboxes:
             inbox.put(message)
-        if "result" in message and not self.finished.done():
+        if "result" in message:
             self._stop_listening()  # its gateway's going is no news to it now
-            self.finished.set_result(message)
+            with contextlib.suppress(InvalidStateError):  # it went first
+                self.finished.set_result(message)
 
     def _gateway_gone(self, gateway: str) -> None:
         """The gateway's token went: a result still to come never will (a restarted gateway
@@ -234,7 +235,11 @@ class Handle(Face):
 def start(shared: Shared, gateway: str, body: dict[str, Any], timeout_s: float) -> Future:
     """Watch, then send ``play``: a future of (``Watch``, the reply's ``trajectory``)."""
     watch = Watch(shared, gateway, body["id"])
-    sent = shared.core.command(shared.core.keys.trajectory(gateway), body, timeout_s=timeout_s)
+    try:
+        sent = shared.core.command(shared.core.keys.trajectory(gateway), body, timeout_s=timeout_s)
+    except BaseException:  # refused before it was sent (over 2 MiB): nothing to watch
+        watch.close()
+        raise
 
     def accepted(reply: dict[str, Any]) -> tuple[Watch, dict[str, Any]]:
         return watch, reply["trajectory"]

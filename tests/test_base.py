@@ -407,9 +407,9 @@ def test_a_trajectory_takes_no_wheel_of_a_driving_base(world) -> None:
 
 
 class OnePlaying:
-    """The gateway's trajectories as a base asks them (``bases.Plays``), one playing ``wr``:
-    this bus has no room for a trajectory's ticks beside the base's (its reply margin, 50 ms
-    for a loaded host, reserves each tick's exchange)."""
+    """The gateway's trajectories as a base asks them (``bases.TrajectoryPlayers``), one
+    playing ``wr``: this bus has no room for a trajectory's ticks beside the base's (its
+    reply margin, 50 ms for a loaded host, reserves each tick's exchange)."""
 
     def __init__(self) -> None:
         self.players = threading.Lock()

@@ -6,6 +6,7 @@ it says where each bus would run (bus workers).
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import subprocess
@@ -668,3 +669,15 @@ def test_commands_that_never_fit_between_ticks_are_warned_of_where_nothing_is_po
     (warning,) = budget.warnings()
     assert warning.startswith("follow ticks every 15 ms leave at most ")
     assert "so commands wait while every device streams" in warning
+
+
+def test_a_listen_probe_of_an_address_family_this_host_has_not_is_no_crash(monkeypatch) -> None:
+    """A review: with IPv6 off, making the probe's socket raised EAFNOSUPPORT out of
+    check-config; such a port is not in use."""
+    from busgate.gateway.cli import check_config
+
+    def no_ipv6(family, *args):
+        raise OSError(errno.EAFNOSUPPORT, "Address family not supported by protocol")
+
+    monkeypatch.setattr(check_config.socket, "socket", no_ipv6)
+    assert check_config._in_use("tcp/[::1]:7447") is False

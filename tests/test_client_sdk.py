@@ -796,6 +796,10 @@ def test_a_payload_no_gateway_reads_is_refused_at_once_not_after_the_timeout(cli
         client.device("demo/la2").send({"op": "status", "pad": pad}, timeout=10)
     with pytest.raises(CommandError, match="no gateway reads"):
         client.bus("demo/uart0").send({"op": "status", "pad": pad}, timeout=10)
+    listening = len(client._shared.core._listeners)
+    with pytest.raises(CommandError, match="no gateway reads"):  # a review: its watch leaked
+        client.play(["demo/la2"], [{"t_s": 1.0, "positions": [1000], "pad": pad}])
+    assert len(client._shared.core._listeners) == listening
     assert time.monotonic() - started < 5  # not the 10 s each would have waited
 
 

@@ -60,6 +60,7 @@ DOCTEST_MODULES = [
     "busgate.gateway.trajectory.bounds",
     "busgate.gateway.trajectory.interpolation",
     "busgate.schemas.endpoints",
+    "busgate.schemas.keys",
     "busgate.schemas.payload",
     "busgate.schemas.telemetry",
     "busgate.schemas.validation",

@@ -397,3 +397,14 @@ def test_a_drive_that_powered_up_again_has_its_run_signal_cut() -> None:
     driver.take_position(100_000, 0.0)
     driver.take_position(0, 0.0)  # the counter back at 0 from far away: the drive powered up
     assert plan(driver, '{"op":"clear_alarm"}')
+
+
+def test_a_reboot_during_an_outage_is_judged_against_the_fixed_bound() -> None:
+    """A review: the bound grown by the time since the last report took an outage's length
+    too, so a drive that powered up again (heartbeats lost, then 0) was not told rebooted."""
+    driver = Zlac706CanDriver("w", 1, heartbeat_ms=100)
+    driver.take_position(100_000, 0.0)
+    driver.went_offline("heartbeat lost")
+    driver.drain_events()
+    driver.take_position(0, 2.0)
+    assert "rebooted" in event_types(driver)

@@ -199,13 +199,13 @@ def _in_use(endpoint: str) -> bool:
     except (OSError, UnicodeError):  # told by ``_listener_problem``
         return False
     for family, sort, proto, _, address in found:
-        with socket.socket(family, sort, proto) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as zenoh's listener
-            try:
+        try:
+            with socket.socket(family, sort, proto) as probe:  # IPv6 may be off: EAFNOSUPPORT
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as zenoh's
                 probe.bind(address)
-            except OSError as exc:
-                if exc.errno == errno.EADDRINUSE:
-                    return True
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                return True
     return False
 
 

@@ -459,6 +459,9 @@ class Zlac706Driver(Driver):
             self._preset_when_gone = bool(turning)
         super().went_offline(reason)
         self.speed_sent_raw = 0
+        # A power cycle is an outage: the first report after it is judged against the fixed
+        # bound, not one grown by the time away (``take_position``; a review).
+        self._position_at = None
 
     def restore(self) -> list[Request]:
         """The settings the drive had confirmed, then nothing preset if it was commanded to
