@@ -17,7 +17,7 @@ from __future__ import annotations
 import abc
 import enum
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, ClassVar, Literal, NamedTuple
@@ -89,6 +89,32 @@ class Deadman:
 
     op: str
     stop: str
+
+
+@dataclass(frozen=True, slots=True)
+class FrameRules:
+    """A family's rules per frame, as its frames module states them: what a frame does, the
+    setpoints it carries, the ids it gives (``Driver.effect``, ``setpoints``, ``id_changes``)."""
+
+    effect: Callable[[Any], Effect]
+    setpoints: Callable[[Any], Iterable[Setpoint]]
+    id_changes: Callable[[Any], Iterable[IdChange]]
+
+
+class RuledFrames:
+    """Before ``Driver`` in a family's driver whose per-frame answers are its
+    ``frame_rules``: the same three methods, once for every such family."""
+
+    frame_rules: ClassVar[FrameRules]
+
+    def effect(self, frame: object) -> Effect:
+        return self.frame_rules.effect(frame)
+
+    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
+        return [s for frame in frames for s in self.frame_rules.setpoints(frame)]
+
+    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
+        return [c for frame in frames for c in self.frame_rules.id_changes(frame)]
 
 
 class Driver(abc.ABC):

@@ -29,7 +29,7 @@ from typing import Any, ClassVar, Final
 from busgate.codecs import ds_servo as codec
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect, IdChange, Setpoint
+from busgate.gateway.drivers.base import Driver, Effect, FrameRules, IdChange, RuledFrames, Setpoint
 from busgate.schemas import ds_servo as schema
 from busgate.schemas.telemetry import flag_names
 
@@ -224,7 +224,7 @@ _POLLED: Final = (*_MEASURED, "torque_enable", "target_position")
 _POLL_SPANS: Final = poll_spans(_POLLED)
 
 
-class DsServoDriver(Driver):
+class DsServoDriver(RuledFrames, Driver):
     """One DS servo: commands become frames, status replies become its state.
 
     Rules: ``plan`` changes nothing; ``apply`` changes the state only from what the servo
@@ -234,6 +234,7 @@ class DsServoDriver(Driver):
     """
 
     protocol: ClassVar[str] = "ds_servo"
+    frame_rules: ClassVar[FrameRules] = FrameRules(frame_effect, frame_setpoints, frame_id_changes)
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"torque","on":true}',)
     follow_group_limit: ClassVar[int] = codec.MAX_SYNC_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
@@ -257,15 +258,6 @@ class DsServoDriver(Driver):
         if type(command) not in _FRAME_FOR:
             raise CommandError(f"ds_servo has no command {type(command).__name__}")
         return frames_for(command, self.device_id)
-
-    def effect(self, frame: object) -> Effect:
-        return frame_effect(frame)  # type: ignore[arg-type]
-
-    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
-        return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
-
-    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
-        return [c for frame in frames for c in frame_id_changes(frame)]  # type: ignore[arg-type]
 
     def plan_frames(self, command: Any, frames: Sequence[object]) -> list[Request]:
         if isinstance(command, schema.SetId) and command.new_id == self.device_id:

@@ -42,7 +42,7 @@ from busgate.codecs import inspire_la as codec
 from busgate.codecs.errors import EncodeError
 from busgate.errors import CommandError
 from busgate.gateway.bus.request import Request
-from busgate.gateway.drivers.base import Driver, Effect, IdChange, Setpoint
+from busgate.gateway.drivers.base import Driver, FrameRules, RuledFrames
 from busgate.gateway.drivers.inspire_la_frames import (
     frame_effect,
     frame_id_changes,
@@ -106,10 +106,11 @@ def _estop_request(device_id: int) -> Request:
     return _request(codec.ControlCommand(device_id, codec.ControlCode.ESTOP), idempotent=True)
 
 
-class InspireLaDriver(Driver):
+class InspireLaDriver(RuledFrames, Driver):
     """One Inspire LA actuator: commands → frames under the state rules, replies → state."""
 
     protocol: ClassVar[str] = "inspire_la"
+    frame_rules: ClassVar[FrameRules] = FrameRules(frame_effect, frame_setpoints, frame_id_changes)
     follow_preparation: ClassVar[tuple[str, ...]] = ('{"op":"enable"}',)
     follow_group_limit: ClassVar[int] = codec.MAX_GROUP_TARGETS
     broadcast_id: ClassVar[int | None] = codec.BROADCAST_ID
@@ -140,15 +141,6 @@ class InspireLaDriver(Driver):
 
     def frames_of(self, command: Any) -> list[codec.Frame]:
         return frames_for(command, self.device_id)
-
-    def effect(self, frame: object) -> Effect:
-        return frame_effect(frame)  # type: ignore[arg-type]
-
-    def setpoints(self, frames: Sequence[object]) -> list[Setpoint]:
-        return [s for frame in frames for s in frame_setpoints(frame)]  # type: ignore[arg-type]
-
-    def id_changes(self, frames: Sequence[object]) -> list[IdChange]:
-        return [c for frame in frames for c in frame_id_changes(frame)]  # type: ignore[arg-type]
 
     def follow_mode_ids(self, frames: Sequence[object]) -> frozenset[int]:
         ids: set[int] = set()
