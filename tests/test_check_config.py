@@ -16,7 +16,7 @@ from pathlib import Path
 import can
 import pytest
 
-from busgate.gateway.bus.can_owner import unnamed_options
+from busgate.gateway.bus.can_options import unnamed_options
 from busgate.gateway.cli import main
 from busgate.gateway.service import workers as workers_module
 from busgate.gateway.service.budget import bus_budget

@@ -48,24 +48,18 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import importlib
-import inspect
-import logging
 import math
-import re
 import select
 import socket
 import struct
-import sys
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from functools import partial
 from types import ModuleType
 from typing import Any, ClassVar
 
 import can
 from can.interfaces.socketcan.constants import SO_TIMESTAMPNS
-from can.typechecking import BitTimingDict, BitTimingFdDict
 
 from busgate.codecs.can_frame import MAX_STANDARD_ID, CanFrame
 from busgate.codecs.framing import Discarded
@@ -104,15 +98,6 @@ TakeFrame = Callable[[float], TakenFrame | None]
 #: The most frames one look takes (rule 3): a 1 Mbit/s bus carries some 70 in an idle
 #: batch's 8 ms.
 LOOK_FRAMES_MAX = 256
-#: The options python-can takes for every interface besides a bus class's own parameters
-#: (``unnamed_options``): those its configuration step reads (``can.util``) and a bit
-#: timing's, which it makes a ``timing`` of.
-PYTHON_CAN_KEYS = frozenset(
-    {"fd", "data_bitrate", "port", "state", "timing",
-     *BitTimingDict.__annotations__, *BitTimingFdDict.__annotations__}
-)  # fmt: skip
-#: A key a bus's module reads from its ``**kwargs`` (``kwargs.get("fd")``, ``kwargs["x"]``).
-KWARGS_READ = re.compile(r"""kwargs(?:\.get\(|\.pop\(|\[)\s*["'](\w+)["']""")
 #: The interfaces with a descriptor whose ``recv(timeout=0)`` never waits (rule 3; slcan is
 #: ours, ``SlcanBus``).
 LOOK_NEVER_WAITS = frozenset({"socketcan", "slcan"})
@@ -335,43 +320,6 @@ class CanBusOwner(BusOwner):
     def _fail(self, exc: BaseException) -> None:
         self.close()
         raise BusIOError(f"CAN {self.port}: {exc}") from exc
-
-
-def unknown_interface(interface: str) -> str | None:
-    """Why a bus on ``interface`` could never open here (python-can knows no such interface:
-    neither its own nor a plugin installed on this host), ``None`` when it knows it."""
-    if interface in can.interfaces.VALID_INTERFACES:
-        return None
-    known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
-    return f"python-can has no interface {interface!r} on this host (it has {known})"
-
-
-def unnamed_options(interface: str, options: Iterable[str]) -> list[str]:
-    """Those of ``options`` that python-can's bus for ``interface`` takes by no name it gives:
-    not a parameter of the class (nor of ``can.Bus``, nor ``can.BusABC``, which every bus
-    takes), not one of python-can's own for every interface (``PYTHON_CAN_KEYS``), and not a
-    key the class's module reads from its ``**kwargs`` (``kwargs.get("fd")``, as pcan's does):
-    most likely misspelt, as ``**kwargs`` takes any name in silence. None when the class
-    cannot be loaded here; python-can's warnings as it loads one (``Kvaser canlib is
-    unavailable.``) are kept quiet meanwhile: opening the bus tells what it lacks."""
-    python_can_log = logging.getLogger("can")
-    level = python_can_log.level
-    python_can_log.setLevel(logging.ERROR)
-    try:
-        module, name = can.interfaces.BACKENDS[interface]
-        bus_class = getattr(importlib.import_module(module), name)
-        named = {
-            parameter.name
-            for function in (bus_class.__init__, can.BusABC.__init__, can.Bus)
-            for parameter in inspect.signature(function).parameters.values()
-            if parameter.kind not in (parameter.VAR_POSITIONAL, parameter.VAR_KEYWORD)
-        }
-        named.update(KWARGS_READ.findall(inspect.getsource(sys.modules[bus_class.__module__])))
-    except Exception:  # a plugin's module may raise anything as it loads
-        return []
-    finally:
-        python_can_log.setLevel(level)
-    return [key for key in options if key not in named and key not in PYTHON_CAN_KEYS]
 
 
 def frames_of(interface: str, bus: can.BusABC) -> TakeFrame:

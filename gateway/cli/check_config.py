@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 from busgate.errors import ConfigError
-from busgate.gateway.bus.can_owner import unknown_interface, unnamed_options
+from busgate.gateway.bus.can_options import unknown_interface, unnamed_options
 from busgate.gateway.bus.port_access import NOT_A_DEVICE, missing, port_problem
 from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.recording.flight import folder_problem

@@ -41,7 +41,7 @@ from busgate.errors import BusgateError, BusUnavailableError
 from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.doorbell import Doorbell, Mailbox
-from busgate.gateway.bus.can_owner import unknown_interface
+from busgate.gateway.bus.can_options import unknown_interface
 from busgate.gateway.bus.clock import tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
