@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import time
 from collections import deque
@@ -70,6 +69,7 @@ import zenoh
 from busgate.errors import CommandError, ConfigError, RefusedError
 from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
 from busgate.gateway.api.doorbell import Doorbell
+from busgate.gateway.api.estop_payload import estop_sender, reset_sender
 from busgate.gateway.api.intake import (
     BACKLOG,
     Intake,
@@ -88,11 +88,10 @@ from busgate.gateway.scheduler.outcomes import cancelled_by_estop, settled
 from busgate.gateway.scheduler.runner import BusRunner
 from busgate.gateway.trajectory.lanes import TrajectoryLanes
 from busgate.gateway.trajectory.playing import Trajectories
-from busgate.schemas.base import client_named
 from busgate.schemas.config import Config
 from busgate.schemas.encoding import message_json
 from busgate.schemas.keys import Keys
-from busgate.schemas.payload import MAX_PAYLOAD, decode_object, too_large
+from busgate.schemas.payload import MAX_PAYLOAD, too_large
 from busgate.schemas.replies import error_reply
 from busgate.schemas.trajectory import MAX_TRAJECTORY_PAYLOAD
 from busgate.schemas.validation import shown
@@ -133,6 +132,8 @@ TELEMETRY_EVERY_S = 0.01
 #: The longest wait of a loop with no work: its doorbell cuts it short (``doorbell``).
 IDLE_WAIT_S = 0.1
 STATS_EVERY_S = 1.0
+#: What a command key's name names, in each room (``_ours``).
+ROOM_NOUNS = {"dev": "device", "bus": "bus", "base": "base"}
 
 
 class ZenohBridge:
@@ -673,7 +674,7 @@ class ZenohBridge:
             payload = _taken(sample.payload)
         except RefusedError:  # too large to name a client: it names none
             payload = b""
-        self._told_estop(stopped, _sender(payload), str(sample.key_expr))
+        self._told_estop(stopped, estop_sender(payload), str(sample.key_expr))
         self.on_command(str(sample.key_expr), payload, None, came)
 
     def estop(self, sender: str | None, key: str) -> list[Future]:
@@ -733,7 +734,7 @@ class ZenohBridge:
         payload = b""  # what is recorded of one too large to read
         try:
             payload = _taken(sample.payload)
-            sender = _named_sender(payload, only_client=True)
+            sender = reset_sender(payload)
         except RefusedError as refusal:
             refused = error_reply(refusal)
             self.put_reports.refused("*", refused["error"])  # the whole gateway's
@@ -908,41 +909,6 @@ def _session_named(session: zenoh.Session, zid: str) -> str:
     ``session`` when it is directly (not through a router)."""
     links = [link.dst for link in session.info.links() if str(link.zid) == zid]
     return f"zenoh session {zid}" + (f" at {', '.join(links)}" if links else "")
-
-
-def _sender(payload: bytes) -> str | None:
-    """The client an e-stop payload names (``{"client": "teleop"}``), if it names one validly:
-    for the log only, the e-stop itself takes any payload."""
-    try:
-        return _named_sender(payload)
-    except RefusedError:
-        return None
-
-
-#: What a command key's name names, in each room (``_ours``).
-ROOM_NOUNS = {"dev": "device", "bus": "bus", "base": "base"}
-
-
-def _named_sender(payload: bytes, *, only_client: bool = False) -> str | None:
-    """The client a payload of the e-stop's or its reset's names (``None``: empty or blank,
-    or naming none); ``RefusedError`` for a payload that is no JSON object, or a ``client``
-    that is no client id, or (``only_client``: a reset's) that holds anything else: a
-    command put on the reset's key by mistake resets nothing."""
-    if not payload.strip():
-        return None
-    fields = decode_object(payload)
-    if only_client and (others := sorted(set(fields) - {"client"})):
-        raise RefusedError(
-            "bad_command",
-            f'a reset of every device takes nothing but "client", not '
-            f"{shown(', '.join(others))}: nothing was reset",
-        )
-    client = fields.get("client")
-    sender = client_named(client)
-    if client is not None and sender is None:
-        named = f"'{shown(client)}'" if isinstance(client, str) else json.dumps(client)[:40]
-        raise RefusedError("bad_command", f"client {named} is no client id")
-    return sender
 
 
 def _routed(
