@@ -27,7 +27,6 @@ Rules of this file:
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Generic, Self, TypeVar
@@ -41,19 +40,18 @@ from busgate.client.errors import (
     error_for,
 )
 from busgate.client.faces import Face, feeding, waiting
-from busgate.client.feeds import Inbox, Stream
+from busgate.client.feeds import latest_parsed, parsed_feed
 from busgate.client.follow import FollowSender
 from busgate.client.keys import Keys, split_name
 from busgate.client.messages import (
     Answers,
     Odometry,
     dumps,
-    feed_deadline,
     first_ok,
     published_naming,
     then,
 )
-from busgate.client.steps import Items, Next, Steps, Wait
+from busgate.client.steps import Items, Steps, Wait
 from busgate.schemas.bases import TwistTarget
 
 #: The kind of every base a gateway has (``[[bases]]``' ``kind``).
@@ -229,10 +227,7 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
         ``ts``): one received in the last ``max_age`` seconds, else the next within
         ``timeout`` (it comes as the wheels are read)."""
         latest = self._shared.latest(self._odometry_key(), self.gateway, timeout, max_age)
-        message = self._message(latest.recent(max_age))
-        deadline = time.monotonic() + timeout
-        while message is None and (left := deadline - time.monotonic()) > 0:
-            message = self._message((yield Next(latest.next(), left)))
+        message = yield from latest_parsed(latest, self._message, timeout, max_age)
         if message is None:
             raise NoAnswerError(f"no odometry of {self._where()} within {timeout:g} s")
         return message
@@ -240,16 +235,8 @@ class MobileBase(Face, Generic[Claim, DriveStream]):
     @feeding
     def odometry_feed(self, timeout: float = 5.0) -> Items[Odometry]:
         """Each new odometry message of the base, as it comes, until ``timeout`` seconds."""
-        deadline = feed_deadline(timeout)
-        inbox: Inbox[bytes] = Inbox()
-        with Stream(self._shared.core, self._odometry_key(), inbox):
-            while (left := deadline - time.monotonic()) > 0:
-                payload = yield Next(inbox.next(), left)
-                if payload is None:
-                    return
-                message = self._message(payload)
-                if message is not None:
-                    yield message
+        core, key = self._shared.core, self._odometry_key()
+        yield from parsed_feed(core, key, self._message, timeout)
 
 
 class DriveStreamBase(StreamBase):

@@ -8,7 +8,6 @@ a ``bc.aio.Claim``). A face's module adds only the ways into and out of a block 
 from __future__ import annotations
 
 import contextlib
-import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Generic, Self, TypeVar
@@ -17,9 +16,8 @@ from busgate.client.base import Found, Shared, as_body, reenable_command, scan_c
 from busgate.client.claims import ClaimLease
 from busgate.client.errors import NoAnswerError, error_for
 from busgate.client.faces import Face, feeding, waiting
-from busgate.client.feeds import Inbox, Stream
+from busgate.client.feeds import parsed_feed
 from busgate.client.follow import FollowSender
-from busgate.client.messages import feed_deadline
 from busgate.client.steps import Items, Next, Steps, Wait
 from busgate.errors import BusgateError, CommandError
 
@@ -95,15 +93,14 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
         return (yield from self._latest_state(timeout, max_age))
 
     def _latest_state(self, timeout: float, max_age: float) -> Steps[Any]:
-        key = self._shared.core.keys.device(self.gateway, self.name, "state")
-        latest = self._shared.latest(key, self.gateway, timeout, max_age)
+        latest = self._shared.latest(self._state_key(), self.gateway, timeout, max_age)
         payload = latest.recent(max_age)
         if payload is None:
             payload = yield Next(latest.next(), timeout)
         if payload is None:
             raise NoAnswerError(f"no state of {self._where()} within {timeout:g} s")
-        state = self._shared.telemetry(self._found, payload)
-        if state is None:  # left out: the warning says why
+        state = self._state(payload)
+        if state is None:  # left out, the warning says why; told, not waited past (sdk.md)
             raise error_for("internal")(
                 f"the state on the key of {self._where()} is not one its {self._found.kind} sends"
             )
@@ -112,17 +109,15 @@ class DeviceBase(Face, Generic[Claim, Follow, Joint]):
     @feeding
     def states(self, timeout: float = 5.0) -> Items[Any]:
         """Each new state message of the device, as it comes, until ``timeout`` seconds."""
-        deadline = feed_deadline(timeout)
-        inbox: Inbox[bytes] = Inbox()
-        key = self._shared.core.keys.device(self.gateway, self.name, "state")
-        with Stream(self._shared.core, key, inbox):
-            while (left := deadline - time.monotonic()) > 0:
-                payload = yield Next(inbox.next(), left)
-                if payload is None:
-                    return
-                state = self._shared.telemetry(self._found, payload)
-                if state is not None:  # one that is not a state: left out, told once
-                    yield state
+        yield from parsed_feed(self._shared.core, self._state_key(), self._state, timeout)
+
+    def _state_key(self) -> str:
+        return self._shared.core.keys.device(self.gateway, self.name, "state")
+
+    def _state(self, payload: bytes) -> Any:
+        """A state message of the device, as its kind's model; ``None`` for one that is not
+        (left out, the warning says why)."""
+        return self._shared.telemetry(self._found, payload)
 
     def claim(self, ttl_s: float = 2.0) -> Claim:
         """Exclusive motion control while the ``with`` block runs: claimed on entry,

@@ -26,6 +26,8 @@ from concurrent.futures import Future, InvalidStateError
 from typing import Generic, TypeVar
 
 from busgate.client.core import Core, closed_reading
+from busgate.client.messages import feed_deadline
+from busgate.client.steps import Items, Next, Steps
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -185,3 +187,38 @@ class Latest:
     def _gateway_gone(self, gateway: str) -> None:
         if gateway == self.gateway:
             self._latest = None
+
+
+def parsed_feed(
+    core: Core, key: str, parse: Callable[[bytes], T | None], timeout_s: float
+) -> Items[T]:
+    """Each message on ``key`` that ``parse`` takes, as it comes, until ``timeout_s`` (one it
+    leaves out, ``None``, is told by it): a device's states, a base's odometry, a gateway's
+    joints messages."""
+    deadline = feed_deadline(timeout_s)
+    inbox: Inbox[bytes] = Inbox()
+    with Stream(core, key, inbox):
+        while (left := deadline - time.monotonic()) > 0:
+            payload = yield Next(inbox.next(), left)
+            if payload is None:
+                return
+            message = parse(payload)
+            if message is not None:
+                yield message
+
+
+def latest_parsed(
+    latest: Latest, parse: Callable[[bytes], T | None], timeout_s: float, max_age_s: float
+) -> Steps[T | None]:
+    """The latest message that ``parse`` takes: one received in the last ``max_age_s``
+    seconds, else the next within ``timeout_s`` (one kept meanwhile first); ``None`` when
+    none came. One that ``parse`` leaves out is waited past, not raised: a peer's bad
+    message on the key fails no reader."""
+    payload = latest.recent(max_age_s)
+    message = None if payload is None else parse(payload)
+    deadline = time.monotonic() + timeout_s
+    while message is None and (left := deadline - time.monotonic()) > 0:
+        newer = None if payload is None else latest.newer_than(payload)
+        payload = newer if newer is not None else (yield Next(latest.next(), left))
+        message = None if payload is None else parse(payload)
+    return message

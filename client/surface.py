@@ -14,7 +14,6 @@ binds to its own classes, so that a type checker knows ``bc.connect(…).device(
 from __future__ import annotations
 
 import functools
-import time
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -25,10 +24,10 @@ from busgate.client.core import LEFT_OPEN_WAIT_S, Core
 from busgate.client.devices import DeviceBase
 from busgate.client.errors import NoAnswerError
 from busgate.client.faces import Face, feeding, taking, waiting
-from busgate.client.feeds import Inbox, Stream
+from busgate.client.feeds import latest_parsed, parsed_feed
 from busgate.client.keys import check_name
-from busgate.client.messages import Answers, JointsMessage, feed_deadline, joints_message
-from busgate.client.steps import Call, Items, Next, Steps, Wait
+from busgate.client.messages import Answers, JointsMessage, joints_message
+from busgate.client.steps import Call, Items, Steps, Wait
 from busgate.client.trajectories import Watch, one_gateway, play_body
 from busgate.errors import CommandError
 from busgate.schemas.api import InfoReply
@@ -116,13 +115,8 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
         any was read again): one received in the last ``max_age`` seconds, else the next
         within ``timeout``."""
         latest = self._shared.latest(self._joints_key(gateway), gateway, timeout, max_age)
-        payload = latest.recent(max_age)
-        message = None if payload is None else joints_message(payload, gateway)
-        deadline = time.monotonic() + timeout
-        while message is None and (left := deadline - time.monotonic()) > 0:
-            newer = None if payload is None else latest.newer_than(payload)
-            payload = newer if newer is not None else (yield Next(latest.next(), left))
-            message = None if payload is None else joints_message(payload, gateway)
+        parse = functools.partial(joints_message, gateway=gateway)
+        message = yield from latest_parsed(latest, parse, timeout, max_age)
         if message is None:
             raise NoAnswerError(f"no joints message of {gateway} within {timeout:g} s")
         return message
@@ -130,16 +124,8 @@ class ClientBase(Face, Generic[Device, Bus, Trajectory, Joint, Base]):
     @feeding
     def joints_feed(self, gateway: str, timeout: float = 5.0) -> Items[JointsMessage]:
         """Each new joints message of ``gateway``, as it comes, until ``timeout`` seconds."""
-        deadline = feed_deadline(timeout)
-        inbox: Inbox[bytes] = Inbox()
-        with Stream(self._shared.core, self._joints_key(gateway), inbox):
-            while (left := deadline - time.monotonic()) > 0:
-                payload = yield Next(inbox.next(), left)
-                if payload is None:
-                    return
-                message = joints_message(payload, gateway)
-                if message is not None:
-                    yield message
+        parse = functools.partial(joints_message, gateway=gateway)
+        yield from parsed_feed(self._shared.core, self._joints_key(gateway), parse, timeout)
 
     def _joints_key(self, gateway: str) -> str:
         return self._shared.core.keys.joints(check_name("gateway", gateway))
