@@ -445,8 +445,8 @@ class ZenohBridge:
             self.bases.tick()
             self.put_reports.flush()
             self.publish_events()
-            if time.monotonic() >= next_stats:
-                next_stats = time.monotonic() + STATS_EVERY_S
+            if now() >= next_stats:
+                next_stats = now() + STATS_EVERY_S
                 self.publish_stats()
             # a sleep is cheaper than a wait_for task every round
             if self._round_due():
@@ -454,7 +454,7 @@ class ZenohBridge:
             elif published:
                 await asyncio.sleep(self.telemetry_every_s)
             else:
-                joints_in = self.joints.due_in(time.monotonic())
+                joints_in = self.joints.due_in(now())
                 idle_s = IDLE_WAIT_S if joints_in is None else min(IDLE_WAIT_S, joints_in)
                 await self.doorbell.wait(idle_s, self._has_news)
 
@@ -768,7 +768,7 @@ class ZenohBridge:
         loop = self._loop
         assert loop is not None
         replied: Future[bool] = Future()
-        asked = time.perf_counter()
+        asked = now()
         guard: list[asyncio.TimerHandle] = []
 
         def send(reply: dict[str, Any]) -> None:
@@ -781,7 +781,7 @@ class ZenohBridge:
                 query.reply(key, message_json(reply))
             finally:
                 query.drop()
-                self.on_latency(time.perf_counter() - asked)
+                self.on_latency(now() - asked)
                 if payload is not None:
                     self.on_command(key, payload, reply, None)
 
@@ -853,7 +853,7 @@ class ZenohBridge:
                 self._track_liveliness(device, online)
             self.joints.take(device, state)
             self.bases.take_state(device, state)
-        joints = self.joints.due(time.monotonic(), time.time())
+        joints = self.joints.due(now(), time.time())
         if joints is not None:
             self._put(self.keys.joints(self.name), joints)
             self.on_joints(joints)

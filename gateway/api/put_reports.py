@@ -29,11 +29,11 @@ Rules of this file:
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.schemas.validation import shown
 
@@ -65,7 +65,7 @@ class PutReports:
         tell: Callable[[DeviceEvent], None],
         *,
         every_s: float = TOLD_EVERY_S,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Callable[[], float] = now,
     ) -> None:
         self._devices = devices
         self._tell = tell

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
 from busgate.errors import BusyError, RefusedError
+from busgate.gateway.bus.clock import now
 from busgate.gateway.scheduler.outcomes import settled
 from busgate.schemas.payload import decode_object
 from busgate.schemas.replies import error_reply, failure_reply
@@ -66,7 +66,7 @@ class Lane:
                 self._waiting += 1
         if full:
             return settled(error_reply(BusyError(f"{self.limit} {self.name}s are waiting")))
-        return self._worker.submit(self._run, work, time.monotonic())
+        return self._worker.submit(self._run, work, now())
 
     def close(self) -> None:
         self._worker.shutdown(wait=False, cancel_futures=True)
@@ -74,7 +74,7 @@ class Lane:
     def _run(self, work: Callable[[], Reply], came: float) -> Reply:
         with self._lock:
             self._waiting -= 1
-        waited = time.monotonic() - came
+        waited = now() - came
         if self.start_s is not None and waited > self.start_s:
             return error_reply(
                 BusyError(
