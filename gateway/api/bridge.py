@@ -67,7 +67,7 @@ from typing import Any
 import zenoh
 
 from busgate.errors import CommandError, ConfigError, RefusedError
-from busgate.gateway.api.commands import TOLD_LINES, GatewayApi, log_told
+from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.doorbell import Doorbell
 from busgate.gateway.api.estop_payload import estop_sender, reset_sender
 from busgate.gateway.api.intake import (
@@ -79,7 +79,7 @@ from busgate.gateway.api.intake import (
     take_queries,
 )
 from busgate.gateway.api.joints import JointsFeed
-from busgate.gateway.api.put_reports import PutReports
+from busgate.gateway.api.put_reports import TOLD_LINES, PutReports, log_told
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.base.bases import Bases
 from busgate.gateway.bus.clock import now

@@ -49,7 +49,7 @@ import contextlib
 import functools
 import logging
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from concurrent.futures import Future, InvalidStateError
 from typing import Any, ClassVar
 
@@ -107,33 +107,6 @@ def answered(handler: Callable[..., Future]) -> Callable[..., Future]:
             return settled(failure_reply(exc, log, f"{handler.__name__}{args[:1]!r}"))
 
     return wrapper
-
-
-#: The log line of an e-stop and of an e-stop reset of the whole gateway, by event type.
-TOLD_LINES = {"estop": "e-stop of every bus", "estop_reset": "e-stop reset of every bus"}
-
-
-def log_told(
-    event_type: str, sender: str | None, suppressed: int = 0, not_reset: Sequence[str] = ()
-) -> None:
-    """The log line of an e-stop or a reset of the whole gateway (``TOLD_LINES``), naming the
-    client that sent it when known, how many came since the last line without one of their
-    own (``put_reports``), and the devices a reset left to their holders
-    (``reset_every_bus``)."""
-    since = f" ({suppressed} more since the last told)" if suppressed else ""
-    log.warning(
-        "%s%s%s%s",
-        TOLD_LINES[event_type],
-        f" from {sender}" if sender else "",
-        since,
-        not_reset_said(not_reset),
-    )
-
-
-def not_reset_said(not_reset: Sequence[str]) -> str:
-    """What a reset of the whole gateway's line or answer adds of the devices it left to
-    their holders (``reset_every_bus``); nothing when it left none."""
-    return f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""
 
 
 class GatewayApi:

@@ -28,6 +28,7 @@ Rules of this file:
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
@@ -36,6 +37,8 @@ from typing import Any
 from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.schemas.validation import shown
+
+log = logging.getLogger(__name__)
 
 #: The shortest time between two puts told in one slot.
 TOLD_EVERY_S = 0.1
@@ -150,3 +153,30 @@ def reset_fields(sender: str | None, not_reset: Sequence[str]) -> dict[str, Any]
 def client_field(sender: str | None) -> dict[str, str]:
     """An event's ``client``: the one that sent what it tells, when it named one."""
     return {"client": sender} if sender else {}
+
+
+#: The log line of an e-stop and of an e-stop reset of the whole gateway, by event type.
+TOLD_LINES = {"estop": "e-stop of every bus", "estop_reset": "e-stop reset of every bus"}
+
+
+def log_told(
+    event_type: str, sender: str | None, suppressed: int = 0, not_reset: Sequence[str] = ()
+) -> None:
+    """The log line of an e-stop or a reset of the whole gateway (``TOLD_LINES``), naming the
+    client that sent it when known, how many came since the last line without one of their
+    own (``put_reports``), and the devices a reset left to their holders
+    (``reset_every_bus``)."""
+    since = f" ({suppressed} more since the last told)" if suppressed else ""
+    log.warning(
+        "%s%s%s%s",
+        TOLD_LINES[event_type],
+        f" from {sender}" if sender else "",
+        since,
+        not_reset_said(not_reset),
+    )
+
+
+def not_reset_said(not_reset: Sequence[str]) -> str:
+    """What a reset of the whole gateway's line or answer adds of the devices it left to
+    their holders (``reset_every_bus``); nothing when it left none."""
+    return f"; not reset, claimed by another client: {', '.join(not_reset)}" if not_reset else ""

@@ -59,7 +59,8 @@ from busgate.codecs.ros2 import rmw_zenoh
 from busgate.codecs.ros2.messages import time_of
 from busgate.errors import RefusedError
 from busgate.gateway.api.bridge import ZenohBridge, ignored
-from busgate.gateway.api.commands import GatewayApi, not_reset_said
+from busgate.gateway.api.commands import GatewayApi
+from busgate.gateway.api.put_reports import not_reset_said
 from busgate.gateway.api.taken import estops_when_taken
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
