@@ -90,7 +90,7 @@ log = logging.getLogger(__name__)
 #: How long after a play started its wheels may still be missing from their buses' plays (the
 #: bus threads take the play from their inboxes) before a missing one counts as gone.
 PLAY_TAKEN_S = 0.2
-VELOCITY_MODE = b'{"op":"set_mode","mode":"velocity"}'
+VELOCITY_MODE_OP: dict[str, Any] = {"op": "set_mode", "mode": "velocity"}
 #: Added to the time between two readings of a wheel before a jump is judged one its drive
 #: cannot make (rule 5): a reading is dated when its bus thread takes it, and two taken in one
 #: look, after a held-up thread, are dated nearly together however far apart they were read.
@@ -383,7 +383,7 @@ class Bases:
         # 0 rpm before the enable: a speed preset (a wheel's own velocity op while the base
         # was off) would start the motor the moment it is enabled; a base moves on twists only.
         ops: list[dict[str, Any]] = [
-            {"op": "set_mode", "mode": "velocity"},
+            VELOCITY_MODE_OP,
             {"op": "velocity", "rpm": 0},
             {"op": "enable"},
         ]
@@ -479,7 +479,7 @@ class Bases:
         base, wheel = found
         online = bool(state.get("online"))
         if online and not wheel.online and state.get("mode") != "velocity":
-            self.api.command(device, VELOCITY_MODE)
+            self.api.command(device, json.dumps(VELOCITY_MODE_OP).encode())
         wheel.online = online
         wheel.faults = tuple(state.get("faults") or ())
         joint, ts = state.get("joint") or {}, state.get("ts")

@@ -249,7 +249,7 @@ class InspireLaDriver(RuledFrames, Driver):
 
     @classmethod
     def probe(cls, device_id: int) -> Request:
-        return Request.of(codec, codec.ControlCommand(device_id, codec.ControlCode.STATUS))
+        return _request(codec.ControlCommand(device_id, codec.ControlCode.STATUS), idempotent=False)
 
     def group_entry(self, position: int, time_ms: int | None) -> dict[str, Any]:
         if time_ms is not None:

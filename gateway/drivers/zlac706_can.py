@@ -82,7 +82,7 @@ def _monitor(_command: schema.Monitor, _device_id: int) -> codec.Write:
     )
 
 
-_FRAME_OF: dict[type, Callable[[Any, int], codec.Write]] = {
+_FRAME_FOR: dict[type, Callable[[Any, int], codec.Write]] = {
     schema.SetMode: lambda c, d: codec.Write(d, Reg.WORK_MODE, _WORK_MODES[c.mode]),
     schema.Enable: _fixed(Reg.CONTROL_WORD, codec.ControlWord.ENABLE),
     schema.Disable: _fixed(Reg.CONTROL_WORD, codec.ControlWord.RELEASE),
@@ -119,7 +119,7 @@ def frames_for(command: Any, device_id: int) -> list[codec.Write]:
     >>> [str(codec.encode(f)) for f in frames_for(cmd, 1)]
     ['001#00fa0011fffff556']
     """
-    return [_FRAME_OF[type(command)](command, device_id)]
+    return [_FRAME_FOR[type(command)](command, device_id)]
 
 
 # --- the driver ------------------------------------------------------------------------------

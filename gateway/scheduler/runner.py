@@ -227,7 +227,7 @@ class BusRunner:
         the future gets the result dict, or the refusal. It starts within ``COMMAND_START_S``
         of now, or of ``taken_at`` (bus clock) for a command that crossed to a worker, which
         may have read it late (rule 5)."""
-        start_by = (now() if taken_at is None else taken_at) + COMMAND_START_S
+        start_by = _start_by(taken_at)
         return self._hand_over(
             lambda future: self._work.plan_command(device, command, client, start_by, future)
         )
@@ -266,7 +266,7 @@ class BusRunner:
         gateway's e-stop, each in the power state it had before and holding still
         (``Driver.reset_estop``); by ``COMMAND_START_S`` after now, or ``taken_at``, as
         ``submit``."""
-        start_by = (now() if taken_at is None else taken_at) + COMMAND_START_S
+        start_by = _start_by(taken_at)
         return self._hand_over(lambda future: self._work.plan_reset(device, start_by, future, skip))
 
     def follow(
@@ -559,3 +559,9 @@ class BusRunner:
             self._execution.last_words(safe_stops(self.drivers.values()))
         self._drain_inbox()
         self._publish()
+
+
+def _start_by(taken_at: float | None) -> float:
+    """When a command handed over now (or taken off the network at ``taken_at``, bus clock)
+    must have started: ``COMMAND_START_S`` later (rule 5)."""
+    return (now() if taken_at is None else taken_at) + COMMAND_START_S
