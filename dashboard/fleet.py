@@ -50,7 +50,13 @@ from typing import Any
 from pydantic import ValidationError
 
 from busgate.schemas.bases import Odometry
-from busgate.schemas.joints import declaration_of, type_told
+from busgate.schemas.joints import (
+    JOINT_NAME_CHARS,
+    UNIT_CHARS,
+    declaration_of,
+    finite_or_none,
+    type_told,
+)
 
 HISTORY_S = 60.0
 SAMPLE_EVERY_S = 0.05
@@ -64,8 +70,6 @@ NAME_CHARS = 128
 CLEAN_DEPTH = 16
 #: A sample this much older than the last one kept starts the history again (rule 3).
 CLOCK_STEP_S = 1.0
-#: The longest joint name and unit told to a browser.
-MAX_NAME, MAX_UNIT = 64, 16
 MAX_BASES = 64
 #: A base's track (rule 6): at most ``TRACK_POINTS`` points, each ``TRACK_STEP_M`` from the
 #: one before (600 cm-steps at the finest: a base at rest adds none).
@@ -75,13 +79,6 @@ TRACK_STEP_M = 0.01
 #: measured speed (the greater of the two messages') takes it in the time between them, and
 #: ``JUMP_M`` more, jumped rather than moved (rule 6).
 JUMP_M = 0.05
-
-
-def number(value: Any) -> float | None:
-    """``value`` when it is a finite number (not a bool), else ``None``."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return value if math.isfinite(value) else None
 
 
 def clean(value: Any, depth: int = CLEAN_DEPTH) -> Any:
@@ -134,13 +131,13 @@ class JointView:
         declaration = declaration_of(kind)
         joint_type = type_told(kind, values)
         return cls(
-            _text(values.get("name"), MAX_NAME),
+            _text(values.get("name"), JOINT_NAME_CHARS),
             joint_type,
-            _text(values.get("unit"), MAX_UNIT),
-            number(values.get(joint_type)),
-            number(values.get("target")),
-            number(values.get("velocity")),
-            number(values.get("effort")),
+            _text(values.get("unit"), UNIT_CHARS),
+            finite_or_none(values.get(joint_type)),
+            finite_or_none(values.get("target")),
+            finite_or_none(values.get("velocity")),
+            finite_or_none(values.get("effort")),
             None if declaration is None else declaration.effort_unit,
         )
 
@@ -167,17 +164,17 @@ def _raw_sample(kind: str, state: dict[str, Any]) -> tuple[float | None, float |
     if declaration is None:
         return None, None
     measured, target = declaration.raw_fields(declaration.types[0])
-    return number(state.get(measured)), number(state.get(target))
+    return finite_or_none(state.get(measured)), finite_or_none(state.get(target))
 
 
 def sample_of(kind: str, state: dict[str, Any]) -> list[float | None] | None:
     """``[ts, joint value, joint target, current_ma]`` of a state; ``None`` without a time."""
-    ts = number(state.get("ts"))
+    ts = finite_or_none(state.get("ts"))
     if ts is None:
         return None
     view = JointView.of(kind, state)
     value, target = _raw_sample(kind, state) if view is None else (view.value, view.target)
-    return [ts, value, target, number(state.get("current_ma"))]
+    return [ts, value, target, finite_or_none(state.get("current_ma"))]
 
 
 class Device:
@@ -231,7 +228,7 @@ class Base:
     def take(self, odometry: dict[str, Any]) -> None:
         self.odometry = odometry
         ts, x, y, linear, angular = (
-            number(odometry.get(name)) for name in ("ts", "x", "y", "linear", "angular")
+            finite_or_none(odometry.get(name)) for name in ("ts", "x", "y", "linear", "angular")
         )
         self.measured = {"linear": linear, "angular": angular}
         if ts is None or x is None or y is None:
@@ -540,4 +537,4 @@ def _rate(before: Any, after: dict[str, Any]) -> float | None:
         rate = frames / elapsed if elapsed > 0 else None
     except (KeyError, TypeError, OverflowError):
         return None
-    return number(rate)
+    return finite_or_none(rate)

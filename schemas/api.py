@@ -34,6 +34,7 @@ from busgate.schemas.base import (
     OpenPublished,
     Published,
     ReadByKey,
+    require_distinct,
 )
 from busgate.schemas.config import Name
 from busgate.schemas.families import FAMILIES, PROTOCOLS
@@ -195,8 +196,8 @@ class BusScan(CommandModel):
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> BusScan:
-        if self.ids is not None and len(set(self.ids)) != len(self.ids):
-            raise ValueError("scan ids must be distinct")
+        if self.ids is not None:
+            require_distinct(self.ids, "scan ids")
         return self
 
 

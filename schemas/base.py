@@ -32,6 +32,13 @@ KEY_PREFIX_PATTERN = r"^[A-Za-z0-9_-]{1,64}(/[A-Za-z0-9_-]{1,64}){0,7}$"
 KEY_PREFIX_FORM = f"one to eight names of {NAME_FORM}, joined by /"
 
 
+def require_distinct(ids: list[int], what: str) -> None:
+    """``ValueError`` (a schema's refusal) when ``ids`` names one id twice: a group frame or a
+    scan addresses each device once."""
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{what} must be distinct, got {ids}")
+
+
 def client_named(value: object) -> str | None:
     """``value`` when it is a valid client id (what a payload's ``client`` names), else
     ``None``: for what only reports a client, never trusts it."""

@@ -19,7 +19,7 @@ from pydantic import BaseModel, Field, TypeAdapter, model_validator
 from pydantic.fields import FieldInfo
 
 from busgate.codecs import ds_servo as codec
-from busgate.schemas.base import CommandModel, FollowModel, HexData
+from busgate.schemas.base import CommandModel, FollowModel, HexData, require_distinct
 from busgate.schemas.joints import JointDeclaration
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
@@ -105,9 +105,7 @@ class GroupMove(CommandModel):
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> GroupMove:
-        ids = [target.id for target in self.targets]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"target ids must be distinct, got {ids}")
+        require_distinct([target.id for target in self.targets], "target ids")
         return self
 
 

@@ -19,7 +19,7 @@ from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, model_valida
 from pydantic.fields import FieldInfo
 
 from busgate.codecs import inspire_la as codec
-from busgate.schemas.base import CommandModel, FollowModel, HexData
+from busgate.schemas.base import CommandModel, FollowModel, HexData, require_distinct
 from busgate.schemas.joints import JointDeclaration
 from busgate.schemas.telemetry import TelemetryEnvelope, fault_literal
 
@@ -185,9 +185,7 @@ class _Group(CommandModel):
 
     @model_validator(mode="after")
     def _distinct_ids(self) -> _Group:
-        ids = [target.id for target in self.targets]
-        if len(set(ids)) != len(ids):
-            raise ValueError(f"target ids must be distinct, got {ids}")
+        require_distinct([target.id for target in self.targets], "target ids")
         return self
 
 

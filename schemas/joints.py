@@ -56,7 +56,18 @@ COUNT_SLACK = 1e-3
 PUBLISHED_DIGITS = 15
 #: A unit as a joint is published with: ``m``, ``rad`` or ``raw``, an effort's ``N`` or
 #: ``A``; bounded, with room for units to come, so that a peer's is never megabytes.
-Unit = Annotated[str, Field(max_length=16)]
+UNIT_CHARS = 16
+Unit = Annotated[str, Field(max_length=UNIT_CHARS)]
+#: The longest joint name a gateway gives (a name, as every name of its config).
+JOINT_NAME_CHARS = 64
+
+
+def finite_or_none(value: Any) -> float | None:
+    """``value`` when it is a finite number (not a bool), else ``None``: a joint's value as a
+    display takes it from a peer's message."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return value if math.isfinite(value) else None
 
 
 def published(value: float) -> float:

@@ -140,7 +140,10 @@ Ping(device_id=1)]
             return None
         device_id = buf[start + 2]
         if not (MIN_ID <= device_id <= MAX_ID or device_id == BROADCAST_ID):
-            return f"id {device_id} is neither a servo (1-250) nor broadcast (254)"
+            return (
+                f"id {device_id} is neither a servo ({MIN_ID}-{MAX_ID}) nor broadcast "
+                f"({BROADCAST_ID})"
+            )
         if available < 5:
             return None
         length, code = buf[start + 3], buf[start + 4]
@@ -183,7 +186,7 @@ class ReplyDecoder(HeaderFramedDecoder[StatusReply]):
             return None
         device_id = buf[start + 2]
         if not MIN_ID <= device_id <= MAX_ID:
-            return f"id {device_id} is not a servo id (1-250)"
+            return f"id {device_id} is not a servo id ({MIN_ID}-{MAX_ID})"
         if available < 4:
             return None
         length = buf[start + 3]

@@ -31,10 +31,10 @@ MAX_ID = 254
 #: Frames carry the device id; these are the ids a device can have.
 ADDRESSED = True
 DEVICE_IDS = range(MIN_ID, MAX_ID + 1)
-#: Manual 3.4.2: replies after 120 µs, up to 800 µs when a control task interrupts; "keep
-#: commands at least 1 ms apart". 921600 baud is the D-type factory default.
 #: Baud rates in the order of their codes in register 12: the only ones an actuator runs at.
 BAUD_RATES = (19200, 57600, 115200, 921600)
+#: Manual 3.4.2: replies after 120 µs, up to 800 µs when a control task interrupts; "keep
+#: commands at least 1 ms apart". 921600 baud is the D-type factory default.
 TIMING = ProtocolTiming(0.001, 0.001, 120e-6, 800e-6, 921_600, rates=BAUD_RATES)
 #: Every actuator executes a frame sent to 255; none answers it.
 BROADCAST_ID = 0xFF

@@ -30,12 +30,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Any, TextIO
 
 import busgate.client as bc
@@ -45,6 +43,7 @@ from busgate.client.messages import MAX_WAIT_S, MIN_WAIT_S, NOTHING_THERE
 from busgate.errors import CommandError, RefusedError
 from busgate.gateway.cli.arguments import seconds, seconds_from
 from busgate.gateway.cli.client_session import add_session_options, open_client
+from busgate.gateway.cli.stopping import stopped_by_signals
 from busgate.gateway.cli.watch_table import WatchTable
 from busgate.schemas.api import InfoReply
 from busgate.schemas.payload import decode_object
@@ -385,19 +384,9 @@ def _subscribe(
     client.subscribe(stats_key, handler(table.update_stats, "bus", "stats"))
 
 
-@contextmanager
-def _ctrl_c() -> Iterator[threading.Event]:
-    """An event Ctrl-C sets (instead of raising ``KeyboardInterrupt``) while the block runs."""
-    pressed = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: pressed.set())
-    try:
-        yield pressed
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 def _wait(seconds: float | None) -> None:
-    with _ctrl_c() as pressed:
+    pressed = threading.Event()  # Ctrl-C or SIGTERM: the watch ends as at its time's end
+    with stopped_by_signals(pressed):
         pressed.wait(seconds)
 
 
@@ -405,7 +394,8 @@ def _wait_showing_live(table: WatchTable, out: TextIO, seconds: float | None) ->
     """Redraw (tty) or print changed rows (pipe) until ``seconds`` pass or Ctrl-C."""
     tty = out.isatty()
     deadline = None if seconds is None else time.monotonic() + seconds
-    with _ctrl_c() as pressed:
+    pressed = threading.Event()
+    with stopped_by_signals(pressed):
         while deadline is None or time.monotonic() < deadline:
             if pressed.wait(1 / REDRAW_HZ):
                 return

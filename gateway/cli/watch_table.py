@@ -24,7 +24,14 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from busgate.schemas.joints import JointType, declaration_of, type_told
+from busgate.schemas.joints import (
+    JOINT_NAME_CHARS,
+    UNIT_CHARS,
+    JointType,
+    declaration_of,
+    finite_or_none,
+    type_told,
+)
 from busgate.schemas.validation import printable
 
 #: The most of a value a cell shows (``printable``): a gateway may send a name or a value of
@@ -222,13 +229,15 @@ def _joint(device: str, state: dict[str, Any], joint_type: JointType) -> str:
     joint = state.get("joint")
     if not isinstance(joint, dict) or not isinstance(joint.get("unit"), str):
         return "-"
-    unit = joint["unit"][:16]
-    value = _finite(joint.get(joint_type))
+    unit = joint["unit"][:UNIT_CHARS]
+    value = finite_or_none(joint.get(joint_type))
     shown = "-" if value is None else f"{_number(value)} {unit}"
     if joint_type == "velocity" and shown != "-":
         shown += "/s"
     name = joint.get("name")
-    return f"{name[:64]}: {shown}" if isinstance(name, str) and name != device else shown
+    return (
+        f"{name[:JOINT_NAME_CHARS]}: {shown}" if isinstance(name, str) and name != device else shown
+    )
 
 
 def _motion(state: dict[str, Any], joint_type: JointType) -> str:
@@ -245,12 +254,6 @@ def _motion(state: dict[str, Any], joint_type: JointType) -> str:
         return "-"
     shown = f"{_text(measured)}{unit}"
     return shown if target is None else f"{shown} -> {_text(target)}"
-
-
-def _finite(value: Any) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    return value if math.isfinite(value) else None
 
 
 def _number(value: float) -> str:
