@@ -18,7 +18,7 @@ import pytest
 
 from busgate.gateway.bus.can_options import unnamed_options
 from busgate.gateway.cli import main
-from busgate.gateway.service import workers as workers_module
+from busgate.gateway.service import placement as placement_module
 from busgate.gateway.service.budget import bus_budget
 from busgate.schemas import files
 from busgate.schemas.config import CanBus, SerialBus, load_config
@@ -492,7 +492,7 @@ def test_more_workers_than_the_cores_this_host_gives_are_a_warning(tmp_path, cap
     path = tmp_path / "gateway.toml"
     path.write_text('[gateway]\nname = "gw"\nworkers = 2\n' + la_buses(tmp_path, (1,), (2,)))
     for cores, warned in ((2, False), (1, True)):
-        monkeypatch.setattr(workers_module, "usable_cores", lambda c=cores: c)
+        monkeypatch.setattr(placement_module, "usable_cores", lambda c=cores: c)
         assert main(["check-config", str(path)]) == 0
         warning = ('warning: gateway.workers: 2 workers on this host\'s 1 core(s) take turns on '
                    'them; "auto" makes one a core')

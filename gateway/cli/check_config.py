@@ -41,7 +41,7 @@ from busgate.gateway.bus.port_access import NOT_A_DEVICE, missing, port_problem
 from busgate.gateway.cli.arguments import named_path
 from busgate.gateway.recording.flight import folder_problem
 from busgate.gateway.service.budget import bus_budget
-from busgate.gateway.service.workers import placement, too_many
+from busgate.gateway.service.placement import placement, too_many
 from busgate.schemas.config import CanBus, Config, SerialBus, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings, host_of, port_of, settings_of
 

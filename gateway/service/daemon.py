@@ -56,8 +56,9 @@ from busgate.gateway.service.assembly import (
 )
 from busgate.gateway.service.budget import bus_budget
 from busgate.gateway.service.metrics import Metrics
+from busgate.gateway.service.placement import placement, too_many
 from busgate.gateway.service.sdnotify import Notifier, Watchdog
-from busgate.gateway.service.workers import WorkerProcess, placement, too_many
+from busgate.gateway.service.workers import WorkerProcess
 from busgate.schemas.config import CanBus, Config, ignored_keys, load_config
 from busgate.schemas.endpoints import exposure_warnings
 
