@@ -10,7 +10,6 @@ cost the gateways nothing more.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import threading
 from collections.abc import Callable
@@ -109,14 +108,19 @@ class Feed:
         task.add_done_callback(self._asking.discard)
 
     async def _info(self, gateway: str) -> None:
+        why = "no answer"
         for _ in range(INFO_TRIES):
-            with contextlib.suppress(BusgateError, GatewayError):
+            try:
                 answers = await self._client.query(self._keys.info(gateway), timeout=INFO_WAIT_S)
+            except (BusgateError, GatewayError) as exc:
+                why = str(exc)
+            else:
                 info = gateway_infos(answers).get(gateway)  # its own, on its own key
                 if info is not None:
                     self._fleet.info(gateway, info)
                     return
+                why = "no info of its own among the answers" if answers else "no answer"
             if not self._fleet.has(gateway):
                 return
             await asyncio.sleep(INFO_WAIT_S / 2)
-        log.warning("gateway %s is up but its info did not answer", gateway)
+        log.warning("gateway %s is up but its info did not answer (%s)", gateway, why)

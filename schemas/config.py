@@ -213,7 +213,11 @@ class SerialBus(BusBase):
     port: Annotated[
         str,
         # the schema says what ``_absolute_port`` checks, which refuses in words of its own
-        Field(min_length=1, pattern=r"^[^\x00]+$", json_schema_extra={"pattern": r"^/[^\x00]*$"}),
+        Field(
+            min_length=1,
+            pattern=r"^[^\x00]+$",
+            json_schema_extra={"pattern": ABSOLUTE_PATH_PATTERN},
+        ),
         AfterValidator(_absolute_port),
     ]
     baudrate: Annotated[int, Field(ge=1200, le=4_000_000)]
@@ -612,7 +616,7 @@ def _key_path(loc: tuple[int | str, ...]) -> str:
     for part in loc:
         if isinstance(part, int):
             path += f"[{part}]"
-        elif part in ("serial", "can") and path.endswith("]"):
+        elif part in _TAGS["transport"] and path.endswith("]"):
             continue
         else:
             path += f".{part}" if path else part

@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import contextlib
 import errno
+import logging
 import math
 import os
 import shlex
@@ -58,6 +59,8 @@ GATEWAY_NAME = "demo"
 HEARTBEAT_MS = 100
 READY_POLL_S = 0.05
 TRY_COMMAND = '{"op":"move","position":1500}'
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -508,8 +511,10 @@ async def _serve_announcing(
             stop.set()
             await serving
             if signalled:  # what the dashboard said meanwhile (its session found no gateway)
-                with contextlib.suppress(Exception):
+                try:
                     await showing
+                except Exception:  # a stop is what the user asked for: kept for a debug log
+                    log.debug("the dashboard's start, stopped by a signal", exc_info=True)
                 return
             await showing  # its error
         url = shown.result()

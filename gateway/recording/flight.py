@@ -122,17 +122,10 @@ class FlightRecorder:
         self.prefix, self.gateway, self.version = prefix, gateway, version
         self.base = f"{prefix}/{gateway}"
         seconds = settings.seconds
-        self.frames = {
-            bus: Ring(seconds, int(seconds * FRAMES_PER_S), int(seconds * FRAME_BYTES_PER_S))
-            for bus in buses
-        }
+        self.frames = {bus: _ring(seconds, FRAMES_PER_S, FRAME_BYTES_PER_S) for bus in buses}
         self.bus_of = {device: bus for bus, devices in buses.items() for device in devices}
-        self.published = Ring(
-            seconds, int(seconds * MESSAGES_PER_S), int(seconds * MESSAGE_BYTES_PER_S)
-        )
-        self.commands = Ring(
-            seconds, int(seconds * MESSAGES_PER_S), int(seconds * MESSAGE_BYTES_PER_S)
-        )
+        self.published = _ring(seconds, MESSAGES_PER_S, MESSAGE_BYTES_PER_S)
+        self.commands = _ring(seconds, MESSAGES_PER_S, MESSAGE_BYTES_PER_S)
         self._events_key = f"{self.base}/events"
         self._pending: list[Trigger] = []
         self._pending_lock = threading.Lock()
@@ -372,3 +365,8 @@ async def _unless(stop: asyncio.Event, awaitable: Any) -> None:
         task.cancel()
     with contextlib.suppress(asyncio.CancelledError):
         await waiting
+
+
+def _ring(seconds: float, entries_per_s: float, bytes_per_s: float) -> Ring:
+    """A ring of the last ``seconds``, bounded by what that many seconds hold at these rates."""
+    return Ring(seconds, int(seconds * entries_per_s), int(seconds * bytes_per_s))

@@ -62,6 +62,7 @@ from busgate.gateway.api.bridge import ZenohBridge, ignored
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.put_reports import not_reset_said
 from busgate.gateway.api.taken import estops_when_taken
+from busgate.gateway.bus.clock import now
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.ros2.bases import BaseTopics
 from busgate.gateway.ros2.commands import Commands, JointRef, Target
@@ -195,7 +196,7 @@ class Ros2Face:
         """The periodic work (rules 2 and 4), on the loop's thread."""
         next_second = 0.0
         while not stop.is_set():
-            moment = time.monotonic()
+            moment = now()
             every_second = moment >= next_second
             if every_second:
                 next_second = moment + EVERY_SECOND_S
@@ -292,7 +293,7 @@ class Ros2Face:
     def _command(self, message: dict[str, Any]) -> None:
         came_under = estops_when_taken(self.api.estops)
         with self._commands_lock:
-            taken = self.commands.take(message, time.monotonic())
+            taken = self.commands.take(message, now())
             self._due.update((t.joint.name, (t, came_under)) for t in taken.targets)
             hand_on = bool(self._due) and not self._handing_on
             self._handing_on |= hand_on
@@ -373,7 +374,7 @@ class Ros2Face:
         """A command's refusal: shown for each joint of this gateway it names, and told in
         one line for those not told so lately (rule 2); one that names none, shown and told
         as such (a name no joint has is ``Commands``' to tell, rule 5)."""
-        moment = time.monotonic()
+        moment = now()
         joints = self._joints_among(names)
         telling: list[str] = []
         for name in joints:

@@ -51,6 +51,7 @@ import zenoh
 from busgate.codecs.ros2 import messages, rmw_zenoh
 from busgate.codecs.ros2.rmw_zenoh import EntityKind, Qos
 from busgate.gateway.api.intake import Intake, backlog_for, take_puts
+from busgate.gateway.bus.clock import now
 from busgate.schemas.validation import shown
 from busgate.schemas.zenoh_session import MAX_RECEIVED
 
@@ -75,7 +76,7 @@ class Hushed:
 
     def warn(self, line: str) -> bool:
         """``line`` told, or held back (``False``)."""
-        moment = time.monotonic()
+        moment = now()
         if moment - self.told_at < self.every_s:
             self.held += 1
             return False

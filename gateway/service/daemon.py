@@ -31,7 +31,6 @@ import gc
 import logging
 import signal
 import threading
-import time
 from collections import deque
 from collections.abc import Mapping
 from functools import partial
@@ -42,7 +41,7 @@ from busgate.gateway import installed_version
 from busgate.gateway.api.commands import GatewayApi
 from busgate.gateway.api.doorbell import Doorbell, Mailbox
 from busgate.gateway.bus.can_options import unknown_interface
-from busgate.gateway.bus.clock import tune_interpreter
+from busgate.gateway.bus.clock import now, tune_interpreter
 from busgate.gateway.bus.port_access import LOCKED, NOT_A_DEVICE, port_problem
 from busgate.gateway.drivers.base import DeviceEvent
 from busgate.gateway.recording.flight import FlightRecorder, Trigger
@@ -308,12 +307,12 @@ async def _session_opened(
         except ConnectError as exc:
             if not (client_mode and exc.unreached):
                 raise
-            now = time.monotonic()
-            waiting_since = waiting_since or now
+            moment = now()
+            waiting_since = waiting_since or moment
             told = f"no router reached at {routers}: trying again every {OPEN_RETRY_S:g} s"
-            if told_at is None or now - told_at >= OPEN_WARN_EVERY_S:  # not a line a try
-                told_at = now
-                log.warning("zenoh: %s (for %.0f s now; %s)", told, now - waiting_since, exc)
+            if told_at is None or moment - told_at >= OPEN_WARN_EVERY_S:  # not a line a try
+                told_at = moment
+                log.warning("zenoh: %s (for %.0f s now; %s)", told, moment - waiting_since, exc)
             notifier.notify(f"EXTEND_TIMEOUT_USEC={int(OPEN_WAIT_S * 1e6)}", f"STATUS={told}")
         if await _stopped_within(stop, OPEN_RETRY_S):
             return False
@@ -347,8 +346,8 @@ class _Opening:
             if ended[0] is None:
                 self._bridge.close()
             return
-        deadline = time.monotonic() + OPEN_ABANDON_WAIT_S
-        while self._thread.is_alive() and time.monotonic() < deadline:
+        deadline = now() + OPEN_ABANDON_WAIT_S
+        while self._thread.is_alive() and now() < deadline:
             await asyncio.sleep(0.01)
 
     def _open(self) -> None:
@@ -399,7 +398,7 @@ async def _routers(bridge: ZenohBridge, stop: asyncio.Event) -> None:
     while not await _stopped_within(stop, ROUTER_CHECK_S):
         reached = bridge.routers() > 0
         if not reached and lost_at is None:
-            lost_at = time.monotonic()
+            lost_at = now()
             log.warning(
                 "zenoh: no router reached at %s any more: no client reaches this gateway until "
                 "one is back (zenoh connects again by itself; the buses go on)",
@@ -409,7 +408,7 @@ async def _routers(bridge: ZenohBridge, stop: asyncio.Event) -> None:
             log.info(
                 "zenoh: a router reached again at %s, after %.0f s without",
                 endpoints,
-                time.monotonic() - lost_at,
+                now() - lost_at,
             )
             lost_at = None
 
@@ -455,10 +454,8 @@ def every_bus_on_schedule(runners: Mapping[str, BusRunner]) -> bool:
 async def _buses_up(runners: dict[str, BusRunner], expected_up: set[str]) -> int:
     """How many buses are open, once those expected up are (or ``FIRST_OPEN_WAIT_S``
     has passed)."""
-    deadline = time.monotonic() + FIRST_OPEN_WAIT_S
-    while (
-        not all(runners[name].owner.is_open for name in expected_up) and time.monotonic() < deadline
-    ):
+    deadline = now() + FIRST_OPEN_WAIT_S
+    while not all(runners[name].owner.is_open for name in expected_up) and now() < deadline:
         await asyncio.sleep(BUS_OPEN_POLL_S)
     return sum(runner.owner.is_open for runner in runners.values())
 
@@ -497,9 +494,7 @@ async def _ready_once_tried(
     notifier.ready(_status_line(config, runners, down))
     if down:
         log.warning("ready with %s down, retrying: %s", _buses(len(down)), _why(down))
-    while not stop.is_set():
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(stop.wait(), STATUS_POLL_S)
+    while not await _stopped_within(stop, STATUS_POLL_S):
         if (now_down := _down(runners)) != down:
             down = now_down
             notifier.status(_status_line(config, runners, down))
