@@ -603,7 +603,7 @@ def test_a_buss_counts_go_on_over_a_new_worker_and_each_restart_is_a_reconnect(
     def beat(frames: int, gap_s: float, up_s: float) -> dict:
         counters = BusCounters(now() - up_s)
         counters.frames_out, counters.smallest_gap_s = frames, gap_s
-        return {"uart0": (True, True, counters.snapshot(now()), None, frozenset())}
+        return {"uart0": link.BusBeat(True, True, counters.snapshot(now()), None, frozenset())}
 
     lone_worker._on_beat(beat(371, 0.0011, 10.0))
     assert runner.statistics().frames_out == 371

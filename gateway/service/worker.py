@@ -285,14 +285,14 @@ class Worker:
             if self._mirror_due.wait(next_beat - now()):
                 done.wait(last_turn + MIRROR_S - now())
 
-    def _beat(self) -> dict[str, tuple]:
+    def _beat(self) -> dict[str, link.BusBeat]:
         return {
-            name: (
-                runner.keeping_schedule(),
-                runner.owner.is_open,
-                runner.statistics(),
-                runner.open_failure,
-                frozenset(d for d in runner.drivers if runner.streams.following(d)),
+            name: link.BusBeat(
+                on_schedule=runner.keeping_schedule(),
+                is_open=runner.owner.is_open,
+                statistics=runner.statistics(),
+                open_failure=runner.open_failure,
+                streaming=frozenset(d for d in runner.drivers if runner.streams.following(d)),
             )
             for name, runner in self.runners.items()
         }

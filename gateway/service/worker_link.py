@@ -32,10 +32,11 @@ import socket
 import threading
 from collections import deque
 from collections.abc import Hashable
-from typing import Any
+from typing import Any, NamedTuple
 
 import busgate.errors as errors_module
 from busgate.gateway.bus.flag import Flag
+from busgate.gateway.bus.stats import BusStats
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,16 @@ BATCH_MAX = 64
 GATHER_S = 0.002
 #: How often a worker says how its bus threads are doing.
 BEAT_S = 0.1
+
+
+class BusBeat(NamedTuple):
+    """What a worker's ``beat`` says of each of its buses (``worker.Worker._beat``)."""
+
+    on_schedule: bool  # its thread keeps its schedule (the watchdog's word)
+    is_open: bool
+    statistics: BusStats
+    open_failure: str | None  # why it is not open
+    streaming: frozenset[str]  # the devices its follow streams and ramps drive
 
 
 class _Target:

@@ -79,10 +79,6 @@ RESTART_MAX_S = 30.0
 #: How long a worker runs past its first word before its end is a worker's end, not a start
 #: that failed (the next wait is ``RESTART_S`` again).
 STEADY_S = 10.0
-#: What a worker's beat says of each of its buses (``worker.Worker._beat``): whether its
-#: thread keeps its schedule, whether it is open (else why not), its statistics, and the
-#: devices its follow streams and ramps drive.
-BusBeat = tuple[bool, bool, BusStats, str | None, frozenset[str]]
 #: A device sent a target this recently may have a stream its worker's last beat did not
 #: name yet (rule 3): longer than a stream stays fresh without one (``tickers.MIN_FRESH_S``).
 RECENT_TARGET_S = 1.0
@@ -173,7 +169,7 @@ class WorkerProcess:
         self.config = config
         self.runners = {shadow.name: WorkerRunner(shadow, self) for shadow in shadows}
         self.on_event = shadows[0].telemetry.on_event  # every bus's: the daemon's events
-        self.beat: dict[str, BusBeat] = {}
+        self.beat: dict[str, link.BusBeat] = {}
         #: How the last worker ended (``None``: none has), its buses' reason to be down until
         #: the next one's first beat says how they are.
         self.ended_because: str | None = None
@@ -249,7 +245,9 @@ class WorkerProcess:
         process = self.process
         if process is None or process.poll() is not None:
             return self._restarting()
-        return not self._silent_too_long(stall_s) and all(beat[0] for beat in self.beat.values())
+        return not self._silent_too_long(stall_s) and all(
+            beat.on_schedule for beat in self.beat.values()
+        )
 
     def _restarting(self) -> bool:
         """The worker ended and its supervisor waits to start it again, due within ``STALL_S``
@@ -448,7 +446,7 @@ class WorkerProcess:
     def _on_plays(self, bus: str, view: Any, ids: dict[str, int]) -> None:
         self.runners[bus].took_plays(view, ids)
 
-    def _on_beat(self, beat: dict[str, BusBeat]) -> None:
+    def _on_beat(self, beat: dict[str, link.BusBeat]) -> None:
         self.beat = beat
         self._first_word.set()
 
@@ -470,7 +468,7 @@ class WorkerProcess:
             last_beat, self.beat = self.beat, {}
             for runner in self.runners.values():
                 beat = last_beat.get(runner.name)
-                runner.count_on(None if beat is None else beat[2])
+                runner.count_on(None if beat is None else beat.statistics)
         if outbox is not None:
             outbox.close()
         code = process.wait()
@@ -490,7 +488,7 @@ class WorkerProcess:
         log.error("worker %d (buses %s) ended: %s", self.index, self.buses, how)
         for runner in self.runners.values():
             beat = last_beat.get(runner.name)
-            runner.worker_ended(self.ended_because, beat[4] if beat else frozenset())
+            runner.worker_ended(self.ended_because, beat.streaming if beat else frozenset())
 
     def _daemon_stops(self, code: int) -> bool:
         """The daemon is stopping, or (the worker ended on a SIGTERM of its own) begins to
@@ -551,14 +549,14 @@ class WorkerRunner:
     @property
     def is_open(self) -> bool:
         beat = self.worker.beat.get(self.name)
-        return beat is not None and beat[1]
+        return beat is not None and beat.is_open
 
     @property
     def open_failure(self) -> str | None:
         """Why the bus is not open, as its worker last said (``BusRunner.open_failure``), or
         how its worker ended, when none has said since."""
         beat = self.worker.beat.get(self.name)
-        return beat[3] if beat is not None else self.worker.ended_because
+        return beat.open_failure if beat is not None else self.worker.ended_because
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
@@ -580,7 +578,7 @@ class WorkerRunner:
         with self.worker._lock:
             beat = self.worker.beat.get(self.name)
             before, restarts = self._before, self._restarts
-        latest = beat[2] if beat is not None else self.counters.snapshot(now())
+        latest = beat.statistics if beat is not None else self.counters.snapshot(now())
         return latest if before is None else carried(before, latest, reconnects=restarts)
 
     def count_on(self, counted: BusStats | None) -> None:
