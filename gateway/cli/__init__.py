@@ -54,7 +54,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "busgate.gateway.cli.record",
         "record the fleet's telemetry to an MCAP file (--info: what a file holds)",
     ),
-    "replay": ("busgate.gateway.cli.record", "publish a recording's telemetry again"),
+    "replay": ("busgate.gateway.cli.replay", "publish a recording's telemetry again"),
     "router": (
         "busgate.gateway.cli.router",
         "run a zenoh router for many gateways (where zenohd is not installed)",
