@@ -42,7 +42,13 @@ from busgate.schemas.base import (
     Name,
 )
 from busgate.schemas.bases import BaseConfig, wheel_problem
-from busgate.schemas.endpoints import Endpoint, ListenEndpoint, clash_at, takes_tcp_port
+from busgate.schemas.endpoints import (
+    Endpoint,
+    ListenEndpoint,
+    ZenohMode,
+    clash_at,
+    takes_tcp_port,
+)
 from busgate.schemas.families import FAMILIES, PROTOCOLS, kinds, protocol_of
 from busgate.schemas.files import FileRefused, read_text
 from busgate.schemas.joints import Joint, JointTable, table_problems, table_warnings
@@ -99,7 +105,7 @@ class GatewaySection(Section):
 
 
 class ZenohSection(Section):
-    mode: Literal["peer", "client", "router"] = "peer"
+    mode: ZenohMode = "peer"
     listen: list[ListenEndpoint] = []
     connect: list[Endpoint] = []
     multicast_scouting: bool = False

@@ -22,10 +22,13 @@ from __future__ import annotations
 import ipaddress
 import re
 from collections.abc import Callable, Sequence
-from typing import Annotated
+from typing import Annotated, Literal, get_args
 
 from pydantic import AfterValidator, Field
 
+#: The modes a zenoh session may have: a gateway's (config) and the router's.
+ZenohMode = Literal["peer", "client", "router"]
+ZENOH_MODES: tuple[str, ...] = get_args(ZenohMode)
 #: The protocols whose endpoints end with ``host:port`` (rule 1).
 NETWORK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 #: Every protocol an endpoint may have: those, and a Unix socket's (rule 2).

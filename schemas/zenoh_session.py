@@ -35,12 +35,12 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from busgate.schemas.endpoints import port_problem, settings_of
+from busgate.schemas.endpoints import ZENOH_MODES, port_problem, settings_of
 
 if TYPE_CHECKING:
     from busgate.schemas.config import ZenohSection
 
-MODES = ("peer", "client", "router")
+MODES = ZENOH_MODES
 #: The largest zenoh config file or CA certificate taken: each is a few KiB, and zenoh reads
 #: whatever it is given whole (``/dev/zero`` without end).
 MAX_FILE_BYTES = 1024 * 1024
