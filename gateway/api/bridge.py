@@ -777,13 +777,16 @@ class ZenohBridge:
             replied.set_result(True)
             for timer in guard:  # answered: the query is not kept for the guard's 10 s
                 timer.cancel()
+            # Dated before the reply goes: what its client does next (an e-stop put at once)
+            # comes later in the flight recorder too, not before it (a race CI met).
+            answered = now()
             try:
                 query.reply(key, message_json(reply))
             finally:
                 query.drop()
                 self.on_latency(now() - asked)
                 if payload is not None:
-                    self.on_command(key, payload, reply, None)
+                    self.on_command(key, payload, reply, answered)
 
         try:
             result = handle()
