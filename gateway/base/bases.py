@@ -63,7 +63,7 @@ from busgate.errors import DeviceTimeoutError, RefusedError
 from busgate.gateway.base.drive import Drive
 from busgate.gateway.base.kinematics import Geometry, Odometry, Twist
 from busgate.gateway.bus.clock import now
-from busgate.gateway.drivers.base import DeviceEvent, Driver, Effect
+from busgate.gateway.drivers.base import READING_DATE_SLACK_S, DeviceEvent, Driver, Effect
 from busgate.gateway.scheduler.outcomes import settled
 from busgate.gateway.scheduler.plays import RAMP_S
 from busgate.gateway.scheduler.runner import BusRunner
@@ -91,10 +91,6 @@ log = logging.getLogger(__name__)
 #: bus threads take the play from their inboxes) before a missing one counts as gone.
 PLAY_TAKEN_S = 0.2
 VELOCITY_MODE_OP: dict[str, Any] = {"op": "set_mode", "mode": "velocity"}
-#: Added to the time between two readings of a wheel before a jump is judged one its drive
-#: cannot make (rule 5): a reading is dated when its bus thread takes it, and two taken in one
-#: look, after a held-up thread, are dated nearly together however far apart they were read.
-READING_DATE_SLACK_S = 0.05
 #: The clients whose last numbered ``stop`` a base keeps (rule 4): past so many, the one that
 #: stopped it longest ago is forgotten (a client naming itself anew at each stop cannot grow
 #: the table).

@@ -35,6 +35,11 @@ FAMILY_PARTS = ("follow_target", "follow_request", "follow_sample", "probe", "se
 
 #: Consecutive unanswered requests after which a device is marked offline.
 OFFLINE_AFTER = 3
+#: Added to the time between two readings of a device before a change between them is judged
+#: one the device cannot make (a wheel's jump, a ZLAC706's counter back at 0): a reading is
+#: dated when its bus thread takes it, and two taken in one look, after a held-up thread, are
+#: dated nearly together however far apart they were read.
+READING_DATE_SLACK_S = 0.05
 
 
 class Effect(enum.IntEnum):

@@ -42,7 +42,7 @@ from typing import Any
 
 from busgate.codecs import zlac706_common as common
 from busgate.errors import CommandError
-from busgate.gateway.drivers.base import Effect
+from busgate.gateway.drivers.base import READING_DATE_SLACK_S, Effect
 
 Mode = common.Mode
 
@@ -86,8 +86,6 @@ RESTORED = frozenset(
 REBOOT_POSITION_JUMP = 65_536
 #: The most a hub motor's counter moves in a second: its 1000 rpm limit.
 _TOP_PULSES_PER_S = common.MAX_SPEED_RPM * common.PULSES_PER_TURN / 60
-#: Added to the time between two reports: each is dated when its bus thread took it.
-_REPORT_DATE_SLACK_S = 0.05
 
 
 def reboot_jump_pulses(elapsed_s: float) -> float:
@@ -95,7 +93,7 @@ def reboot_jump_pulses(elapsed_s: float) -> float:
     0 to be a power-up: further than the motor turns at its limit meanwhile (an audit saw a
     real move home, between heartbeats 500 ms apart, taken for a reboot: the drive's settings
     written again and its next move refused as before enable)."""
-    return max(REBOOT_POSITION_JUMP, _TOP_PULSES_PER_S * (elapsed_s + _REPORT_DATE_SLACK_S))
+    return max(REBOOT_POSITION_JUMP, _TOP_PULSES_PER_S * (elapsed_s + READING_DATE_SLACK_S))
 
 
 @dataclass(frozen=True, slots=True)
