@@ -126,7 +126,7 @@ def run_record(args: argparse.Namespace) -> int:
     try:
         try:
             client = open_client(args, "record")
-        except BaseException as exc:  # no session: the empty file made above goes (rule 6)
+        except BaseException as exc:  # no session: the empty file made above goes (rule 4)
             stream.close()
             output.unlink(missing_ok=True)
             if isinstance(exc, KeyboardInterrupt):
